@@ -1,0 +1,132 @@
+r"""Batched pinhole projection with OpenCV's 5-parameter lens distortion.
+
+Shapes: batch dimensions lead, then the camera axis ``C`` where there is one,
+then the coordinate. Cameras are given as stacked arrays (see ``Rig``):
+``K (C,3,3)``, ``dist (C,5)``, ``R (C,3,3)``, ``t (C,3)`` with
+``X_cam = R X_world + t``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gt3dkit.types import F64
+
+
+def cam_from_world_points(X_world: F64, R: F64, t: F64) -> F64:
+    """Points in every camera's frame.
+
+    Parameters
+    ----------
+    X_world : (..., 3) float64
+    R : (C, 3, 3) float64
+    t : (C, 3) float64
+
+    Returns
+    -------
+    X_cam : (..., C, 3) float64
+    """
+    return np.einsum("cij,...j->...ci", R, X_world) + t
+
+
+def distort(xy_n: F64, dist: F64) -> F64:
+    r"""Apply OpenCV's radial-tangential distortion to normalised coordinates.
+
+    .. math::
+        x' = x (1 + k_1 r^2 + k_2 r^4 + k_3 r^6) + 2 p_1 x y + p_2 (r^2 + 2 x^2)
+
+    Parameters
+    ----------
+    xy_n : (..., C, 2) float64
+        Undistorted normalised coordinates ``(X/Z, Y/Z)``.
+    dist : (C, 5) float64
+        ``k1 k2 p1 p2 k3`` per camera (broadcast against ``xy_n[..., 0]``).
+
+    Returns
+    -------
+    (..., C, 2) float64
+    """
+    x, y = xy_n[..., 0], xy_n[..., 1]
+    k1, k2, p1, p2, k3 = (dist[..., i] for i in range(5))
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return np.stack([xd, yd], axis=-1)
+
+
+def undistort(xy_d: F64, dist: F64, iters: int = 20) -> F64:
+    """Invert :func:`distort` by fixed-point iteration (as ``cv2.undistortPoints``).
+
+    Parameters
+    ----------
+    xy_d : (..., C, 2) float64
+        Distorted normalised coordinates ``K^-1 uv``.
+    dist : (C, 5) float64
+
+    Returns
+    -------
+    (..., C, 2) float64
+    """
+    xy = xy_d.copy()
+    for _ in range(iters):
+        err = distort(xy, dist) - xy_d
+        xy = xy - err
+    return xy
+
+
+def apply_K(xy: F64, K: F64) -> F64:
+    """(..., C, 2) normalised -> pixels with ``K (C,3,3)``."""
+    return np.einsum("cij,...cj->...ci", K[:, :2, :2], xy) + K[:, :2, 2]
+
+
+def unapply_K(uv_px: F64, K: F64) -> F64:
+    """(..., C, 2) pixels -> normalised coordinates (inverse of :func:`apply_K`)."""
+    Kinv = np.linalg.inv(K[:, :2, :2])
+    return np.einsum("cij,...cj->...ci", Kinv, uv_px - K[:, :2, 2])
+
+
+def project_points(X_world: F64, K: F64, dist: F64, R: F64, t: F64) -> tuple[F64, F64]:
+    """Project world points into every camera, with distortion.
+
+    Parameters
+    ----------
+    X_world : (..., 3) float64, metres
+    K, dist, R, t : stacked camera arrays for ``C`` cameras
+
+    Returns
+    -------
+    uv_px : (..., C, 2) float64
+        Distorted pixels; NaN where the point is not in front of the camera.
+    depth : (..., C) float64
+        ``Z`` in the camera frame (metres).
+    """
+    X_cam = cam_from_world_points(X_world, R, t)
+    z = X_cam[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xy = X_cam[..., :2] / z[..., None]
+    uv = apply_K(distort(xy, dist), K)
+    uv = np.where((z > 1e-9)[..., None], uv, np.nan)
+    return uv, z
+
+
+def pixel_rays(uv_px: F64, K: F64, dist: F64, R: F64, t: F64) -> tuple[F64, F64]:
+    """Back-project distorted pixels to world rays.
+
+    Parameters
+    ----------
+    uv_px : (..., C, 2) float64
+
+    Returns
+    -------
+    origin_world : (C, 3) float64
+        Camera centres.
+    dir_world : (..., C, 3) float64
+        Ray directions (unit), pointing out of the camera.
+    """
+    xy = undistort(unapply_K(uv_px, K), dist)
+    d_cam = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], axis=-1)
+    d_world = np.einsum("cji,...cj->...ci", R, d_cam)  # R^T d
+    d_world /= np.linalg.norm(d_world, axis=-1, keepdims=True)
+    origin = -np.einsum("cji,cj->ci", R, t)
+    return origin, d_world

@@ -1,0 +1,142 @@
+r"""The tangent box of a projected ellipsoid, batched, with lens distortion.
+
+An ellipsoid with centre ``c``, body rotation ``R_b`` (``world_from_body``) and
+semi-axes ``s`` has the dual quadric
+
+.. math::
+    Q^* = H \,\mathrm{diag}(s_1^2, s_2^2, s_3^2, -1)\, H^\top,
+    \quad H = \begin{bmatrix} R_b & c \\ 0 & 1 \end{bmatrix}.
+
+Through the normalised camera ``P = [R | t]`` its outline is the dual conic
+``C* = P Q* P^T = M_c - X_c X_c^T`` with ``M_c = R R_b S^2 R_b^T R^T`` and
+``X_c = R c + t`` (Hartley & Zisserman, 2nd ed., eq. 8.5, p. 201). A line ``l`` is
+tangent to the outline iff ``l^T C* l = 0``; for the vertical line ``x = u`` this is
+a quadratic in ``u`` whose two roots are the box's left and right edges (and the
+same for ``y``).
+
+Lens distortion bends the outline, so the extremes of the *distorted* outline are
+not the distorted tangent points. We parametrise the outline ellipse as
+``p(θ) = m + L [cos θ, sin θ]``, start at the closed-form tangent angle and take
+two Newton steps on ``θ`` for the extreme of each distorted pixel coordinate. With
+zero distortion the result is the closed form exactly.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gt3dkit.geom.camera import apply_K, distort
+from gt3dkit.types import F64
+
+# Directions of the four edges: xmin, ymin, xmax, ymax (we maximise dir . uv).
+_EDGE_DIRS = np.array([[-1.0, 0.0], [0.0, -1.0], [1.0, 0.0], [0.0, 1.0]])
+
+
+def outline_ellipse(
+    center_world: F64, semi_axes: F64, world_from_body: F64, R: F64, t: F64
+) -> tuple[F64, F64, F64]:
+    """The projected outline of ellipsoids in normalised image coordinates.
+
+    Parameters
+    ----------
+    center_world : (..., 3) float64, metres
+    semi_axes : (..., 3) float64, metres (> 0)
+    world_from_body : (3, 3) float64, shared by all ellipsoids
+    R, t : (C, 3, 3), (C, 3) ``cam_from_world``
+
+    Returns
+    -------
+    m : (..., C, 2) float64
+        Centre of the outline ellipse (not the projected 3D centre).
+    E : (..., C, 2, 2) float64
+        Shape matrix: outline = ``{m + E^{1/2} u : |u| = 1}``.
+    margin : (..., C) float64
+        ``z_c - sqrt(n^T M_c n)``: positive iff the whole ellipsoid is in front of
+        the camera (metres). ``m`` and ``E`` are NaN where it is not.
+    """
+    Rc = R @ world_from_body  # (C,3,3) cam_from_body
+    X_c = np.einsum("cij,...j->...ci", R, center_world) + t  # (...,C,3)
+    s2 = semi_axes**2
+    # M_c = Rc diag(s2) Rc^T, batched over (..., C)
+    M_c = np.einsum("cik,...k,cjk->...cij", Rc, s2, Rc)
+    Cs = M_c - X_c[..., :, None] * X_c[..., None, :]
+    margin = X_c[..., 2] - np.sqrt(np.maximum(M_c[..., 2, 2], 0.0))
+    ok = margin > 0
+    c33 = np.where(ok, Cs[..., 2, 2], np.nan)
+    m = Cs[..., :2, 2] / c33[..., None]
+    E = m[..., :, None] * m[..., None, :] - Cs[..., :2, :2] / c33[..., None, None]
+    return m, E, margin
+
+
+def ellipsoid_boxes(
+    center_world: F64,
+    semi_axes: F64,
+    world_from_body: F64,
+    K: F64,
+    dist: F64,
+    R: F64,
+    t: F64,
+    newton_steps: int = 2,
+) -> tuple[F64, F64]:
+    """Tight boxes of ellipsoids in every camera's distorted image.
+
+    Parameters
+    ----------
+    center_world : (..., 3) float64, metres
+    semi_axes : (..., 3) float64, metres
+    world_from_body : (3, 3) float64
+    K, dist, R, t : stacked arrays of ``C`` cameras
+    newton_steps : int
+        Refinement steps for distortion (ignored when all ``dist`` are zero).
+
+    Returns
+    -------
+    box_xyxy_px : (..., C, 4) float64
+        ``xmin, ymin, xmax, ymax``; NaN where the ellipsoid is not wholly in front.
+    margin : (..., C) float64
+        See :func:`outline_ellipse`.
+    """
+    m, E, margin = outline_ellipse(center_world, semi_axes, world_from_body, R, t)
+    if not np.any(dist):
+        half = np.sqrt(np.maximum(np.stack([E[..., 0, 0], E[..., 1, 1]], -1), 0.0))
+        lo = apply_K(m - half, K)
+        hi = apply_K(m + half, K)
+        # K with zero skew keeps the axis order; with skew fall through to general path
+        if not np.any(K[:, 0, 1]):
+            return np.concatenate([lo, hi], axis=-1), margin
+    # Cholesky-like factor L with L L^T = E (2x2, closed form), NaN-safe
+    e00 = np.maximum(E[..., 0, 0], 1e-300)
+    l00 = np.sqrt(e00)
+    l10 = E[..., 1, 0] / l00
+    l11 = np.sqrt(np.maximum(E[..., 1, 1] - l10 * l10, 0.0))
+    # edge-direction in pixels -> direction in normalised coords: dir . (A xy) = (A^T dir) . xy
+    A = K[:, :2, :2]  # (C,2,2)
+    g = np.einsum("cji,ej->cei", A, _EDGE_DIRS)  # (C,4,2)
+    # L^T g  -> seed angle per edge
+    gx, gy = g[..., 0], g[..., 1]  # (C,4)
+    ltg0 = l00[..., None] * gx + l10[..., None] * gy  # (...,C,4)
+    ltg1 = l11[..., None] * gy
+    theta = np.arctan2(ltg1, ltg0)
+
+    def value(th: F64) -> F64:
+        u = np.stack([np.cos(th), np.sin(th)], -1)  # (...,C,4,2)
+        p0 = m[..., None, 0] + l00[..., None] * u[..., 0]
+        p1 = m[..., None, 1] + l10[..., None] * u[..., 0] + l11[..., None] * u[..., 1]
+        xy = np.stack([p0, p1], -1)  # (...,C,4,2)
+        # distort: dist per camera, broadcast over the edge axis
+        xy_d = distort(np.moveaxis(xy, -2, 0), dist)  # (4,...,C,2)
+        uv = apply_K(xy_d, K)
+        uv = np.moveaxis(uv, 0, -2)  # (...,C,4,2)
+        return np.einsum("...ei,ei->...e", uv, _EDGE_DIRS)
+
+    if np.any(dist):
+        h = 1e-3
+        for _ in range(newton_steps):
+            f0, fp, fm = value(theta), value(theta + h), value(theta - h)
+            d1 = (fp - fm) / (2 * h)
+            d2 = (fp - 2 * f0 + fm) / (h * h)
+            step = np.where(d2 < 0, -d1 / np.where(d2 < 0, d2, -1.0), 0.0)
+            theta = theta + np.clip(step, -0.5, 0.5)
+    v = value(theta)
+    box = v * np.array([-1.0, -1.0, 1.0, 1.0])
+    return box, margin
