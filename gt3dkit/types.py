@@ -52,6 +52,11 @@ class Camera:
         Rotation ``cam_from_world``.
     t : (3,) float64
         Translation ``cam_from_world``, metres.
+    depth_sign : float
+        +1 for a normal calibration, whose visible points have ``Z_cam > 0``. -1 for a
+        calibration solved in a left-handed world (MultiviewX's Unity export): OpenCV's
+        projection ``K (R X + t) / Z`` still holds, but seen points have ``Z_cam < 0``.
+        Only "in front of the camera" tests and ray directions use it.
     """
 
     name: str
@@ -61,6 +66,7 @@ class Camera:
     dist: F64
     R: F64
     t: F64
+    depth_sign: float = 1.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "K", _arr(self.K, (3, 3), f"camera {self.name}: K"))
@@ -79,6 +85,8 @@ class Camera:
         object.__setattr__(self, "t", _arr(np.reshape(self.t, -1), (3,), f"camera {self.name}: t"))
         if int(self.width) <= 0 or int(self.height) <= 0:
             raise ValueError(f"camera {self.name}: image size must be positive")
+        if self.depth_sign not in (1.0, -1.0):
+            raise ValueError(f"camera {self.name}: depth_sign must be +1 or -1")
         if self.K[0, 0] <= 0 or self.K[1, 1] <= 0 or self.K[2, 2] != 1.0:
             raise ValueError(f"camera {self.name}: K must have positive focal lengths and K[2,2]=1")
 
@@ -137,6 +145,10 @@ class Rig:
     @property
     def t(self) -> F64:
         return np.stack([c.t for c in self.cameras])
+
+    @property
+    def depth_sign(self) -> F64:
+        return np.array([c.depth_sign for c in self.cameras], dtype=np.float64)
 
     @property
     def wh(self) -> F64:

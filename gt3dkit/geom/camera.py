@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from gt3dkit.types import F64
+from typing import NamedTuple
+
+from gt3dkit.types import F64, Rig
 
 
 def cam_from_world_points(X_world: F64, R: F64, t: F64) -> F64:
@@ -46,6 +48,11 @@ def distort(xy_n: F64, dist: F64) -> F64:
     -------
     (..., C, 2) float64
     """
+    with np.errstate(over="ignore", invalid="ignore"):
+        return _distort(xy_n, dist)
+
+
+def _distort(xy_n: F64, dist: F64) -> F64:
     x, y = xy_n[..., 0], xy_n[..., 1]
     k1, k2, p1, p2, k3 = (dist[..., i] for i in range(5))
     r2 = x * x + y * y
@@ -86,7 +93,8 @@ def unapply_K(uv_px: F64, K: F64) -> F64:
     return np.einsum("cij,...cj->...ci", Kinv, uv_px - K[:, :2, 2])
 
 
-def project_points(X_world: F64, K: F64, dist: F64, R: F64, t: F64) -> tuple[F64, F64]:
+def project_points(X_world: F64, K: F64, dist: F64, R: F64, t: F64,
+                   depth_sign: F64 | float = 1.0) -> tuple[F64, F64]:
     """Project world points into every camera, with distortion.
 
     Parameters
@@ -99,18 +107,20 @@ def project_points(X_world: F64, K: F64, dist: F64, R: F64, t: F64) -> tuple[F64
     uv_px : (..., C, 2) float64
         Distorted pixels; NaN where the point is not in front of the camera.
     depth : (..., C) float64
-        ``Z`` in the camera frame (metres).
+        ``depth_sign * Z`` in the camera frame (metres), > 0 in front.
     """
     X_cam = cam_from_world_points(X_world, R, t)
     z = X_cam[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         xy = X_cam[..., :2] / z[..., None]
     uv = apply_K(distort(xy, dist), K)
-    uv = np.where((z > 1e-9)[..., None], uv, np.nan)
-    return uv, z
+    depth = z * depth_sign
+    uv = np.where((depth > 1e-9)[..., None], uv, np.nan)
+    return uv, depth
 
 
-def pixel_rays(uv_px: F64, K: F64, dist: F64, R: F64, t: F64) -> tuple[F64, F64]:
+def pixel_rays(uv_px: F64, K: F64, dist: F64, R: F64, t: F64,
+               depth_sign: F64 | float = 1.0) -> tuple[F64, F64]:
     """Back-project distorted pixels to world rays.
 
     Parameters
@@ -126,7 +136,31 @@ def pixel_rays(uv_px: F64, K: F64, dist: F64, R: F64, t: F64) -> tuple[F64, F64]
     """
     xy = undistort(unapply_K(uv_px, K), dist)
     d_cam = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], axis=-1)
+    d_cam = d_cam * np.asarray(depth_sign)[..., None]
     d_world = np.einsum("cji,...cj->...ci", R, d_cam)  # R^T d
     d_world /= np.linalg.norm(d_world, axis=-1, keepdims=True)
     origin = -np.einsum("cji,cj->ci", R, t)
     return origin, d_world
+
+
+class Cams(NamedTuple):
+    """Stacked arrays of a rig's ``C`` cameras, as the batched functions take them."""
+
+    K: F64  # (C, 3, 3)
+    dist: F64  # (C, 5)
+    R: F64  # (C, 3, 3) cam_from_world
+    t: F64  # (C, 3) metres
+    wh: F64  # (C, 2) pixels
+    world_from_body: F64  # (3, 3), body z = up
+    up: F64  # (3,)
+    depth_sign: F64  # (C,) +1, or -1 for left-handed calibrations (see Camera)
+
+    @classmethod
+    def of(cls, rig: Rig) -> Cams:
+        return cls(rig.K, rig.dist, rig.R, rig.t, rig.wh, rig.world_from_body(), rig.up,
+                   rig.depth_sign)
+
+    def take(self, idx: np.ndarray) -> Cams:
+        """The cameras ``idx`` only (same body frame)."""
+        return Cams(self.K[idx], self.dist[idx], self.R[idx], self.t[idx], self.wh[idx],
+                    self.world_from_body, self.up, self.depth_sign[idx])

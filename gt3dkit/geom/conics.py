@@ -33,7 +33,8 @@ _EDGE_DIRS = np.array([[-1.0, 0.0], [0.0, -1.0], [1.0, 0.0], [0.0, 1.0]])
 
 
 def outline_ellipse(
-    center_world: F64, semi_axes: F64, world_from_body: F64, R: F64, t: F64
+    center_world: F64, semi_axes: F64, world_from_body: F64, R: F64, t: F64,
+    depth_sign: F64 | float = 1.0,
 ) -> tuple[F64, F64, F64]:
     """The projected outline of ellipsoids in normalised image coordinates.
 
@@ -60,7 +61,7 @@ def outline_ellipse(
     # M_c = Rc diag(s2) Rc^T, batched over (..., C)
     M_c = np.einsum("cik,...k,cjk->...cij", Rc, s2, Rc)
     Cs = M_c - X_c[..., :, None] * X_c[..., None, :]
-    margin = X_c[..., 2] - np.sqrt(np.maximum(M_c[..., 2, 2], 0.0))
+    margin = depth_sign * X_c[..., 2] - np.sqrt(np.maximum(M_c[..., 2, 2], 0.0))
     ok = margin > 0
     c33 = np.where(ok, Cs[..., 2, 2], np.nan)
     m = Cs[..., :2, 2] / c33[..., None]
@@ -76,6 +77,7 @@ def ellipsoid_boxes(
     dist: F64,
     R: F64,
     t: F64,
+    depth_sign: F64 | float = 1.0,
     newton_steps: int = 2,
 ) -> tuple[F64, F64]:
     """Tight boxes of ellipsoids in every camera's distorted image.
@@ -86,6 +88,7 @@ def ellipsoid_boxes(
     semi_axes : (..., 3) float64, metres
     world_from_body : (3, 3) float64
     K, dist, R, t : stacked arrays of ``C`` cameras
+    depth_sign : (C,) see :class:`gt3dkit.types.Camera`
     newton_steps : int
         Refinement steps for distortion (ignored when all ``dist`` are zero).
 
@@ -96,7 +99,7 @@ def ellipsoid_boxes(
     margin : (..., C) float64
         See :func:`outline_ellipse`.
     """
-    m, E, margin = outline_ellipse(center_world, semi_axes, world_from_body, R, t)
+    m, E, margin = outline_ellipse(center_world, semi_axes, world_from_body, R, t, depth_sign)
     if not np.any(dist):
         half = np.sqrt(np.maximum(np.stack([E[..., 0, 0], E[..., 1, 1]], -1), 0.0))
         lo = apply_K(m - half, K)

@@ -1,0 +1,205 @@
+r"""Boxes -> ellipsoids without a temporal model.
+
+* :func:`box_model`: the measurement function, ellipsoid parameters -> tangent boxes.
+* :func:`ground_init`: the paper's initialisation (box bottom-centre through the
+  ground-plane homography, averaged over views), with box size for the semi-axes.
+* :func:`fit_boxes`: a batched Levenberg-Marquardt least-squares fit of one
+  ellipsoid (centre, log semi-axes) per object-frame to all its views' boxes: the
+  triangulation baseline for boxes and the UKF's initialisation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from gt3dkit.geom.camera import Cams, pixel_rays
+from gt3dkit.geom.conics import ellipsoid_boxes
+from gt3dkit.types import B8, F64
+
+#: Prior semi-axes (m) for a standing person, used only as a weak regulariser and
+#: for a view with no usable bottom edge.
+PERSON_SEMI_AXES_M = np.array([0.3, 0.3, 0.85])
+
+
+def box_model(center_world: F64, log_axes: F64, cams: Cams) -> F64:
+    """(..., 3) centres and (..., 3) log semi-axes -> (..., C, 4) boxes (px), NaN if behind."""
+    box, _ = ellipsoid_boxes(center_world, np.exp(log_axes), cams.world_from_body, cams.K,
+                             cams.dist, cams.R, cams.t, cams.depth_sign)
+    return box
+
+
+def ground_init(box_z: F64, box_mask: B8, cams: Cams) -> tuple[F64, F64, B8]:
+    """Initial ellipsoids from boxes via the ground plane ``up . X = 0``.
+
+    Each view's box bottom-centre is back-projected and met with the ground (the
+    paper's homography ``K [r1 r2 t]``, generalised to any up vector and to lens
+    distortion); the ground points are averaged. The semi-axes come from the box
+    size at that depth. Views whose bottom edge is clipped fall back to the box
+    centre at the depth a person-sized object would have.
+
+    Parameters
+    ----------
+    box_z : (N, C, 4) boxes, NaN = none; box_mask : (N, C, 4) usable edges
+
+    Returns
+    -------
+    center_world : (N, 3), log_axes : (N, 3), ok : (N,) at least one view was usable
+    """
+    up = cams.up
+    fx, fy = cams.K[:, 0, 0], cams.K[:, 1, 1]
+    has = np.all(np.isfinite(box_z), axis=-1)
+    bz = np.where(has[..., None], box_z, 0.0)
+    w = bz[..., 2] - bz[..., 0]
+    h = bz[..., 3] - bz[..., 1]
+    bottom = np.stack([(bz[..., 0] + bz[..., 2]) / 2, bz[..., 3]], -1)
+    o, d = pixel_rays(bottom, cams.K, cams.dist, cams.R, cams.t, cams.depth_sign)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = -(o @ up)[None, :] / (d @ up)
+    g = o + lam[..., None] * d
+    depth = (np.einsum("cj,...cj->...c", cams.R[:, 2, :], g) + cams.t[:, 2]) * cams.depth_sign
+    ok_g = has & box_mask[..., 3] & (lam > 0) & (depth > 0)
+    half_h = 0.5 * h * depth / fy
+    half_w = 0.5 * w * depth / fx
+    center_g = g + half_h[..., None] * up
+    # fallback: box centre at the depth of a person-sized object
+    mid = np.stack([(bz[..., 0] + bz[..., 2]) / 2, (bz[..., 1] + bz[..., 3]) / 2], -1)
+    o2, d2 = pixel_rays(mid, cams.K, cams.dist, cams.R, cams.t, cams.depth_sign)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dep2 = fy * 2 * PERSON_SEMI_AXES_M[2] / np.maximum(h, 1.0)
+    dz = np.einsum("cj,...cj->...c", cams.R[:, 2, :], d2) * cams.depth_sign
+    center_f = o2 + (dep2 / np.maximum(dz, 1e-6))[..., None] * d2
+    use_g = ok_g.any(axis=1)
+    wts = np.where(use_g[:, None], ok_g, has).astype(np.float64)
+    n = np.maximum(wts.sum(axis=1), 1.0)
+    cen = np.where(use_g[:, None, None], center_g, center_f)
+    center = np.einsum("nc,nci->ni", wts, np.nan_to_num(cen)) / n[:, None]
+    hh = np.where(use_g[:, None], half_h, PERSON_SEMI_AXES_M[2])
+    hw = np.where(use_g[:, None], half_w, PERSON_SEMI_AXES_M[0])
+    c_ax = np.einsum("nc,nc->n", wts, np.nan_to_num(hh)) / n
+    a_ax = np.einsum("nc,nc->n", wts, np.nan_to_num(hw)) / n
+    ok = wts.sum(axis=1) > 0
+    a_ax = np.where(ok & (a_ax > 0.01), a_ax, PERSON_SEMI_AXES_M[0])
+    c_ax = np.where(ok & (c_ax > 0.01), c_ax, PERSON_SEMI_AXES_M[2])
+    log_axes = np.log(np.stack([a_ax, a_ax, c_ax], -1))
+    return center, log_axes, ok
+
+
+@dataclass(frozen=True)
+class BoxFit:
+    """Per-object-frame least-squares ellipsoids.
+
+    center_world : (N, 3) m; log_axes : (N, 3); cov : (N, 6, 6) of (centre, log axes)
+    rss_px2 : (N,) sum of squared edge residuals (px^2); n_edges : (N,) usable edges
+    margin : (N, C) depth margin of the fitted ellipsoid in each camera (m, > 0 = in front)
+    ok : (N,) had at least one box
+    """
+
+    center_world: F64
+    log_axes: F64
+    cov: F64
+    rss_px2: F64
+    n_edges: F64
+    margin: F64
+    ok: B8
+
+
+def _residuals(p: F64, z: F64, mask: B8, cams: Cams, sigma_px: float, prior: F64,
+               prior_sd: float) -> F64:
+    """(..., N, 6) params -> (..., N, C*4 + 3) whitened residuals (NaN if behind a camera)."""
+    box = box_model(p[..., :3], p[..., 3:], cams)
+    r = np.where(mask, (box - z) / sigma_px, 0.0)
+    r = np.where(mask & ~np.isfinite(box), np.nan, r)
+    r = r.reshape(r.shape[:-2] + (-1,))
+    return np.concatenate([r, (p[..., 3:] - prior) / prior_sd], axis=-1)
+
+
+def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: float = 1.0,
+              prior_log_axes: F64 | None = None, prior_sd: float = 1.0,
+              iters: int = 40) -> BoxFit:
+    """Fit one ellipsoid to each object-frame's boxes (batched Levenberg-Marquardt).
+
+    Parameters
+    ----------
+    box_z : (N, C, 4) boxes in distorted pixels (NaN = none)
+    box_mask : (N, C, 4) usable edges
+    sigma_px : edge noise used to scale residuals and covariance
+    prior_log_axes : (3,) weak prior mean of the log semi-axes (default: a person)
+    prior_sd : its standard deviation (log units); keeps one-view fits defined
+    """
+    N = box_z.shape[0]
+    prior = np.log(PERSON_SEMI_AXES_M) if prior_log_axes is None else prior_log_axes
+    c0, la0, ok = ground_init(box_z, box_mask, cams)
+    p = np.concatenate([c0, la0], axis=1)
+    z = np.where(box_mask, box_z, 0.0)
+
+    def res(q: F64, sel: slice | np.ndarray = slice(None)) -> F64:
+        return _residuals(q, z[sel], box_mask[sel], cams, sigma_px, prior, prior_sd)
+
+    def cost_of(r: F64) -> F64:
+        c = np.sum(r * r, axis=-1)
+        return np.where(np.isfinite(c), c, np.inf)
+
+    eps = np.array([1e-5] * 3 + [1e-6] * 3)
+    steps = np.concatenate([np.diag(eps), -np.diag(eps)])  # (12, 6)
+
+    def jac(q: F64, sel: slice | np.ndarray = slice(None)) -> F64:
+        Y = res(q[None] + steps[:, None, :], sel)  # (12, n, M)
+        J = (Y[:6] - Y[6:]) / (2 * eps[:, None, None])
+        return np.moveaxis(J, 0, -1)  # (N, M, 6)
+
+    r = res(p)
+    cost = cost_of(r)
+    lam = np.full(N, 1e-3)
+    active = ok.copy()
+    for _ in range(iters):
+        if not active.any():
+            break
+        idx = np.flatnonzero(active)
+        J = np.nan_to_num(jac(p[idx], idx))
+        A = np.einsum("nmi,nmj->nij", J, J)
+        g = np.einsum("nmi,nm->ni", J, np.nan_to_num(r[idx]))
+        D = np.einsum("nii->ni", A)
+        Areg = A + (lam[idx, None] * D + 1e-12)[:, :, None] * np.eye(6)
+        delta = -np.linalg.solve(Areg, g[..., None])[..., 0]
+        p_new = p[idx] + delta
+        r_new = res(p_new, idx)
+        c_new = cost_of(r_new)
+        better = c_new < cost[idx]
+        bi = idx[better]
+        p[bi], r[bi], cost[bi] = p_new[better], r_new[better], c_new[better]
+        lam[bi] = np.maximum(lam[bi] / 5, 1e-9)
+        lam[idx[~better]] *= 10
+        small = np.max(np.abs(delta), axis=1) < 1e-9
+        done = (better & small) | (lam[idx] > 1e8)
+        active[idx[done]] = False
+    J = np.nan_to_num(jac(p))
+    A = np.einsum("nmi,nmj->nij", J, J) + 1e-12 * np.eye(6)
+    cov = np.linalg.inv(A)
+    n_edges = box_mask.reshape(N, -1).sum(axis=1).astype(np.float64)
+    m = box_mask.reshape(N, -1).shape[1]
+    rss = np.sum(np.nan_to_num(r[:, :m]) ** 2, axis=1) * sigma_px**2
+    _, _, margin = _outline_margin(p, cams)
+    return BoxFit(center_world=p[:, :3], log_axes=p[:, 3:], cov=cov, rss_px2=rss,
+                  n_edges=n_edges, margin=margin, ok=ok)
+
+
+def _outline_margin(p: F64, cams: Cams) -> tuple[F64, F64, F64]:
+    from gt3dkit.geom.conics import outline_ellipse
+
+    return outline_ellipse(p[:, :3], np.exp(p[:, 3:]), cams.world_from_body, cams.R, cams.t,
+                           cams.depth_sign)
+
+
+def auto_sigma_px(fit: BoxFit, min_px: float = 0.1) -> float:
+    """Edge noise from the per-frame fits' residuals, with degrees of freedom.
+
+    ``sigma^2 = sum(rss) / sum(n_edges - 6)`` over object-frames with more edges
+    than parameters. Floored at ``min_px``.
+    """
+    use = fit.ok & (fit.n_edges > 6)
+    dof = float(np.sum(fit.n_edges[use] - 6))
+    if dof < 1:
+        return 1.0
+    return max(float(np.sqrt(np.sum(fit.rss_px2[use]) / dof)), min_px)

@@ -1,0 +1,103 @@
+"""Object-frame rows: the dense, batched form every estimator works on.
+
+An object has a row for every frame of the scene's frame grid from its first to
+its last annotation (also where no camera sees it). Rows are sorted by frame, then
+object, so the rows of one frame are one contiguous slice: a filter steps all
+objects of a frame as one batch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from gt3dkit.types import B8, F64, I64, Scene
+
+
+def usable_edges(box_xyxy_px: F64, wh: F64, clip_tol_px: float) -> B8:
+    """Which box edges carry information.
+
+    An edge within ``clip_tol_px`` of the image border (or beyond it) may have been
+    clipped by the border: it only says the object reaches at least that far, so it
+    is masked.
+
+    Parameters
+    ----------
+    box_xyxy_px : (..., C, 4) float64, NaN = no box
+    wh : (C, 2) image width and height
+
+    Returns
+    -------
+    (..., C, 4) bool
+    """
+    lo = box_xyxy_px[..., :2] > clip_tol_px
+    hi = box_xyxy_px[..., 2:] < (wh - 1.0 - clip_tol_px)
+    return np.concatenate([lo, hi], axis=-1) & np.isfinite(box_xyxy_px)
+
+
+@dataclass(frozen=True)
+class Rows:
+    """Attributes (``R`` rows, ``T`` frames, ``O`` objects, ``C`` cameras, ``J`` joints).
+
+    frames : (T,) frame numbers; obj_ids : (O,) object ids
+    row_t, row_o : (R,) frame index, object index
+    prev_row, next_row : (R,) the same object's row in the previous/next frame, -1 at ends
+    t_start : (T+1,) rows of frame t are ``t_start[t]:t_start[t+1]``
+    box_z : (R, C, 4) boxes (NaN missing); box_mask : (R, C, 4) usable edges
+    kpt_z : (R, C, J, 2) keypoints (NaN missing)
+    obs_row : (R, C) row of ``scene.obs`` or -1
+    """
+
+    frames: I64
+    obj_ids: I64
+    row_t: I64
+    row_o: I64
+    prev_row: I64
+    next_row: I64
+    t_start: I64
+    box_z: F64
+    box_mask: B8
+    kpt_z: F64
+    obs_row: I64
+
+    @property
+    def n_views(self) -> I64:
+        return (self.obs_row >= 0).sum(axis=1)
+
+    def __len__(self) -> int:
+        return len(self.row_t)
+
+
+def build_rows(scene: Scene, clip_tol_px: float = 1.0) -> Rows:
+    obs = scene.obs
+    frames = np.asarray(scene.frames, dtype=np.int64)
+    t_of = np.searchsorted(frames, obs.frame)
+    obj_ids, o_of = np.unique(obs.track_id, return_inverse=True)
+    O, T, C = len(obj_ids), len(frames), len(scene.rig.cameras)
+    first = np.full(O, T, dtype=np.int64)
+    last = np.full(O, -1, dtype=np.int64)
+    np.minimum.at(first, o_of, t_of)
+    np.maximum.at(last, o_of, t_of)
+    alive = (np.arange(T)[:, None] >= first[None, :]) & (np.arange(T)[:, None] <= last[None, :])
+    row_t, row_o = np.nonzero(alive)  # sorted by t then o
+    R = len(row_t)
+    row_of = np.full((T, O), -1, dtype=np.int64)
+    row_of[row_t, row_o] = np.arange(R)
+    prev_row = np.where(row_t > 0, row_of[np.maximum(row_t - 1, 0), row_o], -1)
+    prev_row[row_t == 0] = -1
+    next_row = np.where(row_t < T - 1, row_of[np.minimum(row_t + 1, T - 1), row_o], -1)
+    next_row[row_t == T - 1] = -1
+    t_start = np.searchsorted(row_t, np.arange(T + 1))
+    r_of = row_of[t_of, o_of]
+    J = obs.n_joints
+    box_z = np.full((R, C, 4), np.nan)
+    kpt_z = np.full((R, C, J, 2), np.nan)
+    obs_row = np.full((R, C), -1, dtype=np.int64)
+    box_z[r_of, obs.cam] = obs.box_xyxy_px
+    kpt_z[r_of, obs.cam] = obs.kpt_uv_px
+    obs_row[r_of, obs.cam] = np.arange(len(obs))
+    box_mask = usable_edges(box_z, scene.rig.wh, clip_tol_px)
+    return Rows(frames=frames, obj_ids=obj_ids, row_t=row_t, row_o=row_o, prev_row=prev_row,
+                next_row=next_row, t_start=t_start, box_z=box_z, box_mask=box_mask,
+                kpt_z=kpt_z, obs_row=obs_row)

@@ -1,0 +1,1 @@
+"""Input loaders and atomic output writers."""

@@ -1,0 +1,227 @@
+"""WILDTRACK and MultiviewX: OpenCV XML calibrations + per-frame JSON boxes.
+
+Layouts
+-------
+WILDTRACK
+    ``calibrations/intrinsic_zero/intr_<CAM>.xml``, ``calibrations/extrinsic/extr_<CAM>.xml``
+    (``tvec`` in centimetres), cameras CVLab1-4, IDIAP1-3 = viewNum 0-6, 1920x1080,
+    positionID on a 480 x 1440 grid of 2.5 cm cells starting at (-3 m, -9 m), 10 fps
+    frame numbers.
+MultiviewX
+    ``calibrations/intrinsic/`` and ``tvec`` in metres, Camera1-6 = viewNum 0-5,
+    positionID on a 1000 x 640 grid of 2.5 cm cells starting at (0, 0), 2 fps.
+
+Both: ``annotations_positions/<frame>.json`` = list of
+``{personID, positionID, views: [{viewNum, xmin, ymin, xmax, ymax}]}``; a box of -1s
+means not seen. World z is up, the ground is z = 0. A synthetic scene written by
+``gt3d simulate`` adds ``truth.csv`` (full ellipsoids), which then replaces the
+positionID truth.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from gt3dkit.errors import InputError
+from gt3dkit.io.datasets.common import RowBuilder, sha256
+from gt3dkit.types import Camera, GroundTruth, Rig, Scene
+
+
+@dataclass(frozen=True)
+class GridLayout:
+    name: str
+    cameras: tuple[str, ...]
+    intrinsic_dir: str
+    tvec_to_m: float
+    grid_width: int  # cells along x
+    cell_m: float
+    origin_xy_m: tuple[float, float]
+    fps: float
+    width: int = 1920
+    height: int = 1080
+
+    def position_to_xy(self, pos: np.ndarray) -> np.ndarray:
+        """(N,) positionID -> (N, 2) ground x, y in metres."""
+        pos = np.asarray(pos, dtype=np.int64)
+        x = self.origin_xy_m[0] + self.cell_m * (pos % self.grid_width)
+        y = self.origin_xy_m[1] + self.cell_m * (pos // self.grid_width)
+        return np.stack([x, y], axis=-1).astype(np.float64)
+
+    def xy_to_position(self, xy: np.ndarray) -> np.ndarray:
+        ix = np.rint((xy[..., 0] - self.origin_xy_m[0]) / self.cell_m).astype(np.int64)
+        iy = np.rint((xy[..., 1] - self.origin_xy_m[1]) / self.cell_m).astype(np.int64)
+        return iy * self.grid_width + ix
+
+
+WILDTRACK = GridLayout(
+    name="wildtrack",
+    cameras=("CVLab1", "CVLab2", "CVLab3", "CVLab4", "IDIAP1", "IDIAP2", "IDIAP3"),
+    intrinsic_dir="intrinsic_zero", tvec_to_m=0.01, grid_width=480, cell_m=0.025,
+    origin_xy_m=(-3.0, -9.0), fps=10.0,
+)
+MULTIVIEWX = GridLayout(
+    name="multiviewx",
+    cameras=("Camera1", "Camera2", "Camera3", "Camera4", "Camera5", "Camera6"),
+    intrinsic_dir="intrinsic", tvec_to_m=1.0, grid_width=1000, cell_m=0.025,
+    origin_xy_m=(0.0, 0.0), fps=2.0,
+)
+LAYOUTS = {g.name: g for g in (WILDTRACK, MULTIVIEWX)}
+
+
+def _read_storage(path: Path, keys: tuple[str, ...]) -> list[np.ndarray]:
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except cv2.error as e:
+        msg = str(e).strip().splitlines()[-1] if str(e).strip() else "unreadable"
+        raise InputError(str(path), f"malformed OpenCV XML ({msg})") from None
+    if not fs.isOpened():
+        raise InputError(str(path), "cannot open OpenCV XML file")
+    out = []
+    try:
+        for k in keys:
+            node = fs.getNode(k)
+            m = None if node.empty() else node.mat()
+            if m is None:
+                raise InputError(str(path), f"missing matrix '{k}'")
+            if not np.all(np.isfinite(m)):
+                raise InputError(str(path), f"'{k}' has non-finite values")
+            out.append(np.asarray(m, dtype=np.float64))
+    finally:
+        fs.release()
+    return out
+
+
+def load_camera(root: Path, g: GridLayout, name: str, files: dict[str, str]) -> Camera | None:
+    intr = root / "calibrations" / g.intrinsic_dir / f"intr_{name}.xml"
+    extr = root / "calibrations" / "extrinsic" / f"extr_{name}.xml"
+    if not intr.exists() and not extr.exists():
+        return None
+    for p in (intr, extr):
+        if not p.exists():
+            raise InputError(str(p), f"missing calibration file for camera {name}")
+    K, dist = _read_storage(intr, ("camera_matrix", "distortion_coefficients"))
+    rvec, tvec = _read_storage(extr, ("rvec", "tvec"))
+    if K.shape != (3, 3) or rvec.size != 3 or tvec.size != 3:
+        raise InputError(str(extr), f"camera {name}: expected 3x3 camera_matrix, 3-vector rvec/tvec")
+    R, _ = cv2.Rodrigues(rvec.reshape(3))
+    for p in (intr, extr):
+        files[str(p.relative_to(root))] = sha256(p)
+    t = tvec.reshape(3) * g.tvec_to_m
+    # Chirality: a camera of these ground-plane datasets looks down at the ground, so the
+    # ray through the middle of its bottom image row meets z = 0 in front of it. Where it
+    # only does so for negative depth, the calibration was solved in a left-handed world
+    # (MultiviewX: Unity), and seen points have Z_cam < 0.
+    bottom = np.linalg.solve(K, np.array([K[0, 2], g.height - 1.0, 1.0]))
+    sign = 1.0 if (R.T @ bottom)[2] < 0 else -1.0
+    try:
+        return Camera(name=name, width=g.width, height=g.height, K=K, dist=dist.reshape(-1),
+                      R=R, t=t, depth_sign=sign)
+    except ValueError as e:
+        raise InputError(str(intr), str(e)) from None
+
+
+def load(root: Path, g: GridLayout) -> Scene:
+    """Load a WILDTRACK- or MultiviewX-layout folder into a :class:`Scene`."""
+    root = Path(root)
+    files: dict[str, str] = {}
+    cams = [load_camera(root, g, n, files) for n in g.cameras]
+    ann_dir = root / "annotations_positions"
+    paths = sorted(ann_dir.glob("*.json"))
+    if not paths:
+        raise InputError(str(ann_dir), "no annotation files (*.json)")
+    rb = RowBuilder()
+    truth_rows: list[tuple[int, int, int]] = []
+    for p in paths:
+        try:
+            frame = int(p.stem)
+        except ValueError:
+            raise InputError(str(p), "file name is not a frame number") from None
+        try:
+            people = json.loads(p.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise InputError(str(p), f"malformed JSON ({e})") from None
+        files[str(p.relative_to(root))] = sha256(p)
+        if not isinstance(people, list):
+            raise InputError(str(p), "expected a list of people")
+        for i, person in enumerate(people):
+            where = f"{p}: entry {i}"
+            try:
+                pid = int(person["personID"])
+                pos = int(person["positionID"])
+                views = person["views"]
+            except (KeyError, TypeError, ValueError) as e:
+                raise InputError(where, f"expected personID, positionID and views ({e})") from None
+            where = f"{p}: personID {pid}"
+            truth_rows.append((frame, pid, pos))
+            for v in views:
+                try:
+                    vn = int(v["viewNum"])
+                    box = [float(v[k]) for k in ("xmin", "ymin", "xmax", "ymax")]
+                except (KeyError, TypeError, ValueError) as e:
+                    raise InputError(where, f"malformed view {v!r} ({e})") from None
+                if all(b == -1 for b in box):
+                    continue
+                w = f"{where}, viewNum {vn}"
+                if not 0 <= vn < len(g.cameras):
+                    raise InputError(w, f"unknown camera (viewNum must be 0..{len(g.cameras) - 1})")
+                if cams[vn] is None:
+                    raise InputError(w, f"no calibration for camera {g.cameras[vn]} "
+                                        f"(calibrations/{g.intrinsic_dir}/intr_{g.cameras[vn]}.xml)")
+                rb.add_box(frame, vn, pid, box, w)
+    present = [i for i, c in enumerate(cams) if c is not None]
+    if not present:
+        raise InputError(str(root / "calibrations"), "no camera calibrations found")
+    remap = np.full(len(cams), -1)
+    remap[present] = np.arange(len(present))
+    rig = Rig(tuple(cams[i] for i in present), up=np.array([0.0, 0.0, 1.0]),
+              frame_name=f"{g.name} world (x, y on the ground, z up)")
+    obs = rb.build()
+    obs = type(obs)(obs.frame, remap[obs.cam], obs.track_id, obs.box_xyxy_px, obs.kpt_uv_px,
+                    obs.origin)
+    frames = np.array(sorted({int(p.stem) for p in paths}), dtype=np.int64)
+    truth = _truth_csv(root, files) or _truth_positions(g, truth_rows)
+    return Scene(rig=rig, obs=obs, layout=g.name, fps=g.fps, frames=frames, truth=truth,
+                 files=files, root=str(root))
+
+
+def _truth_positions(g: GridLayout, rows: list[tuple[int, int, int]]) -> GroundTruth:
+    arr = np.array(rows, dtype=np.int64).reshape(-1, 3)
+    xy = g.position_to_xy(arr[:, 2])
+    center = np.concatenate([xy, np.full((len(arr), 1), np.nan)], axis=1)
+    return GroundTruth(frame=arr[:, 0], track_id=arr[:, 1], center_world=center,
+                       semi_axes=np.full((len(arr), 3), np.nan),
+                       kpt_world=np.zeros((len(arr), 0, 3)), source=f"{g.name} positionID grid")
+
+
+TRUTH_COLUMNS = ("frame", "id", "x", "y", "z", "a", "b", "c")
+
+
+def _truth_csv(root: Path, files: dict[str, str]) -> GroundTruth | None:
+    p = root / "truth.csv"
+    if not p.exists():
+        return None
+    return read_truth_csv(p, files, root)
+
+
+def read_truth_csv(p: Path, files: dict[str, str], root: Path) -> GroundTruth:
+    """``truth.csv`` = ``frame,id,x,y,z,a,b,c`` (metres), as written by ``gt3d simulate``."""
+    try:
+        with open(p, newline="") as f:
+            reader = csv.DictReader(f)
+            if reader.fieldnames is None or tuple(reader.fieldnames[:8]) != TRUTH_COLUMNS:
+                raise InputError(str(p), f"expected header {','.join(TRUTH_COLUMNS)}")
+            rows = [(int(r["frame"]), int(r["id"]), *(float(r[k]) for k in TRUTH_COLUMNS[2:]))
+                    for r in reader]
+    except (ValueError, KeyError, TypeError) as e:
+        raise InputError(str(p), f"malformed truth row ({e})") from None
+    files[str(p.relative_to(root))] = sha256(p)
+    a = np.array(rows, dtype=np.float64).reshape(-1, 8)
+    return GroundTruth(frame=a[:, 0].astype(np.int64), track_id=a[:, 1].astype(np.int64),
+                       center_world=a[:, 2:5], semi_axes=a[:, 5:8],
+                       kpt_world=np.zeros((len(a), 0, 3)), source="truth.csv")
