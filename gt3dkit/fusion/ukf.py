@@ -98,9 +98,23 @@ def unscented_transform(Y: F64, w: SigmaWeights) -> tuple[F64, F64]:
 
 
 def ukf_update(
-    x: F64, P: F64, z: F64, mask: F64, R_diag: F64, h: MeasureFn, w: SigmaWeights
+    x: F64, P: F64, z: F64, mask: F64, R_diag: F64, h: MeasureFn, w: SigmaWeights,
+    iterations: int = 1,
 ) -> tuple[F64, F64, dict[str, float | int]]:
-    """One stacked, masked UKF update.
+    r"""One stacked, masked UKF update; iterated by posterior linearisation.
+
+    With ``iterations = 1`` this is the standard UKF update. With more, each pass
+    re-linearises ``h`` by statistical linear regression at the current posterior
+    (the iterated posterior linearisation filter, García-Fernández et al., IEEE TSP
+    2015): sigma points of ``(x_j, P_j)`` give
+
+    .. math::
+        A = P_{xz}^\top P_j^{-1},\quad b = \hat z - A x_j,\quad
+        \Omega = P_{zz} - A P_j A^\top,
+
+    then a Kalman update of the *prior* with ``z = A x + b + e``,
+    ``e ~ N(0, \Omega + R)``. This removes the error of linearising far from the
+    posterior when the prediction is poor (large process noise, first frame).
 
     Parameters
     ----------
@@ -110,50 +124,71 @@ def ukf_update(
         Measurements; any value where ``mask`` is False.
     mask : (B, m) bool
         Which entries are measured.
-    R_diag : (B, m) or (m,)
+    R_diag : (B, m) or (m,) or scalar
         Measurement noise variances.
     h : callable ``(B, S, n) -> (B, S, m)``
 
     Returns
     -------
     x_post : (B, n), P_post : (B, n, n), info : dict
-        ``info`` has ``repaired`` (covariances that needed an eigenvalue repair) and
-        ``nis`` (sum of normalised innovation squared) and ``dof`` (measured entries).
+        ``repaired`` (covariances that needed an eigenvalue repair), ``nis`` (sum of
+        normalised innovation squared of the first pass), ``loglik`` (Gaussian
+        log-likelihood of the measured entries, first pass) and ``dof`` (measured
+        entries).
     """
-    X, repaired = sigma_points(x, P, w)
-    Z = h(X)
-    mask = mask & np.all(np.isfinite(Z), axis=1)
-    Zm = np.where(mask[:, None, :], Z, 0.0)
-    zhat = np.einsum("s,bsm->bm", w.Wm, Zm)
-    dZ = Zm - zhat[:, None, :]
-    dX = X - x[:, None, :]
-    S = np.einsum("s,bsi,bsj->bij", w.Wc, dZ, dZ)
-    m = z.shape[1]
-    R_b = np.broadcast_to(R_diag, z.shape)
+    B, m = z.shape
+    R_b = np.broadcast_to(np.asarray(R_diag, dtype=np.float64), (B, m))
     idx = np.arange(m)
-    S[:, idx, idx] += np.where(mask, R_b, 1.0)
-    Pxz = np.einsum("s,bsi,bsj->bij", w.Wc, dX, dZ)
-    nu = np.where(mask, z - zhat, 0.0)
-    Ls, rep2 = safe_cholesky(S)
-    # K = Pxz S^-1 via two triangular solves on S = Ls Ls^T
-    Kt = np.linalg.solve(np.swapaxes(Ls, -1, -2),
-                         np.linalg.solve(Ls, np.swapaxes(Pxz, -1, -2)))  # (B, m, n) = K^T
-    x_post = x + np.einsum("bmn,bm->bn", Kt, nu)
-    P_post = P - np.einsum("bmi,bmj->bij", Kt, Pxz.swapaxes(-1, -2))
-    P_post = 0.5 * (P_post + np.swapaxes(P_post, -1, -2))
-    white = np.linalg.solve(Ls, nu[..., None])[..., 0]
-    info: dict[str, float | int] = {
-        "repaired": repaired + rep2,
-        "nis": float(np.sum(white**2)),
-        "dof": int(mask.sum()),
-    }
+    xj, Pj = x, P
+    repaired = 0
+    info: dict[str, float | int] = {}
+    for it in range(iterations):
+        X, rep = sigma_points(xj, Pj, w)
+        repaired += rep
+        Z = h(X)
+        mk = mask & np.all(np.isfinite(Z), axis=1)
+        Zm = np.where(mk[:, None, :], Z, 0.0)
+        zhat = np.einsum("s,bsm->bm", w.Wm, Zm)
+        dZ = Zm - zhat[:, None, :]
+        dX = X - xj[:, None, :]
+        Pzz = np.einsum("s,bsi,bsj->bij", w.Wc, dZ, dZ)
+        Pxz = np.einsum("s,bsi,bsj->bij", w.Wc, dX, dZ)
+        if it == 0:
+            S, C, nu = Pzz, Pxz, z - zhat
+        else:
+            # A^T = Pj^-1 Pxz ; Omega = Pzz - A Pj A^T
+            At = np.linalg.solve(Pj, Pxz)  # (B, n, m)
+            Om = Pzz - np.einsum("bni,bnj->bij", Pxz, At)
+            C = np.einsum("bij,bjm->bim", P, At)  # P_prior A^T
+            S = np.einsum("bnm,bnk->bmk", At, C) + Om
+            nu = z - zhat - np.einsum("bnm,bn->bm", At, x - xj)
+        S = S.copy()
+        S[:, idx, idx] += np.where(mk, R_b, 1.0)
+        nu = np.where(mk, nu, 0.0)
+        Ls, rep2 = safe_cholesky(S)
+        repaired += rep2
+        Kt = np.linalg.solve(np.swapaxes(Ls, -1, -2),
+                             np.linalg.solve(Ls, np.swapaxes(C, -1, -2)))  # (B, m, n) = K^T
+        x_post = x + np.einsum("bmn,bm->bn", Kt, nu)
+        P_post = P - np.einsum("bmi,bmj->bij", Kt, np.swapaxes(C, -1, -2))
+        P_post = 0.5 * (P_post + np.swapaxes(P_post, -1, -2))
+        if it == 0:
+            white = np.linalg.solve(Ls, nu[..., None])[..., 0]
+            logdet = 2 * np.sum(np.log(np.einsum("bii->bi", Ls)), axis=1)
+            dof = int(mk.sum())
+            info = {"nis": float(np.sum(white**2)), "dof": dof,
+                    "loglik": float(-0.5 * (np.sum(white**2) + logdet.sum()
+                                            + dof * np.log(2 * np.pi)))}
+        xj, Pj = x_post, P_post
+    info["repaired"] = repaired
     return x_post, P_post, info
 
 
 def predict_linear(x: F64, P: F64, F: F64, Q: F64) -> tuple[F64, F64]:
     """Linear prediction for ``(B, n)``, ``(B, n, n)`` with ``F, Q (B, n, n)`` or ``(n, n)``."""
-    xp = np.einsum("...ij,bj->bi", F, x)
-    Pp = np.einsum("...ij,bjk,...lk->bil", F, P, F) + Q
+    F = np.broadcast_to(F, P.shape)
+    xp = np.einsum("bij,bj->bi", F, x)
+    Pp = np.einsum("bij,bjk,blk->bil", F, P, F) + Q
     return xp, 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
 
 
@@ -169,7 +204,8 @@ def rts_step(
 
     Shapes: means ``(B, n)``, covariances ``(B, n, n)``, ``F`` ``(B, n, n)`` or ``(n, n)``.
     """
-    C = np.einsum("bij,...kj->bik", P_f, F)  # P F^T
+    F = np.broadcast_to(F, P_f.shape)
+    C = np.einsum("bij,bkj->bik", P_f, F)  # P F^T
     G = np.swapaxes(np.linalg.solve(P_p_next, np.swapaxes(C, -1, -2)), -1, -2)
     x_s = x_f + np.einsum("bij,bj->bi", G, x_s_next - x_p_next)
     P_s = P_f + np.einsum("bij,bjk,blk->bil", G, P_s_next - P_p_next, G)

@@ -83,8 +83,12 @@ def undistort(xy_d: F64, dist: F64, iters: int = 20) -> F64:
 
 
 def apply_K(xy: F64, K: F64) -> F64:
-    """(..., C, 2) normalised -> pixels with ``K (C,3,3)``."""
-    return np.einsum("cij,...cj->...ci", K[:, :2, :2], xy) + K[:, :2, 2]
+    """(..., C, 2) normalised -> pixels with ``K (C,3,3)`` (or any shape ``(..., 3, 3)``
+    that broadcasts against ``xy[..., 0]``)."""
+    x, y = xy[..., 0], xy[..., 1]
+    u = K[..., 0, 0] * x + K[..., 0, 1] * y + K[..., 0, 2]
+    v = K[..., 1, 1] * y + K[..., 1, 2]
+    return np.stack([u, v], axis=-1)
 
 
 def unapply_K(uv_px: F64, K: F64) -> F64:

@@ -126,11 +126,8 @@ def ellipsoid_boxes(
         p0 = m[..., None, 0] + l00[..., None] * u[..., 0]
         p1 = m[..., None, 1] + l10[..., None] * u[..., 0] + l11[..., None] * u[..., 1]
         xy = np.stack([p0, p1], -1)  # (...,C,4,2)
-        # distort: dist per camera, broadcast over the edge axis
-        xy_d = distort(np.moveaxis(xy, -2, 0), dist)  # (4,...,C,2)
-        uv = apply_K(xy_d, K)
-        uv = np.moveaxis(uv, 0, -2)  # (...,C,4,2)
-        return np.einsum("...ei,ei->...e", uv, _EDGE_DIRS)
+        uv = apply_K(distort(xy, dist[:, None, :]), K[:, None])  # per camera, over edges
+        return uv[..., 0] * _EDGE_DIRS[:, 0] + uv[..., 1] * _EDGE_DIRS[:, 1]
 
     if np.any(dist):
         h = 1e-3

@@ -11,6 +11,9 @@ MultiviewX
     ``calibrations/intrinsic/`` and ``tvec`` in metres, Camera1-6 = viewNum 0-5,
     positionID on a 1000 x 640 grid of 2.5 cm cells starting at (0, 0), 2 fps.
 
+MultiviewX's box edges were truncated to integers by its generator; the loader
+adds half a pixel (away from zero) to undo that bias (see ``MULTIVIEWX``).
+
 Both: ``annotations_positions/<frame>.json`` = list of
 ``{personID, positionID, views: [{viewNum, xmin, ymin, xmax, ymax}]}``; a box of -1s
 means not seen. World z is up, the ground is z = 0. A synthetic scene written by
@@ -43,6 +46,7 @@ class GridLayout:
     cell_m: float
     origin_xy_m: tuple[float, float]
     fps: float
+    truncated_px: bool = False
     width: int = 1920
     height: int = 1080
 
@@ -70,6 +74,9 @@ MULTIVIEWX = GridLayout(
     cameras=("Camera1", "Camera2", "Camera3", "Camera4", "Camera5", "Camera6"),
     intrinsic_dir="intrinsic", tvec_to_m=1.0, grid_width=1000, cell_m=0.025,
     origin_xy_m=(0.0, 0.0), fps=2.0,
+    # MultiviewX's generatePOM.py stores projected box edges with ``astype(int)``, which
+    # truncates towards zero: the edge lies in [v, v+1) (v >= 0), so v + 0.5 is unbiased.
+    truncated_px=True,
 )
 LAYOUTS = {g.name: g for g in (WILDTRACK, MULTIVIEWX)}
 
@@ -168,6 +175,8 @@ def load(root: Path, g: GridLayout) -> Scene:
                 if all(b == -1 for b in box):
                     continue
                 w = f"{where}, viewNum {vn}"
+                if g.truncated_px:
+                    box = [b + (0.5 if b >= 0 else -0.5) for b in box]
                 if not 0 <= vn < len(g.cameras):
                     raise InputError(w, f"unknown camera (viewNum must be 0..{len(g.cameras) - 1})")
                 if cams[vn] is None:
