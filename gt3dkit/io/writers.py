@@ -1,0 +1,105 @@
+"""``tracks.csv`` and ``meta.json``, written atomically; and reading ``tracks.csv`` back."""
+
+from __future__ import annotations
+
+import csv
+import datetime as _dt
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gt3dkit import __version__
+from gt3dkit.errors import InputError
+from gt3dkit.io.atomic import write_dir_atomically
+from gt3dkit.types import Scene, TrackSet
+
+TRACK_COLUMNS = ("frame", "id", "x", "y", "z", "a", "b", "c", "sx", "sy", "sz")
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, np.generic):
+        return x.item()
+    return x
+
+
+def meta_of(scene: Scene, tracks: TrackSet) -> dict[str, Any]:
+    """What ``meta.json`` says: frame, axes, units, estimator, input and counts."""
+    up = scene.rig.up
+    wfb = scene.rig.world_from_body()
+    return {
+        "gt3dkit_version": __version__,
+        "created_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "frame": {
+            "name": scene.rig.frame_name,
+            "up": up.tolist(),
+            "units": "m",
+            "centre": "x, y, z: ellipsoid centre in the input's world frame",
+            "semi_axes": {"a": wfb[:, 0].tolist(), "b": wfb[:, 1].tolist(), "c": wfb[:, 2].tolist(),
+                          "note": "directions in the world frame; c is along up"},
+            "sd": "sx, sy, sz: marginal standard deviation of the centre along world x, y, z",
+        },
+        "estimator": _jsonable(tracks.info),
+        "input": {"root": scene.root, "layout": scene.layout, "fps": scene.fps,
+                  "cameras": scene.rig.names, "files_sha256": scene.files},
+        "counts": {
+            "objects": int(len(np.unique(tracks.track_id))),
+            "frames": int(len(np.unique(tracks.frame))),
+            "rows": int(len(tracks)),
+            "rows_seen_by_0_views": int(np.sum(tracks.n_views == 0)),
+            "rows_seen_by_1_view": int(np.sum(tracks.n_views == 1)),
+            "annotations": int(len(scene.obs)),
+        },
+    }
+
+
+def write_tracks_csv(path: Path, tracks: TrackSet) -> None:
+    a = np.column_stack([tracks.center_world, tracks.semi_axes, tracks.center_sd])
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(TRACK_COLUMNS)
+        for i in range(len(tracks)):
+            w.writerow([int(tracks.frame[i]), int(tracks.track_id[i]),
+                        *(f"{v:.6f}" for v in a[i])])
+
+
+def write_outputs(out: Path, scene: Scene, tracks: TrackSet,
+                  extra_meta: dict[str, Any] | None = None) -> None:
+    """Write ``OUT/tracks.csv`` and ``OUT/meta.json`` (all or nothing)."""
+    meta = meta_of(scene, tracks)
+    if extra_meta:
+        meta.update(_jsonable(extra_meta))
+
+    def write(tmp: Path) -> None:
+        write_tracks_csv(tmp / "tracks.csv", tracks)
+        (tmp / "meta.json").write_text(json.dumps(meta, indent=2, allow_nan=False,
+                                                  default=_jsonable))
+
+    write_dir_atomically(Path(out), write)
+
+
+def read_tracks_csv(path: Path) -> TrackSet:
+    """Read a ``tracks.csv`` written by :func:`write_tracks_csv`."""
+    path = Path(path)
+    try:
+        with open(path, newline="") as f:
+            r = csv.reader(f)
+            header = next(r, None)
+            if header is None or tuple(header[: len(TRACK_COLUMNS)]) != TRACK_COLUMNS:
+                raise InputError(str(path), f"expected header {','.join(TRACK_COLUMNS)}")
+            rows = [[float(x) for x in row[: len(TRACK_COLUMNS)]] for row in r if row]
+    except (OSError, ValueError) as e:
+        raise InputError(str(path), f"cannot read tracks ({e})") from None
+    a = np.array(rows, dtype=np.float64).reshape(-1, len(TRACK_COLUMNS))
+    n = len(a)
+    return TrackSet(frame=a[:, 0].astype(np.int64), track_id=a[:, 1].astype(np.int64),
+                    center_world=a[:, 2:5], semi_axes=a[:, 5:8], center_sd=a[:, 8:11],
+                    n_views=np.full(n, -1, dtype=np.int64), kpt_world=np.zeros((n, 0, 3)),
+                    kpt_sd=np.zeros((n, 0)), info={"source": str(path)})
