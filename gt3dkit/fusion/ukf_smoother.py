@@ -41,7 +41,8 @@ class UKFConfig:
     accel_sd : white-acceleration noise of the centre, m/s^2/sqrt(Hz); ``None`` = the
         value of ``accel_grid`` with the highest forward-pass likelihood of the data
     vertical_ratio : the vertical acceleration noise is this times ``accel_sd``
-    shape_sd : random-walk noise of the log semi-axes, 1/sqrt(s)
+    shape_sd : random-walk noise of the log semi-axes, 1/sqrt(s); ``None`` = chosen with
+        ``accel_sd`` by likelihood from ``shape_grid``
     init_pos_sd_m, init_vel_sd_mps, init_shape_sd : initial standard deviations
     clip_tol_px : edges this close to the image border count as clipped
     smooth : run the backward RTS pass
@@ -51,7 +52,8 @@ class UKFConfig:
     accel_sd: float | None = None
     accel_grid: tuple[float, ...] = (0.03, 0.1, 0.3, 1.0, 3.0)
     vertical_ratio: float = 0.1
-    shape_sd: float = 0.0002
+    shape_sd: float | None = None
+    shape_grid: tuple[float, ...] = (0.0002, 0.005, 0.05)
     init_pos_sd_m: float = 0.05
     init_vel_sd_mps: float = 1.5
     init_shape_sd: float = 0.1
@@ -100,15 +102,23 @@ class UKFSmoother:
         check_in_front(scene, rows, fit)
         sigma = cfg.sigma_px if cfg.sigma_px is not None else auto_sigma_px(fit)
         layout = StateLayout(0)
-        loglik: dict[float, float] = {}
-        if cfg.accel_sd is None:
-            for q in cfg.accel_grid:
-                trial = replace(cfg, accel_sd=q, smooth=False)
-                loglik[q] = run_filter(rows, cams, fit, layout, trial, sigma, scene.fps)[2]["loglik"]
-            cfg = replace(cfg, accel_sd=max(loglik, key=lambda q: loglik[q]))
+        loglik: dict[tuple[float, float], float] = {}
+        qs = cfg.accel_grid if cfg.accel_sd is None else (cfg.accel_sd,)
+        ss = cfg.shape_grid if cfg.shape_sd is None else (cfg.shape_sd,)
+        if len(qs) * len(ss) > 1:
+            for q in qs:
+                for sh in ss:
+                    trial = replace(cfg, accel_sd=q, shape_sd=sh, smooth=False, iterations=1)
+                    loglik[(q, sh)] = run_filter(rows, cams, fit, layout, trial, sigma,
+                                                 scene.fps)[2]["loglik"]
+            q, sh = max(loglik, key=lambda k: loglik[k])
+            cfg = replace(cfg, accel_sd=q, shape_sd=sh)
+        else:
+            cfg = replace(cfg, accel_sd=qs[0], shape_sd=ss[0])
         x_s, P_s, info = run_filter(rows, cams, fit, layout, cfg, sigma, scene.fps)
         if loglik:
-            info["accel_sd_loglik"] = {str(k): v for k, v in loglik.items()}
+            info["noise_loglik"] = [{"accel_sd": k[0], "shape_sd": k[1], "loglik": v}
+                                    for k, v in loglik.items()]
         centre = x_s[:, layout.center]
         sd = np.sqrt(np.einsum("rii->ri", P_s[:, :3, :3]))
         info.update({
@@ -116,7 +126,7 @@ class UKFSmoother:
             "params": {**asdict(cfg), "sigma_px": sigma, "fps": scene.fps},
             "sigma_px_source": ("given" if self.config.sigma_px is not None
                                 else "per-frame fit residuals"),
-            "accel_sd_source": "given" if self.config.accel_sd is not None else "max likelihood",
+            "noise_source": "max likelihood over the grids" if loglik else "given",
             "seconds": time.perf_counter() - t0,
         })
         return TrackSet(
@@ -130,9 +140,9 @@ def run_filter(rows: Rows, cams: Cams, fit: BoxFit, layout: StateLayout, cfg: UK
                sigma_px: float, fps: float) -> tuple[F64, F64, dict[str, Any]]:
     """Forward UKF over the frame grid, then (optionally) RTS. Returns ``(R, n)``, ``(R, n, n)``."""
     n, R, C = layout.n, len(rows), len(cams.K)
-    if cfg.accel_sd is None:
-        raise ValueError("run_filter needs a numeric accel_sd")
-    accel = cfg.accel_sd
+    if cfg.accel_sd is None or cfg.shape_sd is None:
+        raise ValueError("run_filter needs numeric accel_sd and shape_sd")
+    accel, shape_sd = cfg.accel_sd, cfg.shape_sd
     w = SigmaWeights(n, cfg.alpha, cfg.beta, cfg.kappa)
     x_p = np.zeros((R, n))
     P_p = np.zeros((R, n, n))
@@ -158,7 +168,7 @@ def run_filter(rows: Rows, cams: Cams, fit: BoxFit, layout: StateLayout, cfg: UK
         if (~new).any():
             ro, po = r[~new], prev[~new]
             dt = frame_s[t] - frame_s[rows.row_t[po]]
-            F, Q = layout.transition(dt, accel, cfg.shape_sd, up=cams.up,
+            F, Q = layout.transition(dt, accel, shape_sd, up=cams.up,
                                      vertical_ratio=cfg.vertical_ratio)
             x_p[ro], P_p[ro] = predict_linear(x_f[po], P_f[po], F, Q)
         z = np.where(m_all[r], z_all[r], 0.0)
@@ -184,7 +194,7 @@ def run_filter(rows: Rows, cams: Cams, fit: BoxFit, layout: StateLayout, cfg: UK
                 continue
             nr = rows.next_row[r]
             dt = np.full(len(r), frame_s[t + 1] - frame_s[t])
-            F, _ = layout.transition(dt, accel, cfg.shape_sd)
+            F, _ = layout.transition(dt, accel, shape_sd)
             x_s[r], P_s[r] = rts_step(x_f[r], P_f[r], x_p[nr], P_p[nr], x_s[nr], P_s[nr], F)
     info: dict[str, Any] = {
         "pd_repairs": stats["repaired"],

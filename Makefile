@@ -1,0 +1,38 @@
+# make setup: apt packages (open3d's off-screen rendering libraries, python3-venv), a .venv,
+#             and the package with its dev extra. Idempotent: re-runs only when pyproject.toml changes.
+# make demo:  reconstruct the bundled real MultiviewX subset and print its errors.
+# make test:  the test suite (benchmarks excluded; see make bench).
+VENV ?= .venv
+PY := $(VENV)/bin/python
+APT_PKGS := python3-venv libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libegl1 libgl1 libgomp1
+
+.PHONY: setup demo test bench lint clean
+
+setup: $(VENV)/.installed
+
+$(VENV)/.installed: pyproject.toml
+	@missing=""; for p in $(APT_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing apt packages:$$missing"; \
+	  SUDO=""; [ "$$(id -u)" -eq 0 ] || SUDO=sudo; \
+	  $$SUDO apt-get update -qq && $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing; \
+	fi
+	@test -x $(PY) || python3 -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e ".[dev]"
+	@touch $@
+
+demo: setup
+	$(VENV)/bin/gt3d demo --out out/demo
+
+test: setup
+	$(PY) -m pytest -q
+
+bench: setup
+	$(PY) scripts/box_targets.py
+
+lint: setup
+	$(VENV)/bin/ruff check gt3dkit tests scripts
+
+clean:
+	rm -rf out .pytest_cache

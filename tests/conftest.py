@@ -1,0 +1,22 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from gt3dkit.cli import bundled
+from gt3dkit.io.datasets import load_scene
+from gt3dkit.types import Scene
+
+from .scenes import SMALL, written_scene
+
+
+@pytest.fixture(scope="session")
+def multiviewx() -> Scene:
+    return load_scene(bundled("multiviewx"))
+
+
+@pytest.fixture(scope="session")
+def small_native(tmp_path_factory: pytest.TempPathFactory):
+    root = Path(tmp_path_factory.mktemp("small_native"))
+    return written_scene(root, "native", **SMALL)
