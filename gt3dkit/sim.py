@@ -208,7 +208,7 @@ def _write_grid(sim: SimScene, tmp: Path, g: GridLayout) -> None:
             for c in range(len(sim.rig.cameras)):
                 b = sim.boxes[i, c]
                 vals = [-1, -1, -1, -1] if not np.all(np.isfinite(b)) else [int(v) for v in b]
-                views.append(dict(zip(("viewNum", "xmin", "ymin", "xmax", "ymax"), [c, *vals])))
+                views.append(dict(zip(("viewNum", "xmin", "ymin", "xmax", "ymax"), [c, *vals], strict=True)))
             people.append({"personID": int(sim.truth_id[i]), "positionID": int(pos[i]),
                            "views": views})
         (ann / f"{int(f):0{width}d}.json").write_text(json.dumps(people, indent=1))

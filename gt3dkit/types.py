@@ -26,7 +26,7 @@ B8 = npt.NDArray[np.bool_]
 
 def _arr(x: Any, shape: tuple[int | None, ...], name: str, *, finite: bool = True) -> F64:
     a = np.asarray(x, dtype=np.float64)
-    if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):
+    if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape, strict=True)):
         want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
         raise ValueError(f"expected {name} of shape {want}, got {a.shape}")
     if finite and not np.all(np.isfinite(a)):

@@ -24,9 +24,9 @@ from gt3dkit.types import F64, GroundTruth, TrackSet
 
 def match_rows(tracks: TrackSet, truth: GroundTruth) -> tuple[np.ndarray, np.ndarray]:
     """Indices ``(i_track, i_truth)`` of rows with the same (frame, id)."""
-    key_t = {(int(f), int(i)): k for k, (f, i) in enumerate(zip(truth.frame, truth.track_id))}
+    key_t = {(int(f), int(i)): k for k, (f, i) in enumerate(zip(truth.frame, truth.track_id, strict=True))}
     pairs = [(k, key_t[(int(f), int(i))]) for k, (f, i) in
-             enumerate(zip(tracks.frame, tracks.track_id)) if (int(f), int(i)) in key_t]
+             enumerate(zip(tracks.frame, tracks.track_id, strict=True)) if (int(f), int(i)) in key_t]
     if not pairs:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     a = np.array(pairs, dtype=np.int64)

@@ -8,9 +8,9 @@ then the coordinate. Cameras are given as stacked arrays (see ``Rig``):
 
 from __future__ import annotations
 
-import numpy as np
-
 from typing import NamedTuple
+
+import numpy as np
 
 from gt3dkit.types import F64, Rig
 

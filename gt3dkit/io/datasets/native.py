@@ -79,7 +79,7 @@ def read_csv_rows(path: Path, columns: tuple[str, ...]) -> list[tuple[int, dict[
                 if len(row) < len(columns):
                     raise InputError(f"{path}: line {line}",
                                      f"expected {len(columns)} fields, got {len(row)}")
-                out.append((line, dict(zip(columns, (x.strip() for x in row)))))
+                out.append((line, dict(zip(columns, (x.strip() for x in row), strict=False))))
             return out
     except UnicodeDecodeError as e:
         raise InputError(str(path), f"not a text CSV file ({e})") from None

@@ -84,8 +84,11 @@ LAYOUTS = {g.name: g for g in (WILDTRACK, MULTIVIEWX)}
 def _read_storage(path: Path, keys: tuple[str, ...]) -> list[np.ndarray]:
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as e:
-        msg = str(e).strip().splitlines()[-1] if str(e).strip() else "unreadable"
+    except (cv2.error, SystemError) as e:
+        # OpenCV raises cv2.error, or a SystemError wrapping it, for a parse failure
+        cause = e.__cause__ or e.__context__ or e
+        lines = str(cause).strip().splitlines()
+        msg = lines[-1].strip() if lines else "unreadable"
         raise InputError(str(path), f"malformed OpenCV XML ({msg})") from None
     if not fs.isOpened():
         raise InputError(str(path), "cannot open OpenCV XML file")
