@@ -14,7 +14,8 @@ import numpy as np
 from gt3dkit.errors import InputError
 
 #: Published numbers of Ma et al. for the datasets we can compare on.
-PAPER = {"multiviewx": {"MOTA": 96.5, "OSPA2_m": 0.17}, "wildtrack": {"MOTA": 98.7, "OSPA2_m": 0.10}}
+PAPER = {"multiviewx": {"MOTA": 96.5, "OSPA2_m": 0.17}, "wildtrack": {"MOTA": 98.7, "OSPA2_m": 0.10},
+         "panoptic": {"MPJPE_mm": (6.1, 14.7)}}
 
 
 def bundled(name: str) -> Path:
@@ -31,13 +32,25 @@ def _estimator_config(args: argparse.Namespace) -> dict[str, Any]:
             cfg["accel_sd"] = args.accel_sd
         if args.no_smooth:
             cfg["smooth"] = False
+        if getattr(args, "no_bones", False):
+            cfg["bones"] = False
     return cfg
 
 
 def _load(args: argparse.Namespace) -> Any:
-    from gt3dkit.io.datasets import load_scene
+    from gt3dkit.io.datasets import detect_layout, load_scene
 
-    scene = load_scene(Path(args.input), args.layout)
+    layout = args.layout or detect_layout(Path(args.input))
+    opts: dict[str, Any] = {}
+    if layout == "panoptic":
+        if args.cameras:
+            opts["cameras"] = [c.strip() for c in args.cameras.split(",") if c.strip()]
+        opts["noise_px"], opts["seed"] = args.noise_px, args.seed
+        if not args.noise_px >= 0:
+            raise InputError("--noise-px", f"must be >= 0, got {args.noise_px}")
+    elif args.cameras or args.noise_px:
+        raise InputError("--cameras/--noise-px", "apply to CMU Panoptic inputs only")
+    scene = load_scene(Path(args.input), layout, args.skeleton, **opts)
     if getattr(args, "fps", None) is not None:
         if not args.fps > 0:
             raise InputError("--fps", f"must be positive, got {args.fps}")
@@ -50,34 +63,79 @@ def error_table(rows: list[tuple[str, Any]]) -> str:
     head = (f"{'estimator':<14}{'rows':>6}{'cover%':>8}{'ground mm':>11}{'median mm':>11}"
             f"{'centre mm':>11}{'height mm':>11}{'radius mm':>11}{'MOTA%':>8}{'IDF1%':>8}")
     lines = [head, "-" * len(head)]
+    def mm(v: float) -> str:
+        return f"{1000 * v:>11.2f}" if np.isfinite(v) else f"{'-':>11}"
+
     for name, e in rows:
         lines.append(f"{name:<14}{e.rows_matched:>6}{100 * e.coverage:>8.1f}"
-                     f"{1000 * e.ground_mean_m:>11.2f}{1000 * e.ground_median_m:>11.2f}"
-                     f"{1000 * e.centre_mean_m:>11.2f}{1000 * e.height_mean_m:>11.2f}"
-                     f"{1000 * e.radius_mean_m:>11.2f}{100 * e.mota:>8.1f}{100 * e.idf1:>8.1f}")
+                     f"{mm(e.ground_mean_m)}{mm(e.ground_median_m)}{mm(e.centre_mean_m)}"
+                     f"{mm(e.height_mean_m)}{mm(e.radius_mean_m)}{100 * e.mota:>8.1f}"
+                     f"{100 * e.idf1:>8.1f}")
     return "\n".join(lines)
+
+
+def pose_table(rows: list[tuple[str, Any, float]]) -> str:
+    """Fixed-width table of (name, PoseScores, MPJPE by id in mm)."""
+    head = (f"{'estimator':<26}{'AP@25':>7}{'AP@50':>7}{'AP@100':>8}{'AP@150':>8}"
+            f"{'Rec@500':>9}{'MPJPE mm':>11}{'by id mm':>10}")
+    lines = [head, "-" * len(head)]
+    for name, p, by_id in rows:
+        lines.append(f"{name:<26}{100 * p.ap[25]:>7.1f}{100 * p.ap[50]:>7.1f}"
+                     f"{100 * p.ap[100]:>8.1f}{100 * p.ap[150]:>8.1f}{100 * p.recall_500:>9.1f}"
+                     f"{p.mpjpe_mm:>11.4f}{by_id:>10.4f}")
+    return "\n".join(lines)
+
+
+def report_truth(scene: Any, tracks: Any, name: str) -> None:
+    """Print errors against the input's truth: boxes/positions and/or keypoints."""
+    from gt3dkit.eval.metrics import box_errors
+    from gt3dkit.eval.pose import mpjpe_by_id, score_tracks
+
+    if scene.truth is None:
+        return
+    print(f"against {scene.truth.source}:")
+    if np.isfinite(scene.truth.center_world).any():
+        print(error_table([(name, box_errors(tracks, scene.truth, scene.rig.up))]))
+    if scene.truth.kpt_world.shape[1] and tracks.kpt_world.shape[1]:
+        sets = [("all joints", None)]
+        if scene.skeleton == "coco19":
+            sets.append(("15 body joints", np.arange(15)))
+        print(pose_table([(f"{name}, {label}", score_tracks(tracks, scene.truth, j),
+                           mpjpe_by_id(tracks, scene.truth, j)[0]) for label, j in sets]))
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from gt3dkit.api import reconstruct
-    from gt3dkit.eval.metrics import box_errors
 
     scene = _load(args)
     tracks = reconstruct(scene, args.estimator, out=args.out, **_estimator_config(args))
     info = tracks.info
-    print(f"{scene.layout}: {len(scene.obs)} annotations, {len(scene.rig.cameras)} cameras -> "
-          f"{len(tracks)} object-frames of {len(set(tracks.track_id.tolist()))} objects "
+    kinds = " + ".join(k for k, v in (("boxes", scene.obs.has_box.any()),
+                                      (f"{scene.skeleton} keypoints", scene.obs.n_joints > 0)) if v)
+    print(f"{scene.layout}: {len(scene.obs)} annotation rows ({kinds}), {len(scene.rig.cameras)} "
+          f"cameras -> {len(tracks)} object-frames of {len(set(tracks.track_id.tolist()))} objects "
           f"({args.estimator}, {info.get('seconds', 0):.2f} s) written to {args.out}")
-    if scene.truth is not None:
-        e = box_errors(tracks, scene.truth, scene.rig.up)
-        print(f"against {scene.truth.source}:")
-        print(error_table([(args.estimator, e)]))
+    report_truth(scene, tracks, args.estimator)
     return 0
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from gt3dkit.sim import simulate, write_scene
+    from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
 
+    if args.kind == "skeleton":
+        try:
+            sk = simulate_skeletons(args.layout, seed=args.seed, frames=args.frames,
+                                    people=args.people, noise_px=args.noise_px,
+                                    missing=args.missing, cameras=args.cameras,
+                                    skeleton=args.skeleton)
+        except ValueError as e:
+            raise InputError("simulate", str(e)) from None
+        write_skeleton_scene(sk, Path(args.out), args.layout)
+        print(f"wrote {args.layout} skeleton scene to {args.out}: {args.cameras} cameras, "
+              f"{args.frames} frames, {args.people} people ({args.skeleton}), y-down world")
+        return 0
+    if args.layout == "panoptic":
+        raise InputError("simulate", "box scenes are native, wildtrack or multiviewx")
     try:
         sim = simulate(args.layout, seed=args.seed, frames=args.frames, people=args.people,
                        noise_px=args.noise_px, dropout=args.dropout)
@@ -91,17 +149,19 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from gt3dkit.eval.metrics import box_errors
     from gt3dkit.io.datasets import load_scene
-    from gt3dkit.io.writers import read_tracks_csv
+    from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv
 
     tracks = read_tracks_csv(Path(args.out) / "tracks.csv")
     scene = load_scene(Path(args.truth), args.layout)
     if scene.truth is None:
-        raise InputError(str(args.truth), "this input carries no truth (positions or truth.csv)")
-    e = box_errors(tracks, scene.truth, scene.rig.up, args.max_dist_m)
-    print(f"{args.out} against {scene.truth.source} of {args.truth}:")
-    print(error_table([(Path(args.out).name, e)]))
+        raise InputError(str(args.truth), "this input carries no truth (positions, truth.csv, "
+                                          "truth_keypoints.csv or Panoptic joints)")
+    kp = Path(args.out) / "keypoints.csv"
+    if kp.exists() and scene.obs.n_joints:
+        tracks = read_keypoints_csv(kp, tracks, scene.obs.n_joints)
+    print(f"{args.out} against the truth of {args.truth}:")
+    report_truth(scene, tracks, Path(args.out).name)
     return 0
 
 
@@ -126,6 +186,27 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(error_table(rows))
     p = PAPER["multiviewx"]
     print(f"\nPaper (Ma et al., UKF) on MultiviewX: MOTA {p['MOTA']}%, OSPA(2) {p['OSPA2_m']} m")
+
+    from gt3dkit.eval.pose import mpjpe_by_id, score_tracks
+
+    src = bundled("panoptic_160906_band1")
+    print(f"\nCMU Panoptic 160906_band1 bundled in {src} (see its PROVENANCE.md): the paper's "
+          "protocol, 3D joints projected into the HD cameras and reconstructed from 2D alone")
+    rows = []
+    for noise in (0.0, 2.0):
+        scene = load_scene(src, noise_px=noise, seed=0)
+        tracks = reconstruct(scene, "ukf", out=Path(args.out) / f"panoptic_noise{noise:g}px")
+        truth = scene.truth
+        if truth is None:
+            continue
+        for label, j in (("19 joints", None), ("15 body joints", np.arange(15))):
+            rows.append((f"ukf {noise:g}px, {label}", score_tracks(tracks, truth, j),
+                         mpjpe_by_id(tracks, truth, j)[0]))
+        print(f"  {noise:g} px noise: {len(tracks)} poses from {len(scene.rig.cameras)} HD cameras "
+              f"in {tracks.info['seconds']:.1f} s")
+    print(pose_table(rows))
+    lo, hi = PAPER["panoptic"]["MPJPE_mm"]
+    print(f"\nPaper (Ma et al., UKF) on CMU Panoptic: MPJPE {lo}-{hi} mm")
     return 0
 
 
@@ -133,6 +214,7 @@ def build_parser() -> argparse.ArgumentParser:
     from gt3dkit.api import ESTIMATORS
     from gt3dkit.io.datasets import LAYOUTS
     from gt3dkit.sim import SIM_LAYOUTS
+    from gt3dkit.skeletons import SKELETONS
 
     p = argparse.ArgumentParser(prog="gt3d", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -147,10 +229,23 @@ def build_parser() -> argparse.ArgumentParser:
                    help="acceleration noise, m/s^2/sqrt(Hz) (default: max likelihood)")
     r.add_argument("--fps", type=float, help="frame-number rate (default: the layout's)")
     r.add_argument("--no-smooth", action="store_true", help="forward filter only (no RTS)")
+    r.add_argument("--no-bones", action="store_true", help="do not tie bone lengths")
+    r.add_argument("--skeleton", choices=sorted(SKELETONS),
+                   help="joint order of keypoints.csv (default: from the data)")
+    r.add_argument("--cameras", help="CMU Panoptic: comma-separated HD cameras (default all)")
+    r.add_argument("--noise-px", type=float, default=0.0,
+                   help="CMU Panoptic: Gaussian noise added to the projected 2D joints")
+    r.add_argument("--seed", type=int, default=0, help="CMU Panoptic: seed of that noise")
     r.set_defaults(func=cmd_reconstruct)
 
     s = sub.add_parser("simulate", help="write a seeded synthetic scene with its truth")
-    s.add_argument("--layout", choices=SIM_LAYOUTS, default="native")
+    s.add_argument("--kind", choices=("boxes", "skeleton"), default="boxes")
+    s.add_argument("--layout", choices=(*SIM_LAYOUTS, "panoptic"), default="native",
+                   help="boxes: native|wildtrack|multiviewx; skeleton: native|panoptic")
+    s.add_argument("--cameras", type=int, default=10, help="skeleton scenes: HD cameras")
+    s.add_argument("--missing", type=float, default=0.05,
+                   help="skeleton scenes: fraction of 2D points dropped at random")
+    s.add_argument("--skeleton", choices=sorted(SKELETONS), default="coco19")
     s.add_argument("--out", required=True)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--frames", type=int, default=40)
@@ -166,7 +261,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--max-dist-m", type=float, default=1.0, help="MOT match distance")
     e.set_defaults(func=cmd_evaluate)
 
-    d = sub.add_parser("demo", help="reconstruct the bundled MultiviewX subset, print errors")
+    d = sub.add_parser("demo", help="reconstruct the bundled MultiviewX and Panoptic data, "
+                                    "print errors")
     d.add_argument("--out", default="out/demo", help="where to write (default out/demo)")
     d.set_defaults(func=cmd_demo)
     return p

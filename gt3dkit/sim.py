@@ -212,3 +212,196 @@ def _write_grid(sim: SimScene, tmp: Path, g: GridLayout) -> None:
             people.append({"personID": int(sim.truth_id[i]), "positionID": int(pos[i]),
                            "views": views})
         (ann / f"{int(f):0{width}d}.json").write_text(json.dumps(people, indent=1))
+
+
+# ---------------------------------------------------------------------------------------
+# skeletons
+
+
+@dataclass(frozen=True)
+class SkeletonScene:
+    """A synthetic multi-person skeleton sequence.
+
+    truth_frame, truth_id : (M,); kpt_world : (M, J, 3) metres
+    uv : (M, C, J, 2) observed keypoints (NaN = not seen)
+    """
+
+    rig: Rig
+    frames: I64
+    fps: float
+    skeleton: str
+    truth_frame: I64
+    truth_id: I64
+    kpt_world: F64
+    uv: F64
+
+
+def make_dome(n_cams: int, rng: np.random.Generator, up: F64, names: list[str]) -> Rig:
+    """HD cameras (1920x1080, Panoptic-like distortion) on a dome of radius ~2.9 m."""
+    up = up / np.linalg.norm(up)
+    ref = np.eye(3)[int(np.argmin(np.abs(up)))]
+    e1 = ref - up * (ref @ up)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    cams = []
+    for i in range(n_cams):
+        ang = 2 * np.pi * (i + rng.uniform(-0.2, 0.2)) / n_cams
+        h = rng.uniform(0.8, 2.8)
+        r = rng.uniform(2.6, 3.1)
+        pos = r * (np.cos(ang) * e1 + np.sin(ang) * e2) + h * up
+        target = 0.9 * up + rng.uniform(-0.2, 0.2) * e1
+        z = target - pos
+        z /= np.linalg.norm(z)
+        x = np.cross(z, up)
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        R = np.stack([x, y, z])
+        f = rng.uniform(1000, 1300)
+        K = np.array([[f, 0, 960 + rng.uniform(-15, 15)], [0, f, 540 + rng.uniform(-15, 15)],
+                      [0, 0, 1]])
+        dist = np.array([rng.uniform(-0.25, -0.15), rng.uniform(0.05, 0.2),
+                         rng.uniform(-1e-3, 1e-3), rng.uniform(-1e-3, 1e-3), rng.uniform(0, 0.03)])
+        cams.append(Camera(names[i], 1920, 1080, K, dist, R, -R @ pos))
+    return Rig(tuple(cams), up=up, frame_name="synthetic world")
+
+
+def _rot(axis: F64, ang: F64) -> F64:
+    """Rotations (..., 3, 3) about unit ``axis`` (3,) by angles ``ang`` (...,) (Rodrigues)."""
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    a = np.asarray(ang)[..., None, None]
+    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * (K @ K)
+
+
+def skeleton_motion(skel_name: str, t_s: F64, rng: np.random.Generator) -> F64:
+    """(T, J, 3) body-frame joints of one person: canonical pose scaled, limbs swinging
+    about their parent joints (bone lengths exact), turning and walking slowly."""
+    from gt3dkit.skeletons import SKELETONS
+
+    skel = SKELETONS[skel_name]
+    names = skel.joints
+    ix = {n: i for i, n in enumerate(names)}
+    base = skel.canonical() * rng.uniform(0.9, 1.1)
+    T = len(t_s)
+    P = np.repeat(base[None], T, axis=0)
+    lat = np.array([1.0, 0.0, 0.0])
+    chains = [("l_shoulder", ("l_elbow", "l_wrist")), ("r_shoulder", ("r_elbow", "r_wrist")),
+              ("l_hip", ("l_knee", "l_ankle")), ("r_hip", ("r_knee", "r_ankle"))]
+    w = rng.uniform(2.0, 4.0)
+    for k, (root, kids) in enumerate(chains):
+        amp = rng.uniform(0.2, 0.5) * (1 if k % 2 == 0 else -1)
+        Rt = _rot(lat, amp * np.sin(w * t_s + rng.uniform(0, 0.3)))  # (T,3,3)
+        o = base[ix[root]]
+        for kid in kids:
+            if kid in ix:
+                P[:, ix[kid]] = o + np.einsum("tij,j->ti", Rt, base[ix[kid]] - o)
+        # the lower link bends further about the middle joint
+        if len(kids) == 2 and all(c in ix for c in kids):
+            mid, end = ix[kids[0]], ix[kids[1]]
+            R2 = _rot(lat, 0.3 * amp * (1 + np.sin(1.3 * w * t_s)))
+            P[:, end] = P[:, mid] + np.einsum("tij,tj->ti", R2, P[:, end] - P[:, mid])
+    yaw = rng.uniform(0, 2 * np.pi) + rng.uniform(-0.4, 0.4) * np.sin(0.5 * t_s)
+    Rz = _rot(np.array([0.0, 0.0, 1.0]), yaw)
+    root_xy = rng.uniform(-0.8, 0.8, 2) + np.stack([0.3 * np.sin(0.4 * t_s + rng.uniform(0, 6)),
+                                                     0.3 * np.cos(0.3 * t_s)], -1)
+    P = np.einsum("tij,tkj->tki", Rz, P)
+    P[..., :2] += root_xy[:, None, :]
+    return P
+
+
+def simulate_skeletons(layout: str = "native", seed: int = 0, frames: int = 30, people: int = 3,
+                       noise_px: float = 0.0, missing: float = 0.05, cameras: int = 10,
+                       skeleton: str = "coco19", fps: float = 30.0) -> SkeletonScene:
+    """People as moving skeletons seen by a dome of HD cameras, in a y-down world.
+
+    2D points are exact projections (with distortion) plus ``noise_px`` Gaussian noise;
+    points behind a camera or outside its image are dropped, and a fraction
+    ``missing`` of the rest at random.
+    """
+    from gt3dkit.geom.camera import project_points
+
+    if layout not in ("native", "panoptic"):
+        raise ValueError(f"skeleton scenes are written as native or panoptic, not {layout!r}")
+    if frames < 2 or people < 1 or cameras < 2 or noise_px < 0 or not 0 <= missing < 1:
+        raise ValueError("need frames >= 2, people >= 1, cameras >= 2, noise_px >= 0, "
+                         "0 <= missing < 1")
+    rng = np.random.default_rng(seed)
+    up = np.array([0.0, -1.0, 0.0])
+    names = [f"00_{i:02d}" for i in range(cameras)]
+    rig = make_dome(cameras, rng, up, names)
+    t_s = np.arange(frames) / fps
+    frame_numbers = np.arange(frames, dtype=np.int64) + 100
+    wfb = rig.world_from_body()
+    kpts, fr, ids = [], [], []
+    for pid in range(people):
+        body = skeleton_motion(skeleton, t_s, rng)
+        body[..., :2] += np.array([1.2 * np.cos(2 * np.pi * pid / people),
+                                   1.2 * np.sin(2 * np.pi * pid / people)]) * (people > 1)
+        kpts.append(np.einsum("ij,tkj->tki", wfb, body))
+        fr.append(frame_numbers)
+        ids.append(np.full(frames, pid))
+    X = np.concatenate(kpts)
+    uv, depth = project_points(X, rig.K, rig.dist, rig.R, rig.t)  # (M,J,C,2)
+    if noise_px > 0:
+        uv = uv + rng.normal(scale=noise_px, size=uv.shape)
+    ok = (depth > 0) & np.all((uv >= 0) & (uv <= rig.wh - 1), axis=-1)
+    ok &= rng.uniform(size=ok.shape) >= missing
+    uv = np.where(ok[..., None], uv, np.nan)
+    return SkeletonScene(rig=rig, frames=frame_numbers, fps=fps, skeleton=skeleton,
+                         truth_frame=np.concatenate(fr), truth_id=np.concatenate(ids),
+                         kpt_world=X, uv=np.swapaxes(uv, 1, 2))
+
+
+def write_skeleton_scene(sim: SkeletonScene, out: Path, layout: str) -> None:
+    """Write as native (``cameras.json``, ``keypoints.csv``, ``truth_keypoints.csv``) or as a
+    CMU Panoptic sequence (``calibration_sim.json`` in cm + ``body3DScene`` files; the
+    loader makes the 2D points, so ``uv``, noise and missing points are not written)."""
+
+    def write(tmp: Path) -> None:
+        if layout == "native":
+            doc = {"up": sim.rig.up.tolist(), "fps": sim.fps, "skeleton": sim.skeleton,
+                   "units": "m", "frame": "synthetic y-down world",
+                   "cameras": [{"name": c.name, "width": c.width, "height": c.height,
+                                "K": c.K.tolist(), "dist": c.dist.tolist(), "R": c.R.tolist(),
+                                "t": c.t.tolist()} for c in sim.rig.cameras]}
+            (tmp / "cameras.json").write_text(json.dumps(doc, indent=1))
+            with open(tmp / "keypoints.csv", "w", newline="") as f:
+                w = csv.writer(f)
+                w.writerow(["frame", "camera", "id", "joint", "u", "v"])
+                m, c, j = np.nonzero(np.isfinite(sim.uv[..., 0]))
+                for a, b, k in zip(m, c, j, strict=True):
+                    w.writerow([int(sim.truth_frame[a]), sim.rig.cameras[b].name,
+                                int(sim.truth_id[a]), int(k), f"{sim.uv[a, b, k, 0]:.4f}",
+                                f"{sim.uv[a, b, k, 1]:.4f}"])
+            with open(tmp / "truth_keypoints.csv", "w", newline="") as f:
+                w = csv.writer(f)
+                w.writerow(["frame", "id", "joint", "x", "y", "z"])
+                for a in range(len(sim.truth_frame)):
+                    for k in range(sim.kpt_world.shape[1]):
+                        w.writerow([int(sim.truth_frame[a]), int(sim.truth_id[a]), k,
+                                    *(f"{v:.6f}" for v in sim.kpt_world[a, k])])
+        elif layout == "panoptic":
+            if sim.skeleton != "coco19":
+                raise ValueError("the Panoptic layout holds coco19 skeletons")
+            cams = [{"name": c.name, "type": "hd", "resolution": [c.width, c.height],
+                     "panel": 0, "node": i, "K": c.K.tolist(), "distCoef": c.dist.tolist(),
+                     "R": c.R.tolist(), "t": (c.t[:, None] * 100).tolist()}
+                    for i, c in enumerate(sim.rig.cameras)]
+            cams.append({"name": "01_01", "type": "vga", "resolution": [640, 480], "panel": 1,
+                         "node": 1, "K": np.eye(3).tolist(), "distCoef": [0] * 5,
+                         "R": np.eye(3).tolist(), "t": [[0], [0], [300]]})
+            (tmp / "calibration_sim.json").write_text(json.dumps(
+                {"calibDataSource": "gt3dkit simulate", "cameras": cams}))
+            d = tmp / "hdPose3d_stage1_coco19"
+            d.mkdir()
+            for f in sim.frames:
+                bodies = []
+                for a in np.flatnonzero(sim.truth_frame == f):
+                    j = np.concatenate([sim.kpt_world[a] * 100, np.ones((len(sim.kpt_world[a]), 1))],
+                                       axis=1)
+                    bodies.append({"id": int(sim.truth_id[a]), "joints19": j.reshape(-1).round(4).tolist()})
+                (d / f"body3DScene_{int(f):08d}.json").write_text(json.dumps(
+                    {"version": 0.7, "univTime": float(f), "fpsType": "hd_29_97", "bodies": bodies}))
+        else:
+            raise ValueError(f"unknown layout {layout!r}")
+
+    write_dir_atomically(Path(out), write)

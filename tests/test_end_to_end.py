@@ -87,7 +87,8 @@ def test_sigma_is_estimated_from_the_data(small_native) -> None:
     info = reconstruct(scene).info
     # whole-pixel rounding: uniform error of 1 px width has sd 1/sqrt(12) = 0.29 px
     assert 0.2 < info["params"]["sigma_px"] < 0.4
-    assert info["noise_source"].startswith("max likelihood")
+    assert info["noise_source"]["process"].startswith("max likelihood")
+    assert len(info["noise_loglik"]) == 15
 
 
 def test_clipped_edges_are_masked() -> None:

@@ -16,6 +16,7 @@ from gt3dkit.fusion.ukf import (
     rts_step,
     sigma_points,
     ukf_update,
+    ukf_update_information,
     unscented_transform,
 )
 
@@ -148,3 +149,21 @@ def test_transition_noise_is_symmetric_psd_and_anisotropic(ratio: float) -> None
     np.testing.assert_allclose(Q, np.swapaxes(Q, 1, 2))
     assert np.linalg.eigvalsh(Q).min() > -1e-15
     np.testing.assert_allclose(Q[1, 1, 1] / Q[1, 0, 0], ratio**2)
+
+
+def test_information_form_equals_covariance_form_on_linear_model() -> None:
+    _, _, H = _linear_model()
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(9, 9))
+    P0 = (A @ A.T / 9 + 0.1 * np.eye(9))[None].repeat(2, 0)
+    x0 = rng.normal(size=(2, 9))
+    z = rng.normal(size=(2, 4))
+    mask = np.array([[True, True, False, True], [True, True, True, True]])
+    args = (x0, P0, z, mask, np.array([0.01, 0.02, 0.03, 0.04]), lambda X: X @ H.T,
+            SigmaWeights(9))
+    xc, Pc, ic = ukf_update(*args)
+    xi, Pi, ii = ukf_update_information(*args, iterations=2)
+    np.testing.assert_allclose(xi, xc, atol=1e-9)
+    np.testing.assert_allclose(Pi, Pc, atol=1e-9)
+    assert ii["loglik"] == pytest.approx(ic["loglik"], rel=1e-9)
+    assert ii["nis"] == pytest.approx(ic["nis"], rel=1e-9)

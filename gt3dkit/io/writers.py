@@ -13,9 +13,11 @@ import numpy as np
 from gt3dkit import __version__
 from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import write_dir_atomically
+from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import Scene, TrackSet
 
 TRACK_COLUMNS = ("frame", "id", "x", "y", "z", "a", "b", "c", "sx", "sy", "sz")
+KPT_COLUMNS = ("frame", "id", "joint", "x", "y", "z", "sd")
 
 
 def _jsonable(x: Any) -> Any:
@@ -45,6 +47,11 @@ def meta_of(scene: Scene, tracks: TrackSet) -> dict[str, Any]:
             "semi_axes": {"a": wfb[:, 0].tolist(), "b": wfb[:, 1].tolist(), "c": wfb[:, 2].tolist(),
                           "note": "directions in the world frame; c is along up"},
             "sd": "sx, sy, sz: marginal standard deviation of the centre along world x, y, z",
+            **({"keypoints": "keypoints.csv: frame,id,joint,x,y,z,sd in the world frame (m); sd = "
+                             "RMS over the axes of the joint's standard deviation (m)",
+                "skeleton": scene.skeleton,
+                "joints": list(SKELETONS[scene.skeleton].joints) if scene.skeleton else None}
+               if tracks.kpt_world.shape[1] else {}),
         },
         "estimator": _jsonable(tracks.info),
         "input": {"root": scene.root, "layout": scene.layout, "fps": scene.fps,
@@ -70,15 +77,29 @@ def write_tracks_csv(path: Path, tracks: TrackSet) -> None:
                         *(f"{v:.6f}" for v in a[i])])
 
 
+def write_keypoints_csv(path: Path, tracks: TrackSet) -> None:
+    """One row per (frame, id, joint) with a finite estimate (metres)."""
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(KPT_COLUMNS)
+        ok = np.isfinite(tracks.kpt_world).all(axis=-1)
+        for r, j in zip(*np.nonzero(ok), strict=True):
+            x = tracks.kpt_world[r, j]
+            w.writerow([int(tracks.frame[r]), int(tracks.track_id[r]), int(j),
+                        f"{x[0]:.6f}", f"{x[1]:.6f}", f"{x[2]:.6f}", f"{tracks.kpt_sd[r, j]:.6f}"])
+
+
 def write_outputs(out: Path, scene: Scene, tracks: TrackSet,
                   extra_meta: dict[str, Any] | None = None) -> None:
-    """Write ``OUT/tracks.csv`` and ``OUT/meta.json`` (all or nothing)."""
+    """Write ``OUT/tracks.csv`` (+ ``keypoints.csv``) and ``OUT/meta.json`` (all or nothing)."""
     meta = meta_of(scene, tracks)
     if extra_meta:
         meta.update(_jsonable(extra_meta))
 
     def write(tmp: Path) -> None:
         write_tracks_csv(tmp / "tracks.csv", tracks)
+        if tracks.kpt_world.shape[1]:
+            write_keypoints_csv(tmp / "keypoints.csv", tracks)
         (tmp / "meta.json").write_text(json.dumps(meta, indent=2, allow_nan=False,
                                                   default=_jsonable))
 
@@ -103,3 +124,30 @@ def read_tracks_csv(path: Path) -> TrackSet:
                     center_world=a[:, 2:5], semi_axes=a[:, 5:8], center_sd=a[:, 8:11],
                     n_views=np.full(n, -1, dtype=np.int64), kpt_world=np.zeros((n, 0, 3)),
                     kpt_sd=np.zeros((n, 0)), info={"source": str(path)})
+
+
+def read_keypoints_csv(path: Path, tracks: TrackSet, n_joints: int) -> TrackSet:
+    """Attach ``keypoints.csv`` to tracks read by :func:`read_tracks_csv`."""
+    import dataclasses
+
+    path = Path(path)
+    key = {(int(f), int(i)): r for r, (f, i) in enumerate(zip(tracks.frame, tracks.track_id,
+                                                              strict=True))}
+    kpt = np.full((len(tracks), n_joints, 3), np.nan)
+    sd = np.full((len(tracks), n_joints), np.nan)
+    try:
+        with open(path, newline="") as f:
+            r = csv.reader(f)
+            header = next(r, None)
+            if header is None or tuple(header[: len(KPT_COLUMNS)]) != KPT_COLUMNS:
+                raise InputError(str(path), f"expected header {','.join(KPT_COLUMNS)}")
+            for line, row in enumerate(r, start=2):
+                fr, tid, j = int(row[0]), int(row[1]), int(row[2])
+                if (fr, tid) not in key or not 0 <= j < n_joints:
+                    raise InputError(f"{path}: line {line}", "row without a track or joint index "
+                                     "outside the skeleton")
+                kpt[key[(fr, tid)], j] = [float(v) for v in row[3:6]]
+                sd[key[(fr, tid)], j] = float(row[6])
+    except (OSError, ValueError, IndexError) as e:
+        raise InputError(str(path), f"cannot read keypoints ({e})") from None
+    return dataclasses.replace(tracks, kpt_world=kpt, kpt_sd=sd)

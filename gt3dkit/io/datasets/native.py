@@ -9,6 +9,11 @@
 ``R``, ``t`` are ``cam_from_world``, ``t`` in metres. ``fps`` is optional (default 10).
 
 ``boxes.csv``: header ``frame,camera,id,xmin,ymin,xmax,ymax``; pixels of the distorted image.
+
+``keypoints.csv``: header ``frame,camera,id,joint,u,v``; pixels of the distorted image; a
+missing row means not seen. Its joint order is ``--skeleton`` (or ``"skeleton"`` in
+``cameras.json``), else the smallest known skeleton holding the largest joint index.
+Boxes and keypoints of the same (frame, camera, id) update the same object.
 """
 
 from __future__ import annotations
@@ -23,13 +28,15 @@ import numpy as np
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.common import RowBuilder, sha256
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
-from gt3dkit.types import Camera, Rig, Scene
+from gt3dkit.skeletons import SKELETONS, skeleton_for
+from gt3dkit.types import Camera, GroundTruth, Rig, Scene
 
 BOX_COLUMNS = ("frame", "camera", "id", "xmin", "ymin", "xmax", "ymax")
+KPT_COLUMNS = ("frame", "camera", "id", "joint", "u", "v")
 DEFAULT_FPS = 10.0
 
 
-def load_cameras(path: Path) -> tuple[Rig, float]:
+def load_cameras(path: Path) -> tuple[Rig, float, str | None]:
     try:
         doc = json.loads(Path(path).read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
@@ -54,7 +61,10 @@ def load_cameras(path: Path) -> tuple[Rig, float]:
     fps = float(doc.get("fps", DEFAULT_FPS))
     if not fps > 0:
         raise InputError(str(path), f"fps must be positive, got {fps}")
-    return rig, fps
+    skel = doc.get("skeleton")
+    if skel is not None and skel not in SKELETONS:
+        raise InputError(str(path), f"unknown skeleton {skel!r} (known: {', '.join(SKELETONS)})")
+    return rig, fps, skel
 
 
 def _camera(c: dict[str, Any]) -> Camera:
@@ -92,12 +102,27 @@ def camera_index(rig: Rig, name: str, where: str) -> int:
         raise InputError(where, f"unknown camera {name!r} (cameras.json has {rig.names})") from None
 
 
-def load(root: Path, n_joints: int = 0) -> Scene:
+def load(root: Path, skeleton: str | None = None) -> Scene:
     root = Path(root)
     files: dict[str, str] = {}
     cam_path = root / "cameras.json"
-    rig, fps = load_cameras(cam_path)
+    rig, fps, skel_doc = load_cameras(cam_path)
     files["cameras.json"] = sha256(cam_path)
+    kpt_path = root / "keypoints.csv"
+    kpt_rows: list[tuple[int, dict[str, str]]] = []
+    skel_name = skeleton or skel_doc
+    if skel_name is not None and skel_name not in SKELETONS:
+        raise InputError("--skeleton", f"unknown skeleton {skel_name!r} (known: {', '.join(SKELETONS)})")
+    if kpt_path.exists():
+        files["keypoints.csv"] = sha256(kpt_path)
+        kpt_rows = read_csv_rows(kpt_path, KPT_COLUMNS)
+        if skel_name is None:
+            try:
+                top = max((int(r["joint"]) for _, r in kpt_rows), default=-1)
+                skel_name = skeleton_for(top + 1).name if kpt_rows else None
+            except ValueError as e:
+                raise InputError(str(kpt_path), f"joint index: {e}") from None
+    n_joints = SKELETONS[skel_name].n_joints if skel_name else 0
     rb = RowBuilder(n_joints=n_joints)
     box_path = root / "boxes.csv"
     if box_path.exists():
@@ -111,10 +136,61 @@ def load(root: Path, n_joints: int = 0) -> Scene:
                 raise InputError(where, f"malformed value ({e})") from None
             cam = camera_index(rig, r["camera"], where)
             rb.add_box(frame, cam, tid, box, where)
+    for line, r in kpt_rows:
+        where = f"{kpt_path}: line {line}"
+        try:
+            frame, tid, joint = int(r["frame"]), int(r["id"]), int(r["joint"])
+            uv = (float(r["u"]), float(r["v"]))
+        except ValueError as e:
+            raise InputError(where, f"malformed value ({e})") from None
+        cam = camera_index(rig, r["camera"], where)
+        rb.add_joint(frame, cam, tid, joint, uv, where)
     obs = rb.build()
     if len(obs) == 0:
-        raise InputError(str(root), "no annotations (boxes.csv is missing or empty)")
+        raise InputError(str(root), "no annotations (boxes.csv and keypoints.csv missing or empty)")
     truth = read_truth_csv(root / "truth.csv", files, root) if (root / "truth.csv").exists() else None
+    if (root / "truth_keypoints.csv").exists():
+        files["truth_keypoints.csv"] = sha256(root / "truth_keypoints.csv")
+        truth = _merge_kpt_truth(truth, read_kpt_truth(root / "truth_keypoints.csv", n_joints))
     frames = np.unique(obs.frame)
     return Scene(rig=rig, obs=obs, layout="native", fps=fps, frames=frames, truth=truth,
-                 files=files, root=str(root))
+                 skeleton=skel_name, files=files, root=str(root))
+
+
+KPT_TRUTH_COLUMNS = ("frame", "id", "joint", "x", "y", "z")
+
+
+def read_kpt_truth(path: Path, n_joints: int) -> GroundTruth:
+    """``truth_keypoints.csv`` = ``frame,id,joint,x,y,z`` (metres), as ``gt3d simulate`` writes."""
+    rows = read_csv_rows(path, KPT_TRUTH_COLUMNS)
+    poses: dict[tuple[int, int], np.ndarray] = {}
+    for line, r in rows:
+        try:
+            key = (int(r["frame"]), int(r["id"]))
+            j = int(r["joint"])
+            xyz = [float(r[k]) for k in ("x", "y", "z")]
+        except ValueError as e:
+            raise InputError(f"{path}: line {line}", f"malformed value ({e})") from None
+        if not 0 <= j < n_joints:
+            raise InputError(f"{path}: line {line}", f"joint index {j} outside the skeleton")
+        poses.setdefault(key, np.full((n_joints, 3), np.nan))[j] = xyz
+    keys = sorted(poses)
+    k = np.array(keys, dtype=np.int64).reshape(-1, 2)
+    n = len(keys)
+    return GroundTruth(frame=k[:, 0], track_id=k[:, 1], center_world=np.full((n, 3), np.nan),
+                       semi_axes=np.full((n, 3), np.nan),
+                       kpt_world=np.array([poses[q] for q in keys]).reshape(n, n_joints, 3),
+                       source="truth_keypoints.csv")
+
+
+def _merge_kpt_truth(boxes: GroundTruth | None, kpts: GroundTruth) -> GroundTruth:
+    if boxes is None:
+        return kpts
+    key = {(int(f), int(i)): r for r, (f, i) in enumerate(zip(boxes.frame, boxes.track_id,
+                                                              strict=True))}
+    kw = np.full((len(boxes.frame), kpts.kpt_world.shape[1], 3), np.nan)
+    for r, (f, i) in enumerate(zip(kpts.frame, kpts.track_id, strict=True)):
+        if (int(f), int(i)) in key:
+            kw[key[(int(f), int(i))]] = kpts.kpt_world[r]
+    return GroundTruth(boxes.frame, boxes.track_id, boxes.center_world, boxes.semi_axes, kw,
+                       source=boxes.source + " + truth_keypoints.csv")

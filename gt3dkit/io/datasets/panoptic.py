@@ -1,0 +1,155 @@
+"""CMU Panoptic: ``calibration_<seq>.json`` + ``hdPose3d_stage1_coco19/body3DScene_<frame>.json``.
+
+Panoptic has no 2D annotations, so this loader follows the paper's protocol: the 3D
+joints (confidence >= ``min_conf``) are projected into the HD cameras with lens
+distortion; joints behind a camera or outside its image are dropped. The estimators
+see only those 2D points; the 3D joints are the truth.
+
+Units: the files are in centimetres; everything here is metres. World +y points
+down (gravity), so ``up = [0, -1, 0]``. Frame numbers are HD frames at 29.97 fps.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+
+from gt3dkit.errors import InputError
+from gt3dkit.geom.camera import project_points
+from gt3dkit.io.datasets.common import sha256
+from gt3dkit.skeletons import SKELETONS
+from gt3dkit.types import Camera, GroundTruth, Observations, Rig, Scene
+
+CM = 0.01
+FPS = 29.97
+POSE_DIR = "hdPose3d_stage1_coco19"
+
+
+def find_calibration(root: Path) -> Path | None:
+    c = sorted(Path(root).glob("calibration_*.json"))
+    return c[0] if c else None
+
+
+def load_rig(path: Path, cameras: list[str] | None = None) -> Rig:
+    try:
+        doc = json.loads(path.read_text())
+        cams_doc = doc["cameras"]
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise InputError(str(path), f"malformed JSON ({e})") from None
+    except (KeyError, TypeError):
+        raise InputError(str(path), "expected {'cameras': [...]}") from None
+    cams = []
+    for i, c in enumerate(cams_doc):
+        where = f"{path}: cameras[{i}]"
+        try:
+            if c.get("type") != "hd":
+                continue
+            name = str(c["name"])
+            if cameras is not None and name not in cameras:
+                continue
+            w, h = (int(v) for v in c["resolution"])
+            cams.append(Camera(name=name, width=w, height=h, K=np.asarray(c["K"], float),
+                               dist=np.asarray(c["distCoef"], float).reshape(-1),
+                               R=np.asarray(c["R"], float),
+                               t=np.asarray(c["t"], float).reshape(3) * CM))
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
+            raise InputError(f"{where} ({c.get('name', '?') if isinstance(c, dict) else '?'})",
+                             f"malformed camera ({e})") from None
+    if not cams:
+        want = f" among {cameras}" if cameras else ""
+        raise InputError(str(path), f"no HD cameras{want} (type 'hd')")
+    if cameras is not None:
+        missing = sorted(set(cameras) - {c.name for c in cams})
+        if missing:
+            raise InputError(str(path), f"no HD camera named {missing}")
+    return Rig(tuple(cams), up=np.array([0.0, -1.0, 0.0]),
+               frame_name="CMU Panoptic world (y down), centimetres converted to metres")
+
+
+def load(root: Path, cameras: list[str] | None = None, noise_px: float = 0.0, seed: int = 0,
+         min_conf: float = 0.1) -> Scene:
+    """Load a Panoptic sequence folder and make its 2D observations (see module doc).
+
+    Parameters
+    ----------
+    cameras : HD camera names to use (default: all HD cameras)
+    noise_px : standard deviation of Gaussian noise added to every 2D point
+    seed : seed of that noise
+    min_conf : joints below this confidence are neither observed nor scored
+    """
+    root = Path(root)
+    calib = find_calibration(root)
+    if calib is None:
+        raise InputError(str(root), "no calibration_<seq>.json")
+    files = {calib.name: sha256(calib)}
+    rig = load_rig(calib, cameras)
+    pose_files = sorted((root / POSE_DIR).glob("body3DScene_*.json"))
+    if not pose_files:
+        raise InputError(str(root / POSE_DIR), "no body3DScene_<frame>.json files")
+    skel = SKELETONS["coco19"]
+    J = skel.n_joints
+    t_frame, t_id, t_joints = [], [], []
+    for p in pose_files:
+        m = re.fullmatch(r"body3DScene_(\d+)\.json", p.name)
+        if m is None:
+            raise InputError(str(p), "file name is not body3DScene_<frame>.json")
+        try:
+            doc = json.loads(p.read_text())
+            bodies = doc["bodies"]
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise InputError(str(p), f"malformed or truncated JSON ({e})") from None
+        except (KeyError, TypeError):
+            raise InputError(str(p), "expected {'bodies': [...]}") from None
+        files[f"{POSE_DIR}/{p.name}"] = sha256(p)
+        for i, b in enumerate(bodies):
+            try:
+                bid = int(b["id"])
+                j = np.asarray(b["joints19"], dtype=np.float64)
+            except (KeyError, TypeError, ValueError) as e:
+                raise InputError(f"{p}: bodies[{i}]", f"expected id and joints19 ({e})") from None
+            if j.shape != (4 * J,):
+                raise InputError(f"{p}: body {bid}", f"joints19 has {j.size} values, expected {4 * J}")
+            if not np.all(np.isfinite(j)):
+                raise InputError(f"{p}: body {bid}", "joints19 has non-finite values")
+            j = j.reshape(J, 4)
+            X = np.where((j[:, 3] >= min_conf)[:, None], j[:, :3] * CM, np.nan)
+            t_frame.append(int(m.group(1)))
+            t_id.append(bid)
+            t_joints.append(X)
+    frames = np.array(t_frame, dtype=np.int64)
+    ids = np.array(t_id, dtype=np.int64)
+    X = np.array(t_joints).reshape(-1, J, 3)
+    truth = GroundTruth(frame=frames, track_id=ids, center_world=np.full((len(ids), 3), np.nan),
+                        semi_axes=np.full((len(ids), 3), np.nan), kpt_world=X,
+                        source="Panoptic hdPose3d_stage1_coco19 joints")
+    obs = project_observations(rig, frames, ids, X, noise_px, seed,
+                               origin=[f"body3DScene_{f:08d}.json: body {i}"
+                                       for f, i in zip(frames, ids, strict=True)])
+    return Scene(rig=rig, obs=obs, layout="panoptic", fps=FPS,
+                 frames=np.unique(frames), truth=truth, skeleton="coco19", files=files,
+                 root=str(root))
+
+
+def project_observations(rig: Rig, frames: np.ndarray, ids: np.ndarray, X_world: np.ndarray,
+                         noise_px: float, seed: int, origin: list[str]) -> Observations:
+    """2D keypoints of 3D joints ``(M, J, 3)`` in every camera; drops behind/outside points.
+
+    Returns one observation row per (pose, camera) that sees at least one joint.
+    """
+    M, J, _ = X_world.shape
+    uv, depth = project_points(X_world, rig.K, rig.dist, rig.R, rig.t, rig.depth_sign)  # (M,J,C,2)
+    if noise_px > 0:
+        uv = uv + np.random.default_rng(seed).normal(scale=noise_px, size=uv.shape)
+    wh = rig.wh
+    inside = (depth > 0) & np.all((uv >= 0) & (uv <= wh - 1), axis=-1)
+    uv = np.where(inside[..., None], uv, np.nan)
+    uv = np.moveaxis(uv, 2, 1)  # (M, C, J, 2)
+    keep = np.isfinite(uv[..., 0]).any(axis=2)  # (M, C)
+    m_i, c_i = np.nonzero(keep)
+    return Observations(frame=frames[m_i], cam=c_i, track_id=ids[m_i],
+                        box_xyxy_px=np.full((len(m_i), 4), np.nan), kpt_uv_px=uv[m_i, c_i],
+                        origin=tuple(f"{origin[m]}, camera {rig.cameras[c].name}"
+                                     for m, c in zip(m_i, c_i, strict=True)))

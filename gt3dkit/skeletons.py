@@ -1,0 +1,84 @@
+"""Joint orders, bones and a canonical standing pose, named in one place.
+
+* ``coco17``: COCO keypoints (nose, eyes, ears, shoulders, elbows, wrists, hips, knees, ankles).
+* ``panoptic15``: CMU Panoptic's 15 body joints (the first 15 of ``coco19``).
+* ``coco19``: CMU Panoptic's ``joints19`` order (``hdPose3d_stage1_coco19``).
+
+The canonical pose is a person 1.7 m tall standing upright in the *body* frame
+(x to the person's left, y forward, z up, metres, feet at z = 0); the UKF places
+it at an ellipsoid's centre, scaled to the ellipsoid, for joints no two views see.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from gt3dkit.types import F64
+
+_CANON = {  # body frame, metres
+    "neck": (0.0, 0.0, 1.50), "nose": (0.0, 0.09, 1.62), "pelvis": (0.0, 0.0, 0.95),
+    "l_shoulder": (0.18, 0.0, 1.45), "l_elbow": (0.22, 0.0, 1.17), "l_wrist": (0.24, 0.02, 0.92),
+    "l_hip": (0.10, 0.0, 0.93), "l_knee": (0.11, 0.02, 0.50), "l_ankle": (0.11, 0.0, 0.08),
+    "l_eye": (0.03, 0.08, 1.66), "l_ear": (0.07, 0.0, 1.64),
+}
+for _k, (_x, _y, _z) in list(_CANON.items()):
+    if _k.startswith("l_"):
+        _CANON["r_" + _k[2:]] = (-_x, _y, _z)
+
+_COCO19 = ("neck", "nose", "pelvis", "l_shoulder", "l_elbow", "l_wrist", "l_hip", "l_knee",
+           "l_ankle", "r_shoulder", "r_elbow", "r_wrist", "r_hip", "r_knee", "r_ankle",
+           "l_eye", "l_ear", "r_eye", "r_ear")
+_COCO17 = ("nose", "l_eye", "r_eye", "l_ear", "r_ear", "l_shoulder", "r_shoulder", "l_elbow",
+           "r_elbow", "l_wrist", "r_wrist", "l_hip", "r_hip", "l_knee", "r_knee", "l_ankle",
+           "r_ankle")
+_BONES_BODY = (("neck", "nose"), ("neck", "pelvis"), ("neck", "l_shoulder"),
+               ("l_shoulder", "l_elbow"), ("l_elbow", "l_wrist"), ("pelvis", "l_hip"),
+               ("l_hip", "l_knee"), ("l_knee", "l_ankle"), ("neck", "r_shoulder"),
+               ("r_shoulder", "r_elbow"), ("r_elbow", "r_wrist"), ("pelvis", "r_hip"),
+               ("r_hip", "r_knee"), ("r_knee", "r_ankle"))
+_BONES_FACE = (("nose", "l_eye"), ("l_eye", "l_ear"), ("nose", "r_eye"), ("r_eye", "r_ear"))
+_BONES_COCO17 = (("l_ankle", "l_knee"), ("l_knee", "l_hip"), ("r_ankle", "r_knee"),
+                 ("r_knee", "r_hip"), ("l_hip", "r_hip"), ("l_shoulder", "l_hip"),
+                 ("r_shoulder", "r_hip"), ("l_shoulder", "r_shoulder"),
+                 ("l_shoulder", "l_elbow"), ("r_shoulder", "r_elbow"), ("l_elbow", "l_wrist"),
+                 ("r_elbow", "r_wrist"), ("l_eye", "r_eye"), ("nose", "l_eye"),
+                 ("nose", "r_eye"), ("l_eye", "l_ear"), ("r_eye", "r_ear"))
+
+
+@dataclass(frozen=True)
+class Skeleton:
+    name: str
+    joints: tuple[str, ...]
+    bone_names: tuple[tuple[str, str], ...]
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joints)
+
+    @property
+    def bones(self) -> np.ndarray:
+        """(K, 2) joint indices of the bones."""
+        ix = {j: i for i, j in enumerate(self.joints)}
+        return np.array([(ix[a], ix[b]) for a, b in self.bone_names], dtype=np.int64)
+
+    def canonical(self) -> F64:
+        """(J, 3) canonical standing pose in the body frame (metres, feet at z = 0)."""
+        return np.array([_CANON[j] for j in self.joints], dtype=np.float64)
+
+
+SKELETONS = {
+    "coco17": Skeleton("coco17", _COCO17, _BONES_COCO17),
+    "panoptic15": Skeleton("panoptic15", _COCO19[:15], _BONES_BODY),
+    "coco19": Skeleton("coco19", _COCO19, _BONES_BODY + _BONES_FACE),
+}
+
+
+def skeleton_for(n_joints_seen: int) -> Skeleton:
+    """The smallest skeleton with at least ``n_joints_seen`` joints (max index + 1)."""
+    for name in ("panoptic15", "coco17", "coco19"):
+        if n_joints_seen <= SKELETONS[name].n_joints:
+            return SKELETONS[name]
+    raise ValueError(f"no skeleton has {n_joints_seen} joints (known: "
+                     f"{', '.join(f'{k} ({v.n_joints})' for k, v in SKELETONS.items())})")
