@@ -332,11 +332,10 @@ def initial_states(scene: Scene, rows: Rows, cams: Cams, layout: StateLayout, fi
             mine = np.flatnonzero(rows.row_o == o)
             good = mine[ok[mine]]
             if good.size == 0:
-                r = mine[0]
-                tid = int(rows.obj_ids[o])
-                raise InputError(f"{scene.root}: object {tid}",
-                                 "never seen by two cameras at once: its 3D position is "
-                                 "undetermined from keypoints alone")
+                first = scene.obs.origin[int(rows.obs_row[mine][rows.obs_row[mine] >= 0][0])]
+                raise InputError(first, f"object {int(rows.obj_ids[o])} is never seen by two "
+                                        "cameras at once: its 3D position is undetermined "
+                                        "from keypoints alone")
             near = good[np.argmin(np.abs(rows.row_t[good][None, :] - rows.row_t[mine][:, None]),
                                   axis=1)]
             c[mine], s[mine] = c[near], s[near]
