@@ -8,7 +8,7 @@ from typing import Any
 from gt3dkit.fusion.base import Estimator
 from gt3dkit.types import Scene, TrackSet
 
-ESTIMATORS = ("ukf", "triangulation")
+ESTIMATORS = ("ukf", "gtsam", "triangulation")
 
 
 def make_estimator(name: str = "ukf", **config: Any) -> Estimator:
@@ -17,6 +17,10 @@ def make_estimator(name: str = "ukf", **config: Any) -> Estimator:
         from gt3dkit.fusion.ukf_smoother import UKFConfig, UKFSmoother
 
         return UKFSmoother(UKFConfig(**config))
+    if name == "gtsam":
+        from gt3dkit.fusion.smoother_gtsam import GTSAMConfig, GTSAMSmoother
+
+        return GTSAMSmoother(GTSAMConfig(**config))
     if name == "triangulation":
         from gt3dkit.fusion.triangulate import Triangulation, TriangulationConfig
 

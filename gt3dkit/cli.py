@@ -25,6 +25,11 @@ def bundled(name: str) -> Path:
 
 def _estimator_config(args: argparse.Namespace) -> dict[str, Any]:
     cfg: dict[str, Any] = {}
+    if args.estimator == "gtsam":
+        if args.sigma_px is not None:
+            cfg["sigma_px"] = args.sigma_px
+        if args.accel_sd is not None:
+            cfg["accel_sd"] = args.accel_sd
     if args.estimator == "ukf":
         if args.sigma_px is not None:
             cfg["sigma_px"] = args.sigma_px
@@ -95,7 +100,13 @@ def report_truth(scene: Any, tracks: Any, name: str) -> None:
         return
     print(f"against {scene.truth.source}:")
     if np.isfinite(scene.truth.center_world).any():
+        from gt3dkit.eval.tracking import tracking_scores
+
         print(error_table([(name, box_errors(tracks, scene.truth, scene.rig.up))]))
+        t = tracking_scores(tracks, scene.truth, scene.rig.up)
+        print(f"ground plane, 1 m: MOTA {100 * t['mota']:.1f}  IDF1 {100 * t['idf1']:.1f}  "
+              f"FP {t['fp']}  FN {t['fn']}  IDs {t['ids']}  HOTA {100 * t['hota']:.1f}  "
+              f"OSPA(2) {t['ospa2_m']:.4f} m")
     if scene.truth.kpt_world.shape[1] and tracks.kpt_world.shape[1]:
         sets = [("all joints", None)]
         if scene.skeleton == "coco19":
@@ -162,6 +173,33 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         tracks = read_keypoints_csv(kp, tracks, scene.obs.n_joints)
     print(f"{args.out} against the truth of {args.truth}:")
     report_truth(scene, tracks, Path(args.out).name)
+    return 0
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    from gt3dkit.compare import compare
+
+    scene = _load(args)
+    table = compare(scene, Path(args.out), progress=not args.no_progress)
+    print(f"{scene.layout}: {len(scene.obs)} annotation rows -> {args.out}/comparison.csv")
+    names = [r["estimator"] for r in table]
+    head = f"{'estimator':<15}{'rows':>6}{'reproj px':>10}{'p95 px':>8}" + "".join(
+        f"{'to ' + n + ' m':>20}" for n in names) + f"{'sec':>8}" + (
+        f"{'truth err m':>13}" if scene.truth is not None else "")
+    print(head)
+    print("-" * len(head))
+    for r in table:
+        line = f"{r['estimator']:<15}{r['rows']:>6}{r['reproj_mean_px']:>10.3f}{r['reproj_p95_px']:>8.3f}"
+        for n in names:
+            v = r.get(f"dist_to_{n}_mean_m")
+            line += f"{'-':>20}" if v is None else f"{v:>20.5f}"
+        line += f"{r['seconds']:>8.1f}"
+        if scene.truth is not None:
+            v = r.get("truth_mpjpe_m", r.get("truth_centre_mean_m"))
+            if v is None or not np.isfinite(v):
+                v = r.get("truth_ground_mean_m", float("nan"))
+            line += f"{v:>13.5f}"
+        print(line)
     return 0
 
 
@@ -253,6 +291,18 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--noise-px", type=float, default=0.0)
     s.add_argument("--dropout", type=float, default=0.15)
     s.set_defaults(func=cmd_simulate)
+
+    c = sub.add_parser("compare", help="UKF, GTSAM smoother and triangulation side by side")
+    c.add_argument("input", help="input folder (any layout)")
+    c.add_argument("--out", required=True, help="output folder (<estimator>/, comparison.csv)")
+    c.add_argument("--layout", choices=LAYOUTS)
+    c.add_argument("--skeleton", choices=sorted(SKELETONS))
+    c.add_argument("--cameras", help="CMU Panoptic: comma-separated HD cameras")
+    c.add_argument("--noise-px", type=float, default=0.0, help="CMU Panoptic: 2D noise")
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--fps", type=float)
+    c.add_argument("--no-progress", action="store_true", help="no progress bar")
+    c.set_defaults(func=cmd_compare)
 
     e = sub.add_parser("evaluate", help="score OUT/tracks.csv against an input's truth")
     e.add_argument("out", help="a reconstruct output folder")

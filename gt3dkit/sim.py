@@ -237,7 +237,8 @@ class SkeletonScene:
 
 
 def make_dome(n_cams: int, rng: np.random.Generator, up: F64, names: list[str]) -> Rig:
-    """HD cameras (1920x1080, Panoptic-like distortion) on a dome of radius ~2.9 m."""
+    """HD cameras (1920x1080, Panoptic-like focal length and distortion) on a dome of radius
+    ~2.9 m (CMU Panoptic's HD cameras: f ~ 1600 px, k1 ~ -0.22)."""
     up = up / np.linalg.norm(up)
     ref = np.eye(3)[int(np.argmin(np.abs(up)))]
     e1 = ref - up * (ref @ up)
@@ -256,7 +257,7 @@ def make_dome(n_cams: int, rng: np.random.Generator, up: F64, names: list[str]) 
         x /= np.linalg.norm(x)
         y = np.cross(z, x)
         R = np.stack([x, y, z])
-        f = rng.uniform(1000, 1300)
+        f = rng.uniform(1400, 1700)
         K = np.array([[f, 0, 960 + rng.uniform(-15, 15)], [0, f, 540 + rng.uniform(-15, 15)],
                       [0, 0, 1]])
         dist = np.array([rng.uniform(-0.25, -0.15), rng.uniform(0.05, 0.2),

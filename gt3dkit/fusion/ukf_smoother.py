@@ -218,44 +218,9 @@ class UKFSmoother:
             kpt0, rms = triangulate_rows(scene, rows, cams)
             sigma_kpt = cfg.kpt_sigma_px if cfg.kpt_sigma_px is not None else max(rms, 0.05)
         x0, p0 = initial_states(scene, rows, cams, layout, fit, kpt0, cfg)
-        zs, masks, vars_ = [], [], []
-        if use_box:
-            zs.append(rows.box_z.reshape(R, C * 4))
-            masks.append(rows.box_mask.reshape(R, C * 4))
-            vars_.append(np.full((R, C * 4), sigma_box**2))
-        if use_kpt:
-            zk = rows.kpt_z.reshape(R, C * J * 2)
-            zs.append(zk)
-            masks.append(np.isfinite(zk))
-            vars_.append(np.full((R, C * J * 2), sigma_kpt**2))
-        model = Model(rows, cams, layout, use_box, np.concatenate(zs, 1), np.concatenate(masks, 1),
-                      np.concatenate(vars_, 1), x0, p0, kpt_hint=kpt0,
-                      hint_sd_m=cfg.init_joint_sd_m)
-        model.z = np.where(model.mask, model.z, 0.0)
-
-        # noise levels by maximum likelihood of the forward pass (no smoothing, no bones)
-        loglik: list[dict[str, float]] = []
-
-        def score(c: UKFConfig) -> float:
-            ll = run_filter(model, replace(c, smooth=False, iterations=1), scene.fps)[2]["loglik"]
-            loglik.append({"accel_sd": c.accel_sd, "shape_sd": c.shape_sd,
-                           "joint_accel_sd": c.joint_accel_sd, "loglik": ll})
-            return float(ll)
-
-        cfg = replace(cfg, accel_sd=cfg.accel_sd or (cfg.accel_grid[2] if len(cfg.accel_grid) > 2
-                                                     else cfg.accel_grid[0]),
-                      shape_sd=cfg.shape_sd or cfg.shape_grid[0],
-                      joint_accel_sd=cfg.joint_accel_sd or cfg.joint_accel_grid[1])
-        if use_box and (self.config.accel_sd is None or self.config.shape_sd is None):
-            qs = cfg.accel_grid if self.config.accel_sd is None else (cfg.accel_sd,)
-            ss = cfg.shape_grid if self.config.shape_sd is None else (cfg.shape_sd,)
-            best = max(((q, sh) for q in qs for sh in ss),
-                       key=lambda k: score(replace(cfg, accel_sd=k[0], shape_sd=k[1])))
-            cfg = replace(cfg, accel_sd=best[0], shape_sd=best[1])
-        if use_kpt and self.config.joint_accel_sd is None:
-            ja = max(cfg.joint_accel_grid, key=lambda q: score(replace(cfg, joint_accel_sd=q)))
-            cfg = replace(cfg, joint_accel_sd=ja)
-
+        model = stacked_model(rows, cams, layout, use_box, use_kpt, sigma_box, sigma_kpt, x0, p0,
+                              kpt0, cfg.init_joint_sd_m)
+        cfg, loglik = select_noise(model, cfg, self.config, use_box, use_kpt, scene.fps)
         x_s, P_s, run_info = run_filter(model, cfg, scene.fps)
         bone_info: dict[str, Any] = {}
         if use_kpt and cfg.bones:
@@ -288,6 +253,68 @@ class UKFSmoother:
             frame=rows.frames[rows.row_t], track_id=rows.obj_ids[rows.row_o],
             center_world=centre, semi_axes=semi, center_sd=sd, n_views=rows.n_views,
             kpt_world=kpt, kpt_sd=kpt_sd, info=info)
+
+
+def stacked_model(rows: Rows, cams: Cams, layout: StateLayout, use_box: bool, use_kpt: bool,
+                  sigma_box: float, sigma_kpt: float, x0: F64, p0: F64, kpt0: F64 | None,
+                  hint_sd_m: float) -> Model:
+    """The filter's stacked measurements ``[boxes | keypoints]`` with masks and variances."""
+    R, C = len(rows), len(cams.K)
+    J = layout.n_joints
+    zs, masks, vars_ = [], [], []
+    if use_box:
+        zs.append(rows.box_z.reshape(R, C * 4))
+        masks.append(rows.box_mask.reshape(R, C * 4))
+        vars_.append(np.full((R, C * 4), sigma_box**2))
+    if use_kpt:
+        zk = rows.kpt_z.reshape(R, C * J * 2)
+        zs.append(zk)
+        masks.append(np.isfinite(zk))
+        vars_.append(np.full((R, C * J * 2), sigma_kpt**2))
+    mask = np.concatenate(masks, 1)
+    return Model(rows, cams, layout, use_box, np.where(mask, np.concatenate(zs, 1), 0.0), mask,
+                 np.concatenate(vars_, 1), x0, p0, kpt_hint=kpt0, hint_sd_m=hint_sd_m)
+
+
+def select_noise(model: Model, cfg: UKFConfig, given: UKFConfig, use_box: bool, use_kpt: bool,
+                 fps: float, shape_grid: tuple[float, ...] | None = None
+                 ) -> tuple[UKFConfig, list[dict[str, float | None]]]:
+    """Process noise by maximum likelihood of the forward pass (no smoothing, no bones).
+
+    Values set in ``given`` are kept; the others are chosen from the config's grids:
+    ``accel_sd`` x ``shape_sd`` with boxes, then ``joint_accel_sd`` with keypoints.
+    Returns the tuned config and every grid point's log-likelihood.
+    """
+    loglik: list[dict[str, float | None]] = []
+
+    def score(c: UKFConfig) -> float:
+        ll = run_filter(model, replace(c, smooth=False, iterations=1), fps)[2]["loglik"]
+        loglik.append({"accel_sd": c.accel_sd, "shape_sd": c.shape_sd,
+                       "joint_accel_sd": c.joint_accel_sd, "loglik": ll})
+        return float(ll)
+
+    sgrid = shape_grid or cfg.shape_grid
+    cfg = replace(cfg, accel_sd=cfg.accel_sd or cfg.accel_grid[len(cfg.accel_grid) // 2],
+                  shape_sd=cfg.shape_sd or sgrid[0],
+                  joint_accel_sd=cfg.joint_accel_sd or cfg.joint_accel_grid[1])
+    if use_box and (given.accel_sd is None or given.shape_sd is None):
+        qs = cfg.accel_grid if given.accel_sd is None else (cfg.accel_sd,)
+        ss = sgrid if given.shape_sd is None else (cfg.shape_sd,)
+        best = max(((q, sh) for q in qs for sh in ss),
+                   key=lambda k: score(replace(cfg, accel_sd=k[0], shape_sd=k[1])))
+        cfg = replace(cfg, accel_sd=best[0], shape_sd=best[1])
+    if use_kpt and given.joint_accel_sd is None:
+        ja = max(cfg.joint_accel_grid, key=lambda q: score(replace(cfg, joint_accel_sd=q)))
+        cfg = replace(cfg, joint_accel_sd=ja)
+    return cfg, loglik
+
+
+def never_seen(rows: Rows, n_joints: int) -> np.ndarray:
+    """(R, J) joints whose object never showed them in any view of any frame."""
+    seen = np.isfinite(rows.kpt_z[..., 0]).any(axis=1)  # (R, J)
+    ever = np.zeros((len(rows.obj_ids), n_joints), bool)
+    np.logical_or.at(ever, rows.row_o, seen)
+    return ~ever[rows.row_o]
 
 
 def triangulate_rows(scene: Scene, rows: Rows, cams: Cams) -> tuple[F64, float]:
@@ -380,10 +407,7 @@ def joints_of(x_s: F64, P_s: F64, layout: StateLayout, rows: Rows) -> tuple[F64,
     kpt = x_s[:, layout.joints].reshape(R, J, 3)
     var = np.einsum("rii->ri", P_s[:, layout.joints, layout.joints]).reshape(R, J, 3)
     sd = np.sqrt(var.mean(axis=2))
-    seen = np.isfinite(rows.kpt_z[..., 0]).any(axis=1)  # (R, J)
-    ever = np.zeros((len(rows.obj_ids), J), bool)
-    np.logical_or.at(ever, rows.row_o, seen)
-    never = ~ever[rows.row_o]
+    never = never_seen(rows, J)
     kpt[never] = np.nan
     sd[never] = np.nan
     return kpt, sd

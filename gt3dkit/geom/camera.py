@@ -92,9 +92,10 @@ def apply_K(xy: F64, K: F64) -> F64:
 
 
 def unapply_K(uv_px: F64, K: F64) -> F64:
-    """(..., C, 2) pixels -> normalised coordinates (inverse of :func:`apply_K`)."""
-    Kinv = np.linalg.inv(K[:, :2, :2])
-    return np.einsum("cij,...cj->...ci", Kinv, uv_px - K[:, :2, 2])
+    """(..., C, 2) pixels -> normalised coordinates (inverse of :func:`apply_K`; ``K`` as there)."""
+    y = (uv_px[..., 1] - K[..., 1, 2]) / K[..., 1, 1]
+    x = (uv_px[..., 0] - K[..., 0, 2] - K[..., 0, 1] * y) / K[..., 0, 0]
+    return np.stack([x, y], axis=-1)
 
 
 def project_points(X_world: F64, K: F64, dist: F64, R: F64, t: F64,

@@ -89,21 +89,23 @@ def write_keypoints_csv(path: Path, tracks: TrackSet) -> None:
                         f"{x[0]:.6f}", f"{x[1]:.6f}", f"{x[2]:.6f}", f"{tracks.kpt_sd[r, j]:.6f}"])
 
 
-def write_outputs(out: Path, scene: Scene, tracks: TrackSet,
-                  extra_meta: dict[str, Any] | None = None) -> None:
-    """Write ``OUT/tracks.csv`` (+ ``keypoints.csv``) and ``OUT/meta.json`` (all or nothing)."""
+def write_result_files(d: Path, scene: Scene, tracks: TrackSet,
+                       extra_meta: dict[str, Any] | None = None) -> None:
+    """``tracks.csv``, ``keypoints.csv`` (with joints) and ``meta.json`` into folder ``d``."""
     meta = meta_of(scene, tracks)
     if extra_meta:
         meta.update(_jsonable(extra_meta))
+    write_tracks_csv(d / "tracks.csv", tracks)
+    if tracks.kpt_world.shape[1]:
+        write_keypoints_csv(d / "keypoints.csv", tracks)
+    (d / "meta.json").write_text(json.dumps(_jsonable(meta), indent=2, allow_nan=False,
+                                            default=_jsonable))
 
-    def write(tmp: Path) -> None:
-        write_tracks_csv(tmp / "tracks.csv", tracks)
-        if tracks.kpt_world.shape[1]:
-            write_keypoints_csv(tmp / "keypoints.csv", tracks)
-        (tmp / "meta.json").write_text(json.dumps(meta, indent=2, allow_nan=False,
-                                                  default=_jsonable))
 
-    write_dir_atomically(Path(out), write)
+def write_outputs(out: Path, scene: Scene, tracks: TrackSet,
+                  extra_meta: dict[str, Any] | None = None) -> None:
+    """Write ``OUT/tracks.csv`` (+ ``keypoints.csv``) and ``OUT/meta.json`` (all or nothing)."""
+    write_dir_atomically(Path(out), lambda tmp: write_result_files(tmp, scene, tracks, extra_meta))
 
 
 def read_tracks_csv(path: Path) -> TrackSet:

@@ -1,0 +1,118 @@
+"""Run several estimators on one input and say where they disagree (``gt3d compare``)."""
+
+from __future__ import annotations
+
+import csv
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gt3dkit.eval.metrics import box_errors, match_rows
+from gt3dkit.fusion.rows import build_rows
+from gt3dkit.geom.camera import Cams, project_points
+from gt3dkit.geom.conics import ellipsoid_boxes
+from gt3dkit.io.atomic import write_dir_atomically
+from gt3dkit.io.writers import write_result_files
+from gt3dkit.types import F64, Scene, TrackSet
+
+COMPARE_ESTIMATORS = ("ukf", "gtsam", "triangulation")
+
+
+def reprojection_residuals(tracks: TrackSet, scene: Scene) -> F64:
+    """Image residuals (px) of every usable box edge (absolute) and every keypoint (distance)."""
+    rows = build_rows(scene)
+    cams = Cams.of(scene.rig)
+    key = {(int(rows.frames[t]), int(rows.obj_ids[o])): r
+           for r, (t, o) in enumerate(zip(rows.row_t, rows.row_o, strict=True))}
+    r_of = np.array([key.get((int(f), int(i)), -1) for f, i in
+                     zip(tracks.frame, tracks.track_id, strict=True)], dtype=np.int64)
+    ok = r_of >= 0
+    out = []
+    if np.isfinite(rows.box_z).any():
+        box, _ = ellipsoid_boxes(tracks.center_world[ok], tracks.semi_axes[ok], cams.world_from_body,
+                                 cams.K, cams.dist, cams.R, cams.t, cams.depth_sign)
+        m = rows.box_mask[r_of[ok]]
+        out.append(np.abs(box - rows.box_z[r_of[ok]])[m])
+    if tracks.kpt_world.shape[1] and np.isfinite(rows.kpt_z).any():
+        uv, _ = project_points(tracks.kpt_world[ok], cams.K, cams.dist, cams.R, cams.t,
+                               cams.depth_sign)  # (n, J, C, 2)
+        z = np.swapaxes(rows.kpt_z[r_of[ok]], 1, 2)  # (n, J, C, 2)
+        d = np.linalg.norm(uv - z, axis=-1)
+        out.append(d[np.isfinite(d)])
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def disagreement(a: TrackSet, b: TrackSet) -> F64:
+    """Per matched (frame, id): mean joint distance if both have joints, else centre distance (m)."""
+    ia, ib = match_rows(a, b)
+    if a.kpt_world.shape[1] and b.kpt_world.shape[1]:
+        d = np.linalg.norm(a.kpt_world[ia] - b.kpt_world[ib], axis=-1)
+        with np.errstate(invalid="ignore"):
+            per = np.nanmean(np.where(np.isfinite(d), d, np.nan), axis=1) if d.size else d
+        return per[np.isfinite(per)]
+    return np.linalg.norm(a.center_world[ia] - b.center_world[ib], axis=1)
+
+
+def compare(scene: Scene, out: Path, estimators: tuple[str, ...] = COMPARE_ESTIMATORS,
+            progress: bool = True) -> list[dict[str, Any]]:
+    """Run ``estimators`` on ``scene``; write ``out/<name>/`` outputs and ``out/comparison.csv``
+    (all at once, atomically). Returns the comparison rows."""
+    from tqdm import tqdm
+
+    from gt3dkit.api import make_estimator
+    from gt3dkit.eval.pose import mpjpe_by_id
+
+    results: dict[str, TrackSet] = {}
+    seconds: dict[str, float] = {}
+    for name in tqdm(estimators, desc="estimators", disable=not progress, unit="est"):
+        t0 = time.perf_counter()
+        results[name] = make_estimator(name).estimate(scene)
+        seconds[name] = time.perf_counter() - t0
+    table = []
+    for name, tr in results.items():
+        res = reprojection_residuals(tr, scene)
+        row: dict[str, Any] = {
+            "estimator": name, "rows": len(tr),
+            "skipped_rows": int(tr.info.get("skipped_lt2_views", 0)),
+            "reproj_mean_px": float(np.mean(res)) if res.size else float("nan"),
+            "reproj_median_px": float(np.median(res)) if res.size else float("nan"),
+            "reproj_p95_px": float(np.percentile(res, 95)) if res.size else float("nan"),
+        }
+        for other in results:
+            if other != name:
+                d = disagreement(tr, results[other])
+                row[f"dist_to_{other}_mean_m"] = float(np.mean(d)) if d.size else float("nan")
+                row[f"dist_to_{other}_p95_m"] = float(np.percentile(d, 95)) if d.size else float("nan")
+        row["seconds"] = seconds[name]
+        if scene.truth is not None:
+            if np.isfinite(scene.truth.center_world).any():
+                e = box_errors(tr, scene.truth, scene.rig.up)
+                row["truth_ground_mean_m"] = e.ground_mean_m
+                row["truth_centre_mean_m"] = e.centre_mean_m
+                row["truth_coverage"] = e.coverage
+            if scene.truth.kpt_world.shape[1] and tr.kpt_world.shape[1]:
+                mm, matched, total = mpjpe_by_id(tr, scene.truth)
+                row["truth_mpjpe_m"] = mm / 1000
+                row["truth_coverage"] = matched / max(total, 1)
+        table.append(row)
+    names = list(results)
+    cols = (["estimator", "rows", "skipped_rows", "reproj_mean_px", "reproj_median_px",
+             "reproj_p95_px"] + [f"dist_to_{n}_{s}" for n in names for s in ("mean_m", "p95_m")]
+            + ["seconds"])
+    for r in table:
+        cols += [k for k in r if k not in cols]
+
+    def write(tmp: Path) -> None:
+        for name, tr in results.items():
+            (tmp / name).mkdir()
+            write_result_files(tmp / name, scene, tr)
+        with open(tmp / "comparison.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=cols)
+            w.writeheader()
+            for r in table:
+                w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+
+    write_dir_atomically(Path(out), write)
+    return table

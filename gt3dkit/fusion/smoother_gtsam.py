@@ -1,0 +1,288 @@
+r"""A second, independent estimator: one GTSAM factor graph per object over all its frames.
+
+Variables (per object)
+    ``c_k`` (Point3) ellipsoid centre and ``v_k`` (Point3) its velocity at every frame row,
+    one shared ``s`` (Vector3) log semi-axes; for keypoints ``p_{k,j}`` (Point3) and
+    ``w_{k,j}`` (Point3) velocity of each joint the object ever shows.
+Factors
+    * constant velocity between consecutive rows (``CustomFactor``, linear, exact
+      discrete-time ``Q`` of :class:`gt3dkit.fusion.motion.StateLayout`);
+    * one ``TriangulationFactorCal3_S2`` per 2D keypoint: GTSAM's projection factor with the
+      calibrated camera; the keypoint is undistorted first (GTSAM's ``Cal3DS2`` has no ``k3``);
+    * one ``CustomFactor`` per box whose error is the tangent-box residual of its usable
+      edges (:func:`gt3dkit.fusion.boxfit.box_model`), Jacobian by central differences;
+    * Huber-robust noise models on every measurement; weak priors (1 m, 10 m/s, 1.0 in log
+      axes) at the per-frame initial values so that nothing is left undetermined.
+Solved with Levenberg-Marquardt; each output's standard deviation from GTSAM's marginal
+covariances.
+
+Conventions are converted here and only here: GTSAM's camera pose is ``world_from_cam``
+(``Pose3(Rot3(R^T), C)``), our cameras are ``cam_from_world``.
+
+Noise levels: measurement noise from the data as in the UKF (per-frame residuals), process
+noise from the same likelihood grid as the UKF (shared, so the two differ in method, not in
+tuning).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from gt3dkit.fusion.boxfit import auto_sigma_px, box_model, fit_boxes
+from gt3dkit.fusion.motion import StateLayout
+from gt3dkit.fusion.rows import Rows, build_rows
+from gt3dkit.fusion.ukf_smoother import (
+    UKFConfig,
+    check_in_front,
+    ellipsoid_around,
+    initial_states,
+    never_seen,
+    select_noise,
+    stacked_model,
+    triangulate_rows,
+)
+from gt3dkit.geom.camera import Cams, apply_K
+from gt3dkit.geom.triangulate import normalized_points
+from gt3dkit.types import F64, Scene, TrackSet
+
+
+@dataclass(frozen=True)
+class GTSAMConfig:
+    """Settings of :class:`GTSAMSmoother`. ``None`` = from the data (as the UKF does)."""
+
+    sigma_px: float | None = None
+    kpt_sigma_px: float | None = None
+    accel_sd: float | None = None
+    joint_accel_sd: float | None = None
+    vertical_ratio: float = 0.1
+    huber_k: float = 1.345
+    clip_tol_px: float = 1.0
+    max_iterations: int = 100
+    relative_error_tol: float = 1e-10
+
+
+def _gtsam() -> Any:
+    import gtsam
+
+    return gtsam
+
+
+class GTSAMSmoother:
+    """Batch maximum a posteriori smoothing per object with GTSAM (see module doc)."""
+
+    name = "gtsam"
+
+    def __init__(self, config: GTSAMConfig | None = None) -> None:
+        self.config = config or GTSAMConfig()
+
+    def estimate(self, scene: Scene) -> TrackSet:
+        gtsam = _gtsam()
+        cfg = self.config
+        t0 = time.perf_counter()
+        rows = build_rows(scene, cfg.clip_tol_px)
+        cams = Cams.of(scene.rig)
+        R, C, J = len(rows), len(cams.K), scene.obs.n_joints
+        use_box = bool(np.isfinite(rows.box_z).any())
+        use_kpt = J > 0 and bool(np.isfinite(rows.kpt_z).any())
+        layout = StateLayout(J if use_kpt else 0)
+        fit, kpt0 = None, None
+        sigma_box, sigma_kpt = 1.0, 1.0
+        if use_box:
+            fit = fit_boxes(rows.box_z, rows.box_mask, cams)
+            check_in_front(scene, rows, fit)
+            sigma_box = cfg.sigma_px or auto_sigma_px(fit)
+        if use_kpt:
+            kpt0, rms = triangulate_rows(scene, rows, cams)
+            sigma_kpt = cfg.kpt_sigma_px or max(rms, 0.05)
+        ucfg = UKFConfig(sigma_px=sigma_box, kpt_sigma_px=sigma_kpt, accel_sd=cfg.accel_sd,
+                         joint_accel_sd=cfg.joint_accel_sd, vertical_ratio=cfg.vertical_ratio,
+                         shape_sd=1e-6, clip_tol_px=cfg.clip_tol_px)
+        x0, _ = initial_states(scene, rows, cams, layout, fit, kpt0, ucfg)
+        model = stacked_model(rows, cams, layout, use_box, use_kpt, sigma_box, sigma_kpt, x0,
+                              np.ones_like(x0), kpt0, ucfg.init_joint_sd_m)
+        tuned, _ = select_noise(model, ucfg, ucfg, use_box, use_kpt, scene.fps,
+                                shape_grid=(1e-6,))
+        centre = x0[:, 0:3].copy()
+        log_axes = x0[:, 6:9].copy()
+        c_sd = np.full((R, 3), np.nan)
+        kpt = x0[:, layout.joints].reshape(R, J if use_kpt else 0, 3).copy()
+        kpt_sd = np.full(kpt.shape[:2], np.nan)
+        stats = {"iterations": 0, "final_error": 0.0, "factors": 0}
+        # undistorted pixels of every keypoint (GTSAM's pinhole with Cal3_S2)
+        und = None
+        if use_kpt:
+            und = apply_K(normalized_points(rows.kpt_z, cams.K[:, None], cams.dist[:, None]),
+                          cams.K[:, None])  # (R, C, J, 2)
+        cal = [gtsam.Cal3_S2(k[0, 0], k[1, 1], k[0, 1], k[0, 2], k[1, 2]) for k in cams.K]
+        gcams = [gtsam.PinholeCameraCal3_S2(
+            gtsam.Pose3(gtsam.Rot3(r.T), -r.T @ t), cal[c])
+            for c, (r, t) in enumerate(zip(cams.R, cams.t, strict=True))]
+        for o in range(len(rows.obj_ids)):
+            mine = np.flatnonzero(rows.row_o == o)  # sorted by frame
+            res = self._solve_object(gtsam, rows, cams, mine, layout, x0, use_box, use_kpt,
+                                     sigma_box, sigma_kpt, und, gcams, tuned, scene.fps)
+            for k, v in res["stats"].items():
+                stats[k] += v
+            centre[mine], log_axes[mine], c_sd[mine] = res["centre"], res["log_axes"], res["c_sd"]
+            if use_kpt:
+                kpt[mine], kpt_sd[mine] = res["kpt"], res["kpt_sd"]
+        semi = np.exp(log_axes)
+        if use_kpt:
+            nv = never_seen(rows, J)
+            kpt[nv], kpt_sd[nv] = np.nan, np.nan
+            if not use_box:
+                centre, semi, c_sd = ellipsoid_around(kpt, kpt_sd, cams.world_from_body)
+        info = {"estimator": self.name,
+                "params": {**asdict(cfg), "sigma_px": sigma_box if use_box else None,
+                           "kpt_sigma_px": sigma_kpt if use_kpt else None,
+                           "accel_sd": tuned.accel_sd, "joint_accel_sd": tuned.joint_accel_sd,
+                           "fps": scene.fps},
+                "optimizer": "Levenberg-Marquardt (GTSAM), one graph per object", **stats,
+                "object_frames": R, "seconds": time.perf_counter() - t0}
+        return TrackSet(frame=rows.frames[rows.row_t], track_id=rows.obj_ids[rows.row_o],
+                        center_world=centre, semi_axes=semi, center_sd=c_sd, n_views=rows.n_views,
+                        kpt_world=kpt, kpt_sd=kpt_sd, info=info)
+
+    def _solve_object(self, gtsam: Any, rows: Rows, cams: Cams, mine: np.ndarray,
+                      layout: StateLayout, x0: F64, use_box: bool, use_kpt: bool,
+                      sigma_box: float, sigma_kpt: float, und: F64 | None, gcams: list[Any],
+                      tuned: UKFConfig, fps: float) -> dict[str, Any]:
+        cfg = self.config
+        C = len(cams.K)
+        J = layout.n_joints
+        g = gtsam.NonlinearFactorGraph()
+        vals = gtsam.Values()
+        sym = gtsam.symbol
+        n_rows = len(mine)
+        huber = gtsam.noiseModel.mEstimator.Huber.Create(cfg.huber_k)
+        weak3 = gtsam.noiseModel.Isotropic.Sigma(3, 1.0)
+        weakv = gtsam.noiseModel.Isotropic.Sigma(3, 10.0)
+        frame_s = rows.frames[rows.row_t[mine]] / fps
+        dts = np.diff(frame_s)
+        seen_j = np.zeros(J, bool)
+        if use_kpt and und is not None:
+            seen_j = np.isfinite(und[mine][..., 0]).any(axis=(0, 1))
+        blocks: list[tuple[str, int, float]] = []  # (symbol char, joint, accel_sd)
+        if use_box:
+            blocks.append(("c", 0, float(tuned.accel_sd or 0.3)))
+            vals.insert(sym("s", 0), x0[mine[0], 6:9].copy())
+            g.add(gtsam.PriorFactorVector(sym("s", 0), x0[mine[0], 6:9].copy(),
+                                          gtsam.noiseModel.Isotropic.Sigma(3, 1.0)))
+        for j in np.flatnonzero(seen_j):
+            blocks.append(("p", int(j), float(tuned.joint_accel_sd or 3.0)))
+        for ch, j, q in blocks:
+            vch = "v" if ch == "c" else "w"
+            for k, r in enumerate(mine):
+                if ch == "c":
+                    init = x0[r, 0:3]
+                else:
+                    init = x0[r, layout.joints.start + 3 * j: layout.joints.start + 3 * j + 3]
+                kx, kv = sym(ch, k * 32 + j), sym(vch, k * 32 + j)
+                vals.insert(kx, np.asarray(init, dtype=np.float64).copy())
+                vals.insert(kv, np.zeros(3))
+                g.add(gtsam.PriorFactorPoint3(kx, np.asarray(init, float).copy(), weak3))
+                g.add(gtsam.PriorFactorPoint3(kv, np.zeros(3), weakv))
+            for k, dt in enumerate(dts):
+                g.add(_cv_factor(gtsam, [sym(ch, k * 32 + j), sym(vch, k * 32 + j),
+                                         sym(ch, (k + 1) * 32 + j), sym(vch, (k + 1) * 32 + j)],
+                                 float(dt), q, cams.up if ch == "c" else None,
+                                 tuned.vertical_ratio))
+        if use_box:
+            for k, r in enumerate(mine):
+                m = rows.box_mask[r].reshape(-1)
+                if not m.any():
+                    continue
+                z = rows.box_z[r].reshape(-1)[m]
+                noise = gtsam.noiseModel.Robust.Create(
+                    huber, gtsam.noiseModel.Isotropic.Sigma(int(m.sum()), sigma_box))
+                g.add(gtsam.CustomFactor(noise, [sym("c", k * 32), sym("s", 0)],
+                                         _box_error(cams, z, m, C)))
+        if use_kpt and und is not None:
+            noise_k = gtsam.noiseModel.Robust.Create(
+                huber, gtsam.noiseModel.Isotropic.Sigma(2, sigma_kpt))
+            for k, r in enumerate(mine):
+                cc, jj = np.nonzero(np.isfinite(und[r][..., 0]))
+                for c, j in zip(cc, jj, strict=True):
+                    g.add(gtsam.TriangulationFactorCal3_S2(gcams[c], und[r, c, j], noise_k,
+                                                           sym("p", k * 32 + int(j))))
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(cfg.max_iterations)
+        params.setRelativeErrorTol(cfg.relative_error_tol)
+        opt = gtsam.LevenbergMarquardtOptimizer(g, vals, params)
+        result = opt.optimize()
+        marg = gtsam.Marginals(g, result)
+        out: dict[str, Any] = {
+            "centre": x0[mine, 0:3].copy(), "log_axes": x0[mine, 6:9].copy(),
+            "c_sd": np.full((n_rows, 3), np.nan),
+            "kpt": x0[mine][:, layout.joints].reshape(n_rows, J, 3).copy(),
+            "kpt_sd": np.full((n_rows, J), np.nan),
+            "stats": {"iterations": int(opt.iterations()), "final_error": float(opt.error()),
+                      "factors": int(g.size())},
+        }
+        if use_box:
+            s = result.atVector(sym("s", 0))
+            out["log_axes"][:] = s
+            for k in range(n_rows):
+                out["centre"][k] = result.atPoint3(sym("c", k * 32))
+                out["c_sd"][k] = np.sqrt(np.diag(marg.marginalCovariance(sym("c", k * 32))))
+        for j in np.flatnonzero(seen_j):
+            for k in range(n_rows):
+                key = sym("p", k * 32 + int(j))
+                out["kpt"][k, j] = result.atPoint3(key)
+                out["kpt_sd"][k, j] = np.sqrt(np.trace(marg.marginalCovariance(key)) / 3)
+        return out
+
+
+def _cv_factor(gtsam: Any, keys: list[int], dt: float, accel_sd: float, up: F64 | None,
+               vertical_ratio: float) -> Any:
+    """Constant velocity between ``(x_k, v_k)`` and ``(x_{k+1}, v_{k+1})``: the residual
+    ``[x_{k+1} - x_k - dt v_k ; v_{k+1} - v_k]`` with covariance ``Q(dt)`` (whitened here,
+    unit noise model). Linear, so its Jacobians are constants."""
+    lay = StateLayout(0)
+    _, Q = lay.transition(np.array([dt]), accel_sd, 1.0, up=up,
+                          vertical_ratio=vertical_ratio if up is not None else 1.0)
+    Q6 = Q[0, :6, :6]
+    W = np.linalg.inv(np.linalg.cholesky(Q6))  # whitening: W Q W^T = I
+    I3, Z3 = np.eye(3), np.zeros((3, 3))
+    blocks = [W @ np.vstack([-I3, Z3]), W @ np.vstack([-dt * I3, -I3]),
+              W @ np.vstack([I3, Z3]), W @ np.vstack([Z3, I3])]
+
+    def error(this: Any, v: Any, H: Any) -> F64:
+        ks = this.keys()
+        x0, v0, x1, v1 = (v.atPoint3(ks[i]) for i in range(4))
+        e = W @ np.concatenate([x1 - x0 - dt * v0, v1 - v0])
+        if H is not None:
+            for i in range(4):
+                H[i] = blocks[i]
+        return e
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(6), keys, error)
+
+
+def _box_error(cams: Cams, z: F64, m: np.ndarray, C: int) -> Any:
+    """Error function of a box factor on (centre Point3, log semi-axes Vector3)."""
+    eps = np.array([1e-6] * 6)
+    steps = np.concatenate([np.diag(eps), -np.diag(eps)])
+
+    def predict(p: F64) -> F64:
+        return box_model(p[..., :3], p[..., 3:], cams).reshape(p.shape[:-1] + (C * 4,))[..., m]
+
+    def error(this: Any, v: Any, H: Any) -> F64:
+        ks = this.keys()
+        p = np.concatenate([v.atPoint3(ks[0]), v.atVector(ks[1])])
+        e = predict(p) - z
+        if not np.all(np.isfinite(e)):
+            e = np.where(np.isfinite(e), e, 1e6)
+        if H is not None:
+            Y = predict(p[None] + steps)
+            Jm = np.nan_to_num((Y[:6] - Y[6:]) / (2 * eps[:, None])).T  # (m, 6)
+            H[0] = Jm[:, :3]
+            H[1] = Jm[:, 3:]
+        return e
+
+    return error
+
