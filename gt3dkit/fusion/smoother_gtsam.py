@@ -32,18 +32,15 @@ from typing import Any
 
 import numpy as np
 
-from gt3dkit.fusion.boxfit import auto_sigma_px, box_model, fit_boxes
+from gt3dkit.fusion.boxfit import box_model
 from gt3dkit.fusion.motion import StateLayout
-from gt3dkit.fusion.rows import Rows, build_rows
+from gt3dkit.fusion.rows import Rows
 from gt3dkit.fusion.ukf_smoother import (
     UKFConfig,
-    check_in_front,
     ellipsoid_around,
-    initial_states,
     never_seen,
+    prepare,
     select_noise,
-    stacked_model,
-    triangulate_rows,
 )
 from gt3dkit.geom.camera import Cams, apply_K
 from gt3dkit.geom.triangulate import normalized_points
@@ -83,29 +80,17 @@ class GTSAMSmoother:
         gtsam = _gtsam()
         cfg = self.config
         t0 = time.perf_counter()
-        rows = build_rows(scene, cfg.clip_tol_px)
-        cams = Cams.of(scene.rig)
-        R, C, J = len(rows), len(cams.K), scene.obs.n_joints
-        use_box = bool(np.isfinite(rows.box_z).any())
-        use_kpt = J > 0 and bool(np.isfinite(rows.kpt_z).any())
-        layout = StateLayout(J if use_kpt else 0)
-        fit, kpt0 = None, None
-        sigma_box, sigma_kpt = 1.0, 1.0
-        if use_box:
-            fit = fit_boxes(rows.box_z, rows.box_mask, cams)
-            check_in_front(scene, rows, fit)
-            sigma_box = cfg.sigma_px or auto_sigma_px(fit)
-        if use_kpt:
-            kpt0, rms = triangulate_rows(scene, rows, cams)
-            sigma_kpt = cfg.kpt_sigma_px or max(rms, 0.05)
-        ucfg = UKFConfig(sigma_px=sigma_box, kpt_sigma_px=sigma_kpt, accel_sd=cfg.accel_sd,
-                         joint_accel_sd=cfg.joint_accel_sd, vertical_ratio=cfg.vertical_ratio,
-                         shape_sd=1e-6, clip_tol_px=cfg.clip_tol_px)
-        x0, _ = initial_states(scene, rows, cams, layout, fit, kpt0, ucfg)
-        model = stacked_model(rows, cams, layout, use_box, use_kpt, sigma_box, sigma_kpt, x0,
-                              np.ones_like(x0), kpt0, ucfg.init_joint_sd_m)
-        tuned, _ = select_noise(model, ucfg, ucfg, use_box, use_kpt, scene.fps,
-                                shape_grid=(1e-6,))
+        pre = prepare(scene, cfg.clip_tol_px, cfg.sigma_px, cfg.kpt_sigma_px)
+        rows, cams, layout, use_box, use_kpt = (pre.rows, pre.cams, pre.layout, pre.use_box,
+                                                pre.use_kpt)
+        sigma_box, sigma_kpt = pre.sigma_box, pre.sigma_kpt
+        R, J = len(rows), layout.n_joints
+        ucfg = UKFConfig(accel_sd=cfg.accel_sd, joint_accel_sd=cfg.joint_accel_sd,
+                         vertical_ratio=cfg.vertical_ratio, shape_sd=1e-6,
+                         clip_tol_px=cfg.clip_tol_px)
+        model = pre.model(scene, ucfg)
+        x0 = model.x0
+        tuned, _ = select_noise(model, ucfg, ucfg, use_box, use_kpt, scene.fps, shape_grid=(1e-6,))
         centre = x0[:, 0:3].copy()
         log_axes = x0[:, 6:9].copy()
         c_sd = np.full((R, 3), np.nan)

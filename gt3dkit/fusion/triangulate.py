@@ -16,10 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gt3dkit.fusion.boxfit import auto_sigma_px, fit_boxes
-from gt3dkit.fusion.rows import build_rows
-from gt3dkit.fusion.ukf_smoother import check_in_front, ellipsoid_around, triangulate_rows
-from gt3dkit.geom.camera import Cams
+from gt3dkit.fusion.ukf_smoother import ellipsoid_around, prepare
 from gt3dkit.types import Scene, TrackSet
 
 
@@ -39,9 +36,9 @@ class Triangulation:
 
     def estimate(self, scene: Scene) -> TrackSet:
         t0 = time.perf_counter()
-        rows = build_rows(scene, self.config.clip_tol_px)
-        cams = Cams.of(scene.rig)
-        R, J = len(rows), scene.obs.n_joints
+        pre = prepare(scene, self.config.clip_tol_px)
+        rows, cams, fit = pre.rows, pre.cams, pre.fit
+        R = len(rows)
         info: dict[str, object] = {"estimator": self.name, "params": dict(self.config.__dict__)}
         keep = np.zeros(R, bool)
         centre = np.full((R, 3), np.nan)
@@ -49,18 +46,16 @@ class Triangulation:
         sd = np.full((R, 3), np.nan)
         kpt = np.zeros((R, 0, 3))
         kpt_sd = np.zeros((R, 0))
-        if np.isfinite(rows.box_z).any():
+        if fit is not None:
             n_box_views = np.all(np.isfinite(rows.box_z), axis=-1).sum(axis=1)
-            fit = fit_boxes(rows.box_z, rows.box_mask, cams)
-            check_in_front(scene, rows, fit)
-            sigma = auto_sigma_px(fit)
+            sigma = pre.sigma_box
             ok = fit.ok & (n_box_views >= self.config.min_views)
             keep |= ok
             centre[ok], semi[ok] = fit.center_world[ok], np.exp(fit.log_axes[ok])
             sd[ok] = np.sqrt(np.einsum("rii->ri", fit.cov[ok][:, :3, :3])) * sigma
             info["sigma_px"] = sigma
-        if J and np.isfinite(rows.kpt_z).any():
-            kpt, rms = triangulate_rows(scene, rows, cams)
+        if pre.kpt0 is not None:
+            kpt, rms = pre.kpt0, pre.sigma_kpt
             nv = np.isfinite(rows.kpt_z[..., 0]).sum(axis=1)  # (R, J)
             # first-order sd: pixel noise at the joint's depth, averaged over its views
             depth = np.einsum("cj,rkj->rkc", cams.R[:, 2, :], kpt) + cams.t[:, 2]

@@ -102,6 +102,18 @@ def unscented_transform(Y: F64, w: SigmaWeights) -> tuple[F64, F64]:
     return mean, cov
 
 
+def _regression_points(xj: F64, Pj: F64, mask: F64, h: MeasureFn, w: SigmaWeights
+                       ) -> tuple[np.ndarray, F64, F64, F64, int]:
+    """Sigma points of ``(xj, Pj)`` through ``h``: usable mask ``(B, m)`` (measured and finite
+    at every sigma point), ``zhat (B, m)``, deviations ``dX (B, S, n)``, ``dZ (B, S, m)``."""
+    X, rep = sigma_points(xj, Pj, w)
+    Z = h(X)
+    mk = mask & np.all(np.isfinite(Z), axis=1)
+    Zm = np.where(mk[:, None, :], Z, 0.0)
+    zhat = np.einsum("s,bsm->bm", w.Wm, Zm)
+    return mk, zhat, X - xj[:, None, :], Zm - zhat[:, None, :], rep
+
+
 def ukf_update(
     x: F64, P: F64, z: F64, mask: F64, R_diag: F64, h: MeasureFn, w: SigmaWeights,
     iterations: int = 1, x_lin: F64 | None = None, P_lin: F64 | None = None,
@@ -152,14 +164,8 @@ def ukf_update(
     repaired = 0
     info: dict[str, float | int] = {}
     for it in range(iterations):
-        X, rep = sigma_points(xj, Pj, w)
+        mk, zhat, dX, dZ, rep = _regression_points(xj, Pj, mask, h, w)
         repaired += rep
-        Z = h(X)
-        mk = mask & np.all(np.isfinite(Z), axis=1)
-        Zm = np.where(mk[:, None, :], Z, 0.0)
-        zhat = np.einsum("s,bsm->bm", w.Wm, Zm)
-        dZ = Zm - zhat[:, None, :]
-        dX = X - xj[:, None, :]
         Pzz = _wcov(w.Wc, dZ, dZ)
         Pxz = _wcov(w.Wc, dX, dZ)
         if xj is x:
@@ -222,14 +228,8 @@ def ukf_update_information(
     info: dict[str, float | int] = {}
     eye = np.eye(n)
     for it in range(iterations):
-        X, rep = sigma_points(xj, Pj, w)
+        mk, zhat, dX, dZ, rep = _regression_points(xj, Pj, mask, h, w)
         repaired += rep
-        Z = h(X)
-        mk = mask & np.all(np.isfinite(Z), axis=1)
-        Zm = np.where(mk[:, None, :], Z, 0.0)
-        zhat = np.einsum("s,bsm->bm", w.Wm, Zm)
-        dZ = Zm - zhat[:, None, :]
-        dX = X - xj[:, None, :]
         Pxz = _wcov(w.Wc, dX, dZ)  # (B, n, m)
         At = np.linalg.solve(Pj, Pxz)  # A^T (B, n, m)
         var_z = np.einsum("s,bsm->bm", w.Wc, dZ * dZ)

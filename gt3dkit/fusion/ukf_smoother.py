@@ -126,6 +126,54 @@ def check_in_front(scene: Scene, rows: Rows, fit: BoxFit) -> None:
                                 f"box and calibration disagree")
 
 
+@dataclass(frozen=True)
+class Prepared:
+    """What every estimator starts from: rows, cameras, per-frame fits and noise levels.
+
+    fit : per-frame box fits (None without boxes); kpt0 : (R, J, 3) per-frame DLT joints
+    (None without keypoints); sigma_box / sigma_kpt : measurement noise (px), given or
+    estimated from the per-frame residuals.
+    """
+
+    rows: Rows
+    cams: Cams
+    layout: StateLayout
+    use_box: bool
+    use_kpt: bool
+    fit: BoxFit | None
+    kpt0: F64 | None
+    sigma_box: float
+    sigma_kpt: float
+
+    def model(self, scene: Scene, cfg: UKFConfig) -> Model:
+        """The stacked filter model with initial states from ``cfg``'s initial sds."""
+        x0, p0 = initial_states(scene, self.rows, self.cams, self.layout, self.fit, self.kpt0, cfg)
+        return stacked_model(self.rows, self.cams, self.layout, self.use_box, self.use_kpt,
+                             self.sigma_box, self.sigma_kpt, x0, p0, self.kpt0,
+                             cfg.init_joint_sd_m)
+
+
+def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = None,
+            kpt_sigma_px: float | None = None) -> Prepared:
+    """Rows, cameras, per-frame box fits / DLT joints, input checks and noise levels."""
+    rows = build_rows(scene, clip_tol_px)
+    cams = Cams.of(scene.rig)
+    J = scene.obs.n_joints
+    use_box = bool(np.isfinite(rows.box_z).any())
+    use_kpt = J > 0 and bool(np.isfinite(rows.kpt_z).any())
+    fit, kpt0 = None, None
+    sigma_box = sigma_kpt = 1.0
+    if use_box:
+        fit = fit_boxes(rows.box_z, rows.box_mask, cams)
+        check_in_front(scene, rows, fit)
+        sigma_box = sigma_px if sigma_px is not None else auto_sigma_px(fit)
+    if use_kpt:
+        kpt0, rms = triangulate_rows(scene, rows, cams)
+        sigma_kpt = kpt_sigma_px if kpt_sigma_px is not None else max(rms, 0.05)
+    return Prepared(rows, cams, StateLayout(J if use_kpt else 0), use_box, use_kpt, fit, kpt0,
+                    sigma_box, sigma_kpt)
+
+
 @dataclass
 class Model:
     """Everything one filter run needs: rows, cameras, stacked measurements, initial states.
@@ -199,27 +247,13 @@ class UKFSmoother:
     def estimate(self, scene: Scene) -> TrackSet:
         cfg = self.config
         t0 = time.perf_counter()
-        rows = build_rows(scene, cfg.clip_tol_px)
-        cams = Cams.of(scene.rig)
-        R, C, J = len(rows), len(cams.K), scene.obs.n_joints
-        use_box = bool(np.isfinite(rows.box_z).any())
-        use_kpt = J > 0 and bool(np.isfinite(rows.kpt_z).any())
-        layout = StateLayout(J if use_kpt else 0)
+        pre = prepare(scene, cfg.clip_tol_px, cfg.sigma_px, cfg.kpt_sigma_px)
+        rows, cams, layout, use_box, use_kpt = (pre.rows, pre.cams, pre.layout, pre.use_box,
+                                                pre.use_kpt)
+        sigma_box, sigma_kpt = pre.sigma_box, pre.sigma_kpt
+        R, J = len(rows), layout.n_joints
         info: dict[str, Any] = {"estimator": self.name}
-        fit = None
-        sigma_box = 1.0
-        if use_box:
-            fit = fit_boxes(rows.box_z, rows.box_mask, cams)
-            check_in_front(scene, rows, fit)
-            sigma_box = cfg.sigma_px if cfg.sigma_px is not None else auto_sigma_px(fit)
-        kpt0 = None
-        sigma_kpt = 1.0
-        if use_kpt:
-            kpt0, rms = triangulate_rows(scene, rows, cams)
-            sigma_kpt = cfg.kpt_sigma_px if cfg.kpt_sigma_px is not None else max(rms, 0.05)
-        x0, p0 = initial_states(scene, rows, cams, layout, fit, kpt0, cfg)
-        model = stacked_model(rows, cams, layout, use_box, use_kpt, sigma_box, sigma_kpt, x0, p0,
-                              kpt0, cfg.init_joint_sd_m)
+        model = pre.model(scene, cfg)
         cfg, loglik = select_noise(model, cfg, self.config, use_box, use_kpt, scene.fps)
         x_s, P_s, run_info = run_filter(model, cfg, scene.fps)
         bone_info: dict[str, Any] = {}
