@@ -44,11 +44,32 @@ def reprojection_residuals(tracks: TrackSet, scene: Scene) -> F64:
     return np.concatenate(out) if out else np.zeros(0)
 
 
-def disagreement(a: TrackSet, b: TrackSet) -> F64:
-    """Per matched (frame, id): mean joint distance if both have joints, else centre distance (m)."""
+def seen_joints(tracks: TrackSet, scene: Scene, min_views: int = 2) -> np.ndarray:
+    """(M, J) joints of each output row that ``min_views`` or more cameras saw in that frame."""
+    rows = build_rows(scene)
+    key = {(int(rows.frames[t]), int(rows.obj_ids[o])): r
+           for r, (t, o) in enumerate(zip(rows.row_t, rows.row_o, strict=True))}
+    nv = np.isfinite(rows.kpt_z[..., 0]).sum(axis=1)  # (R, J)
+    out = np.zeros(tracks.kpt_world.shape[:2], bool)
+    for m, (f, i) in enumerate(zip(tracks.frame, tracks.track_id, strict=True)):
+        r = key.get((int(f), int(i)))
+        if r is not None and out.shape[1]:
+            out[m] = nv[r] >= min_views
+    return out
+
+
+def disagreement(a: TrackSet, b: TrackSet, seen_a: np.ndarray | None = None) -> F64:
+    """Per matched (frame, id): mean joint distance if both have joints, else centre distance (m).
+
+    ``seen_a`` (M_a, J) restricts the joints to those the cameras saw in that frame: a joint
+    out of sight for many frames is an extrapolation with a large sd in every estimator,
+    and would swamp the comparison.
+    """
     ia, ib = match_rows(a, b)
     if a.kpt_world.shape[1] and b.kpt_world.shape[1]:
         d = np.linalg.norm(a.kpt_world[ia] - b.kpt_world[ib], axis=-1)
+        if seen_a is not None:
+            d = np.where(seen_a[ia], d, np.nan)
         with np.errstate(invalid="ignore"):
             per = np.nanmean(np.where(np.isfinite(d), d, np.nan), axis=1) if d.size else d
         return per[np.isfinite(per)]
@@ -71,6 +92,7 @@ def compare(scene: Scene, out: Path, estimators: tuple[str, ...] = COMPARE_ESTIM
         results[name] = make_estimator(name).estimate(scene)
         seconds[name] = time.perf_counter() - t0
     table = []
+    seen = {name: seen_joints(tr, scene) for name, tr in results.items()}
     for name, tr in results.items():
         res = reprojection_residuals(tr, scene)
         row: dict[str, Any] = {
@@ -82,7 +104,7 @@ def compare(scene: Scene, out: Path, estimators: tuple[str, ...] = COMPARE_ESTIM
         }
         for other in results:
             if other != name:
-                d = disagreement(tr, results[other])
+                d = disagreement(tr, results[other], seen[name])
                 row[f"dist_to_{other}_mean_m"] = float(np.mean(d)) if d.size else float("nan")
                 row[f"dist_to_{other}_p95_m"] = float(np.percentile(d, 95)) if d.size else float("nan")
         row["seconds"] = seconds[name]
