@@ -213,17 +213,24 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(f"MultiviewX subset bundled in {src} (see its PROVENANCE.md): "
           f"{len(scene.rig.cameras)} cameras, {len(scene.frames)} frames, "
           f"{len(scene.truth.frame) if scene.truth else 0} person-frames, {len(scene.obs)} boxes")
-    rows = []
-    for name in ("ukf", "triangulation"):
+    from gt3dkit.eval.tracking import tracking_scores
+
+    rows, mot = [], []
+    for name in ("ukf", "gtsam", "triangulation"):
         out = Path(args.out) / name
         tracks = reconstruct(scene, name, out=out)
         if scene.truth is not None:
             rows.append((name, box_errors(tracks, scene.truth, scene.rig.up)))
+            mot.append((name, tracking_scores(tracks, scene.truth, scene.rig.up)))
         print(f"  {name}: {len(tracks)} rows in {tracks.info['seconds']:.2f} s -> {out}/tracks.csv")
     print("\nErrors against the dataset's own positions (positionID grid, 2.5 cm cells):")
     print(error_table(rows))
     p = PAPER["multiviewx"]
-    print(f"\nPaper (Ma et al., UKF) on MultiviewX: MOTA {p['MOTA']}%, OSPA(2) {p['OSPA2_m']} m")
+    print(f"\n{'ground plane, 1 m':<20}{'MOTA%':>7}{'IDF1%':>7}{'HOTA%':>7}{'OSPA(2) m':>11}")
+    for name, t in mot:
+        print(f"{name:<20}{100 * t['mota']:>7.1f}{100 * t['idf1']:>7.1f}{100 * t['hota']:>7.1f}"
+              f"{t['ospa2_m']:>11.4f}")
+    print(f"{'paper (Ma et al.)':<20}{p['MOTA']:>7.1f}{'-':>7}{'-':>7}{p['OSPA2_m']:>11.2f}")
 
     from gt3dkit.eval.pose import mpjpe_by_id, score_tracks
 
