@@ -1,12 +1,13 @@
 r"""A second, independent estimator: one GTSAM factor graph per object over all its frames.
 
 Variables (per object)
-    ``c_k`` (Point3) ellipsoid centre and ``v_k`` (Point3) its velocity at every frame row,
-    one shared ``s`` (Vector3) log semi-axes; for keypoints ``p_{k,j}`` (Point3) and
+    ``c_k`` (Point3) ellipsoid centre, ``v_k`` (Point3) its velocity and ``s_k`` (Vector3)
+    log semi-axes at every frame row; for keypoints ``p_{k,j}`` (Point3) and
     ``w_{k,j}`` (Point3) velocity of each joint the object ever shows.
 Factors
     * constant velocity between consecutive rows (``CustomFactor``, linear, exact
-      discrete-time ``Q`` of :class:`gt3dkit.fusion.motion.StateLayout`);
+      discrete-time ``Q`` of :class:`gt3dkit.fusion.motion.StateLayout`), and a random walk
+      of the log semi-axes (``BetweenFactorVector``), as in the UKF;
     * one ``TriangulationFactorCal3_S2`` per 2D keypoint: GTSAM's projection factor with the
       calibrated camera; the keypoint is undistorted first (GTSAM's ``Cal3DS2`` has no ``k3``);
     * one ``CustomFactor`` per box whose error is the tangent-box residual of its usable
@@ -54,6 +55,7 @@ class GTSAMConfig:
     sigma_px: float | None = None
     kpt_sigma_px: float | None = None
     accel_sd: float | None = None
+    shape_sd: float | None = None
     joint_accel_sd: float | None = None
     vertical_ratio: float = 0.1
     huber_k: float = 1.345
@@ -86,11 +88,11 @@ class GTSAMSmoother:
         sigma_box, sigma_kpt = pre.sigma_box, pre.sigma_kpt
         R, J = len(rows), layout.n_joints
         ucfg = UKFConfig(accel_sd=cfg.accel_sd, joint_accel_sd=cfg.joint_accel_sd,
-                         vertical_ratio=cfg.vertical_ratio, shape_sd=1e-6,
+                         vertical_ratio=cfg.vertical_ratio, shape_sd=cfg.shape_sd,
                          clip_tol_px=cfg.clip_tol_px)
         model = pre.model(scene, ucfg)
         x0 = model.x0
-        tuned, _ = select_noise(model, ucfg, ucfg, use_box, use_kpt, scene.fps, shape_grid=(1e-6,))
+        tuned, _ = select_noise(model, ucfg, ucfg, use_box, use_kpt, scene.fps)
         centre = x0[:, 0:3].copy()
         log_axes = x0[:, 6:9].copy()
         c_sd = np.full((R, 3), np.nan)
@@ -124,7 +126,8 @@ class GTSAMSmoother:
         info = {"estimator": self.name,
                 "params": {**asdict(cfg), "sigma_px": sigma_box if use_box else None,
                            "kpt_sigma_px": sigma_kpt if use_kpt else None,
-                           "accel_sd": tuned.accel_sd, "joint_accel_sd": tuned.joint_accel_sd,
+                           "accel_sd": tuned.accel_sd, "shape_sd": tuned.shape_sd,
+                           "joint_accel_sd": tuned.joint_accel_sd,
                            "fps": scene.fps},
                 "optimizer": "Levenberg-Marquardt (GTSAM), one graph per object", **stats,
                 "object_frames": R, "seconds": time.perf_counter() - t0}
@@ -154,9 +157,14 @@ class GTSAMSmoother:
         blocks: list[tuple[str, int, float]] = []  # (symbol char, joint, accel_sd)
         if use_box:
             blocks.append(("c", 0, float(tuned.accel_sd or 0.3)))
-            vals.insert(sym("s", 0), x0[mine[0], 6:9].copy())
-            g.add(gtsam.PriorFactorVector(sym("s", 0), x0[mine[0], 6:9].copy(),
-                                          gtsam.noiseModel.Isotropic.Sigma(3, 1.0)))
+            for k, r in enumerate(mine):
+                vals.insert(sym("s", k), x0[r, 6:9].copy())
+                g.add(gtsam.PriorFactorVector(sym("s", k), x0[r, 6:9].copy(),
+                                              gtsam.noiseModel.Isotropic.Sigma(3, 1.0)))
+            for k, dt in enumerate(dts):
+                g.add(gtsam.BetweenFactorVector(
+                    sym("s", k), sym("s", k + 1), np.zeros(3),
+                    gtsam.noiseModel.Isotropic.Sigma(3, float(tuned.shape_sd or 1e-3) * np.sqrt(dt))))
         for j in np.flatnonzero(seen_j):
             blocks.append(("p", int(j), float(tuned.joint_accel_sd or 3.0)))
         for ch, j, q in blocks:
@@ -184,7 +192,7 @@ class GTSAMSmoother:
                 z = rows.box_z[r].reshape(-1)[m]
                 noise = gtsam.noiseModel.Robust.Create(
                     huber, gtsam.noiseModel.Isotropic.Sigma(int(m.sum()), sigma_box))
-                g.add(gtsam.CustomFactor(noise, [sym("c", k * 32), sym("s", 0)],
+                g.add(gtsam.CustomFactor(noise, [sym("c", k * 32), sym("s", k)],
                                          _box_error(cams, z, m, C)))
         if use_kpt and und is not None:
             noise_k = gtsam.noiseModel.Robust.Create(
@@ -209,9 +217,8 @@ class GTSAMSmoother:
                       "factors": int(g.size())},
         }
         if use_box:
-            s = result.atVector(sym("s", 0))
-            out["log_axes"][:] = s
             for k in range(n_rows):
+                out["log_axes"][k] = result.atVector(sym("s", k))
                 out["centre"][k] = result.atPoint3(sym("c", k * 32))
                 out["c_sd"][k] = np.sqrt(np.diag(marg.marginalCovariance(sym("c", k * 32))))
         for j in np.flatnonzero(seen_j):
