@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -19,6 +21,17 @@ def sha256(path: Path) -> str:
         for chunk in iter(lambda: f.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
+
+
+def read_json_field(path: Path, key: str, what: str) -> Any:
+    """``json.load(path)[key]``, or :class:`InputError` naming the file (malformed, truncated
+    or without ``key``)."""
+    try:
+        return json.loads(Path(path).read_text())[key]
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise InputError(str(path), f"malformed or truncated JSON ({e})") from None
+    except (KeyError, TypeError):
+        raise InputError(str(path), f"expected {{'{key}': {what}}}") from None
 
 
 def check_box(where: str, box: list[float]) -> None:

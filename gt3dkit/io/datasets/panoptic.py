@@ -11,7 +11,6 @@ down (gravity), so ``up = [0, -1, 0]``. Frame numbers are HD frames at 29.97 fps
 
 from __future__ import annotations
 
-import json
 import re
 from pathlib import Path
 
@@ -19,7 +18,7 @@ import numpy as np
 
 from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import project_points
-from gt3dkit.io.datasets.common import sha256
+from gt3dkit.io.datasets.common import read_json_field, sha256
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import Camera, GroundTruth, Observations, Rig, Scene
 
@@ -34,13 +33,7 @@ def find_calibration(root: Path) -> Path | None:
 
 
 def load_rig(path: Path, cameras: list[str] | None = None) -> Rig:
-    try:
-        doc = json.loads(path.read_text())
-        cams_doc = doc["cameras"]
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(str(path), f"malformed JSON ({e})") from None
-    except (KeyError, TypeError):
-        raise InputError(str(path), "expected {'cameras': [...]}") from None
+    cams_doc = read_json_field(path, "cameras", "[...]")
     cams = []
     for i, c in enumerate(cams_doc):
         where = f"{path}: cameras[{i}]"
@@ -96,13 +89,7 @@ def load(root: Path, cameras: list[str] | None = None, noise_px: float = 0.0, se
         m = re.fullmatch(r"body3DScene_(\d+)\.json", p.name)
         if m is None:
             raise InputError(str(p), "file name is not body3DScene_<frame>.json")
-        try:
-            doc = json.loads(p.read_text())
-            bodies = doc["bodies"]
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise InputError(str(p), f"malformed or truncated JSON ({e})") from None
-        except (KeyError, TypeError):
-            raise InputError(str(p), "expected {'bodies': [...]}") from None
+        bodies = read_json_field(p, "bodies", "[...]")
         files[f"{POSE_DIR}/{p.name}"] = sha256(p)
         for i, b in enumerate(bodies):
             try:
