@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from gt3dkit.eval.metrics import box_errors, match_rows
-from gt3dkit.fusion.rows import build_rows
+from gt3dkit.fusion.rows import Rows, build_rows
 from gt3dkit.geom.camera import Cams, project_points
 from gt3dkit.geom.conics import ellipsoid_boxes
 from gt3dkit.io.atomic import write_dir_atomically
@@ -20,14 +20,18 @@ from gt3dkit.types import F64, Scene, TrackSet
 COMPARE_ESTIMATORS = ("ukf", "gtsam", "triangulation")
 
 
-def reprojection_residuals(tracks: TrackSet, scene: Scene) -> F64:
-    """Image residuals (px) of every usable box edge (absolute) and every keypoint (distance)."""
-    rows = build_rows(scene)
-    cams = Cams.of(scene.rig)
+def _row_of(tracks: TrackSet, rows: Rows) -> np.ndarray:
+    """(M,) index into ``rows`` of each output row (-1 where the input has no such row)."""
     key = {(int(rows.frames[t]), int(rows.obj_ids[o])): r
            for r, (t, o) in enumerate(zip(rows.row_t, rows.row_o, strict=True))}
-    r_of = np.array([key.get((int(f), int(i)), -1) for f, i in
+    return np.array([key.get((int(f), int(i)), -1) for f, i in
                      zip(tracks.frame, tracks.track_id, strict=True)], dtype=np.int64)
+
+
+def reprojection_residuals(tracks: TrackSet, scene: Scene, rows: Rows) -> F64:
+    """Image residuals (px) of every usable box edge (absolute) and every keypoint (distance)."""
+    cams = Cams.of(scene.rig)
+    r_of = _row_of(tracks, rows)
     ok = r_of >= 0
     out = []
     if np.isfinite(rows.box_z).any():
@@ -44,17 +48,13 @@ def reprojection_residuals(tracks: TrackSet, scene: Scene) -> F64:
     return np.concatenate(out) if out else np.zeros(0)
 
 
-def seen_joints(tracks: TrackSet, scene: Scene, min_views: int = 2) -> np.ndarray:
+def seen_joints(tracks: TrackSet, rows: Rows, min_views: int = 2) -> np.ndarray:
     """(M, J) joints of each output row that ``min_views`` or more cameras saw in that frame."""
-    rows = build_rows(scene)
-    key = {(int(rows.frames[t]), int(rows.obj_ids[o])): r
-           for r, (t, o) in enumerate(zip(rows.row_t, rows.row_o, strict=True))}
-    nv = np.isfinite(rows.kpt_z[..., 0]).sum(axis=1)  # (R, J)
     out = np.zeros(tracks.kpt_world.shape[:2], bool)
-    for m, (f, i) in enumerate(zip(tracks.frame, tracks.track_id, strict=True)):
-        r = key.get((int(f), int(i)))
-        if r is not None and out.shape[1]:
-            out[m] = nv[r] >= min_views
+    if out.shape[1]:
+        r_of = _row_of(tracks, rows)
+        nv = np.isfinite(rows.kpt_z[..., 0]).sum(axis=1)  # (R, J)
+        out[r_of >= 0] = nv[r_of[r_of >= 0]] >= min_views
     return out
 
 
@@ -92,9 +92,10 @@ def compare(scene: Scene, out: Path, estimators: tuple[str, ...] = COMPARE_ESTIM
         results[name] = make_estimator(name).estimate(scene)
         seconds[name] = time.perf_counter() - t0
     table = []
-    seen = {name: seen_joints(tr, scene) for name, tr in results.items()}
+    rows = build_rows(scene)
+    seen = {name: seen_joints(tr, rows) for name, tr in results.items()}
     for name, tr in results.items():
-        res = reprojection_residuals(tr, scene)
+        res = reprojection_residuals(tr, scene, rows)
         row: dict[str, Any] = {
             "estimator": name, "rows": len(tr),
             "skipped_rows": int(tr.info.get("skipped_lt2_views", 0)),
