@@ -75,3 +75,20 @@ def test_detect_layout_rejects_unknown(tmp_path: Path) -> None:
 
     with pytest.raises(InputError, match="unknown input layout"):
         load_scene(tmp_path)
+
+
+def test_wildtrack_plain_text_extrinsics(tmp_path: Path) -> None:
+    """WILDTRACK's own extr_*.xml hold rvec/tvec as plain number lists, in centimetres."""
+    import cv2
+
+    scene, sim = written_scene(tmp_path, "wildtrack", seed=1, frames=3, people=2)
+    cam = sim.rig.cameras[2]
+    rvec, _ = cv2.Rodrigues(cam.R)
+    p = tmp_path / "calibrations" / "extrinsic" / f"extr_{cam.name}.xml"
+    p.write_text('<?xml version="1.0" encoding="UTF-8"?>\n<opencv_storage>\n'
+                 f"<rvec>{' '.join(f'{v:.12g}' for v in rvec.ravel())}</rvec>\n"
+                 f"<tvec>{' '.join(f'{v:.12g}' for v in cam.t * 100)}</tvec>\n"
+                 "</opencv_storage>\n")
+    again = load_scene(tmp_path)
+    np.testing.assert_allclose(again.rig.cameras[2].R, cam.R, atol=1e-9)
+    np.testing.assert_allclose(again.rig.cameras[2].t, cam.t, atol=1e-9)

@@ -96,9 +96,14 @@ def _read_storage(path: Path, keys: tuple[str, ...]) -> list[np.ndarray]:
     try:
         for k in keys:
             node = fs.getNode(k)
-            m = None if node.empty() else node.mat()
-            if m is None:
+            if node.empty():
                 raise InputError(str(path), f"missing matrix '{k}'")
+            # opencv-matrix nodes (MultiviewX, WILDTRACK intrinsics) or plain number
+            # sequences (WILDTRACK's extrinsics: <rvec>1.88 0.46 -0.21</rvec>)
+            m = (np.array([node.at(i).real() for i in range(node.size())])
+                 if node.isSeq() else node.mat())
+            if m is None or m.size == 0:
+                raise InputError(str(path), f"'{k}' is not a matrix or a list of numbers")
             if not np.all(np.isfinite(m)):
                 raise InputError(str(path), f"'{k}' has non-finite values")
             out.append(np.asarray(m, dtype=np.float64))
