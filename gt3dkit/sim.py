@@ -23,6 +23,7 @@ import numpy as np
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.conics import ellipsoid_boxes
 from gt3dkit.io.atomic import write_dir_atomically
+from gt3dkit.io.datasets.native import cameras_doc
 from gt3dkit.io.datasets.wildtrack import LAYOUTS as GRID_LAYOUTS
 from gt3dkit.io.datasets.wildtrack import GridLayout
 from gt3dkit.types import F64, I64, Camera, Rig
@@ -166,10 +167,7 @@ def _write_truth(sim: SimScene, path: Path) -> None:
 
 
 def _write_native(sim: SimScene, tmp: Path) -> None:
-    doc = {"up": sim.rig.up.tolist(), "fps": sim.fps, "frame": sim.rig.frame_name, "units": "m",
-           "cameras": [{"name": c.name, "width": c.width, "height": c.height,
-                        "K": c.K.tolist(), "dist": c.dist.tolist(), "R": c.R.tolist(),
-                        "t": c.t.tolist()} for c in sim.rig.cameras]}
+    doc = cameras_doc(sim.rig, sim.fps, frame=sim.rig.frame_name, units="m")
     (tmp / "cameras.json").write_text(json.dumps(doc, indent=1))
     with open(tmp / "boxes.csv", "w", newline="") as f:
         w = csv.writer(f)
@@ -359,11 +357,8 @@ def write_skeleton_scene(sim: SkeletonScene, out: Path, layout: str) -> None:
 
     def write(tmp: Path) -> None:
         if layout == "native":
-            doc = {"up": sim.rig.up.tolist(), "fps": sim.fps, "skeleton": sim.skeleton,
-                   "units": "m", "frame": "synthetic y-down world",
-                   "cameras": [{"name": c.name, "width": c.width, "height": c.height,
-                                "K": c.K.tolist(), "dist": c.dist.tolist(), "R": c.R.tolist(),
-                                "t": c.t.tolist()} for c in sim.rig.cameras]}
+            doc = cameras_doc(sim.rig, sim.fps, skeleton=sim.skeleton, units="m",
+                              frame="synthetic y-down world")
             (tmp / "cameras.json").write_text(json.dumps(doc, indent=1))
             with open(tmp / "keypoints.csv", "w", newline="") as f:
                 w = csv.writer(f)

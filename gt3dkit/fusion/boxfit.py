@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gt3dkit.geom.camera import Cams, pixel_rays
-from gt3dkit.geom.conics import ellipsoid_boxes
+from gt3dkit.geom.conics import ellipsoid_boxes, outline_ellipse
 from gt3dkit.types import B8, F64
 
 #: Prior semi-axes (m) for a standing person, used only as a weak regulariser and
@@ -180,16 +180,10 @@ def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: float = 1.0,
     n_edges = box_mask.reshape(N, -1).sum(axis=1).astype(np.float64)
     m = box_mask.reshape(N, -1).shape[1]
     rss = np.sum(np.nan_to_num(r[:, :m]) ** 2, axis=1) * sigma_px**2
-    _, _, margin = _outline_margin(p, cams)
+    _, _, margin = outline_ellipse(p[:, :3], np.exp(p[:, 3:]), cams.world_from_body, cams.R,
+                                   cams.t, cams.depth_sign)
     return BoxFit(center_world=p[:, :3], log_axes=p[:, 3:], cov=cov, rss_px2=rss,
                   n_edges=n_edges, margin=margin, ok=ok)
-
-
-def _outline_margin(p: F64, cams: Cams) -> tuple[F64, F64, F64]:
-    from gt3dkit.geom.conics import outline_ellipse
-
-    return outline_ellipse(p[:, :3], np.exp(p[:, 3:]), cams.world_from_body, cams.R, cams.t,
-                           cams.depth_sign)
 
 
 def auto_sigma_px(fit: BoxFit, min_px: float = 0.1) -> float:

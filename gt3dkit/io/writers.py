@@ -13,6 +13,7 @@ import numpy as np
 from gt3dkit import __version__
 from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import write_dir_atomically
+from gt3dkit.io.datasets.common import read_csv_rows
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import Scene, TrackSet
 
@@ -111,15 +112,12 @@ def write_outputs(out: Path, scene: Scene, tracks: TrackSet,
 def read_tracks_csv(path: Path) -> TrackSet:
     """Read a ``tracks.csv`` written by :func:`write_tracks_csv`."""
     path = Path(path)
-    try:
-        with open(path, newline="") as f:
-            r = csv.reader(f)
-            header = next(r, None)
-            if header is None or tuple(header[: len(TRACK_COLUMNS)]) != TRACK_COLUMNS:
-                raise InputError(str(path), f"expected header {','.join(TRACK_COLUMNS)}")
-            rows = [[float(x) for x in row[: len(TRACK_COLUMNS)]] for row in r if row]
-    except (OSError, ValueError) as e:
-        raise InputError(str(path), f"cannot read tracks ({e})") from None
+    rows = []
+    for line, r in read_csv_rows(path, TRACK_COLUMNS):
+        try:
+            rows.append([float(r[k]) for k in TRACK_COLUMNS])
+        except ValueError as e:
+            raise InputError(f"{path}: line {line}", f"malformed value ({e})") from None
     a = np.array(rows, dtype=np.float64).reshape(-1, len(TRACK_COLUMNS))
     n = len(a)
     return TrackSet(frame=a[:, 0].astype(np.int64), track_id=a[:, 1].astype(np.int64),
@@ -137,19 +135,15 @@ def read_keypoints_csv(path: Path, tracks: TrackSet, n_joints: int) -> TrackSet:
                                                               strict=True))}
     kpt = np.full((len(tracks), n_joints, 3), np.nan)
     sd = np.full((len(tracks), n_joints), np.nan)
-    try:
-        with open(path, newline="") as f:
-            r = csv.reader(f)
-            header = next(r, None)
-            if header is None or tuple(header[: len(KPT_COLUMNS)]) != KPT_COLUMNS:
-                raise InputError(str(path), f"expected header {','.join(KPT_COLUMNS)}")
-            for line, row in enumerate(r, start=2):
-                fr, tid, j = int(row[0]), int(row[1]), int(row[2])
-                if (fr, tid) not in key or not 0 <= j < n_joints:
-                    raise InputError(f"{path}: line {line}", "row without a track or joint index "
-                                     "outside the skeleton")
-                kpt[key[(fr, tid)], j] = [float(v) for v in row[3:6]]
-                sd[key[(fr, tid)], j] = float(row[6])
-    except (OSError, ValueError, IndexError) as e:
-        raise InputError(str(path), f"cannot read keypoints ({e})") from None
+    for line, r in read_csv_rows(path, KPT_COLUMNS):
+        where = f"{path}: line {line}"
+        try:
+            fr, tid, j = int(r["frame"]), int(r["id"]), int(r["joint"])
+            xyz, s = [float(r[k]) for k in ("x", "y", "z")], float(r["sd"])
+        except ValueError as e:
+            raise InputError(where, f"malformed value ({e})") from None
+        if (fr, tid) not in key or not 0 <= j < n_joints:
+            raise InputError(where, "row without a track or joint index outside the skeleton")
+        kpt[key[(fr, tid)], j] = xyz
+        sd[key[(fr, tid)], j] = s
     return dataclasses.replace(tracks, kpt_world=kpt, kpt_sd=sd)

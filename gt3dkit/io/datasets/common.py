@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import hashlib
 import json
 import math
@@ -91,3 +92,24 @@ class RowBuilder:
             kpt_uv_px=np.array(self.kpts, dtype=np.float64).reshape(n, self.n_joints, 2)[idx],
             origin=tuple(self.origin[i] for i in idx),
         )
+
+
+def read_csv_rows(path: Path, columns: tuple[str, ...]) -> list[tuple[int, dict[str, str]]]:
+    """Rows of a CSV with the given leading header; (line number, row)."""
+    try:
+        with open(path, newline="") as f:
+            reader = csv.reader(f)
+            header = next(reader, None)
+            if header is None or tuple(h.strip() for h in header[: len(columns)]) != columns:
+                raise InputError(str(path), f"expected header {','.join(columns)}, got {header}")
+            out = []
+            for line, row in enumerate(reader, start=2):
+                if not row or all(not x.strip() for x in row):
+                    continue
+                if len(row) < len(columns):
+                    raise InputError(f"{path}: line {line}",
+                                     f"expected {len(columns)} fields, got {len(row)}")
+                out.append((line, dict(zip(columns, (x.strip() for x in row), strict=False))))
+            return out
+    except UnicodeDecodeError as e:
+        raise InputError(str(path), f"not a text CSV file ({e})") from None

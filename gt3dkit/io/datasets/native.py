@@ -18,7 +18,6 @@ Boxes and keypoints of the same (frame, camera, id) update the same object.
 
 from __future__ import annotations
 
-import csv
 import json
 from pathlib import Path
 from typing import Any
@@ -26,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from gt3dkit.errors import InputError
-from gt3dkit.io.datasets.common import RowBuilder, sha256
+from gt3dkit.io.datasets.common import RowBuilder, read_csv_rows, sha256
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
 from gt3dkit.skeletons import SKELETONS, skeleton_for
 from gt3dkit.types import Camera, GroundTruth, Rig, Scene
@@ -67,32 +66,19 @@ def load_cameras(path: Path) -> tuple[Rig, float, str | None]:
     return rig, fps, skel
 
 
+def cameras_doc(rig: Rig, fps: float, **extra: Any) -> dict[str, Any]:
+    """The ``cameras.json`` document of a rig (what :func:`load_cameras` reads back)."""
+    return {"up": rig.up.tolist(), "fps": fps, **extra,
+            "cameras": [{"name": c.name, "width": c.width, "height": c.height, "K": c.K.tolist(),
+                         "dist": c.dist.tolist(), "R": c.R.tolist(), "t": c.t.tolist()}
+                        for c in rig.cameras]}
+
+
 def _camera(c: dict[str, Any]) -> Camera:
     return Camera(name=str(c["name"]), width=int(c["width"]), height=int(c["height"]),
                   K=np.asarray(c["K"], dtype=np.float64),
                   dist=np.asarray(c.get("dist", [0, 0, 0, 0, 0]), dtype=np.float64),
                   R=np.asarray(c["R"], dtype=np.float64), t=np.asarray(c["t"], dtype=np.float64))
-
-
-def read_csv_rows(path: Path, columns: tuple[str, ...]) -> list[tuple[int, dict[str, str]]]:
-    """Rows of a CSV with the given leading header; (line number, row)."""
-    try:
-        with open(path, newline="") as f:
-            reader = csv.reader(f)
-            header = next(reader, None)
-            if header is None or tuple(h.strip() for h in header[: len(columns)]) != columns:
-                raise InputError(str(path), f"expected header {','.join(columns)}, got {header}")
-            out = []
-            for line, row in enumerate(reader, start=2):
-                if not row or all(not x.strip() for x in row):
-                    continue
-                if len(row) < len(columns):
-                    raise InputError(f"{path}: line {line}",
-                                     f"expected {len(columns)} fields, got {len(row)}")
-                out.append((line, dict(zip(columns, (x.strip() for x in row), strict=False))))
-            return out
-    except UnicodeDecodeError as e:
-        raise InputError(str(path), f"not a text CSV file ({e})") from None
 
 
 def camera_index(rig: Rig, name: str, where: str) -> int:

@@ -23,7 +23,6 @@ positionID truth.
 
 from __future__ import annotations
 
-import csv
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,7 +31,7 @@ import cv2
 import numpy as np
 
 from gt3dkit.errors import InputError
-from gt3dkit.io.datasets.common import RowBuilder, sha256
+from gt3dkit.io.datasets.common import RowBuilder, read_csv_rows, sha256
 from gt3dkit.types import Camera, GroundTruth, Rig, Scene
 
 
@@ -228,15 +227,12 @@ def _truth_csv(root: Path, files: dict[str, str]) -> GroundTruth | None:
 
 def read_truth_csv(p: Path, files: dict[str, str], root: Path) -> GroundTruth:
     """``truth.csv`` = ``frame,id,x,y,z,a,b,c`` (metres), as written by ``gt3d simulate``."""
-    try:
-        with open(p, newline="") as f:
-            reader = csv.DictReader(f)
-            if reader.fieldnames is None or tuple(reader.fieldnames[:8]) != TRUTH_COLUMNS:
-                raise InputError(str(p), f"expected header {','.join(TRUTH_COLUMNS)}")
-            rows = [(int(r["frame"]), int(r["id"]), *(float(r[k]) for k in TRUTH_COLUMNS[2:]))
-                    for r in reader]
-    except (ValueError, KeyError, TypeError) as e:
-        raise InputError(str(p), f"malformed truth row ({e})") from None
+    rows = []
+    for line, r in read_csv_rows(p, TRUTH_COLUMNS):
+        try:
+            rows.append((int(r["frame"]), int(r["id"]), *(float(r[k]) for k in TRUTH_COLUMNS[2:])))
+        except ValueError as e:
+            raise InputError(f"{p}: line {line}", f"malformed truth row ({e})") from None
     files[str(p.relative_to(root))] = sha256(p)
     a = np.array(rows, dtype=np.float64).reshape(-1, 8)
     return GroundTruth(frame=a[:, 0].astype(np.int64), track_id=a[:, 1].astype(np.int64),
