@@ -5,27 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from gt3dkit.fusion.base import Estimator
+from gt3dkit.fusion.base import ESTIMATORS, Estimator, make_estimator
 from gt3dkit.types import Scene, TrackSet
 
-ESTIMATORS = ("ukf", "gtsam", "triangulation")
-
-
-def make_estimator(name: str = "ukf", **config: Any) -> Estimator:
-    """An estimator by name with its config fields as keyword arguments."""
-    if name == "ukf":
-        from gt3dkit.fusion.ukf_smoother import UKFConfig, UKFSmoother
-
-        return UKFSmoother(UKFConfig(**config))
-    if name == "gtsam":
-        from gt3dkit.fusion.smoother_gtsam import GTSAMConfig, GTSAMSmoother
-
-        return GTSAMSmoother(GTSAMConfig(**config))
-    if name == "triangulation":
-        from gt3dkit.fusion.triangulate import Triangulation, TriangulationConfig
-
-        return Triangulation(TriangulationConfig(**config))
-    raise ValueError(f"unknown estimator {name!r} (known: {', '.join(ESTIMATORS)})")
+__all__ = ["ESTIMATORS", "make_estimator", "reconstruct"]
 
 
 def reconstruct(scene: Scene | str | Path, estimator: str | Estimator = "ukf",

@@ -216,7 +216,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from gt3dkit.eval.tracking import tracking_scores
 
     rows, mot = [], []
-    for name in ("ukf", "gtsam", "triangulation"):
+    from gt3dkit.api import ESTIMATORS
+
+    for name in ESTIMATORS:
         out = Path(args.out) / name
         tracks = reconstruct(scene, name, out=out)
         if scene.truth is not None:

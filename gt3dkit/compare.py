@@ -10,14 +10,13 @@ from typing import Any
 import numpy as np
 
 from gt3dkit.eval.metrics import box_errors, match_rows
+from gt3dkit.fusion.base import ESTIMATORS as COMPARE_ESTIMATORS
 from gt3dkit.fusion.rows import Rows, build_rows
 from gt3dkit.geom.camera import Cams, project_points
 from gt3dkit.geom.conics import ellipsoid_boxes
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.writers import write_result_files
 from gt3dkit.types import F64, Scene, TrackSet
-
-COMPARE_ESTIMATORS = ("ukf", "gtsam", "triangulation")
 
 
 def _row_of(tracks: TrackSet, rows: Rows) -> np.ndarray:
@@ -85,12 +84,17 @@ def compare(scene: Scene, out: Path, estimators: tuple[str, ...] = COMPARE_ESTIM
     from gt3dkit.api import make_estimator
     from gt3dkit.eval.pose import mpjpe_by_id
 
+    from gt3dkit.fusion.prepare import prepare
+
     results: dict[str, TrackSet] = {}
     seconds: dict[str, float] = {}
+    t0 = time.perf_counter()
+    pre = prepare(scene)  # the robust per-frame fits and noise levels, shared
+    t_pre = time.perf_counter() - t0
     for name in tqdm(estimators, desc="estimators", disable=not progress, unit="est"):
         t0 = time.perf_counter()
-        results[name] = make_estimator(name).estimate(scene)
-        seconds[name] = time.perf_counter() - t0
+        results[name] = make_estimator(name).estimate(scene, pre)
+        seconds[name] = time.perf_counter() - t0 + t_pre
     table = []
     rows = build_rows(scene)
     seen = {name: seen_joints(tr, rows) for name, tr in results.items()}

@@ -24,6 +24,11 @@ I64 = npt.NDArray[np.int64]
 B8 = npt.NDArray[np.bool_]
 
 
+#: Largest ``max |R R^T - I|`` accepted (and re-orthonormalised) as storage precision of a
+#: rotation matrix: 7 stored digits give ~1e-6, a real error (a wrong sign, a typo) ~1e-1.
+R_STORAGE_TOL = 1e-4
+
+
 def _arr(x: Any, shape: tuple[int | None, ...], name: str, *, finite: bool = True) -> F64:
     a = np.asarray(x, dtype=np.float64)
     if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape, strict=True)):
@@ -52,6 +57,10 @@ class Camera:
         Rotation ``cam_from_world``.
     t : (3,) float64
         Translation ``cam_from_world``, metres.
+    r_deviation : float
+        ``max |R R^T - I|`` of the rotation as stored, before it was re-orthonormalised
+        (calibrations stored to 6-7 digits are off by ~1e-6; up to
+        :data:`R_STORAGE_TOL` is accepted as storage precision, more is an error).
     depth_sign : float
         +1 for a normal calibration, whose visible points have ``Z_cam > 0``. -1 for a
         calibration solved in a left-handed world (MultiviewX's Unity export): OpenCV's
@@ -67,6 +76,7 @@ class Camera:
     R: F64
     t: F64
     depth_sign: float = 1.0
+    r_deviation: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "K", _arr(self.K, (3, 3), f"camera {self.name}: K"))
@@ -79,8 +89,15 @@ class Camera:
         d = np.concatenate([d[:5], np.zeros(max(0, 5 - d.size))])
         object.__setattr__(self, "dist", _arr(d, (5,), f"camera {self.name}: dist"))
         R = _arr(self.R, (3, 3), f"camera {self.name}: R")
-        if np.abs(R @ R.T - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
-            raise ValueError(f"camera {self.name}: R is not a rotation matrix")
+        dev = float(np.abs(R @ R.T - np.eye(3)).max())
+        if dev > R_STORAGE_TOL or np.linalg.det(R) < 0:
+            raise ValueError(f"camera {self.name}: R is not a rotation matrix "
+                             f"(max |R R^T - I| = {dev:.2g}, det = {np.linalg.det(R):.4g}; "
+                             f"up to {R_STORAGE_TOL:g} is accepted as storage precision)")
+        if dev > 1e-9:  # beyond float round-off
+            U, _, Vt = np.linalg.svd(R)  # nearest rotation (Frobenius norm)
+            R = U @ Vt
+            object.__setattr__(self, "r_deviation", max(float(self.r_deviation), dev))
         object.__setattr__(self, "R", R)
         object.__setattr__(self, "t", _arr(np.reshape(self.t, -1), (3,), f"camera {self.name}: t"))
         if int(self.width) <= 0 or int(self.height) <= 0:
@@ -181,6 +198,9 @@ class Observations:
         Keypoints in distorted pixels; NaN = not seen. ``J`` may be 0.
     origin : tuple[str, ...]
         For each row, where it came from (``"file: entry"``), for error messages.
+    kpt_conf : (N, J) float64 or None
+        Detector confidence of each keypoint in ``(0, 1]`` (NaN where not seen); ``None``
+        = no confidences given (every point counts fully).
     """
 
     frame: I64
@@ -189,6 +209,7 @@ class Observations:
     box_xyxy_px: F64
     kpt_uv_px: F64
     origin: tuple[str, ...]
+    kpt_conf: F64 | None = None
 
     def __post_init__(self) -> None:
         n = len(self.frame)
@@ -203,6 +224,14 @@ class Observations:
         if k.ndim != 3 or k.shape[0] != n or k.shape[2] != 2:
             raise ValueError(f"expected kpt_uv_px of shape ({n}, J, 2), got {k.shape}")
         object.__setattr__(self, "kpt_uv_px", k)
+        if self.kpt_conf is not None:
+            c = np.asarray(self.kpt_conf, dtype=np.float64)
+            if c.shape != k.shape[:2]:
+                raise ValueError(f"expected kpt_conf of shape {k.shape[:2]}, got {c.shape}")
+            seen = np.isfinite(k[..., 0])
+            if np.any(seen & ~((c > 0) & (c <= 1))):
+                raise ValueError("kpt_conf must be in (0, 1] for every seen keypoint")
+            object.__setattr__(self, "kpt_conf", c)
         if len(self.origin) != n:
             raise ValueError(f"expected {n} origins, got {len(self.origin)}")
 
@@ -223,7 +252,8 @@ class Observations:
         idx = np.flatnonzero(rows) if rows.dtype == bool else rows
         return Observations(self.frame[idx], self.cam[idx], self.track_id[idx],
                             self.box_xyxy_px[idx], self.kpt_uv_px[idx],
-                            tuple(self.origin[i] for i in idx))
+                            tuple(self.origin[i] for i in idx),
+                            None if self.kpt_conf is None else self.kpt_conf[idx])
 
 
 @dataclass(frozen=True)
@@ -263,6 +293,13 @@ class Scene:
     skeleton: str | None = None
     files: dict[str, str] = field(default_factory=dict)  # relative path -> sha256
     root: str = ""
+    warnings: tuple[str, ...] = ()  # odd but valid input: printed as ``warning:`` lines
+
+    @property
+    def calibration_notes(self) -> dict[str, str]:
+        """Per camera, what was done to its calibration on loading (for ``meta.json``)."""
+        return {c.name: f"R re-orthonormalised (max |R R^T - I| was {c.r_deviation:.2g})"
+                for c in self.rig.cameras if c.r_deviation > 0}
 
 
 @dataclass(frozen=True)
@@ -277,9 +314,13 @@ class TrackSet:
     center_sd : (M, 3) float64, metres, marginal standard deviation of the centre
     n_views : (M,) int64, cameras with an annotation of this object in this frame
     kpt_world : (M, J, 3) float64, metres (J may be 0)
-    kpt_sd : (M, J) float64, metres (RMS over the three axes)
+    kpt_sd : (M, J) float64, metres: the largest standard deviation over all directions
+        (square root of the largest eigenvalue of the joint's 3x3 covariance), so that the
+        error along any axis is within ``k * sd`` at least as often as a 1-D Gaussian says
     info : dict
         Estimator name, parameters and diagnostics for ``meta.json``.
+    downweighted : Downweighted or None
+        Every measurement the robust update down-weighted or rejected.
     """
 
     frame: I64
@@ -291,6 +332,34 @@ class TrackSet:
     kpt_world: F64
     kpt_sd: F64
     info: dict[str, Any] = field(default_factory=dict)
+    downweighted: Downweighted | None = None
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+
+@dataclass(frozen=True)
+class Downweighted:
+    """Measurements a robust estimator down-weighted (``0 < weight < 1``) or rejected (0).
+
+    frame, cam, track_id : (K,) int64 (``cam`` indexes ``Rig.cameras``)
+    joint : (K,) int64, -1 for a box edge
+    edge : (K,) int64, 0..3 = xmin, ymin, xmax, ymax for a box edge, -1 for a keypoint
+    weight : (K,) float64 in [0, 1)
+    residual_px : (K,) float64, distance between the annotation and the estimate's
+        projection (keypoint) or the edge's offset (box), pixels
+    score : (K,) float64, the residual in standard deviations, judged against the other
+        views (leave-one-out, see :mod:`gt3dkit.fusion.robust`)
+    """
+
+    frame: I64
+    cam: I64
+    track_id: I64
+    joint: I64
+    edge: I64
+    weight: F64
+    residual_px: F64
+    score: F64
 
     def __len__(self) -> int:
         return len(self.frame)

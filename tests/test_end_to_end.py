@@ -88,7 +88,13 @@ def test_sigma_is_estimated_from_the_data(small_native) -> None:
     # whole-pixel rounding: uniform error of 1 px width has sd 1/sqrt(12) = 0.29 px
     assert 0.2 < info["params"]["sigma_px"] < 0.4
     assert info["noise_source"]["process"].startswith("max likelihood")
-    assert len(info["noise_loglik"]) == 15
+    # the search evaluated a curve whose best point is the value chosen, strictly inside
+    # its bounds (no grid edge)
+    curve = info["noise_search"]["accel_sd"]
+    best = max(curve, key=lambda d: d["loglik"])
+    assert best["value"] == info["params"]["accel_sd"]
+    lo, hi = info["params"]["accel_bounds"]
+    assert lo < best["value"] < hi and len(curve) >= 6
 
 
 def test_clipped_edges_are_masked() -> None:

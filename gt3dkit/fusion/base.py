@@ -1,19 +1,56 @@
-"""The estimator interface shared by the UKF smoother, the GTSAM smoother and triangulation."""
+"""The estimator interface shared by the UKF smoother, the GTSAM smoother and triangulation,
+and the one registry of estimators (the CLI, ``gt3d compare`` and the API read it)."""
 
 from __future__ import annotations
 
-from typing import Protocol
+from dataclasses import dataclass
+from importlib import import_module
+from typing import TYPE_CHECKING, Any, Protocol
 
 from gt3dkit.types import Scene, TrackSet
+
+if TYPE_CHECKING:
+    from gt3dkit.fusion.prepare import Prepared
 
 
 class Estimator(Protocol):
     """Anything that turns a loaded scene into tracks.
 
-    ``name`` goes into ``meta.json``; ``params()`` returns the settings used (after
-    any automatic tuning, filled in ``TrackSet.info``).
+    ``name`` goes into ``meta.json``; the settings used (after any automatic tuning) go
+    into ``TrackSet.info``. ``pre`` lets several estimators share one preparation.
     """
 
     name: str
 
-    def estimate(self, scene: Scene) -> TrackSet: ...
+    def estimate(self, scene: Scene, pre: Prepared | None = None) -> TrackSet: ...
+
+
+@dataclass(frozen=True)
+class Entry:
+    """Where an estimator lives (imported lazily: GTSAM is heavy) and what it is."""
+
+    module: str
+    cls: str
+    config: str
+    summary: str
+
+
+REGISTRY: dict[str, Entry] = {
+    "ukf": Entry("gt3dkit.fusion.ukf_smoother", "UKFSmoother", "UKFConfig",
+                 "robust UKF + RTS smoother (the primary estimator)"),
+    "gtsam": Entry("gt3dkit.fusion.smoother_gtsam", "GTSAMSmoother", "GTSAMConfig",
+                   "GTSAM factor-graph smoother (independent cross-check)"),
+    "triangulation": Entry("gt3dkit.fusion.triangulate", "Triangulation", "TriangulationConfig",
+                           "robust per-frame fits, no temporal model (baseline)"),
+}
+ESTIMATORS = tuple(REGISTRY)
+
+
+def make_estimator(name: str = "ukf", **config: Any) -> Estimator:
+    """An estimator by name with its config fields as keyword arguments."""
+    if name not in REGISTRY:
+        raise ValueError(f"unknown estimator {name!r} (known: {', '.join(ESTIMATORS)})")
+    e = REGISTRY[name]
+    mod = import_module(e.module)
+    est: Estimator = getattr(mod, e.cls)(getattr(mod, e.config)(**config))
+    return est

@@ -94,6 +94,8 @@ class BoxFit:
     rss_px2 : (N,) sum of squared edge residuals (px^2); n_edges : (N,) usable edges
     margin : (N, C) depth margin of the fitted ellipsoid in each camera (m, > 0 = in front)
     ok : (N,) had at least one box
+    residual_px : (N, C, 4) fitted minus annotated edge (NaN where the edge is not used)
+    leverage : (N, C, 4) each used edge's leverage ``J_i (J^T J)^{-1} J_i^T`` in [0, 1]
     """
 
     center_world: F64
@@ -103,10 +105,12 @@ class BoxFit:
     n_edges: F64
     margin: F64
     ok: B8
+    residual_px: F64
+    leverage: F64
 
 
-def _residuals(p: F64, z: F64, mask: B8, cams: Cams, sigma_px: float, prior: F64,
-               prior_sd: float) -> F64:
+def _residuals(p: F64, z: F64, mask: B8, cams: Cams, sigma_px: F64 | float, prior: F64,
+               prior_sd: F64 | float) -> F64:
     """(..., N, 6) params -> (..., N, C*4 + 3) whitened residuals (NaN if behind a camera)."""
     box = box_model(p[..., :3], p[..., 3:], cams)
     r = np.where(mask, (box - z) / sigma_px, 0.0)
@@ -115,23 +119,28 @@ def _residuals(p: F64, z: F64, mask: B8, cams: Cams, sigma_px: float, prior: F64
     return np.concatenate([r, (p[..., 3:] - prior) / prior_sd], axis=-1)
 
 
-def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: float = 1.0,
-              prior_log_axes: F64 | None = None, prior_sd: float = 1.0,
-              iters: int = 40) -> BoxFit:
+def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: F64 | float = 1.0,
+              prior_log_axes: F64 | None = None, prior_sd: F64 | float = 1.0,
+              iters: int = 40, p0: F64 | None = None) -> BoxFit:
     """Fit one ellipsoid to each object-frame's boxes (batched Levenberg-Marquardt).
 
     Parameters
     ----------
     box_z : (N, C, 4) boxes in distorted pixels (NaN = none)
     box_mask : (N, C, 4) usable edges
-    sigma_px : edge noise used to scale residuals and covariance
+    sigma_px : edge noise (px), scalar or ``(4,)`` per edge (xmin, ymin, xmax, ymax): the
+        residuals are whitened by it, so ``cov`` is the fit's covariance in parameter units
     prior_log_axes : (3,) weak prior mean of the log semi-axes (default: a person)
-    prior_sd : its standard deviation (log units); keeps one-view fits defined
+    prior_sd : its standard deviation (log units, scalar or (3,)); keeps one-view fits defined
+    p0 : (N, 6) start (centre, log axes); default the ground-plane initialisation
     """
     N = box_z.shape[0]
     prior = np.log(PERSON_SEMI_AXES_M) if prior_log_axes is None else prior_log_axes
     c0, la0, ok = ground_init(box_z, box_mask, cams)
     p = np.concatenate([c0, la0], axis=1)
+    if p0 is not None:
+        start = np.all(np.isfinite(p0), axis=1)
+        p[start] = p0[start]
     z = np.where(box_mask, box_z, 0.0)
 
     def res(q: F64, sel: slice | np.ndarray = slice(None)) -> F64:
@@ -179,21 +188,11 @@ def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: float = 1.0,
     cov = np.linalg.inv(A)
     n_edges = box_mask.reshape(N, -1).sum(axis=1).astype(np.float64)
     m = box_mask.reshape(N, -1).shape[1]
-    rss = np.sum(np.nan_to_num(r[:, :m]) ** 2, axis=1) * sigma_px**2
+    lev = np.einsum("nmi,nij,nmj->nm", J[:, :m], cov, J[:, :m]).reshape(box_mask.shape)
+    res_px = np.where(box_mask, r[:, :m].reshape(box_mask.shape) * sigma_px, np.nan)
+    rss = np.sum(np.nan_to_num(res_px) ** 2, axis=(1, 2))
     _, _, margin = outline_ellipse(p[:, :3], np.exp(p[:, 3:]), cams.world_from_body, cams.R,
                                    cams.t, cams.depth_sign)
     return BoxFit(center_world=p[:, :3], log_axes=p[:, 3:], cov=cov, rss_px2=rss,
-                  n_edges=n_edges, margin=margin, ok=ok)
-
-
-def auto_sigma_px(fit: BoxFit, min_px: float = 0.1) -> float:
-    """Edge noise from the per-frame fits' residuals, with degrees of freedom.
-
-    ``sigma^2 = sum(rss) / sum(n_edges - 6)`` over object-frames with more edges
-    than parameters. Floored at ``min_px``.
-    """
-    use = fit.ok & (fit.n_edges > 6)
-    dof = float(np.sum(fit.n_edges[use] - 6))
-    if dof < 1:
-        return 1.0
-    return max(float(np.sqrt(np.sum(fit.rss_px2[use]) / dof)), min_px)
+                  n_edges=n_edges, margin=margin, ok=ok, residual_px=res_px,
+                  leverage=np.where(box_mask, lev, np.nan))

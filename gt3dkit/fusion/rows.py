@@ -46,6 +46,7 @@ class Rows:
     t_start : (T+1,) rows of frame t are ``t_start[t]:t_start[t+1]``
     box_z : (R, C, 4) boxes (NaN missing); box_mask : (R, C, 4) usable edges
     kpt_z : (R, C, J, 2) keypoints (NaN missing)
+    kpt_conf : (R, C, J) detector confidence in (0, 1] (1 where the input gives none)
     obs_row : (R, C) row of ``scene.obs`` or -1
     """
 
@@ -59,6 +60,7 @@ class Rows:
     box_z: F64
     box_mask: B8
     kpt_z: F64
+    kpt_conf: F64
     obs_row: I64
 
     @property
@@ -96,8 +98,11 @@ def build_rows(scene: Scene, clip_tol_px: float = 1.0) -> Rows:
     obs_row = np.full((R, C), -1, dtype=np.int64)
     box_z[r_of, obs.cam] = obs.box_xyxy_px
     kpt_z[r_of, obs.cam] = obs.kpt_uv_px
+    kpt_conf = np.ones((R, C, J))
+    if obs.kpt_conf is not None:
+        kpt_conf[r_of, obs.cam] = np.where(np.isfinite(obs.kpt_conf), obs.kpt_conf, 1.0)
     obs_row[r_of, obs.cam] = np.arange(len(obs))
     box_mask = usable_edges(box_z, scene.rig.wh, clip_tol_px)
     return Rows(frames=frames, obj_ids=obj_ids, row_t=row_t, row_o=row_o, prev_row=prev_row,
                 next_row=next_row, t_start=t_start, box_z=box_z, box_mask=box_mask,
-                kpt_z=kpt_z, obs_row=obs_row)
+                kpt_z=kpt_z, kpt_conf=kpt_conf, obs_row=obs_row)

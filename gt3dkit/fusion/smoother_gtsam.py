@@ -20,9 +20,11 @@ covariances.
 Conventions are converted here and only here: GTSAM's camera pose is ``world_from_cam``
 (``Pose3(Rot3(R^T), C)``), our cameras are ``cam_from_world``.
 
-Noise levels: measurement noise from the data as in the UKF (per-frame residuals), process
-noise from the same likelihood grid as the UKF (shared, so the two differ in method, not in
-tuning).
+Noise levels: measurement noise from :func:`gt3dkit.fusion.prepare.prepare` (the robust
+per-frame residual levels every estimator shares; points the per-frame fits rejected get no
+factor, the rest a Huber loss). Process noise is tuned *independently of the UKF*, by the
+method of moments on the per-frame fits (:func:`moment_process_noise`), so that the two
+smoothers cross-check each other in method and in tuning.
 """
 
 from __future__ import annotations
@@ -35,14 +37,8 @@ import numpy as np
 
 from gt3dkit.fusion.boxfit import box_model
 from gt3dkit.fusion.motion import StateLayout
+from gt3dkit.fusion.prepare import Prepared, ellipsoid_around, never_seen, prepare
 from gt3dkit.fusion.rows import Rows
-from gt3dkit.fusion.ukf_smoother import (
-    UKFConfig,
-    ellipsoid_around,
-    never_seen,
-    prepare,
-    select_noise,
-)
 from gt3dkit.geom.camera import Cams, apply_K
 from gt3dkit.geom.triangulate import normalized_points
 from gt3dkit.types import F64, Scene, TrackSet
@@ -78,21 +74,16 @@ class GTSAMSmoother:
     def __init__(self, config: GTSAMConfig | None = None) -> None:
         self.config = config or GTSAMConfig()
 
-    def estimate(self, scene: Scene) -> TrackSet:
+    def estimate(self, scene: Scene, pre: Prepared | None = None) -> TrackSet:
         gtsam = _gtsam()
         cfg = self.config
         t0 = time.perf_counter()
-        pre = prepare(scene, cfg.clip_tol_px, cfg.sigma_px, cfg.kpt_sigma_px)
+        pre = pre or prepare(scene, cfg.clip_tol_px, cfg.sigma_px, cfg.kpt_sigma_px)
         rows, cams, layout, use_box, use_kpt = (pre.rows, pre.cams, pre.layout, pre.use_box,
                                                 pre.use_kpt)
-        sigma_box, sigma_kpt = pre.sigma_box, pre.sigma_kpt
         R, J = len(rows), layout.n_joints
-        ucfg = UKFConfig(accel_sd=cfg.accel_sd, joint_accel_sd=cfg.joint_accel_sd,
-                         vertical_ratio=cfg.vertical_ratio, shape_sd=cfg.shape_sd,
-                         clip_tol_px=cfg.clip_tol_px)
-        model = pre.model(scene, ucfg)
-        x0 = model.x0
-        tuned, _ = select_noise(model, ucfg, ucfg, use_box, use_kpt, scene.fps)
+        x0, var0, _ = pre.frame_state()
+        tuned = moment_process_noise(pre, x0, var0, scene.fps, cfg)
         centre = x0[:, 0:3].copy()
         log_axes = x0[:, 6:9].copy()
         c_sd = np.full((R, 3), np.nan)
@@ -110,8 +101,7 @@ class GTSAMSmoother:
             for c, (r, t) in enumerate(zip(cams.R, cams.t, strict=True))]
         for o in range(len(rows.obj_ids)):
             mine = np.flatnonzero(rows.row_o == o)  # sorted by frame
-            res = self._solve_object(gtsam, rows, cams, mine, layout, x0, use_box, use_kpt,
-                                     sigma_box, sigma_kpt, und, gcams, tuned, scene.fps)
+            res = self._solve_object(gtsam, pre, mine, x0, und, gcams, tuned, scene.fps)
             for k, v in res["stats"].items():
                 stats[k] += v
             centre[mine], log_axes[mine], c_sd[mine] = res["centre"], res["log_axes"], res["c_sd"]
@@ -124,22 +114,24 @@ class GTSAMSmoother:
             if not use_box:
                 centre, semi, c_sd = ellipsoid_around(kpt, kpt_sd, cams.world_from_body)
         info = {"estimator": self.name,
-                "params": {**asdict(cfg), "sigma_px": sigma_box if use_box else None,
-                           "kpt_sigma_px": sigma_kpt if use_kpt else None,
-                           "accel_sd": tuned.accel_sd, "shape_sd": tuned.shape_sd,
-                           "joint_accel_sd": tuned.joint_accel_sd,
-                           "fps": scene.fps},
+                "params": {**asdict(cfg),
+                           "sigma_px": pre.info["boxes"]["sigma_px"] if use_box else None,
+                           "kpt_sigma_px": pre.info.get("keypoints", {}).get("sigma_px"),
+                           **tuned.as_dict(), "fps": scene.fps},
+                "process_noise_source": tuned.source,
+                "preparation": pre.info,
                 "optimizer": "Levenberg-Marquardt (GTSAM), one graph per object", **stats,
                 "object_frames": R, "seconds": time.perf_counter() - t0}
         return TrackSet(frame=rows.frames[rows.row_t], track_id=rows.obj_ids[rows.row_o],
                         center_world=centre, semi_axes=semi, center_sd=c_sd, n_views=rows.n_views,
                         kpt_world=kpt, kpt_sd=kpt_sd, info=info)
 
-    def _solve_object(self, gtsam: Any, rows: Rows, cams: Cams, mine: np.ndarray,
-                      layout: StateLayout, x0: F64, use_box: bool, use_kpt: bool,
-                      sigma_box: float, sigma_kpt: float, und: F64 | None, gcams: list[Any],
-                      tuned: UKFConfig, fps: float) -> dict[str, Any]:
+    def _solve_object(self, gtsam: Any, pre: Prepared, mine: np.ndarray, x0: F64,
+                      und: F64 | None, gcams: list[Any], tuned: ProcessNoise, fps: float
+                      ) -> dict[str, Any]:
         cfg = self.config
+        rows, cams, layout = pre.rows, pre.cams, pre.layout
+        use_box, use_kpt, sigma_box = pre.use_box, pre.use_kpt, pre.sigma_box
         C = len(cams.K)
         J = layout.n_joints
         g = gtsam.NonlinearFactorGraph()
@@ -153,25 +145,26 @@ class GTSAMSmoother:
         dts = np.diff(frame_s)
         seen_j = np.zeros(J, bool)
         if use_kpt and und is not None:
-            seen_j = np.isfinite(und[mine][..., 0]).any(axis=(0, 1))
+            seen_j = (np.isfinite(und[mine][..., 0]) & pre.kpt_keep[mine]).any(axis=(0, 1))
         blocks: list[tuple[str, int, float]] = []  # (symbol char, joint, accel_sd)
         if use_box:
-            blocks.append(("c", 0, float(tuned.accel_sd or 0.3)))
+            blocks.append(("c", 0, tuned.accel_sd))
+            la = layout.log_axes
             for k, r in enumerate(mine):
-                vals.insert(sym("s", k), x0[r, 6:9].copy())
-                g.add(gtsam.PriorFactorVector(sym("s", k), x0[r, 6:9].copy(),
+                vals.insert(sym("s", k), x0[r, la].copy())
+                g.add(gtsam.PriorFactorVector(sym("s", k), x0[r, la].copy(),
                                               gtsam.noiseModel.Isotropic.Sigma(3, 1.0)))
             for k, dt in enumerate(dts):
                 g.add(gtsam.BetweenFactorVector(
                     sym("s", k), sym("s", k + 1), np.zeros(3),
-                    gtsam.noiseModel.Isotropic.Sigma(3, float(tuned.shape_sd or 1e-3) * np.sqrt(dt))))
+                    gtsam.noiseModel.Isotropic.Sigma(3, tuned.shape_sd * np.sqrt(dt))))
         for j in np.flatnonzero(seen_j):
-            blocks.append(("p", int(j), float(tuned.joint_accel_sd or 3.0)))
+            blocks.append(("p", int(j), tuned.joint_accel_sd))
         for ch, j, q in blocks:
             vch = "v" if ch == "c" else "w"
             for k, r in enumerate(mine):
                 if ch == "c":
-                    init = x0[r, 0:3]
+                    init = x0[r, layout.center]
                 else:
                     init = x0[r, layout.joints.start + 3 * j: layout.joints.start + 3 * j + 3]
                 kx, kv = sym(ch, k * 32 + j), sym(vch, k * 32 + j)
@@ -183,23 +176,23 @@ class GTSAMSmoother:
                 g.add(_cv_factor(gtsam, [sym(ch, k * 32 + j), sym(vch, k * 32 + j),
                                          sym(ch, (k + 1) * 32 + j), sym(vch, (k + 1) * 32 + j)],
                                  float(dt), q, cams.up if ch == "c" else None,
-                                 tuned.vertical_ratio))
+                                 cfg.vertical_ratio))
         if use_box:
             for k, r in enumerate(mine):
-                m = rows.box_mask[r].reshape(-1)
+                m = pre.box_keep[r].reshape(-1)
                 if not m.any():
                     continue
                 z = rows.box_z[r].reshape(-1)[m]
                 noise = gtsam.noiseModel.Robust.Create(
-                    huber, gtsam.noiseModel.Isotropic.Sigma(int(m.sum()), sigma_box))
+                    huber, gtsam.noiseModel.Diagonal.Sigmas(np.tile(sigma_box, C)[m]))
                 g.add(gtsam.CustomFactor(noise, [sym("c", k * 32), sym("s", k)],
                                          _box_error(cams, z, m, C)))
         if use_kpt and und is not None:
-            noise_k = gtsam.noiseModel.Robust.Create(
-                huber, gtsam.noiseModel.Isotropic.Sigma(2, sigma_kpt))
             for k, r in enumerate(mine):
-                cc, jj = np.nonzero(np.isfinite(und[r][..., 0]))
+                cc, jj = np.nonzero(np.isfinite(und[r][..., 0]) & pre.kpt_keep[r])
                 for c, j in zip(cc, jj, strict=True):
+                    noise_k = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Isotropic.Sigma(
+                        2, float(np.sqrt(pre.kpt_var[r, c, j]))))
                     g.add(gtsam.TriangulationFactorCal3_S2(gcams[c], und[r, c, j], noise_k,
                                                            sym("p", k * 32 + int(j))))
         params = gtsam.LevenbergMarquardtParams()
@@ -209,7 +202,7 @@ class GTSAMSmoother:
         result = opt.optimize()
         marg = gtsam.Marginals(g, result)
         out: dict[str, Any] = {
-            "centre": x0[mine, 0:3].copy(), "log_axes": x0[mine, 6:9].copy(),
+            "centre": x0[mine][:, layout.center].copy(), "log_axes": x0[mine][:, layout.log_axes].copy(),
             "c_sd": np.full((n_rows, 3), np.nan),
             "kpt": x0[mine][:, layout.joints].reshape(n_rows, J, 3).copy(),
             "kpt_sd": np.full((n_rows, J), np.nan),
@@ -225,7 +218,7 @@ class GTSAMSmoother:
             for k in range(n_rows):
                 key = sym("p", k * 32 + int(j))
                 out["kpt"][k, j] = result.atPoint3(key)
-                out["kpt_sd"][k, j] = np.sqrt(np.trace(marg.marginalCovariance(key)) / 3)
+                out["kpt_sd"][k, j] = np.sqrt(np.linalg.eigvalsh(marg.marginalCovariance(key))[-1])
         return out
 
 
@@ -278,3 +271,89 @@ def _box_error(cams: Cams, z: F64, m: np.ndarray, C: int) -> Any:
 
     return error
 
+
+
+@dataclass(frozen=True)
+class ProcessNoise:
+    accel_sd: float
+    shape_sd: float
+    joint_accel_sd: float
+    source: str
+
+    def as_dict(self) -> dict[str, float]:
+        return {"accel_sd": self.accel_sd, "shape_sd": self.shape_sd,
+                "joint_accel_sd": self.joint_accel_sd}
+
+
+def _moment_q2(d2: F64, noise_var: F64, unit_var: F64, floor: float) -> float:
+    r"""``q^2`` with ``E[d^2] = q^2 u + n`` from samples ``d2, noise_var n, unit_var u``
+    (method of moments), trimming samples beyond the 1e-4 tail of their chi-square."""
+    ok = np.isfinite(d2) & np.isfinite(noise_var) & (unit_var > 0)
+    d2, nv, u = d2[ok], noise_var[ok], unit_var[ok]
+    if d2.size < 3:
+        return float("nan")
+    q2 = max(float(d2.sum() / u.sum()), floor)
+    for _ in range(4):
+        keep = d2 / (q2 * u + nv) < 15.1
+        if not keep.any():
+            break
+        q2 = max(float((d2[keep] - nv[keep]).sum() / u[keep].sum()), floor)
+    return q2
+
+
+def moment_process_noise(pre: Prepared, x: F64, var: F64, fps: float, cfg: GTSAMConfig
+                         ) -> ProcessNoise:
+    r"""Process noise from the per-frame fits alone (independent of the UKF's likelihood).
+
+    For a constant-velocity model under white acceleration ``q``, the second difference of
+    positions three equally spaced frames apart has variance ``(2/3) q^2 dt^3`` plus the
+    per-frame fits' own variance ``v_{k-1} + 4 v_k + v_{k+1}``; the first difference of
+    the log semi-axes has ``s^2 dt + v_k + v_{k+1}``. ``q^2`` and ``s^2`` are the moment
+    estimates over all objects (centre: horizontal axes; joints: all), with gross jumps
+    trimmed. Values given in ``cfg`` are kept.
+    """
+    rows, lay = pre.rows, pre.layout
+    t_s = rows.frames[rows.row_t] / fps
+    a, b = rows.prev_row, rows.next_row
+    trip = (a >= 0) & (b >= 0)
+    r = np.flatnonzero(trip)
+    dt1 = t_s[r] - t_s[a[r]]
+    dt2 = t_s[b[r]] - t_s[r]
+    even = np.abs(dt1 - dt2) < 1e-9 * np.maximum(dt1, 1e-9)
+    r, dt = r[even], dt1[even]
+    src = []
+
+    def second(block: slice, dims: np.ndarray) -> tuple[F64, F64, F64]:
+        xs = x[:, block][:, dims]
+        vs = var[:, block][:, dims]
+        d = xs[b[r]] - 2 * xs[r] + xs[a[r]]
+        nv = vs[b[r]] + 4 * vs[r] + vs[a[r]]
+        u = np.broadcast_to((2.0 / 3.0 * dt**3)[:, None], d.shape)
+        return (d**2).reshape(-1), nv.reshape(-1), u.reshape(-1)
+
+    accel = cfg.accel_sd
+    shape = cfg.shape_sd
+    joint = cfg.joint_accel_sd
+    if pre.use_box and accel is None:
+        up = pre.cams.up
+        horiz = np.flatnonzero(np.abs(up) < 0.9)[:2]
+        q2 = _moment_q2(*second(lay.center, horiz), 1e-4)
+        accel = float(np.clip(np.sqrt(q2), 0.01, 100.0)) if np.isfinite(q2) else 0.5
+        src.append("accel_sd: second differences of the per-frame centres")
+    if pre.use_box and shape is None:
+        p = np.flatnonzero(a >= 0)
+        dtp = t_s[p] - t_s[a[p]]
+        la = x[:, lay.log_axes]
+        lv = var[:, lay.log_axes]
+        d2 = ((la[p] - la[a[p]]) ** 2).reshape(-1)
+        nv = (lv[p] + lv[a[p]]).reshape(-1)
+        u = np.repeat(dtp, 3)
+        s2 = _moment_q2(d2, nv, u, 1e-10)
+        shape = float(np.clip(np.sqrt(s2), 1e-5, 0.3)) if np.isfinite(s2) else 0.003
+        src.append("shape_sd: first differences of the per-frame log semi-axes")
+    if pre.use_kpt and joint is None:
+        q2 = _moment_q2(*second(lay.joints, np.arange(3 * lay.n_joints)), 1e-4)
+        joint = float(np.clip(np.sqrt(q2), 0.03, 100.0)) if np.isfinite(q2) else 1.0
+        src.append("joint_accel_sd: second differences of the per-frame joints")
+    return ProcessNoise(float(accel or joint or 0.5), float(shape or 0.003), float(joint or 1.0),
+                        "; ".join(src) or "given")

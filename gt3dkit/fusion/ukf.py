@@ -23,9 +23,11 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from gt3dkit.fusion.robust import RobustConfig, deleted_score2, point_weights
 from gt3dkit.types import F64
 
 MeasureFn = Callable[[F64], F64]
@@ -202,31 +204,45 @@ def ukf_update(
 def ukf_update_information(
     x: F64, P: F64, z: F64, mask: F64, R_diag: F64, h: MeasureFn, w: SigmaWeights,
     iterations: int = 1, x_lin: F64 | None = None, P_lin: F64 | None = None,
-) -> tuple[F64, F64, dict[str, float | int]]:
-    r"""The iterated update of :func:`ukf_update` in information form, for long ``z``.
+    weight0: F64 | None = None, robust: RobustConfig | None = None,
+    robust_blocks: tuple[tuple[slice, int], ...] = (),
+) -> tuple[F64, F64, dict[str, Any]]:
+    r"""The iterated update of :func:`ukf_update` in information form, optionally robust.
 
     Each pass linearises ``h`` by statistical linear regression at ``(x_j, P_j)``
     (``A, b`` and the diagonal of the linearisation error ``Omega``) and updates the prior
     in state space,
 
     .. math::
-        P^+ = (P^{-1} + A^\top D^{-1} A)^{-1},\quad
-        x^+ = x + P^+ A^\top D^{-1} (z - A x - b),\quad D = R + \mathrm{diag}(\Omega),
+        P^+ = (P^{-1} + A^\top W D^{-1} A)^{-1},\quad
+        x^+ = x + P^+ A^\top W D^{-1} (z - A x - b),\quad D = R + \mathrm{diag}(\Omega),
 
-    which costs ``O(n^3 + m n^2)`` instead of ``O(m^3)``: the form to use when the
-    measurement (all cameras x all joints) is much longer than the state. Keeping only
-    the diagonal of ``Omega`` is the one approximation; ``Omega`` vanishes as the
-    posterior tightens. Same arguments and returns as :func:`ukf_update`; ``loglik`` uses
-    the matrix determinant lemma.
+    which costs ``O(n^3 + m n^2)`` instead of ``O(m^3)``. Keeping only the diagonal of
+    ``Omega`` is the one approximation; ``Omega`` vanishes as the posterior tightens.
+
+    Robust (iteratively reweighted) update: ``W = diag(w)`` holds a weight per entry,
+    ``weight0`` to start with (e.g. the per-frame fits' verdicts), then after every pass
+    the weights of the points in ``robust_blocks`` (``(slice of z, entries per point)``)
+    are recomputed from their leave-one-out scores against the new posterior
+    (:mod:`gt3dkit.fusion.robust`). A weight of 0 removes the entry exactly.
+
+    Returns ``x_post, P_post, info`` as :func:`ukf_update`; ``loglik`` and ``nis`` are of
+    the first pass with its weights (noise ``D / w`` for the kept entries), and ``info``
+    also holds ``weights (B, m)`` (those the last pass used), ``score2 (B, m)`` (each
+    entry's point's squared leave-one-out score at the final posterior) and
+    ``residual (B, m)`` (``z - h(x_post)``, linearised).
     """
     B, m = z.shape
     n = x.shape[1]
     R_b = np.broadcast_to(np.asarray(R_diag, dtype=np.float64), (B, m))
     Pinv = np.linalg.inv(0.5 * (P + np.swapaxes(P, -1, -2)))
     xj, Pj = (x, P) if x_lin is None or P_lin is None else (x_lin, P_lin)
+    wt = np.ones((B, m)) if weight0 is None else np.asarray(weight0, dtype=np.float64).copy()
     repaired = 0
-    info: dict[str, float | int] = {}
+    info: dict[str, Any] = {}
     eye = np.eye(n)
+    score2 = np.zeros((B, m))
+    resid = np.zeros((B, m))
     for it in range(iterations):
         mk, zhat, dX, dZ, rep = _regression_points(xj, Pj, mask, h, w)
         repaired += rep
@@ -234,8 +250,10 @@ def ukf_update_information(
         At = np.linalg.solve(Pj, Pxz)  # A^T (B, n, m)
         var_z = np.einsum("s,bsm->bm", w.Wc, dZ * dZ)
         omega = np.maximum(var_z - np.sum(Pxz * At, axis=1), 0.0)
-        Dinv = np.where(mk, 1.0 / (R_b + omega), 0.0)  # (B, m)
-        nu = np.where(mk, z - zhat - (np.swapaxes(At, -1, -2) @ (x - xj)[..., None])[..., 0], 0.0)
+        D = R_b + omega
+        Dinv = np.where(mk, wt / D, 0.0)  # (B, m)
+        lin = z - zhat + (np.swapaxes(At, -1, -2) @ xj[..., None])[..., 0]  # z - b
+        nu = np.where(mk, lin - (np.swapaxes(At, -1, -2) @ x[..., None])[..., 0], 0.0)
         AtD = At * Dinv[:, None, :]
         Jinf = Pinv + AtD @ np.swapaxes(At, -1, -2)
         Lj, rep2 = safe_cholesky(Jinf)
@@ -246,16 +264,30 @@ def ukf_update_information(
         x_post = x + (P_post @ g[..., None])[..., 0]
         if it == 0:
             LP, _ = safe_cholesky(P)
-            logdet = (np.sum(np.log(np.where(mk, R_b + omega, 1.0)), axis=1)
+            used = mk & (wt > 0)
+            logdet = (np.sum(np.log(np.where(used, D / np.where(used, wt, 1.0), 1.0)), axis=1)
                       + 2 * np.sum(np.log(np.einsum("bii->bi", Lj)), axis=1)
                       + 2 * np.sum(np.log(np.einsum("bii->bi", LP)), axis=1))
             quad = np.sum(nu * nu * Dinv, axis=1) - np.einsum("bi,bi->b", g,
                                                                (P_post @ g[..., None])[..., 0])
-            dof = int(mk.sum())
+            dof = int(used.sum())
             info = {"nis": float(quad.sum()), "dof": dof,
                     "loglik": float(-0.5 * (quad.sum() + logdet.sum() + dof * np.log(2 * np.pi)))}
+        if robust is not None and robust_blocks:
+            resid = np.where(mk, lin - (np.swapaxes(At, -1, -2) @ x_post[..., None])[..., 0], 0.0)
+            p = np.sum(At * (P_post @ At), axis=1)  # diag(A P+ A^T)
+            e2 = np.where(mk, deleted_score2(resid, D, p, wt), 0.0)
+            new_wt = wt.copy()
+            for sl, d in robust_blocks:
+                e2b = e2[:, sl].reshape(B, -1, d).sum(axis=2)
+                score2[:, sl] = np.repeat(e2b, d, axis=1)
+                if it < iterations - 1:
+                    new_wt[:, sl] = np.repeat(point_weights(e2b, d, robust), d, axis=1)
+            if it < iterations - 1:
+                wt = np.where(mk, new_wt, wt)
         xj, Pj = x_post, P_post
-    info["repaired"] = repaired
+    info.update(repaired=repaired, weights=np.where(mask, wt, 1.0), score2=score2,
+                residual=resid)
     return x_post, P_post, info
 
 

@@ -1,103 +1,104 @@
-r"""The primary estimator: the paper's per-object UKF, batched, plus an unscented RTS pass.
+r"""The primary estimator: the paper's per-object UKF, batched, robust, plus an RTS pass.
+
+This module is the driver only; preparation (rows, robust per-frame fits, noise levels,
+input checks) is :mod:`gt3dkit.fusion.prepare`, the measurement model
+:mod:`gt3dkit.fusion.measurement`, the motion model :mod:`gt3dkit.fusion.motion` and the
+filter steps :mod:`gt3dkit.fusion.ukf`.
 
 What differs from the paper's obvious implementation (and why):
 
-* **One stacked update per frame.** All cameras' box edges of an object form one
-  measurement vector (masked where missing or clipped), instead of one sequential
-  update per camera; all objects of a frame are one batch.
-* **Cubature weights** (``alpha=1, beta=0, kappa=0``): no negative weight, so the
-  predicted covariances are PSD by construction; any repair is counted in ``info``.
-* **Initialisation already close:** each object starts at the per-frame
-  least-squares fit of its first frame (itself started from the paper's ground-plane
-  homography), not at the homography point.
-* **Noise that matches the input:** the edge noise ``sigma_px`` defaults to the
-  residual RMS of the per-frame fits (with degrees of freedom), e.g. 0.29 px for
-  boxes rounded to whole pixels.
+* **One stacked update per frame.** All cameras' box edges and keypoints of an object form
+  one measurement vector (masked where missing or clipped); all objects of a frame are one
+  batch. Information form, iterated (posterior linearisation), cubature weights.
+* **Robust.** The update reweights every keypoint and box edge by its leave-one-out score
+  against the prior and the *other* views (:mod:`gt3dkit.fusion.robust`), starting from
+  the robust per-frame fits' verdicts, so one bad view cannot drag the state first. A
+  rejected point has weight 0: it moves neither its frame nor, through the RTS pass, its
+  neighbours. Every down-weighted point is reported (``TrackSet.downweighted``).
+* **Weak priors.** Where the prediction says less than the frame's own views (after a gap,
+  at a re-appearance, with a large process noise) the update linearises at the per-frame
+  fit, not at the far-off prediction. Objects start from their first per-frame fit *with its
+  covariance* (a single view's depth is as uncertain as the object's size).
+* **Noise from the data.** Measurement noise from the per-frame residuals (robust, per
+  joint); process noise by maximising the forward pass's likelihood with a bounded 1-D
+  search on log scale (a coarse scan, then Brent), so it cannot stop at a grid edge. The
+  whole curve is in ``meta.json``.
+* **Honest uncertainty.** When the innovations say the noise model is optimistic (NIS per
+  degree of freedom above 1) every covariance is inflated by that ratio; a joint's reported
+  sd is its largest axis.
 * **Backward RTS pass** (offline ground truth may use the future).
 
-Keypoints (issue 4) join the same state and the same update: each joint and its
-velocity (constant velocity), measured by the ordinary projection with distortion.
-Joints start from per-frame DLT triangulation where two views see them and from the
-canonical pose scaled into the ellipsoid otherwise. A person's bone lengths are
-tied together by pseudo-measurements ``|p_i - p_j| = L_b`` whose lengths (and
-spread) come from a first pass without them. With many cameras x joints the update
-runs in information form (:func:`gt3dkit.fusion.ukf.ukf_update_information`).
+Keypoints join the same state and update: each joint and its velocity (constant velocity),
+measured by the projection with distortion. A person's bone lengths are tied together by
+pseudo-measurements ``|p_i - p_j| = L_b`` whose lengths (and spread) come from a first pass.
 """
 
 from __future__ import annotations
 
 import time
-import warnings
 from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
+from scipy.optimize import minimize_scalar
 
-from gt3dkit.errors import InputError
-from gt3dkit.fusion.boxfit import PERSON_SEMI_AXES_M, BoxFit, auto_sigma_px, box_model, fit_boxes
-from gt3dkit.fusion.motion import StateLayout
-from gt3dkit.fusion.rows import Rows, build_rows
-from gt3dkit.fusion.ukf import (
-    SigmaWeights,
-    predict_linear,
-    rts_step,
-    ukf_update,
-    ukf_update_information,
-)
-from gt3dkit.geom.camera import Cams, project_points
-from gt3dkit.geom.triangulate import normalized_points, triangulate_dlt
-from gt3dkit.skeletons import SKELETONS, Skeleton, skeleton_for
-from gt3dkit.types import F64, Scene, TrackSet
+from gt3dkit.fusion.measurement import Model
+from gt3dkit.fusion.prepare import Prepared, ellipsoid_around, largest_sd, never_seen, prepare
+from gt3dkit.fusion.robust import RobustConfig
+from gt3dkit.fusion.ukf import SigmaWeights, predict_linear, rts_step, ukf_update_information
+from gt3dkit.skeletons import Skeleton
+from gt3dkit.types import F64, Downweighted, Scene, TrackSet
 
 
 @dataclass(frozen=True)
 class UKFConfig:
     """Settings of :class:`UKFSmoother` (units in the names). ``None`` = from the data.
 
-    sigma_px : box-edge noise; ``None`` = residual RMS of the per-frame fits
-    accel_sd : white-acceleration noise of the centre, m/s^2/sqrt(Hz); ``None`` = the
-        value of ``accel_grid`` with the highest forward-pass likelihood of the data
+    sigma_px : box-edge noise; ``None`` = robust residual level of the per-frame fits
+    accel_sd : white-acceleration noise of the centre, m/s^2/sqrt(Hz); ``None`` = maximum
+        likelihood of the forward pass within ``accel_bounds``
     vertical_ratio : the vertical acceleration noise is this times ``accel_sd``
-    shape_sd : random-walk noise of the log semi-axes, 1/sqrt(s); ``None`` = chosen with
-        ``accel_sd`` by likelihood from ``shape_grid``
-    kpt_sigma_px : keypoint noise; ``None`` = reprojection RMS of the DLT points
-    joint_accel_sd : white-acceleration noise of the joints; ``None`` = by likelihood
-        from ``joint_accel_grid``
+    shape_sd : random-walk noise of the log semi-axes, 1/sqrt(s); ``None`` = maximum
+        likelihood within ``shape_bounds``
+    kpt_sigma_px : keypoint noise (all joints); ``None`` = per joint, from the data
+    joint_accel_sd : white-acceleration noise of the joints; ``None`` = maximum likelihood
+        within ``joint_accel_bounds``
+    robust : down-weight / reject measurements the other views disagree with
+    huber_p, reject_p : tail probabilities where down-weighting starts / rejection is total
     bones : tie each person's bone lengths together (second pass)
-    bone_sd_m : sd of the bone-length pseudo-measurement; ``None`` = the robust spread
-        of that bone's length over the first pass, at least ``bone_sd_floor_m``
-    init_pos_sd_m, init_vel_sd_mps, init_shape_sd, init_joint_sd_m, init_canon_sd_m :
-        initial standard deviations (joints from DLT / from the canonical pose)
+    bone_sd_m : sd of the bone-length pseudo-measurement; ``None`` = the spread of that
+        bone's length over the first pass, at least ``bone_sd_floor_m``
+    init_vel_sd_mps : initial velocity sd; init_canon_sd_m : initial sd of a joint placed
+        from the canonical pose (no two views agree on it in the object's first frame)
     clip_tol_px : edges this close to the image border count as clipped
-    iterations : passes of the iterated (posterior-linearisation) update
-    information_form_min_m : measurement length from which the update runs in
-        information form
+    iterations : passes of the iterated, reweighted update
+    inflate : inflate covariances by the NIS per degree of freedom when above 1
     smooth : run the backward RTS pass
     """
 
     sigma_px: float | None = None
     accel_sd: float | None = None
-    accel_grid: tuple[float, ...] = (0.03, 0.1, 0.3, 1.0, 3.0)
+    accel_bounds: tuple[float, float] = (0.01, 100.0)
     vertical_ratio: float = 0.1
     shape_sd: float | None = None
-    shape_grid: tuple[float, ...] = (0.0002, 0.005, 0.05)
+    shape_bounds: tuple[float, float] = (1e-5, 0.3)
     kpt_sigma_px: float | None = None
     joint_accel_sd: float | None = None
-    joint_accel_grid: tuple[float, ...] = (0.3, 1.0, 3.0, 10.0)
+    joint_accel_bounds: tuple[float, float] = (0.03, 100.0)
+    robust: bool = True
+    huber_p: float = 1e-4
+    reject_p: float = 1e-7
     bones: bool = True
     bone_sd_m: float | None = None
     bone_sd_floor_m: float = 0.001
-    init_pos_sd_m: float = 0.05
     init_vel_sd_mps: float = 1.5
-    init_shape_sd: float = 0.1
-    init_joint_sd_m: float = 0.02
     init_canon_sd_m: float = 0.15
     alpha: float = 1.0
     beta: float = 0.0
     kappa: float = 0.0
     clip_tol_px: float = 1.0
-    iterations: int = 3
-    information_form_min_m: int = 200
+    iterations: int = 4
+    inflate: bool = True
     smooth: bool = True
 
     def __post_init__(self) -> None:
@@ -109,131 +110,17 @@ class UKFConfig:
             v = getattr(self, k)
             if v is not None and v <= 0:
                 raise ValueError(f"UKFConfig.{k} must be positive, got {v}")
+        for k in ("accel_bounds", "shape_bounds", "joint_accel_bounds"):
+            lo, hi = getattr(self, k)
+            if not 0 < lo < hi:
+                raise ValueError(f"UKFConfig.{k} must be 0 < lo < hi, got {(lo, hi)}")
         if self.iterations < 1:
             raise ValueError("UKFConfig.iterations must be >= 1")
+        RobustConfig(self.huber_p, self.reject_p)
 
-
-def check_in_front(scene: Scene, rows: Rows, fit: BoxFit) -> None:
-    """Raise :class:`InputError` for a box whose object lies behind that camera."""
-    seen = (rows.obs_row >= 0) & np.all(np.isfinite(rows.box_z), axis=-1)
-    bad = seen & fit.ok[:, None] & ~(fit.margin > 0)
-    if bad.any():
-        r, c = np.argwhere(bad)[0]
-        where = scene.obs.origin[rows.obs_row[r, c]]
-        raise InputError(where, f"the object of this box is behind camera "
-                                f"{scene.rig.cameras[c].name} (the other views place it at "
-                                f"{np.round(fit.center_world[r], 2).tolist()} m): "
-                                f"box and calibration disagree")
-
-
-@dataclass(frozen=True)
-class Prepared:
-    """What every estimator starts from: rows, cameras, per-frame fits and noise levels.
-
-    fit : per-frame box fits (None without boxes); kpt0 : (R, J, 3) per-frame DLT joints
-    (None without keypoints); sigma_box / sigma_kpt : measurement noise (px), given or
-    estimated from the per-frame residuals.
-    """
-
-    rows: Rows
-    cams: Cams
-    layout: StateLayout
-    use_box: bool
-    use_kpt: bool
-    fit: BoxFit | None
-    kpt0: F64 | None
-    sigma_box: float
-    sigma_kpt: float
-
-    def model(self, scene: Scene, cfg: UKFConfig) -> Model:
-        """The stacked filter model with initial states from ``cfg``'s initial sds."""
-        x0, p0 = initial_states(scene, self.rows, self.cams, self.layout, self.fit, self.kpt0, cfg)
-        return stacked_model(self.rows, self.cams, self.layout, self.use_box, self.use_kpt,
-                             self.sigma_box, self.sigma_kpt, x0, p0, self.kpt0,
-                             cfg.init_joint_sd_m)
-
-
-def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = None,
-            kpt_sigma_px: float | None = None) -> Prepared:
-    """Rows, cameras, per-frame box fits / DLT joints, input checks and noise levels."""
-    rows = build_rows(scene, clip_tol_px)
-    cams = Cams.of(scene.rig)
-    J = scene.obs.n_joints
-    use_box = bool(np.isfinite(rows.box_z).any())
-    use_kpt = J > 0 and bool(np.isfinite(rows.kpt_z).any())
-    fit, kpt0 = None, None
-    sigma_box = sigma_kpt = 1.0
-    if use_box:
-        fit = fit_boxes(rows.box_z, rows.box_mask, cams)
-        check_in_front(scene, rows, fit)
-        sigma_box = sigma_px if sigma_px is not None else auto_sigma_px(fit)
-    if use_kpt:
-        kpt0, rms = triangulate_rows(scene, rows, cams)
-        sigma_kpt = kpt_sigma_px if kpt_sigma_px is not None else max(rms, 0.05)
-    return Prepared(rows, cams, StateLayout(J if use_kpt else 0), use_box, use_kpt, fit, kpt0,
-                    sigma_box, sigma_kpt)
-
-
-@dataclass
-class Model:
-    """Everything one filter run needs: rows, cameras, stacked measurements, initial states.
-
-    Measurement vector of a row: ``[box edges (C*4) | keypoints (C*J*2) | bones (K)]``,
-    each block present only when the scene has it.
-    """
-
-    rows: Rows
-    cams: Cams
-    layout: StateLayout
-    use_box: bool
-    z: F64  # (R, m)
-    mask: np.ndarray  # (R, m) bool
-    var: F64  # (R, m) measurement variances
-    x0: F64  # (R, n) initial state where an object starts
-    p0_diag: F64  # (R, n) initial variances
-    kpt_hint: F64 | None = None  # (R, J, 3) triangulated joints (NaN under 2 views)
-    hint_sd_m: float = 0.02
-    bones: np.ndarray | None = None  # (K, 2)
-
-    def linearisation_point(self, r: np.ndarray, x: F64, P: F64) -> tuple[F64 | None, F64 | None]:
-        """Where the first update pass linearises: the prior, except for joints the filter
-        has lost (sd above 5x ``hint_sd_m``) that this frame triangulates: those at the
-        triangulated point with sd ``hint_sd_m``, uncorrelated."""
-        if self.kpt_hint is None:
-            return None, None
-        J = self.layout.n_joints
-        sl = self.layout.joints
-        var = np.diagonal(P, axis1=1, axis2=2)[:, sl].reshape(len(r), J, 3).max(axis=2)
-        hint = self.kpt_hint[r]
-        lost = (var > (5 * self.hint_sd_m) ** 2) & np.all(np.isfinite(hint), axis=2)
-        if not lost.any():
-            return None, None
-        dims = (sl.start + 3 * np.argwhere(lost)[:, 1][:, None] + np.arange(3)).reshape(-1)
-        b = np.repeat(np.argwhere(lost)[:, 0], 3)
-        xl = x.copy()
-        xl[b, dims] = hint[lost].reshape(-1)
-        Pl = P.copy()
-        Pl[b, dims, :] = 0.0
-        Pl[b, :, dims] = 0.0
-        Pl[b, dims, dims] = self.hint_sd_m**2
-        return xl, Pl
-
-    def h(self, X: F64) -> F64:
-        """(B, S, n) -> (B, S, m) predicted measurements of all sigma points."""
-        B, S = X.shape[:2]
-        C, J = len(self.cams.K), self.layout.n_joints
-        parts = []
-        if self.use_box:
-            parts.append(box_model(X[..., 0:3], X[..., 6:9], self.cams).reshape(B, S, C * 4))
-        if J:
-            P3 = X[..., self.layout.joints].reshape(B, S, J, 3)
-            uv, _ = project_points(P3, self.cams.K, self.cams.dist, self.cams.R, self.cams.t,
-                                   self.cams.depth_sign)  # (B,S,J,C,2)
-            parts.append(np.swapaxes(uv, 2, 3).reshape(B, S, C * J * 2))
-            if self.bones is not None:
-                d = P3[..., self.bones[:, 0], :] - P3[..., self.bones[:, 1], :]
-                parts.append(np.linalg.norm(d, axis=-1))
-        return np.concatenate(parts, axis=-1)
+    @property
+    def robust_config(self) -> RobustConfig:
+        return RobustConfig(self.huber_p, self.reject_p, enabled=self.robust)
 
 
 class UKFSmoother:
@@ -244,210 +131,191 @@ class UKFSmoother:
     def __init__(self, config: UKFConfig | None = None) -> None:
         self.config = config or UKFConfig()
 
-    def estimate(self, scene: Scene) -> TrackSet:
+    def estimate(self, scene: Scene, pre: Prepared | None = None) -> TrackSet:
         cfg = self.config
         t0 = time.perf_counter()
-        pre = prepare(scene, cfg.clip_tol_px, cfg.sigma_px, cfg.kpt_sigma_px)
-        rows, cams, layout, use_box, use_kpt = (pre.rows, pre.cams, pre.layout, pre.use_box,
-                                                pre.use_kpt)
-        sigma_box, sigma_kpt = pre.sigma_box, pre.sigma_kpt
+        pre = pre or prepare(scene, cfg.clip_tol_px, cfg.sigma_px, cfg.kpt_sigma_px,
+                             cfg.robust_config)
+        rows, cams, layout = pre.rows, pre.cams, pre.layout
         R, J = len(rows), layout.n_joints
-        info: dict[str, Any] = {"estimator": self.name}
-        model = pre.model(scene, cfg)
-        cfg, loglik = select_noise(model, cfg, self.config, use_box, use_kpt, scene.fps)
-        x_s, P_s, run_info = run_filter(model, cfg, scene.fps)
+        model = Model.of(pre)
+        init = initial_states(model, cfg)
+        cfg, search = select_noise(model, init, cfg, pre.use_box, pre.use_kpt, scene.fps)
+        x_s, P_s, run = run_filter(model, init, cfg, scene.fps, collect=True)
         bone_info: dict[str, Any] = {}
-        if use_kpt and cfg.bones:
-            skel = SKELETONS[scene.skeleton] if scene.skeleton else skeleton_for(J)
-            x_s, P_s, run_info, bone_info = rerun_with_bones(model, cfg, scene.fps, x_s, P_s, skel)
-        info.update(run_info)
-        info["noise_loglik"] = loglik
+        if pre.use_kpt and cfg.bones and pre.skeleton is not None:
+            x_s, P_s, run, bone_info = rerun_with_bones(model, init, cfg, scene.fps, x_s, P_s,
+                                                        pre.skeleton)
+        nis = run["mean_nis_per_dof"]
+        inflation = max(nis, 1.0) if cfg.inflate and np.isfinite(nis) else 1.0
+        P_s = P_s * inflation
         centre = x_s[:, layout.center]
         semi = np.exp(x_s[:, layout.log_axes])
-        sd = np.sqrt(np.einsum("rii->ri", P_s[:, :3, :3]))
+        sd = np.sqrt(np.einsum("rii->ri", P_s[:, layout.center, layout.center]))
         kpt = np.zeros((R, 0, 3))
         kpt_sd = np.zeros((R, 0))
-        if use_kpt:
+        if pre.use_kpt:
             kpt, kpt_sd = joints_of(x_s, P_s, layout, rows)
-            if not use_box:
+            if not pre.use_box:
                 centre, semi, sd = ellipsoid_around(kpt, kpt_sd, cams.world_from_body)
-        info.update({
-            "params": {**asdict(cfg), "sigma_px": sigma_box if use_box else None,
-                       "kpt_sigma_px": sigma_kpt if use_kpt else None, "fps": scene.fps},
-            "measurements": {"boxes": use_box, "keypoints": use_kpt,
-                             "skeleton": scene.skeleton if use_kpt else None},
-            "noise_source": {"sigma_px": "given" if self.config.sigma_px else "per-frame fit residuals",
-                             "kpt_sigma_px": ("given" if self.config.kpt_sigma_px
-                                              else "DLT reprojection RMS"),
-                             "process": "max likelihood over the grids where not given"},
+        down = downweighted_of(model, run)
+        info: dict[str, Any] = {
+            "estimator": self.name,
+            **{k: v for k, v in run.items() if not isinstance(v, np.ndarray)},
+            "covariance_inflation": inflation,
+            "noise_search": search,
+            "noise_source": {
+                "sigma_px": pre.info.get("boxes", {}).get("sigma_source"),
+                "kpt_sigma_px": pre.info.get("keypoints", {}).get("sigma_source"),
+                "process": ("given" if self.config.accel_sd and (self.config.joint_accel_sd
+                                                                  or not pre.use_kpt)
+                            else "max likelihood of the forward pass: log-spaced scan, then "
+                                 "bounded Brent on log scale (curve in noise_search)")},
+            "params": {**asdict(cfg), "sigma_px": pre.info["boxes"]["sigma_px"] if pre.use_box else None,
+                       "kpt_sigma_px": pre.info.get("keypoints", {}).get("sigma_px"),
+                       "fps": scene.fps},
+            "measurements": {"boxes": pre.use_box, "keypoints": pre.use_kpt,
+                             "skeleton": pre.skeleton.name if pre.use_kpt and pre.skeleton
+                             else None},
+            "preparation": pre.info,
+            "robust": {"enabled": cfg.robust, "downweighted": int(np.sum(down.weight > 0)),
+                       "rejected": int(np.sum(down.weight == 0)),
+                       "rule": "leave-one-out score against prior + other views; weight 1 up "
+                               f"to the {1 - cfg.huber_p:g} chi-square quantile, 0 beyond "
+                               f"the {1 - cfg.reject_p:g} quantile"},
             **({"bones": bone_info} if bone_info else {}),
             "seconds": time.perf_counter() - t0,
-        })
+        }
         return TrackSet(
             frame=rows.frames[rows.row_t], track_id=rows.obj_ids[rows.row_o],
             center_world=centre, semi_axes=semi, center_sd=sd, n_views=rows.n_views,
-            kpt_world=kpt, kpt_sd=kpt_sd, info=info)
+            kpt_world=kpt, kpt_sd=kpt_sd, info=info, downweighted=down)
 
 
-def stacked_model(rows: Rows, cams: Cams, layout: StateLayout, use_box: bool, use_kpt: bool,
-                  sigma_box: float, sigma_kpt: float, x0: F64, p0: F64, kpt0: F64 | None,
-                  hint_sd_m: float) -> Model:
-    """The filter's stacked measurements ``[boxes | keypoints]`` with masks and variances."""
-    R, C = len(rows), len(cams.K)
-    J = layout.n_joints
-    zs, masks, vars_ = [], [], []
-    if use_box:
-        zs.append(rows.box_z.reshape(R, C * 4))
-        masks.append(rows.box_mask.reshape(R, C * 4))
-        vars_.append(np.full((R, C * 4), sigma_box**2))
-    if use_kpt:
-        zk = rows.kpt_z.reshape(R, C * J * 2)
-        zs.append(zk)
-        masks.append(np.isfinite(zk))
-        vars_.append(np.full((R, C * J * 2), sigma_kpt**2))
-    mask = np.concatenate(masks, 1)
-    return Model(rows, cams, layout, use_box, np.where(mask, np.concatenate(zs, 1), 0.0), mask,
-                 np.concatenate(vars_, 1), x0, p0, kpt_hint=kpt0, hint_sd_m=hint_sd_m)
+@dataclass(frozen=True)
+class Init:
+    """Initial state ``x0 (R, n)`` and covariance ``P0 (R, n, n)`` of every row (used where
+    an object starts): the row's own per-frame fit with its covariance."""
+
+    x0: F64
+    P0: F64
 
 
-def select_noise(model: Model, cfg: UKFConfig, given: UKFConfig, use_box: bool, use_kpt: bool,
-                 fps: float, shape_grid: tuple[float, ...] | None = None
-                 ) -> tuple[UKFConfig, list[dict[str, float | None]]]:
+def initial_states(model: Model, cfg: UKFConfig) -> Init:
+    lay = model.layout
+    R, n = model.x_frame.shape
+    x0 = model.x_frame.copy()
+    v = model.var_frame.copy()
+    v[:, lay.velocity] = cfg.init_vel_sd_mps**2
+    if lay.n_joints:
+        v[:, lay.joint_velocity] = cfg.init_vel_sd_mps**2
+        j = v[:, lay.joints]
+        v[:, lay.joints] = np.where(np.isfinite(j), j, cfg.init_canon_sd_m**2)
+    v = np.where(np.isfinite(v), v, 1.0)
+    P0 = v[:, :, None] * np.eye(n)
+    c6 = model.cov6_frame
+    ok = np.all(np.isfinite(c6), axis=(1, 2))
+    dims = np.r_[np.arange(lay.center.start, lay.center.stop),
+                 np.arange(lay.log_axes.start, lay.log_axes.stop)]
+    P0[np.ix_(np.flatnonzero(ok), dims, dims)] = c6[ok]
+    return Init(x0, P0)
+
+
+def _maximise_log(f: Any, lo: float, hi: float, n_scan: int) -> float:
+    """Maximiser of ``f(q)`` over ``[lo, hi]``: a log-spaced scan, then bounded Brent on
+    ``log q`` between the best scan point's neighbours."""
+    grid = np.geomspace(lo, hi, n_scan)
+    vals = np.array([f(float(q)) for q in grid])
+    vals = np.where(np.isfinite(vals), vals, -np.inf)
+    k = int(np.argmax(vals))
+    a, b = grid[max(k - 1, 0)], grid[min(k + 1, n_scan - 1)]
+    res = minimize_scalar(lambda u: -f(float(np.exp(u))), bounds=(np.log(a), np.log(b)),
+                          method="bounded", options={"xatol": 0.1})
+    cand = float(np.exp(res.x))
+    return cand if -res.fun >= vals[k] else float(grid[k])
+
+
+def select_noise(model: Model, init: Init, cfg: UKFConfig, use_box: bool, use_kpt: bool,
+                 fps: float) -> tuple[UKFConfig, dict[str, list[dict[str, float]]]]:
     """Process noise by maximum likelihood of the forward pass (no smoothing, no bones).
 
-    Values set in ``given`` are kept; the others are chosen from the config's grids:
-    ``accel_sd`` x ``shape_sd`` with boxes, then ``joint_accel_sd`` with keypoints.
-    Returns the tuned config and every grid point's log-likelihood.
+    Values set in ``cfg`` are kept; the others are found in turn (``accel_sd``, then
+    ``shape_sd`` with boxes, then ``joint_accel_sd`` with keypoints) by
+    :func:`_maximise_log`, the others held at their current values. Returns the tuned
+    config and, per searched parameter, the likelihood curve (``value, loglik``, sorted).
     """
-    loglik: list[dict[str, float | None]] = []
+    curves: dict[str, list[dict[str, float]]] = {}
 
-    def score(c: UKFConfig) -> float:
-        ll = run_filter(model, replace(c, smooth=False, iterations=1), fps)[2]["loglik"]
-        loglik.append({"accel_sd": c.accel_sd, "shape_sd": c.shape_sd,
-                       "joint_accel_sd": c.joint_accel_sd, "loglik": ll})
-        return float(ll)
+    def search(name: str, c: UKFConfig, bounds: tuple[float, float], n_scan: int) -> UKFConfig:
+        seen: dict[float, float] = {}
 
-    sgrid = shape_grid or cfg.shape_grid
-    cfg = replace(cfg, accel_sd=cfg.accel_sd or cfg.accel_grid[len(cfg.accel_grid) // 2],
-                  shape_sd=cfg.shape_sd or sgrid[0],
-                  joint_accel_sd=cfg.joint_accel_sd or cfg.joint_accel_grid[1])
-    if use_box and (given.accel_sd is None or given.shape_sd is None):
-        qs = cfg.accel_grid if given.accel_sd is None else (cfg.accel_sd,)
-        ss = sgrid if given.shape_sd is None else (cfg.shape_sd,)
-        best = max(((q, sh) for q in qs for sh in ss),
-                   key=lambda k: score(replace(cfg, accel_sd=k[0], shape_sd=k[1])))
-        cfg = replace(cfg, accel_sd=best[0], shape_sd=best[1])
+        def score(v: float) -> float:
+            if v not in seen:
+                ll = run_filter(model, init, replace(c, **{name: v}, smooth=False, iterations=1),
+                                fps)[2]["loglik"]
+                seen[v] = float(ll) if np.isfinite(ll) else -np.inf
+            return seen[v]
+
+        best = _maximise_log(score, *bounds, n_scan)
+        curves[name] = [{"value": v, "loglik": ll} for v, ll in sorted(seen.items())]
+        return replace(c, **{name: best})
+
+    given = cfg
+    cfg = replace(cfg, accel_sd=cfg.accel_sd or 0.5, shape_sd=cfg.shape_sd or 0.003,
+                  joint_accel_sd=cfg.joint_accel_sd or 1.0)
+    if use_box and given.accel_sd is None:
+        cfg = search("accel_sd", cfg, cfg.accel_bounds, 5)
+    if use_box and given.shape_sd is None:
+        cfg = search("shape_sd", cfg, cfg.shape_bounds, 4)
     if use_kpt and given.joint_accel_sd is None:
-        ja = max(cfg.joint_accel_grid, key=lambda q: score(replace(cfg, joint_accel_sd=q)))
-        cfg = replace(cfg, joint_accel_sd=ja)
-    return cfg, loglik
+        cfg = search("joint_accel_sd", cfg, cfg.joint_accel_bounds, 4)
+    if not use_box and given.accel_sd is None:
+        cfg = replace(cfg, accel_sd=cfg.joint_accel_sd)
+    return cfg, curves
 
 
-def never_seen(rows: Rows, n_joints: int) -> np.ndarray:
-    """(R, J) joints whose object never showed them in any view of any frame."""
-    seen = np.isfinite(rows.kpt_z[..., 0]).any(axis=1)  # (R, J)
-    ever = np.zeros((len(rows.obj_ids), n_joints), bool)
-    np.logical_or.at(ever, rows.row_o, seen)
-    return ~ever[rows.row_o]
-
-
-def triangulate_rows(scene: Scene, rows: Rows, cams: Cams) -> tuple[F64, float]:
-    """DLT of every row's joints (R, J, 3) (NaN under 2 views) and the reprojection RMS (px).
-
-    Raises :class:`InputError` when a triangulated joint lies behind a camera that saw it.
-    """
-    R, C, J = rows.kpt_z.shape[:3]
-    xy = normalized_points(np.swapaxes(rows.kpt_z, 1, 2).reshape(R * J, C, 2), cams.K, cams.dist)
-    X, nv = triangulate_dlt(xy, cams.R, cams.t)
-    uv, depth = project_points(X, cams.K, cams.dist, cams.R, cams.t, cams.depth_sign)
-    obs = np.swapaxes(rows.kpt_z, 1, 2).reshape(R * J, C, 2)
-    seen = np.isfinite(obs[..., 0]) & np.isfinite(X[:, :1])
-    behind = seen & ~(depth > 0)
-    if behind.any():
-        k, c = np.argwhere(behind)[0]
-        r, j = divmod(int(k), J)
-        raise InputError(scene.obs.origin[rows.obs_row[r, c]],
-                         f"joint {j} triangulates behind camera {scene.rig.cameras[c].name}: "
-                         f"keypoints and calibration disagree")
-    res = np.where(seen[..., None], uv - obs, 0.0)
-    dof = float(np.sum(2 * seen.sum(axis=1)[nv >= 3] - 3))
-    rss = float(np.sum(res[nv >= 3] ** 2))
-    rms = float(np.sqrt(rss / dof)) if dof > 0 else 1.0
-    return X.reshape(R, J, 3), rms
-
-
-def initial_states(scene: Scene, rows: Rows, cams: Cams, layout: StateLayout, fit: BoxFit | None,
-                   kpt0: F64 | None, cfg: UKFConfig) -> tuple[F64, F64]:
-    """Initial state and variances ``(R, n)`` for every row (used where an object starts)."""
-    R, n, J = len(rows), layout.n, layout.n_joints
-    x0 = np.zeros((R, n))
-    p0 = np.zeros((R, n))
-    wfb = cams.world_from_body
-    if fit is not None:
-        x0[:, 0:3], x0[:, 6:9] = fit.center_world, fit.log_axes
-    elif kpt0 is not None:
-        c, s, _ = ellipsoid_around(kpt0, np.zeros(kpt0.shape[:2]), wfb)
-        ok = np.all(np.isfinite(c), axis=1)
-        # rows with no triangulated joint borrow the nearest row of the same object that has one
-        for o in np.unique(rows.row_o[~ok]):
-            mine = np.flatnonzero(rows.row_o == o)
-            good = mine[ok[mine]]
-            if good.size == 0:
-                first = scene.obs.origin[int(rows.obs_row[mine][rows.obs_row[mine] >= 0][0])]
-                raise InputError(first, f"object {int(rows.obj_ids[o])} is never seen by two "
-                                        "cameras at once: its 3D position is undetermined "
-                                        "from keypoints alone")
-            near = good[np.argmin(np.abs(rows.row_t[good][None, :] - rows.row_t[mine][:, None]),
-                                  axis=1)]
-            c[mine], s[mine] = c[near], s[near]
-        x0[:, 0:3], x0[:, 6:9] = c, np.log(s)
-    p0[:, 0:3] = cfg.init_pos_sd_m**2
-    p0[:, 3:6] = cfg.init_vel_sd_mps**2
-    p0[:, 6:9] = cfg.init_shape_sd**2
-    if J:
-        skel = SKELETONS[scene.skeleton] if scene.skeleton else skeleton_for(J)
-        canon = skel.canonical() - np.array([0.0, 0.0, PERSON_SEMI_AXES_M[2]])
-        scale = np.exp(x0[:, 6:9]) / PERSON_SEMI_AXES_M  # (R, 3)
-        placed = x0[:, None, 0:3] + np.einsum("ij,rkj->rki", wfb, canon[None] * scale[:, None])
-        have = np.all(np.isfinite(kpt0), axis=-1) if kpt0 is not None else np.zeros((R, J), bool)
-        joints = np.where(have[..., None], np.nan_to_num(kpt0) if kpt0 is not None else 0, placed)
-        x0[:, layout.joints] = joints.reshape(R, 3 * J)
-        var = np.where(have, cfg.init_joint_sd_m**2, cfg.init_canon_sd_m**2)
-        p0[:, layout.joints] = np.repeat(var, 3, axis=1)
-        p0[:, layout.joint_velocity] = cfg.init_vel_sd_mps**2
-    return x0, p0
-
-
-def ellipsoid_around(kpt: F64, kpt_sd: F64, world_from_body: F64, pad_m: float = 0.1
-                     ) -> tuple[F64, F64, F64]:
-    """Axis-aligned (body frame) ellipsoid around each row's joints ``(R, J, 3)``.
-
-    Centre = middle of the joints' extent, semi-axes = half extent + ``pad_m`` (limbs have
-    thickness); centre sd = RMS of the joints' sd. NaN where a row has no finite joint.
-    """
-    body = np.einsum("ji,rkj->rki", world_from_body, kpt)  # body coordinates
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows stay NaN
-        lo, hi = np.nanmin(body, axis=1), np.nanmax(body, axis=1)
-        sd = np.sqrt(np.nanmean(kpt_sd**2, axis=1))
-    centre = np.einsum("ij,rj->ri", world_from_body, (lo + hi) / 2)
-    semi = (hi - lo) / 2 + pad_m
-    return centre, semi, np.repeat(sd[:, None], 3, axis=1)
-
-
-def joints_of(x_s: F64, P_s: F64, layout: StateLayout, rows: Rows) -> tuple[F64, F64]:
-    """Joints ``(R, J, 3)`` and their sd ``(R, J)``; NaN for joints an object never showed."""
+def joints_of(x_s: F64, P_s: F64, layout: Any, rows: Any) -> tuple[F64, F64]:
+    """Joints ``(R, J, 3)`` and their largest-axis sd ``(R, J)``; NaN for joints an object
+    never showed."""
     R, J = len(rows), layout.n_joints
-    kpt = x_s[:, layout.joints].reshape(R, J, 3)
-    var = np.einsum("rii->ri", P_s[:, layout.joints, layout.joints]).reshape(R, J, 3)
-    sd = np.sqrt(var.mean(axis=2))
+    kpt = x_s[:, layout.joints].reshape(R, J, 3).copy()
+    idx = layout.joints.start + 3 * np.arange(J)[:, None] + np.arange(3)  # (J, 3)
+    cov = P_s[:, idx[:, :, None], idx[:, None, :]]  # (R, J, 3, 3)
+    sd = largest_sd(cov)
     never = never_seen(rows, J)
     kpt[never] = np.nan
     sd[never] = np.nan
     return kpt, sd
 
 
-def rerun_with_bones(model: Model, cfg: UKFConfig, fps: float, x_s: F64, P_s: F64,
+def downweighted_of(model: Model, run: dict[str, Any]) -> Downweighted:
+    """The measurements the final forward pass down-weighted or rejected."""
+    rows = model.rows
+    C, J = len(model.cams.K), model.layout.n_joints
+    W, S2, RES = run["weights"], run["score2"], run["residual"]
+    parts: list[tuple[np.ndarray, ...]] = []
+    for sl, d in model.robust_blocks:
+        w = W[:, sl][:, ::d]
+        m = model.mask[:, sl][:, ::d]
+        s = np.sqrt(S2[:, sl][:, ::d])
+        res = np.sqrt((RES[:, sl] ** 2).reshape(len(rows), -1, d).sum(axis=2))
+        r, k = np.nonzero(m & (w < 1.0))
+        if d == 1:  # box edges: k = c * 4 + edge
+            cam, joint, edge = k // 4, np.full(len(k), -1), k % 4
+        else:  # keypoints: k = c * J + j
+            cam, joint, edge = k // J, k % J, np.full(len(k), -1)
+        parts.append((r, cam, joint, edge, w[r, k], res[r, k], s[r, k]))
+    if not parts:
+        e = np.zeros(0, dtype=np.int64)
+        return Downweighted(e, e, e, e, e, np.zeros(0), np.zeros(0), np.zeros(0))
+    r, cam, joint, edge, w, res, s = (np.concatenate(p) for p in zip(*parts, strict=True))
+    del C
+    return Downweighted(frame=rows.frames[rows.row_t[r]], cam=cam.astype(np.int64),
+                        track_id=rows.obj_ids[rows.row_o[r]], joint=joint.astype(np.int64),
+                        edge=edge.astype(np.int64), weight=w, residual_px=res, score=s)
+
+
+def rerun_with_bones(model: Model, init: Init, cfg: UKFConfig, fps: float, x_s: F64, P_s: F64,
                      skel: Skeleton) -> tuple[F64, F64, dict[str, Any], dict[str, Any]]:
     r"""Second pass with bone-length pseudo-measurements ``|p_i - p_j| = L_b`` per person.
 
@@ -495,8 +363,9 @@ def rerun_with_bones(model: Model, cfg: UKFConfig, fps: float, x_s: F64, P_s: F6
     mb = np.isfinite(zb)
     bmodel = replace(model, z=np.concatenate([model.z, np.nan_to_num(zb)], 1),
                      mask=np.concatenate([model.mask, mb], 1),
-                     var=np.concatenate([model.var, sd[rows.row_o] ** 2], 1), bones=bones)
-    x2, P2, info = run_filter(bmodel, cfg, fps)
+                     var=np.concatenate([model.var, sd[rows.row_o] ** 2], 1),
+                     weight0=np.concatenate([model.weight0, np.ones_like(zb)], 1), bones=bones)
+    x2, P2, info = run_filter(bmodel, init, cfg, fps, collect=True)
     names = [f"{skel.joints[a]}-{skel.joints[b]}" for a, b in bones]
     per_person = {
         str(int(rows.obj_ids[o])): {
@@ -507,20 +376,23 @@ def rerun_with_bones(model: Model, cfg: UKFConfig, fps: float, x_s: F64, P_s: F6
     return x2, P2, info, {"skeleton": skel.name, "units": "m", "per_person": per_person}
 
 
-def run_filter(model: Model, cfg: UKFConfig, fps: float) -> tuple[F64, F64, dict[str, Any]]:
-    """Forward UKF over the frame grid, then (optionally) RTS. Returns ``(R, n)``, ``(R, n, n)``."""
+def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bool = False
+               ) -> tuple[F64, F64, dict[str, Any]]:
+    """Forward UKF over the frame grid, then (optionally) RTS. Returns ``(R, n)``, ``(R, n, n)``
+    and diagnostics; with ``collect`` also the final weights, scores and residuals ``(R, m)``."""
     rows, cams, layout = model.rows, model.cams, model.layout
     n, R = layout.n, len(rows)
     if cfg.accel_sd is None or cfg.shape_sd is None:
         raise ValueError("run_filter needs numeric accel_sd and shape_sd")
     w = SigmaWeights(n, cfg.alpha, cfg.beta, cfg.kappa)
-    update = (ukf_update_information if model.z.shape[1] >= cfg.information_form_min_m
-              else ukf_update)
+    robust = cfg.robust_config if cfg.robust else None
     x_p = np.zeros((R, n))
     P_p = np.zeros((R, n, n))
     x_f = np.zeros((R, n))
     P_f = np.zeros((R, n, n))
     frame_s = rows.frames / fps
+    m = model.z.shape[1]
+    out = {k: np.zeros((R, m)) for k in ("weights", "score2", "residual")} if collect else {}
 
     def transition(dt: F64) -> tuple[F64, F64]:
         return layout.transition(dt, cfg.accel_sd, cfg.shape_sd, cfg.joint_accel_sd,  # type: ignore[arg-type]
@@ -535,17 +407,21 @@ def run_filter(model: Model, cfg: UKFConfig, fps: float) -> tuple[F64, F64, dict
         new = prev < 0
         if new.any():
             rn = r[new]
-            x_p[rn] = model.x0[rn]
-            P_p[rn] = model.p0_diag[rn][:, :, None] * np.eye(n)
+            x_p[rn] = init.x0[rn]
+            P_p[rn] = init.P0[rn]
         if (~new).any():
             ro, po = r[~new], prev[~new]
             F, Q = transition(frame_s[t] - frame_s[rows.row_t[po]])
             x_p[ro], P_p[ro] = predict_linear(x_f[po], P_f[po], F, Q)
         xl, Pl = model.linearisation_point(r, x_p[r], P_p[r])
-        x_f[r], P_f[r], inf = update(x_p[r], P_p[r], model.z[r], model.mask[r], model.var[r],
-                                     model.h, w, cfg.iterations, xl, Pl)
+        x_f[r], P_f[r], inf = ukf_update_information(
+            x_p[r], P_p[r], model.z[r], model.mask[r], model.var[r], model.h, w,
+            cfg.iterations, xl, Pl, weight0=model.weight0[r], robust=robust,
+            robust_blocks=model.robust_blocks)
         for k in stats:
             stats[k] += inf[k]
+        for k in out:
+            out[k][r] = inf[k]
     x_s, P_s = x_f.copy(), P_f.copy()
     if cfg.smooth:
         for t in range(len(rows.frames) - 2, -1, -1):
@@ -561,6 +437,7 @@ def run_filter(model: Model, cfg: UKFConfig, fps: float) -> tuple[F64, F64, dict
         "mean_nis_per_dof": float(stats["nis"]) / max(int(stats["dof"]), 1),
         "object_frames": R,
         "loglik": float(stats["loglik"]),
-        "update_form": "information" if update is ukf_update_information else "covariance",
+        "update_form": "information, iterated and reweighted",
+        **out,
     }
     return x_s, P_s, info

@@ -45,3 +45,141 @@ def triangulate_dlt(xy_n: F64, R: F64, t: F64) -> tuple[F64, np.ndarray]:
         X = Xh[:, :3] / Xh[:, 3:]
     X[n_views < 2] = np.nan
     return X, n_views
+
+
+def triangulate_weighted(xy_n: F64, R: F64, t: F64, weight: F64) -> F64:
+    """DLT with a weight per view (rows scaled by it; 0 = view unused).
+
+    xy_n : (N, C, 2) normalised coordinates (any value where ``weight`` is 0);
+    weight : (N, C) >= 0. Returns ``X_world (N, 3)``, NaN where fewer than 2 views have
+    a positive weight.
+    """
+    use = weight > 0
+    xy = np.where(use[..., None], np.nan_to_num(xy_n), 0.0)
+    P = np.concatenate([R, t[:, :, None]], axis=2)  # (C, 3, 4)
+    rows_x = xy[..., 0, None] * P[:, 2] - P[:, 0]
+    rows_y = xy[..., 1, None] * P[:, 2] - P[:, 1]
+    wt = np.where(use, weight, 0.0)
+    A = np.concatenate([rows_x, rows_y], axis=1) * np.concatenate([wt, wt], axis=1)[..., None]
+    _, _, Vt = np.linalg.svd(A)
+    Xh = Vt[:, -1, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        X = Xh[:, :3] / Xh[:, 3:]
+    X[use.sum(axis=1) < 2] = np.nan
+    return X
+
+
+def reprojection_sq_px(X_world: F64, xy_n: F64, R: F64, t: F64, f_px: F64,
+                       depth_sign: F64 | float = 1.0) -> F64:
+    """Squared reprojection distances (approximate pixels: normalised distance x focal).
+
+    X_world : (..., 3); xy_n : (..., C, 2) undistorted normalised observations;
+    f_px : (C,) focal length. Returns ``(..., C)``; ``inf`` where the point is behind.
+    """
+    Xc = np.einsum("cij,...j->...ci", R, X_world) + t
+    z = Xc[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = Xc[..., :2] / z[..., None] - xy_n
+        e2 = np.sum(d * d, axis=-1) * f_px**2
+    return np.where(z * depth_sign > 0, e2, np.inf)
+
+
+def _pairs(C: int, max_pairs: int) -> np.ndarray:
+    """View pairs to draw 2-view hypotheses from: all, or a spread of strides ``(P, 2)``."""
+    allp = np.array([(a, b) for a in range(C) for b in range(a + 1, C)], dtype=np.int64)
+    if len(allp) <= max_pairs:
+        return allp.reshape(-1, 2)
+    strides = np.unique(np.geomspace(1, C // 2, num=max(1, max_pairs // C)).astype(int))
+    return np.array([(a, (a + s) % C) for s in strides for a in range(C)], dtype=np.int64)
+
+
+def robust_triangulate(xy_n: F64, R: F64, t: F64, f_px: F64, thr_px: float,
+                       var_scale: F64 | None = None, depth_sign: F64 | float = 1.0,
+                       max_pairs: int = 64, chunk: int = 4096) -> tuple[F64, np.ndarray, F64]:
+    r"""Triangulation that survives gross errors in a minority of views (MSAC + refit).
+
+    Two-view DLT hypotheses from pairs of seen views (and the all-view DLT) are scored by
+    the truncated reprojection cost ``sum_c min(e_c^2 / s_c, thr^2)`` (Torr & Zisserman,
+    "MLESAC", CVIU 2000); the best one's inliers (``e^2 / s < thr^2``) are triangulated
+    again, twice.
+
+    Parameters
+    ----------
+    xy_n : (N, C, 2) undistorted normalised coordinates, NaN = not seen
+    R, t : (C, 3, 3), (C, 3) ``cam_from_world``
+    f_px : (C,) focal lengths (pixels per normalised unit)
+    thr_px : inlier threshold (pixels)
+    var_scale : (N, C) relative variance of each observation (e.g. 1 / confidence)
+
+    Returns
+    -------
+    X_world : (N, 3), NaN with fewer than 2 inliers
+    inlier : (N, C) bool
+    e2_px : (N, C) squared reprojection error at ``X_world`` (inf where not seen)
+    """
+    N, C = xy_n.shape[:2]
+    seen = np.all(np.isfinite(xy_n), axis=-1)
+    s = np.ones((N, C)) if var_scale is None else var_scale
+    X = np.full((N, 3), np.nan)
+    inl = np.zeros((N, C), bool)
+    e2 = np.full((N, C), np.inf)
+    pairs = _pairs(C, max_pairs)
+    for a in range(0, N, chunk):
+        sl = slice(a, min(a + chunk, N))
+        xy, sn, sc = xy_n[sl], seen[sl], s[sl]
+        n = len(xy)
+        cands = [triangulate_weighted(xy, R, t, sn.astype(np.float64))[:, None]]
+        if len(pairs):
+            wp = np.zeros((n, len(pairs), C))
+            ii = np.arange(len(pairs))
+            wp[:, ii, pairs[:, 0]] = sn[:, pairs[:, 0]]
+            wp[:, ii, pairs[:, 1]] = sn[:, pairs[:, 1]]
+            Xp = triangulate_weighted(np.repeat(xy, len(pairs), axis=0), R, t,
+                                      wp.reshape(-1, C)).reshape(n, len(pairs), 3)
+            cands.append(Xp)
+        Xc = np.concatenate(cands, axis=1)  # (n, P+1, 3)
+        ec = reprojection_sq_px(Xc, xy[:, None], R, t, f_px, depth_sign) / sc[:, None]
+        cost = np.sum(np.where(sn[:, None], np.minimum(np.nan_to_num(ec, nan=np.inf), thr_px**2),
+                               0.0), axis=2)
+        cost = np.where(np.all(np.isfinite(Xc), axis=2), cost, np.inf)
+        best = Xc[np.arange(n), np.argmin(cost, axis=1)]
+        for _ in range(2):
+            eb = reprojection_sq_px(best, xy, R, t, f_px, depth_sign) / sc
+            w = (sn & (np.nan_to_num(eb, nan=np.inf) < thr_px**2)).astype(np.float64)
+            refit = triangulate_weighted(xy, R, t, w / np.sqrt(sc))
+            best = np.where(np.isfinite(refit), refit, best)
+        eb = reprojection_sq_px(best, xy, R, t, f_px, depth_sign)
+        good = sn & (np.nan_to_num(eb / sc, nan=np.inf) < thr_px**2)
+        ok = good.sum(axis=1) >= 2
+        X[sl] = np.where(ok[:, None], best, np.nan)
+        inl[sl] = good & ok[:, None]
+        e2[sl] = np.where(sn, eb, np.inf)
+    return X, inl, e2
+
+
+def triangulation_cov(X_world: F64, R: F64, t: F64, f_px: F64, info_weight: F64) -> F64:
+    r"""First-order covariance ``(N, 3, 3)`` of triangulated points, in units of the pixel
+    variance: ``(sum_c w_c J_c^T J_c)^{-1}`` with ``J_c`` the 2x3 Jacobian of camera ``c``'s
+    projection (pixels per metre) and ``w_c = info_weight (N, C)`` (0 = view unused).
+    Infinite variance (``inf`` on the diagonal) where the point is not determined.
+    """
+    Xc = np.einsum("cij,...j->...ci", R, X_world) + t  # (N, C, 3)
+    z = Xc[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x, y = Xc[..., 0] / z, Xc[..., 1] / z
+        inv = f_px / z
+    Jn = np.zeros(Xc.shape[:-1] + (2, 3))
+    Jn[..., 0, 0] = inv
+    Jn[..., 0, 2] = -inv * x
+    Jn[..., 1, 1] = inv
+    Jn[..., 1, 2] = -inv * y
+    Jw = Jn @ R  # (N, C, 2, 3)
+    w = np.where(np.isfinite(z), info_weight, 0.0)
+    Jw = np.nan_to_num(Jw)
+    Info = np.einsum("nc,ncki,nckj->nij", w, Jw, Jw)
+    out = np.full(Info.shape, np.inf)
+    det_ok = np.linalg.cond(Info) < 1e12
+    if det_ok.any():
+        out[det_ok] = np.linalg.inv(Info[det_ok])
+    return out
+

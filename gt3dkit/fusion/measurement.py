@@ -1,0 +1,137 @@
+"""The UKF's stacked measurement model: what a row's state predicts in every camera.
+
+Measurement vector of a row: ``[box edges (C*4) | keypoints (C*J*2) | bones (K)]``, each
+block present only when the scene has it. Box edges are the exact tangent box of the
+projected ellipsoid (:func:`gt3dkit.fusion.boxfit.box_model`), keypoints the projection
+with distortion, bones the distance between two joints (pseudo-measurements).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from gt3dkit.fusion.boxfit import box_model
+from gt3dkit.fusion.motion import StateLayout
+from gt3dkit.fusion.prepare import Prepared
+from gt3dkit.fusion.rows import Rows
+from gt3dkit.geom.camera import Cams, project_points
+from gt3dkit.types import F64
+
+
+@dataclass
+class Model:
+    """Everything one filter run needs besides the noise settings.
+
+    z, mask, var, weight0 : (R, m) measurements, which are present, their variances and
+    the per-frame fits' verdicts (1 kept, 0 rejected); robust_blocks : the ``(slice,
+    entries per point)`` blocks whose points the update may down-weight (not bones);
+    x_frame, var_frame, cov6_frame : each row's own per-frame state (see
+    :meth:`gt3dkit.fusion.prepare.Prepared.frame_state`).
+    """
+
+    rows: Rows
+    cams: Cams
+    layout: StateLayout
+    use_box: bool
+    z: F64
+    mask: np.ndarray
+    var: F64
+    weight0: F64
+    robust_blocks: tuple[tuple[slice, int], ...]
+    x_frame: F64
+    var_frame: F64
+    cov6_frame: F64
+    bones: np.ndarray | None = None  # (K, 2)
+
+    @classmethod
+    def of(cls, pre: Prepared) -> Model:
+        rows, cams, lay = pre.rows, pre.cams, pre.layout
+        R, C, J = len(rows), len(cams.K), lay.n_joints
+        zs, masks, vars_, w0, blocks = [], [], [], [], []
+        at = 0
+        if pre.use_box:
+            zs.append(rows.box_z.reshape(R, C * 4))
+            masks.append(rows.box_mask.reshape(R, C * 4))
+            vars_.append(np.broadcast_to(np.tile(pre.sigma_box**2, C), (R, C * 4)))
+            w0.append(pre.box_keep.reshape(R, C * 4).astype(np.float64))
+            blocks.append((slice(at, at + C * 4), 1))
+            at += C * 4
+        if pre.use_kpt:
+            zk = rows.kpt_z.reshape(R, C * J * 2)
+            zs.append(zk)
+            masks.append(np.isfinite(zk))
+            vars_.append(np.repeat(pre.kpt_var.reshape(R, C * J), 2, axis=1))
+            w0.append(np.repeat(pre.kpt_keep.reshape(R, C * J), 2, axis=1).astype(np.float64))
+            blocks.append((slice(at, at + C * J * 2), 2))
+        mask = np.concatenate(masks, 1)
+        x_f, v_f, c6 = pre.frame_state()
+        return cls(rows, cams, lay, pre.use_box, np.where(mask, np.concatenate(zs, 1), 0.0),
+                   mask, np.concatenate(vars_, 1), np.concatenate(w0, 1),
+                   tuple(blocks) if pre.robust.enabled else (), x_f, v_f, c6)
+
+    def linearisation_point(self, r: np.ndarray, x: F64, P: F64) -> tuple[F64 | None, F64 | None]:
+        """Where the first update pass linearises for rows ``r`` with priors ``x, P``.
+
+        The prior, except where the row's own views say more than the prior does: an
+        object after a gap, re-appearing, at its first frame, or a joint the filter has
+        lost. There the ellipsoid (centre, axes) and the joints are taken from the per-frame
+        fits with their covariance, so that the sigma points stay where the views put the
+        object instead of far out along a weak prediction (where some of them fall behind
+        a camera and the views would be ignored).
+        """
+        lay = self.layout
+        B = len(r)
+        xl, Pl = x.copy(), P.copy()
+        changed = False
+        c6 = self.cov6_frame[r]
+        ok6 = np.all(np.isfinite(c6), axis=(1, 2)) & np.all(np.isfinite(self.x_frame[r, :9]), axis=1)
+        tr_prior = np.einsum("bii->b", P[:, lay.center, lay.center])
+        tr_frame = np.einsum("bii->b", c6[:, :3, :3])
+        weak = ok6 & (tr_prior > tr_frame)
+        if self.use_box and weak.any():
+            dims = np.r_[np.arange(lay.center.start, lay.center.stop),
+                         np.arange(lay.log_axes.start, lay.log_axes.stop)]
+            b = np.flatnonzero(weak)
+            xl[np.ix_(b, dims)] = self.x_frame[r[b]][:, dims]
+            Pl[b[:, None], dims[None, :], :] = 0.0
+            Pl[b[:, None], :, dims[None, :]] = 0.0
+            Pl[np.ix_(b, dims, dims)] = c6[b]
+            changed = True
+        J = lay.n_joints
+        if J:
+            sl = lay.joints
+            vj = np.diagonal(P, axis1=1, axis2=2)[:, sl].reshape(B, J, 3).sum(axis=2)
+            vf = self.var_frame[r][:, sl].reshape(B, J, 3).sum(axis=2)
+            lost = np.isfinite(vf) & (vj > vf)
+            if lost.any():
+                bb, jj = np.nonzero(lost)
+                dims = sl.start + 3 * jj[:, None] + np.arange(3)  # (L, 3)
+                xl[bb[:, None], dims] = self.x_frame[r[bb][:, None], dims]
+                for k in range(3):  # decorrelate the replaced joints
+                    Pl[bb, dims[:, k], :] = 0.0
+                    Pl[bb, :, dims[:, k]] = 0.0
+                vals = self.var_frame[r[bb][:, None], dims]
+                Pl[bb[:, None], dims, dims] = vals
+                changed = True
+        return (xl, Pl) if changed else (None, None)
+
+    def h(self, X: F64) -> F64:
+        """(B, S, n) -> (B, S, m) predicted measurements of all sigma points."""
+        B, S = X.shape[:2]
+        C, J = len(self.cams.K), self.layout.n_joints
+        lay = self.layout
+        parts = []
+        if self.use_box:
+            parts.append(box_model(X[..., lay.center], X[..., lay.log_axes],
+                                   self.cams).reshape(B, S, C * 4))
+        if J:
+            P3 = X[..., lay.joints].reshape(B, S, J, 3)
+            uv, _ = project_points(P3, self.cams.K, self.cams.dist, self.cams.R, self.cams.t,
+                                   self.cams.depth_sign)  # (B,S,J,C,2)
+            parts.append(np.swapaxes(uv, 2, 3).reshape(B, S, C * J * 2))
+            if self.bones is not None:
+                d = P3[..., self.bones[:, 0], :] - P3[..., self.bones[:, 1], :]
+                parts.append(np.linalg.norm(d, axis=-1))
+        return np.concatenate(parts, axis=-1)

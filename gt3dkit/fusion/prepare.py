@@ -1,0 +1,426 @@
+"""What every estimator starts from: rows, robust per-frame fits, noise levels, input checks.
+
+The UKF smoother, the GTSAM smoother and the triangulation baseline all call
+:func:`prepare` and nothing of each other. It
+
+* builds the object-frame rows (:mod:`gt3dkit.fusion.rows`);
+* fits every object-frame on its own, robustly: boxes by Levenberg-Marquardt with edges
+  that disagree with the other views rejected (leave-one-out scores), keypoints by MSAC
+  triangulation (:func:`gt3dkit.geom.triangulate.robust_triangulate`);
+* estimates the noise levels from those fits' residuals, robustly (a few gross errors do
+  not inflate them): one box-edge level, one keypoint level per joint (detectors are much
+  worse on hips than on eyes); a keypoint's variance is its joint's divided by its
+  detector confidence (a confidence is a relative weight, so ``sigma^2 / conf``: the
+  weighted least-squares reading of Pose2Sim's confidence-weighted DLT);
+* learns the shape prior (semi-axes) from the objects several views see well, for the
+  object-frames one or two views see (depth from a single box is only as good as the
+  known size of the object);
+* raises :class:`InputError` for what no estimator can use (an object behind a camera that
+  annotated it, keypoints that no two views agree on for a camera).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from gt3dkit.errors import InputError
+from gt3dkit.fusion.boxfit import PERSON_SEMI_AXES_M, BoxFit, fit_boxes
+from gt3dkit.fusion.motion import StateLayout
+from gt3dkit.fusion.robust import RobustConfig, robust_variance
+from gt3dkit.fusion.rows import Rows, build_rows
+from gt3dkit.geom.camera import Cams
+from gt3dkit.geom.triangulate import normalized_points, robust_triangulate, triangulation_cov
+from gt3dkit.skeletons import SKELETONS, Skeleton, skeleton_for
+from gt3dkit.types import F64, Scene
+
+#: Smallest confidence used as a weight (``sigma^2 / conf``: at most 7x the sd).
+CONF_FLOOR = 0.02
+#: Views from which a box fit counts as well determined (learns the shape prior).
+PRIOR_MIN_VIEWS = 3
+
+
+@dataclass(frozen=True)
+class ShapePrior:
+    """Prior of an object's log semi-axes for weakly seen object-frames."""
+
+    mean: F64  # (3,) log metres
+    sd: F64  # (3,) log units
+    source: str
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """Rows, cameras, robust per-frame fits and noise levels (see the module doc).
+
+    fit : per-frame box fits on the kept edges (None without boxes), weighted by
+        ``sigma_box``
+    box_keep : (R, C, 4) usable edges the per-frame fits kept
+    kpt0 : (R, J, 3) per-frame joints (NaN under 2 agreeing views); kpt0_cov (R, J, 3, 3) m^2
+    kpt_keep : (R, C, J) keypoints the per-frame triangulation kept
+    sigma_box : (4,) box-edge noise per edge kind (px); sigma_kpt : (J,) keypoint noise per
+        joint (px)
+    kpt_var : (R, C, J) each keypoint's variance (px^2) = sigma_kpt[j]^2 / confidence
+    """
+
+    rows: Rows
+    cams: Cams
+    layout: StateLayout
+    use_box: bool
+    use_kpt: bool
+    fit: BoxFit | None
+    box_keep: np.ndarray
+    kpt0: F64 | None
+    kpt0_cov: F64 | None
+    kpt_keep: np.ndarray
+    sigma_box: F64
+    sigma_kpt: F64
+    kpt_var: F64
+    shape_prior: ShapePrior
+    skeleton: Skeleton | None
+    robust: RobustConfig
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def frame_state(self) -> tuple[F64, F64, F64]:
+        """Every row's own (per-frame) state, for initialisation and linearisation.
+
+        Returns ``x (R, n)``, per-entry variances ``var (R, n)`` (inf where the frame says
+        nothing: velocities, unseen joints) and the (centre, log axes) covariance
+        ``cov6 (R, 6, 6)``. Without boxes the centre and axes are those of the ellipsoid
+        around the triangulated joints (nearest frame that has some).
+        """
+        rows, lay = self.rows, self.layout
+        R, n, J = len(rows), lay.n, lay.n_joints
+        x = np.zeros((R, n))
+        var = np.full((R, n), np.inf)
+        cov6 = np.zeros((R, 6, 6))
+        wfb = self.cams.world_from_body
+        if self.fit is not None:
+            x[:, lay.center], x[:, lay.log_axes] = self.fit.center_world, self.fit.log_axes
+            cov6 = self.fit.cov
+        elif self.kpt0 is not None:
+            c, s, _ = ellipsoid_around(self.kpt0, np.zeros(self.kpt0.shape[:2]), wfb)
+            ok = np.all(np.isfinite(c), axis=1)
+            near = _nearest_same_object(rows, ok)
+            c, s = c[near], s[near]
+            x[:, lay.center], x[:, lay.log_axes] = c, np.log(s)
+            cov6 = np.zeros((R, 6, 6))
+            cov6[:, :3, :3] = np.eye(3) * 0.1**2
+            cov6[:, 3:, 3:] = np.diag(self.shape_prior.sd**2)
+        var[:, lay.center] = np.einsum("rii->ri", cov6[:, :3, :3])
+        var[:, lay.log_axes] = np.einsum("rii->ri", cov6[:, 3:, 3:])
+        if J:
+            skel = self.skeleton or skeleton_for(J)
+            canon = skel.canonical() - np.array([0.0, 0.0, PERSON_SEMI_AXES_M[2]])
+            scale = np.exp(x[:, lay.log_axes]) / PERSON_SEMI_AXES_M
+            placed = x[:, None, lay.center] + np.einsum("ij,rkj->rki", wfb, canon[None] * scale[:, None])
+            have = (np.all(np.isfinite(self.kpt0), axis=-1) if self.kpt0 is not None
+                    else np.zeros((R, J), bool))
+            joints = np.where(have[..., None], np.nan_to_num(self.kpt0) if self.kpt0 is not None
+                              else 0.0, placed)
+            x[:, lay.joints] = joints.reshape(R, 3 * J)
+            jvar = (np.einsum("rjii->rji", self.kpt0_cov) if self.kpt0_cov is not None
+                    else np.full((R, J, 3), np.inf))
+            var[:, lay.joints] = np.where(have[..., None], jvar, np.inf).reshape(R, 3 * J)
+        return x, var, cov6
+
+
+def _nearest_same_object(rows: Rows, ok: np.ndarray) -> np.ndarray:
+    """(R,) for each row the nearest row (in frames) of the same object where ``ok``; the row
+    itself where ok. Rows of objects with no ok row map to themselves."""
+    R = len(rows)
+    out = np.arange(R)
+    order = np.lexsort((rows.row_t, rows.row_o))
+    o_sorted = rows.row_o[order]
+    starts = np.flatnonzero(np.r_[True, o_sorted[1:] != o_sorted[:-1]])
+    ends = np.r_[starts[1:], R]
+    for a, b in zip(starts, ends, strict=True):
+        mine = order[a:b]
+        good = mine[ok[mine]]
+        if good.size == 0 or good.size == mine.size:
+            continue
+        d = np.abs(rows.row_t[good][None, :] - rows.row_t[mine][:, None])
+        out[mine] = good[np.argmin(d, axis=1)]
+    return out
+
+
+def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = None,
+            kpt_sigma_px: float | None = None, robust: RobustConfig | None = None) -> Prepared:
+    """Rows, robust per-frame fits, noise levels and input checks (see the module doc)."""
+    robust = robust or RobustConfig()
+    rows = build_rows(scene, clip_tol_px)
+    cams = Cams.of(scene.rig)
+    J = scene.obs.n_joints
+    use_box = bool(np.isfinite(rows.box_z).any())
+    use_kpt = J > 0 and bool(np.isfinite(rows.kpt_z).any())
+    info: dict[str, Any] = {}
+    skel = None
+    if J:
+        skel = SKELETONS[scene.skeleton] if scene.skeleton else skeleton_for(J)
+    fit = None
+    box_keep = np.zeros((len(rows), len(cams.K), 4), bool)
+    sigma_box = np.ones(4)
+    prior = ShapePrior(np.log(PERSON_SEMI_AXES_M), np.full(3, 0.25), "person size (no boxes)")
+    if use_box:
+        fit, box_keep, sigma_box, prior, binfo = _robust_box_fits(scene, rows, cams, robust,
+                                                                  sigma_px)
+        info["boxes"] = binfo
+    kpt0 = kpt0_cov = None
+    kpt_keep = np.zeros((len(rows), len(cams.K), J), bool)
+    sigma_kpt = np.ones(J)
+    kpt_var = np.ones((len(rows), len(cams.K), J))
+    if use_kpt:
+        kpt0, kpt0_cov, kpt_keep, sigma_kpt, kinfo = _robust_keypoints(scene, rows, cams, robust,
+                                                                       kpt_sigma_px)
+        conf = np.maximum(rows.kpt_conf, CONF_FLOOR)
+        kpt_var = sigma_kpt[None, None, :] ** 2 / conf
+        info["keypoints"] = kinfo
+        if not use_box:
+            prior = ShapePrior(np.log(PERSON_SEMI_AXES_M), np.full(3, 0.25),
+                               "person size around the joints")
+            _check_determined(scene, rows, kpt0)
+    return Prepared(rows, cams, StateLayout(J if use_kpt else 0), use_box, use_kpt, fit, box_keep,
+                    kpt0, kpt0_cov, kpt_keep, sigma_box, sigma_kpt, kpt_var, prior, skel,
+                    robust, info)
+
+
+def check_in_front(scene: Scene, rows: Rows, fit: BoxFit) -> None:
+    """Raise :class:`InputError` for a box whose object lies behind that camera."""
+    seen = (rows.obs_row >= 0) & np.all(np.isfinite(rows.box_z), axis=-1)
+    bad = seen & fit.ok[:, None] & ~(fit.margin > 0)
+    if bad.any():
+        r, c = np.argwhere(bad)[0]
+        where = scene.obs.origin[rows.obs_row[r, c]]
+        raise InputError(where, f"the object of this box is behind camera "
+                                f"{scene.rig.cameras[c].name} (the other views place it at "
+                                f"{np.round(fit.center_world[r], 2).tolist()} m): "
+                                f"box and calibration disagree")
+
+
+def _merge_fit(fit: BoxFit, sel: np.ndarray, sub: BoxFit) -> BoxFit:
+    """``fit`` with rows ``sel`` replaced by ``sub``."""
+    out = {}
+    for k in fit.__dataclass_fields__:
+        a = getattr(fit, k).copy()
+        a[sel] = getattr(sub, k)
+        out[k] = a
+    return BoxFit(**out)
+
+
+EDGES = ("xmin", "ymin", "xmax", "ymax")
+
+
+def _edge_sigmas(fit: BoxFit, keep: np.ndarray, robust: RobustConfig) -> tuple[F64, F64]:
+    """Box-edge noise sd (px) from the kept edges' residuals (dof: edges minus 6 per
+    object-frame): ``(4,)`` the one level every edge is weighted with, and ``(4,)`` each edge
+    kind's own level (a diagnostic). The kinds differ on real labels (a person's feet make
+    a sharp bottom edge, swinging arms ragged side edges), but weighting them apart was
+    worse against MultiviewX's ground positions (16.4 vs 12.1 mm): the differences are the
+    ellipsoid model's misfit, not noise, and the sharpest edge is not the truest."""
+    n = np.maximum(fit.n_edges, 1.0)
+    share = np.clip((fit.n_edges - 6) / n, 0.0, 1.0)  # each edge's share of the row's dof
+    use = keep & (share[:, None, None] > 0) & np.isfinite(fit.residual_px)
+    r2 = np.where(use, fit.residual_px, 0.0) ** 2
+    dof = np.broadcast_to(share[:, None, None], keep.shape)
+    glob = robust_variance(r2[use], dof[use], robust.reject_p, 1)
+    out = np.full(4, glob)
+    for e in range(4):
+        u = use[..., e]
+        if u.sum() >= 30:
+            v = robust_variance(r2[..., e][u], dof[..., e][u], robust.reject_p, 1)
+            if np.isfinite(v) and v > 0:
+                out[e] = v
+    out = np.where(np.isfinite(out) & (out > 0), out, 1.0)
+    g = glob if np.isfinite(glob) and glob > 0 else 1.0
+    return np.full(4, np.sqrt(max(g, 0.1**2))), np.sqrt(np.maximum(out, 0.1**2))
+
+
+def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
+                     sigma_px: float | None
+                     ) -> tuple[BoxFit, np.ndarray, F64, ShapePrior, dict[str, Any]]:
+    """Per-frame box fits weighted by per-edge noise; edges rejected by their leave-one-out
+    score; shape prior for weakly seen object-frames."""
+    from gt3dkit.fusion.robust import deleted_score2, point_weights
+
+    keep = rows.box_mask.copy()
+    fit = fit_boxes(rows.box_z, keep, cams)
+    check_in_front(scene, rows, fit)
+
+    def sigmas(f: BoxFit) -> F64:
+        return np.full(4, float(sigma_px)) if sigma_px is not None else _edge_sigmas(f, keep,
+                                                                                      robust)[0]
+
+    def params(f: BoxFit, sel: np.ndarray | slice = slice(None)) -> F64:
+        return np.concatenate([f.center_world[sel], f.log_axes[sel]], 1)
+
+    sig = sigmas(fit)
+    fit = fit_boxes(rows.box_z, keep, cams, sig, p0=params(fit))
+    for _ in range(2 if robust.enabled else 0):
+        r = np.nan_to_num(fit.residual_px)
+        var = np.broadcast_to(sig**2, r.shape)
+        e2 = deleted_score2(r, var, np.nan_to_num(fit.leverage) * var, np.ones_like(r))
+        bad = keep & (point_weights(e2, 1, robust) == 0)
+        if not bad.any():
+            break
+        keep = keep & ~bad
+        sel = bad.any(axis=(1, 2))
+        fit = _merge_fit(fit, sel, fit_boxes(rows.box_z[sel], keep[sel], cams, sig,
+                                             p0=params(fit, sel)))
+        sig = sigmas(fit)
+    # shape prior from object-frames several views see
+    nv = np.all(np.isfinite(rows.box_z), axis=-1).sum(axis=1)
+    good = fit.ok & (nv >= PRIOR_MIN_VIEWS)
+    if good.sum() >= 5:
+        la = fit.log_axes[good]
+        med = np.median(la, axis=0)
+        sd = np.clip(1.4826 * np.median(np.abs(la - med), axis=0), 0.05, 1.0)
+        prior = ShapePrior(med, sd, f"median and spread of {int(good.sum())} object-frames "
+                                    f"seen by >= {PRIOR_MIN_VIEWS} cameras")
+    else:
+        prior = ShapePrior(np.log(PERSON_SEMI_AXES_M), np.full(3, 0.25),
+                           "person size (too few object-frames seen by 3+ cameras)")
+    weak = fit.ok & (nv < PRIOR_MIN_VIEWS)
+    if weak.any():
+        fit = _merge_fit(fit, weak, fit_boxes(rows.box_z[weak], keep[weak], cams, sig,
+                                              prior_log_axes=prior.mean, prior_sd=prior.sd,
+                                              p0=params(fit, weak)))
+    info = {"sigma_px": float(sig[0]),
+            "sigma_px_per_edge_kind": dict(zip(EDGES, _edge_sigmas(fit, keep, robust)[1].round(4)
+                                               .tolist(), strict=True)),
+            "sigma_source": "given" if sigma_px is not None else
+            "robust residual level of the per-frame fits (kept edges, with dof)",
+            "edges_rejected_per_frame": int((rows.box_mask & ~keep).sum()),
+            "edges_usable": int(rows.box_mask.sum()),
+            "shape_prior": {"semi_axes_m": np.exp(prior.mean).round(4).tolist(),
+                            "log_sd": prior.sd.round(4).tolist(), "source": prior.source}}
+    return fit, keep, sig, prior, info
+
+
+def _robust_keypoints(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
+                      kpt_sigma_px: float | None
+                      ) -> tuple[F64, F64, np.ndarray, F64, dict[str, Any]]:
+    """Per-frame robust triangulation of every joint, per-joint noise, input checks."""
+    from scipy.stats import chi2
+
+    R, C, J = rows.kpt_z.shape[:3]
+    obs = np.swapaxes(rows.kpt_z, 1, 2).reshape(R * J, C, 2)
+    xy = normalized_points(obs, cams.K, cams.dist)
+    f = cams.K[:, [0, 1], [0, 1]].mean(axis=1)
+    conf = np.swapaxes(np.maximum(rows.kpt_conf, CONF_FLOOR), 1, 2).reshape(R * J, C)
+    seen = np.isfinite(obs[..., 0])
+    diag = float(np.median(np.hypot(cams.wh[:, 0], cams.wh[:, 1])))
+    g2 = chi2.isf(robust.reject_p, 2)
+    joint_of = np.tile(np.arange(J), R)
+
+    def joint_sigmas(e2: F64, keep: np.ndarray) -> tuple[F64, float]:
+        n_in = keep.sum(axis=1)
+        share = np.clip((2 * n_in - 3) / np.maximum(2 * n_in, 1), 0.0, 1.0)
+        r2 = np.where(keep, e2 * conf, np.nan)  # residual of a unit-confidence point
+        dof = np.broadcast_to((2 * share)[:, None], keep.shape)
+        use = keep & (n_in[:, None] >= 3)
+        glob = robust_variance(r2[use], dof[use], robust.reject_p, 2)
+        if not np.isfinite(glob) or glob <= 0:
+            glob = 1.0
+        out = np.full(J, glob)
+        for j in range(J):
+            u = use & (joint_of[:, None] == j)
+            if u.sum() >= 30:
+                v = robust_variance(r2[u], dof[u], robust.reject_p, 2)
+                if np.isfinite(v) and v > 0:
+                    out[j] = v
+        return np.sqrt(np.maximum(out, 0.05**2)), float(np.sqrt(max(glob, 0.05**2)))
+
+    thr1 = max(0.015 * diag, 4.0) if robust.enabled else np.inf
+    X, keep, e2 = robust_triangulate(xy, cams.R, cams.t, f, thr1, 1.0 / conf, cams.depth_sign)
+    _check_keypoints_in_front(scene, rows, e2, seen, X, J)
+    if kpt_sigma_px is not None:
+        sig_j = np.full(J, float(kpt_sigma_px))
+        sig = float(kpt_sigma_px)
+    else:
+        sig_j, sig = joint_sigmas(e2, keep)
+    if robust.enabled:
+        scale = (sig_j[joint_of] / sig)[:, None] ** 2 / conf
+        X, keep, e2 = robust_triangulate(xy, cams.R, cams.t, f, float(np.sqrt(g2)) * sig, scale,
+                                         cams.depth_sign)
+        if kpt_sigma_px is None:
+            sig_j, sig = joint_sigmas(e2, keep)
+    w = np.where(keep, conf / sig_j[joint_of][:, None] ** 2, 0.0)
+    cov = triangulation_cov(np.nan_to_num(X), cams.R, cams.t, f, w)
+    cov[~np.all(np.isfinite(X), axis=1)] = np.inf
+    kept = np.swapaxes(keep.reshape(R, J, C), 1, 2)
+    info = {"sigma_px": sig, "sigma_px_per_joint": sig_j.round(4).tolist(),
+            "sigma_source": "given" if kpt_sigma_px is not None else
+            "robust reprojection level of the per-frame triangulation (kept points, with dof)",
+            "points": int(seen.sum()), "points_rejected_per_frame": int((seen & ~keep).sum()),
+            "confidence": "given: variance = sigma_joint^2 / conf" if scene.obs.kpt_conf is not None
+            else "none given"}
+    return (X.reshape(R, J, 3), cov.reshape(R, J, 3, 3), kept, sig_j, info)
+
+
+def _check_keypoints_in_front(scene: Scene, rows: Rows, e2: F64, seen: np.ndarray, X: F64,
+                              J: int) -> None:
+    """A camera whose keypoints lie behind it wherever the other views place the joint."""
+    determined = np.all(np.isfinite(X), axis=1)[:, None] & seen
+    behind = determined & np.isinf(e2)
+    n_det = determined.sum(axis=0)
+    n_behind = behind.sum(axis=0)
+    bad = np.flatnonzero((n_behind > 0) & (n_behind * 2 >= n_det))
+    if bad.size:
+        c = int(bad[0])
+        k = int(np.flatnonzero(behind[:, c])[0])
+        r, j = divmod(k, J)
+        raise InputError(scene.obs.origin[rows.obs_row[r, c]],
+                         f"joint {j} triangulates behind camera {scene.rig.cameras[c].name} "
+                         f"(as do {int(n_behind[c])} of the {int(n_det[c])} joints it saw that "
+                         f"other views place): keypoints and calibration disagree")
+
+
+def _check_determined(scene: Scene, rows: Rows, kpt0: F64) -> None:
+    """Keypoints only: an object no two views ever agree on has no 3D position."""
+    have = np.isfinite(kpt0[..., 0]).any(axis=1)  # (R,)
+    ever = np.zeros(len(rows.obj_ids), bool)
+    np.logical_or.at(ever, rows.row_o, have)
+    if not ever.all():
+        o = int(np.flatnonzero(~ever)[0])
+        r, c = np.argwhere((rows.row_o == o)[:, None] & (rows.obs_row >= 0))[0]
+        first = scene.obs.origin[int(rows.obs_row[r, c])]
+        raise InputError(first, f"object {int(rows.obj_ids[o])} is never seen by two cameras "
+                                "at once (that agree): its 3D position is undetermined from "
+                                "keypoints alone")
+
+
+def never_seen(rows: Rows, n_joints: int) -> np.ndarray:
+    """(R, J) joints whose object never showed them in any view of any frame."""
+    seen = np.isfinite(rows.kpt_z[..., 0]).any(axis=1)  # (R, J)
+    ever = np.zeros((len(rows.obj_ids), n_joints), bool)
+    np.logical_or.at(ever, rows.row_o, seen)
+    return ~ever[rows.row_o]
+
+
+def ellipsoid_around(kpt: F64, kpt_sd: F64, world_from_body: F64, pad_m: float = 0.1
+                     ) -> tuple[F64, F64, F64]:
+    """Axis-aligned (body frame) ellipsoid around each row's joints ``(R, J, 3)``.
+
+    Centre = middle of the joints' extent, semi-axes = half extent + ``pad_m`` (limbs have
+    thickness); centre sd = RMS of the joints' sd. NaN where a row has no finite joint.
+    """
+    body = np.einsum("ji,rkj->rki", world_from_body, kpt)  # body coordinates
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows stay NaN
+        lo, hi = np.nanmin(body, axis=1), np.nanmax(body, axis=1)
+        sd = np.sqrt(np.nanmean(kpt_sd**2, axis=1))
+    centre = np.einsum("ij,rj->ri", world_from_body, (lo + hi) / 2)
+    semi = (hi - lo) / 2 + pad_m
+    return centre, semi, np.repeat(sd[:, None], 3, axis=1)
+
+
+def largest_sd(cov: F64) -> F64:
+    """``(..., 3, 3)`` covariances -> ``(...)`` square root of the largest eigenvalue."""
+    out = np.full(cov.shape[:-2], np.nan)
+    ok = np.all(np.isfinite(cov), axis=(-1, -2))
+    if ok.any():
+        out[ok] = np.sqrt(np.maximum(np.linalg.eigvalsh(cov[ok])[..., -1], 0.0))
+    return out
