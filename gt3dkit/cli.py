@@ -57,9 +57,11 @@ def _load(args: argparse.Namespace) -> Any:
         raise InputError("--cameras/--noise-px", "apply to CMU Panoptic inputs only")
     scene = load_scene(Path(args.input), layout, args.skeleton, **opts)
     if getattr(args, "fps", None) is not None:
-        if not args.fps > 0:
-            raise InputError("--fps", f"must be positive, got {args.fps}")
-        scene = dataclasses.replace(scene, fps=float(args.fps))
+        if not (np.isfinite(args.fps) and args.fps > 0):
+            raise InputError("--fps", f"must be positive and finite, got {args.fps}")
+        scene = dataclasses.replace(scene, fps=float(args.fps), fps_assumed="")
+    for w in scene.all_warnings:
+        print(f"warning: {w}", file=sys.stderr)
     return scene
 
 
@@ -123,39 +125,81 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     info = tracks.info
     kinds = " + ".join(k for k, v in (("boxes", scene.obs.has_box.any()),
                                       (f"{scene.skeleton} keypoints", scene.obs.n_joints > 0)) if v)
+    fps = f"{scene.fps:g} fps" + (" (assumed)" if scene.fps_assumed else "")
+    rob = info.get("robust", {})
+    flagged = (f", {rob['rejected']} measurements rejected and {rob['downweighted']} "
+               f"down-weighted (downweighted.csv)" if rob.get("enabled") else "")
     print(f"{scene.layout}: {len(scene.obs)} annotation rows ({kinds}), {len(scene.rig.cameras)} "
-          f"cameras -> {len(tracks)} object-frames of {len(set(tracks.track_id.tolist()))} objects "
-          f"({args.estimator}, {info.get('seconds', 0):.2f} s) written to {args.out}")
+          f"cameras, {fps} -> {len(tracks)} object-frames of {len(set(tracks.track_id.tolist()))} "
+          f"objects ({args.estimator}, {info.get('seconds', 0):.2f} s{flagged}) written to "
+          f"{args.out}")
     report_truth(scene, tracks, args.estimator)
     return 0
+
+
+def _errors(args: argparse.Namespace) -> Any:
+    from gt3dkit.sim import Errors
+
+    gap = None
+    if args.gap:
+        try:
+            a, b = (int(v) for v in args.gap.split(":"))
+        except ValueError:
+            raise InputError("--gap", f"expected FIRST:END frame indices, got {args.gap!r}") from None
+        gap = (a, b)
+    for k in ("outliers", "swaps", "glitch", "shifted", "single_view"):
+        v = getattr(args, k)
+        if not 0 <= v <= 1:  # NaN fails too
+            raise InputError(f"--{k.replace('_', '-')}", f"must be a fraction in [0, 1], got {v}")
+    try:
+        return Errors(outliers=args.outliers, swaps=args.swaps, glitch=args.glitch,
+                      shifted=args.shifted, gap=gap, single_view=args.single_view)
+    except ValueError as e:
+        raise InputError("simulate", str(e)) from None
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
 
+    errors = _errors(args)
+    if not args.noise_px >= 0:
+        raise InputError("--noise-px", f"must be >= 0, got {args.noise_px}")
+    n_err = ""
     if args.kind == "skeleton":
+        if args.shifted:
+            raise InputError("--shifted", "applies to box scenes")
         try:
             sk = simulate_skeletons(args.layout, seed=args.seed, frames=args.frames,
                                     people=args.people, noise_px=args.noise_px,
-                                    missing=args.missing, cameras=args.cameras,
-                                    skeleton=args.skeleton)
+                                    missing=args.missing, cameras=args.cameras or 10,
+                                    skeleton=args.skeleton, errors=errors,
+                                    confidences=args.conf, fps=args.fps or 30.0)
         except ValueError as e:
             raise InputError("simulate", str(e)) from None
         write_skeleton_scene(sk, Path(args.out), args.layout)
-        print(f"wrote {args.layout} skeleton scene to {args.out}: {args.cameras} cameras, "
-              f"{args.frames} frames, {args.people} people ({args.skeleton}), y-down world")
+        if sk.injected:
+            n_err = f", {len(sk.injected)} injected errors (injected.csv)"
+        print(f"wrote {args.layout} skeleton scene to {args.out}: {args.cameras or 10} cameras, "
+              f"{args.frames} frames, {args.people} people ({args.skeleton}), y-down world{n_err}")
         return 0
     if args.layout == "panoptic":
         raise InputError("simulate", "box scenes are native, wildtrack or multiviewx")
+    if errors.outliers or errors.swaps or errors.glitch or args.conf:
+        raise InputError("--outliers/--swaps/--glitch/--conf", "apply to skeleton scenes "
+                                                              "(boxes: --shifted)")
     try:
         sim = simulate(args.layout, seed=args.seed, frames=args.frames, people=args.people,
-                       noise_px=args.noise_px, dropout=args.dropout)
+                       noise_px=args.noise_px, dropout=args.dropout, errors=errors,
+                       motion=args.motion, cameras=args.cameras, fps=args.fps)
     except ValueError as e:
         raise InputError("simulate", str(e)) from None
     write_scene(sim, Path(args.out), args.layout)
     seen = int(np.isfinite(sim.boxes[..., 0]).sum())
+    if sim.injected:
+        n_err = f", {len(sim.injected)} injected errors (injected.csv)"
     print(f"wrote {args.layout} scene to {args.out}: {len(sim.rig.cameras)} cameras, "
-          f"{len(sim.frames)} frames, {args.people} people, {seen} boxes, truth.csv")
+          f"{len(sim.frames)} frames at {sim.fps:g} fps, {args.people} people, {seen} boxes, "
+          f"truth.csv{n_err}")
     return 0
 
 
@@ -289,7 +333,24 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--kind", choices=("boxes", "skeleton"), default="boxes")
     s.add_argument("--layout", choices=(*SIM_LAYOUTS, "panoptic"), default="native",
                    help="boxes: native|wildtrack|multiviewx; skeleton: native|panoptic")
-    s.add_argument("--cameras", type=int, default=10, help="skeleton scenes: HD cameras")
+    s.add_argument("--cameras", type=int,
+                   help="cameras (skeleton scenes: HD cameras, default 10; native boxes: 6)")
+    s.add_argument("--fps", type=float, help="frame rate (skeletons: 30; native boxes: 10)")
+    s.add_argument("--motion", choices=("smooth", "walk"), default="smooth",
+                   help="box scenes: smooth paths or real-trajectory-like walking")
+    s.add_argument("--outliers", type=float, default=0.0,
+                   help="skeletons: fraction of keypoints replaced by far-off points")
+    s.add_argument("--swaps", type=float, default=0.0,
+                   help="skeletons: fraction of person-views with one left/right pair swapped")
+    s.add_argument("--glitch", type=float, default=0.0,
+                   help="skeletons: fraction of keypoints at x = 0 with a high confidence")
+    s.add_argument("--shifted", type=float, default=0.0,
+                   help="boxes: fraction of boxes moved by 0.3-1 of their size")
+    s.add_argument("--gap", help="FIRST:END frame indices with no annotation at all")
+    s.add_argument("--single-view", type=float, default=0.0,
+                   help="fraction of people annotated in one camera only")
+    s.add_argument("--conf", action="store_true",
+                   help="skeletons: write a detector confidence per keypoint")
     s.add_argument("--missing", type=float, default=0.05,
                    help="skeleton scenes: fraction of 2D points dropped at random")
     s.add_argument("--skeleton", choices=sorted(SKELETONS), default="coco19")

@@ -8,6 +8,16 @@ tangent boxes of the ellipsoids (:func:`gt3dkit.geom.conics.ellipsoid_boxes`),
 plus Gaussian noise on every edge, clipped to the image and rounded to whole
 pixels (truncated towards zero for the MultiviewX layout, as its generator does);
 a view is dropped at random with probability ``dropout``.
+
+Realistic annotation and detector errors (:class:`Errors`) are injected with a random
+stream of their own, so a scene with errors has exactly the same noise as the same seed
+without them: far-off keypoints, left/right swaps of single joints, glitches (a zero
+coordinate with a high confidence), shifted boxes, a time gap with no annotation at all,
+people seen by one camera only. Every injected error is listed (``injected.csv`` beside
+``truth.csv``) so that tests check both the estimate and what was flagged.
+
+``motion="walk"`` replaces the smooth paths by real-trajectory-like walking: speed and
+heading wander (Ornstein-Uhlenbeck), people turn, slow down and keep inside the area.
 """
 
 from __future__ import annotations
@@ -26,9 +36,63 @@ from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.datasets.native import cameras_doc
 from gt3dkit.io.datasets.wildtrack import LAYOUTS as GRID_LAYOUTS
 from gt3dkit.io.datasets.wildtrack import GridLayout
-from gt3dkit.types import F64, I64, Camera, Rig
+from gt3dkit.types import F64, I64, Camera, Observations, Rig, Scene
 
 SIM_LAYOUTS = ("wildtrack", "multiviewx", "native")
+INJECTED_COLUMNS = ("frame", "camera", "id", "joint", "kind", "detail")
+
+
+@dataclass(frozen=True)
+class Errors:
+    """Errors real annotators and detectors make, as fractions.
+
+    outliers : keypoints replaced by a point 100-300 px away (confidence 0.2-0.7)
+    swaps : person-views in which one left/right joint pair is exchanged
+    glitch : keypoints with a zero coordinate (x = 0, or both) at confidence 0.6-0.9
+    shifted : boxes moved by 0.3-1.0 of their size (another person's box, a slip)
+    gap : ``(a, b)`` frame *indices*: frames ``a..b-1`` carry no annotation at all
+    single_view : people whose annotations are kept in one camera only (the one that sees
+        them most)
+    """
+
+    outliers: float = 0.0
+    swaps: float = 0.0
+    glitch: float = 0.0
+    shifted: float = 0.0
+    gap: tuple[int, int] | None = None
+    single_view: float = 0.0
+
+    def __post_init__(self) -> None:
+        for k in ("outliers", "swaps", "glitch", "shifted", "single_view"):
+            v = getattr(self, k)
+            if not 0 <= v <= 1:
+                raise ValueError(f"{k} must be a fraction in [0, 1], got {v}")
+        if self.gap is not None and not 0 <= self.gap[0] < self.gap[1]:
+            raise ValueError(f"gap must be (first, end) frame indices with first < end, got {self.gap}")
+
+
+def _gap_mask(frames: I64, truth_frame: I64, gap: tuple[int, int] | None) -> np.ndarray:
+    """(M,) truth rows inside the gap."""
+    if gap is None:
+        return np.zeros(len(truth_frame), bool)
+    inside = frames[gap[0]:gap[1]]
+    return np.isin(truth_frame, inside)
+
+
+def _keep_one_view(seen: np.ndarray, truth_id: I64, frac: float, rng: np.random.Generator
+                   ) -> tuple[np.ndarray, list[int]]:
+    """``seen (M, C)`` with a fraction of people restricted to their most-seen camera."""
+    ids = np.unique(truth_id)
+    k = int(round(frac * len(ids)))
+    chosen = rng.choice(ids, size=k, replace=False) if k else np.zeros(0, dtype=np.int64)
+    out = seen.copy()
+    for pid in chosen:
+        m = truth_id == pid
+        best = int(np.argmax(seen[m].sum(axis=0)))
+        keep = np.zeros(seen.shape[1], bool)
+        keep[best] = True
+        out[m] &= keep
+    return out, [int(p) for p in chosen]
 
 
 @dataclass(frozen=True)
@@ -48,6 +112,7 @@ class SimScene:
     center_world: F64
     semi_axes: F64
     boxes: F64
+    injected: tuple[tuple[int, str, int, str, str, str], ...] = ()
 
 
 def _look_at(center: F64, target: F64) -> tuple[F64, F64]:
@@ -81,14 +146,54 @@ def make_rig(n_cams: int, area_lo: F64, area_hi: F64, names: list[str],
     return Rig(tuple(cams), up=np.array([0.0, 0.0, 1.0]), frame_name="synthetic world (z up)")
 
 
+def _walk(rng: np.random.Generator, t_s: F64, lo: F64, hi: F64) -> F64:
+    """(T, 2) a walking path: speed and turn rate wander (Ornstein-Uhlenbeck, 1-3 s), the
+    walker steers back when near the area's border. Integrated at 50 Hz, sampled at t_s."""
+    dt = 0.02
+    tt = np.arange(t_s[0], t_s[-1] + dt, dt)
+    v0 = rng.uniform(0.6, 1.6)
+    p = rng.uniform(lo + 1, hi - 1)
+    head = rng.uniform(0, 2 * np.pi)
+    v, w = v0, 0.0
+    out = np.zeros((len(tt), 2))
+    mid = (lo + hi) / 2
+    for k in range(len(tt)):
+        out[k] = p
+        v += (v0 - v) * dt / 2.0 + 0.35 * np.sqrt(dt) * rng.normal()
+        v = max(v, 0.0)
+        w += -w * dt / 1.0 + 1.2 * np.sqrt(dt) * rng.normal()
+        if np.any(p < lo + 1) or np.any(p > hi - 1):  # steer back towards the middle
+            want = np.arctan2(*(mid - p)[::-1])
+            w += 2.0 * np.angle(np.exp(1j * (want - head))) * dt
+        head += w * dt
+        p = p + v * dt * np.array([np.cos(head), np.sin(head)])
+    return np.stack([np.interp(t_s, tt, out[:, 0]), np.interp(t_s, tt, out[:, 1])], -1)
+
+
 def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: int = 10,
-             noise_px: float = 0.0, dropout: float = 0.15) -> SimScene:
-    """Generate a seeded scene. See the module docstring."""
+             noise_px: float = 0.0, dropout: float = 0.15, errors: Errors | None = None,
+             motion: str = "smooth", cameras: int | None = None, fps: float | None = None
+             ) -> SimScene:
+    """Generate a seeded scene. See the module docstring.
+
+    ``cameras`` and ``fps`` set the native layout's camera count (default 6) and frame rate
+    (default 10); the WILDTRACK and MultiviewX layouts have their own.
+    """
     if layout not in SIM_LAYOUTS:
         raise ValueError(f"unknown layout {layout!r} (known: {', '.join(SIM_LAYOUTS)})")
-    if frames < 2 or people < 1 or noise_px < 0 or not 0 <= dropout < 1:
+    if frames < 2 or people < 1 or not noise_px >= 0 or not 0 <= dropout < 1:
         raise ValueError("need frames >= 2, people >= 1, noise_px >= 0, 0 <= dropout < 1")
+    if motion not in ("smooth", "walk"):
+        raise ValueError(f"motion must be smooth or walk, got {motion!r}")
+    if layout != "native" and (cameras is not None or fps is not None):
+        raise ValueError("cameras and fps apply to the native layout (the others have theirs)")
+    if cameras is not None and not 1 <= cameras <= 64:
+        raise ValueError(f"cameras must be 1..64, got {cameras}")
+    if fps is not None and not (np.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps must be positive, got {fps}")
+    errors = errors or Errors()
     rng = np.random.default_rng(seed)
+    err_rng = np.random.default_rng([seed, 1])
     if layout == "wildtrack":
         g = GRID_LAYOUTS["wildtrack"]
         lo, hi = np.array([-1.0, -6.0]), np.array([7.0, 14.0])
@@ -99,7 +204,8 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
         names, step, fps = list(g.cameras), 1, g.fps
     else:
         lo, hi = np.array([-6.0, -4.0]), np.array([6.0, 4.0])
-        names, step, fps = [f"cam{i}" for i in range(6)], 1, 10.0
+        names, step = [f"cam{i}" for i in range(cameras or 6)], 1
+        fps = float(fps or 10.0)
     rig = make_rig(len(names), lo, hi, names, rng)
     frame_numbers = np.arange(frames, dtype=np.int64) * step + (1 if layout == "multiviewx" else 0)
     t_s = frame_numbers / fps
@@ -115,9 +221,13 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
         phase = rng.uniform(0, 2 * np.pi)
         first = int(rng.integers(0, frames // 3))
         last = int(rng.integers(2 * frames // 3, frames))
+        walk = _walk(np.random.default_rng([seed, 2, pid]), t_s, lo, hi) if motion == "walk" \
+            else None
         for k in range(first, last + 1):
             s = (t_s[k] - t_s[0]) / max(T, 1e-9)
             xy = p0 + (p1 - p0) * s + amp * np.sin(2 * np.pi * (t_s[k] - t_s[0]) / period + phase)
+            if walk is not None:
+                xy = walk[k]
             rows_f.append(frame_numbers[k])
             rows_id.append(pid)
             centers.append([xy[0], xy[1], c])
@@ -136,9 +246,32 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
     box = np.trunc(box) if layout == "multiviewx" else np.rint(box)
     seen = inside & (rng.uniform(size=inside.shape) >= dropout)
     seen &= (box[..., 2] > box[..., 0]) & (box[..., 3] > box[..., 1])
+    truth_frame, truth_id = np.array(rows_f), np.array(rows_id)
+    injected: list[tuple[int, str, int, str, str, str]] = []
+    seen &= ~_gap_mask(frame_numbers, truth_frame, errors.gap)[:, None]
+    if errors.single_view:
+        seen, chosen = _keep_one_view(seen, truth_id, errors.single_view, err_rng)
+        injected += [(-1, "", p, "", "single_view", "annotated in one camera only")
+                     for p in chosen]
+    if errors.shifted:
+        hit = seen & (err_rng.uniform(size=seen.shape) < errors.shifted)
+        size = np.stack([box[..., 2] - box[..., 0], box[..., 3] - box[..., 1]], -1)
+        frac = err_rng.uniform(0.3, 1.0, size=seen.shape) * err_rng.choice([-1, 1], size=seen.shape)
+        horiz = err_rng.uniform(size=seen.shape) < 0.7
+        d = np.where(horiz[..., None], [1.0, 0.0], [0.0, 1.0]) * (frac[..., None] * size)
+        moved = box + np.concatenate([d, d], -1)
+        W, H = cams.wh[:, 0], cams.wh[:, 1]
+        ok = (moved[..., 0] >= 0) & (moved[..., 2] <= W - 1) & (moved[..., 1] >= 0) \
+            & (moved[..., 3] <= H - 1)
+        hit &= ok
+        box = np.where(hit[..., None], moved, box)
+        for m, c in zip(*np.nonzero(hit), strict=True):
+            injected.append((int(truth_frame[m]), rig.cameras[c].name, int(truth_id[m]), "",
+                             "shifted_box", f"moved {float(np.abs(d[m, c]).max()):.0f} px"))
     box = np.where(seen[..., None], box, np.nan)
-    return SimScene(rig=rig, frames=frame_numbers, fps=fps, truth_frame=np.array(rows_f),
-                    truth_id=np.array(rows_id), center_world=center, semi_axes=semi, boxes=box)
+    return SimScene(rig=rig, frames=frame_numbers, fps=fps, truth_frame=truth_frame,
+                    truth_id=truth_id, center_world=center, semi_axes=semi, boxes=box,
+                    injected=tuple(injected))
 
 
 def write_scene(sim: SimScene, out: Path, layout: str) -> None:
@@ -148,12 +281,22 @@ def write_scene(sim: SimScene, out: Path, layout: str) -> None:
 
     def write(tmp: Path) -> None:
         _write_truth(sim, tmp / "truth.csv")
+        _write_injected(sim.injected, tmp / "injected.csv")
         if layout == "native":
             _write_native(sim, tmp)
         else:
             _write_grid(sim, tmp, GRID_LAYOUTS[layout])
 
     write_dir_atomically(Path(out), write)
+
+
+def _write_injected(rows: tuple[tuple[int, str, int, str, str, str], ...], path: Path) -> None:
+    """``injected.csv``: every error the simulator put in (``frame`` -1 and ``camera`` empty
+    for a whole track)."""
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(INJECTED_COLUMNS)
+        w.writerows(rows)
 
 
 def _write_truth(sim: SimScene, path: Path) -> None:
@@ -232,6 +375,8 @@ class SkeletonScene:
     truth_id: I64
     kpt_world: F64
     uv: F64
+    conf: F64 | None = None  # (M, C, J) detector confidence, None = not written
+    injected: tuple[tuple[int, str, int, str, str, str], ...] = ()
 
 
 def make_dome(n_cams: int, rng: np.random.Generator, up: F64, names: list[str]) -> Rig:
@@ -309,18 +454,24 @@ def skeleton_motion(skel_name: str, t_s: F64, rng: np.random.Generator) -> F64:
 
 def simulate_skeletons(layout: str = "native", seed: int = 0, frames: int = 30, people: int = 3,
                        noise_px: float = 0.0, missing: float = 0.05, cameras: int = 10,
-                       skeleton: str = "coco19", fps: float = 30.0) -> SkeletonScene:
+                       skeleton: str = "coco19", fps: float = 30.0, errors: Errors | None = None,
+                       confidences: bool = False) -> SkeletonScene:
     """People as moving skeletons seen by a dome of HD cameras, in a y-down world.
 
     2D points are exact projections (with distortion) plus ``noise_px`` Gaussian noise;
     points behind a camera or outside its image are dropped, and a fraction
-    ``missing`` of the rest at random.
+    ``missing`` of the rest at random. ``errors`` (native layout) adds detector errors;
+    ``confidences`` writes a detector-like confidence per point (lower for worse points).
     """
     from gt3dkit.geom.camera import project_points
 
     if layout not in ("native", "panoptic"):
         raise ValueError(f"skeleton scenes are written as native or panoptic, not {layout!r}")
-    if frames < 2 or people < 1 or cameras < 2 or noise_px < 0 or not 0 <= missing < 1:
+    errors = errors or Errors()
+    if layout == "panoptic" and errors != Errors():
+        raise ValueError("detector errors are written in the native layout (the Panoptic "
+                         "layout's loader makes its own 2D points)")
+    if frames < 2 or people < 1 or cameras < 2 or not noise_px >= 0 or not 0 <= missing < 1:
         raise ValueError("need frames >= 2, people >= 1, cameras >= 2, noise_px >= 0, "
                          "0 <= missing < 1")
     rng = np.random.default_rng(seed)
@@ -344,10 +495,72 @@ def simulate_skeletons(layout: str = "native", seed: int = 0, frames: int = 30, 
         uv = uv + rng.normal(scale=noise_px, size=uv.shape)
     ok = (depth > 0) & np.all((uv >= 0) & (uv <= rig.wh - 1), axis=-1)
     ok &= rng.uniform(size=ok.shape) >= missing
-    uv = np.where(ok[..., None], uv, np.nan)
+    uv = np.swapaxes(np.where(ok[..., None], uv, np.nan), 1, 2)  # (M, C, J, 2)
+    truth_frame, truth_id = np.concatenate(fr), np.concatenate(ids)
+    uv, conf, injected = _detector_errors(uv, rig, skeleton, truth_frame, truth_id, frame_numbers,
+                                          errors, noise_px, np.random.default_rng([seed, 1]))
     return SkeletonScene(rig=rig, frames=frame_numbers, fps=fps, skeleton=skeleton,
-                         truth_frame=np.concatenate(fr), truth_id=np.concatenate(ids),
-                         kpt_world=X, uv=np.swapaxes(uv, 1, 2))
+                         truth_frame=truth_frame, truth_id=truth_id, kpt_world=X, uv=uv,
+                         conf=conf if confidences else None, injected=tuple(injected))
+
+
+def _detector_errors(uv: F64, rig: Rig, skeleton: str, truth_frame: I64, truth_id: I64,
+                     frames: I64, errors: Errors, noise_px: float, rng: np.random.Generator
+                     ) -> tuple[F64, F64, list[tuple[int, str, int, str, str, str]]]:
+    """Inject ``errors`` into keypoints ``uv (M, C, J, 2)``; confidences ``(M, C, J)``."""
+    from gt3dkit.skeletons import SKELETONS
+
+    M, C, J = uv.shape[:3]
+    uv = uv.copy()
+    seen = np.isfinite(uv[..., 0])
+    # a clean point's confidence: high, lower for the noisier ones
+    conf = np.clip(0.92 - 0.08 * rng.standard_normal((M, C, J)) ** 2
+                   + 0.04 * rng.standard_normal((M, C, J)), 0.3, 1.0)
+    injected: list[tuple[int, str, int, str, str, str]] = []
+    names = rig.names
+
+    def note(m: int, c: int, j: int | str, kind: str, detail: str) -> None:
+        injected.append((int(truth_frame[m]), names[c], int(truth_id[m]), str(j), kind, detail))
+
+    gap = _gap_mask(frames, truth_frame, errors.gap)
+    seen &= ~gap[:, None, None]
+    if errors.single_view:
+        sv, chosen = _keep_one_view(seen.any(axis=2), truth_id, errors.single_view, rng)
+        seen &= sv[..., None]
+        injected += [(-1, "", p, "", "single_view", "detected in one camera only") for p in chosen]
+    if errors.swaps:
+        joints = SKELETONS[skeleton].joints
+        pairs = [(joints.index(a), joints.index("r_" + a[2:])) for a in joints
+                 if a.startswith("l_") and "r_" + a[2:] in joints]
+        hit = np.argwhere(seen.any(axis=2) & (rng.uniform(size=(M, C)) < errors.swaps))
+        for m, c in hit:
+            a, b = pairs[int(rng.integers(len(pairs)))]
+            if seen[m, c, a] and seen[m, c, b]:
+                d = float(np.linalg.norm(uv[m, c, a] - uv[m, c, b]))
+                uv[m, c, [a, b]] = uv[m, c, [b, a]]
+                note(m, c, f"{a}+{b}", "swapped_joints", f"{joints[a]}<->{joints[b]} {d:.0f} px")
+    if errors.outliers:
+        hit = seen & (rng.uniform(size=seen.shape) < errors.outliers)
+        for m, c, j in np.argwhere(hit):
+            W, H = rig.wh[c]
+            for _ in range(20):
+                ang, r = rng.uniform(0, 2 * np.pi), rng.uniform(100, 300)
+                p = uv[m, c, j] + r * np.array([np.cos(ang), np.sin(ang)])
+                if 0 <= p[0] <= W - 1 and 0 <= p[1] <= H - 1:
+                    uv[m, c, j] = p
+                    conf[m, c, j] = rng.uniform(0.2, 0.7)
+                    note(m, c, j, "keypoint_outlier", f"{r:.0f} px away")
+                    break
+    if errors.glitch:
+        hit = seen & (rng.uniform(size=seen.shape) < errors.glitch)
+        for m, c, j in np.argwhere(hit):
+            both = rng.uniform() < 0.3
+            uv[m, c, j] = [0.0, 0.0] if both else [0.0, uv[m, c, j, 1]]
+            conf[m, c, j] = rng.uniform(0.6, 0.9)
+            note(m, c, j, "glitch", "u = v = 0" if both else "u = 0")
+    uv = np.where(seen[..., None], uv, np.nan)
+    del noise_px
+    return uv, np.where(seen, conf, np.nan), injected
 
 
 def write_skeleton_scene(sim: SkeletonScene, out: Path, layout: str) -> None:
@@ -362,12 +575,15 @@ def write_skeleton_scene(sim: SkeletonScene, out: Path, layout: str) -> None:
             (tmp / "cameras.json").write_text(json.dumps(doc, indent=1))
             with open(tmp / "keypoints.csv", "w", newline="") as f:
                 w = csv.writer(f)
-                w.writerow(["frame", "camera", "id", "joint", "u", "v"])
+                w.writerow(["frame", "camera", "id", "joint", "u", "v"]
+                           + (["conf"] if sim.conf is not None else []))
                 m, c, j = np.nonzero(np.isfinite(sim.uv[..., 0]))
                 for a, b, k in zip(m, c, j, strict=True):
                     w.writerow([int(sim.truth_frame[a]), sim.rig.cameras[b].name,
                                 int(sim.truth_id[a]), int(k), f"{sim.uv[a, b, k, 0]:.4f}",
-                                f"{sim.uv[a, b, k, 1]:.4f}"])
+                                f"{sim.uv[a, b, k, 1]:.4f}"]
+                               + ([f"{sim.conf[a, b, k]:.3f}"] if sim.conf is not None else []))
+            _write_injected(sim.injected, tmp / "injected.csv")
             with open(tmp / "truth_keypoints.csv", "w", newline="") as f:
                 w = csv.writer(f)
                 w.writerow(["frame", "id", "joint", "x", "y", "z"])
@@ -401,3 +617,31 @@ def write_skeleton_scene(sim: SkeletonScene, out: Path, layout: str) -> None:
             raise ValueError(f"unknown layout {layout!r}")
 
     write_dir_atomically(Path(out), write)
+
+
+def corrupt_keypoints(scene: Scene, errors: Errors, seed: int = 0
+                      ) -> tuple[Scene, tuple[tuple[int, str, int, str, str, str], ...]]:
+    """A loaded keypoint scene (e.g. real CMU Panoptic) with detector ``errors`` injected.
+
+    The same errors as the skeleton simulator makes, on any :class:`Scene`'s keypoints; the
+    returned scene carries confidences. Returns the scene and the injected errors.
+    """
+    import dataclasses
+
+    obs = scene.obs
+    if obs.n_joints == 0 or scene.skeleton is None:
+        raise ValueError("corrupt_keypoints needs a keypoint scene with a named skeleton")
+    keys, m_of = np.unique(np.stack([obs.frame, obs.track_id], 1), axis=0, return_inverse=True)
+    m_of = m_of.reshape(-1)
+    C, J = len(scene.rig.cameras), obs.n_joints
+    uv = np.full((len(keys), C, J, 2), np.nan)
+    uv[m_of, obs.cam] = obs.kpt_uv_px
+    uv2, conf, injected = _detector_errors(uv, scene.rig, scene.skeleton, keys[:, 0], keys[:, 1],
+                                           np.asarray(scene.frames), errors, 0.0,
+                                           np.random.default_rng([seed, 1]))
+    kpt = uv2[m_of, obs.cam]
+    c = conf[m_of, obs.cam]
+    keep = np.isfinite(kpt[..., 0]).any(axis=1)
+    new = Observations(obs.frame, obs.cam, obs.track_id, obs.box_xyxy_px, kpt, obs.origin,
+                       np.where(np.isfinite(kpt[..., 0]), c, np.nan)).select(keep)
+    return dataclasses.replace(scene, obs=new), tuple(injected)

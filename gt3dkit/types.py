@@ -294,6 +294,17 @@ class Scene:
     files: dict[str, str] = field(default_factory=dict)  # relative path -> sha256
     root: str = ""
     warnings: tuple[str, ...] = ()  # odd but valid input: printed as ``warning:`` lines
+    fps_assumed: str = ""  # why ``fps`` is a default, not the input's ("" = the input gives it)
+
+    @property
+    def all_warnings(self) -> tuple[str, ...]:
+        """The loader's warnings plus what the scene assumes (fps, re-orthonormalised R)."""
+        out = list(self.warnings)
+        if self.fps_assumed:
+            out.append(f"{self.fps_assumed}: assuming {self.fps:g} frames per second (set it, or "
+                       "pass --fps: velocities and the motion model depend on it)")
+        out += [f"camera {k}: {v}" for k, v in self.calibration_notes.items()]
+        return tuple(out)
 
     @property
     def calibration_notes(self) -> dict[str, str]:

@@ -19,6 +19,8 @@ from gt3dkit.types import Scene, TrackSet
 
 TRACK_COLUMNS = ("frame", "id", "x", "y", "z", "a", "b", "c", "sx", "sy", "sz")
 KPT_COLUMNS = ("frame", "id", "joint", "x", "y", "z", "sd")
+DOWNWEIGHTED_COLUMNS = ("frame", "camera", "id", "joint", "edge", "weight", "residual_px", "score")
+EDGE_NAMES = ("xmin", "ymin", "xmax", "ymax")
 
 
 def _jsonable(x: Any) -> Any:
@@ -49,13 +51,15 @@ def meta_of(scene: Scene, tracks: TrackSet) -> dict[str, Any]:
                           "note": "directions in the world frame; c is along up"},
             "sd": "sx, sy, sz: marginal standard deviation of the centre along world x, y, z",
             **({"keypoints": "keypoints.csv: frame,id,joint,x,y,z,sd in the world frame (m); sd = "
-                             "RMS over the axes of the joint's standard deviation (m)",
+                             "the joint's largest standard deviation over all directions (m)",
                 "skeleton": scene.skeleton,
                 "joints": list(SKELETONS[scene.skeleton].joints) if scene.skeleton else None}
                if tracks.kpt_world.shape[1] else {}),
         },
         "estimator": _jsonable(tracks.info),
         "input": {"root": scene.root, "layout": scene.layout, "fps": scene.fps,
+                  "fps_assumed": scene.fps_assumed or None, "warnings": list(scene.all_warnings),
+                  "calibration_notes": scene.calibration_notes,
                   "cameras": scene.rig.names, "files_sha256": scene.files},
         "counts": {
             "objects": int(len(np.unique(tracks.track_id))),
@@ -90,6 +94,25 @@ def write_keypoints_csv(path: Path, tracks: TrackSet) -> None:
                         f"{x[0]:.6f}", f"{x[1]:.6f}", f"{x[2]:.6f}", f"{tracks.kpt_sd[r, j]:.6f}"])
 
 
+def write_downweighted_csv(path: Path, scene: Scene, tracks: TrackSet) -> None:
+    """Every measurement the robust update down-weighted (weight < 1) or rejected (0): the
+    keypoint (joint) or box edge (edge), its weight, its residual (px) and its score (its
+    residual in standard deviations, judged against the other views)."""
+    d = tracks.downweighted
+    names = scene.rig.names
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(DOWNWEIGHTED_COLUMNS)
+        if d is None:
+            return
+        order = np.lexsort((d.edge, d.joint, d.cam, d.track_id, d.frame))
+        for i in order:
+            w.writerow([int(d.frame[i]), names[int(d.cam[i])], int(d.track_id[i]),
+                        "" if d.joint[i] < 0 else int(d.joint[i]),
+                        "" if d.edge[i] < 0 else EDGE_NAMES[int(d.edge[i])],
+                        f"{d.weight[i]:.4f}", f"{d.residual_px[i]:.3f}", f"{d.score[i]:.3f}"])
+
+
 def write_result_files(d: Path, scene: Scene, tracks: TrackSet,
                        extra_meta: dict[str, Any] | None = None) -> None:
     """``tracks.csv``, ``keypoints.csv`` (with joints) and ``meta.json`` into folder ``d``."""
@@ -99,6 +122,8 @@ def write_result_files(d: Path, scene: Scene, tracks: TrackSet,
     write_tracks_csv(d / "tracks.csv", tracks)
     if tracks.kpt_world.shape[1]:
         write_keypoints_csv(d / "keypoints.csv", tracks)
+    if tracks.downweighted is not None:
+        write_downweighted_csv(d / "downweighted.csv", scene, tracks)
     (d / "meta.json").write_text(json.dumps(_jsonable(meta), indent=2, allow_nan=False,
                                             default=_jsonable))
 

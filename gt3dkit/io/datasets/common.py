@@ -51,7 +51,9 @@ class RowBuilder:
     rows: dict[tuple[int, int, int], int] = field(default_factory=dict)
     boxes: list[list[float]] = field(default_factory=list)
     kpts: list[np.ndarray] = field(default_factory=list)
+    confs: list[np.ndarray] = field(default_factory=list)
     origin: list[str] = field(default_factory=list)
+    has_conf: bool = False
 
     def _row(self, frame: int, cam: int, tid: int, where: str) -> int:
         key = (frame, cam, tid)
@@ -61,6 +63,7 @@ class RowBuilder:
             self.rows[key] = r
             self.boxes.append([math.nan] * 4)
             self.kpts.append(np.full((self.n_joints, 2), np.nan))
+            self.confs.append(np.full(self.n_joints, np.nan))
             self.origin.append(where)
         return r
 
@@ -72,13 +75,19 @@ class RowBuilder:
         self.boxes[r] = [float(v) for v in box]
 
     def add_joint(self, frame: int, cam: int, tid: int, joint: int, uv: tuple[float, float],
-                  where: str) -> None:
+                  where: str, conf: float | None = None) -> None:
+        """One keypoint; ``conf`` in (0, 1] (a detector's score) or None (not given)."""
         if not (math.isfinite(uv[0]) and math.isfinite(uv[1])):
             raise InputError(where, f"keypoint has a non-finite pixel {uv}")
         if not 0 <= joint < self.n_joints:
             raise InputError(where, f"joint index {joint} outside the skeleton (0..{self.n_joints - 1})")
+        if conf is not None:
+            if not (math.isfinite(conf) and 0 < conf <= 1):
+                raise InputError(where, f"confidence must be in (0, 1], got {conf}")
+            self.has_conf = True
         r = self._row(frame, cam, tid, where)
         self.kpts[r][joint] = uv
+        self.confs[r][joint] = 1.0 if conf is None else conf
 
     def build(self) -> Observations:
         keys = list(self.rows)
@@ -91,6 +100,8 @@ class RowBuilder:
             box_xyxy_px=np.array(self.boxes, dtype=np.float64).reshape(-1, 4)[idx],
             kpt_uv_px=np.array(self.kpts, dtype=np.float64).reshape(n, self.n_joints, 2)[idx],
             origin=tuple(self.origin[i] for i in idx),
+            kpt_conf=(np.array(self.confs, dtype=np.float64).reshape(n, self.n_joints)[idx]
+                      if self.has_conf else None),
         )
 
 

@@ -6,18 +6,22 @@
      "cameras": [{"name", "width", "height", "K": 3x3, "dist": [k1, k2, p1, p2, k3],
                   "R": 3x3, "t": [3]}]}
 
-``R``, ``t`` are ``cam_from_world``, ``t`` in metres. ``fps`` is optional (default 10).
+``R``, ``t`` are ``cam_from_world``, ``t`` in metres. ``fps`` is optional: without it 10 is
+assumed and the run says so (a warning and the summary line).
 
 ``boxes.csv``: header ``frame,camera,id,xmin,ymin,xmax,ymax``; pixels of the distorted image.
 
-``keypoints.csv``: header ``frame,camera,id,joint,u,v``; pixels of the distorted image; a
-missing row means not seen. Its joint order is ``--skeleton`` (or ``"skeleton"`` in
+``keypoints.csv``: header ``frame,camera,id,joint,u,v`` and optionally ``conf`` (a detector's
+confidence in [0, 1], in every row or none); pixels of the distorted image; a missing row
+means not seen, and so does a confidence of 0 (OpenPose writes undetected joints as
+``0,0,0``). A confidence scales the point's variance (``sigma^2 / conf``). Its joint order is ``--skeleton`` (or ``"skeleton"`` in
 ``cameras.json``), else the smallest known skeleton holding the largest joint index.
 Boxes and keypoints of the same (frame, camera, id) update the same object.
 """
 
 from __future__ import annotations
 
+import csv
 import json
 from pathlib import Path
 from typing import Any
@@ -35,7 +39,8 @@ KPT_COLUMNS = ("frame", "camera", "id", "joint", "u", "v")
 DEFAULT_FPS = 10.0
 
 
-def load_cameras(path: Path) -> tuple[Rig, float, str | None]:
+def load_cameras(path: Path) -> tuple[Rig, float | None, str | None]:
+    """Rig, fps (None when the file gives none) and skeleton name of a ``cameras.json``."""
     try:
         doc = json.loads(Path(path).read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
@@ -57,13 +62,22 @@ def load_cameras(path: Path) -> tuple[Rig, float, str | None]:
                   frame_name=f"input world frame of {Path(path).name}")
     except (ValueError, TypeError) as e:
         raise InputError(str(path), str(e)) from None
-    fps = float(doc.get("fps", DEFAULT_FPS))
-    if not fps > 0:
-        raise InputError(str(path), f"fps must be positive, got {fps}")
+    if doc.get("fps") is None:
+        return rig, None, _skeleton_of(doc, path)
+    try:
+        fps = float(doc["fps"])
+    except (TypeError, ValueError):
+        raise InputError(str(path), f"fps must be a number, got {doc['fps']!r}") from None
+    if not (np.isfinite(fps) and fps > 0):
+        raise InputError(str(path), f"fps must be positive and finite, got {fps}")
+    return rig, fps, _skeleton_of(doc, path)
+
+
+def _skeleton_of(doc: dict[str, Any], path: Path) -> str | None:
     skel = doc.get("skeleton")
     if skel is not None and skel not in SKELETONS:
         raise InputError(str(path), f"unknown skeleton {skel!r} (known: {', '.join(SKELETONS)})")
-    return rig, fps, skel
+    return skel if skel is None else str(skel)
 
 
 def cameras_doc(rig: Rig, fps: float, **extra: Any) -> dict[str, Any]:
@@ -92,16 +106,21 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
     root = Path(root)
     files: dict[str, str] = {}
     cam_path = root / "cameras.json"
-    rig, fps, skel_doc = load_cameras(cam_path)
+    rig, fps_doc, skel_doc = load_cameras(cam_path)
     files["cameras.json"] = sha256(cam_path)
+    warnings: list[str] = []
+    fps = fps_doc if fps_doc is not None else DEFAULT_FPS
     kpt_path = root / "keypoints.csv"
     kpt_rows: list[tuple[int, dict[str, str]]] = []
     skel_name = skeleton or skel_doc
     if skel_name is not None and skel_name not in SKELETONS:
         raise InputError("--skeleton", f"unknown skeleton {skel_name!r} (known: {', '.join(SKELETONS)})")
+    kpt_cols = KPT_COLUMNS
     if kpt_path.exists():
         files["keypoints.csv"] = sha256(kpt_path)
-        kpt_rows = read_csv_rows(kpt_path, KPT_COLUMNS)
+        if _header(kpt_path)[len(KPT_COLUMNS):len(KPT_COLUMNS) + 1] == ["conf"]:
+            kpt_cols = (*KPT_COLUMNS, "conf")
+        kpt_rows = read_csv_rows(kpt_path, kpt_cols)
         if skel_name is None:
             try:
                 top = max((int(r["joint"]) for _, r in kpt_rows), default=-1)
@@ -122,15 +141,25 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
                 raise InputError(where, f"malformed value ({e})") from None
             cam = camera_index(rig, r["camera"], where)
             rb.add_box(frame, cam, tid, box, where)
+    undetected = 0
     for line, r in kpt_rows:
         where = f"{kpt_path}: line {line}"
         try:
             frame, tid, joint = int(r["frame"]), int(r["id"]), int(r["joint"])
             uv = (float(r["u"]), float(r["v"]))
+            conf = float(r["conf"]) if "conf" in r else None
         except ValueError as e:
             raise InputError(where, f"malformed value ({e})") from None
+        if conf is not None and not 0 <= conf <= 1:  # NaN fails too
+            raise InputError(where, f"confidence must be in [0, 1], got {r['conf']}")
         cam = camera_index(rig, r["camera"], where)
-        rb.add_joint(frame, cam, tid, joint, uv, where)
+        if conf == 0:
+            undetected += 1
+            continue
+        rb.add_joint(frame, cam, tid, joint, uv, where, conf)
+    if undetected:
+        warnings.append(f"{kpt_path}: {undetected} keypoints with confidence 0 read as not "
+                        "detected")
     obs = rb.build()
     if len(obs) == 0:
         raise InputError(str(root), "no annotations (boxes.csv and keypoints.csv missing or empty)")
@@ -140,7 +169,17 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
         truth = _merge_kpt_truth(truth, read_kpt_truth(root / "truth_keypoints.csv", n_joints))
     frames = np.unique(obs.frame)
     return Scene(rig=rig, obs=obs, layout="native", fps=fps, frames=frames, truth=truth,
-                 skeleton=skel_name, files=files, root=str(root))
+                 skeleton=skel_name, files=files, root=str(root), warnings=tuple(warnings),
+                 fps_assumed=f"{cam_path} has no \"fps\"" if fps_doc is None else "")
+
+
+def _header(path: Path) -> list[str]:
+    """The stripped header fields of a CSV (empty if unreadable; the reader reports why)."""
+    try:
+        with open(path, newline="") as f:
+            return [h.strip() for h in next(csv.reader(f), [])]
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return []
 
 
 KPT_TRUTH_COLUMNS = ("frame", "id", "joint", "x", "y", "z")
