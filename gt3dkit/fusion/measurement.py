@@ -25,7 +25,9 @@ class Model:
     """Everything one filter run needs besides the noise settings.
 
     z, mask, var, weight0 : (R, m) measurements, which are present, their variances and
-    the per-frame fits' verdicts (1 kept, 0 rejected); robust_blocks : the ``(slice,
+    the weights the update starts from (the per-frame fits' verdicts, 1 kept, 0 rejected,
+    except where a fit is contested); verdicts : (R, m) all the per-frame verdicts (for the
+    single-pass likelihood of the noise search, which does not reweight); robust_blocks : the ``(slice,
     entries per point)`` blocks whose points the update may down-weight (not bones);
     x_frame, var_frame, cov6_frame : each row's own per-frame state (see
     :meth:`gt3dkit.fusion.prepare.Prepared.frame_state`).
@@ -39,23 +41,29 @@ class Model:
     mask: np.ndarray
     var: F64
     weight0: F64
+    verdicts: F64
     robust_blocks: tuple[tuple[slice, int], ...]
     x_frame: F64
     var_frame: F64
     cov6_frame: F64
+    centre_determined: np.ndarray  # (R,) the per-frame box fit rests on 2+ views
+    kpt_cov_frame: F64 | None = None  # (R, J, 3, 3) per-frame joints' covariance
     bones: np.ndarray | None = None  # (K, 2)
 
     @classmethod
     def of(cls, pre: Prepared) -> Model:
         rows, cams, lay = pre.rows, pre.cams, pre.layout
         R, C, J = len(rows), len(cams.K), lay.n_joints
-        zs, masks, vars_, w0, blocks = [], [], [], [], []
+        zs, masks, vars_, w0, ver, blocks = [], [], [], [], [], []
         at = 0
         if pre.use_box:
             zs.append(rows.box_z.reshape(R, C * 4))
             masks.append(rows.box_mask.reshape(R, C * 4))
             vars_.append(np.broadcast_to(np.tile(pre.sigma_box**2, C), (R, C * 4)))
-            w0.append(pre.box_keep.reshape(R, C * 4).astype(np.float64))
+            # a contested per-frame fit's verdicts are not imposed: the update decides
+            keep = pre.box_keep | (~pre.fit_reliable[:, None, None] & rows.box_mask)
+            w0.append(keep.reshape(R, C * 4).astype(np.float64))
+            ver.append(pre.box_keep.reshape(R, C * 4).astype(np.float64))
             blocks.append((slice(at, at + C * 4), 1))
             at += C * 4
         if pre.use_kpt:
@@ -64,12 +72,61 @@ class Model:
             masks.append(np.isfinite(zk))
             vars_.append(np.repeat(pre.kpt_var.reshape(R, C * J), 2, axis=1))
             w0.append(np.repeat(pre.kpt_keep.reshape(R, C * J), 2, axis=1).astype(np.float64))
+            ver.append(w0[-1])
             blocks.append((slice(at, at + C * J * 2), 2))
         mask = np.concatenate(masks, 1)
         x_f, v_f, c6 = pre.frame_state()
+        det = pre.fit_reliable
         return cls(rows, cams, lay, pre.use_box, np.where(mask, np.concatenate(zs, 1), 0.0),
-                   mask, np.concatenate(vars_, 1), np.concatenate(w0, 1),
-                   tuple(blocks) if pre.robust.enabled else (), x_f, v_f, c6)
+                   mask, np.concatenate(vars_, 1), np.concatenate(w0, 1), np.concatenate(ver, 1),
+                   tuple(blocks) if pre.robust.enabled else (), x_f, v_f, c6, det,
+                   pre.kpt0_cov if pre.use_kpt else None)
+
+    def prior_conflict(self, r: np.ndarray, x: F64, P: F64, tail_p: float = 1e-3) -> F64:
+        r"""Fading factors ``(B,)`` >= 1 for predictions the frame's own views contradict.
+
+        The frame's per-frame fits (no prior) are compared with the prediction: the centre
+        where two or more box views determine it, and every joint two views triangulate,
+
+        .. math:: d^2 = \sum (x_{fit} - x^-)^\top (P^- + P_{fit})^{-1} (x_{fit} - x^-).
+
+        Beyond the ``1 - tail_p`` quantile of its chi-square the motion model has failed
+        (a turn at 4 fps, a process noise set far too small): the prediction's covariance
+        is scaled by ``d^2 / dof`` (a fading-memory filter) so that the views are not
+        rejected as outliers against a confident but wrong prediction.
+        """
+        from scipy.stats import chi2
+
+        lay = self.layout
+        B = len(r)
+        d2 = np.zeros(B)
+        dof = np.zeros(B)
+        if self.use_box:
+            ok = self.centre_determined[r]
+            if ok.any():
+                e = (self.x_frame[r, lay.center] - x[:, lay.center])[ok]
+                S = P[ok][:, lay.center, lay.center] + self.cov6_frame[r[ok], :3, :3]
+                d2[ok] += np.einsum("bi,bi->b", e, np.linalg.solve(S, e[..., None])[..., 0])
+                dof[ok] += 3
+        J = lay.n_joints
+        if J and self.kpt_cov_frame is not None:
+            C0 = self.kpt_cov_frame[r]  # (B, J, 3, 3)
+            ok = np.all(np.isfinite(C0), axis=(2, 3))
+            if ok.any():
+                idx = lay.joints.start + 3 * np.arange(J)[:, None] + np.arange(3)
+                Pj = P[:, idx[:, :, None], idx[:, None, :]]  # (B, J, 3, 3)
+                e = self.x_frame[r][:, lay.joints].reshape(B, J, 3) - x[:, lay.joints].reshape(B, J, 3)
+                S = np.where(ok[..., None, None], Pj + np.nan_to_num(C0), np.eye(3))
+                q = np.einsum("bji,bji->bj", e, np.linalg.solve(S, e[..., None])[..., 0])
+                d2 += np.where(ok, q, 0.0).sum(axis=1)
+                dof += 3 * ok.sum(axis=1)
+        alpha = np.ones(B)
+        has = dof > 0
+        if has.any():
+            lim = chi2.isf(tail_p, np.maximum(dof[has], 1))
+            a = np.where(d2[has] > lim, d2[has] / dof[has], 1.0)
+            alpha[has] = np.maximum(a, 1.0)
+        return alpha
 
     def linearisation_point(self, r: np.ndarray, x: F64, P: F64) -> tuple[F64 | None, F64 | None]:
         """Where the first update pass linearises for rows ``r`` with priors ``x, P``.
@@ -86,7 +143,8 @@ class Model:
         xl, Pl = x.copy(), P.copy()
         changed = False
         c6 = self.cov6_frame[r]
-        ok6 = np.all(np.isfinite(c6), axis=(1, 2)) & np.all(np.isfinite(self.x_frame[r, :9]), axis=1)
+        ok6 = (np.all(np.isfinite(c6), axis=(1, 2)) & np.all(np.isfinite(self.x_frame[r, :9]), axis=1)
+               & self.centre_determined[r])
         tr_prior = np.einsum("bii->b", P[:, lay.center, lay.center])
         tr_frame = np.einsum("bii->b", c6[:, :3, :3])
         weak = ok6 & (tr_prior > tr_frame)

@@ -59,6 +59,9 @@ class Prepared:
     fit : per-frame box fits on the kept edges (None without boxes), weighted by
         ``sigma_box``
     box_keep : (R, C, 4) usable edges the per-frame fits kept
+    fit_reliable : (R,) the per-frame box fit is a summary to trust on its own: two or more
+        views and nothing rejected, or three or more views it kept whole (where the views
+        disagree and few are left, which of them is wrong is for the temporal model to say)
     kpt0 : (R, J, 3) per-frame joints (NaN under 2 agreeing views); kpt0_cov (R, J, 3, 3) m^2
     kpt_keep : (R, C, J) keypoints the per-frame triangulation kept
     sigma_box : (4,) box-edge noise per edge kind (px); sigma_kpt : (J,) keypoint noise per
@@ -73,6 +76,7 @@ class Prepared:
     use_kpt: bool
     fit: BoxFit | None
     box_keep: np.ndarray
+    fit_reliable: np.ndarray
     kpt0: F64 | None
     kpt0_cov: F64 | None
     kpt_keep: np.ndarray
@@ -100,7 +104,11 @@ class Prepared:
         wfb = self.cams.world_from_body
         if self.fit is not None:
             x[:, lay.center], x[:, lay.log_axes] = self.fit.center_world, self.fit.log_axes
-            cov6 = self.fit.cov
+            # a frame whose own views disagree (more than their noise) is trusted less
+            dof = self.fit.n_edges - 6
+            red = np.where(dof > 0, self.fit.rss_px2 / (self.sigma_box[0] ** 2 * np.maximum(dof, 1)),
+                           1.0)
+            cov6 = self.fit.cov * np.maximum(red, 1.0)[:, None, None]
         elif self.kpt0 is not None:
             c, s, _ = ellipsoid_around(self.kpt0, np.zeros(self.kpt0.shape[:2]), wfb)
             ok = np.all(np.isfinite(c), axis=1)
@@ -162,12 +170,17 @@ def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = Non
         skel = SKELETONS[scene.skeleton] if scene.skeleton else skeleton_for(J)
     fit = None
     box_keep = np.zeros((len(rows), len(cams.K), 4), bool)
+    reliable = np.zeros(len(rows), bool)
     sigma_box = np.ones(4)
     prior = ShapePrior(np.log(PERSON_SEMI_AXES_M), np.full(3, 0.25), "person size (no boxes)")
     if use_box:
         fit, box_keep, sigma_box, prior, binfo = _robust_box_fits(scene, rows, cams, robust,
                                                                   sigma_px)
         info["boxes"] = binfo
+        views = rows.box_mask.any(axis=2)
+        whole = (views & np.all(box_keep | ~rows.box_mask, axis=2)).sum(axis=1)
+        none_rejected = ~np.any(rows.box_mask & ~box_keep, axis=(1, 2))
+        reliable = fit.ok & (((views.sum(axis=1) >= 2) & none_rejected) | (whole >= 3))
     kpt0 = kpt0_cov = None
     kpt_keep = np.zeros((len(rows), len(cams.K), J), bool)
     sigma_kpt = np.ones(J)
@@ -183,7 +196,7 @@ def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = Non
                                "person size around the joints")
             _check_determined(scene, rows, kpt0)
     return Prepared(rows, cams, StateLayout(J if use_kpt else 0), use_box, use_kpt, fit, box_keep,
-                    kpt0, kpt0_cov, kpt_keep, sigma_box, sigma_kpt, kpt_var, prior, skel,
+                    reliable, kpt0, kpt0_cov, kpt_keep, sigma_box, sigma_kpt, kpt_var, prior, skel,
                     robust, info)
 
 
@@ -349,6 +362,11 @@ def _robust_keypoints(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig
             sig_j, sig = joint_sigmas(e2, keep)
     w = np.where(keep, conf / sig_j[joint_of][:, None] ** 2, 0.0)
     cov = triangulation_cov(np.nan_to_num(X), cams.R, cams.t, f, w)
+    # a point whose views disagree more than their noise says is trusted less (reduced chi2)
+    n_in = keep.sum(axis=1)
+    chi = np.sum(np.where(keep, e2, 0.0) * w, axis=1)
+    red = np.where(n_in >= 2, chi / np.maximum(2 * n_in - 3, 1), 1.0)
+    cov = cov * np.maximum(red, 1.0)[:, None, None]
     cov[~np.all(np.isfinite(X), axis=1)] = np.inf
     kept = np.swapaxes(keep.reshape(R, J, C), 1, 2)
     info = {"sigma_px": sig, "sigma_px_per_joint": sig_j.round(4).tolist(),
@@ -415,6 +433,27 @@ def ellipsoid_around(kpt: F64, kpt_sd: F64, world_from_body: F64, pad_m: float =
     centre = np.einsum("ij,rj->ri", world_from_body, (lo + hi) / 2)
     semi = (hi - lo) / 2 + pad_m
     return centre, semi, np.repeat(sd[:, None], 3, axis=1)
+
+
+def axis_sd(cov: F64) -> F64:
+    r"""``(..., 3, 3)`` covariances -> ``(..., 3)`` per-axis sds that are safe to use one axis
+    at a time: the marginal sds widened by the largest eigenvalue ``k`` of the correlation
+    matrix, ``sd_i = sqrt(k Sigma_ii)``.
+
+    Then ``sum_i (e_i / sd_i)^2 <= e^T Sigma^{-1} e`` for every error ``e``, so the per-axis
+    check a user makes is at least as often passed as a chi-square with 3 dof says. The
+    marginal sds alone would fail it where the axes are correlated (one camera: the whole
+    error lies along its ray and is counted in every axis). ``k`` is 1 for uncorrelated axes.
+    """
+    var = np.einsum("...ii->...i", cov)
+    out = np.full(var.shape, np.nan)
+    ok = np.all(np.isfinite(cov), axis=(-1, -2)) & np.all(var > 0, axis=-1)
+    if ok.any():
+        d = np.sqrt(var[ok])
+        corr = cov[ok] / (d[..., :, None] * d[..., None, :])
+        k = np.linalg.eigvalsh(corr)[..., -1]
+        out[ok] = d * np.sqrt(np.maximum(k, 1.0))[..., None]
+    return out
 
 
 def largest_sd(cov: F64) -> F64:

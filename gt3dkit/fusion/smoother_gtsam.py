@@ -37,7 +37,7 @@ import numpy as np
 
 from gt3dkit.fusion.boxfit import box_model
 from gt3dkit.fusion.motion import StateLayout
-from gt3dkit.fusion.prepare import Prepared, ellipsoid_around, never_seen, prepare
+from gt3dkit.fusion.prepare import Prepared, axis_sd, ellipsoid_around, never_seen, prepare
 from gt3dkit.fusion.rows import Rows
 from gt3dkit.geom.camera import Cams, apply_K
 from gt3dkit.geom.triangulate import normalized_points
@@ -213,7 +213,7 @@ class GTSAMSmoother:
             for k in range(n_rows):
                 out["log_axes"][k] = result.atVector(sym("s", k))
                 out["centre"][k] = result.atPoint3(sym("c", k * 32))
-                out["c_sd"][k] = np.sqrt(np.diag(marg.marginalCovariance(sym("c", k * 32))))
+                out["c_sd"][k] = axis_sd(marg.marginalCovariance(sym("c", k * 32)))
         for j in np.flatnonzero(seen_j):
             for k in range(n_rows):
                 key = sym("p", k * 32 + int(j))

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gt3dkit.fusion.prepare import Prepared, ellipsoid_around, largest_sd, prepare
+from gt3dkit.fusion.prepare import Prepared, axis_sd, ellipsoid_around, largest_sd, prepare
 from gt3dkit.types import Scene, TrackSet
 
 
@@ -53,7 +53,7 @@ class Triangulation:
             ok = fit.ok & (n_box_views >= self.config.min_views)
             keep |= ok
             centre[ok], semi[ok] = fit.center_world[ok], np.exp(fit.log_axes[ok])
-            sd[ok] = np.sqrt(np.einsum("rii->ri", fit.cov[ok][:, :3, :3]))
+            sd[ok] = axis_sd(fit.cov[ok][:, :3, :3])
             info["sigma_px"] = pre.info["boxes"]["sigma_px"]
         if pre.kpt0 is not None and pre.kpt0_cov is not None:
             kpt = pre.kpt0

@@ -227,7 +227,8 @@ def ukf_update_information(
     (:mod:`gt3dkit.fusion.robust`). A weight of 0 removes the entry exactly.
 
     Returns ``x_post, P_post, info`` as :func:`ukf_update`; ``loglik`` and ``nis`` are of
-    the first pass with its weights (noise ``D / w`` for the kept entries), and ``info``
+    the last pass with its weights (noise ``D / w`` for the kept entries: what the estimate
+    rests on), and ``info``
     also holds ``weights (B, m)`` (those the last pass used), ``score2 (B, m)`` (each
     entry's point's squared leave-one-out score at the final posterior) and
     ``residual (B, m)`` (``z - h(x_post)``, linearised).
@@ -262,7 +263,7 @@ def ukf_update_information(
         P_post = np.swapaxes(Li, -1, -2) @ Li
         g = (AtD @ nu[..., None])[..., 0]
         x_post = x + (P_post @ g[..., None])[..., 0]
-        if it == 0:
+        if it == iterations - 1:
             LP, _ = safe_cholesky(P)
             used = mk & (wt > 0)
             logdet = (np.sum(np.log(np.where(used, D / np.where(used, wt, 1.0), 1.0)), axis=1)

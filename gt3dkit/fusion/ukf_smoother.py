@@ -43,7 +43,14 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from gt3dkit.fusion.measurement import Model
-from gt3dkit.fusion.prepare import Prepared, ellipsoid_around, largest_sd, never_seen, prepare
+from gt3dkit.fusion.prepare import (
+    Prepared,
+    axis_sd,
+    ellipsoid_around,
+    largest_sd,
+    never_seen,
+    prepare,
+)
 from gt3dkit.fusion.robust import RobustConfig
 from gt3dkit.fusion.ukf import SigmaWeights, predict_linear, rts_step, ukf_update_information
 from gt3dkit.skeletons import Skeleton
@@ -151,7 +158,17 @@ class UKFSmoother:
         P_s = P_s * inflation
         centre = x_s[:, layout.center]
         semi = np.exp(x_s[:, layout.log_axes])
-        sd = np.sqrt(np.einsum("rii->ri", P_s[:, layout.center, layout.center]))
+        P_c, widened = widen_weak_rows(P_s[:, layout.center, layout.center], pre, scene.fps)
+        lone_ids: list[int] = []
+        if pre.use_box and pre.fit is not None:
+            lone = single_view_rows(pre)
+            if lone.any():
+                centre, semi, P_c = centre.copy(), semi.copy(), P_c.copy()
+                centre[lone] = pre.fit.center_world[lone]
+                semi[lone] = np.exp(pre.fit.log_axes[lone])
+                P_c[lone] = pre.fit.cov[lone][:, :3, :3]
+                lone_ids = sorted({int(i) for i in rows.obj_ids[rows.row_o[lone]]})
+        sd = axis_sd(P_c)
         kpt = np.zeros((R, 0, 3))
         kpt_sd = np.zeros((R, 0))
         if pre.use_kpt:
@@ -163,6 +180,13 @@ class UKFSmoother:
             "estimator": self.name,
             **{k: v for k, v in run.items() if not isinstance(v, np.ndarray)},
             "covariance_inflation": inflation,
+            "single_view_rows_widened": widened,
+            "single_view_objects": {
+                "ids": lone_ids,
+                "note": "never seen by two box views at once: their rows are the per-frame fits "
+                        "(depth from the learnt shape prior, with its spread), not the smoother's "
+                        "(whose motion model would read distance from how much a walker "
+                        "accelerates)"},
             "noise_search": search,
             "noise_source": {
                 "sigma_px": pre.info.get("boxes", {}).get("sigma_source"),
@@ -190,6 +214,55 @@ class UKFSmoother:
             frame=rows.frames[rows.row_t], track_id=rows.obj_ids[rows.row_o],
             center_world=centre, semi_axes=semi, center_sd=sd, n_views=rows.n_views,
             kpt_world=kpt, kpt_sd=kpt_sd, info=info, downweighted=down)
+
+
+def widen_weak_rows(P_c: F64, pre: Prepared, fps: float, support_s: float = 1.0
+                    ) -> tuple[F64, int]:
+    """Centre covariances ``(R, 3, 3)`` of object-frames seen by one box view, far (more than
+    ``support_s``) from any frame of the object that two views see, widened to at least their
+    own per-frame fit's spread along its weakest direction (the viewing ray).
+
+    One view fixes the direction to the object, not its distance: that comes from the shape
+    prior, and a smoother also reads it from the motion model (a nearer, smaller walker
+    accelerates less), which is no evidence of distance. So where no multi-view frame is
+    near, the reported spread along the ray is not allowed below what the box and the shape
+    prior alone say. Returns the covariances and how many rows were widened.
+    """
+    if pre.fit is None:
+        return P_c, 0
+    rows = pre.rows
+    nv = np.all(np.isfinite(rows.box_z), axis=-1).sum(axis=1)
+    multi = nv >= 2
+    t_s = rows.frames[rows.row_t] / fps
+    dist = np.full(len(rows), np.inf)
+    for o in np.unique(rows.row_o[~multi]):
+        mine = rows.row_o == o
+        good = t_s[mine & multi]
+        if good.size:
+            d = np.abs(t_s[mine][:, None] - good[None, :]).min(axis=1)
+            dist[mine] = d
+    weak = (nv == 1) & (dist > support_s) & pre.fit.ok
+    if not weak.any():
+        return P_c, 0
+    cf = pre.fit.cov[weak][:, :3, :3]
+    w, V = np.linalg.eigh(cf)
+    d = V[..., -1]  # (K, 3) weakest direction of the single-view fit
+    lam = w[..., -1]
+    P = P_c.copy()
+    cur = np.einsum("ki,kij,kj->k", d, P[weak], d)
+    P[weak] += np.maximum(lam - cur, 0.0)[:, None, None] * d[:, :, None] * d[:, None, :]
+    return P, int(weak.sum())
+
+
+def single_view_rows(pre: Prepared) -> np.ndarray:
+    """(R,) rows with a box view of objects that no two box views ever see at once."""
+    rows = pre.rows
+    if pre.fit is None:
+        return np.zeros(len(rows), bool)
+    nv = np.all(np.isfinite(rows.box_z), axis=-1).sum(axis=1)
+    multi = np.zeros(len(rows.obj_ids), bool)
+    np.logical_or.at(multi, rows.row_o, nv >= 2)
+    return ~multi[rows.row_o] & (nv >= 1) & pre.fit.ok
 
 
 @dataclass(frozen=True)
@@ -245,14 +318,16 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, use_box: bool, use_kp
     config and, per searched parameter, the likelihood curve (``value, loglik``, sorted).
     """
     curves: dict[str, list[dict[str, float]]] = {}
+    search_model = replace(model, weight0=model.verdicts)  # one pass: no reweighting
 
     def search(name: str, c: UKFConfig, bounds: tuple[float, float], n_scan: int) -> UKFConfig:
         seen: dict[float, float] = {}
 
         def score(v: float) -> float:
             if v not in seen:
-                ll = run_filter(model, init, replace(c, **{name: v}, smooth=False, iterations=1),
-                                fps)[2]["loglik"]
+                ll = run_filter(search_model, init, replace(c, **{name: v}, smooth=False,
+                                                            iterations=1), fps,
+                                fade=False)[2]["loglik"]
                 seen[v] = float(ll) if np.isfinite(ll) else -np.inf
             return seen[v]
 
@@ -364,7 +439,8 @@ def rerun_with_bones(model: Model, init: Init, cfg: UKFConfig, fps: float, x_s: 
     bmodel = replace(model, z=np.concatenate([model.z, np.nan_to_num(zb)], 1),
                      mask=np.concatenate([model.mask, mb], 1),
                      var=np.concatenate([model.var, sd[rows.row_o] ** 2], 1),
-                     weight0=np.concatenate([model.weight0, np.ones_like(zb)], 1), bones=bones)
+                     weight0=np.concatenate([model.weight0, np.ones_like(zb)], 1),
+                     verdicts=np.concatenate([model.verdicts, np.ones_like(zb)], 1), bones=bones)
     x2, P2, info = run_filter(bmodel, init, cfg, fps, collect=True)
     names = [f"{skel.joints[a]}-{skel.joints[b]}" for a, b in bones]
     per_person = {
@@ -376,10 +452,13 @@ def rerun_with_bones(model: Model, init: Init, cfg: UKFConfig, fps: float, x_s: 
     return x2, P2, info, {"skeleton": skel.name, "units": "m", "per_person": per_person}
 
 
-def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bool = False
-               ) -> tuple[F64, F64, dict[str, Any]]:
+def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bool = False,
+               fade: bool = True) -> tuple[F64, F64, dict[str, Any]]:
     """Forward UKF over the frame grid, then (optionally) RTS. Returns ``(R, n)``, ``(R, n, n)``
-    and diagnostics; with ``collect`` also the final weights, scores and residuals ``(R, m)``."""
+    and diagnostics; with ``collect`` also the final weights, scores and residuals ``(R, m)``.
+    ``fade`` lets the frame's own views weaken a contradicted prediction
+    (:meth:`Model.prior_conflict`); the noise search runs without it, so that its likelihood
+    judges the motion model as it is."""
     rows, cams, layout = model.rows, model.cams, model.layout
     n, R = layout.n, len(rows)
     if cfg.accel_sd is None or cfg.shape_sd is None:
@@ -399,6 +478,7 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
                                  up=cams.up, vertical_ratio=cfg.vertical_ratio)
 
     stats = {"repaired": 0, "nis": 0.0, "dof": 0, "loglik": 0.0}
+    faded = 0
     for t in range(len(rows.frames)):
         r = np.arange(rows.t_start[t], rows.t_start[t + 1])
         if len(r) == 0:
@@ -413,6 +493,10 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
             ro, po = r[~new], prev[~new]
             F, Q = transition(frame_s[t] - frame_s[rows.row_t[po]])
             x_p[ro], P_p[ro] = predict_linear(x_f[po], P_f[po], F, Q)
+            alpha = model.prior_conflict(ro, x_p[ro], P_p[ro]) if fade else np.ones(len(ro))
+            if np.any(alpha > 1):
+                P_p[ro] *= alpha[:, None, None]
+                faded += int(np.sum(alpha > 1))
         xl, Pl = model.linearisation_point(r, x_p[r], P_p[r])
         x_f[r], P_f[r], inf = ukf_update_information(
             x_p[r], P_p[r], model.z[r], model.mask[r], model.var[r], model.h, w,
@@ -434,6 +518,7 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
             x_s[r], P_s[r] = rts_step(x_f[r], P_f[r], x_p[nr], P_p[nr], x_s[nr], P_s[nr], F)
     info: dict[str, Any] = {
         "pd_repairs": int(stats["repaired"]),
+        "predictions_faded": faded,
         "mean_nis_per_dof": float(stats["nis"]) / max(int(stats["dof"]), 1),
         "object_frames": R,
         "loglik": float(stats["loglik"]),

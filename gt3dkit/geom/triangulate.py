@@ -108,7 +108,7 @@ def robust_triangulate(xy_n: F64, R: F64, t: F64, f_px: F64, thr_px: float,
     xy_n : (N, C, 2) undistorted normalised coordinates, NaN = not seen
     R, t : (C, 3, 3), (C, 3) ``cam_from_world``
     f_px : (C,) focal lengths (pixels per normalised unit)
-    thr_px : inlier threshold (pixels)
+    thr_px : inlier threshold (pixels); ``inf`` = no robustness (every view an inlier)
     var_scale : (N, C) relative variance of each observation (e.g. 1 / confidence)
 
     Returns
@@ -120,6 +120,10 @@ def robust_triangulate(xy_n: F64, R: F64, t: F64, f_px: F64, thr_px: float,
     N, C = xy_n.shape[:2]
     seen = np.all(np.isfinite(xy_n), axis=-1)
     s = np.ones((N, C)) if var_scale is None else var_scale
+    if not np.isfinite(thr_px):  # no threshold: the plain (weighted) DLT of every view
+        X = triangulate_weighted(xy_n, R, t, seen / np.sqrt(s))
+        e2 = np.where(seen, reprojection_sq_px(X, xy_n, R, t, f_px, depth_sign), np.inf)
+        return X, seen & np.all(np.isfinite(X), axis=1)[:, None], e2
     X = np.full((N, 3), np.nan)
     inl = np.zeros((N, C), bool)
     e2 = np.full((N, C), np.inf)

@@ -49,7 +49,10 @@ def meta_of(scene: Scene, tracks: TrackSet) -> dict[str, Any]:
             "centre": "x, y, z: ellipsoid centre in the input's world frame",
             "semi_axes": {"a": wfb[:, 0].tolist(), "b": wfb[:, 1].tolist(), "c": wfb[:, 2].tolist(),
                           "note": "directions in the world frame; c is along up"},
-            "sd": "sx, sy, sz: marginal standard deviation of the centre along world x, y, z",
+            "sd": "sx, sy, sz: standard deviation of the centre along world x, y, z, widened by "
+                  "the correlation between the axes (sqrt of the correlation matrix's largest "
+                  "eigenvalue) so that sum((error/sd)^2) over the axes is at most a chi-square "
+                  "with 3 dof: each axis can be checked on its own",
             **({"keypoints": "keypoints.csv: frame,id,joint,x,y,z,sd in the world frame (m); sd = "
                              "the joint's largest standard deviation over all directions (m)",
                 "skeleton": scene.skeleton,
