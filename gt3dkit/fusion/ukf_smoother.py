@@ -303,7 +303,7 @@ def _maximise_log(f: Any, lo: float, hi: float, n_scan: int) -> float:
     k = int(np.argmax(vals))
     a, b = grid[max(k - 1, 0)], grid[min(k + 1, n_scan - 1)]
     res = minimize_scalar(lambda u: -f(float(np.exp(u))), bounds=(np.log(a), np.log(b)),
-                          method="bounded", options={"xatol": 0.1})
+                          method="bounded", options={"xatol": 0.2})
     cand = float(np.exp(res.x))
     return cand if -res.fun >= vals[k] else float(grid[k])
 

@@ -47,24 +47,39 @@ def triangulate_dlt(xy_n: F64, R: F64, t: F64) -> tuple[F64, np.ndarray]:
     return X, n_views
 
 
-def triangulate_weighted(xy_n: F64, R: F64, t: F64, weight: F64) -> F64:
-    """DLT with a weight per view (rows scaled by it; 0 = view unused).
+def _dlt_rows(xy_n: F64, R: F64, t: F64) -> F64:
+    """Per view the 4x4 normal matrix ``r_x r_x^T + r_y r_y^T`` of its two DLT rows
+    ``x P_3 - P_1`` and ``y P_3 - P_2``: ``(N, C, 4, 4)`` (zero where not seen)."""
+    xy = np.nan_to_num(xy_n)
+    P = np.concatenate([R, t[:, :, None]], axis=2)  # (C, 3, 4)
+    rx = xy[..., 0, None] * P[:, 2] - P[:, 0]  # (N, C, 4)
+    ry = xy[..., 1, None] * P[:, 2] - P[:, 1]
+    O = rx[..., :, None] * rx[..., None, :] + ry[..., :, None] * ry[..., None, :]
+    seen = np.all(np.isfinite(xy_n), axis=-1)
+    return np.where(seen[..., None, None], O, 0.0)
+
+
+def _null_point(M: F64) -> F64:
+    """``(..., 4, 4)`` normal matrices -> ``(..., 3)`` the eigenvector of the smallest
+    eigenvalue, dehomogenised (NaN at infinity)."""
+    _, V = np.linalg.eigh(M)
+    Xh = V[..., :, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return Xh[..., :3] / Xh[..., 3:]
+
+
+def triangulate_weighted(xy_n: F64, R: F64, t: F64, weight: F64, rows: F64 | None = None) -> F64:
+    """DLT with a weight per view (rows scaled by it; 0 = view unused), solved as the smallest
+    eigenvector of the 4x4 normal matrix ``sum_c w_c^2 (r_x r_x^T + r_y r_y^T)``.
 
     xy_n : (N, C, 2) normalised coordinates (any value where ``weight`` is 0);
-    weight : (N, C) >= 0. Returns ``X_world (N, 3)``, NaN where fewer than 2 views have
-    a positive weight.
+    weight : (N, C) >= 0; rows : the ``(N, C, 4, 4)`` of :func:`_dlt_rows` if already made.
+    Returns ``X_world (N, 3)``, NaN where fewer than 2 views have a positive weight.
     """
     use = weight > 0
-    xy = np.where(use[..., None], np.nan_to_num(xy_n), 0.0)
-    P = np.concatenate([R, t[:, :, None]], axis=2)  # (C, 3, 4)
-    rows_x = xy[..., 0, None] * P[:, 2] - P[:, 0]
-    rows_y = xy[..., 1, None] * P[:, 2] - P[:, 1]
-    wt = np.where(use, weight, 0.0)
-    A = np.concatenate([rows_x, rows_y], axis=1) * np.concatenate([wt, wt], axis=1)[..., None]
-    _, _, Vt = np.linalg.svd(A)
-    Xh = Vt[:, -1, :]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        X = Xh[:, :3] / Xh[:, 3:]
+    O = _dlt_rows(xy_n, R, t) if rows is None else rows
+    w2 = np.where(use, weight, 0.0) ** 2
+    X = _null_point(np.einsum("nc,ncij->nij", w2, O))
     X[use.sum(axis=1) < 2] = np.nan
     return X
 
@@ -132,15 +147,12 @@ def robust_triangulate(xy_n: F64, R: F64, t: F64, f_px: F64, thr_px: float,
         sl = slice(a, min(a + chunk, N))
         xy, sn, sc = xy_n[sl], seen[sl], s[sl]
         n = len(xy)
-        cands = [triangulate_weighted(xy, R, t, sn.astype(np.float64))[:, None]]
+        O = _dlt_rows(xy, R, t)
+        cands = [triangulate_weighted(xy, R, t, sn.astype(np.float64), O)[:, None]]
         if len(pairs):
-            wp = np.zeros((n, len(pairs), C))
-            ii = np.arange(len(pairs))
-            wp[:, ii, pairs[:, 0]] = sn[:, pairs[:, 0]]
-            wp[:, ii, pairs[:, 1]] = sn[:, pairs[:, 1]]
-            Xp = triangulate_weighted(np.repeat(xy, len(pairs), axis=0), R, t,
-                                      wp.reshape(-1, C)).reshape(n, len(pairs), 3)
-            cands.append(Xp)
+            Xp = _null_point(O[:, pairs[:, 0]] + O[:, pairs[:, 1]])  # (n, P, 3)
+            both = sn[:, pairs[:, 0]] & sn[:, pairs[:, 1]]
+            cands.append(np.where(both[..., None], Xp, np.nan))
         Xc = np.concatenate(cands, axis=1)  # (n, P+1, 3)
         ec = reprojection_sq_px(Xc, xy[:, None], R, t, f_px, depth_sign) / sc[:, None]
         cost = np.sum(np.where(sn[:, None], np.minimum(np.nan_to_num(ec, nan=np.inf), thr_px**2),
@@ -150,7 +162,7 @@ def robust_triangulate(xy_n: F64, R: F64, t: F64, f_px: F64, thr_px: float,
         for _ in range(2):
             eb = reprojection_sq_px(best, xy, R, t, f_px, depth_sign) / sc
             w = (sn & (np.nan_to_num(eb, nan=np.inf) < thr_px**2)).astype(np.float64)
-            refit = triangulate_weighted(xy, R, t, w / np.sqrt(sc))
+            refit = triangulate_weighted(xy, R, t, w / np.sqrt(sc), O)
             best = np.where(np.isfinite(refit), refit, best)
         eb = reprojection_sq_px(best, xy, R, t, f_px, depth_sign)
         good = sn & (np.nan_to_num(eb / sc, nan=np.inf) < thr_px**2)
