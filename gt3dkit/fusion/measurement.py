@@ -143,8 +143,8 @@ class Model:
         xl, Pl = x.copy(), P.copy()
         changed = False
         c6 = self.cov6_frame[r]
-        ok6 = (np.all(np.isfinite(c6), axis=(1, 2)) & np.all(np.isfinite(self.x_frame[r, :9]), axis=1)
-               & self.centre_determined[r])
+        ok6 = (np.all(np.isfinite(c6), axis=(1, 2)) & self.centre_determined[r]
+               & np.all(np.isfinite(self.x_frame[r][:, lay.center]), axis=1))
         tr_prior = np.einsum("bii->b", P[:, lay.center, lay.center])
         tr_frame = np.einsum("bii->b", c6[:, :3, :3])
         weak = ok6 & (tr_prior > tr_frame)

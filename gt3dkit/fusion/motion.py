@@ -79,8 +79,9 @@ class StateLayout:
             A = np.eye(3) + (vertical_ratio**2 - 1.0) * np.outer(u, u)
             base = np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]]) * qa2  # (2, 2, B)
             blk = np.einsum("ijb,kl->bikjl", base, A).reshape(-1, 6, 6)
-            order = np.r_[np.arange(0, 3), np.arange(3, 6)]
+            order = np.r_[np.arange(self.center.start, self.center.stop),
+                          np.arange(self.velocity.start, self.velocity.stop)]
             Q[np.ix_(np.arange(B), order, order)] = blk
-        s = np.arange(6, 9)
+        s = np.arange(self.log_axes.start, self.log_axes.stop)
         Q[:, s, s] = (shape_sd**2 * dt)[:, None]
         return F, Q

@@ -22,7 +22,7 @@ The UKF smoother, the GTSAM smoother and the triangulation baseline all call
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -270,7 +270,9 @@ def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
         return np.concatenate([f.center_world[sel], f.log_axes[sel]], 1)
 
     sig = sigmas(fit)
-    fit = fit_boxes(rows.box_z, keep, cams, sig, p0=params(fit))
+    # one noise level for every edge: the unit-weight fit is the weighted one, its covariance
+    # scaled (the weak log-axes prior aside)
+    fit = replace(fit, cov=fit.cov * sig[0] ** 2)
     for _ in range(2 if robust.enabled else 0):
         r = np.nan_to_num(fit.residual_px)
         var = np.broadcast_to(sig**2, r.shape)

@@ -84,8 +84,8 @@ class GTSAMSmoother:
         R, J = len(rows), layout.n_joints
         x0, var0, _ = pre.frame_state()
         tuned = moment_process_noise(pre, x0, var0, scene.fps, cfg)
-        centre = x0[:, 0:3].copy()
-        log_axes = x0[:, 6:9].copy()
+        centre = x0[:, layout.center].copy()
+        log_axes = x0[:, layout.log_axes].copy()
         c_sd = np.full((R, 3), np.nan)
         kpt = x0[:, layout.joints].reshape(R, J if use_kpt else 0, 3).copy()
         kpt_sd = np.full(kpt.shape[:2], np.nan)

@@ -204,9 +204,9 @@ class UKFSmoother:
             "preparation": pre.info,
             "robust": {"enabled": cfg.robust, "downweighted": int(np.sum(down.weight > 0)),
                        "rejected": int(np.sum(down.weight == 0)),
-                       "rule": "leave-one-out score against prior + other views; weight 1 up "
-                               f"to the {1 - cfg.huber_p:g} chi-square quantile, 0 beyond "
-                               f"the {1 - cfg.reject_p:g} quantile"},
+                       "rule": "leave-one-out score against prior + other views; weight 1 "
+                               f"below the chi-square tail probability {cfg.huber_p:g}, 0 "
+                               f"beyond {cfg.reject_p:g}"},
             **({"bones": bone_info} if bone_info else {}),
             "seconds": time.perf_counter() - t0,
         }
