@@ -71,43 +71,58 @@ class Model:
             zs.append(zk)
             masks.append(np.isfinite(zk))
             vars_.append(np.repeat(pre.kpt_var.reshape(R, C * J), 2, axis=1))
-            w0.append(np.repeat(pre.kpt_keep.reshape(R, C * J), 2, axis=1).astype(np.float64))
-            ver.append(w0[-1])
+            # a contested per-frame joint's verdicts are not imposed either
+            seen = np.isfinite(rows.kpt_z[..., 0])
+            keep = pre.kpt_keep | (~pre.kpt_reliable[:, None, :] & seen)
+            w0.append(np.repeat(keep.reshape(R, C * J), 2, axis=1).astype(np.float64))
+            ver.append(np.repeat(pre.kpt_keep.reshape(R, C * J), 2, axis=1).astype(np.float64))
             blocks.append((slice(at, at + C * J * 2), 2))
         mask = np.concatenate(masks, 1)
         x_f, v_f, c6 = pre.frame_state()
         det = pre.fit_reliable
+        kcov = None
+        if pre.use_kpt and pre.kpt0_cov is not None:
+            # only reliable per-frame joints may fade a prediction or set a linearisation point
+            kcov = np.where(pre.kpt_reliable[..., None, None], pre.kpt0_cov, np.inf)
+            v_f = v_f.copy()
+            v_f[:, lay.joints] = np.where(np.repeat(pre.kpt_reliable, 3, axis=1),
+                                          v_f[:, lay.joints], np.inf)
         return cls(rows, cams, lay, pre.use_box, np.where(mask, np.concatenate(zs, 1), 0.0),
                    mask, np.concatenate(vars_, 1), np.concatenate(w0, 1), np.concatenate(ver, 1),
-                   tuple(blocks) if pre.robust.enabled else (), x_f, v_f, c6, det,
-                   pre.kpt0_cov if pre.use_kpt else None)
+                   tuple(blocks) if pre.robust.enabled else (), x_f, v_f, c6, det, kcov)
 
     def prior_conflict(self, r: np.ndarray, x: F64, P: F64, tail_p: float = 1e-3) -> F64:
-        r"""Fading factors ``(B,)`` >= 1 for predictions the frame's own views contradict.
+        r"""Per-state-entry fading scales ``(B, n)`` >= 1 for predictions the frame's own views
+        contradict.
 
-        The frame's per-frame fits (no prior) are compared with the prediction: the centre
-        where two or more box views determine it, and every joint two views triangulate,
+        The frame's per-frame fits (no prior) are compared with the prediction, block by
+        block: the centre where two or more box views determine it, and every joint two views
+        triangulate,
 
-        .. math:: d^2 = \sum (x_{fit} - x^-)^\top (P^- + P_{fit})^{-1} (x_{fit} - x^-).
+        .. math:: d^2 = (x_{fit} - x^-)^\top (P^- + P_{fit})^{-1} (x_{fit} - x^-).
 
-        Beyond the ``1 - tail_p`` quantile of its chi-square the motion model has failed
-        (a turn at 4 fps, a process noise set far too small): the prediction's covariance
-        is scaled by ``d^2 / dof`` (a fading-memory filter) so that the views are not
-        rejected as outliers against a confident but wrong prediction.
+        Beyond the ``1 - tail_p`` quantile of chi-square(3) the motion model has failed for
+        that block (a turn at 4 fps, a process noise set far too small): the block's position
+        and velocity are scaled by ``sqrt(d^2 / 3)`` in ``P^- <- S P^- S`` (a fading-memory
+        filter, per block), so that its views are not rejected as outliers against a
+        confident but wrong prediction. Other joints are left alone.
         """
         from scipy.stats import chi2
 
         lay = self.layout
         B = len(r)
-        d2 = np.zeros(B)
-        dof = np.zeros(B)
+        scale = np.ones((B, lay.n))
+        lim = chi2.isf(tail_p, 3)
         if self.use_box:
             ok = self.centre_determined[r]
             if ok.any():
                 e = (self.x_frame[r, lay.center] - x[:, lay.center])[ok]
                 S = P[ok][:, lay.center, lay.center] + self.cov6_frame[r[ok], :3, :3]
-                d2[ok] += np.einsum("bi,bi->b", e, np.linalg.solve(S, e[..., None])[..., 0])
-                dof[ok] += 3
+                d2 = np.zeros(B)
+                d2[ok] = np.einsum("bi,bi->b", e, np.linalg.solve(S, e[..., None])[..., 0])
+                f = np.sqrt(np.where(d2 > lim, d2 / 3.0, 1.0))
+                scale[:, lay.center] = f[:, None]
+                scale[:, lay.velocity] = f[:, None]
         J = lay.n_joints
         if J and self.kpt_cov_frame is not None:
             C0 = self.kpt_cov_frame[r]  # (B, J, 3, 3)
@@ -117,16 +132,12 @@ class Model:
                 Pj = P[:, idx[:, :, None], idx[:, None, :]]  # (B, J, 3, 3)
                 e = self.x_frame[r][:, lay.joints].reshape(B, J, 3) - x[:, lay.joints].reshape(B, J, 3)
                 S = np.where(ok[..., None, None], Pj + np.nan_to_num(C0), np.eye(3))
-                q = np.einsum("bji,bji->bj", e, np.linalg.solve(S, e[..., None])[..., 0])
-                d2 += np.where(ok, q, 0.0).sum(axis=1)
-                dof += 3 * ok.sum(axis=1)
-        alpha = np.ones(B)
-        has = dof > 0
-        if has.any():
-            lim = chi2.isf(tail_p, np.maximum(dof[has], 1))
-            a = np.where(d2[has] > lim, d2[has] / dof[has], 1.0)
-            alpha[has] = np.maximum(a, 1.0)
-        return alpha
+                q = np.where(ok, np.einsum("bji,bji->bj", e, np.linalg.solve(S, e[..., None])[..., 0]),
+                             0.0)
+                f = np.sqrt(np.where(q > lim, q / 3.0, 1.0))  # (B, J)
+                scale[:, lay.joints] = np.repeat(f, 3, axis=1)
+                scale[:, lay.joint_velocity] = np.repeat(f, 3, axis=1)
+        return scale
 
     def linearisation_point(self, r: np.ndarray, x: F64, P: F64) -> tuple[F64 | None, F64 | None]:
         """Where the first update pass linearises for rows ``r`` with priors ``x, P``.

@@ -64,6 +64,9 @@ class Prepared:
         disagree and few are left, which of them is wrong is for the temporal model to say)
     kpt0 : (R, J, 3) per-frame joints (NaN under 2 agreeing views); kpt0_cov (R, J, 3, 3) m^2
     kpt_keep : (R, C, J) keypoints the per-frame triangulation kept
+    kpt_reliable : (R, J) the per-frame joint is a summary to trust on its own (three or more
+        views kept, or two views and nothing rejected): with two views left after a
+        rejection, a wrong point along the other's epipolar line looks consistent
     sigma_box : (4,) box-edge noise per edge kind (px); sigma_kpt : (J,) keypoint noise per
         joint (px)
     kpt_var : (R, C, J) each keypoint's variance (px^2) = sigma_kpt[j]^2 / confidence
@@ -80,6 +83,7 @@ class Prepared:
     kpt0: F64 | None
     kpt0_cov: F64 | None
     kpt_keep: np.ndarray
+    kpt_reliable: np.ndarray
     sigma_box: F64
     sigma_kpt: F64
     kpt_var: F64
@@ -183,11 +187,15 @@ def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = Non
         reliable = fit.ok & (((views.sum(axis=1) >= 2) & none_rejected) | (whole >= 3))
     kpt0 = kpt0_cov = None
     kpt_keep = np.zeros((len(rows), len(cams.K), J), bool)
+    kpt_reliable = np.zeros((len(rows), J), bool)
     sigma_kpt = np.ones(J)
     kpt_var = np.ones((len(rows), len(cams.K), J))
     if use_kpt:
         kpt0, kpt0_cov, kpt_keep, sigma_kpt, kinfo = _robust_keypoints(scene, rows, cams, robust,
                                                                        kpt_sigma_px)
+        n_in = kpt_keep.sum(axis=1)
+        n_seen = np.isfinite(rows.kpt_z[..., 0]).sum(axis=1)
+        kpt_reliable = np.isfinite(kpt0[..., 0]) & ((n_in >= 3) | ((n_in == 2) & (n_seen == 2)))
         conf = np.maximum(rows.kpt_conf, CONF_FLOOR)
         kpt_var = sigma_kpt[None, None, :] ** 2 / conf
         info["keypoints"] = kinfo
@@ -196,7 +204,7 @@ def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = Non
                                "person size around the joints")
             _check_determined(scene, rows, kpt0)
     return Prepared(rows, cams, StateLayout(J if use_kpt else 0), use_box, use_kpt, fit, box_keep,
-                    reliable, kpt0, kpt0_cov, kpt_keep, sigma_box, sigma_kpt, kpt_var, prior, skel,
+                    reliable, kpt0, kpt0_cov, kpt_keep, kpt_reliable, sigma_box, sigma_kpt, kpt_var, prior, skel,
                     robust, info)
 
 
@@ -465,3 +473,88 @@ def largest_sd(cov: F64) -> F64:
     if ok.any():
         out[ok] = np.sqrt(np.maximum(np.linalg.eigvalsh(cov[ok])[..., -1], 0.0))
     return out
+
+
+@dataclass(frozen=True)
+class ProcessNoise:
+    accel_sd: float
+    shape_sd: float
+    joint_accel_sd: float
+    source: str
+
+    def as_dict(self) -> dict[str, float]:
+        return {"accel_sd": self.accel_sd, "shape_sd": self.shape_sd,
+                "joint_accel_sd": self.joint_accel_sd}
+
+
+def _moment_q2(d2: F64, noise_var: F64, unit_var: F64, floor: float) -> float:
+    r"""``q^2`` with ``E[d^2] = q^2 u + n`` from samples ``d2, noise_var n, unit_var u``
+    (method of moments), trimming samples beyond the 1e-4 tail of their chi-square."""
+    ok = np.isfinite(d2) & np.isfinite(noise_var) & (unit_var > 0)
+    d2, nv, u = d2[ok], noise_var[ok], unit_var[ok]
+    if d2.size < 3:
+        return float("nan")
+    q2 = max(float(d2.sum() / u.sum()), floor)
+    for _ in range(4):
+        keep = d2 / (q2 * u + nv) < 15.1
+        if not keep.any():
+            break
+        q2 = max(float((d2[keep] - nv[keep]).sum() / u[keep].sum()), floor)
+    return q2
+
+
+def moment_process_noise(pre: Prepared, x: F64, var: F64, fps: float,
+                         accel_sd: float | None = None, shape_sd: float | None = None,
+                         joint_accel_sd: float | None = None) -> ProcessNoise:
+    r"""Process noise from the per-frame fits alone (independent of the UKF's likelihood).
+
+    For a constant-velocity model under white acceleration ``q``, the second difference of
+    positions three equally spaced frames apart has variance ``(2/3) q^2 dt^3`` plus the
+    per-frame fits' own variance ``v_{k-1} + 4 v_k + v_{k+1}``; the first difference of
+    the log semi-axes has ``s^2 dt + v_k + v_{k+1}``. ``q^2`` and ``s^2`` are the moment
+    estimates over all objects (centre: horizontal axes; joints: all), with gross jumps
+    trimmed. Values given are kept. ``x, var`` are :meth:`Prepared.frame_state`'s.
+    """
+    rows, lay = pre.rows, pre.layout
+    t_s = rows.frames[rows.row_t] / fps
+    a, b = rows.prev_row, rows.next_row
+    trip = (a >= 0) & (b >= 0)
+    r = np.flatnonzero(trip)
+    dt1 = t_s[r] - t_s[a[r]]
+    dt2 = t_s[b[r]] - t_s[r]
+    even = np.abs(dt1 - dt2) < 1e-9 * np.maximum(dt1, 1e-9)
+    r, dt = r[even], dt1[even]
+    src = []
+
+    def second(block: slice, dims: np.ndarray) -> tuple[F64, F64, F64]:
+        xs = x[:, block][:, dims]
+        vs = var[:, block][:, dims]
+        d = xs[b[r]] - 2 * xs[r] + xs[a[r]]
+        nv = vs[b[r]] + 4 * vs[r] + vs[a[r]]
+        u = np.broadcast_to((2.0 / 3.0 * dt**3)[:, None], d.shape)
+        return (d**2).reshape(-1), nv.reshape(-1), u.reshape(-1)
+
+    accel, shape, joint = accel_sd, shape_sd, joint_accel_sd
+    if pre.use_box and accel is None:
+        up = pre.cams.up
+        horiz = np.flatnonzero(np.abs(up) < 0.9)[:2]
+        q2 = _moment_q2(*second(lay.center, horiz), 1e-4)
+        accel = float(np.clip(np.sqrt(q2), 0.01, 100.0)) if np.isfinite(q2) else 0.5
+        src.append("accel_sd: second differences of the per-frame centres")
+    if pre.use_box and shape is None:
+        p = np.flatnonzero(a >= 0)
+        dtp = t_s[p] - t_s[a[p]]
+        la = x[:, lay.log_axes]
+        lv = var[:, lay.log_axes]
+        d2 = ((la[p] - la[a[p]]) ** 2).reshape(-1)
+        nv = (lv[p] + lv[a[p]]).reshape(-1)
+        u = np.repeat(dtp, 3)
+        s2 = _moment_q2(d2, nv, u, 1e-10)
+        shape = float(np.clip(np.sqrt(s2), 1e-5, 0.3)) if np.isfinite(s2) else 0.003
+        src.append("shape_sd: first differences of the per-frame log semi-axes")
+    if pre.use_kpt and joint is None:
+        q2 = _moment_q2(*second(lay.joints, np.arange(3 * lay.n_joints)), 1e-4)
+        joint = float(np.clip(np.sqrt(q2), 0.03, 100.0)) if np.isfinite(q2) else 1.0
+        src.append("joint_accel_sd: second differences of the per-frame joints")
+    return ProcessNoise(float(accel or joint or 0.5), float(shape or 0.003), float(joint or 1.0),
+                        "; ".join(src) or "given")

@@ -37,7 +37,15 @@ import numpy as np
 
 from gt3dkit.fusion.boxfit import box_model
 from gt3dkit.fusion.motion import StateLayout
-from gt3dkit.fusion.prepare import Prepared, axis_sd, ellipsoid_around, never_seen, prepare
+from gt3dkit.fusion.prepare import (
+    Prepared,
+    ProcessNoise,
+    axis_sd,
+    ellipsoid_around,
+    moment_process_noise,
+    never_seen,
+    prepare,
+)
 from gt3dkit.fusion.rows import Rows
 from gt3dkit.geom.camera import Cams, apply_K
 from gt3dkit.geom.triangulate import normalized_points
@@ -83,7 +91,8 @@ class GTSAMSmoother:
                                                 pre.use_kpt)
         R, J = len(rows), layout.n_joints
         x0, var0, _ = pre.frame_state()
-        tuned = moment_process_noise(pre, x0, var0, scene.fps, cfg)
+        tuned = moment_process_noise(pre, x0, var0, scene.fps, cfg.accel_sd, cfg.shape_sd,
+                                     cfg.joint_accel_sd)
         centre = x0[:, layout.center].copy()
         log_axes = x0[:, layout.log_axes].copy()
         c_sd = np.full((R, 3), np.nan)
@@ -270,90 +279,3 @@ def _box_error(cams: Cams, z: F64, m: np.ndarray, C: int) -> Any:
         return e
 
     return error
-
-
-
-@dataclass(frozen=True)
-class ProcessNoise:
-    accel_sd: float
-    shape_sd: float
-    joint_accel_sd: float
-    source: str
-
-    def as_dict(self) -> dict[str, float]:
-        return {"accel_sd": self.accel_sd, "shape_sd": self.shape_sd,
-                "joint_accel_sd": self.joint_accel_sd}
-
-
-def _moment_q2(d2: F64, noise_var: F64, unit_var: F64, floor: float) -> float:
-    r"""``q^2`` with ``E[d^2] = q^2 u + n`` from samples ``d2, noise_var n, unit_var u``
-    (method of moments), trimming samples beyond the 1e-4 tail of their chi-square."""
-    ok = np.isfinite(d2) & np.isfinite(noise_var) & (unit_var > 0)
-    d2, nv, u = d2[ok], noise_var[ok], unit_var[ok]
-    if d2.size < 3:
-        return float("nan")
-    q2 = max(float(d2.sum() / u.sum()), floor)
-    for _ in range(4):
-        keep = d2 / (q2 * u + nv) < 15.1
-        if not keep.any():
-            break
-        q2 = max(float((d2[keep] - nv[keep]).sum() / u[keep].sum()), floor)
-    return q2
-
-
-def moment_process_noise(pre: Prepared, x: F64, var: F64, fps: float, cfg: GTSAMConfig
-                         ) -> ProcessNoise:
-    r"""Process noise from the per-frame fits alone (independent of the UKF's likelihood).
-
-    For a constant-velocity model under white acceleration ``q``, the second difference of
-    positions three equally spaced frames apart has variance ``(2/3) q^2 dt^3`` plus the
-    per-frame fits' own variance ``v_{k-1} + 4 v_k + v_{k+1}``; the first difference of
-    the log semi-axes has ``s^2 dt + v_k + v_{k+1}``. ``q^2`` and ``s^2`` are the moment
-    estimates over all objects (centre: horizontal axes; joints: all), with gross jumps
-    trimmed. Values given in ``cfg`` are kept.
-    """
-    rows, lay = pre.rows, pre.layout
-    t_s = rows.frames[rows.row_t] / fps
-    a, b = rows.prev_row, rows.next_row
-    trip = (a >= 0) & (b >= 0)
-    r = np.flatnonzero(trip)
-    dt1 = t_s[r] - t_s[a[r]]
-    dt2 = t_s[b[r]] - t_s[r]
-    even = np.abs(dt1 - dt2) < 1e-9 * np.maximum(dt1, 1e-9)
-    r, dt = r[even], dt1[even]
-    src = []
-
-    def second(block: slice, dims: np.ndarray) -> tuple[F64, F64, F64]:
-        xs = x[:, block][:, dims]
-        vs = var[:, block][:, dims]
-        d = xs[b[r]] - 2 * xs[r] + xs[a[r]]
-        nv = vs[b[r]] + 4 * vs[r] + vs[a[r]]
-        u = np.broadcast_to((2.0 / 3.0 * dt**3)[:, None], d.shape)
-        return (d**2).reshape(-1), nv.reshape(-1), u.reshape(-1)
-
-    accel = cfg.accel_sd
-    shape = cfg.shape_sd
-    joint = cfg.joint_accel_sd
-    if pre.use_box and accel is None:
-        up = pre.cams.up
-        horiz = np.flatnonzero(np.abs(up) < 0.9)[:2]
-        q2 = _moment_q2(*second(lay.center, horiz), 1e-4)
-        accel = float(np.clip(np.sqrt(q2), 0.01, 100.0)) if np.isfinite(q2) else 0.5
-        src.append("accel_sd: second differences of the per-frame centres")
-    if pre.use_box and shape is None:
-        p = np.flatnonzero(a >= 0)
-        dtp = t_s[p] - t_s[a[p]]
-        la = x[:, lay.log_axes]
-        lv = var[:, lay.log_axes]
-        d2 = ((la[p] - la[a[p]]) ** 2).reshape(-1)
-        nv = (lv[p] + lv[a[p]]).reshape(-1)
-        u = np.repeat(dtp, 3)
-        s2 = _moment_q2(d2, nv, u, 1e-10)
-        shape = float(np.clip(np.sqrt(s2), 1e-5, 0.3)) if np.isfinite(s2) else 0.003
-        src.append("shape_sd: first differences of the per-frame log semi-axes")
-    if pre.use_kpt and joint is None:
-        q2 = _moment_q2(*second(lay.joints, np.arange(3 * lay.n_joints)), 1e-4)
-        joint = float(np.clip(np.sqrt(q2), 0.03, 100.0)) if np.isfinite(q2) else 1.0
-        src.append("joint_accel_sd: second differences of the per-frame joints")
-    return ProcessNoise(float(accel or joint or 0.5), float(shape or 0.003), float(joint or 1.0),
-                        "; ".join(src) or "given")

@@ -48,6 +48,7 @@ from gt3dkit.fusion.prepare import (
     axis_sd,
     ellipsoid_around,
     largest_sd,
+    moment_process_noise,
     never_seen,
     prepare,
 )
@@ -147,7 +148,7 @@ class UKFSmoother:
         R, J = len(rows), layout.n_joints
         model = Model.of(pre)
         init = initial_states(model, cfg)
-        cfg, search = select_noise(model, init, cfg, pre.use_box, pre.use_kpt, scene.fps)
+        cfg, search = select_noise(model, init, cfg, pre, scene.fps)
         x_s, P_s, run = run_filter(model, init, cfg, scene.fps, collect=True)
         bone_info: dict[str, Any] = {}
         if pre.use_kpt and cfg.bones and pre.skeleton is not None:
@@ -308,17 +309,34 @@ def _maximise_log(f: Any, lo: float, hi: float, n_scan: int) -> float:
     return cand if -res.fun >= vals[k] else float(grid[k])
 
 
-def select_noise(model: Model, init: Init, cfg: UKFConfig, use_box: bool, use_kpt: bool,
-                 fps: float) -> tuple[UKFConfig, dict[str, list[dict[str, float]]]]:
+def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: float
+                 ) -> tuple[UKFConfig, dict[str, Any]]:
     """Process noise by maximum likelihood of the forward pass (no smoothing, no bones).
 
-    Values set in ``cfg`` are kept; the others are found in turn (``accel_sd``, then
-    ``shape_sd`` with boxes, then ``joint_accel_sd`` with keypoints) by
-    :func:`_maximise_log`, the others held at their current values. Returns the tuned
-    config and, per searched parameter, the likelihood curve (``value, loglik``, sorted).
+    The likelihood must not be bent by outliers, and a single pass cannot reweight: so a
+    first robust forward pass, at provisional values (the moment estimates from the
+    per-frame fits, :func:`gt3dkit.fusion.prepare.moment_process_noise`), fixes every
+    measurement's weight, and the search's single passes use those weights. Values set in
+    ``cfg`` are kept; the others are found in turn (``accel_sd``, then ``shape_sd`` with boxes,
+    then ``joint_accel_sd`` with keypoints) by :func:`_maximise_log`. Returns the tuned config
+    and, per searched parameter, the likelihood curve (``value, loglik``, sorted).
     """
-    curves: dict[str, list[dict[str, float]]] = {}
-    search_model = replace(model, weight0=model.verdicts)  # one pass: no reweighting
+    curves: dict[str, Any] = {}
+    use_box, use_kpt = pre.use_box, pre.use_kpt
+    x_f, v_f, _ = pre.frame_state()
+    prov = moment_process_noise(pre, x_f, v_f, fps, cfg.accel_sd, cfg.shape_sd,
+                                cfg.joint_accel_sd)
+    start = replace(cfg, accel_sd=cfg.accel_sd or prov.accel_sd,
+                    shape_sd=cfg.shape_sd or prov.shape_sd,
+                    joint_accel_sd=cfg.joint_accel_sd or prov.joint_accel_sd)
+    weights = model.verdicts
+    if cfg.robust and (cfg.accel_sd is None or cfg.shape_sd is None
+                       or (use_kpt and cfg.joint_accel_sd is None)):
+        weights = run_filter(model, init, replace(start, smooth=False), fps,
+                             collect=True)[2]["weights"]
+        curves["provisional"] = {**prov.as_dict(), "source": prov.source,
+                                 "use": "a robust pass at these values fixes the weights"}
+    search_model = replace(model, weight0=weights)  # one pass each: no reweighting
 
     def search(name: str, c: UKFConfig, bounds: tuple[float, float], n_scan: int) -> UKFConfig:
         seen: dict[float, float] = {}
@@ -336,8 +354,7 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, use_box: bool, use_kp
         return replace(c, **{name: best})
 
     given = cfg
-    cfg = replace(cfg, accel_sd=cfg.accel_sd or 0.5, shape_sd=cfg.shape_sd or 0.003,
-                  joint_accel_sd=cfg.joint_accel_sd or 1.0)
+    cfg = start
     if use_box and given.accel_sd is None:
         cfg = search("accel_sd", cfg, cfg.accel_bounds, 5)
     if use_box and given.shape_sd is None:
@@ -493,10 +510,12 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
             ro, po = r[~new], prev[~new]
             F, Q = transition(frame_s[t] - frame_s[rows.row_t[po]])
             x_p[ro], P_p[ro] = predict_linear(x_f[po], P_f[po], F, Q)
-            alpha = model.prior_conflict(ro, x_p[ro], P_p[ro]) if fade else np.ones(len(ro))
-            if np.any(alpha > 1):
-                P_p[ro] *= alpha[:, None, None]
-                faded += int(np.sum(alpha > 1))
+            if fade:
+                sc = model.prior_conflict(ro, x_p[ro], P_p[ro])
+                hit = np.any(sc > 1, axis=1)
+                if hit.any():
+                    P_p[ro[hit]] = sc[hit, :, None] * P_p[ro[hit]] * sc[hit, None, :]
+                    faded += int(hit.sum())
         xl, Pl = model.linearisation_point(r, x_p[r], P_p[r])
         x_f[r], P_f[r], inf = ukf_update_information(
             x_p[r], P_p[r], model.z[r], model.mask[r], model.var[r], model.h, w,
