@@ -83,7 +83,6 @@ def compare(scene: Scene, out: Path, estimators: tuple[str, ...] = COMPARE_ESTIM
 
     from gt3dkit.api import make_estimator
     from gt3dkit.eval.pose import mpjpe_by_id
-
     from gt3dkit.fusion.prepare import prepare
 
     results: dict[str, TrackSet] = {}

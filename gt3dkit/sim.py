@@ -498,14 +498,14 @@ def simulate_skeletons(layout: str = "native", seed: int = 0, frames: int = 30, 
     uv = np.swapaxes(np.where(ok[..., None], uv, np.nan), 1, 2)  # (M, C, J, 2)
     truth_frame, truth_id = np.concatenate(fr), np.concatenate(ids)
     uv, conf, injected = _detector_errors(uv, rig, skeleton, truth_frame, truth_id, frame_numbers,
-                                          errors, noise_px, np.random.default_rng([seed, 1]))
+                                          errors, np.random.default_rng([seed, 1]))
     return SkeletonScene(rig=rig, frames=frame_numbers, fps=fps, skeleton=skeleton,
                          truth_frame=truth_frame, truth_id=truth_id, kpt_world=X, uv=uv,
                          conf=conf if confidences else None, injected=tuple(injected))
 
 
 def _detector_errors(uv: F64, rig: Rig, skeleton: str, truth_frame: I64, truth_id: I64,
-                     frames: I64, errors: Errors, noise_px: float, rng: np.random.Generator
+                     frames: I64, errors: Errors, rng: np.random.Generator
                      ) -> tuple[F64, F64, list[tuple[int, str, int, str, str, str]]]:
     """Inject ``errors`` into keypoints ``uv (M, C, J, 2)``; confidences ``(M, C, J)``."""
     from gt3dkit.skeletons import SKELETONS
@@ -559,7 +559,6 @@ def _detector_errors(uv: F64, rig: Rig, skeleton: str, truth_frame: I64, truth_i
             conf[m, c, j] = rng.uniform(0.6, 0.9)
             note(m, c, j, "glitch", "u = v = 0" if both else "u = 0")
     uv = np.where(seen[..., None], uv, np.nan)
-    del noise_px
     return uv, np.where(seen, conf, np.nan), injected
 
 
@@ -637,7 +636,7 @@ def corrupt_keypoints(scene: Scene, errors: Errors, seed: int = 0
     uv = np.full((len(keys), C, J, 2), np.nan)
     uv[m_of, obs.cam] = obs.kpt_uv_px
     uv2, conf, injected = _detector_errors(uv, scene.rig, scene.skeleton, keys[:, 0], keys[:, 1],
-                                           np.asarray(scene.frames), errors, 0.0,
+                                           np.asarray(scene.frames), errors,
                                            np.random.default_rng([seed, 1]))
     kpt = uv2[m_of, obs.cam]
     c = conf[m_of, obs.cam]

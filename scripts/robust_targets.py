@@ -36,8 +36,14 @@ from gt3dkit.eval.metrics import match_rows
 from gt3dkit.fusion.boxfit import box_model, ground_init
 from gt3dkit.fusion.rows import build_rows
 from gt3dkit.geom.camera import Cams
-from gt3dkit.sim import Errors, corrupt_keypoints, simulate, simulate_skeletons, write_scene, \
-    write_skeleton_scene
+from gt3dkit.sim import (
+    Errors,
+    corrupt_keypoints,
+    simulate,
+    simulate_skeletons,
+    write_scene,
+    write_skeleton_scene,
+)
 
 CHECKS: list[tuple[str, float, float, str]] = []  # (what, value, limit, "<=" or ">=")
 

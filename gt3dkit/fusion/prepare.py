@@ -204,8 +204,8 @@ def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = Non
                                "person size around the joints")
             _check_determined(scene, rows, kpt0)
     return Prepared(rows, cams, StateLayout(J if use_kpt else 0), use_box, use_kpt, fit, box_keep,
-                    reliable, kpt0, kpt0_cov, kpt_keep, kpt_reliable, sigma_box, sigma_kpt, kpt_var, prior, skel,
-                    robust, info)
+                    reliable, kpt0, kpt0_cov, kpt_keep, kpt_reliable, sigma_box, sigma_kpt,
+                    kpt_var, prior, skel, robust, info)
 
 
 def check_in_front(scene: Scene, rows: Rows, fit: BoxFit) -> None:

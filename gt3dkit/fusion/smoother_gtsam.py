@@ -46,7 +46,6 @@ from gt3dkit.fusion.prepare import (
     never_seen,
     prepare,
 )
-from gt3dkit.fusion.rows import Rows
 from gt3dkit.geom.camera import Cams, apply_K
 from gt3dkit.geom.triangulate import normalized_points
 from gt3dkit.types import F64, Scene, TrackSet

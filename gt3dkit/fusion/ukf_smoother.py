@@ -58,6 +58,14 @@ from gt3dkit.skeletons import Skeleton
 from gt3dkit.types import F64, Downweighted, Scene, TrackSet
 
 
+#: The provisional robust pass that fixes the noise search's weights runs at this multiple of
+#: the moment estimates of the process noise.
+PROVISIONAL_LOOSENESS = 3.0
+#: ... and a shape noise of at least this (the moment estimate of a shape that the per-frame
+#: noise hides is its floor, which would hold every box to a rigid shape).
+PROVISIONAL_MIN_SHAPE_SD = 0.05
+
+
 @dataclass(frozen=True)
 class UKFConfig:
     """Settings of :class:`UKFSmoother` (units in the names). ``None`` = from the data.
@@ -145,7 +153,7 @@ class UKFSmoother:
         pre = pre or prepare(scene, cfg.clip_tol_px, cfg.sigma_px, cfg.kpt_sigma_px,
                              cfg.robust_config)
         rows, cams, layout = pre.rows, pre.cams, pre.layout
-        R, J = len(rows), layout.n_joints
+        R = len(rows)
         model = Model.of(pre)
         init = initial_states(model, cfg)
         cfg, search = select_noise(model, init, cfg, pre, scene.fps)
@@ -326,9 +334,12 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
     x_f, v_f, _ = pre.frame_state()
     prov = moment_process_noise(pre, x_f, v_f, fps, cfg.accel_sd, cfg.shape_sd,
                                 cfg.joint_accel_sd)
-    start = replace(cfg, accel_sd=cfg.accel_sd or prov.accel_sd,
-                    shape_sd=cfg.shape_sd or prov.shape_sd,
-                    joint_accel_sd=cfg.joint_accel_sd or prov.joint_accel_sd)
+    # looser than the moment estimates: the provisional pass is to catch what the other
+    # views contradict, not to hold the data to a prior that may be too tight
+    loose = PROVISIONAL_LOOSENESS
+    start = replace(cfg, accel_sd=cfg.accel_sd or loose * prov.accel_sd,
+                    shape_sd=cfg.shape_sd or max(loose * prov.shape_sd, PROVISIONAL_MIN_SHAPE_SD),
+                    joint_accel_sd=cfg.joint_accel_sd or loose * prov.joint_accel_sd)
     weights = model.verdicts
     if cfg.robust and (cfg.accel_sd is None or cfg.shape_sd is None
                        or (use_kpt and cfg.joint_accel_sd is None)):
@@ -383,7 +394,7 @@ def joints_of(x_s: F64, P_s: F64, layout: Any, rows: Any) -> tuple[F64, F64]:
 def downweighted_of(model: Model, run: dict[str, Any]) -> Downweighted:
     """The measurements the final forward pass down-weighted or rejected."""
     rows = model.rows
-    C, J = len(model.cams.K), model.layout.n_joints
+    J = model.layout.n_joints
     W, S2, RES = run["weights"], run["score2"], run["residual"]
     parts: list[tuple[np.ndarray, ...]] = []
     for sl, d in model.robust_blocks:
@@ -401,7 +412,6 @@ def downweighted_of(model: Model, run: dict[str, Any]) -> Downweighted:
         e = np.zeros(0, dtype=np.int64)
         return Downweighted(e, e, e, e, e, np.zeros(0), np.zeros(0), np.zeros(0))
     r, cam, joint, edge, w, res, s = (np.concatenate(p) for p in zip(*parts, strict=True))
-    del C
     return Downweighted(frame=rows.frames[rows.row_t[r]], cam=cam.astype(np.int64),
                         track_id=rows.obj_ids[rows.row_o[r]], joint=joint.astype(np.int64),
                         edge=edge.astype(np.int64), weight=w, residual_px=res, score=s)

@@ -14,8 +14,9 @@ assumed and the run says so (a warning and the summary line).
 ``keypoints.csv``: header ``frame,camera,id,joint,u,v`` and optionally ``conf`` (a detector's
 confidence in [0, 1], in every row or none); pixels of the distorted image; a missing row
 means not seen, and so does a confidence of 0 (OpenPose writes undetected joints as
-``0,0,0``). A confidence scales the point's variance (``sigma^2 / conf``). Its joint order is ``--skeleton`` (or ``"skeleton"`` in
-``cameras.json``), else the smallest known skeleton holding the largest joint index.
+``0,0,0``). A confidence scales the point's variance (``sigma^2 / conf``). Its joint order
+is ``--skeleton`` (or ``"skeleton"`` in ``cameras.json``), else the smallest known skeleton
+holding the largest joint index.
 Boxes and keypoints of the same (frame, camera, id) update the same object.
 """
 
