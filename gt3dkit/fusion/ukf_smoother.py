@@ -57,7 +57,6 @@ from gt3dkit.fusion.ukf import SigmaWeights, predict_linear, rts_step, ukf_updat
 from gt3dkit.skeletons import Skeleton
 from gt3dkit.types import F64, Downweighted, Scene, TrackSet
 
-
 #: The provisional robust pass that fixes the noise search's weights runs at this multiple of
 #: the moment estimates of the process noise.
 PROVISIONAL_LOOSENESS = 3.0
