@@ -303,7 +303,13 @@ class Scene:
         if self.fps_assumed:
             out.append(f"{self.fps_assumed}: assuming {self.fps:g} frames per second (set it, or "
                        "pass --fps: velocities and the motion model depend on it)")
-        out += [f"camera {k}: {v}" for k, v in self.calibration_notes.items()]
+        fixed = [c for c in self.rig.cameras if c.r_deviation > 0]
+        if fixed:
+            names = ", ".join(c.name for c in fixed[:4]) + (", ..." if len(fixed) > 4 else "")
+            out.append(f"camera{'s' if len(fixed) > 1 else ''} {names}: R re-orthonormalised "
+                       f"({len(fixed)} camera{'s' if len(fixed) > 1 else ''}, max |R R^T - I| "
+                       f"was {max(c.r_deviation for c in fixed):.2g}: storage precision; see "
+                       "meta.json calibration_notes)")
         return tuple(out)
 
     @property

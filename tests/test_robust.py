@@ -285,7 +285,7 @@ def test_rotation_stored_to_seven_digits_is_accepted(tmp_path, capsys) -> None:
     p.write_text(json.dumps(doc))
     assert main(["reconstruct", str(tmp_path / "in"), "--out", str(tmp_path / "out")]) == 0
     err = capsys.readouterr().err
-    assert "warning: camera cam1: R re-orthonormalised" in err
+    assert "warning: camera cam1: R re-orthonormalised (1 camera," in err
     meta = json.loads((tmp_path / "out" / "meta.json").read_text())
     assert "cam1" in meta["input"]["calibration_notes"]
     R = np.array(load_scene(tmp_path / "in").rig.cameras[1].R)

@@ -108,11 +108,10 @@ class Prepared:
         wfb = self.cams.world_from_body
         if self.fit is not None:
             x[:, lay.center], x[:, lay.log_axes] = self.fit.center_world, self.fit.log_axes
-            # a frame whose own views disagree (more than their noise) is trusted less
+            # a frame whose own views disagree (beyond what their noise explains) is trusted less
             dof = self.fit.n_edges - 6
-            red = np.where(dof > 0, self.fit.rss_px2 / (self.sigma_box[0] ** 2 * np.maximum(dof, 1)),
-                           1.0)
-            cov6 = self.fit.cov * np.maximum(red, 1.0)[:, None, None]
+            chi = self.fit.rss_px2 / self.sigma_box[0] ** 2
+            cov6 = self.fit.cov * disagreement_scale(chi, dof)[:, None, None]
         elif self.kpt0 is not None:
             c, s, _ = ellipsoid_around(self.kpt0, np.zeros(self.kpt0.shape[:2]), wfb)
             ok = np.all(np.isfinite(c), axis=1)
@@ -206,6 +205,19 @@ def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = Non
     return Prepared(rows, cams, StateLayout(J if use_kpt else 0), use_box, use_kpt, fit, box_keep,
                     reliable, kpt0, kpt0_cov, kpt_keep, kpt_reliable, sigma_box, sigma_kpt,
                     kpt_var, prior, skel, robust, info)
+
+
+def disagreement_scale(chi2_sum: F64, dof: F64, tail_p: float = 0.01) -> F64:
+    """Covariance scale of a fit from its residual chi-square: the reduced chi-square where
+    it lies beyond the ``1 - tail_p`` quantile (the views disagree more than their noise
+    explains), else 1. Scaling by ``max(reduced, 1)`` everywhere would bias every covariance
+    up (most of all with 1 dof)."""
+    from scipy.stats import chi2
+
+    d = np.maximum(np.asarray(dof, dtype=np.float64), 1.0)
+    red = np.asarray(chi2_sum, dtype=np.float64) / d
+    out = np.where((np.asarray(dof) > 0) & (chi2_sum > chi2.isf(tail_p, d)), red, 1.0)
+    return np.where(np.isfinite(out), out, 1.0)
 
 
 def check_in_front(scene: Scene, rows: Rows, fit: BoxFit) -> None:
@@ -372,11 +384,10 @@ def _robust_keypoints(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig
             sig_j, sig = joint_sigmas(e2, keep)
     w = np.where(keep, conf / sig_j[joint_of][:, None] ** 2, 0.0)
     cov = triangulation_cov(np.nan_to_num(X), cams.R, cams.t, f, w)
-    # a point whose views disagree more than their noise says is trusted less (reduced chi2)
+    # a point whose views disagree beyond what their noise explains is trusted less
     n_in = keep.sum(axis=1)
     chi = np.sum(np.where(keep, e2, 0.0) * w, axis=1)
-    red = np.where(n_in >= 2, chi / np.maximum(2 * n_in - 3, 1), 1.0)
-    cov = cov * np.maximum(red, 1.0)[:, None, None]
+    cov = cov * disagreement_scale(chi, 2 * n_in - 3)[:, None, None]
     cov[~np.all(np.isfinite(X), axis=1)] = np.inf
     kept = np.swapaxes(keep.reshape(R, J, C), 1, 2)
     info = {"sigma_px": sig, "sigma_px_per_joint": sig_j.round(4).tolist(),
@@ -488,19 +499,32 @@ class ProcessNoise:
 
 
 def _moment_q2(d2: F64, noise_var: F64, unit_var: F64, floor: float) -> float:
-    r"""``q^2`` with ``E[d^2] = q^2 u + n`` from samples ``d2, noise_var n, unit_var u``
-    (method of moments), trimming samples beyond the 1e-4 tail of their chi-square."""
+    r"""``q^2`` with ``d^2 ~ (q^2 u + n) chi^2_1`` from samples ``d2, noise_var n, unit_var u``:
+    the value that puts the median of ``d^2 / (q^2 u + n)`` at the median of chi-square(1)
+    (bisection on ``log q^2``), so that gross jumps (a swapped identity) do not count;
+    ``floor`` when the noise explains it all. The median of a heavy-tailed motion (real
+    joints jitter) is below what its mean would say: this is the process noise of the
+    typical frame, which smooths more."""
+    from scipy.stats import chi2
+
     ok = np.isfinite(d2) & np.isfinite(noise_var) & (unit_var > 0)
     d2, nv, u = d2[ok], noise_var[ok], unit_var[ok]
     if d2.size < 3:
         return float("nan")
-    q2 = max(float(d2.sum() / u.sum()), floor)
-    for _ in range(4):
-        keep = d2 / (q2 * u + nv) < 15.1
-        if not keep.any():
-            break
-        q2 = max(float((d2[keep] - nv[keep]).sum() / u[keep].sum()), floor)
-    return q2
+    target = chi2.median(1)
+
+    def med(q2: float) -> float:
+        return float(np.median(d2 / (q2 * u + nv)))
+
+    lo, hi = np.log(floor), np.log(max(float(np.max(d2 / u)), floor) * 10)
+    if med(float(np.exp(lo))) > target:
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            if med(float(np.exp(mid))) > target:
+                lo = mid
+            else:
+                hi = mid
+    return max(float(np.exp(0.5 * (lo + hi))), floor)
 
 
 def moment_process_noise(pre: Prepared, x: F64, var: F64, fps: float,
