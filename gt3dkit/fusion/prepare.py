@@ -558,11 +558,44 @@ def moment_process_noise(pre: Prepared, x: F64, var: F64, fps: float,
         u = np.broadcast_to((2.0 / 3.0 * dt**3)[:, None], d.shape)
         return (d**2).reshape(-1), nv.reshape(-1), u.reshape(-1)
 
+    # five equally spaced frames: second differences at lags 1 and 2 (for the lag test)
+    aa = np.where(a >= 0, a[np.maximum(a, 0)], -1)
+    bb = np.where(b >= 0, b[np.maximum(b, 0)], -1)
+    r5 = r[(aa[r] >= 0) & (bb[r] >= 0)]
+    if r5.size:
+        e1 = t_s[r5] - t_s[aa[r5]]
+        e2 = t_s[bb[r5]] - t_s[r5]
+        d1 = t_s[r5] - t_s[a[r5]]
+        r5 = r5[(np.abs(e1 - e2) < 1e-9 * e1) & (np.abs(e1 - 2 * d1) < 1e-9 * e1)]
+
+    def lagged(block: slice, dims: np.ndarray) -> float:
+        r"""``q^2`` from the robust variances of second differences at lags 1 and 2,
+        ``V_2 - V_1 = 7 (2/3) q^2 dt^3``: the per-frame fits' own noise (white in time) is
+        the same ``6 v`` in both and cancels, however wrong their covariances are."""
+        if r5.size < 10:
+            return float("nan")
+        xs = x[:, block][:, dims]
+        dt1 = t_s[r5] - t_s[a[r5]]
+        g1 = xs[b[r5]] - 2 * xs[r5] + xs[a[r5]]
+        g2 = xs[bb[r5]] - 2 * xs[r5] + xs[aa[r5]]
+        med = 0.4549364  # median of chi-square(1)
+        s1, s2 = g1**2 / dt1[:, None] ** 3, g2**2 / dt1[:, None] ** 3
+
+        def mean_var(v: F64) -> float:
+            # a mean (heavy tails count: real motion turns, real joints jitter), without only
+            # the gross jumps (beyond 24x the median's scale: the chi-square 1e-6 tail)
+            scale = np.median(v) / med
+            return float(np.mean(v[v < 23.9 * scale])) if scale > 0 else float(np.mean(v))
+
+        return float((mean_var(s2) - mean_var(s1)) / (7 * 2.0 / 3.0))
+
     accel, shape, joint = accel_sd, shape_sd, joint_accel_sd
     if pre.use_box and accel is None:
         up = pre.cams.up
         horiz = np.flatnonzero(np.abs(up) < 0.9)[:2]
-        q2 = _moment_q2(*second(lay.center, horiz), 1e-4)
+        q2 = lagged(lay.center, horiz)
+        if not (np.isfinite(q2) and q2 > 0):
+            q2 = _moment_q2(*second(lay.center, horiz), 1e-4)
         accel = float(np.clip(np.sqrt(q2), 0.01, 100.0)) if np.isfinite(q2) else 0.5
         src.append("accel_sd: second differences of the per-frame centres")
     if pre.use_box and shape is None:
@@ -577,7 +610,9 @@ def moment_process_noise(pre: Prepared, x: F64, var: F64, fps: float,
         shape = float(np.clip(np.sqrt(s2), 1e-5, 0.3)) if np.isfinite(s2) else 0.003
         src.append("shape_sd: first differences of the per-frame log semi-axes")
     if pre.use_kpt and joint is None:
-        q2 = _moment_q2(*second(lay.joints, np.arange(3 * lay.n_joints)), 1e-4)
+        q2 = lagged(lay.joints, np.arange(3 * lay.n_joints))
+        if not (np.isfinite(q2) and q2 > 0):
+            q2 = _moment_q2(*second(lay.joints, np.arange(3 * lay.n_joints)), 1e-4)
         joint = float(np.clip(np.sqrt(q2), 0.03, 100.0)) if np.isfinite(q2) else 1.0
         src.append("joint_accel_sd: second differences of the per-frame joints")
     return ProcessNoise(float(accel or joint or 0.5), float(shape or 0.003), float(joint or 1.0),

@@ -51,6 +51,24 @@ from gt3dkit.geom.triangulate import normalized_points
 from gt3dkit.types import F64, Scene, TrackSet
 
 
+def _discrepancy(results: list[dict[str, Any]], tuned: ProcessNoise, step: float,
+                 limit: float = 1.0) -> tuple[ProcessNoise, dict[str, Any]]:
+    r"""Morozov's discrepancy principle on the solution: the measurements' whitened squared
+    residuals (Huber-robust, as the graph sees them) per measurement, ``chi^2 / m``, should not
+    exceed their noise level (``limit``; the per-frame fits, with every frame's own 6 or 3
+    parameters, sit at ``(m - p) / m`` below it). Above it the motion model holds the
+    estimate off the data (too little process noise: the moment estimate reads a smooth
+    typical frame and misses the turns): every process noise is multiplied by ``step``."""
+    chi = sum(r["meas"][0] for r in results)
+    dof = sum(r["meas"][1] for r in results)
+    ratio = chi / max(dof, 1)
+    out: dict[str, Any] = {"measurement_chi2_per_entry": ratio, "rescaled": ratio > limit}
+    if ratio <= limit:
+        return tuned, out
+    return ProcessNoise(tuned.accel_sd * step, tuned.shape_sd * step, tuned.joint_accel_sd * step,
+                        tuned.source), out
+
+
 @dataclass(frozen=True)
 class GTSAMConfig:
     """Settings of :class:`GTSAMSmoother`. ``None`` = from the data (as the UKF does)."""
@@ -65,6 +83,8 @@ class GTSAMConfig:
     clip_tol_px: float = 1.0
     max_iterations: int = 100
     relative_error_tol: float = 1e-10
+    discrepancy_steps: int = 3
+    discrepancy_step: float = 3.0
 
 
 def _gtsam() -> Any:
@@ -107,11 +127,23 @@ class GTSAMSmoother:
         gcams = [gtsam.PinholeCameraCal3_S2(
             gtsam.Pose3(gtsam.Rot3(r.T), -r.T @ t), cal[c])
             for c, (r, t) in enumerate(zip(cams.R, cams.t, strict=True))]
-        for o in range(len(rows.obj_ids)):
+        moment = tuned
+        checks: list[dict[str, Any]] = []
+        for attempt in range(cfg.discrepancy_steps + 1):
+            results = [self._solve_object(gtsam, pre, np.flatnonzero(rows.row_o == o), x0, und,
+                                          gcams, tuned, scene.fps)
+                       for o in range(len(rows.obj_ids))]
+            if attempt == cfg.discrepancy_steps or (cfg.accel_sd and cfg.joint_accel_sd):
+                break
+            new, chk = _discrepancy(results, tuned, cfg.discrepancy_step)
+            checks.append({**tuned.as_dict(), **chk})
+            if not chk["rescaled"]:
+                break
+            tuned = new
+        for o, res in enumerate(results):
             mine = np.flatnonzero(rows.row_o == o)  # sorted by frame
-            res = self._solve_object(gtsam, pre, mine, x0, und, gcams, tuned, scene.fps)
-            for k, v in res["stats"].items():
-                stats[k] += v
+            for k in stats:
+                stats[k] += res["stats"][k]
             centre[mine], log_axes[mine], c_sd[mine] = res["centre"], res["log_axes"], res["c_sd"]
             if use_kpt:
                 kpt[mine], kpt_sd[mine] = res["kpt"], res["kpt_sd"]
@@ -126,7 +158,9 @@ class GTSAMSmoother:
                            "sigma_px": pre.info["boxes"]["sigma_px"] if use_box else None,
                            "kpt_sigma_px": pre.info.get("keypoints", {}).get("sigma_px"),
                            **tuned.as_dict(), "fps": scene.fps},
-                "process_noise_source": tuned.source,
+                "process_noise_source": moment.source,
+                "process_noise_moment_estimate": moment.as_dict(),
+                "process_noise_discrepancy": checks,
                 "preparation": pre.info,
                 "optimizer": "Levenberg-Marquardt (GTSAM), one graph per object", **stats,
                 "object_frames": R, "seconds": time.perf_counter() - t0}
@@ -168,6 +202,8 @@ class GTSAMSmoother:
                     gtsam.noiseModel.Isotropic.Sigma(3, tuned.shape_sd * np.sqrt(dt))))
         for j in np.flatnonzero(seen_j):
             blocks.append(("p", int(j), tuned.joint_accel_sd))
+        meas: list[int] = []
+        meas_dof = 0
         for ch, j, q in blocks:
             vch = "v" if ch == "c" else "w"
             for k, r in enumerate(mine):
@@ -193,6 +229,8 @@ class GTSAMSmoother:
                 z = rows.box_z[r].reshape(-1)[m]
                 noise = gtsam.noiseModel.Robust.Create(
                     huber, gtsam.noiseModel.Diagonal.Sigmas(np.tile(sigma_box, C)[m]))
+                meas.append(int(g.size()))
+                meas_dof += int(m.sum())
                 g.add(gtsam.CustomFactor(noise, [sym("c", k * 32), sym("s", k)],
                                          _box_error(cams, z, m, C)))
         if use_kpt and und is not None:
@@ -201,6 +239,8 @@ class GTSAMSmoother:
                 for c, j in zip(cc, jj, strict=True):
                     noise_k = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Isotropic.Sigma(
                         2, float(np.sqrt(pre.kpt_var[r, c, j]))))
+                    meas.append(int(g.size()))
+                    meas_dof += 2
                     g.add(gtsam.TriangulationFactorCal3_S2(gcams[c], und[r, c, j], noise_k,
                                                            sym("p", k * 32 + int(j))))
         params = gtsam.LevenbergMarquardtParams()
@@ -216,6 +256,8 @@ class GTSAMSmoother:
             "kpt_sd": np.full((n_rows, J), np.nan),
             "stats": {"iterations": int(opt.iterations()), "final_error": float(opt.error()),
                       "factors": int(g.size())},
+            # whitened squared residuals of the measurements (error = chi2 / 2, Huber-robust)
+            "meas": (2.0 * sum(g.at(i).error(result) for i in meas), float(meas_dof)),
         }
         if use_box:
             for k in range(n_rows):
