@@ -25,9 +25,9 @@ class Model:
     """Everything one filter run needs besides the noise settings.
 
     z, mask, var, weight0 : (R, m) measurements, which are present, their variances and
-    the weights the update starts from (the per-frame fits' verdicts, 1 kept, 0 rejected,
-    except where a fit is contested); verdicts : (R, m) all the per-frame verdicts (for the
-    single-pass likelihood of the noise search, which does not reweight); robust_blocks : the ``(slice,
+    the weights the update starts from (the per-frame fits' verdicts, 1 kept, 0 rejected;
+    where a frame's verdict is contested the prior soon overrules it: such a frame neither
+    fades the prediction nor sets the linearisation point); robust_blocks : the ``(slice,
     entries per point)`` blocks whose points the update may down-weight (not bones);
     x_frame, var_frame, cov6_frame : each row's own per-frame state (see
     :meth:`gt3dkit.fusion.prepare.Prepared.frame_state`).
@@ -41,7 +41,6 @@ class Model:
     mask: np.ndarray
     var: F64
     weight0: F64
-    verdicts: F64
     robust_blocks: tuple[tuple[slice, int], ...]
     x_frame: F64
     var_frame: F64
@@ -54,16 +53,13 @@ class Model:
     def of(cls, pre: Prepared) -> Model:
         rows, cams, lay = pre.rows, pre.cams, pre.layout
         R, C, J = len(rows), len(cams.K), lay.n_joints
-        zs, masks, vars_, w0, ver, blocks = [], [], [], [], [], []
+        zs, masks, vars_, w0, blocks = [], [], [], [], []
         at = 0
         if pre.use_box:
             zs.append(rows.box_z.reshape(R, C * 4))
             masks.append(rows.box_mask.reshape(R, C * 4))
             vars_.append(np.broadcast_to(np.tile(pre.sigma_box**2, C), (R, C * 4)))
-            # a contested per-frame fit's verdicts are not imposed: the update decides
-            keep = pre.box_keep | (~pre.fit_reliable[:, None, None] & rows.box_mask)
-            w0.append(keep.reshape(R, C * 4).astype(np.float64))
-            ver.append(pre.box_keep.reshape(R, C * 4).astype(np.float64))
+            w0.append(pre.box_keep.reshape(R, C * 4).astype(np.float64))
             blocks.append((slice(at, at + C * 4), 1))
             at += C * 4
         if pre.use_kpt:
@@ -71,11 +67,7 @@ class Model:
             zs.append(zk)
             masks.append(np.isfinite(zk))
             vars_.append(np.repeat(pre.kpt_var.reshape(R, C * J), 2, axis=1))
-            # a contested per-frame joint's verdicts are not imposed either
-            seen = np.isfinite(rows.kpt_z[..., 0])
-            keep = pre.kpt_keep | (~pre.kpt_reliable[:, None, :] & seen)
-            w0.append(np.repeat(keep.reshape(R, C * J), 2, axis=1).astype(np.float64))
-            ver.append(np.repeat(pre.kpt_keep.reshape(R, C * J), 2, axis=1).astype(np.float64))
+            w0.append(np.repeat(pre.kpt_keep.reshape(R, C * J), 2, axis=1).astype(np.float64))
             blocks.append((slice(at, at + C * J * 2), 2))
         mask = np.concatenate(masks, 1)
         x_f, v_f, c6 = pre.frame_state()
@@ -88,7 +80,7 @@ class Model:
             v_f[:, lay.joints] = np.where(np.repeat(pre.kpt_reliable, 3, axis=1),
                                           v_f[:, lay.joints], np.inf)
         return cls(rows, cams, lay, pre.use_box, np.where(mask, np.concatenate(zs, 1), 0.0),
-                   mask, np.concatenate(vars_, 1), np.concatenate(w0, 1), np.concatenate(ver, 1),
+                   mask, np.concatenate(vars_, 1), np.concatenate(w0, 1),
                    tuple(blocks) if pre.robust.enabled else (), x_f, v_f, c6, det, kcov)
 
     def prior_conflict(self, r: np.ndarray, x: F64, P: F64, tail_p: float = 1e-3) -> F64:

@@ -52,7 +52,7 @@ from gt3dkit.fusion.prepare import (
     never_seen,
     prepare,
 )
-from gt3dkit.fusion.robust import RobustConfig
+from gt3dkit.fusion.robust import RobustConfig, point_weights
 from gt3dkit.fusion.ukf import SigmaWeights, predict_linear, rts_step, ukf_update_information
 from gt3dkit.skeletons import Skeleton
 from gt3dkit.types import F64, Downweighted, Scene, TrackSet
@@ -157,6 +157,12 @@ class UKFSmoother:
         init = initial_states(model, cfg)
         cfg, search = select_noise(model, init, cfg, pre, scene.fps)
         x_s, P_s, run = run_filter(model, init, cfg, scene.fps, collect=True)
+        if cfg.robust and model.robust_blocks:
+            # second pass: the weights start from every point's verdict against the smoothed
+            # estimate, which knows the future too (a bad view in an object's first frame,
+            # where the forward pass had only the frame itself to judge by)
+            model = replace(model, weight0=smoothed_weights(model, x_s, cfg))
+            x_s, P_s, run = run_filter(model, init, cfg, scene.fps, collect=True)
         bone_info: dict[str, Any] = {}
         if pre.use_kpt and cfg.bones and pre.skeleton is not None:
             x_s, P_s, run, bone_info = rerun_with_bones(model, init, cfg, scene.fps, x_s, P_s,
@@ -222,6 +228,22 @@ class UKFSmoother:
             frame=rows.frames[rows.row_t], track_id=rows.obj_ids[rows.row_o],
             center_world=centre, semi_axes=semi, center_sd=sd, n_views=rows.n_views,
             kpt_world=kpt, kpt_sd=kpt_sd, info=info, downweighted=down)
+
+
+def smoothed_weights(model: Model, x_s: F64, cfg: UKFConfig) -> F64:
+    """(R, m) weights of every measurement judged by its residual at the smoothed estimate
+    ``x_s (R, n)`` in units of its noise (:func:`gt3dkit.fusion.robust.point_weights`), 1
+    outside the robust blocks. The smoothed state rests on many frames, so its own spread
+    is left out of the score (a slightly stricter test)."""
+    w = np.ones_like(model.z)
+    zhat = model.h(x_s[:, None, :])[:, 0, :]
+    r = np.where(model.mask & np.isfinite(zhat), model.z - zhat, 0.0)
+    e2 = r * r / model.var
+    B = len(x_s)
+    for sl, d in model.robust_blocks:
+        e2b = e2[:, sl].reshape(B, -1, d).sum(axis=2)
+        w[:, sl] = np.repeat(point_weights(e2b, d, cfg.robust_config), d, axis=1)
+    return np.where(model.mask, w, 1.0)
 
 
 def widen_weak_rows(P_c: F64, pre: Prepared, fps: float, support_s: float = 1.0
@@ -339,7 +361,7 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
     start = replace(cfg, accel_sd=cfg.accel_sd or loose * prov.accel_sd,
                     shape_sd=cfg.shape_sd or max(loose * prov.shape_sd, PROVISIONAL_MIN_SHAPE_SD),
                     joint_accel_sd=cfg.joint_accel_sd or loose * prov.joint_accel_sd)
-    weights = model.verdicts
+    weights = model.weight0
     if cfg.robust and (cfg.accel_sd is None or cfg.shape_sd is None
                        or (use_kpt and cfg.joint_accel_sd is None)):
         weights = run_filter(model, init, replace(start, smooth=False), fps,
@@ -465,9 +487,16 @@ def rerun_with_bones(model: Model, init: Init, cfg: UKFConfig, fps: float, x_s: 
     bmodel = replace(model, z=np.concatenate([model.z, np.nan_to_num(zb)], 1),
                      mask=np.concatenate([model.mask, mb], 1),
                      var=np.concatenate([model.var, sd[rows.row_o] ** 2], 1),
-                     weight0=np.concatenate([model.weight0, np.ones_like(zb)], 1),
-                     verdicts=np.concatenate([model.verdicts, np.ones_like(zb)], 1), bones=bones)
-    x2, P2, info = run_filter(bmodel, init, cfg, fps, collect=True)
+                     weight0=np.concatenate([model.weight0, np.ones_like(zb)], 1), bones=bones,
+                     # a bone the views contradict gives way, not the views
+                     robust_blocks=model.robust_blocks + ((slice(model.z.shape[1],
+                                                                 model.z.shape[1] + zb.shape[1]),
+                                                           1),) if model.robust_blocks else ())
+    # objects start from the first pass's smoothed state (4x its covariance), not from their
+    # first per-frame fit: rigid bones to joints that frame barely sees would otherwise pull
+    # the linearisation far off and the views would look like outliers
+    binit = Init(x_s.copy(), 4.0 * P_s)
+    x2, P2, info = run_filter(bmodel, binit, cfg, fps, collect=True)
     names = [f"{skel.joints[a]}-{skel.joints[b]}" for a, b in bones]
     per_person = {
         str(int(rows.obj_ids[o])): {
