@@ -42,9 +42,20 @@ def _estimator_config(args: argparse.Namespace) -> dict[str, Any]:
     return cfg
 
 
+def check_out_apart(out: str | Path, inp: str | Path) -> None:
+    """Refuse an output folder that is, contains or lies inside the input folder: results
+    must never overwrite (or be mistaken for) annotations."""
+    o, i = Path(out).resolve(), Path(inp).resolve()
+    if o == i or i in o.parents or o in i.parents:
+        raise InputError("--out", f"{out} is, contains or lies inside the input folder {inp}: "
+                                  "choose an output folder apart from the input")
+
+
 def _load(args: argparse.Namespace) -> Any:
     from gt3dkit.io.datasets import detect_layout, load_scene
 
+    if getattr(args, "out", None) is not None:
+        check_out_apart(args.out, args.input)
     layout = args.layout or detect_layout(Path(args.input))
     opts: dict[str, Any] = {}
     if layout == "panoptic":

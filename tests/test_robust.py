@@ -334,3 +334,17 @@ def test_simulator_writes_what_it_injected(tmp_path, capsys) -> None:
     assert main(["simulate", "--out", str(tmp_path / "b"), "--shifted", "0.5",
                  "--outliers", "0.1"]) == 2
     assert "skeleton" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("where", [".", "sub/out", ".."])
+def test_out_must_not_touch_the_input(tmp_path, capsys, where) -> None:
+    """--out equal to, inside or around the input folder is refused before anything is read
+    or written: the annotations stay byte for byte."""
+    root = _skel(tmp_path / "in" / "scene")
+    before = {p.name: p.read_bytes() for p in root.iterdir()}
+    out = root / where
+    code = main(["reconstruct", str(root), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("error: --out:") and "input folder" in err
+    assert {p.name: p.read_bytes() for p in root.iterdir()} == before
+    assert not (root / "sub").exists()
