@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -93,13 +94,18 @@ class Prepared:
     info: dict[str, Any] = field(default_factory=dict)
 
     def frame_state(self) -> tuple[F64, F64, F64]:
-        """Every row's own (per-frame) state, for initialisation and linearisation.
+        """Every row's own (per-frame) state, for initialisation and linearisation (computed
+        once; the arrays are shared, callers copy before changing them).
 
         Returns ``x (R, n)``, per-entry variances ``var (R, n)`` (inf where the frame says
         nothing: velocities, unseen joints) and the (centre, log axes) covariance
         ``cov6 (R, 6, 6)``. Without boxes the centre and axes are those of the ellipsoid
         around the triangulated joints (nearest frame that has some).
         """
+        return self._frame_state
+
+    @cached_property
+    def _frame_state(self) -> tuple[F64, F64, F64]:
         rows, lay = self.rows, self.layout
         R, n, J = len(rows), lay.n, lay.n_joints
         x = np.zeros((R, n))
@@ -115,7 +121,7 @@ class Prepared:
         elif self.kpt0 is not None:
             c, s, _ = ellipsoid_around(self.kpt0, np.zeros(self.kpt0.shape[:2]), wfb)
             ok = np.all(np.isfinite(c), axis=1)
-            near = _nearest_same_object(rows, ok)
+            near = nearest_same_object(rows, ok)
             c, s = c[near], s[near]
             x[:, lay.center], x[:, lay.log_axes] = c, np.log(s)
             cov6 = np.zeros((R, 6, 6))
@@ -139,7 +145,7 @@ class Prepared:
         return x, var, cov6
 
 
-def _nearest_same_object(rows: Rows, ok: np.ndarray) -> np.ndarray:
+def nearest_same_object(rows: Rows, ok: np.ndarray) -> np.ndarray:
     """(R,) for each row the nearest row (in frames) of the same object where ``ok``; the row
     itself where ok. Rows of objects with no ok row map to themselves."""
     R = len(rows)
@@ -246,6 +252,23 @@ def _merge_fit(fit: BoxFit, sel: np.ndarray, sub: BoxFit) -> BoxFit:
 EDGES = ("xmin", "ymin", "xmax", "ymax")
 
 
+def _group_variances(r2: F64, dof: F64, use: np.ndarray, group: np.ndarray, n_groups: int,
+                     reject_p: float, group_dof: int, min_points: int = 30) -> tuple[float, F64]:
+    """:func:`robust_variance` of all used points and of each group (``group`` broadcasts
+    against ``use``) with at least ``min_points``; a group with fewer, or with no finite
+    positive estimate, gets the overall one."""
+    group = np.broadcast_to(group, use.shape)
+    glob = robust_variance(r2[use], dof[use], reject_p, group_dof)
+    out = np.full(n_groups, glob)
+    for g in range(n_groups):
+        u = use & (group == g)
+        if u.sum() >= min_points:
+            v = robust_variance(r2[u], dof[u], reject_p, group_dof)
+            if np.isfinite(v) and v > 0:
+                out[g] = v
+    return glob, out
+
+
 def _edge_sigmas(fit: BoxFit, keep: np.ndarray, robust: RobustConfig) -> tuple[F64, F64]:
     """Box-edge noise sd (px) from the kept edges' residuals (dof: edges minus 6 per
     object-frame): ``(4,)`` the one level every edge is weighted with, and ``(4,)`` each edge
@@ -258,14 +281,7 @@ def _edge_sigmas(fit: BoxFit, keep: np.ndarray, robust: RobustConfig) -> tuple[F
     use = keep & (share[:, None, None] > 0) & np.isfinite(fit.residual_px)
     r2 = np.where(use, fit.residual_px, 0.0) ** 2
     dof = np.broadcast_to(share[:, None, None], keep.shape)
-    glob = robust_variance(r2[use], dof[use], robust.reject_p, 1)
-    out = np.full(4, glob)
-    for e in range(4):
-        u = use[..., e]
-        if u.sum() >= 30:
-            v = robust_variance(r2[..., e][u], dof[..., e][u], robust.reject_p, 1)
-            if np.isfinite(v) and v > 0:
-                out[e] = v
+    glob, out = _group_variances(r2, dof, use, np.arange(4), 4, robust.reject_p, 1)
     out = np.where(np.isfinite(out) & (out > 0), out, 1.0)
     g = glob if np.isfinite(glob) and glob > 0 else 1.0
     return np.full(4, np.sqrt(max(g, 0.1**2))), np.sqrt(np.maximum(out, 0.1**2))
@@ -356,16 +372,9 @@ def _robust_keypoints(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig
         r2 = np.where(keep, e2 * conf, np.nan)  # residual of a unit-confidence point
         dof = np.broadcast_to((2 * share)[:, None], keep.shape)
         use = keep & (n_in[:, None] >= 3)
-        glob = robust_variance(r2[use], dof[use], robust.reject_p, 2)
-        if not np.isfinite(glob) or glob <= 0:
-            glob = 1.0
-        out = np.full(J, glob)
-        for j in range(J):
-            u = use & (joint_of[:, None] == j)
-            if u.sum() >= 30:
-                v = robust_variance(r2[u], dof[u], robust.reject_p, 2)
-                if np.isfinite(v) and v > 0:
-                    out[j] = v
+        glob, out = _group_variances(r2, dof, use, joint_of[:, None], J, robust.reject_p, 2)
+        glob = glob if np.isfinite(glob) and glob > 0 else 1.0
+        out = np.where(np.isfinite(out) & (out > 0), out, glob)
         return np.sqrt(np.maximum(out, 0.05**2)), float(np.sqrt(max(glob, 0.05**2)))
 
     thr1 = max(0.015 * diag, 4.0) if robust.enabled else np.inf

@@ -49,6 +49,7 @@ from gt3dkit.fusion.prepare import (
     ellipsoid_around,
     largest_sd,
     moment_process_noise,
+    nearest_same_object,
     never_seen,
     prepare,
 )
@@ -264,13 +265,8 @@ def widen_weak_rows(P_c: F64, pre: Prepared, fps: float, support_s: float = 1.0
     nv = np.all(np.isfinite(rows.box_z), axis=-1).sum(axis=1)
     multi = nv >= 2
     t_s = rows.frames[rows.row_t] / fps
-    dist = np.full(len(rows), np.inf)
-    for o in np.unique(rows.row_o[~multi]):
-        mine = rows.row_o == o
-        good = t_s[mine & multi]
-        if good.size:
-            d = np.abs(t_s[mine][:, None] - good[None, :]).min(axis=1)
-            dist[mine] = d
+    near = nearest_same_object(rows, multi)
+    dist = np.where(multi[near], np.abs(t_s - t_s[near]), np.inf)
     weak = (nv == 1) & (dist > support_s) & pre.fit.ok
     if not weak.any():
         return P_c, 0
