@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
+import os
+import signal
 import sys
+import traceback
+import warnings
+from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -51,29 +55,39 @@ def check_out_apart(out: str | Path, inp: str | Path) -> None:
                                   "choose an output folder apart from the input")
 
 
+def check_output(out: str | Path, inputs: tuple[str | Path, ...] = ()) -> None:
+    """Every check of an output folder that can be made before the work starts."""
+    from gt3dkit.io.atomic import check_out
+
+    for inp in inputs:
+        check_out_apart(out, inp)
+    check_out(out)
+
+
 def _load(args: argparse.Namespace) -> Any:
     from gt3dkit.io.datasets import detect_layout, load_scene
 
     if getattr(args, "out", None) is not None:
-        check_out_apart(args.out, args.input)
+        check_output(args.out, (args.input,))
     layout = args.layout or detect_layout(Path(args.input))
     opts: dict[str, Any] = {}
     if layout == "panoptic":
-        if args.cameras:
+        if args.cameras is not None:
             opts["cameras"] = [c.strip() for c in args.cameras.split(",") if c.strip()]
+            if not opts["cameras"]:
+                raise InputError("--cameras", f"no camera names in {args.cameras!r}")
         opts["noise_px"], opts["seed"] = args.noise_px, args.seed
-        if not args.noise_px >= 0:
-            raise InputError("--noise-px", f"must be >= 0, got {args.noise_px}")
-    elif args.cameras or args.noise_px:
+    elif args.cameras is not None or args.noise_px:
         raise InputError("--cameras/--noise-px", "apply to CMU Panoptic inputs only")
-    scene = load_scene(Path(args.input), layout, args.skeleton, **opts)
-    if getattr(args, "fps", None) is not None:
-        if not (np.isfinite(args.fps) and args.fps > 0):
-            raise InputError("--fps", f"must be positive and finite, got {args.fps}")
-        scene = dataclasses.replace(scene, fps=float(args.fps), fps_assumed="")
+    scene = load_scene(Path(args.input), layout, args.skeleton, getattr(args, "fps", None), **opts)
+    return scene
+
+
+def print_warnings(scene: Any) -> None:
+    """The input's ``warning:`` lines, printed once the run succeeded (a failed run prints its
+    one ``error:`` line only)."""
     for w in scene.all_warnings:
         print(f"warning: {w}", file=sys.stderr)
-    return scene
 
 
 def error_table(rows: list[tuple[str, Any]]) -> str:
@@ -92,6 +106,11 @@ def error_table(rows: list[tuple[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def _num(v: float | None, width: int, digits: int) -> str:
+    """``v`` right-aligned in ``width``, or ``-`` where there is no value (None, NaN)."""
+    return f"{v:>{width}.{digits}f}" if v is not None and np.isfinite(v) else f"{'-':>{width}}"
+
+
 def pose_table(rows: list[tuple[str, Any, float]]) -> str:
     """Fixed-width table of (name, PoseScores, MPJPE by id in mm)."""
     head = (f"{'estimator':<26}{'AP@25':>7}{'AP@50':>7}{'AP@100':>8}{'AP@150':>8}"
@@ -100,12 +119,13 @@ def pose_table(rows: list[tuple[str, Any, float]]) -> str:
     for name, p, by_id in rows:
         lines.append(f"{name:<26}{100 * p.ap[25]:>7.1f}{100 * p.ap[50]:>7.1f}"
                      f"{100 * p.ap[100]:>8.1f}{100 * p.ap[150]:>8.1f}{100 * p.recall_500:>9.1f}"
-                     f"{p.mpjpe_mm:>11.4f}{by_id:>10.4f}")
+                     f"{_num(p.mpjpe_mm, 11, 4)}{_num(by_id, 10, 4)}")
     return "\n".join(lines)
 
 
-def report_truth(scene: Any, tracks: Any, name: str) -> None:
-    """Print errors against the input's truth: boxes/positions and/or keypoints."""
+def report_truth(scene: Any, tracks: Any, name: str, max_dist_m: float = 1.0) -> None:
+    """Print errors against the input's truth: boxes/positions and/or keypoints; tracking scores
+    count an estimate within ``max_dist_m`` (ground plane) of a true object as a match."""
     from gt3dkit.eval.metrics import box_errors
     from gt3dkit.eval.pose import mpjpe_by_id, score_tracks
 
@@ -115,9 +135,9 @@ def report_truth(scene: Any, tracks: Any, name: str) -> None:
     if np.isfinite(scene.truth.center_world).any():
         from gt3dkit.eval.tracking import tracking_scores
 
-        print(error_table([(name, box_errors(tracks, scene.truth, scene.rig.up))]))
-        t = tracking_scores(tracks, scene.truth, scene.rig.up)
-        print(f"ground plane, 1 m: MOTA {100 * t['mota']:.1f}  IDF1 {100 * t['idf1']:.1f}  "
+        print(error_table([(name, box_errors(tracks, scene.truth, scene.rig.up, max_dist_m))]))
+        t = tracking_scores(tracks, scene.truth, scene.rig.up, max_dist_m)
+        print(f"ground plane, {max_dist_m:g} m: MOTA {100 * t['mota']:.1f}  IDF1 {100 * t['idf1']:.1f}  "
               f"FP {t['fp']}  FN {t['fn']}  IDs {t['ids']}  HOTA {100 * t['hota']:.1f}  "
               f"OSPA(2) {t['ospa2_m']:.4f} m")
     if scene.truth.kpt_world.shape[1] and tracks.kpt_world.shape[1]:
@@ -133,6 +153,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
 
     scene = _load(args)
     tracks = reconstruct(scene, args.estimator, out=args.out, **_estimator_config(args))
+    print_warnings(scene)
     info = tracks.info
     kinds = " + ".join(k for k, v in (("boxes", scene.obs.has_box.any()),
                                       (f"{scene.skeleton} keypoints", scene.obs.n_joints > 0)) if v)
@@ -158,10 +179,6 @@ def _errors(args: argparse.Namespace) -> Any:
         except ValueError:
             raise InputError("--gap", f"expected FIRST:END frame indices, got {args.gap!r}") from None
         gap = (a, b)
-    for k in ("outliers", "swaps", "glitch", "shifted", "single_view"):
-        v = getattr(args, k)
-        if not 0 <= v <= 1:  # NaN fails too
-            raise InputError(f"--{k.replace('_', '-')}", f"must be a fraction in [0, 1], got {v}")
     try:
         return Errors(outliers=args.outliers, swaps=args.swaps, glitch=args.glitch,
                       shifted=args.shifted, gap=gap, single_view=args.single_view)
@@ -169,12 +186,28 @@ def _errors(args: argparse.Namespace) -> Any:
         raise InputError("simulate", str(e)) from None
 
 
+#: Largest simulated scene, in 2D annotations (boxes, or keypoints): about 2 GB of memory.
+SIM_MAX_POINTS = 20_000_000
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
+    from gt3dkit.skeletons import SKELETONS
 
+    check_output(args.out)
     errors = _errors(args)
-    if not args.noise_px >= 0:
-        raise InputError("--noise-px", f"must be >= 0, got {args.noise_px}")
+    cams = args.cameras or (10 if args.kind == "skeleton" else 6)
+    per = SKELETONS[args.skeleton].n_joints if args.kind == "skeleton" else 1
+    size = args.frames * args.people * cams * per
+    if size > SIM_MAX_POINTS:
+        raise InputError("--frames/--people/--cameras",
+                         f"{args.frames} frames x {args.people} people x {cams} cameras"
+                         + (f" x {per} joints" if per > 1 else "")
+                         + f" = {size:.3g} annotations, more than the {SIM_MAX_POINTS:.0e} "
+                           "gt3d simulate writes")
+    if errors.gap is not None and not 0 <= errors.gap[0] < errors.gap[1] <= args.frames:
+        raise InputError("--gap", f"expected 0 <= FIRST < END <= --frames ({args.frames}), "
+                                  f"got {args.gap}")
     n_err = ""
     if args.kind == "skeleton":
         if args.shifted:
@@ -218,6 +251,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from gt3dkit.io.datasets import load_scene
     from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv
 
+    if not Path(args.out).is_dir():
+        raise InputError(str(args.out), "not a folder (expected a gt3d reconstruct output)")
+    if not (Path(args.out) / "tracks.csv").is_file():
+        raise InputError(str(args.out), "no tracks.csv (expected a gt3d reconstruct output)")
     tracks = read_tracks_csv(Path(args.out) / "tracks.csv")
     scene = load_scene(Path(args.truth), args.layout)
     if scene.truth is None:
@@ -227,7 +264,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if kp.exists() and scene.obs.n_joints:
         tracks = read_keypoints_csv(kp, tracks, scene.obs.n_joints)
     print(f"{args.out} against the truth of {args.truth}:")
-    report_truth(scene, tracks, Path(args.out).name)
+    report_truth(scene, tracks, Path(args.out).name, args.max_dist_m)
     return 0
 
 
@@ -236,6 +273,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
     scene = _load(args)
     table = compare(scene, Path(args.out), progress=not args.no_progress)
+    print_warnings(scene)
     print(f"{scene.layout}: {len(scene.obs)} annotation rows -> {args.out}/comparison.csv")
     names = [r["estimator"] for r in table]
     head = f"{'estimator':<15}{'rows':>6}{'reproj px':>10}{'p95 px':>8}" + "".join(
@@ -244,16 +282,17 @@ def cmd_compare(args: argparse.Namespace) -> int:
     print(head)
     print("-" * len(head))
     for r in table:
-        line = f"{r['estimator']:<15}{r['rows']:>6}{r['reproj_mean_px']:>10.3f}{r['reproj_p95_px']:>8.3f}"
+        line = (f"{r['estimator']:<15}{r['rows']:>6}{_num(r['reproj_mean_px'], 10, 3)}"
+                f"{_num(r['reproj_p95_px'], 8, 3)}")
         for n in names:
             v = r.get(f"dist_to_{n}_mean_m")
-            line += f"{'-':>20}" if v is None else f"{v:>20.5f}"
+            line += _num(v, 20, 5)
         line += f"{r['seconds']:>8.1f}"
         if scene.truth is not None:
             v = r.get("truth_mpjpe_m", r.get("truth_centre_mean_m"))
             if v is None or not np.isfinite(v):
-                v = r.get("truth_ground_mean_m", float("nan"))
-            line += f"{v:>13.5f}"
+                v = r.get("truth_ground_mean_m")
+            line += _num(v, 13, 5)
         print(line)
     return 0
 
@@ -312,103 +351,205 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with the one-line ``error: <entry>: <problem>`` (exit 2) of every other error."""
+
+    def error(self, message: str) -> Any:  # type: ignore[override]
+        print(f"error: {self.prog}: {message} (see {self.prog} --help)", file=sys.stderr)
+        raise SystemExit(2)
+
+
+def _number(kind: type, lo: float, hi: float, *, lo_open: bool = False,
+            hi_open: bool = False) -> Callable[[str], Any]:
+    """argparse type: a finite ``kind`` in [lo, hi] (open ends where asked)."""
+    def parse(text: str) -> Any:
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}"
+                                             f", got {text!r}") from None
+        ok = (np.isfinite(v) and (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi))
+        if not ok:
+            raise argparse.ArgumentTypeError(
+                f"must be in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}, got {text}")
+        return v
+    return parse
+
+
+FRACTION = _number(float, 0, 1)
+PIXELS = _number(float, 0, 1000)              # image noise, px
+SIGMA_PX = _number(float, 0, 1000, lo_open=True)
+ACCEL = _number(float, 0, 1000, lo_open=True)  # m/s^2/sqrt(Hz)
+FPS = _number(float, 1e-3, 1e6)                # one frame per 17 minutes .. 1 MHz
+SEED = _number(int, 0, 2**32 - 1)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from gt3dkit.api import ESTIMATORS
     from gt3dkit.io.datasets import LAYOUTS
     from gt3dkit.sim import SIM_LAYOUTS
     from gt3dkit.skeletons import SKELETONS
 
-    p = argparse.ArgumentParser(prog="gt3d", description=__doc__)
-    sub = p.add_subparsers(dest="command", required=True)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true",
+                        help="show the Python traceback of an unexpected error")
+    p = _Parser(prog="gt3d", description=__doc__, parents=[common])
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
-    r = sub.add_parser("reconstruct", help="2D boxes from calibrated cameras -> 3D ellipsoid tracks")
+    r = sub.add_parser("reconstruct", parents=[common],
+                       help="2D boxes from calibrated cameras -> 3D ellipsoid tracks")
     r.add_argument("input", help="input folder (native, WILDTRACK or MultiviewX layout)")
     r.add_argument("--out", required=True, help="output folder (tracks.csv, meta.json)")
     r.add_argument("--layout", choices=LAYOUTS, help="input layout (default: detected)")
     r.add_argument("--estimator", choices=ESTIMATORS, default="ukf")
-    r.add_argument("--sigma-px", type=float, help="box-edge noise (default: from the data)")
-    r.add_argument("--accel-sd", type=float,
+    r.add_argument("--sigma-px", type=SIGMA_PX, help="box-edge noise (default: from the data)")
+    r.add_argument("--accel-sd", type=ACCEL,
                    help="acceleration noise, m/s^2/sqrt(Hz) (default: max likelihood)")
-    r.add_argument("--fps", type=float, help="frame-number rate (default: the layout's)")
+    r.add_argument("--fps", type=FPS, help="frame-number rate (default: the layout's)")
     r.add_argument("--no-smooth", action="store_true", help="forward filter only (no RTS)")
     r.add_argument("--no-bones", action="store_true", help="do not tie bone lengths")
     r.add_argument("--skeleton", choices=sorted(SKELETONS),
                    help="joint order of keypoints.csv (default: from the data)")
     r.add_argument("--cameras", help="CMU Panoptic: comma-separated HD cameras (default all)")
-    r.add_argument("--noise-px", type=float, default=0.0,
+    r.add_argument("--noise-px", type=PIXELS, default=0.0,
                    help="CMU Panoptic: Gaussian noise added to the projected 2D joints")
-    r.add_argument("--seed", type=int, default=0, help="CMU Panoptic: seed of that noise")
+    r.add_argument("--seed", type=SEED, default=0, help="CMU Panoptic: seed of that noise")
     r.set_defaults(func=cmd_reconstruct)
 
-    s = sub.add_parser("simulate", help="write a seeded synthetic scene with its truth")
+    s = sub.add_parser("simulate", parents=[common],
+                       help="write a seeded synthetic scene with its truth")
     s.add_argument("--kind", choices=("boxes", "skeleton"), default="boxes")
     s.add_argument("--layout", choices=(*SIM_LAYOUTS, "panoptic"), default="native",
                    help="boxes: native|wildtrack|multiviewx; skeleton: native|panoptic")
-    s.add_argument("--cameras", type=int,
+    s.add_argument("--cameras", type=_number(int, 1, 1000),
                    help="cameras (skeleton scenes: HD cameras, default 10; native boxes: 6)")
-    s.add_argument("--fps", type=float, help="frame rate (skeletons: 30; native boxes: 10)")
+    s.add_argument("--fps", type=FPS, help="frame rate (skeletons: 30; native boxes: 10)")
     s.add_argument("--motion", choices=("smooth", "walk"), default="smooth",
                    help="box scenes: smooth paths or real-trajectory-like walking")
-    s.add_argument("--outliers", type=float, default=0.0,
+    s.add_argument("--outliers", type=FRACTION, default=0.0,
                    help="skeletons: fraction of keypoints replaced by far-off points")
-    s.add_argument("--swaps", type=float, default=0.0,
+    s.add_argument("--swaps", type=FRACTION, default=0.0,
                    help="skeletons: fraction of person-views with one left/right pair swapped")
-    s.add_argument("--glitch", type=float, default=0.0,
+    s.add_argument("--glitch", type=FRACTION, default=0.0,
                    help="skeletons: fraction of keypoints at x = 0 with a high confidence")
-    s.add_argument("--shifted", type=float, default=0.0,
+    s.add_argument("--shifted", type=FRACTION, default=0.0,
                    help="boxes: fraction of boxes moved by 0.3-1 of their size")
     s.add_argument("--gap", help="FIRST:END frame indices with no annotation at all")
-    s.add_argument("--single-view", type=float, default=0.0,
+    s.add_argument("--single-view", type=FRACTION, default=0.0,
                    help="fraction of people annotated in one camera only")
     s.add_argument("--conf", action="store_true",
                    help="skeletons: write a detector confidence per keypoint")
-    s.add_argument("--missing", type=float, default=0.05,
+    s.add_argument("--missing", type=_number(float, 0, 1, hi_open=True), default=0.05,
                    help="skeleton scenes: fraction of 2D points dropped at random")
     s.add_argument("--skeleton", choices=sorted(SKELETONS), default="coco19")
     s.add_argument("--out", required=True)
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--frames", type=int, default=40)
-    s.add_argument("--people", type=int, default=10)
-    s.add_argument("--noise-px", type=float, default=0.0)
-    s.add_argument("--dropout", type=float, default=0.15)
+    s.add_argument("--seed", type=SEED, default=0)
+    s.add_argument("--frames", type=_number(int, 1, 10**7), default=40)
+    s.add_argument("--people", type=_number(int, 1, 10**5), default=10)
+    s.add_argument("--noise-px", type=PIXELS, default=0.0)
+    s.add_argument("--dropout", type=_number(float, 0, 1, hi_open=True), default=0.15)
     s.set_defaults(func=cmd_simulate)
 
-    c = sub.add_parser("compare", help="UKF, GTSAM smoother and triangulation side by side")
+    c = sub.add_parser("compare", parents=[common],
+                       help="UKF, GTSAM smoother and triangulation side by side")
     c.add_argument("input", help="input folder (any layout)")
     c.add_argument("--out", required=True, help="output folder (<estimator>/, comparison.csv)")
     c.add_argument("--layout", choices=LAYOUTS)
     c.add_argument("--skeleton", choices=sorted(SKELETONS))
     c.add_argument("--cameras", help="CMU Panoptic: comma-separated HD cameras")
-    c.add_argument("--noise-px", type=float, default=0.0, help="CMU Panoptic: 2D noise")
-    c.add_argument("--seed", type=int, default=0)
-    c.add_argument("--fps", type=float)
+    c.add_argument("--noise-px", type=PIXELS, default=0.0, help="CMU Panoptic: 2D noise")
+    c.add_argument("--seed", type=SEED, default=0)
+    c.add_argument("--fps", type=FPS)
     c.add_argument("--no-progress", action="store_true", help="no progress bar")
     c.set_defaults(func=cmd_compare)
 
-    e = sub.add_parser("evaluate", help="score OUT/tracks.csv against an input's truth")
+    e = sub.add_parser("evaluate", parents=[common],
+                       help="score OUT/tracks.csv against an input's truth")
     e.add_argument("out", help="a reconstruct output folder")
     e.add_argument("--truth", required=True, help="the input folder that carries the truth")
     e.add_argument("--layout", choices=LAYOUTS)
-    e.add_argument("--max-dist-m", type=float, default=1.0, help="MOT match distance")
+    e.add_argument("--max-dist-m", type=_number(float, 0, 1e6, lo_open=True), default=1.0,
+                   help="ground-plane distance within which an estimate matches a true object "
+                        "(MOTA, IDF1, HOTA, OSPA cut-off)")
     e.set_defaults(func=cmd_evaluate)
 
-    d = sub.add_parser("demo", help="reconstruct the bundled MultiviewX and Panoptic data, "
-                                    "print errors")
+    d = sub.add_parser("demo", parents=[common],
+                       help="reconstruct the bundled MultiviewX and Panoptic data, print errors")
     d.add_argument("--out", default="out/demo", help="where to write (default out/demo)")
     d.set_defaults(func=cmd_demo)
     return p
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+class Terminated(BaseException):
+    """SIGTERM or SIGHUP, raised where the program is so that clean-ups run."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def _terminate(signum: int, frame: Any) -> None:
+    raise Terminated(signum)
+
+
+def _quiet_stdout() -> None:
+    """After a broken pipe: send what Python still flushes at exit nowhere."""
     try:
-        return int(args.func(args))
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The ``gt3d`` command. Exit status: 0 done, 2 bad input or option (one ``error:`` line),
+    1 an unexpected error (one line; ``--debug`` shows the traceback), 130 / 143 interrupted
+    (SIGINT / SIGTERM); in every failure no output is written or changed."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    debug = "--debug" in argv
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as e:  # --help (0) or a usage error (2, already printed)
+        return int(e.code or 0)
+    previous = {}
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        try:
+            previous[sig] = signal.signal(sig, _terminate)
+        except ValueError:  # not the main thread
+            pass
+    try:
+        with warnings.catch_warnings():
+            if not debug:  # numerical warnings are ours to handle, never the user's to read
+                warnings.simplefilter("ignore", RuntimeWarning)
+            return int(args.func(args))
     except InputError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    except (OSError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    except BrokenPipeError:  # ``gt3d ... | head``: the reader left; the output is complete
+        _quiet_stdout()
+        return 141
+    except KeyboardInterrupt:
+        print("error: interrupted (Ctrl-C): no output written or changed", file=sys.stderr)
+        return 130
+    except Terminated as e:
+        print(f"error: stopped by {e}: no output written or changed", file=sys.stderr)
+        return 128 + e.signum
+    except OSError as e:  # the machine, not the input: a full disk, a vanished folder
+        print(f"error: {e.filename or 'system'}: {e.strerror or e}", file=sys.stderr)
+        return 1
+    except MemoryError:
+        print("error: out of memory: the input is too large for this machine", file=sys.stderr)
+        return 1
+    except Exception as e:  # noqa: BLE001 - the one place that turns a bug into one line
+        if debug:
+            traceback.print_exc()
+        where = traceback.extract_tb(e.__traceback__)[-1]
+        print(f"error: internal error, {type(e).__name__}: {e} (at {Path(where.filename).name}:"
+              f"{where.lineno}; please report it, --debug shows the traceback)", file=sys.stderr)
+        return 1
+    finally:
+        for sig, h in previous.items():
+            signal.signal(sig, h)
 
 
 if __name__ == "__main__":

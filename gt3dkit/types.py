@@ -81,6 +81,9 @@ class Camera:
     def __post_init__(self) -> None:
         object.__setattr__(self, "K", _arr(self.K, (3, 3), f"camera {self.name}: K"))
         d = np.asarray(self.dist, dtype=np.float64).reshape(-1)
+        if d.size not in (0, 4, 5, 8, 12, 14):  # OpenCV's distortion vector lengths
+            raise ValueError(f"camera {self.name}: dist has {d.size} coefficients; OpenCV's "
+                             "k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]] has 4, 5, 8, 12 or 14")
         if d.size > 5 and np.any(d[5:] != 0):
             raise ValueError(
                 f"camera {self.name}: only OpenCV k1 k2 p1 p2 k3 distortion is supported, "

@@ -227,7 +227,20 @@ def test_unknown_panoptic_camera(tmp_path, capsys) -> None:
 
 
 def test_object_seen_by_one_camera_only(tmp_path, skel_native, capsys) -> None:
+    """Keypoints of one view give no 3D position: the object is left out, with a warning."""
+    root = _copy(skel_native[0], tmp_path / "in")
+    _append(root / "keypoints.csv", "100,00_01,42,3,900,500")
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(root), "--out", str(out), "--estimator", "triangulation"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("warning: ") == 1 and "1 objects with keypoints only" in err and "42" in err
+    assert "42" not in {r.split(",")[1] for r in (out / "tracks.csv").read_text().splitlines()}
+
+
+def test_objects_that_two_views_never_see_together(tmp_path, skel_native, capsys) -> None:
+    """Two cameras, but never in the same frame: no 3D position, an error naming the object."""
     root = _copy(skel_native[0], tmp_path / "in")
     line = _append(root / "keypoints.csv", "100,00_01,42,3,900,500")
+    _append(root / "keypoints.csv", "101,00_02,42,3,900,500")
     err = _run(tmp_path, root, capsys)
     assert f"line {line}" in err and "object 42 is never seen by two cameras" in err

@@ -13,7 +13,7 @@ import numpy as np
 from gt3dkit import __version__
 from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import write_dir_atomically
-from gt3dkit.io.datasets.common import read_csv_rows
+from gt3dkit.io.datasets.common import parse_float, parse_frame, parse_int, read_csv_rows
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import Scene, TrackSet
 
@@ -116,9 +116,27 @@ def write_downweighted_csv(path: Path, scene: Scene, tracks: TrackSet) -> None:
                         f"{d.weight[i]:.4f}", f"{d.residual_px[i]:.3f}", f"{d.score[i]:.3f}"])
 
 
+def check_tracks(tracks: TrackSet) -> None:
+    """Refuse to write a result with non-finite numbers (a numerical failure, never a result):
+    raises ``FloatingPointError`` naming the first bad row."""
+    a = np.column_stack([tracks.center_world, tracks.semi_axes, tracks.center_sd])
+    bad = ~np.isfinite(a).all(axis=1)
+    kb = np.isnan(tracks.kpt_world).any(axis=-1) != np.isnan(tracks.kpt_world).all(axis=-1)
+    kb |= np.isinf(tracks.kpt_world).any(axis=-1)
+    kb |= np.isfinite(tracks.kpt_world).all(axis=-1) & ~(tracks.kpt_sd >= 0)
+    bad |= kb.any(axis=1)
+    if bad.any():
+        r = int(np.flatnonzero(bad)[0])
+        raise FloatingPointError(
+            f"the {tracks.info.get('estimator', 'estimator')} result has non-finite values in "
+            f"{int(bad.sum())} rows (first: frame {int(tracks.frame[r])}, object "
+            f"{int(tracks.track_id[r])}); nothing was written")
+
+
 def write_result_files(d: Path, scene: Scene, tracks: TrackSet,
                        extra_meta: dict[str, Any] | None = None) -> None:
     """``tracks.csv``, ``keypoints.csv`` (with joints) and ``meta.json`` into folder ``d``."""
+    check_tracks(tracks)
     meta = meta_of(scene, tracks)
     if extra_meta:
         meta.update(_jsonable(extra_meta))
@@ -138,20 +156,29 @@ def write_outputs(out: Path, scene: Scene, tracks: TrackSet,
 
 
 def read_tracks_csv(path: Path) -> TrackSet:
-    """Read a ``tracks.csv`` written by :func:`write_tracks_csv`."""
+    """Read a ``tracks.csv`` written by :func:`write_tracks_csv` (one row per frame and id,
+    finite numbers, semi-axes and sds >= 0)."""
     path = Path(path)
-    rows = []
+    rows, keys = [], {}
     for line, r in read_csv_rows(path, TRACK_COLUMNS):
-        try:
-            rows.append([float(r[k]) for k in TRACK_COLUMNS])
-        except ValueError as e:
-            raise InputError(f"{path}: line {line}", f"malformed value ({e})") from None
-    a = np.array(rows, dtype=np.float64).reshape(-1, len(TRACK_COLUMNS))
+        where = f"{path}: line {line}"
+        key = (parse_frame(where, r["frame"]), parse_int(where, r["id"], "id"))
+        if key in keys:
+            raise InputError(where, f"second row for object {key[1]} in frame {key[0]} (first "
+                                    f"on line {keys[key]})")
+        keys[key] = line
+        vals = [parse_float(where, r[k], k) for k in TRACK_COLUMNS[2:]]
+        if min(vals[3:]) < 0:
+            raise InputError(where, "negative semi-axis or standard deviation")
+        rows.append(vals)
+    if not rows:
+        raise InputError(str(path), "no tracks (only a header)")
+    k = np.array(list(keys), dtype=np.int64).reshape(-1, 2)
+    a = np.array(rows, dtype=np.float64).reshape(-1, len(TRACK_COLUMNS) - 2)
     n = len(a)
-    return TrackSet(frame=a[:, 0].astype(np.int64), track_id=a[:, 1].astype(np.int64),
-                    center_world=a[:, 2:5], semi_axes=a[:, 5:8], center_sd=a[:, 8:11],
-                    n_views=np.full(n, -1, dtype=np.int64), kpt_world=np.zeros((n, 0, 3)),
-                    kpt_sd=np.zeros((n, 0)), info={"source": str(path)})
+    return TrackSet(frame=k[:, 0], track_id=k[:, 1], center_world=a[:, 0:3], semi_axes=a[:, 3:6],
+                    center_sd=a[:, 6:9], n_views=np.full(n, -1, dtype=np.int64),
+                    kpt_world=np.zeros((n, 0, 3)), kpt_sd=np.zeros((n, 0)), info={"source": str(path)})
 
 
 def read_keypoints_csv(path: Path, tracks: TrackSet, n_joints: int) -> TrackSet:
@@ -165,13 +192,16 @@ def read_keypoints_csv(path: Path, tracks: TrackSet, n_joints: int) -> TrackSet:
     sd = np.full((len(tracks), n_joints), np.nan)
     for line, r in read_csv_rows(path, KPT_COLUMNS):
         where = f"{path}: line {line}"
-        try:
-            fr, tid, j = int(r["frame"]), int(r["id"]), int(r["joint"])
-            xyz, s = [float(r[k]) for k in ("x", "y", "z")], float(r["sd"])
-        except ValueError as e:
-            raise InputError(where, f"malformed value ({e})") from None
-        if (fr, tid) not in key or not 0 <= j < n_joints:
-            raise InputError(where, "row without a track or joint index outside the skeleton")
+        fr, tid = parse_frame(where, r["frame"]), parse_int(where, r["id"], "id")
+        j = parse_int(where, r["joint"], "joint", 0, max(n_joints - 1, 0))
+        xyz = [parse_float(where, r[k], k) for k in ("x", "y", "z")]
+        s = parse_float(where, r["sd"], "sd")
+        if (fr, tid) not in key:
+            raise InputError(where, f"object {tid} in frame {fr} has no row in tracks.csv")
+        if np.isfinite(kpt[key[(fr, tid)], j]).all():
+            raise InputError(where, f"second row for joint {j} of object {tid} in frame {fr}")
+        if s < 0:
+            raise InputError(where, "negative standard deviation")
         kpt[key[(fr, tid)], j] = xyz
         sd[key[(fr, tid)], j] = s
     return dataclasses.replace(tracks, kpt_world=kpt, kpt_sd=sd)

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from gt3dkit.errors import InputError
 from gt3dkit.types import Scene
@@ -31,22 +34,31 @@ def detect_layout(root: Path) -> str:
 
 
 def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None = None,
-               **panoptic_options: Any) -> Scene:
+               fps: float | None = None, **panoptic_options: Any) -> Scene:
     """Load any supported input folder (layout detected when not given).
 
     ``skeleton`` names the joint order of native ``keypoints.csv`` (default: from the
-    data). ``panoptic_options`` go to :func:`gt3dkit.io.datasets.panoptic.load`
-    (``cameras``, ``noise_px``, ``seed``, ``min_conf``).
+    data); ``fps`` overrides the input's frame rate. ``panoptic_options`` go to
+    :func:`gt3dkit.io.datasets.panoptic.load` (``cameras``, ``noise_px``, ``seed``,
+    ``min_conf``). Every scene then goes through :func:`checks.check_scene`.
     """
-    from gt3dkit.io.datasets import native, panoptic, wildtrack
+    from gt3dkit.io.datasets import checks, native, panoptic, wildtrack
 
     layout = layout or detect_layout(Path(root))
     if panoptic_options and layout != "panoptic":
-        raise ValueError(f"options {sorted(panoptic_options)} apply to the panoptic layout only")
+        raise InputError(str(root), f"options {sorted(panoptic_options)} apply to the panoptic "
+                                    "layout only")
     if layout == "native":
-        return native.load(Path(root), skeleton)
-    if layout == "panoptic":
-        return panoptic.load(Path(root), **panoptic_options)
-    if layout in wildtrack.LAYOUTS:
-        return wildtrack.load(Path(root), wildtrack.LAYOUTS[layout])
-    raise InputError(str(root), f"unknown layout {layout!r} (known: {', '.join(LAYOUTS)})")
+        scene = native.load(Path(root), skeleton)
+    elif layout == "panoptic":
+        scene = panoptic.load(Path(root), **panoptic_options)
+    elif layout in wildtrack.LAYOUTS:
+        scene = wildtrack.load(Path(root), wildtrack.LAYOUTS[layout])
+    else:
+        raise InputError(str(root), f"unknown layout {layout!r} (known: {', '.join(LAYOUTS)})")
+    if fps is not None:
+        if not (np.isfinite(fps) and native.FPS_RANGE[0] <= fps <= native.FPS_RANGE[1]):
+            raise InputError("fps", f"must be in [{native.FPS_RANGE[0]:g}, {native.FPS_RANGE[1]:g}]"
+                                    f", got {fps}")
+        scene = dataclasses.replace(scene, fps=float(fps), fps_assumed="")
+    return checks.check_scene(scene)

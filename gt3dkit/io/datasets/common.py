@@ -24,15 +24,64 @@ def sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+#: Frame numbers are 0 .. FRAME_MAX; ids are integers of magnitude up to ID_MAX (exact in a
+#: float64, so they survive every array and file they pass through).
+FRAME_MAX = 2**31 - 1
+ID_MAX = 2**53
+
+
+def load_json(path: Path) -> Any:
+    """The document in a JSON file, or :class:`InputError` naming the file: unreadable,
+    malformed, truncated or absurdly nested. A UTF-8 byte-order mark is allowed."""
+    try:
+        text = Path(path).read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise InputError(str(path), f"not a UTF-8 text file ({e.reason} at byte {e.start})") from None
+    except OSError as e:
+        raise InputError(str(path), f"cannot read ({e.strerror})") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        raise InputError(str(path), f"malformed JSON ({e})") from None
+    except RecursionError:
+        raise InputError(str(path), "malformed JSON (nested too deeply)") from None
+
+
 def read_json_field(path: Path, key: str, what: str) -> Any:
     """``json.load(path)[key]``, or :class:`InputError` naming the file (malformed, truncated
     or without ``key``)."""
+    doc = load_json(path)
+    if not isinstance(doc, dict) or key not in doc:
+        raise InputError(str(path), f"expected {{'{key}': {what}}}")
+    return doc[key]
+
+
+def parse_int(where: str, text: Any, name: str, lo: int = -ID_MAX, hi: int = ID_MAX) -> int:
+    """An integer field (text or JSON value) in ``[lo, hi]``, or :class:`InputError`."""
+    if isinstance(text, bool) or isinstance(text, float) and not text.is_integer():
+        raise InputError(where, f"{name} must be an integer, got {text!r}")
     try:
-        return json.loads(Path(path).read_text())[key]
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(str(path), f"malformed or truncated JSON ({e})") from None
-    except (KeyError, TypeError):
-        raise InputError(str(path), f"expected {{'{key}': {what}}}") from None
+        v = int(text)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(where, f"{name} must be an integer, got {text!r}") from None
+    if not lo <= v <= hi:
+        raise InputError(where, f"{name} {v} is outside {lo}..{hi}")
+    return v
+
+
+def parse_frame(where: str, text: Any) -> int:
+    return parse_int(where, text, "frame", 0, FRAME_MAX)
+
+
+def parse_float(where: str, text: Any, name: str) -> float:
+    """A finite number field, or :class:`InputError`."""
+    try:
+        v = float(text)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(where, f"{name} must be a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise InputError(where, f"{name} is not finite ({text})")
+    return v
 
 
 def check_box(where: str, box: list[float]) -> None:
@@ -105,22 +154,43 @@ class RowBuilder:
         )
 
 
-def read_csv_rows(path: Path, columns: tuple[str, ...]) -> list[tuple[int, dict[str, str]]]:
-    """Rows of a CSV with the given leading header; (line number, row)."""
+def read_csv_rows(path: Path, columns: tuple[str, ...],
+                  warnings: list[str] | None = None) -> list[tuple[int, dict[str, str]]]:
+    """Rows of a CSV whose header starts with ``columns``; (line number, row).
+
+    Every row must have as many fields as the header. Header columns beyond ``columns``
+    are ignored, with a note in ``warnings`` (an error when ``warnings`` is None). A UTF-8
+    byte-order mark (Excel's "CSV UTF-8") is allowed.
+    """
+    where = str(path)
+    reader = None
     try:
-        with open(path, newline="") as f:
+        with open(path, newline="", encoding="utf-8-sig") as f:
             reader = csv.reader(f)
             header = next(reader, None)
             if header is None or tuple(h.strip() for h in header[: len(columns)]) != columns:
-                raise InputError(str(path), f"expected header {','.join(columns)}, got {header}")
+                raise InputError(where, f"expected header {','.join(columns)}, got "
+                                        f"{','.join(header) if header else 'an empty file'}")
+            extra = [h.strip() for h in header[len(columns):]]
+            if extra:
+                if warnings is None:
+                    raise InputError(where, f"unexpected columns {extra} after {','.join(columns)}")
+                warnings.append(f"{path}: columns {', '.join(extra)} ignored")
             out = []
-            for line, row in enumerate(reader, start=2):
+            for row in reader:
+                line = reader.line_num
+                where = f"{path}: line {line}"
                 if not row or all(not x.strip() for x in row):
                     continue
-                if len(row) < len(columns):
-                    raise InputError(f"{path}: line {line}",
-                                     f"expected {len(columns)} fields, got {len(row)}")
+                if len(row) != len(header):
+                    raise InputError(where, f"expected {len(header)} fields (as the header), "
+                                            f"got {len(row)}")
                 out.append((line, dict(zip(columns, (x.strip() for x in row), strict=False))))
             return out
     except UnicodeDecodeError as e:
-        raise InputError(str(path), f"not a text CSV file ({e})") from None
+        raise InputError(where, f"not a UTF-8 text CSV file ({e.reason} at byte {e.start})") from None
+    except csv.Error as e:
+        line = f": line {reader.line_num}" if reader is not None else ""
+        raise InputError(f"{path}{line}", f"malformed CSV ({e})") from None
+    except OSError as e:
+        raise InputError(str(path), f"cannot read ({e.strerror})") from None

@@ -23,14 +23,21 @@ Boxes and keypoints of the same (frame, camera, id) update the same object.
 from __future__ import annotations
 
 import csv
-import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from gt3dkit.errors import InputError
-from gt3dkit.io.datasets.common import RowBuilder, read_csv_rows, sha256
+from gt3dkit.io.datasets.common import (
+    RowBuilder,
+    load_json,
+    parse_float,
+    parse_frame,
+    parse_int,
+    read_csv_rows,
+    sha256,
+)
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
 from gt3dkit.skeletons import SKELETONS, skeleton_for
 from gt3dkit.types import Camera, GroundTruth, Rig, Scene
@@ -38,45 +45,41 @@ from gt3dkit.types import Camera, GroundTruth, Rig, Scene
 BOX_COLUMNS = ("frame", "camera", "id", "xmin", "ymin", "xmax", "ymax")
 KPT_COLUMNS = ("frame", "camera", "id", "joint", "u", "v")
 DEFAULT_FPS = 10.0
+#: Frame rates accepted in cameras.json and by --fps: one frame per 17 minutes .. 1 MHz.
+FPS_RANGE = (1e-3, 1e6)
 
 
 def load_cameras(path: Path) -> tuple[Rig, float | None, str | None]:
     """Rig, fps (None when the file gives none) and skeleton name of a ``cameras.json``."""
-    try:
-        doc = json.loads(Path(path).read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(str(path), f"malformed JSON ({e})") from None
+    doc = load_json(path)
     if not isinstance(doc, dict) or not isinstance(doc.get("cameras"), list):
         raise InputError(str(path), 'expected {"up": [...], "cameras": [...]}')
     cams = []
     for i, c in enumerate(doc["cameras"]):
         where = f"{path}: cameras[{i}]"
         try:
-            where = f"{path}: camera {c['name']!r}"
+            where = f"{path}: camera {str(c['name'])!r}"
             cams.append(_camera(c))
-        except (KeyError, TypeError) as e:
+        except (KeyError, TypeError, IndexError) as e:
             raise InputError(where, f"missing or malformed field {e}") from None
-        except ValueError as e:
+        except (ValueError, OverflowError) as e:
             raise InputError(where, str(e)) from None
     try:
         rig = Rig(tuple(cams), up=np.asarray(doc.get("up", [0, 0, 1]), dtype=np.float64),
                   frame_name=f"input world frame of {Path(path).name}")
-    except (ValueError, TypeError) as e:
-        raise InputError(str(path), str(e)) from None
+    except (ValueError, TypeError, OverflowError) as e:
+        raise InputError(f"{path}: {'up' if cams else 'cameras'}", str(e)) from None
     if doc.get("fps") is None:
         return rig, None, _skeleton_of(doc, path)
-    try:
-        fps = float(doc["fps"])
-    except (TypeError, ValueError):
-        raise InputError(str(path), f"fps must be a number, got {doc['fps']!r}") from None
-    if not (np.isfinite(fps) and fps > 0):
-        raise InputError(str(path), f"fps must be positive and finite, got {fps}")
+    fps = parse_float(f"{path}: fps", doc["fps"], "fps")
+    if not FPS_RANGE[0] <= fps <= FPS_RANGE[1]:
+        raise InputError(f"{path}: fps", f"must be in [{FPS_RANGE[0]:g}, {FPS_RANGE[1]:g}], got {fps:g}")
     return rig, fps, _skeleton_of(doc, path)
 
 
 def _skeleton_of(doc: dict[str, Any], path: Path) -> str | None:
     skel = doc.get("skeleton")
-    if skel is not None and skel not in SKELETONS:
+    if skel is not None and (not isinstance(skel, str) or skel not in SKELETONS):
         raise InputError(str(path), f"unknown skeleton {skel!r} (known: {', '.join(SKELETONS)})")
     return skel if skel is None else str(skel)
 
@@ -90,7 +93,8 @@ def cameras_doc(rig: Rig, fps: float, **extra: Any) -> dict[str, Any]:
 
 
 def _camera(c: dict[str, Any]) -> Camera:
-    return Camera(name=str(c["name"]), width=int(c["width"]), height=int(c["height"]),
+    size = [parse_int("", c[k], k, 1, 100_000) for k in ("width", "height")]
+    return Camera(name=str(c["name"]), width=size[0], height=size[1],
                   K=np.asarray(c["K"], dtype=np.float64),
                   dist=np.asarray(c.get("dist", [0, 0, 0, 0, 0]), dtype=np.float64),
                   R=np.asarray(c["R"], dtype=np.float64), t=np.asarray(c["t"], dtype=np.float64))
@@ -121,36 +125,38 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
         files["keypoints.csv"] = sha256(kpt_path)
         if _header(kpt_path)[len(KPT_COLUMNS):len(KPT_COLUMNS) + 1] == ["conf"]:
             kpt_cols = (*KPT_COLUMNS, "conf")
-        kpt_rows = read_csv_rows(kpt_path, kpt_cols)
-        if skel_name is None:
+        kpt_rows = read_csv_rows(kpt_path, kpt_cols, warnings)
+        if skel_name is None and kpt_rows:
+            top = max(parse_int(f"{kpt_path}: line {line}", r["joint"], "joint", 0, 10_000)
+                      for line, r in kpt_rows)
             try:
-                top = max((int(r["joint"]) for _, r in kpt_rows), default=-1)
-                skel_name = skeleton_for(top + 1).name if kpt_rows else None
+                skel_name = skeleton_for(top + 1).name
             except ValueError as e:
-                raise InputError(str(kpt_path), f"joint index: {e}") from None
+                raise InputError(str(kpt_path), f"joint index {top}: {e}") from None
     n_joints = SKELETONS[skel_name].n_joints if skel_name else 0
     rb = RowBuilder(n_joints=n_joints)
     box_path = root / "boxes.csv"
     if box_path.exists():
         files["boxes.csv"] = sha256(box_path)
-        for line, r in read_csv_rows(box_path, BOX_COLUMNS):
+        unseen = 0
+        for line, r in read_csv_rows(box_path, BOX_COLUMNS, warnings):
             where = f"{box_path}: line {line}"
-            try:
-                frame, tid = int(r["frame"]), int(r["id"])
-                box = [float(r[k]) for k in ("xmin", "ymin", "xmax", "ymax")]
-            except ValueError as e:
-                raise InputError(where, f"malformed value ({e})") from None
+            frame, tid = parse_frame(where, r["frame"]), parse_int(where, r["id"], "id")
+            box = [_number(where, r[k], k) for k in ("xmin", "ymin", "xmax", "ymax")]
             cam = camera_index(rig, r["camera"], where)
+            if all(b == -1 for b in box):  # the WILDTRACK convention for "not seen"
+                unseen += 1
+                continue
             rb.add_box(frame, cam, tid, box, where)
+        if unseen:
+            warnings.append(f"{box_path}: {unseen} boxes of -1s read as not seen")
     undetected = 0
     for line, r in kpt_rows:
         where = f"{kpt_path}: line {line}"
-        try:
-            frame, tid, joint = int(r["frame"]), int(r["id"]), int(r["joint"])
-            uv = (float(r["u"]), float(r["v"]))
-            conf = float(r["conf"]) if "conf" in r else None
-        except ValueError as e:
-            raise InputError(where, f"malformed value ({e})") from None
+        frame, tid = parse_frame(where, r["frame"]), parse_int(where, r["id"], "id")
+        joint = parse_int(where, r["joint"], "joint", 0, 10_000)
+        uv = (_number(where, r["u"], "u"), _number(where, r["v"], "v"))
+        conf = _number(where, r["conf"], "conf") if "conf" in r else None
         if conf is not None and not 0 <= conf <= 1:  # NaN fails too
             raise InputError(where, f"confidence must be in [0, 1], got {r['conf']}")
         cam = camera_index(rig, r["camera"], where)
@@ -174,10 +180,18 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
                  fps_assumed=f"{cam_path} has no \"fps\"" if fps_doc is None else "")
 
 
+def _number(where: str, text: str, name: str) -> float:
+    """A number field; NaN and inf are kept for the checks that name them (box, keypoint)."""
+    try:
+        return float(text)
+    except ValueError:
+        raise InputError(where, f"malformed value: {name} must be a number, got {text!r}") from None
+
+
 def _header(path: Path) -> list[str]:
     """The stripped header fields of a CSV (empty if unreadable; the reader reports why)."""
     try:
-        with open(path, newline="") as f:
+        with open(path, newline="", encoding="utf-8-sig") as f:
             return [h.strip() for h in next(csv.reader(f), [])]
     except (OSError, UnicodeDecodeError, csv.Error):
         return []
@@ -191,15 +205,16 @@ def read_kpt_truth(path: Path, n_joints: int) -> GroundTruth:
     rows = read_csv_rows(path, KPT_TRUTH_COLUMNS)
     poses: dict[tuple[int, int], np.ndarray] = {}
     for line, r in rows:
-        try:
-            key = (int(r["frame"]), int(r["id"]))
-            j = int(r["joint"])
-            xyz = [float(r[k]) for k in ("x", "y", "z")]
-        except ValueError as e:
-            raise InputError(f"{path}: line {line}", f"malformed value ({e})") from None
-        if not 0 <= j < n_joints:
-            raise InputError(f"{path}: line {line}", f"joint index {j} outside the skeleton")
-        poses.setdefault(key, np.full((n_joints, 3), np.nan))[j] = xyz
+        where = f"{path}: line {line}"
+        key = (parse_frame(where, r["frame"]), parse_int(where, r["id"], "id"))
+        j = parse_int(where, r["joint"], "joint", 0, max(n_joints - 1, 0))
+        xyz = [parse_float(where, r[k], k) for k in ("x", "y", "z")]
+        if not n_joints:
+            raise InputError(where, "keypoint truth, but the input has no keypoints")
+        pose = poses.setdefault(key, np.full((n_joints, 3), np.nan))
+        if np.isfinite(pose[j]).all():
+            raise InputError(where, f"second row for joint {j} of object {key[1]} in frame {key[0]}")
+        pose[j] = xyz
     keys = sorted(poses)
     k = np.array(keys, dtype=np.int64).reshape(-1, 2)
     n = len(keys)

@@ -18,7 +18,7 @@ import numpy as np
 
 from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import project_points
-from gt3dkit.io.datasets.common import read_json_field, sha256
+from gt3dkit.io.datasets.common import parse_frame, parse_int, read_json_field, sha256
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import Camera, GroundTruth, Observations, Rig, Scene
 
@@ -48,7 +48,7 @@ def load_rig(path: Path, cameras: list[str] | None = None) -> Rig:
                                dist=np.asarray(c["distCoef"], float).reshape(-1),
                                R=np.asarray(c["R"], float),
                                t=np.asarray(c["t"], float).reshape(3) * CM))
-        except (KeyError, TypeError, ValueError, AttributeError) as e:
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError) as e:
             raise InputError(f"{where} ({c.get('name', '?') if isinstance(c, dict) else '?'})",
                              f"malformed camera ({e})") from None
     if not cams:
@@ -58,8 +58,11 @@ def load_rig(path: Path, cameras: list[str] | None = None) -> Rig:
         missing = sorted(set(cameras) - {c.name for c in cams})
         if missing:
             raise InputError(str(path), f"no HD camera named {missing}")
-    return Rig(tuple(cams), up=np.array([0.0, -1.0, 0.0]),
-               frame_name="CMU Panoptic world (y down), centimetres converted to metres")
+    try:
+        return Rig(tuple(cams), up=np.array([0.0, -1.0, 0.0]),
+                   frame_name="CMU Panoptic world (y down), centimetres converted to metres")
+    except ValueError as e:
+        raise InputError(str(path), str(e)) from None
 
 
 def load(root: Path, cameras: list[str] | None = None, noise_px: float = 0.0, seed: int = 0,
@@ -74,6 +77,8 @@ def load(root: Path, cameras: list[str] | None = None, noise_px: float = 0.0, se
     min_conf : joints below this confidence are neither observed nor scored
     """
     root = Path(root)
+    if not (np.isfinite(noise_px) and noise_px >= 0):
+        raise InputError("noise_px", f"must be >= 0 and finite, got {noise_px}")
     calib = find_calibration(root)
     if calib is None:
         raise InputError(str(root), "no calibration_<seq>.json")
@@ -90,25 +95,38 @@ def load(root: Path, cameras: list[str] | None = None, noise_px: float = 0.0, se
         if m is None:
             raise InputError(str(p), "file name is not body3DScene_<frame>.json")
         bodies = read_json_field(p, "bodies", "[...]")
+        if not isinstance(bodies, list):
+            raise InputError(f"{p}: bodies", "expected a list of bodies")
+        frame = parse_frame(str(p), m.group(1))
         files[f"{POSE_DIR}/{p.name}"] = sha256(p)
         for i, b in enumerate(bodies):
+            if not (isinstance(b, dict) and "id" in b and "joints19" in b):
+                raise InputError(f"{p}: bodies[{i}]", "expected {id, joints19}")
+            bid = parse_int(f"{p}: bodies[{i}]", b["id"], "id")
             try:
-                bid = int(b["id"])
                 j = np.asarray(b["joints19"], dtype=np.float64)
-            except (KeyError, TypeError, ValueError) as e:
-                raise InputError(f"{p}: bodies[{i}]", f"expected id and joints19 ({e})") from None
+            except (TypeError, ValueError, OverflowError):
+                raise InputError(f"{p}: body {bid}", "joints19 must be a list of numbers") from None
             if j.shape != (4 * J,):
                 raise InputError(f"{p}: body {bid}", f"joints19 has {j.size} values, expected {4 * J}")
             if not np.all(np.isfinite(j)):
                 raise InputError(f"{p}: body {bid}", "joints19 has non-finite values")
             j = j.reshape(J, 4)
             X = np.where((j[:, 3] >= min_conf)[:, None], j[:, :3] * CM, np.nan)
-            t_frame.append(int(m.group(1)))
+            t_frame.append(frame)
             t_id.append(bid)
             t_joints.append(X)
     frames = np.array(t_frame, dtype=np.int64)
     ids = np.array(t_id, dtype=np.int64)
     X = np.array(t_joints).reshape(-1, J, 3)
+    if not np.isfinite(X).any():
+        raise InputError(str(root / POSE_DIR), f"no body has a joint of confidence >= {min_conf:g}"
+                                               f" ({len(ids)} bodies in {len(pose_files)} files)")
+    pairs, counts = np.unique(np.stack([frames, ids], 1), axis=0, return_counts=True)
+    if (counts > 1).any():
+        bad = pairs[counts > 1][0]
+        raise InputError(f"{root / POSE_DIR}/body3DScene_{bad[0]:08d}.json",
+                         f"body {bad[1]} appears twice")
     truth = GroundTruth(frame=frames, track_id=ids, center_world=np.full((len(ids), 3), np.nan),
                         semi_axes=np.full((len(ids), 3), np.nan), kpt_world=X,
                         source="Panoptic hdPose3d_stage1_coco19 joints")

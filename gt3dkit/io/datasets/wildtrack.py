@@ -23,7 +23,6 @@ positionID truth.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,7 +30,15 @@ import cv2
 import numpy as np
 
 from gt3dkit.errors import InputError
-from gt3dkit.io.datasets.common import RowBuilder, read_csv_rows, sha256
+from gt3dkit.io.datasets.common import (
+    RowBuilder,
+    load_json,
+    parse_float,
+    parse_frame,
+    parse_int,
+    read_csv_rows,
+    sha256,
+)
 from gt3dkit.types import Camera, GroundTruth, Rig, Scene
 
 
@@ -42,12 +49,18 @@ class GridLayout:
     intrinsic_dir: str
     tvec_to_m: float
     grid_width: int  # cells along x
+    grid_height: int  # cells along y
     cell_m: float
     origin_xy_m: tuple[float, float]
     fps: float
     truncated_px: bool = False
     width: int = 1920
     height: int = 1080
+
+    @property
+    def n_positions(self) -> int:
+        """Cells of the positionID grid (1440 x 480 WILDTRACK, 1000 x 640 MultiviewX)."""
+        return self.grid_width * self.grid_height
 
     def position_to_xy(self, pos: np.ndarray) -> np.ndarray:
         """(N,) positionID -> (N, 2) ground x, y in metres."""
@@ -65,13 +78,13 @@ class GridLayout:
 WILDTRACK = GridLayout(
     name="wildtrack",
     cameras=("CVLab1", "CVLab2", "CVLab3", "CVLab4", "IDIAP1", "IDIAP2", "IDIAP3"),
-    intrinsic_dir="intrinsic_zero", tvec_to_m=0.01, grid_width=480, cell_m=0.025,
+    intrinsic_dir="intrinsic_zero", tvec_to_m=0.01, grid_width=480, grid_height=1440, cell_m=0.025,
     origin_xy_m=(-3.0, -9.0), fps=10.0,
 )
 MULTIVIEWX = GridLayout(
     name="multiviewx",
     cameras=("Camera1", "Camera2", "Camera3", "Camera4", "Camera5", "Camera6"),
-    intrinsic_dir="intrinsic", tvec_to_m=1.0, grid_width=1000, cell_m=0.025,
+    intrinsic_dir="intrinsic", tvec_to_m=1.0, grid_width=1000, grid_height=640, cell_m=0.025,
     origin_xy_m=(0.0, 0.0), fps=2.0,
     # MultiviewX's generatePOM.py stores projected box edges with ``astype(int)``, which
     # truncates towards zero: the edge lies in [v, v+1) (v >= 0), so v + 0.5 is unbiased.
@@ -151,34 +164,38 @@ def load(root: Path, g: GridLayout) -> Scene:
         raise InputError(str(ann_dir), "no annotation files (*.json)")
     rb = RowBuilder()
     truth_rows: list[tuple[int, int, int]] = []
+    seen_ids: dict[tuple[int, int], int] = {}
     for p in paths:
-        try:
-            frame = int(p.stem)
-        except ValueError:
-            raise InputError(str(p), "file name is not a frame number") from None
-        try:
-            people = json.loads(p.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise InputError(str(p), f"malformed JSON ({e})") from None
+        if not p.stem.isdigit():
+            raise InputError(str(p), "file name is not a frame number")
+        frame = parse_frame(str(p), p.stem)
+        people = load_json(p)
         files[str(p.relative_to(root))] = sha256(p)
         if not isinstance(people, list):
             raise InputError(str(p), "expected a list of people")
         for i, person in enumerate(people):
             where = f"{p}: entry {i}"
-            try:
-                pid = int(person["personID"])
-                pos = int(person["positionID"])
-                views = person["views"]
-            except (KeyError, TypeError, ValueError) as e:
-                raise InputError(where, f"expected personID, positionID and views ({e})") from None
+            if not (isinstance(person, dict) and {"personID", "positionID", "views"} <= person.keys()
+                    and isinstance(person["views"], list)):
+                raise InputError(where, "expected {personID, positionID, views: [...]}")
+            pid = parse_int(where, person["personID"], "personID")
             where = f"{p}: personID {pid}"
-            truth_rows.append((frame, pid, pos))
-            for v in views:
+            pos = parse_int(where, person["positionID"], "positionID", -1, g.n_positions - 1)
+            if seen_ids.setdefault((frame, pid), i) != i:
+                raise InputError(where, f"second entry for this person (entries "
+                                        f"{seen_ids[(frame, pid)]} and {i})")
+            if pos >= 0:  # -1: the dataset knows no ground position for this person-frame
+                truth_rows.append((frame, pid, pos))
+            for v in person["views"]:
+                if not (isinstance(v, dict) and {"viewNum", "xmin", "ymin", "xmax", "ymax"} <= v.keys()):
+                    raise InputError(where, f"malformed view {str(v)[:80]} (expected viewNum, "
+                                            "xmin, ymin, xmax, ymax)")
+                vn = parse_int(where, v["viewNum"], "viewNum", -1, 10_000)
                 try:
-                    vn = int(v["viewNum"])
                     box = [float(v[k]) for k in ("xmin", "ymin", "xmax", "ymax")]
-                except (KeyError, TypeError, ValueError) as e:
-                    raise InputError(where, f"malformed view {v!r} ({e})") from None
+                except (TypeError, ValueError, OverflowError):
+                    raise InputError(f"{where}, viewNum {vn}", f"box values must be numbers, got "
+                                                               f"{str(v)[:80]}") from None
                 if all(b == -1 for b in box):
                     continue
                 w = f"{where}, viewNum {vn}"
@@ -228,11 +245,14 @@ def _truth_csv(root: Path, files: dict[str, str]) -> GroundTruth | None:
 def read_truth_csv(p: Path, files: dict[str, str], root: Path) -> GroundTruth:
     """``truth.csv`` = ``frame,id,x,y,z,a,b,c`` (metres), as written by ``gt3d simulate``."""
     rows = []
+    keys: set[tuple[int, int]] = set()
     for line, r in read_csv_rows(p, TRUTH_COLUMNS):
-        try:
-            rows.append((int(r["frame"]), int(r["id"]), *(float(r[k]) for k in TRUTH_COLUMNS[2:])))
-        except ValueError as e:
-            raise InputError(f"{p}: line {line}", f"malformed truth row ({e})") from None
+        where = f"{p}: line {line}"
+        key = (parse_frame(where, r["frame"]), parse_int(where, r["id"], "id"))
+        if key in keys:
+            raise InputError(where, f"second row for object {key[1]} in frame {key[0]}")
+        keys.add(key)
+        rows.append((*key, *(parse_float(where, r[k], k) for k in TRUTH_COLUMNS[2:])))
     files[str(p.relative_to(root))] = sha256(p)
     a = np.array(rows, dtype=np.float64).reshape(-1, 8)
     return GroundTruth(frame=a[:, 0].astype(np.int64), track_id=a[:, 1].astype(np.int64),

@@ -1,0 +1,118 @@
+"""Checks every loaded scene goes through, whatever its layout (:func:`load_scene` runs them).
+
+Errors (:class:`InputError`, naming the file and entry): coordinates no image can hold.
+Odd but valid input is kept or dropped as said here, with one ``warning:`` line per kind
+(with counts) in ``Scene.warnings``:
+
+* a box entirely outside its camera's image cannot have been drawn on it: dropped;
+* a keypoint further than :data:`KPT_OFF_IMAGE` image sizes outside the image: dropped;
+* objects only ever seen by one camera: kept (their distance comes from the size prior
+  alone, so expect errors of metres; their standard deviations say so);
+* a rig of one camera: every object is such an object;
+* gaps longer than :data:`GAP_S` seconds in an object's annotations: kept (the estimate is
+  interpolated there, with a growing standard deviation).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from gt3dkit.errors import InputError
+from gt3dkit.types import Scene
+
+#: A coordinate more than this many image sizes outside the image is an error, not a label.
+FAR_IMAGES = 10.0
+#: Keypoints further outside the image than this fraction of its size are dropped.
+KPT_OFF_IMAGE = 0.1
+#: Annotation gaps (seconds) longer than this are reported.
+GAP_S = 1.0
+
+
+def _ids(ids: np.ndarray, n: int = 5) -> str:
+    s = ", ".join(str(int(i)) for i in ids[:n])
+    return s + (f", ... ({len(ids)} in all)" if len(ids) > n else "")
+
+
+def _cameras_per_object(track_id: np.ndarray, cam: np.ndarray) -> dict[int, int]:
+    pairs = np.unique(np.stack([track_id, cam], 1), axis=0)
+    ids, n = np.unique(pairs[:, 0], return_counts=True)
+    return dict(zip(ids.tolist(), n.tolist(), strict=True))
+
+
+def check_scene(scene: Scene) -> Scene:
+    """``scene`` with off-image annotations dropped and its odd-input warnings added."""
+    obs = scene.obs
+    wh = scene.rig.wh[obs.cam]  # (N, 2)
+    warnings = list(scene.warnings)
+
+    box = obs.box_xyxy_px
+    has_box = obs.has_box
+    lo, hi = -FAR_IMAGES * wh, (1 + FAR_IMAGES) * wh
+    far = has_box & np.any((box[:, :2] < lo) | (box[:, 2:] > hi), axis=1)
+    kpt = obs.kpt_uv_px
+    kfar = np.isfinite(kpt[..., 0]) & np.any((kpt < lo[:, None]) | (kpt > hi[:, None]), axis=-1)
+    for bad, what in ((far, "box"), (kfar.any(axis=1), "keypoint")):
+        if bad.any():
+            r = int(np.flatnonzero(bad)[0])
+            cam = scene.rig.cameras[int(obs.cam[r])]
+            raise InputError(obs.origin[r], f"{what} coordinate far outside the {cam.width}x"
+                                            f"{cam.height} image of camera {cam.name} "
+                                            f"(more than {FAR_IMAGES:g} image sizes)")
+
+    outside = has_box & ((box[:, 2] < 0) | (box[:, 3] < 0) | (box[:, 0] > wh[:, 0] - 1)
+                         | (box[:, 1] > wh[:, 1] - 1))
+    margin = KPT_OFF_IMAGE * wh[:, None]
+    koff = np.isfinite(kpt[..., 0]) & np.any((kpt < -margin) | (kpt > wh[:, None] - 1 + margin),
+                                             axis=-1)
+    if outside.any() or koff.any():
+        box = np.where(outside[:, None], np.nan, box)
+        kpt = np.where(koff[..., None], np.nan, kpt)
+        conf = None if obs.kpt_conf is None else np.where(koff, np.nan, obs.kpt_conf)
+        if outside.any():
+            warnings.append(f"{int(outside.sum())} boxes lie entirely outside their camera's image"
+                            f" (first: {obs.origin[int(np.flatnonzero(outside)[0])]}): ignored")
+        if koff.any():
+            warnings.append(f"{int(koff.sum())} keypoints lie more than {KPT_OFF_IMAGE:.0%} of the "
+                            f"image size outside their camera's image (first: "
+                            f"{obs.origin[int(np.flatnonzero(koff.any(axis=1))[0])]}): ignored")
+        keep = np.all(np.isfinite(box), axis=1) | np.isfinite(kpt[..., 0]).any(axis=1)
+        obs = dataclasses.replace(obs, box_xyxy_px=box, kpt_uv_px=kpt, kpt_conf=conf).select(keep)
+        if len(obs) == 0:
+            raise InputError(scene.root or "input", "no annotation lies inside its camera's image")
+
+    n_cams = _cameras_per_object(obs.track_id, obs.cam)
+    boxed = set(obs.track_id[obs.has_box].tolist())
+    lone_kpt = np.array([i for i, n in n_cams.items() if n == 1 and i not in boxed], dtype=np.int64)
+    if lone_kpt.size:
+        obs = obs.select(~np.isin(obs.track_id, lone_kpt))
+        if len(obs) == 0:
+            raise InputError(scene.root or "input", "no object is seen by two cameras: keypoints "
+                                                    "alone give no 3D position")
+        warnings.append(f"{lone_kpt.size} objects with keypoints only are only ever seen by one "
+                        f"camera (ids {_ids(lone_kpt)}): left out, one view gives them no 3D "
+                        "position")
+    if len(scene.rig.cameras) == 1:
+        warnings.append(f"one camera only ({scene.rig.cameras[0].name}): every distance comes from "
+                        "the object size prior alone; expect errors of metres")
+    else:
+        n_cams = _cameras_per_object(obs.track_id, obs.cam)
+        lone = np.array([i for i, n in n_cams.items() if n == 1], dtype=np.int64)
+        if lone.size:
+            warnings.append(f"{lone.size} objects are only ever seen by one camera (ids "
+                            f"{_ids(lone)}): their distance comes from the size prior alone "
+                            "(expect errors of metres; their sd says so)")
+
+    pairs = np.unique(np.stack([obs.track_id, obs.frame], 1), axis=0)  # sorted by id, frame
+    same = pairs[1:, 0] == pairs[:-1, 0]
+    gap_s = np.where(same, np.diff(pairs[:, 1]), 0) / scene.fps
+    long = gap_s > GAP_S
+    if long.any():
+        who = np.unique(pairs[1:, 0][long])
+        worst = int(np.argmax(gap_s))
+        warnings.append(f"{int(long.sum())} gaps longer than {GAP_S:g} s in the annotations of "
+                        f"{who.size} objects (ids {_ids(who)}; longest {gap_s[worst]:.3g} s, "
+                        f"object {int(pairs[worst + 1, 0])} after frame {int(pairs[worst, 1])}): "
+                        "estimates there are interpolated")
+    return dataclasses.replace(scene, obs=obs, warnings=tuple(warnings))
