@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import signal
 import sys
@@ -27,22 +28,28 @@ def bundled(name: str) -> Path:
     return Path(str(resources.files("gt3dkit") / "data" / name))
 
 
+#: CLI option -> estimator config field (and the value it sets).
+_CONFIG_OPTIONS = {"sigma_px": ("--sigma-px", "sigma_px"), "accel_sd": ("--accel-sd", "accel_sd"),
+                   "no_smooth": ("--no-smooth", "smooth"), "no_bones": ("--no-bones", "bones")}
+
+
 def _estimator_config(args: argparse.Namespace) -> dict[str, Any]:
+    """The estimator's config from the options given; an option the estimator has no use for
+    is an error, never silently ignored."""
+    from importlib import import_module
+
+    from gt3dkit.fusion.base import REGISTRY
+
+    e = REGISTRY[args.estimator]
+    fields = {f.name for f in dataclasses.fields(getattr(import_module(e.module), e.config))}
     cfg: dict[str, Any] = {}
-    if args.estimator == "gtsam":
-        if args.sigma_px is not None:
-            cfg["sigma_px"] = args.sigma_px
-        if args.accel_sd is not None:
-            cfg["accel_sd"] = args.accel_sd
-    if args.estimator == "ukf":
-        if args.sigma_px is not None:
-            cfg["sigma_px"] = args.sigma_px
-        if args.accel_sd is not None:
-            cfg["accel_sd"] = args.accel_sd
-        if args.no_smooth:
-            cfg["smooth"] = False
-        if getattr(args, "no_bones", False):
-            cfg["bones"] = False
+    for attr, (option, name) in _CONFIG_OPTIONS.items():
+        v = getattr(args, attr, None)
+        if v is None or v is False:
+            continue
+        if name not in fields:
+            raise InputError(option, f"does not apply to the {args.estimator} estimator")
+        cfg[name] = (not v) if isinstance(v, bool) else v
     return cfg
 
 
@@ -151,8 +158,9 @@ def report_truth(scene: Any, tracks: Any, name: str, max_dist_m: float = 1.0) ->
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from gt3dkit.api import reconstruct
 
+    config = _estimator_config(args)
     scene = _load(args)
-    tracks = reconstruct(scene, args.estimator, out=args.out, **_estimator_config(args))
+    tracks = reconstruct(scene, args.estimator, out=args.out, **config)
     print_warnings(scene)
     info = tracks.info
     kinds = " + ".join(k for k, v in (("boxes", scene.obs.has_box.any()),
@@ -178,6 +186,9 @@ def _errors(args: argparse.Namespace) -> Any:
             a, b = (int(v) for v in args.gap.split(":"))
         except ValueError:
             raise InputError("--gap", f"expected FIRST:END frame indices, got {args.gap!r}") from None
+        if not 0 <= a < b <= args.frames:
+            raise InputError("--gap", f"expected 0 <= FIRST < END <= --frames ({args.frames}), "
+                                      f"got {args.gap}")
         gap = (a, b)
     try:
         return Errors(outliers=args.outliers, swaps=args.swaps, glitch=args.glitch,
@@ -205,9 +216,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                          + (f" x {per} joints" if per > 1 else "")
                          + f" = {size:.3g} annotations, more than the {SIM_MAX_POINTS:.0e} "
                            "gt3d simulate writes")
-    if errors.gap is not None and not 0 <= errors.gap[0] < errors.gap[1] <= args.frames:
-        raise InputError("--gap", f"expected 0 <= FIRST < END <= --frames ({args.frames}), "
-                                  f"got {args.gap}")
     n_err = ""
     if args.kind == "skeleton":
         if args.shifted:
@@ -378,8 +386,8 @@ def _number(kind: type, lo: float, hi: float, *, lo_open: bool = False,
 
 FRACTION = _number(float, 0, 1)
 PIXELS = _number(float, 0, 1000)              # image noise, px
-SIGMA_PX = _number(float, 0, 1000, lo_open=True)
-ACCEL = _number(float, 0, 1000, lo_open=True)  # m/s^2/sqrt(Hz)
+SIGMA_PX = _number(float, 1e-3, 1000)
+ACCEL = _number(float, 1e-6, 1000)             # m/s^2/sqrt(Hz)
 FPS = _number(float, 1e-3, 1e6)                # one frame per 17 minutes .. 1 MHz
 SEED = _number(int, 0, 2**32 - 1)
 
@@ -468,7 +476,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("out", help="a reconstruct output folder")
     e.add_argument("--truth", required=True, help="the input folder that carries the truth")
     e.add_argument("--layout", choices=LAYOUTS)
-    e.add_argument("--max-dist-m", type=_number(float, 0, 1e6, lo_open=True), default=1.0,
+    e.add_argument("--max-dist-m", type=_number(float, 1e-6, 1e6), default=1.0,
                    help="ground-plane distance within which an estimate matches a true object "
                         "(MOTA, IDF1, HOTA, OSPA cut-off)")
     e.set_defaults(func=cmd_evaluate)

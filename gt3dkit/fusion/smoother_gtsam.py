@@ -149,7 +149,8 @@ class GTSAMSmoother:
                 kpt[mine], kpt_sd[mine] = res["kpt"], res["kpt_sd"]
         semi = np.exp(log_axes)
         if use_kpt:
-            nv = never_seen(rows, J)
+            # never shown, or every point of it rejected: no estimate (x0 is only a guess)
+            nv = never_seen(rows, J) | ~np.isfinite(kpt_sd)
             kpt[nv], kpt_sd[nv] = np.nan, np.nan
             if not use_box:
                 centre, semi, c_sd = ellipsoid_around(kpt, kpt_sd, cams.world_from_body)

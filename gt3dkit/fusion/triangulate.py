@@ -26,6 +26,7 @@ from gt3dkit.types import Scene, TrackSet
 class TriangulationConfig:
     clip_tol_px: float = 1.0
     min_views: int = 2
+    sigma_px: float | None = None  # box-edge noise (px); None = from the data
 
 
 class Triangulation:
@@ -38,7 +39,7 @@ class Triangulation:
 
     def estimate(self, scene: Scene, pre: Prepared | None = None) -> TrackSet:
         t0 = time.perf_counter()
-        pre = pre or prepare(scene, self.config.clip_tol_px)
+        pre = pre or prepare(scene, self.config.clip_tol_px, self.config.sigma_px)
         rows, cams, fit = pre.rows, pre.cams, pre.fit
         R = len(rows)
         info: dict[str, object] = {"estimator": self.name, "params": dict(self.config.__dict__)}

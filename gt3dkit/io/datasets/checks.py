@@ -20,7 +20,7 @@ import dataclasses
 import numpy as np
 
 from gt3dkit.errors import InputError
-from gt3dkit.types import Scene
+from gt3dkit.types import Camera, Scene
 
 #: A coordinate more than this many image sizes outside the image is an error, not a label.
 FAR_IMAGES = 10.0
@@ -28,6 +28,17 @@ FAR_IMAGES = 10.0
 KPT_OFF_IMAGE = 0.1
 #: Annotation gaps (seconds) longer than this are reported.
 GAP_S = 1.0
+
+
+def check_pixels(where: str, cam: Camera, xy: list[float], what: str) -> None:
+    """Raise :class:`InputError` for pixel coordinates (x, y, x, y, ...) no image of ``cam``
+    can hold: more than :data:`FAR_IMAGES` image sizes outside it."""
+    for i, v in enumerate(xy):
+        size = cam.width if i % 2 == 0 else cam.height
+        if not -FAR_IMAGES * size <= v <= (1 + FAR_IMAGES) * size:
+            raise InputError(where, f"{what} coordinate {v:g} far outside the {cam.width}x"
+                                    f"{cam.height} image of camera {cam.name} (more than "
+                                    f"{FAR_IMAGES:g} image sizes)")
 
 
 def _ids(ids: np.ndarray, n: int = 5) -> str:

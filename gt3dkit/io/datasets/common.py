@@ -135,6 +135,9 @@ class RowBuilder:
                 raise InputError(where, f"confidence must be in (0, 1], got {conf}")
             self.has_conf = True
         r = self._row(frame, cam, tid, where)
+        if not math.isnan(self.kpts[r][joint][0]):
+            raise InputError(where, f"second keypoint {joint} for object {tid} in frame {frame} "
+                                    "and this camera")
         self.kpts[r][joint] = uv
         self.confs[r][joint] = 1.0 if conf is None else conf
 

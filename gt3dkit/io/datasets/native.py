@@ -23,12 +23,14 @@ Boxes and keypoints of the same (frame, camera, id) update the same object.
 from __future__ import annotations
 
 import csv
+import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from gt3dkit.errors import InputError
+from gt3dkit.io.datasets.checks import check_pixels
 from gt3dkit.io.datasets.common import (
     RowBuilder,
     load_json,
@@ -147,6 +149,8 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
             if all(b == -1 for b in box):  # the WILDTRACK convention for "not seen"
                 unseen += 1
                 continue
+            if all(math.isfinite(b) for b in box):
+                check_pixels(where, rig.cameras[cam], box, "box")
             rb.add_box(frame, cam, tid, box, where)
         if unseen:
             warnings.append(f"{box_path}: {unseen} boxes of -1s read as not seen")
@@ -163,6 +167,8 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
         if conf == 0:
             undetected += 1
             continue
+        if all(math.isfinite(v) for v in uv):
+            check_pixels(where, rig.cameras[cam], list(uv), "keypoint")
         rb.add_joint(frame, cam, tid, joint, uv, where, conf)
     if undetected:
         warnings.append(f"{kpt_path}: {undetected} keypoints with confidence 0 read as not "

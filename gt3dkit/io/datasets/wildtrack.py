@@ -23,6 +23,7 @@ positionID truth.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,6 +31,7 @@ import cv2
 import numpy as np
 
 from gt3dkit.errors import InputError
+from gt3dkit.io.datasets.checks import check_pixels
 from gt3dkit.io.datasets.common import (
     RowBuilder,
     load_json,
@@ -112,8 +114,13 @@ def _read_storage(path: Path, keys: tuple[str, ...]) -> list[np.ndarray]:
                 raise InputError(str(path), f"missing matrix '{k}'")
             # opencv-matrix nodes (MultiviewX, WILDTRACK intrinsics) or plain number
             # sequences (WILDTRACK's extrinsics: <rvec>1.88 0.46 -0.21</rvec>)
-            m = (np.array([node.at(i).real() for i in range(node.size())])
-                 if node.isSeq() else node.mat())
+            try:
+                m = (np.array([node.at(i).real() for i in range(node.size())])
+                     if node.isSeq() else node.mat())
+            except (cv2.error, SystemError) as e:
+                lines = str(e).strip().splitlines()
+                raise InputError(str(path), f"'{k}' is malformed ({lines[-1].strip() if lines else e})"
+                                 ) from None
             if m is None or m.size == 0:
                 raise InputError(str(path), f"'{k}' is not a matrix or a list of numbers")
             if not np.all(np.isfinite(m)):
@@ -206,6 +213,8 @@ def load(root: Path, g: GridLayout) -> Scene:
                 if cams[vn] is None:
                     raise InputError(w, f"no calibration for camera {g.cameras[vn]} "
                                         f"(calibrations/{g.intrinsic_dir}/intr_{g.cameras[vn]}.xml)")
+                if all(math.isfinite(b) for b in box):
+                    check_pixels(w, cams[vn], box, "box")
                 rb.add_box(frame, vn, pid, box, w)
     present = [i for i, c in enumerate(cams) if c is not None]
     if not present:
@@ -252,7 +261,10 @@ def read_truth_csv(p: Path, files: dict[str, str], root: Path) -> GroundTruth:
         if key in keys:
             raise InputError(where, f"second row for object {key[1]} in frame {key[0]}")
         keys.add(key)
-        rows.append((*key, *(parse_float(where, r[k], k) for k in TRUTH_COLUMNS[2:])))
+        vals = [parse_float(where, r[k], k) for k in TRUTH_COLUMNS[2:]]
+        if min(vals[3:]) <= 0:
+            raise InputError(where, f"semi-axes must be positive, got {vals[3:]}")
+        rows.append((*key, *vals))
     files[str(p.relative_to(root))] = sha256(p)
     a = np.array(rows, dtype=np.float64).reshape(-1, 8)
     return GroundTruth(frame=a[:, 0].astype(np.int64), track_id=a[:, 1].astype(np.int64),
