@@ -529,7 +529,9 @@ def main(argv: list[str] | None = None) -> int:
         with warnings.catch_warnings():
             if not debug:  # numerical warnings are ours to handle, never the user's to read
                 warnings.simplefilter("ignore", RuntimeWarning)
-            return int(args.func(args))
+            code = int(args.func(args))
+        sys.stdout.flush()  # here, where a closed pipe is handled, not at interpreter exit
+        return code
     except InputError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -69,9 +69,9 @@ def disagreement(a: TrackSet, b: TrackSet, seen_a: np.ndarray | None = None) -> 
         d = np.linalg.norm(a.kpt_world[ia] - b.kpt_world[ib], axis=-1)
         if seen_a is not None:
             d = np.where(seen_a[ia], d, np.nan)
-        with np.errstate(invalid="ignore"):
-            per = np.nanmean(np.where(np.isfinite(d), d, np.nan), axis=1) if d.size else d
-        return per[np.isfinite(per)]
+        n = np.isfinite(d).sum(axis=1)
+        per = np.where(np.isfinite(d), d, 0.0).sum(axis=1) / np.maximum(n, 1)
+        return per[n > 0]
     return np.linalg.norm(a.center_world[ia] - b.center_world[ib], axis=1)
 
 

@@ -109,7 +109,10 @@ def score_tracks(tracks: TrackSet, truth: GroundTruth, joints: np.ndarray | None
     pk = tracks.kpt_world[:, sel] * 1000
     tk = truth.kpt_world[:, sel] * 1000
     with np.errstate(invalid="ignore"):
-        score = 1.0 / (1.0 + np.nan_to_num(np.nanmean(tracks.kpt_sd[:, sel], axis=1), nan=1e3))
+        sd = tracks.kpt_sd[:, sel]
+        n = np.isfinite(sd).sum(axis=1)
+        mean_sd = np.where(n > 0, np.where(np.isfinite(sd), sd, 0.0).sum(axis=1) / np.maximum(n, 1), 1e3)
+        score = 1.0 / (1.0 + mean_sd)
     keep = np.isfinite(pk).any(axis=(1, 2))
     return pose_scores(tracks.frame[keep], pk[keep], score[keep], truth.frame, tk)
 
