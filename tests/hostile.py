@@ -675,3 +675,69 @@ def judge(o: Outcome, work: Path, entries: set[str], before_in: dict[str, str],
     stray = [x for x in left if "gt3d-" in x or x.startswith(".")]
     if stray:
         p.append(f"left behind: {stray}")
+
+
+def issue_cases() -> list[Case]:
+    """The cases issue 9 lists that are one command each (the others, signals, concurrent runs,
+    closed pipes, are tests/test_reliability.py)."""
+    rec = ("reconstruct", "{in}", "--out", "{out}")
+    row = "0,cam1,0,100,200,300,400"
+
+    def append(line: str) -> Mutation:
+        return csv_edit("boxes.csv", lambda ls: [*ls, line])
+
+    def tracks_nan(ls: list[str]) -> list[str]:
+        return [ls[0], ",".join([*ls[1].split(",")[:2], *["nan"] * 9]), *ls[2:]]
+
+    one_view = [c for c in _odd_cases() if "one camera" in c.name or "one-camera" in c.name]
+    off = [c for c in _odd_cases() if "outside the image" in c.name]
+    return [
+        Case("--out is the input folder (holding keypoints.csv)", "kpts", (*rec[:3], "{in}"), ERROR,
+             ("--out", "input folder"), prev=False),
+        Case("100 000 nested [ in cameras.json", "boxes", rec, ERROR, ("cameras.json", "nested"),
+             raw("cameras.json", lambda b: b"[" * 100_000)),
+        Case("a frame of 10^23", "boxes", rec, ERROR, ("boxes.csv", "frame"),
+             append("100000000000000000000000,cam1,0,100,200,300,400")),
+        Case("an id of 10^23", "boxes", rec, ERROR, ("boxes.csv", "id"),
+             append("0,cam1,100000000000000000000000,100,200,300,400")),
+        Case("a CSV field of 200 000 characters", "boxes", rec, ERROR, ("boxes.csv", "line"),
+             append(row + "x" * 200_000)),
+        Case("--estimator gtsam --sigma-px nan", "boxes", (*rec, "--estimator", "gtsam", "--sigma-px", "nan"),
+             ERROR, ("--sigma-px",)),
+        Case("simulate --frames 100000000", None, ("simulate", "--out", "{out}", "--frames", "100000000"),
+             ERROR, ("--frames",)),
+        Case("--fps 1e-300", "boxes", (*rec, "--fps", "1e-300"), ERROR, ("--fps",)),
+        Case("--fps inf", "boxes", (*rec, "--fps", "inf"), ERROR, ("--fps",)),
+        Case('"fps": "ten" in cameras.json', "boxes", rec, ERROR, ("cameras.json", "fps"),
+             json_edit("cameras.json", lambda d: {**d, "fps": "ten"})),  # type: ignore[dict-item]
+        Case("Panoptic input with every joint confidence 0", "panoptic", rec, ERROR,
+             ("hdPose3d_stage1_coco19", "confidence"), _panoptic_conf_zero),
+        Case("Panoptic --noise-px inf", "panoptic", (*rec, "--noise-px", "inf"), ERROR, ("--noise-px",)),
+        Case("evaluate a tracks.csv with NaN rows", "result",
+             ("evaluate", "{in}", "--truth", "{bases}/boxes"), ERROR,
+             ("tracks.csv", "line 2"), csv_edit("tracks.csv", tracks_nan), prev=False, writes=False),
+        Case("--out that is a file", "boxes", (*rec[:3], "{work}/f"), ERROR, ("--out", "not a folder"),
+             lambda root: (root.parent / "f").write_text("x"), prev=False),
+        *off,
+        Case("xmax = 1e308", "boxes", rec, ERROR, ("boxes.csv", "far outside"),
+             append("0,cam1,7,100,200,1e308,400")),
+        Case("an extra field in one CSV row", "boxes", rec, ERROR, ("boxes.csv", "fields"),
+             append(row + ",9")),
+        Case("dist of 3 coefficients", "boxes", rec, ERROR, ("cameras.json", "dist"),
+             json_edit("cameras.json", lambda d: {**d, "cameras": [  # type: ignore[dict-item]
+                 {**d["cameras"][0], "dist": [0.01, 0.0, 0.0]}, *d["cameras"][1:]]})),  # type: ignore[index]
+        Case("triangulation --sigma-px -1", "boxes",
+             (*rec, "--estimator", "triangulation", "--sigma-px", "-1"), ERROR, ("--sigma-px",)),
+        Case("simulate --noise-px nan", None, ("simulate", "--out", "{out}", "--noise-px", "nan"), ERROR,
+             ("--noise-px",)),
+        Case("evaluate a tracks.csv with every row duplicated", "result",
+             ("evaluate", "{in}", "--truth", "{bases}/boxes"), ERROR, ("tracks.csv", "second row"),
+             csv_edit("tracks.csv", lambda ls: [ls[0], *ls[1:], *ls[1:]]), prev=False, writes=False),
+        *one_view,
+        Case("a box of -1s in native boxes.csv (the README's 'not seen')", "boxes", rec, WARN,
+             ("boxes of -1s",), append("0,cam1,0,-1,-1,-1,-1")),
+        Case("boxes.csv saved by Excel with a UTF-8 BOM", "boxes", rec, OK, (),
+             raw("boxes.csv", lambda b: b"\xef\xbb\xbf" + b)),
+        Case("simulate into a folder holding someone's files", None, ("simulate", "--out", "{work}/mine"),
+             ERROR, ("gt3dkit did not write",), _someones_folder, prev=False),
+    ]
