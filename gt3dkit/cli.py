@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from gt3dkit.errors import InputError
+from gt3dkit.errors import EstimationError, InputError
 
 #: Published numbers of Ma et al. for the datasets we can compare on.
 PAPER = {"multiviewx": {"MOTA": 96.5, "OSPA2_m": 0.17}, "wildtrack": {"MOTA": 98.7, "OSPA2_m": 0.10},
@@ -283,13 +283,16 @@ def cmd_compare(args: argparse.Namespace) -> int:
     table = compare(scene, Path(args.out), progress=not args.no_progress)
     print_warnings(scene)
     print(f"{scene.layout}: {len(scene.obs)} annotation rows -> {args.out}/comparison.csv")
-    names = [r["estimator"] for r in table]
+    names = [r["estimator"] for r in table if "failed" not in r]
     head = f"{'estimator':<15}{'rows':>6}{'reproj px':>10}{'p95 px':>8}" + "".join(
         f"{'to ' + n + ' m':>20}" for n in names) + f"{'sec':>8}" + (
         f"{'truth err m':>13}" if scene.truth is not None else "")
     print(head)
     print("-" * len(head))
     for r in table:
+        if "failed" in r:
+            print(f"{r['estimator']:<15}failed: {r['failed']}")
+            continue
         line = (f"{r['estimator']:<15}{r['rows']:>6}{_num(r['reproj_mean_px'], 10, 3)}"
                 f"{_num(r['reproj_p95_px'], 8, 3)}")
         for n in names:
@@ -306,11 +309,14 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from gt3dkit.api import reconstruct
+    from gt3dkit.api import ESTIMATORS, reconstruct
     from gt3dkit.eval.metrics import box_errors
     from gt3dkit.io.datasets import load_scene
 
     src = bundled("multiviewx")
+    outs = [Path(args.out) / n for n in (*ESTIMATORS, "panoptic_noise0px", "panoptic_noise2px")]
+    for o in outs:  # every check before any work
+        check_output(o, (src, bundled("panoptic_160906_band1")))
     scene = load_scene(src)
     print(f"MultiviewX subset bundled in {src} (see its PROVENANCE.md): "
           f"{len(scene.rig.cameras)} cameras, {len(scene.frames)} frames, "
@@ -318,8 +324,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from gt3dkit.eval.tracking import tracking_scores
 
     rows, mot = [], []
-    from gt3dkit.api import ESTIMATORS
-
     for name in ESTIMATORS:
         out = Path(args.out) / name
         tracks = reconstruct(scene, name, out=out)
@@ -535,6 +539,9 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except EstimationError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
     except BrokenPipeError:  # ``gt3d ... | head``: the reader left; the output is complete
         _quiet_stdout()
         return 141

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from gt3dkit.errors import EstimationError
 from gt3dkit.eval.metrics import box_errors, match_rows
 from gt3dkit.fusion.base import ESTIMATORS as COMPARE_ESTIMATORS
 from gt3dkit.fusion.rows import Rows, build_rows
@@ -90,10 +91,17 @@ def compare(scene: Scene, out: Path, estimators: tuple[str, ...] = COMPARE_ESTIM
     t0 = time.perf_counter()
     pre = prepare(scene)  # the robust per-frame fits and noise levels, shared
     t_pre = time.perf_counter() - t0
+    failed: dict[str, str] = {}
     for name in tqdm(estimators, desc="estimators", disable=not progress, unit="est"):
         t0 = time.perf_counter()
-        results[name] = make_estimator(name).estimate(scene, pre)
+        try:
+            results[name] = make_estimator(name).estimate(scene, pre)
+        except EstimationError as e:  # one estimator's failure is a finding, not the end
+            failed[name] = e.problem
+            continue
         seconds[name] = time.perf_counter() - t0 + t_pre
+    if not results:
+        raise EstimationError("compare", "; ".join(f"{k}: {v}" for k, v in failed.items()))
     table = []
     rows = build_rows(scene)
     seen = {name: seen_joints(tr, rows) for name, tr in results.items()}
@@ -123,6 +131,8 @@ def compare(scene: Scene, out: Path, estimators: tuple[str, ...] = COMPARE_ESTIM
                 row["truth_mpjpe_m"] = mm / 1000
                 row["truth_coverage"] = matched / max(total, 1)
         table.append(row)
+    for name, problem in failed.items():
+        table.append({"estimator": name, "rows": 0, "failed": problem})
     names = list(results)
     cols = (["estimator", "rows", "skipped_rows", "reproj_mean_px", "reproj_median_px",
              "reproj_p95_px"] + [f"dist_to_{n}_{s}" for n in names for s in ("mean_m", "p95_m")]

@@ -13,3 +13,16 @@ class InputError(ValueError):
         self.where = where
         self.problem = problem
         super().__init__(f"{where}: {problem}")
+
+
+class EstimationError(RuntimeError):
+    """An estimator could not solve a (valid) input, e.g. a singular factor graph.
+
+    The CLI prints ``error: <estimator>: <problem>`` and exits with status 1; nothing is
+    written. Not a bug report: the message says which object and what to try.
+    """
+
+    def __init__(self, estimator: str, problem: str) -> None:
+        self.estimator = estimator
+        self.problem = problem
+        super().__init__(f"{estimator}: {problem}")

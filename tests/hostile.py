@@ -418,7 +418,7 @@ def _odd_cases() -> list[Case]:
              ("only ever seen by one camera",), boxes_of({"1"}, "cam2")),
         Case("odd: a one-camera rig", "boxes", (*r, "--estimator", "ukf"), WARN, ("one camera only",),
              one_camera),
-        Case("odd: a gap of 4 s", "boxes", (*r, "--estimator", "ukf"), WARN, ("gaps longer",), gap),
+        Case("odd: a gap of 4 s", "boxes", (*r, "--estimator", "ukf"), WARN, ("gaps of more than",), gap),
         Case("odd: boxes entirely outside the image", "boxes", (*r, "--estimator", "ukf"), WARN,
              ("2 boxes lie entirely outside",), off_image),
         Case("odd: a box of -1s in boxes.csv", "boxes", (*r, "--estimator", "triangulation"), WARN,

@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from gt3dkit.errors import EstimationError
 from gt3dkit.fusion.boxfit import box_model
 from gt3dkit.fusion.motion import StateLayout
 from gt3dkit.fusion.prepare import (
@@ -183,9 +184,14 @@ class GTSAMSmoother:
         n_rows = len(mine)
         huber = gtsam.noiseModel.mEstimator.Huber.Create(cfg.huber_k)
         weak3 = gtsam.noiseModel.Isotropic.Sigma(3, 1.0)
-        weakv = gtsam.noiseModel.Isotropic.Sigma(3, 10.0)
         frame_s = rows.frames[rows.row_t[mine]] / fps
+        # Time in units of the typical step (velocities in m/step): the graph's conditioning
+        # then does not depend on the frame rate (at 1e5 fps, seconds make it singular).
+        # Positions, shapes and their noise are the same in any time unit.
         dts = np.diff(frame_s)
+        tau = float(np.median(dts)) if dts.size else 1.0
+        dts = dts / tau
+        weakv = gtsam.noiseModel.Isotropic.Sigma(3, 10.0 * tau)  # 10 m/s
         seen_j = np.zeros(J, bool)
         if use_kpt and und is not None:
             seen_j = (np.isfinite(und[mine][..., 0]) & pre.kpt_keep[mine]).any(axis=(0, 1))
@@ -200,9 +206,10 @@ class GTSAMSmoother:
             for k, dt in enumerate(dts):
                 g.add(gtsam.BetweenFactorVector(
                     sym("s", k), sym("s", k + 1), np.zeros(3),
-                    gtsam.noiseModel.Isotropic.Sigma(3, tuned.shape_sd * np.sqrt(dt))))
+                    gtsam.noiseModel.Isotropic.Sigma(3, tuned.shape_sd * np.sqrt(dt * tau))))
         for j in np.flatnonzero(seen_j):
             blocks.append(("p", int(j), tuned.joint_accel_sd))
+        blocks = [(ch, j, q * tau**1.5) for ch, j, q in blocks]  # m/s^2/sqrt(Hz) -> per step
         meas: list[int] = []
         meas_dof = 0
         for ch, j, q in blocks:
@@ -247,9 +254,16 @@ class GTSAMSmoother:
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(cfg.max_iterations)
         params.setRelativeErrorTol(cfg.relative_error_tol)
-        opt = gtsam.LevenbergMarquardtOptimizer(g, vals, params)
-        result = opt.optimize()
-        marg = gtsam.Marginals(g, result)
+        try:
+            opt = gtsam.LevenbergMarquardtOptimizer(g, vals, params)
+            result = opt.optimize()
+            marg = gtsam.Marginals(g, result)
+        except RuntimeError as e:  # gtsam's IndeterminateLinearSystemException and kin
+            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            oid = int(rows.obj_ids[rows.row_o[mine[0]]])
+            raise EstimationError(self.name, f"the factor graph of object {oid} is singular ({first}); "
+                                  f"process noise {tuned.accel_sd:.3g} m/s^2/sqrt(Hz) at {fps:g} fps: "
+                                  "check the frame rate, or use --estimator ukf") from None
         out: dict[str, Any] = {
             "centre": x0[mine][:, layout.center].copy(), "log_axes": x0[mine][:, layout.log_axes].copy(),
             "c_sd": np.full((n_rows, 3), np.nan),

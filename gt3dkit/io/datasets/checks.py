@@ -9,8 +9,9 @@ Odd but valid input is kept or dropped as said here, with one ``warning:`` line 
 * objects only ever seen by one camera: kept (their distance comes from the size prior
   alone, so expect errors of metres; their standard deviations say so);
 * a rig of one camera: every object is such an object;
-* gaps longer than :data:`GAP_S` seconds in an object's annotations: kept (the estimate is
-  interpolated there, with a growing standard deviation).
+* gaps longer than :data:`GAP_S` seconds (and than one step of the scene's annotated frames)
+  in an object's annotations: kept (the estimate is interpolated there, with a growing
+  standard deviation).
 """
 
 from __future__ import annotations
@@ -115,15 +116,18 @@ def check_scene(scene: Scene) -> Scene:
                             f"{_ids(lone)}): their distance comes from the size prior alone "
                             "(expect errors of metres; their sd says so)")
 
+    # gaps: an object unannotated for longer than GAP_S and than one step of the scene's frames
     pairs = np.unique(np.stack([obs.track_id, obs.frame], 1), axis=0)  # sorted by id, frame
     same = pairs[1:, 0] == pairs[:-1, 0]
-    gap_s = np.where(same, np.diff(pairs[:, 1]), 0) / scene.fps
-    long = gap_s > GAP_S
+    steps = np.diff(np.unique(obs.frame))
+    step = float(np.median(steps)) if steps.size else 1.0
+    gap = np.where(same, np.diff(pairs[:, 1]), 0).astype(np.float64)
+    long = (gap / scene.fps > GAP_S) & (gap > 1.5 * step)
     if long.any():
         who = np.unique(pairs[1:, 0][long])
-        worst = int(np.argmax(gap_s))
-        warnings.append(f"{int(long.sum())} gaps longer than {GAP_S:g} s in the annotations of "
-                        f"{who.size} objects (ids {_ids(who)}; longest {gap_s[worst]:.3g} s, "
-                        f"object {int(pairs[worst + 1, 0])} after frame {int(pairs[worst, 1])}): "
-                        "estimates there are interpolated")
+        worst = int(np.argmax(np.where(long, gap, 0)))
+        warnings.append(f"{int(long.sum())} gaps of more than {GAP_S:g} s in the annotations of "
+                        f"{who.size} objects (ids {_ids(who)}; longest {gap[worst] / scene.fps:.3g} s "
+                        f"= {int(gap[worst])} frames, object {int(pairs[worst + 1, 0])} after frame "
+                        f"{int(pairs[worst, 1])}): estimates there are interpolated")
     return dataclasses.replace(scene, obs=obs, warnings=tuple(warnings))
