@@ -83,9 +83,12 @@ def _load(args: argparse.Namespace) -> Any:
             opts["cameras"] = [c.strip() for c in args.cameras.split(",") if c.strip()]
             if not opts["cameras"]:
                 raise InputError("--cameras", f"no camera names in {args.cameras!r}")
-        opts["noise_px"], opts["seed"] = args.noise_px, args.seed
-    elif args.cameras is not None or args.noise_px:
-        raise InputError("--cameras/--noise-px", "apply to CMU Panoptic inputs only")
+        opts["noise_px"], opts["seed"] = args.noise_px, args.seed or 0
+    else:
+        for option, v in (("--cameras", args.cameras), ("--noise-px", args.noise_px or None),
+                          ("--seed", args.seed)):
+            if v is not None:
+                raise InputError(option, f"applies to CMU Panoptic inputs only, not {layout}")
     scene = load_scene(Path(args.input), layout, args.skeleton, getattr(args, "fps", None), **opts)
     return scene
 
@@ -201,11 +204,23 @@ def _errors(args: argparse.Namespace) -> Any:
 SIM_MAX_POINTS = 20_000_000
 
 
+#: simulate options that apply to one kind of scene only.
+_SIM_ONLY = {"boxes": ("motion", "dropout", "shifted"),
+             "skeleton": ("missing", "skeleton", "conf", "outliers", "swaps", "glitch")}
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
     from gt3dkit.skeletons import SKELETONS
 
     check_output(args.out)
+    for kind, names in _SIM_ONLY.items():
+        for n in names:
+            if args.kind != kind and getattr(args, n) not in (None, False, 0.0):
+                raise InputError(f"--{n}", f"applies to --kind {kind} scenes")
+    args.motion, args.dropout = args.motion or "smooth", 0.15 if args.dropout is None else args.dropout
+    args.missing = 0.05 if args.missing is None else args.missing
+    args.skeleton = args.skeleton or "coco19"
     errors = _errors(args)
     cams = args.cameras or (10 if args.kind == "skeleton" else 6)
     per = SKELETONS[args.skeleton].n_joints if args.kind == "skeleton" else 1
@@ -218,8 +233,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                            "gt3d simulate writes")
     n_err = ""
     if args.kind == "skeleton":
-        if args.shifted:
-            raise InputError("--shifted", "applies to box scenes")
         try:
             sk = simulate_skeletons(args.layout, seed=args.seed, frames=args.frames,
                                     people=args.people, noise_px=args.noise_px,
@@ -236,9 +249,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         return 0
     if args.layout == "panoptic":
         raise InputError("simulate", "box scenes are native, wildtrack or multiviewx")
-    if errors.outliers or errors.swaps or errors.glitch or args.conf:
-        raise InputError("--outliers/--swaps/--glitch/--conf", "apply to skeleton scenes "
-                                                              "(boxes: --shifted)")
     try:
         sim = simulate(args.layout, seed=args.seed, frames=args.frames, people=args.people,
                        noise_px=args.noise_px, dropout=args.dropout, errors=errors,
@@ -425,7 +435,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--cameras", help="CMU Panoptic: comma-separated HD cameras (default all)")
     r.add_argument("--noise-px", type=PIXELS, default=0.0,
                    help="CMU Panoptic: Gaussian noise added to the projected 2D joints")
-    r.add_argument("--seed", type=SEED, default=0, help="CMU Panoptic: seed of that noise")
+    r.add_argument("--seed", type=SEED, help="CMU Panoptic: seed of that noise (default 0)")
     r.set_defaults(func=cmd_reconstruct)
 
     s = sub.add_parser("simulate", parents=[common],
@@ -436,8 +446,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--cameras", type=_number(int, 1, 1000),
                    help="cameras (skeleton scenes: HD cameras, default 10; native boxes: 6)")
     s.add_argument("--fps", type=FPS, help="frame rate (skeletons: 30; native boxes: 10)")
-    s.add_argument("--motion", choices=("smooth", "walk"), default="smooth",
-                   help="box scenes: smooth paths or real-trajectory-like walking")
+    s.add_argument("--motion", choices=("smooth", "walk"),
+                   help="box scenes: smooth paths (default) or real-trajectory-like walking")
     s.add_argument("--outliers", type=FRACTION, default=0.0,
                    help="skeletons: fraction of keypoints replaced by far-off points")
     s.add_argument("--swaps", type=FRACTION, default=0.0,
@@ -451,15 +461,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fraction of people annotated in one camera only")
     s.add_argument("--conf", action="store_true",
                    help="skeletons: write a detector confidence per keypoint")
-    s.add_argument("--missing", type=_number(float, 0, 1, hi_open=True), default=0.05,
-                   help="skeleton scenes: fraction of 2D points dropped at random")
-    s.add_argument("--skeleton", choices=sorted(SKELETONS), default="coco19")
+    s.add_argument("--missing", type=_number(float, 0, 1, hi_open=True),
+                   help="skeleton scenes: fraction of 2D points dropped at random (default 0.05)")
+    s.add_argument("--skeleton", choices=sorted(SKELETONS), help="skeleton scenes (default coco19)")
     s.add_argument("--out", required=True)
     s.add_argument("--seed", type=SEED, default=0)
     s.add_argument("--frames", type=_number(int, 1, 10**7), default=40)
     s.add_argument("--people", type=_number(int, 1, 10**5), default=10)
     s.add_argument("--noise-px", type=PIXELS, default=0.0)
-    s.add_argument("--dropout", type=_number(float, 0, 1, hi_open=True), default=0.15)
+    s.add_argument("--dropout", type=_number(float, 0, 1, hi_open=True),
+                   help="box scenes: fraction of boxes dropped (default 0.15)")
     s.set_defaults(func=cmd_simulate)
 
     c = sub.add_parser("compare", parents=[common],
@@ -470,7 +481,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--skeleton", choices=sorted(SKELETONS))
     c.add_argument("--cameras", help="CMU Panoptic: comma-separated HD cameras")
     c.add_argument("--noise-px", type=PIXELS, default=0.0, help="CMU Panoptic: 2D noise")
-    c.add_argument("--seed", type=SEED, default=0)
+    c.add_argument("--seed", type=SEED, help="CMU Panoptic: seed of that noise (default 0)")
     c.add_argument("--fps", type=FPS)
     c.add_argument("--no-progress", action="store_true", help="no progress bar")
     c.set_defaults(func=cmd_compare)

@@ -45,6 +45,8 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     from gt3dkit.io.datasets import checks, native, panoptic, wildtrack
 
     layout = layout or detect_layout(Path(root))
+    if skeleton is not None and layout != "native":
+        raise InputError("--skeleton", f"applies to native keypoints.csv inputs, not {layout}")
     if panoptic_options and layout != "panoptic":
         raise InputError(str(root), f"options {sorted(panoptic_options)} apply to the panoptic "
                                     "layout only")
@@ -56,6 +58,8 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
         scene = wildtrack.load(Path(root), wildtrack.LAYOUTS[layout])
     else:
         raise InputError(str(root), f"unknown layout {layout!r} (known: {', '.join(LAYOUTS)})")
+    if len(scene.obs) == 0:
+        raise InputError(str(root), "no annotations in any frame")
     if fps is not None:
         if not (np.isfinite(fps) and native.FPS_RANGE[0] <= fps <= native.FPS_RANGE[1]):
             raise InputError("fps", f"must be in [{native.FPS_RANGE[0]:g}, {native.FPS_RANGE[1]:g}]"

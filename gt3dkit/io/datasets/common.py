@@ -17,10 +17,15 @@ from gt3dkit.types import Observations
 
 
 def sha256(path: Path) -> str:
+    """Hex SHA-256 of a file, or :class:`InputError` if it cannot be read (a folder, no
+    permission)."""
     h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
+    try:
+        with open(path, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+    except OSError as e:
+        raise InputError(str(path), f"cannot read ({e.strerror})") from None
     return h.hexdigest()
 
 

@@ -135,7 +135,9 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
                 skel_name = skeleton_for(top + 1).name
             except ValueError as e:
                 raise InputError(str(kpt_path), f"joint index {top}: {e}") from None
-    n_joints = SKELETONS[skel_name].n_joints if skel_name else 0
+    if skeleton is not None and not kpt_rows:
+        raise InputError("--skeleton", f"{root} has no keypoints (keypoints.csv missing or empty)")
+    n_joints = SKELETONS[skel_name].n_joints if skel_name and kpt_rows else 0
     rb = RowBuilder(n_joints=n_joints)
     box_path = root / "boxes.csv"
     if box_path.exists():
@@ -182,7 +184,8 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
         truth = _merge_kpt_truth(truth, read_kpt_truth(root / "truth_keypoints.csv", n_joints))
     frames = np.unique(obs.frame)
     return Scene(rig=rig, obs=obs, layout="native", fps=fps, frames=frames, truth=truth,
-                 skeleton=skel_name, files=files, root=str(root), warnings=tuple(warnings),
+                 skeleton=skel_name if n_joints else None, files=files, root=str(root),
+                 warnings=tuple(warnings),
                  fps_assumed=f"{cam_path} has no \"fps\"" if fps_doc is None else "")
 
 
