@@ -29,6 +29,56 @@ B8 = npt.NDArray[np.bool_]
 R_STORAGE_TOL = 1e-4
 
 
+#: Largest world coordinate (m) and intrinsic value (px) taken as a number, not a typo.
+MAX_WORLD_M = 1e6
+MAX_PIXELS = 1e7
+MAX_DIST_COEF = 1e4
+
+
+def distortion_fold(K: F64, dist: F64, width: int, height: int) -> float | None:
+    """Where OpenCV's distortion (k1 k2 p1 p2 k3) folds over before it covers the image.
+
+    Walks rays from the principal point outwards in the undistorted (normalised) plane until
+    their distorted image leaves the image; the map must stay orientation-preserving
+    (Jacobian determinant > 0) all the way, else some pixels have two undistorted points.
+    Returns None if it does, else the fraction of the way to the image border at the first
+    fold (0 also when a ray never reaches the border: the lens squeezes the image).
+    """
+    k1, k2, p1, p2, k3 = (float(v) for v in dist)
+    if k1 == k2 == p1 == p2 == k3 == 0:
+        return None
+    c = np.array([[0, 0], [width - 1, 0], [0, height - 1], [width - 1, height - 1]], dtype=np.float64)
+    corner = float(np.max(np.hypot((c[:, 0] - K[0, 2]) / K[0, 0], (c[:, 1] - K[1, 2]) / K[1, 1])))
+    th = np.linspace(0, 2 * np.pi, 96, endpoint=False)[:, None]
+    r = np.concatenate([np.linspace(0, 2 * corner, 301)[1:], np.linspace(2 * corner, 10 * corner, 101)[1:]])
+    r = r[None, :]
+    x, y = r * np.cos(th), r * np.sin(th)
+    with np.errstate(over="ignore", invalid="ignore"):
+        r2 = x * x + y * y
+        rad = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
+        dr = k1 + 2 * k2 * r2 + 3 * k3 * r2**2  # d rad / d r2
+        xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        a = rad + 2 * x * x * dr + 2 * p1 * y + 6 * p2 * x
+        b = 2 * x * y * dr + 2 * p1 * x + 2 * p2 * y
+        cc = 2 * x * y * dr + 2 * p1 * x + 2 * p2 * y
+        d = rad + 2 * y * y * dr + 6 * p1 * y + 2 * p2 * x
+        det = a * d - b * cc
+        u = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
+        v = K[1, 1] * yd + K[1, 2]
+        inside = (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1)
+    out = ~inside
+    if not out.any(axis=1).all():
+        return 0.0  # some ray stays inside: the distortion squeezes the image
+    first_out = np.argmax(out, axis=1)  # (rays,)
+    before = np.arange(r.shape[1])[None, :] < first_out[:, None]
+    bad = before & ~(det > 0)
+    if not bad.any():
+        return None
+    ray, k = np.argwhere(bad)[0]
+    return float(r[0, k] / r[0, first_out[ray]])
+
+
 def _arr(x: Any, shape: tuple[int | None, ...], name: str, *, finite: bool = True) -> F64:
     a = np.asarray(x, dtype=np.float64)
     if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape, strict=True)):
@@ -92,6 +142,9 @@ class Camera:
         d = np.concatenate([d[:5], np.zeros(max(0, 5 - d.size))])
         object.__setattr__(self, "dist", _arr(d, (5,), f"camera {self.name}: dist"))
         R = _arr(self.R, (3, 3), f"camera {self.name}: R")
+        if np.abs(R).max() > 1 + R_STORAGE_TOL:  # (and R R^T would overflow)
+            raise ValueError(f"camera {self.name}: R is not a rotation matrix (an entry of "
+                             f"magnitude {np.abs(R).max():.3g})")
         dev = float(np.abs(R @ R.T - np.eye(3)).max())
         if dev > R_STORAGE_TOL or np.linalg.det(R) < 0:
             raise ValueError(f"camera {self.name}: R is not a rotation matrix "
@@ -109,6 +162,19 @@ class Camera:
             raise ValueError(f"camera {self.name}: depth_sign must be +1 or -1")
         if self.K[0, 0] <= 0 or self.K[1, 1] <= 0 or self.K[2, 2] != 1.0:
             raise ValueError(f"camera {self.name}: K must have positive focal lengths and K[2,2]=1")
+        if self.K[1, 0] != 0 or self.K[2, 0] != 0 or self.K[2, 1] != 0:
+            raise ValueError(f"camera {self.name}: K must be upper triangular "
+                             "[[fx, s, cx], [0, fy, cy], [0, 0, 1]]")
+        if np.abs(self.K).max() > MAX_PIXELS or np.abs(self.t).max() > MAX_WORLD_M:
+            raise ValueError(f"camera {self.name}: K beyond {MAX_PIXELS:g} px or t beyond "
+                             f"{MAX_WORLD_M:g} m")
+        if np.abs(self.dist).max() > MAX_DIST_COEF:
+            raise ValueError(f"camera {self.name}: a dist coefficient beyond {MAX_DIST_COEF:g}")
+        fold = distortion_fold(self.K, self.dist, int(self.width), int(self.height))
+        if fold is not None:
+            raise ValueError(f"camera {self.name}: dist {np.round(self.dist, 6).tolist()} folds the "
+                             f"image (the radial distortion turns back at {fold:.0%} of the way to the "
+                             "farthest corner): not a calibration of this image size")
 
     @property
     def center_world(self) -> F64:

@@ -12,6 +12,7 @@ seed, then ``tests/test_reliability.py`` (signals, SIGKILL, concurrent runs, clo
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import subprocess
 import sys
 import tempfile
@@ -60,13 +61,18 @@ def main() -> int:
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--inprocess", action="store_true", help="call gt3dkit.cli.main, not a subprocess")
     ap.add_argument("--no-pytest", action="store_true", help="skip tests/test_reliability.py")
+    ap.add_argument("--debug", action="store_true",
+                    help="run every case with gt3d --debug: numerical warnings are shown (and "
+                         "counted as stray stderr lines), to find their roots")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="gt3d-hostile-") as tmp:
         bases = make_bases(Path(tmp) / "bases")
         work = Path(tmp) / "work"
-        outs = run_all("issue 9 cases", issue_cases(), bases, work, args.jobs, args.inprocess)
+        def dbg(cs: list) -> list:
+            return [dataclasses.replace(c, argv=(*c.argv, "--debug")) for c in cs] if args.debug else cs
+        outs = run_all("issue 9 cases", dbg(issue_cases()), bases, work, args.jobs, args.inprocess)
         for seed in range(args.first_seed, args.first_seed + args.seeds):
-            outs += run_all(f"suite seed {seed}", cases(seed), bases, work, args.jobs, args.inprocess)
+            outs += run_all(f"suite seed {seed}", dbg(cases(seed)), bases, work, args.jobs, args.inprocess)
     counts = Counter(_kind(p) for o in outs for p in o.problems)
     print(f"\nall {len(outs)} cases: " + ", ".join(f"{v} {k}" for k, v in
                                                    [(kind, counts.get(kind, 0)) for kind in

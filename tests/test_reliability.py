@@ -243,3 +243,32 @@ def test_tables_print_a_dash_for_no_value() -> None:
                    poses_truth=3, poses_predicted=0)
     text = pose_table([("triangulation", p, float("nan"))])
     assert "nan" not in text and text.splitlines()[-1].rstrip().endswith("-")
+
+
+def test_distortion_fold_agrees_with_opencv_round_trips() -> None:
+    """Where distortion_fold finds no fold, OpenCV undistorts every pixel and distorts it back
+    to itself; where it finds one, some pixel does not come back (two undistorted points)."""
+    import cv2
+
+    from gt3dkit.types import distortion_fold
+
+    K = np.array([[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]])
+    u, v = np.meshgrid(np.linspace(0, 1919, 41), np.linspace(0, 1079, 23))
+    px = np.stack([u.ravel(), v.ravel()], 1)[:, None, :]
+
+    def round_trip_px(dist: np.ndarray) -> float:
+        n = cv2.undistortPoints(px, K, dist, criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS,
+                                                       200, 1e-12))
+        xyz = np.concatenate([n[:, 0], np.ones((len(n), 1))], 1)
+        back, _ = cv2.projectPoints(xyz, np.zeros(3), np.zeros(3), K, dist)
+        return float(np.nanmax(np.linalg.norm(back[:, 0] - px[:, 0], axis=1)))
+
+    for d in ([-0.06, 0.01, -0.001, -0.0007, 0.0], [-0.2, 0.1, 0.0, 0.0, 0.0], [0.3, 0.0, 0.0, 0.0, 0.0],
+              [-0.1, 0.02, 0.002, -0.001, 0.001]):
+        dist = np.array(d)
+        assert distortion_fold(K, dist, 1920, 1080) is None
+        assert round_trip_px(dist) < 0.01, d
+    for d in ([-1.0, 0, 0, 0, 0], [-0.3, 0, 0, 0, 0], [0, 0, -1.0, 0, 0]):
+        dist = np.array(d)
+        assert distortion_fold(K, dist, 1920, 1080) is not None
+        assert round_trip_px(dist) > 1.0, d

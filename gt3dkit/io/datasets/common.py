@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from gt3dkit.errors import InputError
-from gt3dkit.types import Observations
+from gt3dkit.types import MAX_WORLD_M, Observations
 
 
 def sha256(path: Path) -> str:
@@ -78,15 +78,22 @@ def parse_frame(where: str, text: Any) -> int:
     return parse_int(where, text, "frame", 0, FRAME_MAX)
 
 
-def parse_float(where: str, text: Any, name: str) -> float:
-    """A finite number field, or :class:`InputError`."""
+def parse_float(where: str, text: Any, name: str, limit: float = math.inf) -> float:
+    """A finite number field of magnitude up to ``limit``, or :class:`InputError`."""
     try:
         v = float(text)
     except (TypeError, ValueError, OverflowError):
         raise InputError(where, f"{name} must be a number, got {text!r}") from None
     if not math.isfinite(v):
         raise InputError(where, f"{name} is not finite ({text})")
+    if abs(v) > limit:
+        raise InputError(where, f"{name} {v:g} is beyond {limit:g}")
     return v
+
+
+def parse_metres(where: str, text: Any, name: str) -> float:
+    """A world coordinate or length (m): finite, within :data:`MAX_WORLD_M`."""
+    return parse_float(where, text, f"{name} (m)", MAX_WORLD_M)
 
 
 def check_box(where: str, box: list[float]) -> None:

@@ -37,6 +37,7 @@ from gt3dkit.io.datasets.common import (
     parse_float,
     parse_frame,
     parse_int,
+    parse_metres,
     read_csv_rows,
     sha256,
 )
@@ -217,7 +218,7 @@ def read_kpt_truth(path: Path, n_joints: int) -> GroundTruth:
         where = f"{path}: line {line}"
         key = (parse_frame(where, r["frame"]), parse_int(where, r["id"], "id"))
         j = parse_int(where, r["joint"], "joint", 0, max(n_joints - 1, 0))
-        xyz = [parse_float(where, r[k], k) for k in ("x", "y", "z")]
+        xyz = [parse_metres(where, r[k], k) for k in ("x", "y", "z")]
         if not n_joints:
             raise InputError(where, "keypoint truth, but the input has no keypoints")
         pose = poses.setdefault(key, np.full((n_joints, 3), np.nan))

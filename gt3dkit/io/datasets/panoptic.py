@@ -20,7 +20,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import project_points
 from gt3dkit.io.datasets.common import parse_frame, parse_int, read_json_field, sha256
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import Camera, GroundTruth, Observations, Rig, Scene
+from gt3dkit.types import MAX_WORLD_M, Camera, GroundTruth, Observations, Rig, Scene
 
 CM = 0.01
 FPS = 29.97
@@ -111,6 +111,8 @@ def load(root: Path, cameras: list[str] | None = None, noise_px: float = 0.0, se
                 raise InputError(f"{p}: body {bid}", f"joints19 has {j.size} values, expected {4 * J}")
             if not np.all(np.isfinite(j)):
                 raise InputError(f"{p}: body {bid}", "joints19 has non-finite values")
+            if np.abs(j).max() > MAX_WORLD_M / CM:
+                raise InputError(f"{p}: body {bid}", f"joints19 has a value beyond {MAX_WORLD_M / CM:g} cm")
             j = j.reshape(J, 4)
             X = np.where((j[:, 3] >= min_conf)[:, None], j[:, :3] * CM, np.nan)
             t_frame.append(frame)

@@ -35,9 +35,9 @@ from gt3dkit.io.datasets.checks import check_pixels
 from gt3dkit.io.datasets.common import (
     RowBuilder,
     load_json,
-    parse_float,
     parse_frame,
     parse_int,
+    parse_metres,
     read_csv_rows,
     sha256,
 )
@@ -261,7 +261,7 @@ def read_truth_csv(p: Path, files: dict[str, str], root: Path) -> GroundTruth:
         if key in keys:
             raise InputError(where, f"second row for object {key[1]} in frame {key[0]}")
         keys.add(key)
-        vals = [parse_float(where, r[k], k) for k in TRUTH_COLUMNS[2:]]
+        vals = [parse_metres(where, r[k], k) for k in TRUTH_COLUMNS[2:]]
         if min(vals[3:]) <= 0:
             raise InputError(where, f"semi-axes must be positive, got {vals[3:]}")
         rows.append((*key, *vals))
