@@ -27,7 +27,6 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from gt3dkit.geom.camera import Cams
@@ -219,7 +218,7 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
         amp = rng.uniform(0.2, 0.6) * rng.normal(size=2) / np.sqrt(2)
         period = rng.uniform(8, 16)
         phase = rng.uniform(0, 2 * np.pi)
-        first = int(rng.integers(0, frames // 3))
+        first = int(rng.integers(0, max(frames // 3, 1)))
         last = int(rng.integers(2 * frames // 3, frames))
         walk = _walk(np.random.default_rng([seed, 2, pid]), t_s, lo, hi) if motion == "walk" \
             else None
@@ -324,20 +323,9 @@ def _write_native(sim: SimScene, tmp: Path) -> None:
 
 
 def _write_grid(sim: SimScene, tmp: Path, g: GridLayout) -> None:
-    intr = tmp / "calibrations" / g.intrinsic_dir
-    extr = tmp / "calibrations" / "extrinsic"
-    intr.mkdir(parents=True)
-    extr.mkdir(parents=True)
-    for c in sim.rig.cameras:
-        fs = cv2.FileStorage(str(intr / f"intr_{c.name}.xml"), cv2.FILE_STORAGE_WRITE)
-        fs.write("camera_matrix", c.K)
-        fs.write("distortion_coefficients", c.dist.reshape(1, 5))
-        fs.release()
-        rvec, _ = cv2.Rodrigues(c.R)
-        fs = cv2.FileStorage(str(extr / f"extr_{c.name}.xml"), cv2.FILE_STORAGE_WRITE)
-        fs.write("rvec", rvec.reshape(3, 1))
-        fs.write("tvec", (c.t / g.tvec_to_m).reshape(3, 1))
-        fs.release()
+    from gt3dkit.calib.formats import grid
+
+    grid.write(sim.rig, tmp, g)
     ann = tmp / "annotations_positions"
     ann.mkdir()
     width = 8 if g.name == "wildtrack" else 5

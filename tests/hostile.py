@@ -527,6 +527,8 @@ def _option_cases() -> list[Case]:
              ("gt3dkit did not write",), mutate=_someones_folder, prev=False),
         Case("simulate --shifted on a skeleton", None, ("simulate", "--out", "{out}", "--kind", "skeleton",
                                                         "--shifted", "0.1"), ERROR, ("--shifted",)),
+        Case("simulate --frames 2 --people 1", None, ("simulate", "--out", "{out}", "--frames", "2",
+                                                      "--people", "1"), OK, ()),
         Case("simulate --cameras 65", None, ("simulate", "--out", "{out}", "--cameras", "65"), ERROR,
              ("cameras",)),
         Case("--skeleton on a boxes-only input", "boxes", (*rec, "--skeleton", "coco17"), ERROR,

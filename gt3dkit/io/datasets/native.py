@@ -25,16 +25,14 @@ from __future__ import annotations
 import csv
 import math
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
+from gt3dkit.calib.formats.native import FPS_RANGE, cameras_doc, load_cameras  # noqa: F401
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import check_pixels
 from gt3dkit.io.datasets.common import (
     RowBuilder,
-    load_json,
-    parse_float,
     parse_frame,
     parse_int,
     parse_metres,
@@ -43,64 +41,11 @@ from gt3dkit.io.datasets.common import (
 )
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
 from gt3dkit.skeletons import SKELETONS, skeleton_for
-from gt3dkit.types import Camera, GroundTruth, Rig, Scene
+from gt3dkit.types import GroundTruth, Rig, Scene
 
 BOX_COLUMNS = ("frame", "camera", "id", "xmin", "ymin", "xmax", "ymax")
 KPT_COLUMNS = ("frame", "camera", "id", "joint", "u", "v")
 DEFAULT_FPS = 10.0
-#: Frame rates accepted in cameras.json and by --fps: one frame per 17 minutes .. 1 MHz.
-FPS_RANGE = (1e-3, 1e6)
-
-
-def load_cameras(path: Path) -> tuple[Rig, float | None, str | None]:
-    """Rig, fps (None when the file gives none) and skeleton name of a ``cameras.json``."""
-    doc = load_json(path)
-    if not isinstance(doc, dict) or not isinstance(doc.get("cameras"), list):
-        raise InputError(str(path), 'expected {"up": [...], "cameras": [...]}')
-    cams = []
-    for i, c in enumerate(doc["cameras"]):
-        where = f"{path}: cameras[{i}]"
-        try:
-            where = f"{path}: camera {str(c['name'])!r}"
-            cams.append(_camera(c))
-        except (KeyError, TypeError, IndexError) as e:
-            raise InputError(where, f"missing or malformed field {e}") from None
-        except (ValueError, OverflowError) as e:
-            raise InputError(where, str(e)) from None
-    try:
-        rig = Rig(tuple(cams), up=np.asarray(doc.get("up", [0, 0, 1]), dtype=np.float64),
-                  frame_name=f"input world frame of {Path(path).name}")
-    except (ValueError, TypeError, OverflowError) as e:
-        raise InputError(f"{path}: {'up' if cams else 'cameras'}", str(e)) from None
-    if doc.get("fps") is None:
-        return rig, None, _skeleton_of(doc, path)
-    fps = parse_float(f"{path}: fps", doc["fps"], "fps")
-    if not FPS_RANGE[0] <= fps <= FPS_RANGE[1]:
-        raise InputError(f"{path}: fps", f"must be in [{FPS_RANGE[0]:g}, {FPS_RANGE[1]:g}], got {fps:g}")
-    return rig, fps, _skeleton_of(doc, path)
-
-
-def _skeleton_of(doc: dict[str, Any], path: Path) -> str | None:
-    skel = doc.get("skeleton")
-    if skel is not None and (not isinstance(skel, str) or skel not in SKELETONS):
-        raise InputError(str(path), f"unknown skeleton {skel!r} (known: {', '.join(SKELETONS)})")
-    return skel if skel is None else str(skel)
-
-
-def cameras_doc(rig: Rig, fps: float, **extra: Any) -> dict[str, Any]:
-    """The ``cameras.json`` document of a rig (what :func:`load_cameras` reads back)."""
-    return {"up": rig.up.tolist(), "fps": fps, **extra,
-            "cameras": [{"name": c.name, "width": c.width, "height": c.height, "K": c.K.tolist(),
-                         "dist": c.dist.tolist(), "R": c.R.tolist(), "t": c.t.tolist()}
-                        for c in rig.cameras]}
-
-
-def _camera(c: dict[str, Any]) -> Camera:
-    size = [parse_int("", c[k], k, 1, 100_000) for k in ("width", "height")]
-    return Camera(name=str(c["name"]), width=size[0], height=size[1],
-                  K=np.asarray(c["K"], dtype=np.float64),
-                  dist=np.asarray(c.get("dist", [0, 0, 0, 0, 0]), dtype=np.float64),
-                  R=np.asarray(c["R"], dtype=np.float64), t=np.asarray(c["t"], dtype=np.float64))
 
 
 def camera_index(rig: Rig, name: str, where: str) -> int:

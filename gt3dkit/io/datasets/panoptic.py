@@ -16,53 +16,16 @@ from pathlib import Path
 
 import numpy as np
 
+from gt3dkit.calib.formats.panoptic import find_calibration, load_rig
 from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import project_points
 from gt3dkit.io.datasets.common import parse_frame, parse_int, read_json_field, sha256
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import MAX_WORLD_M, Camera, GroundTruth, Observations, Rig, Scene
+from gt3dkit.types import MAX_WORLD_M, GroundTruth, Observations, Rig, Scene
 
 CM = 0.01
 FPS = 29.97
 POSE_DIR = "hdPose3d_stage1_coco19"
-
-
-def find_calibration(root: Path) -> Path | None:
-    c = sorted(Path(root).glob("calibration_*.json"))
-    return c[0] if c else None
-
-
-def load_rig(path: Path, cameras: list[str] | None = None) -> Rig:
-    cams_doc = read_json_field(path, "cameras", "[...]")
-    cams = []
-    for i, c in enumerate(cams_doc):
-        where = f"{path}: cameras[{i}]"
-        try:
-            if c.get("type") != "hd":
-                continue
-            name = str(c["name"])
-            if cameras is not None and name not in cameras:
-                continue
-            w, h = (int(v) for v in c["resolution"])
-            cams.append(Camera(name=name, width=w, height=h, K=np.asarray(c["K"], float),
-                               dist=np.asarray(c["distCoef"], float).reshape(-1),
-                               R=np.asarray(c["R"], float),
-                               t=np.asarray(c["t"], float).reshape(3) * CM))
-        except (KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError) as e:
-            raise InputError(f"{where} ({c.get('name', '?') if isinstance(c, dict) else '?'})",
-                             f"malformed camera ({e})") from None
-    if not cams:
-        want = f" among {cameras}" if cameras else ""
-        raise InputError(str(path), f"no HD cameras{want} (type 'hd')")
-    if cameras is not None:
-        missing = sorted(set(cameras) - {c.name for c in cams})
-        if missing:
-            raise InputError(str(path), f"no HD camera named {missing}")
-    try:
-        return Rig(tuple(cams), up=np.array([0.0, -1.0, 0.0]),
-                   frame_name="CMU Panoptic world (y down), centimetres converted to metres")
-    except ValueError as e:
-        raise InputError(str(path), str(e)) from None
 
 
 def load(root: Path, cameras: list[str] | None = None, noise_px: float = 0.0, seed: int = 0,

@@ -30,6 +30,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from gt3dkit.calib.formats.opencv import read_storage
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import check_pixels
 from gt3dkit.io.datasets.common import (
@@ -95,42 +96,6 @@ MULTIVIEWX = GridLayout(
 LAYOUTS = {g.name: g for g in (WILDTRACK, MULTIVIEWX)}
 
 
-def _read_storage(path: Path, keys: tuple[str, ...]) -> list[np.ndarray]:
-    try:
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except (cv2.error, SystemError) as e:
-        # OpenCV raises cv2.error, or a SystemError wrapping it, for a parse failure
-        cause = e.__cause__ or e.__context__ or e
-        lines = str(cause).strip().splitlines()
-        msg = lines[-1].strip() if lines else "unreadable"
-        raise InputError(str(path), f"malformed OpenCV XML ({msg})") from None
-    if not fs.isOpened():
-        raise InputError(str(path), "cannot open OpenCV XML file")
-    out = []
-    try:
-        for k in keys:
-            node = fs.getNode(k)
-            if node.empty():
-                raise InputError(str(path), f"missing matrix '{k}'")
-            # opencv-matrix nodes (MultiviewX, WILDTRACK intrinsics) or plain number
-            # sequences (WILDTRACK's extrinsics: <rvec>1.88 0.46 -0.21</rvec>)
-            try:
-                m = (np.array([node.at(i).real() for i in range(node.size())])
-                     if node.isSeq() else node.mat())
-            except (cv2.error, SystemError) as e:
-                lines = str(e).strip().splitlines()
-                raise InputError(str(path), f"'{k}' is malformed ({lines[-1].strip() if lines else e})"
-                                 ) from None
-            if m is None or m.size == 0:
-                raise InputError(str(path), f"'{k}' is not a matrix or a list of numbers")
-            if not np.all(np.isfinite(m)):
-                raise InputError(str(path), f"'{k}' has non-finite values")
-            out.append(np.asarray(m, dtype=np.float64))
-    finally:
-        fs.release()
-    return out
-
-
 def load_camera(root: Path, g: GridLayout, name: str, files: dict[str, str]) -> Camera | None:
     intr = root / "calibrations" / g.intrinsic_dir / f"intr_{name}.xml"
     extr = root / "calibrations" / "extrinsic" / f"extr_{name}.xml"
@@ -139,8 +104,8 @@ def load_camera(root: Path, g: GridLayout, name: str, files: dict[str, str]) -> 
     for p in (intr, extr):
         if not p.exists():
             raise InputError(str(p), f"missing calibration file for camera {name}")
-    K, dist = _read_storage(intr, ("camera_matrix", "distortion_coefficients"))
-    rvec, tvec = _read_storage(extr, ("rvec", "tvec"))
+    K, dist = read_storage(intr, ("camera_matrix", "distortion_coefficients"))
+    rvec, tvec = read_storage(extr, ("rvec", "tvec"))
     if K.shape != (3, 3) or rvec.size != 3 or tvec.size != 3:
         raise InputError(str(extr), f"camera {name}: expected 3x3 camera_matrix, 3-vector rvec/tvec")
     R, _ = cv2.Rodrigues(rvec.reshape(3))
