@@ -12,8 +12,10 @@ __all__ = ["ESTIMATORS", "make_estimator", "reconstruct"]
 
 
 def reconstruct(scene: Scene | str | Path, estimator: str | Estimator = "ukf",
-                out: str | Path | None = None, **config: Any) -> TrackSet:
-    """Estimate tracks for a scene (or an input folder); write ``out`` if given."""
+                out: str | Path | None = None, extra_meta: dict[str, Any] | None = None,
+                **config: Any) -> TrackSet:
+    """Estimate tracks for a scene (or an input folder); write ``out`` if given (with
+    ``extra_meta`` added to its meta.json)."""
     from gt3dkit.io.datasets import load_scene
     from gt3dkit.io.writers import write_outputs
 
@@ -21,5 +23,5 @@ def reconstruct(scene: Scene | str | Path, estimator: str | Estimator = "ukf",
     est = make_estimator(estimator, **config) if isinstance(estimator, str) else estimator
     tracks = est.estimate(sc)
     if out is not None:
-        write_outputs(Path(out), sc, tracks)
+        write_outputs(Path(out), sc, tracks, extra_meta)
     return tracks

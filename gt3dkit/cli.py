@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import os
 import signal
 import sys
@@ -89,7 +90,8 @@ def _load(args: argparse.Namespace) -> Any:
                           ("--seed", args.seed)):
             if v is not None:
                 raise InputError(option, f"applies to CMU Panoptic inputs only, not {layout}")
-    scene = load_scene(Path(args.input), layout, args.skeleton, getattr(args, "fps", None), **opts)
+    scene = load_scene(Path(args.input), layout, args.skeleton, getattr(args, "fps", None),
+                       calib=getattr(args, "calib", None), **opts)
     return scene
 
 
@@ -160,10 +162,22 @@ def report_truth(scene: Any, tracks: Any, name: str, max_dist_m: float = 1.0) ->
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from gt3dkit.api import reconstruct
+    from gt3dkit.calib.formats.native import cameras_doc
 
     config = _estimator_config(args)
     scene = _load(args)
-    tracks = reconstruct(scene, args.estimator, out=args.out, **config)
+    extra = None
+    if args.refine_calib:
+        from gt3dkit.calib.refine import refine, rig_digest
+
+        res = refine(scene)
+        extra = {"calibration_refinement": {**res.report, "rig_sha256": {
+            "input": rig_digest(scene.rig), "refined": rig_digest(res.rig)},
+            "refined_rig": json.loads(json.dumps(cameras_doc(res.rig, None)))}}
+        scene = dataclasses.replace(scene, rig=res.rig)
+        print(f"calibration refined: {', '.join(res.report['refined_cameras']) or 'no camera'} "
+              f"({res.report['seconds']:.1f} s; meta.json: calibration_refinement)")
+    tracks = reconstruct(scene, args.estimator, out=args.out, extra_meta=extra, **config)
     print_warnings(scene)
     info = tracks.info
     kinds = " + ".join(k for k, v in (("boxes", scene.obs.has_box.any()),
@@ -318,6 +332,60 @@ def cmd_compare(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_calib_show(args: argparse.Namespace) -> int:
+    from gt3dkit.calib.formats import detect_format, read_calibration
+    from gt3dkit.calib.show import camera_table, rig_warnings, scene_warnings
+    from gt3dkit.io.datasets import load_scene
+
+    scene = None
+    try:
+        scene = load_scene(Path(args.input))
+        rig = scene.rig
+        what = f"{scene.layout} input {args.input}"
+    except InputError:
+        if Path(args.input).is_dir() and (Path(args.input) / "cameras.json").exists():
+            raise  # an input folder with a problem: say it
+        rig = read_calibration(Path(args.input))
+        what = f"{detect_format(Path(args.input))} calibration {args.input}"
+    print(f"{what}: {len(rig.cameras)} cameras, up {np.round(rig.up, 4).tolist()}")
+    head = (f"{'camera':<12}{'centre x':>9}{'y':>8}{'z':>8}{'height':>8}{'tilt°':>7}"
+            f"{'fx':>8}{'fy':>8}{'cx':>7}{'cy':>7}{'k1':>8}{'k2':>8}{'size':>11}")
+    print(head)
+    print("-" * len(head))
+    for t in camera_table(rig):
+        x, y, z = t["centre_m"]
+        print(f"{t['camera']:<12}{x:>9.3f}{y:>8.3f}{z:>8.3f}{t['height_m']:>8.3f}{t['tilt_deg']:>7.1f}"
+              f"{t['fx_px']:>8.1f}{t['fy_px']:>8.1f}{t['cx_px']:>7.1f}{t['cy_px']:>7.1f}"
+              f"{t['dist'][0]:>8.4f}{t['dist'][1]:>8.4f}{t['size'][0]:>6}x{t['size'][1]:<4}")
+    warns = rig_warnings(rig) + (scene_warnings(scene) if scene is not None else [])
+    if scene is not None:
+        print_warnings(scene)
+    for w in warns:
+        print(f"warning: {w}", file=sys.stderr)
+    print(f"{len(warns)} calibration warnings")
+    return 0
+
+
+def cmd_calib_refine(args: argparse.Namespace) -> int:
+    from gt3dkit.calib.refine import RefineConfig, refine
+    from gt3dkit.io.writers import write_refined_calibration
+
+    scene = _load(args)
+    res = refine(scene, RefineConfig(refine_intrinsics=args.refine_intrinsics))
+    write_refined_calibration(Path(args.out), scene, res, args.format)
+    print_warnings(scene)
+    rep = res.report
+    print(f"{scene.layout}: {len(scene.rig.cameras)} cameras, {rep['method']} -> refined "
+          f"{len(rep['refined_cameras'])} ({', '.join(rep['refined_cameras']) or 'none'}) in "
+          f"{rep['seconds']:.1f} s; written to {args.out}")
+    print(f"{'camera':<12}{'refined':>8}{'moved cm':>10}{'moved °':>9}{'px before':>11}{'px after':>10}  why")
+    for name, c in rep["cameras"].items():
+        print(f"{name:<12}{'yes' if c['refined'] else 'no':>8}{100 * c['centre_moved_m']:>10.2f}"
+              f"{c['rotation_moved_deg']:>9.3f}{_num(c['median_px_before'], 11, 3)}"
+              f"{_num(c['median_px_after'], 10, 3)}  {c['why']}")
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from gt3dkit.api import ESTIMATORS, reconstruct
     from gt3dkit.eval.metrics import box_errors
@@ -408,6 +476,7 @@ SEED = _number(int, 0, 2**32 - 1)
 
 def build_parser() -> argparse.ArgumentParser:
     from gt3dkit.api import ESTIMATORS
+    from gt3dkit.calib.formats import WRITABLE
     from gt3dkit.io.datasets import LAYOUTS
     from gt3dkit.sim import SIM_LAYOUTS
     from gt3dkit.skeletons import SKELETONS
@@ -428,6 +497,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--accel-sd", type=ACCEL,
                    help="acceleration noise, m/s^2/sqrt(Hz) (default: max likelihood)")
     r.add_argument("--fps", type=FPS, help="frame-number rate (default: the layout's)")
+    r.add_argument("--calib", help="calibration file or folder in any format (cameras.json, "
+                                   "WILDTRACK/MultiviewX calibrations/, OpenCV .yml/.xml, Anipose/"
+                                   "Pose2Sim .toml, COLMAP model) in place of the input's own")
+    r.add_argument("--refine-calib", action="store_true",
+                   help="refine the cameras from the annotations first (see gt3d calib refine)")
     r.add_argument("--no-smooth", action="store_true", help="forward filter only (no RTS)")
     r.add_argument("--no-bones", action="store_true", help="do not tie bone lengths")
     r.add_argument("--skeleton", choices=sorted(SKELETONS),
@@ -483,6 +557,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--noise-px", type=PIXELS, default=0.0, help="CMU Panoptic: 2D noise")
     c.add_argument("--seed", type=SEED, help="CMU Panoptic: seed of that noise (default 0)")
     c.add_argument("--fps", type=FPS)
+    c.add_argument("--calib", help="calibration file or folder in any format, in place of the "
+                                   "input's own")
     c.add_argument("--no-progress", action="store_true", help="no progress bar")
     c.set_defaults(func=cmd_compare)
 
@@ -495,6 +571,30 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ground-plane distance within which an estimate matches a true object "
                         "(MOTA, IDF1, HOTA, OSPA cut-off)")
     e.set_defaults(func=cmd_evaluate)
+
+    k = sub.add_parser("calib", parents=[common], help="show, check and refine calibrations")
+    ksub = k.add_subparsers(dest="calib_command", required=True, parser_class=_Parser)
+    ks = ksub.add_parser("show", parents=[common],
+                         help="a table per camera and warnings for common calibration mistakes")
+    ks.add_argument("input", help="an input folder (checked with its annotations) or a calibration "
+                                  "file or folder in any format")
+    ks.set_defaults(func=cmd_calib_show)
+    kr = ksub.add_parser("refine", parents=[common],
+                         help="refine the rig from the annotations (validated on held-out frames)")
+    kr.add_argument("input", help="input folder (any layout)")
+    kr.add_argument("--out", required=True, help="output folder (cameras.json, calib_report.json)")
+    kr.add_argument("--calib", help="start from this calibration instead of the input's own")
+    kr.add_argument("--refine-intrinsics", action="store_true",
+                    help="refine focal length and distortion too (keypoints only)")
+    kr.add_argument("--format", choices=WRITABLE, default=None,
+                    help="also write the refined rig in this format (into OUT/calibration/)")
+    kr.add_argument("--layout", choices=LAYOUTS)
+    kr.add_argument("--skeleton", choices=sorted(SKELETONS))
+    kr.add_argument("--fps", type=FPS)
+    kr.add_argument("--cameras", help="CMU Panoptic: comma-separated HD cameras")
+    kr.add_argument("--noise-px", type=PIXELS, default=0.0, help="CMU Panoptic: 2D noise")
+    kr.add_argument("--seed", type=SEED, help="CMU Panoptic: seed of that noise (default 0)")
+    kr.set_defaults(func=cmd_calib_refine)
 
     d = sub.add_parser("demo", parents=[common],
                        help="reconstruct the bundled MultiviewX and Panoptic data, print errors")

@@ -205,3 +205,23 @@ def read_keypoints_csv(path: Path, tracks: TrackSet, n_joints: int) -> TrackSet:
         kpt[key[(fr, tid)], j] = xyz
         sd[key[(fr, tid)], j] = s
     return dataclasses.replace(tracks, kpt_world=kpt, kpt_sd=sd)
+
+
+def write_refined_calibration(out: Path, scene: Scene, result: Any, fmt: str | None = None) -> None:
+    """``OUT/cameras.json`` (the refined rig, with the scene's fps), ``OUT/calib_report.json`` and,
+    with ``fmt``, ``OUT/calibration/`` in that format (all or nothing)."""
+    from gt3dkit.calib.formats import write_calibration
+    from gt3dkit.calib.formats.native import write as write_native
+
+    def write(tmp: Path) -> None:
+        write_native(result.rig, tmp / "cameras.json", fps=scene.fps)
+        if fmt is not None and fmt != "native":
+            write_calibration(result.rig, tmp / "calibration", fmt)
+        doc = {"gt3dkit_version": __version__,
+               "created_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+               "input": {"root": scene.root, "layout": scene.layout, "files_sha256": scene.files},
+               **result.report}
+        (tmp / "calib_report.json").write_text(json.dumps(_jsonable(doc), indent=2, allow_nan=False,
+                                                          default=_jsonable))
+
+    write_dir_atomically(Path(out), write)

@@ -3,7 +3,8 @@ read and written with pycolmap (the only module that imports it, lazily).
 
 One COLMAP image per camera of the rig, named ``<camera>.<ext>`` (the camera is the image
 name's stem); its ``cam_from_world`` is our ``R``, ``t`` (COLMAP's world units are taken as
-metres). Camera models: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV and
+metres; its principal point is OpenCV's + 0.5 px: COLMAP puts pixel centres at +0.5).
+Camera models: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV and
 FULL_OPENCV (with k4 = k5 = k6 = 0) map to ours; any other is named in the error.
 """
 
@@ -57,7 +58,8 @@ def intrinsics_of(model: str, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         d = [k1, k2, p1, p2, k3]
     else:
         raise ValueError(f"camera model {model} is not supported (supported: {', '.join(SUPPORTED)})")
-    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    # COLMAP's pixel centres are at +0.5 (the image's corner is 0), OpenCV's at integers
+    K = np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])
     return K, np.asarray(d, dtype=np.float64)
 
 
@@ -95,14 +97,16 @@ def read(path: Path) -> Rig:
         raise InputError(str(folder), str(e)) from None
 
 
-def to_reconstruction(rig: Rig, image_ext: str = ".png") -> Any:
-    """A pycolmap Reconstruction with one camera and one registered image per camera."""
+def to_reconstruction(rig: Rig, image_ext: str = ".png",
+                      keypoints: list[np.ndarray] | None = None) -> Any:
+    """A pycolmap Reconstruction with one camera and one registered image per camera;
+    ``keypoints[c]`` (m, 2), OpenCV pixels, become image c's 2D points (COLMAP pixels)."""
     import pycolmap
 
     rec = pycolmap.Reconstruction()
     for i, c in enumerate(rig.cameras, start=1):
         k1, k2, p1, p2, k3 = c.dist
-        fx, fy, cx, cy = c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]
+        fx, fy, cx, cy = c.K[0, 0], c.K[1, 1], c.K[0, 2] + 0.5, c.K[1, 2] + 0.5  # COLMAP pixels
         if k3 == 0:
             model, params = "OPENCV", [fx, fy, cx, cy, k1, k2, p1, p2]
         else:
@@ -111,8 +115,9 @@ def to_reconstruction(rig: Rig, image_ext: str = ".png") -> Any:
                               params=np.asarray(params, dtype=np.float64), camera_id=i)
         rec.add_camera_with_trivial_rig(cam)
         pose = pycolmap.Rigid3d(pycolmap.Rotation3d(c.R), c.t.astype(np.float64))
-        rec.add_image_with_trivial_frame(pycolmap.Image(name=f"{c.name}{image_ext}", camera_id=i,
-                                                        image_id=i), pose)
+        kp = np.zeros((0, 2)) if keypoints is None else np.asarray(keypoints[i - 1], np.float64) + 0.5
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=f"{c.name}{image_ext}", keypoints=kp,
+                                                        camera_id=i, image_id=i), pose)
     return rec
 
 

@@ -33,14 +33,49 @@ def detect_layout(root: Path) -> str:
                                 "calibration_<seq>.json (CMU Panoptic)")
 
 
+def with_calibration(scene: Scene, calib: Path | str) -> Scene:
+    """``scene`` with its cameras replaced by those of a calibration file or folder in any
+    format (:func:`gt3dkit.calib.formats.read_calibration`), matched by name."""
+    from gt3dkit.calib.formats import detect_format, read_calibration
+    from gt3dkit.calib.model import Rig
+
+    rig = read_calibration(calib)
+    have = {c.name: c for c in rig.cameras}
+    used = sorted({scene.rig.cameras[int(c)].name for c in np.unique(scene.obs.cam)})
+    missing = [n for n in used if n not in have]
+    if missing:
+        raise InputError(str(calib), f"camera {missing[0]} is referenced by the annotations but "
+                                     f"absent from the calibration (it has {', '.join(rig.names)})")
+    cams = tuple(have.get(c.name, c) for c in scene.rig.cameras)
+    up = rig.up if detect_format(calib) == "native" else scene.rig.up  # only cameras.json has one
+    new = Rig(cams, up=up, frame_name=f"{scene.rig.frame_name}, cameras from {calib}")
+    files = {**scene.files, f"calibration:{calib}": _calib_digest(calib)}
+    return dataclasses.replace(scene, rig=new, files=files)
+
+
+def _calib_digest(calib: Path | str) -> str:
+    """SHA-256 over the calibration's files (a folder: every file in it, sorted)."""
+    import hashlib
+
+    p = Path(calib)
+    h = hashlib.sha256()
+    for f in sorted(p.rglob("*")) if p.is_dir() else [p]:
+        if f.is_file():
+            h.update(f.name.encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()
+
+
 def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None = None,
-               fps: float | None = None, **panoptic_options: Any) -> Scene:
+               fps: float | None = None, calib: Path | str | None = None,
+               **panoptic_options: Any) -> Scene:
     """Load any supported input folder (layout detected when not given).
 
     ``skeleton`` names the joint order of native ``keypoints.csv`` (default: from the
     data); ``fps`` overrides the input's frame rate. ``panoptic_options`` go to
     :func:`gt3dkit.io.datasets.panoptic.load` (``cameras``, ``noise_px``, ``seed``,
-    ``min_conf``). Every scene then goes through :func:`checks.check_scene`.
+    ``min_conf``). ``calib`` replaces the input's cameras by those of a calibration in any
+    format (:func:`with_calibration`). Every scene then goes through :func:`checks.check_scene`.
     """
     from gt3dkit.io.datasets import checks, native, panoptic, wildtrack
 
@@ -60,6 +95,8 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
         raise InputError(str(root), f"unknown layout {layout!r} (known: {', '.join(LAYOUTS)})")
     if len(scene.obs) == 0:
         raise InputError(str(root), "no annotations in any frame")
+    if calib is not None:
+        scene = with_calibration(scene, calib)
     if fps is not None:
         if not (np.isfinite(fps) and native.FPS_RANGE[0] <= fps <= native.FPS_RANGE[1]):
             raise InputError("fps", f"must be in [{native.FPS_RANGE[0]:g}, {native.FPS_RANGE[1]:g}]"

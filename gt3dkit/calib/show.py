@@ -1,0 +1,95 @@
+"""``gt3d calib show``: a table per camera and warnings for what users get wrong.
+
+Checks of a calibration alone (the floor is the plane through the world origin orthogonal
+to ``up``, where calibration boards lie): a camera below the floor; a camera that looks away
+from the floor point under the rig's middle while the others look at it; every camera
+looking upwards (a mirrored or upside-down world: up is the wrong way); a focal length
+outside 0.2 .. 20 image widths; a principal point outside the middle half of the image; a
+rotation re-orthonormalised beyond float round-off. With the annotations
+(``scene``): a camera in front of which no annotated object lies, and people whose lowest
+joints sit well below the floor or whose highest are above 3 m (up or the floor is wrong).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from gt3dkit.calib.model import Rig
+from gt3dkit.types import Scene
+
+
+def camera_table(rig: Rig) -> list[dict[str, Any]]:
+    out = []
+    for c in rig.cameras:
+        look = c.depth_sign * c.R[2]  # optical axis in the world
+        out.append({"camera": c.name, "centre_m": c.center_world.round(4).tolist(),
+                    "height_m": float(c.center_world @ rig.up), "view_dir": look.round(4).tolist(),
+                    "tilt_deg": float(np.degrees(np.arcsin(np.clip(look @ rig.up, -1, 1)))),
+                    "fx_px": float(c.K[0, 0]), "fy_px": float(c.K[1, 1]),
+                    "cx_px": float(c.K[0, 2]), "cy_px": float(c.K[1, 2]),
+                    "dist": c.dist.round(6).tolist(), "size": [c.width, c.height],
+                    "r_deviation": c.r_deviation})
+    return out
+
+
+def rig_warnings(rig: Rig) -> list[str]:
+    w = []
+    tab = camera_table(rig)
+    below = [t["camera"] for t in tab if t["height_m"] < -0.05]
+    if below:
+        w.append(f"cameras below the floor (height along up < 0): {', '.join(below)}: up is the wrong "
+                 "way, or the world is mirrored")
+    if len(tab) > 1 and all(t["tilt_deg"] > 5 for t in tab):
+        w.append("every camera looks upwards: up is the wrong way, or the world is mirrored")
+    centres = np.array([c.center_world for c in rig.cameras])
+    mid = centres.mean(0)
+    mid = mid - (mid @ rig.up) * rig.up  # on the floor under the rig's middle
+    away = [c.name for c in rig.cameras
+            if (c.depth_sign * c.R[2]) @ (mid - c.center_world) < 0]
+    if away and len(away) < len(rig.cameras):
+        w.append(f"cameras looking away from the middle of the rig: {', '.join(away)}")
+    for c in rig.cameras:
+        size = max(c.width, c.height)
+        if not 0.2 * size <= c.K[0, 0] <= 20 * size or not 0.2 * size <= c.K[1, 1] <= 20 * size:
+            w.append(f"camera {c.name}: focal length {c.K[0, 0]:.0f}/{c.K[1, 1]:.0f} px is outside "
+                     f"0.2 .. 20 image sizes ({size} px): a wrong unit or image size?")
+        cx_ok = 0.25 * c.width <= c.K[0, 2] <= 0.75 * c.width
+        if not (cx_ok and 0.25 * c.height <= c.K[1, 2] <= 0.75 * c.height):
+            w.append(f"camera {c.name}: principal point ({c.K[0, 2]:.0f}, {c.K[1, 2]:.0f}) is outside the "
+                     f"middle half of its {c.width}x{c.height} image: a wrong image size?")
+        if c.r_deviation > 1e-6:
+            w.append(f"camera {c.name}: R was not orthonormal (max |R R^T - I| = {c.r_deviation:.2g}); "
+                     "re-orthonormalised")
+    return w
+
+
+def scene_warnings(scene: Scene) -> list[str]:
+    """Warnings that need the annotations: where the people are, who sees them."""
+    from gt3dkit.fusion.prepare import prepare
+
+    w = []
+    pre = prepare(scene)
+    x0, _, _ = pre.frame_state()
+    centre = x0[:, pre.layout.center]
+    centre = centre[np.isfinite(centre).all(axis=1)]
+    rig = scene.rig
+    for c in rig.cameras:
+        if centre.size and not np.any((centre - c.center_world) @ (c.depth_sign * c.R[2]) > 0):
+            w.append(f"camera {c.name}: no annotated object lies in front of it: its pose is wrong "
+                     "(or it is mirrored)")
+    if pre.kpt0 is not None:
+        h = pre.kpt0 @ rig.up  # (R, J) heights
+        lo, hi = np.nanmin(np.where(np.isfinite(h), h, np.inf), axis=1), \
+            np.nanmax(np.where(np.isfinite(h), h, -np.inf), axis=1)
+        ok = np.isfinite(lo) & np.isfinite(hi)
+        if ok.any():
+            feet, heads = float(np.median(lo[ok])), float(np.median(hi[ok]))
+            if feet < -0.3:
+                w.append(f"people's lowest joints sit {-feet:.2f} m below the floor (median): up, "
+                         "the floor or the world's handedness is wrong")
+            if heads > 3.0:
+                w.append(f"people's highest joints are {heads:.2f} m above the floor (median): up or "
+                         "the floor is wrong, or the scale")
+    return w
