@@ -346,7 +346,10 @@ def cmd_calib_show(args: argparse.Namespace) -> int:
         if Path(args.input).is_dir() and (Path(args.input) / "cameras.json").exists():
             raise  # an input folder with a problem: say it
         rig = read_calibration(Path(args.input))
-        what = f"{detect_format(Path(args.input))} calibration {args.input}"
+        fmt = detect_format(Path(args.input))
+        what = f"{fmt} calibration {args.input}"
+        if fmt in ("opencv", "toml", "colmap"):
+            what += " (the format has no up vector: +z assumed)"
     print(f"{what}: {len(rig.cameras)} cameras, up {np.round(rig.up, 4).tolist()}")
     head = (f"{'camera':<12}{'centre x':>9}{'y':>8}{'z':>8}{'height':>8}{'tilt°':>7}"
             f"{'fx':>8}{'fy':>8}{'cx':>7}{'cy':>7}{'k1':>8}{'k2':>8}{'size':>11}")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -74,3 +76,139 @@ def test_bad_calibration_files(tmp_path) -> None:
         (col / f).write_text("\n".join(lines) + "\n")
     with pytest.raises(InputError, match="no images"):
         read_calibration(col)
+
+
+# ----------------------------------------------------------------------------- show
+
+
+def _upside_down(rig: Rig) -> Rig:
+    """The world turned upside down (what a mirrored board gives: cameras under the floor)."""
+    from gt3dkit.calib.refine import transform_rig
+
+    return transform_rig(rig, 1.0, np.diag([1.0, -1.0, -1.0]), np.zeros(3))
+
+
+def test_show_flags_nothing_on_the_bundled_calibrations() -> None:
+    from gt3dkit.calib.show import rig_warnings, scene_warnings
+    from gt3dkit.io.datasets import load_scene
+
+    for name in ("multiviewx", "panoptic_160906_band1"):
+        assert rig_warnings(read_calibration(bundled(name))) == []
+    assert scene_warnings(load_scene(bundled("multiviewx"))) == []
+
+
+def test_show_flags_an_upside_down_and_a_below_the_floor_rig() -> None:
+    from gt3dkit.calib.show import rig_warnings
+
+    rig = read_calibration(bundled("multiviewx"))
+    w = " | ".join(rig_warnings(_upside_down(rig)))
+    assert "below the floor" in w and "looks upwards" in w
+    c = rig.cameras[2]
+    C = c.center_world * np.array([1, 1, -1])
+    low = Rig(tuple(x if i != 2 else Camera(c.name, c.width, c.height, c.K, c.dist, c.R, -c.R @ C,
+                                            c.depth_sign) for i, x in enumerate(rig.cameras)), up=rig.up)
+    w = rig_warnings(low)
+    assert any("below the floor" in x and "Camera3" in x for x in w), w
+
+
+def test_show_with_annotations_flags_people_under_the_floor(tmp_path, capsys) -> None:
+    """A keypoint scene whose calibration was solved upside down: heads below the floor."""
+    from gt3dkit.calib.formats.native import write
+    from gt3dkit.calib.show import scene_warnings
+    from gt3dkit.io.datasets import load_scene
+    from gt3dkit.sim import simulate_skeletons, write_skeleton_scene
+
+    write_skeleton_scene(simulate_skeletons("native", seed=1, frames=3, people=2, cameras=5), tmp_path / "s",
+                         "native")
+    scene = load_scene(tmp_path / "s")
+    assert scene_warnings(scene) == []
+    flipped = Rig(_upside_down(scene.rig).cameras, up=-scene.rig.up)  # y-down world: up is -y
+    write(Rig(flipped.cameras, up=scene.rig.up), tmp_path / "s" / "cameras.json", fps=30.0,
+          skeleton="coco19")
+    w = " | ".join(scene_warnings(load_scene(tmp_path / "s")))
+    assert "below the floor" in w, w
+
+
+# ----------------------------------------------------------------------------- refine
+
+
+def _perturbed(rig: Rig, deg: float, m: float, seed: int) -> Rig:
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    cams = [rig.cameras[0]]
+    for c in rig.cameras[1:]:
+        ax = rng.normal(size=3)
+        R = Rotation.from_rotvec(np.radians(deg) * ax / np.linalg.norm(ax)).as_matrix() @ c.R
+        d = rng.normal(size=3)
+        C = c.center_world + m * d / np.linalg.norm(d)
+        cams.append(Camera(c.name, c.width, c.height, c.K, c.dist, R, -R @ C, c.depth_sign))
+    return Rig(tuple(cams), up=rig.up)
+
+
+@pytest.fixture(scope="module")
+def skel_scene(tmp_path_factory):
+    from gt3dkit.io.datasets import load_scene
+    from gt3dkit.sim import simulate_skeletons, write_skeleton_scene
+
+    root = tmp_path_factory.mktemp("calib") / "s"
+    write_skeleton_scene(simulate_skeletons("native", seed=4, frames=24, people=2, cameras=6, noise_px=1.0),
+                         root, "native")
+    return load_scene(root)
+
+
+def test_refine_recovers_a_perturbed_rig(skel_scene) -> None:
+    import dataclasses
+
+    from gt3dkit.calib.refine import align_to, pose_change, refine
+
+    truth = skel_scene.rig
+    bad = _perturbed(truth, 1.0, 0.05, 3)
+    res = refine(dataclasses.replace(skel_scene, rig=bad))
+    assert len(res.report["refined_cameras"]) >= 5
+    al, info = align_to(res.rig, truth)
+    err = [pose_change(a, b) for a, b in zip(al.cameras, truth.cameras, strict=True)]
+    assert max(e[0] for e in err) < 0.01 and max(e[1] for e in err) < 0.05
+    assert abs(info["scale"] - 1) < 0.005
+    before = [pose_change(a, b) for a, b in zip(align_to(bad, truth)[0].cameras, truth.cameras, strict=True)]
+    assert max(e[1] for e in before) > 0.5  # it was off
+
+
+def test_refine_keeps_a_good_rig(skel_scene) -> None:
+    from gt3dkit.calib.refine import refine
+
+    res = refine(skel_scene)
+    assert res.report["refined_cameras"] == []
+    for a, b in zip(res.rig.cameras, skel_scene.rig.cameras, strict=True):
+        np.testing.assert_array_equal(a.R, b.R)
+        assert all("kept" in c["why"] for c in res.report["cameras"].values())
+
+
+def test_calib_cli(skel_scene, tmp_path, capsys) -> None:
+    from gt3dkit.cli import main
+
+    root = Path(skel_scene.root)
+    assert main(["calib", "refine", str(root), "--out", str(tmp_path / "r"), "--format", "toml"]) == 0
+    assert (tmp_path / "r" / "calib_report.json").exists()
+    assert (tmp_path / "r" / "calibration" / "calibration.toml").exists()
+    assert main(["calib", "show", str(tmp_path / "r" / "cameras.json")]) == 0
+    assert "0 calibration warnings" in capsys.readouterr().out
+    assert main(["calib", "show", str(tmp_path / "r" / "calibration" / "calibration.toml")]) == 0
+    assert "toml calibration" in capsys.readouterr().out
+    # reconstruct with a calibration in another format: the same result as the input's own
+    assert main(["reconstruct", str(root), "--out", str(tmp_path / "a"), "--estimator", "triangulation"]) == 0
+    assert main(["reconstruct", str(root), "--out", str(tmp_path / "b"), "--estimator", "triangulation",
+                 "--calib", str(tmp_path / "r" / "calibration" / "calibration.toml")]) == 0
+    a = (tmp_path / "a" / "keypoints.csv").read_text()
+    assert a == (tmp_path / "b" / "keypoints.csv").read_text()
+
+
+def test_camera_absent_from_the_calibration(skel_scene, tmp_path, capsys) -> None:
+    from gt3dkit.cli import main
+
+    rig = Rig(skel_scene.rig.cameras[:-1], up=skel_scene.rig.up)
+    write_calibration(rig, tmp_path / "c", "toml")
+    assert main(["reconstruct", skel_scene.root, "--out", str(tmp_path / "o"),
+                 "--calib", str(tmp_path / "c" / "calibration.toml")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "calibration.toml" in err and skel_scene.rig.cameras[-1].name in err

@@ -26,6 +26,9 @@ from gt3dkit.types import F64, Scene
 
 PRIOR_ROT_RAD = np.radians(2.0)
 PRIOR_SHIFT_M = 0.2
+#: People stand on the floor (height 0 along up) when the per-frame ellipsoids' bottoms sit
+#: within this of it (median): then the floor anchors the rig's height and tilt.
+FLOOR_TOL_M = 0.2
 
 
 def _cams(rig: Rig, variable: np.ndarray, p: F64) -> tuple[F64, F64]:
@@ -39,7 +42,8 @@ def _cams(rig: Rig, variable: np.ndarray, p: F64) -> tuple[F64, F64]:
 
 
 def fit_boxes(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, sigma: F64, X0: F64, L0: F64,
-              variable: np.ndarray, obj: np.ndarray, max_nfev: int = 100) -> tuple[Rig, F64, F64]:
+              variable: np.ndarray, obj: np.ndarray, max_nfev: int = 100,
+              floor_sd: float | None = None) -> tuple[Rig, F64, F64]:
     """Least squares over the variable cameras, every row's centre and every object's log
     semi-axes (people keep their size: this is what makes boxes constrain the cameras).
 
@@ -51,7 +55,7 @@ def fit_boxes(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, sigma: F64, X0: F64,
     O = int(obj.max()) + 1 if N else 0
     nv = int(variable.sum())
     ii, cc, ee = np.nonzero(keep)
-    s = sigma[ee]
+    s = sigma[cc, ee] if sigma.ndim == 2 else sigma[ee]
     L_obj = np.array([np.median(L0[obj == o], axis=0) for o in range(O)]).reshape(O, 3)
     a0, a1 = 6 * nv, 6 * nv + 3 * N  # camera | centres | object log axes
 
@@ -64,7 +68,10 @@ def fit_boxes(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, sigma: F64, X0: F64,
         box, _ = ellipsoid_boxes(X, np.exp(L), wfb, rig.K, rig.dist, R, t, rig.depth_sign)
         r = (box[ii, cc, ee] - z[ii, cc, ee]) / s
         prior = q[:a0].reshape(nv, 2, 3) / np.array([PRIOR_ROT_RAD, PRIOR_SHIFT_M])[None, :, None]
-        return np.concatenate([np.nan_to_num(r, nan=1e3, posinf=1e3, neginf=-1e3), prior.ravel()])
+        out = [np.nan_to_num(r, nan=1e3, posinf=1e3, neginf=-1e3), prior.ravel()]
+        if floor_sd is not None:  # people stand on the floor: ellipsoid bottom at height 0
+            out.append((X @ rig.up - np.exp(L[:, 2])) / floor_sd)
+        return np.concatenate(out)
 
     m = len(ii)
     J = lil_matrix((m + a0, a1 + 3 * O), dtype=np.int8)
@@ -77,6 +84,11 @@ def fit_boxes(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, sigma: F64, X0: F64,
             J[k, 6 * vidx[cc[k]]: 6 * vidx[cc[k]] + 6] = 1
     for k in range(a0):
         J[m + k, k] = 1
+    if floor_sd is not None:
+        J.resize((m + a0 + N, a1 + 3 * O))
+        for n in range(N):
+            J[m + a0 + n, a0 + 3 * n: a0 + 3 * n + 3] = 1
+            J[m + a0 + n, a1 + 3 * obj[n] + 2] = 1
     q0 = np.concatenate([np.zeros(a0), X0.ravel(), L_obj.ravel()])
     sol = least_squares(resid, q0, jac_sparsity=J.tocsr(), loss="soft_l1", f_scale=2.0,
                         x_scale="jac", max_nfev=max_nfev, method="trf")
@@ -85,6 +97,50 @@ def fit_boxes(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, sigma: F64, X0: F64,
                  for i, c in enumerate(rig.cameras))
     X, L = unpack(sol.x)
     return Rig(cams, up=rig.up, frame_name=rig.frame_name), X, L
+
+
+def edge_sigmas(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, X: F64, L: F64, floor: float = 0.3) -> F64:
+    """(C, 4) robust noise level of each camera's edge kinds (1.4826 MAD of the signed residuals
+    of a fit, at least ``floor`` px): vertical edges are often several times more precise than
+    horizontal ones (a person's width changes as they turn, their height does not)."""
+    box, _ = ellipsoid_boxes(X, np.exp(L), wfb, rig.K, rig.dist, rig.R, rig.t, rig.depth_sign)
+    r = np.where(keep, box - z, np.nan)
+    med = np.nanmedian(r, axis=0)
+    mad = 1.4826 * np.nanmedian(np.abs(r - med), axis=0)
+    fallback = float(np.nanmedian(mad)) if np.isfinite(mad).any() else 1.0
+    return np.maximum(np.where(np.isfinite(mad), mad, fallback), floor)
+
+
+def fit_reweighted(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, sigma: F64, X0: F64, L0: F64,
+                   variable: np.ndarray, obj: np.ndarray, floor_sd: float | None
+                   ) -> tuple[Rig, F64, F64, F64]:
+    """:func:`fit_boxes`, then again with each camera's edge kinds weighted by their own noise
+    level measured on the first fit; the result in the input's frame (:func:`back_to`).
+    Returns (rig, centres, log axes, sigmas (C, 4))."""
+    new, X, L = fit_boxes(rig, wfb, z, keep, sigma, X0, L0, variable, obj, floor_sd=floor_sd)
+    sig = edge_sigmas(new, wfb, z, keep, X, L)
+    new, X, L = fit_boxes(rig, wfb, z, keep, sig, X, L, variable, obj, floor_sd=floor_sd)
+    return back_to(new, rig, variable, floor_sd is not None), X, L, sig
+
+
+def back_to(new: Rig, ref: Rig, variable: np.ndarray, on_floor: bool) -> Rig:
+    """The refined rig in the input's frame: unchanged where two or more cameras were held;
+    else the similarity that best maps the camera centres onto the input's, restricted to the
+    floor's plane (a turn about up, a horizontal shift, a scale about the floor's origin)
+    where the floor anchored the height and tilt."""
+    from gt3dkit.calib.refine import align_to, transform_rig, umeyama
+
+    if (~variable).sum() >= 2:
+        return new
+    if not on_floor:
+        return align_to(new, ref)[0]
+    B = ref.world_from_body()[:, :2]  # floor axes
+    a = np.array([c.center_world for c in new.cameras]) @ B
+    b = np.array([c.center_world for c in ref.cameras]) @ B
+    s, R2, t2 = umeyama(np.c_[a, np.zeros(len(a))], np.c_[b, np.zeros(len(b))])
+    th = np.arctan2(R2[1, 0], R2[0, 0])
+    Rw = Rotation.from_rotvec(th * ref.up).as_matrix()
+    return transform_rig(new, s, Rw, B @ t2[:2])
 
 
 def box_residuals(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, sigma: F64, X0: F64, L0: F64,
@@ -97,7 +153,7 @@ def box_residuals(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, sigma: F64, X0: 
 
 
 def refine_boxes(scene: Scene, pre: Any, cfg: Any) -> Any:
-    from gt3dkit.calib.refine import RefineResult, _blocks, align_to, pose_change
+    from gt3dkit.calib.refine import RefineResult, _blocks, pose_change
 
     t0 = time.perf_counter()
     rig, rows, fit = scene.rig, pre.rows, pre.fit
@@ -110,6 +166,10 @@ def refine_boxes(scene: Scene, pre: Any, cfg: Any) -> Any:
     obj = rows.row_o[use]
     obj = np.unique(obj, return_inverse=True)[1]
     sigma = np.asarray(pre.sigma_box, dtype=np.float64)
+    bottom = X0 @ rig.up - np.exp(L0[:, 2])  # ellipsoid bottoms' heights (input rig)
+    floor_med = float(np.median(bottom)) if bottom.size else np.inf
+    floor_sd = (max(1.4826 * float(np.median(np.abs(bottom - floor_med))), 0.01)
+                if abs(floor_med) < FLOOR_TOL_M else None)
     n_obs = keep.any(axis=2).sum(axis=0)
     fold = _blocks(rows.frames[rows.row_t[use]], cfg.folds)
     gains = np.full((cfg.folds, C), -np.inf)
@@ -119,9 +179,8 @@ def refine_boxes(scene: Scene, pre: Any, cfg: Any) -> Any:
         variable = keep[a].any(axis=2).sum(axis=0) >= cfg.min_points
         if not variable.any():
             continue
-        cand, _, _ = fit_boxes(rig, wfb, z[a], keep[a], sigma, X0[a], L0[a], variable,
-                               np.unique(obj[a], return_inverse=True)[1])
-        cand = align_to(cand, rig)[0]
+        cand, _, _, _ = fit_reweighted(rig, wfb, z[a], keep[a], sigma, X0[a], L0[a], variable,
+                                       np.unique(obj[a], return_inverse=True)[1], floor_sd)
         ob = np.unique(obj[b], return_inverse=True)[1]
         e_in = box_residuals(rig, wfb, z[b], keep[b], sigma, X0[b], L0[b], ob)
         e_ref = box_residuals(cand, wfb, z[b], keep[b], sigma, X0[b], L0[b], ob)
@@ -134,12 +193,13 @@ def refine_boxes(scene: Scene, pre: Any, cfg: Any) -> Any:
     accept = np.all(gains > cfg.min_gain, axis=0)
     new = rig
     if accept.any():
-        new, _, _ = fit_boxes(rig, wfb, z, keep, sigma, X0, L0, accept, obj)
-        if (~accept).sum() < 2:
-            new = align_to(new, rig)[0]
+        new, _, _, sig = fit_reweighted(rig, wfb, z, keep, sigma, X0, L0, accept, obj, floor_sd)
     e_before = box_residuals(rig, wfb, z, keep, sigma, X0, L0, obj)
     e_after = box_residuals(new, wfb, z, keep, sigma, X0, L0, obj) if accept.any() else e_before
     report: dict[str, Any] = {"method": "cameras + ellipsoids, tangent-box residual (scipy soft-L1)",
+                              "floor": ({"used": True, "sd_m": floor_sd, "median_bottom_m": floor_med}
+                                        if floor_sd is not None else
+                                        {"used": False, "median_bottom_m": floor_med}),
                               "box_sigma_px": sigma.tolist(), "folds": cfg.folds,
                               "refine_intrinsics": False, "cameras": {}}
     for c, cam in enumerate(rig.cameras):
