@@ -454,6 +454,30 @@ def _panoptic_conf_zero(root: Path) -> None:
         p.write_text(json.dumps(d))
 
 
+def _colmap_without_images(root: Path) -> None:
+    from gt3dkit.calib.formats import write_calibration
+
+    col = root.parent / "col"
+    write_calibration(_any_rig(), col, "colmap")
+    for f in ("images.txt", "frames.txt"):
+        (col / f).write_text("".join(x + "\n" for x in (col / f).read_text().splitlines()
+                                     if x.startswith("#")))
+
+
+def _any_rig():  # a small rig, independent of the bases
+    from gt3dkit.sim import simulate
+
+    return simulate("native", seed=0, frames=3, people=1).rig
+
+
+def _calib_without_last_camera(root: Path) -> None:
+    from gt3dkit.calib.formats import read_calibration, write_calibration
+    from gt3dkit.calib.model import Rig
+
+    rig = read_calibration(root)
+    write_calibration(Rig(rig.cameras[:-1], up=rig.up), root.parent / "c", "toml")
+
+
 def _option_cases() -> list[Case]:
     """Every numeric option of every command with values it must refuse, and misuses."""
     out = []
@@ -547,6 +571,28 @@ def _option_cases() -> list[Case]:
              mutate=chain(remove("boxes.csv"), lambda root: (root / "boxes.csv").mkdir())),
         Case("cameras.json is a folder", "boxes", rec, ERROR, ("cameras.json", "cannot read"),
              mutate=chain(remove("cameras.json"), lambda root: (root / "cameras.json").mkdir())),
+        Case("calib show: a folder with no calibration", None, ("calib", "show", "{work}"), ERROR,
+             ("no calibration",), writes=False, prev=False),
+        Case("calib show: a TOML without matrix", None, ("calib", "show", "{work}/c.toml"), ERROR,
+             ("c.toml", "[cam_0]", "missing matrix"), writes=False, prev=False,
+             mutate=lambda root: (root.parent / "c.toml").write_text(
+                 '[cam_0]\nname = "a"\nsize = [10, 10]\nrotation = [0, 0, 0]\ntranslation = [0, 0, 1]\n'
+                 'distortions = [0, 0, 0, 0]\n')),
+        Case("calib show: a COLMAP model without images", None, ("calib", "show", "{work}/col"), ERROR,
+             ("col", "no images"), writes=False, prev=False, mutate=_colmap_without_images),
+        Case("calib refine: --out is the input", "kpts", ("calib", "refine", "{in}", "--out", "{in}"), ERROR,
+             ("--out",), prev=False),
+        Case("calib refine: too few correspondences", "kpts", ("calib", "refine", "{in}", "--out", "{out}"),
+             ERROR, ("too few correspondences", "00_00"),
+             mutate=csv_edit("keypoints.csv", lambda ls: [ls[0], *(
+                 x for x in ls[1:] if x.startswith("100,") and x.split(",")[2] == "0")])),
+        Case("calib refine of a good rig", "kpts", ("calib", "refine", "{in}", "--out", "{out}"), OK, ()),
+        Case("calib refine of a box scene", "boxes", ("calib", "refine", "{in}", "--out", "{out}"), EITHER,
+             ()),
+        Case("--calib that does not exist", "boxes", (*rec, "--calib", "{work}/nothing.toml"), ERROR,
+             ("nothing.toml",)),
+        Case("--calib without a camera the annotations use", "boxes", (*rec, "--calib", "{work}/c"), ERROR,
+             ("cam5", "absent from the calibration"), mutate=_calib_without_last_camera),
         Case("panoptic: every confidence 0", "panoptic", rec, ERROR, ("confidence",),
              mutate=_panoptic_conf_zero),
         Case("panoptic: a body id of 1e23", "panoptic", rec, ERROR, ("id",),

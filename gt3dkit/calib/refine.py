@@ -193,6 +193,15 @@ def keypoint_residuals(rig: Rig, tr: Tracks) -> F64:
 # ----------------------------------------------------------------------------- the procedure
 
 
+def check_enough(rig: Rig, n_obs: np.ndarray, cfg: RefineConfig, what: str) -> None:
+    """:class:`InputError` when no camera has the observations a held-out check needs."""
+    need = cfg.folds * cfg.min_points
+    if not (n_obs >= need).any():
+        worst = ", ".join(f"{c.name} {int(n)}" for c, n in zip(rig.cameras, n_obs, strict=True))
+        raise InputError("calib refine", f"too few correspondences to refine any camera: {what} per "
+                                         f"camera: {worst} (need {need})")
+
+
 def _blocks(times: np.ndarray, folds: int) -> np.ndarray:
     """Fold index (0..folds-1) of each time: contiguous blocks of the sorted unique frames."""
     u = np.unique(times)
@@ -219,6 +228,7 @@ def refine(scene: Scene, cfg: RefineConfig | None = None) -> RefineResult:
         raise InputError(scene.root or "input", "no keypoints seen by two views: nothing to refine")
     sigma = float(np.median(pre.sigma_kpt))
     n_obs = np.bincount(tr.cam, minlength=C)
+    check_enough(rig, n_obs, cfg, "keypoints seen with another view")
     fold = _blocks(tr.time, cfg.folds)
     gains = np.full((cfg.folds, C), -np.inf)
     held = {"input_px": np.zeros((cfg.folds, C)), "refined_px": np.zeros((cfg.folds, C))}

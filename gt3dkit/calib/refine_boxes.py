@@ -153,7 +153,7 @@ def box_residuals(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, sigma: F64, X0: 
 
 
 def refine_boxes(scene: Scene, pre: Any, cfg: Any) -> Any:
-    from gt3dkit.calib.refine import RefineResult, _blocks, pose_change
+    from gt3dkit.calib.refine import RefineResult, _blocks, check_enough, pose_change
 
     t0 = time.perf_counter()
     rig, rows, fit = scene.rig, pre.rows, pre.fit
@@ -171,6 +171,7 @@ def refine_boxes(scene: Scene, pre: Any, cfg: Any) -> Any:
     floor_sd = (max(1.4826 * float(np.median(np.abs(bottom - floor_med))), 0.01)
                 if abs(floor_med) < FLOOR_TOL_M else None)
     n_obs = keep.any(axis=2).sum(axis=0)
+    check_enough(rig, n_obs, cfg, "boxes of objects seen by two or more cameras")
     fold = _blocks(rows.frames[rows.row_t[use]], cfg.folds)
     gains = np.full((cfg.folds, C), -np.inf)
     held = np.zeros((2, cfg.folds, C))
