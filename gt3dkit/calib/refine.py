@@ -12,9 +12,10 @@ express): a sparse robust least squares (scipy) over camera poses and ellipsoids
 Validation: the frames are split into time blocks; each block's fit is scored on the other
 block's observations (re-triangulated / re-fitted with the candidate cameras). A camera keeps
 its input pose unless refining it lowers its held-out reprojection error in every fold by
-more than ``min_gain``; the final fit (all frames) moves only the accepted cameras. The
-refined rig is brought back to the input's world frame and metric scale by a similarity
-alignment of the camera centres (only needed when fewer than two cameras stay fixed).
+more than ``min_gain`` (half: see :class:`RefineConfig`); the final fit (all frames) moves
+only the accepted cameras. The refined rig is brought back to the input's world frame and
+metric scale by a similarity alignment of the camera centres (only needed when fewer than
+two cameras stay fixed).
 """
 
 from __future__ import annotations
@@ -34,7 +35,14 @@ from gt3dkit.types import F64, Scene
 class RefineConfig:
     refine_intrinsics: bool = False  # focal length and distortion too (principal point never)
     folds: int = 2  # time blocks for the held-out check
-    min_gain: float = 0.03  # held-out reprojection must drop by this fraction in every fold
+    # Held-out reprojection must drop by this fraction in every fold. A refit always lowers it
+    # somewhat by fitting the detector's or the box model's own biases, consistently over
+    # time, so held-out frames do not expose it: from the true calibration of the real
+    # MultiviewX subset, box refinement lowers held-out residuals by 2-35 % while moving the
+    # cameras 2-3 cm / 0.1-0.2 degrees (and the ground error from 10.5 to 17 mm). A camera is
+    # refined only where refining at least halves its held-out error: its input pose is then
+    # clearly inconsistent with the others.
+    min_gain: float = 0.5
     min_points: int = 15  # observations a camera needs in a fit
     loss_scale: float = 2.0  # Cauchy scale in units of the keypoint noise
     max_iterations: int = 100
