@@ -104,10 +104,15 @@ def edge_sigmas(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, X: F64, L: F64, fl
     of a fit, at least ``floor`` px): vertical edges are often several times more precise than
     horizontal ones (a person's width changes as they turn, their height does not)."""
     box, _ = ellipsoid_boxes(X, np.exp(L), wfb, rig.K, rig.dist, rig.R, rig.t, rig.depth_sign)
-    r = np.where(keep, box - z, np.nan)
-    med = np.nanmedian(r, axis=0)
-    mad = 1.4826 * np.nanmedian(np.abs(r - med), axis=0)
-    fallback = float(np.nanmedian(mad)) if np.isfinite(mad).any() else 1.0
+    r = box - z
+    C = keep.shape[1]
+    mad = np.full((C, 4), np.nan)
+    for c in range(C):
+        for e in range(4):
+            v = r[keep[:, c, e] & np.isfinite(r[:, c, e]), c, e]
+            if v.size >= 3:
+                mad[c, e] = 1.4826 * np.median(np.abs(v - np.median(v)))
+    fallback = float(np.median(mad[np.isfinite(mad)])) if np.isfinite(mad).any() else 1.0
     return np.maximum(np.where(np.isfinite(mad), mad, fallback), floor)
 
 
