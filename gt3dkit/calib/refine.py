@@ -38,7 +38,7 @@ class RefineConfig:
     # Held-out reprojection must drop by this fraction in every fold. A refit always lowers it
     # somewhat by fitting the detector's or the box model's own biases, consistently over
     # time, so held-out frames do not expose it: from the true calibration of the real
-    # MultiviewX subset, box refinement lowers held-out residuals by 2-35 % while moving the
+    # MultiviewX subset, box refinement lowers held-out residuals by 10-35 % while moving the
     # cameras 2-3 cm / 0.1-0.2 degrees (and the ground error from 10.5 to 17 mm). A camera is
     # refined only where refining at least halves its held-out error: its input pose is then
     # clearly inconsistent with the others.
