@@ -186,6 +186,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     rob = info.get("robust", {})
     flagged = (f", {rob['rejected']} measurements rejected and {rob['downweighted']} "
                f"down-weighted (downweighted.csv)" if rob.get("enabled") else "")
+    qa = info.get("qa", {}).get("anomalies", {})
+    flagged += (", anomalies: " + ", ".join(f"{v} {k}" for k, v in qa.items()) + " (anomalies.csv)"
+                if qa else ", no anomalies")
     print(f"{scene.layout}: {len(scene.obs)} annotation rows ({kinds}), {len(scene.rig.cameras)} "
           f"cameras, {fps} -> {len(tracks)} object-frames of {len(set(tracks.track_id.tolist()))} "
           f"objects ({args.estimator}, {info.get('seconds', 0):.2f} s{flagged}) written to "

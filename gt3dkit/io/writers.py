@@ -133,10 +133,23 @@ def check_tracks(tracks: TrackSet) -> None:
             f"{int(tracks.track_id[r])}); nothing was written")
 
 
+def write_anomalies_csv(path: Path, anomalies: Any) -> None:
+    """``frame,camera,id,joint,kind,score,detail`` (see :mod:`gt3dkit.qa.anomalies`)."""
+    from gt3dkit.qa.anomalies import COLUMNS
+
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(COLUMNS)
+        w.writerows(anomalies.rows)
+
+
 def write_result_files(d: Path, scene: Scene, tracks: TrackSet,
-                       extra_meta: dict[str, Any] | None = None) -> None:
-    """``tracks.csv``, ``keypoints.csv`` (with joints) and ``meta.json`` into folder ``d``."""
+                       extra_meta: dict[str, Any] | None = None, anomalies: Any = None) -> None:
+    """``tracks.csv``, ``keypoints.csv`` (with joints), ``anomalies.csv`` (when QA ran) and
+    ``meta.json`` into folder ``d``."""
     check_tracks(tracks)
+    if anomalies is not None:
+        write_anomalies_csv(d / "anomalies.csv", anomalies)
     meta = meta_of(scene, tracks)
     if extra_meta:
         meta.update(_jsonable(extra_meta))
@@ -150,9 +163,11 @@ def write_result_files(d: Path, scene: Scene, tracks: TrackSet,
 
 
 def write_outputs(out: Path, scene: Scene, tracks: TrackSet,
-                  extra_meta: dict[str, Any] | None = None) -> None:
-    """Write ``OUT/tracks.csv`` (+ ``keypoints.csv``) and ``OUT/meta.json`` (all or nothing)."""
-    write_dir_atomically(Path(out), lambda tmp: write_result_files(tmp, scene, tracks, extra_meta))
+                  extra_meta: dict[str, Any] | None = None, anomalies: Any = None) -> None:
+    """Write ``OUT/tracks.csv`` (+ ``keypoints.csv``, ``anomalies.csv``) and ``OUT/meta.json``
+    (all or nothing)."""
+    write_dir_atomically(Path(out), lambda tmp: write_result_files(tmp, scene, tracks, extra_meta,
+                                                                   anomalies))
 
 
 def read_tracks_csv(path: Path) -> TrackSet:

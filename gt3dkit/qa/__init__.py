@@ -1,0 +1,1 @@
+"""Annotation QA: scores of every input annotation against the estimate (anomalies.py)."""
