@@ -142,8 +142,10 @@ def test_signal_during_a_run(scenes, tmp_path, sig, code) -> None:
                     "triangulation"], check=True, capture_output=True)
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     for wait in (2.0, 4.0, 8.0):  # imports done, estimating (compare runs for many seconds)
+        # a background job's children start with SIGINT ignored (POSIX shells do that): restore it
         p = subprocess.Popen([*GT3D, "compare", str(scenes["long"]), "--out", str(out), "--no-progress"],
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             preexec_fn=lambda: signal.signal(sig, signal.SIG_DFL))  # noqa: PLW1509
         time.sleep(wait)
         p.send_signal(sig)
         _, err = p.communicate(timeout=300)
