@@ -19,22 +19,23 @@ def reconstruct(scene: Scene | str | Path, estimator: str | Estimator = "ukf",
     from gt3dkit.fusion.prepare import prepare
     from gt3dkit.io.datasets import load_scene
     from gt3dkit.io.writers import write_outputs
-    from gt3dkit.qa.anomalies import find_anomalies
+    from gt3dkit.qa.anomalies import find_anomalies, identity_jumps
 
     sc = scene if isinstance(scene, Scene) else load_scene(Path(scene))
     est = make_estimator(estimator, **config) if isinstance(estimator, str) else estimator
     pre = prepare(sc)
-    clean = without_identity_jumps(sc, pre)
+    jumps = identity_jumps(pre, sc.fps)
+    clean = without_identity_jumps(sc, pre, jumps)
     tracks = est.estimate(clean)
     if out is not None:
-        qa = find_anomalies(sc, tracks, pre)
+        qa = find_anomalies(sc, tracks, pre, jumps=jumps)
         tracks.info["qa"] = {"anomalies": qa.counts(), "file": "anomalies.csv",
                              "left_out_object_frames": len(sc.obs) - len(clean.obs)}
         write_outputs(Path(out), sc, tracks, extra_meta, anomalies=qa)
     return tracks
 
 
-def without_identity_jumps(scene: Scene, pre: Any) -> Scene:
+def without_identity_jumps(scene: Scene, pre: Any, jumps: list[Any] | None = None) -> Scene:
     """``scene`` without the annotations of object-frames whose views agree on a place the
     object cannot have reached (:func:`gt3dkit.qa.anomalies.identity_jumps`: a swapped or
     mis-keyed id): they belong to someone else, and would bend the track."""
@@ -44,7 +45,7 @@ def without_identity_jumps(scene: Scene, pre: Any) -> Scene:
 
     from gt3dkit.qa.anomalies import identity_jumps
 
-    jumps = identity_jumps(pre, scene.fps)
+    jumps = identity_jumps(pre, scene.fps) if jumps is None else jumps
     if not jumps:
         return scene
     rows = pre.rows

@@ -63,8 +63,10 @@ def _iou(a: F64, b: F64) -> F64:
     return inter / np.maximum(area(a) + area(b) - inter, 1e-9)
 
 
-def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | None = None) -> Anomalies:
-    """Every flagged annotation of ``scene`` against ``tracks`` (see the module docstring)."""
+def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | None = None,
+                   jumps: list[tuple[int, float, int, int]] | None = None) -> Anomalies:
+    """Every flagged annotation of ``scene`` against ``tracks`` (see the module docstring);
+    ``jumps`` = :func:`identity_jumps` if already found."""
     from gt3dkit.geom.camera import project_points
     from gt3dkit.geom.conics import ellipsoid_boxes
 
@@ -80,7 +82,8 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | Non
     id_of = rows.obj_ids[rows.row_o]
 
     # identity jumps first: the views of such an object-frame are not flagged one by one
-    jumped = _identity_jumps(pre, cfg, out, frame_of, id_of, scene.fps)
+    jumped = _identity_jumps(pre, cfg, out, frame_of, id_of,
+                             identity_jumps(pre, scene.fps, cfg) if jumps is None else jumps)
 
     if pre.use_box and have.any():
         idx = np.flatnonzero(have)
@@ -145,9 +148,9 @@ def identity_jumps(pre: Any, fps: float, cfg: QAConfig | None = None) -> list[tu
 
 
 def _identity_jumps(pre: Any, cfg: QAConfig, out: list, frame_of: np.ndarray, id_of: np.ndarray,
-                    fps: float) -> np.ndarray:
+                    jumps: list[tuple[int, float, int, int]]) -> np.ndarray:
     jumped = np.zeros(len(pre.rows), bool)
-    for r, d, a, b in identity_jumps(pre, fps, cfg):
+    for r, d, a, b in jumps:
         jumped[r] = True
         out.append((int(frame_of[r]), "", int(id_of[r]), "", "identity_jump", round(d, 3),
                     f"its views agree on a point {d:.2f} m off the line between frames "
