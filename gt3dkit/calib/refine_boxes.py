@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
+from scipy.sparse import coo_matrix
 from scipy.spatial.transform import Rotation
 
 from gt3dkit.calib.model import Camera, Rig
@@ -74,21 +74,22 @@ def fit_boxes(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, sigma: F64, X0: F64,
         return np.concatenate(out)
 
     m = len(ii)
-    J = lil_matrix((m + a0, a1 + 3 * O), dtype=np.int8)
     vidx = np.full(C, -1)
     vidx[variable] = np.arange(nv)
-    for k in range(m):
-        J[k, a0 + 3 * ii[k]: a0 + 3 * ii[k] + 3] = 1
-        J[k, a1 + 3 * obj[ii[k]]: a1 + 3 * obj[ii[k]] + 3] = 1
-        if vidx[cc[k]] >= 0:
-            J[k, 6 * vidx[cc[k]]: 6 * vidx[cc[k]] + 6] = 1
-    for k in range(a0):
-        J[m + k, k] = 1
-    if floor_sd is not None:
-        J.resize((m + a0 + N, a1 + 3 * O))
-        for n in range(N):
-            J[m + a0 + n, a0 + 3 * n: a0 + 3 * n + 3] = 1
-            J[m + a0 + n, a1 + 3 * obj[n] + 2] = 1
+    k3, k6 = np.arange(3), np.arange(6)
+    on_cam = np.flatnonzero(vidx[cc] >= 0)
+    r_idx = [np.repeat(np.arange(m), 3), np.repeat(np.arange(m), 3), np.repeat(on_cam, 6),
+             m + np.arange(a0)]
+    c_idx = [(a0 + 3 * ii[:, None] + k3).ravel(), (a1 + 3 * obj[ii][:, None] + k3).ravel(),
+             (6 * vidx[cc[on_cam]][:, None] + k6).ravel(), np.arange(a0)]
+    n_res = m + a0
+    if floor_sd is not None:  # each floor residual: its row's centre and its object's height
+        rows_f = m + a0 + np.arange(N)
+        r_idx += [np.repeat(rows_f, 3), rows_f]
+        c_idx += [(a0 + 3 * np.arange(N)[:, None] + k3).ravel(), a1 + 3 * obj + 2]
+        n_res += N
+    r_all, c_all = np.concatenate(r_idx), np.concatenate(c_idx)
+    J = coo_matrix((np.ones(r_all.size, np.int8), (r_all, c_all)), shape=(n_res, a1 + 3 * O))
     q0 = np.concatenate([np.zeros(a0), X0.ravel(), L_obj.ravel()])
     sol = least_squares(resid, q0, jac_sparsity=J.tocsr(), loss="soft_l1", f_scale=2.0,
                         x_scale="jac", max_nfev=max_nfev, method="trf")
