@@ -392,6 +392,20 @@ def cmd_calib_refine(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_report(args: argparse.Namespace) -> int:
+    from gt3dkit.viz.report import write_report
+
+    out = Path(args.out)
+    if out.is_dir() and (out / "report").exists():
+        check_output(out / "report")
+    index, warnings = write_report(out)
+    for w in warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    n = sum(1 for _ in index.parent.rglob("*.png"))
+    print(f"report: {index} ({n} pictures; open it in a browser)")
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from gt3dkit.api import ESTIMATORS, reconstruct
     from gt3dkit.eval.metrics import box_errors
@@ -601,6 +615,12 @@ def build_parser() -> argparse.ArgumentParser:
     kr.add_argument("--noise-px", type=PIXELS, default=0.0, help="CMU Panoptic: 2D noise")
     kr.add_argument("--seed", type=SEED, help="CMU Panoptic: seed of that noise (default 0)")
     kr.set_defaults(func=cmd_calib_refine)
+
+    rp = sub.add_parser("report", parents=[common],
+                        help="OUT/report/index.html for a reconstruct or compare output: 3D renders, "
+                             "per-camera pictures, residuals, anomalies with pictures")
+    rp.add_argument("out", metavar="OUT", help="a gt3d reconstruct or gt3d compare output folder")
+    rp.set_defaults(func=cmd_report)
 
     d = sub.add_parser("demo", parents=[common],
                        help="reconstruct the bundled MultiviewX and Panoptic data, print errors")

@@ -148,6 +148,7 @@ class Scene:
     root: str = ""
     warnings: tuple[str, ...] = ()  # odd but valid input: printed as ``warning:`` lines
     fps_assumed: str = ""  # why ``fps`` is a default, not the input's ("" = the input gives it)
+    load_options: dict[str, Any] = field(default_factory=dict)  # load_scene's arguments (JSON-able)
 
     @property
     def all_warnings(self) -> tuple[str, ...]:

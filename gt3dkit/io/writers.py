@@ -63,7 +63,8 @@ def meta_of(scene: Scene, tracks: TrackSet) -> dict[str, Any]:
         "input": {"root": scene.root, "layout": scene.layout, "fps": scene.fps,
                   "fps_assumed": scene.fps_assumed or None, "warnings": list(scene.all_warnings),
                   "calibration_notes": scene.calibration_notes,
-                  "cameras": scene.rig.names, "files_sha256": scene.files},
+                  "cameras": scene.rig.names, "files_sha256": scene.files,
+                  "load": scene.load_options},
         "counts": {
             "objects": int(len(np.unique(tracks.track_id))),
             "frames": int(len(np.unique(tracks.frame))),

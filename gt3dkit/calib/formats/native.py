@@ -26,6 +26,18 @@ FPS_RANGE = (1e-3, 1e6)
 def load_cameras(path: Path) -> tuple[Rig, float | None, str | None]:
     """Rig, fps (None when the file gives none) and skeleton name of a ``cameras.json``."""
     doc = load_json(path)
+    rig = rig_of_doc(doc, path)
+    if doc.get("fps") is None:
+        return rig, None, _skeleton_of(doc, path)
+    fps = parse_float(f"{path}: fps", doc["fps"], "fps")
+    if not FPS_RANGE[0] <= fps <= FPS_RANGE[1]:
+        raise InputError(f"{path}: fps", f"must be in [{FPS_RANGE[0]:g}, {FPS_RANGE[1]:g}], got {fps:g}")
+    return rig, fps, _skeleton_of(doc, path)
+
+
+def rig_of_doc(doc: Any, path: Path | str) -> Rig:
+    """The rig of a ``cameras.json`` document (as :func:`cameras_doc` writes it); ``path``
+    names it in errors."""
     if not isinstance(doc, dict) or not isinstance(doc.get("cameras"), list):
         raise InputError(str(path), 'expected {"up": [...], "cameras": [...]}')
     cams = []
@@ -43,12 +55,7 @@ def load_cameras(path: Path) -> tuple[Rig, float | None, str | None]:
                   frame_name=f"input world frame of {Path(path).name}")
     except (ValueError, TypeError, OverflowError) as e:
         raise InputError(f"{path}: {'up' if cams else 'cameras'}", str(e)) from None
-    if doc.get("fps") is None:
-        return rig, None, _skeleton_of(doc, path)
-    fps = parse_float(f"{path}: fps", doc["fps"], "fps")
-    if not FPS_RANGE[0] <= fps <= FPS_RANGE[1]:
-        raise InputError(f"{path}: fps", f"must be in [{FPS_RANGE[0]:g}, {FPS_RANGE[1]:g}], got {fps:g}")
-    return rig, fps, _skeleton_of(doc, path)
+    return rig
 
 
 def _skeleton_of(doc: dict[str, Any], path: Path) -> str | None:
@@ -74,8 +81,6 @@ def _camera(c: dict[str, Any]) -> Camera:
                   dist=np.asarray(c.get("dist", [0, 0, 0, 0, 0]), dtype=np.float64),
                   R=np.asarray(c["R"], dtype=np.float64), t=np.asarray(c["t"], dtype=np.float64),
                   depth_sign=float(c.get("depth_sign", 1.0)))
-
-
 
 
 def read(path: Path) -> Rig:

@@ -102,4 +102,7 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
             raise InputError("fps", f"must be in [{native.FPS_RANGE[0]:g}, {native.FPS_RANGE[1]:g}]"
                                     f", got {fps}")
         scene = dataclasses.replace(scene, fps=float(fps), fps_assumed="")
+    opts = {"root": str(Path(root).resolve()), "layout": layout, "skeleton": skeleton, "fps": fps,
+            "calib": None if calib is None else str(Path(calib).resolve()), **panoptic_options}
+    scene = dataclasses.replace(scene, load_options=opts)
     return checks.check_scene(scene)

@@ -1,0 +1,156 @@
+"""The 3D overview of a reconstruction: cameras as frusta with their names, the ground grid
+(1 m cells), every object's ellipsoid (and skeleton) at one frame and every track's path,
+rendered by open3d (:mod:`gt3dkit.viz.render3d`); names and the legend are drawn on top with
+matplotlib at the pixels where the same pinhole projects them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from gt3dkit.types import F64, Scene, TrackSet
+from gt3dkit.viz.render3d import Drawing, View, render, unit_sphere
+
+GRID_COLOUR = (0.80, 0.80, 0.80)
+CAMERA_COLOUR = (0.15, 0.15, 0.15)
+
+
+def colour_of(i: int) -> tuple[float, float, float]:
+    """The colour of object ``i`` in every picture of a report."""
+    import matplotlib
+
+    return tuple(float(v) for v in matplotlib.colormaps["tab10"](int(i) % 10)[:3])
+
+
+def _frustum(cam, depth_m: float) -> tuple[F64, list[tuple[int, int]]]:
+    Kinv = np.linalg.inv(cam.K)
+    corners = [(0, 0), (cam.width, 0), (cam.width, cam.height), (0, cam.height)]
+    rays = [Kinv @ np.array([u, v, 1.0]) for u, v in corners]
+    P = [cam.center_world] + [cam.center_world + depth_m * cam.depth_sign * (cam.R.T @ r) for r in rays]
+    return np.array(P), [(0, 1), (0, 2), (0, 3), (0, 4), (1, 2), (2, 3), (3, 4), (4, 1)]
+
+
+def overview_drawing(scene: Scene, tracks: TrackSet, frame: int, tracks_b: TrackSet | None = None,
+                     close_up: bool = False) -> tuple[Drawing, View, F64]:
+    """The drawing, a view that frames the cameras and the tracks from above and behind (or,
+    ``close_up``, the objects at ``frame`` only), and the cameras' centres (C, 3).
+    ``tracks_b``: a second estimate whose paths are drawn black (a comparison)."""
+    from gt3dkit.skeletons import SKELETONS
+
+    rig = scene.rig
+    up, wfb = rig.up, rig.world_from_body()
+    cams = np.array([c.center_world for c in rig.cameras])
+    fin = np.isfinite(tracks.center_world).all(axis=1)
+    P = tracks.center_world[fin]
+    lo_t, hi_t = (P.min(axis=0), P.max(axis=0)) if len(P) else (cams.min(axis=0), cams.max(axis=0))
+    lo, hi = np.minimum(lo_t, cams.min(axis=0)), np.maximum(hi_t, cams.max(axis=0))
+    centre_all = (lo + hi) / 2
+    size = max(float(np.linalg.norm(hi - lo)), 1.0)
+    d = Drawing()
+    # grid on the floor (height 0 along up) under the tracks, whole metres, 1 m cells
+    x_ax, y_ax = wfb[:, 0], wfb[:, 1]
+    area_lo = np.floor([min(lo_t @ x_ax, hi_t @ x_ax), min(lo_t @ y_ax, hi_t @ y_ax)]) - 1
+    area_hi = np.ceil([max(lo_t @ x_ax, hi_t @ x_ax), max(lo_t @ y_ax, hi_t @ y_ax)]) + 1
+    pts, segs = [], []
+    for a in np.arange(area_lo[0], area_hi[0] + 1):
+        pts += [a * x_ax + area_lo[1] * y_ax, a * x_ax + area_hi[1] * y_ax]
+        segs.append((len(pts) - 2, len(pts) - 1))
+    for b in np.arange(area_lo[1], area_hi[1] + 1):
+        pts += [area_lo[0] * x_ax + b * y_ax, area_hi[0] * x_ax + b * y_ax]
+        segs.append((len(pts) - 2, len(pts) - 1))
+    d.add_lines(np.array(pts), segs, GRID_COLOUR)
+    for c in rig.cameras:
+        Pc, S = _frustum(c, size / 20)
+        d.add_lines(Pc, S, CAMERA_COLOUR)
+    for tid in np.unique(tracks.track_id):
+        m = (tracks.track_id == tid) & fin
+        d.add_polyline(tracks.center_world[m], colour_of(tid))
+        if tracks_b is not None:
+            mb = (tracks_b.track_id == tid) & np.isfinite(tracks_b.center_world).all(axis=1)
+            d.add_polyline(tracks_b.center_world[mb], (0.0, 0.0, 0.0))
+    V, F = unit_sphere()
+    skeleton = SKELETONS[scene.skeleton] if scene.skeleton and tracks.kpt_world.shape[1] else None
+    for k in np.flatnonzero((tracks.frame == frame) & fin):
+        col = colour_of(tracks.track_id[k])
+        if skeleton is not None and np.isfinite(tracks.kpt_world[k]).all(axis=1).sum() >= 2:
+            X = tracks.kpt_world[k]
+            bones = [(int(a), int(b)) for a, b in skeleton.bones
+                     if np.isfinite(X[a]).all() and np.isfinite(X[b]).all()]
+            d.add_lines(np.nan_to_num(X), bones, col)
+            for x in X[np.isfinite(X).all(axis=1)]:  # joints as small balls
+                d.add_mesh(V * 0.025 + x, F, col)
+            continue
+        d.add_mesh((V * tracks.semi_axes[k]) @ wfb.T + tracks.center_world[k], F, col)
+    # the eye: behind the scene's -y side (body frame), raised, looking at the tracks' middle
+    centre = (lo_t + hi_t) / 2 if len(P) else centre_all
+    span = max(float(np.linalg.norm(hi_t - lo_t)), 1.0) if len(P) else size
+    if close_up:
+        now = tracks.center_world[(tracks.frame == frame) & fin]
+        if len(now):
+            centre = now.mean(axis=0)
+            span = max(float(np.linalg.norm(now.max(axis=0) - now.min(axis=0))), 2.0)
+    back = centre - y_ax * (0.9 * span) + up * (0.6 * span)
+    view = View(eye=back, centre=centre, up=up)
+    # move back until every camera is in the picture (or the distance has doubled 3 times)
+    for _ in range(0 if close_up else 4):
+        uv = view.project(cams)
+        if np.isfinite(uv).all() and (uv >= 0).all() and (uv[:, 0] < view.width).all() \
+                and (uv[:, 1] < view.height).all():
+            break
+        view = View(eye=centre + 1.6 * (view.eye - centre), centre=centre, up=up)
+    return d, view, cams
+
+
+def _content_box(img: np.ndarray, margin: int = 24) -> tuple[int, int, int, int]:
+    """(u0, v0, u1, v1) of the non-white pixels of ``img`` with a margin."""
+    ink = (img < 250).any(axis=2)
+    if not ink.any():
+        return 0, 0, img.shape[1], img.shape[0]
+    v, u = np.nonzero(ink)
+    return (max(int(u.min()) - margin, 0), max(int(v.min()) - margin - 40, 0),
+            min(int(u.max()) + margin, img.shape[1]), min(int(v.max()) + margin, img.shape[0]))
+
+
+def write_overview(scene: Scene, tracks: TrackSet, frame: int, path: Path,
+                   tracks_b: TrackSet | None = None, title: str = "", close_up: bool = False) -> None:
+    """Render the overview at ``frame`` into the PNG ``path``, cropped to what it shows
+    (:class:`RenderError` if open3d cannot render here)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    d, view, cams = overview_drawing(scene, tracks, frame, tracks_b, close_up)
+    img = render(d, view)
+    u0, v0, u1, v1 = _content_box(img)
+    u0, u1 = (0, view.width) if u1 - u0 < 900 else (u0, u1)  # room for the caption
+    fig = plt.figure(figsize=((u1 - u0) / 100, (v1 - v0) / 100), dpi=100)
+    ax = fig.add_axes((0, 0, 1, 1))
+    ax.imshow(img)
+    ax.set_xlim(u0, u1)
+    ax.set_ylim(v1, v0)
+    ax.set_axis_off()
+    for c, (u, v) in zip(scene.rig.cameras, view.project(cams), strict=True):
+        if np.isfinite(u) and u0 <= u < u1 - 40 and v0 <= v < v1:
+            ax.text(u + 6, v - 6, c.name, fontsize=11, color="black",
+                    bbox={"facecolor": "white", "alpha": 0.75, "edgecolor": "none", "pad": 1})
+    at = tracks.frame == frame
+    for k in np.flatnonzero(at & np.isfinite(tracks.center_world).all(axis=1)):
+        top = tracks.center_world[k] + scene.rig.up * (tracks.semi_axes[k, 2] + 0.15)
+        X = tracks.kpt_world[k] if tracks.kpt_world.shape[1] else np.zeros((0, 3))
+        X = X[np.isfinite(X).all(axis=1)]
+        if len(X):  # above the highest joint
+            top = X[np.argmax(X @ scene.rig.up)] + 0.15 * scene.rig.up
+        (u, v), = view.project(top[None])
+        if np.isfinite(u) and 0 <= u < view.width and 0 <= v < view.height:
+            ax.text(u, v, str(int(tracks.track_id[k])), fontsize=9, ha="center", va="bottom",
+                    color=colour_of(tracks.track_id[k]), fontweight="bold")
+    what = "skeletons" if scene.skeleton and tracks.kpt_world.shape[1] else "ellipsoids"
+    ax.text(u0 + 12, v0 + 8, (title + "\n" if title else "") +
+            f"frame {frame}: {int(at.sum())} {what} (labels: ids); coloured lines: every track's path"
+            + ("; black: the other estimator's" if tracks_b is not None else "")
+            + "; grid: 1 m cells on the floor", fontsize=12, va="top",
+            bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"})
+    fig.savefig(path)
+    plt.close(fig)

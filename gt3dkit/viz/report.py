@@ -1,0 +1,415 @@
+"""``gt3d report OUT``: ``OUT/report/index.html`` with its PNGs beside it (opens from disk).
+
+For a ``gt3d reconstruct`` output: the numbers (input, counts, estimator and its noise levels,
+frame and units, calibration and its refinement), the 3D overview and a close-up (open3d,
+:mod:`gt3dkit.viz.overview`), per camera its worst frame (annotations against the projected
+estimate, at the camera's image size, over the dataset's image when it has one), residual
+histograms per camera, each track's residual and sd over time, and the anomaly table with a
+small picture of the views of each row. For a ``gt3d compare`` output: the comparison table,
+the estimators' tracks side by side and where they disagree, then the first estimator's pages.
+
+The input is read again from where ``meta.json`` says it was loaded (with the same options
+and, after ``--refine-calib``, the refined cameras); the report says so when the input files
+changed since the run.
+"""
+
+from __future__ import annotations
+
+import csv
+import html
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gt3dkit.errors import InputError
+from gt3dkit.types import Scene, TrackSet
+
+#: anomaly rows shown with a picture (the highest scores); the table lists up to MAX_ROWS
+MAX_PICTURES = 60
+MAX_ROWS = 2000
+
+STYLE = ("body{font-family:sans-serif;max-width:1500px;margin:auto;padding:0 12px;color:#222}"
+         "table{border-collapse:collapse;font-size:13px;margin:6px 0}td,th{border:1px solid #ccc;"
+         "padding:3px 7px;text-align:left;vertical-align:top}th{background:#f0f0f0}"
+         "figure{display:inline-block;width:48%;margin:6px 0.5%;vertical-align:top}figure img{width:100%}"
+         "figcaption{font-size:13px;color:#444}.wide{width:100%}.warn{color:#a33}"
+         "td img{max-height:190px}h2{border-bottom:1px solid #ddd;margin-top:28px}")
+
+
+@dataclass
+class Run:
+    """A reconstruct output read back, with the scene it was made from."""
+
+    out: Path
+    meta: dict[str, Any]
+    scene: Scene
+    tracks: TrackSet
+    anomalies: list[dict[str, str]]
+    notes: list[str]
+
+
+def _load_scene(out: Path, meta: dict[str, Any]) -> tuple[Scene, list[str]]:
+    from gt3dkit.calib.formats.native import rig_of_doc
+    from gt3dkit.io.datasets import load_scene
+
+    where = str(out / "meta.json")
+    inp = meta.get("input")
+    if not isinstance(inp, dict) or not isinstance(inp.get("load", inp), dict):
+        raise InputError(where, "input: missing (not a gt3d reconstruct output?)")
+    load = dict(inp.get("load") or {"root": inp.get("root"), "layout": inp.get("layout")})
+    root = load.pop("root", None)
+    if not isinstance(root, str) or not root:
+        raise InputError(where, "input: no input folder recorded")
+    if not Path(root).is_dir():
+        raise InputError(where, f"input: the input folder {root} is not there any more (the report "
+                                "draws the annotations)")
+    if load.get("calib") and not Path(load["calib"]).exists():
+        raise InputError(where, f"input: the calibration {load['calib']} is not there any more")
+    known = {"layout", "skeleton", "fps", "calib", "cameras", "noise_px", "seed", "min_conf"}
+    scene = load_scene(Path(root), **{k: v for k, v in load.items() if k in known})
+    notes = []
+    old = inp.get("files_sha256") or {}
+    changed = sorted(k for k, v in scene.files.items() if old.get(k) not in (None, v))
+    if changed:
+        notes.append(f"input files changed since the run: {', '.join(changed[:5])}"
+                     + (" ..." if len(changed) > 5 else "") + " (the pictures show today's files)")
+    refined = (meta.get("calibration_refinement") or {}).get("refined_rig")
+    if refined:
+        scene = replace(scene, rig=rig_of_doc(refined, f"{where}: calibration_refinement"))
+        notes.append("cameras: the refined calibration the run used (meta.json calibration_refinement)")
+    return scene, notes
+
+
+def load_run(out: Path) -> Run:
+    from gt3dkit.io.datasets.common import load_json, read_csv_rows
+    from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv
+    from gt3dkit.qa.anomalies import COLUMNS
+
+    out = Path(out)
+    for f in ("tracks.csv", "meta.json"):
+        if not (out / f).is_file():
+            raise InputError(str(out), f"no {f}: not a gt3d reconstruct or compare output")
+    meta = load_json(out / "meta.json")
+    if not isinstance(meta, dict):
+        raise InputError(str(out / "meta.json"), "expected an object")
+    scene, notes = _load_scene(out, meta)
+    tracks = read_tracks_csv(out / "tracks.csv")
+    if (out / "keypoints.csv").is_file() and scene.obs.n_joints:
+        tracks = read_keypoints_csv(out / "keypoints.csv", tracks, scene.obs.n_joints)
+    anomalies = []
+    if (out / "anomalies.csv").is_file():
+        anomalies = [dict(r) for _, r in read_csv_rows(out / "anomalies.csv", COLUMNS)]
+    return Run(out, meta, scene, tracks, anomalies, notes)
+
+
+def _table(rows: list[list[Any]], head: list[str] | None = None, raw_cols: tuple[int, ...] = ()) -> str:
+    def cell(i: int, x: Any) -> str:
+        return str(x) if i in raw_cols else html.escape(str(x))
+
+    h = "<tr>" + "".join(f"<th>{html.escape(str(x))}</th>" for x in head) + "</tr>" if head else ""
+    b = "".join("<tr>" + "".join(f"<td>{cell(i, x)}</td>" for i, x in enumerate(r)) + "</tr>" for r in rows)
+    return f"<table>{h}{b}</table>"
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return "-" if not np.isfinite(v) else f"{v:.4g}"
+    if isinstance(v, dict):
+        return ", ".join(f"{k} {_fmt(x)}" for k, x in v.items())
+    if isinstance(v, list):
+        return ", ".join(_fmt(x) for x in v)
+    return "-" if v is None else str(v)
+
+
+def _numbers(run: Run, res: Any) -> list[list[Any]]:
+    sc, tr, meta = run.scene, run.tracks, run.meta
+    est = meta.get("estimator", {}) if isinstance(meta.get("estimator"), dict) else {}
+    prep = est.get("preparation", {}) if isinstance(est.get("preparation"), dict) else {}
+    params = est.get("params", {}) if isinstance(est.get("params"), dict) else {}
+    vals = [v for v in (res.box_err, res.kpt_err) if v is not None]
+    allv = np.concatenate([v[np.isfinite(v)] for v in vals]) if vals else np.zeros(0)
+    qa = (est.get("qa") or {}).get("anomalies", {}) if isinstance(est.get("qa"), dict) else {}
+    rob = est.get("robust") or {}
+    rows = [
+        ["input", f"{sc.layout}: {sc.root}"],
+        ["cameras", f"{len(sc.rig.cameras)}: {', '.join(sc.rig.names)}"],
+        ["frames", f"{len(sc.frames)} ({int(sc.frames.min())}..{int(sc.frames.max())}) at {sc.fps:g} fps"
+                   + (" (assumed)" if sc.fps_assumed else "")],
+        ["annotations", f"{len(sc.obs)} rows" + (f", {sc.skeleton} keypoints" if sc.skeleton else "")
+                        + (", boxes" if sc.obs.has_box.any() else "")],
+        ["output", f"{len(tr)} object-frames of {len(np.unique(tr.track_id))} objects"],
+        ["estimator", f"{est.get('estimator', '?')} ({est.get('update_form', '')}); "
+                      f"{_fmt(est.get('seconds'))} s"],
+        ["noise levels the run chose",
+         "; ".join(f"{k}: {_fmt(v)}" for k, v in (
+             ("box edge sd (px)", params.get("sigma_px", (prep.get("boxes") or {}).get("sigma_px"))),
+             ("keypoint sd (px)", params.get("kpt_sigma_px", (prep.get("keypoints") or {}).get("sigma_px"))),
+             ("centre acceleration sd (m/s^2)", params.get("accel_sd")),
+             ("log semi-axis sd (per sqrt s)", params.get("shape_sd")),
+             ("joint acceleration sd (m/s^2)", params.get("joint_accel_sd") if run.scene.skeleton else None),
+             ("bone length sd (m)", params.get("bone_sd_m") if run.scene.skeleton else None))
+             if v is not None) or "-"],
+        ["reprojection residuals",
+         f"median {np.median(allv):.2f} px, p95 {np.percentile(allv, 95):.2f} px over {allv.size} box edges "
+         "and keypoints" if allv.size else "-"],
+        ["robust update", f"{rob.get('rejected', 0)} measurements rejected, {rob.get('downweighted', 0)} "
+                          "down-weighted (downweighted.csv)" if rob.get("enabled") else "off"],
+        ["anomalies", ", ".join(f"{v} {k}" for k, v in qa.items()) if qa else
+         (f"{len(run.anomalies)} rows" if run.anomalies else "none")],
+        ["world frame", f"{sc.rig.frame_name}; metres; up = {np.round(sc.rig.up, 4).tolist()}"],
+        ["warnings", "; ".join(sc.all_warnings) or "none"],
+    ]
+    return rows
+
+
+def _calibration(run: Run) -> str:
+    cams = run.scene.rig.cameras
+    rows = [[c.name, f"{c.width} x {c.height}", f"{c.K[0, 0]:.1f}, {c.K[1, 1]:.1f}",
+             f"{c.K[0, 2]:.1f}, {c.K[1, 2]:.1f}", ", ".join(f"{v:.3g}" for v in c.dist) or "none",
+             ", ".join(f"{v:.3f}" for v in c.center_world)] for c in cams]
+    out = _table(rows, ["camera", "image (px)", "focal fx, fy (px)", "principal point (px)", "distortion",
+                        "centre in the world (m)"])
+    ref = run.meta.get("calibration_refinement")
+    if isinstance(ref, dict):
+        keep = {k: v for k, v in ref.items() if k not in ("refined_rig", "rig_sha256") and
+                not isinstance(v, dict | list) or k in ("refined_cameras",)}
+        out += "<h3>Refinement</h3>" + _table([[k, _fmt(v)] for k, v in keep.items()])
+        per = ref.get("cameras") or ref.get("per_camera")
+        if isinstance(per, dict):
+            head = sorted({k for v in per.values() if isinstance(v, dict) for k in v})
+            out += _table([[n] + [_fmt(v.get(k)) for k in head] for n, v in per.items() if isinstance(v, dict)],
+                          ["camera", *head])
+    return out
+
+
+def _anomaly_section(run: Run, res: Any, folder: Path) -> str:
+    from gt3dkit.viz.panels import anomaly_thumbnail
+
+    rows = run.anomalies
+    if not rows:
+        return "<p>No annotation was flagged.</p>"
+
+    def score(r: dict[str, str]) -> float:
+        try:
+            return float(r["score"])
+        except ValueError:
+            return 0.0
+
+    order = sorted(range(len(rows)), key=lambda i: -score(rows[i]))
+    pictured = set(order[:MAX_PICTURES])
+    joints = _joint_names(run.scene)
+    body = []
+    (folder / "anomalies").mkdir(exist_ok=True)
+    for i in sorted(order[:MAX_ROWS], key=lambda i: (int(rows[i]["frame"]), rows[i]["id"])):
+        r = rows[i]
+        pic = ""
+        if i in pictured:
+            name = f"anomalies/{i:05d}.png"
+            j = int(r["joint"]) if r["joint"].strip().lstrip("-").isdigit() else None
+            if anomaly_thumbnail(run.scene, res, int(r["frame"]), int(r["id"]), r["camera"], j, folder / name):
+                pic = f'<img src="{name}">'
+        joint = joints[int(r["joint"])] if r["joint"].isdigit() and int(r["joint"]) < len(joints) else r["joint"]
+        body.append([r["frame"], r["camera"] or "(all)", r["id"], joint, r["kind"], r["score"],
+                     html.escape(r["detail"]), pic])
+    more = (f"<p>{len(rows) - MAX_ROWS} more rows in anomalies.csv.</p>" if len(rows) > MAX_ROWS else "")
+    return (f"<p>{len(rows)} rows (anomalies.csv); pictures for the {min(len(rows), MAX_PICTURES)} highest "
+            "scores: the flagged view (red name) and the object's other views at that frame, "
+            f"{html.escape(_annotation_note())}; a flagged joint is circled red.</p>"
+            + _table(body, ["frame", "camera", "id", "joint", "kind", "score", "detail", "views"],
+                     raw_cols=(6, 7)) + more)
+
+
+def _annotation_note() -> str:
+    from gt3dkit.viz.panels import ANNOTATION_NOTE
+
+    return ANNOTATION_NOTE
+
+
+def _joint_names(scene: Scene) -> tuple[str, ...]:
+    from gt3dkit.skeletons import SKELETONS
+
+    return SKELETONS[scene.skeleton].joints if scene.skeleton else ()
+
+
+def _busiest_frame(tracks: TrackSet) -> int:
+    frames, counts = np.unique(tracks.frame, return_counts=True)
+    best = np.flatnonzero(counts == counts.max())
+    return int(frames[best[len(best) // 2]])
+
+
+def _figure(src: str, caption: str, wide: bool = False) -> str:
+    cls = ' class="wide"' if wide else ""
+    return f'<figure{cls}><img src="{src}"><figcaption>{html.escape(caption)}</figcaption></figure>'
+
+
+def run_sections(run: Run, tmp: Path, prefix: str = "", tracks_b: TrackSet | None = None,
+                 title_b: str = "") -> tuple[list[str], list[str]]:
+    """The HTML sections of one run's report written into ``tmp`` (PNG names start with
+    ``prefix``); returns (sections, warnings)."""
+    from gt3dkit.fusion.prepare import prepare
+    from gt3dkit.viz.overview import write_overview
+    from gt3dkit.viz.panels import residual_histograms, track_plots, view_residuals, worst_frames
+    from gt3dkit.viz.render3d import RenderError
+
+    sc, tr = run.scene, run.tracks
+    pre = prepare(sc)
+    res = view_residuals(tr, pre)
+    frame = _busiest_frame(tr)
+    warnings: list[str] = []
+    sub = tmp / prefix if prefix else tmp
+    sub.mkdir(parents=True, exist_ok=True)
+    p = f"{prefix}/" if prefix else ""
+    renders = []
+    for name, close, caption in (
+            ("overview.png", False, f"The rig and every track; ellipsoids or skeletons at frame {frame}"),
+            ("closeup.png", True, f"The objects at frame {frame}, closer")):
+        try:
+            write_overview(sc, tr, frame, sub / name, tracks_b=tracks_b, close_up=close,
+                           title=title_b)
+            renders.append(_figure(p + name, caption, wide=not close))
+        except RenderError as e:
+            warnings.append(f"3D render {name} not made: {e}")
+    parts = ["<h2>Numbers</h2>", _table([[k, v] for k, v in _numbers(run, res)])]
+    if run.notes:
+        parts.append("".join(f'<p class="warn">{html.escape(n)}</p>' for n in run.notes))
+    parts += ["<h2>3D (open3d, off-screen)</h2>",
+              "".join(renders) or '<p class="warn">' + html.escape("; ".join(warnings)) + "</p>"]
+    panels = worst_frames(sc, res, sub)
+    parts += ["<h2>Annotations against the estimate: each camera's worst frame</h2>",
+              "".join(_figure(p + n, c) for n, c in panels)]
+    parts += ["<h2>Reprojection residuals per camera</h2>",
+              _figure(p + residual_histograms(sc, res, sub), "box edges and keypoints, pixels", wide=True)]
+    parts += ["<h2>Tracks over time</h2>", _figure(p + track_plots(tr, res, sub), "", wide=True)]
+    if run.anomalies or (tmp / "anomalies.csv").exists() or prefix == "":
+        section = _anomaly_section(run, res, sub)
+        parts += [f"<h2>Anomalies ({len(run.anomalies)})</h2>",
+                  section.replace('src="anomalies/', f'src="{p}anomalies/')]
+    parts += ["<h2>Calibration</h2>", _calibration(run)]
+    return parts, warnings
+
+
+def _page(title: str, parts: list[str]) -> str:
+    return (f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+            f"<style>{STYLE}</style></head><body><h1>{html.escape(title)}</h1>{''.join(parts)}"
+            "</body></html>")
+
+
+def write_report(out: Path) -> tuple[Path, list[str]]:
+    """Write ``out/report/`` for a reconstruct or compare output folder (atomically); returns
+    the index.html path and warnings (a 3D render that failed)."""
+    from gt3dkit.io.atomic import write_dir_atomically
+
+    out = Path(out)
+    if not out.is_dir():
+        raise InputError(str(out), "not a folder")
+    if (out / "comparison.csv").is_file():
+        return _write_compare_report(out)
+    run = load_run(out)
+    warnings: list[str] = []
+
+    def write(tmp: Path) -> None:
+        parts, w = run_sections(run, tmp)
+        warnings.extend(w)
+        (tmp / "index.html").write_text(_page(f"gt3dkit report: {out.resolve()}", parts), encoding="utf-8")
+
+    write_dir_atomically(out / "report", write)
+    return out / "report" / "index.html", warnings
+
+
+def _write_compare_report(out: Path) -> tuple[Path, list[str]]:
+    from gt3dkit.io.atomic import write_dir_atomically
+    from gt3dkit.io.datasets.common import read_csv_rows
+
+    with open(out / "comparison.csv", newline="", encoding="utf-8") as f:
+        header = next(csv.reader(f), [])
+    if "estimator" not in header:
+        raise InputError(str(out / "comparison.csv"), "no estimator column: not a gt3d compare output")
+    table = [dict(r) for _, r in read_csv_rows(out / "comparison.csv", tuple(header))]
+    names = [r["estimator"] for r in table if not r.get("failed") and (out / r["estimator"] / "tracks.csv").is_file()]
+    if not names:
+        raise InputError(str(out / "comparison.csv"), "no estimator's output beside it")
+    runs = {n: load_run(out / n) for n in names}
+    first = runs[names[0]]
+    warnings: list[str] = []
+
+    def write(tmp: Path) -> None:
+        cols = [c for c in header if any(r.get(c) for r in table)]
+        parts = ["<h2>The estimators</h2>", _table([[r.get(c, "") for c in cols] for r in table], cols)]
+        parts += ["<h2>Side by side</h2>", _figure(_side_by_side(runs, tmp), "", wide=True)]
+        if len(names) > 1:
+            parts += ["<h2>Where they disagree</h2>",
+                      _figure(_disagreement_plot(runs, tmp), "", wide=True)]
+        other = runs[names[1]].tracks if len(names) > 1 else None
+        sec, w = run_sections(first, tmp, prefix=names[0], tracks_b=other,
+                              title_b=f"{names[0]} (colours)" + (f" and {names[1]} (black)" if other else ""))
+        warnings.extend(w)
+        parts += [f"<h1>{html.escape(names[0])} in detail</h1>", *sec]
+        (tmp / "index.html").write_text(_page(f"gt3dkit comparison: {out.resolve()}", parts), encoding="utf-8")
+
+    write_dir_atomically(out / "report", write)
+    return out / "report" / "index.html", warnings
+
+
+def _side_by_side(runs: dict[str, Run], tmp: Path) -> str:
+    """Each estimator's tracks seen from above (ground plane), one panel each."""
+    from gt3dkit.viz.panels import _plt
+    from gt3dkit.viz.overview import colour_of
+
+    plt = _plt()
+    n = len(runs)
+    fig, axes = plt.subplots(1, n, figsize=(5.2 * n, 5.0), dpi=100, squeeze=False, sharex=True, sharey=True)
+    for ax, (name, run) in zip(axes.flat, runs.items(), strict=True):
+        wfb = run.scene.rig.world_from_body()
+        tr = run.tracks
+        xy = tr.center_world @ wfb[:, :2]
+        for tid in np.unique(tr.track_id):
+            m = tr.track_id == tid
+            ax.plot(xy[m, 0], xy[m, 1], "-", color=colour_of(tid), lw=1.2)
+            ax.text(xy[m][0, 0], xy[m][0, 1], str(int(tid)), fontsize=7, color=colour_of(tid))
+        ax.set_title(f"{name}: {len(tr)} object-frames", fontsize=10)
+        ax.set_aspect("equal")
+        ax.set_xlabel("ground x (m)")
+        ax.grid(alpha=0.3)
+    axes.flat[0].set_ylabel("ground y (m)")
+    fig.tight_layout()
+    fig.savefig(tmp / "side_by_side.png")
+    plt.close(fig)
+    return "side_by_side.png"
+
+
+def _disagreement_plot(runs: dict[str, Run], tmp: Path) -> str:
+    """Per object over time, the distance between the first estimator and each other one (mean
+    joint distance for skeletons, else centre distance)."""
+    from gt3dkit.eval.metrics import match_rows
+    from gt3dkit.viz.overview import colour_of
+    from gt3dkit.viz.panels import _plt
+
+    plt = _plt()
+    names = list(runs)
+    a = runs[names[0]].tracks
+    fig, axes = plt.subplots(len(names) - 1, 1, figsize=(10, 3.0 * (len(names) - 1)), dpi=100, squeeze=False)
+    for ax, other in zip(axes.flat, names[1:], strict=True):
+        b = runs[other].tracks
+        ia, ib = match_rows(a, b)
+        if a.kpt_world.shape[1] and b.kpt_world.shape[1]:
+            d = np.nanmean(np.where(np.isfinite(a.kpt_world[ia]).all(-1) & np.isfinite(b.kpt_world[ib]).all(-1),
+                                    np.linalg.norm(a.kpt_world[ia] - b.kpt_world[ib], axis=-1), np.nan), axis=1)
+            what = "mean joint distance"
+        else:
+            d = np.linalg.norm(a.center_world[ia] - b.center_world[ib], axis=1)
+            what = "centre distance"
+        for tid in np.unique(a.track_id[ia]):
+            m = a.track_id[ia] == tid
+            ax.plot(a.frame[ia][m], 1000 * d[m], color=colour_of(tid), lw=1.0)
+        ax.set_yscale("log")
+        ax.set_ylabel(f"{what} (mm)")
+        ax.set_title(f"{names[0]} vs {other}, per object (colour = id): median "
+                     f"{1000 * np.nanmedian(d):.1f} mm" if np.isfinite(d).any() else f"{names[0]} vs {other}",
+                     fontsize=10)
+    axes.flat[-1].set_xlabel("frame")
+    fig.tight_layout()
+    fig.savefig(tmp / "disagreement.png")
+    plt.close(fig)
+    return "disagreement.png"
