@@ -110,11 +110,25 @@ def camera_image(scene: Scene, cam: int, frame: int) -> np.ndarray | None:
     return None
 
 
+def _points(res: ViewResiduals, n: int, c: int, estimate: bool) -> F64:
+    """(k, 2) pixels of residual row ``n`` in camera ``c``: the estimate's box corners and
+    keypoints, or the annotation's."""
+    pts = []
+    box, kpt = (res.box, res.kpt) if estimate else (res.box_z, res.kpt_z)
+    if box is not None and np.isfinite(box[n, c]).all():
+        pts += [box[n, c, :2], box[n, c, 2:]]
+    if kpt is not None:
+        p = kpt[n, c]
+        pts += list(p[np.isfinite(p).all(axis=1)])
+    return np.array(pts).reshape(-1, 2)
+
+
 def draw_view(ax: Any, scene: Scene, res: ViewResiduals, cam: int, sel: np.ndarray,
-              skeleton_bones: list[tuple[int, int]] | None = None, mark_joint: int | None = None,
-              lw: float = 1.6) -> None:
+              skeleton_bones: list[tuple[int, int]] | None = None, lw: float = 1.6,
+              mark: tuple[int, int | None] | None = None) -> None:
     """Draw the annotations and the projected estimate of the residual rows ``sel`` in camera
-    ``cam`` onto ``ax`` (pixel axes)."""
+    ``cam`` onto ``ax`` (pixel axes); ``mark`` = (row, joint) circles that row's joint (or its
+    box) in red."""
     plt = _plt()
     for n in sel:
         col = colour_of(res.obj[n])
@@ -124,7 +138,11 @@ def draw_view(ax: Any, scene: Scene, res: ViewResiduals, cam: int, sel: np.ndarr
                     ax.add_patch(plt.Rectangle((b[0], b[1]), b[2] - b[0], b[3] - b[1], fill=False,
                                                edgecolor=col, linestyle=ls, linewidth=lw))
             ax.text(res.box_z[n, cam, 0], res.box_z[n, cam, 1] - 4, str(int(res.obj[n])), color=col,
-                    fontsize=8, fontweight="bold")
+                    fontsize=8, fontweight="bold", clip_on=True)
+            if mark is not None and mark[0] == n and mark[1] is None:
+                b = res.box_z[n, cam]
+                ax.add_patch(plt.Rectangle((b[0], b[1]), b[2] - b[0], b[3] - b[1], fill=False,
+                                           edgecolor="red", linewidth=lw + 1.5, alpha=0.5))
         if res.kpt_z is not None:
             z, p = res.kpt_z[n, cam], res.kpt[n, cam]
             seen = np.isfinite(z[:, 0])
@@ -133,12 +151,17 @@ def draw_view(ax: Any, scene: Scene, res: ViewResiduals, cam: int, sel: np.ndarr
             for a, b in skeleton_bones or []:
                 if seen[a] and seen[b]:
                     ax.plot(z[[a, b], 0], z[[a, b], 1], "-", color=col, lw=0.8, alpha=0.6)
-            ax.plot(z[seen, 0], z[seen, 1], "o", ms=3.5, color=col)
-            ax.plot(p[seen, 0], p[seen, 1], "x", ms=4, color="black", mew=1.0)
+            ax.plot(z[seen, 0], z[seen, 1], "o", ms=4, color=col)
+            ax.plot(p[seen, 0], p[seen, 1], "x", ms=3.5, color="black", mew=0.8)
             top = int(np.flatnonzero(seen)[np.argmin(z[seen, 1])])
-            ax.text(z[top, 0], z[top, 1] - 8, str(int(res.obj[n])), color=col, fontsize=8, fontweight="bold")
-            if mark_joint is not None and 0 <= mark_joint < len(z) and seen[mark_joint]:
-                ax.plot(*z[mark_joint], "o", ms=14, mfc="none", mec="red", mew=2)
+            ax.text(z[top, 0], z[top, 1] - 8, str(int(res.obj[n])), color=col, fontsize=8, fontweight="bold",
+                    clip_on=True)
+            if mark is not None and mark[0] == n and mark[1] is not None and 0 <= mark[1] < len(z) \
+                    and seen[mark[1]]:
+                j = mark[1]
+                ax.plot(*z[j], "o", ms=14, mfc="none", mec="red", mew=2)
+                if np.isfinite(p[j]).all():
+                    ax.annotate("", xy=z[j], xytext=p[j], arrowprops={"arrowstyle": "->", "color": "red"})
 
 
 def _bones(scene: Scene) -> list[tuple[int, int]] | None:
@@ -271,36 +294,44 @@ def anomaly_thumbnail(scene: Scene, res: ViewResiduals, frame: int, obj: int, ca
         return False
     bones = _bones(scene)
     others = np.flatnonzero(res.frame == frame)
-    fig, axes = plt.subplots(1, len(cams), figsize=(2.1 * len(cams), 2.3), dpi=80, squeeze=False)
+    fig, axes = plt.subplots(1, len(cams), figsize=(2.4 * len(cams), 2.6), dpi=90, squeeze=False)
     for ax, c in zip(axes.flat, cams, strict=True):
-        pts = []
-        for arr in (res.box_z, res.box):
-            if arr is not None and np.isfinite(arr[n, c]).all():
-                pts += [arr[n, c, :2], arr[n, c, 2:]]
-        for arr in (res.kpt_z, res.kpt):
-            if arr is not None:
-                p = arr[n, c]
-                pts += list(p[np.isfinite(p).all(axis=1)])
-        if not pts:
+        core = _points(res, n, c, estimate=True)
+        extra = _points(res, n, c, estimate=False)
+        if not len(core):
+            core, extra = extra, core
+        if not len(core):
             ax.set_axis_off()
             continue
-        P = np.array(pts)
-        lo, hi = P.min(axis=0), P.max(axis=0)
-        pad = 0.35 * max(float((hi - lo).max()), 20.0)
+        lo, hi = core.min(axis=0), core.max(axis=0)
+        size = max(float((hi - lo).max()), 20.0)
+        far = 0
+        if len(extra):  # annotations near the estimate widen the crop; far-off ones are counted
+            d = np.maximum(np.maximum(lo - extra, extra - hi), 0).max(axis=1)
+            near = extra[d <= size]
+            far = int((d > size).sum())
+            if len(near):
+                lo, hi = np.minimum(lo, near.min(axis=0)), np.maximum(hi, near.max(axis=0))
+        mid, half = (lo + hi) / 2, (hi - lo) / 2
+        half = np.maximum(half, 0.75 * half.max())  # not a sliver: a tall person gets some width
+        lo, hi = mid - half, mid + half
+        pad = 0.3 * max(float((hi - lo).max()), 20.0)
         cam = scene.rig.cameras[c]
         img = camera_image(scene, c, frame)
         if img is not None:
             ax.imshow(img, extent=(0, cam.width, cam.height, 0))
         else:
             ax.set_facecolor("#f2f2f2")
-        draw_view(ax, scene, res, c, others, bones, joint, lw=1.4)
+        flagged = c == cams[0] and camera in names
+        draw_view(ax, scene, res, c, others, bones, lw=1.4, mark=(n, joint) if flagged else None)
         ax.set_xlim(lo[0] - pad, hi[0] + pad)
         ax.set_ylim(hi[1] + pad, lo[1] - pad)
         ax.set_aspect("equal")
         ax.set_xticks([])
         ax.set_yticks([])
-        ax.set_title(names[c], fontsize=8, color="red" if names[c] == camera else "black")
-    fig.tight_layout(pad=0.3)
+        ax.set_title(names[c] + (f" ({far} point{'s' if far > 1 else ''} far off)" if far else ""),
+                     fontsize=8, color="red" if names[c] == camera else "black")
+    fig.subplots_adjust(left=0.01, right=0.99, top=0.86, bottom=0.02, wspace=0.06)
     fig.savefig(path)
     plt.close(fig)
     return True

@@ -179,8 +179,8 @@ def _calibration(run: Run) -> str:
         per = ref.get("cameras") or ref.get("per_camera")
         if isinstance(per, dict):
             head = sorted({k for v in per.values() if isinstance(v, dict) for k in v})
-            out += _table([[n] + [_fmt(v.get(k)) for k in head] for n, v in per.items() if isinstance(v, dict)],
-                          ["camera", *head])
+            body = [[n] + [_fmt(v.get(k)) for k in head] for n, v in per.items() if isinstance(v, dict)]
+            out += _table(body, ["camera", *head])
     return out
 
 
@@ -208,9 +208,11 @@ def _anomaly_section(run: Run, res: Any, folder: Path) -> str:
         if i in pictured:
             name = f"anomalies/{i:05d}.png"
             j = int(r["joint"]) if r["joint"].strip().lstrip("-").isdigit() else None
-            if anomaly_thumbnail(run.scene, res, int(r["frame"]), int(r["id"]), r["camera"], j, folder / name):
+            if anomaly_thumbnail(run.scene, res, int(r["frame"]), int(r["id"]), r["camera"], j,
+                                 folder / name):
                 pic = f'<img src="{name}">'
-        joint = joints[int(r["joint"])] if r["joint"].isdigit() and int(r["joint"]) < len(joints) else r["joint"]
+        named = r["joint"].isdigit() and int(r["joint"]) < len(joints)
+        joint = joints[int(r["joint"])] if named else r["joint"]
         body.append([r["frame"], r["camera"] or "(all)", r["id"], joint, r["kind"], r["score"],
                      html.escape(r["detail"]), pic])
     more = (f"<p>{len(rows) - MAX_ROWS} more rows in anomalies.csv.</p>" if len(rows) > MAX_ROWS else "")
@@ -327,7 +329,8 @@ def _write_compare_report(out: Path) -> tuple[Path, list[str]]:
     if "estimator" not in header:
         raise InputError(str(out / "comparison.csv"), "no estimator column: not a gt3d compare output")
     table = [dict(r) for _, r in read_csv_rows(out / "comparison.csv", tuple(header))]
-    names = [r["estimator"] for r in table if not r.get("failed") and (out / r["estimator"] / "tracks.csv").is_file()]
+    names = [r["estimator"] for r in table
+             if not r.get("failed") and (out / r["estimator"] / "tracks.csv").is_file()]
     if not names:
         raise InputError(str(out / "comparison.csv"), "no estimator's output beside it")
     runs = {n: load_run(out / n) for n in names}
@@ -346,7 +349,8 @@ def _write_compare_report(out: Path) -> tuple[Path, list[str]]:
                               title_b=f"{names[0]} (colours)" + (f" and {names[1]} (black)" if other else ""))
         warnings.extend(w)
         parts += [f"<h1>{html.escape(names[0])} in detail</h1>", *sec]
-        (tmp / "index.html").write_text(_page(f"gt3dkit comparison: {out.resolve()}", parts), encoding="utf-8")
+        page = _page(f"gt3dkit comparison: {out.resolve()}", parts)
+        (tmp / "index.html").write_text(page, encoding="utf-8")
 
     write_dir_atomically(out / "report", write)
     return out / "report" / "index.html", warnings
@@ -354,8 +358,8 @@ def _write_compare_report(out: Path) -> tuple[Path, list[str]]:
 
 def _side_by_side(runs: dict[str, Run], tmp: Path) -> str:
     """Each estimator's tracks seen from above (ground plane), one panel each."""
-    from gt3dkit.viz.panels import _plt
     from gt3dkit.viz.overview import colour_of
+    from gt3dkit.viz.panels import _plt
 
     plt = _plt()
     n = len(runs)
@@ -394,8 +398,10 @@ def _disagreement_plot(runs: dict[str, Run], tmp: Path) -> str:
         b = runs[other].tracks
         ia, ib = match_rows(a, b)
         if a.kpt_world.shape[1] and b.kpt_world.shape[1]:
-            d = np.nanmean(np.where(np.isfinite(a.kpt_world[ia]).all(-1) & np.isfinite(b.kpt_world[ib]).all(-1),
-                                    np.linalg.norm(a.kpt_world[ia] - b.kpt_world[ib], axis=-1), np.nan), axis=1)
+            both = np.isfinite(a.kpt_world[ia]).all(-1) & np.isfinite(b.kpt_world[ib]).all(-1)
+            dj = np.where(both, np.linalg.norm(a.kpt_world[ia] - b.kpt_world[ib], axis=-1), np.nan)
+            n_j = both.sum(axis=1)
+            d = np.where(n_j > 0, np.nansum(np.nan_to_num(dj), axis=1) / np.maximum(n_j, 1), np.nan)
             what = "mean joint distance"
         else:
             d = np.linalg.norm(a.center_world[ia] - b.center_world[ib], axis=1)
