@@ -52,6 +52,10 @@ class Errors:
     gap : ``(a, b)`` frame *indices*: frames ``a..b-1`` carry no annotation at all
     single_view : people whose annotations are kept in one camera only (the one that sees
         them most)
+    missing : boxes of people in plain sight (well inside the image, at most 10 % covered by
+        nearer people) left out, as an annotator who skipped them (boxes only)
+    time_offset : ``(camera index, frames)``: that camera's boxes show each person ``frames``
+        frame steps later than labelled (an unsynchronised camera; boxes only)
     """
 
     outliers: float = 0.0
@@ -60,9 +64,11 @@ class Errors:
     shifted: float = 0.0
     gap: tuple[int, int] | None = None
     single_view: float = 0.0
+    missing: float = 0.0
+    time_offset: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
-        for k in ("outliers", "swaps", "glitch", "shifted", "single_view"):
+        for k in ("outliers", "swaps", "glitch", "shifted", "single_view", "missing"):
             v = getattr(self, k)
             if not 0 <= v <= 1:
                 raise ValueError(f"{k} must be a fraction in [0, 1], got {v}")
@@ -171,9 +177,12 @@ def _walk(rng: np.random.Generator, t_s: F64, lo: F64, hi: F64) -> F64:
 
 def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: int = 10,
              noise_px: float = 0.0, dropout: float = 0.15, errors: Errors | None = None,
-             motion: str = "smooth", cameras: int | None = None, fps: float | None = None
-             ) -> SimScene:
+             motion: str = "smooth", cameras: int | None = None, fps: float | None = None,
+             hide_covered: float | None = None) -> SimScene:
     """Generate a seeded scene. See the module docstring.
+
+    ``hide_covered``: boxes covered by nearer people's boxes by more than this fraction are
+    left out, as annotators skip people hidden behind others (None: keep them).
 
     ``cameras`` and ``fps`` set the native layout's camera count (default 6) and frame rate
     (default 10); the WILDTRACK and MultiviewX layouts have their own.
@@ -247,6 +256,39 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
     seen &= (box[..., 2] > box[..., 0]) & (box[..., 3] > box[..., 1])
     truth_frame, truth_id = np.array(rows_f), np.array(rows_id)
     injected: list[tuple[int, str, int, str, str, str]] = []
+    if errors.time_offset is not None:
+        c, k = errors.time_offset
+        if not 0 <= c < len(rig.cameras):
+            raise ValueError(f"time_offset camera {c} not in 0..{len(rig.cameras) - 1}")
+        at = {(int(f), int(i)): m for m, (f, i) in enumerate(zip(truth_frame, truth_id, strict=True))}
+        step = int(frame_numbers[1] - frame_numbers[0])
+        src = np.array([at.get((int(f) + k * step, int(i)), -1) for f, i in
+                        zip(truth_frame, truth_id, strict=True)])
+        box[:, c] = np.where((src >= 0)[:, None], box[np.maximum(src, 0), c], np.nan)
+        seen[:, c] &= (src >= 0) & inside[np.maximum(src, 0), c]
+        injected.append((int(frame_numbers[0]), rig.cameras[c].name, -1, "", "time_offset",
+                         f"{k:+d} frames"))
+    centres = np.stack([c.center_world for c in rig.cameras])
+    depth = np.linalg.norm(center[:, None, :] - centres[None], axis=-1)  # (M, C)
+    if hide_covered is not None or errors.missing:
+        from gt3dkit.qa.anomalies import covered_fraction
+
+        cov = np.zeros(seen.shape)
+        for f in np.unique(truth_frame):
+            m = np.flatnonzero(truth_frame == f)
+            cov[m] = covered_fraction(np.where(seen[m][..., None], box[m], np.nan), depth[m])
+        if hide_covered is not None:
+            seen &= cov <= hide_covered
+        if errors.missing:
+            margin_px = 0.05 * np.maximum(W, H)
+            plain = seen & (cov <= 0.1) & (box[..., 0] > margin_px) & (box[..., 1] > margin_px) \
+                & (box[..., 2] < W - margin_px) & (box[..., 3] < H - margin_px)
+            plain &= seen.sum(axis=1, keepdims=True) >= 3  # the others still see them twice
+            hit = plain & (err_rng.uniform(size=seen.shape) < errors.missing)
+            seen &= ~hit
+            for m, c in zip(*np.nonzero(hit), strict=True):
+                injected.append((int(truth_frame[m]), rig.cameras[c].name, int(truth_id[m]), "",
+                                 "missing_view", f"{100 * cov[m, c]:.0f}% covered"))
     seen &= ~_gap_mask(frame_numbers, truth_frame, errors.gap)[:, None]
     if errors.single_view:
         seen, chosen = _keep_one_view(seen, truth_id, errors.single_view, err_rng)

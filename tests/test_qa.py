@@ -39,7 +39,7 @@ def test_detector_errors_are_flagged(tmp_path) -> None:
 
 
 def test_shifted_box_and_identity_jump(tmp_path) -> None:
-    sim = simulate("wildtrack", seed=2, frames=16, people=5, noise_px=1.0, dropout=0.1)
+    sim = simulate("wildtrack", seed=2, frames=16, people=5, noise_px=1.0, dropout=0.0, hide_covered=0.5)
     root = tmp_path / "w"
     write_scene(sim, root, "wildtrack")
     clean = load_scene(root)
@@ -58,3 +58,50 @@ def test_shifted_box_and_identity_jump(tmp_path) -> None:
     # the moved frame was left out: the track passes where the person really was
     r = np.flatnonzero((tracks.frame == jf) & (tracks.track_id == jid))[0]
     assert np.linalg.norm(tracks.center_world[r, :2] - sim.center_world[i, :2]) < 0.1
+
+
+def test_missing_views_and_an_unsynchronised_camera(tmp_path) -> None:
+    sim = simulate("wildtrack", seed=3, frames=16, people=6, noise_px=1.0, dropout=0.0, hide_covered=0.5,
+                   errors=Errors(missing=0.03, time_offset=(5, 2)))
+    write_scene(sim, tmp_path / "w", "wildtrack")
+    sc = load_scene(tmp_path / "w")
+    reconstruct(sc, "ukf", out=tmp_path / "out")
+    flags = _rows(tmp_path / "out" / "anomalies.csv")
+    cam = sc.rig.names[5]
+    offs = [r for r in flags if r["kind"] == "time_offset"]
+    assert [r["camera"] for r in offs] == [cam] and "best +2 frame" in offs[0]["detail"]
+    assert offs[0]["id"] == "" and offs[0]["joint"] == ""
+    missing = {(r[0], r[1], r[2]) for r in sim.injected if r[4] == "missing_view" and r[1] != cam}
+    assert missing
+    found = {(int(r["frame"]), r["camera"], int(r["id"])) for r in flags if r["kind"] == "missing_view"}
+    assert missing <= found
+    assert len(found - missing) <= 2
+    # the unsynchronised camera's own per-view flags are folded into its one row
+    assert not [r for r in flags if r["camera"] == cam and r["kind"] != "time_offset"]
+
+
+def test_people_hidden_behind_others_are_not_missing(tmp_path) -> None:
+    """Annotators leave out people hidden behind nearer ones: never a missing_view."""
+    sim = simulate("wildtrack", seed=6, frames=12, people=12, noise_px=1.0, dropout=0.0, hide_covered=0.5)
+    write_scene(sim, tmp_path / "w", "wildtrack")
+    assert np.isnan(sim.boxes).all(axis=-1).sum() > 0
+    reconstruct(load_scene(tmp_path / "w"), "ukf", out=tmp_path / "out")
+    flags = _rows(tmp_path / "out" / "anomalies.csv")
+    assert len([r for r in flags if r["kind"] == "missing_view"]) <= 2
+
+
+def test_covered_fraction_against_a_pixel_count() -> None:
+    from gt3dkit.qa.anomalies import covered_fraction
+
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 60, size=(5, 1, 2))
+    wh = rng.uniform(10, 40, size=(5, 1, 2))
+    box = np.concatenate([xy, xy + wh], axis=-1)
+    depth = rng.uniform(1, 10, size=(5, 1))
+    cov = covered_fraction(box, depth)
+    g = np.mgrid[0:120:0.25, 0:120:0.25].reshape(2, -1).T + 0.125  # pixel grid, 1/16 px^2 cells
+    inside = [(g[:, 0] >= b[0]) & (g[:, 0] < b[2]) & (g[:, 1] >= b[1]) & (g[:, 1] < b[3]) for b in box[:, 0]]
+    for i in range(5):
+        nearer = [k for k in range(5) if depth[k, 0] < depth[i, 0]]
+        per = sum((inside[i] & inside[k]).sum() for k in nearer) / inside[i].sum()  # sum of overlaps
+        assert abs(cov[i, 0] - min(per, 1.0)) < 0.02

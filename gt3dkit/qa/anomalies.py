@@ -11,8 +11,13 @@ own standard, and every threshold is in :class:`QAConfig`. Kinds (``OUT/anomalie
 ``identity_jump``    an object-frame whose views agree on a place the object cannot have reached
                      (its per-frame fit far from the line between its neighbours' fits)
 ``world_frame``      an object standing below the floor or floating above it
-
-Not yet: ``missing_view`` (needs occlusion reasoning) and ``time_offset``.
+``missing_view``     an object-frame seen by two or more views whose estimate projects well
+                     inside another camera's image, in front of it and not covered by a nearer
+                     object's projection, where that camera has annotations within two frames
+                     but none of this object
+``time_offset``      a camera whose annotations fit the estimate clearly better when read a
+                     frame or more earlier or later (an unsynchronised camera); one row per
+                     camera, with the best whole-frame shift and the residual at every shift
 """
 
 from __future__ import annotations
@@ -38,6 +43,14 @@ class QAConfig:
     floor_tol_m: float = 0.2  # people stand on the floor when their bottoms' median is within
     below_floor_m: float = 0.3
     floating_m: float = 0.5
+    inside_margin: float = 0.02  # missing_view: the box this fraction of the image inside its edges
+    covered_max: float = 0.3  # ... and at most this fraction of it covered by nearer objects
+    cover_depth_tol_m: float = 0.5  # ... counting as nearer those less than this much farther
+    min_box_px: float = 12.0  # ... and at least this tall
+    max_offset_frames: int = 3  # time_offset: shifts tried, in frames, each way
+    offset_gain: float = 0.6  # flagged when the best shift's median residual is below this
+    offset_sigmas: float = 2.0  # fraction of the unshifted one and the unshifted one is above
+    #                             this many times the cameras' median residual
 
 
 @dataclass
@@ -113,7 +126,19 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | Non
         _keypoints(scene, tracks, pre, cfg, r_of, have, jumped, frame_of, id_of, out, project_points)
 
     _world_frame(scene, tracks, cfg, out)
-    out.sort(key=lambda x: (x[0], x[2], x[1], str(x[3]), x[4]))
+    _missing_views(scene, tracks, pre, cfg, out)
+    offsets: list = []
+    _time_offsets(scene, tracks, pre, cfg, offsets)
+    if offsets:  # an unsynchronised camera's views all look wrong: one row says why
+        cams_off = {r[1] for r in offsets}
+        per_view = ("shifted_box", "size_outlier", "missing_view", "keypoint_outlier", "swapped_joints")
+        dropped = [r for r in out if r[1] in cams_off and r[4] in per_view]
+        out = [r for r in out if not (r[1] in cams_off and r[4] in per_view)]
+        for r in offsets:
+            n = sum(1 for d in dropped if d[1] == r[1])
+            out.append(r[:6] + (r[6] + (f"; {n} per-view flags of this camera left out (they follow from "
+                                        "the offset)" if n else ""),))
+    out.sort(key=lambda x: (x[0], str(x[2]), x[1], str(x[3]), x[4]))
     return Anomalies(out)
 
 
@@ -218,3 +243,137 @@ def _world_frame(scene: Scene, tracks: TrackSet, cfg: QAConfig, out: list) -> No
             out.append((f, "", int(i), "", "world_frame", round(abs(b), 3),
                         f"stands {abs(b):.2f} m {'below' if b < 0 else 'above'} the floor (median "
                         "over its frames)"))
+
+
+def covered_fraction(box: F64, depth: F64, depth_tol_m: float = 0.0) -> F64:
+    """(N, C) fraction of each box covered by nearer boxes in the same camera: the sum over
+    nearer boxes of their overlap (an upper bound of the union), capped at 1. box (N, C, 4)
+    px of the N objects of one frame, depth (N, C) distance to the camera (m, NaN unknown);
+    objects less than ``depth_tol_m`` farther count as nearer (estimated depths are uncertain
+    and bodies have thickness)."""
+    x0 = np.maximum(box[:, None, :, 0], box[None, :, :, 0])
+    y0 = np.maximum(box[:, None, :, 1], box[None, :, :, 1])
+    x1 = np.minimum(box[:, None, :, 2], box[None, :, :, 2])
+    y1 = np.minimum(box[:, None, :, 3], box[None, :, :, 3])
+    inter = np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)  # (N, N, C)
+    area = np.maximum((box[..., 2] - box[..., 0]) * (box[..., 3] - box[..., 1]), 1e-9)
+    nearer = depth[None, :, :] < depth[:, None, :] + depth_tol_m  # [i, k]: k is nearer than i
+    nearer &= ~np.eye(len(box), dtype=bool)[:, :, None]
+    inter = np.where(nearer & np.isfinite(inter), inter, 0.0)
+    return np.minimum(inter.sum(axis=1) / area, 1.0)
+
+
+def _missing_views(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, out: list) -> None:
+    from gt3dkit.geom.conics import ellipsoid_boxes
+
+    rows, cams = pre.rows, pre.cams
+    names = scene.rig.names
+    key = _key_index(tracks)
+    r_of = np.array([key.get((int(rows.frames[t]), int(rows.obj_ids[o])), -1)
+                     for t, o in zip(rows.row_t, rows.row_o, strict=True)], dtype=np.int64)
+    ok = r_of >= 0  # every estimated object can hide another; only those seen twice are judged
+    if not (ok & (rows.n_views >= 2)).any():
+        return
+    idx = np.flatnonzero(ok)
+    box, margin = ellipsoid_boxes(tracks.center_world[r_of[idx]], tracks.semi_axes[r_of[idx]],
+                                  cams.world_from_body, cams.K, cams.dist, cams.R, cams.t, cams.depth_sign)
+    centres = np.stack([c.center_world for c in scene.rig.cameras])  # (C, 3)
+    depth = np.linalg.norm(tracks.center_world[r_of[idx]][:, None, :] - centres[None], axis=-1)
+    depth = np.where(margin > 0, depth, np.nan)
+    W, H = cams.wh[:, 0], cams.wh[:, 1]
+    m = cfg.inside_margin * np.maximum(W, H)
+    inside = (margin > 0) & (box[..., 0] > m) & (box[..., 1] > m) & (box[..., 2] < W - m) \
+        & (box[..., 3] < H - m) & (box[..., 3] - box[..., 1] > cfg.min_box_px) & np.isfinite(box).all(-1)
+    unannotated = rows.obs_row[idx] < 0  # (n, C)
+    cand = inside & unannotated & (rows.n_views[idx] >= 2)[:, None]
+    if not cand.any():
+        return
+    t_of = rows.row_t[idx]
+    # the camera annotates something within 2 frames (else that stretch is not annotated there)
+    cam_frame = np.zeros((len(rows.frames), len(names)), bool)
+    np.logical_or.at(cam_frame, rows.row_t, rows.obs_row >= 0)
+    near = cam_frame.copy()
+    for k in (1, 2):
+        near[k:] |= cam_frame[:-k]
+        near[:-k] |= cam_frame[k:]
+    cand &= near[t_of]
+    # every object of the frame can cover: use all rows of that frame with an estimate
+    for t in np.unique(t_of[cand.any(axis=1)]):
+        sel = np.flatnonzero(t_of == t)
+        cov = covered_fraction(box[sel], depth[sel], cfg.cover_depth_tol_m)
+        for k, c in zip(*np.nonzero(cand[sel] & (cov <= cfg.covered_max)), strict=True):
+            n = sel[k]
+            r = idx[n]
+            b = box[n, c]
+            out.append((int(rows.frames[t]), names[c], int(rows.obj_ids[rows.row_o[r]]), "", "missing_view",
+                        round(float(1 - cov[k, c]), 2),
+                        f"seen by {int(rows.n_views[r])} other views; projects to "
+                        f"({b[0]:.0f}, {b[1]:.0f})-({b[2]:.0f}, {b[3]:.0f}) px inside the image, "
+                        f"{100 * cov[k, c]:.0f}% covered by nearer objects, not annotated"))
+
+
+def offset_residuals(tracks: TrackSet, pre: Any, max_shift: int) -> tuple[np.ndarray, F64]:
+    """Per camera and shift s in -max_shift..max_shift frames, the median residual (px) of
+    that camera's annotations against the estimate ``s`` frame steps later: (shifts,
+    (C, S) medians, NaN where too few pairs)."""
+    from gt3dkit.geom.camera import project_points
+    from gt3dkit.geom.conics import ellipsoid_boxes
+
+    rows, cams = pre.rows, pre.cams
+    C = len(cams.K)
+    shifts = np.arange(-max_shift, max_shift + 1)
+    med = np.full((C, len(shifts)), np.nan)
+    key = _key_index(tracks)
+    frames = rows.frames
+    for k, s in enumerate(shifts):
+        t2 = rows.row_t + s
+        valid = (t2 >= 0) & (t2 < len(frames))
+        r_of = np.full(len(rows), -1, dtype=np.int64)
+        r_of[valid] = [key.get((int(frames[t]), int(rows.obj_ids[o])), -1)
+                       for t, o in zip(t2[valid], rows.row_o[valid], strict=True)]
+        idx = np.flatnonzero(r_of >= 0)
+        if not len(idx):
+            continue
+        parts = []
+        if pre.use_box:
+            box, _ = ellipsoid_boxes(tracks.center_world[r_of[idx]], tracks.semi_axes[r_of[idx]],
+                                     cams.world_from_body, cams.K, cams.dist, cams.R, cams.t, cams.depth_sign)
+            e = np.where(rows.box_mask[idx], np.abs(box - rows.box_z[idx]), np.nan)
+            parts.append(e)
+        if pre.use_kpt and tracks.kpt_world.shape[1]:
+            uv, _ = project_points(tracks.kpt_world[r_of[idx]], cams.K, cams.dist, cams.R, cams.t,
+                                   cams.depth_sign)
+            parts.append(np.linalg.norm(np.swapaxes(uv, 1, 2) - rows.kpt_z[idx], axis=-1))
+        e = np.concatenate(parts, axis=2)  # (n, C, m)
+        for c in range(C):
+            v = e[:, c].ravel()
+            v = v[np.isfinite(v)]
+            if v.size >= 20:
+                med[c, k] = float(np.median(v))
+    return shifts, med
+
+
+def _time_offsets(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, out: list) -> None:
+    if len(pre.rows.frames) < 2 * cfg.max_offset_frames + 3 or cfg.max_offset_frames < 1:
+        return
+    shifts, med = offset_residuals(tracks, pre, cfg.max_offset_frames)
+    zero = int(np.flatnonzero(shifts == 0)[0])
+    # the residual level of the cameras as given (the noise levels the run estimated include
+    # an unsynchronised camera's misfit, so they are not the reference)
+    noise = float(np.nanmedian(med[:, zero])) if np.isfinite(med[:, zero]).any() else np.inf
+    names = scene.rig.names
+    first = int(pre.rows.frames[0])
+    for c in range(len(names)):
+        m = med[c]
+        if not np.isfinite(m[zero]) or not np.isfinite(m).sum() >= 3:
+            continue
+        best = int(np.nanargmin(m))
+        if best == zero or not (m[best] < cfg.offset_gain * m[zero] and m[zero] > cfg.offset_sigmas * noise):
+            continue
+        off = int(shifts[best])
+        step = float(np.median(np.diff(pre.rows.frames)))
+        out.append((first, names[c], "", "", "time_offset", round(float(m[zero] / m[best]), 2),
+                    f"its annotations fit the estimate best {off:+d} frame steps later "
+                    f"({off * step / scene.fps:+.3f} s): "
+                    f"median residual {m[zero]:.1f} px as given, {m[best]:.1f} px shifted "
+                    f"(per shift {', '.join(f'{s:+d}: {v:.1f}' for s, v in zip(shifts, m, strict=True))})"))

@@ -202,10 +202,11 @@ def _anomaly_section(run: Run, res: Any, folder: Path) -> str:
     joints = _joint_names(run.scene)
     body = []
     (folder / "anomalies").mkdir(exist_ok=True)
-    for i in sorted(order[:MAX_ROWS], key=lambda i: (int(rows[i]["frame"]), rows[i]["id"])):
+    for i in sorted(order[:MAX_ROWS], key=lambda i: (int(rows[i]["frame"]), rows[i]["id"],
+                                                     rows[i]["camera"])):
         r = rows[i]
         pic = ""
-        if i in pictured:
+        if i in pictured and r["id"].strip().lstrip("-").isdigit():
             name = f"anomalies/{i:05d}.png"
             j = int(r["joint"]) if r["joint"].strip().lstrip("-").isdigit() else None
             if anomaly_thumbnail(run.scene, res, int(r["frame"]), int(r["id"]), r["camera"], j,
@@ -213,7 +214,7 @@ def _anomaly_section(run: Run, res: Any, folder: Path) -> str:
                 pic = f'<img src="{name}">'
         named = r["joint"].isdigit() and int(r["joint"]) < len(joints)
         joint = joints[int(r["joint"])] if named else r["joint"]
-        body.append([r["frame"], r["camera"] or "(all)", r["id"], joint, r["kind"], r["score"],
+        body.append([r["frame"], r["camera"] or "(all)", r["id"] or "(all)", joint, r["kind"], r["score"],
                      html.escape(r["detail"]), pic])
     more = (f"<p>{len(rows) - MAX_ROWS} more rows in anomalies.csv.</p>" if len(rows) > MAX_ROWS else "")
     return (f"<p>{len(rows)} rows (anomalies.csv); pictures for the {min(len(rows), MAX_PICTURES)} highest "
