@@ -1,10 +1,10 @@
 # make setup: apt packages (open3d's off-screen rendering libraries, python3-venv), a .venv,
 #             and the package with its dev extra. Idempotent: re-runs only when pyproject.toml changes.
-# make demo:  reconstruct the bundled real MultiviewX subset and print its errors.
+# make demo:  reconstruct the bundled real MultiviewX and Panoptic data, print errors, write reports.
 # make test:  the test suite (benchmarks excluded; see make bench).
 VENV ?= .venv
 PY := $(VENV)/bin/python
-APT_PKGS := python3-venv libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libegl1 libgl1 libgomp1
+APT_PKGS := python3-venv libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libegl1 libgl1 libgomp1 libegl-mesa0 libgl1-mesa-dri
 
 .PHONY: setup demo test bench lint clean
 

@@ -458,6 +458,14 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(pose_table(rows))
     lo, hi = PAPER["panoptic"]["MPJPE_mm"]
     print(f"\nPaper (Ma et al., UKF) on CMU Panoptic: MPJPE {lo}-{hi} mm")
+    from gt3dkit.viz.report import write_report
+
+    print("\nReports (3D renders, each camera's worst frame, residuals, anomalies):")
+    for name in ("ukf", "panoptic_noise2px"):
+        index, warnings = write_report(Path(args.out) / name)
+        for w in warnings:
+            print(f"warning: {w}", file=sys.stderr)
+        print(f"  {index}")
     return 0
 
 

@@ -53,7 +53,8 @@ class Errors:
     single_view : people whose annotations are kept in one camera only (the one that sees
         them most)
     missing : boxes of people in plain sight (well inside the image, at most 10 % covered by
-        nearer people) left out, as an annotator who skipped them (boxes only)
+        people nearer or less than 0.5 m farther) left out, as an annotator who skipped them
+        (boxes only)
     time_offset : ``(camera index, frames)``: that camera's boxes show each person ``frames``
         frame steps later than labelled (an unsynchronised camera; boxes only)
     """
@@ -270,16 +271,19 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
                          f"{k:+d} frames"))
     centres = np.stack([c.center_world for c in rig.cameras])
     depth = np.linalg.norm(center[:, None, :] - centres[None], axis=-1)  # (M, C)
-    if hide_covered is not None or errors.missing:
+    if hide_covered is not None or errors.missing:  # everyone in the picture hides, annotated or not
         from gt3dkit.qa.anomalies import covered_fraction
 
         cov = np.zeros(seen.shape)
         for f in np.unique(truth_frame):
             m = np.flatnonzero(truth_frame == f)
-            cov[m] = covered_fraction(np.where(seen[m][..., None], box[m], np.nan), depth[m])
+            cov[m] = covered_fraction(np.where(inside[m][..., None], box[m], np.nan), depth[m])
         if hide_covered is not None:
             seen &= cov <= hide_covered
-        if errors.missing:
+        if errors.missing:  # plain sight: not covered by anyone nearer or within half a metre
+            for f in np.unique(truth_frame):
+                m = np.flatnonzero(truth_frame == f)
+                cov[m] = covered_fraction(np.where(inside[m][..., None], box[m], np.nan), depth[m], 0.5)
             margin_px = 0.05 * np.maximum(W, H)
             plain = seen & (cov <= 0.1) & (box[..., 0] > margin_px) & (box[..., 1] > margin_px) \
                 & (box[..., 2] < W - margin_px) & (box[..., 3] < H - margin_px)

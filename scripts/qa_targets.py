@@ -108,6 +108,8 @@ def views(seed: int) -> bool:
           f"frames out of sync; flags {qa.counts()}")
     for r in false:
         print(f"    false alarm: {r}")
+    for x in sorted(missing - found):
+        print(f"    missed: {x}")
     ok = check("every box left out in plain sight found", missing <= found,
                f"{len(missing & found)}/{len(missing)}")
     ok &= check("the unsynchronised camera found with its offset", bool(right),

@@ -648,6 +648,7 @@ def cases(seed: int = 0) -> list[Case]:
     out += _camera_cases(rec())
     out += _odd_cases()
     out += _option_cases()
+    out += _report_cases()
     return out
 
 
@@ -751,6 +752,32 @@ def judge(o: Outcome, work: Path, entries: set[str], before_in: dict[str, str],
         p.append(f"left behind: {stray}")
 
 
+def _report_cases() -> list[Case]:
+    """``gt3d report`` on outputs that are not, or no longer, what it needs."""
+    rep = ("report", "{in}")
+
+    def meta_root(root: Path) -> None:
+        m = json.loads((root / "meta.json").read_text())
+        m["input"]["load"]["root"] = str(root.parent / "gone")
+        (root / "meta.json").write_text(json.dumps(m))
+
+    def anomalies_extra(root: Path) -> None:
+        (root / "anomalies.csv").write_text("frame,camera,id,joint,kind,score,detail\n"
+                                            "0,cam1,0,,shifted_box,9,x,y\n")
+
+    return [Case(n, b, a, ERROR, needles, mutate=m, prev=False, writes=False) for n, b, a, needles, m in (
+        ("report of an input folder", "boxes", rep, ("tracks.csv",), None),
+        ("report of a file", "result", ("report", "{in}/tracks.csv"), ("not a folder",), None),
+        ("report: meta.json truncated", "result", rep, ("meta.json",), raw("meta.json", lambda b: b[:40])),
+        ("report: the input has moved", "result", rep, ("not there any more",), meta_root),
+        ("report: anomalies.csv with an extra field", "result", rep, ("anomalies.csv", "fields"),
+         anomalies_extra),
+        ("report: tracks.csv with NaN rows", "result", rep, ("tracks.csv",),
+         csv_edit("tracks.csv", lambda ls: [ls[0], ",".join([*ls[1].split(",")[:2], *["nan"] * 9]),
+                                            *ls[2:]])),
+    )]
+
+
 def issue_cases() -> list[Case]:
     """The cases issue 9 lists that are one command each (the others, signals, concurrent runs,
     closed pipes, are tests/test_reliability.py)."""
@@ -790,6 +817,7 @@ def issue_cases() -> list[Case]:
         Case("evaluate a tracks.csv with NaN rows", "result",
              ("evaluate", "{in}", "--truth", "{bases}/boxes"), ERROR,
              ("tracks.csv", "line 2"), csv_edit("tracks.csv", tracks_nan), prev=False, writes=False),
+        *_report_cases(),
         Case("--out that is a file", "boxes", (*rec[:3], "{work}/f"), ERROR, ("--out", "not a folder"),
              lambda root: (root.parent / "f").write_text("x"), prev=False),
         *off,

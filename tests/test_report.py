@@ -142,3 +142,18 @@ def test_a_failed_render_is_a_warning_not_a_lost_report(box_run: Path, tmp_path:
     assert len(warnings) == 2 and all("no EGL display" in w for w in warnings)
     page = index.read_text()
     assert "no EGL display" in page and "camera_00.png" in page
+
+
+def test_a_huge_sd_reads_back(tmp_path: Path) -> None:
+    """A one-view row's sd can exceed any world coordinate (depth left open): what the writer
+    writes, the readers (report, evaluate) read."""
+    from gt3dkit.io.writers import read_tracks_csv, write_tracks_csv
+    from gt3dkit.types import TrackSet
+
+    n = 2
+    tr = TrackSet(frame=np.array([0, 1]), track_id=np.array([3, 3]), center_world=np.ones((n, 3)),
+                  semi_axes=np.full((n, 3), 0.3), center_sd=np.array([[0.01] * 3, [2e6, 3e7, 0.5]]),
+                  n_views=np.array([2, 1]), kpt_world=np.zeros((n, 0, 3)), kpt_sd=np.zeros((n, 0)), info={})
+    write_tracks_csv(tmp_path / "tracks.csv", tr)
+    back = read_tracks_csv(tmp_path / "tracks.csv")
+    assert np.allclose(back.center_sd, tr.center_sd, rtol=1e-6)

@@ -13,7 +13,7 @@ import numpy as np
 from gt3dkit import __version__
 from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import write_dir_atomically
-from gt3dkit.io.datasets.common import parse_frame, parse_int, parse_metres, read_csv_rows
+from gt3dkit.io.datasets.common import parse_float, parse_frame, parse_int, parse_metres, read_csv_rows
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import Scene, TrackSet
 
@@ -183,7 +183,9 @@ def read_tracks_csv(path: Path) -> TrackSet:
             raise InputError(where, f"second row for object {key[1]} in frame {key[0]} (first "
                                     f"on line {keys[key]})")
         keys[key] = line
-        vals = [parse_metres(where, r[k], k) for k in TRACK_COLUMNS[2:]]
+        # positions and sizes are world lengths; an sd may be huge (a depth one view leaves open)
+        vals = [parse_metres(where, r[k], k) for k in TRACK_COLUMNS[2:8]] + \
+            [parse_float(where, r[k], f"{k} (m)") for k in TRACK_COLUMNS[8:]]
         if min(vals[3:]) < 0:
             raise InputError(where, "negative semi-axis or standard deviation")
         rows.append(vals)
@@ -211,7 +213,7 @@ def read_keypoints_csv(path: Path, tracks: TrackSet, n_joints: int) -> TrackSet:
         fr, tid = parse_frame(where, r["frame"]), parse_int(where, r["id"], "id")
         j = parse_int(where, r["joint"], "joint", 0, max(n_joints - 1, 0))
         xyz = [parse_metres(where, r[k], k) for k in ("x", "y", "z")]
-        s = parse_metres(where, r["sd"], "sd")
+        s = parse_float(where, r["sd"], "sd (m)")
         if (fr, tid) not in key:
             raise InputError(where, f"object {tid} in frame {fr} has no row in tracks.csv")
         if np.isfinite(kpt[key[(fr, tid)], j]).all():

@@ -126,7 +126,7 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | Non
         _keypoints(scene, tracks, pre, cfg, r_of, have, jumped, frame_of, id_of, out, project_points)
 
     _world_frame(scene, tracks, cfg, out)
-    _missing_views(scene, tracks, pre, cfg, out)
+    _missing_views(scene, tracks, pre, cfg, out, jumped)
     offsets: list = []
     _time_offsets(scene, tracks, pre, cfg, offsets)
     if offsets:  # an unsynchronised camera's views all look wrong: one row says why
@@ -263,7 +263,10 @@ def covered_fraction(box: F64, depth: F64, depth_tol_m: float = 0.0) -> F64:
     return np.minimum(inter.sum(axis=1) / area, 1.0)
 
 
-def _missing_views(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, out: list) -> None:
+def _missing_views(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, out: list,
+                   jumped: np.ndarray) -> None:
+    """``jumped`` (R,): object-frames flagged as identity jumps (their annotations are someone
+    else's: a view without them says nothing)."""
     from gt3dkit.geom.conics import ellipsoid_boxes
 
     rows, cams = pre.rows, pre.cams
@@ -285,7 +288,7 @@ def _missing_views(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, out:
     inside = (margin > 0) & (box[..., 0] > m) & (box[..., 1] > m) & (box[..., 2] < W - m) \
         & (box[..., 3] < H - m) & (box[..., 3] - box[..., 1] > cfg.min_box_px) & np.isfinite(box).all(-1)
     unannotated = rows.obs_row[idx] < 0  # (n, C)
-    cand = inside & unannotated & (rows.n_views[idx] >= 2)[:, None]
+    cand = inside & unannotated & ((rows.n_views[idx] >= 2) & ~jumped[idx])[:, None]
     if not cand.any():
         return
     t_of = rows.row_t[idx]

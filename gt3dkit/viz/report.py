@@ -188,6 +188,9 @@ def _anomaly_section(run: Run, res: Any, folder: Path) -> str:
     from gt3dkit.viz.panels import anomaly_thumbnail
 
     rows = run.anomalies
+    if not (run.out / "anomalies.csv").is_file():
+        return ("<p>This output has no anomalies.csv (gt3d compare does not run the annotation QA; "
+                "gt3d reconstruct does).</p>")
     if not rows:
         return "<p>No annotation was flagged.</p>"
 
@@ -285,10 +288,9 @@ def run_sections(run: Run, tmp: Path, prefix: str = "", tracks_b: TrackSet | Non
     parts += ["<h2>Reprojection residuals per camera</h2>",
               _figure(p + residual_histograms(sc, res, sub), "box edges and keypoints, pixels", wide=True)]
     parts += ["<h2>Tracks over time</h2>", _figure(p + track_plots(tr, res, sub), "", wide=True)]
-    if run.anomalies or (tmp / "anomalies.csv").exists() or prefix == "":
-        section = _anomaly_section(run, res, sub)
-        parts += [f"<h2>Anomalies ({len(run.anomalies)})</h2>",
-                  section.replace('src="anomalies/', f'src="{p}anomalies/')]
+    section = _anomaly_section(run, res, sub)
+    parts += [f"<h2>Anomalies ({len(run.anomalies)})</h2>",
+              section.replace('src="anomalies/', f'src="{p}anomalies/')]
     parts += ["<h2>Calibration</h2>", _calibration(run)]
     return parts, warnings
 
@@ -364,11 +366,17 @@ def _side_by_side(runs: dict[str, Run], tmp: Path) -> str:
 
     plt = _plt()
     n = len(runs)
-    fig, axes = plt.subplots(1, n, figsize=(5.2 * n, 5.0), dpi=100, squeeze=False, sharex=True, sharey=True)
+    ground = {name: run.tracks.center_world @ run.scene.rig.world_from_body()[:, :2]
+              for name, run in runs.items()}
+    allxy = np.concatenate(list(ground.values()))
+    allxy = allxy[np.isfinite(allxy).all(axis=1)]
+    span = np.ptp(allxy, axis=0) + 1.0 if len(allxy) else np.ones(2)
+    panel_w = float(np.clip(4.6 * span[0] / span[1], 2.8, 8.0))
+    fig, axes = plt.subplots(1, n, figsize=(panel_w * n + 0.6, 5.0), dpi=100, squeeze=False, sharex=True,
+                             sharey=True)
     for ax, (name, run) in zip(axes.flat, runs.items(), strict=True):
-        wfb = run.scene.rig.world_from_body()
         tr = run.tracks
-        xy = tr.center_world @ wfb[:, :2]
+        xy = ground[name]
         for tid in np.unique(tr.track_id):
             m = tr.track_id == tid
             ax.plot(xy[m, 0], xy[m, 1], "-", color=colour_of(tid), lw=1.2)
