@@ -54,13 +54,14 @@ def _estimator_config(args: argparse.Namespace) -> dict[str, Any]:
     return cfg
 
 
-def check_out_apart(out: str | Path, inp: str | Path) -> None:
+def check_out_apart(out: str | Path, inp: str | Path, option: str = "--out", inside_ok: bool = False) -> None:
     """Refuse an output folder that is, contains or lies inside the input folder: results
-    must never overwrite (or be mistaken for) annotations."""
+    must never overwrite (or be mistaken for) annotations. ``inside_ok``: a subfolder of the
+    input is fine (a report or an export inside a gt3d output)."""
     o, i = Path(out).resolve(), Path(inp).resolve()
-    if o == i or i in o.parents or o in i.parents:
-        raise InputError("--out", f"{out} is, contains or lies inside the input folder {inp}: "
-                                  "choose an output folder apart from the input")
+    if o == i or o in i.parents or (i in o.parents and not inside_ok):
+        raise InputError(option, f"{out} is, contains or lies inside the input folder {inp}: "
+                                 "choose an output folder apart from the input")
 
 
 def check_output(out: str | Path, inputs: tuple[str | Path, ...] = ()) -> None:
@@ -406,6 +407,26 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    from gt3dkit.io.export import export
+    from gt3dkit.io.results import read_result
+
+    out = Path(args.out)
+    dest = Path(args.to) if args.to else out / f"export_{args.format}"
+    res = read_result(out)
+    root = ((res.meta.get("input") or {}).get("load") or {}).get("root") or res.meta["input"].get("root")
+    check_out_apart(dest, out, "--to", inside_ok=True)
+    if isinstance(root, str) and root:
+        check_out_apart(dest, root, "--to")
+    check_output(dest)
+    info = export(out, args.format, dest)
+    files = info.get("files") or [info.get("file")]
+    print(f"{args.format}: {', '.join(str(f) for f in files)} in {dest} ({info.get('units', '')}"
+          f"{'; ' + info['world'] if 'world' in info else ''}"
+          f"{'; open with: ' + info['open'] if 'open' in info else ''})")
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from gt3dkit.api import ESTIMATORS, reconstruct
     from gt3dkit.eval.metrics import box_errors
@@ -629,6 +650,13 @@ def build_parser() -> argparse.ArgumentParser:
                              "per-camera pictures, residuals, anomalies with pictures")
     rp.add_argument("out", metavar="OUT", help="a gt3d reconstruct or gt3d compare output folder")
     rp.set_defaults(func=cmd_report)
+
+    ex = sub.add_parser("export", parents=[common],
+                        help="a reconstruct output as C3D, TRC (OpenSim), JSON or a Rerun recording")
+    ex.add_argument("out", metavar="OUT", help="a gt3d reconstruct output folder")
+    ex.add_argument("--format", required=True, choices=("c3d", "trc", "json", "rerun"))
+    ex.add_argument("--to", metavar="DIR", help="folder to write (default OUT/export_FORMAT)")
+    ex.set_defaults(func=cmd_export)
 
     d = sub.add_parser("demo", parents=[common],
                        help="reconstruct the bundled MultiviewX and Panoptic data, print errors")

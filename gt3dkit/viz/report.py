@@ -17,13 +17,13 @@ from __future__ import annotations
 
 import csv
 import html
-from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from gt3dkit.errors import InputError
+from gt3dkit.io.results import Run, load_run
 from gt3dkit.types import Scene, TrackSet
 
 #: anomaly rows shown with a picture (the highest scores); the table lists up to MAX_ROWS
@@ -36,72 +36,6 @@ STYLE = ("body{font-family:sans-serif;max-width:1500px;margin:auto;padding:0 12p
          "figure{display:inline-block;width:48%;margin:6px 0.5%;vertical-align:top}figure img{width:100%}"
          "figcaption{font-size:13px;color:#444}.wide{width:100%}.warn{color:#a33}"
          "td img{max-height:190px}h2{border-bottom:1px solid #ddd;margin-top:28px}")
-
-
-@dataclass
-class Run:
-    """A reconstruct output read back, with the scene it was made from."""
-
-    out: Path
-    meta: dict[str, Any]
-    scene: Scene
-    tracks: TrackSet
-    anomalies: list[dict[str, str]]
-    notes: list[str]
-
-
-def _load_scene(out: Path, meta: dict[str, Any]) -> tuple[Scene, list[str]]:
-    from gt3dkit.calib.formats.native import rig_of_doc
-    from gt3dkit.io.datasets import load_scene
-
-    where = str(out / "meta.json")
-    inp = meta.get("input")
-    if not isinstance(inp, dict) or not isinstance(inp.get("load", inp), dict):
-        raise InputError(where, "input: missing (not a gt3d reconstruct output?)")
-    load = dict(inp.get("load") or {"root": inp.get("root"), "layout": inp.get("layout")})
-    root = load.pop("root", None)
-    if not isinstance(root, str) or not root:
-        raise InputError(where, "input: no input folder recorded")
-    if not Path(root).is_dir():
-        raise InputError(where, f"input: the input folder {root} is not there any more (the report "
-                                "draws the annotations)")
-    if load.get("calib") and not Path(load["calib"]).exists():
-        raise InputError(where, f"input: the calibration {load['calib']} is not there any more")
-    known = {"layout", "skeleton", "fps", "calib", "cameras", "noise_px", "seed", "min_conf"}
-    scene = load_scene(Path(root), **{k: v for k, v in load.items() if k in known})
-    notes = []
-    old = inp.get("files_sha256") or {}
-    changed = sorted(k for k, v in scene.files.items() if old.get(k) not in (None, v))
-    if changed:
-        notes.append(f"input files changed since the run: {', '.join(changed[:5])}"
-                     + (" ..." if len(changed) > 5 else "") + " (the pictures show today's files)")
-    refined = (meta.get("calibration_refinement") or {}).get("refined_rig")
-    if refined:
-        scene = replace(scene, rig=rig_of_doc(refined, f"{where}: calibration_refinement"))
-        notes.append("cameras: the refined calibration the run used (meta.json calibration_refinement)")
-    return scene, notes
-
-
-def load_run(out: Path) -> Run:
-    from gt3dkit.io.datasets.common import load_json, read_csv_rows
-    from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv
-    from gt3dkit.qa.anomalies import COLUMNS
-
-    out = Path(out)
-    for f in ("tracks.csv", "meta.json"):
-        if not (out / f).is_file():
-            raise InputError(str(out), f"no {f}: not a gt3d reconstruct or compare output")
-    meta = load_json(out / "meta.json")
-    if not isinstance(meta, dict):
-        raise InputError(str(out / "meta.json"), "expected an object")
-    scene, notes = _load_scene(out, meta)
-    tracks = read_tracks_csv(out / "tracks.csv")
-    if (out / "keypoints.csv").is_file() and scene.obs.n_joints:
-        tracks = read_keypoints_csv(out / "keypoints.csv", tracks, scene.obs.n_joints)
-    anomalies = []
-    if (out / "anomalies.csv").is_file():
-        anomalies = [dict(r) for _, r in read_csv_rows(out / "anomalies.csv", COLUMNS)]
-    return Run(out, meta, scene, tracks, anomalies, notes)
 
 
 def _table(rows: list[list[Any]], head: list[str] | None = None, raw_cols: tuple[int, ...] = ()) -> str:
