@@ -145,6 +145,11 @@ def report_truth(scene: Any, tracks: Any, name: str, max_dist_m: float = 1.0) ->
     if scene.truth is None:
         return
     print(f"against {scene.truth.source}:")
+    if scene.association is not None and np.isfinite(scene.truth.center_world).any():
+        from gt3dkit.eval.metrics import relabel_to_truth
+
+        tracks = relabel_to_truth(tracks, scene.truth, scene.rig.up, max_dist_m)
+        print("(ids are gt3dkit's cross-view association: each matched to its truth id for the errors)")
     if np.isfinite(scene.truth.center_world).any():
         from gt3dkit.eval.tracking import tracking_scores
 

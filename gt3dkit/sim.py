@@ -37,7 +37,7 @@ from gt3dkit.io.datasets.wildtrack import LAYOUTS as GRID_LAYOUTS
 from gt3dkit.io.datasets.wildtrack import GridLayout
 from gt3dkit.types import F64, I64, Camera, Observations, Rig, Scene
 
-SIM_LAYOUTS = ("wildtrack", "multiviewx", "native")
+SIM_LAYOUTS = ("wildtrack", "multiviewx", "native", "mot")
 INJECTED_COLUMNS = ("frame", "camera", "id", "joint", "kind", "detail")
 
 
@@ -319,8 +319,12 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
                     injected=tuple(injected))
 
 
-def write_scene(sim: SimScene, out: Path, layout: str) -> None:
-    """Write ``sim`` as an input folder of ``layout`` (atomically), with ``truth.csv``."""
+def write_scene(sim: SimScene, out: Path, layout: str, id_seed: int | None = 0) -> None:
+    """Write ``sim`` as an input folder of ``layout`` (atomically), with ``truth.csv``.
+
+    ``mot``: ``cameras.json`` + ``mot/<camera>.txt`` with each camera's ids a random
+    permutation of the people (``id_seed``; None keeps the global ids), as separate
+    per-camera annotation tasks number them."""
     if layout not in SIM_LAYOUTS:
         raise ValueError(f"unknown layout {layout!r}")
 
@@ -329,6 +333,8 @@ def write_scene(sim: SimScene, out: Path, layout: str) -> None:
         _write_injected(sim.injected, tmp / "injected.csv")
         if layout == "native":
             _write_native(sim, tmp)
+        elif layout == "mot":
+            _write_mot(sim, tmp, id_seed)
         else:
             _write_grid(sim, tmp, GRID_LAYOUTS[layout])
 
@@ -366,6 +372,24 @@ def _write_native(sim: SimScene, tmp: Path) -> None:
                 if np.all(np.isfinite(b)):
                     w.writerow([int(sim.truth_frame[i]), cam.name, int(sim.truth_id[i]),
                                 *(f"{v:g}" for v in b)])
+
+
+def _write_mot(sim: SimScene, tmp: Path, id_seed: int | None) -> None:
+    doc = cameras_doc(sim.rig, sim.fps, frame=sim.rig.frame_name, units="m")
+    (tmp / "cameras.json").write_text(json.dumps(doc, indent=1))
+    (tmp / "mot").mkdir()
+    people = np.unique(sim.truth_id)
+    rng = np.random.default_rng(id_seed) if id_seed is not None else None
+    for c, cam in enumerate(sim.rig.cameras):
+        local = dict(zip(people.tolist(), (rng.permutation(len(people)) + 1 if rng is not None
+                                           else people).tolist(), strict=True))
+        lines = []
+        for i in range(len(sim.truth_frame)):
+            b = sim.boxes[i, c]
+            if np.all(np.isfinite(b)):
+                lines.append(f"{int(sim.truth_frame[i])},{local[int(sim.truth_id[i])]},{b[0]:g},{b[1]:g},"
+                             f"{b[2] - b[0]:g},{b[3] - b[1]:g},1,-1,-1,-1")
+        (tmp / "mot" / f"{cam.name}.txt").write_text("\n".join(lines) + ("\n" if lines else ""))
 
 
 def _write_grid(sim: SimScene, tmp: Path, g: GridLayout) -> None:

@@ -149,6 +149,7 @@ class Scene:
     warnings: tuple[str, ...] = ()  # odd but valid input: printed as ``warning:`` lines
     fps_assumed: str = ""  # why ``fps`` is a default, not the input's ("" = the input gives it)
     load_options: dict[str, Any] = field(default_factory=dict)  # load_scene's arguments (JSON-able)
+    association: Any = None  # fusion.associate.Association when ids were per camera
 
     @property
     def all_warnings(self) -> tuple[str, ...]:

@@ -33,6 +33,37 @@ def match_rows(tracks: TrackSet, truth: GroundTruth) -> tuple[np.ndarray, np.nda
     return a[:, 0], a[:, 1]
 
 
+def ids_to_truth(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float = 1.0) -> dict[int, int]:
+    """Each estimated id's truth id, when the ids are gt3dkit's own (cross-view association):
+    the one-to-one assignment maximising the frames in which the two are within ``max_dist_m``
+    on the ground plane (IDF1's global identity matching, Ristani et al. 2016)."""
+    from scipy.optimize import linear_sum_assignment
+
+    ids, ti = np.unique(tracks.track_id, return_inverse=True)
+    tids, gi = np.unique(truth.track_id, return_inverse=True)
+    count = np.zeros((len(ids), len(tids)))
+    gt = ground_coords(truth.center_world, up)
+    ge = ground_coords(tracks.center_world, up)
+    for f in np.intersect1d(tracks.frame, truth.frame):
+        a, b = np.flatnonzero(tracks.frame == f), np.flatnonzero(truth.frame == f)
+        d = np.linalg.norm(ge[a][:, None] - gt[b][None], axis=-1)
+        np.add.at(count, (ti[a][:, None].repeat(len(b), 1), gi[b][None].repeat(len(a), 0)), d <= max_dist_m)
+    r, c = linear_sum_assignment(-count)
+    return {int(ids[i]): int(tids[j]) for i, j in zip(r, c, strict=True) if count[i, j] > 0}
+
+
+def relabel_to_truth(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float = 1.0) -> TrackSet:
+    """``tracks`` with its ids replaced by the truth ids :func:`ids_to_truth` assigns (ids left
+    unmatched get new ids above every truth id)."""
+    import dataclasses
+
+    m = ids_to_truth(tracks, truth, up, max_dist_m)
+    top = int(max(np.max(truth.track_id, initial=0), np.max(tracks.track_id, initial=0))) + 1
+    extra = {int(i): top + k for k, i in enumerate(sorted(set(np.unique(tracks.track_id).tolist()) - set(m)))}
+    new = np.array([m.get(int(i), extra.get(int(i))) for i in tracks.track_id], dtype=np.int64)
+    return dataclasses.replace(tracks, track_id=new)
+
+
 def ground_coords(X: F64, up: F64) -> F64:
     """(N, 3) -> (N, 3) with the component along ``up`` removed."""
     return X - np.outer(X @ up, up)

@@ -80,7 +80,7 @@ def _load_scene(out: Path, meta: dict[str, Any]) -> tuple[Scene, list[str]]:
                                 "draws the annotations)")
     if load.get("calib") and not Path(load["calib"]).exists():
         raise InputError(where, f"input: the calibration {load['calib']} is not there any more")
-    known = {"layout", "skeleton", "fps", "calib", "cameras", "noise_px", "seed", "min_conf"}
+    known = {"layout", "skeleton", "fps", "calib", "cameras", "noise_px", "seed", "min_conf", "association"}
     scene = load_scene(Path(root), **{k: v for k, v in load.items() if k in known})
     notes = []
     old = inp.get("files_sha256") or {}

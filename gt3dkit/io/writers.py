@@ -151,6 +151,8 @@ def write_result_files(d: Path, scene: Scene, tracks: TrackSet,
     check_tracks(tracks)
     if anomalies is not None:
         write_anomalies_csv(d / "anomalies.csv", anomalies)
+    if scene.association is not None:
+        scene.association.write(d / "association.csv")
     meta = meta_of(scene, tracks)
     if extra_meta:
         meta.update(_jsonable(extra_meta))

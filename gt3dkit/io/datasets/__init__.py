@@ -11,7 +11,7 @@ import numpy as np
 from gt3dkit.errors import InputError
 from gt3dkit.types import Scene
 
-LAYOUTS = ("native", "wildtrack", "multiviewx", "panoptic")
+LAYOUTS = ("native", "wildtrack", "multiviewx", "panoptic", "mot")
 
 
 def detect_layout(root: Path) -> str:
@@ -19,6 +19,8 @@ def detect_layout(root: Path) -> str:
     root = Path(root)
     if not root.is_dir():
         raise InputError(str(root), "not a directory")
+    if (root / "mot").is_dir():
+        return "mot"
     if (root / "cameras.json").exists():
         return "native"
     if (root / "calibrations" / "intrinsic_zero").is_dir():
@@ -30,7 +32,8 @@ def detect_layout(root: Path) -> str:
     raise InputError(str(root), "unknown input layout: expected cameras.json (native), "
                                 "calibrations/intrinsic_zero (WILDTRACK), "
                                 "calibrations/intrinsic (MultiviewX) or "
-                                "calibration_<seq>.json (CMU Panoptic)")
+                                "calibration_<seq>.json (CMU Panoptic) or mot/<camera>.txt "
+                                "(MOTChallenge per camera)")
 
 
 def with_calibration(scene: Scene, calib: Path | str) -> Scene:
@@ -68,7 +71,7 @@ def _calib_digest(calib: Path | str) -> str:
 
 def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None = None,
                fps: float | None = None, calib: Path | str | None = None,
-               **panoptic_options: Any) -> Scene:
+               association: Path | str | None = None, **panoptic_options: Any) -> Scene:
     """Load any supported input folder (layout detected when not given).
 
     ``skeleton`` names the joint order of native ``keypoints.csv`` (default: from the
@@ -85,7 +88,13 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     if panoptic_options and layout != "panoptic":
         raise InputError(str(root), f"options {sorted(panoptic_options)} apply to the panoptic "
                                     "layout only")
-    if layout == "native":
+    if association is not None and layout != "mot":
+        raise InputError("--association", f"applies to inputs with per-camera ids (mot), not {layout}")
+    if layout == "mot":
+        from gt3dkit.io.datasets import mot
+
+        scene = mot.load(Path(root), calib, fps)
+    elif layout == "native":
         scene = native.load(Path(root), skeleton)
     elif layout == "panoptic":
         scene = panoptic.load(Path(root), **panoptic_options)
@@ -95,7 +104,7 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
         raise InputError(str(root), f"unknown layout {layout!r} (known: {', '.join(LAYOUTS)})")
     if len(scene.obs) == 0:
         raise InputError(str(root), "no annotations in any frame")
-    if calib is not None:
+    if calib is not None and layout != "mot":  # mot reads its calibration itself
         scene = with_calibration(scene, calib)
     if fps is not None:
         if not (np.isfinite(fps) and native.FPS_RANGE[0] <= fps <= native.FPS_RANGE[1]):
@@ -104,5 +113,13 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
         scene = dataclasses.replace(scene, fps=float(fps), fps_assumed="")
     opts = {"root": str(Path(root).resolve()), "layout": layout, "skeleton": skeleton, "fps": fps,
             "calib": None if calib is None else str(Path(calib).resolve()), **panoptic_options}
+    if association is not None:
+        opts["association"] = str(Path(association).resolve())
     scene = dataclasses.replace(scene, load_options=opts)
+    if layout == "mot":  # per-camera ids -> global identities, before the checks count views
+        from gt3dkit.fusion.associate import apply_association, associate, read_overrides
+
+        over = read_overrides(Path(association), scene.rig.names) if association is not None else None
+        assoc = associate(scene, overrides=over)
+        scene = dataclasses.replace(apply_association(scene, assoc), association=assoc)
     return checks.check_scene(scene)

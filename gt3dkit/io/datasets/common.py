@@ -169,19 +169,34 @@ class RowBuilder:
         )
 
 
-def read_csv_rows(path: Path, columns: tuple[str, ...],
-                  warnings: list[str] | None = None) -> list[tuple[int, dict[str, str]]]:
+def read_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | None = None,
+                  header: bool = True) -> list[tuple[int, dict[str, str]]]:
     """Rows of a CSV whose header starts with ``columns``; (line number, row).
 
     Every row must have as many fields as the header. Header columns beyond ``columns``
     are ignored, with a note in ``warnings`` (an error when ``warnings`` is None). A UTF-8
-    byte-order mark (Excel's "CSV UTF-8") is allowed.
+    byte-order mark (Excel's "CSV UTF-8") is allowed. ``header=False``: a file without a
+    header (MOTChallenge), each row with at least ``len(columns)`` fields, the same number in
+    every row.
     """
     where = str(path)
     reader = None
     try:
         with open(path, newline="", encoding="utf-8-sig") as f:
             reader = csv.reader(f)
+            if not header:
+                out, width = [], None
+                for row in reader:
+                    line = reader.line_num
+                    if not row or all(not x.strip() for x in row):
+                        continue
+                    width = len(row) if width is None else width
+                    if len(row) < len(columns) or len(row) != width:
+                        want = width if len(row) >= len(columns) else len(columns)
+                        raise InputError(f"{path}: line {line}",
+                                         f"expected {want} fields ({','.join(columns)}, ...), got {len(row)}")
+                    out.append((line, dict(zip(columns, (x.strip() for x in row), strict=False))))
+                return out
             header = next(reader, None)
             if header is None or tuple(h.strip() for h in header[: len(columns)]) != columns:
                 raise InputError(where, f"expected header {','.join(columns)}, got "

@@ -1,0 +1,218 @@
+"""Cross-view identity association: per-camera tracklets -> global identities.
+
+Per-camera annotation tasks (MOT files, CVAT tasks) number people per camera. A *tracklet* is
+one (camera, local id); its geometry per frame is where a box's bottom-centre ray meets the
+floor (up . X = 0, the plane every layout's people stand on), i.e. the ground homography the
+UKF initialises with. Tracklets are merged greedily, closest first (average linkage: the median
+over the frames both see of the distance between the two clusters' mean ground points), while
+
+* the median distance is at most :attr:`AssocConfig.max_ground_m` over at least
+  :attr:`AssocConfig.min_common_frames` common frames, and
+* a cluster never holds two tracklets of one camera that overlap in time (one person is one
+  box per view), so two people walking side by side stay two.
+
+Tracklets no other view confirms stay their own (single-view) identities; bystanders seen by
+one camera are therefore separate people, never merged into the subject. Boxes whose bottom
+edge touches the image border carry no ground point (the feet are cut off).
+
+The mapping is :class:`Association` (``association.csv``: ``camera,local_id,global_id,
+confidence,frames,median_m,note``); a user's edited copy passed back (``--association FILE``)
+overrides the rows it lists.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gt3dkit.errors import InputError
+from gt3dkit.types import F64, Scene
+
+COLUMNS = ("camera", "local_id", "global_id", "confidence", "frames", "median_m", "note")
+
+
+@dataclass(frozen=True)
+class AssocConfig:
+    max_ground_m: float = 0.8  # clusters this far apart (median over common frames) stay apart
+    min_common_frames: int = 2
+    border_px: float = 2.0  # a box bottom this close to the image edge has no ground point
+
+
+@dataclass(frozen=True)
+class Association:
+    """rows: (camera name, local id, global id, confidence in [0, 1] or NaN for single-view,
+    frames annotated, median ground distance to the rest of its cluster in m (NaN), note)."""
+
+    rows: tuple[tuple[str, int, int, float, int, float, str], ...]
+
+    def mapping(self) -> dict[tuple[str, int], int]:
+        return {(r[0], r[1]): r[2] for r in self.rows}
+
+    def write(self, path: Path) -> None:
+        with open(path, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(COLUMNS)
+            for r in self.rows:
+                w.writerow([r[0], r[1], r[2], "" if not np.isfinite(r[3]) else f"{r[3]:.3f}", r[4],
+                            "" if not np.isfinite(r[5]) else f"{r[5]:.3f}", r[6]])
+
+    def summary(self) -> str:
+        g = {r[2] for r in self.rows}
+        single = len({r[2] for r in self.rows} - {r[2] for r in self.rows if np.isfinite(r[3])})
+        return (f"{len(self.rows)} per-camera tracks -> {len(g)} people ({single} seen by one camera "
+                "only)")
+
+
+def ground_points(scene: Scene, cfg: AssocConfig) -> F64:
+    """(N, 3) where each observation's box bottom-centre ray meets the floor (NaN: no box,
+    bottom at the image border, ray parallel to or away from the floor)."""
+    from gt3dkit.geom.camera import Cams, pixel_rays
+
+    obs = scene.obs
+    cams = Cams.of(scene.rig)
+    out = np.full((len(obs), 3), np.nan)
+    b = obs.box_xyxy_px
+    ok = np.isfinite(b).all(axis=1) & (b[:, 3] < cams.wh[obs.cam, 1] - cfg.border_px)
+    for c in np.unique(obs.cam[ok]):
+        m = np.flatnonzero(ok & (obs.cam == c))
+        uv = np.stack([(b[m, 0] + b[m, 2]) / 2, b[m, 3]], axis=1)[:, None, :]
+        sub = cams.take(np.array([c]))
+        origin, d = pixel_rays(uv, sub.K, sub.dist, sub.R, sub.t, sub.depth_sign)
+        o, d = origin[0], d[:, 0]
+        den = d @ cams.up
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = -(o @ cams.up) / den
+        good = np.isfinite(s) & (s > 0)
+        out[m[good]] = o + s[good, None] * d[good]
+    return out
+
+
+def associate(scene: Scene, cfg: AssocConfig | None = None,
+              overrides: dict[tuple[str, int], int] | None = None) -> Association:
+    """Global identities for the per-camera ids of ``scene.obs`` (see the module docstring)."""
+    cfg = cfg or AssocConfig()
+    obs = scene.obs
+    names = scene.rig.names
+    keys, tl = np.unique(np.stack([obs.cam, obs.track_id], axis=1), axis=0, return_inverse=True)
+    tl = tl.ravel()
+    frames, t_of = np.unique(obs.frame, return_inverse=True)
+    T, F, C = len(keys), len(frames), len(names)
+    g = ground_points(scene, cfg)
+    traj = np.full((T, F, 3), np.nan)
+    traj[tl, t_of] = g
+    occ = np.zeros((T, C, F), bool)
+    occ[tl, obs.cam, t_of] = True
+    n_frames = occ.any(axis=1).sum(axis=1)
+    weight = np.isfinite(traj[..., 0]).astype(float)  # (K, F) members with a ground point
+    sums = np.nan_to_num(traj) * weight[..., None]
+    alive = np.ones(T, bool)
+    member = np.arange(T)
+
+    def costs(a: int) -> F64:
+        mean_a = sums[a] / np.maximum(weight[a], 1e-12)[:, None]
+        mean = sums / np.maximum(weight, 1e-12)[..., None]
+        both = (weight[a] > 0)[None] & (weight > 0)
+        d = np.where(both, np.linalg.norm(mean - mean_a[None], axis=-1), np.nan)
+        n = both.sum(axis=1)
+        with np.errstate(all="ignore"):
+            med = np.nanmedian(np.where(n[:, None] > 0, d, 0.0), axis=1)
+        bad = (n < cfg.min_common_frames) | ~alive | (occ & occ[a][None]).any(axis=(1, 2))
+        med[bad] = np.inf
+        med[a] = np.inf
+        return med
+
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        cost = np.stack([costs(a) for a in range(T)]) if T else np.zeros((0, 0))
+        while T > 1:
+            a, b = np.unravel_index(int(np.argmin(cost)), cost.shape)
+            if not cost[a, b] <= cfg.max_ground_m:
+                break
+            sums[a] += sums[b]
+            weight[a] += weight[b]
+            occ[a] |= occ[b]
+            alive[b] = False
+            member[member == b] = a
+            cost[b, :] = cost[:, b] = np.inf
+            cost[a] = costs(a)
+            cost[:, a] = cost[a]
+    # per tracklet: median distance to the rest of its cluster (its confidence)
+    clusters = np.unique(member)
+    order = sorted(clusters, key=lambda k: (int(np.flatnonzero(occ[k].any(axis=0))[0])
+                                            if occ[k].any() else F, int(k)))
+    gid = {int(k): i for i, k in enumerate(order)}
+    rows = []
+    for t in range(T):
+        k = int(member[t])
+        others = [u for u in np.flatnonzero(member == k) if u != t]
+        med = np.nan
+        if others:
+            rest = np.nansum([np.nan_to_num(traj[u]) for u in others], axis=0)
+            cnt = np.sum([np.isfinite(traj[u][:, 0]) for u in others], axis=0)
+            both = (cnt > 0) & np.isfinite(traj[t][:, 0])
+            if both.any():
+                med = float(np.median(np.linalg.norm(traj[t][both] - rest[both] / cnt[both, None], axis=1)))
+        conf = float(np.clip(1 - med / cfg.max_ground_m, 0, 1)) if np.isfinite(med) else (
+            1.0 if others else np.nan)
+        note = "" if others else "seen by this camera only (single view)"
+        rows.append([names[int(keys[t, 0])], int(keys[t, 1]), gid[k], conf, int(n_frames[t]), med, note])
+    if overrides:
+        known = {(r[0], r[1]) for r in rows}
+        for key in overrides:
+            if key not in known:
+                raise InputError("--association", f"camera {key[0]} has no local id {key[1]}")
+        for r in rows:
+            if (r[0], r[1]) in overrides:
+                r[2], r[6] = overrides[(r[0], r[1])], "set by the association file"
+    rows.sort(key=lambda r: (r[2], r[0], r[1]))
+    return Association(tuple(tuple(r) for r in rows))  # type: ignore[misc]
+
+
+def apply_association(scene: Scene, assoc: Association) -> Scene:
+    """``scene`` with every observation's id replaced by its global id; two boxes of one
+    global id in one (frame, camera) are an error naming both tracks."""
+    from gt3dkit.types import Observations
+
+    obs = scene.obs
+    m = assoc.mapping()
+    names = scene.rig.names
+    new = np.array([m[(names[int(c)], int(i))] for c, i in zip(obs.cam, obs.track_id, strict=True)],
+                   dtype=np.int64)
+    key = np.stack([obs.frame, obs.cam, new], axis=1)
+    u, first, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
+    if (counts > 1).any():
+        k = int(np.flatnonzero(counts > 1)[0])
+        f, c, gi = (int(v) for v in u[k])
+        both = np.flatnonzero((key == u[k]).all(axis=1))
+        raise InputError(obs.origin[both[1]], f"frame {f}, camera {names[c]}: local ids "
+                         f"{sorted(int(obs.track_id[b]) for b in both)} are both global id {gi} "
+                         "(see the association file)")
+    order = np.lexsort((new, obs.cam, obs.frame))
+    o2 = Observations(frame=obs.frame[order], cam=obs.cam[order], track_id=new[order],
+                      box_xyxy_px=obs.box_xyxy_px[order], kpt_uv_px=obs.kpt_uv_px[order],
+                      origin=tuple(obs.origin[i] for i in order),
+                      kpt_conf=None if obs.kpt_conf is None else obs.kpt_conf[order])
+    return dataclasses.replace(scene, obs=o2)
+
+
+def read_overrides(path: Path, names: tuple[str, ...]) -> dict[tuple[str, int], int]:
+    """An edited ``association.csv`` (``camera,local_id,global_id`` first; other columns
+    ignored): the rows a user fixed."""
+    from gt3dkit.io.datasets.common import parse_int, read_csv_rows
+
+    out: dict[tuple[str, int], int] = {}
+    for line, r in read_csv_rows(Path(path), ("camera", "local_id", "global_id"), warnings=[]):
+        where = f"{path}: line {line}"
+        if r["camera"] not in names:
+            raise InputError(where, f"unknown camera {r['camera']!r} (the input has {', '.join(names)})")
+        key = (r["camera"], parse_int(where, r["local_id"], "local_id"))
+        if key in out:
+            raise InputError(where, f"second row for camera {key[0]} local id {key[1]}")
+        out[key] = parse_int(where, r["global_id"], "global_id")
+    return out

@@ -1,0 +1,132 @@
+"""MOTChallenge boxes per camera: ``mot/<camera>.txt`` beside a calibration.
+
+Each ``mot/<camera>.txt`` is MOTChallenge's comma-separated text without a header:
+``frame,id,left,top,width,height,conf,x,y,z`` (frames as written, usually 1-based; pixels of
+the distorted image; ``x,y,z`` ignored). The ids are the camera's own (every annotation task
+numbers its people): :mod:`gt3dkit.fusion.associate` turns them into global identities.
+Rows with ``conf`` 0 are MOTChallenge's "ignore" boxes and are skipped (with a warning); an id
+of -1 (a detection without a track) is an error, as the tracklets are what is associated.
+
+The calibration is the first of ``cameras.json``, ``*.toml``, ``calibration/`` or ``sparse/``
+in the folder (any format of :mod:`gt3dkit.calib.formats`), or ``--calib``. Cameras are
+matched by name (file stem = calibration name), or, when the names differ but the counts
+agree, in natural sorted order (as Pose2Sim does), with a warning naming every pair.
+Frame rate: the calibration's (``cameras.json`` ``fps``), or ``--fps``, else 25 assumed.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+
+from gt3dkit.errors import InputError
+from gt3dkit.io.datasets.checks import check_pixels
+from gt3dkit.io.datasets.common import RowBuilder, parse_frame, parse_int, read_csv_rows, sha256
+from gt3dkit.types import Rig, Scene
+
+MOT_COLUMNS = ("frame", "id", "left", "top", "width", "height", "conf")
+DEFAULT_FPS = 25.0
+
+
+def natural_key(s: str) -> list[object]:
+    """``cam_2`` before ``cam_10``."""
+    return [int(p) if p.isdigit() else p.lower() for p in re.split(r"(\d+)", s)]
+
+
+def find_calibration(root: Path) -> Path | None:
+    from gt3dkit.calib.formats import detect_format
+
+    cands = [root / "cameras.json", *sorted(root.glob("*.toml")), root / "calibration", root / "sparse"]
+    for p in cands:
+        if p.exists():
+            try:
+                detect_format(p)
+                return p
+            except InputError:
+                continue
+    return None
+
+
+def match_cameras(files: list[str], rig: Rig, where: str, warnings: list[str]) -> dict[str, int]:
+    """file stem -> camera index: by name, else by natural sorted order (warned)."""
+    names = list(rig.names)
+    if all(f in names for f in files):
+        return {f: names.index(f) for f in files}
+    if len(files) != len(names):
+        missing = [f for f in files if f not in names]
+        raise InputError(where, f"camera file {missing[0]!r} matches no calibrated camera "
+                                f"({', '.join(names)}), and {len(files)} files cannot be paired with "
+                                f"{len(names)} cameras by order")
+    fs, ns = sorted(files, key=natural_key), sorted(names, key=natural_key)
+    warnings.append("cameras paired by sorted order, names differ: " +
+                    ", ".join(f"{f} -> {n}" for f, n in zip(fs, ns, strict=True)))
+    return {f: names.index(n) for f, n in zip(fs, ns, strict=True)}
+
+
+def load(root: Path, calib: Path | str | None = None, fps: float | None = None) -> Scene:
+    from gt3dkit.calib.formats import detect_format, read_calibration
+    from gt3dkit.calib.formats.native import load_cameras
+
+    root = Path(root)
+    folder = root / "mot"
+    txts = sorted(folder.glob("*.txt"), key=lambda p: natural_key(p.stem))
+    if not txts:
+        raise InputError(str(folder), "no <camera>.txt files")
+    cal = Path(calib) if calib is not None else find_calibration(root)
+    if cal is None:
+        raise InputError(str(root), "no calibration beside mot/ (cameras.json, *.toml, calibration/ or "
+                                    "sparse/): pass --calib")
+    fps_doc = None
+    if detect_format(cal) == "native":
+        path = cal / "cameras.json" if cal.is_dir() else cal
+        rig, fps_doc, _ = load_cameras(path)
+    else:
+        rig = read_calibration(cal)
+    warnings: list[str] = []
+    files = {f"mot/{p.name}": sha256(p) for p in txts}
+    cam_of = match_cameras([p.stem for p in txts], rig, str(folder), warnings)
+    rb = RowBuilder()
+    ignored = 0
+    for p in txts:
+        cam = cam_of[p.stem]
+        for line, r in read_csv_rows(p, MOT_COLUMNS, warnings, header=False):
+            where = f"{p}: line {line}"
+            frame, tid = parse_frame(where, r["frame"]), parse_int(where, r["id"], "id")
+            vals = []
+            for k in ("left", "top", "width", "height", "conf"):
+                try:
+                    vals.append(float(r[k]))
+                except ValueError:
+                    raise InputError(where, f"malformed value: {k} must be a number, got {r[k]!r}") from None
+            x, y, w, h, conf = vals
+            if conf == 0:
+                ignored += 1
+                continue
+            if tid < 0:
+                raise InputError(where, f"id {tid}: a detection without a track id (gt3dkit associates "
+                                        "per-camera tracks; run a tracker per camera first)")
+            if not all(math.isfinite(v) for v in vals):
+                raise InputError(where, f"box has a non-finite value {vals[:4]}")
+            if w <= 0 or h <= 0:
+                raise InputError(where, f"degenerate box: width {w:g}, height {h:g}")
+            box = [x, y, x + w, y + h]
+            check_pixels(where, rig.cameras[cam], box, "box")
+            rb.add_box(frame, cam, tid, box, where)
+    if ignored:
+        warnings.append(f"{folder}: {ignored} boxes with conf 0 (MOTChallenge's ignore flag) skipped")
+    obs = rb.build()
+    if len(obs) == 0:
+        raise InputError(str(root), "no annotations in any frame")
+    files[f"calibration:{cal.name}"] = sha256(cal) if cal.is_file() else "folder"
+    truth = None
+    if (root / "truth.csv").exists():
+        from gt3dkit.io.datasets.wildtrack import read_truth_csv
+
+        truth = read_truth_csv(root / "truth.csv", files, root)
+    return Scene(rig=rig, obs=obs, layout="mot", truth=truth, fps=float(fps or fps_doc or DEFAULT_FPS),
+                 frames=np.unique(obs.frame), skeleton=None, files=files, root=str(root),
+                 warnings=tuple(warnings),
+                 fps_assumed="" if (fps or fps_doc) else f"{cal} gives no frame rate")
