@@ -91,6 +91,8 @@ def _load(args: argparse.Namespace) -> Any:
                           ("--seed", args.seed)):
             if v is not None:
                 raise InputError(option, f"applies to CMU Panoptic inputs only, not {layout}")
+    if getattr(args, "association", None) is not None:
+        opts["association"] = args.association
     scene = load_scene(Path(args.input), layout, args.skeleton, getattr(args, "fps", None),
                        calib=getattr(args, "calib", None), **opts)
     return scene
@@ -228,7 +230,7 @@ SIM_MAX_POINTS = 20_000_000
 
 
 #: simulate options that apply to one kind of scene only.
-_SIM_ONLY = {"boxes": ("motion", "dropout", "shifted"),
+_SIM_ONLY = {"boxes": ("motion", "dropout", "shifted", "format", "global_ids"),
              "skeleton": ("missing", "skeleton", "conf", "outliers", "swaps", "glitch")}
 
 
@@ -241,6 +243,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         for n in names:
             if args.kind != kind and getattr(args, n) not in (None, False, 0.0):
                 raise InputError(f"--{n}", f"applies to --kind {kind} scenes")
+    if args.global_ids and args.format != "mot":
+        raise InputError("--global-ids", "applies to --format mot")
     args.motion, args.dropout = args.motion or "smooth", 0.15 if args.dropout is None else args.dropout
     args.missing = 0.05 if args.missing is None else args.missing
     args.skeleton = args.skeleton or "coco19"
@@ -278,11 +282,17 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                        motion=args.motion, cameras=args.cameras, fps=args.fps)
     except ValueError as e:
         raise InputError("simulate", str(e)) from None
-    write_scene(sim, Path(args.out), args.layout)
+    if args.format == "mot":
+        write_scene(sim, Path(args.out), "mot", id_seed=None if args.global_ids else args.seed)
+    else:
+        write_scene(sim, Path(args.out), args.layout)
     seen = int(np.isfinite(sim.boxes[..., 0]).sum())
     if sim.injected:
         n_err = f", {len(sim.injected)} injected errors (injected.csv)"
-    print(f"wrote {args.layout} scene to {args.out}: {len(sim.rig.cameras)} cameras, "
+    form = (f"{args.layout} rig as MOT files per camera ("
+            + ("global ids" if args.global_ids else "ids numbered per camera") + ")"
+            if args.format == "mot" else args.layout)
+    print(f"wrote {form} scene to {args.out}: {len(sim.rig.cameras)} cameras, "
           f"{len(sim.frames)} frames at {sim.fps:g} fps, {args.people} people, {seen} boxes, "
           f"truth.csv{n_err}")
     return 0
@@ -395,6 +405,18 @@ def cmd_calib_refine(args: argparse.Namespace) -> int:
         print(f"{name:<12}{'yes' if c['refined'] else 'no':>8}{100 * c['centre_moved_m']:>10.2f}"
               f"{c['rotation_moved_deg']:>9.3f}{_num(c['median_px_before'], 11, 3)}"
               f"{_num(c['median_px_after'], 10, 3)}  {c['why']}")
+    return 0
+
+
+def cmd_associate(args: argparse.Namespace) -> int:
+    from gt3dkit.io.atomic import write_dir_atomically
+
+    scene = _load(args)
+    if scene.association is None:
+        raise InputError(args.input, f"{scene.layout}: its ids are already global (nothing to associate)")
+    write_dir_atomically(Path(args.out), lambda tmp: scene.association.write(tmp / "association.csv"))
+    print_warnings(scene)
+    print(f"{scene.layout}: {scene.association.summary()} -> {args.out}/association.csv")
     return 0
 
 
@@ -554,6 +576,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--calib", help="calibration file or folder in any format (cameras.json, "
                                    "WILDTRACK/MultiviewX calibrations/, OpenCV .yml/.xml, Anipose/"
                                    "Pose2Sim .toml, COLMAP model) in place of the input's own")
+    r.add_argument("--association", metavar="FILE",
+                   help="per-camera ids (mot): an edited association.csv whose rows override the "
+                        "automatic cross-view association")
     r.add_argument("--refine-calib", action="store_true",
                    help="refine the cameras from the annotations first (see gt3d calib refine)")
     r.add_argument("--no-smooth", action="store_true", help="forward filter only (no RTS)")
@@ -599,6 +624,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--noise-px", type=PIXELS, default=0.0)
     s.add_argument("--dropout", type=_number(float, 0, 1, hi_open=True),
                    help="box scenes: fraction of boxes dropped (default 0.15)")
+    s.add_argument("--format", choices=("mot",),
+                   help="box scenes: write the annotations as mot/<camera>.txt (MOTChallenge), "
+                        "each camera numbering its people itself")
+    s.add_argument("--global-ids", action="store_true",
+                   help="with --format mot: keep one id per person across cameras")
     s.set_defaults(func=cmd_simulate)
 
     c = sub.add_parser("compare", parents=[common],
@@ -613,6 +643,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--fps", type=FPS)
     c.add_argument("--calib", help="calibration file or folder in any format, in place of the "
                                    "input's own")
+    c.add_argument("--association", metavar="FILE", help="as for reconstruct")
     c.add_argument("--no-progress", action="store_true", help="no progress bar")
     c.set_defaults(func=cmd_compare)
 
@@ -649,6 +680,15 @@ def build_parser() -> argparse.ArgumentParser:
     kr.add_argument("--noise-px", type=PIXELS, default=0.0, help="CMU Panoptic: 2D noise")
     kr.add_argument("--seed", type=SEED, help="CMU Panoptic: seed of that noise (default 0)")
     kr.set_defaults(func=cmd_calib_refine)
+
+    a = sub.add_parser("associate", parents=[common],
+                       help="per-camera ids (MOT files) -> global identities: OUT/association.csv")
+    a.add_argument("input", help="input folder with per-camera ids (mot/<camera>.txt + calibration)")
+    a.add_argument("--out", required=True, help="output folder (association.csv)")
+    a.add_argument("--calib", help="calibration file or folder in any format")
+    a.add_argument("--fps", type=FPS)
+    a.add_argument("--association", metavar="FILE", help="an edited association.csv to apply")
+    a.set_defaults(func=cmd_associate, layout=None, skeleton=None, cameras=None, noise_px=0.0, seed=None)
 
     rp = sub.add_parser("report", parents=[common],
                         help="OUT/report/index.html for a reconstruct or compare output: 3D renders, "

@@ -37,7 +37,8 @@ from gt3dkit.io.datasets.wildtrack import LAYOUTS as GRID_LAYOUTS
 from gt3dkit.io.datasets.wildtrack import GridLayout
 from gt3dkit.types import F64, I64, Camera, Observations, Rig, Scene
 
-SIM_LAYOUTS = ("wildtrack", "multiviewx", "native", "mot")
+SIM_LAYOUTS = ("wildtrack", "multiviewx", "native")
+WRITE_LAYOUTS = (*SIM_LAYOUTS, "mot")  # "mot": any simulated rig, written as MOT files per camera
 INJECTED_COLUMNS = ("frame", "camera", "id", "joint", "kind", "detail")
 
 
@@ -194,7 +195,7 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
         raise ValueError("need frames >= 2, people >= 1, noise_px >= 0, 0 <= dropout < 1")
     if motion not in ("smooth", "walk"):
         raise ValueError(f"motion must be smooth or walk, got {motion!r}")
-    if layout != "native" and (cameras is not None or fps is not None):
+    if layout not in ("native", "mot") and (cameras is not None or fps is not None):
         raise ValueError("cameras and fps apply to the native layout (the others have theirs)")
     if cameras is not None and not 1 <= cameras <= 64:
         raise ValueError(f"cameras must be 1..64, got {cameras}")
@@ -325,7 +326,7 @@ def write_scene(sim: SimScene, out: Path, layout: str, id_seed: int | None = 0) 
     ``mot``: ``cameras.json`` + ``mot/<camera>.txt`` with each camera's ids a random
     permutation of the people (``id_seed``; None keeps the global ids), as separate
     per-camera annotation tasks number them."""
-    if layout not in SIM_LAYOUTS:
+    if layout not in WRITE_LAYOUTS:
         raise ValueError(f"unknown layout {layout!r}")
 
     def write(tmp: Path) -> None:

@@ -1,0 +1,139 @@
+"""MOTChallenge files per camera in, cross-view association of per-camera ids."""
+
+from __future__ import annotations
+
+import csv
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gt3dkit.errors import InputError
+from gt3dkit.io.datasets import load_scene
+from gt3dkit.sim import Errors, simulate, write_scene
+
+GT3D = [sys.executable, "-m", "gt3dkit.cli"]
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory: pytest.TempPathFactory):
+    root = Path(tmp_path_factory.mktemp("mot"))
+    sim = simulate("wildtrack", seed=5, frames=20, people=10, noise_px=1.0, dropout=0.05, hide_covered=0.5,
+                   motion="walk", errors=Errors(single_view=0.2))
+    write_scene(sim, root / "mot", "mot", id_seed=7)
+    write_scene(sim, root / "global", "wildtrack")
+    return sim, root
+
+
+def _clusters_are_people(sim, scene) -> None:
+    """Every global id holds the boxes of exactly one true person (boxes matched to truth by
+    frame and box equality) and every person is one global id."""
+    obs = scene.obs
+    truth_of = {}
+    for m in range(len(sim.truth_frame)):
+        for c in range(len(scene.rig.cameras)):
+            b = sim.boxes[m, c]
+            if np.isfinite(b).all():
+                truth_of[(int(sim.truth_frame[m]), c, *np.round(b, 3))] = int(sim.truth_id[m])
+    pairs = {(int(g), truth_of[(int(f), int(c), *np.round(b, 3))])
+             for f, c, g, b in zip(obs.frame, obs.cam, obs.track_id, obs.box_xyxy_px, strict=True)}
+    gids = [g for g, _ in pairs]
+    tids = [t for _, t in pairs]
+    assert len(set(gids)) == len(gids), "a global id holds two people"
+    assert len(set(tids)) == len(tids), "a person is split over two global ids"
+
+
+def test_per_camera_ids_are_associated(scenes) -> None:
+    sim, root = scenes
+    sc = load_scene(root / "mot")
+    assert sc.layout == "mot" and sc.association is not None
+    _clusters_are_people(sim, sc)
+    lone = [r for r in sc.association.rows if "single view" in r[6]]
+    assert lone  # the bystanders (one camera each) stay their own people
+    assert all(np.isfinite(r[3]) and 0 <= r[3] <= 1 for r in sc.association.rows if not r[6])
+
+
+def test_reconstruction_equals_global_ids(scenes, tmp_path: Path) -> None:
+    from gt3dkit.api import reconstruct
+    from gt3dkit.eval.metrics import box_errors, relabel_to_truth
+
+    sim, root = scenes
+    g, m = load_scene(root / "global"), load_scene(root / "mot")
+    tg = reconstruct(g, "triangulation")
+    tm = relabel_to_truth(reconstruct(m, "triangulation", out=tmp_path / "o"), m.truth, m.rig.up)
+    eg, em = box_errors(tg, g.truth, g.rig.up), box_errors(tm, m.truth, m.rig.up)
+    assert em.rows_matched == eg.rows_matched
+    assert em.centre_mean_m == pytest.approx(eg.centre_mean_m, rel=1e-6)
+    assert (tmp_path / "o" / "association.csv").is_file()
+
+
+def test_overrides_and_their_errors(scenes, tmp_path: Path) -> None:
+    sim, root = scenes
+    sc = load_scene(root / "mot")
+    rows = sc.association.rows
+    # split one camera's track off into a person of its own
+    cam, local, gid = next((r[0], r[1], r[2]) for r in rows if not r[6])
+    over = tmp_path / "assoc.csv"
+    with open(over, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["camera", "local_id", "global_id"])
+        w.writerow([cam, local, 999])
+    sc2 = load_scene(root / "mot", association=over)
+    mine = sc2.association.mapping()
+    assert mine[(cam, local)] == 999
+    assert sum(1 for k, v in mine.items() if v == gid) == sum(1 for r in rows if r[2] == gid) - 1
+    # two tracks of one camera made one person while both are in view: named
+    frames: dict[int, set[int]] = {}
+    for line in (root / "mot" / "mot" / f"{cam}.txt").read_text().splitlines():
+        f_, i_ = line.split(",")[:2]
+        frames.setdefault(int(i_), set()).add(int(f_))
+    other = next(i for i, fs in frames.items() if i != local and fs & frames[local])
+    with open(over, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["camera", "local_id", "global_id"])
+        w.writerow([cam, local, 500])
+        w.writerow([cam, other, 500])
+    with pytest.raises(InputError, match="are both global id 500"):
+        load_scene(root / "mot", association=over)
+    with open(over, "w", newline="") as f:
+        f.write("camera,local_id,global_id\nnocam,1,2\n")
+    with pytest.raises(InputError, match="unknown camera"):
+        load_scene(root / "mot", association=over)
+
+
+def test_camera_names_paired_by_order_and_bad_rows(scenes, tmp_path: Path) -> None:
+    import shutil
+
+    sim, root = scenes
+    d = tmp_path / "renamed"
+    shutil.copytree(root / "mot", d)
+    for k, p in enumerate(sorted((d / "mot").glob("*.txt"))):
+        p.rename(d / "mot" / f"cam_{k + 1}.txt")
+    sc = load_scene(d)
+    assert any("paired by sorted order" in w and "cam_1 -> CVLab1" in w for w in sc.warnings)
+    p = d / "mot" / "cam_2.txt"
+    lines = p.read_text().splitlines()
+    for bad, needle in ((lines[0].split(",")[0] + ",3,1,2", "fields"),
+                        ("5,-1,10,10,20,40,1,-1,-1,-1", "without a track id"),
+                        ("5,3,10,10,0,40,1,-1,-1,-1", "degenerate")):
+        p.write_text("\n".join([*lines, bad]) + "\n")
+        with pytest.raises(InputError, match=needle) as e:
+            load_scene(d)
+        assert "cam_2.txt: line" in str(e.value)
+    p.write_text("\n".join([*lines, "5,3,10,10,20,40,0,-1,-1,-1"]) + "\n")
+    assert any("conf 0" in w for w in load_scene(d).warnings)
+
+
+def test_associate_command(scenes, tmp_path: Path) -> None:
+    _, root = scenes
+    r = subprocess.run([*GT3D, "associate", str(root / "mot"), "--out", str(tmp_path / "a")],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert "per-camera tracks ->" in r.stdout
+    head = (tmp_path / "a" / "association.csv").read_text().splitlines()[0]
+    assert head == "camera,local_id,global_id,confidence,frames,median_m,note"
+    r = subprocess.run([*GT3D, "associate", str(root / "global"), "--out", str(tmp_path / "b")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and "already global" in r.stderr
