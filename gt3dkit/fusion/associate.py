@@ -13,7 +13,9 @@ over the frames both see of the distance between the two clusters' mean ground p
 
 Tracklets no other view confirms stay their own (single-view) identities; bystanders seen by
 one camera are therefore separate people, never merged into the subject. Boxes whose bottom
-edge touches the image border carry no ground point (the feet are cut off).
+edge touches the image border carry no ground point (the feet are cut off): a tracklet made of
+those joins the cluster whose vertical axis the rays through its box centres pass closest to,
+when that is within :attr:`AssocConfig.max_axis_m` and clearly the best.
 
 The mapping is :class:`Association` (``association.csv``: ``camera,local_id,global_id,
 confidence,frames,median_m,note``); a user's edited copy passed back (``--association FILE``)
@@ -40,6 +42,8 @@ class AssocConfig:
     max_ground_m: float = 0.8  # clusters this far apart (median over common frames) stay apart
     min_common_frames: int = 2
     border_px: float = 2.0  # a box bottom this close to the image edge has no ground point
+    max_axis_m: float = 0.4  # a track without ground points joins the cluster whose vertical axis
+    #                          its box-centre rays pass this close to (and twice closer than any other)
 
 
 @dataclass(frozen=True)
@@ -89,6 +93,35 @@ def ground_points(scene: Scene, cfg: AssocConfig) -> F64:
         good = np.isfinite(s) & (s > 0)
         out[m[good]] = o + s[good, None] * d[good]
     return out
+
+
+def _axis_distances(scene: Scene, tl: np.ndarray, t_of: np.ndarray, T: int, F: int):
+    """A function (tracklet, (F, 3) ground points of a cluster) -> (F,) horizontal distance (m)
+    between the ray through the tracklet's box centre and the cluster's vertical axis."""
+    from gt3dkit.geom.camera import Cams, pixel_rays
+
+    obs = scene.obs
+    cams = Cams.of(scene.rig)
+    o = np.full((T, F, 3), np.nan)
+    d = np.full((T, F, 3), np.nan)
+    b = obs.box_xyxy_px
+    ok = np.isfinite(b).all(axis=1)
+    for c in np.unique(obs.cam[ok]):
+        m = np.flatnonzero(ok & (obs.cam == c))
+        uv = np.stack([(b[m, 0] + b[m, 2]) / 2, (b[m, 1] + b[m, 3]) / 2], axis=1)[:, None, :]
+        sub = cams.take(np.array([c]))
+        origin, dirs = pixel_rays(uv, sub.K, sub.dist, sub.R, sub.t, sub.depth_sign)
+        o[tl[m], t_of[m]] = origin[0]
+        d[tl[m], t_of[m]] = dirs[:, 0]
+    up = cams.up
+
+    def dist(t: int, ground: F64) -> F64:
+        n = np.cross(d[t], up)  # (F, 3): normal of the plane holding the ray and the up direction
+        nn = np.linalg.norm(n, axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.abs(np.einsum("fi,fi->f", ground - o[t], n)) / nn
+
+    return dist
 
 
 def associate(scene: Scene, cfg: AssocConfig | None = None,
@@ -142,6 +175,28 @@ def associate(scene: Scene, cfg: AssocConfig | None = None,
             cost[b, :] = cost[:, b] = np.inf
             cost[a] = costs(a)
             cost[:, a] = cost[a]
+    # tracklets with (almost) no ground point (feet cut off by the image's bottom edge: someone
+    # close to the camera): joined to the cluster whose vertical axis their box-centre rays pass
+    # closest to, when that is clearly the best
+    axis_d = _axis_distances(scene, tl, t_of, T, F)
+    cut = np.flatnonzero(alive & (weight.sum(axis=1) < cfg.min_common_frames) & (member == np.arange(T)))
+    for t in cut:
+        if member[t] != t or (member == t).sum() > 1:
+            continue
+        cand = []
+        for k in np.flatnonzero(alive & (weight.sum(axis=1) >= cfg.min_common_frames)):
+            if k == t or (occ[k] & occ[t]).any():
+                continue
+            mean = sums[k] / np.maximum(weight[k], 1e-12)[:, None]
+            d = axis_d(t, mean)
+            if np.isfinite(d).sum() >= cfg.min_common_frames:
+                cand.append((float(np.nanmedian(d)), int(k)))
+        cand.sort()
+        if cand and cand[0][0] <= cfg.max_axis_m and (len(cand) == 1 or cand[1][0] > 2 * cand[0][0]):
+            k = cand[0][1]
+            occ[k] |= occ[t]
+            alive[t] = False
+            member[member == t] = k
     # per tracklet: median distance to the rest of its cluster (its confidence)
     clusters = np.unique(member)
     order = sorted(clusters, key=lambda k: (int(np.flatnonzero(occ[k].any(axis=0))[0])
