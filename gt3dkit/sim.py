@@ -621,6 +621,71 @@ def _detector_errors(uv: F64, rig: Rig, skeleton: str, truth_frame: I64, truth_i
     return uv, np.where(seen, conf, np.nan), injected
 
 
+#: y-down (the skeleton simulator's world) -> z-up (Pose2Sim's): X_zup = Q_ZUP @ X_ydown
+Q_ZUP = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])
+
+
+def to_z_up(sim: SkeletonScene) -> SkeletonScene:
+    """The same scene in a z-up world (cameras and truth rotated; images unchanged)."""
+    import dataclasses as _dc
+
+    cams = tuple(_dc.replace(c, R=c.R @ Q_ZUP.T) for c in sim.rig.cameras)
+    rig = Rig(cams, up=np.array([0.0, 0.0, 1.0]), frame_name="synthetic z-up world")
+    return _dc.replace(sim, rig=rig, kpt_world=sim.kpt_world @ Q_ZUP.T)
+
+
+def write_openpose(sim: SkeletonScene, out: Path, seed: int = 0,
+                   folder_names: list[str] | None = None) -> None:
+    """Write as a Pose2Sim/OpenPose trial (atomically): ``calibration/Calib_scene.toml``
+    (cameras ``cam_01``...), ``Config.toml`` with the frame rate, ``pose/<name>_json/`` with
+    one OpenPose file per frame per camera, people in a random order without ids (undetected
+    joints 0, 0, 0), and ``truth_keypoints.csv`` in the same z-up world. ``sim`` must be in a
+    z-up world (:func:`to_z_up`) and a detector skeleton (body25, ...)."""
+    from gt3dkit.calib.formats import toml as toml_fmt
+    from gt3dkit.skeletons import SKELETONS
+
+    rng = np.random.default_rng([seed, 7])
+    names = folder_names or [f"cam{k + 1}" for k in range(len(sim.rig.cameras))]
+    import dataclasses as _dc
+
+    rig = Rig(tuple(_dc.replace(c, name=f"cam_{k + 1:02d}") for k, c in enumerate(sim.rig.cameras)),
+              up=sim.rig.up, frame_name=sim.rig.frame_name)
+
+    def write(tmp: Path) -> None:
+        (tmp / "calibration").mkdir()
+        toml_fmt.write(rig, tmp / "calibration" / "Calib_scene.toml")
+        (tmp / "Config.toml").write_text(f"[project]\nframe_rate = {sim.fps:g}\n")
+        J = SKELETONS[sim.skeleton].n_joints
+        for c, name in enumerate(names):
+            d = tmp / "pose" / f"{name}_json"
+            d.mkdir(parents=True)
+            for f in sim.frames:
+                people = []
+                for a in rng.permutation(np.flatnonzero(sim.truth_frame == f)):
+                    uv = sim.uv[a, c]
+                    if not np.isfinite(uv[:, 0]).any():
+                        continue
+                    cf = sim.conf[a, c] if sim.conf is not None else np.full(J, 0.9)
+                    trip = np.where(np.isfinite(uv).all(axis=1)[:, None],
+                                    np.column_stack([uv, cf]), 0.0).ravel()
+                    people.append({"person_id": [-1],
+                                   "pose_keypoints_2d": [round(float(v), 3) for v in trip],
+                                   "face_keypoints_2d": [], "hand_left_keypoints_2d": [],
+                                   "hand_right_keypoints_2d": []})
+                doc = {"version": 1.3, "people": people}
+                (d / f"trial_{int(f):012d}_keypoints.json").write_text(json.dumps(doc))
+        with open(tmp / "truth_keypoints.csv", "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(["frame", "id", "joint", "x", "y", "z"])
+            for a in range(len(sim.truth_frame)):
+                for k in range(J):
+                    w.writerow([int(sim.truth_frame[a]), int(sim.truth_id[a]), k,
+                                *(f"{v:.6f}" for v in sim.kpt_world[a, k])])
+        _write_injected(sim.injected, tmp / "injected.csv")
+
+    write_dir_atomically(Path(out), write)
+
+
 def write_skeleton_scene(sim: SkeletonScene, out: Path, layout: str) -> None:
     """Write as native (``cameras.json``, ``keypoints.csv``, ``truth_keypoints.csv``) or as a
     CMU Panoptic sequence (``calibration_sim.json`` in cm + ``body3DScene`` files; the

@@ -22,6 +22,8 @@ _CANON = {  # body frame, metres
     "l_shoulder": (0.18, 0.0, 1.45), "l_elbow": (0.22, 0.0, 1.17), "l_wrist": (0.24, 0.02, 0.92),
     "l_hip": (0.10, 0.0, 0.93), "l_knee": (0.11, 0.02, 0.50), "l_ankle": (0.11, 0.0, 0.08),
     "l_eye": (0.03, 0.08, 1.66), "l_ear": (0.07, 0.0, 1.64),
+    "head_top": (0.0, 0.0, 1.74),
+    "l_big_toe": (0.12, 0.18, 0.02), "l_small_toe": (0.16, 0.15, 0.02), "l_heel": (0.11, -0.06, 0.03),
 }
 for _k, (_x, _y, _z) in list(_CANON.items()):
     if _k.startswith("l_"):
@@ -47,11 +49,42 @@ _BONES_COCO17 = (("l_ankle", "l_knee"), ("l_knee", "l_hip"), ("r_ankle", "r_knee
                  ("nose", "r_eye"), ("l_eye", "l_ear"), ("r_eye", "r_ear"))
 
 
+# OpenPose / AlphaPose / RTMPose orders (OpenPose's output docs; Pose2Sim's skeletons.py), as
+# (our name, the detector's own name): every joint kept, feet and head included.
+_OP_NAMES = {"nose": "Nose", "neck": "Neck", "pelvis": "MidHip", "head_top": "Head"}
+for _side, _s in (("l", "L"), ("r", "R")):
+    for _j, _n in (("shoulder", "Shoulder"), ("elbow", "Elbow"), ("wrist", "Wrist"), ("hip", "Hip"),
+                   ("knee", "Knee"), ("ankle", "Ankle"), ("eye", "Eye"), ("ear", "Ear"),
+                   ("big_toe", "BigToe"), ("small_toe", "SmallToe"), ("heel", "Heel")):
+        _OP_NAMES[f"{_side}_{_j}"] = _s + _n
+_BODY25 = ("nose", "neck", "r_shoulder", "r_elbow", "r_wrist", "l_shoulder", "l_elbow", "l_wrist",
+           "pelvis", "r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle", "r_eye", "l_eye",
+           "r_ear", "l_ear", "l_big_toe", "l_small_toe", "l_heel", "r_big_toe", "r_small_toe", "r_heel")
+_COCO18 = _BODY25[:8] + _BODY25[9:19]
+_BODY25B = _COCO17 + ("neck", "head_top", "l_big_toe", "l_small_toe", "l_heel", "r_big_toe",
+                      "r_small_toe", "r_heel")
+_HALPE26 = _COCO17 + ("head_top", "neck", "pelvis", "l_big_toe", "r_big_toe", "l_small_toe",
+                      "r_small_toe", "l_heel", "r_heel")
+_BONES_FEET = (("l_ankle", "l_big_toe"), ("l_big_toe", "l_small_toe"), ("l_ankle", "l_heel"),
+               ("r_ankle", "r_big_toe"), ("r_big_toe", "r_small_toe"), ("r_ankle", "r_heel"))
+_BONES_OP = _BONES_BODY + _BONES_FACE
+_BONES_COCO18 = tuple(b for b in _BONES_OP if "pelvis" not in b) + (("neck", "l_hip"), ("neck", "r_hip"))
+_BONES_25B = tuple(b for b in _BONES_COCO17 if b not in (("l_eye", "r_eye"),)) + (
+    ("neck", "l_shoulder"), ("neck", "r_shoulder"), ("neck", "head_top"), ("neck", "nose")) + _BONES_FEET
+_BONES_HALPE = _BONES_25B + (("pelvis", "l_hip"), ("pelvis", "r_hip"), ("neck", "pelvis"))
+
+
 @dataclass(frozen=True)
 class Skeleton:
     name: str
     joints: tuple[str, ...]
     bone_names: tuple[tuple[str, str], ...]
+    labels: tuple[str, ...] = ()  # the detector's own joint names (marker names on export)
+
+    @property
+    def marker_names(self) -> tuple[str, ...]:
+        """Joint names for exports: the detector's own when it has them."""
+        return self.labels or self.joints
 
     @property
     def n_joints(self) -> int:
@@ -72,7 +105,16 @@ SKELETONS = {
     "coco17": Skeleton("coco17", _COCO17, _BONES_COCO17),
     "panoptic15": Skeleton("panoptic15", _COCO19[:15], _BONES_BODY),
     "coco19": Skeleton("coco19", _COCO19, _BONES_BODY + _BONES_FACE),
+    "body25": Skeleton("body25", _BODY25, _BONES_OP + _BONES_FEET, tuple(_OP_NAMES[j] for j in _BODY25)),
+    "body25b": Skeleton("body25b", _BODY25B, _BONES_25B,
+                        tuple({"neck": "UpperNeck", "head_top": "HeadTop"}.get(j, _OP_NAMES[j])
+                              for j in _BODY25B)),
+    "coco18": Skeleton("coco18", _COCO18, _BONES_COCO18, tuple(_OP_NAMES[j] for j in _COCO18)),
+    "halpe26": Skeleton("halpe26", _HALPE26, _BONES_HALPE,
+                        tuple({"pelvis": "Hip"}.get(j, _OP_NAMES[j]) for j in _HALPE26)),
 }
+#: 2D detector files (OpenPose JSON) name their skeleton by joint count; 25 is BODY_25 or BODY_25B
+DETECTOR_SKELETONS = {25: ("body25", "body25b"), 26: ("halpe26",), 18: ("coco18",), 17: ("coco17",)}
 
 
 def skeleton_for(n_joints_seen: int) -> Skeleton:

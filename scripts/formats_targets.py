@@ -54,7 +54,7 @@ def mot(seed: int, people: int, single_view: float = 0.0) -> bool:
             out[name] = (e, t)
     (eg, tg), (em, tm) = out["global ids"], out["per-camera ids"]
     n_people = len(np.unique(sim.truth_id))
-    n_global = len({r[2] for r in assoc.rows})
+    n_global = len({r[3] for r in assoc.rows})
     print(f"mot seed {seed}, {people} people{', bystanders' if single_view else ''}: {assoc.summary()} "
           f"(truth: {n_people} people); global ids: centre {1000 * eg.centre_mean_m:.2f} mm, MOTA "
           f"{100 * tg['mota']:.2f}, IDF1 {100 * tg['idf1']:.2f}; per-camera ids: centre "

@@ -50,9 +50,9 @@ def test_per_camera_ids_are_associated(scenes) -> None:
     sc = load_scene(root / "mot")
     assert sc.layout == "mot" and sc.association is not None
     _clusters_are_people(sim, sc)
-    lone = [r for r in sc.association.rows if "single view" in r[6]]
+    lone = [r for r in sc.association.rows if "single view" in r[7]]
     assert lone  # the bystanders (one camera each) stay their own people
-    assert all(np.isfinite(r[3]) and 0 <= r[3] <= 1 for r in sc.association.rows if not r[6])
+    assert all(np.isfinite(r[4]) and 0 <= r[4] <= 1 for r in sc.association.rows if not r[7])
 
 
 def test_reconstruction_equals_global_ids(scenes, tmp_path: Path) -> None:
@@ -74,16 +74,16 @@ def test_overrides_and_their_errors(scenes, tmp_path: Path) -> None:
     sc = load_scene(root / "mot")
     rows = sc.association.rows
     # split one camera's track off into a person of its own
-    cam, local, gid = next((r[0], r[1], r[2]) for r in rows if not r[6])
+    cam, local, gid = next((r[0], r[1], r[3]) for r in rows if not r[7])
     over = tmp_path / "assoc.csv"
     with open(over, "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["camera", "local_id", "global_id"])
-        w.writerow([cam, local, 999])
+        w.writerow(["camera", "local_id", "frame", "global_id"])
+        w.writerow([cam, local, "", 999])
     sc2 = load_scene(root / "mot", association=over)
     mine = sc2.association.mapping()
-    assert mine[(cam, local)] == 999
-    assert sum(1 for k, v in mine.items() if v == gid) == sum(1 for r in rows if r[2] == gid) - 1
+    assert mine[(cam, local, None)] == 999
+    assert sum(1 for k, v in mine.items() if v == gid) == sum(1 for r in rows if r[3] == gid) - 1
     # two tracks of one camera made one person while both are in view: named
     frames: dict[int, set[int]] = {}
     for line in (root / "mot" / "mot" / f"{cam}.txt").read_text().splitlines():
@@ -92,13 +92,13 @@ def test_overrides_and_their_errors(scenes, tmp_path: Path) -> None:
     other = next(i for i, fs in frames.items() if i != local and fs & frames[local])
     with open(over, "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["camera", "local_id", "global_id"])
-        w.writerow([cam, local, 500])
-        w.writerow([cam, other, 500])
+        w.writerow(["camera", "local_id", "frame", "global_id"])
+        w.writerow([cam, local, "", 500])
+        w.writerow([cam, other, "", 500])
     with pytest.raises(InputError, match="are both global id 500"):
         load_scene(root / "mot", association=over)
     with open(over, "w", newline="") as f:
-        f.write("camera,local_id,global_id\nnocam,1,2\n")
+        f.write("camera,local_id,frame,global_id\nnocam,1,,2\n")
     with pytest.raises(InputError, match="unknown camera"):
         load_scene(root / "mot", association=over)
 
@@ -133,7 +133,7 @@ def test_associate_command(scenes, tmp_path: Path) -> None:
     assert r.returncode == 0, r.stderr
     assert "per-camera tracks ->" in r.stdout
     head = (tmp_path / "a" / "association.csv").read_text().splitlines()[0]
-    assert head == "camera,local_id,global_id,confidence,frames,median_m,note"
+    assert head == "camera,local_id,frame,global_id,confidence,frames,median_m,note"
     r = subprocess.run([*GT3D, "associate", str(root / "global"), "--out", str(tmp_path / "b")],
                        capture_output=True, text=True)
     assert r.returncode == 2 and "already global" in r.stderr

@@ -34,7 +34,7 @@ import numpy as np
 from gt3dkit.errors import InputError
 from gt3dkit.types import F64, Scene
 
-COLUMNS = ("camera", "local_id", "global_id", "confidence", "frames", "median_m", "note")
+COLUMNS = ("camera", "local_id", "frame", "global_id", "confidence", "frames", "median_m", "note")
 
 
 @dataclass(frozen=True)
@@ -48,25 +48,32 @@ class AssocConfig:
 
 @dataclass(frozen=True)
 class Association:
-    """rows: (camera name, local id, global id, confidence in [0, 1] or NaN for single-view,
-    frames annotated, median ground distance to the rest of its cluster in m (NaN), note)."""
+    """rows: (camera name, local id, frame (per-frame detections) or None (a per-camera track),
+    global id (-1: left out), confidence in [0, 1] (NaN: single view), frames annotated, median
+    ground distance to the rest of its cluster in m (NaN), note)."""
 
-    rows: tuple[tuple[str, int, int, float, int, float, str], ...]
+    rows: tuple[tuple[str, int, int | None, int, float, int, float, str], ...]
 
-    def mapping(self) -> dict[tuple[str, int], int]:
-        return {(r[0], r[1]): r[2] for r in self.rows}
+    def mapping(self) -> dict[tuple[str, int, int | None], int]:
+        return {(r[0], r[1], r[2]): r[3] for r in self.rows}
 
     def write(self, path: Path) -> None:
         with open(path, "w", newline="") as f:
             w = csv.writer(f)
             w.writerow(COLUMNS)
             for r in self.rows:
-                w.writerow([r[0], r[1], r[2], "" if not np.isfinite(r[3]) else f"{r[3]:.3f}", r[4],
-                            "" if not np.isfinite(r[5]) else f"{r[5]:.3f}", r[6]])
+                w.writerow([r[0], r[1], "" if r[2] is None else r[2], r[3],
+                            "" if not np.isfinite(r[4]) else f"{r[4]:.3f}", r[5],
+                            "" if not np.isfinite(r[6]) else f"{r[6]:.3f}", r[7]])
 
     def summary(self) -> str:
-        g = {r[2] for r in self.rows}
-        single = len({r[2] for r in self.rows} - {r[2] for r in self.rows if np.isfinite(r[3])})
+        kept = [r for r in self.rows if r[3] >= 0]
+        g = {r[3] for r in kept}
+        if any(r[2] is not None for r in self.rows):
+            out = len(self.rows) - len(kept)
+            return (f"{len(self.rows)} detections -> {len(g)} people"
+                    + (f" ({out} seen by one camera only, left out)" if out else ""))
+        single = len(g - {r[3] for r in kept if np.isfinite(r[4])})
         return (f"{len(self.rows)} per-camera tracks -> {len(g)} people ({single} seen by one camera "
                 "only)")
 
@@ -216,16 +223,22 @@ def associate(scene: Scene, cfg: AssocConfig | None = None,
         conf = float(np.clip(1 - med / cfg.max_ground_m, 0, 1)) if np.isfinite(med) else (
             1.0 if others else np.nan)
         note = "" if others else "seen by this camera only (single view)"
-        rows.append([names[int(keys[t, 0])], int(keys[t, 1]), gid[k], conf, int(n_frames[t]), med, note])
+        rows.append([names[int(keys[t, 0])], int(keys[t, 1]), None, gid[k], conf, int(n_frames[t]), med,
+                     note])
+    return _finish(rows, overrides)
+
+
+def _finish(rows: list[list], overrides: dict[tuple[str, int, int | None], int] | None) -> Association:
     if overrides:
-        known = {(r[0], r[1]) for r in rows}
+        known = {(r[0], r[1], r[2]) for r in rows}
         for key in overrides:
             if key not in known:
-                raise InputError("--association", f"camera {key[0]} has no local id {key[1]}")
+                raise InputError("--association", f"camera {key[0]} has no local id {key[1]}"
+                                 + (f" in frame {key[2]}" if key[2] is not None else ""))
         for r in rows:
-            if (r[0], r[1]) in overrides:
-                r[2], r[6] = overrides[(r[0], r[1])], "set by the association file"
-    rows.sort(key=lambda r: (r[2], r[0], r[1]))
+            if (r[0], r[1], r[2]) in overrides:
+                r[3], r[7] = overrides[(r[0], r[1], r[2])], "set by the association file"
+    rows.sort(key=lambda r: (r[3] < 0, r[3], -1 if r[2] is None else r[2], r[0], r[1]))
     return Association(tuple(tuple(r) for r in rows))  # type: ignore[misc]
 
 
@@ -237,8 +250,12 @@ def apply_association(scene: Scene, assoc: Association) -> Scene:
     obs = scene.obs
     m = assoc.mapping()
     names = scene.rig.names
-    new = np.array([m[(names[int(c)], int(i))] for c, i in zip(obs.cam, obs.track_id, strict=True)],
-                   dtype=np.int64)
+    per_frame = any(r[2] is not None for r in assoc.rows)
+    new = np.array([m.get((names[int(c)], int(i), int(f) if per_frame else None), -1)
+                    for f, c, i in zip(obs.frame, obs.cam, obs.track_id, strict=True)], dtype=np.int64)
+    if (new < 0).any():  # left out (detections no second view confirms)
+        scene = dataclasses.replace(scene, obs=obs.select(new >= 0))
+        obs, new = scene.obs, new[new >= 0]
     key = np.stack([obs.frame, obs.cam, new], axis=1)
     u, first, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
     if (counts > 1).any():
@@ -256,18 +273,149 @@ def apply_association(scene: Scene, assoc: Association) -> Scene:
     return dataclasses.replace(scene, obs=o2)
 
 
-def read_overrides(path: Path, names: tuple[str, ...]) -> dict[tuple[str, int], int]:
-    """An edited ``association.csv`` (``camera,local_id,global_id`` first; other columns
-    ignored): the rows a user fixed."""
-    from gt3dkit.io.datasets.common import parse_int, read_csv_rows
+def read_overrides(path: Path, names: tuple[str, ...]) -> dict[tuple[str, int, int | None], int]:
+    """An edited ``association.csv`` (``camera,local_id,frame,global_id`` first, ``frame``
+    empty for per-camera tracks; other columns ignored): the rows a user fixed."""
+    from gt3dkit.io.datasets.common import parse_frame, parse_int, read_csv_rows
 
-    out: dict[tuple[str, int], int] = {}
-    for line, r in read_csv_rows(Path(path), ("camera", "local_id", "global_id"), warnings=[]):
+    out: dict[tuple[str, int, int | None], int] = {}
+    for line, r in read_csv_rows(Path(path), ("camera", "local_id", "frame", "global_id"), warnings=[]):
         where = f"{path}: line {line}"
         if r["camera"] not in names:
             raise InputError(where, f"unknown camera {r['camera']!r} (the input has {', '.join(names)})")
-        key = (r["camera"], parse_int(where, r["local_id"], "local_id"))
+        key = (r["camera"], parse_int(where, r["local_id"], "local_id"),
+               parse_frame(where, r["frame"]) if r["frame"] else None)
         if key in out:
             raise InputError(where, f"second row for camera {key[0]} local id {key[1]}")
         out[key] = parse_int(where, r["global_id"], "global_id")
     return out
+
+
+@dataclass(frozen=True)
+class DetectionConfig:
+    """Per-frame detections (no ids) -> people."""
+
+    max_reproj_px: float = 25.0  # two detections are one person when their common joints,
+    #                              triangulated from the two views, reproject this close (median)
+    min_joints: int = 4  # common confident joints needed to compare two detections
+    min_conf: float = 0.3
+    max_speed_mps: float = 4.0  # a person's centroid moves at most this fast between frames
+    link_margin_m: float = 0.3
+    max_gap_s: float = 1.0  # a person unseen longer than this is a new track when seen again
+
+
+def _pair_cost(xa: F64, xb: F64, Ra, ta, Rb, tb, fa: float, fb: float) -> float:
+    """Median over the joints both saw of the two-view reprojection error (px) after
+    triangulating them from these two views; inf with too few joints."""
+    from gt3dkit.geom.triangulate import reprojection_sq_px, triangulate_dlt
+
+    ok = np.isfinite(xa).all(axis=1) & np.isfinite(xb).all(axis=1)
+    if ok.sum() < 1:
+        return np.inf
+    xy = np.stack([xa[ok], xb[ok]], axis=1)  # (n, 2, 2)
+    R, t = np.stack([Ra, Rb]), np.stack([ta, tb])
+    X, _ = triangulate_dlt(xy, R, t)
+    e2 = reprojection_sq_px(X, xy, R, t, np.array([fa, fb]))
+    e = np.sqrt(np.nanmean(e2, axis=1))
+    return float(np.median(e)) if np.isfinite(e).any() else np.inf
+
+
+def associate_detections(scene: Scene, cfg: DetectionConfig | None = None,
+                         overrides: dict[tuple[str, int, int | None], int] | None = None) -> Association:
+    """People from per-frame keypoint detections without identities (OpenPose): per frame,
+    detections of different cameras whose confident joints triangulate consistently (the
+    two-view reprojection error) are grouped greedily, best pair first, one detection per
+    camera, every pair of a group consistent; groups of two or more views are triangulated and
+    linked over time by their 3D centroid (Hungarian, gated by a walking speed); detections no
+    second view confirms are left out (their row has global id -1)."""
+    from scipy.optimize import linear_sum_assignment
+
+    from gt3dkit.geom.camera import Cams
+    from gt3dkit.geom.triangulate import normalized_points, triangulate_dlt
+
+    cfg = cfg or DetectionConfig()
+    obs = scene.obs
+    names = scene.rig.names
+    cams = Cams.of(scene.rig)
+    f_px = cams.K[:, 0, 0]
+    conf = obs.kpt_conf if obs.kpt_conf is not None else np.ones(obs.kpt_uv_px.shape[:2])
+    kp = np.where((conf >= cfg.min_conf)[..., None], obs.kpt_uv_px, np.nan)
+    xy = np.full(kp.shape, np.nan)
+    for c in np.unique(obs.cam):
+        m = obs.cam == c
+        xy[m] = normalized_points(kp[m][:, :, None, :], cams.K[c:c + 1], cams.dist[c:c + 1])[:, :, 0]
+    gid = np.full(len(obs), -1, dtype=np.int64)
+    gconf = np.full(len(obs), np.nan)
+    tracks: list[dict] = []  # {"id", "frame", "X"}
+    next_id = 0
+    with np.errstate(all="ignore"):
+        for f in np.unique(obs.frame):
+            rows = np.flatnonzero(obs.frame == f)
+            pairs = []
+            for i, a in enumerate(rows):
+                for b in rows[i + 1:]:
+                    if obs.cam[a] == obs.cam[b]:
+                        continue
+                    ok = np.isfinite(xy[a]).all(axis=1) & np.isfinite(xy[b]).all(axis=1)
+                    if ok.sum() < cfg.min_joints:
+                        continue
+                    ca, cb = obs.cam[a], obs.cam[b]
+                    cost = _pair_cost(xy[a], xy[b], cams.R[ca], cams.t[ca], cams.R[cb], cams.t[cb],
+                                      f_px[ca], f_px[cb])
+                    if cost <= cfg.max_reproj_px:
+                        pairs.append((cost, int(a), int(b)))
+            pairs.sort()
+            cost_of = {(a, b): c for c, a, b in pairs}
+            group = {int(r): {int(r)} for r in rows}
+            for _, a, b in pairs:
+                ga, gb = group[a], group[b]
+                if ga is gb:
+                    continue
+                if {obs.cam[r] for r in ga} & {obs.cam[r] for r in gb}:
+                    continue
+                if not all((min(r, q), max(r, q)) in cost_of for r in ga for q in gb):
+                    continue
+                merged = ga | gb
+                for r in merged:
+                    group[r] = merged
+            found = []
+            for g in {id(g): g for g in group.values()}.values():
+                if len(g) < 2:
+                    continue
+                members = sorted(g)
+                cs = [cams.take(np.array([obs.cam[r] for r in members]))]
+                X, _ = triangulate_dlt(np.stack([xy[r] for r in members], axis=1), cs[0].R, cs[0].t)
+                if not np.isfinite(X).all(axis=1).any():
+                    continue
+                centroid = np.nanmedian(X[np.isfinite(X).all(axis=1)], axis=0)
+                pc = [cost_of[(min(r, q), max(r, q))] for r in members for q in members if r < q]
+                found.append((members, centroid, float(np.mean(pc))))
+            # link to the tracks alive
+            alive = [t for t in tracks if (f - t["frame"]) / scene.fps <= cfg.max_gap_s]
+            if alive and found:
+                D = np.array([[np.linalg.norm(t["X"] - g[1]) for g in found] for t in alive])
+                gate = np.array([cfg.max_speed_mps * (f - t["frame"]) / scene.fps + cfg.link_margin_m
+                                 for t in alive])
+                D = np.where(D <= gate[:, None], D, 1e9)
+                ri, ci = linear_sum_assignment(D)
+                taken = {}
+                for i, j in zip(ri, ci, strict=True):
+                    if D[i, j] < 1e9:
+                        taken[j] = alive[i]
+            else:
+                taken = {}
+            for j, (members, centroid, pc) in enumerate(found):
+                t = taken.get(j)
+                if t is None:
+                    t = {"id": next_id, "frame": f, "X": centroid}
+                    tracks.append(t)
+                    next_id += 1
+                t["frame"], t["X"] = f, centroid
+                gid[members] = t["id"]
+                gconf[members] = float(np.clip(1 - pc / cfg.max_reproj_px, 0, 1))
+    rows_out = []
+    for r in range(len(obs)):
+        rows_out.append([names[int(obs.cam[r])], int(obs.track_id[r]), int(obs.frame[r]), int(gid[r]),
+                         float(gconf[r]), 1, np.nan,
+                         "" if gid[r] >= 0 else "no second view confirms it: left out"])
+    return _finish(rows_out, overrides)

@@ -11,7 +11,9 @@ import numpy as np
 from gt3dkit.errors import InputError
 from gt3dkit.types import Scene
 
-LAYOUTS = ("native", "wildtrack", "multiviewx", "panoptic", "mot")
+LAYOUTS = ("native", "wildtrack", "multiviewx", "panoptic", "mot", "openpose")
+#: layouts whose ids are per camera or absent: association makes people of them
+ASSOCIATED = ("mot", "openpose")
 
 
 def detect_layout(root: Path) -> str:
@@ -21,6 +23,8 @@ def detect_layout(root: Path) -> str:
         raise InputError(str(root), "not a directory")
     if (root / "mot").is_dir():
         return "mot"
+    if any(p.is_dir() for p in root.glob("*_json")) or any(p.is_dir() for p in root.glob("pose/*_json")):
+        return "openpose"
     if (root / "cameras.json").exists():
         return "native"
     if (root / "calibrations" / "intrinsic_zero").is_dir():
@@ -32,8 +36,8 @@ def detect_layout(root: Path) -> str:
     raise InputError(str(root), "unknown input layout: expected cameras.json (native), "
                                 "calibrations/intrinsic_zero (WILDTRACK), "
                                 "calibrations/intrinsic (MultiviewX) or "
-                                "calibration_<seq>.json (CMU Panoptic) or mot/<camera>.txt "
-                                "(MOTChallenge per camera)")
+                                "calibration_<seq>.json (CMU Panoptic), mot/<camera>.txt "
+                                "(MOTChallenge per camera) or <camera>_json/ (OpenPose)")
 
 
 def with_calibration(scene: Scene, calib: Path | str) -> Scene:
@@ -83,17 +87,22 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     from gt3dkit.io.datasets import checks, native, panoptic, wildtrack
 
     layout = layout or detect_layout(Path(root))
-    if skeleton is not None and layout != "native":
+    if skeleton is not None and layout not in ("native", "openpose"):
         raise InputError("--skeleton", f"applies to native keypoints.csv inputs, not {layout}")
     if panoptic_options and layout != "panoptic":
         raise InputError(str(root), f"options {sorted(panoptic_options)} apply to the panoptic "
                                     "layout only")
-    if association is not None and layout != "mot":
-        raise InputError("--association", f"applies to inputs with per-camera ids (mot), not {layout}")
+    if association is not None and layout not in ASSOCIATED:
+        raise InputError("--association", "applies to inputs with per-camera ids or none "
+                                          f"({', '.join(ASSOCIATED)}), not {layout}")
     if layout == "mot":
         from gt3dkit.io.datasets import mot
 
         scene = mot.load(Path(root), calib, fps)
+    elif layout == "openpose":
+        from gt3dkit.io.datasets import openpose
+
+        scene = openpose.load(Path(root), skeleton, calib, fps)
     elif layout == "native":
         scene = native.load(Path(root), skeleton)
     elif layout == "panoptic":
@@ -104,7 +113,7 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
         raise InputError(str(root), f"unknown layout {layout!r} (known: {', '.join(LAYOUTS)})")
     if len(scene.obs) == 0:
         raise InputError(str(root), "no annotations in any frame")
-    if calib is not None and layout != "mot":  # mot reads its calibration itself
+    if calib is not None and layout not in ASSOCIATED:  # these read their calibration themselves
         scene = with_calibration(scene, calib)
     if fps is not None:
         if not (np.isfinite(fps) and native.FPS_RANGE[0] <= fps <= native.FPS_RANGE[1]):
@@ -116,10 +125,21 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     if association is not None:
         opts["association"] = str(Path(association).resolve())
     scene = dataclasses.replace(scene, load_options=opts)
-    if layout == "mot":  # per-camera ids -> global identities, before the checks count views
-        from gt3dkit.fusion.associate import apply_association, associate, read_overrides
+    if layout in ASSOCIATED:  # ids per camera or none -> global identities, before the checks
+        from gt3dkit.fusion.associate import (
+            apply_association,
+            associate,
+            associate_detections,
+            read_overrides,
+        )
 
         over = read_overrides(Path(association), scene.rig.names) if association is not None else None
-        assoc = associate(scene, overrides=over)
+        assoc = (associate if layout == "mot" else associate_detections)(scene, overrides=over)
         scene = dataclasses.replace(apply_association(scene, assoc), association=assoc)
+        out = sum(1 for r in assoc.rows if r[3] < 0)
+        if out:
+            scene = dataclasses.replace(scene, warnings=(*scene.warnings, f"{out} detections no second view "
+                                                         "confirms left out (association.csv, global id -1)"))
+        if not len(scene.obs):
+            raise InputError(str(root), "no person is seen by two cameras at once (nothing to reconstruct)")
     return checks.check_scene(scene)

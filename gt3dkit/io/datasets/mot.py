@@ -7,9 +7,9 @@ numbers its people): :mod:`gt3dkit.fusion.associate` turns them into global iden
 Rows with ``conf`` 0 are MOTChallenge's "ignore" boxes and are skipped (with a warning); an id
 of -1 (a detection without a track) is an error, as the tracklets are what is associated.
 
-The calibration is the first of ``cameras.json``, ``*.toml``, ``calibration/`` or ``sparse/``
-in the folder (any format of :mod:`gt3dkit.calib.formats`), or ``--calib``. Cameras are
-matched by name (file stem = calibration name), or, when the names differ but the counts
+The calibration is the first of ``cameras.json``, ``calibration/``, ``*.toml`` (not Pose2Sim's
+``Config.toml``) or ``sparse/`` in the folder (any format of :mod:`gt3dkit.calib.formats`), or
+``--calib``. Cameras are matched by name (file stem = calibration name), or, when the names differ but the counts
 agree, in natural sorted order (as Pose2Sim does), with a warning naming every pair.
 Frame rate: the calibration's (``cameras.json`` ``fps``), or ``--fps``, else 25 assumed.
 """
@@ -39,7 +39,8 @@ def natural_key(s: str) -> list[object]:
 def find_calibration(root: Path) -> Path | None:
     from gt3dkit.calib.formats import detect_format
 
-    cands = [root / "cameras.json", *sorted(root.glob("*.toml")), root / "calibration", root / "sparse"]
+    tomls = [p for p in sorted(root.glob("*.toml")) if p.name.lower() != "config.toml"]  # not Pose2Sim's
+    cands = [root / "cameras.json", root / "calibration", *tomls, root / "sparse"]
     for p in cands:
         if p.exists():
             try:

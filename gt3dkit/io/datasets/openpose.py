@@ -1,0 +1,178 @@
+"""OpenPose JSON per camera, as OpenPose and Pose2Sim write it.
+
+Folders ``<camera>_json/`` in the input folder or in ``pose/``, one file per frame
+(``<anything>_<frame>_keypoints.json``: the last number in the name is the frame) holding
+``{"people": [{"person_id": [-1], "pose_keypoints_2d": [x0, y0, c0, x1, ...]}, ...]}``.
+Skeletons by joint count: BODY_25 or BODY_25B (25, told apart by where joint 1 lies: the neck
+between the shoulders, or the left eye), HALPE_26 (26), COCO-18 (18), COCO-17 (17); every
+joint kept with the detector's own names on export; ``--skeleton`` overrides. A confidence of 0
+is "not detected"; the others are passed on (a point's variance is sigma^2 / confidence).
+
+Detections carry no identity: :func:`gt3dkit.fusion.associate.associate_detections` groups them
+across views per frame and links the groups over time into people. Calibration as for
+:mod:`gt3dkit.io.datasets.mot` (plus Pose2Sim's ``Calib*.toml``); the frame rate from the
+calibration, ``--fps``, or a Pose2Sim ``Config.toml`` (``frame_rate``), else 30 assumed.
+"""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from pathlib import Path
+
+import numpy as np
+
+from gt3dkit.errors import InputError
+from gt3dkit.io.datasets.common import RowBuilder, load_json, sha256
+from gt3dkit.io.datasets.mot import find_calibration, match_cameras, natural_key
+from gt3dkit.skeletons import DETECTOR_SKELETONS, SKELETONS
+from gt3dkit.types import Scene
+
+DEFAULT_FPS = 30.0
+
+
+def camera_folders(root: Path) -> list[Path]:
+    for base in (root, root / "pose"):
+        found = sorted((p for p in base.glob("*_json") if p.is_dir()), key=lambda p: natural_key(p.name))
+        if found:
+            return found
+    return []
+
+
+def _frame_of(path: Path) -> int:
+    nums = re.findall(r"\d+", path.name.replace("_keypoints", ""))
+    if not nums:
+        raise InputError(str(path), "no frame number in the file name")
+    v = int(nums[-1])
+    if v > 2**31 - 1:
+        raise InputError(str(path), f"frame number {v} out of range")
+    return v
+
+
+def _config_fps(root: Path) -> float | None:
+    for p in (root / "Config.toml", root.parent / "Config.toml"):
+        if p.is_file():
+            try:
+                doc = tomllib.loads(p.read_text(encoding="utf-8"))
+            except (tomllib.TOMLDecodeError, UnicodeDecodeError, OSError):
+                return None
+            fr = (doc.get("project") or {}).get("frame_rate")
+            if isinstance(fr, int | float) and fr > 0:
+                return float(fr)
+    return None
+
+
+def _which_25(sample: list[np.ndarray]) -> str:
+    """BODY_25 (joint 1 = neck, between the shoulders 2 and 5) or BODY_25B (joint 1 = left eye)."""
+    d25, d25b = [], []
+    for k in sample:
+        ok = k[:, 2] > 0
+        if ok[[1, 2, 5]].all():
+            w = np.linalg.norm(k[2, :2] - k[5, :2]) + 1e-9
+            d25.append(np.linalg.norm(k[1, :2] - (k[2, :2] + k[5, :2]) / 2) / w)
+        if ok[[1, 5, 6]].all():
+            w = np.linalg.norm(k[5, :2] - k[6, :2]) + 1e-9
+            d25b.append(np.linalg.norm(k[1, :2] - (k[5, :2] + k[6, :2]) / 2) / w)
+    if not d25 and not d25b:
+        return "body25"
+    return (
+        "body25" if (np.median(d25) if d25 else np.inf) < (np.median(d25b) if d25b else np.inf) else "body25b"
+    )
+
+
+def load(
+    root: Path, skeleton: str | None = None, calib: Path | str | None = None, fps: float | None = None
+) -> Scene:
+    """The detections as a scene whose ``track_id`` is the detection's index in its file
+    (association makes people of them)."""
+    from gt3dkit.calib.formats import detect_format, read_calibration
+    from gt3dkit.calib.formats.native import load_cameras
+
+    root = Path(root)
+    folders = camera_folders(root)
+    if not folders:
+        raise InputError(str(root), "no <camera>_json folders (in the folder or in pose/)")
+    cal = Path(calib) if calib is not None else find_calibration(root)
+    if cal is None:
+        raise InputError(
+            str(root), "no calibration (cameras.json, *.toml, calibration/ or sparse/): pass --calib"
+        )
+    fps_doc = None
+    if detect_format(cal) == "native":
+        rig, fps_doc, _ = load_cameras(cal / "cameras.json" if cal.is_dir() else cal)
+    else:
+        rig = read_calibration(cal)
+    warnings: list[str] = []
+    names = [p.name[: -len("_json")] for p in folders]
+    cam_of = match_cameras(names, rig, str(root), warnings)
+    dets: list[tuple[int, int, int, np.ndarray, str]] = []  # frame, cam, index, (J, 3), where
+    files: dict[str, str] = {}
+    J = None
+    for folder, name in zip(folders, names, strict=True):
+        seen_frames: dict[int, Path] = {}
+        for p in sorted(folder.glob("*.json"), key=lambda q: natural_key(q.name)):
+            f = _frame_of(p)
+            if f in seen_frames:
+                raise InputError(str(p), f"frame {f} again (also {seen_frames[f].name})")
+            seen_frames[f] = p
+            doc = load_json(p)
+            people = doc.get("people") if isinstance(doc, dict) else None
+            if not isinstance(people, list):
+                raise InputError(str(p), 'expected {"people": [...]}')
+            for i, person in enumerate(people):
+                where = f"{p}: people[{i}]"
+                kp = person.get("pose_keypoints_2d") if isinstance(person, dict) else None
+                try:
+                    a = np.asarray(kp, dtype=np.float64).reshape(-1, 3)
+                except (TypeError, ValueError):
+                    raise InputError(
+                        where, "pose_keypoints_2d must be numbers x, y, confidence per joint"
+                    ) from None
+                if J is None:
+                    J = len(a)
+                    if skeleton is None and J not in DETECTOR_SKELETONS:
+                        raise InputError(
+                            where,
+                            f"{J} joints: no known detector skeleton has that many "
+                            f"({', '.join(f'{k}' for k in DETECTOR_SKELETONS)})",
+                        )
+                if len(a) != J:
+                    raise InputError(where, f"{len(a)} joints, the other detections have {J}")
+                if not np.isfinite(a).all() or (a[:, 2] < 0).any() or (a[:, 2] > 1).any():
+                    raise InputError(where, "a non-finite value or a confidence outside [0, 1]")
+                dets.append((f, cam_of[name], i, a, where))
+        files[f"{folder.name}/"] = f"{len(seen_frames)} files"
+    if not dets or J is None:
+        raise InputError(str(root), "no annotations in any frame (no people in the JSON files)")
+    if skeleton is None:
+        opts = DETECTOR_SKELETONS[J]
+        skeleton = opts[0] if len(opts) == 1 else _which_25([d[3] for d in dets[:500]])
+    elif SKELETONS[skeleton].n_joints != J:
+        raise InputError("--skeleton", f"{skeleton} has {SKELETONS[skeleton].n_joints} joints, the files {J}")
+    rb = RowBuilder(n_joints=J)
+    undetected = 0
+    from gt3dkit.io.datasets.checks import check_pixels
+
+    for f, c, i, a, where in dets:
+        for j in range(J):
+            if a[j, 2] == 0:
+                undetected += 1
+                continue
+            check_pixels(where, rig.cameras[c], list(a[j, :2]), "keypoint")
+            rb.add_joint(f, c, i, j, (float(a[j, 0]), float(a[j, 1])), where, float(a[j, 2]))
+    obs = rb.build()
+    files[f"calibration:{cal.name}"] = sha256(cal) if cal.is_file() else "folder"
+    cfg_fps = _config_fps(root)
+    rate = fps or fps_doc or cfg_fps
+    return Scene(
+        rig=rig,
+        obs=obs,
+        layout="openpose",
+        fps=float(rate or DEFAULT_FPS),
+        frames=np.unique(obs.frame),
+        skeleton=skeleton,
+        files=files,
+        root=str(root),
+        warnings=tuple(warnings),
+        fps_assumed="" if rate else f"{cal} and Config.toml give no frame rate",
+    )
