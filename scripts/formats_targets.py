@@ -11,7 +11,12 @@
 * export: `gt3d export` C3D and TRC of a keypoint reconstruction read back with independent
   readers (the `c3d` package, pandas): every marker within 0.1 mm (C3D: the same coordinates;
   TRC: the same distances between markers, and its y = the world's up).
-* openpose: not built yet (reported as such).
+* openpose: a Pose2Sim/OpenPose-style trial (4 cameras, BODY_25 with confidences, one participant,
+  a bystander in two views, detector glitches and far-off points, people in random order without
+  ids, camera folders named unlike the TOML's cameras) read directly with --calib on its TOML:
+  the participant is one track over >= 98 % of frames, the bystander a separate person, and the
+  participant's joints within 5 mm median / 15 mm p95 of the careful hand conversion (native
+  keypoints.csv of the participant with its id, the same points).
 """
 
 from __future__ import annotations
@@ -65,9 +70,13 @@ def mot(seed: int, people: int, single_view: float = 0.0) -> bool:
         ok &= check("MOTA >= 99.5", tm["mota"] >= 0.995, f"{100 * tm['mota']:.2f}")
         ok &= check("IDF1 >= 99.5", tm["idf1"] >= 0.995, f"{100 * tm['idf1']:.2f}")
     ok &= check("no identity switch", tm["ids"] == 0, str(tm["ids"]))
-    ok &= check("centre error as with global ids", abs(em.centre_mean_m - eg.centre_mean_m)
-                <= max(0.01 * eg.centre_mean_m, 1e-4),
-                f"{1000 * em.centre_mean_m:.2f} vs {1000 * eg.centre_mean_m:.2f} mm")
+    if not single_view:  # one-view people are metres off: their truth id is not theirs to match
+        ok &= check("centre error as with global ids", abs(em.centre_mean_m - eg.centre_mean_m)
+                    <= max(0.01 * eg.centre_mean_m, 1e-4),
+                    f"{1000 * em.centre_mean_m:.2f} vs {1000 * eg.centre_mean_m:.2f} mm")
+    else:
+        lone = sum(1 for r in assoc.rows if "single view" in r[7])
+        ok &= check("bystanders kept apart (single-view tracks)", lone >= 1, f"{lone} single-view tracks")
     return ok
 
 
@@ -124,6 +133,67 @@ def export() -> bool:
     return ok
 
 
+def openpose(seed: int) -> bool:
+    """A Pose2Sim-style trial: 4 cameras, BODY_25, one participant and a bystander in two views,
+    detector glitches, read directly with --calib on its TOML, against the careful hand
+    conversion (native keypoints.csv of the participant with its id, same points)."""
+    import dataclasses
+
+    from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv
+    from gt3dkit.sim import to_z_up, write_openpose
+
+    sk = simulate_skeletons("native", seed=seed, frames=120, people=2, cameras=4, noise_px=2.0,
+                            skeleton="body25", confidences=True, errors=Errors(glitch=0.003, outliers=0.003))
+    sk = to_z_up(sk)
+    uv = sk.uv.copy()
+    uv[np.ix_(sk.truth_id == 1, [2, 3])] = np.nan  # the bystander: two views only
+    sk = dataclasses.replace(sk, uv=uv)
+    part = sk.truth_id == 0
+    hand = dataclasses.replace(sk, truth_frame=sk.truth_frame[part], truth_id=sk.truth_id[part],
+                               kpt_world=sk.kpt_world[part], uv=sk.uv[part],
+                               conf=None if sk.conf is None else sk.conf[part], injected=())
+    gt3d = [sys.executable, "-m", "gt3dkit.cli"]
+    with tempfile.TemporaryDirectory() as tmp:
+        t = Path(tmp)
+        write_openpose(sk, t / "trial", seed=seed)
+        write_skeleton_scene(hand, t / "hand", "native")
+        r = subprocess.run([*gt3d, "reconstruct", str(t / "trial"), "--calib",
+                            str(t / "trial" / "calibration" / "Calib_scene.toml"), "--out", str(t / "o1")],
+                           capture_output=True, text=True)
+        r2 = subprocess.run([*gt3d, "reconstruct", str(t / "hand"), "--out", str(t / "o2")],
+                            capture_output=True, text=True)
+        if r.returncode or r2.returncode:
+            print(r.stderr, r2.stderr)
+            return check("OpenPose trial read directly", False, "failed")
+        J = 25
+        a = read_keypoints_csv(t / "o1" / "keypoints.csv", read_tracks_csv(t / "o1" / "tracks.csv"), J)
+        b = read_keypoints_csv(t / "o2" / "keypoints.csv", read_tracks_csv(t / "o2" / "tracks.csv"), J)
+        assoc = (t / "o1" / "association.csv").read_text().splitlines()
+    frames_b = {int(f): k for k, f in enumerate(b.frame)}
+    best, best_n = None, -1
+    for i in np.unique(a.track_id):  # the participant's track: the one nearest the hand conversion
+        m = np.flatnonzero(a.track_id == i)
+        d = [np.nanmedian(np.linalg.norm(a.kpt_world[k] - b.kpt_world[frames_b[int(a.frame[k])]], axis=-1))
+             for k in m if int(a.frame[k]) in frames_b]
+        n = sum(1 for x in d if x < 0.05)
+        if n > best_n:
+            best, best_n = i, n
+    m = np.flatnonzero(a.track_id == best)
+    share = len(m) / len(b.frame)
+    d = np.concatenate([np.linalg.norm(a.kpt_world[k] - b.kpt_world[frames_b[int(a.frame[k])]], axis=-1)
+                        for k in m if int(a.frame[k]) in frames_b])
+    d = d[np.isfinite(d)] * 1000
+    print(f"openpose seed {seed}: {len(np.unique(a.track_id))} people found ({len(assoc) - 1} association "
+          f"rows); participant one track over {100 * share:.1f} % of frames; against the hand conversion: "
+          f"median {np.median(d):.2f} mm, p95 {np.percentile(d, 95):.2f} mm over {d.size} joint-frames")
+    ok = check("participant one track over >= 98 % of frames", share >= 0.98, f"{100 * share:.1f} %")
+    n_people = len(np.unique(a.track_id))
+    ok &= check("bystander a separate person", n_people == 2, str(n_people))
+    ok &= check("median <= 5 mm", np.median(d) <= 5, f"{np.median(d):.2f} mm")
+    ok &= check("p95 <= 15 mm", np.percentile(d, 95) <= 15, f"{np.percentile(d, 95):.2f} mm")
+    return ok
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, default=2)
@@ -139,7 +209,8 @@ def main() -> int:
     if "export" in args.only:
         ok &= export()
     if "openpose" in args.only:
-        ok &= check("OpenPose/Pose2Sim trial read directly", False, "not built yet")
+        for seed in range(args.first_seed, args.first_seed + args.seeds):
+            ok &= openpose(seed)
     print(f"\n{'ALL TARGETS PASS' if ok else 'SOME TARGETS FAIL'}")
     return 0 if ok else 1
 

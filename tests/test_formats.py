@@ -137,3 +137,65 @@ def test_associate_command(scenes, tmp_path: Path) -> None:
     r = subprocess.run([*GT3D, "associate", str(root / "global"), "--out", str(tmp_path / "b")],
                        capture_output=True, text=True)
     assert r.returncode == 2 and "already global" in r.stderr
+
+
+def _trial(tmp_path: Path, skeleton: str = "body25", seed: int = 1) -> Path:
+    import dataclasses
+
+    from gt3dkit.sim import simulate_skeletons, to_z_up, write_openpose
+
+    sk = to_z_up(simulate_skeletons("native", seed=seed, frames=12, people=2, cameras=4, noise_px=1.0,
+                                    skeleton=skeleton, confidences=True))
+    uv = sk.uv.copy()
+    uv[np.ix_(sk.truth_id == 1, [2, 3])] = np.nan  # a bystander in two views
+    write_openpose(dataclasses.replace(sk, uv=uv), tmp_path / "trial", seed=seed)
+    return tmp_path / "trial"
+
+
+def test_openpose_trial(tmp_path: Path) -> None:
+    from gt3dkit.skeletons import SKELETONS
+
+    root = _trial(tmp_path)
+    sc = load_scene(root)
+    assert sc.layout == "openpose" and sc.skeleton == "body25" and sc.fps == 30.0 and not sc.fps_assumed
+    assert sc.obs.n_joints == 25 and sc.obs.kpt_conf is not None  # every joint, confidences kept
+    assert any("paired by sorted order" in w for w in sc.warnings)
+    assert len(np.unique(sc.obs.track_id)) == 2
+    # each person's detections, in every frame and view, come from one true person: the
+    # person seen in all four views is the participant
+    per = {int(i): len(np.unique(sc.obs.cam[sc.obs.track_id == i])) for i in np.unique(sc.obs.track_id)}
+    assert sorted(per.values()) == [2, 4]
+    # body25b is told from body25 by where joint 1 lies
+    assert load_scene(_trial(tmp_path / "b", "body25b")).skeleton == "body25b"
+    # exports use the detector's names
+    r = subprocess.run([*GT3D, "reconstruct", str(root), "--out", str(tmp_path / "o")], capture_output=True,
+                       text=True)
+    assert r.returncode == 0, r.stderr
+    r = subprocess.run([*GT3D, "export", str(tmp_path / "o"), "--format", "trc"], capture_output=True,
+                       text=True)
+    assert r.returncode == 0, r.stderr
+    head = (tmp_path / "o" / "export_trc" / "id0.trc").read_text().splitlines()[3].split("\t")
+    assert [x for x in head[2:] if x] == list(SKELETONS["body25"].marker_names)
+    assert "RBigToe" in head and "LHeel" in head
+
+
+def test_openpose_bad_files(tmp_path: Path) -> None:
+    import json
+
+    root = _trial(tmp_path)
+    f = sorted((root / "pose" / "cam2_json").glob("*.json"))[3]
+    good = f.read_text()
+    doc = json.loads(good)
+    for bad, needle in (({"people": 3}, "people"),
+                        ({"people": [{"pose_keypoints_2d": [1, 2, 0.5] * 24}]}, "24 joints"),
+                        ({"people": [{"pose_keypoints_2d": [1, 2, 1.5] * 25}]}, "confidence"),
+                        ({"people": [{"pose_keypoints_2d": ["a"] * 75}]}, "numbers")):
+        f.write_text(json.dumps(bad))
+        with pytest.raises(InputError, match=needle) as e:
+            load_scene(root)
+        assert f.name in str(e.value)
+    f.write_text(good[: len(good) // 2])
+    with pytest.raises(InputError) as e:
+        load_scene(root)
+    assert f.name in str(e.value)
+    assert doc["people"]

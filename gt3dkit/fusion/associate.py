@@ -160,7 +160,10 @@ def associate(scene: Scene, cfg: AssocConfig | None = None,
         n = both.sum(axis=1)
         with np.errstate(all="ignore"):
             med = np.nanmedian(np.where(n[:, None] > 0, d, 0.0), axis=1)
-        bad = (n < cfg.min_common_frames) | ~alive | (occ & occ[a][None]).any(axis=(1, 2))
+        # a track seen in one frame only can still be placed (from that one frame)
+        have = (weight > 0).sum(axis=1)
+        need = np.minimum(cfg.min_common_frames, np.minimum(have[a], have))
+        bad = (n < np.maximum(need, 1)) | ~alive | (occ & occ[a][None]).any(axis=(1, 2))
         med[bad] = np.inf
         med[a] = np.inf
         return med

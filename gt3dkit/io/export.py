@@ -45,7 +45,7 @@ def markers(res: Result) -> tuple[list[str], I64, F64, F64, list[int]]:
     tr = res.tracks
     grid, _ = frame_grid(tr.frame)
     ids = [int(i) for i in np.unique(tr.track_id)]
-    joints = res.joints if tr.kpt_world.shape[1] else ()
+    joints = res.marker_names if tr.kpt_world.shape[1] else ()
     per = list(joints) if joints else ["centre"]
     names, owner = [], []
     for i in ids:
@@ -172,7 +172,7 @@ def write_json(res: Result, path: Path) -> dict[str, Any]:
                       "semi_axes_directions": {"a": wfb[:, 0].tolist(), "b": wfb[:, 1].tolist(),
                                                "c": wfb[:, 2].tolist()},
                       "fps": res.fps, "skeleton": (res.meta.get("frame") or {}).get("skeleton"),
-                      "joints": list(joints),
+                      "joints": list(joints), "marker_names": list(res.marker_names if joints else ()),
                       "sd": "centre_sd: per world axis (see meta.json frame.sd); keypoint_sd: the joint's "
                             "largest sd over all directions", "source": str(res.out)},
            "frames": frames}

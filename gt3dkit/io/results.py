@@ -26,6 +26,16 @@ class Result:
         return tuple(str(x) for x in j)
 
     @property
+    def marker_names(self) -> tuple[str, ...]:
+        """Joint names as the detector names them (OpenPose's ``RBigToe``...), for exports."""
+        from gt3dkit.skeletons import SKELETONS
+
+        sk = (self.meta.get("frame") or {}).get("skeleton")
+        if isinstance(sk, str) and sk in SKELETONS and SKELETONS[sk].n_joints == len(self.joints):
+            return SKELETONS[sk].marker_names
+        return self.joints
+
+    @property
     def fps(self) -> float:
         return float((self.meta.get("input") or {}).get("fps") or 0.0)
 

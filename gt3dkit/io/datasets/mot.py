@@ -9,8 +9,9 @@ of -1 (a detection without a track) is an error, as the tracklets are what is as
 
 The calibration is the first of ``cameras.json``, ``calibration/``, ``*.toml`` (not Pose2Sim's
 ``Config.toml``) or ``sparse/`` in the folder (any format of :mod:`gt3dkit.calib.formats`), or
-``--calib``. Cameras are matched by name (file stem = calibration name), or, when the names differ but the counts
-agree, in natural sorted order (as Pose2Sim does), with a warning naming every pair.
+``--calib``. Cameras are matched by name (file stem = calibration name), or, when the names
+differ but the counts agree, in natural sorted order (as Pose2Sim does), with a warning naming
+every pair.
 Frame rate: the calibration's (``cameras.json`` ``fps``), or ``--fps``, else 25 assumed.
 """
 

@@ -63,21 +63,15 @@ def _config_fps(root: Path) -> float | None:
 
 
 def _which_25(sample: list[np.ndarray]) -> str:
-    """BODY_25 (joint 1 = neck, between the shoulders 2 and 5) or BODY_25B (joint 1 = left eye)."""
-    d25, d25b = [], []
+    """BODY_25 (joint 1 = the neck, midway between the shoulders 2 and 5) or BODY_25B (joint 1 =
+    the left eye, 2 the right eye, 5 the left shoulder): the distance of joint 1 from the
+    midpoint of joints 2 and 5, in units of their distance, is near 0 for BODY_25 only."""
+    d = []
     for k in sample:
-        ok = k[:, 2] > 0
-        if ok[[1, 2, 5]].all():
+        if (k[[1, 2, 5], 2] > 0).all():
             w = np.linalg.norm(k[2, :2] - k[5, :2]) + 1e-9
-            d25.append(np.linalg.norm(k[1, :2] - (k[2, :2] + k[5, :2]) / 2) / w)
-        if ok[[1, 5, 6]].all():
-            w = np.linalg.norm(k[5, :2] - k[6, :2]) + 1e-9
-            d25b.append(np.linalg.norm(k[1, :2] - (k[5, :2] + k[6, :2]) / 2) / w)
-    if not d25 and not d25b:
-        return "body25"
-    return (
-        "body25" if (np.median(d25) if d25 else np.inf) < (np.median(d25b) if d25b else np.inf) else "body25b"
-    )
+            d.append(np.linalg.norm(k[1, :2] - (k[2, :2] + k[5, :2]) / 2) / w)
+    return "body25" if not d or float(np.median(d)) < 0.25 else "body25b"
 
 
 def load(
