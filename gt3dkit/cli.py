@@ -147,7 +147,7 @@ def report_truth(scene: Any, tracks: Any, name: str, max_dist_m: float = 1.0) ->
     if scene.truth is None:
         return
     print(f"against {scene.truth.source}:")
-    if scene.association is not None and np.isfinite(scene.truth.center_world).any():
+    if scene.association is not None:
         from gt3dkit.eval.metrics import relabel_to_truth
 
         tracks = relabel_to_truth(tracks, scene.truth, scene.rig.up, max_dist_m)
@@ -230,7 +230,7 @@ SIM_MAX_POINTS = 20_000_000
 
 
 #: simulate options that apply to one kind of scene only.
-_SIM_ONLY = {"boxes": ("motion", "dropout", "shifted", "format", "global_ids"),
+_SIM_ONLY = {"boxes": ("motion", "dropout", "shifted", "global_ids"),
              "skeleton": ("missing", "skeleton", "conf", "outliers", "swaps", "glitch")}
 
 
@@ -243,8 +243,15 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         for n in names:
             if args.kind != kind and getattr(args, n) not in (None, False, 0.0):
                 raise InputError(f"--{n}", f"applies to --kind {kind} scenes")
-    if args.global_ids and args.format != "mot":
-        raise InputError("--global-ids", "applies to --format mot")
+    kinds = {"mot": "boxes", "cvat": "boxes", "coco": "skeleton", "openpose": "skeleton"}
+    if args.format and kinds[args.format] != args.kind:
+        raise InputError("--format", f"{args.format} is written for --kind {kinds[args.format]} scenes")
+    if args.global_ids and args.format not in ("mot", "cvat"):
+        raise InputError("--global-ids", "applies to --format mot or cvat")
+    if args.no_track_ids and args.format != "coco":
+        raise InputError("--no-track-ids", "applies to --format coco")
+    if args.format == "openpose" and args.skeleton is None:
+        args.skeleton = "body25"
     args.motion, args.dropout = args.motion or "smooth", 0.15 if args.dropout is None else args.dropout
     args.missing = 0.05 if args.missing is None else args.missing
     args.skeleton = args.skeleton or "coco19"
@@ -268,11 +275,26 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                                     confidences=args.conf, fps=args.fps or 30.0)
         except ValueError as e:
             raise InputError("simulate", str(e)) from None
-        write_skeleton_scene(sk, Path(args.out), args.layout)
+        if args.format == "openpose":
+            from gt3dkit.sim import to_z_up, write_openpose
+            from gt3dkit.skeletons import DETECTOR_SKELETONS
+
+            if args.skeleton not in {n for v in DETECTOR_SKELETONS.values() for n in v}:
+                raise InputError("--skeleton", "OpenPose files hold a detector skeleton (body25, body25b, "
+                                               f"halpe26, coco18, coco17), not {args.skeleton}")
+            write_openpose(to_z_up(sk), Path(args.out), seed=args.seed)
+        elif args.format == "coco":
+            from gt3dkit.sim import write_coco
+
+            write_coco(sk, Path(args.out), track_ids=not args.no_track_ids, seed=args.seed)
+        else:
+            write_skeleton_scene(sk, Path(args.out), args.layout)
         if sk.injected:
             n_err = f", {len(sk.injected)} injected errors (injected.csv)"
-        print(f"wrote {args.layout} skeleton scene to {args.out}: {args.cameras or 10} cameras, "
-              f"{args.frames} frames, {args.people} people ({args.skeleton}), y-down world{n_err}")
+        print(f"wrote {args.format or args.layout} skeleton scene to {args.out}: {args.cameras or 10} "
+              "cameras, "
+              f"{args.frames} frames, {args.people} people ({args.skeleton}), "
+              f"{'z-up' if args.format == 'openpose' else 'y-down'} world{n_err}")
         return 0
     if args.layout == "panoptic":
         raise InputError("simulate", "box scenes are native, wildtrack or multiviewx")
@@ -282,16 +304,16 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                        motion=args.motion, cameras=args.cameras, fps=args.fps)
     except ValueError as e:
         raise InputError("simulate", str(e)) from None
-    if args.format == "mot":
-        write_scene(sim, Path(args.out), "mot", id_seed=None if args.global_ids else args.seed)
+    if args.format in ("mot", "cvat"):
+        write_scene(sim, Path(args.out), args.format, id_seed=None if args.global_ids else args.seed)
     else:
         write_scene(sim, Path(args.out), args.layout)
     seen = int(np.isfinite(sim.boxes[..., 0]).sum())
     if sim.injected:
         n_err = f", {len(sim.injected)} injected errors (injected.csv)"
-    form = (f"{args.layout} rig as MOT files per camera ("
+    form = (f"{args.layout} rig as {args.format.upper()} files per camera ("
             + ("global ids" if args.global_ids else "ids numbered per camera") + ")"
-            if args.format == "mot" else args.layout)
+            if args.format else args.layout)
     print(f"wrote {form} scene to {args.out}: {len(sim.rig.cameras)} cameras, "
           f"{len(sim.frames)} frames at {sim.fps:g} fps, {args.people} people, {seen} boxes, "
           f"truth.csv{n_err}")
@@ -624,11 +646,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--noise-px", type=PIXELS, default=0.0)
     s.add_argument("--dropout", type=_number(float, 0, 1, hi_open=True),
                    help="box scenes: fraction of boxes dropped (default 0.15)")
-    s.add_argument("--format", choices=("mot",),
-                   help="box scenes: write the annotations as mot/<camera>.txt (MOTChallenge), "
-                        "each camera numbering its people itself")
+    s.add_argument("--format", choices=("mot", "cvat", "coco", "openpose"),
+                   help="write the annotations as users' tools do: boxes as mot/<camera>.txt "
+                        "(MOTChallenge) or cvat/<camera>.xml (CVAT for video 1.1), each camera "
+                        "numbering its people itself; skeletons as coco/<camera>.json (COCO "
+                        "keypoints) or a Pose2Sim/OpenPose trial (z-up world, TOML calibration, "
+                        "no ids)")
     s.add_argument("--global-ids", action="store_true",
-                   help="with --format mot: keep one id per person across cameras")
+                   help="with --format mot or cvat: keep one id per person across cameras")
+    s.add_argument("--no-track-ids", action="store_true",
+                   help="with --format coco: no track ids (detections per frame)")
     s.set_defaults(func=cmd_simulate)
 
     c = sub.add_parser("compare", parents=[common],

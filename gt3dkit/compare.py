@@ -120,12 +120,12 @@ def compare(scene: Scene, out: Path, estimators: tuple[str, ...] = COMPARE_ESTIM
                 row[f"dist_to_{other}_mean_m"] = float(np.mean(d)) if d.size else float("nan")
                 row[f"dist_to_{other}_p95_m"] = float(np.percentile(d, 95)) if d.size else float("nan")
         row["seconds"] = seconds[name]
+        if scene.truth is not None and scene.association is not None:  # gt3dkit's own ids
+            from gt3dkit.eval.metrics import relabel_to_truth
+
+            tr = relabel_to_truth(tr, scene.truth, scene.rig.up)
         if scene.truth is not None:
             if np.isfinite(scene.truth.center_world).any():
-                if scene.association is not None:  # gt3dkit's own ids: matched to the truth's
-                    from gt3dkit.eval.metrics import relabel_to_truth
-
-                    tr = relabel_to_truth(tr, scene.truth, scene.rig.up)
                 e = box_errors(tr, scene.truth, scene.rig.up)
                 row["truth_ground_mean_m"] = e.ground_mean_m
                 row["truth_centre_mean_m"] = e.centre_mean_m

@@ -38,7 +38,7 @@ from gt3dkit.io.datasets.wildtrack import GridLayout
 from gt3dkit.types import F64, I64, Camera, Observations, Rig, Scene
 
 SIM_LAYOUTS = ("wildtrack", "multiviewx", "native")
-WRITE_LAYOUTS = (*SIM_LAYOUTS, "mot")  # "mot": any simulated rig, written as MOT files per camera
+WRITE_LAYOUTS = (*SIM_LAYOUTS, "mot", "cvat")  # any simulated rig as per-camera task files
 INJECTED_COLUMNS = ("frame", "camera", "id", "joint", "kind", "detail")
 
 
@@ -336,6 +336,8 @@ def write_scene(sim: SimScene, out: Path, layout: str, id_seed: int | None = 0) 
             _write_native(sim, tmp)
         elif layout == "mot":
             _write_mot(sim, tmp, id_seed)
+        elif layout == "cvat":
+            _write_cvat(sim, tmp, id_seed)
         else:
             _write_grid(sim, tmp, GRID_LAYOUTS[layout])
 
@@ -382,8 +384,7 @@ def _write_mot(sim: SimScene, tmp: Path, id_seed: int | None) -> None:
     people = np.unique(sim.truth_id)
     rng = np.random.default_rng(id_seed) if id_seed is not None else None
     for c, cam in enumerate(sim.rig.cameras):
-        local = dict(zip(people.tolist(), (rng.permutation(len(people)) + 1 if rng is not None
-                                           else people).tolist(), strict=True))
+        local = _local_ids(people, rng)
         lines = []
         for i in range(len(sim.truth_frame)):
             b = sim.boxes[i, c]
@@ -391,6 +392,90 @@ def _write_mot(sim: SimScene, tmp: Path, id_seed: int | None) -> None:
                 lines.append(f"{int(sim.truth_frame[i])},{local[int(sim.truth_id[i])]},{b[0]:g},{b[1]:g},"
                              f"{b[2] - b[0]:g},{b[3] - b[1]:g},1,-1,-1,-1")
         (tmp / "mot" / f"{cam.name}.txt").write_text("\n".join(lines) + ("\n" if lines else ""))
+
+
+def _local_ids(people: np.ndarray, rng: np.random.Generator | None) -> dict[int, int]:
+    ids = rng.permutation(len(people)) + 1 if rng is not None else people
+    return dict(zip(people.tolist(), ids.tolist(), strict=True))
+
+
+def _write_cvat(sim: SimScene, tmp: Path, id_seed: int | None) -> None:
+    """``cvat/<camera>.xml``: one "CVAT for video 1.1" task per camera, one track per person
+    seen there (its own id), a box per frame, ``outside`` where not seen."""
+    from xml.sax.saxutils import quoteattr
+
+    doc = cameras_doc(sim.rig, sim.fps, frame=sim.rig.frame_name, units="m")
+    (tmp / "cameras.json").write_text(json.dumps(doc, indent=1))
+    (tmp / "cvat").mkdir()
+    people = np.unique(sim.truth_id)
+    rng = np.random.default_rng(id_seed) if id_seed is not None else None
+    for c, cam in enumerate(sim.rig.cameras):
+        local = _local_ids(people, rng)
+        lines = ['<?xml version="1.0" encoding="utf-8"?>', "<annotations>", "  <version>1.1</version>",
+                 f"  <meta><task><name>{cam.name}</name><size>{len(sim.frames)}</size>"
+                 f"<mode>interpolation</mode><original_size><width>{cam.width}</width><height>{cam.height}</height></original_size>"
+                 "</task></meta>"]
+        for p in people:
+            m = np.flatnonzero((sim.truth_id == p) & np.isfinite(sim.boxes[:, c, 0]))
+            if not len(m):
+                continue
+            lines.append(f'  <track id="{local[int(p)]}" label={quoteattr("person")} source="manual">')
+            for k in m:
+                b = sim.boxes[k, c]
+                lines.append(f'    <box frame="{int(sim.truth_frame[k])}" outside="0" occluded="0" '
+                             f'keyframe="1" xtl="{b[0]:.2f}" ytl="{b[1]:.2f}" xbr="{b[2]:.2f}" '
+                             f'ybr="{b[3]:.2f}" z_order="0"></box>')
+            lines.append("  </track>")
+        lines.append("</annotations>")
+        (tmp / "cvat" / f"{cam.name}.xml").write_text("\n".join(lines) + "\n")
+
+
+def write_coco(sim: SkeletonScene, out: Path, track_ids: bool = True, seed: int = 0) -> None:
+    """``coco/<camera>.json`` (COCO keypoints per camera, joint names in ``categories``;
+    ``track_id`` numbered per camera when ``track_ids``, else none) + ``cameras.json`` +
+    ``truth_keypoints.csv``, atomically."""
+    from gt3dkit.skeletons import SKELETONS
+
+    skel = SKELETONS[sim.skeleton]
+    rng = np.random.default_rng([seed, 3])
+
+    def write(tmp: Path) -> None:
+        doc = cameras_doc(sim.rig, sim.fps, units="m", frame=sim.rig.frame_name)
+        (tmp / "cameras.json").write_text(json.dumps(doc, indent=1))
+        (tmp / "coco").mkdir()
+        people = np.unique(sim.truth_id)
+        for c, cam in enumerate(sim.rig.cameras):
+            local = _local_ids(people, rng)
+            images = [{"id": int(k), "file_name": f"{cam.name}/frame_{int(f):06d}.jpg", "frame_id": int(f),
+                       "width": cam.width, "height": cam.height} for k, f in enumerate(sim.frames)]
+            img_of = {int(f): int(k) for k, f in enumerate(sim.frames)}
+            anns = []
+            for a in rng.permutation(len(sim.truth_frame)):
+                uv = sim.uv[a, c]
+                seen = np.isfinite(uv).all(axis=1)
+                if seen.sum() < 1:
+                    continue
+                kp = np.column_stack([np.nan_to_num(uv), np.where(seen, 2, 0)]).ravel()
+                lo, hi = uv[seen].min(axis=0), uv[seen].max(axis=0)
+                ann = {"id": len(anns) + 1, "image_id": img_of[int(sim.truth_frame[a])], "category_id": 1,
+                       "keypoints": [round(float(v), 3) for v in kp], "num_keypoints": int(seen.sum()),
+                       "bbox": [round(float(v), 2) for v in (*lo, *(hi - lo))], "iscrowd": 0}
+                if track_ids:
+                    ann["track_id"] = local[int(sim.truth_id[a])]
+                anns.append(ann)
+            coco = {"images": images, "annotations": anns,
+                    "categories": [{"id": 1, "name": "person", "keypoints": list(skel.marker_names),
+                                    "skeleton": [[int(a) + 1, int(b) + 1] for a, b in skel.bones]}]}
+            (tmp / "coco" / f"{cam.name}.json").write_text(json.dumps(coco))
+        with open(tmp / "truth_keypoints.csv", "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(["frame", "id", "joint", "x", "y", "z"])
+            for a in range(len(sim.truth_frame)):
+                for k in range(skel.n_joints):
+                    w.writerow([int(sim.truth_frame[a]), int(sim.truth_id[a]), k,
+                                *(f"{v:.6f}" for v in sim.kpt_world[a, k])])
+
+    write_dir_atomically(Path(out), write)
 
 
 def _write_grid(sim: SimScene, tmp: Path, g: GridLayout) -> None:

@@ -11,6 +11,7 @@ it at an ellipsoid's centre, scaled to the ellipsoid, for joints no two views se
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -124,3 +125,26 @@ def skeleton_for(n_joints_seen: int) -> Skeleton:
             return SKELETONS[name]
     raise ValueError(f"no skeleton has {n_joints_seen} joints (known: "
                      f"{', '.join(f'{k} ({v.n_joints})' for k, v in SKELETONS.items())})")
+
+
+def _norm_joint(name: str) -> str:
+    """A joint name in any common spelling (``LEye``, ``left_eye``, ``L_Eye``, ``left eye``) ->
+    ours (``l_eye``)."""
+    s = re.sub(r"^([LR])(?=[A-Z][a-z])", r"\1_", name.strip())  # OpenPose's LEye, RBigToe
+    s = re.sub(r"(?<=[a-z])(?=[A-Z])", "_", s).lower().replace(" ", "_").replace("-", "_")
+    s = re.sub(r"^left_?", "l_", re.sub(r"^right_?", "r_", s))
+    return {"midhip": "pelvis", "mid_hip": "pelvis", "hip": "pelvis", "c_hip": "pelvis", "chip": "pelvis",
+            "head": "head_top", "headtop": "head_top", "upper_neck": "neck", "l_bigtoe": "l_big_toe",
+            "r_bigtoe": "r_big_toe", "l_smalltoe": "l_small_toe", "r_smalltoe": "r_small_toe"}.get(s, s)
+
+
+def skeleton_for_names(names: list[str]) -> tuple[Skeleton, list[int]]:
+    """The smallest known skeleton holding every joint named (any common spelling), and each
+    name's index in it; ValueError naming what no skeleton has."""
+    ours = [_norm_joint(n) for n in names]
+    for sk in sorted(SKELETONS.values(), key=lambda s: s.n_joints):
+        if set(ours) <= set(sk.joints):
+            return sk, [sk.joints.index(j) for j in ours]
+    best = max(SKELETONS.values(), key=lambda s: len(set(ours) & set(s.joints)))
+    missing = [n for n, o in zip(names, ours, strict=True) if o not in best.joints]
+    raise ValueError(f"no known skeleton has the joints {missing} (closest: {best.name})")

@@ -199,3 +199,40 @@ def test_openpose_bad_files(tmp_path: Path) -> None:
         load_scene(root)
     assert f.name in str(e.value)
     assert doc["people"]
+
+
+def test_cvat_and_coco_tasks(tmp_path: Path) -> None:
+    """CVAT for video XML (boxes, ids per task) and COCO keypoints (with and without track ids)
+    read, associated and reconstructed like the same scene with global ids."""
+    from gt3dkit.api import reconstruct
+    from gt3dkit.eval.metrics import relabel_to_truth
+    from gt3dkit.sim import simulate_skeletons, write_coco, write_skeleton_scene
+
+    sim = simulate("wildtrack", seed=3, frames=10, people=6, noise_px=1.0, dropout=0.0, hide_covered=0.5)
+    write_scene(sim, tmp_path / "cvat", "cvat", id_seed=2)
+    sc = load_scene(tmp_path / "cvat")
+    assert sc.layout == "cvat" and len({r[3] for r in sc.association.rows}) == 6
+    _clusters_are_people(sim, sc)
+    sk = simulate_skeletons("native", seed=4, frames=8, people=2, cameras=5, noise_px=1.0)
+    write_skeleton_scene(sk, tmp_path / "native", "native")
+    def err(tr, truth) -> float:
+        from gt3dkit.eval.metrics import match_rows
+
+        it, ig = match_rows(tr, truth)
+        return float(np.nanmedian(np.linalg.norm(tr.kpt_world[it] - truth.kpt_world[ig], axis=-1)))
+
+    nat = load_scene(tmp_path / "native")
+    e_ref = err(reconstruct(nat, "triangulation"), nat.truth)
+    assert np.isfinite(e_ref)
+    for ids in (True, False):
+        write_coco(sk, tmp_path / f"coco{ids}", track_ids=ids, seed=1)
+        c = load_scene(tmp_path / f"coco{ids}")
+        assert c.layout == "coco" and c.skeleton == "coco19"
+        assert len(np.unique(c.obs.track_id)) == 2
+        tr = relabel_to_truth(reconstruct(c, "triangulation"), c.truth, c.rig.up)
+        assert err(tr, c.truth) == pytest.approx(e_ref, rel=0.05, abs=1e-4)
+    # a broken CVAT file: one line naming the file and the line
+    p = next((tmp_path / "cvat" / "cvat").glob("*.xml"))
+    p.write_text(p.read_text()[:300])
+    with pytest.raises(InputError, match=r"line \d+.*malformed XML"):
+        load_scene(tmp_path / "cvat")

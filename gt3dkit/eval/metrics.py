@@ -15,6 +15,7 @@ Definitions (metres):
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,7 +43,12 @@ def ids_to_truth(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: floa
     ids, ti = np.unique(tracks.track_id, return_inverse=True)
     tids, gi = np.unique(truth.track_id, return_inverse=True)
     count = np.zeros((len(ids), len(tids)))
-    gt = ground_coords(truth.center_world, up)
+    centre = truth.center_world
+    if not np.isfinite(centre).any() and truth.kpt_world.shape[1]:  # keypoint truth: the joints' mean
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            centre = np.nanmean(truth.kpt_world, axis=1)
+    gt = ground_coords(centre, up)
     ge = ground_coords(tracks.center_world, up)
     for f in np.intersect1d(tracks.frame, truth.frame):
         a, b = np.flatnonzero(tracks.frame == f), np.flatnonzero(truth.frame == f)

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,6 +43,8 @@ class AssocConfig:
     max_ground_m: float = 0.8  # clusters this far apart (median over common frames) stay apart
     min_common_frames: int = 2
     border_px: float = 2.0  # a box bottom this close to the image edge has no ground point
+    min_ray_sin: float = 0.17  # ... nor one whose ray meets the floor at less than 10 degrees
+    min_camera_m: float = 0.3  # ... nor one seen by a camera less than this high above the floor
     max_axis_m: float = 0.4  # a track without ground points joins the cluster whose vertical axis
     #                          its box-centre rays pass this close to (and twice closer than any other)
 
@@ -78,26 +81,84 @@ class Association:
                 "only)")
 
 
+def box_or_keypoint_box(box: F64, kpt: F64) -> F64:
+    """(N, 4) each row's box, or where it has none the box around its keypoints (NaN if
+    fewer than 3)."""
+    out = box.copy()
+    need = ~np.isfinite(box).all(axis=1)
+    if need.any() and kpt.shape[1]:
+        k = kpt[need]
+        n = np.isfinite(k[..., 0]).sum(axis=1)
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            kb = np.stack([np.nanmin(k[..., 0], axis=1), np.nanmin(k[..., 1], axis=1),
+                           np.nanmax(k[..., 0], axis=1), np.nanmax(k[..., 1], axis=1)], axis=1)
+        out[need] = np.where((n >= 3)[:, None], kb, np.nan)
+    return out
+
+
+def _box_foot(scene: Scene, box: F64) -> F64:
+    """(N, 2) the point of each box on the image direction of world-down through its centre
+    (the bottom centre for an upright camera; the top for one mounted upside down)."""
+    from gt3dkit.geom.camera import Cams, pixel_rays, project_points
+
+    obs = scene.obs
+    cams = Cams.of(scene.rig)
+    out = np.full((len(obs), 2), np.nan)
+    ok = np.isfinite(box).all(axis=1)
+    for c in np.unique(obs.cam[ok]):
+        m = np.flatnonzero(ok & (obs.cam == c))
+        ctr = np.stack([(box[m, 0] + box[m, 2]) / 2, (box[m, 1] + box[m, 3]) / 2], axis=1)
+        sub = cams.take(np.array([c]))
+        o, d = pixel_rays(ctr[:, None, :], sub.K, sub.dist, sub.R, sub.t, sub.depth_sign)
+        X = o[0] + 5.0 * d[:, 0]  # a point on the ray, 5 m out
+        uv, _ = project_points(np.stack([X, X - 0.5 * cams.up]), sub.K, sub.dist, sub.R, sub.t,
+                               sub.depth_sign)
+        v = uv[1, :, 0] - uv[0, :, 0]  # (n, 2) image direction of world-down
+        v /= np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+        half = np.stack([(box[m, 2] - box[m, 0]) / 2, (box[m, 3] - box[m, 1]) / 2], axis=1)
+        # from the centre along v to the box's edge
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = np.min(np.where(np.abs(v) > 1e-9, half / np.abs(v), np.inf), axis=1)
+        out[m] = ctr + s[:, None] * v
+    return out
+
+
 def ground_points(scene: Scene, cfg: AssocConfig) -> F64:
-    """(N, 3) where each observation's box bottom-centre ray meets the floor (NaN: no box,
-    bottom at the image border, ray parallel to or away from the floor)."""
+    """(N, 3) where each observation's foot pixel (a box's bottom centre, else the mean of its
+    ankle/heel/toe keypoints) ray meets the floor (NaN: none, at the image's bottom border, ray
+    parallel to or away from the floor)."""
     from gt3dkit.geom.camera import Cams, pixel_rays
 
     obs = scene.obs
     cams = Cams.of(scene.rig)
     out = np.full((len(obs), 3), np.nan)
     b = obs.box_xyxy_px
-    ok = np.isfinite(b).all(axis=1) & (b[:, 3] < cams.wh[obs.cam, 1] - cfg.border_px)
+    foot = _box_foot(scene, b)  # where the box meets the person's axis on the floor side
+    if obs.n_joints and scene.skeleton:  # the mean of the foot joints seen, when there are
+        from gt3dkit.skeletons import SKELETONS
+
+        js = [i for i, j in enumerate(SKELETONS[scene.skeleton].joints)
+              if j.split("_", 1)[-1] in ("ankle", "heel", "big_toe", "small_toe")]
+        if js:
+            with np.errstate(all="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                kf = np.nanmean(obs.kpt_uv_px[:, js], axis=1)
+            # a pose without its feet: its box (often the keypoints' extent) ends at the knees
+            posed = np.isfinite(obs.kpt_uv_px[..., 0]).sum(axis=1) >= 3
+            foot[posed] = kf[posed]
+    ok = np.isfinite(foot).all(axis=1) & (foot[:, 1] < cams.wh[obs.cam, 1] - cfg.border_px)
     for c in np.unique(obs.cam[ok]):
         m = np.flatnonzero(ok & (obs.cam == c))
-        uv = np.stack([(b[m, 0] + b[m, 2]) / 2, b[m, 3]], axis=1)[:, None, :]
+        uv = foot[m][:, None, :]
         sub = cams.take(np.array([c]))
         origin, d = pixel_rays(uv, sub.K, sub.dist, sub.R, sub.t, sub.depth_sign)
         o, d = origin[0], d[:, 0]
         den = d @ cams.up
         with np.errstate(divide="ignore", invalid="ignore"):
             s = -(o @ cams.up) / den
-        good = np.isfinite(s) & (s > 0)
+        # a camera near or under the floor, or a ray grazing it, places feet metres off
+        good = np.isfinite(s) & (s > 0) & (-den > cfg.min_ray_sin) & (o @ cams.up > cfg.min_camera_m)
         out[m[good]] = o + s[good, None] * d[good]
     return out
 
@@ -111,7 +172,7 @@ def _axis_distances(scene: Scene, tl: np.ndarray, t_of: np.ndarray, T: int, F: i
     cams = Cams.of(scene.rig)
     o = np.full((T, F, 3), np.nan)
     d = np.full((T, F, 3), np.nan)
-    b = obs.box_xyxy_px
+    b = box_or_keypoint_box(obs.box_xyxy_px, obs.kpt_uv_px)
     ok = np.isfinite(b).all(axis=1)
     for c in np.unique(obs.cam[ok]):
         m = np.flatnonzero(ok & (obs.cam == c))
@@ -168,8 +229,6 @@ def associate(scene: Scene, cfg: AssocConfig | None = None,
         med[a] = np.inf
         return med
 
-    import warnings
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         cost = np.stack([costs(a) for a in range(T)]) if T else np.zeros((0, 0))
@@ -186,15 +245,17 @@ def associate(scene: Scene, cfg: AssocConfig | None = None,
             cost[a] = costs(a)
             cost[:, a] = cost[a]
     # tracklets with (almost) no ground point (feet cut off by the image's bottom edge: someone
-    # close to the camera): joined to the cluster whose vertical axis their box-centre rays pass
-    # closest to, when that is clearly the best
+    # close to the camera) or still alone: joined to the cluster whose vertical axis their
+    # box-centre rays pass closest to, when that is clearly the best
     axis_d = _axis_distances(scene, tl, t_of, T, F)
-    cut = np.flatnonzero(alive & (weight.sum(axis=1) < cfg.min_common_frames) & (member == np.arange(T)))
+    # (and any track still alone: its foot points may be off, a foot ray grazing the floor)
+    cut = np.flatnonzero(alive & (np.bincount(member, minlength=T) == 1))
     for t in cut:
         if member[t] != t or (member == t).sum() > 1:
             continue
         cand = []
-        for k in np.flatnonzero(alive & (weight.sum(axis=1) >= cfg.min_common_frames)):
+        for k in np.flatnonzero(alive & (weight.sum(axis=1) >= cfg.min_common_frames)
+                                & (np.bincount(member, minlength=T) > 1)):
             if k == t or (occ[k] & occ[t]).any():
                 continue
             mean = sums[k] / np.maximum(weight[k], 1e-12)[:, None]

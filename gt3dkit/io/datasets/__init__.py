@@ -11,9 +11,9 @@ import numpy as np
 from gt3dkit.errors import InputError
 from gt3dkit.types import Scene
 
-LAYOUTS = ("native", "wildtrack", "multiviewx", "panoptic", "mot", "openpose")
+LAYOUTS = ("native", "wildtrack", "multiviewx", "panoptic", "mot", "openpose", "cvat", "coco")
 #: layouts whose ids are per camera or absent: association makes people of them
-ASSOCIATED = ("mot", "openpose")
+ASSOCIATED = ("mot", "openpose", "cvat", "coco")
 
 
 def detect_layout(root: Path) -> str:
@@ -25,6 +25,10 @@ def detect_layout(root: Path) -> str:
         return "mot"
     if any(p.is_dir() for p in root.glob("*_json")) or any(p.is_dir() for p in root.glob("pose/*_json")):
         return "openpose"
+    if (root / "cvat").is_dir():
+        return "cvat"
+    if (root / "coco").is_dir():
+        return "coco"
     if (root / "cameras.json").exists():
         return "native"
     if (root / "calibrations" / "intrinsic_zero").is_dir():
@@ -37,7 +41,8 @@ def detect_layout(root: Path) -> str:
                                 "calibrations/intrinsic_zero (WILDTRACK), "
                                 "calibrations/intrinsic (MultiviewX) or "
                                 "calibration_<seq>.json (CMU Panoptic), mot/<camera>.txt "
-                                "(MOTChallenge per camera) or <camera>_json/ (OpenPose)")
+                                "(MOTChallenge per camera), <camera>_json/ (OpenPose), cvat/<camera>.xml "
+                                "or coco/<camera>.json")
 
 
 def with_calibration(scene: Scene, calib: Path | str) -> Scene:
@@ -87,7 +92,7 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     from gt3dkit.io.datasets import checks, native, panoptic, wildtrack
 
     layout = layout or detect_layout(Path(root))
-    if skeleton is not None and layout not in ("native", "openpose"):
+    if skeleton is not None and layout not in ("native", "openpose", "cvat", "coco"):
         raise InputError("--skeleton", f"applies to native keypoints.csv inputs, not {layout}")
     if panoptic_options and layout != "panoptic":
         raise InputError(str(root), f"options {sorted(panoptic_options)} apply to the panoptic "
@@ -103,6 +108,10 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
         from gt3dkit.io.datasets import openpose
 
         scene = openpose.load(Path(root), skeleton, calib, fps)
+    elif layout in ("cvat", "coco"):
+        from gt3dkit.io.datasets import tasks
+
+        scene = tasks.load(Path(root), layout, skeleton, calib, fps)
     elif layout == "native":
         scene = native.load(Path(root), skeleton)
     elif layout == "panoptic":
@@ -134,7 +143,8 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
         )
 
         over = read_overrides(Path(association), scene.rig.names) if association is not None else None
-        assoc = (associate if layout == "mot" else associate_detections)(scene, overrides=over)
+        per_frame = layout == "openpose" or scene.association == "detections"
+        assoc = (associate_detections if per_frame else associate)(scene, overrides=over)
         scene = dataclasses.replace(apply_association(scene, assoc), association=assoc)
         out = sum(1 for r in assoc.rows if r[3] < 0)
         if out:

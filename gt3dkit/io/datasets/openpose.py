@@ -156,9 +156,16 @@ def load(
             rb.add_joint(f, c, i, j, (float(a[j, 0]), float(a[j, 1])), where, float(a[j, 2]))
     obs = rb.build()
     files[f"calibration:{cal.name}"] = sha256(cal) if cal.is_file() else "folder"
+    truth = None
+    if (root / "truth_keypoints.csv").exists():
+        from gt3dkit.io.datasets.native import read_kpt_truth
+
+        files["truth_keypoints.csv"] = sha256(root / "truth_keypoints.csv")
+        truth = read_kpt_truth(root / "truth_keypoints.csv", J)
     cfg_fps = _config_fps(root)
     rate = fps or fps_doc or cfg_fps
     return Scene(
+        truth=truth,
         rig=rig,
         obs=obs,
         layout="openpose",

@@ -1,0 +1,220 @@
+"""Per-camera annotation-task exports: CVAT for video 1.1 XML and COCO keypoints JSON.
+
+* ``cvat/<camera>.xml``: one CVAT task per camera, exported as "CVAT for video 1.1": ``<track
+  id label>`` holding ``<box frame outside xtl ytl xbr ybr>`` and/or ``<skeleton frame
+  outside>`` with ``<points label outside points="x,y">`` per joint. Shapes with
+  ``outside="1"`` are not annotations. Track ids are the task's own (per camera).
+* ``coco/<camera>.json``: COCO keypoints, one file per camera: ``images`` (``id``, and the frame
+  as ``frame_id`` or ``frame``, else the last number in ``file_name``), ``annotations``
+  (``image_id``, ``keypoints`` = x, y, v per joint with v = 0 not labelled, ``bbox`` = x, y, w,
+  h, and the track as ``track_id``, ``instance_id`` or ``attributes.track_id`` when present),
+  ``categories[].keypoints`` = the joint names.
+
+Joint names in any usual spelling are matched to the smallest known skeleton holding them all
+(:func:`gt3dkit.skeletons.skeleton_for_names`). With track ids, the per-camera tracks are
+associated across cameras (:func:`gt3dkit.fusion.associate.associate`); without, each frame's
+detections are (:func:`~gt3dkit.fusion.associate.associate_detections`). Calibration, camera
+matching and frame rate as for :mod:`gt3dkit.io.datasets.mot`.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gt3dkit.errors import InputError
+from gt3dkit.io.datasets.checks import check_pixels
+from gt3dkit.io.datasets.common import RowBuilder, load_json, parse_frame, parse_int, sha256
+from gt3dkit.io.datasets.mot import DEFAULT_FPS, find_calibration, match_cameras, natural_key
+from gt3dkit.skeletons import skeleton_for_names
+from gt3dkit.types import Scene
+
+Item = tuple[int, int, int, list[float] | None, dict[str, tuple[float, float, float]], str]
+
+
+def _num(where: str, v: Any, name: str) -> float:
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        raise InputError(where, f"{name} must be a number, got {v!r}") from None
+    if not math.isfinite(x):
+        raise InputError(where, f"{name} is not finite ({v})")
+    return x
+
+
+def _read_cvat(path: Path) -> list[Item]:
+    """(frame, track id, -1, box or None, {joint: (x, y, 1)}, where) per shape."""
+    import xml.etree.ElementTree as ET
+
+    import defusedxml.ElementTree as DET
+    from defusedxml import DefusedXmlException
+
+    try:
+        root = DET.parse(path).getroot()
+    except ET.ParseError as e:
+        raise InputError(f"{path}: line {e.position[0]}", f"malformed XML ({e})") from None
+    except DefusedXmlException as e:
+        raise InputError(str(path), f"refused: {e}") from None
+    except OSError as e:
+        raise InputError(str(path), f"cannot read ({e.strerror})") from None
+    if root.tag != "annotations":
+        raise InputError(str(path), f"expected <annotations> (CVAT for video 1.1), got <{root.tag}>")
+    out: list[Item] = []
+    for t in root.iter("track"):
+        where_t = f"{path}: track {t.get('id')!r}"
+        tid = parse_int(where_t, t.get("id"), "track id")
+        for shape in t:
+            if shape.tag not in ("box", "skeleton") or shape.get("outside", "0") == "1":
+                continue
+            where = f"{where_t} frame {shape.get('frame')!r}"
+            f = parse_frame(where, shape.get("frame"))
+            box, pts = None, {}
+            if shape.tag == "box":
+                box = [_num(where, shape.get(k), k) for k in ("xtl", "ytl", "xbr", "ybr")]
+            else:
+                for p in shape.iter("points"):
+                    if p.get("outside", "0") == "1":
+                        continue
+                    xy = (p.get("points") or "").split(",")
+                    if len(xy) != 2:
+                        raise InputError(f"{where} joint {p.get('label')!r}", f"points must be x,y, got "
+                                                                              f"{p.get('points')!r}")
+                    pts[str(p.get("label"))] = (_num(where, xy[0], "x"), _num(where, xy[1], "y"), 1.0)
+            out.append((f, tid, -1, box, pts, where))
+    return out
+
+
+def _read_coco(path: Path) -> list[Item]:
+    doc = load_json(path)
+    if not isinstance(doc, dict) or not isinstance(doc.get("annotations"), list):
+        raise InputError(str(path), 'expected {"images": [...], "annotations": [...], "categories": [...]}')
+    names: list[str] = []
+    for c in doc.get("categories") or []:
+        if isinstance(c, dict) and isinstance(c.get("keypoints"), list) and c["keypoints"]:
+            names = [str(k) for k in c["keypoints"]]
+            break
+    frame_of: dict[Any, int] = {}
+    import re
+
+    for i, im in enumerate(doc.get("images") or []):
+        where = f"{path}: images[{i}]"
+        if not isinstance(im, dict) or "id" not in im:
+            raise InputError(where, "expected an object with an id")
+        if "frame_id" in im or "frame" in im:
+            frame_of[im["id"]] = parse_frame(where, im.get("frame_id", im.get("frame")))
+        else:
+            nums = re.findall(r"\d+", str(im.get("file_name", "")))
+            if not nums:
+                raise InputError(where, "no frame: give frame_id or a file_name with the frame number")
+            frame_of[im["id"]] = parse_frame(where, nums[-1])
+    out: list[Item] = []
+    counter: dict[int, int] = {}
+    for i, a in enumerate(doc["annotations"]):
+        where = f"{path}: annotations[{i}]"
+        if not isinstance(a, dict):
+            raise InputError(where, "expected an object")
+        if a.get("image_id") not in frame_of:
+            raise InputError(where, f"image_id {a.get('image_id')!r} is not in images")
+        f = frame_of[a["image_id"]]
+        tid = a.get("track_id", a.get("instance_id", (a.get("attributes") or {}).get("track_id")))
+        det = counter.get(f, 0)
+        counter[f] = det + 1
+        box = None
+        if a.get("bbox") is not None:
+            b = [_num(where, v, "bbox") for v in (a["bbox"] if isinstance(a["bbox"], list) else [None])]
+            if len(b) != 4:
+                raise InputError(where, "bbox must be x, y, width, height")
+            box = [b[0], b[1], b[0] + b[2], b[1] + b[3]]
+        pts = {}
+        kp = a.get("keypoints") or []
+        if kp:
+            if not names or len(kp) != 3 * len(names):
+                raise InputError(where, f"{len(kp)} keypoint values for {len(names)} joints named in "
+                                        "categories")
+            for j, n in enumerate(names):
+                x, y, v = (_num(where, kp[3 * j + k], "keypoints") for k in range(3))
+                if v > 0:
+                    pts[n] = (x, y, 1.0 if v >= 2 else 0.5)
+        out.append((f, -1 if tid is None else parse_int(where, tid, "track_id"), det, box, pts, where))
+    return out
+
+
+def load(root: Path, kind: str, skeleton: str | None = None, calib: Path | str | None = None,
+         fps: float | None = None) -> Scene:
+    """``kind`` = ``cvat`` or ``coco``."""
+    from gt3dkit.calib.formats import detect_format, read_calibration
+    from gt3dkit.calib.formats.native import load_cameras
+    from gt3dkit.skeletons import SKELETONS
+
+    root = Path(root)
+    ext = {"cvat": "xml", "coco": "json"}[kind]
+    paths = sorted((root / kind).glob(f"*.{ext}"), key=lambda p: natural_key(p.stem))
+    if not paths:
+        raise InputError(str(root / kind), f"no <camera>.{ext} files")
+    cal = Path(calib) if calib is not None else find_calibration(root)
+    if cal is None:
+        raise InputError(str(root), "no calibration (cameras.json, calibration/, *.toml or sparse/): pass "
+                                    "--calib")
+    fps_doc = None
+    if detect_format(cal) == "native":
+        rig, fps_doc, _ = load_cameras(cal / "cameras.json" if cal.is_dir() else cal)
+    else:
+        rig = read_calibration(cal)
+    warnings: list[str] = []
+    cam_of = match_cameras([p.stem for p in paths], rig, str(root / kind), warnings)
+    items = {p: (_read_cvat(p) if kind == "cvat" else _read_coco(p)) for p in paths}
+    names = sorted({n for its in items.values() for it in its for n in it[4]})
+    skel = None
+    index: dict[str, int] = {}
+    if names:
+        try:
+            skel, idx = skeleton_for_names(names) if skeleton is None else (SKELETONS[skeleton], [])
+        except ValueError as e:
+            raise InputError(str(root / kind), str(e)) from None
+        if skeleton is not None:
+            from gt3dkit.skeletons import _norm_joint
+
+            ours = [_norm_joint(n) for n in names]
+            bad = [n for n, o in zip(names, ours, strict=True) if o not in skel.joints]
+            if bad:
+                raise InputError("--skeleton", f"{skeleton} has no joints {bad}")
+            idx = [skel.joints.index(o) for o in ours]
+        index = dict(zip(names, idx, strict=True))
+    with_ids = all(it[1] >= 0 for its in items.values() for it in its)
+    rb = RowBuilder(n_joints=skel.n_joints if skel else 0)
+    for p, its in items.items():
+        c = cam_of[p.stem]
+        for f, tid, det, box, pts, where in its:
+            key = tid if with_ids else det
+            if box is not None:
+                check_pixels(where, rig.cameras[c], box, "box")
+                rb.add_box(f, c, key, box, where)
+            for n, (x, y, conf) in pts.items():
+                check_pixels(where, rig.cameras[c], [x, y], "keypoint")
+                rb.add_joint(f, c, key, index[n], (x, y), f"{where} joint {n!r}", conf)
+    obs = rb.build()
+    if len(obs) == 0:
+        raise InputError(str(root), "no annotations in any frame")
+    if not with_ids and not obs.n_joints:
+        raise InputError(str(root / kind), "boxes without track ids: nothing to tell people apart by "
+                                           "(give track ids, or keypoints)")
+    files = {f"{kind}/{p.name}": sha256(p) for p in paths}
+    files[f"calibration:{cal.name}"] = sha256(cal) if cal.is_file() else "folder"
+    truth = None
+    if (root / "truth.csv").exists():
+        from gt3dkit.io.datasets.wildtrack import read_truth_csv
+
+        truth = read_truth_csv(root / "truth.csv", files, root)
+    if (root / "truth_keypoints.csv").exists() and skel is not None:
+        from gt3dkit.io.datasets.native import read_kpt_truth
+
+        files["truth_keypoints.csv"] = sha256(root / "truth_keypoints.csv")
+        truth = read_kpt_truth(root / "truth_keypoints.csv", skel.n_joints)
+    return Scene(rig=rig, obs=obs, layout=kind, fps=float(fps or fps_doc or DEFAULT_FPS), truth=truth,
+                 frames=np.unique(obs.frame), skeleton=skel.name if skel else None, files=files,
+                 root=str(root), warnings=tuple(warnings),
+                 fps_assumed="" if (fps or fps_doc) else f"{cal} gives no frame rate",
+                 association="tracks" if with_ids else "detections")
