@@ -79,6 +79,15 @@ def make_bases(root: Path) -> Path:
                          root / "kpts", "native")
     write_skeleton_scene(simulate_skeletons("panoptic", seed=1, frames=3, people=2, cameras=3),
                          root / "panoptic", "panoptic")
+    from gt3dkit.sim import to_z_up, write_coco, write_openpose
+
+    write_scene(simulate("wildtrack", seed=1, frames=4, people=3, dropout=0.0), root / "mot", "mot")
+    write_scene(simulate("wildtrack", seed=1, frames=4, people=3, dropout=0.0), root / "cvat", "cvat")
+    sk = simulate_skeletons("native", seed=1, frames=4, people=2, cameras=4, noise_px=1.0, skeleton="body25",
+                            confidences=True)
+    write_openpose(to_z_up(sk), root / "openpose")
+    sk = simulate_skeletons("native", seed=1, frames=4, people=2, cameras=4, noise_px=1.0)
+    write_coco(sk, root / "coco")
     err = io.StringIO()
     with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
         code = main(["reconstruct", str(root / "boxes"), "--out", str(root / "result"),
@@ -649,6 +658,7 @@ def cases(seed: int = 0) -> list[Case]:
     out += _odd_cases()
     out += _option_cases()
     out += _report_cases()
+    out += _format_cases()
     return out
 
 
@@ -750,6 +760,78 @@ def judge(o: Outcome, work: Path, entries: set[str], before_in: dict[str, str],
     stray = [x for x in left if "gt3d-" in x or x.startswith(".")]
     if stray:
         p.append(f"left behind: {stray}")
+
+
+def _format_cases() -> list[Case]:
+    """The per-camera task formats (MOT, CVAT, COCO, OpenPose) and the commands around them."""
+    rec = _recon("triangulation")
+    paired = "paired by sorted order"  # the OpenPose base's folders are named unlike its TOML
+
+    def op_file(root: Path) -> Path:
+        return sorted((root / "pose" / "cam2_json").glob("*.json"))[1]
+
+    def op_doc(doc: object) -> Mutation:
+        return lambda root: op_file(root).write_text(json.dumps(doc))
+
+    def coco_edit(edit: Callable[[dict], None]) -> Mutation:
+        def m(root: Path) -> None:
+            p = sorted((root / "coco").glob("*.json"))[0]
+            d = json.loads(p.read_text())
+            edit(d)
+            p.write_text(json.dumps(d))
+        return m
+
+    def cvat_edit(edit: Callable[[str], str]) -> Mutation:
+        def m(root: Path) -> None:
+            p = root / "cvat" / "CVLab1.xml"
+            p.write_text(edit(p.read_text()))
+        return m
+
+    def mot_append(line: str) -> Mutation:
+        def m(root: Path) -> None:
+            p = root / "mot" / "CVLab2.txt"
+            p.write_text(p.read_text() + line + "\n")
+        return m
+
+    return [
+        Case("mot: a row of 5 fields", "mot", rec, ERROR, ("CVLab2.txt", "line", "fields"),
+             mot_append("1,2,3,4,5")),
+        Case("mot: an id of -1", "mot", rec, ERROR, ("CVLab2.txt", "without a track id"),
+             mot_append("5,-1,100,100,40,90,1,-1,-1,-1")),
+        Case("mot: width 0", "mot", rec, ERROR, ("CVLab2.txt", "degenerate"),
+             mot_append("5,3,100,100,0,90,1,-1,-1,-1")),
+        Case("mot: a box of nan", "mot", rec, ERROR, ("CVLab2.txt", "non-finite"),
+             mot_append("5,3,nan,100,40,90,1,-1,-1,-1")),
+        Case("mot: an ignored box (conf 0)", "mot", rec, WARN, ("conf 0",),
+             mot_append("5,3,100,100,40,90,0,-1,-1,-1")),
+        Case("mot: no calibration", "mot", rec, ERROR, ("no calibration",), remove("cameras.json")),
+        Case("mot: --association on a native input", "boxes", (*rec, "--association", "{work}/a.csv"),
+             ERROR, ("--association",)),
+        Case("mot: an association file naming an unknown camera", "mot",
+             (*rec, "--association", "{work}/a.csv"), ERROR, ("a.csv", "unknown camera"),
+             mutate=lambda root: (root.parent / "a.csv").write_text(
+                 "camera,local_id,frame,global_id\nzz,1,,2\n")),
+        Case("associate an input whose ids are global", "boxes", ("associate", "{in}", "--out", "{out}"),
+             ERROR, ("already global",)),
+        Case("openpose: people is not a list", "openpose", rec, ERROR, ("cam2_json", "people"),
+             op_doc({"people": 3})),
+        Case("openpose: a confidence of 2", "openpose", rec, ERROR, ("cam2_json", "confidence"),
+             op_doc({"people": [{"pose_keypoints_2d": [10, 10, 2] * 25}]})),
+        Case("openpose: 24 joints", "openpose", rec, ERROR, ("cam2_json", "24 joints"),
+             op_doc({"people": [{"pose_keypoints_2d": [10, 10, 0.5] * 24}]})),
+        Case("openpose: a truncated file", "openpose", rec, ERROR, ("cam2_json",),
+             lambda root: op_file(root).write_text(op_file(root).read_text()[:50])),
+        Case("openpose: camera folders named unlike the calibration", "openpose", rec, WARN, (paired,)),
+        Case("cvat: truncated XML", "cvat", rec, ERROR, ("CVLab1.xml", "line"), cvat_edit(lambda t: t[:400])),
+        Case("cvat: a box corner of 1e308", "cvat", rec, ERROR, ("CVLab1.xml", "far outside"),
+             cvat_edit(lambda t: re.sub(r'xbr="[^"]+"', 'xbr="1e308"', t, count=1))),
+        Case("coco: keypoints of the wrong length", "coco", rec, ERROR, ("annotations[0]", "keypoint values"),
+             coco_edit(lambda d: d["annotations"][0].update(keypoints=[1, 2, 2]))),
+        Case("coco: an unknown image_id", "coco", rec, ERROR, ("annotations[0]", "image_id"),
+             coco_edit(lambda d: d["annotations"][0].update(image_id=99999))),
+        Case("export of an input folder", "boxes", ("export", "{in}", "--format", "c3d", "--to", "{out}"),
+             ERROR, ("tracks.csv",)),
+    ]
 
 
 def _report_cases() -> list[Case]:

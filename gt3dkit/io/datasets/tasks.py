@@ -58,6 +58,8 @@ def _read_cvat(path: Path) -> list[Item]:
         raise InputError(f"{path}: line {e.position[0]}", f"malformed XML ({e})") from None
     except DefusedXmlException as e:
         raise InputError(str(path), f"refused: {e}") from None
+    except (LookupError, UnicodeError, ValueError) as e:  # a declared encoding Python does not know
+        raise InputError(str(path), f"unreadable XML ({e})") from None
     except OSError as e:
         raise InputError(str(path), f"cannot read ({e.strerror})") from None
     if root.tag != "annotations":
