@@ -236,3 +236,27 @@ def test_cvat_and_coco_tasks(tmp_path: Path) -> None:
     p.write_text(p.read_text()[:300])
     with pytest.raises(InputError, match=r"line \d+.*malformed XML"):
         load_scene(tmp_path / "cvat")
+
+
+def test_cvat_skeleton_tracks_parse(tmp_path: Path) -> None:
+    """CVAT for video 1.1 skeleton tracks: joints by label, outside shapes and points skipped."""
+    from gt3dkit.io.datasets.tasks import _read_cvat
+
+    p = tmp_path / "cam.xml"
+    p.write_text("""<?xml version="1.0" encoding="utf-8"?>
+<annotations><version>1.1</version>
+  <track id="4" label="person" source="manual">
+    <skeleton frame="7" keyframe="1" outside="0" occluded="0">
+      <points label="left_ankle" outside="0" occluded="0" points="100.5,200.25"/>
+      <points label="nose" outside="1" occluded="0" points="1,2"/>
+    </skeleton>
+    <skeleton frame="8" keyframe="0" outside="1"><points label="left_ankle" points="1,1"/></skeleton>
+    <box frame="9" outside="0" occluded="0" xtl="1" ytl="2" xbr="30" ybr="80" z_order="0"/>
+  </track>
+</annotations>""")
+    items = _read_cvat(p)
+    assert [(f, t, box, pts) for f, t, _, box, pts, _ in items] == [
+        (7, 4, None, {"left_ankle": (100.5, 200.25, 1.0)}), (9, 4, [1.0, 2.0, 30.0, 80.0], {})]
+    p.write_text(p.read_text().replace('points="100.5,200.25"', 'points="100.5"'))
+    with pytest.raises(InputError, match="track '4' frame '7' joint 'left_ankle'"):
+        _read_cvat(p)
