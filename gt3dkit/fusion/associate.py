@@ -384,14 +384,19 @@ def _pair_cost(xa: F64, xb: F64, Ra, ta, Rb, tb, fa: float, fb: float) -> float:
     return float(np.median(e)) if np.isfinite(e).any() else np.inf
 
 
+def _flat(v: F64, up: F64) -> float:
+    """|v| on the floor plane (the component along ``up`` removed)."""
+    return float(np.linalg.norm(v - (v @ up) * up))
+
+
 def associate_detections(scene: Scene, cfg: DetectionConfig | None = None,
                          overrides: dict[tuple[str, int, int | None], int] | None = None) -> Association:
     """People from per-frame keypoint detections without identities (OpenPose): per frame,
     detections of different cameras whose confident joints triangulate consistently (the
     two-view reprojection error) are grouped greedily, best pair first, one detection per
     camera, every pair of a group consistent; groups of two or more views are triangulated and
-    linked over time by their 3D centroid (Hungarian, gated by a walking speed); detections no
-    second view confirms are left out (their row has global id -1)."""
+    linked over time by their centroid on the floor plane (Hungarian, gated by a walking speed);
+    detections no second view confirms are left out (their row has global id -1)."""
     from scipy.optimize import linear_sum_assignment
 
     from gt3dkit.geom.camera import Cams
@@ -457,7 +462,8 @@ def associate_detections(scene: Scene, cfg: DetectionConfig | None = None,
             # link to the tracks alive
             alive = [t for t in tracks if (f - t["frame"]) / scene.fps <= cfg.max_gap_s]
             if alive and found:
-                D = np.array([[np.linalg.norm(t["X"] - g[1]) for g in found] for t in alive])
+                # on the floor plane: the joints a frame sees move a median centroid up and down
+                D = np.array([[_flat(t["X"] - g[1], scene.rig.up) for g in found] for t in alive])
                 gate = np.array([cfg.max_speed_mps * (f - t["frame"]) / scene.fps + cfg.link_margin_m
                                  for t in alive])
                 D = np.where(D <= gate[:, None], D, 1e9)
