@@ -20,18 +20,20 @@ def reconstruct(scene: Scene | str | Path, estimator: str | Estimator = "ukf",
     from gt3dkit.io.datasets import load_scene
     from gt3dkit.io.writers import write_outputs
     from gt3dkit.qa.anomalies import find_anomalies, identity_jumps
+    from gt3dkit.threads import small_matrix_blas
 
-    sc = scene if isinstance(scene, Scene) else load_scene(Path(scene))
-    est = make_estimator(estimator, **config) if isinstance(estimator, str) else estimator
-    pre = prepare(sc)
-    jumps = identity_jumps(pre, sc.fps)
-    clean = without_identity_jumps(sc, pre, jumps)
-    tracks = est.estimate(clean)
-    if out is not None:
-        qa = find_anomalies(sc, tracks, pre, jumps=jumps)
-        tracks.info["qa"] = {"anomalies": qa.counts(), "file": "anomalies.csv",
-                             "left_out_object_frames": len(sc.obs) - len(clean.obs)}
-        write_outputs(Path(out), sc, tracks, extra_meta, anomalies=qa)
+    with small_matrix_blas():  # one BLAS thread for our small matrices (gt3dkit.threads)
+        sc = scene if isinstance(scene, Scene) else load_scene(Path(scene))
+        est = make_estimator(estimator, **config) if isinstance(estimator, str) else estimator
+        pre = prepare(sc)
+        jumps = identity_jumps(pre, sc.fps)
+        clean = without_identity_jumps(sc, pre, jumps)
+        tracks = est.estimate(clean)
+        if out is not None:
+            qa = find_anomalies(sc, tracks, pre, jumps=jumps)
+            tracks.info["qa"] = {"anomalies": qa.counts(), "file": "anomalies.csv",
+                                 "left_out_object_frames": len(sc.obs) - len(clean.obs)}
+            write_outputs(Path(out), sc, tracks, extra_meta, anomalies=qa)
     return tracks
 
 

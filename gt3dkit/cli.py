@@ -430,6 +430,28 @@ def cmd_calib_refine(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_reconstruct_many(args: argparse.Namespace) -> int:
+    from gt3dkit.many import read_manifest, run_many
+
+    inputs = read_manifest(Path(args.manifest))
+    rows = run_many(inputs, Path(args.out), args.estimator, args.jobs, args.scheduler, args.report,
+                    progress=not args.quiet)
+    width = max(len(Path(r["input"]).name) for r in rows)
+    for r in rows:
+        print(f"{Path(r['input']).name:<{width}}  {r['status']:<10} {r['seconds']:>8.1f} s  "
+              f"{r['object_frames'] or '':>6} object-frames  {r['error']}")
+    failed = [Path(r["input"]).name for r in rows if r["status"] == "failed"]
+    done = sum(r["status"] == "done" for r in rows)
+    print(f"{len(rows)} sequences: {done} reconstructed, {sum(r['status'] == 'up to date' for r in rows)} up "
+          f"to date, {len(failed)} failed -> {args.out}/summary.csv"
+          + (f", {args.out}/index.html" if args.report else ""))
+    if failed:
+        print(f"error: {len(failed)} sequence{'s' if len(failed) > 1 else ''} failed: {', '.join(failed)} "
+              f"(see {args.out}/summary.csv)", file=sys.stderr)
+        return 1
+    return 0
+
+
 def cmd_associate(args: argparse.Namespace) -> int:
     from gt3dkit.io.atomic import write_dir_atomically
 
@@ -708,6 +730,18 @@ def build_parser() -> argparse.ArgumentParser:
     kr.add_argument("--seed", type=SEED, help="CMU Panoptic: seed of that noise (default 0)")
     kr.set_defaults(func=cmd_calib_refine)
 
+    m = sub.add_parser("reconstruct-many", parents=[common],
+                       help="many input folders in parallel (local processes or a Dask cluster)")
+    m.add_argument("manifest", help="a text file: one input folder (or a glob) per line")
+    m.add_argument("--out", required=True, help="output folder: OUT/<input folder name>/ per sequence")
+    m.add_argument("--estimator", choices=ESTIMATORS, default="ukf")
+    m.add_argument("--jobs", type=_number(int, 1, 4096), help="local worker processes (default: cores)")
+    m.add_argument("--scheduler", metavar="ADDRESS",
+                   help="a running Dask distributed scheduler (tcp://host:8786) instead of local processes")
+    m.add_argument("--report", action="store_true", help="also each sequence's report and OUT/index.html")
+    m.add_argument("--quiet", action="store_true", help="no progress bar")
+    m.set_defaults(func=cmd_reconstruct_many)
+
     a = sub.add_parser("associate", parents=[common],
                        help="per-camera ids (MOT files) -> global identities: OUT/association.csv")
     a.add_argument("input", help="input folder with per-camera ids (mot/<camera>.txt + calibration)")
@@ -775,7 +809,9 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError:  # not the main thread
             pass
     try:
-        with warnings.catch_warnings():
+        from gt3dkit.threads import small_matrix_blas
+
+        with warnings.catch_warnings(), small_matrix_blas():
             if not debug:  # numerical warnings are ours to handle, never the user's to read
                 warnings.simplefilter("ignore", RuntimeWarning)
             code = int(args.func(args))

@@ -11,6 +11,15 @@ from gt3dkit.types import Scene
 from .scenes import SMALL, written_scene
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _one_blas_thread():
+    """The tests' estimators run with the BLAS threads the product chooses (gt3dkit.threads)."""
+    from gt3dkit.threads import small_matrix_blas
+
+    with small_matrix_blas():
+        yield
+
+
 @pytest.fixture(scope="session")
 def multiviewx() -> Scene:
     return load_scene(bundled("multiviewx"))

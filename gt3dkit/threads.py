@@ -1,0 +1,44 @@
+"""How many BLAS threads gt3dkit's small-matrix work uses.
+
+Our linear algebra is many small matrices (a 123-state UKF, per-object 9-state updates): with
+OpenBLAS's default of one thread per core, its threads spin and oversubscribe; on this 2-core
+machine a keypoint run was 3-12x slower than with one thread, and a loaded machine went past
+15 minutes for a 77 s run (notes/profile-2026-11.md). So gt3dkit runs its work with one BLAS
+thread unless told otherwise: ``GT3D_BLAS_THREADS=N`` sets N; a user who set
+``OPENBLAS_NUM_THREADS``/``OMP_NUM_THREADS``/``MKL_NUM_THREADS`` themselves is obeyed (we leave the
+pool alone). threadpoolctl changes the pool at run time (numpy's BLAS is already loaded).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Iterator
+
+_USER_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
+
+
+def blas_threads() -> int | None:
+    """The BLAS thread count to impose, or None to leave the user's setting alone."""
+    v = os.environ.get("GT3D_BLAS_THREADS")
+    if v:
+        try:
+            return max(int(v), 1)
+        except ValueError:
+            return 1
+    if any(os.environ.get(k) for k in _USER_VARS):
+        return None
+    return 1
+
+
+@contextlib.contextmanager
+def small_matrix_blas() -> Iterator[None]:
+    """Run the block with :func:`blas_threads` BLAS threads (and restore the pool after)."""
+    n = blas_threads()
+    if n is None:
+        yield
+        return
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=n, user_api="blas"):
+        yield

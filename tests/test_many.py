@@ -1,0 +1,77 @@
+"""gt3d reconstruct-many: a local process pool and a Dask LocalCluster on loopback."""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+from pathlib import Path
+
+import pytest
+
+from gt3dkit.cli import main
+from gt3dkit.sim import simulate, write_scene
+
+
+@pytest.fixture(scope="module")
+def manifest(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = Path(tmp_path_factory.mktemp("many"))
+    for i in (1, 2, 3):
+        sim = simulate("native", seed=i, frames=6, people=2, dropout=0.0)
+        write_scene(sim, root / "seqs" / f"s{i}", "native")
+    bad = root / "seqs" / "s4"
+    bad.mkdir()
+    (bad / "cameras.json").write_text("{")  # malformed
+    (root / "m.txt").write_text("# all of them\nseqs/s*\n")
+    return root / "m.txt"
+
+
+def _run(*argv: str) -> tuple[int, str, str]:
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(list(argv))
+    return code, out.getvalue(), err.getvalue()
+
+
+def _summary(out: Path) -> dict[str, dict[str, str]]:
+    with open(out / "summary.csv", newline="") as f:
+        return {Path(r["input"]).name: r for r in csv.DictReader(f)}
+
+
+def test_dask_local_cluster(manifest: Path, tmp_path: Path) -> None:
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as cluster:
+        code, so, se = _run("reconstruct-many", str(manifest), "--out", str(tmp_path / "o"), "--scheduler",
+                            cluster.scheduler_address, "--quiet", "--estimator", "triangulation")
+        assert code == 1 and "1 sequence failed: s4" in se, se
+        s = _summary(tmp_path / "o")
+        assert [s[k]["status"] for k in ("s1", "s2", "s3", "s4")] == ["done", "done", "done", "failed"]
+        assert "cameras.json" in s["s4"]["error"]
+        for k in ("s1", "s2", "s3"):
+            assert (tmp_path / "o" / k / "tracks.csv").is_file()
+        # a rerun skips what is complete and current, and redoes a sequence whose input changed
+        p = manifest.parent / "seqs" / "s2" / "boxes.csv"
+        p.write_text(p.read_text() + "")
+        lines = p.read_text().splitlines()
+        p.write_text("\n".join(lines[:-1]) + "\n")
+        code, so, se = _run("reconstruct-many", str(manifest), "--out", str(tmp_path / "o"), "--scheduler",
+                            cluster.scheduler_address, "--quiet", "--estimator", "triangulation")
+        s = _summary(tmp_path / "o")
+        assert [s[k]["status"] for k in ("s1", "s2", "s3")] == ["up to date", "done", "up to date"]
+
+
+def test_local_pool_and_misuse(manifest: Path, tmp_path: Path) -> None:
+    code, so, se = _run("reconstruct-many", str(manifest), "--out", str(tmp_path / "o"), "--jobs", "2",
+                        "--quiet", "--estimator", "triangulation", "--report")
+    assert code == 1
+    assert (tmp_path / "o" / "index.html").is_file()
+    assert (tmp_path / "o" / "s1" / "report" / "index.html").is_file()
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "x.txt").write_text("x")
+    code, _, se = _run("reconstruct-many", str(manifest), "--out", str(tmp_path / "mine"))
+    assert code == 2 and "gt3dkit did not write" in se
+    bad = tmp_path / "bad.txt"
+    bad.write_text("nowhere/*\n")
+    code, _, se = _run("reconstruct-many", str(bad), "--out", str(tmp_path / "o2"))
+    assert code == 2 and "bad.txt: line 1" in se and "matches no folder" in se
