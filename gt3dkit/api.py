@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -13,9 +14,11 @@ __all__ = ["ESTIMATORS", "annotation_qa", "make_estimator", "reconstruct"]
 
 def reconstruct(scene: Scene | str | Path, estimator: str | Estimator = "ukf",
                 out: str | Path | None = None, extra_meta: dict[str, Any] | None = None,
-                **config: Any) -> TrackSet:
+                on_stage: Callable[[str], None] | None = None, **config: Any) -> TrackSet:
     """Estimate tracks for a scene (or an input folder); write ``out`` if given (with
-    ``extra_meta`` added to its meta.json)."""
+    ``extra_meta`` added to its meta.json). ``on_stage(name)`` is called as each stage starts
+    (a progress display)."""
+    stage = on_stage or (lambda name: None)
     from gt3dkit.fusion.prepare import prepare
     from gt3dkit.io.datasets import load_scene
     from gt3dkit.io.writers import write_outputs
@@ -25,11 +28,14 @@ def reconstruct(scene: Scene | str | Path, estimator: str | Estimator = "ukf",
     with small_matrix_blas():  # one BLAS thread for our small matrices (gt3dkit.threads)
         sc = scene if isinstance(scene, Scene) else load_scene(Path(scene))
         est = make_estimator(estimator, **config) if isinstance(estimator, str) else estimator
+        stage("per-frame fits")
         pre = prepare(sc)
         jumps = identity_jumps(pre, sc.fps)
         clean = without_identity_jumps(sc, pre, jumps)
+        stage(f"{getattr(est, 'name', 'estimator')}")
         tracks = est.estimate(clean)
         if out is not None:
+            stage("annotation QA, writing")
             qa = find_anomalies(sc, tracks, pre, jumps=jumps)
             tracks.info["qa"] = {"anomalies": qa.counts(), "file": "anomalies.csv",
                                  "left_out_object_frames": len(sc.obs) - len(clean.obs)}

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
 import signal
 import sys
+import threading
 import traceback
 import warnings
 from collections.abc import Callable
@@ -168,11 +170,56 @@ def report_truth(scene: Any, tracks: Any, name: str, max_dist_m: float = 1.0) ->
                            mpjpe_by_id(tracks, scene.truth, j)[0]) for label, j in sets]))
 
 
+class Stages:
+    """A one-line progress display of a run's stages on stderr (``stage [elapsed] k/n``): only on
+    a terminal, only once the run has taken a second, never with ``--quiet``; erased at the end
+    so that the summary and ``warning:`` lines stay as they are."""
+
+    def __init__(self, total: int, quiet: bool) -> None:
+        import time
+
+        self.total, self.k, self.name = total, 0, ""
+        self.t0 = time.monotonic()
+        self.shown = False
+        self._stop = threading.Event()
+        self.on = not quiet and sys.stderr.isatty()
+        if self.on:
+            threading.Thread(target=self._tick, daemon=True).start()
+
+    def _line(self) -> str:
+        import time
+
+        s = int(time.monotonic() - self.t0)
+        return f"\r{self.name} [{s // 60:02d}:{s % 60:02d}] {self.k}/{self.total}\x1b[K"
+
+    def _tick(self) -> None:
+        while not self._stop.wait(0.5):
+            import time
+
+            if time.monotonic() - self.t0 >= 1.0:
+                with contextlib.suppress(Exception):
+                    sys.stderr.write(self._line())
+                    sys.stderr.flush()
+                    self.shown = True
+
+    def __call__(self, name: str) -> None:
+        self.k, self.name = min(self.k + 1, self.total), name
+
+    def close(self) -> None:
+        self._stop.set()
+        if self.on and self.shown:
+            with contextlib.suppress(Exception):
+                sys.stderr.write("\r\x1b[K")
+                sys.stderr.flush()
+
+
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from gt3dkit.api import reconstruct
     from gt3dkit.calib.formats.native import cameras_doc
 
     config = _estimator_config(args)
+    stages = Stages(5, args.quiet)
+    stages("loading")
     scene = _load(args)
     extra = None
     if args.refine_calib:
@@ -185,7 +232,11 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         scene = dataclasses.replace(scene, rig=res.rig)
         print(f"calibration refined: {', '.join(res.report['refined_cameras']) or 'no camera'} "
               f"({res.report['seconds']:.1f} s; meta.json: calibration_refinement)")
-    tracks = reconstruct(scene, args.estimator, out=args.out, extra_meta=extra, **config)
+    try:
+        tracks = reconstruct(scene, args.estimator, out=args.out, extra_meta=extra, on_stage=stages,
+                             **config)
+    finally:
+        stages.close()
     print_warnings(scene)
     info = tracks.info
     kinds = " + ".join(k for k, v in (("boxes", scene.obs.has_box.any()),
@@ -626,6 +677,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--refine-calib", action="store_true",
                    help="refine the cameras from the annotations first (see gt3d calib refine)")
     r.add_argument("--no-smooth", action="store_true", help="forward filter only (no RTS)")
+    r.add_argument("--quiet", action="store_true", help="no progress display")
     r.add_argument("--no-bones", action="store_true", help="do not tie bone lengths")
     r.add_argument("--skeleton", choices=sorted(SKELETONS),
                    help="joint order of keypoints.csv (default: from the data)")
@@ -693,7 +745,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--calib", help="calibration file or folder in any format, in place of the "
                                    "input's own")
     c.add_argument("--association", metavar="FILE", help="as for reconstruct")
-    c.add_argument("--no-progress", action="store_true", help="no progress bar")
+    c.add_argument("--no-progress", "--quiet", dest="no_progress", action="store_true",
+                   help="no progress bar")
     c.set_defaults(func=cmd_compare)
 
     e = sub.add_parser("evaluate", parents=[common],
