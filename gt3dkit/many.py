@@ -98,6 +98,7 @@ def run_job(job: Job) -> dict[str, Any]:
     row: dict[str, Any] = {"input": job.input, "output": job.output, "status": "", "seconds": 0.0,
                            "objects": "", "object_frames": "", "anomalies": "", "error": ""}
     t0 = time.perf_counter()
+    os.environ.setdefault("GT3D_BLAS_THREADS", "1")  # the workers are the parallelism
     try:
         with warnings.catch_warnings(), small_matrix_blas():
             warnings.simplefilter("ignore", RuntimeWarning)

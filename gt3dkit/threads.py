@@ -3,8 +3,11 @@
 Our linear algebra is many small matrices (a 123-state UKF, per-object 9-state updates): with
 OpenBLAS's default of one thread per core, its threads spin and oversubscribe; on this 2-core
 machine a keypoint run was 3-12x slower than with one thread, and a loaded machine went past
-15 minutes for a 77 s run (notes/profile-2026-11.md). So gt3dkit runs its work with one BLAS
-thread unless told otherwise: ``GT3D_BLAS_THREADS=N`` sets N; a user who set
+15 minutes for a 77 s run (notes/profile-2026-11.md). Measured here on an idle machine, two
+threads ran the Panoptic keypoint scene in 34.8 s wall / 60.1 s CPU against 38.1 s / 32.2 s with
+one. So gt3dkit uses every core's BLAS thread only when the machine is idle (1-minute load
+average below :data:`IDLE_LOAD`) and one thread otherwise; ``reconstruct-many`` workers always
+use one (they are the parallelism). ``GT3D_BLAS_THREADS=N`` sets N; a user who set
 ``OPENBLAS_NUM_THREADS``/``OMP_NUM_THREADS``/``MKL_NUM_THREADS`` themselves is obeyed (we leave the
 pool alone). threadpoolctl changes the pool at run time (numpy's BLAS is already loaded).
 """
@@ -16,6 +19,8 @@ import os
 from collections.abc import Iterator
 
 _USER_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
+#: below this 1-minute load average the machine counts as idle
+IDLE_LOAD = 0.5
 
 
 def blas_threads() -> int | None:
@@ -28,7 +33,14 @@ def blas_threads() -> int | None:
             return 1
     if any(os.environ.get(k) for k in _USER_VARS):
         return None
-    return 1
+    cores = os.cpu_count() or 1
+    try:
+        idle = os.getloadavg()[0] < IDLE_LOAD
+    except OSError:  # no load average on this system
+        idle = False
+    # an idle machine: its cores (measured +9 % faster wall time at twice the CPU); anything else
+    # running (tests, other sequences, a desktop): one thread, as threads then spin and fight
+    return cores if idle else 1
 
 
 @contextlib.contextmanager

@@ -13,7 +13,11 @@ from .scenes import SMALL, written_scene
 
 @pytest.fixture(scope="session", autouse=True)
 def _one_blas_thread():
-    """The tests' estimators run with the BLAS threads the product chooses (gt3dkit.threads)."""
+    """One BLAS thread for the tests and the gt3d processes they start (gt3dkit.threads: the
+    suite runs two things at once; an idle-looking start must not give every process 2)."""
+    import os
+
+    os.environ.setdefault("GT3D_BLAS_THREADS", "1")
     from gt3dkit.threads import small_matrix_blas
 
     with small_matrix_blas():
