@@ -13,7 +13,7 @@ import numpy as np
 from gt3dkit import __version__
 from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import write_dir_atomically
-from gt3dkit.io.datasets.common import parse_float, parse_frame, parse_int, parse_metres, read_csv_rows
+from gt3dkit.io.datasets.common import iter_csv_rows, parse_float, parse_frame, parse_int, parse_metres
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import Scene, TrackSet
 
@@ -178,7 +178,7 @@ def read_tracks_csv(path: Path) -> TrackSet:
     finite numbers, semi-axes and sds >= 0)."""
     path = Path(path)
     rows, keys = [], {}
-    for line, r in read_csv_rows(path, TRACK_COLUMNS):
+    for line, r in iter_csv_rows(path, TRACK_COLUMNS):
         where = f"{path}: line {line}"
         key = (parse_frame(where, r["frame"]), parse_int(where, r["id"], "id"))
         if key in keys:
@@ -210,7 +210,7 @@ def read_keypoints_csv(path: Path, tracks: TrackSet, n_joints: int) -> TrackSet:
                                                               strict=True))}
     kpt = np.full((len(tracks), n_joints, 3), np.nan)
     sd = np.full((len(tracks), n_joints), np.nan)
-    for line, r in read_csv_rows(path, KPT_COLUMNS):
+    for line, r in iter_csv_rows(path, KPT_COLUMNS):
         where = f"{path}: line {line}"
         fr, tid = parse_frame(where, r["frame"]), parse_int(where, r["id"], "id")
         j = parse_int(where, r["joint"], "joint", 0, max(n_joints - 1, 0))

@@ -6,6 +6,7 @@ import csv
 import hashlib
 import json
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -171,7 +172,14 @@ class RowBuilder:
 
 def read_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | None = None,
                   header: bool = True) -> list[tuple[int, dict[str, str]]]:
-    """Rows of a CSV whose header starts with ``columns``; (line number, row).
+    """:func:`iter_csv_rows` as a list."""
+    return list(iter_csv_rows(path, columns, warnings, header))
+
+
+def iter_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | None = None,
+                  header: bool = True) -> Iterator[tuple[int, dict[str, str]]]:
+    """Rows of a CSV whose header starts with ``columns``; (line number, row), one at a time
+    (a bad line 2 is reported before line 2 million is read, and the file is never held whole).
 
     Every row must have as many fields as the header. Header columns beyond ``columns``
     are ignored, with a note in ``warnings`` (an error when ``warnings`` is None). A UTF-8
@@ -185,7 +193,7 @@ def read_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | No
         with open(path, newline="", encoding="utf-8-sig") as f:
             reader = csv.reader(f)
             if not header:
-                out, width = [], None
+                width = None
                 for row in reader:
                     line = reader.line_num
                     if not row or all(not x.strip() for x in row):
@@ -195,8 +203,8 @@ def read_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | No
                         want = width if len(row) >= len(columns) else len(columns)
                         raise InputError(f"{path}: line {line}",
                                          f"expected {want} fields ({','.join(columns)}, ...), got {len(row)}")
-                    out.append((line, dict(zip(columns, (x.strip() for x in row), strict=False))))
-                return out
+                    yield line, dict(zip(columns, (x.strip() for x in row), strict=False))
+                return
             header = next(reader, None)
             if header is None or tuple(h.strip() for h in header[: len(columns)]) != columns:
                 raise InputError(where, f"expected header {','.join(columns)}, got "
@@ -206,7 +214,6 @@ def read_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | No
                 if warnings is None:
                     raise InputError(where, f"unexpected columns {extra} after {','.join(columns)}")
                 warnings.append(f"{path}: columns {', '.join(extra)} ignored")
-            out = []
             for row in reader:
                 line = reader.line_num
                 where = f"{path}: line {line}"
@@ -215,8 +222,7 @@ def read_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | No
                 if len(row) != len(header):
                     raise InputError(where, f"expected {len(header)} fields (as the header), "
                                             f"got {len(row)}")
-                out.append((line, dict(zip(columns, (x.strip() for x in row), strict=False))))
-            return out
+                yield line, dict(zip(columns, (x.strip() for x in row), strict=False))
     except UnicodeDecodeError as e:
         raise InputError(where, f"not a UTF-8 text CSV file ({e.reason} at byte {e.start})") from None
     except csv.Error as e:

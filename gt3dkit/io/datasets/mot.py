@@ -25,7 +25,7 @@ import numpy as np
 
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import check_pixels
-from gt3dkit.io.datasets.common import RowBuilder, parse_frame, parse_int, read_csv_rows, sha256
+from gt3dkit.io.datasets.common import RowBuilder, iter_csv_rows, parse_frame, parse_int, sha256
 from gt3dkit.types import Rig, Scene
 
 MOT_COLUMNS = ("frame", "id", "left", "top", "width", "height", "conf")
@@ -94,7 +94,7 @@ def load(root: Path, calib: Path | str | None = None, fps: float | None = None) 
     ignored = 0
     for p in txts:
         cam = cam_of[p.stem]
-        for line, r in read_csv_rows(p, MOT_COLUMNS, warnings, header=False):
+        for line, r in iter_csv_rows(p, MOT_COLUMNS, warnings, header=False):
             where = f"{p}: line {line}"
             frame, tid = parse_frame(where, r["frame"]), parse_int(where, r["id"], "id")
             vals = []

@@ -33,10 +33,10 @@ from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import check_pixels
 from gt3dkit.io.datasets.common import (
     RowBuilder,
+    iter_csv_rows,
     parse_frame,
     parse_int,
     parse_metres,
-    read_csv_rows,
     sha256,
 )
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
@@ -64,7 +64,7 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
     warnings: list[str] = []
     fps = fps_doc if fps_doc is not None else DEFAULT_FPS
     kpt_path = root / "keypoints.csv"
-    kpt_rows: list[tuple[int, dict[str, str]]] = []
+    has_kpts = False
     skel_name = skeleton or skel_doc
     if skel_name is not None and skel_name not in SKELETONS:
         raise InputError("--skeleton", f"unknown skeleton {skel_name!r} (known: {', '.join(SKELETONS)})")
@@ -73,23 +73,26 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
         files["keypoints.csv"] = sha256(kpt_path)
         if _header(kpt_path)[len(KPT_COLUMNS):len(KPT_COLUMNS) + 1] == ["conf"]:
             kpt_cols = (*KPT_COLUMNS, "conf")
-        kpt_rows = read_csv_rows(kpt_path, kpt_cols, warnings)
-        if skel_name is None and kpt_rows:
-            top = max(parse_int(f"{kpt_path}: line {line}", r["joint"], "joint", 0, 10_000)
-                      for line, r in kpt_rows)
+        top = -1
+        for line, r in iter_csv_rows(kpt_path, kpt_cols, []):  # a first streamed pass: any rows? joints?
+            has_kpts = True
+            if skel_name is not None:
+                break
+            top = max(top, parse_int(f"{kpt_path}: line {line}", r["joint"], "joint", 0, 10_000))
+        if skel_name is None and has_kpts:
             try:
                 skel_name = skeleton_for(top + 1).name
             except ValueError as e:
                 raise InputError(str(kpt_path), f"joint index {top}: {e}") from None
-    if skeleton is not None and not kpt_rows:
+    if skeleton is not None and not has_kpts:
         raise InputError("--skeleton", f"{root} has no keypoints (keypoints.csv missing or empty)")
-    n_joints = SKELETONS[skel_name].n_joints if skel_name and kpt_rows else 0
+    n_joints = SKELETONS[skel_name].n_joints if skel_name and has_kpts else 0
     rb = RowBuilder(n_joints=n_joints)
     box_path = root / "boxes.csv"
     if box_path.exists():
         files["boxes.csv"] = sha256(box_path)
         unseen = 0
-        for line, r in read_csv_rows(box_path, BOX_COLUMNS, warnings):
+        for line, r in iter_csv_rows(box_path, BOX_COLUMNS, warnings):
             where = f"{box_path}: line {line}"
             frame, tid = parse_frame(where, r["frame"]), parse_int(where, r["id"], "id")
             box = [_number(where, r[k], k) for k in ("xmin", "ymin", "xmax", "ymax")]
@@ -103,7 +106,7 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
         if unseen:
             warnings.append(f"{box_path}: {unseen} boxes of -1s read as not seen")
     undetected = 0
-    for line, r in kpt_rows:
+    for line, r in iter_csv_rows(kpt_path, kpt_cols, warnings) if has_kpts else ():  # streamed
         where = f"{kpt_path}: line {line}"
         frame, tid = parse_frame(where, r["frame"]), parse_int(where, r["id"], "id")
         joint = parse_int(where, r["joint"], "joint", 0, 10_000)
@@ -157,7 +160,7 @@ KPT_TRUTH_COLUMNS = ("frame", "id", "joint", "x", "y", "z")
 
 def read_kpt_truth(path: Path, n_joints: int) -> GroundTruth:
     """``truth_keypoints.csv`` = ``frame,id,joint,x,y,z`` (metres), as ``gt3d simulate`` writes."""
-    rows = read_csv_rows(path, KPT_TRUTH_COLUMNS)
+    rows = iter_csv_rows(path, KPT_TRUTH_COLUMNS)
     poses: dict[tuple[int, int], np.ndarray] = {}
     for line, r in rows:
         where = f"{path}: line {line}"

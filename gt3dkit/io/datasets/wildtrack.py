@@ -35,11 +35,11 @@ from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import check_pixels
 from gt3dkit.io.datasets.common import (
     RowBuilder,
+    iter_csv_rows,
     load_json,
     parse_frame,
     parse_int,
     parse_metres,
-    read_csv_rows,
     sha256,
 )
 from gt3dkit.types import Camera, GroundTruth, Rig, Scene
@@ -220,7 +220,7 @@ def read_truth_csv(p: Path, files: dict[str, str], root: Path) -> GroundTruth:
     """``truth.csv`` = ``frame,id,x,y,z,a,b,c`` (metres), as written by ``gt3d simulate``."""
     rows = []
     keys: set[tuple[int, int]] = set()
-    for line, r in read_csv_rows(p, TRUTH_COLUMNS):
+    for line, r in iter_csv_rows(p, TRUTH_COLUMNS):
         where = f"{p}: line {line}"
         key = (parse_frame(where, r["frame"]), parse_int(where, r["id"], "id"))
         if key in keys:
