@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -36,19 +35,19 @@ from gt3dkit.geom.conics import ellipsoid_boxes
 from gt3dkit.io.datasets import load_scene
 from gt3dkit.sim import simulate, write_scene
 
-GT3D = [sys.executable, "-m", "gt3dkit.cli"]
+_PEAK = ("import resource, sys; from gt3dkit.cli import main; c = main(sys.argv[1:]); "
+         "print('PEAK_KB', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr); sys.exit(c)")
 
 
 def timed_process(args: list[str]) -> tuple[float, float]:
-    """Wall seconds and peak RSS (MB) of one gt3d process."""
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    """Wall seconds and peak RSS (MB) of one gt3d process (its own, reported at its exit)."""
     t = time.perf_counter()
-    p = subprocess.run([*GT3D, *args], capture_output=True, text=True)
+    p = subprocess.run([sys.executable, "-c", _PEAK, *args], capture_output=True, text=True)
     dt = time.perf_counter() - t
     if p.returncode:
         raise SystemExit(f"gt3d {' '.join(args)} failed: {p.stderr}")
-    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return dt, max(peak, before) / 1024
+    kb = [int(ln.split()[1]) for ln in p.stderr.splitlines() if ln.startswith("PEAK_KB")]
+    return dt, (kb[-1] / 1024 if kb else float("nan"))
 
 
 def _hx_factory(cams: Cams):
