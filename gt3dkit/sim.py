@@ -430,6 +430,17 @@ def _write_cvat(sim: SimScene, tmp: Path, id_seed: int | None) -> None:
         (tmp / "cvat" / f"{cam.name}.xml").write_text("\n".join(lines) + "\n")
 
 
+def write_kpt_truth(sim: SkeletonScene, path: Path) -> None:
+    """``truth_keypoints.csv`` = ``frame,id,joint,x,y,z`` (metres), every joint of every pose."""
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["frame", "id", "joint", "x", "y", "z"])
+        for a in range(len(sim.truth_frame)):
+            for k in range(sim.kpt_world.shape[1]):
+                w.writerow([int(sim.truth_frame[a]), int(sim.truth_id[a]), k,
+                            *(f"{v:.6f}" for v in sim.kpt_world[a, k])])
+
+
 def write_coco(sim: SkeletonScene, out: Path, track_ids: bool = True, seed: int = 0) -> None:
     """``coco/<camera>.json`` (COCO keypoints per camera, joint names in ``categories``;
     ``track_id`` numbered per camera when ``track_ids``, else none) + ``cameras.json`` +
@@ -467,13 +478,7 @@ def write_coco(sim: SkeletonScene, out: Path, track_ids: bool = True, seed: int 
                     "categories": [{"id": 1, "name": "person", "keypoints": list(skel.marker_names),
                                     "skeleton": [[int(a) + 1, int(b) + 1] for a, b in skel.bones]}]}
             (tmp / "coco" / f"{cam.name}.json").write_text(json.dumps(coco))
-        with open(tmp / "truth_keypoints.csv", "w", newline="") as fh:
-            w = csv.writer(fh)
-            w.writerow(["frame", "id", "joint", "x", "y", "z"])
-            for a in range(len(sim.truth_frame)):
-                for k in range(skel.n_joints):
-                    w.writerow([int(sim.truth_frame[a]), int(sim.truth_id[a]), k,
-                                *(f"{v:.6f}" for v in sim.kpt_world[a, k])])
+        write_kpt_truth(sim, tmp / "truth_keypoints.csv")
 
     write_dir_atomically(Path(out), write)
 
@@ -759,13 +764,7 @@ def write_openpose(sim: SkeletonScene, out: Path, seed: int = 0,
                                    "hand_right_keypoints_2d": []})
                 doc = {"version": 1.3, "people": people}
                 (d / f"trial_{int(f):012d}_keypoints.json").write_text(json.dumps(doc))
-        with open(tmp / "truth_keypoints.csv", "w", newline="") as fh:
-            w = csv.writer(fh)
-            w.writerow(["frame", "id", "joint", "x", "y", "z"])
-            for a in range(len(sim.truth_frame)):
-                for k in range(J):
-                    w.writerow([int(sim.truth_frame[a]), int(sim.truth_id[a]), k,
-                                *(f"{v:.6f}" for v in sim.kpt_world[a, k])])
+        write_kpt_truth(sim, tmp / "truth_keypoints.csv")
         _write_injected(sim.injected, tmp / "injected.csv")
 
     write_dir_atomically(Path(out), write)
@@ -792,13 +791,7 @@ def write_skeleton_scene(sim: SkeletonScene, out: Path, layout: str) -> None:
                                 f"{sim.uv[a, b, k, 1]:.4f}"]
                                + ([f"{sim.conf[a, b, k]:.3f}"] if sim.conf is not None else []))
             _write_injected(sim.injected, tmp / "injected.csv")
-            with open(tmp / "truth_keypoints.csv", "w", newline="") as f:
-                w = csv.writer(f)
-                w.writerow(["frame", "id", "joint", "x", "y", "z"])
-                for a in range(len(sim.truth_frame)):
-                    for k in range(sim.kpt_world.shape[1]):
-                        w.writerow([int(sim.truth_frame[a]), int(sim.truth_id[a]), k,
-                                    *(f"{v:.6f}" for v in sim.kpt_world[a, k])])
+            write_kpt_truth(sim, tmp / "truth_keypoints.csv")
         elif layout == "panoptic":
             if sim.skeleton != "coco19":
                 raise ValueError("the Panoptic layout holds coco19 skeletons")

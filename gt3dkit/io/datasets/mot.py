@@ -52,6 +52,22 @@ def find_calibration(root: Path) -> Path | None:
     return None
 
 
+def calibration_beside(root: Path, calib: Path | str | None) -> tuple[Rig, float | None, Path]:
+    """The rig of ``--calib`` or of the calibration found beside the annotations
+    (:func:`find_calibration`), its frame rate (``cameras.json`` only) and its path."""
+    from gt3dkit.calib.formats import detect_format, read_calibration
+    from gt3dkit.calib.formats.native import load_cameras
+
+    cal = Path(calib) if calib is not None else find_calibration(root)
+    if cal is None:
+        raise InputError(str(root), "no calibration beside the annotations (cameras.json, calibration/, "
+                                    "*.toml or sparse/): pass --calib")
+    if detect_format(cal) == "native":
+        rig, fps, _ = load_cameras(cal / "cameras.json" if cal.is_dir() else cal)
+        return rig, fps, cal
+    return read_calibration(cal), None, cal
+
+
 def match_cameras(files: list[str], rig: Rig, where: str, warnings: list[str]) -> dict[str, int]:
     """file stem -> camera index: by name, else by natural sorted order (warned)."""
     names = list(rig.names)
@@ -69,24 +85,12 @@ def match_cameras(files: list[str], rig: Rig, where: str, warnings: list[str]) -
 
 
 def load(root: Path, calib: Path | str | None = None, fps: float | None = None) -> Scene:
-    from gt3dkit.calib.formats import detect_format, read_calibration
-    from gt3dkit.calib.formats.native import load_cameras
-
     root = Path(root)
     folder = root / "mot"
     txts = sorted(folder.glob("*.txt"), key=lambda p: natural_key(p.stem))
     if not txts:
         raise InputError(str(folder), "no <camera>.txt files")
-    cal = Path(calib) if calib is not None else find_calibration(root)
-    if cal is None:
-        raise InputError(str(root), "no calibration beside mot/ (cameras.json, *.toml, calibration/ or "
-                                    "sparse/): pass --calib")
-    fps_doc = None
-    if detect_format(cal) == "native":
-        path = cal / "cameras.json" if cal.is_dir() else cal
-        rig, fps_doc, _ = load_cameras(path)
-    else:
-        rig = read_calibration(cal)
+    rig, fps_doc, cal = calibration_beside(root, calib)
     warnings: list[str] = []
     files = {f"mot/{p.name}": sha256(p) for p in txts}
     cam_of = match_cameras([p.stem for p in txts], rig, str(folder), warnings)

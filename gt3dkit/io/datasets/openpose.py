@@ -24,7 +24,7 @@ import numpy as np
 
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.common import RowBuilder, load_json, sha256
-from gt3dkit.io.datasets.mot import find_calibration, match_cameras, natural_key
+from gt3dkit.io.datasets.mot import calibration_beside, match_cameras, natural_key
 from gt3dkit.skeletons import DETECTOR_SKELETONS, SKELETONS
 from gt3dkit.types import Scene
 
@@ -79,23 +79,11 @@ def load(
 ) -> Scene:
     """The detections as a scene whose ``track_id`` is the detection's index in its file
     (association makes people of them)."""
-    from gt3dkit.calib.formats import detect_format, read_calibration
-    from gt3dkit.calib.formats.native import load_cameras
-
     root = Path(root)
     folders = camera_folders(root)
     if not folders:
         raise InputError(str(root), "no <camera>_json folders (in the folder or in pose/)")
-    cal = Path(calib) if calib is not None else find_calibration(root)
-    if cal is None:
-        raise InputError(
-            str(root), "no calibration (cameras.json, *.toml, calibration/ or sparse/): pass --calib"
-        )
-    fps_doc = None
-    if detect_format(cal) == "native":
-        rig, fps_doc, _ = load_cameras(cal / "cameras.json" if cal.is_dir() else cal)
-    else:
-        rig = read_calibration(cal)
+    rig, fps_doc, cal = calibration_beside(root, calib)
     warnings: list[str] = []
     names = [p.name[: -len("_json")] for p in folders]
     cam_of = match_cameras(names, rig, str(root), warnings)

@@ -28,7 +28,7 @@ import numpy as np
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import check_pixels
 from gt3dkit.io.datasets.common import RowBuilder, load_json, parse_frame, parse_int, sha256
-from gt3dkit.io.datasets.mot import DEFAULT_FPS, find_calibration, match_cameras, natural_key
+from gt3dkit.io.datasets.mot import DEFAULT_FPS, calibration_beside, match_cameras, natural_key
 from gt3dkit.skeletons import skeleton_for_names
 from gt3dkit.types import Scene
 
@@ -147,8 +147,6 @@ def _read_coco(path: Path) -> list[Item]:
 def load(root: Path, kind: str, skeleton: str | None = None, calib: Path | str | None = None,
          fps: float | None = None) -> Scene:
     """``kind`` = ``cvat`` or ``coco``."""
-    from gt3dkit.calib.formats import detect_format, read_calibration
-    from gt3dkit.calib.formats.native import load_cameras
     from gt3dkit.skeletons import SKELETONS
 
     root = Path(root)
@@ -156,15 +154,7 @@ def load(root: Path, kind: str, skeleton: str | None = None, calib: Path | str |
     paths = sorted((root / kind).glob(f"*.{ext}"), key=lambda p: natural_key(p.stem))
     if not paths:
         raise InputError(str(root / kind), f"no <camera>.{ext} files")
-    cal = Path(calib) if calib is not None else find_calibration(root)
-    if cal is None:
-        raise InputError(str(root), "no calibration (cameras.json, calibration/, *.toml or sparse/): pass "
-                                    "--calib")
-    fps_doc = None
-    if detect_format(cal) == "native":
-        rig, fps_doc, _ = load_cameras(cal / "cameras.json" if cal.is_dir() else cal)
-    else:
-        rig = read_calibration(cal)
+    rig, fps_doc, cal = calibration_beside(root, calib)
     warnings: list[str] = []
     cam_of = match_cameras([p.stem for p in paths], rig, str(root / kind), warnings)
     items = {p: (_read_cvat(p) if kind == "cvat" else _read_coco(p)) for p in paths}
