@@ -364,8 +364,7 @@ def _write_truth(sim: SimScene, path: Path) -> None:
 
 
 def _write_native(sim: SimScene, tmp: Path) -> None:
-    doc = cameras_doc(sim.rig, sim.fps, frame=sim.rig.frame_name, units="m")
-    (tmp / "cameras.json").write_text(json.dumps(doc, indent=1))
+    _write_cameras(sim.rig, sim.fps, tmp)
     with open(tmp / "boxes.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["frame", "camera", "id", "xmin", "ymin", "xmax", "ymax"])
@@ -378,8 +377,7 @@ def _write_native(sim: SimScene, tmp: Path) -> None:
 
 
 def _write_mot(sim: SimScene, tmp: Path, id_seed: int | None) -> None:
-    doc = cameras_doc(sim.rig, sim.fps, frame=sim.rig.frame_name, units="m")
-    (tmp / "cameras.json").write_text(json.dumps(doc, indent=1))
+    _write_cameras(sim.rig, sim.fps, tmp)
     (tmp / "mot").mkdir()
     people = np.unique(sim.truth_id)
     rng = np.random.default_rng(id_seed) if id_seed is not None else None
@@ -399,13 +397,18 @@ def _local_ids(people: np.ndarray, rng: np.random.Generator | None) -> dict[int,
     return dict(zip(people.tolist(), ids.tolist(), strict=True))
 
 
+def _write_cameras(rig: Rig, fps: float, tmp: Path) -> None:
+    """``cameras.json`` of a simulated rig (with its frame rate)."""
+    doc = cameras_doc(rig, fps, frame=rig.frame_name, units="m")
+    (tmp / "cameras.json").write_text(json.dumps(doc, indent=1))
+
+
 def _write_cvat(sim: SimScene, tmp: Path, id_seed: int | None) -> None:
     """``cvat/<camera>.xml``: one "CVAT for video 1.1" task per camera, one track per person
-    seen there (its own id), a box per frame, ``outside`` where not seen."""
+    seen there (its own id), a box in every frame it is seen."""
     from xml.sax.saxutils import quoteattr
 
-    doc = cameras_doc(sim.rig, sim.fps, frame=sim.rig.frame_name, units="m")
-    (tmp / "cameras.json").write_text(json.dumps(doc, indent=1))
+    _write_cameras(sim.rig, sim.fps, tmp)
     (tmp / "cvat").mkdir()
     people = np.unique(sim.truth_id)
     rng = np.random.default_rng(id_seed) if id_seed is not None else None
@@ -451,8 +454,7 @@ def write_coco(sim: SkeletonScene, out: Path, track_ids: bool = True, seed: int 
     rng = np.random.default_rng([seed, 3])
 
     def write(tmp: Path) -> None:
-        doc = cameras_doc(sim.rig, sim.fps, units="m", frame=sim.rig.frame_name)
-        (tmp / "cameras.json").write_text(json.dumps(doc, indent=1))
+        _write_cameras(sim.rig, sim.fps, tmp)
         (tmp / "coco").mkdir()
         people = np.unique(sim.truth_id)
         for c, cam in enumerate(sim.rig.cameras):

@@ -64,6 +64,13 @@ class Anomalies:
         return dict(sorted(out.items()))
 
 
+def track_row_of(tracks: TrackSet, rows: Any) -> np.ndarray:
+    """(R,) the row of ``tracks`` estimating each object-frame of ``rows`` (-1: none)."""
+    key = _key_index(tracks)
+    return np.array([key.get((int(rows.frames[t]), int(rows.obj_ids[o])), -1)
+                     for t, o in zip(rows.row_t, rows.row_o, strict=True)], dtype=np.int64)
+
+
 def _key_index(tracks: TrackSet) -> dict[tuple[int, int], int]:
     return {(int(f), int(i)): k for k, (f, i) in enumerate(zip(tracks.frame, tracks.track_id, strict=True))}
 
@@ -87,10 +94,12 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | Non
     rows, cams = pre.rows, pre.cams
     names = scene.rig.names
     out: list[tuple[int, str, int, int | str, str, float, str]] = []
-    key = _key_index(tracks)
-    r_of = np.array([key.get((int(rows.frames[t]), int(rows.obj_ids[o])), -1)
-                     for t, o in zip(rows.row_t, rows.row_o, strict=True)], dtype=np.int64)
+    r_of = track_row_of(tracks, rows)
     have = r_of >= 0
+    idx = np.flatnonzero(have)
+    # every estimated object-frame's tangent box in every camera: (n, C, 4), margin (n, C)
+    box, margin = ellipsoid_boxes(tracks.center_world[r_of[idx]], tracks.semi_axes[r_of[idx]],
+                                  cams.world_from_body, cams.K, cams.dist, cams.R, cams.t, cams.depth_sign)
     frame_of = rows.frames[rows.row_t]
     id_of = rows.obj_ids[rows.row_o]
 
@@ -99,9 +108,6 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | Non
                              identity_jumps(pre, scene.fps, cfg) if jumps is None else jumps)
 
     if pre.use_box and have.any():
-        idx = np.flatnonzero(have)
-        box, _ = ellipsoid_boxes(tracks.center_world[r_of[idx]], tracks.semi_axes[r_of[idx]],
-                                 cams.world_from_body, cams.K, cams.dist, cams.R, cams.t, cams.depth_sign)
         z = rows.box_z[idx]
         usable = rows.box_mask[idx] & np.isfinite(z)
         zs = np.where(usable, np.abs(box - z) / np.asarray(pre.sigma_box)[None, None, :], 0.0)
@@ -126,7 +132,7 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | Non
         _keypoints(scene, tracks, pre, cfg, r_of, have, jumped, frame_of, id_of, out, project_points)
 
     _world_frame(scene, tracks, cfg, out)
-    _missing_views(scene, tracks, pre, cfg, out, jumped)
+    _missing_views(scene, tracks, pre, cfg, out, jumped, r_of, box, margin)
     offsets: list = []
     _time_offsets(scene, tracks, pre, cfg, offsets)
     if offsets:  # an unsynchronised camera's views all look wrong: one row says why
@@ -264,22 +270,16 @@ def covered_fraction(box: F64, depth: F64, depth_tol_m: float = 0.0) -> F64:
 
 
 def _missing_views(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, out: list,
-                   jumped: np.ndarray) -> None:
+                   jumped: np.ndarray, r_of: np.ndarray, box: F64, margin: F64) -> None:
     """``jumped`` (R,): object-frames flagged as identity jumps (their annotations are someone
-    else's: a view without them says nothing)."""
-    from gt3dkit.geom.conics import ellipsoid_boxes
-
+    else's: a view without them says nothing); ``r_of`` (R,) :func:`track_row_of`; ``box``,
+    ``margin`` the tangent boxes of the rows ``r_of >= 0`` in every camera."""
     rows, cams = pre.rows, pre.cams
     names = scene.rig.names
-    key = _key_index(tracks)
-    r_of = np.array([key.get((int(rows.frames[t]), int(rows.obj_ids[o])), -1)
-                     for t, o in zip(rows.row_t, rows.row_o, strict=True)], dtype=np.int64)
     ok = r_of >= 0  # every estimated object can hide another; only those seen twice are judged
     if not (ok & (rows.n_views >= 2)).any():
         return
     idx = np.flatnonzero(ok)
-    box, margin = ellipsoid_boxes(tracks.center_world[r_of[idx]], tracks.semi_axes[r_of[idx]],
-                                  cams.world_from_body, cams.K, cams.dist, cams.R, cams.t, cams.depth_sign)
     centres = np.stack([c.center_world for c in scene.rig.cameras])  # (C, 3)
     depth = np.linalg.norm(tracks.center_world[r_of[idx]][:, None, :] - centres[None], axis=-1)
     depth = np.where(margin > 0, depth, np.nan)

@@ -56,11 +56,10 @@ class ViewResiduals:
 def view_residuals(tracks: TrackSet, pre: Any) -> ViewResiduals:
     from gt3dkit.geom.camera import project_points
     from gt3dkit.geom.conics import ellipsoid_boxes
+    from gt3dkit.qa.anomalies import track_row_of
 
     rows, cams = pre.rows, pre.cams
-    key = {(int(f), int(i)): k for k, (f, i) in enumerate(zip(tracks.frame, tracks.track_id, strict=True))}
-    r_of = np.array([key.get((int(rows.frames[t]), int(rows.obj_ids[o])), -1)
-                     for t, o in zip(rows.row_t, rows.row_o, strict=True)], dtype=np.int64)
+    r_of = track_row_of(tracks, rows)
     idx = np.flatnonzero(r_of >= 0)
     r_of = r_of[idx]
     box = box_z = box_err = kpt = kpt_z = kpt_err = None
