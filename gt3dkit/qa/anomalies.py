@@ -286,7 +286,8 @@ def _missing_views(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, out:
     W, H = cams.wh[:, 0], cams.wh[:, 1]
     m = cfg.inside_margin * np.maximum(W, H)
     inside = (margin > 0) & (box[..., 0] > m) & (box[..., 1] > m) & (box[..., 2] < W - m) \
-        & (box[..., 3] < H - m) & (box[..., 3] - box[..., 1] > cfg.min_box_px) & np.isfinite(box).all(-1)
+        & (box[..., 3] < H - m) & (box[..., 3] - box[..., 1] > cfg.min_box_px) \
+        & (box[..., 2] > box[..., 0]) & np.isfinite(box).all(-1)  # a folded projection is no box
     unannotated = rows.obs_row[idx] < 0  # (n, C)
     cand = inside & unannotated & ((rows.n_views[idx] >= 2) & ~jumped[idx])[:, None]
     if not cand.any():
