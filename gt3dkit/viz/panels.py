@@ -124,13 +124,15 @@ def _points(res: ViewResiduals, n: int, c: int, estimate: bool) -> F64:
 
 def draw_view(ax: Any, scene: Scene, res: ViewResiduals, cam: int, sel: np.ndarray,
               skeleton_bones: list[tuple[int, int]] | None = None, lw: float = 1.6,
-              mark: tuple[int, int | None] | None = None) -> None:
+              mark: tuple[int, int | None] | None = None, focus: int | None = None) -> None:
     """Draw the annotations and the projected estimate of the residual rows ``sel`` in camera
     ``cam`` onto ``ax`` (pixel axes); ``mark`` = (row, joint) circles that row's joint (or its
-    box) in red."""
+    box) in red; ``focus`` = a row drawn in full, the others faded (crowded anomaly pictures)."""
     plt = _plt()
     for n in sel:
-        col = colour_of(res.obj[n])
+        col, ink = colour_of(res.obj[n]), (0.0, 0.0, 0.0)
+        if focus is not None and n != focus:  # the others stay as context, faded
+            col, ink = (*col, 0.25), (0.0, 0.0, 0.0, 0.25)
         if res.box_z is not None and np.isfinite(res.box_z[n, cam]).all():
             for b, ls in ((res.box_z[n, cam], "-"), (res.box[n, cam], "--")):
                 if np.isfinite(b).all():
@@ -151,7 +153,7 @@ def draw_view(ax: Any, scene: Scene, res: ViewResiduals, cam: int, sel: np.ndarr
                 if seen[a] and seen[b]:
                     ax.plot(z[[a, b], 0], z[[a, b], 1], "-", color=col, lw=0.8, alpha=0.6)
             ax.plot(z[seen, 0], z[seen, 1], "o", ms=4, color=col)
-            ax.plot(p[seen, 0], p[seen, 1], "x", ms=3.5, color="black", mew=0.8)
+            ax.plot(p[seen, 0], p[seen, 1], "x", ms=3.5, color=ink, mew=0.8)
             top = int(np.flatnonzero(seen)[np.argmin(z[seen, 1])])
             ax.text(z[top, 0], z[top, 1] - 8, str(int(res.obj[n])), color=col, fontsize=8, fontweight="bold",
                     clip_on=True)
@@ -322,7 +324,7 @@ def anomaly_thumbnail(scene: Scene, res: ViewResiduals, frame: int, obj: int, ca
         else:
             ax.set_facecolor("#f2f2f2")
         flagged = c == cams[0] and camera in names
-        draw_view(ax, scene, res, c, others, bones, lw=1.4, mark=(n, joint) if flagged else None)
+        draw_view(ax, scene, res, c, others, bones, lw=1.4, mark=(n, joint) if flagged else None, focus=n)
         ax.set_xlim(lo[0] - pad, hi[0] + pad)
         ax.set_ylim(hi[1] + pad, lo[1] - pad)
         ax.set_aspect("equal")
