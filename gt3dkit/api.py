@@ -29,11 +29,13 @@ def reconstruct(scene: Scene | str | Path, estimator: str | Estimator = "ukf",
         sc = scene if isinstance(scene, Scene) else load_scene(Path(scene))
         est = make_estimator(estimator, **config) if isinstance(estimator, str) else estimator
         stage("per-frame fits")
-        pre = prepare(sc)
+        own = getattr(est, "prepare", None)
+        pre = own(sc) if callable(own) else prepare(sc)
         jumps = identity_jumps(pre, sc.fps)
         clean = without_identity_jumps(sc, pre, jumps)
         stage(f"{getattr(est, 'name', 'estimator')}")
-        tracks = est.estimate(clean)
+        # the preparation is the estimator's own when no annotation was left out
+        tracks = est.estimate(clean, pre) if clean is sc and callable(own) else est.estimate(clean)
         if out is not None:
             stage("annotation QA, writing")
             qa = find_anomalies(sc, tracks, pre, jumps=jumps)

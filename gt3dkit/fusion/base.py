@@ -22,6 +22,10 @@ class Estimator(Protocol):
 
     name: str
 
+    def prepare(self, scene: Scene) -> Prepared:
+        """The preparation :meth:`estimate` would make itself (with this estimator's settings)."""
+        ...
+
     def estimate(self, scene: Scene, pre: Prepared | None = None) -> TrackSet: ...
 
 

@@ -16,6 +16,7 @@ from gt3dkit.fusion.boxfit import box_model
 from gt3dkit.fusion.motion import StateLayout
 from gt3dkit.fusion.prepare import Prepared
 from gt3dkit.fusion.rows import Rows
+from gt3dkit.fusion.ukf import Block
 from gt3dkit.geom.camera import Cams, project_points
 from gt3dkit.types import F64
 
@@ -177,6 +178,37 @@ class Model:
                 Pl[bb[:, None], dims, dims] = vals
                 changed = True
         return (xl, Pl) if changed else (None, None)
+
+    def blocks(self) -> list[Block]:
+        """The measurement vector as :class:`gt3dkit.fusion.ukf.Block` groups: the box edges of
+        all cameras (centre and log semi-axes), each joint's projections into all cameras (its
+        three coordinates), each bone (its two joints)."""
+        C, J = len(self.cams.K), self.layout.n_joints
+        lay, cams = self.layout, self.cams
+        out: list[Block] = []
+        at = 0
+        if self.use_box:
+            dims = np.r_[np.arange(lay.center.start, lay.center.stop),
+                         np.arange(lay.log_axes.start, lay.log_axes.stop)][None]
+            out.append(Block(dims, np.arange(C * 4)[None], lambda X: box_model(
+                X[..., :3], X[..., 3:], cams).reshape(X.shape[:3] + (C * 4,))))
+            at = C * 4
+        if J:
+            jdims = lay.joints.start + 3 * np.arange(J)[:, None] + np.arange(3)  # (J, 3)
+            cols = at + 2 * (np.arange(C)[None, :, None] * J + np.arange(J)[:, None, None]) + np.arange(2)
+
+            def project(X: F64) -> F64:  # (B, J, S, 3) -> (B, J, S, 2C)
+                uv, _ = project_points(X, cams.K, cams.dist, cams.R, cams.t, cams.depth_sign)
+                return uv.reshape(X.shape[:3] + (2 * C,))
+
+            out.append(Block(jdims, cols.reshape(J, 2 * C), project))
+            if self.bones is not None:
+                K = len(self.bones)
+                bdims = np.concatenate([jdims[self.bones[:, 0]], jdims[self.bones[:, 1]]], axis=1)
+                at_b = at + C * J * 2
+                out.append(Block(bdims, at_b + np.arange(K)[:, None], lambda X: np.linalg.norm(
+                    X[..., :3] - X[..., 3:], axis=-1)[..., None], disjoint=False))
+        return out
 
     def h(self, X: F64) -> F64:
         """(B, S, n) -> (B, S, m) predicted measurements of all sigma points."""

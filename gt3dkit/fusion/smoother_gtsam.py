@@ -102,11 +102,15 @@ class GTSAMSmoother:
     def __init__(self, config: GTSAMConfig | None = None) -> None:
         self.config = config or GTSAMConfig()
 
+    def prepare(self, scene: Scene) -> Prepared:
+        cfg = self.config
+        return prepare(scene, cfg.clip_tol_px, cfg.sigma_px, cfg.kpt_sigma_px)
+
     def estimate(self, scene: Scene, pre: Prepared | None = None) -> TrackSet:
         gtsam = _gtsam()
         cfg = self.config
         t0 = time.perf_counter()
-        pre = pre or prepare(scene, cfg.clip_tol_px, cfg.sigma_px, cfg.kpt_sigma_px)
+        pre = pre or self.prepare(scene)
         rows, cams, layout, use_box, use_kpt = (pre.rows, pre.cams, pre.layout, pre.use_box,
                                                 pre.use_kpt)
         R, J = len(rows), layout.n_joints

@@ -37,9 +37,12 @@ class Triangulation:
     def __init__(self, config: TriangulationConfig | None = None) -> None:
         self.config = config or TriangulationConfig()
 
+    def prepare(self, scene: Scene) -> Prepared:
+        return prepare(scene, self.config.clip_tol_px, self.config.sigma_px)
+
     def estimate(self, scene: Scene, pre: Prepared | None = None) -> TrackSet:
         t0 = time.perf_counter()
-        pre = pre or prepare(scene, self.config.clip_tol_px, self.config.sigma_px)
+        pre = pre or self.prepare(scene)
         rows, cams, fit = pre.rows, pre.cams, pre.fit
         R = len(rows)
         info: dict[str, object] = {"estimator": self.name, "params": dict(self.config.__dict__)}

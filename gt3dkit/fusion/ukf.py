@@ -21,7 +21,7 @@ References
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -201,8 +201,87 @@ def ukf_update(
     return x_post, P_post, info
 
 
+@dataclass(frozen=True)
+class Block:
+    """Measurements that each depend on a few state entries only.
+
+    ``G`` groups of ``k`` measurement columns ``cols (G, k)``; group ``g`` is a function of the
+    ``d`` state entries ``dims[g]`` (``dims (G, d)``) through ``h: (B, G, S, d) -> (B, G, S, k)``.
+    A joint's projections into every camera depend on that joint's three coordinates only, a
+    box on the centre and the semi-axes, a bone on its two joints: the statistical linear
+    regression of such a group needs the sigma points of its ``d``-dimensional marginal only
+    (``2d`` points, not ``2n``), and its information is a ``d x d`` block. ``disjoint``: no two
+    groups share a state entry (their blocks can be added by assignment).
+    """
+
+    dims: np.ndarray
+    cols: np.ndarray
+    h: MeasureFn
+    disjoint: bool = True
+
+
+def whole_state_block(n: int, m: int, h: MeasureFn) -> Block:
+    """A measurement function ``(B, S, n) -> (B, S, m)`` of the whole state as one block."""
+    return Block(np.arange(n)[None], np.arange(m)[None], lambda X: h(X[:, 0])[:, None])
+
+
+@dataclass
+class _Lin:
+    """One block's regression at ``(x_j, P_j)``: usable ``mk (B, G, k)``, ``At (B, G, d, k)``
+    (``A^T``), ``c (B, G, k)`` (``z - b``: the linearised model is ``A x + b``) and the
+    linearisation error's diagonal ``omega (B, G, k)``."""
+
+    mk: np.ndarray
+    At: F64
+    c: F64
+    omega: F64
+
+
+def _block_regression(xj: F64, Pj: F64, z: F64, mask: np.ndarray, blk: Block, alpha: float,
+                      beta: float, kappa: float) -> tuple[_Lin, int]:
+    """Statistical linear regression of one block on its marginal's sigma points."""
+    dims, cols = blk.dims, blk.cols
+    d = dims.shape[1]
+    w = SigmaWeights(d, alpha, beta, kappa)
+    xb = xj[:, dims]  # (B, G, d)
+    Pb = Pj[:, dims[:, :, None], dims[:, None, :]]  # (B, G, d, d)
+    B, G = xb.shape[:2]
+    L, rep = safe_cholesky(Pb.reshape(B * G, d, d))
+    offs = (np.sqrt(w.n + w.lam) * np.swapaxes(L, -1, -2)).reshape(B, G, d, d)
+    Wm, Wc = w.Wm, w.Wc
+    centre = bool(Wm[0] != 0.0 or Wc[0] != 0.0)  # the cubature rule gives it no weight
+    pts = [xb[:, :, None, :]] if centre else []
+    X = np.concatenate(pts + [xb[:, :, None, :] + offs, xb[:, :, None, :] - offs], axis=2)
+    if not centre:
+        Wm, Wc = Wm[1:], Wc[1:]
+    Z = blk.h(X)  # (B, G, S, k)
+    mk = mask[:, cols] & np.all(np.isfinite(Z), axis=2)
+    Zm = np.where(mk[:, :, None, :], Z, 0.0)
+    zhat = np.einsum("s,bgsk->bgk", Wm, Zm)
+    dX = X - xb[:, :, None, :]
+    dZ = Zm - zhat[:, :, None, :]
+    Pxz = np.swapaxes(dX * Wc[:, None], -1, -2) @ dZ  # (B, G, d, k)
+    At = np.linalg.solve(Pb, Pxz)
+    var_z = np.einsum("s,bgsk->bgk", Wc, dZ * dZ)
+    omega = np.maximum(var_z - np.sum(Pxz * At, axis=2), 0.0)
+    c = z[:, cols] - zhat + np.einsum("bgdk,bgd->bgk", At, xb)
+    return _Lin(mk, At, c, omega), rep
+
+
+def _scatter(J: F64, g: F64, blk: Block, H: F64, v: F64) -> None:
+    """``J[:, dims, dims] += H (B, G, d, d)`` and ``g[:, dims] += v (B, G, d)`` in place."""
+    dims = blk.dims
+    if blk.disjoint:
+        J[:, dims[:, :, None], dims[:, None, :]] += H
+        g[:, dims] += v
+    else:
+        bi = np.arange(J.shape[0])[:, None, None, None]
+        np.add.at(J, (bi, dims[None, :, :, None], dims[None, :, None, :]), H)
+        np.add.at(g, (np.arange(J.shape[0])[:, None, None], dims[None]), v)
+
+
 def ukf_update_information(
-    x: F64, P: F64, z: F64, mask: F64, R_diag: F64, h: MeasureFn, w: SigmaWeights,
+    x: F64, P: F64, z: F64, mask: F64, R_diag: F64, h: MeasureFn | Sequence[Block], w: SigmaWeights,
     iterations: int = 1, x_lin: F64 | None = None, P_lin: F64 | None = None,
     weight0: F64 | None = None, robust: RobustConfig | None = None,
     robust_blocks: tuple[tuple[slice, int], ...] = (),
@@ -229,12 +308,14 @@ def ukf_update_information(
     Returns ``x_post, P_post, info`` as :func:`ukf_update`; ``loglik`` and ``nis`` are of
     the last pass with its weights (noise ``D / w`` for the kept entries: what the estimate
     rests on), and ``info``
-    also holds ``weights (B, m)`` (those the last pass used), ``score2 (B, m)`` (each
+    also holds ``nis_rows``, ``dof_rows``, ``loglik_rows`` (the same per batch row, ``(B,)``),
+    ``weights (B, m)`` (those the last pass used), ``score2 (B, m)`` (each
     entry's point's squared leave-one-out score at the final posterior) and
     ``residual (B, m)`` (``z - h(x_post)``, linearised).
     """
     B, m = z.shape
     n = x.shape[1]
+    blocks = [whole_state_block(n, m, h)] if callable(h) else list(h)
     R_b = np.broadcast_to(np.asarray(R_diag, dtype=np.float64), (B, m))
     Pinv = np.linalg.inv(0.5 * (P + np.swapaxes(P, -1, -2)))
     xj, Pj = (x, P) if x_lin is None or P_lin is None else (x_lin, P_lin)
@@ -244,24 +325,30 @@ def ukf_update_information(
     eye = np.eye(n)
     score2 = np.zeros((B, m))
     resid = np.zeros((B, m))
+    mk = np.zeros((B, m), bool)
+    D = np.ones((B, m))
+    lin = np.zeros((B, m))
     for it in range(iterations):
-        mk, zhat, dX, dZ, rep = _regression_points(xj, Pj, mask, h, w)
-        repaired += rep
-        Pxz = _wcov(w.Wc, dX, dZ)  # (B, n, m)
-        At = np.linalg.solve(Pj, Pxz)  # A^T (B, n, m)
-        var_z = np.einsum("s,bsm->bm", w.Wc, dZ * dZ)
-        omega = np.maximum(var_z - np.sum(Pxz * At, axis=1), 0.0)
-        D = R_b + omega
-        Dinv = np.where(mk, wt / D, 0.0)  # (B, m)
-        lin = z - zhat + (np.swapaxes(At, -1, -2) @ xj[..., None])[..., 0]  # z - b
-        nu = np.where(mk, lin - (np.swapaxes(At, -1, -2) @ x[..., None])[..., 0], 0.0)
-        AtD = At * Dinv[:, None, :]
-        Jinf = Pinv + AtD @ np.swapaxes(At, -1, -2)
+        Jinf = Pinv.copy()
+        g = np.zeros((B, n))
+        lins = []
+        for blk in blocks:
+            L, rep = _block_regression(xj, Pj, z, mask, blk, w.alpha, w.beta, w.kappa)
+            repaired += rep
+            cols = blk.cols
+            mk[:, cols] = L.mk
+            Db = R_b[:, cols] + L.omega
+            D[:, cols] = Db
+            Dinv = np.where(L.mk, wt[:, cols] / Db, 0.0)  # (B, G, k)
+            lin[:, cols] = L.c
+            nu = np.where(L.mk, L.c - np.einsum("bgdk,bgd->bgk", L.At, x[:, blk.dims]), 0.0)
+            AtD = L.At * Dinv[:, :, None, :]
+            _scatter(Jinf, g, blk, AtD @ np.swapaxes(L.At, -1, -2), np.einsum("bgdk,bgk->bgd", AtD, nu))
+            lins.append((blk, L, nu, Dinv))
         Lj, rep2 = safe_cholesky(Jinf)
         repaired += rep2
         Li = np.linalg.solve(Lj, np.broadcast_to(eye, Lj.shape))
         P_post = np.swapaxes(Li, -1, -2) @ Li
-        g = (AtD @ nu[..., None])[..., 0]
         x_post = x + (P_post @ g[..., None])[..., 0]
         if it == iterations - 1:
             LP, _ = safe_cholesky(P)
@@ -269,14 +356,20 @@ def ukf_update_information(
             logdet = (np.sum(np.log(np.where(used, D / np.where(used, wt, 1.0), 1.0)), axis=1)
                       + 2 * np.sum(np.log(np.einsum("bii->bi", Lj)), axis=1)
                       + 2 * np.sum(np.log(np.einsum("bii->bi", LP)), axis=1))
-            quad = np.sum(nu * nu * Dinv, axis=1) - np.einsum("bi,bi->b", g,
-                                                               (P_post @ g[..., None])[..., 0])
-            dof = int(used.sum())
-            info = {"nis": float(quad.sum()), "dof": dof,
-                    "loglik": float(-0.5 * (quad.sum() + logdet.sum() + dof * np.log(2 * np.pi)))}
+            quad = (sum(np.sum(nu * nu * Dinv, axis=(1, 2)) for _, _, nu, Dinv in lins)
+                    - np.einsum("bi,bi->b", g, (P_post @ g[..., None])[..., 0]))
+            dof_b = used.sum(axis=1)
+            ll_b = -0.5 * (quad + logdet + dof_b * np.log(2 * np.pi))
+            info = {"nis": float(quad.sum()), "dof": int(dof_b.sum()), "loglik": float(ll_b.sum()),
+                    "nis_rows": quad, "dof_rows": dof_b, "loglik_rows": ll_b}
         if robust is not None and robust_blocks:
-            resid = np.where(mk, lin - (np.swapaxes(At, -1, -2) @ x_post[..., None])[..., 0], 0.0)
-            p = np.sum(At * (P_post @ At), axis=1)  # diag(A P+ A^T)
+            p = np.zeros((B, m))
+            for blk, L, _, _ in lins:
+                dims = blk.dims
+                xb = x_post[:, dims]
+                Pb = P_post[:, dims[:, :, None], dims[:, None, :]]
+                resid[:, blk.cols] = np.where(L.mk, L.c - np.einsum("bgdk,bgd->bgk", L.At, xb), 0.0)
+                p[:, blk.cols] = np.sum(L.At * (Pb @ L.At), axis=2)  # diag(A P+ A^T)
             e2 = np.where(mk, deleted_score2(resid, D, p, wt), 0.0)
             new_wt = wt.copy()
             for sl, d in robust_blocks:

@@ -64,6 +64,9 @@ PROVISIONAL_LOOSENESS = 3.0
 #: ... and a shape noise of at least this (the moment estimate of a shape that the per-frame
 #: noise hides is its floor, which would hold every box to a rigid shape).
 PROVISIONAL_MIN_SHAPE_SD = 0.05
+#: The noise search (and its provisional pass) runs on whole objects up to this many
+#: object-frames: the likelihood of two or three noise levels is well determined by far fewer.
+SEARCH_OBJECT_FRAMES = 2500
 
 
 @dataclass(frozen=True)
@@ -147,11 +150,14 @@ class UKFSmoother:
     def __init__(self, config: UKFConfig | None = None) -> None:
         self.config = config or UKFConfig()
 
+    def prepare(self, scene: Scene) -> Prepared:
+        cfg = self.config
+        return prepare(scene, cfg.clip_tol_px, cfg.sigma_px, cfg.kpt_sigma_px, cfg.robust_config)
+
     def estimate(self, scene: Scene, pre: Prepared | None = None) -> TrackSet:
         cfg = self.config
         t0 = time.perf_counter()
-        pre = pre or prepare(scene, cfg.clip_tol_px, cfg.sigma_px, cfg.kpt_sigma_px,
-                             cfg.robust_config)
+        pre = pre or self.prepare(scene)
         rows, cams, layout = pre.rows, pre.cams, pre.layout
         R = len(rows)
         model = Model.of(pre)
@@ -161,9 +167,14 @@ class UKFSmoother:
         if cfg.robust and model.robust_blocks:
             # second pass: the weights start from every point's verdict against the smoothed
             # estimate, which knows the future too (a bad view in an object's first frame,
-            # where the forward pass had only the frame itself to judge by)
-            model = replace(model, weight0=smoothed_weights(model, x_s, cfg))
-            x_s, P_s, run = run_filter(model, init, cfg, scene.fps, collect=True)
+            # where the forward pass had only the frame itself to judge by). Objects are
+            # independent: only those with a changed verdict are run again.
+            w0 = smoothed_weights(model, x_s, cfg)
+            changed = objects_rows(rows, np.any(w0 != model.weight0, axis=1))
+            model = replace(model, weight0=w0)
+            if changed.any():
+                x_s, P_s, run = merge_runs((x_s, P_s, run), run_filter(
+                    model, init, cfg, scene.fps, collect=True, on=changed), changed)
         bone_info: dict[str, Any] = {}
         if pre.use_kpt and cfg.bones and pre.skeleton is not None:
             x_s, P_s, run, bone_info = rerun_with_bones(model, init, cfg, scene.fps, x_s, P_s,
@@ -229,6 +240,13 @@ class UKFSmoother:
             frame=rows.frames[rows.row_t], track_id=rows.obj_ids[rows.row_o],
             center_world=centre, semi_axes=semi, center_sd=sd, n_views=rows.n_views,
             kpt_world=kpt, kpt_sd=kpt_sd, info=info, downweighted=down)
+
+
+def objects_rows(rows: Any, hit: np.ndarray) -> np.ndarray:
+    """(R,) every row of the objects that have a row in ``hit (R,)``."""
+    obj = np.zeros(len(rows.obj_ids), bool)
+    obj[rows.row_o[hit]] = True
+    return obj[rows.row_o]
 
 
 def smoothed_weights(model: Model, x_s: F64, cfg: UKFConfig) -> F64:
@@ -358,10 +376,16 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
                     shape_sd=cfg.shape_sd or max(loose * prov.shape_sd, PROVISIONAL_MIN_SHAPE_SD),
                     joint_accel_sd=cfg.joint_accel_sd or loose * prov.joint_accel_sd)
     weights = model.weight0
+    on = search_rows(model.rows, SEARCH_OBJECT_FRAMES)
+    if on is not None:
+        curves["subsample"] = {
+            "objects": int(len(np.unique(model.rows.row_o[on]))), "object_frames": int(on.sum()),
+            "note": f"the search runs on whole objects drawn at random (seed 0) up to "
+                    f"{SEARCH_OBJECT_FRAMES} object-frames: two noise levels need no more"}
     if cfg.robust and (cfg.accel_sd is None or cfg.shape_sd is None
                        or (use_kpt and cfg.joint_accel_sd is None)):
         weights = run_filter(model, init, replace(start, smooth=False), fps,
-                             collect=True)[2]["weights"]
+                             collect=True, on=on)[2]["weights"]
         curves["provisional"] = {**prov.as_dict(), "source": prov.source,
                                  "use": "a robust pass at these values fixes the weights"}
     search_model = replace(model, weight0=weights)  # one pass each: no reweighting
@@ -373,7 +397,7 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
             if v not in seen:
                 ll = run_filter(search_model, init, replace(c, **{name: v}, smooth=False,
                                                             iterations=1), fps,
-                                fade=False)[2]["loglik"]
+                                fade=False, on=on)[2]["loglik"]
                 seen[v] = float(ll) if np.isfinite(ll) else -np.inf
             return seen[v]
 
@@ -392,6 +416,19 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
     if not use_box and given.accel_sd is None:
         cfg = replace(cfg, accel_sd=cfg.joint_accel_sd)
     return cfg, curves
+
+
+def search_rows(rows: Any, budget: int, seed: int = 0) -> np.ndarray | None:
+    """(R,) the rows of whole objects, drawn in a seeded random order until they hold
+    ``budget`` object-frames; ``None`` (all rows) when the scene has no more than that."""
+    if len(rows) <= budget:
+        return None
+    count = np.bincount(rows.row_o, minlength=len(rows.obj_ids))
+    order = np.random.default_rng(seed).permutation(len(count))
+    take = order[: int(np.searchsorted(np.cumsum(count[order]), budget)) + 1]
+    obj = np.zeros(len(count), bool)
+    obj[take] = True
+    return obj[rows.row_o]
 
 
 def joints_of(x_s: F64, P_s: F64, layout: Any, rows: Any) -> tuple[F64, F64]:
@@ -504,12 +541,15 @@ def rerun_with_bones(model: Model, init: Init, cfg: UKFConfig, fps: float, x_s: 
 
 
 def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bool = False,
-               fade: bool = True) -> tuple[F64, F64, dict[str, Any]]:
+               fade: bool = True, on: np.ndarray | None = None) -> tuple[F64, F64, dict[str, Any]]:
     """Forward UKF over the frame grid, then (optionally) RTS. Returns ``(R, n)``, ``(R, n, n)``
     and diagnostics; with ``collect`` also the final weights, scores and residuals ``(R, m)``.
     ``fade`` lets the frame's own views weaken a contradicted prediction
     (:meth:`Model.prior_conflict`); the noise search runs without it, so that its likelihood
-    judges the motion model as it is."""
+    judges the motion model as it is. ``on (R,)`` runs the rows of some objects only (whole
+    objects: each object's filter is independent of the others); the other rows' outputs are
+    zero and their statistics absent. The diagnostics hold the per-row statistics
+    (``nis_rows``, ``dof_rows``, ``loglik_rows``) that :func:`merge_runs` combines."""
     rows, cams, layout = model.rows, model.cams, model.layout
     n, R = layout.n, len(rows)
     if cfg.accel_sd is None or cfg.shape_sd is None:
@@ -528,10 +568,14 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
         return layout.transition(dt, cfg.accel_sd, cfg.shape_sd, cfg.joint_accel_sd,  # type: ignore[arg-type]
                                  up=cams.up, vertical_ratio=cfg.vertical_ratio)
 
-    stats = {"repaired": 0, "nis": 0.0, "dof": 0, "loglik": 0.0}
+    blocks = model.blocks()
+    per_row = {k: np.zeros(R) for k in ("nis_rows", "dof_rows", "loglik_rows")}
+    repaired = 0
     faded = 0
     for t in range(len(rows.frames)):
         r = np.arange(rows.t_start[t], rows.t_start[t + 1])
+        if on is not None:
+            r = r[on[r]]
         if len(r) == 0:
             continue
         prev = rows.prev_row[r]
@@ -552,30 +596,52 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
                     faded += int(hit.sum())
         xl, Pl = model.linearisation_point(r, x_p[r], P_p[r])
         x_f[r], P_f[r], inf = ukf_update_information(
-            x_p[r], P_p[r], model.z[r], model.mask[r], model.var[r], model.h, w,
+            x_p[r], P_p[r], model.z[r], model.mask[r], model.var[r], blocks, w,
             cfg.iterations, xl, Pl, weight0=model.weight0[r], robust=robust,
             robust_blocks=model.robust_blocks)
-        for k in stats:
-            stats[k] += inf[k]
+        repaired += int(inf["repaired"])
+        for k in per_row:
+            per_row[k][r] = inf[k]
         for k in out:
             out[k][r] = inf[k]
     x_s, P_s = x_f.copy(), P_f.copy()
     if cfg.smooth:
         for t in range(len(rows.frames) - 2, -1, -1):
             r = np.arange(rows.t_start[t], rows.t_start[t + 1])
-            r = r[rows.next_row[r] >= 0]
+            r = r[(rows.next_row[r] >= 0) & (True if on is None else on[r])]
             if len(r) == 0:
                 continue
             nr = rows.next_row[r]
             F, _ = transition(np.full(len(r), frame_s[t + 1] - frame_s[t]))
             x_s[r], P_s[r] = rts_step(x_f[r], P_f[r], x_p[nr], P_p[nr], x_s[nr], P_s[nr], F)
     info: dict[str, Any] = {
-        "pd_repairs": int(stats["repaired"]),
+        "pd_repairs": repaired,
         "predictions_faded": faded,
-        "mean_nis_per_dof": float(stats["nis"]) / max(int(stats["dof"]), 1),
-        "object_frames": R,
-        "loglik": float(stats["loglik"]),
+        "object_frames": R if on is None else int(on.sum()),
         "update_form": "information, iterated and reweighted",
-        **out,
+        **out, **per_row,
     }
-    return x_s, P_s, info
+    return x_s, P_s, _with_totals(info)
+
+
+def _with_totals(info: dict[str, Any]) -> dict[str, Any]:
+    """``mean_nis_per_dof`` and ``loglik`` of a run from its per-row statistics."""
+    info["mean_nis_per_dof"] = float(info["nis_rows"].sum()) / max(float(info["dof_rows"].sum()), 1.0)
+    info["loglik"] = float(info["loglik_rows"].sum())
+    return info
+
+
+def merge_runs(base: tuple[F64, F64, dict[str, Any]], new: tuple[F64, F64, dict[str, Any]],
+               on: np.ndarray) -> tuple[F64, F64, dict[str, Any]]:
+    """``base`` with the rows ``on (R,)`` taken from ``new`` (a :func:`run_filter` with ``on``):
+    states, covariances and every per-row array of the diagnostics; totals recomputed."""
+    x, P, info = base[0].copy(), base[1].copy(), dict(base[2])
+    x[on], P[on] = new[0][on], new[1][on]
+    for k, v in new[2].items():
+        if isinstance(v, np.ndarray) and v.shape[:1] == on.shape:
+            merged = info[k].copy()
+            merged[on] = v[on]
+            info[k] = merged
+    info["pd_repairs"] = base[2]["pd_repairs"] + new[2]["pd_repairs"]
+    info["predictions_faded"] = base[2]["predictions_faded"] + new[2]["predictions_faded"]
+    return x, P, _with_totals(info)
