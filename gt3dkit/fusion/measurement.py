@@ -8,7 +8,7 @@ with distortion, bones the distance between two joints (pseudo-measurements).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -83,6 +83,15 @@ class Model:
         return cls(rows, cams, lay, pre.use_box, np.where(mask, np.concatenate(zs, 1), 0.0),
                    mask, np.concatenate(vars_, 1), np.concatenate(w0, 1),
                    tuple(blocks) if pre.robust.enabled else (), x_f, v_f, c6, det, kcov)
+
+    def take(self, rows: Rows, src: np.ndarray) -> Model:
+        """This model for ``rows`` whose row ``i`` is this model's row ``src[i]``
+        (:func:`gt3dkit.fusion.rows.replicate_rows`)."""
+        return replace(self, rows=rows, z=self.z[src], mask=self.mask[src], var=self.var[src],
+                       weight0=self.weight0[src], x_frame=self.x_frame[src],
+                       var_frame=self.var_frame[src], cov6_frame=self.cov6_frame[src],
+                       centre_determined=self.centre_determined[src],
+                       kpt_cov_frame=None if self.kpt_cov_frame is None else self.kpt_cov_frame[src])
 
     def prior_conflict(self, r: np.ndarray, x: F64, P: F64, tail_p: float = 1e-3) -> F64:
         r"""Per-state-entry fading scales ``(B, n)`` >= 1 for predictions the frame's own views

@@ -106,3 +106,34 @@ def build_rows(scene: Scene, clip_tol_px: float = 1.0) -> Rows:
     return Rows(frames=frames, obj_ids=obj_ids, row_t=row_t, row_o=row_o, prev_row=prev_row,
                 next_row=next_row, t_start=t_start, box_z=box_z, box_mask=box_mask,
                 kpt_z=kpt_z, kpt_conf=kpt_conf, obs_row=obs_row)
+
+
+def replicate_rows(rows: Rows, sel: np.ndarray, copies: int) -> tuple[Rows, I64, I64]:
+    """``copies`` independent copies of the objects whose rows are ``sel`` (whole objects),
+    as one set of rows (copy ``k`` of object ``o`` is object ``k * O + o``).
+
+    Returns the new rows, ``src (R',)`` the original row of each new row and ``copy (R',)``
+    its copy. Used to run one filter pass for several noise settings at once.
+    """
+    O, n = len(rows.obj_ids), len(sel)
+    kk = np.repeat(np.arange(copies), n)
+    rr = np.tile(sel, copies)
+    tt = rows.row_t[rr]
+    oo = rows.row_o[rr] + kk * O
+    order = np.lexsort((oo, tt))  # by frame, then object: the layout build_rows makes
+    pos = np.empty(copies * n, dtype=np.int64)
+    pos[order] = np.arange(copies * n)
+    in_sel = np.full(len(rows), -1, dtype=np.int64)
+    in_sel[sel] = np.arange(n)
+
+    def link(other: I64) -> I64:
+        o = other[rr]
+        return np.where(o >= 0, pos[kk * n + in_sel[np.maximum(o, 0)]], -1)[order]
+
+    src = rr[order]
+    new = Rows(frames=rows.frames, obj_ids=np.tile(rows.obj_ids, copies), row_t=tt[order],
+               row_o=oo[order], prev_row=link(rows.prev_row), next_row=link(rows.next_row),
+               t_start=np.searchsorted(tt[order], np.arange(len(rows.frames) + 1)),
+               box_z=rows.box_z[src], box_mask=rows.box_mask[src], kpt_z=rows.kpt_z[src],
+               kpt_conf=rows.kpt_conf[src], obs_row=rows.obs_row[src])
+    return new, src, kk[order]

@@ -305,6 +305,10 @@ def ukf_update_information(
     are recomputed from their leave-one-out scores against the new posterior
     (:mod:`gt3dkit.fusion.robust`). A weight of 0 removes the entry exactly.
 
+    ``h`` is a function of the whole state or a list of :class:`Block` (each regressed on its
+    own marginal's sigma points). The passes stop early once a pass's posterior is where it
+    linearised and no weight changes (``info["passes"]``): a further pass would repeat it.
+
     Returns ``x_post, P_post, info`` as :func:`ukf_update`; ``loglik`` and ``nis`` are of
     the last pass with its weights (noise ``D / w`` for the kept entries: what the estimate
     rests on), and ``info``
@@ -321,7 +325,6 @@ def ukf_update_information(
     xj, Pj = (x, P) if x_lin is None or P_lin is None else (x_lin, P_lin)
     wt = np.ones((B, m)) if weight0 is None else np.asarray(weight0, dtype=np.float64).copy()
     repaired = 0
-    info: dict[str, Any] = {}
     eye = np.eye(n)
     score2 = np.zeros((B, m))
     resid = np.zeros((B, m))
@@ -350,18 +353,15 @@ def ukf_update_information(
         Li = np.linalg.solve(Lj, np.broadcast_to(eye, Lj.shape))
         P_post = np.swapaxes(Li, -1, -2) @ Li
         x_post = x + (P_post @ g[..., None])[..., 0]
-        if it == iterations - 1:
-            LP, _ = safe_cholesky(P)
-            used = mk & (wt > 0)
-            logdet = (np.sum(np.log(np.where(used, D / np.where(used, wt, 1.0), 1.0)), axis=1)
-                      + 2 * np.sum(np.log(np.einsum("bii->bi", Lj)), axis=1)
-                      + 2 * np.sum(np.log(np.einsum("bii->bi", LP)), axis=1))
-            quad = (sum(np.sum(nu * nu * Dinv, axis=(1, 2)) for _, _, nu, Dinv in lins)
-                    - np.einsum("bi,bi->b", g, (P_post @ g[..., None])[..., 0]))
-            dof_b = used.sum(axis=1)
-            ll_b = -0.5 * (quad + logdet + dof_b * np.log(2 * np.pi))
-            info = {"nis": float(quad.sum()), "dof": int(dof_b.sum()), "loglik": float(ll_b.sum()),
-                    "nis_rows": quad, "dof_rows": dof_b, "loglik_rows": ll_b}
+        last = it == iterations - 1
+        # converged: the posterior is where this pass linearised (to 0.01 sd and 1e-3 of the
+        # spread), so a further pass would linearise at the same place and change nothing
+        converged = False
+        if it > 0:
+            step = np.einsum("bji,bj->bi", Lj, x_post - xj)  # L^T dx: |.|^2 = dx^T P+^-1 dx
+            spread = np.einsum("bii->b", P_post) / np.einsum("bii->b", Pj)
+            converged = bool(np.max(np.sum(step * step, axis=1)) < 1e-4
+                             and np.max(np.abs(spread - 1.0)) < 1e-3)
         if robust is not None and robust_blocks:
             p = np.zeros((B, m))
             for blk, L, _, _ in lins:
@@ -375,11 +375,28 @@ def ukf_update_information(
             for sl, d in robust_blocks:
                 e2b = e2[:, sl].reshape(B, -1, d).sum(axis=2)
                 score2[:, sl] = np.repeat(e2b, d, axis=1)
-                if it < iterations - 1:
+                if not last:
                     new_wt[:, sl] = np.repeat(point_weights(e2b, d, robust), d, axis=1)
-            if it < iterations - 1:
-                wt = np.where(mk, new_wt, wt)
+            if not last:
+                new_wt = np.where(mk, new_wt, wt)
+                converged = converged and bool(np.array_equal(new_wt, wt))
+                if not converged:
+                    wt = new_wt
+        if last or converged:
+            break
         xj, Pj = x_post, P_post
+    # statistics of the last pass, with the weights it used (what the estimate rests on)
+    LP, _ = safe_cholesky(P)
+    used = mk & (wt > 0)
+    logdet = (np.sum(np.log(np.where(used, D / np.where(used, wt, 1.0), 1.0)), axis=1)
+              + 2 * np.sum(np.log(np.einsum("bii->bi", Lj)), axis=1)
+              + 2 * np.sum(np.log(np.einsum("bii->bi", LP)), axis=1))
+    quad = (sum(np.sum(nu * nu * Dinv, axis=(1, 2)) for _, _, nu, Dinv in lins)
+            - np.einsum("bi,bi->b", g, (P_post @ g[..., None])[..., 0]))
+    dof_b = used.sum(axis=1)
+    ll_b = -0.5 * (quad + logdet + dof_b * np.log(2 * np.pi))
+    info = {"nis": float(quad.sum()), "dof": int(dof_b.sum()), "loglik": float(ll_b.sum()),
+            "nis_rows": quad, "dof_rows": dof_b, "loglik_rows": ll_b, "passes": it + 1}
     info.update(repaired=repaired, weights=np.where(mask, wt, 1.0), score2=score2,
                 residual=resid)
     return x_post, P_post, info

@@ -40,7 +40,6 @@ from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.prepare import (
@@ -54,6 +53,7 @@ from gt3dkit.fusion.prepare import (
     prepare,
 )
 from gt3dkit.fusion.robust import RobustConfig, point_weights
+from gt3dkit.fusion.rows import replicate_rows
 from gt3dkit.fusion.ukf import SigmaWeights, predict_linear, rts_step, ukf_update_information
 from gt3dkit.skeletons import Skeleton
 from gt3dkit.types import F64, Downweighted, Scene, TrackSet
@@ -338,18 +338,40 @@ def initial_states(model: Model, cfg: UKFConfig) -> Init:
     return Init(x0, P0)
 
 
-def _maximise_log(f: Any, lo: float, hi: float, n_scan: int) -> float:
-    """Maximiser of ``f(q)`` over ``[lo, hi]``: a log-spaced scan, then bounded Brent on
-    ``log q`` between the best scan point's neighbours."""
-    grid = np.geomspace(lo, hi, n_scan)
-    vals = np.array([f(float(q)) for q in grid])
-    vals = np.where(np.isfinite(vals), vals, -np.inf)
-    k = int(np.argmax(vals))
-    a, b = grid[max(k - 1, 0)], grid[min(k + 1, n_scan - 1)]
-    res = minimize_scalar(lambda u: -f(float(np.exp(u))), bounds=(np.log(a), np.log(b)),
-                          method="bounded", options={"xatol": 0.2})
-    cand = float(np.exp(res.x))
-    return cand if -res.fun >= vals[k] else float(grid[k])
+def maximise_log(f: Any, lo: float, hi: float, n_scan: int, rounds: int = 3
+                 ) -> tuple[float, dict[float, float]]:
+    """Maximiser of a smooth ``f`` over ``[lo, hi]`` on log scale, evaluated in batches:
+    ``f(values) -> logliks`` takes a list. A log-spaced scan of ``n_scan`` values, then
+    ``rounds`` of bisection (the log-midpoints to the best value's neighbours, two values per
+    batch; the last batch adds the vertex of the parabola in ``log q`` through the best three).
+    Returns the best value evaluated and every evaluation ``{value: f}``."""
+    seen: dict[float, float] = {}
+
+    def evaluate(values: list[float]) -> None:
+        new = [v for v in values if v not in seen]
+        if new:
+            for v, ll in zip(new, f(new), strict=True):
+                seen[v] = float(ll) if np.isfinite(ll) else -np.inf
+
+    def vertex() -> list[float]:
+        """The vertex of the parabola in log q through the best value and its neighbours."""
+        vs = sorted(seen)
+        ll = np.array([seen[v] for v in vs])
+        k = int(np.argmax(ll))
+        if k == 0 or k == len(vs) - 1 or not np.all(np.isfinite(ll[k - 1:k + 2])):
+            return []
+        u = np.log(vs[k - 1:k + 2])
+        c2, c1, _ = np.polyfit(u, ll[k - 1:k + 2], 2)
+        return [float(np.exp(np.clip(-c1 / (2 * c2), u[0], u[2])))] if c2 < 0 else []
+
+    evaluate([float(v) for v in np.geomspace(lo, hi, n_scan)])
+    for r in range(rounds):
+        vs = sorted(seen)
+        k = int(np.argmax([seen[v] for v in vs]))
+        cand = [float(np.sqrt(vs[k] * vs[j])) for j in (k - 1, k + 1) if 0 <= j < len(vs)]
+        evaluate(cand + (vertex() if r == rounds - 1 else []))
+    best = max(seen, key=lambda v: seen[v])
+    return best, seen
 
 
 def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: float
@@ -357,11 +379,13 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
     """Process noise by maximum likelihood of the forward pass (no smoothing, no bones).
 
     The likelihood must not be bent by outliers, and a single pass cannot reweight: so a
-    first robust forward pass, at provisional values (the moment estimates from the
+    first robust pass (forward and RTS), at provisional values (the moment estimates from the
     per-frame fits, :func:`gt3dkit.fusion.prepare.moment_process_noise`), fixes every
-    measurement's weight, and the search's single passes use those weights. Values set in
+    measurement's weight by its residual at that smoothed estimate, and the search's single
+    passes use those weights. The search runs on at most ``SEARCH_OBJECT_FRAMES`` object-frames
+    (:func:`search_rows`). Values set in
     ``cfg`` are kept; the others are found in turn (``accel_sd``, then ``shape_sd`` with boxes,
-    then ``joint_accel_sd`` with keypoints) by :func:`_maximise_log`. Returns the tuned config
+    then ``joint_accel_sd`` with keypoints) by :func:`maximise_log`. Returns the tuned config
     and, per searched parameter, the likelihood curve (``value, loglik``, sorted).
     """
     curves: dict[str, Any] = {}
@@ -384,24 +408,32 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
                     f"{SEARCH_OBJECT_FRAMES} object-frames: two noise levels need no more"}
     if cfg.robust and (cfg.accel_sd is None or cfg.shape_sd is None
                        or (use_kpt and cfg.joint_accel_sd is None)):
-        weights = run_filter(model, init, replace(start, smooth=False), fps,
-                             collect=True, on=on)[2]["weights"]
+        # every point judged against the provisional *smoothed* estimate, as the second pass
+        # judges them: a bad view in an object's first frames, which a forward pass cannot
+        # tell yet, would otherwise bend the motion model's likelihood
+        x_prov = run_filter(model, init, start, fps, on=on)[0]
+        weights = smoothed_weights(model, x_prov, start)
         curves["provisional"] = {**prov.as_dict(), "source": prov.source,
-                                 "use": "a robust pass at these values fixes the weights"}
+                                 "use": "a robust pass at these values, smoothed, fixes the weights"}
     search_model = replace(model, weight0=weights)  # one pass each: no reweighting
+    sel = np.flatnonzero(on) if on is not None else np.arange(len(model.rows))
+    n = model.layout.n
+    # several values in one pass (copies of the objects), as far as ~1 GB of covariances allows
+    per_pass = max(1, int(1e9 // (6 * 8 * n * n * max(len(sel), 1))))
 
     def search(name: str, c: UKFConfig, bounds: tuple[float, float], n_scan: int) -> UKFConfig:
-        seen: dict[float, float] = {}
+        def logliks(values: list[float]) -> list[float]:
+            out: list[float] = []
+            for i in range(0, len(values), per_pass):
+                part = values[i:i + per_pass]
+                rows_k, src, copy = replicate_rows(model.rows, sel, len(part))
+                run = run_filter(search_model.take(rows_k, src), Init(init.x0[src], init.P0[src]),
+                                 replace(c, smooth=False, iterations=1), fps, fade=False,
+                                 noise_rows={name: np.asarray(part)[copy]})[2]
+                out += list(np.bincount(copy, weights=run["loglik_rows"], minlength=len(part)))
+            return out
 
-        def score(v: float) -> float:
-            if v not in seen:
-                ll = run_filter(search_model, init, replace(c, **{name: v}, smooth=False,
-                                                            iterations=1), fps,
-                                fade=False, on=on)[2]["loglik"]
-                seen[v] = float(ll) if np.isfinite(ll) else -np.inf
-            return seen[v]
-
-        best = _maximise_log(score, *bounds, n_scan)
+        best, seen = maximise_log(logliks, *bounds, n_scan)
         curves[name] = [{"value": v, "loglik": ll} for v, ll in sorted(seen.items())]
         return replace(c, **{name: best})
 
@@ -541,7 +573,8 @@ def rerun_with_bones(model: Model, init: Init, cfg: UKFConfig, fps: float, x_s: 
 
 
 def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bool = False,
-               fade: bool = True, on: np.ndarray | None = None) -> tuple[F64, F64, dict[str, Any]]:
+               fade: bool = True, on: np.ndarray | None = None,
+               noise_rows: dict[str, F64] | None = None) -> tuple[F64, F64, dict[str, Any]]:
     """Forward UKF over the frame grid, then (optionally) RTS. Returns ``(R, n)``, ``(R, n, n)``
     and diagnostics; with ``collect`` also the final weights, scores and residuals ``(R, m)``.
     ``fade`` lets the frame's own views weaken a contradicted prediction
@@ -549,7 +582,9 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
     judges the motion model as it is. ``on (R,)`` runs the rows of some objects only (whole
     objects: each object's filter is independent of the others); the other rows' outputs are
     zero and their statistics absent. The diagnostics hold the per-row statistics
-    (``nis_rows``, ``dof_rows``, ``loglik_rows``) that :func:`merge_runs` combines."""
+    (``nis_rows``, ``dof_rows``, ``loglik_rows``) that :func:`merge_runs` combines.
+    ``noise_rows`` gives some of ``accel_sd``, ``shape_sd``, ``joint_accel_sd`` per row
+    ``(R,)`` instead of ``cfg``'s (the noise search runs several values at once)."""
     rows, cams, layout = model.rows, model.cams, model.layout
     n, R = layout.n, len(rows)
     if cfg.accel_sd is None or cfg.shape_sd is None:
@@ -564,14 +599,18 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
     m = model.z.shape[1]
     out = {k: np.zeros((R, m)) for k in ("weights", "score2", "residual")} if collect else {}
 
-    def transition(dt: F64) -> tuple[F64, F64]:
-        return layout.transition(dt, cfg.accel_sd, cfg.shape_sd, cfg.joint_accel_sd,  # type: ignore[arg-type]
-                                 up=cams.up, vertical_ratio=cfg.vertical_ratio)
+    per = noise_rows or {}
+
+    def transition(dt: F64, r: np.ndarray) -> tuple[F64, F64]:
+        q = {k: per[k][r] if k in per else getattr(cfg, k)
+             for k in ("accel_sd", "shape_sd", "joint_accel_sd")}
+        return layout.transition(dt, **q, up=cams.up, vertical_ratio=cfg.vertical_ratio)
 
     blocks = model.blocks()
     per_row = {k: np.zeros(R) for k in ("nis_rows", "dof_rows", "loglik_rows")}
     repaired = 0
     faded = 0
+    passes: list[int] = []
     for t in range(len(rows.frames)):
         r = np.arange(rows.t_start[t], rows.t_start[t + 1])
         if on is not None:
@@ -586,7 +625,7 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
             P_p[rn] = init.P0[rn]
         if (~new).any():
             ro, po = r[~new], prev[~new]
-            F, Q = transition(frame_s[t] - frame_s[rows.row_t[po]])
+            F, Q = transition(frame_s[t] - frame_s[rows.row_t[po]], ro)
             x_p[ro], P_p[ro] = predict_linear(x_f[po], P_f[po], F, Q)
             if fade:
                 sc = model.prior_conflict(ro, x_p[ro], P_p[ro])
@@ -600,6 +639,7 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
             cfg.iterations, xl, Pl, weight0=model.weight0[r], robust=robust,
             robust_blocks=model.robust_blocks)
         repaired += int(inf["repaired"])
+        passes.append(inf["passes"])
         for k in per_row:
             per_row[k][r] = inf[k]
         for k in out:
@@ -612,13 +652,14 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
             if len(r) == 0:
                 continue
             nr = rows.next_row[r]
-            F, _ = transition(np.full(len(r), frame_s[t + 1] - frame_s[t]))
+            F, _ = transition(np.full(len(r), frame_s[t + 1] - frame_s[t]), r)
             x_s[r], P_s[r] = rts_step(x_f[r], P_f[r], x_p[nr], P_p[nr], x_s[nr], P_s[nr], F)
     info: dict[str, Any] = {
         "pd_repairs": repaired,
         "predictions_faded": faded,
         "object_frames": R if on is None else int(on.sum()),
         "update_form": "information, iterated and reweighted",
+        "update_passes_mean": float(np.mean(passes)) if passes else 0.0,
         **out, **per_row,
     }
     return x_s, P_s, _with_totals(info)
