@@ -548,7 +548,10 @@ def rerun_with_bones(model: Model, init: Init, cfg: UKFConfig, fps: float, x_s: 
         sd = np.full_like(sd, cfg.bone_sd_m)
     sd = np.maximum(np.nan_to_num(sd, nan=0.05), cfg.bone_sd_floor_m)
     zb = L[rows.row_o]
-    mb = np.isfinite(zb)
+    # a bone ties a joint to a measured one: where neither end has a view in a frame it would
+    # only couple two extrapolations (and bend both along a sphere far from any evidence)
+    seen1 = np.isfinite(rows.kpt_z[..., 0]).any(axis=1)  # (R, J)
+    mb = np.isfinite(zb) & (seen1[:, bones[:, 0]] | seen1[:, bones[:, 1]])
     bmodel = replace(model, z=np.concatenate([model.z, np.nan_to_num(zb)], 1),
                      mask=np.concatenate([model.mask, mb], 1),
                      var=np.concatenate([model.var, sd[rows.row_o] ** 2], 1),
