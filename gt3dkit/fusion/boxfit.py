@@ -180,7 +180,7 @@ def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: F64 | float = 1.0,
         p[bi], r[bi], cost[bi] = p_new[better], r_new[better], c_new[better]
         lam[bi] = np.maximum(lam[bi] / 5, 1e-9)
         lam[idx[~better]] *= 10
-        small = np.max(np.abs(delta), axis=1) < 1e-9
+        small = np.max(np.abs(delta), axis=1) < 1e-7  # 0.1 um, 1e-7 of an axis: converged
         done = (better & small) | (lam[idx] > 1e8)
         active[idx[done]] = False
     J = np.nan_to_num(jac(p))

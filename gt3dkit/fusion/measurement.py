@@ -15,6 +15,7 @@ import numpy as np
 from gt3dkit.fusion.boxfit import box_model
 from gt3dkit.fusion.motion import StateLayout
 from gt3dkit.fusion.prepare import Prepared
+from gt3dkit.fusion.robust import chi2_isf
 from gt3dkit.fusion.rows import Rows
 from gt3dkit.fusion.ukf import Block
 from gt3dkit.geom.camera import Cams, project_points
@@ -109,12 +110,10 @@ class Model:
         filter, per block), so that its views are not rejected as outliers against a
         confident but wrong prediction. Other joints are left alone.
         """
-        from scipy.stats import chi2
-
         lay = self.layout
         B = len(r)
         scale = np.ones((B, lay.n))
-        lim = chi2.isf(tail_p, 3)
+        lim = chi2_isf(tail_p, 3)
         if self.use_box:
             ok = self.centre_determined[r]
             if ok.any():

@@ -109,8 +109,8 @@ def build_rows(scene: Scene, clip_tol_px: float = 1.0) -> Rows:
 
 
 def replicate_rows(rows: Rows, sel: np.ndarray, copies: int) -> tuple[Rows, I64, I64]:
-    """``copies`` independent copies of the objects whose rows are ``sel`` (whole objects),
-    as one set of rows (copy ``k`` of object ``o`` is object ``k * O + o``).
+    """``copies`` independent copies of the rows ``sel`` as one set of rows (copy ``k`` of
+    object ``o`` is object ``k * O + o``; a row whose neighbour is not in ``sel`` has none).
 
     Returns the new rows, ``src (R',)`` the original row of each new row and ``copy (R',)``
     its copy. Used to run one filter pass for several noise settings at once.
@@ -126,9 +126,9 @@ def replicate_rows(rows: Rows, sel: np.ndarray, copies: int) -> tuple[Rows, I64,
     in_sel = np.full(len(rows), -1, dtype=np.int64)
     in_sel[sel] = np.arange(n)
 
-    def link(other: I64) -> I64:
-        o = other[rr]
-        return np.where(o >= 0, pos[kk * n + in_sel[np.maximum(o, 0)]], -1)[order]
+    def link(other: I64) -> I64:  # a neighbour outside ``sel`` is no neighbour
+        j = np.where(other[rr] >= 0, in_sel[np.maximum(other[rr], 0)], -1)
+        return np.where(j >= 0, pos[kk * n + np.maximum(j, 0)], -1)[order]
 
     src = rr[order]
     new = Rows(frames=rows.frames, obj_ids=np.tile(rows.obj_ids, copies), row_t=tt[order],

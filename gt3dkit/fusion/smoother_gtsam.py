@@ -83,7 +83,7 @@ class GTSAMConfig:
     huber_k: float = 1.345
     clip_tol_px: float = 1.0
     max_iterations: int = 100
-    relative_error_tol: float = 1e-10
+    relative_error_tol: float = 1e-6
     discrepancy_steps: int = 3
     discrepancy_step: float = 3.0
 
@@ -134,9 +134,12 @@ class GTSAMSmoother:
             for c, (r, t) in enumerate(zip(cams.R, cams.t, strict=True))]
         moment = tuned
         checks: list[dict[str, Any]] = []
+        results: list[dict[str, Any]] = []
         for attempt in range(cfg.discrepancy_steps + 1):
+            # a retry with more process noise starts where the previous solution ended
             results = [self._solve_object(gtsam, pre, np.flatnonzero(rows.row_o == o), x0, und,
-                                          gcams, tuned, scene.fps)
+                                          gcams, tuned, scene.fps,
+                                          results[o]["values"] if attempt else None)
                        for o in range(len(rows.obj_ids))]
             if attempt == cfg.discrepancy_steps or (cfg.accel_sd and cfg.joint_accel_sd):
                 break
@@ -175,8 +178,8 @@ class GTSAMSmoother:
                         kpt_world=kpt, kpt_sd=kpt_sd, info=info)
 
     def _solve_object(self, gtsam: Any, pre: Prepared, mine: np.ndarray, x0: F64,
-                      und: F64 | None, gcams: list[Any], tuned: ProcessNoise, fps: float
-                      ) -> dict[str, Any]:
+                      und: F64 | None, gcams: list[Any], tuned: ProcessNoise, fps: float,
+                      start: Any = None) -> dict[str, Any]:
         cfg = self.config
         rows, cams, layout = pre.rows, pre.cams, pre.layout
         use_box, use_kpt, sigma_box = pre.use_box, pre.use_kpt, pre.sigma_box
@@ -259,7 +262,7 @@ class GTSAMSmoother:
         params.setMaxIterations(cfg.max_iterations)
         params.setRelativeErrorTol(cfg.relative_error_tol)
         try:
-            opt = gtsam.LevenbergMarquardtOptimizer(g, vals, params)
+            opt = gtsam.LevenbergMarquardtOptimizer(g, vals if start is None else start, params)
             result = opt.optimize()
             marg = gtsam.Marginals(g, result)
         except RuntimeError as e:  # gtsam's IndeterminateLinearSystemException and kin
@@ -275,6 +278,7 @@ class GTSAMSmoother:
             "kpt_sd": np.full((n_rows, J), np.nan),
             "stats": {"iterations": int(opt.iterations()), "final_error": float(opt.error()),
                       "factors": int(g.size())},
+            "values": result,
             # whitened squared residuals of the measurements (error = chi2 / 2, Huber-robust)
             "meas": (2.0 * sum(g.at(i).error(result) for i in meas), float(meas_dof)),
         }

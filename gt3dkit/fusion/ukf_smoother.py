@@ -65,7 +65,7 @@ PROVISIONAL_LOOSENESS = 3.0
 #: noise hides is its floor, which would hold every box to a rigid shape).
 PROVISIONAL_MIN_SHAPE_SD = 0.05
 #: The noise search (and its provisional pass) runs on whole objects up to this many
-#: object-frames: the likelihood of two or three noise levels is well determined by far fewer.
+#: object-frames: the likelihood of two or three noise levels needs no more.
 SEARCH_OBJECT_FRAMES = 2500
 
 
@@ -452,7 +452,9 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
 
 def search_rows(rows: Any, budget: int, seed: int = 0) -> np.ndarray | None:
     """(R,) the rows of whole objects, drawn in a seeded random order until they hold
-    ``budget`` object-frames; ``None`` (all rows) when the scene has no more than that."""
+    ``budget`` object-frames; ``None`` (all rows) when the scene has no more than that.
+    (Windows of the sequence with every object in them were tried: per pass they were no
+    faster, the batches grew as the frames shrank, and a shape's random walk showed less.)"""
     if len(rows) <= budget:
         return None
     count = np.bincount(rows.row_o, minlength=len(rows.obj_ids))
@@ -621,6 +623,8 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
         if len(r) == 0:
             continue
         prev = rows.prev_row[r]
+        if on is not None:  # a row whose predecessor is not run starts afresh
+            prev = np.where((prev >= 0) & on[np.maximum(prev, 0)], prev, -1)
         new = prev < 0
         if new.any():
             rn = r[new]
@@ -651,7 +655,8 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
     if cfg.smooth:
         for t in range(len(rows.frames) - 2, -1, -1):
             r = np.arange(rows.t_start[t], rows.t_start[t + 1])
-            r = r[(rows.next_row[r] >= 0) & (True if on is None else on[r])]
+            nxt = rows.next_row[r]
+            r = r[(nxt >= 0) & (True if on is None else on[r] & on[np.maximum(nxt, 0)])]
             if len(r) == 0:
                 continue
             nr = rows.next_row[r]
