@@ -417,9 +417,11 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
                                  "use": "a robust pass at these values, smoothed, fixes the weights"}
     search_model = replace(model, weight0=weights)  # one pass each: no reweighting
     sel = np.flatnonzero(on) if on is not None else np.arange(len(model.rows))
-    n = model.layout.n
+    J = model.layout.n_joints
+    # covariance entries per row (joints run as separate 15-state filters: run_filter)
+    entries = (J + 1) * 15**2 if J > 1 else model.layout.n ** 2
     # several values in one pass (copies of the objects), as far as ~1 GB of covariances allows
-    per_pass = max(1, int(1e9 // (6 * 8 * n * n * max(len(sel), 1))))
+    per_pass = max(1, int(1e9 // (6 * 8 * entries * max(len(sel), 1))))
 
     def search(name: str, c: UKFConfig, bounds: tuple[float, float], n_scan: int) -> UKFConfig:
         def logliks(values: list[float]) -> list[float]:
@@ -590,6 +592,14 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
     (``nis_rows``, ``dof_rows``, ``loglik_rows``) that :func:`merge_runs` combines.
     ``noise_rows`` gives some of ``accel_sd``, ``shape_sd``, ``joint_accel_sd`` per row
     ``(R,)`` instead of ``cfg``'s (the noise search runs several values at once)."""
+    if model.layout.n_joints > 1 and model.bones is None:
+        # no bones: the joints are independent filters, run as one batch of small ones
+        from gt3dkit.fusion.split import split_joints
+
+        sub, x0, P0, sp = split_joints(model, init.x0, init.P0)
+        return sp.merge(*run_filter(sub, Init(x0, P0), cfg, fps, collect, fade,
+                                    None if on is None else on[sp.src],
+                                    {k: v[sp.src] for k, v in (noise_rows or {}).items()}))
     rows, cams, layout = model.rows, model.cams, model.layout
     n, R = layout.n, len(rows)
     if cfg.accel_sd is None or cfg.shape_sd is None:
