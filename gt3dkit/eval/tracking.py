@@ -27,35 +27,37 @@ from gt3dkit.eval.metrics import clear_mot, ground_coords
 from gt3dkit.types import F64, GroundTruth, TrackSet
 
 
-def _tracks(frame: np.ndarray, tid: np.ndarray, xy: F64) -> dict[int, dict[int, F64]]:
-    out: dict[int, dict[int, F64]] = {}
-    for f, i, p in zip(frame, tid, xy, strict=True):
-        out.setdefault(int(i), {})[int(f)] = p
-    return out
-
-
 def ospa2(truth_frame: np.ndarray, truth_id: np.ndarray, truth_xy: F64, est_frame: np.ndarray,
           est_id: np.ndarray, est_xy: F64, cutoff: float = 1.0, order: float = 1.0) -> float:
-    """OSPA(2) between two sets of tracks (see module doc). Positions ``(N, D)``, metres."""
-    X = list(_tracks(truth_frame, truth_id, truth_xy).values())
-    Y = list(_tracks(est_frame, est_id, est_xy).values())
-    if not X and not Y:
+    """OSPA(2) between two sets of tracks (see module doc). Positions ``(N, D)``, metres.
+
+    The track distance is the mean over the frames either track is in of the cut-off distance
+    (``cutoff`` where only one of them is there), computed for one truth track against every
+    estimated track at a time on frame-indexed arrays."""
+    frames, f_inv = np.unique(np.concatenate([truth_frame, est_frame]), return_inverse=True)
+    ft, fe = f_inv[:len(truth_frame)], f_inv[len(truth_frame):]
+    tx, ti = np.unique(truth_id, return_inverse=True)
+    ey, ei = np.unique(est_id, return_inverse=True)
+    if not len(tx) and not len(ey):
         return 0.0
-    if not X or not Y:
+    if not len(tx) or not len(ey):
         return float(cutoff)
-    D = np.zeros((len(X), len(Y)))
-    for i, x in enumerate(X):
-        for j, y in enumerate(Y):
-            frames = set(x) | set(y)
-            tot = 0.0
-            for f in frames:
-                if f in x and f in y:
-                    tot += min(cutoff, float(np.linalg.norm(x[f] - y[f])))
-                else:
-                    tot += cutoff
-            D[i, j] = tot / len(frames)
-    m, n = sorted((len(X), len(Y)))
-    C = D if len(X) <= len(Y) else D.T
+    F, Dm = len(frames), truth_xy.shape[1]
+    X = np.full((len(tx), F, Dm), np.nan)
+    X[ti, ft] = truth_xy
+    Y = np.full((len(ey), F, Dm), np.nan)
+    Y[ei, fe] = est_xy
+    px, py = ~np.isnan(X[..., 0]), ~np.isnan(Y[..., 0])
+    D = np.zeros((len(tx), len(ey)))
+    for i in range(len(tx)):
+        d = np.minimum(np.linalg.norm(X[i][None] - Y, axis=-1), cutoff)  # (ny, F), NaN if absent
+        both = px[i][None] & py
+        union = px[i][None] | py
+        tot = np.where(both, d, np.where(union, cutoff, 0.0)).sum(axis=1)
+        D[i] = tot / np.maximum(union.sum(axis=1), 1)
+    n = max(len(tx), len(ey))
+    m = min(len(tx), len(ey))
+    C = D if len(tx) <= len(ey) else D.T
     r, c = linear_sum_assignment(C**order)
     cost = float(np.sum(C[r, c] ** order)) + cutoff**order * (n - m)
     return float((cost / n) ** (1.0 / order))

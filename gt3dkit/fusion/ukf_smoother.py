@@ -170,7 +170,7 @@ class UKFSmoother:
             # where the forward pass had only the frame itself to judge by). Objects are
             # independent: only those with a changed verdict are run again.
             w0 = smoothed_weights(model, x_s, cfg)
-            changed = objects_rows(rows, np.any(w0 != model.weight0, axis=1))
+            changed = objects_rows(rows, np.any((w0 != model.weight0) & model.mask, axis=1))
             model = replace(model, weight0=w0)
             if changed.any():
                 x_s, P_s, run = merge_runs((x_s, P_s, run), run_filter(
@@ -338,7 +338,7 @@ def initial_states(model: Model, cfg: UKFConfig) -> Init:
     return Init(x0, P0)
 
 
-def maximise_log(f: Any, lo: float, hi: float, n_scan: int, rounds: int = 3
+def maximise_log(f: Any, lo: float, hi: float, n_scan: int, rounds: int = 2
                  ) -> tuple[float, dict[float, float]]:
     """Maximiser of a smooth ``f`` over ``[lo, hi]`` on log scale, evaluated in batches:
     ``f(values) -> logliks`` takes a list. A log-spaced scan of ``n_scan`` values, then
