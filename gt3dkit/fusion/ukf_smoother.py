@@ -581,7 +581,8 @@ def rerun_with_bones(model: Model, init: Init, cfg: UKFConfig, fps: float, x_s: 
 
 def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bool = False,
                fade: bool = True, on: np.ndarray | None = None,
-               noise_rows: dict[str, F64] | None = None) -> tuple[F64, F64, dict[str, Any]]:
+               noise_rows: dict[str, F64] | None = None, split: bool = True
+               ) -> tuple[F64, F64, dict[str, Any]]:
     """Forward UKF over the frame grid, then (optionally) RTS. Returns ``(R, n)``, ``(R, n, n)``
     and diagnostics; with ``collect`` also the final weights, scores and residuals ``(R, m)``.
     ``fade`` lets the frame's own views weaken a contradicted prediction
@@ -591,8 +592,10 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
     zero and their statistics absent. The diagnostics hold the per-row statistics
     (``nis_rows``, ``dof_rows``, ``loglik_rows``) that :func:`merge_runs` combines.
     ``noise_rows`` gives some of ``accel_sd``, ``shape_sd``, ``joint_accel_sd`` per row
-    ``(R,)`` instead of ``cfg``'s (the noise search runs several values at once)."""
-    if model.layout.n_joints > 1 and model.bones is None:
+    ``(R,)`` instead of ``cfg``'s (the noise search runs several values at once). ``split``:
+    without bones, run the joints as separate filters (:mod:`gt3dkit.fusion.split`; the same
+    result, faster); False runs the whole state (the reference the tests hold it to)."""
+    if split and model.layout.n_joints > 1 and model.bones is None:
         # no bones: the joints are independent filters, run as one batch of small ones
         from gt3dkit.fusion.split import split_joints
 

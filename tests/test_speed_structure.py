@@ -1,0 +1,155 @@
+"""The speed-ups of issue 13 change how the work is done, never the result: each is held to the
+plain computation it replaces (the numpy tangent box, the whole-state regression, the
+unsplit filter, one pass per noise value, GTSAM's own optimizer)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gt3dkit.fusion import ukf_smoother as us
+from gt3dkit.fusion.measurement import Model
+from gt3dkit.fusion.rows import replicate_rows
+from gt3dkit.fusion.ukf import Block, SigmaWeights, ukf_update_information
+from gt3dkit.geom.conics import ellipsoid_boxes, ellipsoid_boxes_numpy
+from gt3dkit.io.datasets import load_scene
+from gt3dkit.sim import simulate_skeletons, write_skeleton_scene
+
+
+def _rot(rng: np.random.Generator) -> np.ndarray:
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+@pytest.mark.parametrize("kind", ["distorted", "pinhole", "skewed"])
+def test_compiled_tangent_box_equals_the_numpy_reference(kind: str) -> None:
+    rng = np.random.default_rng({"distorted": 0, "pinhole": 1, "skewed": 2}[kind])
+    C, N = 5, 400
+    R = np.stack([_rot(rng) for _ in range(C)])
+    t = rng.normal(size=(C, 3)) + [0, 0, 8.0]
+    K = np.tile(np.array([[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]]), (C, 1, 1))
+    if kind == "skewed":
+        K[:, 0, 1] = 3.0
+    dist = np.zeros((C, 5))
+    if kind == "distorted":
+        dist[:] = rng.normal(size=(C, 5)) * [0.05, 0.01, 0.001, 0.001, 0.001]
+    c = rng.normal(size=(N, 3)) * 2.0
+    s = np.exp(rng.normal(size=(N, 3)) * 0.3) * 0.4
+    args = (_rot(rng), K, dist, R, t, np.ones(C))
+    b1, m1 = ellipsoid_boxes(c, s, *args)
+    b2, m2 = ellipsoid_boxes_numpy(c, s, *args)
+    np.testing.assert_allclose(m1, m2, atol=1e-12)
+    np.testing.assert_array_equal(np.isnan(b1), np.isnan(b2))
+    inside = np.all((b2 > 0) & (b2 < 1920), axis=-1)
+    assert inside.sum() > 100
+    np.testing.assert_allclose(b1[inside], b2[inside], atol=1e-6)
+
+
+def test_block_regression_equals_the_whole_state_on_a_linear_model() -> None:
+    """For a linear ``h`` the statistical linear regression is exact on any sigma points: the
+    per-block update must equal the whole-state one."""
+    rng = np.random.default_rng(4)
+    B, n, m = 3, 9, 6
+    A = rng.normal(size=(B, n, n))
+    P = A @ np.swapaxes(A, 1, 2) / n + 0.1 * np.eye(n)
+    x = rng.normal(size=(B, n))
+    H = rng.normal(size=(6, m))  # the measurements see entries 0-2 and 6-8 only
+    dims = np.r_[0:3, 6:9]
+    z = rng.normal(size=(B, m))
+    mask = np.ones((B, m), bool)
+    mask[1, 2] = False
+
+    def whole(X: np.ndarray) -> np.ndarray:
+        return X[..., dims] @ H
+
+    block = Block(dims[None], np.arange(m)[None], lambda X: X @ H)
+    a = ukf_update_information(x, P, z, mask, 0.05, whole, SigmaWeights(n), iterations=3)
+    b = ukf_update_information(x, P, z, mask, 0.05, [block], SigmaWeights(n), iterations=3)
+    np.testing.assert_allclose(b[0], a[0], atol=1e-10)
+    np.testing.assert_allclose(b[1], a[1], atol=1e-10)
+    assert b[2]["loglik"] == pytest.approx(a[2]["loglik"], rel=1e-10)
+
+
+@pytest.fixture(scope="module")
+def skeleton_model(tmp_path_factory: pytest.TempPathFactory):
+    root = Path(tmp_path_factory.mktemp("split")) / "in"
+    sim = simulate_skeletons("native", seed=6, frames=10, people=2, cameras=5, noise_px=1.0)
+    write_skeleton_scene(sim, root, "native")
+    scene = load_scene(root)
+    est = us.UKFSmoother()
+    pre = est.prepare(scene)
+    model = Model.of(pre)
+    cfg = replace(est.config, accel_sd=0.5, shape_sd=0.01, joint_accel_sd=0.5)
+    return model, us.initial_states(model, cfg), cfg, scene.fps
+
+
+def test_split_joint_filters_equal_the_whole_state_filter(skeleton_model) -> None:
+    model, init, cfg, fps = skeleton_model
+    xa, Pa, ia = us.run_filter(model, init, cfg, fps, collect=True, split=False)
+    xb, Pb, ib = us.run_filter(model, init, cfg, fps, collect=True, split=True)
+    np.testing.assert_allclose(xb, xa, atol=1e-8)
+    np.testing.assert_allclose(Pb, Pa, atol=1e-9)
+    np.testing.assert_allclose(ib["loglik_rows"], ia["loglik_rows"], rtol=1e-8, atol=1e-8)
+    np.testing.assert_array_equal(ib["weights"], ia["weights"])
+
+
+def test_several_noise_values_in_one_pass_equal_separate_passes(skeleton_model) -> None:
+    model, init, cfg, fps = skeleton_model
+    values = [0.1, 1.0, 5.0]
+    sel = np.arange(len(model.rows))
+    rows_k, src, copy = replicate_rows(model.rows, sel, len(values))
+    run = us.run_filter(model.take(rows_k, src), us.Init(init.x0[src], init.P0[src]),
+                        replace(cfg, smooth=False, iterations=1), fps, fade=False,
+                        noise_rows={"joint_accel_sd": np.asarray(values)[copy]})[2]
+    together = np.bincount(copy, weights=run["loglik_rows"])
+    for k, v in enumerate(values):
+        alone = us.run_filter(model, init, replace(cfg, joint_accel_sd=v, smooth=False, iterations=1),
+                              fps, fade=False)[2]["loglik"]
+        assert together[k] == pytest.approx(alone, rel=1e-9)
+
+
+def test_the_search_finds_the_top_of_a_curve() -> None:
+    calls: list[int] = []
+
+    def f(values: list[float]) -> list[float]:
+        calls.append(len(values))
+        return [-(np.log(v) - np.log(0.37)) ** 2 for v in values]
+
+    best, seen = us.maximise_log(f, 0.01, 100.0, 5)
+    assert best == pytest.approx(0.37, rel=1e-6)  # a parabola in log q: the vertex is exact
+    assert max(seen, key=lambda v: seen[v]) == best
+    assert len(calls) == 3  # the scan and two rounds, each one batch
+
+
+def test_gauss_newton_reaches_gtsam_levenberg_marquardt() -> None:
+    import gtsam
+
+    from gt3dkit.fusion.smoother_gtsam import _gauss_newton
+
+    rng = np.random.default_rng(7)
+    g = gtsam.NonlinearFactorGraph()
+    vals = gtsam.Values()
+    K = gtsam.Cal3_S2(800, 800, 0, 320, 240)
+    cams = [gtsam.PinholeCameraCal3_S2(gtsam.Pose3(gtsam.Rot3.Ypr(0.3 * i, 0, 0), gtsam.Point3(
+        -3 * np.sin(0.3 * i), 0, -3 * np.cos(0.3 * i))), K) for i in range(4)]
+    huber = gtsam.noiseModel.mEstimator.Huber.Create(1.345)
+    for j in range(5):
+        p = rng.normal(size=3) * 0.3
+        for cam in cams:
+            uv = cam.project(p) + rng.normal(size=2)
+            g.add(gtsam.TriangulationFactorCal3_S2(cam, uv, gtsam.noiseModel.Robust.Create(
+                huber, gtsam.noiseModel.Isotropic.Sigma(2, 1.0)), j))
+        vals.insert(j, p + rng.normal(size=3) * 0.05)
+    ours, iters, err = _gauss_newton(g, vals, 100, 1e-12)
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-14)
+    params.setAbsoluteErrorTol(1e-14)
+    params.setMaxIterations(200)
+    ref = gtsam.LevenbergMarquardtOptimizer(g, vals, params).optimize()
+    assert 1 <= iters < 100
+    assert err == pytest.approx(g.error(ref), rel=1e-6)
+    for j in range(5):
+        np.testing.assert_allclose(ours.atPoint3(j), ref.atPoint3(j), atol=1e-6)
