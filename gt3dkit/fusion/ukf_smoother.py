@@ -21,8 +21,9 @@ What differs from the paper's obvious implementation (and why):
   covariance* (a single view's depth is as uncertain as the object's size).
 * **Noise from the data.** Measurement noise from the per-frame residuals (robust, per
   joint); process noise by maximising the forward pass's likelihood with a bounded 1-D
-  search on log scale (a coarse scan, then Brent), so it cannot stop at a grid edge. The
-  whole curve is in ``meta.json``.
+  search on log scale (a coarse scan, then bisection and a parabola around the best value,
+  several values per filter pass), so it cannot stop at a grid edge. The whole curve is in
+  ``meta.json``.
 * **Honest uncertainty.** When the innovations say the noise model is optimistic (NIS per
   degree of freedom above 1) every covariance is inflated by that ratio; a joint's reported
   sd is its largest axis.
@@ -220,7 +221,7 @@ class UKFSmoother:
                 "process": ("given" if self.config.accel_sd and (self.config.joint_accel_sd
                                                                   or not pre.use_kpt)
                             else "max likelihood of the forward pass: log-spaced scan, then "
-                                 "bounded Brent on log scale (curve in noise_search)")},
+                                 "bisection and a parabola on log scale (curve in noise_search)")},
             "params": {**asdict(cfg), "sigma_px": pre.info["boxes"]["sigma_px"] if pre.use_box else None,
                        "kpt_sigma_px": pre.info.get("keypoints", {}).get("sigma_px"),
                        "fps": scene.fps},
