@@ -124,8 +124,9 @@ class RowBuilder:
             r = len(self.boxes)
             self.rows[key] = r
             self.boxes.append([math.nan] * 4)
-            self.kpts.append(np.full((self.n_joints, 2), np.nan))
-            self.confs.append(np.full(self.n_joints, np.nan))
+            if self.n_joints:
+                self.kpts.append(np.full((self.n_joints, 2), np.nan))
+                self.confs.append(np.full(self.n_joints, np.nan))
             self.origin.append(where)
         return r
 
@@ -163,10 +164,11 @@ class RowBuilder:
         return Observations(
             frame=arr[order, 0], cam=arr[order, 1], track_id=arr[order, 2],
             box_xyxy_px=np.array(self.boxes, dtype=np.float64).reshape(-1, 4)[idx],
-            kpt_uv_px=np.array(self.kpts, dtype=np.float64).reshape(n, self.n_joints, 2)[idx],
+            kpt_uv_px=(np.array(self.kpts, dtype=np.float64).reshape(n, self.n_joints, 2)[idx]
+                       if self.n_joints else np.zeros((n, 0, 2))),  # boxes only: no per-row arrays
             origin=tuple(self.origin[i] for i in idx),
             kpt_conf=(np.array(self.confs, dtype=np.float64).reshape(n, self.n_joints)[idx]
-                      if self.has_conf else None),
+                      if self.has_conf and self.n_joints else None),
         )
 
 
