@@ -150,6 +150,10 @@ def kernel(center: F64, axes: F64, Rb: F64, K: F64, dist: F64, R: F64, t: F64, d
                             else:
                                 cs, ss = math.cos(step), math.sin(step)
                             ct, st = ct * cs - st * ss, st * cs + ct * ss
+                        # Newton converges quadratically: the next step would be ~step^2 and gain
+                        # ~|f''| step^4 / 2 px; below 1e-6 px it is not taken
+                        if abs(d2) * step**4 < 1e-6:
+                            break
                 v = edge_value(e, ct, st, m0, m1, l00, l10, l11, k, Kc)
                 box[n, c, e] = -v if e < 2 else v
 
