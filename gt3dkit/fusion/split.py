@@ -26,6 +26,14 @@ from gt3dkit.fusion.motion import StateLayout
 from gt3dkit.fusion.rows import Rows
 from gt3dkit.types import F64, I64
 
+#: The state of one part: the ellipsoid entries and one joint with its velocity.
+SUB = StateLayout(1)
+
+
+def split_entries(n_joints: int) -> int:
+    """Covariance entries per original row once split (``J + 1`` parts of ``SUB.n`` states)."""
+    return (n_joints + 1) * SUB.n**2
+
 
 @dataclass(frozen=True)
 class JointSplit:
@@ -81,12 +89,14 @@ def split_joints(model: Model, x0: F64, P0: F64) -> tuple[Model, F64, F64, Joint
     src = np.repeat(np.arange(R), parts)  # rows stay ordered by frame, then (object, part)
     part = np.tile(np.arange(parts), R)
     jj = np.maximum(part - 1, 0)
-    dims = np.concatenate([np.broadcast_to(np.arange(9), (len(src), 9)),
-                           9 + 3 * jj[:, None] + np.arange(3),
-                           9 + 3 * J + 3 * jj[:, None] + np.arange(3)], axis=1)  # (R', 15)
+    E = lay.joints.start  # the ellipsoid's entries (centre, velocity, log semi-axes) come first
+    dims = np.concatenate([np.broadcast_to(np.arange(E), (len(src), E)),
+                           lay.joints.start + 3 * jj[:, None] + np.arange(3),
+                           lay.joint_velocity.start + 3 * jj[:, None] + np.arange(3)],
+                          axis=1)  # (R', SUB.n), in SUB's order
     owned = np.zeros(dims.shape, bool)
-    owned[part == 0, :9] = True
-    owned[part > 0, 9:] = True
+    owned[part == 0, :E] = True
+    owned[part > 0, E:] = True
     # measurement columns: [box 4C | this joint's keypoints 2C]
     at = 4 * C if model.use_box else 0
     m_sub = at + 2 * C
@@ -115,7 +125,7 @@ def split_joints(model: Model, x0: F64, P0: F64) -> tuple[Model, F64, F64, Joint
                     kpt_z=rows.kpt_z[src, :, jj][:, :, None], kpt_conf=rows.kpt_conf[src, :, jj][:, :, None],
                     obs_row=rows.obs_row[src])
     var_frame = model.var_frame[rs, dims]
-    var_frame[part == 0, 9:] = np.inf  # part 0 has no joint of its own
+    var_frame[part == 0, E:] = np.inf  # part 0 has no joint of its own
     kcov = None
     if model.kpt_cov_frame is not None:
         kcov = np.where((part > 0)[:, None, None], model.kpt_cov_frame[src, jj], np.inf)[:, None]
@@ -124,7 +134,7 @@ def split_joints(model: Model, x0: F64, P0: F64) -> tuple[Model, F64, F64, Joint
         if model.use_box:
             blocks.append((slice(0, at), 1))
         blocks.append((slice(at, m_sub), 2))
-    sub = replace(model, rows=sub_rows, layout=StateLayout(1), z=take(model.z, 0.0),
+    sub = replace(model, rows=sub_rows, layout=SUB, z=take(model.z, 0.0),
                   mask=ok & model.mask[rs, cs], var=take(model.var, 1.0),
                   weight0=take(model.weight0, 1.0), robust_blocks=tuple(blocks),
                   x_frame=model.x_frame[rs, dims], var_frame=var_frame,

@@ -418,9 +418,11 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
                                  "use": "a robust pass at these values, smoothed, fixes the weights"}
     search_model = replace(model, weight0=weights)  # one pass each: no reweighting
     sel = np.flatnonzero(on) if on is not None else np.arange(len(model.rows))
+    from gt3dkit.fusion.split import split_entries
+
     J = model.layout.n_joints
-    # covariance entries per row (joints run as separate 15-state filters: run_filter)
-    entries = (J + 1) * 15**2 if J > 1 else model.layout.n ** 2
+    # covariance entries per row (joints run as separate small filters: run_filter)
+    entries = split_entries(J) if J > 1 else model.layout.n ** 2
     # several values in one pass (copies of the objects), as far as ~1 GB of covariances allows
     per_pass = max(1, int(1e9 // (6 * 8 * entries * max(len(sel), 1))))
 
