@@ -244,3 +244,17 @@ def test_objects_that_two_views_never_see_together(tmp_path, skel_native, capsys
     _append(root / "keypoints.csv", "101,00_02,42,3,900,500")
     err = _run(tmp_path, root, capsys)
     assert f"line {line}" in err and "object 42 is never seen by two cameras" in err
+
+
+def test_ellipsoid_around_ignores_joints_known_to_a_metre_only() -> None:
+    from gt3dkit.fusion.prepare import ellipsoid_around
+
+    kpt = np.zeros((2, 4, 3))
+    kpt[:, :, 2] = [0.0, 0.5, 1.0, 1.7]  # a standing person, z up
+    kpt[:, 3] = [0.0, 0.0, -3.0]  # one joint extrapolated under the floor
+    sd = np.array([[0.002, 0.002, 0.002, 1.1], [1.0, 1.2, 0.9, 1.1]])
+    centre, semi, csd = ellipsoid_around(kpt, sd, np.eye(3))
+    np.testing.assert_allclose(centre[0], [0, 0, 0.5])  # the three known joints only
+    np.testing.assert_allclose(semi[0, 2], 0.5 + 0.1)
+    assert csd[0, 0] == pytest.approx(0.002)
+    np.testing.assert_allclose(centre[1], [0, 0, -1.0])  # none known: every joint

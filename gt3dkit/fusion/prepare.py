@@ -448,13 +448,24 @@ def never_seen(rows: Rows, n_joints: int) -> np.ndarray:
     return ~ever[rows.row_o]
 
 
-def ellipsoid_around(kpt: F64, kpt_sd: F64, world_from_body: F64, pad_m: float = 0.1
-                     ) -> tuple[F64, F64, F64]:
+def ellipsoid_around(kpt: F64, kpt_sd: F64, world_from_body: F64, pad_m: float = 0.1,
+                     known_sd_m: float = 0.1) -> tuple[F64, F64, F64]:
     """Axis-aligned (body frame) ellipsoid around each row's joints ``(R, J, 3)``.
 
-    Centre = middle of the joints' extent, semi-axes = half extent + ``pad_m`` (limbs have
-    thickness); centre sd = RMS of the joints' sd. NaN where a row has no finite joint.
+    Centre = middle of the extent of the joints the row knows (sd at most ``known_sd_m``, or
+    3x the row's median joint sd if that is larger; all joints where none is known), semi-axes =
+    half extent + ``pad_m`` (limbs have thickness); centre sd = RMS of those joints' sd. A joint
+    no view has seen for a while is an extrapolation with a metre-sized sd: it must not stretch
+    the person's ellipsoid (on the real Panoptic data two unseen ears, extrapolated below the
+    floor, dragged a person's centre 1.5 m down). NaN where a row has no finite joint.
     """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows stay NaN
+        limit = np.maximum(known_sd_m, 3 * np.nanmedian(kpt_sd, axis=1))  # (R,)
+    known = np.isfinite(kpt_sd) & (kpt_sd <= limit[:, None])
+    use = np.where(known.any(axis=1)[:, None], known, True)
+    kpt = np.where(use[..., None], kpt, np.nan)
+    kpt_sd = np.where(use, kpt_sd, np.nan)
     body = np.einsum("ji,rkj->rki", world_from_body, kpt)  # body coordinates
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows stay NaN
