@@ -832,8 +832,19 @@ class Terminated(BaseException):
         self.signum = signum
 
 
+#: signals received during this run: an exception raised by a signal handler inside a C
+#: extension's initialisation (numba loading its thread pool) reaches us as an ImportError
+_RECEIVED: list[int] = []
+
+
 def _terminate(signum: int, frame: Any) -> None:
+    _RECEIVED.append(signum)
     raise Terminated(signum)
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    _RECEIVED.append(signum)
+    raise KeyboardInterrupt
 
 
 def _quiet_stdout() -> None:
@@ -856,9 +867,13 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as e:  # --help (0) or a usage error (2, already printed)
         return int(e.code or 0)
     previous = {}
-    for sig in (signal.SIGTERM, signal.SIGHUP):
+    handlers = [(signal.SIGTERM, _terminate), (signal.SIGHUP, _terminate)]
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not ignored (background job)
+        handlers.append((signal.SIGINT, _interrupt))
+    _RECEIVED.clear()
+    for sig, handler in handlers:
         try:
-            previous[sig] = signal.signal(sig, _terminate)
+            previous[sig] = signal.signal(sig, handler)
         except ValueError:  # not the main thread
             pass
     try:
@@ -892,6 +907,11 @@ def main(argv: list[str] | None = None) -> int:
         print("error: out of memory: the input is too large for this machine", file=sys.stderr)
         return 1
     except Exception as e:  # noqa: BLE001 - the one place that turns a bug into one line
+        if _RECEIVED:  # a signal's exception, wrapped by the code it interrupted
+            how = ("interrupted (Ctrl-C)" if _RECEIVED[0] == signal.SIGINT
+                   else f"stopped by {signal.Signals(_RECEIVED[0]).name}")
+            print(f"error: {how}: no output written or changed", file=sys.stderr)
+            return 128 + _RECEIVED[0]
         if debug:
             traceback.print_exc()
         where = traceback.extract_tb(e.__traceback__)[-1]

@@ -23,10 +23,11 @@ from gt3dkit.types import B8, F64
 PERSON_SEMI_AXES_M = np.array([0.3, 0.3, 0.85])
 
 
-def box_model(center_world: F64, log_axes: F64, cams: Cams) -> F64:
-    """(..., 3) centres and (..., 3) log semi-axes -> (..., C, 4) boxes (px), NaN if behind."""
+def box_model(center_world: F64, log_axes: F64, cams: Cams, want: np.ndarray | None = None) -> F64:
+    """(..., 3) centres and (..., 3) log semi-axes -> (..., C, 4) boxes (px), NaN if behind;
+    ``want`` (broadcastable to ``(..., C)``): only these cameras' boxes (the others NaN)."""
     box, _ = ellipsoid_boxes(center_world, np.exp(log_axes), cams.world_from_body, cams.K,
-                             cams.dist, cams.R, cams.t, cams.depth_sign)
+                             cams.dist, cams.R, cams.t, cams.depth_sign, want=want)
     return box
 
 
@@ -112,7 +113,7 @@ class BoxFit:
 def _residuals(p: F64, z: F64, mask: B8, cams: Cams, sigma_px: F64 | float, prior: F64,
                prior_sd: F64 | float) -> F64:
     """(..., N, 6) params -> (..., N, C*4 + 3) whitened residuals (NaN if behind a camera)."""
-    box = box_model(p[..., :3], p[..., 3:], cams)
+    box = box_model(p[..., :3], p[..., 3:], cams, mask.any(axis=-1))
     r = np.where(mask, (box - z) / sigma_px, 0.0)
     r = np.where(mask & ~np.isfinite(box), np.nan, r)
     r = r.reshape(r.shape[:-2] + (-1,))

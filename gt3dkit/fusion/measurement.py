@@ -198,8 +198,14 @@ class Model:
         if self.use_box:
             dims = np.r_[np.arange(lay.center.start, lay.center.stop),
                          np.arange(lay.log_axes.start, lay.log_axes.stop)][None]
-            out.append(Block(dims, np.arange(C * 4)[None], lambda X: box_model(
-                X[..., :3], X[..., 3:], cams).reshape(X.shape[:3] + (C * 4,))))
+            def boxes(X: F64, use: np.ndarray) -> F64:  # (B, 1, S, 6), (B, 1, 4C) -> (B, 1, S, 4C)
+                want = use.reshape(use.shape[:2] + (1, C, 4)).any(axis=-1)  # cameras with a box
+                return box_model(X[..., :3], X[..., 3:], cams, want).reshape(X.shape[:3] + (C * 4,))
+
+            from gt3dkit.fusion.boxupdate import BoxCameras
+
+            out.append(Block(dims, np.arange(C * 4)[None], boxes, masked=True,
+                             compiled=BoxCameras.of(cams)))
             at = C * 4
         if J:
             jdims = lay.joints.start + 3 * np.arange(J)[:, None] + np.arange(3)  # (J, 3)

@@ -211,13 +211,18 @@ class Block:
     box on the centre and the semi-axes, a bone on its two joints: the statistical linear
     regression of such a group needs the sigma points of its ``d``-dimensional marginal only
     (``2d`` points, not ``2n``), and its information is a ``d x d`` block. ``disjoint``: no two
-    groups share a state entry (their blocks can be added by assignment).
+    groups share a state entry (their blocks can be added by assignment). ``masked``: ``h``
+    also takes the usable columns ``(B, G, k)`` and may leave the others out (NaN).
+    ``compiled``: the data of a compiled form of the whole update for this block alone (the box
+    block: :mod:`gt3dkit.fusion.boxupdate`), or None.
     """
 
     dims: np.ndarray
     cols: np.ndarray
     h: MeasureFn
     disjoint: bool = True
+    masked: bool = False
+    compiled: Any = None
 
 
 def whole_state_block(n: int, m: int, h: MeasureFn) -> Block:
@@ -254,7 +259,7 @@ def _block_regression(xj: F64, Pj: F64, z: F64, mask: np.ndarray, blk: Block, al
     X = np.concatenate(pts + [xb[:, :, None, :] + offs, xb[:, :, None, :] - offs], axis=2)
     if not centre:
         Wm, Wc = Wm[1:], Wc[1:]
-    Z = blk.h(X)  # (B, G, S, k)
+    Z = blk.h(X, mask[:, cols]) if blk.masked else blk.h(X)  # (B, G, S, k)
     mk = mask[:, cols] & np.all(np.isfinite(Z), axis=2)
     Zm = np.where(mk[:, :, None, :], Z, 0.0)
     zhat = np.einsum("s,bgsk->bgk", Wm, Zm)
@@ -320,6 +325,12 @@ def ukf_update_information(
     B, m = z.shape
     n = x.shape[1]
     blocks = [whole_state_block(n, m, h)] if callable(h) else list(h)
+    if blocks and blocks[0].compiled is not None:
+        from gt3dkit.fusion import boxupdate
+
+        if boxupdate.applies(blocks, m, robust_blocks if robust is not None else ()):
+            return boxupdate.box_update(x, P, z, mask, R_diag, blocks[0], w, iterations, x_lin, P_lin,
+                                        weight0, robust, robust_blocks)
     R_b = np.broadcast_to(np.asarray(R_diag, dtype=np.float64), (B, m))
     Pinv = np.linalg.inv(0.5 * (P + np.swapaxes(P, -1, -2)))
     xj, Pj = (x, P) if x_lin is None or P_lin is None else (x_lin, P_lin)

@@ -17,6 +17,7 @@ skew, the value at the tangent angle with skew only, Newton steps with distortio
 from __future__ import annotations
 
 import math
+import types
 
 import numba
 import numpy as np
@@ -76,9 +77,10 @@ def edge_slope(e: int, ct: float, st: float, m0: float, m1: float, l00: float, l
 
 
 @numba.njit(cache=True, nogil=True)
-def kernel(center: F64, axes: F64, Rb: F64, K: F64, dist: F64, R: F64, t: F64, ds: F64,
-           steps: int, box: F64, margin: F64) -> None:
-    N, C = center.shape[0], K.shape[0]
+def camera_setup(Rb: F64, K: F64, R: F64) -> tuple[F64, F64, F64]:
+    """Per camera: ``Rc = R Rb (C, 3, 3)`` and the four edge directions ``A^T dir`` as ``gx, gy
+    (C, 4)`` (``A = K[:2, :2]``), shared by every pair of :func:`pair_box`."""
+    C = K.shape[0]
     Rc = np.empty((C, 3, 3))
     for c in range(C):
         for i in range(3):
@@ -86,95 +88,145 @@ def kernel(center: F64, axes: F64, Rb: F64, K: F64, dist: F64, R: F64, t: F64, d
                 Rc[c, i, j] = R[c, i, 0] * Rb[0, j] + R[c, i, 1] * Rb[1, j] + R[c, i, 2] * Rb[2, j]
     gx = np.empty((C, 4))
     gy = np.empty((C, 4))
-    for c in range(C):  # A^T dir for the four edge directions, A = K[:2, :2]
+    for c in range(C):
         gx[c, 0], gy[c, 0] = -K[c, 0, 0], -K[c, 0, 1]
         gx[c, 1], gy[c, 1] = -K[c, 1, 0], -K[c, 1, 1]
         gx[c, 2], gy[c, 2] = K[c, 0, 0], K[c, 0, 1]
         gx[c, 3], gy[c, 3] = K[c, 1, 0], K[c, 1, 1]
-    for n in range(N):
+    return Rc, gx, gy
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def pair_box(p0: float, p1: float, p2: float, s0: float, s1: float, s2: float, c: int, Rc: F64,
+             gx: F64, gy: F64, K: F64, dist: F64, R: F64, t: F64, ds: F64, steps: int,
+             want: bool, out: F64, n: int) -> float:
+    """The box ``out[n, c] (4,)`` (``out (N, C, 4)``) of the ellipsoid with centre ``p`` and
+    squared semi-axes ``s`` in camera ``c`` (NaN if behind it or not ``want``); returns the
+    margin."""
+    X0 = R[c, 0, 0] * p0 + R[c, 0, 1] * p1 + R[c, 0, 2] * p2 + t[c, 0]
+    X1 = R[c, 1, 0] * p0 + R[c, 1, 1] * p1 + R[c, 1, 2] * p2 + t[c, 1]
+    X2 = R[c, 2, 0] * p0 + R[c, 2, 1] * p1 + R[c, 2, 2] * p2 + t[c, 2]
+    q = Rc[c]
+    M00 = q[0, 0] ** 2 * s0 + q[0, 1] ** 2 * s1 + q[0, 2] ** 2 * s2
+    M11 = q[1, 0] ** 2 * s0 + q[1, 1] ** 2 * s1 + q[1, 2] ** 2 * s2
+    M22 = q[2, 0] ** 2 * s0 + q[2, 1] ** 2 * s1 + q[2, 2] ** 2 * s2
+    M01 = q[0, 0] * q[1, 0] * s0 + q[0, 1] * q[1, 1] * s1 + q[0, 2] * q[1, 2] * s2
+    M02 = q[0, 0] * q[2, 0] * s0 + q[0, 1] * q[2, 1] * s1 + q[0, 2] * q[2, 2] * s2
+    M12 = q[1, 0] * q[2, 0] * s0 + q[1, 1] * q[2, 1] * s1 + q[1, 2] * q[2, 2] * s2
+    mg = ds[c] * X2 - math.sqrt(max(M22, 0.0))
+    if not mg > 0 or not want:
+        for e in range(4):
+            out[n, c, e] = np.nan
+        return mg
+    c33 = M22 - X2 * X2
+    m0 = (M02 - X0 * X2) / c33
+    m1 = (M12 - X1 * X2) / c33
+    E00 = m0 * m0 - (M00 - X0 * X0) / c33
+    E01 = m0 * m1 - (M01 - X0 * X1) / c33
+    E11 = m1 * m1 - (M11 - X1 * X1) / c33
+    has_dist = (dist[c, 0] != 0 or dist[c, 1] != 0 or dist[c, 2] != 0 or dist[c, 3] != 0
+                or dist[c, 4] != 0)
+    if not has_dist and K[c, 0, 1] == 0:
+        hx = math.sqrt(max(E00, 0.0))
+        hy = math.sqrt(max(E11, 0.0))
+        out[n, c, 0] = K[c, 0, 0] * (m0 - hx) + K[c, 0, 2]
+        out[n, c, 1] = K[c, 1, 1] * (m1 - hy) + K[c, 1, 2]
+        out[n, c, 2] = K[c, 0, 0] * (m0 + hx) + K[c, 0, 2]
+        out[n, c, 3] = K[c, 1, 1] * (m1 + hy) + K[c, 1, 2]
+        return mg
+    l00 = math.sqrt(max(E00, 1e-300))
+    l10 = E01 / l00
+    l11 = math.sqrt(max(E11 - l10 * l10, 0.0))
+    k = dist[c]
+    Kc = K[c]
+    for e in range(4):
+        # the closed-form tangent angle, as a unit vector (no trigonometry)
+        a = l00 * gx[c, e] + l10 * gy[c, e]
+        b = l11 * gy[c, e]
+        nrm = math.sqrt(a * a + b * b)
+        ct, st = (a / nrm, b / nrm) if nrm > 0 else (1.0, 0.0)
+        if has_dist:
+            for _ in range(steps):
+                d1, d2 = edge_slope(e, ct, st, m0, m1, l00, l10, l11, k, Kc)
+                step = -d1 / d2 if d2 < 0 else 0.0
+                step = min(max(step, -0.5), 0.5)
+                if step != 0.0:  # rotate (cos θ, sin θ) by the step
+                    qq = step * step
+                    if qq < 4e-4:  # Taylor, exact to 1e-13 below 0.02 rad
+                        cs = 1.0 - qq * (0.5 - qq * (1.0 / 24.0 - qq / 720.0))
+                        ss = step * (1.0 - qq * (1.0 / 6.0 - qq / 120.0))
+                    else:
+                        cs, ss = math.cos(step), math.sin(step)
+                    ct, st = ct * cs - st * ss, st * cs + ct * ss
+                # Newton converges quadratically: the next step would be ~step^2 and gain
+                # ~|f''| step^4 / 2 px; below 1e-6 px it is not taken
+                if abs(d2) * step**4 < 1e-6:
+                    break
+        v = edge_value(e, ct, st, m0, m1, l00, l10, l11, k, Kc)
+        out[n, c, e] = -v if e < 2 else v
+    return mg
+
+
+def _kernel(center: F64, axes: F64, Rb: F64, K: F64, dist: F64, R: F64, t: F64, ds: F64,
+            steps: int, want: np.ndarray, box: F64, margin: F64) -> None:
+    """Boxes ``box (N, C, 4)`` and margins ``margin (N, C)`` of N ellipsoids in C cameras;
+    ``want (N, C)`` (or ``(1, 1)``: every pair): pairs whose box is needed (the margin is
+    computed for all; an unwanted box is NaN). Compiled twice below, serial and parallel."""
+    N, C = center.shape[0], K.shape[0]
+    Rc, gx, gy = camera_setup(Rb, K, R)
+    every = want.shape[0] == 1 and want.shape[1] == 1 and want[0, 0]
+    for n in numba.prange(N):
         s0, s1, s2 = axes[n, 0] ** 2, axes[n, 1] ** 2, axes[n, 2] ** 2
         for c in range(C):
-            X0 = R[c, 0, 0] * center[n, 0] + R[c, 0, 1] * center[n, 1] + R[c, 0, 2] * center[n, 2] + t[c, 0]
-            X1 = R[c, 1, 0] * center[n, 0] + R[c, 1, 1] * center[n, 1] + R[c, 1, 2] * center[n, 2] + t[c, 1]
-            X2 = R[c, 2, 0] * center[n, 0] + R[c, 2, 1] * center[n, 1] + R[c, 2, 2] * center[n, 2] + t[c, 2]
-            q = Rc[c]
-            M00 = q[0, 0] ** 2 * s0 + q[0, 1] ** 2 * s1 + q[0, 2] ** 2 * s2
-            M11 = q[1, 0] ** 2 * s0 + q[1, 1] ** 2 * s1 + q[1, 2] ** 2 * s2
-            M22 = q[2, 0] ** 2 * s0 + q[2, 1] ** 2 * s1 + q[2, 2] ** 2 * s2
-            M01 = q[0, 0] * q[1, 0] * s0 + q[0, 1] * q[1, 1] * s1 + q[0, 2] * q[1, 2] * s2
-            M02 = q[0, 0] * q[2, 0] * s0 + q[0, 1] * q[2, 1] * s1 + q[0, 2] * q[2, 2] * s2
-            M12 = q[1, 0] * q[2, 0] * s0 + q[1, 1] * q[2, 1] * s1 + q[1, 2] * q[2, 2] * s2
-            mg = ds[c] * X2 - math.sqrt(max(M22, 0.0))
-            margin[n, c] = mg
-            if not mg > 0:
-                for e in range(4):
-                    box[n, c, e] = np.nan
-                continue
-            c33 = M22 - X2 * X2
-            m0 = (M02 - X0 * X2) / c33
-            m1 = (M12 - X1 * X2) / c33
-            E00 = m0 * m0 - (M00 - X0 * X0) / c33
-            E01 = m0 * m1 - (M01 - X0 * X1) / c33
-            E11 = m1 * m1 - (M11 - X1 * X1) / c33
-            has_dist = (dist[c, 0] != 0 or dist[c, 1] != 0 or dist[c, 2] != 0 or dist[c, 3] != 0
-                        or dist[c, 4] != 0)
-            if not has_dist and K[c, 0, 1] == 0:
-                hx = math.sqrt(max(E00, 0.0))
-                hy = math.sqrt(max(E11, 0.0))
-                box[n, c, 0] = K[c, 0, 0] * (m0 - hx) + K[c, 0, 2]
-                box[n, c, 1] = K[c, 1, 1] * (m1 - hy) + K[c, 1, 2]
-                box[n, c, 2] = K[c, 0, 0] * (m0 + hx) + K[c, 0, 2]
-                box[n, c, 3] = K[c, 1, 1] * (m1 + hy) + K[c, 1, 2]
-                continue
-            l00 = math.sqrt(max(E00, 1e-300))
-            l10 = E01 / l00
-            l11 = math.sqrt(max(E11 - l10 * l10, 0.0))
-            k = dist[c]
-            Kc = K[c]
-            for e in range(4):
-                # the closed-form tangent angle, as a unit vector (no trigonometry)
-                a = l00 * gx[c, e] + l10 * gy[c, e]
-                b = l11 * gy[c, e]
-                nrm = math.sqrt(a * a + b * b)
-                ct, st = (a / nrm, b / nrm) if nrm > 0 else (1.0, 0.0)
-                if has_dist:
-                    for _ in range(steps):
-                        d1, d2 = edge_slope(e, ct, st, m0, m1, l00, l10, l11, k, Kc)
-                        step = -d1 / d2 if d2 < 0 else 0.0
-                        step = min(max(step, -0.5), 0.5)
-                        if step != 0.0:  # rotate (cos θ, sin θ) by the step
-                            q = step * step
-                            if q < 4e-4:  # Taylor, exact to 1e-13 below 0.02 rad
-                                cs = 1.0 - q * (0.5 - q * (1.0 / 24.0 - q / 720.0))
-                                ss = step * (1.0 - q * (1.0 / 6.0 - q / 120.0))
-                            else:
-                                cs, ss = math.cos(step), math.sin(step)
-                            ct, st = ct * cs - st * ss, st * cs + ct * ss
-                        # Newton converges quadratically: the next step would be ~step^2 and gain
-                        # ~|f''| step^4 / 2 px; below 1e-6 px it is not taken
-                        if abs(d2) * step**4 < 1e-6:
-                            break
-                v = edge_value(e, ct, st, m0, m1, l00, l10, l11, k, Kc)
-                box[n, c, e] = -v if e < 2 else v
+            margin[n, c] = pair_box(center[n, 0], center[n, 1], center[n, 2], s0, s1, s2, c, Rc, gx, gy,
+                                    K, dist, R, t, ds, steps, every or want[n, c], box, n)
 
+
+def _named(fn: types.FunctionType, name: str) -> types.FunctionType:
+    """``fn`` under another name: numba's disk cache is keyed by the function's qualified name
+    (not by its compile flags), so the serial and the parallel build need two."""
+    f = types.FunctionType(fn.__code__, fn.__globals__, name, fn.__defaults__, fn.__closure__)
+    f.__qualname__ = name
+    return f
+
+
+kernel_serial = numba.njit(cache=True, nogil=True)(_named(_kernel, "kernel_serial"))
+kernel_parallel = numba.njit(cache=True, nogil=True, parallel=True)(_named(_kernel, "kernel_parallel"))
+
+#: below this many (ellipsoid, camera) pairs a call runs serially (a parallel launch costs
+#: ~10-20 us; a pair ~0.3 us)
+PARALLEL_MIN_PAIRS = 512
+_EVERY = np.ones((1, 1), dtype=np.bool_)
 
 
 def boxes_compiled(center_world: F64, semi_axes: F64, world_from_body: F64, K: F64, dist: F64,
-                   R: F64, t: F64, depth_sign: F64 | float, newton_steps: int) -> tuple[F64, F64]:
+                   R: F64, t: F64, depth_sign: F64 | float, newton_steps: int,
+                   want: np.ndarray | None = None) -> tuple[F64, F64]:
     """:func:`gt3dkit.geom.conics.ellipsoid_boxes` for ``(..., 3)`` centres and semi-axes:
     ``(..., C, 4)`` boxes and ``(..., C)`` margins (numba compiles the kernel on first use and
-    caches it on disk)."""
+    caches it on disk). ``want`` (broadcastable to ``(..., C)``): the pairs whose box is needed
+    (the others are NaN; the margin is computed for every pair). Large calls run on
+    :func:`gt3dkit.threads.compiled_threads` threads."""
+    from gt3dkit.threads import compiled_threads
+
     c, s = np.broadcast_arrays(np.asarray(center_world, dtype=np.float64),
                                np.asarray(semi_axes, dtype=np.float64))
     lead = c.shape[:-1]
     C = K.shape[0]
     cf = np.ascontiguousarray(c.reshape(-1, 3))
     sf = np.ascontiguousarray(s.reshape(-1, 3))
-    box = np.empty((cf.shape[0], C, 4))
-    margin = np.empty((cf.shape[0], C))
+    N = cf.shape[0]
+    wf = _EVERY if want is None else np.ascontiguousarray(
+        np.broadcast_to(np.asarray(want, dtype=np.bool_), lead + (C,)).reshape(N, C))
+    box = np.empty((N, C, 4))
+    margin = np.empty((N, C))
     ds = np.ascontiguousarray(np.broadcast_to(np.asarray(depth_sign, dtype=np.float64), (C,)))
-    kernel(cf, sf, np.ascontiguousarray(world_from_body, dtype=np.float64),
-            np.ascontiguousarray(K, dtype=np.float64), np.ascontiguousarray(dist, dtype=np.float64),
-            np.ascontiguousarray(R, dtype=np.float64), np.ascontiguousarray(t, dtype=np.float64), ds,
-            int(newton_steps), box, margin)
+    n_threads = compiled_threads() if N * C >= PARALLEL_MIN_PAIRS else 1
+    if n_threads > 1 and numba.get_num_threads() != min(n_threads, numba.config.NUMBA_NUM_THREADS):
+        numba.set_num_threads(min(n_threads, numba.config.NUMBA_NUM_THREADS))
+    run = kernel_parallel if n_threads > 1 else kernel_serial
+    run(cf, sf, np.ascontiguousarray(world_from_body, dtype=np.float64),
+        np.ascontiguousarray(K, dtype=np.float64), np.ascontiguousarray(dist, dtype=np.float64),
+        np.ascontiguousarray(R, dtype=np.float64), np.ascontiguousarray(t, dtype=np.float64), ds,
+        int(newton_steps), wf, box, margin)
     return box.reshape(lead + (C, 4)), margin.reshape(lead + (C,))

@@ -79,6 +79,7 @@ def ellipsoid_boxes(
     t: F64,
     depth_sign: F64 | float = 1.0,
     newton_steps: int = 2,
+    want: np.ndarray | None = None,
 ) -> tuple[F64, F64]:
     """Tight boxes of ellipsoids in every camera's distorted image (compiled).
 
@@ -87,12 +88,13 @@ def ellipsoid_boxes(
     faster for a UKF batch. Boxes inside the image equal the reference's within 1e-9 px (the
     kernel's Newton steps use exact derivatives, the reference's central differences); far
     outside it, where the lens polynomial folds, both are rough and differ by < 1e-6
-    relative.
+    relative. ``want`` (broadcastable to ``(..., C)``): compute only these pairs' boxes (the
+    others are NaN; margins are computed for all).
     """
     from gt3dkit.geom.boxkernel import boxes_compiled
 
     return boxes_compiled(center_world, semi_axes, world_from_body, K, dist, R, t, depth_sign,
-                          newton_steps)
+                          newton_steps, want)
 
 
 def ellipsoid_boxes_numpy(
