@@ -157,8 +157,8 @@ def report_truth(scene: Any, tracks: Any, name: str, max_dist_m: float = 1.0) ->
     if np.isfinite(scene.truth.center_world).any():
         from gt3dkit.eval.tracking import tracking_scores
 
-        print(error_table([(name, box_errors(tracks, scene.truth, scene.rig.up, max_dist_m))]))
         t = tracking_scores(tracks, scene.truth, scene.rig.up, max_dist_m)
+        print(error_table([(name, box_errors(tracks, scene.truth, scene.rig.up, max_dist_m, mot=t))]))
         print(f"ground plane, {max_dist_m:g} m: MOTA {100 * t['mota']:.1f}  IDF1 {100 * t['idf1']:.1f}  "
               f"FP {t['fp']}  FN {t['fn']}  IDs {t['ids']}  HOTA {100 * t['hota']:.1f}  "
               f"OSPA(2) {t['ospa2_m']:.4f} m")
@@ -569,8 +569,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         out = Path(args.out) / name
         tracks = reconstruct(scene, name, out=out)
         if scene.truth is not None:
-            rows.append((name, box_errors(tracks, scene.truth, scene.rig.up)))
             mot.append((name, tracking_scores(tracks, scene.truth, scene.rig.up)))
+            rows.append((name, box_errors(tracks, scene.truth, scene.rig.up, mot=mot[-1][1])))
         print(f"  {name}: {len(tracks)} rows in {tracks.info['seconds']:.2f} s -> {out}/tracks.csv")
     print("\nErrors against the dataset's own positions (positionID grid, 2.5 cm cells):")
     print(error_table(rows))

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -100,7 +101,10 @@ def _nanmean(x: F64) -> float:
     return float(x.mean()) if x.size else float("nan")
 
 
-def box_errors(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float = 1.0) -> BoxErrors:
+def box_errors(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float = 1.0,
+               mot: dict[str, Any] | None = None) -> BoxErrors:
+    """Errors of matched rows and :func:`clear_mot` (``mot``: its result when already computed,
+    e.g. by :func:`gt3dkit.eval.tracking.tracking_scores` with the same arguments)."""
     it, ig = match_rows(tracks, truth)
     c_est, c_tru = tracks.center_world[it], truth.center_world[ig]
     g_est = ground_coords(c_est, up)
@@ -110,7 +114,8 @@ def box_errors(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float 
     s_est, s_tru = tracks.semi_axes[it], truth.semi_axes[ig]
     height = np.abs(2 * s_est[:, 2] - 2 * s_tru[:, 2])
     radius = np.abs(s_est[:, :2].mean(1) - s_tru[:, :2].mean(1))
-    mot = clear_mot(tracks, truth, up, max_dist_m)
+    keys = ("mota", "idf1", "fp", "fn", "ids")
+    mot = {k: mot[k] for k in keys} if mot is not None else clear_mot(tracks, truth, up, max_dist_m)
     return BoxErrors(
         rows_truth=len(truth.frame), rows_matched=len(ig),
         coverage=len(np.unique(ig)) / max(len(truth.frame), 1),

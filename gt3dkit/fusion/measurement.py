@@ -8,6 +8,7 @@ with distortion, bones the distance between two joints (pseudo-measurements).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -140,6 +141,15 @@ class Model:
                 scale[:, lay.joint_velocity] = np.repeat(f, 3, axis=1)
         return scale
 
+    @functools.cached_property
+    def frame_centre_trace(self) -> F64:
+        """(R,) trace of each row's per-frame centre covariance where that fit determines the
+        centre (2+ views, finite), else inf (:meth:`linearisation_point`)."""
+        c6 = self.cov6_frame
+        ok6 = (np.all(np.isfinite(c6), axis=(1, 2)) & self.centre_determined
+               & np.all(np.isfinite(self.x_frame[:, self.layout.center]), axis=1))
+        return np.where(ok6, np.einsum("rii->r", np.nan_to_num(c6[:, :3, :3])), np.inf)
+
     def linearisation_point(self, r: np.ndarray, x: F64, P: F64) -> tuple[F64 | None, F64 | None]:
         """Where the first update pass linearises for rows ``r`` with priors ``x, P``.
 
@@ -152,22 +162,19 @@ class Model:
         """
         lay = self.layout
         B = len(r)
-        xl, Pl = x.copy(), P.copy()
+        xl, Pl = x, P
         changed = False
-        c6 = self.cov6_frame[r]
-        ok6 = (np.all(np.isfinite(c6), axis=(1, 2)) & self.centre_determined[r]
-               & np.all(np.isfinite(self.x_frame[r][:, lay.center]), axis=1))
         tr_prior = np.einsum("bii->b", P[:, lay.center, lay.center])
-        tr_frame = np.einsum("bii->b", c6[:, :3, :3])
-        weak = ok6 & (tr_prior > tr_frame)
+        weak = tr_prior > self.frame_centre_trace[r]
         if self.use_box and weak.any():
+            xl, Pl = x.copy(), P.copy()
             dims = np.r_[np.arange(lay.center.start, lay.center.stop),
                          np.arange(lay.log_axes.start, lay.log_axes.stop)]
             b = np.flatnonzero(weak)
             xl[np.ix_(b, dims)] = self.x_frame[r[b]][:, dims]
             Pl[b[:, None], dims[None, :], :] = 0.0
             Pl[b[:, None], :, dims[None, :]] = 0.0
-            Pl[np.ix_(b, dims, dims)] = c6[b]
+            Pl[np.ix_(b, dims, dims)] = self.cov6_frame[r[b]]
             changed = True
         J = lay.n_joints
         if J:
@@ -176,6 +183,8 @@ class Model:
             vf = self.var_frame[r][:, sl].reshape(B, J, 3).sum(axis=2)
             lost = np.isfinite(vf) & (vj > vf)
             if lost.any():
+                if not changed:
+                    xl, Pl = x.copy(), P.copy()
                 bb, jj = np.nonzero(lost)
                 dims = sl.start + 3 * jj[:, None] + np.arange(3)  # (L, 3)
                 xl[bb[:, None], dims] = self.x_frame[r[bb][:, None], dims]

@@ -31,7 +31,7 @@ import numpy as np
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.boxfit import PERSON_SEMI_AXES_M, BoxFit, fit_boxes
 from gt3dkit.fusion.motion import StateLayout
-from gt3dkit.fusion.robust import RobustConfig, robust_variance
+from gt3dkit.fusion.robust import RobustConfig, chi2_isf, chi2_median, robust_variance
 from gt3dkit.fusion.rows import Rows, build_rows
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.triangulate import normalized_points, robust_triangulate, triangulation_cov
@@ -218,11 +218,11 @@ def disagreement_scale(chi2_sum: F64, dof: F64, tail_p: float = 0.01) -> F64:
     it lies beyond the ``1 - tail_p`` quantile (the views disagree more than their noise
     explains), else 1. Scaling by ``max(reduced, 1)`` everywhere would bias every covariance
     up (most of all with 1 dof)."""
-    from scipy.stats import chi2
+    from scipy.special import chdtri  # = scipy.stats.chi2.isf(p, d), without importing stats
 
     d = np.maximum(np.asarray(dof, dtype=np.float64), 1.0)
     red = np.asarray(chi2_sum, dtype=np.float64) / d
-    out = np.where((np.asarray(dof) > 0) & (chi2_sum > chi2.isf(tail_p, d)), red, 1.0)
+    out = np.where((np.asarray(dof) > 0) & (chi2_sum > chdtri(d, tail_p)), red, 1.0)
     return np.where(np.isfinite(out), out, 1.0)
 
 
@@ -354,8 +354,6 @@ def _robust_keypoints(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig
                       kpt_sigma_px: float | None
                       ) -> tuple[F64, F64, np.ndarray, F64, dict[str, Any]]:
     """Per-frame robust triangulation of every joint, per-joint noise, input checks."""
-    from scipy.stats import chi2
-
     R, C, J = rows.kpt_z.shape[:3]
     obs = np.swapaxes(rows.kpt_z, 1, 2).reshape(R * J, C, 2)
     xy = normalized_points(obs, cams.K, cams.dist)
@@ -363,7 +361,7 @@ def _robust_keypoints(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig
     conf = np.swapaxes(np.maximum(rows.kpt_conf, CONF_FLOOR), 1, 2).reshape(R * J, C)
     seen = np.isfinite(obs[..., 0])
     diag = float(np.median(np.hypot(cams.wh[:, 0], cams.wh[:, 1])))
-    g2 = chi2.isf(robust.reject_p, 2)
+    g2 = chi2_isf(robust.reject_p, 2)
     joint_of = np.tile(np.arange(J), R)
 
     def joint_sigmas(e2: F64, keep: np.ndarray) -> tuple[F64, float]:
@@ -525,13 +523,11 @@ def _moment_q2(d2: F64, noise_var: F64, unit_var: F64, floor: float) -> float:
     ``floor`` when the noise explains it all. The median of a heavy-tailed motion (real
     joints jitter) is below what its mean would say: this is the process noise of the
     typical frame, which smooths more."""
-    from scipy.stats import chi2
-
     ok = np.isfinite(d2) & np.isfinite(noise_var) & (unit_var > 0)
     d2, nv, u = d2[ok], noise_var[ok], unit_var[ok]
     if d2.size < 3:
         return float("nan")
-    target = chi2.median(1)
+    target = chi2_median(1)
 
     def med(q2: float) -> float:
         return float(np.median(d2 / (q2 * u + nv)))

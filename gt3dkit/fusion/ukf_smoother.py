@@ -622,10 +622,33 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
 
     per = noise_rows or {}
 
+    cache: dict[tuple[float, ...], tuple[F64, F64]] = {}
+
     def transition(dt: F64, r: np.ndarray) -> tuple[F64, F64]:
-        q = {k: per[k][r] if k in per else getattr(cfg, k)
-             for k in ("accel_sd", "shape_sd", "joint_accel_sd")}
-        return layout.transition(dt, **q, up=cams.up, vertical_ratio=cfg.vertical_ratio)
+        """``F, Q (B, n, n)`` of rows ``r``, each distinct (time step, noise) computed once per
+        run (a frame's rows mostly share one: then read-only broadcast views)."""
+        dt = np.asarray(dt, dtype=np.float64).reshape(-1)
+        names = ("accel_sd", "shape_sd", "joint_accel_sd")
+        vals = [per[k][r] if k in per else getattr(cfg, k) for k in names]
+        cols = [dt] + [np.broadcast_to(np.asarray(np.nan if v is None else v, dtype=np.float64), dt.shape)
+                       for v in vals]
+        keys = np.stack(cols, axis=1)
+        uniq, inv = (keys[:1], np.zeros(len(dt), np.int64)) if (keys == keys[0]).all() else \
+            np.unique(keys, axis=0, return_inverse=True)
+        FQ = []
+        for key in map(tuple, uniq.tolist()):
+            if key not in cache:
+                q = {k: (None if np.isnan(v) else v) for k, v in zip(names, key[1:], strict=True)}
+                F1, Q1 = layout.transition(np.array(key[:1]), **q, up=cams.up,
+                                           vertical_ratio=cfg.vertical_ratio)
+                cache[key] = F1[0], Q1[0]
+            FQ.append(cache[key])
+        if len(FQ) == 1:
+            shape = (len(dt),) + FQ[0][0].shape
+            return np.broadcast_to(FQ[0][0], shape), np.broadcast_to(FQ[0][1], shape)
+        F = np.stack([f for f, _ in FQ])
+        Q = np.stack([q for _, q in FQ])
+        return F[inv.reshape(-1)], Q[inv.reshape(-1)]
 
     blocks = model.blocks()
     per_row = {k: np.zeros(R) for k in ("nis_rows", "dof_rows", "loglik_rows")}
