@@ -20,6 +20,8 @@ $(VENV)/.installed: pyproject.toml
 	@test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e ".[dev]"
+	@echo "compiling gt3dkit's numba kernels (once; cached next to the package)"
+	$(PY) -m gt3dkit.fusion.boxupdate
 	@touch $@
 
 demo: setup

@@ -48,11 +48,11 @@ def test_compiled_tangent_box_equals_the_numpy_reference(kind: str) -> None:
     np.testing.assert_allclose(b1[inside], b2[inside], atol=1e-6)
 
 
-def test_parallel_and_masked_tangent_box_equal_the_serial_one() -> None:
+def test_split_and_masked_tangent_box_equal_the_whole_call(monkeypatch) -> None:
     from gt3dkit.geom import boxkernel as bk
 
     rng = np.random.default_rng(3)
-    C, N = 6, 3000  # above PARALLEL_MIN_PAIRS
+    C, N = 6, 3000  # large enough to be split over threads
     R = np.stack([_rot(rng) for _ in range(C)])
     t = rng.normal(size=(C, 3)) + [0, 0, 8.0]
     K = np.tile(np.array([[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]]), (C, 1, 1))
@@ -61,19 +61,16 @@ def test_parallel_and_masked_tangent_box_equal_the_serial_one() -> None:
     s = np.exp(rng.normal(size=(N, 3)) * 0.3) * 0.4
     Rb = _rot(rng)
     want = rng.uniform(size=(N, C)) < 0.7
-    out = {}
-    for name, kern, w in (("serial", bk.kernel_serial, bk._EVERY),
-                          ("parallel", bk.kernel_parallel, bk._EVERY), ("masked", bk.kernel_parallel, want)):
-        box, margin = np.empty((N, C, 4)), np.empty((N, C))
-        kern(c, s, Rb, K, dist, R, t, np.ones(C), 2, np.ascontiguousarray(w), box, margin)
-        out[name] = box, margin
-    np.testing.assert_array_equal(out["parallel"][0], out["serial"][0])
-    np.testing.assert_array_equal(out["masked"][1], out["serial"][1])  # margins of every pair
-    np.testing.assert_array_equal(out["masked"][0][want], out["serial"][0][want])
-    assert np.isnan(out["masked"][0][~want]).all()
-    # the public function chooses the parallel kernel for this size and honours ``want``
-    b, _ = ellipsoid_boxes(c, s, Rb, K, dist, R, t, np.ones(C), want=want)
-    np.testing.assert_array_equal(b, out["masked"][0])
+    box, margin = np.empty((N, C, 4)), np.empty((N, C))
+    bk.kernel(c, s, Rb, K, dist, R, t, np.ones(C), 2, bk._EVERY, box, margin)  # one call, one thread
+    monkeypatch.setenv("GT3D_THREADS", "3")
+    b3, m3 = ellipsoid_boxes(c, s, Rb, K, dist, R, t, np.ones(C))
+    np.testing.assert_array_equal(b3, box)
+    np.testing.assert_array_equal(m3, margin)
+    bw, mw = ellipsoid_boxes(c, s, Rb, K, dist, R, t, np.ones(C), want=want)
+    np.testing.assert_array_equal(mw, margin)  # margins of every pair
+    np.testing.assert_array_equal(bw[want], box[want])
+    assert np.isnan(bw[~want]).all()
 
 
 @pytest.fixture(scope="module")
@@ -232,3 +229,31 @@ def test_gauss_newton_reaches_gtsam_levenberg_marquardt() -> None:
     assert err == pytest.approx(g.error(ref), rel=1e-6)
     for j in range(5):
         np.testing.assert_allclose(ours.atPoint3(j), ref.atPoint3(j), atol=1e-6)
+
+
+@pytest.mark.parametrize("case", ["fade", "search"])
+def test_compiled_box_filter_equals_the_frame_loop(box_model, case: str) -> None:
+    """The compiled forward pass and RTS smoother of a boxes-only model (objects as chains of
+    rows, split over threads) against run_filter's loop over frames with the same update."""
+    from gt3dkit.fusion import boxupdate
+
+    model = box_model
+    assert boxupdate.applies_to_model(model)
+    # a process noise far too small for walkers: predictions are faded (Model.prior_conflict)
+    cfg = replace(us.UKFSmoother().config, accel_sd=0.02 if case == "fade" else 0.4, shape_sd=0.02)
+    init = us.initial_states(model, cfg)
+    kw: dict = {"collect": True}
+    if case == "search":  # some objects only, per-row noise, no fading, no smoothing
+        on = us.search_rows(model.rows, len(model.rows) // 2, seed=1)
+        kw = {"on": on, "fade": False, "noise_rows": {"accel_sd": np.where(model.rows.row_o % 2, 0.3, 1.5)},
+              "collect": True}
+        cfg = replace(cfg, smooth=False)
+    a = us.run_filter(model, init, cfg, 10.0, **kw)
+    b = us.run_filter(model, init, cfg, 10.0, compiled=False, **kw)
+    np.testing.assert_allclose(a[0], b[0], rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(a[1], b[1], rtol=1e-8, atol=1e-12)
+    for k in ("loglik_rows", "nis_rows", "dof_rows", "weights", "score2", "residual"):
+        np.testing.assert_allclose(a[2][k], b[2][k], rtol=1e-7, atol=1e-8, err_msg=k)
+    for k in ("predictions_faded", "object_frames", "pd_repairs"):
+        assert a[2][k] == b[2][k], k
+    assert (a[2]["predictions_faded"] > 0) == (case == "fade")

@@ -6,7 +6,7 @@ boxes of all cameras, a function of the centre and the log semi-axes): a 9-entry
 6-dimensional marginal, 12 sigma points, at most ``4 C`` edges. The numpy formulation spends
 ~2 ms per frame in ~500 array calls on batches of ~30 objects; here each object is a few
 thousand flops in one loop (the tangent box of :mod:`gt3dkit.geom.boxkernel` inlined), and the
-objects of a frame run in parallel on :func:`gt3dkit.threads.compiled_threads` threads.
+objects run on :func:`gt3dkit.threads.compiled_threads` threads (:func:`gt3dkit.threads.run_split`).
 
 The mathematics is that of the numpy path, which stays the reference (the tests hold this one
 to it, row by row): the same statistical linear regression, the same information update,
@@ -24,10 +24,16 @@ from typing import Any
 import numba
 import numpy as np
 
-from gt3dkit.geom.boxkernel import _named, camera_setup, pair_box
+from gt3dkit.geom.boxkernel import camera_setup, pair_box
 from gt3dkit.types import F64
 
 _LOG_2PI = math.log(2.0 * math.pi)
+
+
+def _arg(a: Any, dtype: Any = np.float64) -> np.ndarray:
+    """``a`` as a C-contiguous, writable array of ``dtype``: numba compiles a function once per
+    argument type, and a read-only array (a broadcast view) is another type."""
+    return np.require(a, dtype=dtype, requirements=["C", "W"])
 
 
 @dataclass(frozen=True)
@@ -72,6 +78,101 @@ def _chol(A: F64, L: F64) -> bool:
 
 
 @numba.njit(cache=True, nogil=True)
+def _eigh(S: F64) -> tuple[F64, F64]:
+    """Eigenvalues ``w (n,)`` and eigenvectors (columns of ``V``) of a small symmetric matrix by
+    cyclic Jacobi rotations (to machine precision; numba's ``np.linalg.eigh`` costs seconds of
+    compilation)."""
+    n = S.shape[0]
+    A = S.copy()
+    V = np.eye(n)
+    for _ in range(100):
+        off = 0.0
+        for i in range(n):
+            for j in range(i + 1, n):
+                off += A[i, j] * A[i, j]
+        if off <= 1e-30 * max(np.sum(A * A), 1e-300):
+            break
+        for p in range(n):
+            for q in range(p + 1, n):
+                if A[p, q] == 0.0:
+                    continue
+                theta = (A[q, q] - A[p, p]) / (2.0 * A[p, q])
+                tt = (1.0 if theta >= 0 else -1.0) / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                c = 1.0 / math.sqrt(tt * tt + 1.0)
+                sn = tt * c
+                for k in range(n):  # A <- J^T A J
+                    akp, akq = A[k, p], A[k, q]
+                    A[k, p], A[k, q] = c * akp - sn * akq, sn * akp + c * akq
+                for k in range(n):
+                    apk, aqk = A[p, k], A[q, k]
+                    A[p, k], A[q, k] = c * apk - sn * aqk, sn * apk + c * aqk
+                for k in range(n):
+                    vkp, vkq = V[k, p], V[k, q]
+                    V[k, p], V[k, q] = c * vkp - sn * vkq, sn * vkp + c * vkq
+    w = np.empty(n)
+    for i in range(n):
+        w[i] = A[i, i]
+    return w, V
+
+
+@numba.njit(cache=True, nogil=True)
+def _chol_solve(L: F64, B: F64, X: F64) -> None:
+    """``X = (L L^T)^-1 B`` for a lower Cholesky factor ``L (n, n)`` and ``B (n, k)``."""
+    n, k = B.shape
+    for c in range(k):
+        for i in range(n):
+            s = B[i, c]
+            for j in range(i):
+                s -= L[i, j] * X[j, c]
+            X[i, c] = s / L[i, i]
+        for i in range(n - 1, -1, -1):
+            s = X[i, c]
+            for j in range(i + 1, n):
+                s -= L[j, i] * X[j, c]
+            X[i, c] = s / L[i, i]
+
+
+@numba.njit(cache=True, nogil=True)
+def _solve_sym(S: F64, B: F64, X: F64) -> None:
+    """``X = S^-1 B`` for a symmetric ``S``: by Cholesky, or (not positive definite) by its
+    eigen-decomposition; NaN if singular or not finite."""
+    n = S.shape[0]
+    L = np.empty((n, n))
+    if not np.all(np.isfinite(S)):
+        X[:, :] = np.nan
+        return
+    Ssym = 0.5 * (S + S.T)
+    if _chol(Ssym, L):
+        _chol_solve(L, B, X)
+        return
+    w, V = _eigh(Ssym)
+    k = B.shape[1]
+    for c in range(k):
+        for i in range(n):
+            s = 0.0
+            for a in range(n):
+                if w[a] == 0.0:
+                    s = np.nan
+                    break
+                pa = 0.0
+                for j in range(n):
+                    pa += V[j, a] * B[j, c]
+                s += V[i, a] * pa / w[a]
+            X[i, c] = s
+
+
+@numba.njit(cache=True, nogil=True)
+def _mm(A: F64, B: F64, out: F64) -> None:
+    """``out = A B`` (small matrices; numba's ``@`` adds seconds of compilation)."""
+    for i in range(A.shape[0]):
+        for j in range(B.shape[1]):
+            s = 0.0
+            for k in range(A.shape[1]):
+                s += A[i, k] * B[k, j]
+            out[i, j] = s
+
+
+@numba.njit(cache=True, nogil=True)
 def _safe_chol(A: F64, L: F64) -> int:
     """:func:`gt3dkit.fusion.ukf.safe_cholesky` of one matrix: ``L`` of ``(A + A^T) / 2``,
     eigenvalue-clipped if that is not PD. Returns 1 if a repair was needed, else 0."""
@@ -85,14 +186,19 @@ def _safe_chol(A: F64, L: F64) -> int:
     if not np.all(np.isfinite(S)):
         L[:, :] = np.nan
         return 1
-    w, V = np.linalg.eigh(S)
+    w, V = _eigh(S)
     wmax = max(w.max(), 1e-300)
     bad = 1 if w.min() <= 1e-15 * wmax else 0
     w = np.maximum(w, 1e-12 * wmax)
-    P2 = (V * w) @ V.T
     for i in range(n):
         for j in range(n):
-            S[i, j] = 0.5 * (P2[i, j] + P2[j, i])
+            s = 0.0
+            for a in range(n):
+                s += V[i, a] * w[a] * V[j, a]
+            S[i, j] = s
+    for i in range(n):
+        for j in range(i):
+            S[i, j] = S[j, i] = 0.5 * (S[i, j] + S[j, i])
     if not _chol(S, L):
         for i in range(n):
             for j in range(n):
@@ -133,10 +239,8 @@ def _row(b: int, x: F64, P: F64, z: F64, mask: np.ndarray, Rd: F64, w0: F64, xl:
     for i in range(n):
         for j in range(n):
             Psym[i, j] = 0.5 * (P[b, i, j] + P[b, j, i])
-    if np.all(np.isfinite(Psym)):
-        Pinv = np.linalg.inv(Psym)
-    else:
-        Pinv = np.full((n, n), np.nan)
+    Pinv = np.empty((n, n))
+    _solve_sym(Psym, np.eye(n), Pinv)
     xj = xl[b].copy()
     Pj = Pl[b].copy()
     wt = w0[b].copy()
@@ -211,8 +315,8 @@ def _row(b: int, x: F64, P: F64, z: F64, mask: np.ndarray, Rd: F64, w0: F64, xl:
                     Pxz[i, k] += Wc[s] * (X[s, i] - xj[dims[i]]) * dz
         if not mk.any():
             At[:, :] = 0.0
-        elif np.all(np.isfinite(Pb)) and np.all(np.isfinite(Pxz)):
-            At[:, :] = np.linalg.solve(Pb, Pxz)
+        elif np.all(np.isfinite(Pxz)):
+            _solve_sym(Pb, Pxz, At)
         else:
             At[:, :] = np.nan
         for k in range(m):
@@ -345,19 +449,17 @@ def _row(b: int, x: F64, P: F64, z: F64, mask: np.ndarray, Rd: F64, w0: F64, xl:
         resid_out[b, k] = resid[k]
 
 
-def _rows(x: F64, P: F64, z: F64, mask: np.ndarray, Rd: F64, w0: F64, xl: F64, Pl: F64,
-          iterations: int, dims: np.ndarray, Wm: F64, Wc: F64, scale: float, robust: bool,
-          c_thr: float, g_thr: float, Rb: F64, K: F64, dist: F64, R: F64, t: F64, ds: F64,
-          steps: int, x_out: F64, P_out: F64, stats: F64, wt_out: F64, score_out: F64,
-          resid_out: F64) -> None:
+@numba.njit(cache=True, nogil=True)
+def rows_update(x: F64, P: F64, z: F64, mask: np.ndarray, Rd: F64, w0: F64, xl: F64, Pl: F64,
+                iterations: int, dims: np.ndarray, Wm: F64, Wc: F64, scale: float, robust: bool,
+                c_thr: float, g_thr: float, Rb: F64, K: F64, dist: F64, R: F64, t: F64, ds: F64,
+                steps: int, x_out: F64, P_out: F64, stats: F64, wt_out: F64, score_out: F64,
+                resid_out: F64, a: int, b: int) -> None:
+    """:func:`_row` for the batch rows ``a..b-1``."""
     Rc, gx, gy = camera_setup(Rb, K, R)
-    for b in numba.prange(x.shape[0]):
-        _row(b, x, P, z, mask, Rd, w0, xl, Pl, iterations, dims, Wm, Wc, scale, robust, c_thr, g_thr,
+    for r in range(a, b):
+        _row(r, x, P, z, mask, Rd, w0, xl, Pl, iterations, dims, Wm, Wc, scale, robust, c_thr, g_thr,
              Rc, gx, gy, K, dist, R, t, ds, steps, x_out, P_out, stats, wt_out, score_out, resid_out)
-
-
-rows_serial = numba.njit(cache=True, nogil=True)(_named(_rows, "rows_serial"))
-rows_parallel = numba.njit(cache=True, nogil=True, parallel=True)(_named(_rows, "rows_parallel"))
 
 
 def applies(blocks: list[Any], m: int, robust_blocks: tuple[tuple[slice, int], ...]) -> bool:
@@ -377,7 +479,7 @@ def box_update(x: F64, P: F64, z: F64, mask: np.ndarray, R_diag: F64, blk: Any, 
     :func:`applies`), compiled; same arguments (``w`` the state's sigma weights: their
     ``alpha, beta, kappa`` are used for the block's marginal) and the same outputs."""
     from gt3dkit.fusion.ukf import SigmaWeights
-    from gt3dkit.threads import compiled_threads
+    from gt3dkit.threads import run_split
 
     B, m = z.shape
     n = x.shape[1]
@@ -387,7 +489,7 @@ def box_update(x: F64, P: F64, z: F64, mask: np.ndarray, R_diag: F64, blk: Any, 
     Wm, Wc = sw.Wm, sw.Wc
     if Wm[0] == 0.0 and Wc[0] == 0.0:  # the cubature rule gives the centre no weight
         Wm, Wc = Wm[1:], Wc[1:]
-    c = lambda a, dt=np.float64: np.ascontiguousarray(a, dtype=dt)  # noqa: E731
+    c = _arg
     x, P = c(x), c(P)
     xl = x if x_lin is None or P_lin is None else c(x_lin)
     Pl = P if x_lin is None or P_lin is None else c(P_lin)
@@ -400,14 +502,291 @@ def box_update(x: F64, P: F64, z: F64, mask: np.ndarray, R_diag: F64, blk: Any, 
     x_out, P_out = np.empty((B, n)), np.empty((B, n, n))
     stats = np.empty((B, 5))
     wt, score2, resid = np.empty((B, m)), np.empty((B, m)), np.empty((B, m))
-    par = compiled_threads() > 1 and B > 1
-    run = rows_parallel if par else rows_serial
-    run(x, P, c(z), c(mask, np.bool_), Rd, w0, xl, Pl, int(iterations), dims, c(Wm), c(Wc),
-        float(np.sqrt(sw.n + sw.lam)), on, float(c_thr), float(g_thr), cams.world_from_body, cams.K,
-        cams.dist, cams.R, cams.t, cams.depth_sign, 2, x_out, P_out, stats, wt, score2, resid)
+    args = (x, P, c(z), c(mask, np.bool_), Rd, w0, xl, Pl, int(iterations), dims, c(Wm), c(Wc),
+            float(np.sqrt(sw.n + sw.lam)), on, float(c_thr), float(g_thr), cams.world_from_body, cams.K,
+            cams.dist, cams.R, cams.t, cams.depth_sign, 2, x_out, P_out, stats, wt, score2, resid)
+    run_split(lambda a, b: rows_update(*args, a, b), B, 4)
     quad, dof, ll = stats[:, 0], stats[:, 1].astype(np.int64), stats[:, 2]
     info = {"nis": float(quad.sum()), "dof": int(dof.sum()), "loglik": float(ll.sum()),
             "nis_rows": quad, "dof_rows": dof, "loglik_rows": ll,
             "passes": int(stats[:, 3].max()) if B else 0, "repaired": int(stats[:, 4].sum()),
             "weights": wt, "score2": score2, "residual": resid}
     return x_out, P_out, info
+
+
+# --- the whole forward pass and the RTS smoother of a boxes-only model, compiled ---------------
+# (gt3dkit.fusion.ukf_smoother.run_filter's loop over frames, as chains of rows per object: each
+# object's filter is independent of the others', so the objects run in parallel and the frames
+# of one object in order; the numpy loop over frames stays the reference the tests hold it to)
+
+
+@numba.njit(cache=True, nogil=True)
+def _transition(dt: float, accel_sd: float, shape_sd: float, A: F64, F: F64, Q: F64) -> None:
+    """:meth:`gt3dkit.fusion.motion.StateLayout.transition` of the 9-entry box state for one
+    step ``dt`` (s): ``A (3, 3)`` shapes the centre's acceleration noise (``I + (r^2 - 1) u u^T``)."""
+    F[:, :] = 0.0
+    Q[:, :] = 0.0
+    for i in range(9):
+        F[i, i] = 1.0
+    qa2 = accel_sd * accel_sd
+    b00, b01, b11 = qa2 * dt**3 / 3.0, qa2 * dt**2 / 2.0, qa2 * dt
+    for i in range(3):
+        F[i, 3 + i] = dt
+        for j in range(3):
+            Q[i, j] = b00 * A[i, j]
+            Q[i, 3 + j] = b01 * A[i, j]
+            Q[3 + i, j] = b01 * A[i, j]
+            Q[3 + i, 3 + j] = b11 * A[i, j]
+        Q[6 + i, 6 + i] = shape_sd * shape_sd * dt
+
+
+@numba.njit(cache=True, nogil=True)
+def _predict(x: F64, P: F64, F: F64, Q: F64, x_out: F64, P_out: F64) -> None:
+    """``x_out = F x``, ``P_out = (F P F^T + Q)`` symmetrised (:func:`gt3dkit.fusion.ukf.predict_linear`)."""
+    n = x.shape[0]
+    FP = np.empty((n, n))
+    Pp = np.empty((n, n))
+    _mm(F, P, FP)
+    _mm(FP, F.T, Pp)
+    for i in range(n):
+        s = 0.0
+        for j in range(n):
+            s += F[i, j] * x[j]
+        x_out[i] = s
+    for i in range(n):
+        for j in range(n):
+            P_out[i, j] = 0.5 * ((Pp[i, j] + Q[i, j]) + (Pp[j, i] + Q[j, i]))
+
+
+@numba.njit(cache=True, nogil=True)
+def forward(first: np.ndarray, next_row: np.ndarray, run: np.ndarray, t_s: F64, x0: F64, P0: F64,
+             accel: F64, shape: F64, A: F64, fade: bool, fade_lim: float, determined: np.ndarray,
+             x_frame: F64, cov6: F64, frame_trace: F64, z: F64, mask: np.ndarray, Rd: F64, w0: F64,
+             iterations: int, dims: np.ndarray, Wm: F64, Wc: F64, scale: float, robust: bool,
+             c_thr: float, g_thr: float, Rb: F64, K: F64, dist: F64, R: F64, t: F64, ds: F64,
+             steps: int, x_p: F64, P_p: F64, x_l: F64, P_l: F64, x_f: F64, P_f: F64, stats: F64,
+             wt: F64, score2: F64, resid: F64, faded: np.ndarray) -> None:
+    """Forward filter of every object ``o`` with ``first[o] >= 0``: its rows from ``first[o]``
+    along ``next_row`` while ``run``; writes the predictions ``x_p, P_p``, the filtered
+    ``x_f, P_f`` and each row's statistics (see :func:`_row`). ``faded[row]``: the prediction
+    was faded (:meth:`gt3dkit.fusion.measurement.Model.prior_conflict`)."""
+    Rc, gx, gy = camera_setup(Rb, K, R)
+    n = x0.shape[1]
+    for o in range(first.shape[0]):
+        row = first[o]
+        prev = -1
+        F = np.empty((n, n))
+        Q = np.empty((n, n))
+        while row >= 0 and run[row]:
+            if prev < 0:
+                x_p[row] = x0[row]
+                P_p[row] = P0[row]
+            else:
+                _transition(t_s[row] - t_s[prev], accel[row], shape[row], A, F, Q)
+                _predict(x_f[prev], P_f[prev], F, Q, x_p[row], P_p[row])
+                if fade and determined[row]:
+                    e = np.empty(3)
+                    S = np.empty((3, 3))
+                    for i in range(3):
+                        e[i] = x_frame[row, i] - x_p[row, i]
+                        for j in range(3):
+                            S[i, j] = P_p[row, i, j] + cov6[row, i, j]
+                    if np.all(np.isfinite(S)) and np.all(np.isfinite(e)):
+                        Se = np.empty((3, 1))
+                        _solve_sym(S, e.reshape(3, 1), Se)
+                        d2 = e[0] * Se[0, 0] + e[1] * Se[1, 0] + e[2] * Se[2, 0]
+                        if d2 > fade_lim:
+                            f = math.sqrt(d2 / 3.0)
+                            for i in range(n):
+                                si = f if i < 6 else 1.0
+                                for j in range(n):
+                                    P_p[row, i, j] *= si * (f if j < 6 else 1.0)
+                            faded[row] = True
+            # the linearisation point (Model.linearisation_point, boxes)
+            x_l[row] = x_p[row]
+            P_l[row] = P_p[row]
+            tr = P_p[row, 0, 0] + P_p[row, 1, 1] + P_p[row, 2, 2]
+            if tr > frame_trace[row]:
+                for a in range(dims.shape[0]):
+                    x_l[row, dims[a]] = x_frame[row, dims[a]]
+                    for j in range(n):
+                        P_l[row, dims[a], j] = 0.0
+                        P_l[row, j, dims[a]] = 0.0
+                for a in range(dims.shape[0]):
+                    for b in range(dims.shape[0]):
+                        P_l[row, dims[a], dims[b]] = cov6[row, a, b]
+            _row(row, x_p, P_p, z, mask, Rd, w0, x_l, P_l, iterations, dims, Wm, Wc, scale, robust, c_thr,
+                 g_thr, Rc, gx, gy, K, dist, R, t, ds, steps, x_f, P_f, stats, wt, score2, resid)
+            prev = row
+            row = next_row[row]
+
+
+@numba.njit(cache=True, nogil=True)
+def backward(last: np.ndarray, prev_row: np.ndarray, run: np.ndarray, t_s: F64, A: F64, accel: F64,
+              shape: F64, x_p: F64, P_p: F64, x_s: F64, P_s: F64) -> None:
+    """RTS smoother along each object's rows, from ``last[o]`` back along ``prev_row`` while
+    ``run``: ``x_s, P_s`` hold the filtered values on entry and the smoothed ones on exit
+    (:func:`gt3dkit.fusion.ukf.rts_step`)."""
+    n = x_s.shape[1]
+    for o in range(last.shape[0]):
+        nxt = last[o]
+        if nxt < 0:
+            continue
+        row = prev_row[nxt]
+        F = np.empty((n, n))
+        Q = np.empty((n, n))
+        FPt = np.empty((n, n))
+        Gt = np.empty((n, n))
+        D = np.empty((n, n))
+        GD = np.empty((n, n))
+        GDG = np.empty((n, n))
+        while row >= 0 and run[row] and run[nxt]:
+            _transition(t_s[nxt] - t_s[row], accel[row], shape[row], A, F, Q)
+            _mm(F, P_s[row], FPt)  # (P F^T)^T = F P (P_s[row] still holds the filtered covariance)
+            _solve_sym(P_p[nxt], FPt, Gt)  # G^T = P_p^-1 (P F^T)^T
+            for i in range(n):
+                s = 0.0
+                for j in range(n):
+                    s += Gt[j, i] * (x_s[nxt, j] - x_p[nxt, j])
+                x_s[row, i] += s
+                for j in range(n):
+                    D[i, j] = P_s[nxt, i, j] - P_p[nxt, i, j]
+            _mm(Gt.T, D, GD)
+            _mm(GD, Gt, GDG)
+            for i in range(n):
+                for j in range(n):
+                    P_s[row, i, j] += 0.5 * (GDG[i, j] + GDG[j, i])
+            nxt = row
+            row = prev_row[row]
+
+
+
+
+def run_boxes(model: Any, init: Any, cfg: Any, fps: float, collect: bool, fade: bool,
+              on: np.ndarray | None, noise_rows: dict[str, F64] | None) -> tuple[F64, F64, dict[str, Any]]:
+    """:func:`gt3dkit.fusion.ukf_smoother.run_filter` of a boxes-only model (see
+    :func:`applies_to_model`), compiled: same arguments, same outputs."""
+    from gt3dkit.fusion.robust import chi2_isf
+    from gt3dkit.fusion.ukf import SigmaWeights
+    from gt3dkit.threads import run_split
+
+    rows, cams, layout = model.rows, model.cams, model.layout
+    if cfg.accel_sd is None or cfg.shape_sd is None:
+        raise ValueError("run_filter needs numeric accel_sd and shape_sd")
+    R, n = len(rows), layout.n
+    m = model.z.shape[1]
+    blk = model.blocks()[0]
+    bc: BoxCameras = blk.compiled
+    dims = np.ascontiguousarray(blk.dims[0], dtype=np.int64)
+    sw = SigmaWeights(len(dims), cfg.alpha, cfg.beta, cfg.kappa)
+    Wm, Wc = sw.Wm, sw.Wc
+    if Wm[0] == 0.0 and Wc[0] == 0.0:
+        Wm, Wc = Wm[1:], Wc[1:]
+    robust = cfg.robust_config if cfg.robust else None
+    on_r = robust is not None and bool(model.robust_blocks)
+    c_thr, g_thr = robust.thresholds(1) if on_r else (0.0, 0.0)
+    if on_r and not robust.enabled:
+        c_thr, g_thr = np.inf, np.inf
+    per = noise_rows or {}
+    accel = _arg(np.broadcast_to(per.get("accel_sd", cfg.accel_sd), (R,)))
+    shape = _arg(np.broadcast_to(per.get("shape_sd", cfg.shape_sd), (R,)))
+    u = np.asarray(cams.up, dtype=np.float64)
+    A = np.eye(3) + ((cfg.vertical_ratio**2 - 1.0) * np.outer(u, u) if cfg.vertical_ratio != 1.0 else 0.0)
+    run = np.ones(R, bool) if on is None else np.asarray(on, bool)
+    O = len(rows.obj_ids)
+    first = np.full(O, -1, np.int64)
+    last = np.full(O, -1, np.int64)
+    starts = np.flatnonzero(rows.prev_row < 0)
+    ends = np.flatnonzero(rows.next_row < 0)
+    first[rows.row_o[starts]] = np.where(run[starts], starts, -1)
+    last[rows.row_o[ends]] = np.where(run[ends], ends, -1)
+    t_s = np.ascontiguousarray(rows.frames[rows.row_t] / fps, dtype=np.float64)
+    c = _arg
+    x_p, P_p = np.zeros((R, n)), np.zeros((R, n, n))
+    x_l, P_l = np.zeros((R, n)), np.zeros((R, n, n))
+    x_f, P_f = np.zeros((R, n)), np.zeros((R, n, n))
+    stats = np.zeros((R, 5))
+    wt, score2, resid = np.ones((R, m)), np.zeros((R, m)), np.zeros((R, m))
+    faded = np.zeros(R, bool)
+    # objects in two halves of about equal rows (each thread runs whole objects)
+    objs = np.flatnonzero(first >= 0)
+    size = np.bincount(rows.row_o, minlength=O)[objs]
+    objs = objs[np.argsort(-size, kind="stable")]  # longest first, dealt alternately
+    groups = [np.sort(objs[k::2]) for k in range(2)]
+    args = (c(rows.next_row, np.int64), run, t_s, c(init.x0), c(init.P0), accel, shape, A, bool(fade),
+            float(chi2_isf(1e-3, 3)), c(model.centre_determined, np.bool_), c(model.x_frame),
+            c(model.cov6_frame), c(model.frame_centre_trace), c(model.z), c(model.mask, np.bool_),
+            c(np.broadcast_to(model.var, (R, m))), c(model.weight0), int(cfg.iterations), dims, c(Wm), c(Wc),
+            float(np.sqrt(sw.n + sw.lam)), on_r, float(c_thr), float(g_thr), bc.world_from_body, bc.K,
+            bc.dist, bc.R, bc.t, bc.depth_sign, 2, x_p, P_p, x_l, P_l, x_f, P_f, stats, wt, score2, resid,
+            faded)
+
+    def fwd(a: int, b: int) -> None:
+        for g in groups[a:b]:
+            forward(c(first[g], np.int64), *args)
+
+    run_split(fwd, len(groups) if len(objs) > 1 else 1)
+    del x_l, P_l
+    if cfg.smooth:
+        prev = c(rows.prev_row, np.int64)
+
+        def bwd(a: int, b: int) -> None:
+            for g in groups[a:b]:
+                backward(c(last[g], np.int64), prev, run, t_s, A, accel, shape, x_p, P_p, x_f, P_f)
+
+        run_split(bwd, len(groups) if len(objs) > 1 else 1)
+    done = run & (stats[:, 3] > 0)
+    per_row = {"nis_rows": np.where(done, stats[:, 0], 0.0), "dof_rows": np.where(done, stats[:, 1], 0.0),
+               "loglik_rows": np.where(done, stats[:, 2], 0.0)}
+    out = {"weights": np.where(done[:, None], wt, 0.0), "score2": np.where(done[:, None], score2, 0.0),
+           "residual": np.where(done[:, None], resid, 0.0)} if collect else {}
+    info: dict[str, Any] = {
+        "pd_repairs": int(stats[done, 4].sum()),
+        "predictions_faded": int(faded.sum()),
+        "object_frames": R if on is None else int(run.sum()),
+        "update_form": "information, iterated and reweighted (compiled, per object)",
+        "update_passes_mean": float(stats[done, 3].mean()) if done.any() else 0.0,
+        **out, **per_row,
+    }
+    return x_f, P_f, info
+
+
+def applies_to_model(model: Any) -> bool:
+    """Whether :func:`run_boxes` can run this model: boxes only (no joints), its one block
+    compiled (:func:`applies`)."""
+    if model.layout.n_joints or not model.use_box or model.bones is not None:
+        return False
+    return applies(model.blocks(), model.z.shape[1], model.robust_blocks)
+
+
+def warm_up() -> float:
+    """Compile (or load from numba's disk cache) every compiled function of the box path by
+    reconstructing a tiny simulated scene; returns the seconds it took. ``make setup`` runs it
+    once, so that a first real run does not spend ~40 s compiling."""
+    import tempfile
+    import time
+    from dataclasses import replace
+    from pathlib import Path
+
+    from gt3dkit.fusion import ukf_smoother as us
+    from gt3dkit.fusion.measurement import Model
+    from gt3dkit.io.datasets import load_scene
+    from gt3dkit.sim import simulate, write_scene
+
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        write_scene(simulate("wildtrack", seed=0, frames=4, people=2, noise_px=1.0), Path(tmp) / "in",
+                    "wildtrack")
+        scene = load_scene(Path(tmp) / "in")
+    est = us.UKFSmoother()
+    pre = est.prepare(scene)
+    model = Model.of(pre)
+    cfg = replace(est.config, accel_sd=0.5, shape_sd=0.01)
+    init = us.initial_states(model, cfg)
+    us.run_filter(model, init, cfg, scene.fps)  # forward, backward, the tangent box
+    us.run_filter(model, init, cfg, scene.fps, compiled=False)  # rows_update (the frame-loop path)
+    return time.perf_counter() - t0
+
+
+if __name__ == "__main__":
+    print(f"gt3dkit: compiled kernels ready ({warm_up():.0f} s)")

@@ -584,7 +584,7 @@ def rerun_with_bones(model: Model, init: Init, cfg: UKFConfig, fps: float, x_s: 
 
 def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bool = False,
                fade: bool = True, on: np.ndarray | None = None,
-               noise_rows: dict[str, F64] | None = None, split: bool = True
+               noise_rows: dict[str, F64] | None = None, split: bool = True, compiled: bool = True
                ) -> tuple[F64, F64, dict[str, Any]]:
     """Forward UKF over the frame grid, then (optionally) RTS. Returns ``(R, n)``, ``(R, n, n)``
     and diagnostics; with ``collect`` also the final weights, scores and residuals ``(R, m)``.
@@ -597,7 +597,14 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
     ``noise_rows`` gives some of ``accel_sd``, ``shape_sd``, ``joint_accel_sd`` per row
     ``(R,)`` instead of ``cfg``'s (the noise search runs several values at once). ``split``:
     without bones, run the joints as separate filters (:mod:`gt3dkit.fusion.split`; the same
-    result, faster); False runs the whole state (the reference the tests hold it to)."""
+    result, faster); False runs the whole state (the reference the tests hold it to).
+    ``compiled``: a boxes-only model runs as one compiled loop
+    (:func:`gt3dkit.fusion.boxupdate.run_boxes`); False runs this loop over frames (the reference)."""
+    from gt3dkit.fusion import boxupdate
+
+    if compiled and boxupdate.applies_to_model(model):
+        x_s, P_s, info = boxupdate.run_boxes(model, init, cfg, fps, collect, fade, on, noise_rows)
+        return x_s, P_s, _with_totals(info)
     if split and model.layout.n_joints > 1 and model.bones is None:
         # no bones: the joints are independent filters, run as one batch of small ones
         from gt3dkit.fusion.split import split_joints
@@ -630,15 +637,15 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
         dt = np.asarray(dt, dtype=np.float64).reshape(-1)
         names = ("accel_sd", "shape_sd", "joint_accel_sd")
         vals = [per[k][r] if k in per else getattr(cfg, k) for k in names]
-        cols = [dt] + [np.broadcast_to(np.asarray(np.nan if v is None else v, dtype=np.float64), dt.shape)
-                       for v in vals]
+        cols = [dt] + [np.broadcast_to(np.asarray(-1.0 if v is None else v, dtype=np.float64), dt.shape)
+                       for v in vals]  # -1: not set (noise is >= 0; NaN would never compare equal)
         keys = np.stack(cols, axis=1)
         uniq, inv = (keys[:1], np.zeros(len(dt), np.int64)) if (keys == keys[0]).all() else \
             np.unique(keys, axis=0, return_inverse=True)
         FQ = []
         for key in map(tuple, uniq.tolist()):
             if key not in cache:
-                q = {k: (None if np.isnan(v) else v) for k, v in zip(names, key[1:], strict=True)}
+                q = {k: (None if v == -1.0 else v) for k, v in zip(names, key[1:], strict=True)}
                 F1, Q1 = layout.transition(np.array(key[:1]), **q, up=cams.up,
                                            vertical_ratio=cfg.vertical_ratio)
                 cache[key] = F1[0], Q1[0]

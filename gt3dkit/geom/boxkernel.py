@@ -17,7 +17,7 @@ skew, the value at the tangent angle with skew only, Newton steps with distortio
 from __future__ import annotations
 
 import math
-import types
+from typing import Any
 
 import numba
 import numpy as np
@@ -96,7 +96,7 @@ def camera_setup(Rb: F64, K: F64, R: F64) -> tuple[F64, F64, F64]:
     return Rc, gx, gy
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(cache=True, nogil=True)
 def pair_box(p0: float, p1: float, p2: float, s0: float, s1: float, s2: float, c: int, Rc: F64,
              gx: F64, gy: F64, K: F64, dist: F64, R: F64, t: F64, ds: F64, steps: int,
              want: bool, out: F64, n: int) -> float:
@@ -167,35 +167,25 @@ def pair_box(p0: float, p1: float, p2: float, s0: float, s1: float, s2: float, c
     return mg
 
 
-def _kernel(center: F64, axes: F64, Rb: F64, K: F64, dist: F64, R: F64, t: F64, ds: F64,
-            steps: int, want: np.ndarray, box: F64, margin: F64) -> None:
+@numba.njit(cache=True, nogil=True)
+def kernel(center: F64, axes: F64, Rb: F64, K: F64, dist: F64, R: F64, t: F64, ds: F64,
+           steps: int, want: np.ndarray, box: F64, margin: F64) -> None:
     """Boxes ``box (N, C, 4)`` and margins ``margin (N, C)`` of N ellipsoids in C cameras;
     ``want (N, C)`` (or ``(1, 1)``: every pair): pairs whose box is needed (the margin is
-    computed for all; an unwanted box is NaN). Compiled twice below, serial and parallel."""
+    computed for all; an unwanted box is NaN)."""
     N, C = center.shape[0], K.shape[0]
     Rc, gx, gy = camera_setup(Rb, K, R)
     every = want.shape[0] == 1 and want.shape[1] == 1 and want[0, 0]
-    for n in numba.prange(N):
+    for n in range(N):
         s0, s1, s2 = axes[n, 0] ** 2, axes[n, 1] ** 2, axes[n, 2] ** 2
         for c in range(C):
             margin[n, c] = pair_box(center[n, 0], center[n, 1], center[n, 2], s0, s1, s2, c, Rc, gx, gy,
                                     K, dist, R, t, ds, steps, every or want[n, c], box, n)
 
 
-def _named(fn: types.FunctionType, name: str) -> types.FunctionType:
-    """``fn`` under another name: numba's disk cache is keyed by the function's qualified name
-    (not by its compile flags), so the serial and the parallel build need two."""
-    f = types.FunctionType(fn.__code__, fn.__globals__, name, fn.__defaults__, fn.__closure__)
-    f.__qualname__ = name
-    return f
-
-
-kernel_serial = numba.njit(cache=True, nogil=True)(_named(_kernel, "kernel_serial"))
-kernel_parallel = numba.njit(cache=True, nogil=True, parallel=True)(_named(_kernel, "kernel_parallel"))
-
-#: below this many (ellipsoid, camera) pairs a call runs serially (a parallel launch costs
-#: ~10-20 us; a pair ~0.3 us)
-PARALLEL_MIN_PAIRS = 512
+#: pairs per thread below which a call is not split (a thread hand-off costs ~20 us; a pair
+#: ~0.3 us)
+MIN_PAIRS_PER_THREAD = 256
 _EVERY = np.ones((1, 1), dtype=np.bool_)
 
 
@@ -205,28 +195,32 @@ def boxes_compiled(center_world: F64, semi_axes: F64, world_from_body: F64, K: F
     """:func:`gt3dkit.geom.conics.ellipsoid_boxes` for ``(..., 3)`` centres and semi-axes:
     ``(..., C, 4)`` boxes and ``(..., C)`` margins (numba compiles the kernel on first use and
     caches it on disk). ``want`` (broadcastable to ``(..., C)``): the pairs whose box is needed
-    (the others are NaN; the margin is computed for every pair). Large calls run on
-    :func:`gt3dkit.threads.compiled_threads` threads."""
-    from gt3dkit.threads import compiled_threads
+    (the others are NaN; the margin is computed for every pair). Large calls are split over
+    threads (:func:`gt3dkit.threads.run_split`)."""
+    from gt3dkit.threads import run_split
 
     c, s = np.broadcast_arrays(np.asarray(center_world, dtype=np.float64),
                                np.asarray(semi_axes, dtype=np.float64))
     lead = c.shape[:-1]
     C = K.shape[0]
-    cf = np.ascontiguousarray(c.reshape(-1, 3))
-    sf = np.ascontiguousarray(s.reshape(-1, 3))
+
+    def arr(a: Any, dtype: Any = np.float64) -> np.ndarray:  # one compiled signature: C order, writable
+        return np.require(a, dtype=dtype, requirements=["C", "W"])
+
+    cf = arr(c.reshape(-1, 3))
+    sf = arr(s.reshape(-1, 3))
     N = cf.shape[0]
-    wf = _EVERY if want is None else np.ascontiguousarray(
-        np.broadcast_to(np.asarray(want, dtype=np.bool_), lead + (C,)).reshape(N, C))
+    wf = _EVERY if want is None else arr(np.broadcast_to(np.asarray(want, dtype=np.bool_),
+                                                         lead + (C,)).reshape(N, C), np.bool_)
     box = np.empty((N, C, 4))
     margin = np.empty((N, C))
-    ds = np.ascontiguousarray(np.broadcast_to(np.asarray(depth_sign, dtype=np.float64), (C,)))
-    n_threads = compiled_threads() if N * C >= PARALLEL_MIN_PAIRS else 1
-    if n_threads > 1 and numba.get_num_threads() != min(n_threads, numba.config.NUMBA_NUM_THREADS):
-        numba.set_num_threads(min(n_threads, numba.config.NUMBA_NUM_THREADS))
-    run = kernel_parallel if n_threads > 1 else kernel_serial
-    run(cf, sf, np.ascontiguousarray(world_from_body, dtype=np.float64),
-        np.ascontiguousarray(K, dtype=np.float64), np.ascontiguousarray(dist, dtype=np.float64),
-        np.ascontiguousarray(R, dtype=np.float64), np.ascontiguousarray(t, dtype=np.float64), ds,
-        int(newton_steps), wf, box, margin)
+    ds = arr(np.broadcast_to(np.asarray(depth_sign, dtype=np.float64), (C,)))
+    cam = [arr(a) for a in (world_from_body, K, dist, R, t)]
+    every = wf is _EVERY
+
+    def part(a: int, b: int) -> None:
+        kernel(cf[a:b], sf[a:b], *cam, ds, int(newton_steps), wf if every else wf[a:b], box[a:b],
+               margin[a:b])
+
+    run_split(part, N, max(MIN_PAIRS_PER_THREAD // max(C, 1), 1))
     return box.reshape(lead + (C, 4)), margin.reshape(lead + (C,))
