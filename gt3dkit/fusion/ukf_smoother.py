@@ -182,7 +182,8 @@ class UKFSmoother:
                                                         pre.skeleton)
         nis = run["mean_nis_per_dof"]
         inflation = max(nis, 1.0) if cfg.inflate and np.isfinite(nis) else 1.0
-        P_s = P_s * inflation
+        if inflation != 1.0:
+            P_s *= inflation  # in place: P_s is this run's own array
         centre = x_s[:, layout.center]
         semi = np.exp(x_s[:, layout.log_axes])
         P_c, widened = widen_weak_rows(P_s[:, layout.center, layout.center], pre, scene.fps)
@@ -317,6 +318,21 @@ class Init:
 
     x0: F64
     P0: F64
+
+
+class ScaledRows:
+    """``scale * P[rows]`` when indexed: initial covariances ``(R, n, n)`` made from another
+    run's without a copy of all of them (a long keypoint sequence's are gigabytes)."""
+
+    def __init__(self, P: F64, scale: float) -> None:
+        self.P, self.scale = P, scale
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.P.shape
+
+    def __getitem__(self, idx: Any) -> F64:
+        return self.scale * self.P[idx]
 
 
 def initial_states(model: Model, cfg: UKFConfig) -> Init:
@@ -570,7 +586,7 @@ def rerun_with_bones(model: Model, init: Init, cfg: UKFConfig, fps: float, x_s: 
     # objects start from the first pass's smoothed state (4x its covariance), not from their
     # first per-frame fit: rigid bones to joints that frame barely sees would otherwise pull
     # the linearisation far off and the views would look like outliers
-    binit = Init(x_s.copy(), 4.0 * P_s)
+    binit = Init(x_s.copy(), ScaledRows(P_s, 4.0))  # read only where an object starts
     x2, P2, info = run_filter(bmodel, binit, cfg, fps, collect=True)
     names = [f"{skel.joints[a]}-{skel.joints[b]}" for a, b in bones]
     per_person = {
@@ -697,7 +713,7 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
             per_row[k][r] = inf[k]
         for k in out:
             out[k][r] = inf[k]
-    x_s, P_s = x_f.copy(), P_f.copy()
+    x_s, P_s = x_f, P_f  # smoothed in place, backwards (a row's filtered values are read first)
     if cfg.smooth:
         for t in range(len(rows.frames) - 2, -1, -1):
             r = np.arange(rows.t_start[t], rows.t_start[t + 1])
@@ -729,8 +745,9 @@ def _with_totals(info: dict[str, Any]) -> dict[str, Any]:
 def merge_runs(base: tuple[F64, F64, dict[str, Any]], new: tuple[F64, F64, dict[str, Any]],
                on: np.ndarray) -> tuple[F64, F64, dict[str, Any]]:
     """``base`` with the rows ``on (R,)`` taken from ``new`` (a :func:`run_filter` with ``on``):
-    states, covariances and every per-row array of the diagnostics; totals recomputed."""
-    x, P, info = base[0].copy(), base[1].copy(), dict(base[2])
+    states, covariances and every per-row array of the diagnostics; totals recomputed. The
+    states and covariances of ``base`` are updated in place."""
+    x, P, info = base[0], base[1], dict(base[2])  # in place: the covariances can be gigabytes
     x[on], P[on] = new[0][on], new[1][on]
     for k, v in new[2].items():
         if isinstance(v, np.ndarray) and v.shape[:1] == on.shape:

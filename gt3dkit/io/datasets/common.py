@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from gt3dkit.errors import InputError
-from gt3dkit.types import MAX_WORLD_M, Observations
+from gt3dkit.types import F64, MAX_WORLD_M, Observations
 
 
 def sha256(path: Path) -> str:
@@ -136,6 +136,21 @@ class RowBuilder:
         if not math.isnan(self.boxes[r][0]):
             raise InputError(where, f"second box for object {tid} in frame {frame} and this camera")
         self.boxes[r] = [float(v) for v in box]
+
+    def add_checked_boxes(self, frame: int, cams: np.ndarray, tids: np.ndarray, boxes: F64,
+                          origin: str) -> bool:
+        """Boxes ``(V, 4)`` of one frame already checked (finite, not degenerate, no (camera, id)
+        twice) added at once; ``origin`` is formatted with each row's id and camera
+        (``origin.format(tid, cam)``). Nothing is added and False returned when a row exists
+        already or the rows hold keypoints too (then :meth:`add_box` says what is wrong)."""
+        keys = [(frame, c, i) for c, i in zip(cams.tolist(), tids.tolist(), strict=True)]
+        if self.n_joints or any(k in self.rows for k in keys):
+            return False
+        start = len(self.boxes)
+        self.rows.update(zip(keys, range(start, start + len(keys)), strict=True))
+        self.boxes.extend(boxes.tolist())
+        self.origin.extend(origin.format(i, c) for _, c, i in keys)
+        return True
 
     def add_joint(self, frame: int, cam: int, tid: int, joint: int, uv: tuple[float, float],
                   where: str, conf: float | None = None) -> None:

@@ -32,8 +32,9 @@ import numpy as np
 
 from gt3dkit.calib.formats.opencv import read_storage
 from gt3dkit.errors import InputError
-from gt3dkit.io.datasets.checks import check_pixels
+from gt3dkit.io.datasets.checks import FAR_IMAGES, check_pixels
 from gt3dkit.io.datasets.common import (
+    ID_MAX,
     RowBuilder,
     iter_csv_rows,
     load_json,
@@ -145,6 +146,16 @@ def load(root: Path, g: GridLayout) -> Scene:
         files[str(p.relative_to(root))] = sha256(p)
         if not isinstance(people, list):
             raise InputError(str(p), "expected a list of people")
+        fast = _checked_views(people, cams, g)
+        new = fast is not None and not any((frame, int(a)) in seen_ids for a in fast[0])
+        if new and rb.add_checked_boxes(frame, fast[2][:, 1].astype(np.int64), fast[2][:, 0].astype(np.int64),
+                                        fast[2][:, 2:], f"{p}: personID {{}}, viewNum {{}}"):
+            # every check passed as arrays: the rows were added at once
+            pids, pos, _ = fast
+            seen_ids.update(((frame, int(a)), i) for i, a in enumerate(pids))
+            truth_rows.extend((frame, int(a), int(b)) for a, b in zip(pids, pos, strict=True) if b >= 0)
+            continue
+        # entry by entry, with the exact error for the first bad one
         for i, person in enumerate(people):
             where = f"{p}: entry {i}"
             if not (isinstance(person, dict) and {"personID", "positionID", "views"} <= person.keys()
@@ -195,6 +206,51 @@ def load(root: Path, g: GridLayout) -> Scene:
     truth = _truth_csv(root, files) or _truth_positions(g, truth_rows)
     return Scene(rig=rig, obs=obs, layout=g.name, fps=g.fps, frames=frames, truth=truth,
                  files=files, root=str(root))
+
+
+def _checked_views(people: list, cams: list[Camera | None], g: GridLayout
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """One frame file's people as arrays, every check of the entry-by-entry path in
+    :func:`load` made on whole arrays: ``(personIDs, positionIDs, views (V, 6) = personID,
+    viewNum, xmin, ymin, xmax, ymax)`` of the boxes to add (``-1`` boxes left out, truncated
+    pixels shifted), or None when anything is unusual (the caller then goes entry by entry and
+    reports the first bad one exactly)."""
+    try:
+        persons = [(q["personID"], q["positionID"]) for q in people]
+        raw = [(q["personID"], v["viewNum"], v["xmin"], v["ymin"], v["xmax"], v["ymax"])
+               for q in people for v in q["views"]]
+    except (KeyError, TypeError, IndexError):
+        return None
+    if not all(type(q) is dict and type(q["views"]) is list for q in people):  # noqa: E721
+        return None
+    if not all(type(a) is int and type(b) is int for a, b in persons):  # noqa: E721
+        return None
+    if not all(type(r[1]) is int for r in raw) or not all(  # noqa: E721
+            type(x) in (int, float) for r in raw for x in r[2:]):
+        return None
+    if len({a for a, _ in persons}) != len(persons) or len({r[:2] for r in raw}) != len(raw):
+        return None  # a person twice, or a camera twice for one person
+    pp = np.array(persons, dtype=np.int64).reshape(-1, 2)
+    if (np.abs(pp[:, 0]) > ID_MAX).any() or (pp[:, 1] < -1).any() or (pp[:, 1] > g.n_positions - 1).any():
+        return None
+    ids = np.array([r[:2] for r in raw], dtype=np.int64).reshape(-1, 2)
+    box = np.array([r[2:] for r in raw], dtype=np.float64).reshape(-1, 4)
+    vn = ids[:, 1]
+    if ((vn < -1) | (vn > 10_000)).any():
+        return None
+    keep = ~np.all(box == -1, axis=1)
+    ids, box, vn = ids[keep], box[keep], vn[keep]
+    if g.truncated_px:
+        box = box + np.where(box >= 0, 0.5, -0.5)
+    if ((vn < 0) | (vn >= len(g.cameras))).any() or any(cams[v] is None for v in np.unique(vn)):
+        return None
+    if not np.isfinite(box).all() or (box[:, 2] <= box[:, 0]).any() or (box[:, 3] <= box[:, 1]).any():
+        return None
+    wh = np.array([[c.width, c.height] if c is not None else [0, 0] for c in cams], dtype=np.float64)
+    size = np.tile(wh[vn], 2)  # (V, 4): w, h, w, h
+    if ((box < -FAR_IMAGES * size) | (box > (1 + FAR_IMAGES) * size)).any():
+        return None
+    return pp[:, 0], pp[:, 1], np.concatenate([ids, box], axis=1)
 
 
 def _truth_positions(g: GridLayout, rows: list[tuple[int, int, int]]) -> GroundTruth:
