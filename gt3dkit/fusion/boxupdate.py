@@ -13,6 +13,11 @@ to it, row by row): the same statistical linear regression, the same information
 leave-one-out robust weights (:mod:`gt3dkit.fusion.robust`) and statistics. One difference:
 the numpy path stops iterating when *every* row of the batch has converged, this one per row
 (a converged row's further passes change it by less than the convergence tolerance).
+
+numba caches each compiled function next to its module, keyed by that module's file only: after
+editing :mod:`gt3dkit.geom.boxkernel` (whose tangent box is compiled into these functions),
+remove ``gt3dkit/fusion/__pycache__/boxupdate*.nb*`` too, or this module keeps the old box. (A
+fresh install or clone has no cache; ``make setup`` compiles everything once.)
 """
 
 from __future__ import annotations
