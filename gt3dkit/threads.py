@@ -25,14 +25,23 @@ _USER_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "BLI
 IDLE_LOAD = 0.5
 
 
+def _env_threads(name: str) -> int | None:
+    """A thread count set in the environment variable ``name`` (at least 1; 1 if not a number),
+    or None when unset."""
+    v = os.environ.get(name)
+    if not v:
+        return None
+    try:
+        return max(int(v), 1)
+    except ValueError:
+        return 1
+
+
 def blas_threads() -> int | None:
     """The BLAS thread count to impose, or None to leave the user's setting alone."""
-    v = os.environ.get("GT3D_BLAS_THREADS")
-    if v:
-        try:
-            return max(int(v), 1)
-        except ValueError:
-            return 1
+    v = _env_threads("GT3D_BLAS_THREADS")
+    if v is not None:
+        return v
     if any(os.environ.get(k) for k in _USER_VARS):
         return None
     cores = os.cpu_count() or 1
@@ -71,12 +80,9 @@ def compiled_threads() -> int:
     """
     import threading
 
-    v = os.environ.get("GT3D_THREADS")
-    if v:
-        try:
-            return max(int(v), 1)
-        except ValueError:
-            return 1
+    v = _env_threads("GT3D_THREADS")
+    if v is not None:
+        return v
     worker = os.environ.get("GT3D_BLAS_THREADS") == "1"
     if worker or threading.current_thread() is not threading.main_thread():
         return 1

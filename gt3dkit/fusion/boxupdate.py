@@ -55,9 +55,8 @@ class BoxCameras:
     @classmethod
     def of(cls, cams: Any) -> BoxCameras:
         C = len(cams.K)
-        f = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
-        return cls(f(cams.world_from_body), f(cams.K), f(cams.dist), f(cams.R), f(cams.t),
-                   f(np.broadcast_to(np.asarray(cams.depth_sign, dtype=np.float64), (C,))))
+        return cls(_arg(cams.world_from_body), _arg(cams.K), _arg(cams.dist), _arg(cams.R), _arg(cams.t),
+                   _arg(np.broadcast_to(np.asarray(cams.depth_sign, dtype=np.float64), (C,))))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -467,6 +466,26 @@ def rows_update(x: F64, P: F64, z: F64, mask: np.ndarray, Rd: F64, w0: F64, xl: 
              Rc, gx, gy, K, dist, R, t, ds, steps, x_out, P_out, stats, wt_out, score_out, resid_out)
 
 
+def _block_rule(blk: Any, alpha: float, beta: float, kappa: float, robust: Any,
+                robust_blocks: tuple[tuple[slice, int], ...]) -> tuple[np.ndarray, F64, F64, float, bool,
+                                                                       float, float]:
+    """The box block's state entries ``dims``, its marginal's sigma weights ``Wm, Wc`` (without
+    the centre point where the rule gives it no weight) and ``scale``, and the robust rule:
+    ``(dims, Wm, Wc, scale, robust_on, c, g)`` (thresholds of a one-entry point)."""
+    from gt3dkit.fusion.ukf import SigmaWeights
+
+    dims = _arg(blk.dims[0], np.int64)
+    sw = SigmaWeights(len(dims), alpha, beta, kappa)
+    Wm, Wc = sw.Wm, sw.Wc
+    if Wm[0] == 0.0 and Wc[0] == 0.0:  # the cubature rule gives the centre no weight
+        Wm, Wc = Wm[1:], Wc[1:]
+    on = robust is not None and bool(robust_blocks)
+    c_thr, g_thr = robust.thresholds(1) if on else (0.0, 0.0)
+    if on and not robust.enabled:  # point_weights gives 1 everywhere
+        c_thr, g_thr = np.inf, np.inf
+    return dims, _arg(Wm), _arg(Wc), float(np.sqrt(sw.n + sw.lam)), on, float(c_thr), float(g_thr)
+
+
 def applies(blocks: list[Any], m: int, robust_blocks: tuple[tuple[slice, int], ...]) -> bool:
     """Whether the compiled update can run these blocks: the box block alone, covering the whole
     measurement vector, robust (if at all) edge by edge."""
@@ -483,32 +502,23 @@ def box_update(x: F64, P: F64, z: F64, mask: np.ndarray, R_diag: F64, blk: Any, 
     """:func:`gt3dkit.fusion.ukf.ukf_update_information` for the box block alone (see
     :func:`applies`), compiled; same arguments (``w`` the state's sigma weights: their
     ``alpha, beta, kappa`` are used for the block's marginal) and the same outputs."""
-    from gt3dkit.fusion.ukf import SigmaWeights
     from gt3dkit.threads import run_split
 
     B, m = z.shape
     n = x.shape[1]
     cams: BoxCameras = blk.compiled
-    dims = np.ascontiguousarray(blk.dims[0], dtype=np.int64)
-    sw = SigmaWeights(len(dims), w.alpha, w.beta, w.kappa)
-    Wm, Wc = sw.Wm, sw.Wc
-    if Wm[0] == 0.0 and Wc[0] == 0.0:  # the cubature rule gives the centre no weight
-        Wm, Wc = Wm[1:], Wc[1:]
+    dims, Wm, Wc, scale, on, c_thr, g_thr = _block_rule(blk, w.alpha, w.beta, w.kappa, robust, robust_blocks)
     c = _arg
     x, P = c(x), c(P)
     xl = x if x_lin is None or P_lin is None else c(x_lin)
     Pl = P if x_lin is None or P_lin is None else c(P_lin)
     Rd = c(np.broadcast_to(np.asarray(R_diag, dtype=np.float64), (B, m)))
     w0 = np.ones((B, m)) if weight0 is None else c(weight0)
-    on = robust is not None and bool(robust_blocks)
-    c_thr, g_thr = robust.thresholds(1) if on else (0.0, 0.0)
-    if on and not robust.enabled:  # point_weights gives 1 everywhere
-        c_thr, g_thr = np.inf, np.inf
     x_out, P_out = np.empty((B, n)), np.empty((B, n, n))
     stats = np.empty((B, 5))
     wt, score2, resid = np.empty((B, m)), np.empty((B, m)), np.empty((B, m))
-    args = (x, P, c(z), c(mask, np.bool_), Rd, w0, xl, Pl, int(iterations), dims, c(Wm), c(Wc),
-            float(np.sqrt(sw.n + sw.lam)), on, float(c_thr), float(g_thr), cams.world_from_body, cams.K,
+    args = (x, P, c(z), c(mask, np.bool_), Rd, w0, xl, Pl, int(iterations), dims, Wm, Wc,
+            scale, on, c_thr, g_thr, cams.world_from_body, cams.K,
             cams.dist, cams.R, cams.t, cams.depth_sign, 2, x_out, P_out, stats, wt, score2, resid)
     run_split(lambda a, b: rows_update(*args, a, b), B, 4)
     quad, dof, ll = stats[:, 0], stats[:, 1].astype(np.int64), stats[:, 2]
@@ -672,7 +682,6 @@ def run_boxes(model: Any, init: Any, cfg: Any, fps: float, collect: bool, fade: 
     """:func:`gt3dkit.fusion.ukf_smoother.run_filter` of a boxes-only model (see
     :func:`applies_to_model`), compiled: same arguments, same outputs."""
     from gt3dkit.fusion.robust import chi2_isf
-    from gt3dkit.fusion.ukf import SigmaWeights
     from gt3dkit.threads import run_split
 
     rows, cams, layout = model.rows, model.cams, model.layout
@@ -682,16 +691,8 @@ def run_boxes(model: Any, init: Any, cfg: Any, fps: float, collect: bool, fade: 
     m = model.z.shape[1]
     blk = model.blocks()[0]
     bc: BoxCameras = blk.compiled
-    dims = np.ascontiguousarray(blk.dims[0], dtype=np.int64)
-    sw = SigmaWeights(len(dims), cfg.alpha, cfg.beta, cfg.kappa)
-    Wm, Wc = sw.Wm, sw.Wc
-    if Wm[0] == 0.0 and Wc[0] == 0.0:
-        Wm, Wc = Wm[1:], Wc[1:]
-    robust = cfg.robust_config if cfg.robust else None
-    on_r = robust is not None and bool(model.robust_blocks)
-    c_thr, g_thr = robust.thresholds(1) if on_r else (0.0, 0.0)
-    if on_r and not robust.enabled:
-        c_thr, g_thr = np.inf, np.inf
+    dims, Wm, Wc, scale, on_r, c_thr, g_thr = _block_rule(
+        blk, cfg.alpha, cfg.beta, cfg.kappa, cfg.robust_config if cfg.robust else None, model.robust_blocks)
     per = noise_rows or {}
     accel = _arg(np.broadcast_to(per.get("accel_sd", cfg.accel_sd), (R,)))
     shape = _arg(np.broadcast_to(per.get("shape_sd", cfg.shape_sd), (R,)))
@@ -721,8 +722,8 @@ def run_boxes(model: Any, init: Any, cfg: Any, fps: float, collect: bool, fade: 
     args = (c(rows.next_row, np.int64), run, t_s, c(init.x0), c(init.P0), accel, shape, A, bool(fade),
             float(chi2_isf(1e-3, 3)), c(model.centre_determined, np.bool_), c(model.x_frame),
             c(model.cov6_frame), c(model.frame_centre_trace), c(model.z), c(model.mask, np.bool_),
-            c(np.broadcast_to(model.var, (R, m))), c(model.weight0), int(cfg.iterations), dims, c(Wm), c(Wc),
-            float(np.sqrt(sw.n + sw.lam)), on_r, float(c_thr), float(g_thr), bc.world_from_body, bc.K,
+            c(np.broadcast_to(model.var, (R, m))), c(model.weight0), int(cfg.iterations), dims, Wm, Wc,
+            scale, on_r, c_thr, g_thr, bc.world_from_body, bc.K,
             bc.dist, bc.R, bc.t, bc.depth_sign, 2, x_p, P_p, x_l, P_l, x_f, P_f, stats, wt, score2, resid,
             faded)
 
