@@ -105,12 +105,12 @@ def run_split(fn: Callable[[int, int], None], n: int, min_per_thread: int = 1) -
     if k <= 1:
         fn(0, n)
         return
-    if not _POOL:
+    if not _POOL or _POOL[0][0] != os.getpid():  # none yet, or inherited by a fork (no threads)
         from concurrent.futures import ThreadPoolExecutor
 
-        _POOL.append(ThreadPoolExecutor(max_workers=_cores(), thread_name_prefix="gt3dkit"))
+        _POOL[:] = [(os.getpid(), ThreadPoolExecutor(max_workers=_cores(), thread_name_prefix="gt3dkit"))]
     cuts = [n * i // k for i in range(k + 1)]
-    futures = [_POOL[0].submit(fn, a, b) for a, b in zip(cuts[1:-1], cuts[2:], strict=True)]
+    futures = [_POOL[0][1].submit(fn, a, b) for a, b in zip(cuts[1:-1], cuts[2:], strict=True)]
     fn(cuts[0], cuts[1])
     for f in futures:
         f.result()

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 from threadpoolctl import threadpool_info
 
-from gt3dkit.threads import blas_threads, small_matrix_blas
+from gt3dkit.threads import blas_threads, compiled_threads, small_matrix_blas
 
 
 def _blas_threads_now() -> list[int]:
@@ -41,3 +42,62 @@ def test_the_pool_is_limited_inside_and_restored(monkeypatch) -> None:
         with small_matrix_blas():
             assert set(_blas_threads_now()) == {1}
         assert _blas_threads_now() == before
+
+
+def _boxes_in_child(q) -> None:  # runs in a forked child
+    from gt3dkit.geom.conics import ellipsoid_boxes
+
+    q.put(ellipsoid_boxes(*_box_args())[0])
+
+
+def _box_args():
+    C, N = 4, 2000  # large enough to be split over threads
+    K = np.tile(np.array([[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]]), (C, 1, 1))
+    dist = np.zeros((C, 5))
+    dist[:, 0] = 0.01
+    c = np.random.default_rng(0).normal(size=(N, 3))
+    return (c, np.full((N, 3), 0.3), np.eye(3), K, dist, np.tile(np.eye(3), (C, 1, 1)),
+            np.tile([0, 0, 8.0], (C, 1)), np.ones(C))
+
+
+def test_split_work_survives_a_fork(monkeypatch) -> None:
+    """A process forked after the thread pool was made (a user's multiprocessing on Linux)
+    inherits the pool without its threads: it must make its own, not wait forever."""
+    import multiprocessing as mp
+
+    from gt3dkit.geom.conics import ellipsoid_boxes
+
+    monkeypatch.setenv("GT3D_THREADS", "2")
+    here, _ = ellipsoid_boxes(*_box_args())  # the pool exists now
+    ctx = mp.get_context("fork")
+    q = ctx.Queue()
+    p = ctx.Process(target=_boxes_in_child, args=(q,))
+    p.start()
+    try:  # a deadlock, not a speed limit: the child needs well under a second
+        got = q.get(timeout=120)
+    finally:
+        p.join(10)
+        if p.is_alive():
+            p.kill()
+    assert p.exitcode == 0
+    np.testing.assert_array_equal(got, here)
+
+
+def test_compiled_threads_choice(monkeypatch) -> None:
+    """Every core in the main thread; one in reconstruct-many workers and in other threads (they
+    are the parallelism there); GT3D_THREADS overrides."""
+    import os
+    import threading
+
+    for k in ("GT3D_THREADS", "GT3D_BLAS_THREADS"):
+        monkeypatch.delenv(k, raising=False)
+    assert compiled_threads() == (os.cpu_count() or 1)
+    seen: list[int] = []
+    t = threading.Thread(target=lambda: seen.append(compiled_threads()))
+    t.start()
+    t.join()
+    assert seen == [1]
+    monkeypatch.setenv("GT3D_BLAS_THREADS", "1")  # what a reconstruct-many worker sets
+    assert compiled_threads() == 1
+    monkeypatch.setenv("GT3D_THREADS", "3")
+    assert compiled_threads() == 3
