@@ -239,12 +239,18 @@ def _row(b: int, x: F64, P: F64, z: F64, mask: np.ndarray, Rd: F64, w0: F64, xl:
     first = S - 2 * d  # 1 with the centre point, 0 without (the cubature rule)
     repaired = 0
     xb0 = x[b]
+    # the prior's Cholesky factor (its log-determinant, below) and inverse from one factorisation
     Psym = np.empty((n, n))
     for i in range(n):
         for j in range(n):
             Psym[i, j] = 0.5 * (P[b, i, j] + P[b, j, i])
+    LP = np.empty((n, n))
     Pinv = np.empty((n, n))
-    _solve_sym(Psym, np.eye(n), Pinv)
+    if _chol(Psym, LP):
+        _chol_solve(LP, np.eye(n), Pinv)
+    else:  # not positive definite: the inverse of the matrix itself (as np.linalg.inv), and the
+        _solve_sym(Psym, np.eye(n), Pinv)  # factor repaired (repairs of the prior are not
+        _safe_chol(Psym, LP)               # counted, as in the numpy path)
     xj = xl[b].copy()
     Pj = Pl[b].copy()
     wt = w0[b].copy()
@@ -424,8 +430,6 @@ def _row(b: int, x: F64, P: F64, z: F64, mask: np.ndarray, Rd: F64, w0: F64, xl:
         xj[:] = x_post
         Pj[:, :] = P_post
     # --- statistics of the last pass, with the weights it used
-    LP = np.empty((n, n))
-    _safe_chol(P[b], LP)  # (repairs of the prior are not counted, as in the numpy path)
     logdet = 0.0
     dof = 0
     quad = 0.0
@@ -760,8 +764,11 @@ def run_boxes(model: Any, init: Any, cfg: Any, fps: float, collect: bool, fade: 
 def applies_to_model(model: Any) -> bool:
     """Whether :func:`run_boxes` can run this model: boxes only (no joints), its one block
     compiled (:func:`applies`)."""
-    if model.layout.n_joints or not model.use_box or model.bones is not None:
+    lay = model.layout
+    if lay.n_joints or not model.use_box or model.bones is not None:
         return False
+    if (lay.n, lay.center, lay.velocity, lay.log_axes) != (9, slice(0, 3), slice(3, 6), slice(6, 9)):
+        return False  # the compiled motion model and fading are written for this layout
     return applies(model.blocks(), model.z.shape[1], model.robust_blocks)
 
 

@@ -8,6 +8,7 @@ objects of a frame as one batch.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,8 +64,9 @@ class Rows:
     kpt_conf: F64
     obs_row: I64
 
-    @property
+    @functools.cached_property
     def n_views(self) -> I64:
+        """(R,) cameras with an annotation of each row (computed once: QA asks per row)."""
         return (self.obs_row >= 0).sum(axis=1)
 
     def __len__(self) -> int:

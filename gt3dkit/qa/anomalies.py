@@ -277,8 +277,7 @@ def _missing_views(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, out:
     rows, cams = pre.rows, pre.cams
     names = scene.rig.names
     ok = r_of >= 0  # every estimated object can hide another; only those seen twice are judged
-    n_views = rows.n_views
-    if not (ok & (n_views >= 2)).any():
+    if not (ok & (rows.n_views >= 2)).any():
         return
     idx = np.flatnonzero(ok)
     centres = np.stack([c.center_world for c in scene.rig.cameras])  # (C, 3)
@@ -290,7 +289,7 @@ def _missing_views(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, out:
         & (box[..., 3] < H - m) & (box[..., 3] - box[..., 1] > cfg.min_box_px) \
         & (box[..., 2] > box[..., 0]) & np.isfinite(box).all(-1)  # a folded projection is no box
     unannotated = rows.obs_row[idx] < 0  # (n, C)
-    cand = inside & unannotated & ((n_views[idx] >= 2) & ~jumped[idx])[:, None]
+    cand = inside & unannotated & ((rows.n_views[idx] >= 2) & ~jumped[idx])[:, None]
     if not cand.any():
         return
     t_of = rows.row_t[idx]
@@ -312,7 +311,7 @@ def _missing_views(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, out:
             b = box[n, c]
             out.append((int(rows.frames[t]), names[c], int(rows.obj_ids[rows.row_o[r]]), "", "missing_view",
                         round(float(1 - cov[k, c]), 2),
-                        f"seen by {int(n_views[r])} other views; projects to "
+                        f"seen by {int(rows.n_views[r])} other views; projects to "
                         f"({b[0]:.0f}, {b[1]:.0f})-({b[2]:.0f}, {b[3]:.0f}) px inside the image, "
                         f"{100 * cov[k, c]:.0f}% covered by nearer objects, not annotated"))
 

@@ -43,7 +43,7 @@ from gt3dkit.io.datasets.common import (
     parse_metres,
     sha256,
 )
-from gt3dkit.types import Camera, GroundTruth, Rig, Scene
+from gt3dkit.types import F64, Camera, GroundTruth, Rig, Scene
 
 
 @dataclass(frozen=True)
@@ -136,6 +136,7 @@ def load(root: Path, g: GridLayout) -> Scene:
     if not paths:
         raise InputError(str(ann_dir), "no annotation files (*.json)")
     rb = RowBuilder()
+    wh = np.array([[c.width, c.height] if c is not None else [0, 0] for c in cams], dtype=np.float64)
     truth_rows: list[tuple[int, int, int]] = []
     seen_ids: dict[tuple[int, int], int] = {}
     for p in paths:
@@ -146,7 +147,7 @@ def load(root: Path, g: GridLayout) -> Scene:
         files[str(p.relative_to(root))] = sha256(p)
         if not isinstance(people, list):
             raise InputError(str(p), "expected a list of people")
-        fast = _checked_views(people, cams, g)
+        fast = _checked_views(people, cams, wh, g)
         new = fast is not None and not any((frame, int(a)) in seen_ids for a in fast[0])
         if new and rb.add_checked_boxes(frame, fast[2][:, 1].astype(np.int64), fast[2][:, 0].astype(np.int64),
                                         fast[2][:, 2:], f"{p}: personID {{}}, viewNum {{}}"):
@@ -208,13 +209,13 @@ def load(root: Path, g: GridLayout) -> Scene:
                  files=files, root=str(root))
 
 
-def _checked_views(people: list, cams: list[Camera | None], g: GridLayout
+def _checked_views(people: list, cams: list[Camera | None], wh: F64, g: GridLayout
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """One frame file's people as arrays, every check of the entry-by-entry path in
     :func:`load` made on whole arrays: ``(personIDs, positionIDs, views (V, 6) = personID,
     viewNum, xmin, ymin, xmax, ymax)`` of the boxes to add (``-1`` boxes left out, truncated
     pixels shifted), or None when anything is unusual (the caller then goes entry by entry and
-    reports the first bad one exactly)."""
+    reports the first bad one exactly). ``wh (C, 2)``: each camera's image size."""
     try:
         persons = [(q["personID"], q["positionID"]) for q in people]
         raw = [(q["personID"], v["viewNum"], v["xmin"], v["ymin"], v["xmax"], v["ymax"])
@@ -246,7 +247,6 @@ def _checked_views(people: list, cams: list[Camera | None], g: GridLayout
         return None
     if not np.isfinite(box).all() or (box[:, 2] <= box[:, 0]).any() or (box[:, 3] <= box[:, 1]).any():
         return None
-    wh = np.array([[c.width, c.height] if c is not None else [0, 0] for c in cams], dtype=np.float64)
     size = np.tile(wh[vn], 2)  # (V, 4): w, h, w, h
     if ((box < -FAR_IMAGES * size) | (box > (1 + FAR_IMAGES) * size)).any():
         return None
