@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gt3dkit.arrays import unique_rows
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.conics import ellipsoid_boxes
 from gt3dkit.io.atomic import write_dir_atomically
@@ -834,7 +835,7 @@ def corrupt_keypoints(scene: Scene, errors: Errors, seed: int = 0
     obs = scene.obs
     if obs.n_joints == 0 or scene.skeleton is None:
         raise ValueError("corrupt_keypoints needs a keypoint scene with a named skeleton")
-    keys, m_of = np.unique(np.stack([obs.frame, obs.track_id], 1), axis=0, return_inverse=True)
+    keys, m_of = unique_rows(np.stack([obs.frame, obs.track_id], 1), return_inverse=True)
     m_of = m_of.reshape(-1)
     C, J = len(scene.rig.cameras), obs.n_joints
     uv = np.full((len(keys), C, J, 2), np.nan)

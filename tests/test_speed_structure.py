@@ -257,3 +257,55 @@ def test_compiled_box_filter_equals_the_frame_loop(box_model, case: str) -> None
     for k in ("predictions_faded", "object_frames", "pd_repairs"):
         assert a[2][k] == b[2][k], k
     assert (a[2]["predictions_faded"] > 0) == (case == "fade")
+
+
+def test_compiled_box_fit_equals_the_numpy_fit() -> None:
+    """The compiled per-frame LM fit (gt3dkit.fusion.boxlm) against the batched numpy fit:
+    lens distortion, an object behind a camera, a camera without a box, a clipped edge, an
+    outlier, one-view rows, per-edge noise and a shape prior (both stop on the same test, but
+    their step sizes differ by rounding, so the minima agree to the convergence tolerance)."""
+    from gt3dkit.fusion.boxfit import fit_boxes
+    from gt3dkit.geom.camera import Cams
+
+    cams = Cams.of(simulate("wildtrack", seed=7, frames=2, people=1).rig)
+    rng = np.random.default_rng(4)
+    N = 60
+    centre = np.c_[rng.uniform(-2, 10, N), rng.uniform(-5, 25, N), np.full(N, 0.9)]
+    axes = np.c_[rng.uniform(0.2, 0.35, (N, 2)), rng.uniform(0.75, 0.95, N)]
+    z, margin = ellipsoid_boxes(centre, axes, cams.world_from_body, cams.K, cams.dist, cams.R, cams.t,
+                                cams.depth_sign)
+    z = z + rng.normal(size=z.shape) * 1.0
+    size = np.tile(cams.wh, 2)  # (C, 4)
+    on_image = np.all((z > -0.5 * size) & (z < 1.5 * size), axis=-1)  # as an annotator draws them
+    mask = np.isfinite(z) & ((margin > 0) & on_image)[..., None]
+    z[3, :, 0] += 40.0  # an outlier edge (in every camera that sees it)
+    mask[5, :2] = False  # cameras without a box
+    mask[6, :, 3] = False  # a clipped bottom edge
+    lone = np.flatnonzero(mask.any(-1).sum(-1) >= 2)[:5]
+    view = np.argmax(mask[lone].any(-1), axis=1)
+    mask[lone] = False
+    mask[lone, view] = True  # one view each
+    z = np.where(mask, z, np.nan)
+    p0 = np.full((N, 6), np.nan)
+    p0[10] = np.r_[centre[10] + [0.5, -0.4, 0.2], np.log(axes[10]) + 0.3]  # a start of its own
+    for kw in ({}, {"sigma_px": np.array([1.0, 2.0, 1.0, 3.0]), "prior_log_axes": np.log([0.3, 0.3, 0.85]),
+                    "prior_sd": np.array([0.1, 0.1, 0.05]), "p0": p0}):
+        a = fit_boxes(z, mask, cams, **kw)
+        b = fit_boxes(z, mask, cams, compiled=False, **kw)
+        assert a.ok.sum() > 40
+        np.testing.assert_array_equal(a.ok, b.ok)
+        # one view fixes depth through the weak prior alone: LM crawls there, and where the two
+        # stop differs; the compiled fit must end no worse
+        assert np.all(a.rss_px2[a.ok] <= b.rss_px2[a.ok] * (1 + 1e-6) + 1e-6)
+        ok = a.ok & (mask.any(-1).sum(-1) >= 2)
+        np.testing.assert_allclose(a.center_world[ok], b.center_world[ok], atol=2e-5)
+        np.testing.assert_allclose(a.log_axes[ok], b.log_axes[ok], atol=2e-5)
+        np.testing.assert_allclose(a.rss_px2[ok], b.rss_px2[ok], rtol=1e-4, atol=1e-6)
+        np.testing.assert_allclose(a.cov[ok], b.cov[ok], rtol=1e-3, atol=1e-9)
+        np.testing.assert_array_equal(np.isnan(a.residual_px), np.isnan(b.residual_px))
+        np.testing.assert_allclose(a.leverage[ok], b.leverage[ok], atol=1e-4)
+        assert (~ok & a.ok).sum() >= 5
+    # a start 50 m off (the numpy reference's batched solve fails on its singular steps)
+    p0[10] = [50.0, 50.0, 0.9, -1.2, -1.2, -0.2]
+    far = fit_boxes(z, mask, cams, p0=p0)
+    assert np.isfinite(far.center_world[10]).all()

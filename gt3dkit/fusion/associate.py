@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gt3dkit.arrays import unique_rows
 from gt3dkit.errors import InputError
 from gt3dkit.types import F64, Scene
 
@@ -198,7 +199,7 @@ def associate(scene: Scene, cfg: AssocConfig | None = None,
     cfg = cfg or AssocConfig()
     obs = scene.obs
     names = scene.rig.names
-    keys, tl = np.unique(np.stack([obs.cam, obs.track_id], axis=1), axis=0, return_inverse=True)
+    keys, tl = unique_rows(np.stack([obs.cam, obs.track_id], axis=1), return_inverse=True)
     tl = tl.ravel()
     frames, t_of = np.unique(obs.frame, return_inverse=True)
     T, F, C = len(keys), len(frames), len(names)
@@ -321,7 +322,7 @@ def apply_association(scene: Scene, assoc: Association) -> Scene:
         scene = dataclasses.replace(scene, obs=obs.select(new >= 0))
         obs, new = scene.obs, new[new >= 0]
     key = np.stack([obs.frame, obs.cam, new], axis=1)
-    u, first, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
+    u, first, counts = unique_rows(key, return_index=True, return_counts=True)
     if (counts > 1).any():
         k = int(np.flatnonzero(counts > 1)[0])
         f, c, gi = (int(v) for v in u[k])

@@ -11,6 +11,7 @@ r"""Boxes -> ellipsoids without a temporal model.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -21,6 +22,8 @@ from gt3dkit.types import B8, F64
 #: Prior semi-axes (m) for a standing person, used only as a weak regulariser and
 #: for a view with no usable bottom edge.
 PERSON_SEMI_AXES_M = np.array([0.3, 0.3, 0.85])
+#: finite-difference steps of the fit's Jacobian: centre (m), log semi-axes
+FD_STEPS = np.array([1e-5] * 3 + [1e-6] * 3)
 
 
 def box_model(center_world: F64, log_axes: F64, cams: Cams, want: np.ndarray | None = None) -> F64:
@@ -122,7 +125,7 @@ def _residuals(p: F64, z: F64, mask: B8, cams: Cams, sigma_px: F64 | float, prio
 
 def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: F64 | float = 1.0,
               prior_log_axes: F64 | None = None, prior_sd: F64 | float = 1.0,
-              iters: int = 40, p0: F64 | None = None) -> BoxFit:
+              iters: int = 40, p0: F64 | None = None, compiled: bool = True) -> BoxFit:
     """Fit one ellipsoid to each object-frame's boxes (batched Levenberg-Marquardt).
 
     Parameters
@@ -134,6 +137,8 @@ def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: F64 | float = 1.0,
     prior_log_axes : (3,) weak prior mean of the log semi-axes (default: a person)
     prior_sd : its standard deviation (log units, scalar or (3,)); keeps one-view fits defined
     p0 : (N, 6) start (centre, log axes); default the ground-plane initialisation
+    compiled : the LM loop compiled (:mod:`gt3dkit.fusion.boxlm`), one object-frame at a time;
+        ``False``: batched numpy, the reference
     """
     N = box_z.shape[0]
     prior = np.log(PERSON_SEMI_AXES_M) if prior_log_axes is None else prior_log_axes
@@ -151,7 +156,7 @@ def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: F64 | float = 1.0,
         c = np.sum(r * r, axis=-1)
         return np.where(np.isfinite(c), c, np.inf)
 
-    eps = np.array([1e-5] * 3 + [1e-6] * 3)
+    eps = FD_STEPS
     steps = np.concatenate([np.diag(eps), -np.diag(eps)])  # (12, 6)
 
     def jac(q: F64, sel: slice | np.ndarray = slice(None)) -> F64:
@@ -166,6 +171,35 @@ def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: F64 | float = 1.0,
         Y = res(q[None] + steps[:6, None, :], sel)  # (6, n, M)
         return np.moveaxis((Y - r0[None]) / eps[:, None, None], 0, -1)
 
+    if compiled:
+        from gt3dkit.fusion.boxlm import fit_compiled
+        from gt3dkit.fusion.boxupdate import BoxCameras
+
+        p, r, J = fit_compiled(p, z, box_mask, ok, np.asarray(sigma_px, dtype=np.float64), prior,
+                               np.asarray(prior_sd, dtype=np.float64), iters, BoxCameras.of(cams))
+    else:
+        with np.errstate(over="ignore", invalid="ignore"):  # a wild trial step is rejected as inf
+            p, r, J = _lm_numpy(p, ok, res, jac, jac_forward, cost_of, iters)
+    A = np.matmul(J.transpose(0, 2, 1), J) + 1e-12 * np.eye(6)
+    cov = np.linalg.inv(A)
+    n_edges = box_mask.reshape(N, -1).sum(axis=1).astype(np.float64)
+    m = box_mask.reshape(N, -1).shape[1]
+    Jm = J[:, :m]
+    lev = np.sum(np.matmul(Jm, cov) * Jm, axis=-1).reshape(box_mask.shape)
+    res_px = np.where(box_mask, r[:, :m].reshape(box_mask.shape) * sigma_px, np.nan)
+    rss = np.sum(np.nan_to_num(res_px) ** 2, axis=(1, 2))
+    _, _, margin = outline_ellipse(p[:, :3], np.exp(p[:, 3:]), cams.world_from_body, cams.R,
+                                   cams.t, cams.depth_sign)
+    return BoxFit(center_world=p[:, :3], log_axes=p[:, 3:], cov=cov, rss_px2=rss,
+                  n_edges=n_edges, margin=margin, ok=ok, residual_px=res_px,
+                  leverage=np.where(box_mask, lev, np.nan))
+
+
+def _lm_numpy(p: F64, ok: B8, res: Any, jac: Any, jac_forward: Any, cost_of: Any, iters: int
+              ) -> tuple[F64, F64, F64]:
+    """The LM loop of :func:`fit_boxes` batched over the active rows in numpy (the reference of
+    :mod:`gt3dkit.fusion.boxlm`): the parameters, residuals and central-difference Jacobian."""
+    N = len(p)
     r = res(p)
     cost = cost_of(r)
     lam = np.full(N, 1e-3)
@@ -191,16 +225,4 @@ def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: F64 | float = 1.0,
         small = np.max(np.abs(delta), axis=1) < 1e-7  # 0.1 um, 1e-7 of an axis: converged
         done = (better & small) | (lam[idx] > 1e8)
         active[idx[done]] = False
-    J = np.nan_to_num(jac(p))
-    A = np.einsum("nmi,nmj->nij", J, J) + 1e-12 * np.eye(6)
-    cov = np.linalg.inv(A)
-    n_edges = box_mask.reshape(N, -1).sum(axis=1).astype(np.float64)
-    m = box_mask.reshape(N, -1).shape[1]
-    lev = np.einsum("nmi,nij,nmj->nm", J[:, :m], cov, J[:, :m]).reshape(box_mask.shape)
-    res_px = np.where(box_mask, r[:, :m].reshape(box_mask.shape) * sigma_px, np.nan)
-    rss = np.sum(np.nan_to_num(res_px) ** 2, axis=(1, 2))
-    _, _, margin = outline_ellipse(p[:, :3], np.exp(p[:, 3:]), cams.world_from_body, cams.R,
-                                   cams.t, cams.depth_sign)
-    return BoxFit(center_world=p[:, :3], log_axes=p[:, 3:], cov=cov, rss_px2=rss,
-                  n_edges=n_edges, margin=margin, ok=ok, residual_px=res_px,
-                  leverage=np.where(box_mask, lev, np.nan))
+    return p, r, np.nan_to_num(jac(p))

@@ -20,6 +20,7 @@ import dataclasses
 
 import numpy as np
 
+from gt3dkit.arrays import unique_rows
 from gt3dkit.errors import InputError
 from gt3dkit.types import Camera, Scene
 
@@ -48,7 +49,7 @@ def _ids(ids: np.ndarray, n: int = 5) -> str:
 
 
 def _cameras_per_object(track_id: np.ndarray, cam: np.ndarray) -> dict[int, int]:
-    pairs = np.unique(np.stack([track_id, cam], 1), axis=0)
+    pairs = unique_rows(np.stack([track_id, cam], 1))
     ids, n = np.unique(pairs[:, 0], return_counts=True)
     return dict(zip(ids.tolist(), n.tolist(), strict=True))
 
@@ -117,7 +118,7 @@ def check_scene(scene: Scene) -> Scene:
                             "(expect errors of metres; their sd says so)")
 
     # gaps: an object unannotated for longer than GAP_S and than one step of the scene's frames
-    pairs = np.unique(np.stack([obs.track_id, obs.frame], 1), axis=0)  # sorted by id, frame
+    pairs = unique_rows(np.stack([obs.track_id, obs.frame], 1))  # sorted by id, frame
     same = pairs[1:, 0] == pairs[:-1, 0]
     steps = np.diff(np.unique(obs.frame))
     step = float(np.median(steps)) if steps.size else 1.0

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gt3dkit.arrays import unique_rows
 from gt3dkit.calib.formats.panoptic import find_calibration, load_rig
 from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import project_points
@@ -87,7 +88,7 @@ def load(root: Path, cameras: list[str] | None = None, noise_px: float = 0.0, se
     if not np.isfinite(X).any():
         raise InputError(str(root / POSE_DIR), f"no body has a joint of confidence >= {min_conf:g}"
                                                f" ({len(ids)} bodies in {len(pose_files)} files)")
-    pairs, counts = np.unique(np.stack([frames, ids], 1), axis=0, return_counts=True)
+    pairs, counts = unique_rows(np.stack([frames, ids], 1), return_counts=True)
     if (counts > 1).any():
         bad = pairs[counts > 1][0]
         raise InputError(f"{root / POSE_DIR}/body3DScene_{bad[0]:08d}.json",
