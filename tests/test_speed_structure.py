@@ -309,3 +309,61 @@ def test_compiled_box_fit_equals_the_numpy_fit() -> None:
     p0[10] = [50.0, 50.0, 0.9, -1.2, -1.2, -0.2]
     far = fit_boxes(z, mask, cams, p0=p0)
     assert np.isfinite(far.center_world[10]).all()
+
+
+def test_linearised_search_pass_is_a_plain_kalman_filter(box_model) -> None:
+    """The noise search's linear pass (boxes regressed once per row) against a Kalman filter
+    written with numpy and scipy's Gaussian density on the same regression: the same
+    log-likelihood at two noise values."""
+    from scipy.stats import multivariate_normal
+
+    from gt3dkit.fusion.boxupdate import LinearisedSearch
+
+    model = box_model
+    cfg = replace(us.UKFSmoother().config, accel_sd=0.5, shape_sd=0.01)
+    init = us.initial_states(model, cfg)
+    x_s, P_s, _ = us.run_filter(model, init, cfg, 10.0)
+    rng = np.random.default_rng(2)
+    w = np.where(rng.uniform(size=model.z.shape) < 0.05, 0.3, 1.0)  # some weights below 1
+    lin = LinearisedSearch(model, init, cfg, 10.0, x_s, P_s, w, None)
+    rows, lay = model.rows, model.layout
+    dims = lin.dims
+    for accel, shape in ((0.5, 0.01), (2.0, 0.001)):
+        total = 0.0
+        for start in np.flatnonzero(rows.prev_row < 0):
+            r, prev = int(start), -1
+            x, P = init.x0[r], init.P0[r]
+            while r >= 0:
+                if prev >= 0:
+                    dt = (rows.frames[rows.row_t[r]] - rows.frames[rows.row_t[prev]]) / 10.0
+                    F, Q = lay.transition(np.array([dt]), accel, shape, up=model.cams.up,
+                                          vertical_ratio=cfg.vertical_ratio)
+                    x, P = F[0] @ x, F[0] @ P @ F[0].T + Q[0]
+                use = lin.mk[r] & (w[r] > 0)
+                H = np.zeros((use.sum(), lay.n))
+                H[:, dims] = lin.At[r][:, use].T
+                Rm = np.diag(lin.D[r][use] / w[r][use])
+                S = H @ P @ H.T + Rm
+                y = lin.cvec[r][use]
+                total += multivariate_normal(H @ x, S).logpdf(y)
+                Kg = P @ H.T @ np.linalg.inv(S)
+                x, P = x + Kg @ (y - H @ x), P - Kg @ S @ Kg.T
+                prev, r = r, int(rows.next_row[r])
+        assert lin.logliks([accel], [shape])[0] == pytest.approx(total, rel=1e-9)
+
+
+def test_linearised_search_finds_the_full_search_values(tmp_path: Path) -> None:
+    """The noise values found with the boxes' regression fixed per row (posterior
+    linearisation) against re-linearising at every prediction, on a scene with outliers."""
+    sim = simulate("wildtrack", seed=3, frames=60, people=10, noise_px=1.0, motion="walk",
+                   errors=Errors(outliers=0.05))
+    write_scene(sim, tmp_path / "in", "wildtrack")
+    scene = load_scene(tmp_path / "in")
+    found = {}
+    for lin in (True, False):
+        est = us.UKFSmoother(replace(us.UKFConfig(), search_linearised=lin))
+        tr = est.estimate(scene)
+        found[lin] = tr.info["params"]
+        assert ("linearisation" in tr.info["noise_search"]["provisional"]["use"]) == lin
+    for k in ("accel_sd", "shape_sd"):
+        assert found[True][k] == pytest.approx(found[False][k], rel=0.15), k

@@ -226,6 +226,182 @@ def _lower_inverse(L: F64, Li: F64) -> None:
 
 
 @numba.njit(cache=True, nogil=True)
+def _prior_factor(Pb: F64, LP: F64, Pinv: F64) -> None:
+    """The prior covariance ``Pb (n, n)``'s Cholesky factor ``LP`` (for its log-determinant) and
+    inverse ``Pinv``, from one factorisation."""
+    n = Pb.shape[0]
+    Psym = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            Psym[i, j] = 0.5 * (Pb[i, j] + Pb[j, i])
+    if _chol(Psym, LP):
+        _chol_solve(LP, np.eye(n), Pinv)
+    else:  # not positive definite: the inverse of the matrix itself (as np.linalg.inv), and the
+        _solve_sym(Psym, np.eye(n), Pinv)  # factor repaired (repairs of the prior are not
+        _safe_chol(Psym, LP)               # counted, as in the numpy path)
+
+
+@numba.njit(cache=True, nogil=True)
+def _slr(b: int, xj: F64, Pj: F64, z: F64, mask: np.ndarray, Rd: F64, dims: np.ndarray, Wm: F64, Wc: F64,
+         scale: float, Rc: F64, gx: F64, gy: F64, K: F64, dist: F64, R: F64, t: F64, ds: F64, steps: int,
+         mk: np.ndarray, At: F64, cvec: F64, D: F64) -> int:
+    """Statistical linear regression of row ``b``'s boxes on the (centre, log axes) marginal of
+    ``N(xj, Pj)``: ``z ~ At^T x[dims] + (cvec - z) + e``, ``e ~ N(0, D)`` (``D`` = measurement
+    noise ``Rd`` + linearisation error); ``mk``: the edges used (annotated, and every sigma
+    point's box finite). Returns 1 if the marginal's factor needed a repair."""
+    m = z.shape[1]
+    C = K.shape[0]
+    d = dims.shape[0]
+    S = Wm.shape[0]
+    first = S - 2 * d  # 1 with the centre point, 0 without (the cubature rule)
+    Pb = np.empty((d, d))
+    Lb = np.empty((d, d))
+    X = np.empty((S, d))
+    Z = np.empty((S, C, 4))
+    want = np.empty(C, dtype=np.bool_)
+    zhat = np.empty(m)
+    Pxz = np.empty((d, m))
+    for i in range(d):
+        for k in range(d):
+            Pb[i, k] = Pj[dims[i], dims[k]]
+    repaired = _safe_chol(Pb, Lb)
+    if first == 1:
+        for i in range(d):
+            X[0, i] = xj[dims[i]]
+    for s in range(d):
+        for i in range(d):
+            X[first + s, i] = xj[dims[i]] + scale * Lb[i, s]
+            X[first + d + s, i] = xj[dims[i]] - scale * Lb[i, s]
+    for c in range(C):
+        want[c] = mask[b, 4 * c] or mask[b, 4 * c + 1] or mask[b, 4 * c + 2] or mask[b, 4 * c + 3]
+    for s in range(S):
+        e0, e1, e2 = math.exp(X[s, 3]), math.exp(X[s, 4]), math.exp(X[s, 5])
+        for c in range(C):
+            pair_box(X[s, 0], X[s, 1], X[s, 2], e0 * e0, e1 * e1, e2 * e2, c, Rc, gx, gy, K, dist,
+                     R, t, ds, steps, want[c], Z, s)
+    for k in range(m):
+        ok = mask[b, k]
+        if ok:
+            for s in range(S):
+                if not np.isfinite(Z[s, k // 4, k % 4]):
+                    ok = False
+                    break
+        mk[k] = ok
+        zh = 0.0
+        if ok:
+            for s in range(S):
+                zh += Wm[s] * Z[s, k // 4, k % 4]
+        zhat[k] = zh
+    var_z = np.zeros(m)
+    for i in range(d):
+        for k in range(m):
+            Pxz[i, k] = 0.0
+    for s in range(S):
+        for k in range(m):
+            if not mk[k]:
+                continue
+            dz = Z[s, k // 4, k % 4] - zhat[k]
+            var_z[k] += Wc[s] * dz * dz
+            for i in range(d):
+                Pxz[i, k] += Wc[s] * (X[s, i] - xj[dims[i]]) * dz
+    if not mk.any():
+        At[:, :] = 0.0
+    elif np.all(np.isfinite(Pxz)):
+        _solve_sym(Pb, Pxz, At)
+    else:
+        At[:, :] = np.nan
+    for k in range(m):
+        om = var_z[k]
+        cc = z[b, k] - zhat[k]
+        for i in range(d):
+            om -= Pxz[i, k] * At[i, k]
+            cc += At[i, k] * xj[dims[i]]
+        cvec[k] = cc
+        D[k] = Rd[b, k] + (max(om, 0.0) if mk[k] else 0.0)
+    return repaired
+
+
+@numba.njit(cache=True, nogil=True)
+def _innovation(xb0: F64, dims: np.ndarray, mk: np.ndarray, wt: F64, At: F64, cvec: F64, D: F64, Dinv: F64,
+                nu: F64) -> None:
+    """Each edge's weighted information ``Dinv = wt / D`` and innovation ``nu = cvec - At^T xb0``
+    against the prior mean ``xb0`` (0 for an edge not used)."""
+    for k in range(cvec.shape[0]):
+        if mk[k]:
+            Dinv[k] = wt[k] / D[k]
+            v = cvec[k]
+            for i in range(dims.shape[0]):
+                v -= At[i, k] * xb0[dims[i]]
+            nu[k] = v
+        else:
+            Dinv[k] = 0.0
+            nu[k] = 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _information(xb0: F64, Pinv: F64, At: F64, Dinv: F64, nu: F64, dims: np.ndarray, Jinf: F64, g: F64,
+                 Lj: F64, P_post: F64, x_post: F64) -> int:
+    """The information update of the prior ``(xb0, Pinv)`` by the linear(ised) edges: posterior
+    ``x_post, P_post``, its information ``Jinf`` with factor ``Lj`` and the information vector
+    ``g``. Returns 1 if ``Jinf``'s factor needed a repair."""
+    n = xb0.shape[0]
+    m = nu.shape[0]
+    d = dims.shape[0]
+    Li = np.empty((n, n))
+    for i in range(n):
+        g[i] = 0.0
+        for j in range(n):
+            Jinf[i, j] = Pinv[i, j]
+    for i in range(d):
+        gi = 0.0
+        for k in range(m):
+            gi += At[i, k] * Dinv[k] * nu[k]
+        g[dims[i]] += gi
+        for j in range(d):
+            h = 0.0
+            for k in range(m):
+                h += At[i, k] * Dinv[k] * At[j, k]
+            Jinf[dims[i], dims[j]] += h
+    repaired = _safe_chol(Jinf, Lj)
+    _lower_inverse(Lj, Li)
+    for i in range(n):
+        for j in range(n):
+            s_ = 0.0
+            for k in range(max(i, j), n):
+                s_ += Li[k, i] * Li[k, j]
+            P_post[i, j] = s_
+    for i in range(n):
+        s_ = 0.0
+        for j in range(n):
+            s_ += P_post[i, j] * g[j]
+        x_post[i] = xb0[i] + s_
+    return repaired
+
+
+@numba.njit(cache=True, nogil=True)
+def _loglik(mk: np.ndarray, wt: F64, D: F64, Dinv: F64, nu: F64, Lj: F64, LP: F64, P_post: F64,
+            g: F64) -> tuple[float, int, float]:
+    """The normalised innovation square, its degrees of freedom and the log-likelihood of an
+    information update (by the matrix determinant lemma: no ``m x m`` matrix is formed)."""
+    n = Lj.shape[0]
+    logdet = 0.0
+    dof = 0
+    quad = 0.0
+    for k in range(nu.shape[0]):
+        if mk[k] and wt[k] > 0:
+            logdet += math.log(D[k] / wt[k])
+            dof += 1
+        quad += nu[k] * nu[k] * Dinv[k]
+    for i in range(n):
+        logdet += 2.0 * math.log(Lj[i, i]) + 2.0 * math.log(LP[i, i])
+        s_ = 0.0
+        for j in range(n):
+            s_ += P_post[i, j] * g[j]
+        quad -= g[i] * s_
+    return quad, dof, -0.5 * (quad + logdet + dof * _LOG_2PI)
+
+
+@numba.njit(cache=True, nogil=True)
 def _row(b: int, x: F64, P: F64, z: F64, mask: np.ndarray, Rd: F64, w0: F64, xl: F64, Pl: F64,
          iterations: int, dims: np.ndarray, Wm: F64, Wc: F64, scale: float, robust: bool,
          c_thr: float, g_thr: float, Rc: F64, gx: F64, gy: F64, K: F64, dist: F64, R: F64,
@@ -233,37 +409,17 @@ def _row(b: int, x: F64, P: F64, z: F64, mask: np.ndarray, Rd: F64, w0: F64, xl:
          score_out: F64, resid_out: F64) -> None:
     n = x.shape[1]
     m = z.shape[1]
-    C = K.shape[0]
     d = dims.shape[0]
-    S = Wm.shape[0]
-    first = S - 2 * d  # 1 with the centre point, 0 without (the cubature rule)
     repaired = 0
     xb0 = x[b]
-    # the prior's Cholesky factor (its log-determinant, below) and inverse from one factorisation
-    Psym = np.empty((n, n))
-    for i in range(n):
-        for j in range(n):
-            Psym[i, j] = 0.5 * (P[b, i, j] + P[b, j, i])
     LP = np.empty((n, n))
     Pinv = np.empty((n, n))
-    if _chol(Psym, LP):
-        _chol_solve(LP, np.eye(n), Pinv)
-    else:  # not positive definite: the inverse of the matrix itself (as np.linalg.inv), and the
-        _solve_sym(Psym, np.eye(n), Pinv)  # factor repaired (repairs of the prior are not
-        _safe_chol(Psym, LP)               # counted, as in the numpy path)
+    _prior_factor(P[b], LP, Pinv)
     xj = xl[b].copy()
     Pj = Pl[b].copy()
     wt = w0[b].copy()
-    Pb = np.empty((d, d))
-    Lb = np.empty((d, d))
-    X = np.empty((S, d))
-    Z = np.empty((S, C, 4))
-    want = np.empty(C, dtype=np.bool_)
     mk = np.empty(m, dtype=np.bool_)
-    zhat = np.empty(m)
-    Pxz = np.empty((d, m))
     At = np.empty((d, m))
-    omega = np.empty(m)
     cvec = np.empty(m)
     D = np.empty(m)
     Dinv = np.empty(m)
@@ -271,7 +427,6 @@ def _row(b: int, x: F64, P: F64, z: F64, mask: np.ndarray, Rd: F64, w0: F64, xl:
     Jinf = np.empty((n, n))
     g = np.empty(n)
     Lj = np.empty((n, n))
-    Li = np.empty((n, n))
     P_post = np.empty((n, n))
     x_post = np.empty(n)
     resid = np.zeros(m)
@@ -279,102 +434,10 @@ def _row(b: int, x: F64, P: F64, z: F64, mask: np.ndarray, Rd: F64, w0: F64, xl:
     it = 0
     for it in range(iterations):
         last = it == iterations - 1
-        # --- statistical linear regression on the (centre, log axes) marginal's sigma points
-        for i in range(d):
-            for k in range(d):
-                Pb[i, k] = Pj[dims[i], dims[k]]
-        repaired += _safe_chol(Pb, Lb)
-        if first == 1:
-            for i in range(d):
-                X[0, i] = xj[dims[i]]
-        for s in range(d):
-            for i in range(d):
-                X[first + s, i] = xj[dims[i]] + scale * Lb[i, s]
-                X[first + d + s, i] = xj[dims[i]] - scale * Lb[i, s]
-        for c in range(C):
-            want[c] = mask[b, 4 * c] or mask[b, 4 * c + 1] or mask[b, 4 * c + 2] or mask[b, 4 * c + 3]
-        for s in range(S):
-            e0, e1, e2 = math.exp(X[s, 3]), math.exp(X[s, 4]), math.exp(X[s, 5])
-            for c in range(C):
-                pair_box(X[s, 0], X[s, 1], X[s, 2], e0 * e0, e1 * e1, e2 * e2, c, Rc, gx, gy, K, dist,
-                         R, t, ds, steps, want[c], Z, s)
-        for k in range(m):
-            ok = mask[b, k]
-            if ok:
-                for s in range(S):
-                    if not np.isfinite(Z[s, k // 4, k % 4]):
-                        ok = False
-                        break
-            mk[k] = ok
-            zh = 0.0
-            if ok:
-                for s in range(S):
-                    zh += Wm[s] * Z[s, k // 4, k % 4]
-            zhat[k] = zh
-        var_z = np.zeros(m)
-        for i in range(d):
-            for k in range(m):
-                Pxz[i, k] = 0.0
-        for s in range(S):
-            for k in range(m):
-                if not mk[k]:
-                    continue
-                dz = Z[s, k // 4, k % 4] - zhat[k]
-                var_z[k] += Wc[s] * dz * dz
-                for i in range(d):
-                    Pxz[i, k] += Wc[s] * (X[s, i] - xj[dims[i]]) * dz
-        if not mk.any():
-            At[:, :] = 0.0
-        elif np.all(np.isfinite(Pxz)):
-            _solve_sym(Pb, Pxz, At)
-        else:
-            At[:, :] = np.nan
-        for k in range(m):
-            om = var_z[k]
-            cc = z[b, k] - zhat[k]
-            for i in range(d):
-                om -= Pxz[i, k] * At[i, k]
-                cc += At[i, k] * xj[dims[i]]
-            omega[k] = max(om, 0.0) if mk[k] else 0.0
-            cvec[k] = cc
-            D[k] = Rd[b, k] + omega[k]
-            if mk[k]:
-                Dinv[k] = wt[k] / D[k]
-                v = cc
-                for i in range(d):
-                    v -= At[i, k] * xb0[dims[i]]
-                nu[k] = v
-            else:
-                Dinv[k] = 0.0
-                nu[k] = 0.0
-        # --- information update
-        for i in range(n):
-            g[i] = 0.0
-            for j in range(n):
-                Jinf[i, j] = Pinv[i, j]
-        for i in range(d):
-            gi = 0.0
-            for k in range(m):
-                gi += At[i, k] * Dinv[k] * nu[k]
-            g[dims[i]] += gi
-            for j in range(d):
-                h = 0.0
-                for k in range(m):
-                    h += At[i, k] * Dinv[k] * At[j, k]
-                Jinf[dims[i], dims[j]] += h
-        repaired += _safe_chol(Jinf, Lj)
-        _lower_inverse(Lj, Li)
-        for i in range(n):
-            for j in range(n):
-                s_ = 0.0
-                for k in range(max(i, j), n):
-                    s_ += Li[k, i] * Li[k, j]
-                P_post[i, j] = s_
-        for i in range(n):
-            s_ = 0.0
-            for j in range(n):
-                s_ += P_post[i, j] * g[j]
-            x_post[i] = xb0[i] + s_
+        repaired += _slr(b, xj, Pj, z, mask, Rd, dims, Wm, Wc, scale, Rc, gx, gy, K, dist, R, t, ds, steps,
+                         mk, At, cvec, D)
+        _innovation(xb0, dims, mk, wt, At, cvec, D, Dinv, nu)
+        repaired += _information(xb0, Pinv, At, Dinv, nu, dims, Jinf, g, Lj, P_post, x_post)
         converged = False
         if it > 0:
             q = 0.0
@@ -430,25 +493,12 @@ def _row(b: int, x: F64, P: F64, z: F64, mask: np.ndarray, Rd: F64, w0: F64, xl:
         xj[:] = x_post
         Pj[:, :] = P_post
     # --- statistics of the last pass, with the weights it used
-    logdet = 0.0
-    dof = 0
-    quad = 0.0
-    for k in range(m):
-        if mk[k] and wt[k] > 0:
-            logdet += math.log(D[k] / wt[k])
-            dof += 1
-        quad += nu[k] * nu[k] * Dinv[k]
-    for i in range(n):
-        logdet += 2.0 * math.log(Lj[i, i]) + 2.0 * math.log(LP[i, i])
-        s_ = 0.0
-        for j in range(n):
-            s_ += P_post[i, j] * g[j]
-        quad -= g[i] * s_
+    quad, dof, ll = _loglik(mk, wt, D, Dinv, nu, Lj, LP, P_post, g)
     x_out[b] = x_post
     P_out[b] = P_post
     stats[b, 0] = quad
     stats[b, 1] = dof
-    stats[b, 2] = -0.5 * (quad + logdet + dof * _LOG_2PI)
+    stats[b, 2] = ll
     stats[b, 3] = it + 1
     stats[b, 4] = repaired
     for k in range(m):
@@ -679,6 +729,120 @@ def backward(last: np.ndarray, prev_row: np.ndarray, run: np.ndarray, t_s: F64, 
             row = prev_row[row]
 
 
+
+
+@numba.njit(cache=True, nogil=True)
+def slr_rows(rows: np.ndarray, x: F64, P: F64, z: F64, mask: np.ndarray, Rd: F64, dims: np.ndarray, Wm: F64,
+             Wc: F64, scale: float, Rb: F64, K: F64, dist: F64, R: F64, t: F64, ds: F64, steps: int,
+             mk: np.ndarray, At: F64, cvec: F64, D: F64) -> None:
+    """:func:`_slr` of each row in ``rows`` about ``N(x[row], P[row])``, into ``mk, At, cvec, D``
+    (indexed by row)."""
+    Rc, gx, gy = camera_setup(Rb, K, R)
+    for r in rows:
+        _slr(r, x[r], P[r], z, mask, Rd, dims, Wm, Wc, scale, Rc, gx, gy, K, dist, R, t, ds, steps, mk[r],
+             At[r], cvec[r], D[r])
+
+
+@numba.njit(cache=True, nogil=True)
+def linear_forward(first: np.ndarray, next_row: np.ndarray, run: np.ndarray, t_s: F64, x0: F64, P0: F64,
+                   accel_sd: float, shape_sd: float, A: F64, mk: np.ndarray, At: F64, cvec: F64, D: F64,
+                   w0: F64, dims: np.ndarray) -> float:
+    """The log-likelihood of a forward pass with the boxes' regression fixed per row (``mk, At,
+    cvec, D`` of :func:`slr_rows`): a linear Kalman filter of every object ``o`` with ``first[o]
+    >= 0`` along ``next_row`` while ``run``, at one process noise; weights ``w0``. The same
+    prediction, information update and likelihood as :func:`forward` (no fading)."""
+    n = x0.shape[1]
+    m = cvec.shape[1]
+    F = np.empty((n, n))
+    Q = np.empty((n, n))
+    x_p = np.empty(n)
+    P_p = np.empty((n, n))
+    LP = np.empty((n, n))
+    Pinv = np.empty((n, n))
+    Dinv = np.empty(m)
+    nu = np.empty(m)
+    Jinf = np.empty((n, n))
+    g = np.empty(n)
+    Lj = np.empty((n, n))
+    x_f = np.empty(n)
+    P_f = np.empty((n, n))
+    total = 0.0
+    for o in range(first.shape[0]):
+        row = first[o]
+        prev = -1
+        while row >= 0 and run[row]:
+            if prev < 0:
+                x_p[:] = x0[row]
+                P_p[:, :] = P0[row]
+            else:
+                _transition(t_s[row] - t_s[prev], accel_sd, shape_sd, A, F, Q)
+                _predict(x_f, P_f, F, Q, x_p, P_p)
+            _prior_factor(P_p, LP, Pinv)
+            _innovation(x_p, dims, mk[row], w0[row], At[row], cvec[row], D[row], Dinv, nu)
+            _information(x_p, Pinv, At[row], Dinv, nu, dims, Jinf, g, Lj, P_f, x_f)
+            total += _loglik(mk[row], w0[row], D[row], Dinv, nu, Lj, LP, P_f, g)[2]
+            prev = row
+            row = next_row[row]
+    return total
+
+
+class LinearisedSearch:
+    """The likelihood of the box forward pass at many process-noise values, each the price of a
+    linear Kalman filter: the boxes are regressed (:func:`_slr`) once per row, about a smoothed
+    estimate ``N(x_lin, P_lin)`` of the rows ``on`` (posterior linearisation: García-Fernández,
+    Svensson & Särkkä, "Iterated posterior linearization smoother", IEEE TAC 62, 2017), and
+    every noise value reuses that regression. The full pass re-linearises at each prediction
+    (:func:`forward`); for boxes, whose tangent box bends little over a prediction's spread,
+    the two likelihoods' maxima are close (``tests/test_speed_structure.py`` compares the
+    noise values found)."""
+
+    def __init__(self, model: Any, init: Any, cfg: Any, fps: float, x_lin: F64, P_lin: F64, weights: F64,
+                 on: np.ndarray | None) -> None:
+        rows, cams = model.rows, model.cams
+        R = len(rows)
+        m = model.z.shape[1]
+        blk = model.blocks()[0]
+        bc: BoxCameras = blk.compiled
+        dims, Wm, Wc, scale, _, _, _ = _block_rule(blk, cfg.alpha, cfg.beta, cfg.kappa, None, ())
+        self.run = np.ones(R, bool) if on is None else np.asarray(on, bool)
+        sel = np.flatnonzero(self.run)
+        self.mk = np.zeros((R, m), np.bool_)
+        self.At = np.zeros((R, len(dims), m))
+        self.cvec = np.zeros((R, m))
+        self.D = np.ones((R, m))
+        c = _arg
+        slr_rows(c(sel, np.int64), c(x_lin), c(P_lin), c(model.z), c(model.mask, np.bool_),
+                 c(np.broadcast_to(model.var, (R, m))), dims, Wm, Wc, scale, bc.world_from_body, bc.K,
+                 bc.dist, bc.R, bc.t, bc.depth_sign, 2, self.mk, self.At, self.cvec, self.D)
+        O = len(rows.obj_ids)
+        first = np.full(O, -1, np.int64)
+        starts = np.flatnonzero(rows.prev_row < 0)
+        first[rows.row_o[starts]] = np.where(self.run[starts], starts, -1)
+        self.first = first[first >= 0]
+        u = np.asarray(cams.up, dtype=np.float64)
+        self.A = np.eye(3) + ((cfg.vertical_ratio**2 - 1.0) * np.outer(u, u) if cfg.vertical_ratio != 1.0
+                              else 0.0)
+        self.args = (c(rows.next_row, np.int64), self.run, c(rows.frames[rows.row_t] / fps), c(init.x0),
+                     c(init.P0))
+        self.w0 = c(np.broadcast_to(weights, (R, m)))
+        self.dims = dims
+
+    def logliks(self, accel_sd: list[float], shape_sd: list[float]) -> list[float]:
+        """The forward pass's log-likelihood at each ``(accel_sd, shape_sd)`` pair (the pairs
+        split over threads)."""
+        from gt3dkit.threads import run_split
+
+        out = [0.0] * len(accel_sd)
+        nr, run, t_s, x0, P0 = self.args
+
+        def part(a: int, b: int) -> None:
+            for i in range(a, b):
+                out[i] = linear_forward(self.first, nr, run, t_s, x0, P0, float(accel_sd[i]),
+                                        float(shape_sd[i]), self.A, self.mk, self.At, self.cvec, self.D,
+                                        self.w0, self.dims)
+
+        run_split(part, len(out))
+        return out
 
 
 def run_boxes(model: Any, init: Any, cfg: Any, fps: float, collect: bool, fade: bool,

@@ -94,6 +94,9 @@ class UKFConfig:
     iterations : passes of the iterated, reweighted update
     inflate : inflate covariances by the NIS per degree of freedom when above 1
     smooth : run the backward RTS pass
+    search_linearised : boxes only: the noise search's passes use the boxes' regression about the
+        provisional smoothed estimate, fixed per row (:class:`gt3dkit.fusion.boxupdate.LinearisedSearch`,
+        a linear filter per value); ``False``: each pass re-linearises at every prediction
     """
 
     sigma_px: float | None = None
@@ -120,6 +123,7 @@ class UKFConfig:
     iterations: int = 4
     inflate: bool = True
     smooth: bool = True
+    search_linearised: bool = True
 
     def __post_init__(self) -> None:
         for k, v in asdict(self).items():
@@ -423,15 +427,22 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
             "objects": int(len(np.unique(model.rows.row_o[on]))), "object_frames": int(on.sum()),
             "note": f"the search runs on whole objects drawn at random (seed 0) up to "
                     f"{SEARCH_OBJECT_FRAMES} object-frames: two noise levels need no more"}
-    if cfg.robust and (cfg.accel_sd is None or cfg.shape_sd is None
-                       or (use_kpt and cfg.joint_accel_sd is None)):
+    searching = (cfg.accel_sd is None or cfg.shape_sd is None or (use_kpt and cfg.joint_accel_sd is None))
+    from gt3dkit.fusion.boxupdate import LinearisedSearch, applies_to_model
+
+    linear = searching and cfg.search_linearised and applies_to_model(model)
+    if searching and (cfg.robust or linear):
         # every point judged against the provisional *smoothed* estimate, as the second pass
         # judges them: a bad view in an object's first frames, which a forward pass cannot
         # tell yet, would otherwise bend the motion model's likelihood
-        x_prov = run_filter(model, init, start, fps, on=on)[0]
-        weights = smoothed_weights(model, x_prov, start)
+        x_prov, P_prov, _ = run_filter(model, init, start, fps, on=on)
+        if cfg.robust:
+            weights = smoothed_weights(model, x_prov, start)
         curves["provisional"] = {**prov.as_dict(), "source": prov.source,
-                                 "use": "a robust pass at these values, smoothed, fixes the weights"}
+                                 "use": ("a robust pass at these values, smoothed, fixes the weights"
+                                         if cfg.robust else "a pass at these values, smoothed")
+                                 + (" and the boxes' linearisation" if linear else "")}
+    lin = LinearisedSearch(model, init, start, fps, x_prov, P_prov, weights, on) if linear else None
     search_model = replace(model, weight0=weights)  # one pass each: no reweighting
     sel = np.flatnonzero(on) if on is not None else np.arange(len(model.rows))
     from gt3dkit.fusion.split import split_entries
@@ -444,6 +455,9 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
 
     def search(name: str, c: UKFConfig, bounds: tuple[float, float], n_scan: int) -> UKFConfig:
         def logliks(values: list[float]) -> list[float]:
+            if lin is not None:  # boxes: the regression fixed per row, a linear pass per value
+                pairs = [replace(c, **{name: v}) for v in values]
+                return lin.logliks([p.accel_sd for p in pairs], [p.shape_sd for p in pairs])
             out: list[float] = []
             for i in range(0, len(values), per_pass):
                 part = values[i:i + per_pass]
