@@ -1,6 +1,6 @@
 r"""Multi-object tracking metrics on ground-plane positions, as the paper reports them.
 
-* MOTA, IDF1, FP, FN, IDs: ``motmetrics`` (:func:`gt3dkit.eval.metrics.clear_mot`).
+* MOTA, IDF1, FP, FN, IDs: ``motmetrics``' rules (:func:`gt3dkit.eval.metrics.clear_mot`).
 * HOTA (Luiten et al., IJCV 2021): TrackEval's ``HOTA`` metric, with the similarity of a
   truth and a track position ``max(0, 1 - d / cutoff)`` (the ground-plane similarity used
   for multi-view detection), averaged over TrackEval's localisation thresholds.

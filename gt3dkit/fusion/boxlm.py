@@ -43,7 +43,7 @@ def _finite(v: float) -> float:
     return _BIG if v > 0 else -_BIG
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(cache=True, nogil=True)  # called, not inlined: 4 call sites, one compiled copy
 def _residuals(q: F64, zn: F64, mn: np.ndarray, use: np.ndarray, sig: F64, prior: F64, prior_sd: F64,
                Rc: F64, gx: F64, gy: F64, K: F64, dist: F64, R: F64, t: F64, ds: F64, steps: int,
                box: F64, r: F64) -> float:

@@ -956,7 +956,8 @@ def warm_up() -> float:
                     "wildtrack")
         scene = load_scene(Path(tmp) / "in")
     est = us.UKFSmoother()
-    pre = est.prepare(scene)
+    pre = est.prepare(scene)  # the per-frame fits (gt3dkit.fusion.boxlm)
+    est.estimate(scene, pre)  # the linearised noise search, forward, backward
     model = Model.of(pre)
     cfg = replace(est.config, accel_sd=0.5, shape_sd=0.01)
     init = us.initial_states(model, cfg)
