@@ -205,6 +205,8 @@ def boxes_compiled(center_world: F64, semi_axes: F64, world_from_body: F64, K: F
     C = K.shape[0]
 
     def arr(a: Any, dtype: Any = np.float64) -> np.ndarray:  # one compiled signature: C order, writable
+        if type(a) is np.ndarray and a.dtype == dtype and a.flags.c_contiguous and a.flags.writeable:
+            return a  # the common case, without np.require's ~4 us (GTSAM's factors call this 40 000 times)
         return np.require(a, dtype=dtype, requirements=["C", "W"])
 
     cf = arr(c.reshape(-1, 3))
@@ -222,5 +224,9 @@ def boxes_compiled(center_world: F64, semi_axes: F64, world_from_body: F64, K: F
         kernel(cf[a:b], sf[a:b], *cam, ds, int(newton_steps), wf if every else wf[a:b], box[a:b],
                margin[a:b])
 
-    run_split(part, N, max(MIN_PAIRS_PER_THREAD // max(C, 1), 1))
+    per = max(MIN_PAIRS_PER_THREAD // max(C, 1), 1)
+    if N < 2 * per:
+        part(0, N)  # too small to split: no thread policy to consult
+    else:
+        run_split(part, N, per)
     return box.reshape(lead + (C, 4)), margin.reshape(lead + (C,))
