@@ -296,7 +296,7 @@ def test_compiled_box_fit_equals_the_numpy_fit() -> None:
         np.testing.assert_array_equal(a.ok, b.ok)
         # one view fixes depth through the weak prior alone: LM crawls there, and where the two
         # stop differs; the compiled fit must end no worse
-        assert np.all(a.rss_px2[a.ok] <= b.rss_px2[a.ok] * (1 + 1e-6) + 1e-6)
+        assert np.all(a.rss_px2[a.ok] <= b.rss_px2[a.ok] * (1 + 1e-5) + 1e-6)  # both stop at 0.1 um steps
         ok = a.ok & (mask.any(-1).sum(-1) >= 2)
         np.testing.assert_allclose(a.center_world[ok], b.center_world[ok], atol=2e-5)
         np.testing.assert_allclose(a.log_axes[ok], b.log_axes[ok], atol=2e-5)
@@ -367,3 +367,43 @@ def test_linearised_search_finds_the_full_search_values(tmp_path: Path) -> None:
         assert ("linearisation" in tr.info["noise_search"]["provisional"]["use"]) == lin
     for k in ("accel_sd", "shape_sd"):
         assert found[True][k] == pytest.approx(found[False][k], rel=0.15), k
+
+
+@pytest.mark.parametrize("kind", ["distorted", "pinhole", "skewed"])
+def test_tangent_box_gradient_equals_finite_differences(kind: str) -> None:
+    """The tangent box's analytic derivatives (envelope theorem, forward mode) against central
+    differences of the numpy reference."""
+    from gt3dkit.geom.boxkernel import camera_setup, pair_box_grad
+
+    rng = np.random.default_rng({"distorted": 5, "pinhole": 6, "skewed": 7}[kind])
+    C, N = 4, 60
+    R = np.stack([_rot(rng) for _ in range(C)])
+    t = rng.normal(size=(C, 3)) + [0, 0, 8.0]
+    K = np.tile(np.array([[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]]), (C, 1, 1))
+    if kind == "skewed":
+        K[:, 0, 1] = 3.0
+    dist = np.zeros((C, 5))
+    if kind == "distorted":
+        dist[:] = rng.normal(size=(C, 5)) * [0.05, 0.01, 0.001, 0.001, 0.001]
+    Rb = _rot(rng)
+    Rc, gx, gy = camera_setup(Rb, K, R)
+    ds = np.ones(C)
+    eps = np.r_[[1e-6] * 3, [1e-7] * 3]
+    checked = 0
+    for _ in range(N):
+        p = np.r_[rng.normal(size=3) * 2.0, np.log(np.exp(rng.normal(size=3) * 0.3) * 0.4)]
+        steps = np.concatenate([np.diag(eps), -np.diag(eps)])
+        P = p[None] + steps
+        ref, _ = ellipsoid_boxes_numpy(P[:, :3], np.exp(P[:, 3:]), Rb, K, dist, R, t, ds)  # (12, C, 4)
+        fd = np.moveaxis((ref[:6] - ref[6:]) / (2 * eps[:, None, None]), 0, -1)  # (C, 4, 6)
+        b0, _ = ellipsoid_boxes_numpy(p[None, :3], np.exp(p[None, 3:]), Rb, K, dist, R, t, ds)
+        for c in range(C):
+            box, grad = np.empty(4), np.empty((4, 6))
+            pair_box_grad(*p, c, Rc, gx, gy, K, dist, R, t, ds, 2, box, grad)
+            inside = np.all((b0[0, c] > 0) & (b0[0, c] < 1920)) and np.isfinite(fd[c]).all()
+            if not inside:
+                continue
+            np.testing.assert_allclose(box, b0[0, c], atol=1e-6)
+            np.testing.assert_allclose(grad, fd[c], rtol=2e-4, atol=2e-3 * np.abs(fd[c]).max())
+            checked += 1
+    assert checked > 40

@@ -10,11 +10,13 @@ are a few hundred flops per camera (:func:`gt3dkit.geom.boxkernel.pair_box` inli
 6 x 6 normal equations are solved in place; object-frames are split over
 :func:`gt3dkit.threads.compiled_threads` threads.
 
-Same mathematics as the reference: whitened edge residuals plus the log-axes prior, step
-directions by forward differences, the damping rule (``/5`` on a better step, ``x10`` on a
-worse one), the same convergence test; the final Jacobian (covariance, leverages) by central
-differences. The 6 x 6 damped system is solved by Cholesky (numpy: LU); the two agree to
-rounding on the positive-definite systems LM produces.
+The same least-squares problem as the reference: whitened edge residuals plus the log-axes
+prior, the damping rule (``/5`` on a better step, ``x10`` on a worse one), the same convergence
+test. Two differences: the Jacobian is the tangent box's analytic one
+(:func:`gt3dkit.geom.boxkernel.pair_box_grad`; the reference differentiates numerically: six
+extra tangent boxes per step and twelve for the final covariance), and the 6 x 6 damped system
+is solved by Cholesky (numpy: LU). The paths differ by rounding; the minima agree to the
+convergence tolerance where the problem is well posed (two views or more).
 
 numba's cache is keyed by this file only: after editing :mod:`gt3dkit.geom.boxkernel` or the
 helpers taken from :mod:`gt3dkit.fusion.boxupdate`, remove ``gt3dkit/fusion/__pycache__/boxlm*.nb*``.
@@ -25,9 +27,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from gt3dkit.fusion.boxfit import FD_STEPS
 from gt3dkit.fusion.boxupdate import BoxCameras, _arg, _solve_sym
-from gt3dkit.geom.boxkernel import camera_setup, pair_box
+from gt3dkit.geom.boxkernel import camera_setup, pair_box, pair_box_grad
 from gt3dkit.types import F64
 
 _BIG = float(np.finfo(np.float64).max)
@@ -80,18 +81,57 @@ def _residuals(q: F64, zn: F64, mn: np.ndarray, use: np.ndarray, sig: F64, prior
 
 
 @numba.njit(cache=True, nogil=True)
+def _residuals_jac(q: F64, zn: F64, mn: np.ndarray, use: np.ndarray, sig: F64, prior: F64, prior_sd: F64,
+                   Rc: F64, gx: F64, gy: F64, K: F64, dist: F64, R: F64, t: F64, ds: F64, steps: int,
+                   box4: F64, grad: F64, r: F64, J: F64) -> float:
+    """:func:`_residuals` and their Jacobian ``J (4 C + 3, 6)`` (the tangent box's analytic
+    derivatives, :func:`gt3dkit.geom.boxkernel.pair_box_grad`; NaN -> 0 as the numpy path)."""
+    C = K.shape[0]
+    cost = 0.0
+    bad = False
+    J[:, :] = 0.0
+    for c in range(C):
+        if not use[c]:
+            for e in range(4):
+                r[4 * c + e] = 0.0
+            continue
+        pair_box_grad(q[0], q[1], q[2], q[3], q[4], q[5], c, Rc, gx, gy, K, dist, R, t, ds, steps, box4, grad)
+        for e in range(4):
+            if mn[c, e]:
+                v = (box4[e] - zn[c, e]) / sig[e]
+                if not np.isfinite(v):
+                    v = np.nan
+                    bad = True
+                r[4 * c + e] = v
+                cost += v * v
+                for j in range(6):
+                    J[4 * c + e, j] = _finite(grad[e, j] / sig[e])
+            else:
+                r[4 * c + e] = 0.0
+    for i in range(3):
+        v = (q[3 + i] - prior[i]) / prior_sd[i]
+        r[4 * C + i] = v
+        cost += v * v
+        J[4 * C + i, 3 + i] = 1.0 / prior_sd[i]
+    if bad or not np.isfinite(cost):
+        return np.inf
+    return cost
+
+
+@numba.njit(cache=True, nogil=True)
 def fit_rows(p: F64, z: F64, mask: np.ndarray, active: np.ndarray, sig: F64, prior: F64, prior_sd: F64,
-             iters: int, eps: F64, Rb: F64, K: F64, dist: F64, R: F64, t: F64, ds: F64, steps: int,
+             iters: int, Rb: F64, K: F64, dist: F64, R: F64, t: F64, ds: F64, steps: int,
              r_out: F64, J_out: F64) -> None:
     """LM fits of the object-frames ``p (N, 6)`` (start in, result out) to ``z (N, C, 4)`` (edges
     ``mask``), those with ``active`` only; ``r_out (N, 4 C + 3)`` the residuals at the result
-    (all rows) and ``J_out (N, 4 C + 3, 6)`` their central-difference Jacobian (NaN -> 0)."""
+    (all rows) and ``J_out (N, 4 C + 3, 6)`` their Jacobian (analytic, NaN -> 0)."""
     N, C = z.shape[0], K.shape[0]
     M = 4 * C + 3
     Rc, gx, gy = camera_setup(Rb, K, R)
     box = np.empty((1, C, 4))
+    box4 = np.empty(4)
+    grad = np.empty((4, 6))
     r = np.empty(M)
-    r2 = np.empty(M)
     r3 = np.empty(M)
     J = np.empty((M, 6))
     A = np.empty((6, 6))
@@ -103,21 +143,12 @@ def fit_rows(p: F64, z: F64, mask: np.ndarray, active: np.ndarray, sig: F64, pri
         zn, mn = z[n], mask[n]
         for c in range(C):
             use[c] = mn[c, 0] or mn[c, 1] or mn[c, 2] or mn[c, 3]
-        cost = _residuals(p[n], zn, mn, use, sig, prior, prior_sd, Rc, gx, gy, K, dist, R, t, ds,
-                          steps, box, r)
+        cost = _residuals_jac(p[n], zn, mn, use, sig, prior, prior_sd, Rc, gx, gy, K, dist, R, t, ds, steps,
+                              box4, grad, r, J)
         lam = 1e-3
         if active[n]:
+            stale = False  # r and J are of an older point than p[n]
             for _ in range(iters):
-                # forward-difference Jacobian (step directions only)
-                for i in range(6):
-                    for j in range(6):
-                        q[j] = p[n, j]
-                    q[i] += eps[i]
-                    _residuals(q, zn, mn, use, sig, prior, prior_sd, Rc, gx, gy, K, dist, R, t, ds,
-                               steps, box, r2)
-                    for m in range(M):
-                        v = (r2[m] - r[m]) / eps[i]
-                        J[m, i] = _finite(v)
                 for i in range(6):
                     s = 0.0
                     for m in range(M):
@@ -143,27 +174,24 @@ def fit_rows(p: F64, z: F64, mask: np.ndarray, active: np.ndarray, sig: F64, pri
                 if better:
                     for j in range(6):
                         p[n, j] = q[j]
-                    for m in range(M):
-                        r[m] = r3[m]
                     cost = c_new
                     lam = max(lam / 5.0, 1e-9)
+                    stale = True
                 else:
                     lam *= 10.0
                 if (better and big < 1e-7) or lam > 1e8 or not np.isfinite(big):
                     break
+                if better:  # the residuals and Jacobian at the new point
+                    _residuals_jac(p[n], zn, mn, use, sig, prior, prior_sd, Rc, gx, gy, K, dist, R, t, ds,
+                                   steps, box4, grad, r, J)
+                    stale = False
+            if stale:  # the loop ended on an accepted step
+                _residuals_jac(p[n], zn, mn, use, sig, prior, prior_sd, Rc, gx, gy, K, dist, R, t, ds, steps,
+                               box4, grad, r, J)
         for m in range(M):
             r_out[n, m] = r[m]
-        # central-difference Jacobian at the result (covariance and leverages)
-        for i in range(6):
-            for j in range(6):
-                q[j] = p[n, j]
-            q[i] = p[n, i] + eps[i]
-            _residuals(q, zn, mn, use, sig, prior, prior_sd, Rc, gx, gy, K, dist, R, t, ds, steps, box, r2)
-            q[i] = p[n, i] - eps[i]
-            _residuals(q, zn, mn, use, sig, prior, prior_sd, Rc, gx, gy, K, dist, R, t, ds, steps, box, r3)
-            for m in range(M):
-                v = (r2[m] - r3[m]) / (2.0 * eps[i])
-                J_out[n, m, i] = _finite(v)
+            for i in range(6):
+                J_out[n, m, i] = J[m, i]
 
 
 #: object-frames per thread below which a fit is not split (one is ~50-200 us)
@@ -173,7 +201,7 @@ MIN_ROWS_PER_THREAD = 16
 def fit_compiled(p0: F64, z: F64, mask: np.ndarray, active: np.ndarray, sig: F64, prior: F64,
                  prior_sd: F64, iters: int, cams: BoxCameras) -> tuple[F64, F64, F64]:
     """Run :func:`fit_rows` on ``N`` object-frames split over threads: the fitted parameters
-    ``(N, 6)``, residuals ``(N, 4 C + 3)`` and central-difference Jacobian ``(N, 4 C + 3, 6)``."""
+    ``(N, 6)``, residuals ``(N, 4 C + 3)`` and Jacobian ``(N, 4 C + 3, 6)``."""
     from gt3dkit.threads import run_split
 
     N, C = z.shape[:2]
@@ -183,10 +211,8 @@ def fit_compiled(p0: F64, z: F64, mask: np.ndarray, active: np.ndarray, sig: F64
     J = np.empty((N, 4 * C + 3, 6))
     sg, pr, ps = (_arg(np.broadcast_to(np.asarray(a, dtype=np.float64), (k,)))
                   for a, k in ((sig, 4), (prior, 3), (prior_sd, 3)))
-    eps = _arg(FD_STEPS)
-
     def part(a: int, b: int) -> None:
-        fit_rows(p[a:b], zc[a:b], mc[a:b], ac[a:b], sg, pr, ps, int(iters), eps, cams.world_from_body,
+        fit_rows(p[a:b], zc[a:b], mc[a:b], ac[a:b], sg, pr, ps, int(iters), cams.world_from_body,
                  cams.K, cams.dist, cams.R, cams.t, cams.depth_sign, 2, r[a:b], J[a:b])
 
     run_split(part, N, MIN_ROWS_PER_THREAD)
