@@ -45,3 +45,31 @@ def _numpy_rows(a: np.ndarray, return_index: bool, return_inverse: bool, return_
         k = 1 + int(return_index)
         out = out[:k] + (np.asarray(out[k]).reshape(-1),) + out[k + 1:]
     return out
+
+
+def lookup_rows(keys: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """``(M,)`` the index in ``keys (N, K)`` (integer rows, unique) of each row of ``queries
+    (M, K)``, -1 where it has none: a dict lookup per query as one sort and a binary search."""
+    keys, queries = np.asarray(keys), np.asarray(queries)
+    out = np.full(len(queries), -1, dtype=np.int64)
+    if not len(keys) or not len(queries):
+        return out
+    both = np.concatenate([keys, queries])
+    lo = both.min(axis=0).astype(np.int64)
+    span = both.max(axis=0).astype(np.int64) - lo + 1
+    if float(np.prod(span.astype(np.float64))) >= 2.0**62:
+        index = {tuple(k): i for i, k in enumerate(keys.tolist())}
+        return np.array([index.get(tuple(q), -1) for q in queries.tolist()], dtype=np.int64)
+
+    def pack(a: np.ndarray) -> np.ndarray:
+        key = np.zeros(len(a), np.int64)
+        for k in range(a.shape[1]):
+            key = key * span[k] + (a[:, k].astype(np.int64) - lo[k])
+        return key
+
+    kp, qp = pack(keys), pack(queries)
+    order = np.argsort(kp, kind="stable")
+    pos = np.minimum(np.searchsorted(kp[order], qp), len(kp) - 1)
+    hit = kp[order][pos] == qp
+    out[hit] = order[pos[hit]]
+    return out

@@ -24,3 +24,17 @@ def test_unique_rows_equals_numpy() -> None:
             for x, y in zip(ours, ref, strict=True):
                 np.testing.assert_array_equal(x, np.asarray(y).reshape(x.shape))
     assert unique_rows(np.zeros((0, 2), np.int64)).shape == (0, 2)
+
+
+def test_lookup_rows_equals_a_dict() -> None:
+    from gt3dkit.arrays import lookup_rows
+
+    rng = np.random.default_rng(1)
+    for case in range(40):
+        hi = 2**40 if case % 4 == 0 else 20
+        keys = np.unique(rng.integers(-hi, hi, (int(rng.integers(0, 60)), 2)), axis=0)
+        keys = keys[rng.permutation(len(keys))]
+        queries = np.concatenate([keys[: len(keys) // 2], rng.integers(-hi, hi, (30, 2))])
+        index = {tuple(k): i for i, k in enumerate(keys.tolist())}
+        want = [index.get(tuple(q), -1) for q in queries.tolist()]
+        np.testing.assert_array_equal(lookup_rows(keys.reshape(-1, 2), queries), want)

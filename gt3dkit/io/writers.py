@@ -78,12 +78,11 @@ def meta_of(scene: Scene, tracks: TrackSet) -> dict[str, Any]:
 
 def write_tracks_csv(path: Path, tracks: TrackSet) -> None:
     a = np.column_stack([tracks.center_world, tracks.semi_axes, tracks.center_sd])
+    row = "%d,%d," + ",".join(["%.6f"] * a.shape[1]) + "\r\n"  # as csv.writer writes it
     with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(TRACK_COLUMNS)
-        for i in range(len(tracks)):
-            w.writerow([int(tracks.frame[i]), int(tracks.track_id[i]),
-                        *(f"{v:.6f}" for v in a[i])])
+        csv.writer(f).writerow(TRACK_COLUMNS)
+        f.writelines(row % (f_, i, *v) for f_, i, v in zip(tracks.frame.tolist(), tracks.track_id.tolist(),
+                                                            a.tolist(), strict=True))
 
 
 def write_keypoints_csv(path: Path, tracks: TrackSet) -> None:

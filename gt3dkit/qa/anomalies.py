@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from gt3dkit.arrays import lookup_rows
 from gt3dkit.types import F64, Scene, TrackSet
 
 COLUMNS = ("frame", "camera", "id", "joint", "kind", "score", "detail")
@@ -66,13 +67,8 @@ class Anomalies:
 
 def track_row_of(tracks: TrackSet, rows: Any) -> np.ndarray:
     """(R,) the row of ``tracks`` estimating each object-frame of ``rows`` (-1: none)."""
-    key = _key_index(tracks)
-    return np.array([key.get((int(rows.frames[t]), int(rows.obj_ids[o])), -1)
-                     for t, o in zip(rows.row_t, rows.row_o, strict=True)], dtype=np.int64)
-
-
-def _key_index(tracks: TrackSet) -> dict[tuple[int, int], int]:
-    return {(int(f), int(i)): k for k, (f, i) in enumerate(zip(tracks.frame, tracks.track_id, strict=True))}
+    return lookup_rows(np.stack([tracks.frame, tracks.track_id], 1),
+                       np.stack([rows.frames[rows.row_t], rows.obj_ids[rows.row_o]], 1))
 
 
 def _iou(a: F64, b: F64) -> F64:
@@ -327,14 +323,14 @@ def offset_residuals(tracks: TrackSet, pre: Any, max_shift: int) -> tuple[np.nda
     C = len(cams.K)
     shifts = np.arange(-max_shift, max_shift + 1)
     med = np.full((C, len(shifts)), np.nan)
-    key = _key_index(tracks)
+    track_keys = np.stack([tracks.frame, tracks.track_id], 1)
     frames = rows.frames
     for k, s in enumerate(shifts):
         t2 = rows.row_t + s
         valid = (t2 >= 0) & (t2 < len(frames))
         r_of = np.full(len(rows), -1, dtype=np.int64)
-        r_of[valid] = [key.get((int(frames[t]), int(rows.obj_ids[o])), -1)
-                       for t, o in zip(t2[valid], rows.row_o[valid], strict=True)]
+        r_of[valid] = lookup_rows(track_keys,
+                                  np.stack([frames[t2[valid]], rows.obj_ids[rows.row_o[valid]]], 1))
         idx = np.flatnonzero(r_of >= 0)
         if not len(idx):
             continue
