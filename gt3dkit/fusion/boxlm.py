@@ -44,13 +44,14 @@ def _finite(v: float) -> float:
     return _BIG if v > 0 else -_BIG
 
 
-@numba.njit(cache=True, nogil=True)  # called, not inlined: 4 call sites, one compiled copy
+@numba.njit(cache=True, nogil=True)
 def _residuals(q: F64, zn: F64, mn: np.ndarray, use: np.ndarray, sig: F64, prior: F64, prior_sd: F64,
                Rc: F64, gx: F64, gy: F64, K: F64, dist: F64, R: F64, t: F64, ds: F64, steps: int,
                box: F64, r: F64) -> float:
     """Whitened residuals ``r (4 C + 3,)`` of the parameters ``q (6,)`` (centre, log axes) against
     one object-frame's boxes ``zn (C, 4)`` (edges ``mn``; cameras ``use`` with any edge); returns
-    the cost ``sum r^2`` (inf when a used edge has no box: behind the camera)."""
+    the cost ``sum r^2`` (inf when a used edge has no box: behind the camera). The values alone,
+    for a trial step (:func:`_residuals_jac` adds the Jacobian at ~3x the cost)."""
     C = K.shape[0]
     s0, s1, s2 = np.exp(2.0 * q[3]), np.exp(2.0 * q[4]), np.exp(2.0 * q[5])
     cost = 0.0
@@ -211,6 +212,7 @@ def fit_compiled(p0: F64, z: F64, mask: np.ndarray, active: np.ndarray, sig: F64
     J = np.empty((N, 4 * C + 3, 6))
     sg, pr, ps = (_arg(np.broadcast_to(np.asarray(a, dtype=np.float64), (k,)))
                   for a, k in ((sig, 4), (prior, 3), (prior_sd, 3)))
+
     def part(a: int, b: int) -> None:
         fit_rows(p[a:b], zc[a:b], mc[a:b], ac[a:b], sg, pr, ps, int(iters), cams.world_from_body,
                  cams.K, cams.dist, cams.R, cams.t, cams.depth_sign, 2, r[a:b], J[a:b])
