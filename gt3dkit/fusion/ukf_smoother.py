@@ -428,9 +428,11 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
             "note": f"the search runs on whole objects drawn at random (seed 0) up to "
                     f"{SEARCH_OBJECT_FRAMES} object-frames: two noise levels need no more"}
     searching = (cfg.accel_sd is None or cfg.shape_sd is None or (use_kpt and cfg.joint_accel_sd is None))
-    from gt3dkit.fusion.boxupdate import LinearisedSearch, applies_to_model
+    linear = searching and cfg.search_linearised and use_box and not use_kpt
+    if linear:  # boxes only (numba's import is not paid by keypoint runs)
+        from gt3dkit.fusion.boxupdate import applies_to_model
 
-    linear = searching and cfg.search_linearised and applies_to_model(model)
+        linear = applies_to_model(model)
     if searching and (cfg.robust or linear):
         # every point judged against the provisional *smoothed* estimate, as the second pass
         # judges them: a bad view in an object's first frames, which a forward pass cannot
@@ -442,7 +444,11 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
                                  "use": ("a robust pass at these values, smoothed, fixes the weights"
                                          if cfg.robust else "a pass at these values, smoothed")
                                  + (" and the boxes' linearisation" if linear else "")}
-    lin = LinearisedSearch(model, init, start, fps, x_prov, P_prov, weights, on) if linear else None
+    lin = None
+    if linear:
+        from gt3dkit.fusion.boxupdate import LinearisedSearch
+
+        lin = LinearisedSearch(model, init, start, fps, x_prov, P_prov, weights, on)
     search_model = replace(model, weight0=weights)  # one pass each: no reweighting
     sel = np.flatnonzero(on) if on is not None else np.arange(len(model.rows))
     from gt3dkit.fusion.split import split_entries
@@ -630,11 +636,12 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
     result, faster); False runs the whole state (the reference the tests hold it to).
     ``compiled``: a boxes-only model runs as one compiled loop
     (:func:`gt3dkit.fusion.boxupdate.run_boxes`); False runs this loop over frames (the reference)."""
-    from gt3dkit.fusion import boxupdate
+    if compiled and model.use_box and not model.layout.n_joints:  # (keypoint runs skip numba's import)
+        from gt3dkit.fusion import boxupdate
 
-    if compiled and boxupdate.applies_to_model(model):
-        x_s, P_s, info = boxupdate.run_boxes(model, init, cfg, fps, collect, fade, on, noise_rows)
-        return x_s, P_s, _with_totals(info)
+        if boxupdate.applies_to_model(model):
+            x_s, P_s, info = boxupdate.run_boxes(model, init, cfg, fps, collect, fade, on, noise_rows)
+            return x_s, P_s, _with_totals(info)
     if split and model.layout.n_joints > 1 and model.bones is None:
         # no bones: the joints are independent filters, run as one batch of small ones
         from gt3dkit.fusion.split import split_joints
