@@ -24,10 +24,9 @@ def _rot(rng: np.random.Generator) -> np.ndarray:
     return q * np.sign(np.linalg.det(q))
 
 
-@pytest.mark.parametrize("kind", ["distorted", "pinhole", "skewed"])
-def test_compiled_tangent_box_equals_the_numpy_reference(kind: str) -> None:
-    rng = np.random.default_rng({"distorted": 0, "pinhole": 1, "skewed": 2}[kind])
-    C, N = 5, 400
+def _random_cameras(rng: np.random.Generator, C: int, kind: str) -> tuple[np.ndarray, ...]:
+    """``R, t, K, dist`` of ``C`` cameras ~8 m from the origin: ``kind`` distorted, pinhole or
+    skewed."""
     R = np.stack([_rot(rng) for _ in range(C)])
     t = rng.normal(size=(C, 3)) + [0, 0, 8.0]
     K = np.tile(np.array([[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]]), (C, 1, 1))
@@ -36,6 +35,14 @@ def test_compiled_tangent_box_equals_the_numpy_reference(kind: str) -> None:
     dist = np.zeros((C, 5))
     if kind == "distorted":
         dist[:] = rng.normal(size=(C, 5)) * [0.05, 0.01, 0.001, 0.001, 0.001]
+    return R, t, K, dist
+
+
+@pytest.mark.parametrize("kind", ["distorted", "pinhole", "skewed"])
+def test_compiled_tangent_box_equals_the_numpy_reference(kind: str) -> None:
+    rng = np.random.default_rng({"distorted": 0, "pinhole": 1, "skewed": 2}[kind])
+    C, N = 5, 400
+    R, t, K, dist = _random_cameras(rng, C, kind)
     c = rng.normal(size=(N, 3)) * 2.0
     s = np.exp(rng.normal(size=(N, 3)) * 0.3) * 0.4
     args = (_rot(rng), K, dist, R, t, np.ones(C))
@@ -377,14 +384,7 @@ def test_tangent_box_gradient_equals_finite_differences(kind: str) -> None:
 
     rng = np.random.default_rng({"distorted": 5, "pinhole": 6, "skewed": 7}[kind])
     C, N = 4, 60
-    R = np.stack([_rot(rng) for _ in range(C)])
-    t = rng.normal(size=(C, 3)) + [0, 0, 8.0]
-    K = np.tile(np.array([[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]]), (C, 1, 1))
-    if kind == "skewed":
-        K[:, 0, 1] = 3.0
-    dist = np.zeros((C, 5))
-    if kind == "distorted":
-        dist[:] = rng.normal(size=(C, 5)) * [0.05, 0.01, 0.001, 0.001, 0.001]
+    R, t, K, dist = _random_cameras(rng, C, kind)
     Rb = _rot(rng)
     Rc, gx, gy = camera_setup(Rb, K, R)
     ds = np.ones(C)

@@ -47,21 +47,29 @@ def _finite(v: float) -> float:
 @numba.njit(cache=True, nogil=True)
 def _residuals(q: F64, zn: F64, mn: np.ndarray, use: np.ndarray, sig: F64, prior: F64, prior_sd: F64,
                Rc: F64, gx: F64, gy: F64, K: F64, dist: F64, R: F64, t: F64, ds: F64, steps: int,
-               box: F64, r: F64) -> float:
+               box: F64, grad: F64, r: F64, J: F64, with_jac: bool) -> float:
     """Whitened residuals ``r (4 C + 3,)`` of the parameters ``q (6,)`` (centre, log axes) against
     one object-frame's boxes ``zn (C, 4)`` (edges ``mn``; cameras ``use`` with any edge); returns
-    the cost ``sum r^2`` (inf when a used edge has no box: behind the camera). The values alone,
-    for a trial step (:func:`_residuals_jac` adds the Jacobian at ~3x the cost)."""
+    the cost ``sum r^2`` (inf when a used edge has no box: behind the camera). ``with_jac``: also
+    their Jacobian ``J (4 C + 3, 6)`` (the tangent box's analytic derivatives,
+    :func:`gt3dkit.geom.boxkernel.pair_box_grad`, ~3x the cost; NaN -> 0 as the numpy path);
+    without, the values alone (a trial step). ``box (1, C, 4)``, ``grad (4, 6)``: scratch."""
     C = K.shape[0]
     s0, s1, s2 = np.exp(2.0 * q[3]), np.exp(2.0 * q[4]), np.exp(2.0 * q[5])
     cost = 0.0
     bad = False
+    if with_jac:
+        J[:, :] = 0.0
     for c in range(C):
         if not use[c]:
             for e in range(4):
                 r[4 * c + e] = 0.0
             continue
-        pair_box(q[0], q[1], q[2], s0, s1, s2, c, Rc, gx, gy, K, dist, R, t, ds, steps, True, box, 0)
+        if with_jac:
+            pair_box_grad(q[0], q[1], q[2], q[3], q[4], q[5], c, Rc, gx, gy, K, dist, R, t, ds, steps,
+                          box[0, c], grad)
+        else:
+            pair_box(q[0], q[1], q[2], s0, s1, s2, c, Rc, gx, gy, K, dist, R, t, ds, steps, True, box, 0)
         for e in range(4):
             if mn[c, e]:
                 v = (box[0, c, e] - zn[c, e]) / sig[e]
@@ -70,50 +78,17 @@ def _residuals(q: F64, zn: F64, mn: np.ndarray, use: np.ndarray, sig: F64, prior
                     bad = True
                 r[4 * c + e] = v
                 cost += v * v
+                if with_jac:
+                    for j in range(6):
+                        J[4 * c + e, j] = _finite(grad[e, j] / sig[e])
             else:
                 r[4 * c + e] = 0.0
     for i in range(3):
         v = (q[3 + i] - prior[i]) / prior_sd[i]
         r[4 * C + i] = v
         cost += v * v
-    if bad or not np.isfinite(cost):
-        return np.inf
-    return cost
-
-
-@numba.njit(cache=True, nogil=True)
-def _residuals_jac(q: F64, zn: F64, mn: np.ndarray, use: np.ndarray, sig: F64, prior: F64, prior_sd: F64,
-                   Rc: F64, gx: F64, gy: F64, K: F64, dist: F64, R: F64, t: F64, ds: F64, steps: int,
-                   box4: F64, grad: F64, r: F64, J: F64) -> float:
-    """:func:`_residuals` and their Jacobian ``J (4 C + 3, 6)`` (the tangent box's analytic
-    derivatives, :func:`gt3dkit.geom.boxkernel.pair_box_grad`; NaN -> 0 as the numpy path)."""
-    C = K.shape[0]
-    cost = 0.0
-    bad = False
-    J[:, :] = 0.0
-    for c in range(C):
-        if not use[c]:
-            for e in range(4):
-                r[4 * c + e] = 0.0
-            continue
-        pair_box_grad(q[0], q[1], q[2], q[3], q[4], q[5], c, Rc, gx, gy, K, dist, R, t, ds, steps, box4, grad)
-        for e in range(4):
-            if mn[c, e]:
-                v = (box4[e] - zn[c, e]) / sig[e]
-                if not np.isfinite(v):
-                    v = np.nan
-                    bad = True
-                r[4 * c + e] = v
-                cost += v * v
-                for j in range(6):
-                    J[4 * c + e, j] = _finite(grad[e, j] / sig[e])
-            else:
-                r[4 * c + e] = 0.0
-    for i in range(3):
-        v = (q[3 + i] - prior[i]) / prior_sd[i]
-        r[4 * C + i] = v
-        cost += v * v
-        J[4 * C + i, 3 + i] = 1.0 / prior_sd[i]
+        if with_jac:
+            J[4 * C + i, 3 + i] = 1.0 / prior_sd[i]
     if bad or not np.isfinite(cost):
         return np.inf
     return cost
@@ -130,7 +105,6 @@ def fit_rows(p: F64, z: F64, mask: np.ndarray, active: np.ndarray, sig: F64, pri
     M = 4 * C + 3
     Rc, gx, gy = camera_setup(Rb, K, R)
     box = np.empty((1, C, 4))
-    box4 = np.empty(4)
     grad = np.empty((4, 6))
     r = np.empty(M)
     r3 = np.empty(M)
@@ -144,8 +118,8 @@ def fit_rows(p: F64, z: F64, mask: np.ndarray, active: np.ndarray, sig: F64, pri
         zn, mn = z[n], mask[n]
         for c in range(C):
             use[c] = mn[c, 0] or mn[c, 1] or mn[c, 2] or mn[c, 3]
-        cost = _residuals_jac(p[n], zn, mn, use, sig, prior, prior_sd, Rc, gx, gy, K, dist, R, t, ds, steps,
-                              box4, grad, r, J)
+        cost = _residuals(p[n], zn, mn, use, sig, prior, prior_sd, Rc, gx, gy, K, dist, R, t, ds, steps, box,
+                          grad, r, J, True)
         lam = 1e-3
         if active[n]:
             stale = False  # r and J are of an older point than p[n]
@@ -170,7 +144,7 @@ def fit_rows(p: F64, z: F64, mask: np.ndarray, active: np.ndarray, sig: F64, pri
                     q[j] = p[n, j] - dl[j, 0]
                     big = max(big, abs(dl[j, 0]))
                 c_new = _residuals(q, zn, mn, use, sig, prior, prior_sd, Rc, gx, gy, K, dist, R, t, ds,
-                                   steps, box, r3)
+                                   steps, box, grad, r3, J, False)
                 better = c_new < cost
                 if better:
                     for j in range(6):
@@ -183,12 +157,12 @@ def fit_rows(p: F64, z: F64, mask: np.ndarray, active: np.ndarray, sig: F64, pri
                 if (better and big < 1e-7) or lam > 1e8 or not np.isfinite(big):
                     break
                 if better:  # the residuals and Jacobian at the new point
-                    _residuals_jac(p[n], zn, mn, use, sig, prior, prior_sd, Rc, gx, gy, K, dist, R, t, ds,
-                                   steps, box4, grad, r, J)
+                    _residuals(p[n], zn, mn, use, sig, prior, prior_sd, Rc, gx, gy, K, dist, R, t, ds,
+                               steps, box, grad, r, J, True)
                     stale = False
             if stale:  # the loop ended on an accepted step
-                _residuals_jac(p[n], zn, mn, use, sig, prior, prior_sd, Rc, gx, gy, K, dist, R, t, ds, steps,
-                               box4, grad, r, J)
+                _residuals(p[n], zn, mn, use, sig, prior, prior_sd, Rc, gx, gy, K, dist, R, t, ds, steps,
+                           box, grad, r, J, True)
         for m in range(M):
             r_out[n, m] = r[m]
             for i in range(6):

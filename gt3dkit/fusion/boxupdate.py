@@ -177,14 +177,22 @@ def _mm(A: F64, B: F64, out: F64) -> None:
 
 
 @numba.njit(cache=True, nogil=True)
-def _safe_chol(A: F64, L: F64) -> int:
-    """:func:`gt3dkit.fusion.ukf.safe_cholesky` of one matrix: ``L`` of ``(A + A^T) / 2``,
-    eigenvalue-clipped if that is not PD. Returns 1 if a repair was needed, else 0."""
+def _symmetrised(A: F64) -> F64:
+    """``(A + A^T) / 2`` as a new array."""
     n = A.shape[0]
     S = np.empty((n, n))
     for i in range(n):
         for j in range(n):
             S[i, j] = 0.5 * (A[i, j] + A[j, i])
+    return S
+
+
+@numba.njit(cache=True, nogil=True)
+def _safe_chol(A: F64, L: F64) -> int:
+    """:func:`gt3dkit.fusion.ukf.safe_cholesky` of one matrix: ``L`` of ``(A + A^T) / 2``,
+    eigenvalue-clipped if that is not PD. Returns 1 if a repair was needed, else 0."""
+    n = A.shape[0]
+    S = _symmetrised(A)
     if _chol(S, L):
         return 0
     if not np.all(np.isfinite(S)):
@@ -230,10 +238,7 @@ def _prior_factor(Pb: F64, LP: F64, Pinv: F64) -> None:
     """The prior covariance ``Pb (n, n)``'s Cholesky factor ``LP`` (for its log-determinant) and
     inverse ``Pinv``, from one factorisation."""
     n = Pb.shape[0]
-    Psym = np.empty((n, n))
-    for i in range(n):
-        for j in range(n):
-            Psym[i, j] = 0.5 * (Pb[i, j] + Pb[j, i])
+    Psym = _symmetrised(Pb)
     if _chol(Psym, LP):
         _chol_solve(LP, np.eye(n), Pinv)
     else:  # not positive definite: the inverse of the matrix itself (as np.linalg.inv), and the
