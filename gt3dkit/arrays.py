@@ -17,15 +17,10 @@ def unique_rows(a: np.ndarray, return_index: bool = False, return_inverse: bool 
     mixed radix (column ranges), which sorts in the same order. Falls back to numpy when the
     ranges do not fit in 62 bits or the array is not integer."""
     a = np.asarray(a)
-    if a.ndim != 2 or not np.issubdtype(a.dtype, np.integer) or len(a) == 0 or a.shape[1] == 0:
+    packed = _pack(a) if a.ndim == 2 and len(a) and a.shape[1] else None
+    if packed is None:
         return _numpy_rows(a, return_index, return_inverse, return_counts)
-    lo = a.min(axis=0).astype(np.int64)
-    span = a.max(axis=0).astype(np.int64) - lo + 1
-    if float(np.prod(span.astype(np.float64))) >= 2.0**62:
-        return _numpy_rows(a, return_index, return_inverse, return_counts)
-    key = np.zeros(len(a), np.int64)
-    for k in range(a.shape[1]):
-        key = key * span[k] + (a[:, k].astype(np.int64) - lo[k])
+    (key,) = packed
     res = np.unique(key, return_index=True, return_inverse=return_inverse, return_counts=return_counts)
     first = res[1]
     out: list[Any] = [a[first]]
@@ -54,22 +49,33 @@ def lookup_rows(keys: np.ndarray, queries: np.ndarray) -> np.ndarray:
     out = np.full(len(queries), -1, dtype=np.int64)
     if not len(keys) or not len(queries):
         return out
-    both = np.concatenate([keys, queries])
-    lo = both.min(axis=0).astype(np.int64)
-    span = both.max(axis=0).astype(np.int64) - lo + 1
-    if float(np.prod(span.astype(np.float64))) >= 2.0**62:
+    packed = _pack(keys, queries)
+    if packed is None:
         index = {tuple(k): i for i, k in enumerate(keys.tolist())}
         return np.array([index.get(tuple(q), -1) for q in queries.tolist()], dtype=np.int64)
-
-    def pack(a: np.ndarray) -> np.ndarray:
-        key = np.zeros(len(a), np.int64)
-        for k in range(a.shape[1]):
-            key = key * span[k] + (a[:, k].astype(np.int64) - lo[k])
-        return key
-
-    kp, qp = pack(keys), pack(queries)
+    kp, qp = packed
     order = np.argsort(kp, kind="stable")
     pos = np.minimum(np.searchsorted(kp[order], qp), len(kp) - 1)
     hit = kp[order][pos] == qp
     out[hit] = order[pos[hit]]
     return out
+
+
+def _pack(*arrays: np.ndarray) -> tuple[np.ndarray, ...] | None:
+    """Integer rows ``(N_i, K)`` of each array as one int64 key each, in mixed radix over their
+    common column ranges (first column most significant: keys sort as the rows do); None when
+    they are not integers or the ranges do not fit in 62 bits."""
+    if not all(np.issubdtype(a.dtype, np.integer) for a in arrays):
+        return None
+    both = np.concatenate(arrays)
+    lo = both.min(axis=0).astype(np.int64)
+    span = both.max(axis=0).astype(np.int64) - lo + 1
+    if float(np.prod(span.astype(np.float64))) >= 2.0**62:
+        return None
+    out = []
+    for a in arrays:
+        key = np.zeros(len(a), np.int64)
+        for k in range(a.shape[1]):
+            key = key * span[k] + (a[:, k].astype(np.int64) - lo[k])
+        out.append(key)
+    return tuple(out)

@@ -148,29 +148,6 @@ def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: F64 | float = 1.0,
         start = np.all(np.isfinite(p0), axis=1)
         p[start] = p0[start]
     z = np.where(box_mask, box_z, 0.0)
-
-    def res(q: F64, sel: slice | np.ndarray = slice(None)) -> F64:
-        return _residuals(q, z[sel], box_mask[sel], cams, sigma_px, prior, prior_sd)
-
-    def cost_of(r: F64) -> F64:
-        c = np.sum(r * r, axis=-1)
-        return np.where(np.isfinite(c), c, np.inf)
-
-    eps = FD_STEPS
-    steps = np.concatenate([np.diag(eps), -np.diag(eps)])  # (12, 6)
-
-    def jac(q: F64, sel: slice | np.ndarray = slice(None)) -> F64:
-        """Central differences (for the covariance and leverages)."""
-        Y = res(q[None] + steps[:, None, :], sel)  # (12, n, M)
-        J = (Y[:6] - Y[6:]) / (2 * eps[:, None, None])
-        return np.moveaxis(J, 0, -1)  # (N, M, 6)
-
-    def jac_forward(q: F64, r0: F64, sel: np.ndarray) -> F64:
-        """Forward differences from the residuals ``r0`` at ``q``: half the tangent boxes, for
-        the step direction only (errors ~1e-4 relative change the path, not the minimum)."""
-        Y = res(q[None] + steps[:6, None, :], sel)  # (6, n, M)
-        return np.moveaxis((Y - r0[None]) / eps[:, None, None], 0, -1)
-
     if compiled:
         from gt3dkit.fusion.boxlm import fit_compiled
         from gt3dkit.fusion.boxupdate import BoxCameras
@@ -178,8 +155,11 @@ def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: F64 | float = 1.0,
         p, r, J = fit_compiled(p, z, box_mask, ok, np.asarray(sigma_px, dtype=np.float64), prior,
                                np.asarray(prior_sd, dtype=np.float64), iters, BoxCameras.of(cams))
     else:
+        def res(q: F64, sel: slice | np.ndarray = slice(None)) -> F64:
+            return _residuals(q, z[sel], box_mask[sel], cams, sigma_px, prior, prior_sd)
+
         with np.errstate(over="ignore", invalid="ignore"):  # a wild trial step is rejected as inf
-            p, r, J = _lm_numpy(p, ok, res, jac, jac_forward, cost_of, iters)
+            p, r, J = _lm_numpy(p, ok, res, iters)
     A = np.matmul(J.transpose(0, 2, 1), J) + 1e-12 * np.eye(6)
     cov = np.linalg.inv(A)
     n_edges = box_mask.reshape(N, -1).sum(axis=1).astype(np.float64)
@@ -195,10 +175,28 @@ def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: F64 | float = 1.0,
                   leverage=np.where(box_mask, lev, np.nan))
 
 
-def _lm_numpy(p: F64, ok: B8, res: Any, jac: Any, jac_forward: Any, cost_of: Any, iters: int
-              ) -> tuple[F64, F64, F64]:
+def _lm_numpy(p: F64, ok: B8, res: Any, iters: int) -> tuple[F64, F64, F64]:
     """The LM loop of :func:`fit_boxes` batched over the active rows in numpy (the reference of
-    :mod:`gt3dkit.fusion.boxlm`): the parameters, residuals and central-difference Jacobian."""
+    :mod:`gt3dkit.fusion.boxlm`): the parameters, residuals and central-difference Jacobian.
+    ``res(q, sel)``: the residuals of parameters ``q`` for the rows ``sel``."""
+    eps = FD_STEPS
+    steps = np.concatenate([np.diag(eps), -np.diag(eps)])  # (12, 6)
+
+    def cost_of(r: F64) -> F64:
+        c = np.sum(r * r, axis=-1)
+        return np.where(np.isfinite(c), c, np.inf)
+
+    def jac(q: F64, sel: slice | np.ndarray = slice(None)) -> F64:
+        """Central differences (for the covariance and leverages)."""
+        Y = res(q[None] + steps[:, None, :], sel)  # (12, n, M)
+        return np.moveaxis((Y[:6] - Y[6:]) / (2 * eps[:, None, None]), 0, -1)  # (N, M, 6)
+
+    def jac_forward(q: F64, r0: F64, sel: np.ndarray) -> F64:
+        """Forward differences from the residuals ``r0`` at ``q``: half the tangent boxes, for
+        the step direction only (errors ~1e-4 relative change the path, not the minimum)."""
+        Y = res(q[None] + steps[:6, None, :], sel)  # (6, n, M)
+        return np.moveaxis((Y - r0[None]) / eps[:, None, None], 0, -1)
+
     N = len(p)
     r = res(p)
     cost = cost_of(r)

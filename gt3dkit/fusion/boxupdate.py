@@ -791,6 +791,26 @@ def linear_forward(first: np.ndarray, next_row: np.ndarray, run: np.ndarray, t_s
     return total
 
 
+def _chains(model: Any, cfg: Any, fps: float, on: np.ndarray | None
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, F64, F64]:
+    """Each object's rows as a chain: ``run (R,)`` the rows taken (``on``, default all), ``first,
+    last (O,)`` each object's first and last row (-1: not run), ``t_s (R,)`` the rows' times (s)
+    and ``A (3, 3)`` the centre's acceleration-noise shape (``I + (r^2 - 1) u u^T``)."""
+    rows = model.rows
+    R, O = len(rows), len(rows.obj_ids)
+    run = np.ones(R, bool) if on is None else np.asarray(on, bool)
+    first = np.full(O, -1, np.int64)
+    last = np.full(O, -1, np.int64)
+    starts = np.flatnonzero(rows.prev_row < 0)
+    ends = np.flatnonzero(rows.next_row < 0)
+    first[rows.row_o[starts]] = np.where(run[starts], starts, -1)
+    last[rows.row_o[ends]] = np.where(run[ends], ends, -1)
+    t_s = np.ascontiguousarray(rows.frames[rows.row_t] / fps, dtype=np.float64)
+    u = np.asarray(model.cams.up, dtype=np.float64)
+    A = np.eye(3) + ((cfg.vertical_ratio**2 - 1.0) * np.outer(u, u) if cfg.vertical_ratio != 1.0 else 0.0)
+    return run, first, last, t_s, A
+
+
 class LinearisedSearch:
     """The likelihood of the box forward pass at many process-noise values, each the price of a
     linear Kalman filter: the boxes are regressed (:func:`_slr`) once per row, about a smoothed
@@ -803,13 +823,13 @@ class LinearisedSearch:
 
     def __init__(self, model: Any, init: Any, cfg: Any, fps: float, x_lin: F64, P_lin: F64, weights: F64,
                  on: np.ndarray | None) -> None:
-        rows, cams = model.rows, model.cams
+        rows = model.rows
         R = len(rows)
         m = model.z.shape[1]
         blk = model.blocks()[0]
         bc: BoxCameras = blk.compiled
         dims, Wm, Wc, scale, _, _, _ = _block_rule(blk, cfg.alpha, cfg.beta, cfg.kappa, None, ())
-        self.run = np.ones(R, bool) if on is None else np.asarray(on, bool)
+        self.run, first, _, t_s, self.A = _chains(model, cfg, fps, on)
         sel = np.flatnonzero(self.run)
         self.mk = np.zeros((R, m), np.bool_)
         self.At = np.zeros((R, len(dims), m))
@@ -819,16 +839,8 @@ class LinearisedSearch:
         slr_rows(c(sel, np.int64), c(x_lin), c(P_lin), c(model.z), c(model.mask, np.bool_),
                  c(np.broadcast_to(model.var, (R, m))), dims, Wm, Wc, scale, bc.world_from_body, bc.K,
                  bc.dist, bc.R, bc.t, bc.depth_sign, 2, self.mk, self.At, self.cvec, self.D)
-        O = len(rows.obj_ids)
-        first = np.full(O, -1, np.int64)
-        starts = np.flatnonzero(rows.prev_row < 0)
-        first[rows.row_o[starts]] = np.where(self.run[starts], starts, -1)
         self.first = first[first >= 0]
-        u = np.asarray(cams.up, dtype=np.float64)
-        self.A = np.eye(3) + ((cfg.vertical_ratio**2 - 1.0) * np.outer(u, u) if cfg.vertical_ratio != 1.0
-                              else 0.0)
-        self.args = (c(rows.next_row, np.int64), self.run, c(rows.frames[rows.row_t] / fps), c(init.x0),
-                     c(init.P0))
+        self.args = (c(rows.next_row, np.int64), self.run, t_s, c(init.x0), c(init.P0))
         self.w0 = c(np.broadcast_to(weights, (R, m)))
         self.dims = dims
 
@@ -857,7 +869,7 @@ def run_boxes(model: Any, init: Any, cfg: Any, fps: float, collect: bool, fade: 
     from gt3dkit.fusion.robust import chi2_isf
     from gt3dkit.threads import run_split
 
-    rows, cams, layout = model.rows, model.cams, model.layout
+    rows, layout = model.rows, model.layout
     if cfg.accel_sd is None or cfg.shape_sd is None:
         raise ValueError("run_filter needs numeric accel_sd and shape_sd")
     R, n = len(rows), layout.n
@@ -869,17 +881,8 @@ def run_boxes(model: Any, init: Any, cfg: Any, fps: float, collect: bool, fade: 
     per = noise_rows or {}
     accel = _arg(np.broadcast_to(per.get("accel_sd", cfg.accel_sd), (R,)))
     shape = _arg(np.broadcast_to(per.get("shape_sd", cfg.shape_sd), (R,)))
-    u = np.asarray(cams.up, dtype=np.float64)
-    A = np.eye(3) + ((cfg.vertical_ratio**2 - 1.0) * np.outer(u, u) if cfg.vertical_ratio != 1.0 else 0.0)
-    run = np.ones(R, bool) if on is None else np.asarray(on, bool)
+    run, first, last, t_s, A = _chains(model, cfg, fps, on)
     O = len(rows.obj_ids)
-    first = np.full(O, -1, np.int64)
-    last = np.full(O, -1, np.int64)
-    starts = np.flatnonzero(rows.prev_row < 0)
-    ends = np.flatnonzero(rows.next_row < 0)
-    first[rows.row_o[starts]] = np.where(run[starts], starts, -1)
-    last[rows.row_o[ends]] = np.where(run[ends], ends, -1)
-    t_s = np.ascontiguousarray(rows.frames[rows.row_t] / fps, dtype=np.float64)
     c = _arg
     x_p, P_p = np.zeros((R, n)), np.zeros((R, n, n))
     x_l, P_l = np.zeros((R, n)), np.zeros((R, n, n))
