@@ -21,7 +21,7 @@ $(VENV)/.installed: pyproject.toml
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e ".[dev]"
 	@echo "compiling gt3dkit's numba kernels (once; cached next to the package)"
-	$(PY) -m gt3dkit.fusion.boxupdate
+	$(PY) -m gt3dkit.commands.warmup
 	@touch $@
 
 demo: setup

@@ -10,11 +10,9 @@ Library use::
 
 from __future__ import annotations
 
-__version__ = "0.1.0"
-
-from gt3dkit.api import ESTIMATORS, make_estimator, reconstruct  # noqa: E402
-from gt3dkit.errors import InputError  # noqa: E402
-from gt3dkit.io.datasets import load_scene  # noqa: E402
+from gt3dkit.api import ESTIMATORS, load_scene, make_estimator, reconstruct
+from gt3dkit.errors import InputError
+from gt3dkit.version import __version__
 
 __all__ = ["ESTIMATORS", "InputError", "load_scene", "make_estimator", "reconstruct",
            "__version__"]

@@ -19,7 +19,37 @@ from typing import Any
 
 import numpy as np
 
+from gt3dkit.api import ESTIMATORS, load_scene, reconstruct
+from gt3dkit.calib.formats import WRITABLE, detect_format, read_calibration
+from gt3dkit.calib.formats.native import cameras_doc
+from gt3dkit.calib.show import camera_table, rig_warnings
+from gt3dkit.compare import compare
 from gt3dkit.errors import EstimationError, InputError
+from gt3dkit.eval.metrics import box_errors, relabel_to_truth
+from gt3dkit.eval.pose import mpjpe_by_id, score_tracks
+from gt3dkit.eval.tracking import tracking_scores
+from gt3dkit.export import export
+from gt3dkit.fusion.base import REGISTRY
+from gt3dkit.io.atomic import check_out, write_dir_atomically
+from gt3dkit.io.datasets import LAYOUTS, detect_layout
+from gt3dkit.io.results import read_result
+from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv, write_refined_calibration
+from gt3dkit.many import read_manifest, run_many
+from gt3dkit.refine import RefineConfig, refine, rig_digest, scene_warnings
+from gt3dkit.sim import (
+    SIM_LAYOUTS,
+    Errors,
+    simulate,
+    simulate_skeletons,
+    to_z_up,
+    write_coco,
+    write_openpose,
+    write_scene,
+    write_skeleton_scene,
+)
+from gt3dkit.skeletons import DETECTOR_SKELETONS, SKELETONS
+from gt3dkit.threads import small_matrix_blas
+from gt3dkit.viz.report import write_report
 
 #: Published numbers of Ma et al. for the datasets we can compare on.
 PAPER = {"multiviewx": {"MOTA": 96.5, "OSPA2_m": 0.17}, "wildtrack": {"MOTA": 98.7, "OSPA2_m": 0.10},
@@ -41,7 +71,6 @@ def _estimator_config(args: argparse.Namespace) -> dict[str, Any]:
     is an error, never silently ignored."""
     from importlib import import_module
 
-    from gt3dkit.fusion.base import REGISTRY
 
     e = REGISTRY[args.estimator]
     fields = {f.name for f in dataclasses.fields(getattr(import_module(e.module), e.config))}
@@ -68,7 +97,6 @@ def check_out_apart(out: str | Path, inp: str | Path, option: str = "--out", ins
 
 def check_output(out: str | Path, inputs: tuple[str | Path, ...] = ()) -> None:
     """Every check of an output folder that can be made before the work starts."""
-    from gt3dkit.io.atomic import check_out
 
     for inp in inputs:
         check_out_apart(out, inp)
@@ -76,7 +104,6 @@ def check_output(out: str | Path, inputs: tuple[str | Path, ...] = ()) -> None:
 
 
 def _load(args: argparse.Namespace) -> Any:
-    from gt3dkit.io.datasets import detect_layout, load_scene
 
     if getattr(args, "out", None) is not None:
         check_output(args.out, (args.input,))
@@ -143,19 +170,15 @@ def pose_table(rows: list[tuple[str, Any, float]]) -> str:
 def report_truth(scene: Any, tracks: Any, name: str, max_dist_m: float = 1.0) -> None:
     """Print errors against the input's truth: boxes/positions and/or keypoints; tracking scores
     count an estimate within ``max_dist_m`` (ground plane) of a true object as a match."""
-    from gt3dkit.eval.metrics import box_errors
-    from gt3dkit.eval.pose import mpjpe_by_id, score_tracks
 
     if scene.truth is None:
         return
     print(f"against {scene.truth.source}:")
     if scene.association is not None:
-        from gt3dkit.eval.metrics import relabel_to_truth
 
         tracks = relabel_to_truth(tracks, scene.truth, scene.rig.up, max_dist_m)
         print("(ids are gt3dkit's cross-view association: each matched to its truth id for the errors)")
     if np.isfinite(scene.truth.center_world).any():
-        from gt3dkit.eval.tracking import tracking_scores
 
         t = tracking_scores(tracks, scene.truth, scene.rig.up, max_dist_m)
         print(error_table([(name, box_errors(tracks, scene.truth, scene.rig.up, max_dist_m, mot=t))]))
@@ -214,8 +237,6 @@ class Stages:
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
-    from gt3dkit.api import reconstruct
-    from gt3dkit.calib.formats.native import cameras_doc
 
     config = _estimator_config(args)
     stages = Stages(5, args.quiet)
@@ -223,7 +244,6 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     scene = _load(args)
     extra = None
     if args.refine_calib:
-        from gt3dkit.calib.refine import refine, rig_digest
 
         res = refine(scene)
         extra = {"calibration_refinement": {**res.report, "rig_sha256": {
@@ -257,7 +277,6 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
 
 
 def _errors(args: argparse.Namespace) -> Any:
-    from gt3dkit.sim import Errors
 
     gap = None
     if args.gap:
@@ -286,8 +305,6 @@ _SIM_ONLY = {"boxes": ("motion", "dropout", "shifted", "global_ids"),
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
-    from gt3dkit.skeletons import SKELETONS
 
     check_output(args.out)
     for kind, names in _SIM_ONLY.items():
@@ -327,15 +344,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         except ValueError as e:
             raise InputError("simulate", str(e)) from None
         if args.format == "openpose":
-            from gt3dkit.sim import to_z_up, write_openpose
-            from gt3dkit.skeletons import DETECTOR_SKELETONS
 
             if args.skeleton not in {n for v in DETECTOR_SKELETONS.values() for n in v}:
                 raise InputError("--skeleton", "OpenPose files hold a detector skeleton (body25, body25b, "
                                                f"halpe26, coco18, coco17), not {args.skeleton}")
             write_openpose(to_z_up(sk), Path(args.out), seed=args.seed)
         elif args.format == "coco":
-            from gt3dkit.sim import write_coco
 
             write_coco(sk, Path(args.out), track_ids=not args.no_track_ids, seed=args.seed)
         else:
@@ -372,8 +386,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from gt3dkit.io.datasets import load_scene
-    from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv
 
     if not Path(args.out).is_dir():
         raise InputError(str(args.out), "not a folder (expected a gt3d reconstruct output)")
@@ -393,7 +405,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    from gt3dkit.compare import compare
 
     scene = _load(args)
     table = compare(scene, Path(args.out), progress=not args.no_progress)
@@ -425,9 +436,6 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_calib_show(args: argparse.Namespace) -> int:
-    from gt3dkit.calib.formats import detect_format, read_calibration
-    from gt3dkit.calib.show import camera_table, rig_warnings, scene_warnings
-    from gt3dkit.io.datasets import load_scene
 
     scene = None
     try:
@@ -462,8 +470,6 @@ def cmd_calib_show(args: argparse.Namespace) -> int:
 
 
 def cmd_calib_refine(args: argparse.Namespace) -> int:
-    from gt3dkit.calib.refine import RefineConfig, refine
-    from gt3dkit.io.writers import write_refined_calibration
 
     scene = _load(args)
     res = refine(scene, RefineConfig(refine_intrinsics=args.refine_intrinsics))
@@ -482,7 +488,6 @@ def cmd_calib_refine(args: argparse.Namespace) -> int:
 
 
 def cmd_reconstruct_many(args: argparse.Namespace) -> int:
-    from gt3dkit.many import read_manifest, run_many
 
     inputs = read_manifest(Path(args.manifest))
     rows = run_many(inputs, Path(args.out), args.estimator, args.jobs, args.scheduler, args.report,
@@ -504,7 +509,6 @@ def cmd_reconstruct_many(args: argparse.Namespace) -> int:
 
 
 def cmd_associate(args: argparse.Namespace) -> int:
-    from gt3dkit.io.atomic import write_dir_atomically
 
     scene = _load(args)
     if scene.association is None:
@@ -516,7 +520,6 @@ def cmd_associate(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from gt3dkit.viz.report import write_report
 
     out = Path(args.out)
     if out.is_dir() and (out / "report").exists():
@@ -530,8 +533,6 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from gt3dkit.io.export import export
-    from gt3dkit.io.results import read_result
 
     out = Path(args.out)
     dest = Path(args.to) if args.to else out / f"export_{args.format}"
@@ -550,9 +551,6 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from gt3dkit.api import ESTIMATORS, reconstruct
-    from gt3dkit.eval.metrics import box_errors
-    from gt3dkit.io.datasets import load_scene
 
     src = bundled("multiviewx")
     outs = [Path(args.out) / n for n in (*ESTIMATORS, "panoptic_noise0px", "panoptic_noise2px")]
@@ -562,7 +560,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(f"MultiviewX subset bundled in {src} (see its PROVENANCE.md): "
           f"{len(scene.rig.cameras)} cameras, {len(scene.frames)} frames, "
           f"{len(scene.truth.frame) if scene.truth else 0} person-frames, {len(scene.obs)} boxes")
-    from gt3dkit.eval.tracking import tracking_scores
 
     rows, mot = [], []
     for name in ESTIMATORS:
@@ -581,7 +578,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
               f"{t['ospa2_m']:>11.4f}")
     print(f"{'paper (Ma et al.)':<20}{p['MOTA']:>7.1f}{'-':>7}{'-':>7}{p['OSPA2_m']:>11.2f}")
 
-    from gt3dkit.eval.pose import mpjpe_by_id, score_tracks
 
     src = bundled("panoptic_160906_band1")
     print(f"\nCMU Panoptic 160906_band1 bundled in {src} (see its PROVENANCE.md): the paper's "
@@ -601,7 +597,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(pose_table(rows))
     lo, hi = PAPER["panoptic"]["MPJPE_mm"]
     print(f"\nPaper (Ma et al., UKF) on CMU Panoptic: MPJPE {lo}-{hi} mm")
-    from gt3dkit.viz.report import write_report
 
     print("\nReports (3D renders, each camera's worst frame, residuals, anomalies):")
     for name in ("ukf", "panoptic_noise2px"):
@@ -646,11 +641,6 @@ SEED = _number(int, 0, 2**32 - 1)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from gt3dkit.api import ESTIMATORS
-    from gt3dkit.calib.formats import WRITABLE
-    from gt3dkit.io.datasets import LAYOUTS
-    from gt3dkit.sim import SIM_LAYOUTS
-    from gt3dkit.skeletons import SKELETONS
 
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--debug", action="store_true",
@@ -877,7 +867,6 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError:  # not the main thread
             pass
     try:
-        from gt3dkit.threads import small_matrix_blas
 
         with warnings.catch_warnings(), small_matrix_blas():
             if not debug:  # numerical warnings are ours to handle, never the user's to read

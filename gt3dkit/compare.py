@@ -9,9 +9,12 @@ from typing import Any
 
 import numpy as np
 
+from gt3dkit.api import make_estimator
 from gt3dkit.errors import EstimationError
-from gt3dkit.eval.metrics import box_errors, match_rows
+from gt3dkit.eval.metrics import box_errors, match_rows, relabel_to_truth
+from gt3dkit.eval.pose import mpjpe_by_id
 from gt3dkit.fusion.base import ESTIMATORS as COMPARE_ESTIMATORS
+from gt3dkit.fusion.prepare import prepare
 from gt3dkit.fusion.rows import Rows, build_rows
 from gt3dkit.geom.camera import Cams, project_points
 from gt3dkit.geom.conics import ellipsoid_boxes
@@ -82,9 +85,6 @@ def compare(scene: Scene, out: Path, estimators: tuple[str, ...] = COMPARE_ESTIM
     (all at once, atomically). Returns the comparison rows."""
     from tqdm import tqdm
 
-    from gt3dkit.api import make_estimator
-    from gt3dkit.eval.pose import mpjpe_by_id
-    from gt3dkit.fusion.prepare import prepare
 
     results: dict[str, TrackSet] = {}
     seconds: dict[str, float] = {}
@@ -121,7 +121,6 @@ def compare(scene: Scene, out: Path, estimators: tuple[str, ...] = COMPARE_ESTIM
                 row[f"dist_to_{other}_p95_m"] = float(np.percentile(d, 95)) if d.size else float("nan")
         row["seconds"] = seconds[name]
         if scene.truth is not None and scene.association is not None:  # gt3dkit's own ids
-            from gt3dkit.eval.metrics import relabel_to_truth
 
             tr = relabel_to_truth(tr, scene.truth, scene.rig.up)
         if scene.truth is not None:

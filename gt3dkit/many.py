@@ -24,7 +24,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from gt3dkit.errors import InputError
+from gt3dkit.api import load_scene, reconstruct
+from gt3dkit.errors import EstimationError, InputError
+from gt3dkit.io.atomic import MARKER
+from gt3dkit.threads import small_matrix_blas
+from gt3dkit.version import __version__
+from gt3dkit.viz.report import write_report
 
 SUMMARY_COLUMNS = ("input", "output", "status", "seconds", "objects", "object_frames", "anomalies",
                    "error")
@@ -75,8 +80,6 @@ class Job:
 
 def _current(out: Path, scene: Any, estimator: str) -> bool:
     """``out`` holds a complete output of this input (same checksums), estimator and version."""
-    from gt3dkit import __version__
-    from gt3dkit.io.atomic import MARKER
 
     try:
         meta = json.loads((out / "meta.json").read_text())
@@ -92,8 +95,6 @@ def run_job(job: Job) -> dict[str, Any]:
     """Reconstruct one sequence (in a worker process): a summary row, never an exception."""
     import warnings
 
-    from gt3dkit.errors import EstimationError
-    from gt3dkit.threads import small_matrix_blas
 
     row: dict[str, Any] = {"input": job.input, "output": job.output, "status": "", "seconds": 0.0,
                            "objects": "", "object_frames": "", "anomalies": "", "error": ""}
@@ -102,8 +103,6 @@ def run_job(job: Job) -> dict[str, Any]:
     try:
         with warnings.catch_warnings(), small_matrix_blas():
             warnings.simplefilter("ignore", RuntimeWarning)
-            from gt3dkit.api import reconstruct
-            from gt3dkit.io.datasets import load_scene
 
             scene = load_scene(Path(job.input))
             out = Path(job.output)
@@ -117,7 +116,6 @@ def run_job(job: Job) -> dict[str, Any]:
                 qa = tracks.info.get("qa", {}).get("anomalies", {})
                 row["anomalies"] = sum(qa.values())
             if job.report and (row["status"] == "done" or not (out / "report" / "index.html").is_file()):
-                from gt3dkit.viz.report import write_report
 
                 write_report(out)
     except (InputError, EstimationError) as e:
@@ -132,7 +130,6 @@ def run_many(inputs: list[Path], out: Path, estimator: str = "ukf", jobs: int | 
              scheduler: str | None = None, report: bool = False,
              progress: bool = True) -> list[dict[str, Any]]:
     """Run every input; returns the summary rows (also ``OUT/summary.csv``)."""
-    from gt3dkit.io.atomic import MARKER
 
     out = Path(out)
     if out.exists() and not out.is_dir():

@@ -30,12 +30,15 @@ from pathlib import Path
 import numpy as np
 
 from gt3dkit.arrays import unique_rows
-from gt3dkit.geom.camera import Cams
-from gt3dkit.geom.conics import ellipsoid_boxes
+from gt3dkit.calib.formats import grid
+from gt3dkit.calib.formats import toml as toml_fmt
+from gt3dkit.geom.camera import Cams, project_points
+from gt3dkit.geom.conics import covered_fraction, ellipsoid_boxes
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.datasets.native import cameras_doc
 from gt3dkit.io.datasets.wildtrack import LAYOUTS as GRID_LAYOUTS
 from gt3dkit.io.datasets.wildtrack import GridLayout
+from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import F64, I64, Camera, Observations, Rig, Scene
 
 SIM_LAYOUTS = ("wildtrack", "multiviewx", "native")
@@ -274,7 +277,6 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
     centres = np.stack([c.center_world for c in rig.cameras])
     depth = np.linalg.norm(center[:, None, :] - centres[None], axis=-1)  # (M, C)
     if hide_covered is not None or errors.missing:  # everyone in the picture hides, annotated or not
-        from gt3dkit.qa.anomalies import covered_fraction
 
         cov = np.zeros(seen.shape)
         for f in np.unique(truth_frame):
@@ -449,7 +451,6 @@ def write_coco(sim: SkeletonScene, out: Path, track_ids: bool = True, seed: int 
     """``coco/<camera>.json`` (COCO keypoints per camera, joint names in ``categories``;
     ``track_id`` numbered per camera when ``track_ids``, else none) + ``cameras.json`` +
     ``truth_keypoints.csv``, atomically."""
-    from gt3dkit.skeletons import SKELETONS
 
     skel = SKELETONS[sim.skeleton]
     rng = np.random.default_rng([seed, 3])
@@ -487,7 +488,6 @@ def write_coco(sim: SkeletonScene, out: Path, track_ids: bool = True, seed: int 
 
 
 def _write_grid(sim: SimScene, tmp: Path, g: GridLayout) -> None:
-    from gt3dkit.calib.formats import grid
 
     grid.write(sim.rig, tmp, g)
     ann = tmp / "annotations_positions"
@@ -571,7 +571,6 @@ def _rot(axis: F64, ang: F64) -> F64:
 def skeleton_motion(skel_name: str, t_s: F64, rng: np.random.Generator) -> F64:
     """(T, J, 3) body-frame joints of one person: canonical pose scaled, limbs swinging
     about their parent joints (bone lengths exact), turning and walking slowly."""
-    from gt3dkit.skeletons import SKELETONS
 
     skel = SKELETONS[skel_name]
     names = skel.joints
@@ -615,7 +614,6 @@ def simulate_skeletons(layout: str = "native", seed: int = 0, frames: int = 30, 
     ``missing`` of the rest at random. ``errors`` (native layout) adds detector errors;
     ``confidences`` writes a detector-like confidence per point (lower for worse points).
     """
-    from gt3dkit.geom.camera import project_points
 
     if layout not in ("native", "panoptic"):
         raise ValueError(f"skeleton scenes are written as native or panoptic, not {layout!r}")
@@ -660,7 +658,6 @@ def _detector_errors(uv: F64, rig: Rig, skeleton: str, truth_frame: I64, truth_i
                      frames: I64, errors: Errors, rng: np.random.Generator
                      ) -> tuple[F64, F64, list[tuple[int, str, int, str, str, str]]]:
     """Inject ``errors`` into keypoints ``uv (M, C, J, 2)``; confidences ``(M, C, J)``."""
-    from gt3dkit.skeletons import SKELETONS
 
     M, C, J = uv.shape[:3]
     uv = uv.copy()
@@ -734,8 +731,6 @@ def write_openpose(sim: SkeletonScene, out: Path, seed: int = 0,
     one OpenPose file per frame per camera, people in a random order without ids (undetected
     joints 0, 0, 0), and ``truth_keypoints.csv`` in the same z-up world. ``sim`` must be in a
     z-up world (:func:`to_z_up`) and a detector skeleton (body25, ...)."""
-    from gt3dkit.calib.formats import toml as toml_fmt
-    from gt3dkit.skeletons import SKELETONS
 
     rng = np.random.default_rng([seed, 7])
     names = folder_names or [f"cam{k + 1}" for k in range(len(sim.rig.cameras))]

@@ -31,10 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
+from gt3dkit.api import load_scene
 from gt3dkit.cli import bundled
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.conics import ellipsoid_boxes, ellipsoid_boxes_numpy
-from gt3dkit.io.datasets import load_scene
 from gt3dkit.sim import simulate, write_scene
 
 _PEAK = ("import resource, sys; from gt3dkit.cli import main; c = main(sys.argv[1:]); "

@@ -30,13 +30,12 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from gt3dkit.api import reconstruct
-from gt3dkit.calib.model import Camera, Rig
-from gt3dkit.calib.refine import align_to, pose_change, refine
+from gt3dkit.api import load_scene, reconstruct
 from gt3dkit.cli import bundled
 from gt3dkit.eval.metrics import box_errors
 from gt3dkit.eval.pose import mpjpe_by_id
-from gt3dkit.io.datasets import load_scene
+from gt3dkit.refine import align_to, pose_change, refine
+from gt3dkit.rig import Camera, Rig
 from gt3dkit.sim import simulate_skeletons, write_skeleton_scene
 
 

@@ -30,10 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from gt3dkit.api import reconstruct
+from gt3dkit.api import load_scene, reconstruct
 from gt3dkit.eval.metrics import box_errors, relabel_to_truth
 from gt3dkit.eval.tracking import tracking_scores
-from gt3dkit.io.datasets import load_scene
 from gt3dkit.sim import Errors, simulate, simulate_skeletons, write_scene, write_skeleton_scene
 
 

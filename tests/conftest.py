@@ -4,8 +4,8 @@ from pathlib import Path
 
 import pytest
 
+from gt3dkit.api import load_scene
 from gt3dkit.cli import bundled
-from gt3dkit.io.datasets import load_scene
 from gt3dkit.types import Scene
 
 from .scenes import SMALL, written_scene

@@ -481,7 +481,7 @@ def _any_rig():  # a small rig, independent of the bases
 
 def _calib_without_last_camera(root: Path) -> None:
     from gt3dkit.calib.formats import read_calibration, write_calibration
-    from gt3dkit.calib.model import Rig
+    from gt3dkit.rig import Rig
 
     rig = read_calibration(root)
     write_calibration(Rig(rig.cameras[:-1], up=rig.up), root.parent / "c", "toml")

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from gt3dkit.io.datasets import load_scene
+from gt3dkit.api import load_scene
 from gt3dkit.sim import SimScene, simulate, write_scene
 from gt3dkit.types import Scene
 

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from gt3dkit.calib.formats import detect_format, read_calibration, write_calibration
-from gt3dkit.calib.model import Camera, Rig
 from gt3dkit.cli import bundled
 from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import project_points
+from gt3dkit.rig import Camera, Rig
 from gt3dkit.sim import simulate
 
 
@@ -83,14 +83,15 @@ def test_bad_calibration_files(tmp_path) -> None:
 
 def _upside_down(rig: Rig) -> Rig:
     """The world turned upside down (what a mirrored board gives: cameras under the floor)."""
-    from gt3dkit.calib.refine import transform_rig
+    from gt3dkit.refine import transform_rig
 
     return transform_rig(rig, 1.0, np.diag([1.0, -1.0, -1.0]), np.zeros(3))
 
 
 def test_show_flags_nothing_on_the_bundled_calibrations() -> None:
-    from gt3dkit.calib.show import rig_warnings, scene_warnings
-    from gt3dkit.io.datasets import load_scene
+    from gt3dkit.api import load_scene
+    from gt3dkit.calib.show import rig_warnings
+    from gt3dkit.refine import scene_warnings
 
     for name in ("multiviewx", "panoptic_160906_band1"):
         assert rig_warnings(read_calibration(bundled(name))) == []
@@ -113,9 +114,9 @@ def test_show_flags_an_upside_down_and_a_below_the_floor_rig() -> None:
 
 def test_show_with_annotations_flags_people_under_the_floor(tmp_path, capsys) -> None:
     """A keypoint scene whose calibration was solved upside down: heads below the floor."""
+    from gt3dkit.api import load_scene
     from gt3dkit.calib.formats.native import write
     from gt3dkit.calib.show import scene_warnings
-    from gt3dkit.io.datasets import load_scene
     from gt3dkit.sim import simulate_skeletons, write_skeleton_scene
 
     write_skeleton_scene(simulate_skeletons("native", seed=1, frames=3, people=2, cameras=5), tmp_path / "s",
@@ -148,7 +149,7 @@ def _perturbed(rig: Rig, deg: float, m: float, seed: int) -> Rig:
 
 @pytest.fixture(scope="module")
 def skel_scene(tmp_path_factory):
-    from gt3dkit.io.datasets import load_scene
+    from gt3dkit.api import load_scene
     from gt3dkit.sim import simulate_skeletons, write_skeleton_scene
 
     root = tmp_path_factory.mktemp("calib") / "s"
@@ -160,7 +161,7 @@ def skel_scene(tmp_path_factory):
 def test_refine_recovers_a_perturbed_rig(skel_scene) -> None:
     import dataclasses
 
-    from gt3dkit.calib.refine import align_to, pose_change, refine
+    from gt3dkit.refine import align_to, pose_change, refine
 
     truth = skel_scene.rig
     bad = _perturbed(truth, 1.0, 0.05, 3)
@@ -175,7 +176,7 @@ def test_refine_recovers_a_perturbed_rig(skel_scene) -> None:
 
 
 def test_refine_keeps_a_good_rig(skel_scene) -> None:
-    from gt3dkit.calib.refine import refine
+    from gt3dkit.refine import refine
 
     res = refine(skel_scene)
     assert res.report["refined_cameras"] == []

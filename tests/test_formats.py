@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gt3dkit.api import load_scene
 from gt3dkit.errors import InputError
-from gt3dkit.io.datasets import load_scene
 from gt3dkit.sim import Errors, simulate, write_scene
 
 GT3D = [sys.executable, "-m", "gt3dkit.cli"]

@@ -7,8 +7,7 @@ import json
 
 import numpy as np
 
-from gt3dkit.api import reconstruct
-from gt3dkit.io.datasets import load_scene
+from gt3dkit.api import load_scene, reconstruct
 from gt3dkit.qa.inject import move_person, shift_box
 from gt3dkit.sim import Errors, simulate, simulate_skeletons, write_scene, write_skeleton_scene
 
@@ -91,7 +90,7 @@ def test_people_hidden_behind_others_are_not_missing(tmp_path) -> None:
 
 
 def test_covered_fraction_against_a_pixel_count() -> None:
-    from gt3dkit.qa.anomalies import covered_fraction
+    from gt3dkit.geom.conics import covered_fraction
 
     rng = np.random.default_rng(0)
     xy = rng.uniform(0, 60, size=(5, 1, 2))

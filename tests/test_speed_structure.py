@@ -10,12 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gt3dkit.api import load_scene
 from gt3dkit.fusion import ukf_smoother as us
 from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.rows import replicate_rows
 from gt3dkit.fusion.ukf import Block, SigmaWeights, ukf_update_information
 from gt3dkit.geom.conics import ellipsoid_boxes, ellipsoid_boxes_numpy
-from gt3dkit.io.datasets import load_scene
 from gt3dkit.sim import Errors, simulate, simulate_skeletons, write_scene, write_skeleton_scene
 
 
@@ -69,7 +69,7 @@ def test_split_and_masked_tangent_box_equal_the_whole_call(monkeypatch) -> None:
     Rb = _rot(rng)
     want = rng.uniform(size=(N, C)) < 0.7
     box, margin = np.empty((N, C, 4)), np.empty((N, C))
-    bk.kernel(c, s, Rb, K, dist, R, t, np.ones(C), 2, bk._EVERY, box, margin)  # one call, one thread
+    bk.kernel(c, s, Rb, K, dist, R, t, np.ones(C), 2, bk.EVERY_CAMERA, box, margin)  # one call, one thread
     monkeypatch.setenv("GT3D_THREADS", "3")
     b3, m3 = ellipsoid_boxes(c, s, Rb, K, dist, R, t, np.ones(C))
     np.testing.assert_array_equal(b3, box)
@@ -116,7 +116,7 @@ def test_compiled_box_update_equals_the_numpy_update_row_by_row(box_model, sigma
     assert boxupdate.applies(blocks, z.shape[1], model.robust_blocks)
     plain = [replace(b, compiled=None) for b in blocks]
     kw = dict(weight0=model.weight0[r], robust=RobustConfig(), robust_blocks=model.robust_blocks)
-    xc, Pc, ic = ukf_update_information(x, P, z, mask, model.var[r], blocks, w, 4, xl, Pl, **kw)
+    xc, Pc, ic = boxupdate.box_update(x, P, z, mask, model.var[r], blocks, w, 4, xl, Pl, **kw)
     assert ic["weights"][0, 2] < 1 and ic["passes"] > 1  # the outlier is down-weighted
     for b in range(B):
         one = slice(b, b + 1)

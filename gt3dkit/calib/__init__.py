@@ -1,3 +1,3 @@
-"""Calibration: the camera model and rig (:mod:`.model`), every calibration format our users
-have (:mod:`.formats`), ``gt3d calib show`` checks (:mod:`.show`) and refinement of a rig from
-the annotations (:mod:`.refine`, pycolmap bundle adjustment)."""
+"""Calibration files: every calibration format our users have (:mod:`.formats`, read and written,
+to the one camera model of :mod:`gt3dkit.rig`) and the checks of a rig alone (:mod:`.show`).
+Checks and refinement against the annotations are :mod:`gt3dkit.refine`."""

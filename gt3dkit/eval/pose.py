@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gt3dkit.eval.metrics import match_rows
 from gt3dkit.types import F64, GroundTruth, TrackSet
 
 
@@ -120,7 +121,6 @@ def score_tracks(tracks: TrackSet, truth: GroundTruth, joints: np.ndarray | None
 def mpjpe_by_id(tracks: TrackSet, truth: GroundTruth, joints: np.ndarray | None = None
                 ) -> tuple[float, int, int]:
     """Mean joint error (mm) over rows matched by (frame, id), and poses matched / in truth."""
-    from gt3dkit.eval.metrics import match_rows
 
     it, ig = match_rows(tracks, truth)
     sel = slice(None) if joints is None else joints

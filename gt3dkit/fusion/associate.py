@@ -34,7 +34,11 @@ import numpy as np
 
 from gt3dkit.arrays import unique_rows
 from gt3dkit.errors import InputError
-from gt3dkit.types import F64, Scene
+from gt3dkit.geom.camera import Cams, pixel_rays, project_points
+from gt3dkit.geom.triangulate import normalized_points, reprojection_sq_px, triangulate_dlt
+from gt3dkit.parse import parse_frame, parse_int, read_csv_rows
+from gt3dkit.skeletons import SKELETONS
+from gt3dkit.types import F64, Observations, Scene
 
 COLUMNS = ("camera", "local_id", "frame", "global_id", "confidence", "frames", "median_m", "note")
 
@@ -101,7 +105,6 @@ def box_or_keypoint_box(box: F64, kpt: F64) -> F64:
 def _box_foot(scene: Scene, box: F64) -> F64:
     """(N, 2) the point of each box on the image direction of world-down through its centre
     (the bottom centre for an upright camera; the top for one mounted upside down)."""
-    from gt3dkit.geom.camera import Cams, pixel_rays, project_points
 
     obs = scene.obs
     cams = Cams.of(scene.rig)
@@ -129,7 +132,6 @@ def ground_points(scene: Scene, cfg: AssocConfig) -> F64:
     """(N, 3) where each observation's foot pixel (a box's bottom centre, else the mean of its
     ankle/heel/toe keypoints) ray meets the floor (NaN: none, at the image's bottom border, ray
     parallel to or away from the floor)."""
-    from gt3dkit.geom.camera import Cams, pixel_rays
 
     obs = scene.obs
     cams = Cams.of(scene.rig)
@@ -137,7 +139,6 @@ def ground_points(scene: Scene, cfg: AssocConfig) -> F64:
     b = obs.box_xyxy_px
     foot = _box_foot(scene, b)  # where the box meets the person's axis on the floor side
     if obs.n_joints and scene.skeleton:  # the mean of the foot joints seen, when there are
-        from gt3dkit.skeletons import SKELETONS
 
         js = [i for i, j in enumerate(SKELETONS[scene.skeleton].joints)
               if j.split("_", 1)[-1] in ("ankle", "heel", "big_toe", "small_toe")]
@@ -167,7 +168,6 @@ def ground_points(scene: Scene, cfg: AssocConfig) -> F64:
 def _axis_distances(scene: Scene, tl: np.ndarray, t_of: np.ndarray, T: int, F: int):
     """A function (tracklet, (F, 3) ground points of a cluster) -> (F,) horizontal distance (m)
     between the ray through the tracklet's box centre and the cluster's vertical axis."""
-    from gt3dkit.geom.camera import Cams, pixel_rays
 
     obs = scene.obs
     cams = Cams.of(scene.rig)
@@ -310,7 +310,6 @@ def _finish(rows: list[list], overrides: dict[tuple[str, int, int | None], int] 
 def apply_association(scene: Scene, assoc: Association) -> Scene:
     """``scene`` with every observation's id replaced by its global id; two boxes of one
     global id in one (frame, camera) are an error naming both tracks."""
-    from gt3dkit.types import Observations
 
     obs = scene.obs
     m = assoc.mapping()
@@ -341,7 +340,6 @@ def apply_association(scene: Scene, assoc: Association) -> Scene:
 def read_overrides(path: Path, names: tuple[str, ...]) -> dict[tuple[str, int, int | None], int]:
     """An edited ``association.csv`` (``camera,local_id,frame,global_id`` first, ``frame``
     empty for per-camera tracks; other columns ignored): the rows a user fixed."""
-    from gt3dkit.io.datasets.common import parse_frame, parse_int, read_csv_rows
 
     out: dict[tuple[str, int, int | None], int] = {}
     for line, r in read_csv_rows(Path(path), ("camera", "local_id", "frame", "global_id"), warnings=[]):
@@ -372,7 +370,6 @@ class DetectionConfig:
 def _pair_cost(xa: F64, xb: F64, Ra, ta, Rb, tb, fa: float, fb: float) -> float:
     """Median over the joints both saw of the two-view reprojection error (px) after
     triangulating them from these two views; inf with too few joints."""
-    from gt3dkit.geom.triangulate import reprojection_sq_px, triangulate_dlt
 
     ok = np.isfinite(xa).all(axis=1) & np.isfinite(xb).all(axis=1)
     if ok.sum() < 1:
@@ -400,8 +397,6 @@ def associate_detections(scene: Scene, cfg: DetectionConfig | None = None,
     detections no second view confirms are left out (their row has global id -1)."""
     from scipy.optimize import linear_sum_assignment
 
-    from gt3dkit.geom.camera import Cams
-    from gt3dkit.geom.triangulate import normalized_points, triangulate_dlt
 
     cfg = cfg or DetectionConfig()
     obs = scene.obs

@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from gt3dkit.fusion.boxlm import fit_compiled
+from gt3dkit.geom.boxkernel import BoxCameras
 from gt3dkit.geom.camera import Cams, pixel_rays
 from gt3dkit.geom.conics import ellipsoid_boxes, outline_ellipse
 from gt3dkit.types import B8, F64
@@ -149,8 +151,6 @@ def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: F64 | float = 1.0,
         p[start] = p0[start]
     z = np.where(box_mask, box_z, 0.0)
     if compiled:
-        from gt3dkit.fusion.boxlm import fit_compiled
-        from gt3dkit.fusion.boxupdate import BoxCameras
 
         p, r, J = fit_compiled(p, z, box_mask, ok, np.asarray(sigma_px, dtype=np.float64), prior,
                                np.asarray(prior_sd, dtype=np.float64), iters, BoxCameras.of(cams))

@@ -18,8 +18,9 @@ extra tangent boxes per step and twelve for the final covariance), and the 6 x 6
 is solved by Cholesky (numpy: LU). The paths differ by rounding; the minima agree to the
 convergence tolerance where the problem is well posed (two views or more).
 
-numba's cache is keyed by this file only: after editing :mod:`gt3dkit.geom.boxkernel` or the
-helpers taken from :mod:`gt3dkit.fusion.boxupdate`, remove ``gt3dkit/fusion/__pycache__/boxlm*.nb*``.
+numba's cache is keyed by each file alone; :mod:`gt3dkit.geom.kernel_cache` drops every kernel
+cache of the package when any kernel file changed (the tangent box and the small matrices are
+compiled into these functions).
 """
 
 from __future__ import annotations
@@ -27,8 +28,9 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from gt3dkit.fusion.boxupdate import BoxCameras, _arg, _solve_sym
-from gt3dkit.geom.boxkernel import camera_setup, pair_box, pair_box_grad
+from gt3dkit.geom.boxkernel import BoxCameras, camera_setup, contiguous, pair_box, pair_box_grad
+from gt3dkit.geom.smallmat import solve_sym
+from gt3dkit.threads import run_split
 from gt3dkit.types import F64
 
 _BIG = float(np.finfo(np.float64).max)
@@ -138,7 +140,7 @@ def fit_rows(p: F64, z: F64, mask: np.ndarray, active: np.ndarray, sig: F64, pri
                         A[j, i] = s
                 for i in range(6):
                     A[i, i] += lam * A[i, i] + 1e-12
-                _solve_sym(A, g, dl)
+                solve_sym(A, g, dl)
                 big = 0.0
                 for j in range(6):
                     q[j] = p[n, j] - dl[j, 0]
@@ -177,14 +179,13 @@ def fit_compiled(p0: F64, z: F64, mask: np.ndarray, active: np.ndarray, sig: F64
                  prior_sd: F64, iters: int, cams: BoxCameras) -> tuple[F64, F64, F64]:
     """Run :func:`fit_rows` on ``N`` object-frames split over threads: the fitted parameters
     ``(N, 6)``, residuals ``(N, 4 C + 3)`` and Jacobian ``(N, 4 C + 3, 6)``."""
-    from gt3dkit.threads import run_split
 
     N, C = z.shape[:2]
-    p = _arg(p0.copy())
-    zc, mc, ac = _arg(z), _arg(mask, np.bool_), _arg(active, np.bool_)
+    p = contiguous(p0.copy())
+    zc, mc, ac = contiguous(z), contiguous(mask, np.bool_), contiguous(active, np.bool_)
     r = np.empty((N, 4 * C + 3))
     J = np.empty((N, 4 * C + 3, 6))
-    sg, pr, ps = (_arg(np.broadcast_to(np.asarray(a, dtype=np.float64), (k,)))
+    sg, pr, ps = (contiguous(np.broadcast_to(np.asarray(a, dtype=np.float64), (k,)))
                   for a, k in ((sig, 4), (prior, 3), (prior_sd, 3)))
 
     def part(a: int, b: int) -> None:

@@ -23,214 +23,19 @@ fresh install or clone has no cache; ``make setup`` compiles everything once.)
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Any
 
 import numba
 import numpy as np
 
-from gt3dkit.geom.boxkernel import camera_setup, pair_box
+from gt3dkit.fusion.robust import chi2_isf
+from gt3dkit.fusion.ukf import SigmaWeights
+from gt3dkit.geom.boxkernel import BoxCameras, camera_setup, contiguous, pair_box
+from gt3dkit.geom.smallmat import chol, chol_solve, lower_inverse, matmul, safe_chol, solve_sym, symmetrised
+from gt3dkit.threads import run_split
 from gt3dkit.types import F64
 
 _LOG_2PI = math.log(2.0 * math.pi)
-
-
-def _arg(a: Any, dtype: Any = np.float64) -> np.ndarray:
-    """``a`` as a C-contiguous, writable array of ``dtype``: numba compiles a function once per
-    argument type, and a read-only array (a broadcast view) is another type."""
-    return np.require(a, dtype=dtype, requirements=["C", "W"])
-
-
-@dataclass(frozen=True)
-class BoxCameras:
-    """The camera arrays the compiled tangent box needs (contiguous float64)."""
-
-    world_from_body: F64
-    K: F64
-    dist: F64
-    R: F64
-    t: F64
-    depth_sign: F64
-
-    @classmethod
-    def of(cls, cams: Any) -> BoxCameras:
-        C = len(cams.K)
-        return cls(_arg(cams.world_from_body), _arg(cams.K), _arg(cams.dist), _arg(cams.R), _arg(cams.t),
-                   _arg(np.broadcast_to(np.asarray(cams.depth_sign, dtype=np.float64), (C,))))
-
-
-@numba.njit(cache=True, nogil=True)
-def _chol(A: F64, L: F64) -> bool:
-    """Lower Cholesky factor of the symmetric ``A (n, n)`` into ``L``; False if not PD."""
-    n = A.shape[0]
-    for j in range(n):
-        s = A[j, j]
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        if not s > 0.0:
-            return False
-        d = math.sqrt(s)
-        L[j, j] = d
-        for i in range(j + 1, n):
-            s = A[i, j]
-            for k in range(j):
-                s -= L[i, k] * L[j, k]
-            L[i, j] = s / d
-        for i in range(j):
-            L[i, j] = 0.0
-    return True
-
-
-@numba.njit(cache=True, nogil=True)
-def _eigh(S: F64) -> tuple[F64, F64]:
-    """Eigenvalues ``w (n,)`` and eigenvectors (columns of ``V``) of a small symmetric matrix by
-    cyclic Jacobi rotations (to machine precision; numba's ``np.linalg.eigh`` costs seconds of
-    compilation)."""
-    n = S.shape[0]
-    A = S.copy()
-    V = np.eye(n)
-    for _ in range(100):
-        off = 0.0
-        for i in range(n):
-            for j in range(i + 1, n):
-                off += A[i, j] * A[i, j]
-        if off <= 1e-30 * max(np.sum(A * A), 1e-300):
-            break
-        for p in range(n):
-            for q in range(p + 1, n):
-                if A[p, q] == 0.0:
-                    continue
-                theta = (A[q, q] - A[p, p]) / (2.0 * A[p, q])
-                tt = (1.0 if theta >= 0 else -1.0) / (abs(theta) + math.sqrt(theta * theta + 1.0))
-                c = 1.0 / math.sqrt(tt * tt + 1.0)
-                sn = tt * c
-                for k in range(n):  # A <- J^T A J
-                    akp, akq = A[k, p], A[k, q]
-                    A[k, p], A[k, q] = c * akp - sn * akq, sn * akp + c * akq
-                for k in range(n):
-                    apk, aqk = A[p, k], A[q, k]
-                    A[p, k], A[q, k] = c * apk - sn * aqk, sn * apk + c * aqk
-                for k in range(n):
-                    vkp, vkq = V[k, p], V[k, q]
-                    V[k, p], V[k, q] = c * vkp - sn * vkq, sn * vkp + c * vkq
-    w = np.empty(n)
-    for i in range(n):
-        w[i] = A[i, i]
-    return w, V
-
-
-@numba.njit(cache=True, nogil=True)
-def _chol_solve(L: F64, B: F64, X: F64) -> None:
-    """``X = (L L^T)^-1 B`` for a lower Cholesky factor ``L (n, n)`` and ``B (n, k)``."""
-    n, k = B.shape
-    for c in range(k):
-        for i in range(n):
-            s = B[i, c]
-            for j in range(i):
-                s -= L[i, j] * X[j, c]
-            X[i, c] = s / L[i, i]
-        for i in range(n - 1, -1, -1):
-            s = X[i, c]
-            for j in range(i + 1, n):
-                s -= L[j, i] * X[j, c]
-            X[i, c] = s / L[i, i]
-
-
-@numba.njit(cache=True, nogil=True)
-def _solve_sym(S: F64, B: F64, X: F64) -> None:
-    """``X = S^-1 B`` for a symmetric ``S``: by Cholesky, or (not positive definite) by its
-    eigen-decomposition; NaN if singular or not finite."""
-    n = S.shape[0]
-    L = np.empty((n, n))
-    if not np.all(np.isfinite(S)):
-        X[:, :] = np.nan
-        return
-    Ssym = 0.5 * (S + S.T)
-    if _chol(Ssym, L):
-        _chol_solve(L, B, X)
-        return
-    w, V = _eigh(Ssym)
-    k = B.shape[1]
-    for c in range(k):
-        for i in range(n):
-            s = 0.0
-            for a in range(n):
-                if w[a] == 0.0:
-                    s = np.nan
-                    break
-                pa = 0.0
-                for j in range(n):
-                    pa += V[j, a] * B[j, c]
-                s += V[i, a] * pa / w[a]
-            X[i, c] = s
-
-
-@numba.njit(cache=True, nogil=True)
-def _mm(A: F64, B: F64, out: F64) -> None:
-    """``out = A B`` (small matrices; numba's ``@`` adds seconds of compilation)."""
-    for i in range(A.shape[0]):
-        for j in range(B.shape[1]):
-            s = 0.0
-            for k in range(A.shape[1]):
-                s += A[i, k] * B[k, j]
-            out[i, j] = s
-
-
-@numba.njit(cache=True, nogil=True)
-def _symmetrised(A: F64) -> F64:
-    """``(A + A^T) / 2`` as a new array."""
-    n = A.shape[0]
-    S = np.empty((n, n))
-    for i in range(n):
-        for j in range(n):
-            S[i, j] = 0.5 * (A[i, j] + A[j, i])
-    return S
-
-
-@numba.njit(cache=True, nogil=True)
-def _safe_chol(A: F64, L: F64) -> int:
-    """:func:`gt3dkit.fusion.ukf.safe_cholesky` of one matrix: ``L`` of ``(A + A^T) / 2``,
-    eigenvalue-clipped if that is not PD. Returns 1 if a repair was needed, else 0."""
-    n = A.shape[0]
-    S = _symmetrised(A)
-    if _chol(S, L):
-        return 0
-    if not np.all(np.isfinite(S)):
-        L[:, :] = np.nan
-        return 1
-    w, V = _eigh(S)
-    wmax = max(w.max(), 1e-300)
-    bad = 1 if w.min() <= 1e-15 * wmax else 0
-    w = np.maximum(w, 1e-12 * wmax)
-    for i in range(n):
-        for j in range(n):
-            s = 0.0
-            for a in range(n):
-                s += V[i, a] * w[a] * V[j, a]
-            S[i, j] = s
-    for i in range(n):
-        for j in range(i):
-            S[i, j] = S[j, i] = 0.5 * (S[i, j] + S[j, i])
-    if not _chol(S, L):
-        for i in range(n):
-            for j in range(n):
-                L[i, j] = np.nan
-    return bad
-
-
-@numba.njit(cache=True, nogil=True)
-def _lower_inverse(L: F64, Li: F64) -> None:
-    """``Li = L^-1`` of a lower triangular ``L`` (forward substitution)."""
-    n = L.shape[0]
-    for j in range(n):
-        for i in range(n):
-            if i < j:
-                Li[i, j] = 0.0
-                continue
-            s = 1.0 if i == j else 0.0
-            for k in range(j, i):
-                s -= L[i, k] * Li[k, j]
-            Li[i, j] = s / L[i, i]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -238,12 +43,12 @@ def _prior_factor(Pb: F64, LP: F64, Pinv: F64) -> None:
     """The prior covariance ``Pb (n, n)``'s Cholesky factor ``LP`` (for its log-determinant) and
     inverse ``Pinv``, from one factorisation."""
     n = Pb.shape[0]
-    Psym = _symmetrised(Pb)
-    if _chol(Psym, LP):
-        _chol_solve(LP, np.eye(n), Pinv)
+    Psym = symmetrised(Pb)
+    if chol(Psym, LP):
+        chol_solve(LP, np.eye(n), Pinv)
     else:  # not positive definite: the inverse of the matrix itself (as np.linalg.inv), and the
-        _solve_sym(Psym, np.eye(n), Pinv)  # factor repaired (repairs of the prior are not
-        _safe_chol(Psym, LP)               # counted, as in the numpy path)
+        solve_sym(Psym, np.eye(n), Pinv)  # factor repaired (repairs of the prior are not
+        safe_chol(Psym, LP)               # counted, as in the numpy path)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -269,7 +74,7 @@ def _slr(b: int, xj: F64, Pj: F64, z: F64, mask: np.ndarray, Rd: F64, dims: np.n
     for i in range(d):
         for k in range(d):
             Pb[i, k] = Pj[dims[i], dims[k]]
-    repaired = _safe_chol(Pb, Lb)
+    repaired = safe_chol(Pb, Lb)
     if first == 1:
         for i in range(d):
             X[0, i] = xj[dims[i]]
@@ -312,7 +117,7 @@ def _slr(b: int, xj: F64, Pj: F64, z: F64, mask: np.ndarray, Rd: F64, dims: np.n
     if not mk.any():
         At[:, :] = 0.0
     elif np.all(np.isfinite(Pxz)):
-        _solve_sym(Pb, Pxz, At)
+        solve_sym(Pb, Pxz, At)
     else:
         At[:, :] = np.nan
     for k in range(m):
@@ -367,8 +172,8 @@ def _information(xb0: F64, Pinv: F64, At: F64, Dinv: F64, nu: F64, dims: np.ndar
             for k in range(m):
                 h += At[i, k] * Dinv[k] * At[j, k]
             Jinf[dims[i], dims[j]] += h
-    repaired = _safe_chol(Jinf, Lj)
-    _lower_inverse(Lj, Li)
+    repaired = safe_chol(Jinf, Lj)
+    lower_inverse(Lj, Li)
     for i in range(n):
         for j in range(n):
             s_ = 0.0
@@ -531,9 +336,7 @@ def _block_rule(blk: Any, alpha: float, beta: float, kappa: float, robust: Any,
     """The box block's state entries ``dims``, its marginal's sigma weights ``Wm, Wc`` (without
     the centre point where the rule gives it no weight) and ``scale``, and the robust rule:
     ``(dims, Wm, Wc, scale, robust_on, c, g)`` (thresholds of a one-entry point)."""
-    from gt3dkit.fusion.ukf import SigmaWeights
-
-    dims = _arg(blk.dims[0], np.int64)
+    dims = contiguous(blk.dims[0], np.int64)
     sw = SigmaWeights(len(dims), alpha, beta, kappa)
     Wm, Wc = sw.Wm, sw.Wc
     if Wm[0] == 0.0 and Wc[0] == 0.0:  # the cubature rule gives the centre no weight
@@ -542,7 +345,7 @@ def _block_rule(blk: Any, alpha: float, beta: float, kappa: float, robust: Any,
     c_thr, g_thr = robust.thresholds(1) if on else (0.0, 0.0)
     if on and not robust.enabled:  # point_weights gives 1 everywhere
         c_thr, g_thr = np.inf, np.inf
-    return dims, _arg(Wm), _arg(Wc), float(np.sqrt(sw.n + sw.lam)), on, float(c_thr), float(g_thr)
+    return dims, contiguous(Wm), contiguous(Wc), float(np.sqrt(sw.n + sw.lam)), on, float(c_thr), float(g_thr)
 
 
 def applies(blocks: list[Any], m: int, robust_blocks: tuple[tuple[slice, int], ...]) -> bool:
@@ -555,19 +358,18 @@ def applies(blocks: list[Any], m: int, robust_blocks: tuple[tuple[slice, int], .
             and all(sl.indices(m) == (0, m, 1) and d == 1 for sl, d in robust_blocks))
 
 
-def box_update(x: F64, P: F64, z: F64, mask: np.ndarray, R_diag: F64, blk: Any, w: Any, iterations: int,
-               x_lin: F64 | None, P_lin: F64 | None, weight0: F64 | None, robust: Any,
+def box_update(x: F64, P: F64, z: F64, mask: np.ndarray, R_diag: F64, blocks: list[Any], w: Any,
+               iterations: int, x_lin: F64 | None, P_lin: F64 | None, weight0: F64 | None, robust: Any,
                robust_blocks: tuple[tuple[slice, int], ...]) -> tuple[F64, F64, dict[str, Any]]:
-    """:func:`gt3dkit.fusion.ukf.ukf_update_information` for the box block alone (see
-    :func:`applies`), compiled; same arguments (``w`` the state's sigma weights: their
-    ``alpha, beta, kappa`` are used for the block's marginal) and the same outputs."""
-    from gt3dkit.threads import run_split
-
+    """:func:`gt3dkit.fusion.ukf.ukf_update_information` for the box block alone (``blocks``: that
+    one block, see :func:`applies`), compiled; same arguments (``w`` the state's sigma weights:
+    their ``alpha, beta, kappa`` are used for the block's marginal) and the same outputs."""
+    blk = blocks[0]
     B, m = z.shape
     n = x.shape[1]
     cams: BoxCameras = blk.compiled
     dims, Wm, Wc, scale, on, c_thr, g_thr = _block_rule(blk, w.alpha, w.beta, w.kappa, robust, robust_blocks)
-    c = _arg
+    c = contiguous
     x, P = c(x), c(P)
     xl = x if x_lin is None or P_lin is None else c(x_lin)
     Pl = P if x_lin is None or P_lin is None else c(P_lin)
@@ -620,8 +422,8 @@ def _predict(x: F64, P: F64, F: F64, Q: F64, x_out: F64, P_out: F64) -> None:
     n = x.shape[0]
     FP = np.empty((n, n))
     Pp = np.empty((n, n))
-    _mm(F, P, FP)
-    _mm(FP, F.T, Pp)
+    matmul(F, P, FP)
+    matmul(FP, F.T, Pp)
     for i in range(n):
         s = 0.0
         for j in range(n):
@@ -667,7 +469,7 @@ def forward(first: np.ndarray, next_row: np.ndarray, run: np.ndarray, t_s: F64, 
                             S[i, j] = P_p[row, i, j] + cov6[row, i, j]
                     if np.all(np.isfinite(S)) and np.all(np.isfinite(e)):
                         Se = np.empty((3, 1))
-                        _solve_sym(S, e.reshape(3, 1), Se)
+                        solve_sym(S, e.reshape(3, 1), Se)
                         d2 = e[0] * Se[0, 0] + e[1] * Se[1, 0] + e[2] * Se[2, 0]
                         if d2 > fade_lim:
                             f = math.sqrt(d2 / 3.0)
@@ -716,8 +518,8 @@ def backward(last: np.ndarray, prev_row: np.ndarray, run: np.ndarray, t_s: F64, 
         GDG = np.empty((n, n))
         while row >= 0 and run[row] and run[nxt]:
             _transition(t_s[nxt] - t_s[row], accel[row], shape[row], A, F, Q)
-            _mm(F, P_s[row], FPt)  # (P F^T)^T = F P (P_s[row] still holds the filtered covariance)
-            _solve_sym(P_p[nxt], FPt, Gt)  # G^T = P_p^-1 (P F^T)^T
+            matmul(F, P_s[row], FPt)  # (P F^T)^T = F P (P_s[row] still holds the filtered covariance)
+            solve_sym(P_p[nxt], FPt, Gt)  # G^T = P_p^-1 (P F^T)^T
             for i in range(n):
                 s = 0.0
                 for j in range(n):
@@ -725,8 +527,8 @@ def backward(last: np.ndarray, prev_row: np.ndarray, run: np.ndarray, t_s: F64, 
                 x_s[row, i] += s
                 for j in range(n):
                     D[i, j] = P_s[nxt, i, j] - P_p[nxt, i, j]
-            _mm(Gt.T, D, GD)
-            _mm(GD, Gt, GDG)
+            matmul(Gt.T, D, GD)
+            matmul(GD, Gt, GDG)
             for i in range(n):
                 for j in range(n):
                     P_s[row, i, j] += 0.5 * (GDG[i, j] + GDG[j, i])
@@ -835,7 +637,7 @@ class LinearisedSearch:
         self.At = np.zeros((R, len(dims), m))
         self.cvec = np.zeros((R, m))
         self.D = np.ones((R, m))
-        c = _arg
+        c = contiguous
         slr_rows(c(sel, np.int64), c(x_lin), c(P_lin), c(model.z), c(model.mask, np.bool_),
                  c(np.broadcast_to(model.var, (R, m))), dims, Wm, Wc, scale, bc.world_from_body, bc.K,
                  bc.dist, bc.R, bc.t, bc.depth_sign, 2, self.mk, self.At, self.cvec, self.D)
@@ -847,8 +649,6 @@ class LinearisedSearch:
     def logliks(self, accel_sd: list[float], shape_sd: list[float]) -> list[float]:
         """The forward pass's log-likelihood at each ``(accel_sd, shape_sd)`` pair (the pairs
         split over threads)."""
-        from gt3dkit.threads import run_split
-
         out = [0.0] * len(accel_sd)
         nr, run, t_s, x0, P0 = self.args
 
@@ -866,9 +666,6 @@ def run_boxes(model: Any, init: Any, cfg: Any, fps: float, collect: bool, fade: 
               on: np.ndarray | None, noise_rows: dict[str, F64] | None) -> tuple[F64, F64, dict[str, Any]]:
     """:func:`gt3dkit.fusion.ukf_smoother.run_filter` of a boxes-only model (see
     :func:`applies_to_model`), compiled: same arguments, same outputs."""
-    from gt3dkit.fusion.robust import chi2_isf
-    from gt3dkit.threads import run_split
-
     rows, layout = model.rows, model.layout
     if cfg.accel_sd is None or cfg.shape_sd is None:
         raise ValueError("run_filter needs numeric accel_sd and shape_sd")
@@ -879,11 +676,11 @@ def run_boxes(model: Any, init: Any, cfg: Any, fps: float, collect: bool, fade: 
     dims, Wm, Wc, scale, on_r, c_thr, g_thr = _block_rule(
         blk, cfg.alpha, cfg.beta, cfg.kappa, cfg.robust_config if cfg.robust else None, model.robust_blocks)
     per = noise_rows or {}
-    accel = _arg(np.broadcast_to(per.get("accel_sd", cfg.accel_sd), (R,)))
-    shape = _arg(np.broadcast_to(per.get("shape_sd", cfg.shape_sd), (R,)))
+    accel = contiguous(np.broadcast_to(per.get("accel_sd", cfg.accel_sd), (R,)))
+    shape = contiguous(np.broadcast_to(per.get("shape_sd", cfg.shape_sd), (R,)))
     run, first, last, t_s, A = _chains(model, cfg, fps, on)
     O = len(rows.obj_ids)
-    c = _arg
+    c = contiguous
     x_p, P_p = np.zeros((R, n)), np.zeros((R, n, n))
     x_l, P_l = np.zeros((R, n)), np.zeros((R, n, n))
     x_f, P_f = np.zeros((R, n)), np.zeros((R, n, n))
@@ -942,56 +739,3 @@ def applies_to_model(model: Any) -> bool:
     if (lay.n, lay.center, lay.velocity, lay.log_axes) != (9, slice(0, 3), slice(3, 6), slice(6, 9)):
         return False  # the compiled motion model and fading are written for this layout
     return applies(model.blocks(), model.z.shape[1], model.robust_blocks)
-
-
-def _compile_side() -> None:
-    """Compile :func:`rows_update` (the frame-loop path's update) and :func:`linear_forward` (the
-    noise search) by calls on no rows, with the argument types their callers pass."""
-    n, m, C = 9, 8, 2
-    f, b, i8 = np.zeros, np.bool_, np.int64
-    linear_forward(f(0, i8), f(1, i8), f(1, b), f(1), f((1, n)), f((1, n, n)), 1.0, 1.0, f((3, 3)),
-                   f((1, m), b), f((1, 6, m)), f((1, m)), f((1, m)), f((1, m)), f(6, i8))
-    rows_update(f((1, n)), f((1, n, n)), f((1, m)), f((1, m), b), f((1, m)), f((1, m)), f((1, n)),
-                f((1, n, n)), 1, f(6, np.int64), f(12), f(12), 1.0, True, 1.0, 1.0, f((3, 3)), f((C, 3, 3)),
-                f((C, 5)), f((C, 3, 3)), f((C, 3)), f(C), 2, f((1, n)), f((1, n, n)), f((1, 5)), f((1, m)),
-                f((1, m)), f((1, m)), 0, 0)
-
-
-def warm_up() -> float:
-    """Compile (or load from numba's disk cache) every compiled function of the box path by
-    reconstructing a tiny simulated scene; returns the seconds it took. ``make setup`` runs it
-    once, so that a first real run does not spend ~60 s compiling. Two of the functions compile
-    meanwhile in a second process (numba compiles on one core): ~40 s instead of ~65 s here."""
-    import subprocess
-    import sys
-    import tempfile
-    import time
-    from dataclasses import replace
-    from pathlib import Path
-
-    from gt3dkit.fusion import ukf_smoother as us
-    from gt3dkit.fusion.measurement import Model
-    from gt3dkit.io.datasets import load_scene
-    from gt3dkit.sim import simulate, write_scene
-
-    t0 = time.perf_counter()
-    side = subprocess.Popen([sys.executable, "-c", "from gt3dkit.fusion.boxupdate import "
-                             "_compile_side as f; f()"])
-    with tempfile.TemporaryDirectory() as tmp:
-        write_scene(simulate("wildtrack", seed=0, frames=4, people=2, noise_px=1.0), Path(tmp) / "in",
-                    "wildtrack")
-        scene = load_scene(Path(tmp) / "in")
-    est = us.UKFSmoother()
-    pre = est.prepare(scene)  # the per-frame fits (gt3dkit.fusion.boxlm)
-    est.estimate(scene, pre)  # the linearised noise search, forward, backward
-    model = Model.of(pre)
-    cfg = replace(est.config, accel_sd=0.5, shape_sd=0.01)
-    init = us.initial_states(model, cfg)
-    us.run_filter(model, init, cfg, scene.fps)  # forward, backward, the tangent box
-    side.wait()
-    us.run_filter(model, init, cfg, scene.fps, compiled=False)  # rows_update (from the cache by now)
-    return time.perf_counter() - t0
-
-
-if __name__ == "__main__":
-    print(f"gt3dkit: compiled kernels ready ({warm_up():.0f} s)")

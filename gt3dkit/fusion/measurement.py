@@ -19,6 +19,7 @@ from gt3dkit.fusion.prepare import Prepared
 from gt3dkit.fusion.robust import chi2_isf
 from gt3dkit.fusion.rows import Rows
 from gt3dkit.fusion.ukf import Block
+from gt3dkit.geom.boxkernel import BoxCameras
 from gt3dkit.geom.camera import Cams, project_points
 from gt3dkit.types import F64
 
@@ -211,7 +212,6 @@ class Model:
                 want = use.reshape(use.shape[:2] + (1, C, 4)).any(axis=-1)  # cameras with a box
                 return box_model(X[..., :3], X[..., 3:], cams, want).reshape(X.shape[:3] + (C * 4,))
 
-            from gt3dkit.fusion.boxupdate import BoxCameras
 
             out.append(Block(dims, np.arange(C * 4)[None], boxes, masked=True,
                              compiled=BoxCameras.of(cams)))

@@ -31,7 +31,14 @@ import numpy as np
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.boxfit import PERSON_SEMI_AXES_M, BoxFit, fit_boxes
 from gt3dkit.fusion.motion import StateLayout
-from gt3dkit.fusion.robust import RobustConfig, chi2_isf, chi2_median, robust_variance
+from gt3dkit.fusion.robust import (
+    RobustConfig,
+    chi2_isf,
+    chi2_median,
+    deleted_score2,
+    point_weights,
+    robust_variance,
+)
 from gt3dkit.fusion.rows import Rows, build_rows
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.triangulate import normalized_points, robust_triangulate, triangulation_cov
@@ -292,7 +299,6 @@ def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
                      ) -> tuple[BoxFit, np.ndarray, F64, ShapePrior, dict[str, Any]]:
     """Per-frame box fits weighted by per-edge noise; edges rejected by their leave-one-out
     score; shape prior for weakly seen object-frames."""
-    from gt3dkit.fusion.robust import deleted_score2, point_weights
 
     keep = rows.box_mask.copy()
     fit = fit_boxes(rows.box_z, keep, cams)

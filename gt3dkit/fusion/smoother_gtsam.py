@@ -46,6 +46,7 @@ from gt3dkit.fusion.prepare import (
     never_seen,
     prepare,
 )
+from gt3dkit.geom.boxkernel import EVERY_CAMERA, BoxCameras, kernel
 from gt3dkit.geom.camera import apply_K
 from gt3dkit.geom.triangulate import normalized_points
 from gt3dkit.types import F64, Scene, TrackSet
@@ -236,7 +237,6 @@ class GTSAMSmoother:
                                  float(dt), q, cams.up if ch == "c" else None,
                                  cfg.vertical_ratio))
         if use_box:
-            from gt3dkit.fusion.boxupdate import BoxCameras
 
             bc = BoxCameras.of(cams)
             for k, r in enumerate(mine):
@@ -353,10 +353,9 @@ def _cv_factor(gtsam: Any, keys: list[int], dt: float, accel_sd: float, up: F64 
 
 def _box_error(bc: Any, z: F64, m: np.ndarray, C: int) -> Any:
     """Error function of a box factor on (centre Point3, log semi-axes Vector3); ``bc`` the
-    cameras as :class:`gt3dkit.fusion.boxupdate.BoxCameras` (the compiled tangent box is called
+    cameras as :class:`gt3dkit.geom.boxkernel.BoxCameras` (the compiled tangent box is called
     directly: GTSAM calls this ~10 000 times per 1 000 object-frames, and the general entry
     point's argument checks were 2/3 of its time)."""
-    from gt3dkit.geom.boxkernel import _EVERY, kernel
 
     eps = np.array([1e-6] * 6)
     steps = np.concatenate([np.zeros((1, 6)), np.diag(eps), -np.diag(eps)])  # the point, then +-eps
@@ -365,7 +364,7 @@ def _box_error(bc: Any, z: F64, m: np.ndarray, C: int) -> Any:
     def predict(p: F64) -> F64:
         q = p.reshape(-1, 6)
         box, margin = np.empty((len(q), C, 4)), np.empty((len(q), C))
-        kernel(np.ascontiguousarray(q[:, :3]), np.exp(q[:, 3:]), *cam, 2, _EVERY, box, margin)
+        kernel(np.ascontiguousarray(q[:, :3]), np.exp(q[:, 3:]), *cam, 2, EVERY_CAMERA, box, margin)
         return box.reshape(p.shape[:-1] + (C * 4,))[..., m]
 
     def error(this: Any, v: Any, H: Any) -> F64:

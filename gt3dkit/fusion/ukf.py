@@ -325,12 +325,6 @@ def ukf_update_information(
     B, m = z.shape
     n = x.shape[1]
     blocks = [whole_state_block(n, m, h)] if callable(h) else list(h)
-    if blocks and blocks[0].compiled is not None:
-        from gt3dkit.fusion import boxupdate
-
-        if boxupdate.applies(blocks, m, robust_blocks if robust is not None else ()):
-            return boxupdate.box_update(x, P, z, mask, R_diag, blocks[0], w, iterations, x_lin, P_lin,
-                                        weight0, robust, robust_blocks)
     R_b = np.broadcast_to(np.asarray(R_diag, dtype=np.float64), (B, m))
     Pinv = np.linalg.inv(0.5 * (P + np.swapaxes(P, -1, -2)))
     xj, Pj = (x, P) if x_lin is None or P_lin is None else (x_lin, P_lin)

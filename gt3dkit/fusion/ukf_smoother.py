@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from gt3dkit.fusion.boxupdate import LinearisedSearch, applies, applies_to_model, box_update, run_boxes
 from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.prepare import (
     Prepared,
@@ -55,6 +56,7 @@ from gt3dkit.fusion.prepare import (
 )
 from gt3dkit.fusion.robust import RobustConfig, point_weights
 from gt3dkit.fusion.rows import replicate_rows
+from gt3dkit.fusion.split import split_entries, split_joints
 from gt3dkit.fusion.ukf import SigmaWeights, predict_linear, rts_step, ukf_update_information
 from gt3dkit.skeletons import Skeleton
 from gt3dkit.types import F64, Downweighted, Scene, TrackSet
@@ -429,9 +431,7 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
                     f"{SEARCH_OBJECT_FRAMES} object-frames: two noise levels need no more"}
     searching = (cfg.accel_sd is None or cfg.shape_sd is None or (use_kpt and cfg.joint_accel_sd is None))
     linear = searching and cfg.search_linearised and use_box and not use_kpt
-    if linear:  # boxes only (numba's import is not paid by keypoint runs)
-        from gt3dkit.fusion.boxupdate import applies_to_model
-
+    if linear:  # boxes only
         linear = applies_to_model(model)
     if searching and (cfg.robust or linear):
         # every point judged against the provisional *smoothed* estimate, as the second pass
@@ -446,12 +446,9 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
                                  + (" and the boxes' linearisation" if linear else "")}
     lin = None
     if linear:
-        from gt3dkit.fusion.boxupdate import LinearisedSearch
-
         lin = LinearisedSearch(model, init, start, fps, x_prov, P_prov, weights, on)
     search_model = replace(model, weight0=weights)  # one pass each: no reweighting
     sel = np.flatnonzero(on) if on is not None else np.arange(len(model.rows))
-    from gt3dkit.fusion.split import split_entries
 
     J = model.layout.n_joints
     # covariance entries per row (joints run as separate small filters: run_filter)
@@ -636,15 +633,12 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
     result, faster); False runs the whole state (the reference the tests hold it to).
     ``compiled``: a boxes-only model runs as one compiled loop
     (:func:`gt3dkit.fusion.boxupdate.run_boxes`); False runs this loop over frames (the reference)."""
-    if compiled and model.use_box and not model.layout.n_joints:  # (keypoint runs skip numba's import)
-        from gt3dkit.fusion import boxupdate
-
-        if boxupdate.applies_to_model(model):
-            x_s, P_s, info = boxupdate.run_boxes(model, init, cfg, fps, collect, fade, on, noise_rows)
+    if compiled and model.use_box and not model.layout.n_joints:
+        if applies_to_model(model):
+            x_s, P_s, info = run_boxes(model, init, cfg, fps, collect, fade, on, noise_rows)
             return x_s, P_s, _with_totals(info)
     if split and model.layout.n_joints > 1 and model.bones is None:
         # no bones: the joints are independent filters, run as one batch of small ones
-        from gt3dkit.fusion.split import split_joints
 
         sub, x0, P0, sp = split_joints(model, init.x0, init.P0)
         return sp.merge(*run_filter(sub, Init(x0, P0), cfg, fps, collect, fade,
@@ -695,6 +689,9 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
         return F[inv.reshape(-1)], Q[inv.reshape(-1)]
 
     blocks = model.blocks()
+    # the update, chosen once: the box block alone runs compiled (gt3dkit.fusion.boxupdate)
+    update = box_update if applies(blocks, m, model.robust_blocks if robust is not None else ()) \
+        else ukf_update_information
     per_row = {k: np.zeros(R) for k in ("nis_rows", "dof_rows", "loglik_rows")}
     repaired = 0
     faded = 0
@@ -724,7 +721,7 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
                     P_p[ro[hit]] = sc[hit, :, None] * P_p[ro[hit]] * sc[hit, None, :]
                     faded += int(hit.sum())
         xl, Pl = model.linearisation_point(r, x_p[r], P_p[r])
-        x_f[r], P_f[r], inf = ukf_update_information(
+        x_f[r], P_f[r], inf = update(
             x_p[r], P_p[r], model.z[r], model.mask[r], model.var[r], blocks, w,
             cfg.iterations, xl, Pl, weight0=model.weight0[r], robust=robust,
             robust_blocks=model.robust_blocks)

@@ -17,12 +17,17 @@ skew, the value at the tangent angle with skew only, Newton steps with distortio
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numba
 import numpy as np
 
+from gt3dkit.geom.kernel_cache import drop_stale
+from gt3dkit.threads import run_split
 from gt3dkit.types import F64
+
+drop_stale()  # before any compiled function below is called (and its cache read)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -286,7 +291,7 @@ def kernel(center: F64, axes: F64, Rb: F64, K: F64, dist: F64, R: F64, t: F64, d
 #: pairs per thread below which a call is not split (a thread hand-off costs ~20 us; a pair
 #: ~0.3 us)
 MIN_PAIRS_PER_THREAD = 256
-_EVERY = np.ones((1, 1), dtype=np.bool_)
+EVERY_CAMERA = np.ones((1, 1), dtype=np.bool_)
 
 
 def boxes_compiled(center_world: F64, semi_axes: F64, world_from_body: F64, K: F64, dist: F64,
@@ -297,7 +302,6 @@ def boxes_compiled(center_world: F64, semi_axes: F64, world_from_body: F64, K: F
     caches it on disk). ``want`` (broadcastable to ``(..., C)``): the pairs whose box is needed
     (the others are NaN; the margin is computed for every pair). Large calls are split over
     threads (:func:`gt3dkit.threads.run_split`)."""
-    from gt3dkit.threads import run_split
 
     c, s = np.broadcast_arrays(np.asarray(center_world, dtype=np.float64),
                                np.asarray(semi_axes, dtype=np.float64))
@@ -312,13 +316,13 @@ def boxes_compiled(center_world: F64, semi_axes: F64, world_from_body: F64, K: F
     cf = arr(c.reshape(-1, 3))
     sf = arr(s.reshape(-1, 3))
     N = cf.shape[0]
-    wf = _EVERY if want is None else arr(np.broadcast_to(np.asarray(want, dtype=np.bool_),
+    wf = EVERY_CAMERA if want is None else arr(np.broadcast_to(np.asarray(want, dtype=np.bool_),
                                                          lead + (C,)).reshape(N, C), np.bool_)
     box = np.empty((N, C, 4))
     margin = np.empty((N, C))
     ds = arr(np.broadcast_to(np.asarray(depth_sign, dtype=np.float64), (C,)))
     cam = [arr(a) for a in (world_from_body, K, dist, R, t)]
-    every = wf is _EVERY
+    every = wf is EVERY_CAMERA
 
     def part(a: int, b: int) -> None:
         kernel(cf[a:b], sf[a:b], *cam, ds, int(newton_steps), wf if every else wf[a:b], box[a:b],
@@ -330,3 +334,28 @@ def boxes_compiled(center_world: F64, semi_axes: F64, world_from_body: F64, K: F
     else:
         run_split(part, N, per)
     return box.reshape(lead + (C, 4)), margin.reshape(lead + (C,))
+
+
+def contiguous(a: Any, dtype: Any = np.float64) -> np.ndarray:
+    """``a`` as a C-contiguous, writable array of ``dtype``: numba compiles a function once per
+    argument type, and a read-only array (a broadcast view) is another type."""
+    return np.require(a, dtype=dtype, requirements=["C", "W"])
+
+
+@dataclass(frozen=True)
+class BoxCameras:
+    """The camera arrays the compiled tangent box needs (contiguous float64)."""
+
+    world_from_body: F64
+    K: F64
+    dist: F64
+    R: F64
+    t: F64
+    depth_sign: F64
+
+    @classmethod
+    def of(cls, cams: Any) -> BoxCameras:
+        C = len(cams.K)
+        return cls(contiguous(cams.world_from_body), contiguous(cams.K), contiguous(cams.dist),
+                   contiguous(cams.R), contiguous(cams.t),
+                   contiguous(np.broadcast_to(np.asarray(cams.depth_sign, dtype=np.float64), (C,))))

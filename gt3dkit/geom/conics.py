@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from gt3dkit.geom.boxkernel import boxes_compiled
 from gt3dkit.geom.camera import apply_K, distort
 from gt3dkit.types import F64
 
@@ -91,7 +92,6 @@ def ellipsoid_boxes(
     relative. ``want`` (broadcastable to ``(..., C)``): compute only these pairs' boxes (the
     others are NaN; margins are computed for all).
     """
-    from gt3dkit.geom.boxkernel import boxes_compiled
 
     return boxes_compiled(center_world, semi_axes, world_from_body, K, dist, R, t, depth_sign,
                           newton_steps, want)
@@ -168,3 +168,21 @@ def ellipsoid_boxes_numpy(
     v = value(theta)
     box = v * np.array([-1.0, -1.0, 1.0, 1.0])
     return box, margin
+
+
+def covered_fraction(box: F64, depth: F64, depth_tol_m: float = 0.0) -> F64:
+    """(N, C) fraction of each box covered by nearer boxes in the same camera: the sum over
+    nearer boxes of their overlap (an upper bound of the union), capped at 1. box (N, C, 4)
+    px of the N objects of one frame, depth (N, C) distance to the camera (m, NaN unknown);
+    objects less than ``depth_tol_m`` farther count as nearer (estimated depths are uncertain
+    and bodies have thickness)."""
+    x0 = np.maximum(box[:, None, :, 0], box[None, :, :, 0])
+    y0 = np.maximum(box[:, None, :, 1], box[None, :, :, 1])
+    x1 = np.minimum(box[:, None, :, 2], box[None, :, :, 2])
+    y1 = np.minimum(box[:, None, :, 3], box[None, :, :, 3])
+    inter = np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)  # (N, N, C)
+    area = np.maximum((box[..., 2] - box[..., 0]) * (box[..., 3] - box[..., 1]), 1e-9)
+    nearer = depth[None, :, :] < depth[:, None, :] + depth_tol_m  # [i, k]: k is nearer than i
+    nearer &= ~np.eye(len(box), dtype=bool)[:, :, None]
+    inter = np.where(nearer & np.isfinite(inter), inter, 0.0)
+    return np.minimum(inter.sum(axis=1) / area, 1.0)

@@ -10,16 +10,19 @@ from typing import Any
 
 import numpy as np
 
-from gt3dkit import __version__
+from gt3dkit.calib.formats import write_calibration
+from gt3dkit.calib.formats.native import write as write_native
 from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import write_dir_atomically
-from gt3dkit.io.datasets.common import iter_csv_rows, parse_float, parse_frame, parse_int, parse_metres
+from gt3dkit.parse import iter_csv_rows, parse_float, parse_frame, parse_int, parse_metres
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import Scene, TrackSet
+from gt3dkit.version import __version__
 
 TRACK_COLUMNS = ("frame", "id", "x", "y", "z", "a", "b", "c", "sx", "sy", "sz")
 KPT_COLUMNS = ("frame", "id", "joint", "x", "y", "z", "sd")
 DOWNWEIGHTED_COLUMNS = ("frame", "camera", "id", "joint", "edge", "weight", "residual_px", "score")
+ANOMALY_COLUMNS = ("frame", "camera", "id", "joint", "kind", "score", "detail")
 EDGE_NAMES = ("xmin", "ymin", "xmax", "ymax")
 
 
@@ -135,11 +138,10 @@ def check_tracks(tracks: TrackSet) -> None:
 
 def write_anomalies_csv(path: Path, anomalies: Any) -> None:
     """``frame,camera,id,joint,kind,score,detail`` (see :mod:`gt3dkit.qa.anomalies`)."""
-    from gt3dkit.qa.anomalies import COLUMNS
 
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(COLUMNS)
+        w.writerow(ANOMALY_COLUMNS)
         w.writerows(anomalies.rows)
 
 
@@ -229,8 +231,6 @@ def read_keypoints_csv(path: Path, tracks: TrackSet, n_joints: int) -> TrackSet:
 def write_refined_calibration(out: Path, scene: Scene, result: Any, fmt: str | None = None) -> None:
     """``OUT/cameras.json`` (the refined rig, with the scene's fps), ``OUT/calib_report.json`` and,
     with ``fmt``, ``OUT/calibration/`` in that format (all or nothing)."""
-    from gt3dkit.calib.formats import write_calibration
-    from gt3dkit.calib.formats.native import write as write_native
 
     def write(tmp: Path) -> None:
         write_native(result.rig, tmp / "cameras.json", fps=scene.fps)

@@ -28,9 +28,10 @@ from typing import Any
 import numpy as np
 
 from gt3dkit.arrays import lookup_rows
+from gt3dkit.geom.camera import project_points
+from gt3dkit.geom.conics import covered_fraction, ellipsoid_boxes
+from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import F64, Scene, TrackSet
-
-COLUMNS = ("frame", "camera", "id", "joint", "kind", "score", "detail")
 
 
 @dataclass(frozen=True)
@@ -83,8 +84,6 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | Non
                    jumps: list[tuple[int, float, int, int]] | None = None) -> Anomalies:
     """Every flagged annotation of ``scene`` against ``tracks`` (see the module docstring);
     ``jumps`` = :func:`identity_jumps` if already found."""
-    from gt3dkit.geom.camera import project_points
-    from gt3dkit.geom.conics import ellipsoid_boxes
 
     cfg = cfg or QAConfig()
     rows, cams = pre.rows, pre.cams
@@ -188,7 +187,6 @@ def _identity_jumps(pre: Any, cfg: QAConfig, out: list, frame_of: np.ndarray, id
 def _keypoints(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, r_of: np.ndarray,
                have: np.ndarray, jumped: np.ndarray, frame_of: np.ndarray, id_of: np.ndarray,
                out: list, project_points: Any) -> None:
-    from gt3dkit.skeletons import SKELETONS
 
     rows, cams = pre.rows, pre.cams
     names = scene.rig.names
@@ -247,24 +245,6 @@ def _world_frame(scene: Scene, tracks: TrackSet, cfg: QAConfig, out: list) -> No
                         "over its frames)"))
 
 
-def covered_fraction(box: F64, depth: F64, depth_tol_m: float = 0.0) -> F64:
-    """(N, C) fraction of each box covered by nearer boxes in the same camera: the sum over
-    nearer boxes of their overlap (an upper bound of the union), capped at 1. box (N, C, 4)
-    px of the N objects of one frame, depth (N, C) distance to the camera (m, NaN unknown);
-    objects less than ``depth_tol_m`` farther count as nearer (estimated depths are uncertain
-    and bodies have thickness)."""
-    x0 = np.maximum(box[:, None, :, 0], box[None, :, :, 0])
-    y0 = np.maximum(box[:, None, :, 1], box[None, :, :, 1])
-    x1 = np.minimum(box[:, None, :, 2], box[None, :, :, 2])
-    y1 = np.minimum(box[:, None, :, 3], box[None, :, :, 3])
-    inter = np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)  # (N, N, C)
-    area = np.maximum((box[..., 2] - box[..., 0]) * (box[..., 3] - box[..., 1]), 1e-9)
-    nearer = depth[None, :, :] < depth[:, None, :] + depth_tol_m  # [i, k]: k is nearer than i
-    nearer &= ~np.eye(len(box), dtype=bool)[:, :, None]
-    inter = np.where(nearer & np.isfinite(inter), inter, 0.0)
-    return np.minimum(inter.sum(axis=1) / area, 1.0)
-
-
 def _missing_views(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, out: list,
                    jumped: np.ndarray, r_of: np.ndarray, box: F64, margin: F64) -> None:
     """``jumped`` (R,): object-frames flagged as identity jumps (their annotations are someone
@@ -316,8 +296,6 @@ def offset_residuals(tracks: TrackSet, pre: Any, max_shift: int) -> tuple[np.nda
     """Per camera and shift s in -max_shift..max_shift frames, the median residual (px) of
     that camera's annotations against the estimate ``s`` frame steps later: (shifts,
     (C, S) medians, NaN where too few pairs)."""
-    from gt3dkit.geom.camera import project_points
-    from gt3dkit.geom.conics import ellipsoid_boxes
 
     rows, cams = pre.rows, pre.cams
     C = len(cams.K)

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import F64, Scene, TrackSet
 from gt3dkit.viz.render3d import Drawing, View, render, unit_sphere
 
@@ -36,7 +37,6 @@ def overview_drawing(scene: Scene, tracks: TrackSet, frame: int, tracks_b: Track
     """The drawing, a view that frames the cameras and the tracks from above and behind (or,
     ``close_up``, the objects at ``frame`` only), and the cameras' centres (C, 3).
     ``tracks_b``: a second estimate whose paths are drawn black (a comparison)."""
-    from gt3dkit.skeletons import SKELETONS
 
     rig = scene.rig
     up, wfb = rig.up, rig.world_from_body()

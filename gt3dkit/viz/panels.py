@@ -13,6 +13,10 @@ from typing import Any
 
 import numpy as np
 
+from gt3dkit.geom.camera import project_points
+from gt3dkit.geom.conics import ellipsoid_boxes
+from gt3dkit.qa.anomalies import track_row_of
+from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import F64, I64, Scene, TrackSet
 from gt3dkit.viz.overview import colour_of
 
@@ -54,9 +58,6 @@ class ViewResiduals:
 
 
 def view_residuals(tracks: TrackSet, pre: Any) -> ViewResiduals:
-    from gt3dkit.geom.camera import project_points
-    from gt3dkit.geom.conics import ellipsoid_boxes
-    from gt3dkit.qa.anomalies import track_row_of
 
     rows, cams = pre.rows, pre.cams
     r_of = track_row_of(tracks, rows)
@@ -166,7 +167,6 @@ def draw_view(ax: Any, scene: Scene, res: ViewResiduals, cam: int, sel: np.ndarr
 
 
 def _bones(scene: Scene) -> list[tuple[int, int]] | None:
-    from gt3dkit.skeletons import SKELETONS
 
     return [(int(a), int(b)) for a, b in SKELETONS[scene.skeleton].bones] if scene.skeleton else None
 

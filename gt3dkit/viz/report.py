@@ -22,9 +22,25 @@ from typing import Any
 
 import numpy as np
 
+from gt3dkit.api import Run, load_run
 from gt3dkit.errors import InputError
-from gt3dkit.io.results import Run, load_run
+from gt3dkit.eval.metrics import match_rows
+from gt3dkit.fusion.prepare import prepare
+from gt3dkit.io.atomic import write_dir_atomically
+from gt3dkit.parse import read_csv_rows
+from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import Scene, TrackSet
+from gt3dkit.viz.overview import colour_of, write_overview
+from gt3dkit.viz.panels import (
+    ANNOTATION_NOTE,
+    _plt,
+    anomaly_thumbnail,
+    residual_histograms,
+    track_plots,
+    view_residuals,
+    worst_frames,
+)
+from gt3dkit.viz.render3d import RenderError
 
 #: anomaly rows shown with a picture (the highest scores); the table lists up to MAX_ROWS
 MAX_PICTURES = 60
@@ -119,7 +135,6 @@ def _calibration(run: Run) -> str:
 
 
 def _anomaly_section(run: Run, res: Any, folder: Path) -> str:
-    from gt3dkit.viz.panels import anomaly_thumbnail
 
     rows = run.anomalies
     if not (run.out / "anomalies.csv").is_file():
@@ -162,13 +177,11 @@ def _anomaly_section(run: Run, res: Any, folder: Path) -> str:
 
 
 def _annotation_note() -> str:
-    from gt3dkit.viz.panels import ANNOTATION_NOTE
 
     return ANNOTATION_NOTE
 
 
 def _joint_names(scene: Scene) -> tuple[str, ...]:
-    from gt3dkit.skeletons import SKELETONS
 
     return SKELETONS[scene.skeleton].joints if scene.skeleton else ()
 
@@ -188,10 +201,6 @@ def run_sections(run: Run, tmp: Path, prefix: str = "", tracks_b: TrackSet | Non
                  title_b: str = "") -> tuple[list[str], list[str]]:
     """The HTML sections of one run's report written into ``tmp`` (PNG names start with
     ``prefix``); returns (sections, warnings)."""
-    from gt3dkit.fusion.prepare import prepare
-    from gt3dkit.viz.overview import write_overview
-    from gt3dkit.viz.panels import residual_histograms, track_plots, view_residuals, worst_frames
-    from gt3dkit.viz.render3d import RenderError
 
     sc, tr = run.scene, run.tracks
     pre = prepare(sc)
@@ -238,7 +247,6 @@ def _page(title: str, parts: list[str]) -> str:
 def write_report(out: Path) -> tuple[Path, list[str]]:
     """Write ``out/report/`` for a reconstruct or compare output folder (atomically); returns
     the index.html path and warnings (a 3D render that failed)."""
-    from gt3dkit.io.atomic import write_dir_atomically
 
     out = Path(out)
     if not out.is_dir():
@@ -258,8 +266,6 @@ def write_report(out: Path) -> tuple[Path, list[str]]:
 
 
 def _write_compare_report(out: Path) -> tuple[Path, list[str]]:
-    from gt3dkit.io.atomic import write_dir_atomically
-    from gt3dkit.io.datasets.common import read_csv_rows
 
     with open(out / "comparison.csv", newline="", encoding="utf-8") as f:
         header = next(csv.reader(f), [])
@@ -295,8 +301,6 @@ def _write_compare_report(out: Path) -> tuple[Path, list[str]]:
 
 def _side_by_side(runs: dict[str, Run], tmp: Path) -> str:
     """Each estimator's tracks seen from above (ground plane), one panel each."""
-    from gt3dkit.viz.overview import colour_of
-    from gt3dkit.viz.panels import _plt
 
     plt = _plt()
     n = len(runs)
@@ -329,9 +333,6 @@ def _side_by_side(runs: dict[str, Run], tmp: Path) -> str:
 def _disagreement_plot(runs: dict[str, Run], tmp: Path) -> str:
     """Per object over time, the distance between the first estimator and each other one (mean
     joint distance for skeletons, else centre distance)."""
-    from gt3dkit.eval.metrics import match_rows
-    from gt3dkit.viz.overview import colour_of
-    from gt3dkit.viz.panels import _plt
 
     plt = _plt()
     names = list(runs)

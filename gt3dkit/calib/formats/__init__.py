@@ -1,5 +1,5 @@
 """Every calibration format our users have, read into (and written from) one
-:class:`~gt3dkit.calib.model.Rig`.
+:class:`~gt3dkit.rig.Rig`.
 
 =============  ======================================================  =====
 format         files                                                   write
@@ -19,8 +19,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from gt3dkit.calib.model import Rig
+from gt3dkit.calib.formats import colmap, grid, native, opencv, panoptic, toml
+from gt3dkit.calib.formats.grid import LAYOUTS
 from gt3dkit.errors import InputError
+from gt3dkit.rig import Rig
 
 FORMATS = ("native", "grid", "opencv", "toml", "colmap", "panoptic")
 WRITABLE = ("native", "grid", "opencv", "toml", "colmap")
@@ -28,7 +30,6 @@ WRITABLE = ("native", "grid", "opencv", "toml", "colmap")
 
 def detect_format(path: Path) -> str:
     """The calibration format of a file or folder (see the module table)."""
-    from gt3dkit.calib.formats import colmap, grid, opencv
 
     path = Path(path)
     if not path.exists():
@@ -63,7 +64,6 @@ def detect_format(path: Path) -> str:
 
 def read_calibration(path: str | Path, fmt: str | None = None) -> Rig:
     """The rig of a calibration file or folder in any supported format."""
-    from gt3dkit.calib.formats import colmap, grid, native, opencv, panoptic, toml
 
     path = Path(path)
     fmt = fmt or detect_format(path)
@@ -84,8 +84,6 @@ def write_calibration(rig: Rig, path: str | Path, fmt: str = "native") -> Path:
     Left-handed rigs (MultiviewX's Unity export, ``depth_sign = -1``) exist in the native
     format and the WILDTRACK/MultiviewX layout only.
     """
-    from gt3dkit.calib.formats import colmap, grid, native, opencv, toml
-    from gt3dkit.io.datasets.wildtrack import LAYOUTS
 
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)

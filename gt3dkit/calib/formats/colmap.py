@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from gt3dkit.calib.model import Camera, Rig
 from gt3dkit.errors import InputError
+from gt3dkit.rig import Camera, Rig
 
 SUPPORTED = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
 

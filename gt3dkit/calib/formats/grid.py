@@ -4,13 +4,96 @@ read and written."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
+import numpy as np
 
-from gt3dkit.calib.model import Rig
+from gt3dkit.calib.formats.opencv import read_storage
 from gt3dkit.errors import InputError
-from gt3dkit.io.datasets.wildtrack import LAYOUTS, GridLayout, load_camera
+from gt3dkit.parse import sha256
+from gt3dkit.rig import Camera, Rig
+
+
+@dataclass(frozen=True)
+class GridLayout:
+    name: str
+    cameras: tuple[str, ...]
+    intrinsic_dir: str
+    tvec_to_m: float
+    grid_width: int  # cells along x
+    grid_height: int  # cells along y
+    cell_m: float
+    origin_xy_m: tuple[float, float]
+    fps: float
+    truncated_px: bool = False
+    width: int = 1920
+    height: int = 1080
+
+    @property
+    def n_positions(self) -> int:
+        """Cells of the positionID grid (1440 x 480 WILDTRACK, 1000 x 640 MultiviewX)."""
+        return self.grid_width * self.grid_height
+
+    def position_to_xy(self, pos: np.ndarray) -> np.ndarray:
+        """(N,) positionID -> (N, 2) ground x, y in metres."""
+        pos = np.asarray(pos, dtype=np.int64)
+        x = self.origin_xy_m[0] + self.cell_m * (pos % self.grid_width)
+        y = self.origin_xy_m[1] + self.cell_m * (pos // self.grid_width)
+        return np.stack([x, y], axis=-1).astype(np.float64)
+
+    def xy_to_position(self, xy: np.ndarray) -> np.ndarray:
+        ix = np.rint((xy[..., 0] - self.origin_xy_m[0]) / self.cell_m).astype(np.int64)
+        iy = np.rint((xy[..., 1] - self.origin_xy_m[1]) / self.cell_m).astype(np.int64)
+        return iy * self.grid_width + ix
+
+
+WILDTRACK = GridLayout(
+    name="wildtrack",
+    cameras=("CVLab1", "CVLab2", "CVLab3", "CVLab4", "IDIAP1", "IDIAP2", "IDIAP3"),
+    intrinsic_dir="intrinsic_zero", tvec_to_m=0.01, grid_width=480, grid_height=1440, cell_m=0.025,
+    origin_xy_m=(-3.0, -9.0), fps=10.0,
+)
+MULTIVIEWX = GridLayout(
+    name="multiviewx",
+    cameras=("Camera1", "Camera2", "Camera3", "Camera4", "Camera5", "Camera6"),
+    intrinsic_dir="intrinsic", tvec_to_m=1.0, grid_width=1000, grid_height=640, cell_m=0.025,
+    origin_xy_m=(0.0, 0.0), fps=2.0,
+    # MultiviewX's generatePOM.py stores projected box edges with ``astype(int)``, which
+    # truncates towards zero: the edge lies in [v, v+1) (v >= 0), so v + 0.5 is unbiased.
+    truncated_px=True,
+)
+LAYOUTS = {g.name: g for g in (WILDTRACK, MULTIVIEWX)}
+
+
+def load_camera(root: Path, g: GridLayout, name: str, files: dict[str, str]) -> Camera | None:
+    intr = root / "calibrations" / g.intrinsic_dir / f"intr_{name}.xml"
+    extr = root / "calibrations" / "extrinsic" / f"extr_{name}.xml"
+    if not intr.exists() and not extr.exists():
+        return None
+    for p in (intr, extr):
+        if not p.exists():
+            raise InputError(str(p), f"missing calibration file for camera {name}")
+    K, dist = read_storage(intr, ("camera_matrix", "distortion_coefficients"))
+    rvec, tvec = read_storage(extr, ("rvec", "tvec"))
+    if K.shape != (3, 3) or rvec.size != 3 or tvec.size != 3:
+        raise InputError(str(extr), f"camera {name}: expected 3x3 camera_matrix, 3-vector rvec/tvec")
+    R, _ = cv2.Rodrigues(rvec.reshape(3))
+    for p in (intr, extr):
+        files[str(p.relative_to(root))] = sha256(p)
+    t = tvec.reshape(3) * g.tvec_to_m
+    # Chirality: a camera of these ground-plane datasets looks down at the ground, so the
+    # ray through the middle of its bottom image row meets z = 0 in front of it. Where it
+    # only does so for negative depth, the calibration was solved in a left-handed world
+    # (MultiviewX: Unity), and seen points have Z_cam < 0.
+    bottom = np.linalg.solve(K, np.array([K[0, 2], g.height - 1.0, 1.0]))
+    sign = 1.0 if (R.T @ bottom)[2] < 0 else -1.0
+    try:
+        return Camera(name=name, width=g.width, height=g.height, K=K, dist=dist.reshape(-1),
+                      R=R, t=t, depth_sign=sign)
+    except ValueError as e:
+        raise InputError(str(intr), str(e)) from None
 
 
 def layout_of(root: Path) -> GridLayout | None:

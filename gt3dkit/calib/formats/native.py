@@ -14,9 +14,9 @@ from typing import Any
 
 import numpy as np
 
-from gt3dkit.calib.model import Camera, Rig
 from gt3dkit.errors import InputError
-from gt3dkit.io.datasets.common import load_json, parse_float, parse_int
+from gt3dkit.parse import load_json, parse_float, parse_int
+from gt3dkit.rig import Camera, Rig
 from gt3dkit.skeletons import SKELETONS
 
 #: Frame rates accepted in cameras.json and by --fps: one frame per 17 minutes .. 1 MHz.

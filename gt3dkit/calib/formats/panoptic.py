@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from gt3dkit.calib.model import Camera, Rig
 from gt3dkit.errors import InputError
-from gt3dkit.io.datasets.common import read_json_field
+from gt3dkit.parse import read_json_field
+from gt3dkit.rig import Camera, Rig
 
 CM = 0.01
 

@@ -26,8 +26,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from gt3dkit.calib.model import Camera, Rig
 from gt3dkit.errors import InputError
+from gt3dkit.rig import Camera, Rig
 
 _KEYS = ("size", "matrix", "distortions", "rotation", "translation")
 

@@ -8,7 +8,10 @@ from typing import Any
 
 import numpy as np
 
+from gt3dkit.calib.formats import detect_format, read_calibration
 from gt3dkit.errors import InputError
+from gt3dkit.io.datasets import mot, native, openpose, panoptic, tasks, wildtrack
+from gt3dkit.rig import Rig
 from gt3dkit.types import Scene
 
 LAYOUTS = ("native", "wildtrack", "multiviewx", "panoptic", "mot", "openpose", "cvat", "coco")
@@ -48,8 +51,6 @@ def detect_layout(root: Path) -> str:
 def with_calibration(scene: Scene, calib: Path | str) -> Scene:
     """``scene`` with its cameras replaced by those of a calibration file or folder in any
     format (:func:`gt3dkit.calib.formats.read_calibration`), matched by name."""
-    from gt3dkit.calib.formats import detect_format, read_calibration
-    from gt3dkit.calib.model import Rig
 
     rig = read_calibration(calib)
     have = {c.name: c for c in rig.cameras}
@@ -78,18 +79,20 @@ def _calib_digest(calib: Path | str) -> str:
     return h.hexdigest()
 
 
-def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None = None,
+def read_scene(root: Path | str, layout: str | None = None, skeleton: str | None = None,
                fps: float | None = None, calib: Path | str | None = None,
                association: Path | str | None = None, **panoptic_options: Any) -> Scene:
-    """Load any supported input folder (layout detected when not given).
+    """Read any supported input folder (layout detected when not given), as its files say: a
+    layout with ids per camera or none (:data:`ASSOCIATED`) still has them (the cross-camera
+    association is estimation, :func:`gt3dkit.api.load_scene`), and the scene is not checked
+    yet (:func:`checks.check_scene`, after the association).
 
     ``skeleton`` names the joint order of native ``keypoints.csv`` (default: from the
     data); ``fps`` overrides the input's frame rate. ``panoptic_options`` go to
     :func:`gt3dkit.io.datasets.panoptic.load` (``cameras``, ``noise_px``, ``seed``,
     ``min_conf``). ``calib`` replaces the input's cameras by those of a calibration in any
-    format (:func:`with_calibration`). Every scene then goes through :func:`checks.check_scene`.
+    format (:func:`with_calibration`).
     """
-    from gt3dkit.io.datasets import checks, native, panoptic, wildtrack
 
     layout = layout or detect_layout(Path(root))
     if skeleton is not None and layout not in ("native", "openpose", "cvat", "coco"):
@@ -101,15 +104,12 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
         raise InputError("--association", "applies to inputs with per-camera ids or none "
                                           f"({', '.join(ASSOCIATED)}), not {layout}")
     if layout == "mot":
-        from gt3dkit.io.datasets import mot
 
         scene = mot.load(Path(root), calib, fps)
     elif layout == "openpose":
-        from gt3dkit.io.datasets import openpose
 
         scene = openpose.load(Path(root), skeleton, calib, fps)
     elif layout in ("cvat", "coco"):
-        from gt3dkit.io.datasets import tasks
 
         scene = tasks.load(Path(root), layout, skeleton, calib, fps)
     elif layout == "native":
@@ -134,22 +134,4 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     if association is not None:
         opts["association"] = str(Path(association).resolve())
     scene = dataclasses.replace(scene, load_options=opts)
-    if layout in ASSOCIATED:  # ids per camera or none -> global identities, before the checks
-        from gt3dkit.fusion.associate import (
-            apply_association,
-            associate,
-            associate_detections,
-            read_overrides,
-        )
-
-        over = read_overrides(Path(association), scene.rig.names) if association is not None else None
-        per_frame = layout == "openpose" or scene.association == "detections"
-        assoc = (associate_detections if per_frame else associate)(scene, overrides=over)
-        scene = dataclasses.replace(apply_association(scene, assoc), association=assoc)
-        out = sum(1 for r in assoc.rows if r[3] < 0)
-        if out:
-            scene = dataclasses.replace(scene, warnings=(*scene.warnings, f"{out} detections no second view "
-                                                         "confirms left out (association.csv, global id -1)"))
-        if not len(scene.obs):
-            raise InputError(str(root), "no person is seen by two cameras at once (nothing to reconstruct)")
-    return checks.check_scene(scene)
+    return scene

@@ -1,4 +1,4 @@
-"""Checks every loaded scene goes through, whatever its layout (:func:`load_scene` runs them).
+"""Checks every loaded scene goes through, whatever its layout (:func:`gt3dkit.api.load_scene` runs them).
 
 Errors (:class:`InputError`, naming the file and entry): coordinates no image can hold.
 Odd but valid input is kept or dropped as said here, with one ``warning:`` line per kind

@@ -23,8 +23,10 @@ from pathlib import Path
 import numpy as np
 
 from gt3dkit.errors import InputError
+from gt3dkit.io.datasets.checks import check_pixels
 from gt3dkit.io.datasets.common import RowBuilder, load_json, sha256
 from gt3dkit.io.datasets.mot import calibration_beside, match_cameras, natural_key
+from gt3dkit.io.datasets.native import read_kpt_truth
 from gt3dkit.skeletons import DETECTOR_SKELETONS, SKELETONS
 from gt3dkit.types import Scene
 
@@ -133,7 +135,6 @@ def load(
         raise InputError("--skeleton", f"{skeleton} has {SKELETONS[skeleton].n_joints} joints, the files {J}")
     rb = RowBuilder(n_joints=J)
     undetected = 0
-    from gt3dkit.io.datasets.checks import check_pixels
 
     for f, c, i, a, where in dets:
         for j in range(J):
@@ -146,7 +147,6 @@ def load(
     files[f"calibration:{cal.name}"] = sha256(cal) if cal.is_file() else "folder"
     truth = None
     if (root / "truth_keypoints.csv").exists():
-        from gt3dkit.io.datasets.native import read_kpt_truth
 
         files["truth_keypoints.csv"] = sha256(root / "truth_keypoints.csv")
         truth = read_kpt_truth(root / "truth_keypoints.csv", J)

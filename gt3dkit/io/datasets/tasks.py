@@ -29,7 +29,9 @@ from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import check_pixels
 from gt3dkit.io.datasets.common import RowBuilder, load_json, parse_frame, parse_int, sha256
 from gt3dkit.io.datasets.mot import DEFAULT_FPS, calibration_beside, match_cameras, natural_key
-from gt3dkit.skeletons import skeleton_for_names
+from gt3dkit.io.datasets.native import read_kpt_truth
+from gt3dkit.io.datasets.wildtrack import read_truth_csv
+from gt3dkit.skeletons import SKELETONS, _norm_joint, skeleton_for_names
 from gt3dkit.types import Scene
 
 Item = tuple[int, int, int, list[float] | None, dict[str, tuple[float, float, float]], str]
@@ -147,7 +149,6 @@ def _read_coco(path: Path) -> list[Item]:
 def load(root: Path, kind: str, skeleton: str | None = None, calib: Path | str | None = None,
          fps: float | None = None) -> Scene:
     """``kind`` = ``cvat`` or ``coco``."""
-    from gt3dkit.skeletons import SKELETONS
 
     root = Path(root)
     ext = {"cvat": "xml", "coco": "json"}[kind]
@@ -167,7 +168,6 @@ def load(root: Path, kind: str, skeleton: str | None = None, calib: Path | str |
         except ValueError as e:
             raise InputError(str(root / kind), str(e)) from None
         if skeleton is not None:
-            from gt3dkit.skeletons import _norm_joint
 
             ours = [_norm_joint(n) for n in names]
             bad = [n for n, o in zip(names, ours, strict=True) if o not in skel.joints]
@@ -197,11 +197,9 @@ def load(root: Path, kind: str, skeleton: str | None = None, calib: Path | str |
     files[f"calibration:{cal.name}"] = sha256(cal) if cal.is_file() else "folder"
     truth = None
     if (root / "truth.csv").exists():
-        from gt3dkit.io.datasets.wildtrack import read_truth_csv
 
         truth = read_truth_csv(root / "truth.csv", files, root)
     if (root / "truth_keypoints.csv").exists() and skel is not None:
-        from gt3dkit.io.datasets.native import read_kpt_truth
 
         files["truth_keypoints.csv"] = sha256(root / "truth_keypoints.csv")
         truth = read_kpt_truth(root / "truth_keypoints.csv", skel.n_joints)

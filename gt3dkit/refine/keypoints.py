@@ -21,84 +21,20 @@ two cameras stay fixed).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from gt3dkit.calib.model import Camera, Rig
+from gt3dkit.calib.formats.colmap import intrinsics_of, to_reconstruction
 from gt3dkit.errors import InputError
+from gt3dkit.fusion.prepare import prepare
+from gt3dkit.geom.camera import project_points
+from gt3dkit.geom.triangulate import normalized_points, triangulate_weighted
+from gt3dkit.refine.boxes import refine_boxes
+from gt3dkit.refine.common import RefineConfig, RefineResult, align_to, check_enough, pose_change, time_blocks
+from gt3dkit.rig import Camera, Rig
 from gt3dkit.types import F64, Scene
-
-
-@dataclass(frozen=True)
-class RefineConfig:
-    refine_intrinsics: bool = False  # focal length and distortion too (principal point never)
-    folds: int = 2  # time blocks for the held-out check
-    # Held-out reprojection must drop by this fraction in every fold. A refit always lowers it
-    # somewhat by fitting the detector's or the box model's own biases, consistently over
-    # time, so held-out frames do not expose it: from the true calibration of the real
-    # MultiviewX subset, box refinement lowers held-out residuals by 10-35 % while moving the
-    # cameras 2-3 cm / 0.1-0.2 degrees (and the ground error from 10.5 to 17 mm). A camera is
-    # refined only where refining at least halves its held-out error: its input pose is then
-    # clearly inconsistent with the others.
-    min_gain: float = 0.5
-    min_points: int = 15  # observations a camera needs in a fit
-    loss_scale: float = 2.0  # Cauchy scale in units of the keypoint noise
-    max_iterations: int = 100
-
-
-@dataclass
-class RefineResult:
-    rig: Rig
-    report: dict[str, Any] = field(default_factory=dict)
-
-
-# ----------------------------------------------------------------------------- geometry
-
-
-def umeyama(src: F64, dst: F64) -> tuple[float, F64, F64]:
-    """Similarity ``dst ~ s R src + t`` (least squares, Umeyama 1991) of (N, 3) points."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
-    D = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        D[2, 2] = -1
-    R = U @ D @ Vt
-    var = (a**2).sum() / len(src)
-    s = float(np.trace(np.diag(S) @ D) / var) if var > 0 else 1.0
-    return s, R, mu_d - s * R @ mu_s
-
-
-def transform_rig(rig: Rig, s: float, Rw: F64, tw: F64) -> Rig:
-    """The rig in the world ``X' = s Rw X + tw`` (cameras keep their images)."""
-    cams = []
-    for c in rig.cameras:
-        R2 = c.R @ Rw.T
-        cams.append(Camera(c.name, c.width, c.height, c.K, c.dist, R2, s * c.t - R2 @ tw,
-                           c.depth_sign))
-    return Rig(tuple(cams), up=rig.up, frame_name=rig.frame_name)
-
-
-def align_to(rig: Rig, ref: Rig) -> tuple[Rig, dict[str, float]]:
-    """``rig`` moved onto ``ref`` by the similarity that best maps its camera centres."""
-    src = np.array([c.center_world for c in rig.cameras])
-    dst = np.array([c.center_world for c in ref.cameras])
-    s, R, t = umeyama(src, dst)
-    return transform_rig(rig, s, R, t), {"scale": s, "rotation_deg": _angle_deg(R)}
-
-
-def _angle_deg(R: F64) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
-
-
-def pose_change(a: Camera, b: Camera) -> tuple[float, float]:
-    """(centre distance m, rotation angle degrees) between two poses of a camera."""
-    return float(np.linalg.norm(a.center_world - b.center_world)), _angle_deg(a.R @ b.R.T)
-
-
-# ----------------------------------------------------------------------------- keypoints
 
 
 @dataclass(frozen=True)
@@ -139,7 +75,6 @@ def ba_keypoints(rig: Rig, tr: Tracks, variable: np.ndarray, cfg: RefineConfig, 
     """pycolmap bundle adjustment of the cameras ``variable`` (bool per camera) and the points."""
     import pycolmap
 
-    from gt3dkit.calib.formats.colmap import intrinsics_of, to_reconstruction
 
     C = len(rig.cameras)
     kp, idx = [], np.zeros(len(tr.cam), np.int64)
@@ -184,8 +119,6 @@ def ba_keypoints(rig: Rig, tr: Tracks, variable: np.ndarray, cfg: RefineConfig, 
 def keypoint_residuals(rig: Rig, tr: Tracks) -> F64:
     """(M,) reprojection distance (px) of every observation, its point re-triangulated (robust
     DLT over all its views) with ``rig``."""
-    from gt3dkit.geom.camera import project_points
-    from gt3dkit.geom.triangulate import normalized_points, triangulate_weighted
 
     P, C = len(tr.X0), len(rig.cameras)
     uv = np.full((P, C, 2), np.nan)
@@ -201,27 +134,9 @@ def keypoint_residuals(rig: Rig, tr: Tracks) -> F64:
 # ----------------------------------------------------------------------------- the procedure
 
 
-def check_enough(rig: Rig, n_obs: np.ndarray, cfg: RefineConfig, what: str) -> None:
-    """:class:`InputError` when no camera has the observations a held-out check needs."""
-    need = cfg.folds * cfg.min_points
-    if not (n_obs >= need).any():
-        worst = ", ".join(f"{c.name} {int(n)}" for c, n in zip(rig.cameras, n_obs, strict=True))
-        raise InputError("calib refine", f"too few correspondences to refine any camera: {what} per "
-                                         f"camera: {worst} (need {need})")
-
-
-def _blocks(times: np.ndarray, folds: int) -> np.ndarray:
-    """Fold index (0..folds-1) of each time: contiguous blocks of the sorted unique frames."""
-    u = np.unique(times)
-    edges = u[np.linspace(0, len(u), folds + 1).astype(int)[1:-1]]
-    return np.searchsorted(edges, times, side="right")
-
-
 def refine(scene: Scene, cfg: RefineConfig | None = None) -> RefineResult:
     """Refine ``scene``'s rig (see the module docstring); the report says, per camera, the
     held-out reprojection error before/after, the pose change, and why it was (not) refined."""
-    from gt3dkit.fusion.prepare import prepare
-
     cfg = cfg or RefineConfig()
     t0 = time.perf_counter()
     pre = prepare(scene)
@@ -230,14 +145,12 @@ def refine(scene: Scene, cfg: RefineConfig | None = None) -> RefineResult:
     tr = keypoint_tracks(pre)
     if tr is None or len(tr.X0) == 0:
         if pre.use_box:
-            from gt3dkit.calib.refine_boxes import refine_boxes
-
             return refine_boxes(scene, pre, cfg)
         raise InputError(scene.root or "input", "no keypoints seen by two views: nothing to refine")
     sigma = float(np.median(pre.sigma_kpt))
     n_obs = np.bincount(tr.cam, minlength=C)
     check_enough(rig, n_obs, cfg, "keypoints seen with another view")
-    fold = _blocks(tr.time, cfg.folds)
+    fold = time_blocks(tr.time, cfg.folds)
     gains = np.full((cfg.folds, C), -np.inf)
     held = {"input_px": np.zeros((cfg.folds, C)), "refined_px": np.zeros((cfg.folds, C))}
     for f in range(cfg.folds):
@@ -283,11 +196,3 @@ def refine(scene: Scene, cfg: RefineConfig | None = None) -> RefineResult:
     return RefineResult(new, report)
 
 
-def rig_digest(rig: Rig) -> str:
-    """SHA-256 of a rig's cameras.json document (what identifies a calibration in meta.json)."""
-    import hashlib
-    import json
-
-    from gt3dkit.calib.formats.native import cameras_doc
-
-    return hashlib.sha256(json.dumps(cameras_doc(rig, None), sort_keys=True).encode()).hexdigest()

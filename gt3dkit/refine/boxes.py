@@ -7,7 +7,7 @@ degrees and 20 cm, that make the free similarity of the problem well-posed; the 
 aligned back to the input's camera centres), per object-frame a centre, per object its log
 semi-axes (a person keeps their size; started at the robust per-frame fits). Residuals: the
 kept box edges over their noise level.
-Validated like the keypoint refinement (held-out time blocks, :mod:`gt3dkit.calib.refine`).
+Validated like the keypoint refinement (held-out time blocks, :mod:`gt3dkit.refine.keypoints`).
 """
 
 from __future__ import annotations
@@ -20,8 +20,17 @@ from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.spatial.transform import Rotation
 
-from gt3dkit.calib.model import Camera, Rig
 from gt3dkit.geom.conics import ellipsoid_boxes
+from gt3dkit.refine.common import (
+    RefineResult,
+    align_to,
+    check_enough,
+    pose_change,
+    time_blocks,
+    transform_rig,
+    umeyama,
+)
+from gt3dkit.rig import Camera, Rig
 from gt3dkit.types import F64, Scene
 
 PRIOR_ROT_RAD = np.radians(2.0)
@@ -134,8 +143,6 @@ def back_to(new: Rig, ref: Rig, variable: np.ndarray, on_floor: bool) -> Rig:
     else the similarity that best maps the camera centres onto the input's, restricted to the
     floor's plane (a turn about up, a horizontal shift, a scale about the floor's origin)
     where the floor anchored the height and tilt."""
-    from gt3dkit.calib.refine import align_to, transform_rig, umeyama
-
     if (~variable).sum() >= 2:
         return new
     if not on_floor:
@@ -159,8 +166,6 @@ def box_residuals(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, sigma: F64, X0: 
 
 
 def refine_boxes(scene: Scene, pre: Any, cfg: Any) -> Any:
-    from gt3dkit.calib.refine import RefineResult, _blocks, check_enough, pose_change
-
     t0 = time.perf_counter()
     rig, rows, fit = scene.rig, pre.rows, pre.fit
     C = len(rig.cameras)
@@ -178,7 +183,7 @@ def refine_boxes(scene: Scene, pre: Any, cfg: Any) -> Any:
                 if abs(floor_med) < FLOOR_TOL_M else None)
     n_obs = keep.any(axis=2).sum(axis=0)
     check_enough(rig, n_obs, cfg, "boxes of objects seen by two or more cameras")
-    fold = _blocks(rows.frames[rows.row_t[use]], cfg.folds)
+    fold = time_blocks(rows.frames[rows.row_t[use]], cfg.folds)
     gains = np.full((cfg.folds, C), -np.inf)
     held = np.zeros((2, cfg.folds, C))
     for f in range(cfg.folds):

@@ -24,9 +24,13 @@ from typing import Any
 
 import numpy as np
 
+from gt3dkit.api import load_run
 from gt3dkit.errors import InputError
-from gt3dkit.io.results import Result
+from gt3dkit.io.atomic import write_dir_atomically
+from gt3dkit.io.results import Result, read_result
+from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import F64, I64
+from gt3dkit.viz.overview import colour_of
 
 FORMATS = ("c3d", "trc", "json", "rerun")
 
@@ -183,8 +187,6 @@ def write_json(res: Result, path: Path) -> dict[str, Any]:
 def write_rerun(res: Result, path: Path) -> dict[str, Any]:
     import rerun as rr
 
-    from gt3dkit.io.results import load_run
-    from gt3dkit.viz.overview import colour_of
 
     run = load_run(res.out)
     sc, tr = run.scene, run.tracks
@@ -207,7 +209,6 @@ def write_rerun(res: Result, path: Path) -> dict[str, Any]:
                                             camera_xyz=rr.ViewCoordinates.RDF), static=True)
     obs = sc.obs
     names = sc.rig.names
-    from gt3dkit.skeletons import SKELETONS
 
     bones = [(int(a), int(b)) for a, b in SKELETONS[sc.skeleton].bones] if sc.skeleton else []
     frames = np.unique(np.concatenate([tr.frame, obs.frame]))
@@ -267,8 +268,6 @@ def write_rerun(res: Result, path: Path) -> dict[str, Any]:
 def export(out: Path, fmt: str, dest: Path) -> dict[str, Any]:
     """Export the reconstruct output ``out`` as ``fmt`` into the folder ``dest`` (atomically);
     returns what was written (also in ``dest/export.json``)."""
-    from gt3dkit.io.atomic import write_dir_atomically
-    from gt3dkit.io.results import read_result
 
     if fmt not in FORMATS:
         raise InputError("--format", f"unknown format {fmt!r} (known: {', '.join(FORMATS)})")

@@ -1,0 +1,158 @@
+"""Reading fields of text files with one error per bad entry: checksums, JSON documents, CSV rows,
+integers, frames, numbers and world coordinates, each failing with :class:`gt3dkit.errors.InputError`
+naming the file and the entry. Used by every reader (annotations, calibrations, results)."""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import math
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from gt3dkit.errors import InputError
+from gt3dkit.rig import MAX_WORLD_M
+
+
+def sha256(path: Path) -> str:
+    """Hex SHA-256 of a file, or :class:`InputError` if it cannot be read (a folder, no
+    permission)."""
+    h = hashlib.sha256()
+    try:
+        with open(path, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+    except OSError as e:
+        raise InputError(str(path), f"cannot read ({e.strerror})") from None
+    return h.hexdigest()
+
+
+#: Frame numbers are 0 .. FRAME_MAX; ids are integers of magnitude up to ID_MAX (exact in a
+#: float64, so they survive every array and file they pass through).
+FRAME_MAX = 2**31 - 1
+ID_MAX = 2**53
+
+
+def load_json(path: Path) -> Any:
+    """The document in a JSON file, or :class:`InputError` naming the file: unreadable,
+    malformed, truncated or absurdly nested. A UTF-8 byte-order mark is allowed."""
+    try:
+        text = Path(path).read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise InputError(str(path), f"not a UTF-8 text file ({e.reason} at byte {e.start})") from None
+    except OSError as e:
+        raise InputError(str(path), f"cannot read ({e.strerror})") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        raise InputError(str(path), f"malformed JSON ({e})") from None
+    except RecursionError:
+        raise InputError(str(path), "malformed JSON (nested too deeply)") from None
+
+
+def read_json_field(path: Path, key: str, what: str) -> Any:
+    """``json.load(path)[key]``, or :class:`InputError` naming the file (malformed, truncated
+    or without ``key``)."""
+    doc = load_json(path)
+    if not isinstance(doc, dict) or key not in doc:
+        raise InputError(str(path), f"expected {{'{key}': {what}}}")
+    return doc[key]
+
+
+def parse_int(where: str, text: Any, name: str, lo: int = -ID_MAX, hi: int = ID_MAX) -> int:
+    """An integer field (text or JSON value) in ``[lo, hi]``, or :class:`InputError`."""
+    if isinstance(text, bool) or isinstance(text, float) and not text.is_integer():
+        raise InputError(where, f"{name} must be an integer, got {text!r}")
+    try:
+        v = int(text)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(where, f"{name} must be an integer, got {text!r}") from None
+    if not lo <= v <= hi:
+        raise InputError(where, f"{name} {v} is outside {lo}..{hi}")
+    return v
+
+
+def parse_frame(where: str, text: Any) -> int:
+    return parse_int(where, text, "frame", 0, FRAME_MAX)
+
+
+def parse_float(where: str, text: Any, name: str, limit: float = math.inf) -> float:
+    """A finite number field of magnitude up to ``limit``, or :class:`InputError`."""
+    try:
+        v = float(text)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(where, f"{name} must be a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise InputError(where, f"{name} is not finite ({text})")
+    if abs(v) > limit:
+        raise InputError(where, f"{name} {v:g} is beyond {limit:g}")
+    return v
+
+
+def parse_metres(where: str, text: Any, name: str) -> float:
+    """A world coordinate or length (m): finite, within :data:`MAX_WORLD_M`."""
+    return parse_float(where, text, f"{name} (m)", MAX_WORLD_M)
+
+
+def read_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | None = None,
+                  header: bool = True) -> list[tuple[int, dict[str, str]]]:
+    """:func:`iter_csv_rows` as a list."""
+    return list(iter_csv_rows(path, columns, warnings, header))
+
+
+def iter_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | None = None,
+                  header: bool = True) -> Iterator[tuple[int, dict[str, str]]]:
+    """Rows of a CSV whose header starts with ``columns``; (line number, row), one at a time
+    (a bad line 2 is reported before line 2 million is read, and the file is never held whole).
+
+    Every row must have as many fields as the header. Header columns beyond ``columns``
+    are ignored, with a note in ``warnings`` (an error when ``warnings`` is None). A UTF-8
+    byte-order mark (Excel's "CSV UTF-8") is allowed. ``header=False``: a file without a
+    header (MOTChallenge), each row with at least ``len(columns)`` fields, the same number in
+    every row.
+    """
+    where = str(path)
+    reader = None
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            reader = csv.reader(f)
+            if not header:
+                width = None
+                for row in reader:
+                    line = reader.line_num
+                    if not row or all(not x.strip() for x in row):
+                        continue
+                    width = len(row) if width is None else width
+                    if len(row) < len(columns) or len(row) != width:
+                        want = width if len(row) >= len(columns) else len(columns)
+                        raise InputError(f"{path}: line {line}",
+                                         f"expected {want} fields ({','.join(columns)}, ...), got {len(row)}")
+                    yield line, dict(zip(columns, (x.strip() for x in row), strict=False))
+                return
+            header = next(reader, None)
+            if header is None or tuple(h.strip() for h in header[: len(columns)]) != columns:
+                raise InputError(where, f"expected header {','.join(columns)}, got "
+                                        f"{','.join(header) if header else 'an empty file'}")
+            extra = [h.strip() for h in header[len(columns):]]
+            if extra:
+                if warnings is None:
+                    raise InputError(where, f"unexpected columns {extra} after {','.join(columns)}")
+                warnings.append(f"{path}: columns {', '.join(extra)} ignored")
+            for row in reader:
+                line = reader.line_num
+                where = f"{path}: line {line}"
+                if not row or all(not x.strip() for x in row):
+                    continue
+                if len(row) != len(header):
+                    raise InputError(where, f"expected {len(header)} fields (as the header), "
+                                            f"got {len(row)}")
+                yield line, dict(zip(columns, (x.strip() for x in row), strict=False))
+    except UnicodeDecodeError as e:
+        raise InputError(where, f"not a UTF-8 text CSV file ({e.reason} at byte {e.start})") from None
+    except csv.Error as e:
+        line = f": line {reader.line_num}" if reader is not None else ""
+        raise InputError(f"{path}{line}", f"malformed CSV ({e})") from None
+    except OSError as e:
+        raise InputError(str(path), f"cannot read ({e.strerror})") from None

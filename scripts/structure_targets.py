@@ -1,0 +1,248 @@
+"""Issue 21 targets, measured by reading the package with :mod:`ast` (nothing is imported):
+
+    python scripts/structure_targets.py [--list]
+
+* **import loops** between modules and between subpackages, every ``import`` statement of
+  gt3dkit's own modules counted wherever it stands (module level, inside a function, under
+  ``if TYPE_CHECKING``): strongly connected components of the import graph (Tarjan);
+  ``from pkg import mod`` counts as an import of ``pkg.mod``; a subpackage is the first name
+  below ``gt3dkit`` (``fusion``, ``io``, ..., or a top-level module such as ``cli``);
+* **imports inside functions** of gt3dkit's own modules (allowed only for heavy third-party
+  libraries);
+* **parameters**: every function with more than 10 (``self``/``cls`` not counted);
+* **state-index literals** outside ``fusion/motion.py`` (``StateLayout``): in the estimation
+  modules (``fusion/``), an integer literal 3, 6 or 9 used as a bound of a slice, an index, a
+  ``range()`` argument or a comparison operand on a name that holds a state (``x``, ``X``,
+  ``P``, ``x_*``, ``P_*``, ``xb*``, ``Pb*``, ``xj``, ``Pj``, ``dims``, ``i``/``k`` loops over state
+  entries) -- a heuristic: it lists what it counts (``--list``);
+* **cli.py** lines.
+
+Exit status 1 when a target is missed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1] / "gt3dkit"
+STATE_NAMES = ("x", "X", "P", "xj", "Pj", "xl", "Pl", "dims")
+STATE_PREFIXES = ("x_", "P_", "xb", "Pb", "X_s")
+STATE_INTS = {3, 6, 9}
+MAX_PARAMS = 10
+MAX_CLI_LINES = 300
+
+
+def modules(root: Path = ROOT) -> dict[str, Path]:
+    out = {}
+    for p in sorted(root.rglob("*.py")):
+        parts = list(p.relative_to(root.parent).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = p
+    return out
+
+
+def _targets(node: ast.AST, mod: str, is_pkg: bool) -> list[str]:
+    if isinstance(node, ast.Import):
+        return [a.name for a in node.names]
+    if isinstance(node, ast.ImportFrom):
+        if node.level:
+            base = mod.split(".") if is_pkg else mod.split(".")[:-1]
+            base = base[: len(base) - (node.level - 1)]
+            name = ".".join(base + ([node.module] if node.module else []))
+        else:
+            name = node.module or ""
+        return [name] + [f"{name}.{a.name}" for a in node.names]
+    return []
+
+
+class _Imports(ast.NodeVisitor):
+    def __init__(self, mod: str, is_pkg: bool, known: set[str]) -> None:
+        self.mod, self.is_pkg, self.known = mod, is_pkg, known
+        self.depth = 0
+        self.edges: set[str] = set()
+        self.inner: list[tuple[int, str]] = []
+
+    def _func(self, node: ast.AST) -> None:
+        self.depth += 1
+        self.generic_visit(node)
+        self.depth -= 1
+
+    visit_FunctionDef = visit_AsyncFunctionDef = visit_Lambda = _func
+
+    def _imp(self, node: ast.Import | ast.ImportFrom) -> None:
+        own = {t for t in _targets(node, self.mod, self.is_pkg) if t in self.known and t != self.mod}
+        self.edges |= own
+        if own and self.depth:
+            self.inner.append((node.lineno, sorted(own)[0]))
+
+    visit_Import = visit_ImportFrom = _imp
+
+
+def import_graph(mods: dict[str, Path]) -> tuple[dict[str, set[str]], list[tuple[str, int, str]]]:
+    known = set(mods)
+    graph: dict[str, set[str]] = {}
+    inner: list[tuple[str, int, str]] = []
+    for m, p in mods.items():
+        v = _Imports(m, p.name == "__init__.py", known)
+        v.visit(ast.parse(p.read_text(), str(p)))
+        graph[m] = v.edges
+        inner += [(m, ln, t) for ln, t in v.inner]
+    return graph, inner
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one node (Tarjan, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    on: set[str] = set()
+    stack: list[str] = []
+    out: list[list[str]] = []
+    counter = 0
+    nodes = sorted(set(graph) | {t for ts in graph.values() for t in ts})
+    for start in nodes:
+        if start in index:
+            continue
+        work = [(start, iter(sorted(graph.get(start, ()))))]
+        index[start] = low[start] = counter
+        counter += 1
+        stack.append(start)
+        on.add(start)
+        while work:
+            v, it = work[-1]
+            for w in it:
+                if w not in index:
+                    index[w] = low[w] = counter
+                    counter += 1
+                    stack.append(w)
+                    on.add(w)
+                    work.append((w, iter(sorted(graph.get(w, ())))))
+                    break
+                if w in on:
+                    low[v] = min(low[v], index[w])
+            else:
+                work.pop()
+                if work:
+                    low[work[-1][0]] = min(low[work[-1][0]], low[v])
+                if low[v] == index[v]:
+                    comp = []
+                    while True:
+                        w = stack.pop()
+                        on.discard(w)
+                        comp.append(w)
+                        if w == v:
+                            break
+                    if len(comp) > 1:
+                        out.append(sorted(comp))
+    return out
+
+
+def subpackage(mod: str) -> str:
+    parts = mod.split(".")
+    return parts[1] if len(parts) > 1 else parts[0]
+
+
+def long_signatures(mods: dict[str, Path]) -> list[tuple[str, int, str, int]]:
+    out = []
+    for m, p in mods.items():
+        for node in ast.walk(ast.parse(p.read_text())):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                a = node.args
+                names = [x.arg for x in a.posonlyargs + a.args + a.kwonlyargs]
+                names += [x.arg for x in (a.vararg, a.kwarg) if x is not None]
+                names = [n for n in names if n not in ("self", "cls")]
+                if len(names) > MAX_PARAMS:
+                    out.append((m, node.lineno, node.name, len(names)))
+    return out
+
+
+def _is_state(node: ast.AST) -> bool:
+    if isinstance(node, ast.Subscript):
+        node = node.value
+    if isinstance(node, ast.Attribute):
+        node = ast.Name(node.attr)
+    return isinstance(node, ast.Name) and (node.id in STATE_NAMES or node.id.startswith(STATE_PREFIXES))
+
+
+def _int_lits(node: ast.AST) -> list[int]:
+    return [n.value for n in ast.walk(node) if isinstance(n, ast.Constant) and type(n.value) is int
+            and n.value in STATE_INTS]
+
+
+def state_literals(mods: dict[str, Path]) -> list[tuple[str, int, str]]:
+    out = []
+    for m, p in mods.items():
+        if not m.startswith("gt3dkit.fusion.") or m == "gt3dkit.fusion.motion":
+            continue
+        for node in ast.walk(ast.parse(p.read_text())):
+            hit = None
+            if isinstance(node, ast.Subscript) and _is_state(node.value):
+                sl = node.slice
+                for s in (sl.elts if isinstance(sl, ast.Tuple) else [sl]):
+                    if isinstance(s, ast.Slice) and any(b is not None and _int_lits(b)
+                                                        for b in (s.lower, s.upper)):
+                        hit = ast.unparse(node)
+                    elif isinstance(s, ast.Constant | ast.BinOp) and _int_lits(s):
+                        hit = ast.unparse(node)
+            elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
+                  and node.func.id == "range" and node.args and _int_lits(node.args[-1] if len(node.args) < 3
+                                                                         else node.args[1])
+                  and all(isinstance(a, ast.Constant | ast.BinOp) for a in node.args)):
+                hit = ast.unparse(node)
+            elif isinstance(node, ast.Compare) and any(
+                    isinstance(c, ast.Constant) and c.value in STATE_INTS and type(c.value) is int
+                    for c in node.comparators) and isinstance(node.left, ast.Name) \
+                    and node.left.id in ("i", "k", "j"):
+                hit = ast.unparse(node)
+            if hit:
+                out.append((m, node.lineno, hit))
+    return sorted(set(out))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--list", action="store_true", help="list every finding")
+    args = ap.parse_args(argv)
+    mods = modules()
+    graph, inner = import_graph(mods)
+    mod_loops = cycles(graph)
+    sub_graph: dict[str, set[str]] = defaultdict(set)
+    for a, ts in graph.items():
+        for b in ts:
+            if subpackage(a) != subpackage(b):
+                sub_graph[subpackage(a)].add(subpackage(b))
+    sub_loops = cycles(sub_graph)
+    sigs = long_signatures(mods)
+    lits = state_literals(mods)
+    cli_lines = len((ROOT / "cli.py").read_text().splitlines())
+    rows = [
+        ("import loops between modules", sum(len(c) for c in mod_loops), len(mod_loops) == 0),
+        ("import loops between subpackages", sum(len(c) for c in sub_loops), len(sub_loops) == 0),
+        ("imports of gt3dkit inside functions", len(inner), len(inner) == 0),
+        (f"functions over {MAX_PARAMS} parameters", len(sigs), not sigs),
+        ("state-index literals outside StateLayout", len(lits), not lits),
+        (f"cli.py lines (<= {MAX_CLI_LINES})", cli_lines, cli_lines <= MAX_CLI_LINES),
+    ]
+    print(f"package: {ROOT} ({len(mods)} modules)")
+    for what, n, ok in rows:
+        print(f"{what:<45} {n:>5}  {'PASS' if ok else 'FAIL'}")
+    if args.list:
+        for c in mod_loops:
+            print("module loop:", " ".join(c))
+        for c in sub_loops:
+            print("subpackage loop:", " ".join(c))
+        for m, ln, t in inner:
+            print(f"inner import: {m}:{ln} -> {t}")
+        for m, ln, name, k in sigs:
+            print(f"parameters: {m}:{ln} {name} ({k})")
+        for m, ln, s in lits:
+            print(f"state literal: {m}:{ln} {s}")
+    return 0 if all(ok for _, _, ok in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
