@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from gt3dkit.api import load_scene
-from gt3dkit.cli import bundled
+from gt3dkit.commands.common import bundled
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.conics import ellipsoid_boxes, ellipsoid_boxes_numpy
 from gt3dkit.sim import simulate, write_scene
@@ -135,7 +135,7 @@ def stage_seconds(src: Path, out: Path) -> str:
     import io
 
     from gt3dkit.api import reconstruct
-    from gt3dkit.cli import report_truth
+    from gt3dkit.commands.common import report_truth
 
     marks: list[tuple[str, float]] = [("loading", time.perf_counter())]
     scene = load_scene(src)

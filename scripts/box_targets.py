@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from gt3dkit import load_scene, reconstruct
-from gt3dkit.cli import bundled
+from gt3dkit.commands.common import bundled
 from gt3dkit.eval.metrics import box_errors
 from gt3dkit.sim import simulate, write_scene
 

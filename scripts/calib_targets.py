@@ -31,7 +31,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gt3dkit.api import load_scene, reconstruct
-from gt3dkit.cli import bundled
+from gt3dkit.commands.common import bundled
 from gt3dkit.eval.metrics import box_errors
 from gt3dkit.eval.pose import mpjpe_by_id
 from gt3dkit.refine import align_to, pose_change, refine

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from gt3dkit import load_scene, reconstruct
-from gt3dkit.cli import bundled
+from gt3dkit.commands.common import bundled
 from gt3dkit.eval.pose import mpjpe_by_id, score_tracks
 from gt3dkit.sim import simulate_skeletons, write_skeleton_scene
 

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from gt3dkit.api import annotation_qa, load_scene, reconstruct
-from gt3dkit.cli import bundled
+from gt3dkit.commands.common import bundled
 from gt3dkit.eval.metrics import box_errors
 from gt3dkit.qa.inject import move_person, shift_box
 from gt3dkit.sim import Errors, corrupt_keypoints, simulate, write_scene

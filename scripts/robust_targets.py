@@ -31,7 +31,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from gt3dkit import load_scene, reconstruct
-from gt3dkit.cli import bundled
+from gt3dkit.commands.common import bundled
 from gt3dkit.eval.metrics import match_rows
 from gt3dkit.fusion.boxfit import box_model, ground_init
 from gt3dkit.fusion.rows import build_rows

@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 
 from gt3dkit.api import load_scene
-from gt3dkit.cli import bundled
+from gt3dkit.commands.common import bundled
 from gt3dkit.types import Scene
 
 from .scenes import SMALL, written_scene

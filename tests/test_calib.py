@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gt3dkit.calib.formats import detect_format, read_calibration, write_calibration
-from gt3dkit.cli import bundled
+from gt3dkit.commands.common import bundled
 from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import project_points
 from gt3dkit.rig import Camera, Rig
@@ -116,7 +116,7 @@ def test_show_with_annotations_flags_people_under_the_floor(tmp_path, capsys) ->
     """A keypoint scene whose calibration was solved upside down: heads below the floor."""
     from gt3dkit.api import load_scene
     from gt3dkit.calib.formats.native import write
-    from gt3dkit.calib.show import scene_warnings
+    from gt3dkit.refine import scene_warnings
     from gt3dkit.sim import simulate_skeletons, write_skeleton_scene
 
     write_skeleton_scene(simulate_skeletons("native", seed=1, frames=3, people=2, cameras=5), tmp_path / "s",

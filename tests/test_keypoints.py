@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from gt3dkit import load_scene, reconstruct
-from gt3dkit.cli import bundled, main
+from gt3dkit.cli import main
+from gt3dkit.commands.common import bundled
 from gt3dkit.eval.pose import mpjpe_by_id, pose_scores, score_tracks
 from gt3dkit.geom.camera import project_points
 from gt3dkit.geom.triangulate import normalized_points, triangulate_dlt

@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gt3dkit.cli import main, pose_table
+from gt3dkit.cli import main
+from gt3dkit.commands.common import pose_table
 from gt3dkit.eval.pose import PoseScores
 from gt3dkit.io.atomic import MARKER, clean_stale
 from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene

@@ -1,0 +1,276 @@
+"""What the commands share: bundled data, output checks, loading with the CLI's options, tables
+of errors, the progress display, the option types."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import os
+import signal
+import sys
+import threading
+from collections.abc import Callable
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gt3dkit.api import load_scene
+from gt3dkit.errors import InputError
+from gt3dkit.eval.metrics import box_errors, relabel_to_truth
+from gt3dkit.eval.pose import mpjpe_by_id, score_tracks
+from gt3dkit.eval.tracking import tracking_scores
+from gt3dkit.fusion.base import REGISTRY
+from gt3dkit.io.atomic import check_out
+from gt3dkit.io.datasets import detect_layout
+
+#: Published numbers of Ma et al. for the datasets we can compare on.
+PAPER = {"multiviewx": {"MOTA": 96.5, "OSPA2_m": 0.17}, "wildtrack": {"MOTA": 98.7, "OSPA2_m": 0.10},
+         "panoptic": {"MPJPE_mm": (6.1, 14.7)}}
+
+
+def bundled(name: str) -> Path:
+    """Path of a dataset bundled with the package (``gt3dkit/data/<name>``)."""
+    return Path(str(resources.files("gt3dkit") / "data" / name))
+
+
+#: CLI option -> estimator config field (and the value it sets).
+_CONFIG_OPTIONS = {"sigma_px": ("--sigma-px", "sigma_px"), "accel_sd": ("--accel-sd", "accel_sd"),
+                   "no_smooth": ("--no-smooth", "smooth"), "no_bones": ("--no-bones", "bones")}
+
+
+def _estimator_config(args: argparse.Namespace) -> dict[str, Any]:
+    """The estimator's config from the options given; an option the estimator has no use for
+    is an error, never silently ignored."""
+    from importlib import import_module
+
+
+    e = REGISTRY[args.estimator]
+    fields = {f.name for f in dataclasses.fields(getattr(import_module(e.module), e.config))}
+    cfg: dict[str, Any] = {}
+    for attr, (option, name) in _CONFIG_OPTIONS.items():
+        v = getattr(args, attr, None)
+        if v is None or v is False:
+            continue
+        if name not in fields:
+            raise InputError(option, f"does not apply to the {args.estimator} estimator")
+        cfg[name] = (not v) if isinstance(v, bool) else v
+    return cfg
+
+
+def check_out_apart(out: str | Path, inp: str | Path, option: str = "--out", inside_ok: bool = False) -> None:
+    """Refuse an output folder that is, contains or lies inside the input folder: results
+    must never overwrite (or be mistaken for) annotations. ``inside_ok``: a subfolder of the
+    input is fine (a report or an export inside a gt3d output)."""
+    o, i = Path(out).resolve(), Path(inp).resolve()
+    if o == i or o in i.parents or (i in o.parents and not inside_ok):
+        raise InputError(option, f"{out} is, contains or lies inside the input folder {inp}: "
+                                 "choose an output folder apart from the input")
+
+
+def check_output(out: str | Path, inputs: tuple[str | Path, ...] = ()) -> None:
+    """Every check of an output folder that can be made before the work starts."""
+
+    for inp in inputs:
+        check_out_apart(out, inp)
+    check_out(out)
+
+
+def _load(args: argparse.Namespace) -> Any:
+
+    if getattr(args, "out", None) is not None:
+        check_output(args.out, (args.input,))
+    layout = args.layout or detect_layout(Path(args.input))
+    opts: dict[str, Any] = {}
+    if layout == "panoptic":
+        if args.cameras is not None:
+            opts["cameras"] = [c.strip() for c in args.cameras.split(",") if c.strip()]
+            if not opts["cameras"]:
+                raise InputError("--cameras", f"no camera names in {args.cameras!r}")
+        opts["noise_px"], opts["seed"] = args.noise_px, args.seed or 0
+    else:
+        for option, v in (("--cameras", args.cameras), ("--noise-px", args.noise_px or None),
+                          ("--seed", args.seed)):
+            if v is not None:
+                raise InputError(option, f"applies to CMU Panoptic inputs only, not {layout}")
+    if getattr(args, "association", None) is not None:
+        opts["association"] = args.association
+    scene = load_scene(Path(args.input), layout, args.skeleton, getattr(args, "fps", None),
+                       calib=getattr(args, "calib", None), **opts)
+    return scene
+
+
+def print_warnings(scene: Any) -> None:
+    """The input's ``warning:`` lines, printed once the run succeeded (a failed run prints its
+    one ``error:`` line only)."""
+    for w in scene.all_warnings:
+        print(f"warning: {w}", file=sys.stderr)
+
+
+def error_table(rows: list[tuple[str, Any]]) -> str:
+    """Fixed-width table of (estimator, BoxErrors)."""
+    head = (f"{'estimator':<14}{'rows':>6}{'cover%':>8}{'ground mm':>11}{'median mm':>11}"
+            f"{'centre mm':>11}{'height mm':>11}{'radius mm':>11}{'MOTA%':>8}{'IDF1%':>8}")
+    lines = [head, "-" * len(head)]
+    def mm(v: float) -> str:
+        return f"{1000 * v:>11.2f}" if np.isfinite(v) else f"{'-':>11}"
+
+    for name, e in rows:
+        lines.append(f"{name:<14}{e.rows_matched:>6}{100 * e.coverage:>8.1f}"
+                     f"{mm(e.ground_mean_m)}{mm(e.ground_median_m)}{mm(e.centre_mean_m)}"
+                     f"{mm(e.height_mean_m)}{mm(e.radius_mean_m)}{100 * e.mota:>8.1f}"
+                     f"{100 * e.idf1:>8.1f}")
+    return "\n".join(lines)
+
+
+def _num(v: float | None, width: int, digits: int) -> str:
+    """``v`` right-aligned in ``width``, or ``-`` where there is no value (None, NaN)."""
+    return f"{v:>{width}.{digits}f}" if v is not None and np.isfinite(v) else f"{'-':>{width}}"
+
+
+def pose_table(rows: list[tuple[str, Any, float]]) -> str:
+    """Fixed-width table of (name, PoseScores, MPJPE by id in mm)."""
+    head = (f"{'estimator':<26}{'AP@25':>7}{'AP@50':>7}{'AP@100':>8}{'AP@150':>8}"
+            f"{'Rec@500':>9}{'MPJPE mm':>11}{'by id mm':>10}")
+    lines = [head, "-" * len(head)]
+    for name, p, by_id in rows:
+        lines.append(f"{name:<26}{100 * p.ap[25]:>7.1f}{100 * p.ap[50]:>7.1f}"
+                     f"{100 * p.ap[100]:>8.1f}{100 * p.ap[150]:>8.1f}{100 * p.recall_500:>9.1f}"
+                     f"{_num(p.mpjpe_mm, 11, 4)}{_num(by_id, 10, 4)}")
+    return "\n".join(lines)
+
+
+def report_truth(scene: Any, tracks: Any, name: str, max_dist_m: float = 1.0) -> None:
+    """Print errors against the input's truth: boxes/positions and/or keypoints; tracking scores
+    count an estimate within ``max_dist_m`` (ground plane) of a true object as a match."""
+
+    if scene.truth is None:
+        return
+    print(f"against {scene.truth.source}:")
+    if scene.association is not None:
+
+        tracks = relabel_to_truth(tracks, scene.truth, scene.rig.up, max_dist_m)
+        print("(ids are gt3dkit's cross-view association: each matched to its truth id for the errors)")
+    if np.isfinite(scene.truth.center_world).any():
+
+        t = tracking_scores(tracks, scene.truth, scene.rig.up, max_dist_m)
+        print(error_table([(name, box_errors(tracks, scene.truth, scene.rig.up, max_dist_m, mot=t))]))
+        print(f"ground plane, {max_dist_m:g} m: MOTA {100 * t['mota']:.1f}  IDF1 {100 * t['idf1']:.1f}  "
+              f"FP {t['fp']}  FN {t['fn']}  IDs {t['ids']}  HOTA {100 * t['hota']:.1f}  "
+              f"OSPA(2) {t['ospa2_m']:.4f} m")
+    if scene.truth.kpt_world.shape[1] and tracks.kpt_world.shape[1]:
+        sets = [("all joints", None)]
+        if scene.skeleton == "coco19":
+            sets.append(("15 body joints", np.arange(15)))
+        print(pose_table([(f"{name}, {label}", score_tracks(tracks, scene.truth, j),
+                           mpjpe_by_id(tracks, scene.truth, j)[0]) for label, j in sets]))
+
+
+class Stages:
+    """A one-line progress display of a run's stages on stderr (``stage [elapsed] k/n``): only on
+    a terminal, only once the run has taken a second, never with ``--quiet``; erased at the end
+    so that the summary and ``warning:`` lines stay as they are."""
+
+    def __init__(self, total: int, quiet: bool) -> None:
+        import time
+
+        self.total, self.k, self.name = total, 0, ""
+        self.t0 = time.monotonic()
+        self.shown = False
+        self._stop = threading.Event()
+        self.on = not quiet and sys.stderr.isatty()
+        if self.on:
+            threading.Thread(target=self._tick, daemon=True).start()
+
+    def _line(self) -> str:
+        import time
+
+        s = int(time.monotonic() - self.t0)
+        return f"\r{self.name} [{s // 60:02d}:{s % 60:02d}] {self.k}/{self.total}\x1b[K"
+
+    def _tick(self) -> None:
+        while not self._stop.wait(0.5):
+            import time
+
+            if time.monotonic() - self.t0 >= 1.0:
+                with contextlib.suppress(Exception):
+                    sys.stderr.write(self._line())
+                    sys.stderr.flush()
+                    self.shown = True
+
+    def __call__(self, name: str) -> None:
+        self.k, self.name = min(self.k + 1, self.total), name
+
+    def close(self) -> None:
+        self._stop.set()
+        if self.on and self.shown:
+            with contextlib.suppress(Exception):
+                sys.stderr.write("\r\x1b[K")
+                sys.stderr.flush()
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with the one-line ``error: <entry>: <problem>`` (exit 2) of every other error."""
+
+    def error(self, message: str) -> Any:  # type: ignore[override]
+        print(f"error: {self.prog}: {message} (see {self.prog} --help)", file=sys.stderr)
+        raise SystemExit(2)
+
+
+def _number(kind: type, lo: float, hi: float, *, lo_open: bool = False,
+            hi_open: bool = False) -> Callable[[str], Any]:
+    """argparse type: a finite ``kind`` in [lo, hi] (open ends where asked)."""
+    def parse(text: str) -> Any:
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}"
+                                             f", got {text!r}") from None
+        ok = (np.isfinite(v) and (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi))
+        if not ok:
+            raise argparse.ArgumentTypeError(
+                f"must be in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}, got {text}")
+        return v
+    return parse
+
+
+FRACTION = _number(float, 0, 1)
+PIXELS = _number(float, 0, 1000)              # image noise, px
+SIGMA_PX = _number(float, 1e-3, 1000)
+ACCEL = _number(float, 1e-6, 1000)             # m/s^2/sqrt(Hz)
+FPS = _number(float, 1e-3, 1e6)                # one frame per 17 minutes .. 1 MHz
+SEED = _number(int, 0, 2**32 - 1)
+
+
+class Terminated(BaseException):
+    """SIGTERM or SIGHUP, raised where the program is so that clean-ups run."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+#: signals received during this run: an exception raised by a signal handler inside a C
+#: extension's initialisation (numba loading its thread pool) reaches us as an ImportError
+_RECEIVED: list[int] = []
+
+
+def _terminate(signum: int, frame: Any) -> None:
+    _RECEIVED.append(signum)
+    raise Terminated(signum)
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    _RECEIVED.append(signum)
+    raise KeyboardInterrupt
+
+
+def _quiet_stdout() -> None:
+    """After a broken pipe: send what Python still flushes at exit nowhere."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass

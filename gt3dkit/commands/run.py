@@ -1,0 +1,187 @@
+"""``gt3d reconstruct``, ``compare``, ``evaluate``, ``reconstruct-many``, ``associate``, ``report``,
+``export``."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from gt3dkit.api import load_scene, reconstruct
+from gt3dkit.calib.formats.native import cameras_doc
+from gt3dkit.commands.common import (
+    Stages,
+    _estimator_config,
+    _load,
+    _num,
+    check_out_apart,
+    check_output,
+    print_warnings,
+    report_truth,
+)
+from gt3dkit.compare import compare
+from gt3dkit.errors import InputError
+from gt3dkit.export import export
+from gt3dkit.io.atomic import write_dir_atomically
+from gt3dkit.io.results import read_result
+from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv
+from gt3dkit.many import read_manifest, run_many
+from gt3dkit.refine import refine, rig_digest
+from gt3dkit.viz.report import write_report
+
+
+def cmd_reconstruct(args: argparse.Namespace) -> int:
+
+    config = _estimator_config(args)
+    stages = Stages(5, args.quiet)
+    stages("loading")
+    scene = _load(args)
+    extra = None
+    if args.refine_calib:
+
+        res = refine(scene)
+        extra = {"calibration_refinement": {**res.report, "rig_sha256": {
+            "input": rig_digest(scene.rig), "refined": rig_digest(res.rig)},
+            "refined_rig": json.loads(json.dumps(cameras_doc(res.rig, None)))}}
+        scene = dataclasses.replace(scene, rig=res.rig)
+        print(f"calibration refined: {', '.join(res.report['refined_cameras']) or 'no camera'} "
+              f"({res.report['seconds']:.1f} s; meta.json: calibration_refinement)")
+    try:
+        tracks = reconstruct(scene, args.estimator, out=args.out, extra_meta=extra, on_stage=stages,
+                             **config)
+    finally:
+        stages.close()
+    print_warnings(scene)
+    info = tracks.info
+    kinds = " + ".join(k for k, v in (("boxes", scene.obs.has_box.any()),
+                                      (f"{scene.skeleton} keypoints", scene.obs.n_joints > 0)) if v)
+    fps = f"{scene.fps:g} fps" + (" (assumed)" if scene.fps_assumed else "")
+    rob = info.get("robust", {})
+    flagged = (f", {rob['rejected']} measurements rejected and {rob['downweighted']} "
+               f"down-weighted (downweighted.csv)" if rob.get("enabled") else "")
+    qa = info.get("qa", {}).get("anomalies", {})
+    flagged += (", anomalies: " + ", ".join(f"{v} {k}" for k, v in qa.items()) + " (anomalies.csv)"
+                if qa else ", no anomalies")
+    print(f"{scene.layout}: {len(scene.obs)} annotation rows ({kinds}), {len(scene.rig.cameras)} "
+          f"cameras, {fps} -> {len(tracks)} object-frames of {len(set(tracks.track_id.tolist()))} "
+          f"objects ({args.estimator}, {info.get('seconds', 0):.2f} s{flagged}) written to "
+          f"{args.out}")
+    report_truth(scene, tracks, args.estimator)
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+
+    if not Path(args.out).is_dir():
+        raise InputError(str(args.out), "not a folder (expected a gt3d reconstruct output)")
+    if not (Path(args.out) / "tracks.csv").is_file():
+        raise InputError(str(args.out), "no tracks.csv (expected a gt3d reconstruct output)")
+    tracks = read_tracks_csv(Path(args.out) / "tracks.csv")
+    scene = load_scene(Path(args.truth), args.layout)
+    if scene.truth is None:
+        raise InputError(str(args.truth), "this input carries no truth (positions, truth.csv, "
+                                          "truth_keypoints.csv or Panoptic joints)")
+    kp = Path(args.out) / "keypoints.csv"
+    if kp.exists() and scene.obs.n_joints:
+        tracks = read_keypoints_csv(kp, tracks, scene.obs.n_joints)
+    print(f"{args.out} against the truth of {args.truth}:")
+    report_truth(scene, tracks, Path(args.out).name, args.max_dist_m)
+    return 0
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+
+    scene = _load(args)
+    table = compare(scene, Path(args.out), progress=not args.no_progress)
+    print_warnings(scene)
+    print(f"{scene.layout}: {len(scene.obs)} annotation rows -> {args.out}/comparison.csv")
+    names = [r["estimator"] for r in table if "failed" not in r]
+    head = f"{'estimator':<15}{'rows':>6}{'reproj px':>10}{'p95 px':>8}" + "".join(
+        f"{'to ' + n + ' m':>20}" for n in names) + f"{'sec':>8}" + (
+        f"{'truth err m':>13}" if scene.truth is not None else "")
+    print(head)
+    print("-" * len(head))
+    for r in table:
+        if "failed" in r:
+            print(f"{r['estimator']:<15}failed: {r['failed']}")
+            continue
+        line = (f"{r['estimator']:<15}{r['rows']:>6}{_num(r['reproj_mean_px'], 10, 3)}"
+                f"{_num(r['reproj_p95_px'], 8, 3)}")
+        for n in names:
+            v = r.get(f"dist_to_{n}_mean_m")
+            line += _num(v, 20, 5)
+        line += f"{r['seconds']:>8.1f}"
+        if scene.truth is not None:
+            v = r.get("truth_mpjpe_m", r.get("truth_centre_mean_m"))
+            if v is None or not np.isfinite(v):
+                v = r.get("truth_ground_mean_m")
+            line += _num(v, 13, 5)
+        print(line)
+    return 0
+
+
+def cmd_reconstruct_many(args: argparse.Namespace) -> int:
+
+    inputs = read_manifest(Path(args.manifest))
+    rows = run_many(inputs, Path(args.out), args.estimator, args.jobs, args.scheduler, args.report,
+                    progress=not args.quiet)
+    width = max(len(Path(r["input"]).name) for r in rows)
+    for r in rows:
+        print(f"{Path(r['input']).name:<{width}}  {r['status']:<10} {r['seconds']:>8.1f} s  "
+              f"{r['object_frames'] or '':>6} object-frames  {r['error']}")
+    failed = [Path(r["input"]).name for r in rows if r["status"] == "failed"]
+    done = sum(r["status"] == "done" for r in rows)
+    print(f"{len(rows)} sequences: {done} reconstructed, {sum(r['status'] == 'up to date' for r in rows)} up "
+          f"to date, {len(failed)} failed -> {args.out}/summary.csv"
+          + (f", {args.out}/index.html" if args.report else ""))
+    if failed:
+        print(f"error: {len(failed)} sequence{'s' if len(failed) > 1 else ''} failed: {', '.join(failed)} "
+              f"(see {args.out}/summary.csv)", file=sys.stderr)
+        return 1
+    return 0
+
+
+def cmd_associate(args: argparse.Namespace) -> int:
+
+    scene = _load(args)
+    if scene.association is None:
+        raise InputError(args.input, f"{scene.layout}: its ids are already global (nothing to associate)")
+    write_dir_atomically(Path(args.out), lambda tmp: scene.association.write(tmp / "association.csv"))
+    print_warnings(scene)
+    print(f"{scene.layout}: {scene.association.summary()} -> {args.out}/association.csv")
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+
+    out = Path(args.out)
+    if out.is_dir() and (out / "report").exists():
+        check_output(out / "report")
+    index, warnings = write_report(out)
+    for w in warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    n = sum(1 for _ in index.parent.rglob("*.png"))
+    print(f"report: {index} ({n} pictures; open it in a browser)")
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+
+    out = Path(args.out)
+    dest = Path(args.to) if args.to else out / f"export_{args.format}"
+    res = read_result(out)
+    root = ((res.meta.get("input") or {}).get("load") or {}).get("root") or res.meta["input"].get("root")
+    check_out_apart(dest, out, "--to", inside_ok=True)
+    if isinstance(root, str) and root:
+        check_out_apart(dest, root, "--to")
+    check_output(dest)
+    info = export(out, args.format, dest)
+    files = info.get("files") or [info.get("file")]
+    print(f"{args.format}: {', '.join(str(f) for f in files)} in {dest} ({info.get('units', '')}"
+          f"{'; ' + info['world'] if 'world' in info else ''}"
+          f"{'; open with: ' + info['open'] if 'open' in info else ''})")
+    return 0
