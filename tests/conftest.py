@@ -24,6 +24,16 @@ def _one_blas_thread():
         yield
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _compiled_kernels(_one_blas_thread):
+    """Every compiled kernel compiled (or loaded from numba's cache) once, before the first test,
+    not inside whichever test happens to call one first (gt3dkit.commands.warmup; stale caches
+    are dropped by gt3dkit.geom.kernel_cache)."""
+    from gt3dkit.commands.warmup import warm_up
+
+    warm_up()
+
+
 @pytest.fixture(scope="session")
 def multiviewx() -> Scene:
     return load_scene(bundled("multiviewx"))
