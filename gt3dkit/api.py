@@ -82,7 +82,6 @@ def without_identity_jumps(scene: Scene, pre: Any, jumps: list[Any] | None = Non
     """``scene`` without the annotations of object-frames whose views agree on a place the
     object cannot have reached (:func:`gt3dkit.qa.anomalies.identity_jumps`: a swapped or
     mis-keyed id): they belong to someone else, and would bend the track."""
-
     jumps = identity_jumps(pre, scene.fps) if jumps is None else jumps
     if not jumps:
         return scene
@@ -95,7 +94,6 @@ def without_identity_jumps(scene: Scene, pre: Any, jumps: list[Any] | None = Non
 
 def annotation_qa(scene: Scene, tracks: TrackSet) -> Any:
     """Every input annotation scored against ``tracks``: :class:`gt3dkit.qa.anomalies.Anomalies`."""
-
     return find_anomalies(scene, tracks, prepare(scene))
 
 

@@ -13,19 +13,19 @@ from gt3dkit.api import ESTIMATORS
 from gt3dkit.calib.formats import WRITABLE
 from gt3dkit.commands.calib import cmd_calib_refine, cmd_calib_show
 from gt3dkit.commands.common import (
-    _RECEIVED,
     ACCEL,
     FPS,
     FRACTION,
     PIXELS,
+    RECEIVED_SIGNALS,
     SEED,
     SIGMA_PX,
+    Parser,
     Terminated,
-    _interrupt,
-    _number,
-    _Parser,
-    _quiet_stdout,
-    _terminate,
+    number_type,
+    on_interrupt,
+    on_terminate,
+    quiet_stdout,
 )
 from gt3dkit.commands.demo import cmd_demo
 from gt3dkit.commands.run import (
@@ -48,12 +48,11 @@ from gt3dkit.threads import small_matrix_blas
 
 
 def build_parser() -> argparse.ArgumentParser:
-
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--debug", action="store_true",
                         help="show the Python traceback of an unexpected error")
-    p = _Parser(prog="gt3d", description=__doc__, parents=[common])
-    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    p = Parser(prog="gt3d", description=__doc__, parents=[common])
+    sub = p.add_subparsers(dest="command", required=True, parser_class=Parser)
 
     r = sub.add_parser("reconstruct", parents=[common],
                        help="2D boxes from calibrated cameras -> 3D ellipsoid tracks")
@@ -89,7 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--kind", choices=("boxes", "skeleton"), default="boxes")
     s.add_argument("--layout", choices=(*SIM_LAYOUTS, "panoptic"), default="native",
                    help="boxes: native|wildtrack|multiviewx; skeleton: native|panoptic")
-    s.add_argument("--cameras", type=_number(int, 1, 1000),
+    s.add_argument("--cameras", type=number_type(int, 1, 1000),
                    help="cameras (skeleton scenes: HD cameras, default 10; native boxes: 6)")
     s.add_argument("--fps", type=FPS, help="frame rate (skeletons: 30; native boxes: 10)")
     s.add_argument("--motion", choices=("smooth", "walk"),
@@ -107,15 +106,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fraction of people annotated in one camera only")
     s.add_argument("--conf", action="store_true",
                    help="skeletons: write a detector confidence per keypoint")
-    s.add_argument("--missing", type=_number(float, 0, 1, hi_open=True),
+    s.add_argument("--missing", type=number_type(float, 0, 1, hi_open=True),
                    help="skeleton scenes: fraction of 2D points dropped at random (default 0.05)")
     s.add_argument("--skeleton", choices=sorted(SKELETONS), help="skeleton scenes (default coco19)")
     s.add_argument("--out", required=True)
     s.add_argument("--seed", type=SEED, default=0)
-    s.add_argument("--frames", type=_number(int, 1, 10**7), default=40)
-    s.add_argument("--people", type=_number(int, 1, 10**5), default=10)
+    s.add_argument("--frames", type=number_type(int, 1, 10**7), default=40)
+    s.add_argument("--people", type=number_type(int, 1, 10**5), default=10)
     s.add_argument("--noise-px", type=PIXELS, default=0.0)
-    s.add_argument("--dropout", type=_number(float, 0, 1, hi_open=True),
+    s.add_argument("--dropout", type=number_type(float, 0, 1, hi_open=True),
                    help="box scenes: fraction of boxes dropped (default 0.15)")
     s.add_argument("--format", choices=("mot", "cvat", "coco", "openpose"),
                    help="write the annotations as users' tools do: boxes as mot/<camera>.txt "
@@ -151,13 +150,13 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("out", help="a reconstruct output folder")
     e.add_argument("--truth", required=True, help="the input folder that carries the truth")
     e.add_argument("--layout", choices=LAYOUTS)
-    e.add_argument("--max-dist-m", type=_number(float, 1e-6, 1e6), default=1.0,
+    e.add_argument("--max-dist-m", type=number_type(float, 1e-6, 1e6), default=1.0,
                    help="ground-plane distance within which an estimate matches a true object "
                         "(MOTA, IDF1, HOTA, OSPA cut-off)")
     e.set_defaults(func=cmd_evaluate)
 
     k = sub.add_parser("calib", parents=[common], help="show, check and refine calibrations")
-    ksub = k.add_subparsers(dest="calib_command", required=True, parser_class=_Parser)
+    ksub = k.add_subparsers(dest="calib_command", required=True, parser_class=Parser)
     ks = ksub.add_parser("show", parents=[common],
                          help="a table per camera and warnings for common calibration mistakes")
     ks.add_argument("input", help="an input folder (checked with its annotations) or a calibration "
@@ -185,7 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("manifest", help="a text file: one input folder (or a glob) per line")
     m.add_argument("--out", required=True, help="output folder: OUT/<input folder name>/ per sequence")
     m.add_argument("--estimator", choices=ESTIMATORS, default="ukf")
-    m.add_argument("--jobs", type=_number(int, 1, 4096), help="local worker processes (default: cores)")
+    m.add_argument("--jobs", type=number_type(int, 1, 4096), help="local worker processes (default: cores)")
     m.add_argument("--scheduler", metavar="ADDRESS",
                    help="a running Dask distributed scheduler (tcp://host:8786) instead of local processes")
     m.add_argument("--report", action="store_true", help="also each sequence's report and OUT/index.html")
@@ -232,17 +231,16 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as e:  # --help (0) or a usage error (2, already printed)
         return int(e.code or 0)
     previous = {}
-    handlers = [(signal.SIGTERM, _terminate), (signal.SIGHUP, _terminate)]
+    handlers = [(signal.SIGTERM, on_terminate), (signal.SIGHUP, on_terminate)]
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not ignored (background job)
-        handlers.append((signal.SIGINT, _interrupt))
-    _RECEIVED.clear()
+        handlers.append((signal.SIGINT, on_interrupt))
+    RECEIVED_SIGNALS.clear()
     for sig, handler in handlers:
         try:
             previous[sig] = signal.signal(sig, handler)
         except ValueError:  # not the main thread
             pass
     try:
-
         with warnings.catch_warnings(), small_matrix_blas():
             if not debug:  # numerical warnings are ours to handle, never the user's to read
                 warnings.simplefilter("ignore", RuntimeWarning)
@@ -256,7 +254,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 1
     except BrokenPipeError:  # ``gt3d ... | head``: the reader left; the output is complete
-        _quiet_stdout()
+        quiet_stdout()
         return 141
     except KeyboardInterrupt:
         print("error: interrupted (Ctrl-C): no output written or changed", file=sys.stderr)
@@ -271,11 +269,11 @@ def main(argv: list[str] | None = None) -> int:
         print("error: out of memory: the input is too large for this machine", file=sys.stderr)
         return 1
     except Exception as e:  # noqa: BLE001 - the one place that turns a bug into one line
-        if _RECEIVED:  # a signal's exception, wrapped by the code it interrupted
-            how = ("interrupted (Ctrl-C)" if _RECEIVED[0] == signal.SIGINT
-                   else f"stopped by {signal.Signals(_RECEIVED[0]).name}")
+        if RECEIVED_SIGNALS:  # a signal's exception, wrapped by the code it interrupted
+            how = ("interrupted (Ctrl-C)" if RECEIVED_SIGNALS[0] == signal.SIGINT
+                   else f"stopped by {signal.Signals(RECEIVED_SIGNALS[0]).name}")
             print(f"error: {how}: no output written or changed", file=sys.stderr)
-            return 128 + _RECEIVED[0]
+            return 128 + RECEIVED_SIGNALS[0]
         if debug:
             traceback.print_exc()
         where = traceback.extract_tb(e.__traceback__)[-1]

@@ -268,7 +268,6 @@ def write_rerun(res: Result, path: Path) -> dict[str, Any]:
 def export(out: Path, fmt: str, dest: Path) -> dict[str, Any]:
     """Export the reconstruct output ``out`` as ``fmt`` into the folder ``dest`` (atomically);
     returns what was written (also in ``dest/export.json``)."""
-
     if fmt not in FORMATS:
         raise InputError("--format", f"unknown format {fmt!r} (known: {', '.join(FORMATS)})")
     res = read_result(Path(out))

@@ -80,7 +80,6 @@ class Job:
 
 def _current(out: Path, scene: Any, estimator: str) -> bool:
     """``out`` holds a complete output of this input (same checksums), estimator and version."""
-
     try:
         meta = json.loads((out / "meta.json").read_text())
     except (OSError, ValueError):
@@ -116,7 +115,6 @@ def run_job(job: Job) -> dict[str, Any]:
                 qa = tracks.info.get("qa", {}).get("anomalies", {})
                 row["anomalies"] = sum(qa.values())
             if job.report and (row["status"] == "done" or not (out / "report" / "index.html").is_file()):
-
                 write_report(out)
     except (InputError, EstimationError) as e:
         row["status"], row["error"] = "failed", f"error: {e}"
@@ -130,7 +128,6 @@ def run_many(inputs: list[Path], out: Path, estimator: str = "ukf", jobs: int | 
              scheduler: str | None = None, report: bool = False,
              progress: bool = True) -> list[dict[str, Any]]:
     """Run every input; returns the summary rows (also ``OUT/summary.csv``)."""
-
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise InputError("--out", f"{out} is not a folder")

@@ -32,12 +32,12 @@ import numpy as np
 from gt3dkit.arrays import unique_rows
 from gt3dkit.calib.formats import grid
 from gt3dkit.calib.formats import toml as toml_fmt
+from gt3dkit.calib.formats.grid import LAYOUTS as GRID_LAYOUTS
+from gt3dkit.calib.formats.grid import GridLayout
 from gt3dkit.geom.camera import Cams, project_points
 from gt3dkit.geom.conics import covered_fraction, ellipsoid_boxes
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.datasets.native import cameras_doc
-from gt3dkit.io.datasets.wildtrack import LAYOUTS as GRID_LAYOUTS
-from gt3dkit.io.datasets.wildtrack import GridLayout
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import F64, I64, Camera, Observations, Rig, Scene
 
@@ -451,7 +451,6 @@ def write_coco(sim: SkeletonScene, out: Path, track_ids: bool = True, seed: int 
     """``coco/<camera>.json`` (COCO keypoints per camera, joint names in ``categories``;
     ``track_id`` numbered per camera when ``track_ids``, else none) + ``cameras.json`` +
     ``truth_keypoints.csv``, atomically."""
-
     skel = SKELETONS[sim.skeleton]
     rng = np.random.default_rng([seed, 3])
 
@@ -488,7 +487,6 @@ def write_coco(sim: SkeletonScene, out: Path, track_ids: bool = True, seed: int 
 
 
 def _write_grid(sim: SimScene, tmp: Path, g: GridLayout) -> None:
-
     grid.write(sim.rig, tmp, g)
     ann = tmp / "annotations_positions"
     ann.mkdir()
@@ -571,7 +569,6 @@ def _rot(axis: F64, ang: F64) -> F64:
 def skeleton_motion(skel_name: str, t_s: F64, rng: np.random.Generator) -> F64:
     """(T, J, 3) body-frame joints of one person: canonical pose scaled, limbs swinging
     about their parent joints (bone lengths exact), turning and walking slowly."""
-
     skel = SKELETONS[skel_name]
     names = skel.joints
     ix = {n: i for i, n in enumerate(names)}
@@ -614,7 +611,6 @@ def simulate_skeletons(layout: str = "native", seed: int = 0, frames: int = 30, 
     ``missing`` of the rest at random. ``errors`` (native layout) adds detector errors;
     ``confidences`` writes a detector-like confidence per point (lower for worse points).
     """
-
     if layout not in ("native", "panoptic"):
         raise ValueError(f"skeleton scenes are written as native or panoptic, not {layout!r}")
     errors = errors or Errors()
@@ -658,7 +654,6 @@ def _detector_errors(uv: F64, rig: Rig, skeleton: str, truth_frame: I64, truth_i
                      frames: I64, errors: Errors, rng: np.random.Generator
                      ) -> tuple[F64, F64, list[tuple[int, str, int, str, str, str]]]:
     """Inject ``errors`` into keypoints ``uv (M, C, J, 2)``; confidences ``(M, C, J)``."""
-
     M, C, J = uv.shape[:3]
     uv = uv.copy()
     seen = np.isfinite(uv[..., 0])
@@ -731,7 +726,6 @@ def write_openpose(sim: SkeletonScene, out: Path, seed: int = 0,
     one OpenPose file per frame per camera, people in a random order without ids (undetected
     joints 0, 0, 0), and ``truth_keypoints.csv`` in the same z-up world. ``sim`` must be in a
     z-up world (:func:`to_z_up`) and a detector skeleton (body25, ...)."""
-
     rng = np.random.default_rng([seed, 7])
     names = folder_names or [f"cam{k + 1}" for k in range(len(sim.rig.cameras))]
     import dataclasses as _dc

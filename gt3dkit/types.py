@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from gt3dkit.rig import (  # noqa: F401 - the camera model lives in calib/
+from gt3dkit.rig import (  # noqa: F401 - the camera model lives in gt3dkit.rig
     MAX_DIST_COEF,
     MAX_PIXELS,
     MAX_WORLD_M,

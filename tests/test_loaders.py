@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from gt3dkit.api import load_scene
+from gt3dkit.calib.formats.grid import MULTIVIEWX, WILDTRACK
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.conics import ellipsoid_boxes
 from gt3dkit.io.datasets import detect_layout
-from gt3dkit.io.datasets.wildtrack import MULTIVIEWX, WILDTRACK
 
 from .scenes import written_scene
 

@@ -12,8 +12,8 @@ from gt3dkit.api import load_scene
 from gt3dkit.calib.formats import detect_format, read_calibration
 from gt3dkit.calib.show import camera_table, rig_warnings
 from gt3dkit.commands.common import (
-    _load,
-    _num,
+    fmt_num,
+    load_input,
     print_warnings,
 )
 from gt3dkit.errors import InputError
@@ -57,7 +57,7 @@ def cmd_calib_show(args: argparse.Namespace) -> int:
 
 def cmd_calib_refine(args: argparse.Namespace) -> int:
 
-    scene = _load(args)
+    scene = load_input(args)
     res = refine(scene, RefineConfig(refine_intrinsics=args.refine_intrinsics))
     write_refined_calibration(Path(args.out), scene, res, args.format)
     print_warnings(scene)
@@ -68,6 +68,6 @@ def cmd_calib_refine(args: argparse.Namespace) -> int:
     print(f"{'camera':<12}{'refined':>8}{'moved cm':>10}{'moved °':>9}{'px before':>11}{'px after':>10}  why")
     for name, c in rep["cameras"].items():
         print(f"{name:<12}{'yes' if c['refined'] else 'no':>8}{100 * c['centre_moved_m']:>10.2f}"
-              f"{c['rotation_moved_deg']:>9.3f}{_num(c['median_px_before'], 11, 3)}"
-              f"{_num(c['median_px_after'], 10, 3)}  {c['why']}")
+              f"{c['rotation_moved_deg']:>9.3f}{fmt_num(c['median_px_before'], 11, 3)}"
+              f"{fmt_num(c['median_px_after'], 10, 3)}  {c['why']}")
     return 0

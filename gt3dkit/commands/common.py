@@ -41,7 +41,7 @@ _CONFIG_OPTIONS = {"sigma_px": ("--sigma-px", "sigma_px"), "accel_sd": ("--accel
                    "no_smooth": ("--no-smooth", "smooth"), "no_bones": ("--no-bones", "bones")}
 
 
-def _estimator_config(args: argparse.Namespace) -> dict[str, Any]:
+def estimator_config(args: argparse.Namespace) -> dict[str, Any]:
     """The estimator's config from the options given; an option the estimator has no use for
     is an error, never silently ignored."""
     from importlib import import_module
@@ -72,13 +72,12 @@ def check_out_apart(out: str | Path, inp: str | Path, option: str = "--out", ins
 
 def check_output(out: str | Path, inputs: tuple[str | Path, ...] = ()) -> None:
     """Every check of an output folder that can be made before the work starts."""
-
     for inp in inputs:
         check_out_apart(out, inp)
     check_out(out)
 
 
-def _load(args: argparse.Namespace) -> Any:
+def load_input(args: argparse.Namespace) -> Any:
 
     if getattr(args, "out", None) is not None:
         check_output(args.out, (args.input,))
@@ -125,7 +124,7 @@ def error_table(rows: list[tuple[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def _num(v: float | None, width: int, digits: int) -> str:
+def fmt_num(v: float | None, width: int, digits: int) -> str:
     """``v`` right-aligned in ``width``, or ``-`` where there is no value (None, NaN)."""
     return f"{v:>{width}.{digits}f}" if v is not None and np.isfinite(v) else f"{'-':>{width}}"
 
@@ -138,23 +137,20 @@ def pose_table(rows: list[tuple[str, Any, float]]) -> str:
     for name, p, by_id in rows:
         lines.append(f"{name:<26}{100 * p.ap[25]:>7.1f}{100 * p.ap[50]:>7.1f}"
                      f"{100 * p.ap[100]:>8.1f}{100 * p.ap[150]:>8.1f}{100 * p.recall_500:>9.1f}"
-                     f"{_num(p.mpjpe_mm, 11, 4)}{_num(by_id, 10, 4)}")
+                     f"{fmt_num(p.mpjpe_mm, 11, 4)}{fmt_num(by_id, 10, 4)}")
     return "\n".join(lines)
 
 
 def report_truth(scene: Any, tracks: Any, name: str, max_dist_m: float = 1.0) -> None:
     """Print errors against the input's truth: boxes/positions and/or keypoints; tracking scores
     count an estimate within ``max_dist_m`` (ground plane) of a true object as a match."""
-
     if scene.truth is None:
         return
     print(f"against {scene.truth.source}:")
     if scene.association is not None:
-
         tracks = relabel_to_truth(tracks, scene.truth, scene.rig.up, max_dist_m)
         print("(ids are gt3dkit's cross-view association: each matched to its truth id for the errors)")
     if np.isfinite(scene.truth.center_world).any():
-
         t = tracking_scores(tracks, scene.truth, scene.rig.up, max_dist_m)
         print(error_table([(name, box_errors(tracks, scene.truth, scene.rig.up, max_dist_m, mot=t))]))
         print(f"ground plane, {max_dist_m:g} m: MOTA {100 * t['mota']:.1f}  IDF1 {100 * t['idf1']:.1f}  "
@@ -211,7 +207,7 @@ class Stages:
                 sys.stderr.flush()
 
 
-class _Parser(argparse.ArgumentParser):
+class Parser(argparse.ArgumentParser):
     """argparse with the one-line ``error: <entry>: <problem>`` (exit 2) of every other error."""
 
     def error(self, message: str) -> Any:  # type: ignore[override]
@@ -219,7 +215,7 @@ class _Parser(argparse.ArgumentParser):
         raise SystemExit(2)
 
 
-def _number(kind: type, lo: float, hi: float, *, lo_open: bool = False,
+def number_type(kind: type, lo: float, hi: float, *, lo_open: bool = False,
             hi_open: bool = False) -> Callable[[str], Any]:
     """argparse type: a finite ``kind`` in [lo, hi] (open ends where asked)."""
     def parse(text: str) -> Any:
@@ -236,12 +232,12 @@ def _number(kind: type, lo: float, hi: float, *, lo_open: bool = False,
     return parse
 
 
-FRACTION = _number(float, 0, 1)
-PIXELS = _number(float, 0, 1000)              # image noise, px
-SIGMA_PX = _number(float, 1e-3, 1000)
-ACCEL = _number(float, 1e-6, 1000)             # m/s^2/sqrt(Hz)
-FPS = _number(float, 1e-3, 1e6)                # one frame per 17 minutes .. 1 MHz
-SEED = _number(int, 0, 2**32 - 1)
+FRACTION = number_type(float, 0, 1)
+PIXELS = number_type(float, 0, 1000)              # image noise, px
+SIGMA_PX = number_type(float, 1e-3, 1000)
+ACCEL = number_type(float, 1e-6, 1000)             # m/s^2/sqrt(Hz)
+FPS = number_type(float, 1e-3, 1e6)                # one frame per 17 minutes .. 1 MHz
+SEED = number_type(int, 0, 2**32 - 1)
 
 
 class Terminated(BaseException):
@@ -254,20 +250,20 @@ class Terminated(BaseException):
 
 #: signals received during this run: an exception raised by a signal handler inside a C
 #: extension's initialisation (numba loading its thread pool) reaches us as an ImportError
-_RECEIVED: list[int] = []
+RECEIVED_SIGNALS: list[int] = []
 
 
-def _terminate(signum: int, frame: Any) -> None:
-    _RECEIVED.append(signum)
+def on_terminate(signum: int, frame: Any) -> None:
+    RECEIVED_SIGNALS.append(signum)
     raise Terminated(signum)
 
 
-def _interrupt(signum: int, frame: Any) -> None:
-    _RECEIVED.append(signum)
+def on_interrupt(signum: int, frame: Any) -> None:
+    RECEIVED_SIGNALS.append(signum)
     raise KeyboardInterrupt
 
 
-def _quiet_stdout() -> None:
+def quiet_stdout() -> None:
     """After a broken pipe: send what Python still flushes at exit nowhere."""
     try:
         devnull = os.open(os.devnull, os.O_WRONLY)

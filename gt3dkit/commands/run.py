@@ -15,11 +15,11 @@ from gt3dkit.api import load_scene, reconstruct
 from gt3dkit.calib.formats.native import cameras_doc
 from gt3dkit.commands.common import (
     Stages,
-    _estimator_config,
-    _load,
-    _num,
     check_out_apart,
     check_output,
+    estimator_config,
+    fmt_num,
+    load_input,
     print_warnings,
     report_truth,
 )
@@ -36,13 +36,12 @@ from gt3dkit.viz.report import write_report
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
 
-    config = _estimator_config(args)
+    config = estimator_config(args)
     stages = Stages(5, args.quiet)
     stages("loading")
-    scene = _load(args)
+    scene = load_input(args)
     extra = None
     if args.refine_calib:
-
         res = refine(scene)
         extra = {"calibration_refinement": {**res.report, "rig_sha256": {
             "input": rig_digest(scene.rig), "refined": rig_digest(res.rig)},
@@ -95,7 +94,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def cmd_compare(args: argparse.Namespace) -> int:
 
-    scene = _load(args)
+    scene = load_input(args)
     table = compare(scene, Path(args.out), progress=not args.no_progress)
     print_warnings(scene)
     print(f"{scene.layout}: {len(scene.obs)} annotation rows -> {args.out}/comparison.csv")
@@ -109,17 +108,17 @@ def cmd_compare(args: argparse.Namespace) -> int:
         if "failed" in r:
             print(f"{r['estimator']:<15}failed: {r['failed']}")
             continue
-        line = (f"{r['estimator']:<15}{r['rows']:>6}{_num(r['reproj_mean_px'], 10, 3)}"
-                f"{_num(r['reproj_p95_px'], 8, 3)}")
+        line = (f"{r['estimator']:<15}{r['rows']:>6}{fmt_num(r['reproj_mean_px'], 10, 3)}"
+                f"{fmt_num(r['reproj_p95_px'], 8, 3)}")
         for n in names:
             v = r.get(f"dist_to_{n}_mean_m")
-            line += _num(v, 20, 5)
+            line += fmt_num(v, 20, 5)
         line += f"{r['seconds']:>8.1f}"
         if scene.truth is not None:
             v = r.get("truth_mpjpe_m", r.get("truth_centre_mean_m"))
             if v is None or not np.isfinite(v):
                 v = r.get("truth_ground_mean_m")
-            line += _num(v, 13, 5)
+            line += fmt_num(v, 13, 5)
         print(line)
     return 0
 
@@ -147,7 +146,7 @@ def cmd_reconstruct_many(args: argparse.Namespace) -> int:
 
 def cmd_associate(args: argparse.Namespace) -> int:
 
-    scene = _load(args)
+    scene = load_input(args)
     if scene.association is None:
         raise InputError(args.input, f"{scene.layout}: its ids are already global (nothing to associate)")
     write_dir_atomically(Path(args.out), lambda tmp: scene.association.write(tmp / "association.csv"))

@@ -93,13 +93,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         except ValueError as e:
             raise InputError("simulate", str(e)) from None
         if args.format == "openpose":
-
             if args.skeleton not in {n for v in DETECTOR_SKELETONS.values() for n in v}:
                 raise InputError("--skeleton", "OpenPose files hold a detector skeleton (body25, body25b, "
                                                f"halpe26, coco18, coco17), not {args.skeleton}")
             write_openpose(to_z_up(sk), Path(args.out), seed=args.seed)
         elif args.format == "coco":
-
             write_coco(sk, Path(args.out), track_ids=not args.no_track_ids, seed=args.seed)
         else:
             write_skeleton_scene(sk, Path(args.out), args.layout)

@@ -121,7 +121,6 @@ def score_tracks(tracks: TrackSet, truth: GroundTruth, joints: np.ndarray | None
 def mpjpe_by_id(tracks: TrackSet, truth: GroundTruth, joints: np.ndarray | None = None
                 ) -> tuple[float, int, int]:
     """Mean joint error (mm) over rows matched by (frame, id), and poses matched / in truth."""
-
     it, ig = match_rows(tracks, truth)
     sel = slice(None) if joints is None else joints
     d = np.linalg.norm(tracks.kpt_world[it][:, sel] - truth.kpt_world[ig][:, sel], axis=-1)

@@ -105,7 +105,6 @@ def box_or_keypoint_box(box: F64, kpt: F64) -> F64:
 def _box_foot(scene: Scene, box: F64) -> F64:
     """(N, 2) the point of each box on the image direction of world-down through its centre
     (the bottom centre for an upright camera; the top for one mounted upside down)."""
-
     obs = scene.obs
     cams = Cams.of(scene.rig)
     out = np.full((len(obs), 2), np.nan)
@@ -132,7 +131,6 @@ def ground_points(scene: Scene, cfg: AssocConfig) -> F64:
     """(N, 3) where each observation's foot pixel (a box's bottom centre, else the mean of its
     ankle/heel/toe keypoints) ray meets the floor (NaN: none, at the image's bottom border, ray
     parallel to or away from the floor)."""
-
     obs = scene.obs
     cams = Cams.of(scene.rig)
     out = np.full((len(obs), 3), np.nan)
@@ -168,7 +166,6 @@ def ground_points(scene: Scene, cfg: AssocConfig) -> F64:
 def _axis_distances(scene: Scene, tl: np.ndarray, t_of: np.ndarray, T: int, F: int):
     """A function (tracklet, (F, 3) ground points of a cluster) -> (F,) horizontal distance (m)
     between the ray through the tracklet's box centre and the cluster's vertical axis."""
-
     obs = scene.obs
     cams = Cams.of(scene.rig)
     o = np.full((T, F, 3), np.nan)
@@ -310,7 +307,6 @@ def _finish(rows: list[list], overrides: dict[tuple[str, int, int | None], int] 
 def apply_association(scene: Scene, assoc: Association) -> Scene:
     """``scene`` with every observation's id replaced by its global id; two boxes of one
     global id in one (frame, camera) are an error naming both tracks."""
-
     obs = scene.obs
     m = assoc.mapping()
     names = scene.rig.names
@@ -340,7 +336,6 @@ def apply_association(scene: Scene, assoc: Association) -> Scene:
 def read_overrides(path: Path, names: tuple[str, ...]) -> dict[tuple[str, int, int | None], int]:
     """An edited ``association.csv`` (``camera,local_id,frame,global_id`` first, ``frame``
     empty for per-camera tracks; other columns ignored): the rows a user fixed."""
-
     out: dict[tuple[str, int, int | None], int] = {}
     for line, r in read_csv_rows(Path(path), ("camera", "local_id", "frame", "global_id"), warnings=[]):
         where = f"{path}: line {line}"
@@ -370,7 +365,6 @@ class DetectionConfig:
 def _pair_cost(xa: F64, xb: F64, Ra, ta, Rb, tb, fa: float, fb: float) -> float:
     """Median over the joints both saw of the two-view reprojection error (px) after
     triangulating them from these two views; inf with too few joints."""
-
     ok = np.isfinite(xa).all(axis=1) & np.isfinite(xb).all(axis=1)
     if ok.sum() < 1:
         return np.inf

@@ -151,7 +151,6 @@ def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: F64 | float = 1.0,
         p[start] = p0[start]
     z = np.where(box_mask, box_z, 0.0)
     if compiled:
-
         p, r, J = fit_compiled(p, z, box_mask, ok, np.asarray(sigma_px, dtype=np.float64), prior,
                                np.asarray(prior_sd, dtype=np.float64), iters, BoxCameras.of(cams))
     else:

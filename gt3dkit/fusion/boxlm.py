@@ -179,7 +179,6 @@ def fit_compiled(p0: F64, z: F64, mask: np.ndarray, active: np.ndarray, sig: F64
                  prior_sd: F64, iters: int, cams: BoxCameras) -> tuple[F64, F64, F64]:
     """Run :func:`fit_rows` on ``N`` object-frames split over threads: the fitted parameters
     ``(N, 6)``, residuals ``(N, 4 C + 3)`` and Jacobian ``(N, 4 C + 3, 6)``."""
-
     N, C = z.shape[:2]
     p = contiguous(p0.copy())
     zc, mc, ac = contiguous(z), contiguous(mask, np.bool_), contiguous(active, np.bool_)

@@ -299,7 +299,6 @@ def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
                      ) -> tuple[BoxFit, np.ndarray, F64, ShapePrior, dict[str, Any]]:
     """Per-frame box fits weighted by per-edge noise; edges rejected by their leave-one-out
     score; shape prior for weakly seen object-frames."""
-
     keep = rows.box_mask.copy()
     fit = fit_boxes(rows.box_z, keep, cams)
     check_in_front(scene, rows, fit)

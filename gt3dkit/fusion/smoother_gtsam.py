@@ -237,7 +237,6 @@ class GTSAMSmoother:
                                  float(dt), q, cams.up if ch == "c" else None,
                                  cfg.vertical_ratio))
         if use_box:
-
             bc = BoxCameras.of(cams)
             for k, r in enumerate(mine):
                 m = pre.box_keep[r].reshape(-1)
@@ -356,7 +355,6 @@ def _box_error(bc: Any, z: F64, m: np.ndarray, C: int) -> Any:
     cameras as :class:`gt3dkit.geom.boxkernel.BoxCameras` (the compiled tangent box is called
     directly: GTSAM calls this ~10 000 times per 1 000 object-frames, and the general entry
     point's argument checks were 2/3 of its time)."""
-
     eps = np.array([1e-6] * 6)
     steps = np.concatenate([np.zeros((1, 6)), np.diag(eps), -np.diag(eps)])  # the point, then +-eps
     cam = (bc.world_from_body, bc.K, bc.dist, bc.R, bc.t, bc.depth_sign)

@@ -633,13 +633,11 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
     result, faster); False runs the whole state (the reference the tests hold it to).
     ``compiled``: a boxes-only model runs as one compiled loop
     (:func:`gt3dkit.fusion.boxupdate.run_boxes`); False runs this loop over frames (the reference)."""
-    if compiled and model.use_box and not model.layout.n_joints:
-        if applies_to_model(model):
-            x_s, P_s, info = run_boxes(model, init, cfg, fps, collect, fade, on, noise_rows)
-            return x_s, P_s, _with_totals(info)
+    if compiled and applies_to_model(model):
+        x_s, P_s, info = run_boxes(model, init, cfg, fps, collect, fade, on, noise_rows)
+        return x_s, P_s, _with_totals(info)
     if split and model.layout.n_joints > 1 and model.bones is None:
         # no bones: the joints are independent filters, run as one batch of small ones
-
         sub, x0, P0, sp = split_joints(model, init.x0, init.P0)
         return sp.merge(*run_filter(sub, Init(x0, P0), cfg, fps, collect, fade,
                                     None if on is None else on[sp.src],

@@ -302,7 +302,6 @@ def boxes_compiled(center_world: F64, semi_axes: F64, world_from_body: F64, K: F
     caches it on disk). ``want`` (broadcastable to ``(..., C)``): the pairs whose box is needed
     (the others are NaN; the margin is computed for every pair). Large calls are split over
     threads (:func:`gt3dkit.threads.run_split`)."""
-
     c, s = np.broadcast_arrays(np.asarray(center_world, dtype=np.float64),
                                np.asarray(semi_axes, dtype=np.float64))
     lead = c.shape[:-1]

@@ -92,7 +92,6 @@ def ellipsoid_boxes(
     relative. ``want`` (broadcastable to ``(..., C)``): compute only these pairs' boxes (the
     others are NaN; margins are computed for all).
     """
-
     return boxes_compiled(center_world, semi_axes, world_from_body, K, dist, R, t, depth_sign,
                           newton_steps, want)
 

@@ -41,7 +41,6 @@ class Result:
 
 
 def read_result(out: Path) -> Result:
-
     out = Path(out)
     if not out.is_dir():
         raise InputError(str(out), "not a folder")

@@ -138,7 +138,6 @@ def check_tracks(tracks: TrackSet) -> None:
 
 def write_anomalies_csv(path: Path, anomalies: Any) -> None:
     """``frame,camera,id,joint,kind,score,detail`` (see :mod:`gt3dkit.qa.anomalies`)."""
-
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(ANOMALY_COLUMNS)
@@ -231,7 +230,6 @@ def read_keypoints_csv(path: Path, tracks: TrackSet, n_joints: int) -> TrackSet:
 def write_refined_calibration(out: Path, scene: Scene, result: Any, fmt: str | None = None) -> None:
     """``OUT/cameras.json`` (the refined rig, with the scene's fps), ``OUT/calib_report.json`` and,
     with ``fmt``, ``OUT/calibration/`` in that format (all or nothing)."""
-
     def write(tmp: Path) -> None:
         write_native(result.rig, tmp / "cameras.json", fps=scene.fps)
         if fmt is not None and fmt != "native":

@@ -84,7 +84,6 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | Non
                    jumps: list[tuple[int, float, int, int]] | None = None) -> Anomalies:
     """Every flagged annotation of ``scene`` against ``tracks`` (see the module docstring);
     ``jumps`` = :func:`identity_jumps` if already found."""
-
     cfg = cfg or QAConfig()
     rows, cams = pre.rows, pre.cams
     names = scene.rig.names
@@ -187,7 +186,6 @@ def _identity_jumps(pre: Any, cfg: QAConfig, out: list, frame_of: np.ndarray, id
 def _keypoints(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, r_of: np.ndarray,
                have: np.ndarray, jumped: np.ndarray, frame_of: np.ndarray, id_of: np.ndarray,
                out: list, project_points: Any) -> None:
-
     rows, cams = pre.rows, pre.cams
     names = scene.rig.names
     joints = SKELETONS[scene.skeleton].joints if scene.skeleton else ()
@@ -296,7 +294,6 @@ def offset_residuals(tracks: TrackSet, pre: Any, max_shift: int) -> tuple[np.nda
     """Per camera and shift s in -max_shift..max_shift frames, the median residual (px) of
     that camera's annotations against the estimate ``s`` frame steps later: (shifts,
     (C, S) medians, NaN where too few pairs)."""
-
     rows, cams = pre.rows, pre.cams
     C = len(cams.K)
     shifts = np.arange(-max_shift, max_shift + 1)

@@ -119,7 +119,6 @@ def ba_keypoints(rig: Rig, tr: Tracks, variable: np.ndarray, cfg: RefineConfig, 
 def keypoint_residuals(rig: Rig, tr: Tracks) -> F64:
     """(M,) reprojection distance (px) of every observation, its point re-triangulated (robust
     DLT over all its views) with ``rig``."""
-
     P, C = len(tr.X0), len(rig.cameras)
     uv = np.full((P, C, 2), np.nan)
     uv[tr.point, tr.cam] = tr.uv

@@ -37,7 +37,6 @@ def overview_drawing(scene: Scene, tracks: TrackSet, frame: int, tracks_b: Track
     """The drawing, a view that frames the cameras and the tracks from above and behind (or,
     ``close_up``, the objects at ``frame`` only), and the cameras' centres (C, 3).
     ``tracks_b``: a second estimate whose paths are drawn black (a comparison)."""
-
     rig = scene.rig
     up, wfb = rig.up, rig.world_from_body()
     cams = np.array([c.center_world for c in rig.cameras])

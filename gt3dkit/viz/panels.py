@@ -58,7 +58,6 @@ class ViewResiduals:
 
 
 def view_residuals(tracks: TrackSet, pre: Any) -> ViewResiduals:
-
     rows, cams = pre.rows, pre.cams
     r_of = track_row_of(tracks, rows)
     idx = np.flatnonzero(r_of >= 0)
@@ -167,7 +166,6 @@ def draw_view(ax: Any, scene: Scene, res: ViewResiduals, cam: int, sel: np.ndarr
 
 
 def _bones(scene: Scene) -> list[tuple[int, int]] | None:
-
     return [(int(a), int(b)) for a, b in SKELETONS[scene.skeleton].bones] if scene.skeleton else None
 
 

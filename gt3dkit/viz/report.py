@@ -135,7 +135,6 @@ def _calibration(run: Run) -> str:
 
 
 def _anomaly_section(run: Run, res: Any, folder: Path) -> str:
-
     rows = run.anomalies
     if not (run.out / "anomalies.csv").is_file():
         return ("<p>This output has no anomalies.csv (gt3d compare does not run the annotation QA; "
@@ -177,12 +176,10 @@ def _anomaly_section(run: Run, res: Any, folder: Path) -> str:
 
 
 def _annotation_note() -> str:
-
     return ANNOTATION_NOTE
 
 
 def _joint_names(scene: Scene) -> tuple[str, ...]:
-
     return SKELETONS[scene.skeleton].joints if scene.skeleton else ()
 
 
@@ -201,7 +198,6 @@ def run_sections(run: Run, tmp: Path, prefix: str = "", tracks_b: TrackSet | Non
                  title_b: str = "") -> tuple[list[str], list[str]]:
     """The HTML sections of one run's report written into ``tmp`` (PNG names start with
     ``prefix``); returns (sections, warnings)."""
-
     sc, tr = run.scene, run.tracks
     pre = prepare(sc)
     res = view_residuals(tr, pre)
@@ -247,7 +243,6 @@ def _page(title: str, parts: list[str]) -> str:
 def write_report(out: Path) -> tuple[Path, list[str]]:
     """Write ``out/report/`` for a reconstruct or compare output folder (atomically); returns
     the index.html path and warnings (a 3D render that failed)."""
-
     out = Path(out)
     if not out.is_dir():
         raise InputError(str(out), "not a folder")
@@ -266,7 +261,6 @@ def write_report(out: Path) -> tuple[Path, list[str]]:
 
 
 def _write_compare_report(out: Path) -> tuple[Path, list[str]]:
-
     with open(out / "comparison.csv", newline="", encoding="utf-8") as f:
         header = next(csv.reader(f), [])
     if "estimator" not in header:
@@ -301,7 +295,6 @@ def _write_compare_report(out: Path) -> tuple[Path, list[str]]:
 
 def _side_by_side(runs: dict[str, Run], tmp: Path) -> str:
     """Each estimator's tracks seen from above (ground plane), one panel each."""
-
     plt = _plt()
     n = len(runs)
     ground = {name: run.tracks.center_world @ run.scene.rig.world_from_body()[:, :2]
@@ -333,7 +326,6 @@ def _side_by_side(runs: dict[str, Run], tmp: Path) -> str:
 def _disagreement_plot(runs: dict[str, Run], tmp: Path) -> str:
     """Per object over time, the distance between the first estimator and each other one (mean
     joint distance for skeletons, else centre distance)."""
-
     plt = _plt()
     names = list(runs)
     a = runs[names[0]].tracks

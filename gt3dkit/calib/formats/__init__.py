@@ -30,7 +30,6 @@ WRITABLE = ("native", "grid", "opencv", "toml", "colmap")
 
 def detect_format(path: Path) -> str:
     """The calibration format of a file or folder (see the module table)."""
-
     path = Path(path)
     if not path.exists():
         raise InputError(str(path), "no such file or folder")
@@ -64,7 +63,6 @@ def detect_format(path: Path) -> str:
 
 def read_calibration(path: str | Path, fmt: str | None = None) -> Rig:
     """The rig of a calibration file or folder in any supported format."""
-
     path = Path(path)
     fmt = fmt or detect_format(path)
     if fmt == "native":
@@ -84,7 +82,6 @@ def write_calibration(rig: Rig, path: str | Path, fmt: str = "native") -> Path:
     Left-handed rigs (MultiviewX's Unity export, ``depth_sign = -1``) exist in the native
     format and the WILDTRACK/MultiviewX layout only.
     """
-
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
     if fmt not in ("native", "grid") and any(c.depth_sign < 0 for c in rig.cameras):

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from gt3dkit.calib.formats import detect_format, read_calibration
+from gt3dkit.calib.formats.grid import LAYOUTS as GRID_LAYOUTS
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets import mot, native, openpose, panoptic, tasks, wildtrack
 from gt3dkit.rig import Rig
@@ -51,7 +52,6 @@ def detect_layout(root: Path) -> str:
 def with_calibration(scene: Scene, calib: Path | str) -> Scene:
     """``scene`` with its cameras replaced by those of a calibration file or folder in any
     format (:func:`gt3dkit.calib.formats.read_calibration`), matched by name."""
-
     rig = read_calibration(calib)
     have = {c.name: c for c in rig.cameras}
     used = sorted({scene.rig.cameras[int(c)].name for c in np.unique(scene.obs.cam)})
@@ -93,7 +93,6 @@ def read_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     ``min_conf``). ``calib`` replaces the input's cameras by those of a calibration in any
     format (:func:`with_calibration`).
     """
-
     layout = layout or detect_layout(Path(root))
     if skeleton is not None and layout not in ("native", "openpose", "cvat", "coco"):
         raise InputError("--skeleton", f"applies to native keypoints.csv inputs, not {layout}")
@@ -104,20 +103,17 @@ def read_scene(root: Path | str, layout: str | None = None, skeleton: str | None
         raise InputError("--association", "applies to inputs with per-camera ids or none "
                                           f"({', '.join(ASSOCIATED)}), not {layout}")
     if layout == "mot":
-
         scene = mot.load(Path(root), calib, fps)
     elif layout == "openpose":
-
         scene = openpose.load(Path(root), skeleton, calib, fps)
     elif layout in ("cvat", "coco"):
-
         scene = tasks.load(Path(root), layout, skeleton, calib, fps)
     elif layout == "native":
         scene = native.load(Path(root), skeleton)
     elif layout == "panoptic":
         scene = panoptic.load(Path(root), **panoptic_options)
-    elif layout in wildtrack.LAYOUTS:
-        scene = wildtrack.load(Path(root), wildtrack.LAYOUTS[layout])
+    elif layout in GRID_LAYOUTS:
+        scene = wildtrack.load(Path(root), GRID_LAYOUTS[layout])
     else:
         raise InputError(str(root), f"unknown layout {layout!r} (known: {', '.join(LAYOUTS)})")
     if len(scene.obs) == 0:

@@ -9,19 +9,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gt3dkit.errors import InputError
-from gt3dkit.parse import (  # noqa: F401 - the loaders read their fields through these
-    FRAME_MAX,
-    ID_MAX,
-    iter_csv_rows,
-    load_json,
-    parse_float,
-    parse_frame,
-    parse_int,
-    parse_metres,
-    read_csv_rows,
-    read_json_field,
-    sha256,
-)
 from gt3dkit.types import F64, Observations
 
 

@@ -27,8 +27,9 @@ from gt3dkit.calib.formats import detect_format, read_calibration
 from gt3dkit.calib.formats.native import load_cameras
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import check_pixels
-from gt3dkit.io.datasets.common import RowBuilder, iter_csv_rows, parse_frame, parse_int, sha256
+from gt3dkit.io.datasets.common import RowBuilder
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
+from gt3dkit.parse import iter_csv_rows, parse_frame, parse_int, sha256
 from gt3dkit.types import Rig, Scene
 
 MOT_COLUMNS = ("frame", "id", "left", "top", "width", "height", "conf")
@@ -41,7 +42,6 @@ def natural_key(s: str) -> list[object]:
 
 
 def find_calibration(root: Path) -> Path | None:
-
     tomls = [p for p in sorted(root.glob("*.toml")) if p.name.lower() != "config.toml"]  # not Pose2Sim's
     cands = [root / "cameras.json", root / "calibration", *tomls, root / "sparse"]
     for p in cands:
@@ -57,7 +57,6 @@ def find_calibration(root: Path) -> Path | None:
 def calibration_beside(root: Path, calib: Path | str | None) -> tuple[Rig, float | None, Path]:
     """The rig of ``--calib`` or of the calibration found beside the annotations
     (:func:`find_calibration`), its frame rate (``cameras.json`` only) and its path."""
-
     cal = Path(calib) if calib is not None else find_calibration(root)
     if cal is None:
         raise InputError(str(root), "no calibration beside the annotations (cameras.json, calibration/, "
@@ -129,7 +128,6 @@ def load(root: Path, calib: Path | str | None = None, fps: float | None = None) 
     files[f"calibration:{cal.name}"] = sha256(cal) if cal.is_file() else "folder"
     truth = None
     if (root / "truth.csv").exists():
-
         truth = read_truth_csv(root / "truth.csv", files, root)
     return Scene(rig=rig, obs=obs, layout="mot", truth=truth, fps=float(fps or fps_doc or DEFAULT_FPS),
                  frames=np.unique(obs.frame), skeleton=None, files=files, root=str(root),

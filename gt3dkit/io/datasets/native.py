@@ -31,15 +31,9 @@ import numpy as np
 from gt3dkit.calib.formats.native import FPS_RANGE, cameras_doc, load_cameras  # noqa: F401
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import check_pixels
-from gt3dkit.io.datasets.common import (
-    RowBuilder,
-    iter_csv_rows,
-    parse_frame,
-    parse_int,
-    parse_metres,
-    sha256,
-)
+from gt3dkit.io.datasets.common import RowBuilder
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
+from gt3dkit.parse import iter_csv_rows, parse_frame, parse_int, parse_metres, sha256
 from gt3dkit.skeletons import SKELETONS, skeleton_for
 from gt3dkit.types import GroundTruth, Rig, Scene
 

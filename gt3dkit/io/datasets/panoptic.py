@@ -20,7 +20,7 @@ from gt3dkit.arrays import unique_rows
 from gt3dkit.calib.formats.panoptic import find_calibration, load_rig
 from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import project_points
-from gt3dkit.io.datasets.common import parse_frame, parse_int, read_json_field, sha256
+from gt3dkit.parse import parse_frame, parse_int, read_json_field, sha256
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import MAX_WORLD_M, GroundTruth, Observations, Rig, Scene
 

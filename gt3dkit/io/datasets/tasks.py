@@ -27,10 +27,11 @@ import numpy as np
 
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import check_pixels
-from gt3dkit.io.datasets.common import RowBuilder, load_json, parse_frame, parse_int, sha256
+from gt3dkit.io.datasets.common import RowBuilder
 from gt3dkit.io.datasets.mot import DEFAULT_FPS, calibration_beside, match_cameras, natural_key
 from gt3dkit.io.datasets.native import read_kpt_truth
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
+from gt3dkit.parse import load_json, parse_frame, parse_int, sha256
 from gt3dkit.skeletons import SKELETONS, _norm_joint, skeleton_for_names
 from gt3dkit.types import Scene
 
@@ -149,7 +150,6 @@ def _read_coco(path: Path) -> list[Item]:
 def load(root: Path, kind: str, skeleton: str | None = None, calib: Path | str | None = None,
          fps: float | None = None) -> Scene:
     """``kind`` = ``cvat`` or ``coco``."""
-
     root = Path(root)
     ext = {"cvat": "xml", "coco": "json"}[kind]
     paths = sorted((root / kind).glob(f"*.{ext}"), key=lambda p: natural_key(p.stem))
@@ -168,7 +168,6 @@ def load(root: Path, kind: str, skeleton: str | None = None, calib: Path | str |
         except ValueError as e:
             raise InputError(str(root / kind), str(e)) from None
         if skeleton is not None:
-
             ours = [_norm_joint(n) for n in names]
             bad = [n for n, o in zip(names, ours, strict=True) if o not in skel.joints]
             if bad:
@@ -197,10 +196,8 @@ def load(root: Path, kind: str, skeleton: str | None = None, calib: Path | str |
     files[f"calibration:{cal.name}"] = sha256(cal) if cal.is_file() else "folder"
     truth = None
     if (root / "truth.csv").exists():
-
         truth = read_truth_csv(root / "truth.csv", files, root)
     if (root / "truth_keypoints.csv").exists() and skel is not None:
-
         files["truth_keypoints.csv"] = sha256(root / "truth_keypoints.csv")
         truth = read_kpt_truth(root / "truth_keypoints.csv", skel.n_joints)
     return Scene(rig=rig, obs=obs, layout=kind, fps=float(fps or fps_doc or DEFAULT_FPS), truth=truth,

@@ -28,19 +28,11 @@ from pathlib import Path
 
 import numpy as np
 
-from gt3dkit.calib.formats.grid import LAYOUTS, MULTIVIEWX, WILDTRACK, GridLayout, load_camera  # noqa: F401
+from gt3dkit.calib.formats.grid import GridLayout, load_camera
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import FAR_IMAGES, check_pixels
-from gt3dkit.io.datasets.common import (
-    ID_MAX,
-    RowBuilder,
-    iter_csv_rows,
-    load_json,
-    parse_frame,
-    parse_int,
-    parse_metres,
-    sha256,
-)
+from gt3dkit.io.datasets.common import RowBuilder
+from gt3dkit.parse import ID_MAX, iter_csv_rows, load_json, parse_frame, parse_int, parse_metres, sha256
 from gt3dkit.types import F64, Camera, GroundTruth, Rig, Scene
 
 
