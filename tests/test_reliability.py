@@ -141,7 +141,7 @@ def test_signal_during_a_run(scenes, tmp_path, sig, code) -> None:
     shutil.copytree(scenes["boxes"], tmp_path / "prev_in")
     subprocess.run([*GT3D, "reconstruct", str(scenes["boxes"]), "--out", str(out), "--estimator",
                     "triangulation"], check=True, capture_output=True)
-    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    before = _snapshot(out)
     for wait in (2.0, 1.2, 3.0, 0.8, 6.0):  # imports done, estimating (compare runs a few seconds)
         # a background job's children start with SIGINT ignored (POSIX shells do that): restore it
         p = subprocess.Popen([*GT3D, "compare", str(scenes["long"]), "--out", str(out), "--no-progress"],
@@ -154,11 +154,16 @@ def test_signal_during_a_run(scenes, tmp_path, sig, code) -> None:
         # had finished (a fast one): either way the signal met no work of ours; try another moment
         if p.returncode not in (-sig, 0):
             break
-        before = {q.name: q.read_bytes() for q in out.iterdir()}  # a finished run's is the result now
+        before = _snapshot(out)  # a finished run's is the result now (compare's: a folder per estimator)
     assert p.returncode == code, err
     assert err.startswith("error: ") and err.count("\n") == 1 and "Traceback" not in err, err
-    assert {q.name: q.read_bytes() for q in out.iterdir()} == before
+    assert _snapshot(out) == before
     assert _leftovers(tmp_path) == []
+
+
+def _snapshot(out: Path) -> dict[str, bytes]:
+    """Every file below ``out`` (its path relative to ``out``) with its bytes."""
+    return {str(q.relative_to(out)): q.read_bytes() for q in sorted(out.rglob("*")) if q.is_file()}
 
 
 def test_killed_run_then_rerun(scenes, tmp_path) -> None:
