@@ -39,6 +39,7 @@ from gt3dkit.commands.run import (
 )
 from gt3dkit.commands.simulate import cmd_simulate
 from gt3dkit.errors import EstimationError, InputError
+from gt3dkit.export import FORMATS as EXPORT_FORMATS
 from gt3dkit.io.datasets import LAYOUTS
 from gt3dkit.sim import (
     SIM_LAYOUTS,
@@ -58,7 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="2D boxes from calibrated cameras -> 3D ellipsoid tracks")
     r.add_argument("input", help="input folder (native, WILDTRACK or MultiviewX layout)")
     r.add_argument("--out", required=True, help="output folder (tracks.csv, meta.json)")
-    r.add_argument("--layout", choices=LAYOUTS, help="input layout (default: detected)")
+    r.add_argument("--layout", choices=tuple(LAYOUTS), help="input layout (default: detected)")
     r.add_argument("--estimator", choices=ESTIMATORS, default="ukf")
     r.add_argument("--sigma-px", type=SIGMA_PX, help="box-edge noise (default: from the data)")
     r.add_argument("--accel-sd", type=ACCEL,
@@ -132,7 +133,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="UKF, GTSAM smoother and triangulation side by side")
     c.add_argument("input", help="input folder (any layout)")
     c.add_argument("--out", required=True, help="output folder (<estimator>/, comparison.csv)")
-    c.add_argument("--layout", choices=LAYOUTS)
+    c.add_argument("--layout", choices=tuple(LAYOUTS))
     c.add_argument("--skeleton", choices=sorted(SKELETONS))
     c.add_argument("--cameras", help="CMU Panoptic: comma-separated HD cameras")
     c.add_argument("--noise-px", type=PIXELS, default=0.0, help="CMU Panoptic: 2D noise")
@@ -149,7 +150,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="score OUT/tracks.csv against an input's truth")
     e.add_argument("out", help="a reconstruct output folder")
     e.add_argument("--truth", required=True, help="the input folder that carries the truth")
-    e.add_argument("--layout", choices=LAYOUTS)
+    e.add_argument("--layout", choices=tuple(LAYOUTS))
     e.add_argument("--max-dist-m", type=number_type(float, 1e-6, 1e6), default=1.0,
                    help="ground-plane distance within which an estimate matches a true object "
                         "(MOTA, IDF1, HOTA, OSPA cut-off)")
@@ -171,7 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="refine focal length and distortion too (keypoints only)")
     kr.add_argument("--format", choices=WRITABLE, default=None,
                     help="also write the refined rig in this format (into OUT/calibration/)")
-    kr.add_argument("--layout", choices=LAYOUTS)
+    kr.add_argument("--layout", choices=tuple(LAYOUTS))
     kr.add_argument("--skeleton", choices=sorted(SKELETONS))
     kr.add_argument("--fps", type=FPS)
     kr.add_argument("--cameras", help="CMU Panoptic: comma-separated HD cameras")
@@ -209,7 +210,7 @@ def build_parser() -> argparse.ArgumentParser:
     ex = sub.add_parser("export", parents=[common],
                         help="a reconstruct output as C3D, TRC (OpenSim), JSON or a Rerun recording")
     ex.add_argument("out", metavar="OUT", help="a gt3d reconstruct output folder")
-    ex.add_argument("--format", required=True, choices=("c3d", "trc", "json", "rerun"))
+    ex.add_argument("--format", required=True, choices=EXPORT_FORMATS)
     ex.add_argument("--to", metavar="DIR", help="folder to write (default OUT/export_FORMAT)")
     ex.set_defaults(func=cmd_export)
 

@@ -19,6 +19,7 @@ tools read. Every file goes into one folder, written atomically.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -31,8 +32,6 @@ from gt3dkit.io.results import Result, read_result
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import F64, I64
 from gt3dkit.viz.overview import colour_of
-
-FORMATS = ("c3d", "trc", "json", "rerun")
 
 
 def frame_grid(frames: I64) -> tuple[I64, int]:
@@ -265,6 +264,16 @@ def write_rerun(res: Result, path: Path) -> dict[str, Any]:
             "open": f"rerun {path.name}"}
 
 
+#: Every export format: its writer of a result into the export folder (returns what it wrote).
+EXPORTERS: dict[str, Callable[[Result, Path], dict[str, Any]]] = {
+    "c3d": lambda res, tmp: write_c3d(res, tmp / "tracks.c3d"),
+    "trc": write_trc,
+    "json": lambda res, tmp: write_json(res, tmp / "tracks.json"),
+    "rerun": lambda res, tmp: write_rerun(res, tmp / "tracks.rrd"),
+}
+FORMATS = tuple(EXPORTERS)
+
+
 def export(out: Path, fmt: str, dest: Path) -> dict[str, Any]:
     """Export the reconstruct output ``out`` as ``fmt`` into the folder ``dest`` (atomically);
     returns what was written (also in ``dest/export.json``)."""
@@ -274,14 +283,7 @@ def export(out: Path, fmt: str, dest: Path) -> dict[str, Any]:
     info: dict[str, Any] = {}
 
     def write(tmp: Path) -> None:
-        if fmt == "c3d":
-            info.update(write_c3d(res, tmp / "tracks.c3d"))
-        elif fmt == "trc":
-            info.update(write_trc(res, tmp))
-        elif fmt == "json":
-            info.update(write_json(res, tmp / "tracks.json"))
-        else:
-            info.update(write_rerun(res, tmp / "tracks.rrd"))
+        info.update(EXPORTERS[fmt](res, tmp))
         info.update({"format": fmt, "source": str(Path(out).resolve())})
         (tmp / "export.json").write_text(json.dumps(info, indent=1))
 

@@ -7,7 +7,7 @@ annotated from a random first to a random last frame. Boxes are the exact
 tangent boxes of the ellipsoids (:func:`gt3dkit.geom.conics.ellipsoid_boxes`),
 plus Gaussian noise on every edge, clipped to the image and rounded to whole
 pixels (truncated towards zero for the MultiviewX layout, as its generator does);
-a view is dropped at random with probability ``dropout``.
+a view is dropped at random with probability ``Errors.dropped``.
 
 Realistic annotation and detector errors (:class:`Errors`) are injected with a random
 stream of their own, so a scene with errors has exactly the same noise as the same seed
@@ -23,27 +23,29 @@ heading wander (Ornstein-Uhlenbeck), people turn, slow down and keep inside the 
 from __future__ import annotations
 
 import csv
-import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from gt3dkit.arrays import unique_rows
-from gt3dkit.calib.formats import grid
-from gt3dkit.calib.formats import toml as toml_fmt
 from gt3dkit.calib.formats.grid import LAYOUTS as GRID_LAYOUTS
-from gt3dkit.calib.formats.grid import GridLayout
 from gt3dkit.geom.camera import Cams, project_points
 from gt3dkit.geom.conics import covered_fraction, ellipsoid_boxes
 from gt3dkit.io.atomic import write_dir_atomically
-from gt3dkit.io.datasets.native import cameras_doc
+from gt3dkit.io.datasets import LAYOUTS, openpose, tasks
+from gt3dkit.io.datasets.wildtrack import write_truth_csv
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import F64, I64, Camera, Observations, Rig, Scene
+from gt3dkit.types import F64, I64, Camera, Observations, Rig, Scene, SimScene, SkeletonScene
 
 SIM_LAYOUTS = ("wildtrack", "multiviewx", "native")
-WRITE_LAYOUTS = (*SIM_LAYOUTS, "mot", "cvat")  # any simulated rig as per-camera task files
+WRITE_LAYOUTS = tuple(k for k, v in LAYOUTS.items() if v.write_boxes is not None)
 INJECTED_COLUMNS = ("frame", "camera", "id", "joint", "kind", "detail")
+
+
+#: Box views and keypoints left out at random unless :attr:`Errors.dropped` says otherwise.
+DROPPED_VIEWS = 0.15
+DROPPED_KEYPOINTS = 0.05
 
 
 @dataclass(frozen=True)
@@ -62,6 +64,10 @@ class Errors:
         (boxes only)
     time_offset : ``(camera index, frames)``: that camera's boxes show each person ``frames``
         frame steps later than labelled (an unsynchronised camera; boxes only)
+    hide_covered : boxes covered by nearer people's boxes by more than this fraction are left
+        out, as annotators skip people hidden behind others (None: keep them; boxes only)
+    dropped : views (boxes) or keypoints left out at random; None: the generator's default
+        (:data:`DROPPED_VIEWS` of the box views, :data:`DROPPED_KEYPOINTS` of the keypoints)
     """
 
     outliers: float = 0.0
@@ -72,8 +78,14 @@ class Errors:
     single_view: float = 0.0
     missing: float = 0.0
     time_offset: tuple[int, int] | None = None
+    hide_covered: float | None = None
+    dropped: float | None = None
 
     def __post_init__(self) -> None:
+        for k in ("hide_covered", "dropped"):
+            v = getattr(self, k)
+            if v is not None and not 0 <= v < 1:
+                raise ValueError(f"{k} must be a fraction in [0, 1), got {v}")
         for k in ("outliers", "swaps", "glitch", "shifted", "single_view", "missing"):
             v = getattr(self, k)
             if not 0 <= v <= 1:
@@ -104,26 +116,6 @@ def _keep_one_view(seen: np.ndarray, truth_id: I64, frac: float, rng: np.random.
         keep[best] = True
         out[m] &= keep
     return out, [int(p) for p in chosen]
-
-
-@dataclass(frozen=True)
-class SimScene:
-    """A synthetic scene.
-
-    frames : (T,) frame numbers; fps : frame-number rate
-    truth_frame, truth_id : (M,); center_world (M, 3), semi_axes (M, 3), metres
-    boxes : (M, C, 4) annotated boxes in pixels (NaN = not seen)
-    """
-
-    rig: Rig
-    frames: I64
-    fps: float
-    truth_frame: I64
-    truth_id: I64
-    center_world: F64
-    semi_axes: F64
-    boxes: F64
-    injected: tuple[tuple[int, str, int, str, str, str], ...] = ()
 
 
 def _look_at(center: F64, target: F64) -> tuple[F64, F64]:
@@ -182,21 +174,20 @@ def _walk(rng: np.random.Generator, t_s: F64, lo: F64, hi: F64) -> F64:
 
 
 def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: int = 10,
-             noise_px: float = 0.0, dropout: float = 0.15, errors: Errors | None = None,
-             motion: str = "smooth", cameras: int | None = None, fps: float | None = None,
-             hide_covered: float | None = None) -> SimScene:
+             noise_px: float = 0.0, errors: Errors | None = None, motion: str = "smooth",
+             cameras: int | None = None, fps: float | None = None) -> SimScene:
     """Generate a seeded scene. See the module docstring.
 
-    ``hide_covered``: boxes covered by nearer people's boxes by more than this fraction are
-    left out, as annotators skip people hidden behind others (None: keep them).
 
     ``cameras`` and ``fps`` set the native layout's camera count (default 6) and frame rate
     (default 10); the WILDTRACK and MultiviewX layouts have their own.
     """
     if layout not in SIM_LAYOUTS:
         raise ValueError(f"unknown layout {layout!r} (known: {', '.join(SIM_LAYOUTS)})")
-    if frames < 2 or people < 1 or not noise_px >= 0 or not 0 <= dropout < 1:
-        raise ValueError("need frames >= 2, people >= 1, noise_px >= 0, 0 <= dropout < 1")
+    errors = errors or Errors()
+    dropout = DROPPED_VIEWS if errors.dropped is None else errors.dropped
+    if frames < 2 or people < 1 or not noise_px >= 0:
+        raise ValueError("need frames >= 2, people >= 1, noise_px >= 0")
     if motion not in ("smooth", "walk"):
         raise ValueError(f"motion must be smooth or walk, got {motion!r}")
     if layout not in ("native", "mot") and (cameras is not None or fps is not None):
@@ -276,8 +267,8 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
                          f"{k:+d} frames"))
     centres = np.stack([c.center_world for c in rig.cameras])
     depth = np.linalg.norm(center[:, None, :] - centres[None], axis=-1)  # (M, C)
+    hide_covered = errors.hide_covered
     if hide_covered is not None or errors.missing:  # everyone in the picture hides, annotated or not
-
         cov = np.zeros(seen.shape)
         for f in np.unique(truth_frame):
             m = np.flatnonzero(truth_frame == f)
@@ -324,25 +315,20 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
 
 
 def write_scene(sim: SimScene, out: Path, layout: str, id_seed: int | None = 0) -> None:
-    """Write ``sim`` as an input folder of ``layout`` (atomically), with ``truth.csv``.
+    """Write ``sim`` as an input folder of ``layout`` (atomically, by the layout's writer in
+    :data:`gt3dkit.io.datasets.LAYOUTS`), with ``truth.csv`` and ``injected.csv``.
 
-    ``mot``: ``cameras.json`` + ``mot/<camera>.txt`` with each camera's ids a random
-    permutation of the people (``id_seed``; None keeps the global ids), as separate
-    per-camera annotation tasks number them."""
+    ``mot``, ``cvat``: each camera's ids a random permutation of the people (``id_seed``; None
+    keeps the global ids), as separate per-camera annotation tasks number them."""
     if layout not in WRITE_LAYOUTS:
         raise ValueError(f"unknown layout {layout!r}")
+    writer = LAYOUTS[layout].write_boxes
+    assert writer is not None
 
     def write(tmp: Path) -> None:
-        _write_truth(sim, tmp / "truth.csv")
+        write_truth_csv(sim, tmp / "truth.csv")
         _write_injected(sim.injected, tmp / "injected.csv")
-        if layout == "native":
-            _write_native(sim, tmp)
-        elif layout == "mot":
-            _write_mot(sim, tmp, id_seed)
-        elif layout == "cvat":
-            _write_cvat(sim, tmp, id_seed)
-        else:
-            _write_grid(sim, tmp, GRID_LAYOUTS[layout])
+        writer(sim, tmp, id_seed)
 
     write_dir_atomically(Path(out), write)
 
@@ -356,177 +342,8 @@ def _write_injected(rows: tuple[tuple[int, str, int, str, str, str], ...], path:
         w.writerows(rows)
 
 
-def _write_truth(sim: SimScene, path: Path) -> None:
-    with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["frame", "id", "x", "y", "z", "a", "b", "c"])
-        for i in range(len(sim.truth_frame)):
-            w.writerow([int(sim.truth_frame[i]), int(sim.truth_id[i]),
-                        *(f"{v:.6f}" for v in sim.center_world[i]),
-                        *(f"{v:.6f}" for v in sim.semi_axes[i])])
-
-
-def _write_native(sim: SimScene, tmp: Path) -> None:
-    _write_cameras(sim.rig, sim.fps, tmp)
-    with open(tmp / "boxes.csv", "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["frame", "camera", "id", "xmin", "ymin", "xmax", "ymax"])
-        for i in range(len(sim.truth_frame)):
-            for c, cam in enumerate(sim.rig.cameras):
-                b = sim.boxes[i, c]
-                if np.all(np.isfinite(b)):
-                    w.writerow([int(sim.truth_frame[i]), cam.name, int(sim.truth_id[i]),
-                                *(f"{v:g}" for v in b)])
-
-
-def _write_mot(sim: SimScene, tmp: Path, id_seed: int | None) -> None:
-    _write_cameras(sim.rig, sim.fps, tmp)
-    (tmp / "mot").mkdir()
-    people = np.unique(sim.truth_id)
-    rng = np.random.default_rng(id_seed) if id_seed is not None else None
-    for c, cam in enumerate(sim.rig.cameras):
-        local = _local_ids(people, rng)
-        lines = []
-        for i in range(len(sim.truth_frame)):
-            b = sim.boxes[i, c]
-            if np.all(np.isfinite(b)):
-                lines.append(f"{int(sim.truth_frame[i])},{local[int(sim.truth_id[i])]},{b[0]:g},{b[1]:g},"
-                             f"{b[2] - b[0]:g},{b[3] - b[1]:g},1,-1,-1,-1")
-        (tmp / "mot" / f"{cam.name}.txt").write_text("\n".join(lines) + ("\n" if lines else ""))
-
-
-def _local_ids(people: np.ndarray, rng: np.random.Generator | None) -> dict[int, int]:
-    ids = rng.permutation(len(people)) + 1 if rng is not None else people
-    return dict(zip(people.tolist(), ids.tolist(), strict=True))
-
-
-def _write_cameras(rig: Rig, fps: float, tmp: Path) -> None:
-    """``cameras.json`` of a simulated rig (with its frame rate)."""
-    doc = cameras_doc(rig, fps, frame=rig.frame_name, units="m")
-    (tmp / "cameras.json").write_text(json.dumps(doc, indent=1))
-
-
-def _write_cvat(sim: SimScene, tmp: Path, id_seed: int | None) -> None:
-    """``cvat/<camera>.xml``: one "CVAT for video 1.1" task per camera, one track per person
-    seen there (its own id), a box in every frame it is seen."""
-    from xml.sax.saxutils import quoteattr
-
-    _write_cameras(sim.rig, sim.fps, tmp)
-    (tmp / "cvat").mkdir()
-    people = np.unique(sim.truth_id)
-    rng = np.random.default_rng(id_seed) if id_seed is not None else None
-    for c, cam in enumerate(sim.rig.cameras):
-        local = _local_ids(people, rng)
-        lines = ['<?xml version="1.0" encoding="utf-8"?>', "<annotations>", "  <version>1.1</version>",
-                 f"  <meta><task><name>{cam.name}</name><size>{len(sim.frames)}</size>"
-                 f"<mode>interpolation</mode><original_size><width>{cam.width}</width><height>{cam.height}</height></original_size>"
-                 "</task></meta>"]
-        for p in people:
-            m = np.flatnonzero((sim.truth_id == p) & np.isfinite(sim.boxes[:, c, 0]))
-            if not len(m):
-                continue
-            lines.append(f'  <track id="{local[int(p)]}" label={quoteattr("person")} source="manual">')
-            for k in m:
-                b = sim.boxes[k, c]
-                lines.append(f'    <box frame="{int(sim.truth_frame[k])}" outside="0" occluded="0" '
-                             f'keyframe="1" xtl="{b[0]:.2f}" ytl="{b[1]:.2f}" xbr="{b[2]:.2f}" '
-                             f'ybr="{b[3]:.2f}" z_order="0"></box>')
-            lines.append("  </track>")
-        lines.append("</annotations>")
-        (tmp / "cvat" / f"{cam.name}.xml").write_text("\n".join(lines) + "\n")
-
-
-def write_kpt_truth(sim: SkeletonScene, path: Path) -> None:
-    """``truth_keypoints.csv`` = ``frame,id,joint,x,y,z`` (metres), every joint of every pose."""
-    with open(path, "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["frame", "id", "joint", "x", "y", "z"])
-        for a in range(len(sim.truth_frame)):
-            for k in range(sim.kpt_world.shape[1]):
-                w.writerow([int(sim.truth_frame[a]), int(sim.truth_id[a]), k,
-                            *(f"{v:.6f}" for v in sim.kpt_world[a, k])])
-
-
-def write_coco(sim: SkeletonScene, out: Path, track_ids: bool = True, seed: int = 0) -> None:
-    """``coco/<camera>.json`` (COCO keypoints per camera, joint names in ``categories``;
-    ``track_id`` numbered per camera when ``track_ids``, else none) + ``cameras.json`` +
-    ``truth_keypoints.csv``, atomically."""
-    skel = SKELETONS[sim.skeleton]
-    rng = np.random.default_rng([seed, 3])
-
-    def write(tmp: Path) -> None:
-        _write_cameras(sim.rig, sim.fps, tmp)
-        (tmp / "coco").mkdir()
-        people = np.unique(sim.truth_id)
-        for c, cam in enumerate(sim.rig.cameras):
-            local = _local_ids(people, rng)
-            images = [{"id": int(k), "file_name": f"{cam.name}/frame_{int(f):06d}.jpg", "frame_id": int(f),
-                       "width": cam.width, "height": cam.height} for k, f in enumerate(sim.frames)]
-            img_of = {int(f): int(k) for k, f in enumerate(sim.frames)}
-            anns = []
-            for a in rng.permutation(len(sim.truth_frame)):
-                uv = sim.uv[a, c]
-                seen = np.isfinite(uv).all(axis=1)
-                if seen.sum() < 1:
-                    continue
-                kp = np.column_stack([np.nan_to_num(uv), np.where(seen, 2, 0)]).ravel()
-                lo, hi = uv[seen].min(axis=0), uv[seen].max(axis=0)
-                ann = {"id": len(anns) + 1, "image_id": img_of[int(sim.truth_frame[a])], "category_id": 1,
-                       "keypoints": [round(float(v), 3) for v in kp], "num_keypoints": int(seen.sum()),
-                       "bbox": [round(float(v), 2) for v in (*lo, *(hi - lo))], "iscrowd": 0}
-                if track_ids:
-                    ann["track_id"] = local[int(sim.truth_id[a])]
-                anns.append(ann)
-            coco = {"images": images, "annotations": anns,
-                    "categories": [{"id": 1, "name": "person", "keypoints": list(skel.marker_names),
-                                    "skeleton": [[int(a) + 1, int(b) + 1] for a, b in skel.bones]}]}
-            (tmp / "coco" / f"{cam.name}.json").write_text(json.dumps(coco))
-        write_kpt_truth(sim, tmp / "truth_keypoints.csv")
-
-    write_dir_atomically(Path(out), write)
-
-
-def _write_grid(sim: SimScene, tmp: Path, g: GridLayout) -> None:
-    grid.write(sim.rig, tmp, g)
-    ann = tmp / "annotations_positions"
-    ann.mkdir()
-    width = 8 if g.name == "wildtrack" else 5
-    pos = g.xy_to_position(sim.center_world[:, :2])
-    for f in sim.frames:
-        people = []
-        for i in np.flatnonzero(sim.truth_frame == f):
-            views = []
-            for c in range(len(sim.rig.cameras)):
-                b = sim.boxes[i, c]
-                vals = [-1, -1, -1, -1] if not np.all(np.isfinite(b)) else [int(v) for v in b]
-                views.append(dict(zip(("viewNum", "xmin", "ymin", "xmax", "ymax"), [c, *vals], strict=True)))
-            people.append({"personID": int(sim.truth_id[i]), "positionID": int(pos[i]),
-                           "views": views})
-        (ann / f"{int(f):0{width}d}.json").write_text(json.dumps(people, indent=1))
-
-
 # ---------------------------------------------------------------------------------------
 # skeletons
-
-
-@dataclass(frozen=True)
-class SkeletonScene:
-    """A synthetic multi-person skeleton sequence.
-
-    truth_frame, truth_id : (M,); kpt_world : (M, J, 3) metres
-    uv : (M, C, J, 2) observed keypoints (NaN = not seen)
-    """
-
-    rig: Rig
-    frames: I64
-    fps: float
-    skeleton: str
-    truth_frame: I64
-    truth_id: I64
-    kpt_world: F64
-    uv: F64
-    conf: F64 | None = None  # (M, C, J) detector confidence, None = not written
-    injected: tuple[tuple[int, str, int, str, str, str], ...] = ()
 
 
 def make_dome(n_cams: int, rng: np.random.Generator, up: F64, names: list[str]) -> Rig:
@@ -601,25 +418,25 @@ def skeleton_motion(skel_name: str, t_s: F64, rng: np.random.Generator) -> F64:
 
 
 def simulate_skeletons(layout: str = "native", seed: int = 0, frames: int = 30, people: int = 3,
-                       noise_px: float = 0.0, missing: float = 0.05, cameras: int = 10,
+                       noise_px: float = 0.0, cameras: int = 10,
                        skeleton: str = "coco19", fps: float = 30.0, errors: Errors | None = None,
                        confidences: bool = False) -> SkeletonScene:
     """People as moving skeletons seen by a dome of HD cameras, in a y-down world.
 
     2D points are exact projections (with distortion) plus ``noise_px`` Gaussian noise;
     points behind a camera or outside its image are dropped, and a fraction
-    ``missing`` of the rest at random. ``errors`` (native layout) adds detector errors;
+    ``Errors.dropped`` of the rest at random. ``errors`` (native layout) adds detector errors;
     ``confidences`` writes a detector-like confidence per point (lower for worse points).
     """
     if layout not in ("native", "panoptic"):
         raise ValueError(f"skeleton scenes are written as native or panoptic, not {layout!r}")
     errors = errors or Errors()
-    if layout == "panoptic" and errors != Errors():
+    missing = DROPPED_KEYPOINTS if errors.dropped is None else errors.dropped
+    if layout == "panoptic" and replace(errors, dropped=None) != Errors():
         raise ValueError("detector errors are written in the native layout (the Panoptic "
                          "layout's loader makes its own 2D points)")
-    if frames < 2 or people < 1 or cameras < 2 or not noise_px >= 0 or not 0 <= missing < 1:
-        raise ValueError("need frames >= 2, people >= 1, cameras >= 2, noise_px >= 0, "
-                         "0 <= missing < 1")
+    if frames < 2 or people < 1 or cameras < 2 or not noise_px >= 0:
+        raise ValueError("need frames >= 2, people >= 1, cameras >= 2, noise_px >= 0")
     rng = np.random.default_rng(seed)
     up = np.array([0.0, -1.0, 0.0])
     names = [f"00_{i:02d}" for i in range(cameras)]
@@ -719,97 +536,40 @@ def to_z_up(sim: SkeletonScene) -> SkeletonScene:
     return _dc.replace(sim, rig=rig, kpt_world=sim.kpt_world @ Q_ZUP.T)
 
 
-def write_openpose(sim: SkeletonScene, out: Path, seed: int = 0,
-                   folder_names: list[str] | None = None) -> None:
-    """Write as a Pose2Sim/OpenPose trial (atomically): ``calibration/Calib_scene.toml``
-    (cameras ``cam_01``...), ``Config.toml`` with the frame rate, ``pose/<name>_json/`` with
-    one OpenPose file per frame per camera, people in a random order without ids (undetected
-    joints 0, 0, 0), and ``truth_keypoints.csv`` in the same z-up world. ``sim`` must be in a
-    z-up world (:func:`to_z_up`) and a detector skeleton (body25, ...)."""
-    rng = np.random.default_rng([seed, 7])
-    names = folder_names or [f"cam{k + 1}" for k in range(len(sim.rig.cameras))]
-    import dataclasses as _dc
-
-    rig = Rig(tuple(_dc.replace(c, name=f"cam_{k + 1:02d}") for k, c in enumerate(sim.rig.cameras)),
-              up=sim.rig.up, frame_name=sim.rig.frame_name)
+def write_skeleton_scene(sim: SkeletonScene, out: Path, layout: str) -> None:
+    """Write as an input folder of ``layout`` (atomically, by the layout's writer in
+    :data:`gt3dkit.io.datasets.LAYOUTS`: native ``cameras.json``, ``keypoints.csv``,
+    ``truth_keypoints.csv``; or a CMU Panoptic sequence, whose loader makes the 2D points), with
+    ``injected.csv`` (native)."""
+    writer = LAYOUTS[layout].write_keypoints if layout in LAYOUTS else None
+    if writer is None:
+        raise ValueError(f"unknown layout {layout!r}")
 
     def write(tmp: Path) -> None:
-        (tmp / "calibration").mkdir()
-        toml_fmt.write(rig, tmp / "calibration" / "Calib_scene.toml")
-        (tmp / "Config.toml").write_text(f"[project]\nframe_rate = {sim.fps:g}\n")
-        J = SKELETONS[sim.skeleton].n_joints
-        for c, name in enumerate(names):
-            d = tmp / "pose" / f"{name}_json"
-            d.mkdir(parents=True)
-            for f in sim.frames:
-                people = []
-                for a in rng.permutation(np.flatnonzero(sim.truth_frame == f)):
-                    uv = sim.uv[a, c]
-                    if not np.isfinite(uv[:, 0]).any():
-                        continue
-                    cf = sim.conf[a, c] if sim.conf is not None else np.full(J, 0.9)
-                    trip = np.where(np.isfinite(uv).all(axis=1)[:, None],
-                                    np.column_stack([uv, cf]), 0.0).ravel()
-                    people.append({"person_id": [-1],
-                                   "pose_keypoints_2d": [round(float(v), 3) for v in trip],
-                                   "face_keypoints_2d": [], "hand_left_keypoints_2d": [],
-                                   "hand_right_keypoints_2d": []})
-                doc = {"version": 1.3, "people": people}
-                (d / f"trial_{int(f):012d}_keypoints.json").write_text(json.dumps(doc))
-        write_kpt_truth(sim, tmp / "truth_keypoints.csv")
+        writer(sim, tmp)
+        if layout == "native":
+            _write_injected(sim.injected, tmp / "injected.csv")
+
+    write_dir_atomically(Path(out), write)
+
+
+def write_openpose(sim: SkeletonScene, out: Path, seed: int = 0,
+                   folder_names: list[str] | None = None) -> None:
+    """Write as a Pose2Sim/OpenPose trial (atomically; :func:`gt3dkit.io.datasets.openpose.write`)
+    with ``injected.csv``. ``sim`` must be in a z-up world (:func:`to_z_up`) and a detector
+    skeleton (body25, ...)."""
+
+    def write(tmp: Path) -> None:
+        openpose.write(sim, tmp, seed, folder_names)
         _write_injected(sim.injected, tmp / "injected.csv")
 
     write_dir_atomically(Path(out), write)
 
 
-def write_skeleton_scene(sim: SkeletonScene, out: Path, layout: str) -> None:
-    """Write as native (``cameras.json``, ``keypoints.csv``, ``truth_keypoints.csv``) or as a
-    CMU Panoptic sequence (``calibration_sim.json`` in cm + ``body3DScene`` files; the
-    loader makes the 2D points, so ``uv``, noise and missing points are not written)."""
-
-    def write(tmp: Path) -> None:
-        if layout == "native":
-            doc = cameras_doc(sim.rig, sim.fps, skeleton=sim.skeleton, units="m",
-                              frame="synthetic y-down world")
-            (tmp / "cameras.json").write_text(json.dumps(doc, indent=1))
-            with open(tmp / "keypoints.csv", "w", newline="") as f:
-                w = csv.writer(f)
-                w.writerow(["frame", "camera", "id", "joint", "u", "v"]
-                           + (["conf"] if sim.conf is not None else []))
-                m, c, j = np.nonzero(np.isfinite(sim.uv[..., 0]))
-                for a, b, k in zip(m, c, j, strict=True):
-                    w.writerow([int(sim.truth_frame[a]), sim.rig.cameras[b].name,
-                                int(sim.truth_id[a]), int(k), f"{sim.uv[a, b, k, 0]:.4f}",
-                                f"{sim.uv[a, b, k, 1]:.4f}"]
-                               + ([f"{sim.conf[a, b, k]:.3f}"] if sim.conf is not None else []))
-            _write_injected(sim.injected, tmp / "injected.csv")
-            write_kpt_truth(sim, tmp / "truth_keypoints.csv")
-        elif layout == "panoptic":
-            if sim.skeleton != "coco19":
-                raise ValueError("the Panoptic layout holds coco19 skeletons")
-            cams = [{"name": c.name, "type": "hd", "resolution": [c.width, c.height],
-                     "panel": 0, "node": i, "K": c.K.tolist(), "distCoef": c.dist.tolist(),
-                     "R": c.R.tolist(), "t": (c.t[:, None] * 100).tolist()}
-                    for i, c in enumerate(sim.rig.cameras)]
-            cams.append({"name": "01_01", "type": "vga", "resolution": [640, 480], "panel": 1,
-                         "node": 1, "K": np.eye(3).tolist(), "distCoef": [0] * 5,
-                         "R": np.eye(3).tolist(), "t": [[0], [0], [300]]})
-            (tmp / "calibration_sim.json").write_text(json.dumps(
-                {"calibDataSource": "gt3dkit simulate", "cameras": cams}))
-            d = tmp / "hdPose3d_stage1_coco19"
-            d.mkdir()
-            for f in sim.frames:
-                bodies = []
-                for a in np.flatnonzero(sim.truth_frame == f):
-                    j = np.concatenate([sim.kpt_world[a] * 100, np.ones((len(sim.kpt_world[a]), 1))],
-                                       axis=1)
-                    bodies.append({"id": int(sim.truth_id[a]), "joints19": j.reshape(-1).round(4).tolist()})
-                (d / f"body3DScene_{int(f):08d}.json").write_text(json.dumps(
-                    {"version": 0.7, "univTime": float(f), "fpsType": "hd_29_97", "bodies": bodies}))
-        else:
-            raise ValueError(f"unknown layout {layout!r}")
-
-    write_dir_atomically(Path(out), write)
+def write_coco(sim: SkeletonScene, out: Path, track_ids: bool = True, seed: int = 0) -> None:
+    """Write as ``coco/<camera>.json`` + ``cameras.json`` + ``truth_keypoints.csv`` (atomically;
+    :func:`gt3dkit.io.datasets.tasks.write_coco`)."""
+    write_dir_atomically(Path(out), lambda tmp: tasks.write_coco(sim, tmp, track_ids, seed))
 
 
 def corrupt_keypoints(scene: Scene, errors: Errors, seed: int = 0

@@ -235,3 +235,43 @@ class Downweighted:
 
     def __len__(self) -> int:
         return len(self.frame)
+
+
+@dataclass(frozen=True)
+class SimScene:
+    """A synthetic scene.
+
+    frames : (T,) frame numbers; fps : frame-number rate
+    truth_frame, truth_id : (M,); center_world (M, 3), semi_axes (M, 3), metres
+    boxes : (M, C, 4) annotated boxes in pixels (NaN = not seen)
+    """
+
+    rig: Rig
+    frames: I64
+    fps: float
+    truth_frame: I64
+    truth_id: I64
+    center_world: F64
+    semi_axes: F64
+    boxes: F64
+    injected: tuple[tuple[int, str, int, str, str, str], ...] = ()
+
+
+@dataclass(frozen=True)
+class SkeletonScene:
+    """A synthetic multi-person skeleton sequence.
+
+    truth_frame, truth_id : (M,); kpt_world : (M, J, 3) metres
+    uv : (M, C, J, 2) observed keypoints (NaN = not seen)
+    """
+
+    rig: Rig
+    frames: I64
+    fps: float
+    skeleton: str
+    truth_frame: I64
+    truth_id: I64
+    kpt_world: F64
+    uv: F64
+    conf: F64 | None = None  # (M, C, J) detector confidence, None = not written
+    injected: tuple[tuple[int, str, int, str, str, str], ...] = ()

@@ -31,6 +31,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from gt3dkit.sim import Errors
+
 ERROR, WARN, OK, EITHER = "error", "warn", "ok", "either"
 MARKER = ".gt3dkit-output"
 
@@ -69,10 +71,12 @@ def make_bases(root: Path) -> Path:
     from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
 
     root.mkdir(parents=True, exist_ok=True)
-    write_scene(simulate("native", seed=1, frames=5, people=3, dropout=0.0), root / "boxes", "native")
-    write_scene(simulate("wildtrack", seed=1, frames=3, people=2, dropout=0.0), root / "wildtrack",
+    write_scene(simulate("native", seed=1, frames=5, people=3, errors=Errors(dropped=0.0)), root / "boxes",
+                "native")
+    write_scene(simulate("wildtrack", seed=1, frames=3, people=2, errors=Errors(dropped=0.0)),
+                root / "wildtrack",
                 "wildtrack")
-    write_scene(simulate("multiviewx", seed=1, frames=3, people=2, dropout=0.0),
+    write_scene(simulate("multiviewx", seed=1, frames=3, people=2, errors=Errors(dropped=0.0)),
                 root / "multiviewx", "multiviewx")
     write_skeleton_scene(simulate_skeletons("native", seed=1, frames=4, people=2, cameras=4,
                                             skeleton="coco17", confidences=True, noise_px=1.0),
@@ -81,8 +85,10 @@ def make_bases(root: Path) -> Path:
                          root / "panoptic", "panoptic")
     from gt3dkit.sim import to_z_up, write_coco, write_openpose
 
-    write_scene(simulate("wildtrack", seed=1, frames=4, people=3, dropout=0.0), root / "mot", "mot")
-    write_scene(simulate("wildtrack", seed=1, frames=4, people=3, dropout=0.0), root / "cvat", "cvat")
+    write_scene(simulate("wildtrack", seed=1, frames=4, people=3, errors=Errors(dropped=0.0)), root / "mot",
+                "mot")
+    write_scene(simulate("wildtrack", seed=1, frames=4, people=3, errors=Errors(dropped=0.0)),
+                root / "cvat", "cvat")
     sk = simulate_skeletons("native", seed=1, frames=4, people=2, cameras=4, noise_px=1.0, skeleton="body25",
                             confidences=True)
     write_openpose(to_z_up(sk), root / "openpose")

@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from gt3dkit.api import load_scene
-from gt3dkit.sim import SimScene, simulate, write_scene
+from gt3dkit.sim import Errors, SimScene, simulate, write_scene
 from gt3dkit.types import Scene
 
 
@@ -20,4 +20,4 @@ def written_scene(root: Path, layout: str = "native", **kw: object) -> tuple[Sce
     return load_scene(root), sim
 
 
-SMALL = dict(seed=3, frames=12, people=4, noise_px=0.0, dropout=0.15)
+SMALL = dict(seed=3, frames=12, people=4, noise_px=0.0, errors=Errors(dropped=0.15))

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from gt3dkit.cli import main
+from gt3dkit.sim import Errors
 
 from .scenes import written_scene
 
@@ -32,14 +33,14 @@ def _check(code: int, err: str, out: Path, *needles: str) -> None:
 @pytest.fixture
 def native(tmp_path: Path) -> Path:
     root = tmp_path / "in"
-    written_scene(root, "native", seed=0, frames=4, people=2, dropout=0.0)
+    written_scene(root, "native", seed=0, frames=4, people=2, errors=Errors(dropped=0.0))
     return root
 
 
 @pytest.fixture
 def wild(tmp_path: Path) -> Path:
     root = tmp_path / "in"
-    written_scene(root, "wildtrack", seed=0, frames=3, people=2, dropout=0.0)
+    written_scene(root, "wildtrack", seed=0, frames=3, people=2, errors=Errors(dropped=0.0))
     return root
 
 

@@ -11,7 +11,7 @@ from gt3dkit import load_scene, reconstruct
 from gt3dkit.cli import main
 from gt3dkit.eval.metrics import box_errors
 from gt3dkit.eval.pose import mpjpe_by_id
-from gt3dkit.sim import simulate_skeletons, write_skeleton_scene
+from gt3dkit.sim import Errors, simulate_skeletons, write_skeleton_scene
 
 
 def test_gtsam_on_exact_box_scene(small_native) -> None:
@@ -24,7 +24,7 @@ def test_gtsam_on_exact_box_scene(small_native) -> None:
 
 
 def test_gtsam_on_skeleton_scene(tmp_path: Path) -> None:
-    sim = simulate_skeletons("native", seed=6, frames=6, people=1, cameras=5, missing=0.05)
+    sim = simulate_skeletons("native", seed=6, frames=6, people=1, cameras=5, errors=Errors(dropped=0.05))
     write_skeleton_scene(sim, tmp_path, "native")
     scene = load_scene(tmp_path)
     tr = reconstruct(scene, "gtsam")

@@ -15,6 +15,7 @@ from gt3dkit.commands.common import bundled
 from gt3dkit.eval.metrics import box_errors
 from gt3dkit.fusion.rows import usable_edges
 from gt3dkit.io.writers import TRACK_COLUMNS, read_tracks_csv
+from gt3dkit.sim import Errors
 
 from .scenes import written_scene
 
@@ -60,7 +61,7 @@ def test_every_estimator_on_exact_synthetic_scene(small_native, name: str) -> No
 
 
 def test_ukf_covers_frames_with_fewer_than_two_views(tmp_path: Path) -> None:
-    scene, sim = written_scene(tmp_path, "native", seed=5, frames=10, people=3, dropout=0.6)
+    scene, sim = written_scene(tmp_path, "native", seed=5, frames=10, people=3, errors=Errors(dropped=0.6))
     tracks = reconstruct(scene)
     assert np.any(tracks.n_views < 2)
     e = box_errors(tracks, scene.truth, scene.rig.up)

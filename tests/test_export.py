@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv
-from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
+from gt3dkit.sim import Errors, simulate, simulate_skeletons, write_scene, write_skeleton_scene
 from gt3dkit.skeletons import SKELETONS
 
 GT3D = [sys.executable, "-m", "gt3dkit.cli"]
@@ -128,7 +128,8 @@ def test_json_and_rerun(skel: Path) -> None:
 def test_box_output_as_c3d_markers_and_errors(tmp_path: Path) -> None:
     import c3d
 
-    write_scene(simulate("native", seed=2, frames=6, people=3, dropout=0.0), tmp_path / "in", "native")
+    write_scene(simulate("native", seed=2, frames=6, people=3, errors=Errors(dropped=0.0)), tmp_path / "in",
+                "native")
     assert _run("reconstruct", str(tmp_path / "in"), "--out", str(tmp_path / "out")).returncode == 0
     assert _run("export", str(tmp_path / "out"), "--format", "c3d").returncode == 0
     with open(tmp_path / "out" / "export_c3d" / "tracks.c3d", "rb") as f, warnings.catch_warnings():

@@ -10,14 +10,14 @@ from pathlib import Path
 import pytest
 
 from gt3dkit.cli import main
-from gt3dkit.sim import simulate, write_scene
+from gt3dkit.sim import Errors, simulate, write_scene
 
 
 @pytest.fixture(scope="module")
 def manifest(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = Path(tmp_path_factory.mktemp("many"))
     for i in (1, 2, 3):
-        sim = simulate("native", seed=i, frames=6, people=2, dropout=0.0)
+        sim = simulate("native", seed=i, frames=6, people=2, errors=Errors(dropped=0.0))
         write_scene(sim, root / "seqs" / f"s{i}", "native")
     bad = root / "seqs" / "s4"
     bad.mkdir()

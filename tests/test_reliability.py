@@ -24,7 +24,7 @@ from gt3dkit.cli import main
 from gt3dkit.commands.common import pose_table
 from gt3dkit.eval.pose import PoseScores
 from gt3dkit.io.atomic import MARKER, clean_stale
-from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
+from gt3dkit.sim import Errors, simulate, simulate_skeletons, write_scene, write_skeleton_scene
 
 GT3D = [sys.executable, "-m", "gt3dkit.cli"]
 
@@ -42,7 +42,8 @@ def _leftovers(folder: Path) -> list[str]:
 @pytest.fixture(scope="module")
 def scenes(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     root = Path(tmp_path_factory.mktemp("scenes"))
-    write_scene(simulate("native", seed=2, frames=6, people=3, dropout=0.0), root / "boxes", "native")
+    write_scene(simulate("native", seed=2, frames=6, people=3, errors=Errors(dropped=0.0)), root / "boxes",
+                "native")
     write_skeleton_scene(simulate_skeletons("native", seed=2, frames=4, people=2, cameras=4),
                          root / "kpts", "native")
     write_scene(simulate("native", seed=4, frames=80, people=10, noise_px=1.0), root / "long", "native")
@@ -216,7 +217,7 @@ def test_closed_pipe_is_quiet(scenes, tmp_path) -> None:
 def test_off_image_boxes_are_ignored_with_a_warning(tmp_path, capsys) -> None:
     """Boxes entirely outside the image (negative coordinates) must not pull the estimate away."""
     root = tmp_path / "in"
-    write_scene(simulate("native", seed=5, frames=8, people=4, dropout=0.0), root, "native")
+    write_scene(simulate("native", seed=5, frames=8, people=4, errors=Errors(dropped=0.0)), root, "native")
     assert main(["reconstruct", str(root), "--out", str(tmp_path / "clean")]) == 0
     clean = capsys.readouterr().out
     lines = (root / "boxes.csv").read_text().splitlines()

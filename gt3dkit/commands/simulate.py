@@ -37,9 +37,13 @@ def _errors(args: argparse.Namespace) -> Any:
             raise InputError("--gap", f"expected 0 <= FIRST < END <= --frames ({args.frames}), "
                                       f"got {args.gap}")
         gap = (a, b)
+    for name, v in (("--dropout", args.dropout), ("--missing", args.missing)):
+        if not 0 <= v < 1:
+            raise InputError(name, f"expected a fraction in [0, 1), got {v}")
     try:
         return Errors(outliers=args.outliers, swaps=args.swaps, glitch=args.glitch,
-                      shifted=args.shifted, gap=gap, single_view=args.single_view)
+                      shifted=args.shifted, gap=gap, single_view=args.single_view,
+                      dropped=args.missing if args.kind == "skeleton" else args.dropout)
     except ValueError as e:
         raise InputError("simulate", str(e)) from None
 
@@ -87,7 +91,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         try:
             sk = simulate_skeletons(args.layout, seed=args.seed, frames=args.frames,
                                     people=args.people, noise_px=args.noise_px,
-                                    missing=args.missing, cameras=args.cameras or 10,
+                                    cameras=args.cameras or 10,
                                     skeleton=args.skeleton, errors=errors,
                                     confidences=args.conf, fps=args.fps or 30.0)
         except ValueError as e:
@@ -112,7 +116,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise InputError("simulate", "box scenes are native, wildtrack or multiviewx")
     try:
         sim = simulate(args.layout, seed=args.seed, frames=args.frames, people=args.people,
-                       noise_px=args.noise_px, dropout=args.dropout, errors=errors,
+                       noise_px=args.noise_px, errors=errors,
                        motion=args.motion, cameras=args.cameras, fps=args.fps)
     except ValueError as e:
         raise InputError("simulate", str(e)) from None

@@ -11,49 +11,44 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
-
 from gt3dkit.api import load_scene
 from gt3dkit.fusion import ukf_smoother as us
-from gt3dkit.fusion.boxupdate import linear_forward, rows_update
 from gt3dkit.fusion.measurement import Model
 from gt3dkit.sim import simulate, write_scene
+from gt3dkit.types import Scene
 
 
-def compile_side() -> None:
-    """Compile :func:`rows_update` (the frame-loop path's update) and :func:`linear_forward` (the
-    noise search) by calls on no rows, with the argument types their callers pass."""
-    n, m, C = 9, 8, 2
-    f, b, i8 = np.zeros, np.bool_, np.int64
-    linear_forward(f(0, i8), f(1, i8), f(1, b), f(1), f((1, n)), f((1, n, n)), 1.0, 1.0, f((3, 3)),
-                   f((1, m), b), f((1, 6, m)), f((1, m)), f((1, m)), f((1, m)), f(6, i8))
-    rows_update(f((1, n)), f((1, n, n)), f((1, m)), f((1, m), b), f((1, m)), f((1, m)), f((1, n)),
-                f((1, n, n)), 1, f(6, np.int64), f(12), f(12), 1.0, True, 1.0, 1.0, f((3, 3)), f((C, 3, 3)),
-                f((C, 5)), f((C, 3, 3)), f((C, 3)), f(C), 2, f((1, n)), f((1, n, n)), f((1, 5)), f((1, m)),
-                f((1, m)), f((1, m)), 0, 0)
-
-
-def warm_up() -> float:
-    """Compile (or load from numba's disk cache) every compiled function of the box path by
-    reconstructing a tiny simulated scene; returns the seconds it took. ``make setup`` runs it
-    once, so that a first real run does not spend ~60 s compiling. Two of the functions compile
-    meanwhile in a second process (numba compiles on one core): ~40 s instead of ~65 s here."""
-    t0 = time.perf_counter()
-    side = subprocess.Popen([sys.executable, "-c", "from gt3dkit.commands.warmup import "
-                             "compile_side as f; f()"])
+def _tiny_model() -> tuple[Model, us.Init, us.UKFConfig, float, us.UKFSmoother, Scene]:
+    """A 4-frame, 2-person simulated scene's model, initial states and a config with its noise set."""
     with tempfile.TemporaryDirectory() as tmp:
         write_scene(simulate("wildtrack", seed=0, frames=4, people=2, noise_px=1.0), Path(tmp) / "in",
                     "wildtrack")
         scene = load_scene(Path(tmp) / "in")
     est = us.UKFSmoother()
-    pre = est.prepare(scene)  # the per-frame fits (gt3dkit.fusion.boxlm)
-    est.estimate(scene, pre)  # the linearised noise search, forward, backward
-    model = Model.of(pre)
+    model = Model.of(est.prepare(scene))  # the per-frame fits (gt3dkit.fusion.boxlm)
     cfg = replace(est.config, accel_sd=0.5, shape_sd=0.01)
-    init = us.initial_states(model, cfg)
-    us.run_filter(model, init, cfg, scene.fps)  # forward, backward, the tangent box
+    return model, us.initial_states(model, cfg), cfg, scene.fps, est, scene
+
+
+def compile_side() -> None:
+    """Compile the filter over frames (its batched steps) on a tiny scene."""
+    model, init, cfg, fps, _, _ = _tiny_model()
+    us.run_frames(model, init, cfg, fps, collect=True)
+
+
+def warm_up() -> float:
+    """Compile (or load from numba's disk cache) every compiled function by reconstructing a tiny
+    simulated scene; returns the seconds it took. ``make setup`` runs it once, so that a first
+    real run does not spend a minute compiling. The filter over frames compiles meanwhile in a
+    second process (numba compiles on one core)."""
+    t0 = time.perf_counter()
+    side = subprocess.Popen([sys.executable, "-c", "from gt3dkit.commands.warmup import "
+                             "compile_side as f; f()"])
+    model, init, cfg, fps, est, scene = _tiny_model()
+    est.estimate(scene)  # the linearised noise search, forward, backward
+    us.run_filter(model, init, cfg, fps)
     side.wait()
-    us.run_filter(model, init, cfg, scene.fps, compiled=False)  # rows_update (from the cache by now)
+    us.run_frames(model, init, cfg, fps, collect=True)  # from the cache by now
     return time.perf_counter() - t0
 
 

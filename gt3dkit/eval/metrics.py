@@ -149,7 +149,7 @@ def clear_mot(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float =
 
     Written out rather than calling motmetrics because its accumulator builds pandas frames
     per frame: its import and updates were ~0.8 s of every 400-frame evaluation (most of a box
-    reconstruction's evaluation); ``tests/test_metrics.py`` holds this to motmetrics itself on
+    reconstruction's evaluation); ``tests/eval/test_metrics.py`` holds this to motmetrics itself on
     random scenes with misses, false positives and identity swaps.
     """
     from scipy.optimize import linear_sum_assignment

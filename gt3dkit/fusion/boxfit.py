@@ -11,7 +11,6 @@ r"""Boxes -> ellipsoids without a temporal model.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -24,8 +23,6 @@ from gt3dkit.types import B8, F64
 #: Prior semi-axes (m) for a standing person, used only as a weak regulariser and
 #: for a view with no usable bottom edge.
 PERSON_SEMI_AXES_M = np.array([0.3, 0.3, 0.85])
-#: finite-difference steps of the fit's Jacobian: centre (m), log semi-axes
-FD_STEPS = np.array([1e-5] * 3 + [1e-6] * 3)
 
 
 def box_model(center_world: F64, log_axes: F64, cams: Cams, want: np.ndarray | None = None) -> F64:
@@ -115,19 +112,9 @@ class BoxFit:
     leverage: F64
 
 
-def _residuals(p: F64, z: F64, mask: B8, cams: Cams, sigma_px: F64 | float, prior: F64,
-               prior_sd: F64 | float) -> F64:
-    """(..., N, 6) params -> (..., N, C*4 + 3) whitened residuals (NaN if behind a camera)."""
-    box = box_model(p[..., :3], p[..., 3:], cams, mask.any(axis=-1))
-    r = np.where(mask, (box - z) / sigma_px, 0.0)
-    r = np.where(mask & ~np.isfinite(box), np.nan, r)
-    r = r.reshape(r.shape[:-2] + (-1,))
-    return np.concatenate([r, (p[..., 3:] - prior) / prior_sd], axis=-1)
-
-
 def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: F64 | float = 1.0,
               prior_log_axes: F64 | None = None, prior_sd: F64 | float = 1.0,
-              iters: int = 40, p0: F64 | None = None, compiled: bool = True) -> BoxFit:
+              iters: int = 40, p0: F64 | None = None) -> BoxFit:
     """Fit one ellipsoid to each object-frame's boxes (batched Levenberg-Marquardt).
 
     Parameters
@@ -139,8 +126,8 @@ def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: F64 | float = 1.0,
     prior_log_axes : (3,) weak prior mean of the log semi-axes (default: a person)
     prior_sd : its standard deviation (log units, scalar or (3,)); keeps one-view fits defined
     p0 : (N, 6) start (centre, log axes); default the ground-plane initialisation
-    compiled : the LM loop compiled (:mod:`gt3dkit.fusion.boxlm`), one object-frame at a time;
-        ``False``: batched numpy, the reference
+
+    The LM loop is compiled (:mod:`gt3dkit.fusion.boxlm`), one object-frame at a time.
     """
     N = box_z.shape[0]
     prior = np.log(PERSON_SEMI_AXES_M) if prior_log_axes is None else prior_log_axes
@@ -150,15 +137,8 @@ def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: F64 | float = 1.0,
         start = np.all(np.isfinite(p0), axis=1)
         p[start] = p0[start]
     z = np.where(box_mask, box_z, 0.0)
-    if compiled:
-        p, r, J = fit_compiled(p, z, box_mask, ok, np.asarray(sigma_px, dtype=np.float64), prior,
-                               np.asarray(prior_sd, dtype=np.float64), iters, BoxCameras.of(cams))
-    else:
-        def res(q: F64, sel: slice | np.ndarray = slice(None)) -> F64:
-            return _residuals(q, z[sel], box_mask[sel], cams, sigma_px, prior, prior_sd)
-
-        with np.errstate(over="ignore", invalid="ignore"):  # a wild trial step is rejected as inf
-            p, r, J = _lm_numpy(p, ok, res, iters)
+    p, r, J = fit_compiled(p, z, box_mask, ok, np.asarray(sigma_px, dtype=np.float64), prior,
+                           np.asarray(prior_sd, dtype=np.float64), iters, BoxCameras.of(cams))
     A = np.matmul(J.transpose(0, 2, 1), J) + 1e-12 * np.eye(6)
     cov = np.linalg.inv(A)
     n_edges = box_mask.reshape(N, -1).sum(axis=1).astype(np.float64)
@@ -172,54 +152,3 @@ def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: F64 | float = 1.0,
     return BoxFit(center_world=p[:, :3], log_axes=p[:, 3:], cov=cov, rss_px2=rss,
                   n_edges=n_edges, margin=margin, ok=ok, residual_px=res_px,
                   leverage=np.where(box_mask, lev, np.nan))
-
-
-def _lm_numpy(p: F64, ok: B8, res: Any, iters: int) -> tuple[F64, F64, F64]:
-    """The LM loop of :func:`fit_boxes` batched over the active rows in numpy (the reference of
-    :mod:`gt3dkit.fusion.boxlm`): the parameters, residuals and central-difference Jacobian.
-    ``res(q, sel)``: the residuals of parameters ``q`` for the rows ``sel``."""
-    eps = FD_STEPS
-    steps = np.concatenate([np.diag(eps), -np.diag(eps)])  # (12, 6)
-
-    def cost_of(r: F64) -> F64:
-        c = np.sum(r * r, axis=-1)
-        return np.where(np.isfinite(c), c, np.inf)
-
-    def jac(q: F64, sel: slice | np.ndarray = slice(None)) -> F64:
-        """Central differences (for the covariance and leverages)."""
-        Y = res(q[None] + steps[:, None, :], sel)  # (12, n, M)
-        return np.moveaxis((Y[:6] - Y[6:]) / (2 * eps[:, None, None]), 0, -1)  # (N, M, 6)
-
-    def jac_forward(q: F64, r0: F64, sel: np.ndarray) -> F64:
-        """Forward differences from the residuals ``r0`` at ``q``: half the tangent boxes, for
-        the step direction only (errors ~1e-4 relative change the path, not the minimum)."""
-        Y = res(q[None] + steps[:6, None, :], sel)  # (6, n, M)
-        return np.moveaxis((Y - r0[None]) / eps[:, None, None], 0, -1)
-
-    N = len(p)
-    r = res(p)
-    cost = cost_of(r)
-    lam = np.full(N, 1e-3)
-    active = ok.copy()
-    for _ in range(iters):
-        if not active.any():
-            break
-        idx = np.flatnonzero(active)
-        J = np.nan_to_num(jac_forward(p[idx], r[idx], idx))
-        A = np.einsum("nmi,nmj->nij", J, J)
-        g = np.einsum("nmi,nm->ni", J, np.nan_to_num(r[idx]))
-        D = np.einsum("nii->ni", A)
-        Areg = A + (lam[idx, None] * D + 1e-12)[:, :, None] * np.eye(6)
-        delta = -np.linalg.solve(Areg, g[..., None])[..., 0]
-        p_new = p[idx] + delta
-        r_new = res(p_new, idx)
-        c_new = cost_of(r_new)
-        better = c_new < cost[idx]
-        bi = idx[better]
-        p[bi], r[bi], cost[bi] = p_new[better], r_new[better], c_new[better]
-        lam[bi] = np.maximum(lam[bi] / 5, 1e-9)
-        lam[idx[~better]] *= 10
-        small = np.max(np.abs(delta), axis=1) < 1e-7  # 0.1 um, 1e-7 of an axis: converged
-        done = (better & small) | (lam[idx] > 1e8)
-        active[idx[done]] = False
-    return p, r, np.nan_to_num(jac(p))

@@ -14,12 +14,15 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from gt3dkit.fusion.boxfit import box_model
-from gt3dkit.fusion.motion import StateLayout
+from gt3dkit.fusion.boxupdate import OUTLINE_STEPS, BoxModel, box_regressions, box_sigma
+from gt3dkit.fusion.kalman import ellipsoid_linearisations, fade_factors_of
+from gt3dkit.fusion.motion import SPACE, StateLayout
 from gt3dkit.fusion.prepare import Prepared
-from gt3dkit.fusion.robust import chi2_isf
+from gt3dkit.fusion.robust import RobustConfig, chi2_isf
 from gt3dkit.fusion.rows import Rows
-from gt3dkit.fusion.ukf import Block
-from gt3dkit.geom.boxkernel import BoxCameras
+from gt3dkit.fusion.ukf import Block, Robust, SigmaWeights, block_columns
+from gt3dkit.fusion.update import Columns, Measured, Regression
+from gt3dkit.geom.boxkernel import EDGES, BoxCameras, BoxRig, box_rig, contiguous
 from gt3dkit.geom.camera import Cams, project_points
 from gt3dkit.types import F64
 
@@ -81,7 +84,7 @@ class Model:
             # only reliable per-frame joints may fade a prediction or set a linearisation point
             kcov = np.where(pre.kpt_reliable[..., None, None], pre.kpt0_cov, np.inf)
             v_f = v_f.copy()
-            v_f[:, lay.joints] = np.where(np.repeat(pre.kpt_reliable, 3, axis=1),
+            v_f[:, lay.joints] = np.where(np.repeat(pre.kpt_reliable, SPACE, axis=1),
                                           v_f[:, lay.joints], np.inf)
         return cls(rows, cams, lay, pre.use_box, np.where(mask, np.concatenate(zs, 1), 0.0),
                    mask, np.concatenate(vars_, 1), np.concatenate(w0, 1),
@@ -115,15 +118,14 @@ class Model:
         lay = self.layout
         B = len(r)
         scale = np.ones((B, lay.n))
-        lim = chi2_isf(tail_p, 3)
+        lim = chi2_isf(tail_p, SPACE)
         if self.use_box:
             ok = self.centre_determined[r]
             if ok.any():
                 e = (self.x_frame[r, lay.center] - x[:, lay.center])[ok]
-                S = P[ok][:, lay.center, lay.center] + self.cov6_frame[r[ok], :3, :3]
-                d2 = np.zeros(B)
-                d2[ok] = np.einsum("bi,bi->b", e, np.linalg.solve(S, e[..., None])[..., 0])
-                f = np.sqrt(np.where(d2 > lim, d2 / 3.0, 1.0))
+                S = P[ok][:, lay.center, lay.center] + self.cov6_frame[r[ok], :SPACE, :SPACE]
+                f = np.ones(B)
+                f[ok] = fade_factors_of(e, S, lim)
                 scale[:, lay.center] = f[:, None]
                 scale[:, lay.velocity] = f[:, None]
         J = lay.n_joints
@@ -131,15 +133,14 @@ class Model:
             C0 = self.kpt_cov_frame[r]  # (B, J, 3, 3)
             ok = np.all(np.isfinite(C0), axis=(2, 3))
             if ok.any():
-                idx = lay.joints.start + 3 * np.arange(J)[:, None] + np.arange(3)
+                idx = lay.joint_dims(np.arange(J))
                 Pj = P[:, idx[:, :, None], idx[:, None, :]]  # (B, J, 3, 3)
-                e = self.x_frame[r][:, lay.joints].reshape(B, J, 3) - x[:, lay.joints].reshape(B, J, 3)
-                S = np.where(ok[..., None, None], Pj + np.nan_to_num(C0), np.eye(3))
-                q = np.where(ok, np.einsum("bji,bji->bj", e, np.linalg.solve(S, e[..., None])[..., 0]),
-                             0.0)
-                f = np.sqrt(np.where(q > lim, q / 3.0, 1.0))  # (B, J)
-                scale[:, lay.joints] = np.repeat(f, 3, axis=1)
-                scale[:, lay.joint_velocity] = np.repeat(f, 3, axis=1)
+                e = self.x_frame[r][:, lay.joints].reshape(B, J, SPACE) - x[:, lay.joints].reshape(B, J,
+                                                                                                   SPACE)
+                f = np.ones((B, J))
+                f[ok] = fade_factors_of(e[ok], Pj[ok] + C0[ok], lim)
+                scale[:, lay.joints] = np.repeat(f, SPACE, axis=1)
+                scale[:, lay.joint_velocity] = np.repeat(f, SPACE, axis=1)
         return scale
 
     @functools.cached_property
@@ -149,7 +150,7 @@ class Model:
         c6 = self.cov6_frame
         ok6 = (np.all(np.isfinite(c6), axis=(1, 2)) & self.centre_determined
                & np.all(np.isfinite(self.x_frame[:, self.layout.center]), axis=1))
-        return np.where(ok6, np.einsum("rii->r", np.nan_to_num(c6[:, :3, :3])), np.inf)
+        return np.where(ok6, np.einsum("rii->r", np.nan_to_num(c6[:, :SPACE, :SPACE])), np.inf)
 
     def linearisation_point(self, r: np.ndarray, x: F64, P: F64) -> tuple[F64 | None, F64 | None]:
         """Where the first update pass linearises for rows ``r`` with priors ``x, P``.
@@ -165,31 +166,27 @@ class Model:
         B = len(r)
         xl, Pl = x, P
         changed = False
-        tr_prior = np.einsum("bii->b", P[:, lay.center, lay.center])
-        weak = tr_prior > self.frame_centre_trace[r]
-        if self.use_box and weak.any():
-            xl, Pl = x.copy(), P.copy()
-            dims = np.r_[np.arange(lay.center.start, lay.center.stop),
-                         np.arange(lay.log_axes.start, lay.log_axes.stop)]
-            b = np.flatnonzero(weak)
-            xl[np.ix_(b, dims)] = self.x_frame[r[b]][:, dims]
-            Pl[b[:, None], dims[None, :], :] = 0.0
-            Pl[b[:, None], :, dims[None, :]] = 0.0
-            Pl[np.ix_(b, dims, dims)] = self.cov6_frame[r[b]]
-            changed = True
+        if self.use_box:
+            xl, Pl, moved = np.empty_like(x), np.empty_like(P), np.zeros(B, np.bool_)
+            ellipsoid_linearisations(contiguous(x), contiguous(P), contiguous(self.x_frame[r]),
+                                     contiguous(self.cov6_frame[r]), contiguous(self.frame_centre_trace[r]),
+                                     lay.ellipsoid_dims, lay.index, xl, Pl, moved)
+            changed = bool(moved.any())
+            if not changed:
+                xl, Pl = x, P
         J = lay.n_joints
         if J:
             sl = lay.joints
-            vj = np.diagonal(P, axis1=1, axis2=2)[:, sl].reshape(B, J, 3).sum(axis=2)
-            vf = self.var_frame[r][:, sl].reshape(B, J, 3).sum(axis=2)
+            vj = np.diagonal(P, axis1=1, axis2=2)[:, sl].reshape(B, J, SPACE).sum(axis=2)
+            vf = self.var_frame[r][:, sl].reshape(B, J, SPACE).sum(axis=2)
             lost = np.isfinite(vf) & (vj > vf)
             if lost.any():
                 if not changed:
                     xl, Pl = x.copy(), P.copy()
                 bb, jj = np.nonzero(lost)
-                dims = sl.start + 3 * jj[:, None] + np.arange(3)  # (L, 3)
+                dims = lay.joint_dims(jj)  # (L, 3)
                 xl[bb[:, None], dims] = self.x_frame[r[bb][:, None], dims]
-                for k in range(3):  # decorrelate the replaced joints
+                for k in range(SPACE):  # decorrelate the replaced joints
                     Pl[bb, dims[:, k], :] = 0.0
                     Pl[bb, :, dims[:, k]] = 0.0
                 vals = self.var_frame[r[bb][:, None], dims]
@@ -197,27 +194,49 @@ class Model:
                 changed = True
         return (xl, Pl) if changed else (None, None)
 
+    @functools.cached_property
+    def box_cameras(self) -> BoxCameras:
+        return BoxCameras.of(self.cams)
+
+    @functools.cached_property
+    def box_rig(self) -> BoxRig:
+        return box_rig(self.box_cameras, OUTLINE_STEPS)
+
+    def box_model(self, alpha: float, beta: float, kappa: float, robust: RobustConfig | None) -> BoxModel:
+        """The box update's :class:`gt3dkit.fusion.boxupdate.BoxModel` under the sigma rule
+        ``alpha, beta, kappa``, the measurement points judged by ``robust`` (None: none); one
+        pass, not reweighting."""
+        return BoxModel(box_sigma(self.layout.ellipsoid_dims, alpha, beta, kappa), self.box_rig,
+                        self.columns(robust), 0, 1, False)
+
+    def columns(self, robust: RobustConfig | None) -> Columns:
+        """The measurement vector's :class:`gt3dkit.fusion.update.Columns`
+        (:func:`gt3dkit.fusion.ukf.block_columns`)."""
+        rule = Robust(robust, self.robust_blocks) if robust is not None and self.robust_blocks else None
+        return block_columns(self.blocks(), self.z.shape[1], rule)
+
     def blocks(self) -> list[Block]:
         """The measurement vector as :class:`gt3dkit.fusion.ukf.Block` groups: the box edges of
-        all cameras (centre and log semi-axes), each joint's projections into all cameras (its
-        three coordinates), each bone (its two joints)."""
+        all cameras (centre and log semi-axes; regressed by
+        :func:`gt3dkit.fusion.boxupdate.box_regression`), each joint's projections into all
+        cameras (its three coordinates), each bone (its two joints)."""
         C, J = len(self.cams.K), self.layout.n_joints
         lay, cams = self.layout, self.cams
         out: list[Block] = []
         at = 0
         if self.use_box:
-            dims = np.r_[np.arange(lay.center.start, lay.center.stop),
-                         np.arange(lay.log_axes.start, lay.log_axes.stop)][None]
-            def boxes(X: F64, use: np.ndarray) -> F64:  # (B, 1, S, 6), (B, 1, 4C) -> (B, 1, S, 4C)
-                want = use.reshape(use.shape[:2] + (1, C, 4)).any(axis=-1)  # cameras with a box
-                return box_model(X[..., :3], X[..., 3:], cams, want).reshape(X.shape[:3] + (C * 4,))
+            ell = lay.ellipsoid_dims
 
+            def regress(active: np.ndarray, xj: F64, Pj: F64, meas: Measured, w: SigmaWeights,
+                        lin: Regression, repaired: np.ndarray) -> None:
+                box_regressions(active.astype(np.int64), xj, Pj, meas, box_sigma(ell, w.alpha, w.beta,
+                                                                                 w.kappa),
+                                self.box_rig, 0, lin, repaired)
 
-            out.append(Block(dims, np.arange(C * 4)[None], boxes, masked=True,
-                             compiled=BoxCameras.of(cams)))
-            at = C * 4
+            out.append(Block(ell[None], np.arange(C * EDGES)[None], None, regress=regress))
+            at = C * EDGES
         if J:
-            jdims = lay.joints.start + 3 * np.arange(J)[:, None] + np.arange(3)  # (J, 3)
+            jdims = lay.joint_dims(np.arange(J))  # (J, 3)
             cols = at + 2 * (np.arange(C)[None, :, None] * J + np.arange(J)[:, None, None]) + np.arange(2)
 
             def project(X: F64) -> F64:  # (B, J, S, 3) -> (B, J, S, 2C)
@@ -230,7 +249,7 @@ class Model:
                 bdims = np.concatenate([jdims[self.bones[:, 0]], jdims[self.bones[:, 1]]], axis=1)
                 at_b = at + C * J * 2
                 out.append(Block(bdims, at_b + np.arange(K)[:, None], lambda X: np.linalg.norm(
-                    X[..., :3] - X[..., 3:], axis=-1)[..., None], disjoint=False))
+                    X[..., :SPACE] - X[..., SPACE:], axis=-1)[..., None]))
         return out
 
     def h(self, X: F64) -> F64:
@@ -243,7 +262,7 @@ class Model:
             parts.append(box_model(X[..., lay.center], X[..., lay.log_axes],
                                    self.cams).reshape(B, S, C * 4))
         if J:
-            P3 = X[..., lay.joints].reshape(B, S, J, 3)
+            P3 = X[..., lay.joints].reshape(B, S, J, SPACE)
             uv, _ = project_points(P3, self.cams.K, self.cams.dist, self.cams.R, self.cams.t,
                                    self.cams.depth_sign)  # (B,S,J,C,2)
             parts.append(np.swapaxes(uv, 2, 3).reshape(B, S, C * J * 2))

@@ -1,4 +1,5 @@
-r"""State layout and the linear motion model.
+r"""State layout and the linear motion model: the only place that knows where an entry of the
+state sits, and the one implementation of ``F`` and ``Q``.
 
 State of one object (``n = 9 + 6 J``)::
 
@@ -10,16 +11,50 @@ log semi-axes follow a random walk (the paper's model):
 .. math::
     F = \begin{bmatrix} I & \Delta t I & \\ & I & \\ & & I \end{bmatrix},\quad
     Q_{pv} = q_a^2 \begin{bmatrix} \Delta t^3/3 & \Delta t^2/2 \\ \Delta t^2/2 & \Delta t
-    \end{bmatrix} \otimes I_3,\quad Q_\sigma = q_\sigma^2 \Delta t\, I_3
+    \end{bmatrix} \otimes A,\quad Q_\sigma = q_\sigma^2 \Delta t\, I_3
+
+with ``A = I + (r^2 - 1) u u^T`` shaping the centre's acceleration noise (``r`` the vertical
+ratio, ``u`` the up direction; joints are isotropic). :func:`transition` is compiled: the
+compiled filter calls it per step, :meth:`StateLayout.transition` per batch.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
+import numba
 import numpy as np
 
-from gt3dkit.types import F64
+from gt3dkit.geom.kernel_cache import drop_stale
+from gt3dkit.types import F64, I64
+
+drop_stale()  # before any compiled function below is called (and its cache read)
+
+#: Coordinates of a point in space (a centre, a velocity, a joint).
+SPACE = 3
+
+
+class StateIndex(NamedTuple):
+    """Where the blocks of a state start (what a compiled kernel needs of a :class:`StateLayout`):
+    ``n`` entries, ``n_joints`` joints."""
+
+    n: int
+    centre: int
+    velocity: int
+    log_axes: int
+    joints: int
+    joint_velocity: int
+    n_joints: int
+
+
+class Noise(NamedTuple):
+    """Process noise of one step: the centre's white acceleration (m/s^2/sqrt(Hz)), the log
+    semi-axes' random walk (1/sqrt(s)) and the joints' white acceleration."""
+
+    accel_sd: float
+    shape_sd: float
+    joint_accel_sd: float
 
 
 @dataclass(frozen=True)
@@ -28,27 +63,42 @@ class StateLayout:
 
     @property
     def n(self) -> int:
-        return 9 + 6 * self.n_joints
+        return 3 * SPACE + 2 * SPACE * self.n_joints
 
     @property
     def center(self) -> slice:
-        return slice(0, 3)
+        return slice(0, SPACE)
 
     @property
     def velocity(self) -> slice:
-        return slice(3, 6)
+        return slice(SPACE, 2 * SPACE)
 
     @property
     def log_axes(self) -> slice:
-        return slice(6, 9)
+        return slice(2 * SPACE, 3 * SPACE)
 
     @property
     def joints(self) -> slice:
-        return slice(9, 9 + 3 * self.n_joints)
+        return slice(3 * SPACE, 3 * SPACE + SPACE * self.n_joints)
 
     @property
     def joint_velocity(self) -> slice:
-        return slice(9 + 3 * self.n_joints, 9 + 6 * self.n_joints)
+        return slice(3 * SPACE + SPACE * self.n_joints, self.n)
+
+    @property
+    def index(self) -> StateIndex:
+        return StateIndex(self.n, self.center.start, self.velocity.start, self.log_axes.start,
+                          self.joints.start, self.joint_velocity.start, self.n_joints)
+
+    @property
+    def ellipsoid_dims(self) -> I64:
+        """(6,) the entries the ellipsoid's shape depends on: centre, then log semi-axes."""
+        return np.r_[np.arange(self.center.start, self.center.stop),
+                     np.arange(self.log_axes.start, self.log_axes.stop)].astype(np.int64)
+
+    def joint_dims(self, joints: I64) -> I64:
+        """(..., 3) the entries of joints ``joints (...)``."""
+        return self.joints.start + SPACE * np.asarray(joints)[..., None] + np.arange(SPACE)
 
     def transition(self, dt_s: F64, accel_sd: float, shape_sd: float,
                    joint_accel_sd: float | None = None, up: F64 | None = None,
@@ -58,30 +108,54 @@ class StateLayout:
         The centre's acceleration noise along ``up`` is ``vertical_ratio * accel_sd``
         (objects on the ground rarely accelerate vertically); joints are isotropic.
         """
-        dt = np.asarray(dt_s, dtype=np.float64).reshape(-1)
-        B, n, J3 = len(dt), self.n, 3 * self.n_joints
-        F = np.broadcast_to(np.eye(n), (B, n, n)).copy()
-        Q = np.zeros((B, n, n))
-        qa2 = accel_sd**2
-        qj2 = (accel_sd if joint_accel_sd is None else joint_accel_sd) ** 2
-        blocks = [(self.center, self.velocity, 3, qa2)]
-        if J3:
-            blocks.append((self.joints, self.joint_velocity, J3, qj2))
-        for pos, vel, k, q in blocks:
-            i = np.arange(k)
-            p_idx, v_idx = pos.start + i, vel.start + i
-            F[:, p_idx, v_idx] = dt[:, None]
-            Q[:, p_idx, p_idx] = (q * dt**3 / 3)[:, None]
-            Q[:, p_idx, v_idx] = Q[:, v_idx, p_idx] = (q * dt**2 / 2)[:, None]
-            Q[:, v_idx, v_idx] = (q * dt)[:, None]
-        if up is not None and vertical_ratio != 1.0:
-            u = np.asarray(up, dtype=np.float64)
-            A = np.eye(3) + (vertical_ratio**2 - 1.0) * np.outer(u, u)
-            base = np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]]) * qa2  # (2, 2, B)
-            blk = np.einsum("ijb,kl->bikjl", base, A).reshape(-1, 6, 6)
-            order = np.r_[np.arange(self.center.start, self.center.stop),
-                          np.arange(self.velocity.start, self.velocity.stop)]
-            Q[np.ix_(np.arange(B), order, order)] = blk
-        s = np.arange(self.log_axes.start, self.log_axes.stop)
-        Q[:, s, s] = (shape_sd**2 * dt)[:, None]
+        dt = np.ascontiguousarray(dt_s, dtype=np.float64).reshape(-1)
+        B, n = len(dt), self.n
+        F, Q = np.empty((B, n, n)), np.empty((B, n, n))
+        noise = Noise(float(accel_sd), float(shape_sd),
+                      float(accel_sd if joint_accel_sd is None else joint_accel_sd))
+        transitions(dt, noise, accel_shape(up, vertical_ratio), self.index, F, Q)
         return F, Q
+
+
+def accel_shape(up: F64 | None, vertical_ratio: float) -> F64:
+    """``A (3, 3) = I + (r^2 - 1) u u^T``: the shape of the centre's acceleration noise."""
+    A = np.eye(SPACE)
+    if up is not None and vertical_ratio != 1.0:
+        u = np.asarray(up, dtype=np.float64)
+        A = A + (vertical_ratio**2 - 1.0) * np.outer(u, u)
+    return A
+
+
+@numba.njit(cache=True, nogil=True)
+def transition(dt: float, noise: Noise, A: F64, ix: StateIndex, F: F64, Q: F64) -> None:
+    """``F, Q (n, n)`` of one step ``dt`` (s) into ``F, Q`` (see the module doc)."""
+    F[:, :] = 0.0
+    Q[:, :] = 0.0
+    for i in range(ix.n):
+        F[i, i] = 1.0
+    qa2 = noise.accel_sd * noise.accel_sd
+    b00, b01, b11 = qa2 * dt**3 / 3.0, qa2 * dt**2 / 2.0, qa2 * dt
+    c, v, la = ix.centre, ix.velocity, ix.log_axes
+    for i in range(SPACE):
+        F[c + i, v + i] = dt
+        for j in range(SPACE):
+            Q[c + i, c + j] = b00 * A[i, j]
+            Q[c + i, v + j] = b01 * A[i, j]
+            Q[v + i, c + j] = b01 * A[i, j]
+            Q[v + i, v + j] = b11 * A[i, j]
+        Q[la + i, la + i] = noise.shape_sd * noise.shape_sd * dt
+    qj2 = noise.joint_accel_sd * noise.joint_accel_sd
+    p, w = ix.joints, ix.joint_velocity
+    for k in range(SPACE * ix.n_joints):
+        F[p + k, w + k] = dt
+        Q[p + k, p + k] = qj2 * dt**3 / 3.0
+        Q[p + k, w + k] = qj2 * dt**2 / 2.0
+        Q[w + k, p + k] = qj2 * dt**2 / 2.0
+        Q[w + k, w + k] = qj2 * dt
+
+
+@numba.njit(cache=True, nogil=True)
+def transitions(dt: F64, noise: Noise, A: F64, ix: StateIndex, F: F64, Q: F64) -> None:
+    """:func:`transition` of each step ``dt (B,)`` into ``F, Q (B, n, n)``."""
+    for b in range(dt.shape[0]):
+        transition(dt[b], noise, A, ix, F[b], Q[b])

@@ -33,6 +33,9 @@ from scipy.special import chdtri
 
 from gt3dkit.types import F64
 
+#: Rounds of trimming in :func:`robust_variance`.
+TRIM_ROUNDS = 3
+
 
 @dataclass(frozen=True)
 class RobustConfig:
@@ -110,7 +113,7 @@ def robust_variance(r2: F64, dof: F64, reject_p: float = 1e-7, group_dof: int = 
     if not var > 0:
         var = float(r2.sum() / dof.sum())
     g2 = chi2_isf(reject_p, group_dof)
-    for _ in range(3):
+    for _ in range(TRIM_ROUNDS):
         keep = r2 / (dof / group_dof) <= g2 * var
         if not keep.any() or dof[keep].sum() <= 0:
             break

@@ -357,12 +357,11 @@ def _box_error(bc: Any, z: F64, m: np.ndarray, C: int) -> Any:
     point's argument checks were 2/3 of its time)."""
     eps = np.array([1e-6] * 6)
     steps = np.concatenate([np.zeros((1, 6)), np.diag(eps), -np.diag(eps)])  # the point, then +-eps
-    cam = (bc.world_from_body, bc.K, bc.dist, bc.R, bc.t, bc.depth_sign)
 
     def predict(p: F64) -> F64:
         q = p.reshape(-1, 6)
         box, margin = np.empty((len(q), C, 4)), np.empty((len(q), C))
-        kernel(np.ascontiguousarray(q[:, :3]), np.exp(q[:, 3:]), *cam, 2, EVERY_CAMERA, box, margin)
+        kernel(np.ascontiguousarray(q[:, :3]), np.exp(q[:, 3:]), bc, 2, EVERY_CAMERA, box, margin)
         return box.reshape(p.shape[:-1] + (C * 4,))[..., m]
 
     def error(this: Any, v: Any, H: Any) -> F64:

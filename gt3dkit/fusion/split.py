@@ -5,7 +5,8 @@ projections depend on its own three coordinates, the motion model moves it by it
 velocity, and no initial covariance ties it to another joint or to the ellipsoid. The
 covariance then stays block-diagonal, one (position, velocity) block per joint and one block
 for the ellipsoid (centre, velocity, log semi-axes), and the filter over the stacked
-``9 + 6J`` state is exactly ``J + 1`` independent filters. :func:`split_joints` turns a
+``9 + 6J`` state is ``J + 1`` independent filters (exactly, but for when the iterated update
+stops: each part on its own, within the update's convergence tolerance). :func:`split_joints` turns a
 :class:`gt3dkit.fusion.measurement.Model` into ``(J + 1) R`` rows of a 15-entry state (the
 ellipsoid and one joint: ``StateLayout(1)``), part 0 measured by the boxes, part ``j + 1`` by
 joint ``j``'s keypoints; :meth:`JointSplit.merge` puts the results back. Per frame that is

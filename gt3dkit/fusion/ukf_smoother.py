@@ -42,7 +42,8 @@ from typing import Any
 
 import numpy as np
 
-from gt3dkit.fusion.boxupdate import LinearisedSearch, applies, applies_to_model, box_update, run_boxes
+from gt3dkit.fusion.boxupdate import LinearisedSearch, applies_to_model, run_boxes
+from gt3dkit.fusion.kalman import predict_linear, rts_step
 from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.prepare import (
     Prepared,
@@ -57,7 +58,8 @@ from gt3dkit.fusion.prepare import (
 from gt3dkit.fusion.robust import RobustConfig, point_weights
 from gt3dkit.fusion.rows import replicate_rows
 from gt3dkit.fusion.split import split_entries, split_joints
-from gt3dkit.fusion.ukf import SigmaWeights, predict_linear, rts_step, ukf_update_information
+from gt3dkit.fusion.ukf import SigmaWeights, ukf_update_information
+from gt3dkit.fusion.update import Measured
 from gt3dkit.skeletons import Skeleton
 from gt3dkit.types import F64, Downweighted, Scene, TrackSet
 
@@ -617,35 +619,48 @@ def rerun_with_bones(model: Model, init: Init, cfg: UKFConfig, fps: float, x_s: 
 
 def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bool = False,
                fade: bool = True, on: np.ndarray | None = None,
-               noise_rows: dict[str, F64] | None = None, split: bool = True, compiled: bool = True
+               noise_rows: dict[str, F64] | None = None) -> tuple[F64, F64, dict[str, Any]]:
+    """Forward UKF, then (optionally) RTS, by the backend that serves the model
+    (:func:`backend_for`). Returns ``(R, n)``, ``(R, n, n)`` and diagnostics; with ``collect``
+    also the final weights, scores and residuals ``(R, m)``. ``fade`` lets the frame's own
+    views weaken a contradicted prediction (:meth:`Model.prior_conflict`); the noise search runs
+    without it, so that its likelihood judges the motion model as it is. ``on (R,)`` runs the
+    rows of some objects only (whole objects: each object's filter is independent of the
+    others); the other rows' outputs are zero and their statistics absent. The diagnostics hold
+    the per-row statistics (``nis_rows``, ``dof_rows``, ``loglik_rows``) that :func:`merge_runs`
+    combines. ``noise_rows`` gives some of ``accel_sd``, ``shape_sd``, ``joint_accel_sd`` per
+    row ``(R,)`` instead of ``cfg``'s (the noise search runs several values at once)."""
+    if cfg.accel_sd is None or cfg.shape_sd is None:
+        raise ValueError("run_filter needs numeric accel_sd and shape_sd")
+    x_s, P_s, info = BACKENDS[backend_for(model)](model, init, cfg, fps, collect, fade, on, noise_rows)
+    return x_s, P_s, _with_totals(info)
+
+
+def backend_for(model: Model) -> str:
+    """The filter that runs ``model``: ``"objects"`` (a boxes-only model: every object's rows as
+    one compiled chain, objects in parallel, :func:`gt3dkit.fusion.boxupdate.run_boxes`) or
+    ``"frames"`` (any model: frame by frame, objects batched, :func:`run_frames`). Both call the
+    same steps; the tests hold them to each other."""
+    return "objects" if applies_to_model(model) else "frames"
+
+
+def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bool = False,
+               fade: bool = True, on: np.ndarray | None = None,
+               noise_rows: dict[str, F64] | None = None, split: bool = True
                ) -> tuple[F64, F64, dict[str, Any]]:
-    """Forward UKF over the frame grid, then (optionally) RTS. Returns ``(R, n)``, ``(R, n, n)``
-    and diagnostics; with ``collect`` also the final weights, scores and residuals ``(R, m)``.
-    ``fade`` lets the frame's own views weaken a contradicted prediction
-    (:meth:`Model.prior_conflict`); the noise search runs without it, so that its likelihood
-    judges the motion model as it is. ``on (R,)`` runs the rows of some objects only (whole
-    objects: each object's filter is independent of the others); the other rows' outputs are
-    zero and their statistics absent. The diagnostics hold the per-row statistics
-    (``nis_rows``, ``dof_rows``, ``loglik_rows``) that :func:`merge_runs` combines.
-    ``noise_rows`` gives some of ``accel_sd``, ``shape_sd``, ``joint_accel_sd`` per row
-    ``(R,)`` instead of ``cfg``'s (the noise search runs several values at once). ``split``:
-    without bones, run the joints as separate filters (:mod:`gt3dkit.fusion.split`; the same
-    result, faster); False runs the whole state (the reference the tests hold it to).
-    ``compiled``: a boxes-only model runs as one compiled loop
-    (:func:`gt3dkit.fusion.boxupdate.run_boxes`); False runs this loop over frames (the reference)."""
-    if compiled and applies_to_model(model):
-        x_s, P_s, info = run_boxes(model, init, cfg, fps, collect, fade, on, noise_rows)
-        return x_s, P_s, _with_totals(info)
+    """The filter over the frame grid (arguments and outputs of :func:`run_filter`): per frame
+    the prediction, fading and linearisation point of its rows as one batch, their update
+    (:func:`gt3dkit.fusion.ukf.ukf_update_information`), then RTS backwards. ``split``: without
+    bones, run the joints as separate filters (:mod:`gt3dkit.fusion.split`; the same result,
+    faster); False runs the whole state (the reference the tests hold it to)."""
     if split and model.layout.n_joints > 1 and model.bones is None:
         # no bones: the joints are independent filters, run as one batch of small ones
         sub, x0, P0, sp = split_joints(model, init.x0, init.P0)
-        return sp.merge(*run_filter(sub, Init(x0, P0), cfg, fps, collect, fade,
+        return sp.merge(*run_frames(sub, Init(x0, P0), cfg, fps, collect, fade,
                                     None if on is None else on[sp.src],
                                     {k: v[sp.src] for k, v in (noise_rows or {}).items()}))
     rows, cams, layout = model.rows, model.cams, model.layout
     n, R = layout.n, len(rows)
-    if cfg.accel_sd is None or cfg.shape_sd is None:
-        raise ValueError("run_filter needs numeric accel_sd and shape_sd")
     w = SigmaWeights(n, cfg.alpha, cfg.beta, cfg.kappa)
     robust = cfg.robust_config if cfg.robust else None
     x_p = np.zeros((R, n))
@@ -687,13 +702,11 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
         return F[inv.reshape(-1)], Q[inv.reshape(-1)]
 
     blocks = model.blocks()
-    # the update, chosen once: the box block alone runs compiled (gt3dkit.fusion.boxupdate)
-    update = box_update if applies(blocks, m, model.robust_blocks if robust is not None else ()) \
-        else ukf_update_information
+    columns = model.columns(robust)
     per_row = {k: np.zeros(R) for k in ("nis_rows", "dof_rows", "loglik_rows")}
     repaired = 0
     faded = 0
-    passes: list[int] = []
+    passes = np.zeros(R)
     for t in range(len(rows.frames)):
         r = np.arange(rows.t_start[t], rows.t_start[t + 1])
         if on is not None:
@@ -719,12 +732,11 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
                     P_p[ro[hit]] = sc[hit, :, None] * P_p[ro[hit]] * sc[hit, None, :]
                     faded += int(hit.sum())
         xl, Pl = model.linearisation_point(r, x_p[r], P_p[r])
-        x_f[r], P_f[r], inf = update(
-            x_p[r], P_p[r], model.z[r], model.mask[r], model.var[r], blocks, w,
-            cfg.iterations, xl, Pl, weight0=model.weight0[r], robust=robust,
-            robust_blocks=model.robust_blocks)
+        x_f[r], P_f[r], inf = ukf_update_information(
+            x_p[r], P_p[r], Measured(model.z[r], model.mask[r], model.var[r]), blocks, w, cfg.iterations,
+            None if xl is None or Pl is None else (xl, Pl), weight0=model.weight0[r], columns=columns)
         repaired += int(inf["repaired"])
-        passes.append(inf["passes"])
+        passes[r] = inf["passes_rows"]
         for k in per_row:
             per_row[k][r] = inf[k]
         for k in out:
@@ -738,17 +750,21 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
             if len(r) == 0:
                 continue
             nr = rows.next_row[r]
-            F, _ = transition(np.full(len(r), frame_s[t + 1] - frame_s[t]), r)
+            F, _ = transition(frame_s[rows.row_t[nr]] - frame_s[t], r)
             x_s[r], P_s[r] = rts_step(x_f[r], P_f[r], x_p[nr], P_p[nr], x_s[nr], P_s[nr], F)
+    ran = passes > 0
     info: dict[str, Any] = {
         "pd_repairs": repaired,
         "predictions_faded": faded,
         "object_frames": R if on is None else int(on.sum()),
         "update_form": "information, iterated and reweighted",
-        "update_passes_mean": float(np.mean(passes)) if passes else 0.0,
+        "update_passes_mean": float(passes[ran].mean()) if ran.any() else 0.0,
         **out, **per_row,
     }
-    return x_s, P_s, _with_totals(info)
+    return x_s, P_s, info
+
+
+BACKENDS = {"objects": run_boxes, "frames": run_frames}
 
 
 def _with_totals(info: dict[str, Any]) -> dict[str, Any]:

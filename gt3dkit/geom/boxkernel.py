@@ -1,24 +1,23 @@
 r"""The tangent box of :mod:`gt3dkit.geom.conics` as one compiled loop (numba).
 
-The numpy formulation in :func:`gt3dkit.geom.conics.ellipsoid_boxes_numpy` is the reference:
-it is the same mathematics, written as whole-array operations, and the tests hold this kernel
-to it. Written as array operations, one box call for 40 objects x 19 sigma points x 7 cameras
-makes ~100 temporaries of 21 000 elements and its two finite-difference Newton steps for lens
-distortion evaluate ``cos``/``sin`` seven times per edge; the profile of issue 13 found this
-to be 84 % of a box reconstruction. Here each (ellipsoid, camera) pair is a few hundred flops
-in registers: the tangent angle is kept as the unit vector ``(cos θ, sin θ)`` (the closed-form
-start needs no ``atan2``), and the Newton steps use the exact first and second derivatives
-along the outline (:func:`edge_slope`) instead of the reference's central differences.
+A whole-array numpy formulation of the same mathematics (``tests/oracles.py``) is the reference
+the tests hold this kernel to. Written as array operations, one box call for 40 objects x 19
+sigma points x 7 cameras makes ~100 temporaries of 21 000 elements and its two finite-
+difference Newton steps for lens distortion evaluate ``cos``/``sin`` seven times per edge; the
+profile of issue 13 found this to be 84 % of a box reconstruction. Here each (ellipsoid,
+camera) pair is a few hundred flops in registers: the tangent angle is kept as the unit vector
+``(cos θ, sin θ)`` (the closed-form start needs no ``atan2``), and the Newton steps use the
+exact first and second derivatives along the outline (:func:`edge_slope`) instead of the
+reference's central differences.
 
-Per camera the work is chosen as in the reference: the closed form without distortion and
-skew, the value at the tangent angle with skew only, Newton steps with distortion.
+Per camera the work is chosen as in the reference: the closed form without distortion and skew,
+the value at the tangent angle with skew only, Newton steps with distortion.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numba
 import numpy as np
@@ -28,6 +27,9 @@ from gt3dkit.threads import run_split
 from gt3dkit.types import F64
 
 drop_stale()  # before any compiled function below is called (and its cache read)
+
+#: Edges of a box: left, top, right, bottom.
+EDGES = 4
 
 
 @numba.njit(cache=True, nogil=True)
@@ -81,10 +83,46 @@ def edge_slope(e: int, ct: float, st: float, m0: float, m1: float, l00: float, l
     return K[1, 1] * yd1, K[1, 1] * yd2
 
 
+class BoxCameras(NamedTuple):
+    """The camera arrays the compiled tangent box needs (contiguous float64): ``world_from_body
+    (3, 3)``, ``K (C, 3, 3)``, ``dist (C, 5)``, ``R (C, 3, 3)``, ``t (C, 3)``, ``depth_sign (C,)``."""
+
+    world_from_body: F64
+    K: F64
+    dist: F64
+    R: F64
+    t: F64
+    depth_sign: F64
+
+    @classmethod
+    def of(cls, cams: Any) -> BoxCameras:
+        C = len(cams.K)
+        return cls(contiguous(cams.world_from_body), contiguous(cams.K), contiguous(cams.dist),
+                   contiguous(cams.R), contiguous(cams.t),
+                   contiguous(np.broadcast_to(np.asarray(cams.depth_sign, dtype=np.float64), (C,))))
+
+
+class BoxRig(NamedTuple):
+    """:class:`BoxCameras` prepared for :func:`pair_box` (:func:`box_rig`): per camera ``Rc = R
+    Rb (C, 3, 3)`` and the four edge directions ``A^T dir`` as ``gx, gy (C, 4)`` (``A = K[:2,
+    :2]``), the cameras' ``K, dist, R, t, ds`` (depth sign) and the Newton ``steps`` along the
+    outline with distortion."""
+
+    Rc: F64
+    gx: F64
+    gy: F64
+    K: F64
+    dist: F64
+    R: F64
+    t: F64
+    ds: F64
+    steps: int
+
+
 @numba.njit(cache=True, nogil=True)
-def camera_setup(Rb: F64, K: F64, R: F64) -> tuple[F64, F64, F64]:
-    """Per camera: ``Rc = R Rb (C, 3, 3)`` and the four edge directions ``A^T dir`` as ``gx, gy
-    (C, 4)`` (``A = K[:2, :2]``), shared by every pair of :func:`pair_box`."""
+def box_rig(cams: BoxCameras, steps: int) -> BoxRig:
+    """The :class:`BoxRig` of ``cams``, shared by every pair of :func:`pair_box`."""
+    K, R, Rb = cams.K, cams.R, cams.world_from_body
     C = K.shape[0]
     Rc = np.empty((C, 3, 3))
     for c in range(C):
@@ -98,18 +136,22 @@ def camera_setup(Rb: F64, K: F64, R: F64) -> tuple[F64, F64, F64]:
         gx[c, 1], gy[c, 1] = -K[c, 1, 0], -K[c, 1, 1]
         gx[c, 2], gy[c, 2] = K[c, 0, 0], K[c, 0, 1]
         gx[c, 3], gy[c, 3] = K[c, 1, 0], K[c, 1, 1]
-    return Rc, gx, gy
+    return BoxRig(Rc, gx, gy, K, cams.dist, R, cams.t, cams.depth_sign, steps)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _in_camera(p0: float, p1: float, p2: float, s0: float, s1: float, s2: float, c: int, Rc: F64, R: F64,
-               t: F64) -> tuple[float, float, float, float, float, float, float, float, float]:
-    """The centre in camera ``c`` ``X`` and the ellipsoid's shape matrix there ``M = Rc diag(s)
-    Rc^T`` (its six entries): ``(X0, X1, X2, M00, M11, M22, M01, M02, M12)``."""
+def _in_camera(p: tuple[float, float, float], s: tuple[float, float, float], c: int, rig: BoxRig
+               ) -> tuple[float, float, float, float, float, float, float, float, float]:
+    """The centre ``p`` in camera ``c`` ``X`` and the shape matrix there ``M = Rc diag(s) Rc^T``
+    of the ellipsoid with squared semi-axes ``s`` (its six entries): ``(X0, X1, X2, M00, M11,
+    M22, M01, M02, M12)``."""
+    p0, p1, p2 = p
+    s0, s1, s2 = s
+    R, t = rig.R, rig.t
     X0 = R[c, 0, 0] * p0 + R[c, 0, 1] * p1 + R[c, 0, 2] * p2 + t[c, 0]
     X1 = R[c, 1, 0] * p0 + R[c, 1, 1] * p1 + R[c, 1, 2] * p2 + t[c, 1]
     X2 = R[c, 2, 0] * p0 + R[c, 2, 1] * p1 + R[c, 2, 2] * p2 + t[c, 2]
-    q = Rc[c]
+    q = rig.Rc[c]
     M00 = q[0, 0] ** 2 * s0 + q[0, 1] ** 2 * s1 + q[0, 2] ** 2 * s2
     M11 = q[1, 0] ** 2 * s0 + q[1, 1] ** 2 * s1 + q[1, 2] ** 2 * s2
     M22 = q[2, 0] ** 2 * s0 + q[2, 1] ** 2 * s1 + q[2, 2] ** 2 * s2
@@ -120,16 +162,20 @@ def _in_camera(p0: float, p1: float, p2: float, s0: float, s1: float, s2: float,
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _edge_angle(e: int, c: int, gx: F64, gy: F64, m0: float, m1: float, l00: float, l10: float, l11: float,
-                k: F64, Kc: F64, has_dist: bool, steps: int) -> tuple[float, float]:
-    """The outline angle ``(cos θ, sin θ)`` where edge ``e`` touches: the closed form (no
+def _edge_angle(e: int, c: int, m: tuple[float, float], el: tuple[float, float, float], rig: BoxRig,
+                has_dist: bool) -> tuple[float, float]:
+    """The outline angle ``(cos θ, sin θ)`` where edge ``e`` of camera ``c`` touches the outline
+    with centre ``m`` and Cholesky factor ``el = (l00, l10, l11)``: the closed form (no
     trigonometry), then with distortion Newton steps on the exact derivatives."""
+    m0, m1 = m
+    l00, l10, l11 = el
+    gx, gy, k, Kc = rig.gx, rig.gy, rig.dist[c], rig.K[c]
     a = l00 * gx[c, e] + l10 * gy[c, e]
     b = l11 * gy[c, e]
     nrm = math.sqrt(a * a + b * b)
     ct, st = (a / nrm, b / nrm) if nrm > 0 else (1.0, 0.0)
     if has_dist:
-        for _ in range(steps):
+        for _ in range(rig.steps):
             d1, d2 = edge_slope(e, ct, st, m0, m1, l00, l10, l11, k, Kc)
             step = -d1 / d2 if d2 < 0 else 0.0
             step = min(max(step, -0.5), 0.5)
@@ -155,14 +201,14 @@ def _has_dist(dist: F64, c: int) -> bool:
 
 
 @numba.njit(cache=True, nogil=True, inline="always")  # ~20 % faster than a call
-def pair_box(p0: float, p1: float, p2: float, s0: float, s1: float, s2: float, c: int, Rc: F64,
-             gx: F64, gy: F64, K: F64, dist: F64, R: F64, t: F64, ds: F64, steps: int,
+def pair_box(p: tuple[float, float, float], s: tuple[float, float, float], c: int, rig: BoxRig,
              want: bool, out: F64, n: int) -> float:
     """The box ``out[n, c] (4,)`` (``out (N, C, 4)``) of the ellipsoid with centre ``p`` and
     squared semi-axes ``s`` in camera ``c`` (NaN if behind it or not ``want``); returns the
     margin."""
-    X0, X1, X2, M00, M11, M22, M01, M02, M12 = _in_camera(p0, p1, p2, s0, s1, s2, c, Rc, R, t)
-    mg = ds[c] * X2 - math.sqrt(max(M22, 0.0))
+    K, dist = rig.K, rig.dist
+    X0, X1, X2, M00, M11, M22, M01, M02, M12 = _in_camera(p, s, c, rig)
+    mg = rig.ds[c] * X2 - math.sqrt(max(M22, 0.0))
     if not mg > 0 or not want:
         for e in range(4):
             out[n, c, e] = np.nan
@@ -188,16 +234,15 @@ def pair_box(p0: float, p1: float, p2: float, s0: float, s1: float, s2: float, c
     k = dist[c]
     Kc = K[c]
     for e in range(4):
-        ct, st = _edge_angle(e, c, gx, gy, m0, m1, l00, l10, l11, k, Kc, has_dist, steps)
+        ct, st = _edge_angle(e, c, (m0, m1), (l00, l10, l11), rig, has_dist)
         v = edge_value(e, ct, st, m0, m1, l00, l10, l11, k, Kc)
         out[n, c, e] = -v if e < 2 else v
     return mg
 
 
 @numba.njit(cache=True, nogil=True)
-def pair_box_grad(p0: float, p1: float, p2: float, la0: float, la1: float, la2: float, c: int, Rc: F64,
-                  gx: F64, gy: F64, K: F64, dist: F64, R: F64, t: F64, ds: F64, steps: int, box: F64,
-                  grad: F64) -> float:
+def pair_box_grad(p: tuple[float, float, float], la: tuple[float, float, float], c: int, rig: BoxRig,
+                  box: F64, grad: F64) -> float:
     """The box ``box (4,)`` of the ellipsoid with centre ``p`` and log semi-axes ``la`` in camera
     ``c`` and its derivatives ``grad (4, 6)`` by (centre, log semi-axes); NaN if behind it.
     Returns the margin.
@@ -207,9 +252,10 @@ def pair_box_grad(p0: float, p1: float, p2: float, la0: float, la1: float, la2: 
     the extreme; the Newton steps stop within 1e-6 px of it). The chain runs through the
     outline's centre ``m`` and the Cholesky factor ``L`` of its shape, forward mode, one
     parameter direction at a time."""
-    s0, s1, s2 = math.exp(2.0 * la0), math.exp(2.0 * la1), math.exp(2.0 * la2)
-    X0, X1, X2, M00, M11, M22, M01, M02, M12 = _in_camera(p0, p1, p2, s0, s1, s2, c, Rc, R, t)
-    mg = ds[c] * X2 - math.sqrt(max(M22, 0.0))
+    s0, s1, s2 = math.exp(2.0 * la[0]), math.exp(2.0 * la[1]), math.exp(2.0 * la[2])
+    K, dist, R = rig.K, rig.dist, rig.R
+    X0, X1, X2, M00, M11, M22, M01, M02, M12 = _in_camera(p, (s0, s1, s2), c, rig)
+    mg = rig.ds[c] * X2 - math.sqrt(max(M22, 0.0))
     if not mg > 0:
         box[:] = np.nan
         grad[:, :] = np.nan
@@ -227,9 +273,9 @@ def pair_box_grad(p0: float, p1: float, p2: float, la0: float, la1: float, la2: 
     k = dist[c]
     Kc = K[c]
     has_dist = _has_dist(dist, c)
-    q = Rc[c]
+    q = rig.Rc[c]
     for e in range(4):
-        ct, st = _edge_angle(e, c, gx, gy, m0, m1, l00, l10, l11, k, Kc, has_dist, steps)
+        ct, st = _edge_angle(e, c, (m0, m1), (l00, l10, l11), rig, has_dist)
         v = edge_value(e, ct, st, m0, m1, l00, l10, l11, k, Kc)
         box[e] = -v if e < 2 else v
         # the distorted point's derivative by the undistorted one, at θ*
@@ -273,19 +319,19 @@ def pair_box_grad(p0: float, p1: float, p2: float, la0: float, la1: float, la2: 
 
 
 @numba.njit(cache=True, nogil=True)
-def kernel(center: F64, axes: F64, Rb: F64, K: F64, dist: F64, R: F64, t: F64, ds: F64,
-           steps: int, want: np.ndarray, box: F64, margin: F64) -> None:
-    """Boxes ``box (N, C, 4)`` and margins ``margin (N, C)`` of N ellipsoids in C cameras;
-    ``want (N, C)`` (or ``(1, 1)``: every pair): pairs whose box is needed (the margin is
-    computed for all; an unwanted box is NaN)."""
-    N, C = center.shape[0], K.shape[0]
-    Rc, gx, gy = camera_setup(Rb, K, R)
+def kernel(center: F64, axes: F64, cams: BoxCameras, steps: int, want: np.ndarray, box: F64,
+           margin: F64) -> None:
+    """Boxes ``box (N, C, 4)`` and margins ``margin (N, C)`` of N ellipsoids (``center, axes (N,
+    3)``) in C cameras; ``want (N, C)`` (or ``(1, 1)``: every pair): pairs whose box is needed
+    (the margin is computed for all; an unwanted box is NaN)."""
+    N, C = center.shape[0], cams.K.shape[0]
+    rig = box_rig(cams, steps)
     every = want.shape[0] == 1 and want.shape[1] == 1 and want[0, 0]
     for n in range(N):
-        s0, s1, s2 = axes[n, 0] ** 2, axes[n, 1] ** 2, axes[n, 2] ** 2
+        s = (axes[n, 0] ** 2, axes[n, 1] ** 2, axes[n, 2] ** 2)
         for c in range(C):
-            margin[n, c] = pair_box(center[n, 0], center[n, 1], center[n, 2], s0, s1, s2, c, Rc, gx, gy,
-                                    K, dist, R, t, ds, steps, every or want[n, c], box, n)
+            margin[n, c] = pair_box((center[n, 0], center[n, 1], center[n, 2]), s, c, rig,
+                                    every or want[n, c], box, n)
 
 
 #: pairs per thread below which a call is not split (a thread hand-off costs ~20 us; a pair
@@ -320,12 +366,11 @@ def boxes_compiled(center_world: F64, semi_axes: F64, world_from_body: F64, K: F
     box = np.empty((N, C, 4))
     margin = np.empty((N, C))
     ds = arr(np.broadcast_to(np.asarray(depth_sign, dtype=np.float64), (C,)))
-    cam = [arr(a) for a in (world_from_body, K, dist, R, t)]
+    cam = BoxCameras(*(arr(a) for a in (world_from_body, K, dist, R, t)), ds)
     every = wf is EVERY_CAMERA
 
     def part(a: int, b: int) -> None:
-        kernel(cf[a:b], sf[a:b], *cam, ds, int(newton_steps), wf if every else wf[a:b], box[a:b],
-               margin[a:b])
+        kernel(cf[a:b], sf[a:b], cam, int(newton_steps), wf if every else wf[a:b], box[a:b], margin[a:b])
 
     per = max(MIN_PAIRS_PER_THREAD // max(C, 1), 1)
     if N < 2 * per:
@@ -339,22 +384,3 @@ def contiguous(a: Any, dtype: Any = np.float64) -> np.ndarray:
     """``a`` as a C-contiguous, writable array of ``dtype``: numba compiles a function once per
     argument type, and a read-only array (a broadcast view) is another type."""
     return np.require(a, dtype=dtype, requirements=["C", "W"])
-
-
-@dataclass(frozen=True)
-class BoxCameras:
-    """The camera arrays the compiled tangent box needs (contiguous float64)."""
-
-    world_from_body: F64
-    K: F64
-    dist: F64
-    R: F64
-    t: F64
-    depth_sign: F64
-
-    @classmethod
-    def of(cls, cams: Any) -> BoxCameras:
-        C = len(cams.K)
-        return cls(contiguous(cams.world_from_body), contiguous(cams.K), contiguous(cams.dist),
-                   contiguous(cams.R), contiguous(cams.t),
-                   contiguous(np.broadcast_to(np.asarray(cams.depth_sign, dtype=np.float64), (C,))))

@@ -26,11 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from gt3dkit.geom.boxkernel import boxes_compiled
-from gt3dkit.geom.camera import apply_K, distort
 from gt3dkit.types import F64
-
-# Directions of the four edges: xmin, ymin, xmax, ymax (we maximise dir . uv).
-_EDGE_DIRS = np.array([[-1.0, 0.0], [0.0, -1.0], [1.0, 0.0], [0.0, 1.0]])
 
 
 def outline_ellipse(
@@ -82,32 +78,8 @@ def ellipsoid_boxes(
     newton_steps: int = 2,
     want: np.ndarray | None = None,
 ) -> tuple[F64, F64]:
-    """Tight boxes of ellipsoids in every camera's distorted image (compiled).
-
-    The same as :func:`ellipsoid_boxes_numpy` (the reference, documented there), run as one
-    compiled loop over (ellipsoid, camera) pairs (:mod:`gt3dkit.geom.boxkernel`); about 9x
-    faster for a UKF batch. Boxes inside the image equal the reference's within 1e-9 px (the
-    kernel's Newton steps use exact derivatives, the reference's central differences); far
-    outside it, where the lens polynomial folds, both are rough and differ by < 1e-6
-    relative. ``want`` (broadcastable to ``(..., C)``): compute only these pairs' boxes (the
-    others are NaN; margins are computed for all).
-    """
-    return boxes_compiled(center_world, semi_axes, world_from_body, K, dist, R, t, depth_sign,
-                          newton_steps, want)
-
-
-def ellipsoid_boxes_numpy(
-    center_world: F64,
-    semi_axes: F64,
-    world_from_body: F64,
-    K: F64,
-    dist: F64,
-    R: F64,
-    t: F64,
-    depth_sign: F64 | float = 1.0,
-    newton_steps: int = 2,
-) -> tuple[F64, F64]:
-    """Tight boxes of ellipsoids in every camera's distorted image.
+    """Tight boxes of ellipsoids in every camera's distorted image (compiled,
+    :mod:`gt3dkit.geom.boxkernel`: one loop over (ellipsoid, camera) pairs).
 
     Parameters
     ----------
@@ -116,8 +88,9 @@ def ellipsoid_boxes_numpy(
     world_from_body : (3, 3) float64
     K, dist, R, t : stacked arrays of ``C`` cameras
     depth_sign : (C,) see :class:`gt3dkit.types.Camera`
-    newton_steps : int
-        Refinement steps for distortion (ignored when all ``dist`` are zero).
+    newton_steps : refinement steps along the outline for distortion
+    want : broadcastable to ``(..., C)``: compute only these pairs' boxes (the others are NaN;
+        margins are computed for all)
 
     Returns
     -------
@@ -125,48 +98,13 @@ def ellipsoid_boxes_numpy(
         ``xmin, ymin, xmax, ymax``; NaN where the ellipsoid is not wholly in front.
     margin : (..., C) float64
         See :func:`outline_ellipse`.
+
+    The tests hold it to a whole-array numpy formulation of the same mathematics
+    (``tests/oracles.py``): boxes inside the image agree within 1e-9 px (the kernel's Newton
+    steps use exact derivatives, the reference's central differences).
     """
-    m, E, margin = outline_ellipse(center_world, semi_axes, world_from_body, R, t, depth_sign)
-    if not np.any(dist):
-        half = np.sqrt(np.maximum(np.stack([E[..., 0, 0], E[..., 1, 1]], -1), 0.0))
-        lo = apply_K(m - half, K)
-        hi = apply_K(m + half, K)
-        # K with zero skew keeps the axis order; with skew fall through to general path
-        if not np.any(K[:, 0, 1]):
-            return np.concatenate([lo, hi], axis=-1), margin
-    # Cholesky-like factor L with L L^T = E (2x2, closed form), NaN-safe
-    e00 = np.maximum(E[..., 0, 0], 1e-300)
-    l00 = np.sqrt(e00)
-    l10 = E[..., 1, 0] / l00
-    l11 = np.sqrt(np.maximum(E[..., 1, 1] - l10 * l10, 0.0))
-    # edge-direction in pixels -> direction in normalised coords: dir . (A xy) = (A^T dir) . xy
-    A = K[:, :2, :2]  # (C,2,2)
-    g = np.einsum("cji,ej->cei", A, _EDGE_DIRS)  # (C,4,2)
-    # L^T g  -> seed angle per edge
-    gx, gy = g[..., 0], g[..., 1]  # (C,4)
-    ltg0 = l00[..., None] * gx + l10[..., None] * gy  # (...,C,4)
-    ltg1 = l11[..., None] * gy
-    theta = np.arctan2(ltg1, ltg0)
-
-    def value(th: F64) -> F64:
-        u = np.stack([np.cos(th), np.sin(th)], -1)  # (...,C,4,2)
-        p0 = m[..., None, 0] + l00[..., None] * u[..., 0]
-        p1 = m[..., None, 1] + l10[..., None] * u[..., 0] + l11[..., None] * u[..., 1]
-        xy = np.stack([p0, p1], -1)  # (...,C,4,2)
-        uv = apply_K(distort(xy, dist[:, None, :]), K[:, None])  # per camera, over edges
-        return uv[..., 0] * _EDGE_DIRS[:, 0] + uv[..., 1] * _EDGE_DIRS[:, 1]
-
-    if np.any(dist):
-        h = 1e-3
-        for _ in range(newton_steps):
-            f0, fp, fm = value(theta), value(theta + h), value(theta - h)
-            d1 = (fp - fm) / (2 * h)
-            d2 = (fp - 2 * f0 + fm) / (h * h)
-            step = np.where(d2 < 0, -d1 / np.where(d2 < 0, d2, -1.0), 0.0)
-            theta = theta + np.clip(step, -0.5, 0.5)
-    v = value(theta)
-    box = v * np.array([-1.0, -1.0, 1.0, 1.0])
-    return box, margin
+    return boxes_compiled(center_world, semi_axes, world_from_body, K, dist, R, t, depth_sign,
+                          newton_steps, want)
 
 
 def covered_fraction(box: F64, depth: F64, depth_tol_m: float = 0.0) -> F64:

@@ -123,7 +123,7 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | Non
                         f"largest edge residual {score[n, c]:.1f} sigma"))
 
     if pre.use_kpt and have.any() and tracks.kpt_world.shape[1]:
-        _keypoints(scene, tracks, pre, cfg, r_of, have, jumped, frame_of, id_of, out, project_points)
+        _keypoints(scene, tracks, pre, cfg, r_of, have, jumped, frame_of, id_of, out)
 
     _world_frame(scene, tracks, cfg, out)
     _missing_views(scene, tracks, pre, cfg, out, jumped, r_of, box, margin)
@@ -185,7 +185,7 @@ def _identity_jumps(pre: Any, cfg: QAConfig, out: list, frame_of: np.ndarray, id
 
 def _keypoints(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, r_of: np.ndarray,
                have: np.ndarray, jumped: np.ndarray, frame_of: np.ndarray, id_of: np.ndarray,
-               out: list, project_points: Any) -> None:
+               out: list) -> None:
     rows, cams = pre.rows, pre.cams
     names = scene.rig.names
     joints = SKELETONS[scene.skeleton].joints if scene.skeleton else ()

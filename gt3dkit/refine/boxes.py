@@ -50,16 +50,17 @@ def _cams(rig: Rig, variable: np.ndarray, p: F64) -> tuple[F64, F64]:
     return R, t
 
 
-def fit_boxes(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, sigma: F64, X0: F64, L0: F64,
+def fit_boxes(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, sigma: F64, start: tuple[F64, F64],
               variable: np.ndarray, obj: np.ndarray, max_nfev: int = 100,
               floor_sd: float | None = None) -> tuple[Rig, F64, F64]:
     """Least squares over the variable cameras, every row's centre and every object's log
     semi-axes (people keep their size: this is what makes boxes constrain the cameras).
 
-    z : (N, C, 4) boxes; keep : (N, C, 4) edges to use; sigma : (4,) px; X0, L0 : (N, 3)
-    start centres and log semi-axes; obj : (N,) object index 0..O-1 of each row.
+    z : (N, C, 4) boxes; keep : (N, C, 4) edges to use; sigma : (4,) px; start : ``(X0, L0)``,
+    (N, 3) start centres and log semi-axes; obj : (N,) object index 0..O-1 of each row.
     Returns (rig, centres (N, 3), log axes (N, 3)).
     """
+    X0, L0 = start
     N, C = len(X0), len(rig.cameras)
     O = int(obj.max()) + 1 if N else 0
     nv = int(variable.sum())
@@ -132,9 +133,9 @@ def fit_reweighted(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, sigma: F64, X0:
     """:func:`fit_boxes`, then again with each camera's edge kinds weighted by their own noise
     level measured on the first fit; the result in the input's frame (:func:`back_to`).
     Returns (rig, centres, log axes, sigmas (C, 4))."""
-    new, X, L = fit_boxes(rig, wfb, z, keep, sigma, X0, L0, variable, obj, floor_sd=floor_sd)
+    new, X, L = fit_boxes(rig, wfb, z, keep, sigma, (X0, L0), variable, obj, floor_sd=floor_sd)
     sig = edge_sigmas(new, wfb, z, keep, X, L)
-    new, X, L = fit_boxes(rig, wfb, z, keep, sig, X, L, variable, obj, floor_sd=floor_sd)
+    new, X, L = fit_boxes(rig, wfb, z, keep, sig, (X, L), variable, obj, floor_sd=floor_sd)
     return back_to(new, rig, variable, floor_sd is not None), X, L, sig
 
 
@@ -160,7 +161,7 @@ def box_residuals(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, sigma: F64, X0: 
                   obj: np.ndarray) -> F64:
     """(N, C, 4) |edge residual| (px, NaN where unused) after re-fitting every row's ellipsoid
     with the cameras of ``rig`` held fixed."""
-    _, X, L = fit_boxes(rig, wfb, z, keep, sigma, X0, L0, np.zeros(len(rig.cameras), bool), obj, 40)
+    _, X, L = fit_boxes(rig, wfb, z, keep, sigma, (X0, L0), np.zeros(len(rig.cameras), bool), obj, 40)
     box, _ = ellipsoid_boxes(X, np.exp(L), wfb, rig.K, rig.dist, rig.R, rig.t, rig.depth_sign)
     return np.where(keep, np.abs(box - z), np.nan)
 

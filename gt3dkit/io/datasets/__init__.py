@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -13,11 +15,65 @@ from gt3dkit.calib.formats.grid import LAYOUTS as GRID_LAYOUTS
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets import mot, native, openpose, panoptic, tasks, wildtrack
 from gt3dkit.rig import Rig
-from gt3dkit.types import Scene
+from gt3dkit.types import Scene, SimScene, SkeletonScene
 
-LAYOUTS = ("native", "wildtrack", "multiviewx", "panoptic", "mot", "openpose", "cvat", "coco")
+
+class ReadOptions(NamedTuple):
+    """What :func:`read_scene` passes a layout's reader besides the folder."""
+
+    skeleton: str | None
+    calib: Path | str | None
+    fps: float | None
+    panoptic: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class Layout:
+    """One input layout: whether a folder holds it (``found``), its reader, and the simulator's
+    writers of a box scene (``write_boxes(sim, folder, id_seed)``) and of a skeleton scene
+    (``write_keypoints(sim, folder)``) into a folder (None: not written). ``associated``: its
+    ids are per camera or absent (the cross-camera association makes people of them);
+    ``skeletons``: ``--skeleton`` names its joint order."""
+
+    name: str
+    found: Callable[[Path], bool]
+    read: Callable[[Path, ReadOptions], Scene]
+    write_boxes: Callable[[SimScene, Path, int | None], None] | None = None
+    write_keypoints: Callable[[SkeletonScene, Path], None] | None = None
+    associated: bool = False
+    skeletons: bool = False
+
+
+def _grid(name: str) -> Layout:
+    g = GRID_LAYOUTS[name]
+    return Layout(name, lambda root: (root / "calibrations" / g.intrinsic_dir).is_dir(),
+                  lambda root, o: wildtrack.load(root, g), lambda sim, tmp, seed: wildtrack.write(sim, tmp,
+                                                                                                  g))
+
+
+#: Every input layout, in the order a folder is tested for it (the first found is its layout).
+LAYOUTS: dict[str, Layout] = {v.name: v for v in (
+    Layout("mot", lambda root: (root / "mot").is_dir(), lambda root, o: mot.load(root, o.calib, o.fps),
+           write_boxes=mot.write, associated=True),
+    Layout("openpose", lambda root: any(p.is_dir() for p in root.glob("*_json"))
+           or any(p.is_dir() for p in root.glob("pose/*_json")),
+           lambda root, o: openpose.load(root, o.skeleton, o.calib, o.fps), associated=True, skeletons=True),
+    Layout("cvat", lambda root: (root / "cvat").is_dir(),
+           lambda root, o: tasks.load(root, "cvat", o.skeleton, o.calib, o.fps),
+           write_boxes=tasks.write_cvat, associated=True, skeletons=True),
+    Layout("coco", lambda root: (root / "coco").is_dir(),
+           lambda root, o: tasks.load(root, "coco", o.skeleton, o.calib,
+                                      o.fps), associated=True, skeletons=True),
+    Layout("native", lambda root: (root / "cameras.json").exists(), lambda root, o: native.load(root,
+                                                                                                o.skeleton),
+           write_boxes=native.write_boxes, write_keypoints=native.write_keypoints, skeletons=True),
+    _grid("wildtrack"),
+    _grid("multiviewx"),
+    Layout("panoptic", lambda root: any(root.glob("calibration_*.json")),
+           lambda root, o: panoptic.load(root, **o.panoptic), write_keypoints=panoptic.write),
+)}
 #: layouts whose ids are per camera or absent: association makes people of them
-ASSOCIATED = ("mot", "openpose", "cvat", "coco")
+ASSOCIATED = tuple(k for k, v in LAYOUTS.items() if v.associated)
 
 
 def detect_layout(root: Path) -> str:
@@ -25,22 +81,9 @@ def detect_layout(root: Path) -> str:
     root = Path(root)
     if not root.is_dir():
         raise InputError(str(root), "not a directory")
-    if (root / "mot").is_dir():
-        return "mot"
-    if any(p.is_dir() for p in root.glob("*_json")) or any(p.is_dir() for p in root.glob("pose/*_json")):
-        return "openpose"
-    if (root / "cvat").is_dir():
-        return "cvat"
-    if (root / "coco").is_dir():
-        return "coco"
-    if (root / "cameras.json").exists():
-        return "native"
-    if (root / "calibrations" / "intrinsic_zero").is_dir():
-        return "wildtrack"
-    if (root / "calibrations" / "intrinsic").is_dir():
-        return "multiviewx"
-    if any(root.glob("calibration_*.json")):
-        return "panoptic"
+    for name, layout in LAYOUTS.items():
+        if layout.found(root):
+            return name
     raise InputError(str(root), "unknown input layout: expected cameras.json (native), "
                                 "calibrations/intrinsic_zero (WILDTRACK), "
                                 "calibrations/intrinsic (MultiviewX) or "
@@ -94,7 +137,9 @@ def read_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     format (:func:`with_calibration`).
     """
     layout = layout or detect_layout(Path(root))
-    if skeleton is not None and layout not in ("native", "openpose", "cvat", "coco"):
+    if layout not in LAYOUTS:
+        raise InputError(str(root), f"unknown layout {layout!r} (known: {', '.join(LAYOUTS)})")
+    if skeleton is not None and not LAYOUTS[layout].skeletons:
         raise InputError("--skeleton", f"applies to native keypoints.csv inputs, not {layout}")
     if panoptic_options and layout != "panoptic":
         raise InputError(str(root), f"options {sorted(panoptic_options)} apply to the panoptic "
@@ -102,20 +147,7 @@ def read_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     if association is not None and layout not in ASSOCIATED:
         raise InputError("--association", "applies to inputs with per-camera ids or none "
                                           f"({', '.join(ASSOCIATED)}), not {layout}")
-    if layout == "mot":
-        scene = mot.load(Path(root), calib, fps)
-    elif layout == "openpose":
-        scene = openpose.load(Path(root), skeleton, calib, fps)
-    elif layout in ("cvat", "coco"):
-        scene = tasks.load(Path(root), layout, skeleton, calib, fps)
-    elif layout == "native":
-        scene = native.load(Path(root), skeleton)
-    elif layout == "panoptic":
-        scene = panoptic.load(Path(root), **panoptic_options)
-    elif layout in GRID_LAYOUTS:
-        scene = wildtrack.load(Path(root), GRID_LAYOUTS[layout])
-    else:
-        raise InputError(str(root), f"unknown layout {layout!r} (known: {', '.join(LAYOUTS)})")
+    scene = LAYOUTS[layout].read(Path(root), ReadOptions(skeleton, calib, fps, panoptic_options))
     if len(scene.obs) == 0:
         raise InputError(str(root), "no annotations in any frame")
     if calib is not None and layout not in ASSOCIATED:  # these read their calibration themselves

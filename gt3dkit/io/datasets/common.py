@@ -100,3 +100,10 @@ class RowBuilder:
             kpt_conf=(np.array(self.confs, dtype=np.float64).reshape(n, self.n_joints)[idx]
                       if self.has_conf and self.n_joints else None),
         )
+
+
+def local_ids(people: np.ndarray, rng: np.random.Generator | None) -> dict[int, int]:
+    """Per-camera ids of ``people (P,)``: a random permutation of ``1..P`` (``rng``), or the
+    people's own ids (None), as separate per-camera annotation tasks number them."""
+    ids = rng.permutation(len(people)) + 1 if rng is not None else people
+    return dict(zip(people.tolist(), ids.tolist(), strict=True))

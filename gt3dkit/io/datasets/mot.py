@@ -27,10 +27,11 @@ from gt3dkit.calib.formats import detect_format, read_calibration
 from gt3dkit.calib.formats.native import load_cameras
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import check_pixels
-from gt3dkit.io.datasets.common import RowBuilder
+from gt3dkit.io.datasets.common import RowBuilder, local_ids
+from gt3dkit.io.datasets.native import write_cameras
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
 from gt3dkit.parse import iter_csv_rows, parse_frame, parse_int, sha256
-from gt3dkit.types import Rig, Scene
+from gt3dkit.types import Rig, Scene, SimScene
 
 MOT_COLUMNS = ("frame", "id", "left", "top", "width", "height", "conf")
 DEFAULT_FPS = 25.0
@@ -133,3 +134,22 @@ def load(root: Path, calib: Path | str | None = None, fps: float | None = None) 
                  frames=np.unique(obs.frame), skeleton=None, files=files, root=str(root),
                  warnings=tuple(warnings),
                  fps_assumed="" if (fps or fps_doc) else f"{cal} gives no frame rate")
+
+
+def write(sim: SimScene, tmp: Path, id_seed: int | None) -> None:
+    """A simulated scene as ``cameras.json`` + ``mot/<camera>.txt`` in ``tmp``, each camera's ids
+    a random permutation of the people (``id_seed``; None keeps the global ids), read by
+    :func:`load`."""
+    write_cameras(sim.rig, sim.fps, tmp)
+    (tmp / "mot").mkdir()
+    people = np.unique(sim.truth_id)
+    rng = np.random.default_rng(id_seed) if id_seed is not None else None
+    for c, cam in enumerate(sim.rig.cameras):
+        local = local_ids(people, rng)
+        lines = []
+        for i in range(len(sim.truth_frame)):
+            b = sim.boxes[i, c]
+            if np.all(np.isfinite(b)):
+                lines.append(f"{int(sim.truth_frame[i])},{local[int(sim.truth_id[i])]},{b[0]:g},{b[1]:g},"
+                             f"{b[2] - b[0]:g},{b[3] - b[1]:g},1,-1,-1,-1")
+        (tmp / "mot" / f"{cam.name}.txt").write_text("\n".join(lines) + ("\n" if lines else ""))

@@ -23,6 +23,7 @@ Boxes and keypoints of the same (frame, camera, id) update the same object.
 from __future__ import annotations
 
 import csv
+import json
 import math
 from pathlib import Path
 
@@ -35,7 +36,7 @@ from gt3dkit.io.datasets.common import RowBuilder
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
 from gt3dkit.parse import iter_csv_rows, parse_frame, parse_int, parse_metres, sha256
 from gt3dkit.skeletons import SKELETONS, skeleton_for
-from gt3dkit.types import GroundTruth, Rig, Scene
+from gt3dkit.types import GroundTruth, Rig, Scene, SimScene, SkeletonScene
 
 BOX_COLUMNS = ("frame", "camera", "id", "xmin", "ymin", "xmax", "ymax")
 KPT_COLUMNS = ("frame", "camera", "id", "joint", "u", "v")
@@ -187,3 +188,54 @@ def _merge_kpt_truth(boxes: GroundTruth | None, kpts: GroundTruth) -> GroundTrut
             kw[key[(int(f), int(i))]] = kpts.kpt_world[r]
     return GroundTruth(boxes.frame, boxes.track_id, boxes.center_world, boxes.semi_axes, kw,
                        source=boxes.source + " + truth_keypoints.csv")
+
+
+def write_cameras(rig: Rig, fps: float, tmp: Path) -> None:
+    """``cameras.json`` of a simulated rig (with its frame rate)."""
+    doc = cameras_doc(rig, fps, frame=rig.frame_name, units="m")
+    (tmp / "cameras.json").write_text(json.dumps(doc, indent=1))
+
+
+def write_boxes(sim: SimScene, tmp: Path, id_seed: int | None = None) -> None:
+    """A simulated scene as a native folder ``tmp`` (``cameras.json``, ``boxes.csv``), read by
+    :func:`load` (``id_seed``: unused, the ids are global)."""
+    write_cameras(sim.rig, sim.fps, tmp)
+    with open(tmp / "boxes.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(BOX_COLUMNS)
+        for i in range(len(sim.truth_frame)):
+            for c, cam in enumerate(sim.rig.cameras):
+                b = sim.boxes[i, c]
+                if np.all(np.isfinite(b)):
+                    w.writerow([int(sim.truth_frame[i]), cam.name, int(sim.truth_id[i]),
+                                *(f"{v:g}" for v in b)])
+
+
+def write_keypoints(sim: SkeletonScene, tmp: Path) -> None:
+    """A simulated skeleton scene as a native folder ``tmp`` (``cameras.json``,
+    ``keypoints.csv``, ``truth_keypoints.csv``), read by :func:`load`."""
+    doc = cameras_doc(sim.rig, sim.fps, skeleton=sim.skeleton, units="m",
+                      frame="synthetic y-down world")
+    (tmp / "cameras.json").write_text(json.dumps(doc, indent=1))
+    with open(tmp / "keypoints.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(list(KPT_COLUMNS)
+                   + (["conf"] if sim.conf is not None else []))
+        m, c, j = np.nonzero(np.isfinite(sim.uv[..., 0]))
+        for a, b, k in zip(m, c, j, strict=True):
+            w.writerow([int(sim.truth_frame[a]), sim.rig.cameras[b].name,
+                        int(sim.truth_id[a]), int(k), f"{sim.uv[a, b, k, 0]:.4f}",
+                        f"{sim.uv[a, b, k, 1]:.4f}"]
+                       + ([f"{sim.conf[a, b, k]:.3f}"] if sim.conf is not None else []))
+    write_kpt_truth(sim, tmp / "truth_keypoints.csv")
+
+
+def write_kpt_truth(sim: SkeletonScene, path: Path) -> None:
+    """``truth_keypoints.csv`` = ``frame,id,joint,x,y,z`` (metres), every joint of every pose."""
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(KPT_TRUTH_COLUMNS)
+        for a in range(len(sim.truth_frame)):
+            for k in range(sim.kpt_world.shape[1]):
+                w.writerow([int(sim.truth_frame[a]), int(sim.truth_id[a]), k,
+                            *(f"{v:.6f}" for v in sim.kpt_world[a, k])])

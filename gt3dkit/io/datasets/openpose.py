@@ -16,20 +16,23 @@ calibration, ``--fps``, or a Pose2Sim ``Config.toml`` (``frame_rate``), else 30 
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import re
 import tomllib
 from pathlib import Path
 
 import numpy as np
 
+from gt3dkit.calib.formats import toml as toml_fmt
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import check_pixels
 from gt3dkit.io.datasets.common import RowBuilder
 from gt3dkit.io.datasets.mot import calibration_beside, match_cameras, natural_key
-from gt3dkit.io.datasets.native import read_kpt_truth
+from gt3dkit.io.datasets.native import read_kpt_truth, write_kpt_truth
 from gt3dkit.parse import load_json, sha256
 from gt3dkit.skeletons import DETECTOR_SKELETONS, SKELETONS
-from gt3dkit.types import Scene
+from gt3dkit.types import Rig, Scene, SkeletonScene
 
 DEFAULT_FPS = 30.0
 
@@ -165,3 +168,40 @@ def load(
         warnings=tuple(warnings),
         fps_assumed="" if rate else f"{cal} and Config.toml give no frame rate",
     )
+
+
+def write(sim: SkeletonScene, tmp: Path, seed: int = 0, folder_names: list[str] | None = None) -> None:
+    """A simulated skeleton scene as a Pose2Sim/OpenPose trial in ``tmp``, read by :func:`load`:
+    ``calibration/Calib_scene.toml``
+    (cameras ``cam_01``...), ``Config.toml`` with the frame rate, ``pose/<name>_json/`` with
+    one OpenPose file per frame per camera, people in a random order without ids (undetected
+    joints 0, 0, 0), and ``truth_keypoints.csv`` in the same z-up world. ``sim`` must be in a
+    z-up world (:func:`gt3dkit.sim.to_z_up`) and a detector skeleton (body25, ...)."""
+    rng = np.random.default_rng([seed, 7])
+    names = folder_names or [f"cam{k + 1}" for k in range(len(sim.rig.cameras))]
+    rig = Rig(tuple(dataclasses.replace(c, name=f"cam_{k + 1:02d}") for k, c in enumerate(sim.rig.cameras)),
+              up=sim.rig.up, frame_name=sim.rig.frame_name)
+
+    (tmp / "calibration").mkdir()
+    toml_fmt.write(rig, tmp / "calibration" / "Calib_scene.toml")
+    (tmp / "Config.toml").write_text(f"[project]\nframe_rate = {sim.fps:g}\n")
+    J = SKELETONS[sim.skeleton].n_joints
+    for c, name in enumerate(names):
+        d = tmp / "pose" / f"{name}_json"
+        d.mkdir(parents=True)
+        for f in sim.frames:
+            people = []
+            for a in rng.permutation(np.flatnonzero(sim.truth_frame == f)):
+                uv = sim.uv[a, c]
+                if not np.isfinite(uv[:, 0]).any():
+                    continue
+                cf = sim.conf[a, c] if sim.conf is not None else np.full(J, 0.9)
+                trip = np.where(np.isfinite(uv).all(axis=1)[:, None],
+                                np.column_stack([uv, cf]), 0.0).ravel()
+                people.append({"person_id": [-1],
+                               "pose_keypoints_2d": [round(float(v), 3) for v in trip],
+                               "face_keypoints_2d": [], "hand_left_keypoints_2d": [],
+                               "hand_right_keypoints_2d": []})
+            doc = {"version": 1.3, "people": people}
+            (d / f"trial_{int(f):012d}_keypoints.json").write_text(json.dumps(doc))
+    write_kpt_truth(sim, tmp / "truth_keypoints.csv")

@@ -11,6 +11,7 @@ down (gravity), so ``up = [0, -1, 0]``. Frame numbers are HD frames at 29.97 fps
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
@@ -22,7 +23,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import project_points
 from gt3dkit.parse import parse_frame, parse_int, read_json_field, sha256
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import MAX_WORLD_M, GroundTruth, Observations, Rig, Scene
+from gt3dkit.types import MAX_WORLD_M, GroundTruth, Observations, Rig, Scene, SkeletonScene
 
 CM = 0.01
 FPS = 29.97
@@ -124,3 +125,30 @@ def project_observations(rig: Rig, frames: np.ndarray, ids: np.ndarray, X_world:
                         box_xyxy_px=np.full((len(m_i), 4), np.nan), kpt_uv_px=uv[m_i, c_i],
                         origin=tuple(f"{origin[m]}, camera {rig.cameras[c].name}"
                                      for m, c in zip(m_i, c_i, strict=True)))
+
+
+def write(sim: SkeletonScene, tmp: Path) -> None:
+    """A simulated coco19 skeleton scene as a CMU Panoptic sequence in ``tmp``
+    (``calibration_sim.json`` in cm + ``body3DScene`` files; :func:`load` makes the 2D points,
+    so ``uv``, noise and missing points are not written)."""
+    if sim.skeleton != "coco19":
+        raise ValueError("the Panoptic layout holds coco19 skeletons")
+    cams = [{"name": c.name, "type": "hd", "resolution": [c.width, c.height],
+             "panel": 0, "node": i, "K": c.K.tolist(), "distCoef": c.dist.tolist(),
+             "R": c.R.tolist(), "t": (c.t[:, None] * 100).tolist()}
+            for i, c in enumerate(sim.rig.cameras)]
+    cams.append({"name": "01_01", "type": "vga", "resolution": [640, 480], "panel": 1,
+                 "node": 1, "K": np.eye(3).tolist(), "distCoef": [0] * 5,
+                 "R": np.eye(3).tolist(), "t": [[0], [0], [300]]})
+    (tmp / "calibration_sim.json").write_text(json.dumps(
+        {"calibDataSource": "gt3dkit simulate", "cameras": cams}))
+    d = tmp / "hdPose3d_stage1_coco19"
+    d.mkdir()
+    for f in sim.frames:
+        bodies = []
+        for a in np.flatnonzero(sim.truth_frame == f):
+            j = np.concatenate([sim.kpt_world[a] * 100, np.ones((len(sim.kpt_world[a]), 1))],
+                               axis=1)
+            bodies.append({"id": int(sim.truth_id[a]), "joints19": j.reshape(-1).round(4).tolist()})
+        (d / f"body3DScene_{int(f):08d}.json").write_text(json.dumps(
+            {"version": 0.7, "univTime": float(f), "fpsType": "hd_29_97", "bodies": bodies}))

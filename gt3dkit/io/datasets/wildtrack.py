@@ -23,17 +23,20 @@ positionID truth.
 
 from __future__ import annotations
 
+import csv
+import json
 import math
 from pathlib import Path
 
 import numpy as np
 
 from gt3dkit.calib.formats.grid import GridLayout, load_camera
+from gt3dkit.calib.formats.grid import write as write_grid
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import FAR_IMAGES, check_pixels
 from gt3dkit.io.datasets.common import RowBuilder
 from gt3dkit.parse import ID_MAX, iter_csv_rows, load_json, parse_frame, parse_int, parse_metres, sha256
-from gt3dkit.types import F64, Camera, GroundTruth, Rig, Scene
+from gt3dkit.types import F64, Camera, GroundTruth, Rig, Scene, SimScene
 
 
 def load(root: Path, g: GridLayout) -> Scene:
@@ -201,3 +204,35 @@ def read_truth_csv(p: Path, files: dict[str, str], root: Path) -> GroundTruth:
     return GroundTruth(frame=a[:, 0].astype(np.int64), track_id=a[:, 1].astype(np.int64),
                        center_world=a[:, 2:5], semi_axes=a[:, 5:8],
                        kpt_world=np.zeros((len(a), 0, 3)), source="truth.csv")
+
+
+def write_truth_csv(sim: SimScene, path: Path) -> None:
+    """``truth.csv`` (:data:`TRUTH_COLUMNS`) of a simulated scene, read by :func:`read_truth_csv`."""
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(TRUTH_COLUMNS)
+        for i in range(len(sim.truth_frame)):
+            w.writerow([int(sim.truth_frame[i]), int(sim.truth_id[i]),
+                        *(f"{v:.6f}" for v in sim.center_world[i]),
+                        *(f"{v:.6f}" for v in sim.semi_axes[i])])
+
+
+def write(sim: SimScene, tmp: Path, g: GridLayout) -> None:
+    """A simulated scene as a WILDTRACK/MultiviewX folder ``tmp`` (``calibrations/`` and
+    ``annotations_positions/``), read by :func:`load`."""
+    write_grid(sim.rig, tmp, g)
+    ann = tmp / "annotations_positions"
+    ann.mkdir()
+    width = 8 if g.name == "wildtrack" else 5
+    pos = g.xy_to_position(sim.center_world[:, :2])
+    for f in sim.frames:
+        people = []
+        for i in np.flatnonzero(sim.truth_frame == f):
+            views = []
+            for c in range(len(sim.rig.cameras)):
+                b = sim.boxes[i, c]
+                vals = [-1, -1, -1, -1] if not np.all(np.isfinite(b)) else [int(v) for v in b]
+                views.append(dict(zip(("viewNum", "xmin", "ymin", "xmax", "ymax"), [c, *vals], strict=True)))
+            people.append({"personID": int(sim.truth_id[i]), "positionID": int(pos[i]),
+                           "views": views})
+        (ann / f"{int(f):0{width}d}.json").write_text(json.dumps(people, indent=1))

@@ -61,8 +61,8 @@ def test_render_matches_the_pinhole() -> None:
 @pytest.fixture(scope="module")
 def box_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = Path(tmp_path_factory.mktemp("report_boxes"))
-    sim = simulate("wildtrack", seed=4, frames=12, people=4, noise_px=1.0, dropout=0.0, hide_covered=0.5,
-                   errors=Errors(shifted=0.01))
+    sim = simulate("wildtrack", seed=4, frames=12, people=4, noise_px=1.0,
+                   errors=Errors(dropped=0.0, hide_covered=0.5, shifted=0.01))
     write_scene(sim, root / "in", "wildtrack")
     r = _run("reconstruct", str(root / "in"), "--out", str(root / "out"))
     assert r.returncode == 0, r.stderr

@@ -91,7 +91,7 @@ def test_robust_triangulation_rejects_the_bad_view() -> None:
     on the four good views)."""
     import cv2
 
-    sim = simulate_skeletons("native", seed=1, frames=2, people=1, cameras=5, missing=0.0)
+    sim = simulate_skeletons("native", seed=1, frames=2, people=1, cameras=5, errors=Errors(dropped=0.0))
     rig = sim.rig
     uv = sim.uv[0, :, 3].copy()  # (C, 2) joint 3, frame 0
     bad = uv.copy()
@@ -149,7 +149,7 @@ def test_downweighted_csv_is_written(tmp_path, clean_and_bad) -> None:
 
 
 def test_shifted_box_is_rejected_and_does_not_move_the_ellipsoid(tmp_path) -> None:
-    sim = simulate("native", seed=5, frames=12, people=3, noise_px=1.0, dropout=0.0)
+    sim = simulate("native", seed=5, frames=12, people=3, noise_px=1.0, errors=Errors(dropped=0.0))
     write_scene(sim, tmp_path / "a", "native")
     boxes = (tmp_path / "a" / "boxes.csv").read_text().splitlines()
     f, cam, i, *b = boxes[20].split(",")
@@ -169,8 +169,8 @@ def test_shifted_box_is_rejected_and_does_not_move_the_ellipsoid(tmp_path) -> No
 # -- gaps, weak priors, process noise ----------------------------------------------------------
 
 def test_long_gap_uses_the_late_frames_own_views(tmp_path) -> None:
-    kw = dict(seed=2, frames=60, people=4, noise_px=1.0, dropout=0.0, motion="walk", cameras=6)
-    write_scene(simulate("native", **kw, errors=Errors(gap=(5, 55))), tmp_path / "g", "native")
+    kw = dict(seed=2, frames=60, people=4, noise_px=1.0, motion="walk", cameras=6)
+    write_scene(simulate("native", **kw, errors=Errors(dropped=0.0, gap=(5, 55))), tmp_path / "g", "native")
     sc = load_scene(tmp_path / "g")
     assert set(sc.frames.tolist()) <= set(range(5)) | set(range(55, 60))
     tr = reconstruct(sc)
@@ -194,8 +194,8 @@ def test_no_divergence_at_extreme_process_noise(tmp_path, accel) -> None:
 def test_single_view_track_reports_an_honest_spread(tmp_path) -> None:
     """A person seen by one camera in all its frames: its depth comes from the shape prior,
     and the reported sd must say so."""
-    sim = simulate("native", seed=6, frames=20, people=6, noise_px=1.0, dropout=0.0,
-                   errors=Errors(single_view=0.2))
+    sim = simulate("native", seed=6, frames=20, people=6, noise_px=1.0, errors=Errors(dropped=0.0,
+                                                                                      single_view=0.2))
     write_scene(sim, tmp_path, "native")
     sc = load_scene(tmp_path)
     tr = reconstruct(sc)

@@ -20,8 +20,8 @@ GT3D = [sys.executable, "-m", "gt3dkit.cli"]
 @pytest.fixture(scope="module")
 def scenes(tmp_path_factory: pytest.TempPathFactory):
     root = Path(tmp_path_factory.mktemp("mot"))
-    sim = simulate("wildtrack", seed=5, frames=20, people=10, noise_px=1.0, dropout=0.05, hide_covered=0.5,
-                   motion="walk", errors=Errors(single_view=0.2))
+    sim = simulate("wildtrack", seed=5, frames=20, people=10, noise_px=1.0, motion="walk",
+                   errors=Errors(dropped=0.05, hide_covered=0.5, single_view=0.2))
     write_scene(sim, root / "mot", "mot", id_seed=7)
     write_scene(sim, root / "global", "wildtrack")
     return sim, root
@@ -208,7 +208,8 @@ def test_cvat_and_coco_tasks(tmp_path: Path) -> None:
     from gt3dkit.eval.metrics import relabel_to_truth
     from gt3dkit.sim import simulate_skeletons, write_coco, write_skeleton_scene
 
-    sim = simulate("wildtrack", seed=3, frames=10, people=6, noise_px=1.0, dropout=0.0, hide_covered=0.5)
+    sim = simulate("wildtrack", seed=3, frames=10, people=6, noise_px=1.0, errors=Errors(dropped=0.0,
+                                                                                         hide_covered=0.5))
     write_scene(sim, tmp_path / "cvat", "cvat", id_seed=2)
     sc = load_scene(tmp_path / "cvat")
     assert sc.layout == "cvat" and len({r[3] for r in sc.association.rows}) == 6

@@ -12,8 +12,9 @@ from gt3dkit.calib.formats.grid import MULTIVIEWX, WILDTRACK
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.conics import ellipsoid_boxes
 from gt3dkit.io.datasets import detect_layout
+from gt3dkit.sim import Errors
 
-from .scenes import written_scene
+from tests.scenes import written_scene
 
 
 def test_multiviewx_subset(multiviewx) -> None:
@@ -40,7 +41,7 @@ def test_grid_positions_round_trip() -> None:
 
 @pytest.mark.parametrize("layout", ["native", "wildtrack", "multiviewx"])
 def test_simulated_layout_round_trip(tmp_path: Path, layout: str) -> None:
-    scene, sim = written_scene(tmp_path, layout, seed=1, frames=5, people=3, dropout=0.2)
+    scene, sim = written_scene(tmp_path, layout, seed=1, frames=5, people=3, errors=Errors(dropped=0.2))
     assert detect_layout(tmp_path) == layout
     assert scene.rig.names == [c.name for c in sim.rig.cameras]
     for a, b in zip(scene.rig.cameras, sim.rig.cameras, strict=True):
@@ -62,7 +63,7 @@ def test_simulated_layout_round_trip(tmp_path: Path, layout: str) -> None:
 
 
 def test_simulated_boxes_are_projections_of_the_truth(tmp_path: Path) -> None:
-    scene, sim = written_scene(tmp_path, "native", seed=2, frames=3, people=2, dropout=0.0)
+    scene, sim = written_scene(tmp_path, "native", seed=2, frames=3, people=2, errors=Errors(dropped=0.0))
     cams = Cams.of(scene.rig)
     box, _ = ellipsoid_boxes(sim.center_world, sim.semi_axes, cams.world_from_body, cams.K,
                              cams.dist, cams.R, cams.t)

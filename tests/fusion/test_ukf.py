@@ -1,4 +1,6 @@
-"""The batched UKF/RTS against filterpy and against exact linear-Gaussian results."""
+"""The UKF/RTS steps against filterpy and against exact linear-Gaussian results: the
+covariance-form oracle (tests/oracles.py) against filterpy, the package's information-form update
+against the oracle."""
 
 from __future__ import annotations
 
@@ -9,16 +11,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from gt3dkit.fusion.kalman import predict_linear, rts_step
 from gt3dkit.fusion.motion import StateLayout
-from gt3dkit.fusion.ukf import (
-    SigmaWeights,
-    predict_linear,
-    rts_step,
-    sigma_points,
-    ukf_update,
-    ukf_update_information,
-    unscented_transform,
-)
+from gt3dkit.fusion.ukf import SigmaWeights, ukf_update_information
+from gt3dkit.fusion.update import Measured
+from tests.oracles import sigma_points, ukf_update, unscented_transform
 
 finite = st.floats(-3, 3, allow_nan=False, allow_infinity=False)
 
@@ -159,10 +156,10 @@ def test_information_form_equals_covariance_form_on_linear_model() -> None:
     x0 = rng.normal(size=(2, 9))
     z = rng.normal(size=(2, 4))
     mask = np.array([[True, True, False, True], [True, True, True, True]])
-    args = (x0, P0, z, mask, np.array([0.01, 0.02, 0.03, 0.04]), lambda X: X @ H.T,
-            SigmaWeights(9))
-    xc, Pc, ic = ukf_update(*args)
-    xi, Pi, ii = ukf_update_information(*args, iterations=2)
+    R = np.array([0.01, 0.02, 0.03, 0.04])
+    xc, Pc, ic = ukf_update(x0, P0, z, mask, R, lambda X: X @ H.T, SigmaWeights(9))
+    xi, Pi, ii = ukf_update_information(x0, P0, Measured(z, mask, R), lambda X: X @ H.T, SigmaWeights(9),
+                                        iterations=2)
     np.testing.assert_allclose(xi, xc, atol=1e-9)
     np.testing.assert_allclose(Pi, Pc, atol=1e-9)
     assert ii["loglik"] == pytest.approx(ic["loglik"], rel=1e-9)

@@ -38,7 +38,8 @@ def test_detector_errors_are_flagged(tmp_path) -> None:
 
 
 def test_shifted_box_and_identity_jump(tmp_path) -> None:
-    sim = simulate("wildtrack", seed=2, frames=16, people=5, noise_px=1.0, dropout=0.0, hide_covered=0.5)
+    sim = simulate("wildtrack", seed=2, frames=16, people=5, noise_px=1.0, errors=Errors(dropped=0.0,
+                                                                                         hide_covered=0.5))
     root = tmp_path / "w"
     write_scene(sim, root, "wildtrack")
     clean = load_scene(root)
@@ -60,8 +61,8 @@ def test_shifted_box_and_identity_jump(tmp_path) -> None:
 
 
 def test_missing_views_and_an_unsynchronised_camera(tmp_path) -> None:
-    sim = simulate("wildtrack", seed=3, frames=16, people=6, noise_px=1.0, dropout=0.0, hide_covered=0.5,
-                   errors=Errors(missing=0.03, time_offset=(5, 2)))
+    sim = simulate("wildtrack", seed=3, frames=16, people=6, noise_px=1.0,
+                   errors=Errors(dropped=0.0, missing=0.03, time_offset=(5, 2), hide_covered=0.5))
     write_scene(sim, tmp_path / "w", "wildtrack")
     sc = load_scene(tmp_path / "w")
     reconstruct(sc, "ukf", out=tmp_path / "out")
@@ -81,7 +82,8 @@ def test_missing_views_and_an_unsynchronised_camera(tmp_path) -> None:
 
 def test_people_hidden_behind_others_are_not_missing(tmp_path) -> None:
     """Annotators leave out people hidden behind nearer ones: never a missing_view."""
-    sim = simulate("wildtrack", seed=6, frames=12, people=12, noise_px=1.0, dropout=0.0, hide_covered=0.5)
+    sim = simulate("wildtrack", seed=6, frames=12, people=12, noise_px=1.0, errors=Errors(dropped=0.0,
+                                                                                          hide_covered=0.5))
     write_scene(sim, tmp_path / "w", "wildtrack")
     assert np.isnan(sim.boxes).all(axis=-1).sum() > 0
     reconstruct(load_scene(tmp_path / "w"), "ukf", out=tmp_path / "out")

@@ -16,14 +16,14 @@ from gt3dkit.commands.common import bundled
 from gt3dkit.eval.pose import mpjpe_by_id, pose_scores, score_tracks
 from gt3dkit.geom.camera import project_points
 from gt3dkit.geom.triangulate import normalized_points, triangulate_dlt
-from gt3dkit.sim import simulate_skeletons, write_skeleton_scene
+from gt3dkit.sim import Errors, simulate_skeletons, write_skeleton_scene
 from gt3dkit.skeletons import SKELETONS, skeleton_for
 
 
 @pytest.fixture(scope="module")
 def skel_native(tmp_path_factory):
     root = Path(tmp_path_factory.mktemp("skel")) / "in"
-    sim = simulate_skeletons("native", seed=2, frames=8, people=2, cameras=6, missing=0.05)
+    sim = simulate_skeletons("native", seed=2, frames=8, people=2, cameras=6, errors=Errors(dropped=0.05))
     write_skeleton_scene(sim, root, "native")
     return root, sim
 
@@ -74,7 +74,7 @@ def test_panoptic_loader_on_written_sequence(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("noise", [0.0, 1.0])
 def test_dlt_matches_gtsam_triangulation(noise: float) -> None:
-    sim = simulate_skeletons("native", seed=5, frames=2, people=1, cameras=6, missing=0.0,
+    sim = simulate_skeletons("native", seed=5, frames=2, people=1, cameras=6, errors=Errors(dropped=0.0),
                              noise_px=noise)
     rig = sim.rig
     uv = sim.uv[0]  # (C, J, 2)

@@ -1,0 +1,99 @@
+"""The compiled tangent box (gt3dkit.geom.boxkernel) against the whole-array numpy reference
+(tests/oracles.py) and its analytic derivatives against central differences."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gt3dkit.geom import boxkernel as bk
+from gt3dkit.geom.conics import ellipsoid_boxes
+from tests.oracles import ellipsoid_boxes_numpy
+
+
+def rotation(rng: np.random.Generator) -> np.ndarray:
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+def random_cameras(rng: np.random.Generator, C: int, kind: str) -> tuple[np.ndarray, ...]:
+    """``R, t, K, dist`` of ``C`` cameras ~8 m from the origin: ``kind`` distorted, pinhole or
+    skewed."""
+    R = np.stack([rotation(rng) for _ in range(C)])
+    t = rng.normal(size=(C, 3)) + [0, 0, 8.0]
+    K = np.tile(np.array([[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]]), (C, 1, 1))
+    if kind == "skewed":
+        K[:, 0, 1] = 3.0
+    dist = np.zeros((C, 5))
+    if kind == "distorted":
+        dist[:] = rng.normal(size=(C, 5)) * [0.05, 0.01, 0.001, 0.001, 0.001]
+    return R, t, K, dist
+
+
+@pytest.mark.parametrize("kind", ["distorted", "pinhole", "skewed"])
+def test_compiled_tangent_box_equals_the_numpy_reference(kind: str) -> None:
+    rng = np.random.default_rng({"distorted": 0, "pinhole": 1, "skewed": 2}[kind])
+    C, N = 5, 400
+    R, t, K, dist = random_cameras(rng, C, kind)
+    c = rng.normal(size=(N, 3)) * 2.0
+    s = np.exp(rng.normal(size=(N, 3)) * 0.3) * 0.4
+    args = (rotation(rng), K, dist, R, t, np.ones(C))
+    b1, m1 = ellipsoid_boxes(c, s, *args)
+    b2, m2 = ellipsoid_boxes_numpy(c, s, *args)
+    np.testing.assert_allclose(m1, m2, atol=1e-12)
+    np.testing.assert_array_equal(np.isnan(b1), np.isnan(b2))
+    inside = np.all((b2 > 0) & (b2 < 1920), axis=-1)
+    assert inside.sum() > 100
+    np.testing.assert_allclose(b1[inside], b2[inside], atol=1e-6)
+
+
+def test_split_and_masked_tangent_box_equal_the_whole_call(monkeypatch) -> None:
+    rng = np.random.default_rng(3)
+    C, N = 6, 3000  # large enough to be split over threads
+    R, t, K, dist = random_cameras(rng, C, "distorted")
+    c = rng.normal(size=(N, 3)) * 2.0
+    s = np.exp(rng.normal(size=(N, 3)) * 0.3) * 0.4
+    Rb = rotation(rng)
+    want = rng.uniform(size=(N, C)) < 0.7
+    box, margin = np.empty((N, C, 4)), np.empty((N, C))
+    cams = bk.BoxCameras(Rb, K, dist, R, t, np.ones(C))
+    bk.kernel(c, s, cams, 2, bk.EVERY_CAMERA, box, margin)  # one call, one thread
+    monkeypatch.setenv("GT3D_THREADS", "3")
+    b3, m3 = ellipsoid_boxes(c, s, Rb, K, dist, R, t, np.ones(C))
+    np.testing.assert_array_equal(b3, box)
+    np.testing.assert_array_equal(m3, margin)
+    bw, mw = ellipsoid_boxes(c, s, Rb, K, dist, R, t, np.ones(C), want=want)
+    np.testing.assert_array_equal(mw, margin)  # margins of every pair
+    np.testing.assert_array_equal(bw[want], box[want])
+    assert np.isnan(bw[~want]).all()
+
+
+@pytest.mark.parametrize("kind", ["distorted", "pinhole", "skewed"])
+def test_tangent_box_gradient_equals_finite_differences(kind: str) -> None:
+    """The tangent box's analytic derivatives (envelope theorem, forward mode) against central
+    differences of the numpy reference."""
+    rng = np.random.default_rng({"distorted": 5, "pinhole": 6, "skewed": 7}[kind])
+    C, N = 4, 60
+    R, t, K, dist = random_cameras(rng, C, kind)
+    Rb = rotation(rng)
+    ds = np.ones(C)
+    rig = bk.box_rig(bk.BoxCameras(Rb, K, dist, R, t, ds), 2)
+    eps = np.r_[[1e-6] * 3, [1e-7] * 3]
+    checked = 0
+    for _ in range(N):
+        p = np.r_[rng.normal(size=3) * 2.0, np.log(np.exp(rng.normal(size=3) * 0.3) * 0.4)]
+        steps = np.concatenate([np.diag(eps), -np.diag(eps)])
+        P = p[None] + steps
+        ref, _ = ellipsoid_boxes_numpy(P[:, :3], np.exp(P[:, 3:]), Rb, K, dist, R, t, ds)  # (12, C, 4)
+        fd = np.moveaxis((ref[:6] - ref[6:]) / (2 * eps[:, None, None]), 0, -1)  # (C, 4, 6)
+        b0, _ = ellipsoid_boxes_numpy(p[None, :3], np.exp(p[None, 3:]), Rb, K, dist, R, t, ds)
+        for c in range(C):
+            box, grad = np.empty(4), np.empty((4, 6))
+            bk.pair_box_grad((p[0], p[1], p[2]), (p[3], p[4], p[5]), c, rig, box, grad)
+            inside = np.all((b0[0, c] > 0) & (b0[0, c] < 1920)) and np.isfinite(fd[c]).all()
+            if not inside:
+                continue
+            np.testing.assert_allclose(box, b0[0, c], atol=1e-6)
+            np.testing.assert_allclose(grad, fd[c], rtol=2e-4, atol=2e-3 * np.abs(fd[c]).max())
+            checked += 1
+    assert checked > 40
