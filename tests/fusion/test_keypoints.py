@@ -121,7 +121,9 @@ def test_ukf_beats_dlt_with_noise(tmp_path: Path) -> None:
     scene = load_scene(tmp_path)
     u = mpjpe_by_id(reconstruct(scene, "ukf"), scene.truth)[0]
     t = mpjpe_by_id(reconstruct(scene, "triangulation"), scene.truth)[0]
-    assert u < t
+    # seeds 3-5 measured 1.3-1.6 mm (DLT 2.9-3.0 mm): 2 px noise, 8 cameras
+    assert u < 2.0
+    assert u < 0.6 * t
 
 
 def test_pose_metrics_hand_worked() -> None:

@@ -13,7 +13,6 @@ from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.conics import ellipsoid_boxes
 from gt3dkit.io.datasets import detect_layout
 from gt3dkit.sim import Errors
-
 from tests.scenes import written_scene
 
 
