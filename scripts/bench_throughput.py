@@ -8,9 +8,9 @@ against the baselines, side by side in one run, with peak memory.
   tangent box of all 7 cameras as its measurement, a missing view given a huge variance); and a
   per-frame least-squares ellipsoid fit (scipy ``least_squares`` per object-frame on the same
   tangent-box residuals). Both baselines use the tangent box as whole-array numpy
-  (``ellipsoid_boxes_numpy``, the reference, as the issue measured them); the least-squares fit
-  is also timed with gt3dkit's compiled kernel, for the record. They are timed on a sample of
-  objects and frames (``--sample``) and reported per object-frame.
+  (``ellipsoid_boxes_numpy`` of ``tests/oracles.py``, the reference, as the issue measured
+  them); the least-squares fit is also timed with gt3dkit's compiled kernel, for the record.
+  They are timed on a sample of objects and frames (``--sample``) and reported per object-frame.
 * keypoints (the bundled CMU Panoptic sequence, 31 HD cameras x 19 joints, 2 px noise):
   ``gt3d reconstruct`` (UKF) against ``gt3d reconstruct --estimator triangulation`` (a
   per-frame DLT process), each as a process.
@@ -34,8 +34,11 @@ import numpy as np
 from gt3dkit.api import load_scene
 from gt3dkit.commands.common import bundled
 from gt3dkit.geom.camera import Cams
-from gt3dkit.geom.conics import ellipsoid_boxes, ellipsoid_boxes_numpy
+from gt3dkit.geom.conics import ellipsoid_boxes
 from gt3dkit.sim import simulate, write_scene
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests/oracles.py
+from tests.oracles import ellipsoid_boxes_numpy  # noqa: E402  (the numpy tangent box, a baseline)
 
 _PEAK = ("import resource, sys; from gt3dkit.cli import main; c = main(sys.argv[1:]); "
          "print('PEAK_KB', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr); sys.exit(c)")

@@ -23,7 +23,7 @@ import numpy as np
 from gt3dkit import load_scene, reconstruct
 from gt3dkit.commands.common import bundled
 from gt3dkit.eval.metrics import box_errors
-from gt3dkit.sim import simulate, write_scene
+from gt3dkit.sim import Errors, simulate, write_scene
 
 TARGETS = {  # (case, metric) -> max (mm) or min
     ("exact", "centre"): 2.5, ("exact", "height"): 1.0, ("exact", "radius"): 0.8,
@@ -38,7 +38,7 @@ def run_synthetic(noise_px: float, seeds: int, frames: int, people: int,
     for seed in range(first_seed, first_seed + seeds):
         with tempfile.TemporaryDirectory() as d:
             sim = simulate(layout, seed=seed, frames=frames, people=people,
-                           noise_px=noise_px, dropout=0.15)
+                           noise_px=noise_px, errors=Errors(dropped=0.15))
             write_scene(sim, Path(d), layout)
             scene = load_scene(Path(d))
             for est in ("ukf", "triangulation"):

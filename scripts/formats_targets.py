@@ -42,8 +42,8 @@ def check(label: str, ok: bool, value: str) -> bool:
 
 
 def mot(seed: int, people: int, single_view: float = 0.0) -> bool:
-    sim = simulate("wildtrack", seed=seed, frames=40, people=people, noise_px=1.0, dropout=0.05,
-                   hide_covered=0.5, motion="walk", errors=Errors(single_view=single_view))
+    sim = simulate("wildtrack", seed=seed, frames=40, people=people, noise_px=1.0, motion="walk",
+                   errors=Errors(dropped=0.05, hide_covered=0.5, single_view=single_view))
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
         for name, layout in (("global ids", "wildtrack"), ("per-camera ids", "mot")):

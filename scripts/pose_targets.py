@@ -23,7 +23,7 @@ import numpy as np
 from gt3dkit import load_scene, reconstruct
 from gt3dkit.commands.common import bundled
 from gt3dkit.eval.pose import mpjpe_by_id, score_tracks
-from gt3dkit.sim import simulate_skeletons, write_skeleton_scene
+from gt3dkit.sim import Errors, simulate_skeletons, write_skeleton_scene
 
 BODY15 = np.arange(15)
 
@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
         for seed in range(args.seeds):
             with tempfile.TemporaryDirectory() as d:
                 sim = simulate_skeletons("native", seed=seed, frames=30, people=3,
-                                         noise_px=noise, missing=0.05, cameras=10)
+                                         noise_px=noise, errors=Errors(dropped=0.05), cameras=10)
                 write_skeleton_scene(sim, Path(d), "native")
                 for est, m in evaluate(load_scene(Path(d))).items():
                     res.setdefault(est, []).append(m)

@@ -43,8 +43,8 @@ def check(label: str, ok: bool, value: str) -> bool:
 def boxes(seed: int) -> bool:
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp) / "w"
-        sim = simulate("wildtrack", seed=seed, frames=30, people=8, noise_px=1.0, dropout=0.0,
-                       hide_covered=0.5)
+        sim = simulate("wildtrack", seed=seed, frames=30, people=8, noise_px=1.0,
+                       errors=Errors(dropped=0.0, hide_covered=0.5))
         write_scene(sim, root, "wildtrack")
         clean = load_scene(root)
         e0 = box_errors(reconstruct(clean, "ukf"), clean.truth, clean.rig.up).centre_mean_m
@@ -92,8 +92,8 @@ def views(seed: int) -> bool:
     rng = np.random.default_rng(1000 + seed)
     cam, shift = int(rng.integers(7)), int(rng.choice([-2, -1, 1, 2]))
     with tempfile.TemporaryDirectory() as tmp:
-        sim = simulate("wildtrack", seed=seed, frames=30, people=8, noise_px=1.0, dropout=0.0,
-                       hide_covered=0.5, errors=Errors(missing=0.02, time_offset=(cam, shift)))
+        sim = simulate("wildtrack", seed=seed, frames=30, people=8, noise_px=1.0,
+                       errors=Errors(dropped=0.0, hide_covered=0.5, missing=0.02, time_offset=(cam, shift)))
         write_scene(sim, Path(tmp) / "w", "wildtrack")
         sc = load_scene(Path(tmp) / "w")
         qa = annotation_qa(sc, reconstruct(sc, "ukf"))

@@ -53,7 +53,9 @@ def check(what: str, value: float, limit: float, op: str = "<=") -> None:
 
 
 def box_scene(d: Path, seed: int, **kw):
-    kw = {"frames": 40, "people": 8, "noise_px": 2.0, "dropout": 0.1, **kw}
+    errors = kw.pop("errors", None) or Errors()
+    kw = {"frames": 40, "people": 8, "noise_px": 2.0, **kw,
+          "errors": dataclasses.replace(errors, dropped=0.1 if errors.dropped is None else errors.dropped)}
     sim = simulate("native", seed=seed, **kw)
     write_scene(sim, d, "native")
     return load_scene(d)
@@ -238,7 +240,7 @@ def versus_plain(seeds: list[int]) -> None:
     for seed in seeds:
         with tempfile.TemporaryDirectory() as d:
             sc = box_scene(Path(d) / "a", seed, frames=60, people=10, noise_px=3.0, motion="walk",
-                           cameras=4, fps=4.0, dropout=0.1)
+                           cameras=4, fps=4.0)
             keys, cen = plain_fit(sc)
             tk = {(int(f), int(i)): k for k, (f, i) in enumerate(zip(sc.truth.frame,
                                                                       sc.truth.track_id, strict=True))}
