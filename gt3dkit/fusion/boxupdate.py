@@ -27,6 +27,7 @@ from typing import Any, NamedTuple
 import numba
 import numpy as np
 
+from gt3dkit.fusion.filterrun import FilterRun
 from gt3dkit.fusion.kalman import ellipsoid_linearisation, fade_centre, fade_factor, predict_row, rts_row
 from gt3dkit.fusion.motion import SPACE, Noise, StateIndex, accel_shape, transition
 from gt3dkit.fusion.robust import chi2_isf
@@ -474,7 +475,7 @@ class LinearisedSearch:
 
 
 def run_boxes(model: Any, init: Any, cfg: Any, fps: float, collect: bool, fade: bool,
-              on: np.ndarray | None, noise_rows: dict[str, F64] | None) -> tuple[F64, F64, dict[str, Any]]:
+              on: np.ndarray | None, noise_rows: dict[str, F64] | None) -> FilterRun:
     """The filter (and RTS) of a boxes-only model (:func:`applies_to_model`) as chains of rows,
     objects in parallel: the arguments and outputs of
     :func:`gt3dkit.fusion.ukf_smoother.run_filter`."""
@@ -515,20 +516,17 @@ def run_boxes(model: Any, init: Any, cfg: Any, fps: float, collect: bool, fade: 
         run_split(bwd, parts)
     stats = out.stats
     done = chains.run & (stats[:, 3] > 0)
-    per_row = {"nis_rows": np.where(done, stats[:, 0], 0.0), "dof_rows": np.where(done, stats[:, 1], 0.0),
-               "loglik_rows": np.where(done, stats[:, 2], 0.0)}
-    kept = {"weights": np.where(done[:, None], out.weights, 0.0),
-            "score2": np.where(done[:, None], out.score2, 0.0),
-            "residual": np.where(done[:, None], out.resid, 0.0)} if collect else {}
-    info: dict[str, Any] = {
-        "pd_repairs": int(stats[done, 4].sum()),
-        "predictions_faded": int(track.faded.sum()),
-        "object_frames": R if on is None else int(chains.run.sum()),
-        "update_form": "information, iterated and reweighted (compiled, per object)",
-        "update_passes_mean": float(stats[done, 3].mean()) if done.any() else 0.0,
-        **kept, **per_row,
-    }
-    return out.x, out.P, info
+
+    def entries(a: F64) -> F64 | None:
+        return np.where(done[:, None], a, 0.0) if collect else None
+
+    return FilterRun(
+        out.x, out.P, np.where(done, stats[:, 0], 0.0), np.where(done, stats[:, 1], 0.0),
+        np.where(done, stats[:, 2], 0.0), entries(out.weights), entries(out.score2), entries(out.resid),
+        pd_repairs=int(stats[done, 4].sum()), predictions_faded=int(track.faded.sum()),
+        object_frames=R if on is None else int(chains.run.sum()),
+        update_form="information, iterated and reweighted (compiled, per object)",
+        update_passes_mean=float(stats[done, 3].mean()) if done.any() else 0.0)
 
 
 def applies_to_model(model: Any) -> bool:

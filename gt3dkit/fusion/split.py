@@ -18,10 +18,10 @@ The bone pass couples the joints and runs on the whole state.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Any
 
 import numpy as np
 
+from gt3dkit.fusion.filterrun import FilterRun
 from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.motion import StateLayout
 from gt3dkit.fusion.rows import Rows
@@ -52,9 +52,11 @@ class JointSplit:
     owned: np.ndarray
     cols: I64
 
-    def merge(self, x: F64, P: F64, info: dict[str, Any]) -> tuple[F64, F64, dict[str, Any]]:
-        """States ``(R, n)``, block-diagonal covariances ``(R, n, n)`` and diagnostics of the
-        original rows from a run of the split model."""
+    def merge(self, run: FilterRun) -> FilterRun:
+        """The run of the original rows (states ``(R, n)``, block-diagonal covariances ``(R, n,
+        n)``, per-row statistics summed over the parts, per-entry arrays in the original
+        columns) from a run of the split model."""
+        x, P = run.x, run.P
         xo = np.zeros((self.R, self.n))
         rr = np.broadcast_to(self.src[:, None], self.dims.shape)
         xo[rr[self.owned], self.dims[self.owned]] = x[self.owned]
@@ -64,19 +66,22 @@ class JointSplit:
                 k = np.flatnonzero(self.owned[np.flatnonzero(own)[0]])
                 d = self.dims[own][:, k]
                 Po[self.src[own][:, None, None], d[:, :, None], d[:, None, :]] = P[own][:, k[:, None], k]
-        out = dict(info)
-        for key, v in info.items():
-            if not isinstance(v, np.ndarray) or v.shape[:1] != self.src.shape:
-                continue
-            if v.ndim == 1:
-                out[key] = np.bincount(self.src, weights=v, minlength=self.R)
-            else:
-                full = np.zeros((self.R, self.m), dtype=v.dtype)
-                ok = self.cols >= 0
-                full[np.broadcast_to(self.src[:, None], ok.shape)[ok], self.cols[ok]] = v[ok]
-                out[key] = full
-        out["object_frames"] = int(info["object_frames"]) * self.R // len(self.src)
-        return xo, Po, out
+        ok = self.cols >= 0
+
+        def entries(v: F64 | None) -> F64 | None:
+            if v is None:
+                return None
+            full = np.zeros((self.R, self.m), dtype=v.dtype)
+            full[np.broadcast_to(self.src[:, None], ok.shape)[ok], self.cols[ok]] = v[ok]
+            return full
+
+        def rows(v: F64) -> F64:
+            return np.bincount(self.src, weights=v, minlength=self.R)
+
+        return replace(run, x=xo, P=Po, nis=rows(run.nis), dof=rows(run.dof),
+                       loglik_rows=rows(run.loglik_rows), weights=entries(run.weights),
+                       score2=entries(run.score2), residual=entries(run.residual),
+                       object_frames=run.object_frames * self.R // len(self.src))
 
 
 def split_joints(model: Model, x0: F64, P0: F64) -> tuple[Model, F64, F64, JointSplit]:

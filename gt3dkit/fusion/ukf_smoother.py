@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 
 from gt3dkit.fusion.boxupdate import LinearisedSearch, applies_to_model, run_boxes
+from gt3dkit.fusion.filterrun import FilterRun
 from gt3dkit.fusion.kalman import predict_linear, rts_step
 from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.prepare import (
@@ -172,23 +173,22 @@ class UKFSmoother:
         model = Model.of(pre)
         init = initial_states(model, cfg)
         cfg, search = select_noise(model, init, cfg, pre, scene.fps)
-        x_s, P_s, run = run_filter(model, init, cfg, scene.fps, collect=True)
+        run = run_filter(model, init, cfg, scene.fps, collect=True)
         if cfg.robust and model.robust_blocks:
             # second pass: the weights start from every point's verdict against the smoothed
             # estimate, which knows the future too (a bad view in an object's first frame,
             # where the forward pass had only the frame itself to judge by). Objects are
             # independent: only those with a changed verdict are run again.
-            w0 = smoothed_weights(model, x_s, cfg)
+            w0 = smoothed_weights(model, run.x, cfg)
             changed = objects_rows(rows, np.any((w0 != model.weight0) & model.mask, axis=1))
             model = replace(model, weight0=w0)
             if changed.any():
-                x_s, P_s, run = merge_runs((x_s, P_s, run), run_filter(
-                    model, init, cfg, scene.fps, collect=True, on=changed), changed)
+                run = run.merged(run_filter(model, init, cfg, scene.fps, collect=True, on=changed), changed)
         bone_info: dict[str, Any] = {}
         if pre.use_kpt and cfg.bones and pre.skeleton is not None:
-            x_s, P_s, run, bone_info = rerun_with_bones(model, init, cfg, scene.fps, x_s, P_s,
-                                                        pre.skeleton)
-        nis = run["mean_nis_per_dof"]
+            run, bone_info = rerun_with_bones(model, init, cfg, scene.fps, run.x, run.P, pre.skeleton)
+        x_s, P_s = run.x, run.P
+        nis = run.mean_nis_per_dof
         inflation = max(nis, 1.0) if cfg.inflate and np.isfinite(nis) else 1.0
         if inflation != 1.0:
             P_s *= inflation  # in place: P_s is this run's own array
@@ -214,7 +214,7 @@ class UKFSmoother:
         down = downweighted_of(model, run)
         info: dict[str, Any] = {
             "estimator": self.name,
-            **{k: v for k, v in run.items() if not isinstance(v, np.ndarray)},
+            **run.summary(),
             "covariance_inflation": inflation,
             "single_view_rows_widened": widened,
             "single_view_objects": {
@@ -439,7 +439,8 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
         # every point judged against the provisional *smoothed* estimate, as the second pass
         # judges them: a bad view in an object's first frames, which a forward pass cannot
         # tell yet, would otherwise bend the motion model's likelihood
-        x_prov, P_prov, _ = run_filter(model, init, start, fps, on=on)
+        prov_run = run_filter(model, init, start, fps, on=on)
+        x_prov, P_prov = prov_run.x, prov_run.P
         if cfg.robust:
             weights = smoothed_weights(model, x_prov, start)
         curves["provisional"] = {**prov.as_dict(), "source": prov.source,
@@ -469,8 +470,8 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
                 rows_k, src, copy = replicate_rows(model.rows, sel, len(part))
                 run = run_filter(search_model.take(rows_k, src), Init(init.x0[src], init.P0[src]),
                                  replace(c, smooth=False, iterations=1), fps, fade=False,
-                                 noise_rows={name: np.asarray(part)[copy]})[2]
-                out += list(np.bincount(copy, weights=run["loglik_rows"], minlength=len(part)))
+                                 noise_rows={name: np.asarray(part)[copy]})
+                out += list(np.bincount(copy, weights=run.loglik_rows, minlength=len(part)))
             return out
 
         best, seen = maximise_log(logliks, *bounds, n_scan)
@@ -519,11 +520,12 @@ def joints_of(x_s: F64, P_s: F64, layout: Any, rows: Any) -> tuple[F64, F64]:
     return kpt, sd
 
 
-def downweighted_of(model: Model, run: dict[str, Any]) -> Downweighted:
-    """The measurements the final forward pass down-weighted or rejected."""
+def downweighted_of(model: Model, run: FilterRun) -> Downweighted:
+    """The measurements the final forward pass down-weighted or rejected (``run`` collected)."""
     rows = model.rows
     J = model.layout.n_joints
-    W, S2, RES = run["weights"], run["score2"], run["residual"]
+    W, S2, RES = run.weights, run.score2, run.residual
+    assert W is not None and S2 is not None and RES is not None
     parts: list[tuple[np.ndarray, ...]] = []
     for sl, d in model.robust_blocks:
         w = W[:, sl][:, ::d]
@@ -546,7 +548,7 @@ def downweighted_of(model: Model, run: dict[str, Any]) -> Downweighted:
 
 
 def rerun_with_bones(model: Model, init: Init, cfg: UKFConfig, fps: float, x_s: F64, P_s: F64,
-                     skel: Skeleton) -> tuple[F64, F64, dict[str, Any], dict[str, Any]]:
+                     skel: Skeleton) -> tuple[FilterRun, dict[str, Any]]:
     r"""Second pass with bone-length pseudo-measurements ``|p_i - p_j| = L_b`` per person.
 
     ``L_b`` is the median of the first pass's smoothed lengths over the person's frames
@@ -606,7 +608,7 @@ def rerun_with_bones(model: Model, init: Init, cfg: UKFConfig, fps: float, x_s: 
     # first per-frame fit: rigid bones to joints that frame barely sees would otherwise pull
     # the linearisation far off and the views would look like outliers
     binit = Init(x_s.copy(), ScaledRows(P_s, 4.0))  # read only where an object starts
-    x2, P2, info = run_filter(bmodel, binit, cfg, fps, collect=True)
+    run = run_filter(bmodel, binit, cfg, fps, collect=True)
     names = [f"{skel.joints[a]}-{skel.joints[b]}" for a, b in bones]
     per_person = {
         str(int(rows.obj_ids[o])): {
@@ -614,26 +616,25 @@ def rerun_with_bones(model: Model, init: Init, cfg: UKFConfig, fps: float, x_s: 
                        "sd": round(float(sd[o, k]), 5)}
             for k in range(K)}
         for o in range(O)}
-    return x2, P2, info, {"skeleton": skel.name, "units": "m", "per_person": per_person}
+    return run, {"skeleton": skel.name, "units": "m", "per_person": per_person}
 
 
 def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bool = False,
                fade: bool = True, on: np.ndarray | None = None,
-               noise_rows: dict[str, F64] | None = None) -> tuple[F64, F64, dict[str, Any]]:
+               noise_rows: dict[str, F64] | None = None) -> FilterRun:
     """Forward UKF, then (optionally) RTS, by the backend that serves the model
-    (:func:`backend_for`). Returns ``(R, n)``, ``(R, n, n)`` and diagnostics; with ``collect``
-    also the final weights, scores and residuals ``(R, m)``. ``fade`` lets the frame's own
+    (:func:`backend_for`): a :class:`gt3dkit.fusion.filterrun.FilterRun`; with ``collect`` it
+    holds the final weights, scores and residuals ``(R, m)``. ``fade`` lets the frame's own
     views weaken a contradicted prediction (:meth:`Model.prior_conflict`); the noise search runs
     without it, so that its likelihood judges the motion model as it is. ``on (R,)`` runs the
     rows of some objects only (whole objects: each object's filter is independent of the
-    others); the other rows' outputs are zero and their statistics absent. The diagnostics hold
-    the per-row statistics (``nis_rows``, ``dof_rows``, ``loglik_rows``) that :func:`merge_runs`
-    combines. ``noise_rows`` gives some of ``accel_sd``, ``shape_sd``, ``joint_accel_sd`` per
-    row ``(R,)`` instead of ``cfg``'s (the noise search runs several values at once)."""
+    others); the other rows' outputs are zero and their statistics absent
+    (:meth:`FilterRun.merged` combines runs). ``noise_rows`` gives some of ``accel_sd``,
+    ``shape_sd``, ``joint_accel_sd`` per row ``(R,)`` instead of ``cfg``'s (the noise search runs
+    several values at once)."""
     if cfg.accel_sd is None or cfg.shape_sd is None:
         raise ValueError("run_filter needs numeric accel_sd and shape_sd")
-    x_s, P_s, info = BACKENDS[backend_for(model)](model, init, cfg, fps, collect, fade, on, noise_rows)
-    return x_s, P_s, _with_totals(info)
+    return BACKENDS[backend_for(model)](model, init, cfg, fps, collect, fade, on, noise_rows)
 
 
 def backend_for(model: Model) -> str:
@@ -646,8 +647,7 @@ def backend_for(model: Model) -> str:
 
 def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bool = False,
                fade: bool = True, on: np.ndarray | None = None,
-               noise_rows: dict[str, F64] | None = None, split: bool = True
-               ) -> tuple[F64, F64, dict[str, Any]]:
+               noise_rows: dict[str, F64] | None = None, split: bool = True) -> FilterRun:
     """The filter over the frame grid (arguments and outputs of :func:`run_filter`): per frame
     the prediction, fading and linearisation point of its rows as one batch, their update
     (:func:`gt3dkit.fusion.ukf.ukf_update_information`), then RTS backwards. ``split``: without
@@ -656,9 +656,9 @@ def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
     if split and model.layout.n_joints > 1 and model.bones is None:
         # no bones: the joints are independent filters, run as one batch of small ones
         sub, x0, P0, sp = split_joints(model, init.x0, init.P0)
-        return sp.merge(*run_frames(sub, Init(x0, P0), cfg, fps, collect, fade,
-                                    None if on is None else on[sp.src],
-                                    {k: v[sp.src] for k, v in (noise_rows or {}).items()}))
+        return sp.merge(run_frames(sub, Init(x0, P0), cfg, fps, collect, fade,
+                                   None if on is None else on[sp.src],
+                                   {k: v[sp.src] for k, v in (noise_rows or {}).items()}))
     rows, cams, layout = model.rows, model.cams, model.layout
     n, R = layout.n, len(rows)
     w = SigmaWeights(n, cfg.alpha, cfg.beta, cfg.kappa)
@@ -753,39 +753,11 @@ def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
             F, _ = transition(frame_s[rows.row_t[nr]] - frame_s[t], r)
             x_s[r], P_s[r] = rts_step(x_f[r], P_f[r], x_p[nr], P_p[nr], x_s[nr], P_s[nr], F)
     ran = passes > 0
-    info: dict[str, Any] = {
-        "pd_repairs": repaired,
-        "predictions_faded": faded,
-        "object_frames": R if on is None else int(on.sum()),
-        "update_form": "information, iterated and reweighted",
-        "update_passes_mean": float(passes[ran].mean()) if ran.any() else 0.0,
-        **out, **per_row,
-    }
-    return x_s, P_s, info
+    return FilterRun(x_s, P_s, per_row["nis_rows"], per_row["dof_rows"], per_row["loglik_rows"],
+                     out.get("weights"), out.get("score2"), out.get("residual"), pd_repairs=repaired,
+                     predictions_faded=faded, object_frames=R if on is None else int(on.sum()),
+                     update_form="information, iterated and reweighted",
+                     update_passes_mean=float(passes[ran].mean()) if ran.any() else 0.0)
 
 
 BACKENDS = {"objects": run_boxes, "frames": run_frames}
-
-
-def _with_totals(info: dict[str, Any]) -> dict[str, Any]:
-    """``mean_nis_per_dof`` and ``loglik`` of a run from its per-row statistics."""
-    info["mean_nis_per_dof"] = float(info["nis_rows"].sum()) / max(float(info["dof_rows"].sum()), 1.0)
-    info["loglik"] = float(info["loglik_rows"].sum())
-    return info
-
-
-def merge_runs(base: tuple[F64, F64, dict[str, Any]], new: tuple[F64, F64, dict[str, Any]],
-               on: np.ndarray) -> tuple[F64, F64, dict[str, Any]]:
-    """``base`` with the rows ``on (R,)`` taken from ``new`` (a :func:`run_filter` with ``on``):
-    states, covariances and every per-row array of the diagnostics; totals recomputed. The
-    states and covariances of ``base`` are updated in place."""
-    x, P, info = base[0], base[1], dict(base[2])  # in place: the covariances can be gigabytes
-    x[on], P[on] = new[0][on], new[1][on]
-    for k, v in new[2].items():
-        if isinstance(v, np.ndarray) and v.shape[:1] == on.shape:
-            merged = info[k].copy()
-            merged[on] = v[on]
-            info[k] = merged
-    info["pd_repairs"] = base[2]["pd_repairs"] + new[2]["pd_repairs"]
-    info["predictions_faded"] = base[2]["predictions_faded"] + new[2]["predictions_faded"]
-    return x, P, _with_totals(info)

@@ -128,13 +128,13 @@ def test_the_backends_agree_on_a_box_model(box_scene, case: str) -> None:
     cfg, init, kw = _box_run(model, case)
     a = us.BACKENDS["objects"](model, init, cfg, 10.0, **kw)
     b = us.BACKENDS["frames"](model, init, cfg, 10.0, **kw)
-    np.testing.assert_allclose(a[0], b[0], rtol=1e-9, atol=1e-10)
-    np.testing.assert_allclose(a[1], b[1], rtol=1e-8, atol=1e-12)
-    for k in ("loglik_rows", "nis_rows", "dof_rows", "weights", "score2", "residual"):
-        np.testing.assert_allclose(a[2][k], b[2][k], rtol=1e-7, atol=1e-8, err_msg=k)
+    np.testing.assert_allclose(a.x, b.x, rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(a.P, b.P, rtol=1e-8, atol=1e-12)
+    for k in ("loglik_rows", "nis", "dof", "weights", "score2", "residual"):
+        np.testing.assert_allclose(getattr(a, k), getattr(b, k), rtol=1e-7, atol=1e-8, err_msg=k)
     for k in ("predictions_faded", "object_frames", "pd_repairs", "update_passes_mean"):
-        assert a[2][k] == b[2][k], k
-    assert (a[2]["predictions_faded"] > 0) == (case == "fade")
+        assert getattr(a, k) == getattr(b, k), k
+    assert (a.predictions_faded > 0) == (case == "fade")
 
 
 def test_each_backend_tracks_the_truth_and_rejects_outliers(box_scene, backend) -> None:
@@ -151,7 +151,8 @@ def test_each_backend_tracks_the_truth_and_rejects_outliers(box_scene, backend) 
     model = replace(model, z=z)
     cfg = replace(us.UKFSmoother().config, accel_sd=1.0, shape_sd=0.02)
     init = us.initial_states(model, cfg)
-    x, P, info = run(model, init, cfg, 10.0, True, True, None, None)
+    r = run(model, init, cfg, 10.0, True, True, None, None)
+    x, P = r.x, r.P
     rows = model.rows
     truth = {(int(f), int(i)): c for f, i, c in zip(sim.truth_frame, sim.truth_id, sim.center_world,
                                                     strict=True)}
@@ -159,7 +160,7 @@ def test_each_backend_tracks_the_truth_and_rejects_outliers(box_scene, backend) 
     err = np.linalg.norm(x[:, :3] - np.array([truth[k] for k in key]), axis=1)
     assert np.median(err) < 0.03, name
     assert np.percentile(err, 95) < 0.06, name
-    w = info["weights"]
+    w = r.weights
     assert np.all(w[bad[:, 0], bad[:, 1]] < 0.5), name
     assert ((w < 1) & model.mask).sum() <= 2 * len(bad), name
     assert np.all(np.linalg.eigvalsh(P[:, :3, :3]) > 0)
@@ -186,14 +187,13 @@ def test_split_joint_filters_equal_the_whole_state_filter(skeleton_model) -> Non
     assert us.backend_for(model) == "frames"
     for it in (1, 4):
         c = replace(cfg, iterations=it)
-        xa, Pa, ia = us.run_frames(model, init, c, fps, collect=True, split=False)
-        xb, Pb, ib = us.run_frames(model, init, c, fps, collect=True, split=True)
-        sd = np.sqrt(np.einsum("rii->ri", Pa))
-        assert np.max(np.abs(xb - xa) / sd) < (1e-8 if it == 1 else 0.02)
-        np.testing.assert_allclose(Pb, Pa, rtol=1e-3 if it > 1 else 1e-9, atol=1e-9)
-        np.testing.assert_allclose(ib["loglik_rows"], ia["loglik_rows"], rtol=1e-8 if it == 1 else 1e-4,
-                                   atol=1e-8)
-        np.testing.assert_array_equal(ib["weights"], ia["weights"])
+        a = us.run_frames(model, init, c, fps, collect=True, split=False)
+        b = us.run_frames(model, init, c, fps, collect=True, split=True)
+        sd = np.sqrt(np.einsum("rii->ri", a.P))
+        assert np.max(np.abs(b.x - a.x) / sd) < (1e-8 if it == 1 else 0.02)
+        np.testing.assert_allclose(b.P, a.P, rtol=1e-3 if it > 1 else 1e-9, atol=1e-9)
+        np.testing.assert_allclose(b.loglik_rows, a.loglik_rows, rtol=1e-8 if it == 1 else 1e-4, atol=1e-8)
+        np.testing.assert_array_equal(b.weights, a.weights)
 
 
 def test_several_noise_values_in_one_pass_equal_separate_passes(skeleton_model) -> None:
@@ -203,11 +203,11 @@ def test_several_noise_values_in_one_pass_equal_separate_passes(skeleton_model) 
     rows_k, src, copy = replicate_rows(model.rows, sel, len(values))
     run = us.run_filter(model.take(rows_k, src), us.Init(init.x0[src], init.P0[src]),
                         replace(cfg, smooth=False, iterations=1), fps, fade=False,
-                        noise_rows={"joint_accel_sd": np.asarray(values)[copy]})[2]
-    together = np.bincount(copy, weights=run["loglik_rows"])
+                        noise_rows={"joint_accel_sd": np.asarray(values)[copy]})
+    together = np.bincount(copy, weights=run.loglik_rows)
     for k, v in enumerate(values):
         alone = us.run_filter(model, init, replace(cfg, joint_accel_sd=v, smooth=False, iterations=1),
-                              fps, fade=False)[2]["loglik"]
+                              fps, fade=False).loglik
         assert together[k] == pytest.approx(alone, rel=1e-9)
 
 
@@ -220,7 +220,8 @@ def test_linearised_search_pass_is_a_plain_kalman_filter(box_scene) -> None:
     _, model = box_scene
     cfg = replace(us.UKFSmoother().config, accel_sd=0.5, shape_sd=0.01)
     init = us.initial_states(model, cfg)
-    x_s, P_s, _ = us.run_filter(model, init, cfg, 10.0)
+    sm = us.run_filter(model, init, cfg, 10.0)
+    x_s, P_s = sm.x, sm.P
     rng = np.random.default_rng(2)
     w = np.where(rng.uniform(size=model.z.shape) < 0.05, 0.3, 1.0)  # some weights below 1
     lin = LinearisedSearch(model, init, cfg, 10.0, x_s, P_s, w, None)

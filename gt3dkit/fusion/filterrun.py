@@ -1,0 +1,71 @@
+"""What one run of the UKF's filter returns (:func:`gt3dkit.fusion.ukf_smoother.run_filter`):
+a typed result instead of a dictionary of arrays."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+from typing import Any
+
+import numpy as np
+
+from gt3dkit.types import F64
+
+
+@dataclass(frozen=True)
+class FilterRun:
+    """The rows' states ``x (R, n)`` and covariances ``P (R, n, n)`` (smoothed when the run
+    smoothed), per row the final update's normalised innovation square ``nis``, its degrees of
+    freedom ``dof`` and log-likelihood ``loglik_rows`` ``(R,)`` (0 for rows not run), and, when
+    the run collected them, per measurement entry the weights the final update used, each
+    entry's point's squared leave-one-out score and the linearised residual ``(R, m)``.
+
+    pd_repairs : covariances that needed an eigenvalue repair; predictions_faded : predictions
+    the frame's own views contradicted (faded); object_frames : rows run; update_form : how the
+    update ran; update_passes_mean : passes of the iterated update per row run
+    """
+
+    x: F64
+    P: F64
+    nis: F64
+    dof: F64
+    loglik_rows: F64
+    weights: F64 | None
+    score2: F64 | None
+    residual: F64 | None
+    pd_repairs: int
+    predictions_faded: int
+    object_frames: int
+    update_form: str
+    update_passes_mean: float
+
+    @property
+    def mean_nis_per_dof(self) -> float:
+        return float(self.nis.sum()) / max(float(self.dof.sum()), 1.0)
+
+    @property
+    def loglik(self) -> float:
+        return float(self.loglik_rows.sum())
+
+    def summary(self) -> dict[str, Any]:
+        """The run's scalars (for ``meta.json``)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self)
+               if not isinstance(getattr(self, f.name), np.ndarray) and getattr(self, f.name) is not None}
+        return {**out, "mean_nis_per_dof": self.mean_nis_per_dof, "loglik": self.loglik}
+
+    def merged(self, new: FilterRun, on: np.ndarray) -> FilterRun:
+        """This run with the rows ``on (R,)`` taken from ``new`` (a run of those rows' objects):
+        states and covariances updated in place (they can be gigabytes), every per-row array
+        and the counters combined."""
+        self.x[on], self.P[on] = new.x[on], new.P[on]
+
+        def take(a: F64 | None, b: F64 | None) -> F64 | None:
+            if a is None or b is None:
+                return None
+            out = a.copy()
+            out[on] = b[on]
+            return out
+
+        per_row = {k: take(getattr(self, k), getattr(new, k))
+                   for k in ("nis", "dof", "loglik_rows", "weights", "score2", "residual")}
+        return replace(self, **per_row, pd_repairs=self.pd_repairs + new.pd_repairs,
+                       predictions_faded=self.predictions_faded + new.predictions_faded)
