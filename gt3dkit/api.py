@@ -12,16 +12,18 @@ from typing import Any
 
 import numpy as np
 
+from gt3dkit.arrays import lookup_rows
 from gt3dkit.calib.formats.native import rig_of_doc
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.associate import apply_association, associate, associate_detections, read_overrides
 from gt3dkit.fusion.base import ESTIMATORS, Estimator, make_estimator
+from gt3dkit.fusion.identity import Segments, identity_segments
 from gt3dkit.fusion.prepare import prepare
 from gt3dkit.io.datasets import ASSOCIATED, checks, read_scene
 from gt3dkit.io.results import read_result
 from gt3dkit.io.writers import ANOMALY_COLUMNS, read_keypoints_csv, write_outputs
 from gt3dkit.parse import read_csv_rows
-from gt3dkit.qa.anomalies import find_anomalies, identity_jumps
+from gt3dkit.qa.anomalies import find_anomalies
 from gt3dkit.threads import small_matrix_blas
 from gt3dkit.types import Scene, TrackSet
 
@@ -64,37 +66,81 @@ def reconstruct(scene: Scene | str | Path, estimator: str | Estimator = "ukf",
         stage("per-frame fits")
         own = getattr(est, "prepare", None)
         pre = own(sc) if callable(own) else prepare(sc)
-        jumps = identity_jumps(pre, sc.fps)
-        clean = without_identity_jumps(sc, pre, jumps)
+        segs = identity_segments(pre, sc.fps)
         stage(f"{getattr(est, 'name', 'estimator')}")
-        # the preparation is the estimator's own when no annotation was left out
-        tracks = est.estimate(clean, pre) if clean is sc and callable(own) else est.estimate(clean)
+        tracks = estimate_scene(sc, est, pre if callable(own) else None, segs)
         if out is not None:
             stage("annotation QA, writing")
-            qa = find_anomalies(sc, tracks, pre, jumps=jumps)
-            tracks.info["qa"] = {"anomalies": qa.counts(), "file": "anomalies.csv",
-                                 "left_out_object_frames": len(sc.obs) - len(clean.obs)}
+            qa = find_anomalies(sc, tracks, pre, splits=segs.splits)
+            tracks.info["qa"] = {"anomalies": qa.counts(), "file": "anomalies.csv"}
             write_outputs(Path(out), sc, tracks, extra_meta, anomalies=qa)
     return tracks
 
 
-def without_identity_jumps(scene: Scene, pre: Any, jumps: list[Any] | None = None) -> Scene:
-    """``scene`` without the annotations of object-frames whose views agree on a place the
-    object cannot have reached (:func:`gt3dkit.qa.anomalies.identity_jumps`: a swapped or
-    mis-keyed id): they belong to someone else, and would bend the track."""
-    jumps = identity_jumps(pre, scene.fps) if jumps is None else jumps
-    if not jumps:
-        return scene
-    rows = pre.rows
-    bad = {(int(rows.frames[rows.row_t[r]]), int(rows.obj_ids[rows.row_o[r]])) for r, *_ in jumps}
-    keep = np.array([(int(f), int(i)) not in bad for f, i in
-                     zip(scene.obs.frame, scene.obs.track_id, strict=True)])
-    return dataclasses.replace(scene, obs=scene.obs.select(keep))
+def estimate_scene(scene: Scene, est: Estimator, pre: Any | None, segs: Segments) -> TrackSet:
+    """``est``'s tracks of ``scene``, each piece of a split id (:mod:`gt3dkit.fusion.identity`)
+    estimated as an object of its own; the tracks carry the input's ids, ``info["identity"]``
+    the pieces. ``pre``: the estimator's own preparation of ``scene`` (None: it prepares)."""
+    if not segs.splits:
+        tracks = est.estimate(scene, pre) if pre is not None else est.estimate(scene)
+    else:
+        pieces, back = split_ids(scene, pre.rows if pre is not None else prepare(scene).rows, segs)
+        tracks = est.estimate(pieces)
+        tracks = restored_ids(tracks, back)
+    tracks.info["identity"] = {
+        "splits": len(segs.splits), "speed_limit_mps": round(segs.speed_limit_mps, 3),
+        "rule": "an id is split between two consecutive frames its views place farther apart than "
+                "the scene's objects move (2x their 95th-percentile speed, at least 3 m/s, plus 4 sd); "
+                "each piece is estimated on its own (segments.csv, identity_split in anomalies.csv)"}
+    return tracks
+
+
+def split_ids(scene: Scene, rows: Any, segs: Segments) -> tuple[Scene, dict[int, tuple[int, int]]]:
+    """``scene`` with the annotations of every piece after an id's first given an id of its own,
+    and the map back: new id -> (input id, piece)."""
+    frame_of = rows.frames[rows.row_t]
+    id_of = rows.obj_ids[rows.row_o]
+    later = np.flatnonzero(segs.segment > 0)
+    pairs = np.unique(np.c_[id_of[later], segs.segment[later]], axis=0)
+    fresh = int(max(int(scene.obs.track_id.max()), int(rows.obj_ids.max()))) + 1 + np.arange(len(pairs))
+    back = {int(n): (int(i), int(s)) for n, (i, s) in zip(fresh, pairs, strict=True)}
+    new_of_row = np.full(len(rows), -1, np.int64)
+    new_of_row[later] = fresh[lookup_rows(pairs, np.c_[id_of[later], segs.segment[later]])]
+    hit = lookup_rows(np.c_[frame_of, id_of], np.c_[scene.obs.frame, scene.obs.track_id])
+    ids = np.where((hit >= 0) & (new_of_row[np.maximum(hit, 0)] >= 0), new_of_row[np.maximum(hit, 0)],
+                   scene.obs.track_id)
+    obs = dataclasses.replace(scene.obs, track_id=ids.astype(np.int64))
+    return dataclasses.replace(scene, obs=obs), back
+
+
+def restored_ids(tracks: TrackSet, back: dict[int, tuple[int, int]]) -> TrackSet:
+    """``tracks`` of a scene made by :func:`split_ids` with the input's ids again (rows sorted as
+    before: by frame, then id), and the pieces in ``info["identity"]["segments"]``."""
+    orig = np.array([back.get(int(i), (int(i), 0))[0] for i in tracks.track_id], dtype=np.int64)
+    piece = np.array([back.get(int(i), (int(i), 0))[1] for i in tracks.track_id], dtype=np.int64)
+    order = np.lexsort((orig, tracks.frame))
+    d = tracks.downweighted
+    if d is not None:
+        d = dataclasses.replace(d, track_id=np.array([back.get(int(i), (int(i), 0))[0] for i in d.track_id],
+                                                     dtype=np.int64))
+    out = dataclasses.replace(
+        tracks, frame=tracks.frame[order], track_id=orig[order], center_world=tracks.center_world[order],
+        semi_axes=tracks.semi_axes[order], center_sd=tracks.center_sd[order], n_views=tracks.n_views[order],
+        kpt_world=tracks.kpt_world[order], kpt_sd=tracks.kpt_sd[order], downweighted=d)
+    segments = []
+    for i, s in sorted({(int(a), int(b)) for a, b in zip(orig, piece, strict=True)}):
+        f = tracks.frame[(orig == i) & (piece == s)]
+        segments.append({"id": i, "segment": s, "first_frame": int(f.min()), "last_frame": int(f.max()),
+                         "rows": int(len(f))})
+    out.info["segments"] = segments
+    return out
 
 
 def annotation_qa(scene: Scene, tracks: TrackSet) -> Any:
-    """Every input annotation scored against ``tracks``: :class:`gt3dkit.qa.anomalies.Anomalies`."""
-    return find_anomalies(scene, tracks, prepare(scene))
+    """Every input annotation scored against ``tracks``, and every split id
+    (:mod:`gt3dkit.fusion.identity`): :class:`gt3dkit.qa.anomalies.Anomalies`."""
+    pre = prepare(scene)
+    return find_anomalies(scene, tracks, pre, splits=identity_segments(pre, scene.fps).splits)
 
 
 @dataclass

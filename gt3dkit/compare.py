@@ -9,11 +9,12 @@ from typing import Any
 
 import numpy as np
 
-from gt3dkit.api import make_estimator
+from gt3dkit.api import estimate_scene, make_estimator
 from gt3dkit.errors import EstimationError
 from gt3dkit.eval.metrics import box_errors, match_rows, relabel_to_truth
 from gt3dkit.eval.pose import mpjpe_by_id
 from gt3dkit.fusion.base import ESTIMATORS as COMPARE_ESTIMATORS
+from gt3dkit.fusion.identity import identity_segments
 from gt3dkit.fusion.prepare import prepare
 from gt3dkit.fusion.rows import Rows, build_rows
 from gt3dkit.geom.camera import Cams, project_points
@@ -90,12 +91,13 @@ def compare(scene: Scene, out: Path, estimators: tuple[str, ...] = COMPARE_ESTIM
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
     pre = prepare(scene)  # the robust per-frame fits and noise levels, shared
+    segs = identity_segments(pre, scene.fps)  # split ids: the same pieces as gt3d reconstruct's
     t_pre = time.perf_counter() - t0
     failed: dict[str, str] = {}
     for name in tqdm(estimators, desc="estimators", disable=not progress, unit="est"):
         t0 = time.perf_counter()
         try:
-            results[name] = make_estimator(name).estimate(scene, pre)
+            results[name] = estimate_scene(scene, make_estimator(name), pre, segs)
         except EstimationError as e:  # one estimator's failure is a finding, not the end
             failed[name] = e.problem
             continue

@@ -66,7 +66,9 @@ def boxes(seed: int) -> bool:
         qa = annotation_qa(bad, tr)
     name = bad.rig.names[s_view]
     is_shift = [r for r in qa.rows if (r[0], r[1], r[2]) == (s_frame, name, s_id)]
-    is_jump = [r for r in qa.rows if (r[0], r[2]) == (frame2, j_id)]
+    # the moved frame splits the id twice: into it, and back out of it to the person's own track
+    is_jump = [r for r in qa.rows if (r[0], r[2]) == (frame2, j_id) or (
+        r[2] == j_id and r[4] == "identity_split" and f"in frame {frame2} " in r[6])]
     false = [r for r in qa.rows if r not in is_shift and r not in is_jump]
     keep = ~(((tr.frame == s_frame) & (tr.track_id == s_id)) | ((tr.frame == frame2) & (tr.track_id == j_id)))
     sub = dataclasses.replace(tr, **{k: getattr(tr, k)[keep] for k in (

@@ -146,8 +146,8 @@ def write_anomalies_csv(path: Path, anomalies: Any) -> None:
 
 def write_result_files(d: Path, scene: Scene, tracks: TrackSet,
                        extra_meta: dict[str, Any] | None = None, anomalies: Any = None) -> None:
-    """``tracks.csv``, ``keypoints.csv`` (with joints), ``anomalies.csv`` (when QA ran) and
-    ``meta.json`` into folder ``d``."""
+    """``tracks.csv``, ``keypoints.csv`` (with joints), ``anomalies.csv`` (when QA ran),
+    ``segments.csv`` (when an id was split) and ``meta.json`` into folder ``d``."""
     check_tracks(tracks)
     if anomalies is not None:
         write_anomalies_csv(d / "anomalies.csv", anomalies)
@@ -161,8 +161,22 @@ def write_result_files(d: Path, scene: Scene, tracks: TrackSet,
         write_keypoints_csv(d / "keypoints.csv", tracks)
     if tracks.downweighted is not None:
         write_downweighted_csv(d / "downweighted.csv", scene, tracks)
+    if tracks.info.get("segments"):
+        write_segments_csv(d / "segments.csv", tracks.info["segments"])
     (d / "meta.json").write_text(json.dumps(_jsonable(meta), indent=2, allow_nan=False,
                                             default=_jsonable))
+
+
+SEGMENT_COLUMNS = ("id", "segment", "first_frame", "last_frame", "rows")
+
+
+def write_segments_csv(path: Path, segments: list[dict[str, int]]) -> None:
+    """``segments.csv``: the pieces an id was split into (:mod:`gt3dkit.fusion.identity`), each
+    estimated on its own: which frames of the input's id each piece holds."""
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(SEGMENT_COLUMNS)
+        w.writerows([s[k] for k in SEGMENT_COLUMNS] for s in segments)
 
 
 def write_outputs(out: Path, scene: Scene, tracks: TrackSet,

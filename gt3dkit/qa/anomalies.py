@@ -8,8 +8,9 @@ own standard, and every threshold is in :class:`QAConfig`. Kinds (``OUT/anomalie
 ``size_outlier``     a box in the right place but much larger or smaller than the object's own
 ``keypoint_outlier`` a keypoint far from the estimate's projection
 ``swapped_joints``   a left/right pair that fits the estimate exchanged in one view
-``identity_jump``    an object-frame whose views agree on a place the object cannot have reached
-                     (its per-frame fit far from the line between its neighbours' fits)
+``identity_split``   an id whose views place it, from this frame on, where it cannot have got to
+                     since its last multi-view frame: the id is split into pieces, each estimated
+                     on its own (:mod:`gt3dkit.fusion.identity`)
 ``world_frame``      an object standing below the floor or floating above it
 ``missing_view``     an object-frame seen by two or more views whose estimate projects well
                      inside another camera's image, in front of it and not covered by a nearer
@@ -40,8 +41,6 @@ class QAConfig:
     size_ratio: float = 1.6  # area ratio beyond which a well-placed box is a size outlier
     kpt_sigmas: float = 8.0  # a keypoint this many noise levels off is flagged
     swap_gain: float = 0.35  # swapped pair cost below this fraction of the unswapped one
-    jump_m: float = 1.0  # per-frame fit this far off its neighbours' line (and jump_sigmas)
-    jump_sigmas: float = 6.0
     floor_tol_m: float = 0.2  # people stand on the floor when their bottoms' median is within
     below_floor_m: float = 0.3
     floating_m: float = 0.5
@@ -81,9 +80,9 @@ def _iou(a: F64, b: F64) -> F64:
 
 
 def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | None = None,
-                   jumps: list[tuple[int, float, int, int]] | None = None) -> Anomalies:
-    """Every flagged annotation of ``scene`` against ``tracks`` (see the module docstring);
-    ``jumps`` = :func:`identity_jumps` if already found."""
+                   splits: tuple[Any, ...] = ()) -> Anomalies:
+    """Every flagged annotation of ``scene`` against ``tracks`` (see the module docstring), and
+    each place an id was split (``splits``, :func:`gt3dkit.fusion.identity.identity_segments`)."""
     cfg = cfg or QAConfig()
     rows, cams = pre.rows, pre.cams
     names = scene.rig.names
@@ -97,9 +96,13 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | Non
     frame_of = rows.frames[rows.row_t]
     id_of = rows.obj_ids[rows.row_o]
 
-    # identity jumps first: the views of such an object-frame are not flagged one by one
-    jumped = _identity_jumps(pre, cfg, out, frame_of, id_of,
-                             identity_jumps(pre, scene.fps, cfg) if jumps is None else jumps)
+    for s in splits:
+        out.append((s.frame_after, "", s.track_id, "", "identity_split", s.distance_m,
+                    f"its {s.views_after} views place it {s.distance_m:.2f} m from where {s.views_before} "
+                    f"views put it in frame {s.frame_before} ({s.speed_mps:.1f} m/s; allowed "
+                    f"{s.limit_m:.2f} m): piece {s.segment} of this id from here, estimated on its own "
+                    "(another person, or a mis-keyed id)"))
+    jumped = np.zeros(len(rows), bool)  # no object-frame is left out of the estimate
 
     if pre.use_box and have.any():
         z = rows.box_z[idx]
@@ -140,47 +143,6 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | Non
                                         "the offset)" if n else ""),))
     out.sort(key=lambda x: (x[0], str(x[2]), x[1], str(x[3]), x[4]))
     return Anomalies(out)
-
-
-def identity_jumps(pre: Any, fps: float, cfg: QAConfig | None = None) -> list[tuple[int, float, int, int]]:
-    """Object-frames whose per-frame fit (two or more views agreeing) lies far off the line
-    between the fits of the nearest unflagged frames before and after: a swapped or mis-keyed
-    id. Returns (row, metres off, row before, row after), the worst found first, each found
-    with the rows already flagged left out."""
-    cfg = cfg or QAConfig()
-    rows = pre.rows
-    x0, var0, _ = pre.frame_state()
-    c = x0[:, pre.layout.center]
-    sd = np.sqrt(var0[:, pre.layout.center].max(axis=1))  # inf where the frame has no fit
-    ok = np.isfinite(sd) & np.isfinite(c).all(axis=1) & (rows.n_views >= 2)
-    t_all = rows.frames[rows.row_t] / fps
-    found = []
-    for o in np.unique(rows.row_o):
-        r = list(np.flatnonzero((rows.row_o == o) & ok))  # sorted by frame within an object
-        while len(r) >= 3:
-            t = t_all[r]
-            w = (t[1:-1] - t[:-2]) / np.maximum(t[2:] - t[:-2], 1e-12)
-            pred = (1 - w)[:, None] * c[r[:-2]] + w[:, None] * c[r[2:]]
-            d = np.linalg.norm(c[r[1:-1]] - pred, axis=1)
-            s = np.sqrt(sd[r[1:-1]] ** 2 + sd[r[:-2]] ** 2 + sd[r[2:]] ** 2)
-            flag = (d > cfg.jump_m) & (d > cfg.jump_sigmas * s)
-            if not flag.any():
-                break
-            k = int(np.argmax(np.where(flag, d, -1)))
-            found.append((r[k + 1], float(d[k]), r[k], r[k + 2]))
-            del r[k + 1]
-    return found
-
-
-def _identity_jumps(pre: Any, cfg: QAConfig, out: list, frame_of: np.ndarray, id_of: np.ndarray,
-                    jumps: list[tuple[int, float, int, int]]) -> np.ndarray:
-    jumped = np.zeros(len(pre.rows), bool)
-    for r, d, a, b in jumps:
-        jumped[r] = True
-        out.append((int(frame_of[r]), "", int(id_of[r]), "", "identity_jump", round(d, 3),
-                    f"its views agree on a point {d:.2f} m off the line between frames "
-                    f"{int(frame_of[a])} and {int(frame_of[b])}: left out of the estimate"))
-    return jumped
 
 
 def _keypoints(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, r_of: np.ndarray,

@@ -37,9 +37,12 @@ def test_detector_errors_are_flagged(tmp_path) -> None:
     assert sum(meta["estimator"]["qa"]["anomalies"].values()) == len(flags)
 
 
-def test_shifted_box_and_identity_jump(tmp_path) -> None:
-    sim = simulate("wildtrack", seed=2, frames=16, people=5, noise_px=1.0, errors=Errors(dropped=0.0,
-                                                                                         hide_covered=0.5))
+def test_shifted_box_and_a_mis_keyed_frame(tmp_path) -> None:
+    """A shifted box is flagged; one frame whose views all describe someone 4 m away (a mis-keyed
+    id) splits the id: that frame is reconstructed where its views agree, the frames around it
+    are not bent towards it, and anomalies.csv says where and why."""
+    sim = simulate("wildtrack", seed=2, frames=16, people=5, noise_px=1.0,
+                   errors=Errors(dropped=0.0, hide_covered=0.5))
     root = tmp_path / "w"
     write_scene(sim, root, "wildtrack")
     clean = load_scene(root)
@@ -48,16 +51,24 @@ def test_shifted_box_and_identity_jump(tmp_path) -> None:
     people = json.loads(files[10].read_text())
     jf, jid = int(files[10].stem), people[1]["personID"]
     i = int(np.flatnonzero((sim.truth_frame == jf) & (sim.truth_id == jid))[0])
-    move_person(root, clean.rig, 10, 1, sim.center_world[i] + np.array([4.0, 0, 0]), sim.semi_axes[i])
+    elsewhere = sim.center_world[i] + np.array([4.0, 0, 0])
+    move_person(root, clean.rig, 10, 1, elsewhere, sim.semi_axes[i])
     tracks = reconstruct(load_scene(root), "ukf", out=tmp_path / "out")
     flags = _rows(tmp_path / "out" / "anomalies.csv")
-    kinds = {(int(r["frame"]), r["camera"], int(r["id"])): r["kind"] for r in flags}
-    assert kinds.get((frame, clean.rig.names[view], pid)) == "shifted_box"
-    assert kinds.get((jf, "", jid)) == "identity_jump"
-    assert len(flags) <= 4
-    # the moved frame was left out: the track passes where the person really was
-    r = np.flatnonzero((tracks.frame == jf) & (tracks.track_id == jid))[0]
-    assert np.linalg.norm(tracks.center_world[r, :2] - sim.center_world[i, :2]) < 0.1
+    kinds = {(int(r["frame"]), r["camera"], int(r["id"]), r["kind"]) for r in flags}
+    assert (frame, clean.rig.names[view], pid, "shifted_box") in kinds
+    assert (jf, "", jid, "identity_split") in kinds  # into the moved frame ...
+    after = [int(r["frame"]) for r in flags if r["kind"] == "identity_split" and int(r["id"]) == jid]
+    assert len(after) == 2 and min(after) == jf  # ... and out of it
+    assert len(flags) <= 5
+    assert tracks.info["identity"]["splits"] == 2
+    mine = tracks.track_id == jid
+    r = np.flatnonzero(mine & (tracks.frame == jf))[0]
+    assert np.linalg.norm(tracks.center_world[r, :2] - elsewhere[:2]) < 0.1  # where its views are
+    for k in np.flatnonzero(mine & (tracks.frame != jf)):  # the rest where the person really was
+        t = np.flatnonzero((sim.truth_frame == tracks.frame[k]) & (sim.truth_id == jid))[0]
+        assert np.linalg.norm(tracks.center_world[k, :2] - sim.center_world[t, :2]) < 0.1
+    assert len(tracks) == len(np.unique(np.c_[tracks.frame, tracks.track_id], axis=0))  # one row each
 
 
 def test_missing_views_and_an_unsynchronised_camera(tmp_path) -> None:

@@ -1,0 +1,83 @@
+"""Identity integrity (gt3dkit.fusion.identity): an id reused for another person is split into
+pieces, each estimated on its own; no object-frame is left out; every command runs the same
+pieces."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gt3dkit.api import estimate_scene, reconstruct
+from gt3dkit.compare import compare
+from gt3dkit.eval.metrics import match_rows
+from gt3dkit.fusion.base import make_estimator
+from gt3dkit.fusion.identity import identity_segments
+from gt3dkit.fusion.prepare import prepare
+from gt3dkit.sim import Errors
+from gt3dkit.types import GroundTruth, Scene
+from tests.scenes import written_scene
+
+
+def reused(scene: Scene, a: int, b: int, frame: int) -> Scene:
+    """``scene`` where person ``a`` is annotated until ``frame`` and person ``b`` from ``frame`` on,
+    both under id ``a`` (an id handed to the next person), the truth carrying the same ids."""
+    o, t = scene.obs, scene.truth
+    keep = ((o.track_id == a) & (o.frame < frame)) | ((o.track_id == b) & (o.frame >= frame)) | \
+        ((o.track_id != a) & (o.track_id != b))
+    obs = o.select(keep)
+    obs = dataclasses.replace(obs, track_id=np.where(obs.track_id == b, a, obs.track_id))
+    tk = ((t.track_id == a) & (t.frame < frame)) | ((t.track_id == b) & (t.frame >= frame)) | \
+        ((t.track_id != a) & (t.track_id != b))
+    truth = GroundTruth(t.frame[tk], np.where(t.track_id[tk] == b, a, t.track_id[tk]), t.center_world[tk],
+                        t.semi_axes[tk], t.kpt_world[tk], t.source)
+    return dataclasses.replace(scene, obs=obs, truth=truth)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> Scene:
+    sc, _ = written_scene(tmp_path_factory.mktemp("ident"), "native", seed=4, frames=24, people=4,
+                          noise_px=1.0,
+                          motion="walk", errors=Errors(dropped=0.0))
+    ids = np.unique(sc.obs.track_id)
+    return reused(sc, int(ids[0]), int(ids[1]), int(np.unique(sc.obs.frame)[12]))
+
+
+@pytest.mark.parametrize("estimator", ["ukf", "gtsam"])
+def test_a_reused_id_is_split_and_every_row_follows_its_views(scene: Scene, estimator: str) -> None:
+    a = int(np.unique(scene.obs.track_id)[0])
+    at = int(np.unique(scene.obs.frame)[12])
+    segs = identity_segments(prepare(scene), scene.fps)
+    assert [(s.track_id, s.frame_after) for s in segs.splits] == [(a, at)]
+    tracks = reconstruct(scene, estimator)
+    it, ig = match_rows(tracks, scene.truth)
+    assert len(ig) == len(scene.truth.frame)  # no object-frame left out
+    err = np.linalg.norm(tracks.center_world[it, :2] - scene.truth.center_world[ig, :2], axis=1)
+    assert err.max() < 0.1, err.max()
+    assert tracks.info["identity"]["splits"] == 1
+    assert [(s["id"], s["segment"],
+             s["first_frame"]) for s in tracks.info["segments"] if s["id"] == a][1] == \
+        (a, 1, at)
+
+
+def test_an_unsplit_scene_is_estimated_as_it_was(tmp_path: Path) -> None:
+    """No split: the tracks are the estimator's own, with the same rows."""
+    sc, _ = written_scene(tmp_path, "native", seed=5, frames=12, people=3, noise_px=1.0, motion="walk")
+    pre = prepare(sc)
+    segs = identity_segments(pre, sc.fps)
+    assert segs.splits == () and not segs.segment.any()
+    est = make_estimator("ukf")
+    a = estimate_scene(sc, est, None, segs)
+    b = make_estimator("ukf").estimate(sc)
+    np.testing.assert_array_equal(a.center_world, b.center_world)
+
+
+def test_compare_runs_the_pieces_reconstruct_runs(scene: Scene, tmp_path: Path) -> None:
+    """One estimation path: compare's UKF tracks are reconstruct's."""
+    compare(scene, tmp_path / "cmp", ("ukf", "triangulation"), progress=False)
+    alone = reconstruct(scene, "ukf", out=tmp_path / "rec")
+    mine = (tmp_path / "rec" / "tracks.csv").read_text()
+    assert (tmp_path / "cmp" / "ukf" / "tracks.csv").read_text() == mine
+    assert alone.info["identity"]["splits"] == 1
