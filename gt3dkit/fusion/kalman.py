@@ -19,6 +19,7 @@ import numba
 import numpy as np
 
 from gt3dkit.fusion.motion import SPACE, StateIndex
+from gt3dkit.geom.boxkernel import contiguous
 from gt3dkit.geom.kernel_cache import drop_stale
 from gt3dkit.geom.smallmat import matmul, solve_sym
 from gt3dkit.types import F64, I64
@@ -53,7 +54,7 @@ def predict_rows(x: F64, P: F64, F: F64, Q: F64, x_out: F64, P_out: F64) -> None
 
 def predict_linear(x: F64, P: F64, F: F64, Q: F64) -> tuple[F64, F64]:
     """Linear prediction of ``(B, n)``, ``(B, n, n)`` with ``F, Q (B, n, n)`` or ``(n, n)``."""
-    c = np.ascontiguousarray
+    c = contiguous
     B, n = x.shape
     x_out, P_out = np.empty((B, n)), np.empty((B, n, n))
     predict_rows(c(x), c(P), c(np.broadcast_to(F, P.shape)), c(np.broadcast_to(Q, P.shape)), x_out, P_out)
@@ -106,7 +107,7 @@ def rts_step(x_f: F64, P_f: F64, x_p_next: F64, P_p_next: F64, x_s_next: F64, P_
              ) -> tuple[F64, F64]:
     """:func:`rts_row` of a batch: means ``(B, n)``, covariances ``(B, n, n)``, ``F (B, n, n)`` or
     ``(n, n)``; returns the smoothed ``(B, n)``, ``(B, n, n)``."""
-    c = np.ascontiguousarray
+    c = contiguous
     B, n = x_f.shape
     x_out, P_out = np.empty((B, n)), np.empty((B, n, n))
     rts_rows(c(x_f), c(P_f), c(x_p_next), c(P_p_next), c(x_s_next), c(P_s_next),
@@ -141,8 +142,7 @@ def fade_factors_of(e: F64, S: F64, limit: float) -> F64:
     """:func:`fade_factor` of points ``e (..., 3)`` with ``S (..., 3, 3)``: ``(...)``."""
     shape = e.shape[:-1]
     out = np.empty(int(np.prod(shape)))
-    fade_factors(np.ascontiguousarray(e.reshape(-1, SPACE), dtype=np.float64),
-                 np.ascontiguousarray(S.reshape(-1, SPACE, SPACE), dtype=np.float64), float(limit), out)
+    fade_factors(contiguous(e.reshape(-1, SPACE)), contiguous(S.reshape(-1, SPACE, SPACE)), float(limit), out)
     return out.reshape(shape)
 
 

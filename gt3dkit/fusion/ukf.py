@@ -26,6 +26,7 @@ import numpy as np
 
 from gt3dkit.fusion.robust import RobustConfig
 from gt3dkit.fusion.update import Columns, Measured, Regression, pass_rows, row_state, statistics_rows
+from gt3dkit.geom.boxkernel import contiguous
 from gt3dkit.types import F64
 
 MeasureFn = Callable[[F64], F64]
@@ -220,13 +221,13 @@ def ukf_update_information(
     ``score2 (B, m)`` (each entry's point's squared leave-one-out score at the final posterior)
     and ``residual (B, m)`` (``z - h(x_post)``, linearised).
     """
-    z = np.ascontiguousarray(meas.z, dtype=np.float64)
+    z = contiguous(meas.z)
     B, m = z.shape
     n = x.shape[1]
     blocks = [whole_state_block(n, m, h)] if callable(h) else list(h)
     cols = columns if columns is not None else block_columns(blocks, m, robust)
-    mask = np.ascontiguousarray(meas.mask, dtype=np.bool_)
-    meas = Measured(z, mask, np.ascontiguousarray(np.broadcast_to(np.asarray(meas.var, dtype=np.float64),
+    mask = contiguous(meas.mask, np.bool_)
+    meas = Measured(z, mask, contiguous(np.broadcast_to(np.asarray(meas.var, dtype=np.float64),
                                                                   (B, m))))
     xj, Pj = (x, P) if lin_point is None else lin_point
     wt = np.ones((B, m)) if weight0 is None else weight0

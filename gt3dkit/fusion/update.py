@@ -31,6 +31,7 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
+from gt3dkit.geom.boxkernel import contiguous
 from gt3dkit.geom.kernel_cache import drop_stale
 from gt3dkit.geom.smallmat import chol, chol_solve, lower_inverse, safe_chol, solve_sym, symmetrised
 from gt3dkit.types import F64, I64
@@ -171,12 +172,13 @@ def information_pass(prior: Prior, lin: Regression, cols: Columns, wt: F64, post
     repaired = safe_chol(J, post.L)
     Li = np.empty((n, n))
     lower_inverse(post.L, Li)
-    for i in range(n):
-        for j in range(n):
-            s = 0.0
-            for k in range(max(i, j), n):
-                s += Li[k, i] * Li[k, j]
-            post.P[i, j] = s
+    P = post.P  # P = Li^T Li, rows of Li at a time (each entry's sum over k in order)
+    P[:, :] = 0.0
+    for k in range(n):
+        for i in range(k + 1):
+            lki = Li[k, i]
+            for j in range(k + 1):
+                P[i, j] += lki * Li[k, j]
     for i in range(n):
         s = 0.0
         for j in range(n):
@@ -326,12 +328,11 @@ def row_state(x: F64, P: F64, xj: F64, Pj: F64, wt: F64) -> RowState:
     """The work arrays of a batch's update, its priors factored (:func:`prior_factor`)."""
     B, n = x.shape
     m = wt.shape[1]
-    c = np.ascontiguousarray
     Pinv, LP = np.empty((B, n, n)), np.empty((B, n, n))
-    prior_factors(c(P, dtype=np.float64), LP, Pinv)
+    prior_factors(contiguous(P), LP, Pinv)
     post = Posterior(np.empty((B, n)), np.empty((B, n, n)), np.empty((B, n, n)), np.empty((B, n, n)),
                      np.empty((B, n)), np.zeros((B, m)), np.zeros((B, m)))
-    return RowState(c(x, dtype=np.float64), Pinv, LP, np.array(xj, dtype=np.float64),
+    return RowState(contiguous(x), Pinv, LP, np.array(xj, dtype=np.float64),
                     np.array(Pj, dtype=np.float64), np.array(wt, dtype=np.float64), np.empty((B, m)), post,
                     Scores(np.zeros((B, m)), np.zeros((B, m))))
 

@@ -81,17 +81,27 @@ def eigh_jacobi(S: F64) -> tuple[F64, F64]:
 def chol_solve(L: F64, B: F64, X: F64) -> None:
     """``X = (L L^T)^-1 B`` for a lower Cholesky factor ``L (n, n)`` and ``B (n, k)``."""
     n, k = B.shape
-    for c in range(k):
-        for i in range(n):
-            s = B[i, c]
-            for j in range(i):
-                s -= L[i, j] * X[j, c]
-            X[i, c] = s / L[i, i]
-        for i in range(n - 1, -1, -1):
-            s = X[i, c]
-            for j in range(i + 1, n):
-                s -= L[j, i] * X[j, c]
-            X[i, c] = s / L[i, i]
+    # rows of X at a time (memory order); each entry's sum runs in the same order as one
+    # column at a time would
+    s = np.empty(k)
+    for i in range(n):
+        s[:] = B[i]
+        for j in range(i):
+            lij = L[i, j]
+            for c in range(k):
+                s[c] -= lij * X[j, c]
+        d = L[i, i]
+        for c in range(k):
+            X[i, c] = s[c] / d
+    for i in range(n - 1, -1, -1):
+        s[:] = X[i]
+        for j in range(i + 1, n):
+            lji = L[j, i]
+            for c in range(k):
+                s[c] -= lji * X[j, c]
+        d = L[i, i]
+        for c in range(k):
+            X[i, c] = s[c] / d
 
 
 @numba.njit(cache=True, nogil=True)
@@ -125,13 +135,16 @@ def solve_sym(S: F64, B: F64, X: F64) -> None:
 
 @numba.njit(cache=True, nogil=True)
 def matmul(A: F64, B: F64, out: F64) -> None:
-    """``out = A B`` (small matrices; numba's ``@`` adds seconds of compilation)."""
+    """``out = A B`` (small matrices; numba's ``@`` adds seconds of compilation). Rows of ``B``
+    at a time (memory order); each entry's sum runs over ``k`` in order, as ``A[i] . B[:, j]``."""
+    m = B.shape[1]
     for i in range(A.shape[0]):
-        for j in range(B.shape[1]):
-            s = 0.0
-            for k in range(A.shape[1]):
-                s += A[i, k] * B[k, j]
-            out[i, j] = s
+        for j in range(m):
+            out[i, j] = 0.0
+        for k in range(A.shape[1]):
+            a = A[i, k]
+            for j in range(m):
+                out[i, j] += a * B[k, j]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -180,12 +193,14 @@ def safe_chol(A: F64, L: F64) -> int:
 def lower_inverse(L: F64, Li: F64) -> None:
     """``Li = L^-1`` of a lower triangular ``L`` (forward substitution)."""
     n = L.shape[0]
-    for j in range(n):
-        for i in range(n):
-            if i < j:
-                Li[i, j] = 0.0
-                continue
-            s = 1.0 if i == j else 0.0
-            for k in range(j, i):
-                s -= L[i, k] * Li[k, j]
-            Li[i, j] = s / L[i, i]
+    s = np.empty(n)
+    for i in range(n):  # row i from the rows above it (memory order; each entry's sum in order)
+        for j in range(n):
+            s[j] = 1.0 if i == j else 0.0
+        for k in range(i):
+            lik = L[i, k]
+            for j in range(k + 1):
+                s[j] -= lik * Li[k, j]
+        d = L[i, i]
+        for j in range(n):
+            Li[i, j] = s[j] / d if j <= i else 0.0
