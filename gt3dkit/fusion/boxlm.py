@@ -75,7 +75,7 @@ def _residuals(q: F64, frame: FrameBoxes, noise: FitNoise, rig: BoxRig, scratch:
     behind the camera). ``with_jac``: also their Jacobian ``J (4 C + 3, 6)`` (the tangent box's
     analytic derivatives, :func:`gt3dkit.geom.boxkernel.pair_box_grad`, ~3x the cost; NaN -> 0
     as the numpy path); without, the values alone (a trial step)."""
-    C = rig.K.shape[0]
+    C = rig.cam.shape[0]
     zn, mn, use = frame
     sig, prior, prior_sd = noise
     box, grad = scratch

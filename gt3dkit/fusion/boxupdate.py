@@ -101,7 +101,7 @@ def box_regression(xj: F64, Pj: F64, meas: Measured, sig: BoxSigma, rig: BoxRig,
     where annotated and every sigma point's box is finite. Returns 1 if the marginal's factor
     needed a repair."""
     dims = sig.dims
-    C = rig.K.shape[0]
+    C = rig.cam.shape[0]
     m = EDGES * C
     d = dims.shape[0]
     S = sig.Wm.shape[0]

@@ -267,6 +267,10 @@ def block_columns(blocks: Sequence[Block], m: int, robust: Robust | None) -> Col
     for b in blocks:
         k = b.cols.shape[1]
         dims[b.cols.reshape(-1), :b.dims.shape[1]] = np.repeat(b.dims, k, axis=0)
+    order = np.concatenate([b.cols.reshape(-1) for b in blocks]).astype(np.int64)
+    sizes = np.concatenate([np.full(b.cols.shape[0], b.cols.shape[1]) for b in blocks])
+    start = np.r_[0, np.cumsum(sizes)].astype(np.int64)
+    width = np.concatenate([np.full(b.cols.shape[0], b.dims.shape[1]) for b in blocks]).astype(np.int64)
     first = np.arange(m, dtype=np.int64)
     size = np.zeros(m, np.int64)
     c_thr, g_thr = np.full(m, np.inf), np.full(m, np.inf)
@@ -276,4 +280,4 @@ def block_columns(blocks: Sequence[Block], m: int, robust: Robust | None) -> Col
         size[k] = e
         if robust.config.enabled:
             c_thr[k], g_thr[k] = robust.config.thresholds(e)
-    return Columns(dims, first, size, c_thr, g_thr)
+    return Columns(dims, first, size, c_thr, g_thr, order, start, width)

@@ -52,6 +52,9 @@ class Columns(NamedTuple):
     first : (m,) the first column of the column's point (robust reweighting)
     size : (m,) the entries of the column's point; 0: never reweighted
     c_thr, g_thr : (m,) the point's down-weighting and rejection thresholds on its score
+    order, start, width : the columns by group: group ``g`` is the columns
+        ``order[start[g]:start[g + 1]]``, which all depend on the same ``width[g]`` entries (a
+        box on the ellipsoid, a joint's projections on the joint, a bone on its two joints)
     """
 
     dims: I64
@@ -59,6 +62,9 @@ class Columns(NamedTuple):
     size: I64
     c_thr: F64
     g_thr: F64
+    order: I64
+    start: I64
+    width: I64
 
 
 class Measured(NamedTuple):
@@ -140,35 +146,39 @@ def information_pass(prior: Prior, lin: Regression, cols: Columns, wt: F64, post
     """The information update of ``prior`` by the linearised columns with weights ``wt`` into
     ``post``. Returns 1 if the information's factor needed a repair."""
     n = prior.x.shape[0]
-    m = lin.c.shape[0]
     d = cols.dims.shape[1]
     J, g = post.J, post.g
     for i in range(n):
         g[i] = 0.0
         for j in range(n):
             J[i, j] = prior.Pinv[i, j]
-    for k in range(m):
-        if not lin.used[k]:
-            post.Dinv[k] = 0.0
-            post.nu[k] = 0.0
-            continue
-        dk = wt[k] / lin.D[k]
-        v = lin.c[k]
-        for a in range(d):
-            if cols.dims[k, a] >= 0:
-                v -= lin.At[k, a] * prior.x[cols.dims[k, a]]
-        post.Dinv[k] = dk
-        post.nu[k] = v
-        for a in range(d):
-            ia = cols.dims[k, a]
-            if ia < 0:
+    H = np.empty((d, d))
+    gv = np.empty(d)
+    for q in range(cols.start.shape[0] - 1):  # a group's columns share their state entries
+        w = cols.width[q]
+        dq = cols.dims[cols.order[cols.start[q]]]
+        H[:w, :w] = 0.0
+        gv[:w] = 0.0
+        for k in cols.order[cols.start[q]:cols.start[q + 1]]:
+            if not lin.used[k]:
+                post.Dinv[k] = 0.0
+                post.nu[k] = 0.0
                 continue
-            h = lin.At[k, a] * dk
-            g[ia] += h * v
-            for b in range(d):
-                ib = cols.dims[k, b]
-                if ib >= 0:
-                    J[ia, ib] += h * lin.At[k, b]
+            dk = wt[k] / lin.D[k]
+            v = lin.c[k]
+            for a in range(w):
+                v -= lin.At[k, a] * prior.x[dq[a]]
+            post.Dinv[k] = dk
+            post.nu[k] = v
+            for a in range(w):
+                h = lin.At[k, a] * dk
+                gv[a] += h * v
+                for b in range(w):
+                    H[a, b] += h * lin.At[k, b]
+        for a in range(w):
+            g[dq[a]] += gv[a]
+            for b in range(w):
+                J[dq[a], dq[b]] += H[a, b]
     repaired = safe_chol(J, post.L)
     Li = np.empty((n, n))
     lower_inverse(post.L, Li)
@@ -225,28 +235,30 @@ def rescore(post: Posterior, lin: Regression, cols: Columns, cur: Current, score
     m = lin.c.shape[0]
     d = cols.dims.shape[1]
     e2 = np.zeros(m)
-    for k in range(m):
-        scores.resid[k] = 0.0
-        scores.score2[k] = 0.0
-        if not lin.used[k]:
-            continue
-        r = lin.c[k]
-        pk = 0.0
-        for a in range(d):
-            ia = cols.dims[k, a]
-            if ia < 0:
+    Pq = np.empty((d, d))
+    for q in range(cols.start.shape[0] - 1):
+        w = cols.width[q]
+        dq = cols.dims[cols.order[cols.start[q]]]
+        for a in range(w):
+            for b in range(w):
+                Pq[a, b] = post.P[dq[a], dq[b]]
+        for k in cols.order[cols.start[q]:cols.start[q + 1]]:
+            scores.resid[k] = 0.0
+            scores.score2[k] = 0.0
+            if not lin.used[k]:
                 continue
-            r -= lin.At[k, a] * post.x[ia]
-            s = 0.0
-            for b in range(d):
-                ib = cols.dims[k, b]
-                if ib >= 0:
-                    s += post.P[ia, ib] * lin.At[k, b]
-            pk += lin.At[k, a] * s
-        scores.resid[k] = r
-        h = min(max(cur.wt[k] * pk / max(lin.D[k], 1e-300), 0.0), 1.0 - 1e-9)
-        rl = r / (1.0 - h)
-        e2[k] = rl * rl / (lin.D[k] + pk / (1.0 - h))
+            r = lin.c[k]
+            pk = 0.0
+            for a in range(w):
+                r -= lin.At[k, a] * post.x[dq[a]]
+                s = 0.0
+                for b in range(w):
+                    s += Pq[a, b] * lin.At[k, b]
+                pk += lin.At[k, a] * s
+            scores.resid[k] = r
+            h = min(max(cur.wt[k] * pk / max(lin.D[k], 1e-300), 0.0), 1.0 - 1e-9)
+            rl = r / (1.0 - h)
+            e2[k] = rl * rl / (lin.D[k] + pk / (1.0 - h))
     changed = False
     for k in range(m):
         cur.new_w[k] = cur.wt[k]

@@ -34,24 +34,26 @@ EDGES = 4
 
 @numba.njit(cache=True, nogil=True)
 def edge_value(e: int, ct: float, st: float, m0: float, m1: float, l00: float, l10: float,
-               l11: float, k: F64, K: F64) -> float:
+               l11: float, q: F64) -> float:
+    """Edge ``e``'s pixel coordinate (signed: maximised) at outline angle ``(ct, st)`` in the camera
+    of row ``q`` (:class:`BoxRig`)."""
     x = m0 + l00 * ct
     y = m1 + l10 * ct + l11 * st
     r2 = x * x + y * y
-    radial = 1.0 + r2 * (k[0] + r2 * (k[1] + r2 * k[4]))
-    xd = x * radial + 2.0 * k[2] * x * y + k[3] * (r2 + 2.0 * x * x)
-    yd = y * radial + k[2] * (r2 + 2.0 * y * y) + 2.0 * k[3] * x * y
+    radial = 1.0 + r2 * (q[_DIST] + r2 * (q[_DIST + 1] + r2 * q[_DIST + 4]))
+    xd = x * radial + 2.0 * q[_DIST + 2] * x * y + q[_DIST + 3] * (r2 + 2.0 * x * x)
+    yd = y * radial + q[_DIST + 2] * (r2 + 2.0 * y * y) + 2.0 * q[_DIST + 3] * x * y
     if e == 0:
-        return -(K[0, 0] * xd + K[0, 1] * yd + K[0, 2])
+        return -(q[_K] * xd + q[_K + 1] * yd + q[_K + 2])
     if e == 1:
-        return -(K[1, 1] * yd + K[1, 2])
+        return -(q[_K + 4] * yd + q[_K + 5])
     if e == 2:
-        return K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
-    return K[1, 1] * yd + K[1, 2]
+        return q[_K] * xd + q[_K + 1] * yd + q[_K + 2]
+    return q[_K + 4] * yd + q[_K + 5]
 
 @numba.njit(cache=True, nogil=True)
 def edge_slope(e: int, ct: float, st: float, m0: float, m1: float, l00: float, l10: float,
-               l11: float, k: F64, K: F64) -> tuple[float, float]:
+               l11: float, q: F64) -> tuple[float, float]:
     """First and second derivative of :func:`edge_value` along the outline angle (exact)."""
     x = m0 + l00 * ct
     y = m1 + l10 * ct + l11 * st
@@ -62,25 +64,25 @@ def edge_slope(e: int, ct: float, st: float, m0: float, m1: float, l00: float, l
     r2 = x * x + y * y
     r2d = 2.0 * (x * x1 + y * y1)
     r2dd = 2.0 * (x1 * x1 + x * x2 + y1 * y1 + y * y2)
-    radial = 1.0 + r2 * (k[0] + r2 * (k[1] + r2 * k[4]))
-    g = k[0] + r2 * (2.0 * k[1] + 3.0 * r2 * k[4])  # d radial / d r2
+    radial = 1.0 + r2 * (q[_DIST] + r2 * (q[_DIST + 1] + r2 * q[_DIST + 4]))
+    g = q[_DIST] + r2 * (2.0 * q[_DIST + 1] + 3.0 * r2 * q[_DIST + 4])  # d radial / d r2
     rd = r2d * g
-    rdd = r2dd * g + r2d * r2d * (2.0 * k[1] + 6.0 * r2 * k[4])
+    rdd = r2dd * g + r2d * r2d * (2.0 * q[_DIST + 1] + 6.0 * r2 * q[_DIST + 4])
     xyd = x1 * y + x * y1
     xydd = x2 * y + 2.0 * x1 * y1 + x * y2
-    xd1 = x1 * radial + x * rd + 2.0 * k[2] * xyd + k[3] * (r2d + 4.0 * x * x1)
-    yd1 = y1 * radial + y * rd + k[2] * (r2d + 4.0 * y * y1) + 2.0 * k[3] * xyd
-    xd2 = (x2 * radial + 2.0 * x1 * rd + x * rdd + 2.0 * k[2] * xydd
-           + k[3] * (r2dd + 4.0 * (x1 * x1 + x * x2)))
-    yd2 = (y2 * radial + 2.0 * y1 * rd + y * rdd + k[2] * (r2dd + 4.0 * (y1 * y1 + y * y2))
-           + 2.0 * k[3] * xydd)
+    xd1 = x1 * radial + x * rd + 2.0 * q[_DIST + 2] * xyd + q[_DIST + 3] * (r2d + 4.0 * x * x1)
+    yd1 = y1 * radial + y * rd + q[_DIST + 2] * (r2d + 4.0 * y * y1) + 2.0 * q[_DIST + 3] * xyd
+    xd2 = (x2 * radial + 2.0 * x1 * rd + x * rdd + 2.0 * q[_DIST + 2] * xydd
+           + q[_DIST + 3] * (r2dd + 4.0 * (x1 * x1 + x * x2)))
+    yd2 = (y2 * radial + 2.0 * y1 * rd + y * rdd + q[_DIST + 2] * (r2dd + 4.0 * (y1 * y1 + y * y2))
+           + 2.0 * q[_DIST + 3] * xydd)
     if e == 0:
-        return -(K[0, 0] * xd1 + K[0, 1] * yd1), -(K[0, 0] * xd2 + K[0, 1] * yd2)
+        return -(q[_K] * xd1 + q[_K + 1] * yd1), -(q[_K] * xd2 + q[_K + 1] * yd2)
     if e == 1:
-        return -K[1, 1] * yd1, -K[1, 1] * yd2
+        return -q[_K + 4] * yd1, -q[_K + 4] * yd2
     if e == 2:
-        return K[0, 0] * xd1 + K[0, 1] * yd1, K[0, 0] * xd2 + K[0, 1] * yd2
-    return K[1, 1] * yd1, K[1, 1] * yd2
+        return q[_K] * xd1 + q[_K + 1] * yd1, q[_K] * xd2 + q[_K + 1] * yd2
+    return q[_K + 4] * yd1, q[_K + 4] * yd2
 
 
 class BoxCameras(NamedTuple):
@@ -102,81 +104,89 @@ class BoxCameras(NamedTuple):
                    contiguous(np.broadcast_to(np.asarray(cams.depth_sign, dtype=np.float64), (C,))))
 
 
-class BoxRig(NamedTuple):
-    """:class:`BoxCameras` prepared for :func:`pair_box` (:func:`box_rig`): per camera ``Rc = R
-    Rb (C, 3, 3)`` and the four edge directions ``A^T dir`` as ``gx, gy (C, 4)`` (``A = K[:2,
-    :2]``), the cameras' ``K, dist, R, t, ds`` (depth sign) and the Newton ``steps`` along the
-    outline with distortion."""
+#: Offsets in a row of :attr:`BoxRig.cam` (one camera): ``R`` (9, row-major), ``t`` (3), ``Rc = R Rb``
+#: (9), ``K``'s ``K00, K01, K02, K10, K11, K12``, the distortion ``k1, k2, p1, p2, k3``, the four edge
+#: directions ``A^T dir`` as ``gx`` (4) and ``gy`` (4) (``A = K[:2, :2]``), the depth sign, whether
+#: the lens distorts (1.0 / 0.0).
+_R, _T, _RC, _K, _DIST, _GX, _GY, _DS, _HASD = 0, 9, 12, 21, 27, 32, 36, 40, 41
+CAM_WIDTH = 42
 
-    Rc: F64
-    gx: F64
-    gy: F64
-    K: F64
-    dist: F64
-    R: F64
-    t: F64
-    ds: F64
+
+class BoxRig(NamedTuple):
+    """:class:`BoxCameras` prepared for :func:`pair_box` (:func:`box_rig`): one row per camera
+    ``cam (C, CAM_WIDTH)`` (the offsets above: a pair reads its camera from one row), and the
+    Newton ``steps`` along the outline with distortion."""
+
+    cam: F64
     steps: int
 
 
 @numba.njit(cache=True, nogil=True)
 def box_rig(cams: BoxCameras, steps: int) -> BoxRig:
     """The :class:`BoxRig` of ``cams``, shared by every pair of :func:`pair_box`."""
-    K, R, Rb = cams.K, cams.R, cams.world_from_body
+    K, R, Rb, dist = cams.K, cams.R, cams.world_from_body, cams.dist
     C = K.shape[0]
-    Rc = np.empty((C, 3, 3))
+    out = np.zeros((C, CAM_WIDTH))
     for c in range(C):
+        q = out[c]
         for i in range(3):
+            q[_T + i] = cams.t[c, i]
             for j in range(3):
-                Rc[c, i, j] = R[c, i, 0] * Rb[0, j] + R[c, i, 1] * Rb[1, j] + R[c, i, 2] * Rb[2, j]
-    gx = np.empty((C, 4))
-    gy = np.empty((C, 4))
-    for c in range(C):
-        gx[c, 0], gy[c, 0] = -K[c, 0, 0], -K[c, 0, 1]
-        gx[c, 1], gy[c, 1] = -K[c, 1, 0], -K[c, 1, 1]
-        gx[c, 2], gy[c, 2] = K[c, 0, 0], K[c, 0, 1]
-        gx[c, 3], gy[c, 3] = K[c, 1, 0], K[c, 1, 1]
-    return BoxRig(Rc, gx, gy, K, cams.dist, R, cams.t, cams.depth_sign, steps)
+                q[_R + 3 * i + j] = R[c, i, j]
+                q[_RC + 3 * i + j] = R[c, i, 0] * Rb[0, j] + R[c, i, 1] * Rb[1, j] + R[c, i, 2] * Rb[2, j]
+        q[_K], q[_K + 1], q[_K + 2] = K[c, 0, 0], K[c, 0, 1], K[c, 0, 2]
+        q[_K + 3], q[_K + 4], q[_K + 5] = K[c, 1, 0], K[c, 1, 1], K[c, 1, 2]
+        has = False
+        for i in range(5):
+            q[_DIST + i] = dist[c, i]
+            has = has or dist[c, i] != 0
+        q[_GX], q[_GY] = -K[c, 0, 0], -K[c, 0, 1]
+        q[_GX + 1], q[_GY + 1] = -K[c, 1, 0], -K[c, 1, 1]
+        q[_GX + 2], q[_GY + 2] = K[c, 0, 0], K[c, 0, 1]
+        q[_GX + 3], q[_GY + 3] = K[c, 1, 0], K[c, 1, 1]
+        q[_DS] = cams.depth_sign[c]
+        q[_HASD] = 1.0 if has else 0.0
+    return BoxRig(out, steps)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _in_camera(p: tuple[float, float, float], s: tuple[float, float, float], c: int, rig: BoxRig
+def _in_camera(p: tuple[float, float, float], s: tuple[float, float, float], q: F64
                ) -> tuple[float, float, float, float, float, float, float, float, float]:
-    """The centre ``p`` in camera ``c`` ``X`` and the shape matrix there ``M = Rc diag(s) Rc^T``
+    """The centre ``p`` in camera row ``q`` ``X`` and the shape matrix there ``M = Rc diag(s) Rc^T``
     of the ellipsoid with squared semi-axes ``s`` (its six entries): ``(X0, X1, X2, M00, M11,
     M22, M01, M02, M12)``."""
     p0, p1, p2 = p
     s0, s1, s2 = s
-    R, t = rig.R, rig.t
-    X0 = R[c, 0, 0] * p0 + R[c, 0, 1] * p1 + R[c, 0, 2] * p2 + t[c, 0]
-    X1 = R[c, 1, 0] * p0 + R[c, 1, 1] * p1 + R[c, 1, 2] * p2 + t[c, 1]
-    X2 = R[c, 2, 0] * p0 + R[c, 2, 1] * p1 + R[c, 2, 2] * p2 + t[c, 2]
-    q = rig.Rc[c]
-    M00 = q[0, 0] ** 2 * s0 + q[0, 1] ** 2 * s1 + q[0, 2] ** 2 * s2
-    M11 = q[1, 0] ** 2 * s0 + q[1, 1] ** 2 * s1 + q[1, 2] ** 2 * s2
-    M22 = q[2, 0] ** 2 * s0 + q[2, 1] ** 2 * s1 + q[2, 2] ** 2 * s2
-    M01 = q[0, 0] * q[1, 0] * s0 + q[0, 1] * q[1, 1] * s1 + q[0, 2] * q[1, 2] * s2
-    M02 = q[0, 0] * q[2, 0] * s0 + q[0, 1] * q[2, 1] * s1 + q[0, 2] * q[2, 2] * s2
-    M12 = q[1, 0] * q[2, 0] * s0 + q[1, 1] * q[2, 1] * s1 + q[1, 2] * q[2, 2] * s2
+    X0 = q[_R] * p0 + q[_R + 1] * p1 + q[_R + 2] * p2 + q[_T]
+    X1 = q[_R + 3] * p0 + q[_R + 4] * p1 + q[_R + 5] * p2 + q[_T + 1]
+    X2 = q[_R + 6] * p0 + q[_R + 7] * p1 + q[_R + 8] * p2 + q[_T + 2]
+    r00, r01, r02 = q[_RC], q[_RC + 1], q[_RC + 2]
+    r10, r11, r12 = q[_RC + 3], q[_RC + 4], q[_RC + 5]
+    r20, r21, r22 = q[_RC + 6], q[_RC + 7], q[_RC + 8]
+    M00 = r00 ** 2 * s0 + r01 ** 2 * s1 + r02 ** 2 * s2
+    M11 = r10 ** 2 * s0 + r11 ** 2 * s1 + r12 ** 2 * s2
+    M22 = r20 ** 2 * s0 + r21 ** 2 * s1 + r22 ** 2 * s2
+    M01 = r00 * r10 * s0 + r01 * r11 * s1 + r02 * r12 * s2
+    M02 = r00 * r20 * s0 + r01 * r21 * s1 + r02 * r22 * s2
+    M12 = r10 * r20 * s0 + r11 * r21 * s1 + r12 * r22 * s2
     return X0, X1, X2, M00, M11, M22, M01, M02, M12
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _edge_angle(e: int, c: int, m: tuple[float, float], el: tuple[float, float, float], rig: BoxRig,
-                has_dist: bool) -> tuple[float, float]:
-    """The outline angle ``(cos θ, sin θ)`` where edge ``e`` of camera ``c`` touches the outline
+def _edge_angle(e: int, m: tuple[float, float], el: tuple[float, float, float], q: F64, steps: int
+                ) -> tuple[float, float]:
+    """The outline angle ``(cos θ, sin θ)`` where edge ``e`` of camera row ``q`` touches the outline
     with centre ``m`` and Cholesky factor ``el = (l00, l10, l11)``: the closed form (no
     trigonometry), then with distortion Newton steps on the exact derivatives."""
     m0, m1 = m
     l00, l10, l11 = el
-    gx, gy, k, Kc = rig.gx, rig.gy, rig.dist[c], rig.K[c]
-    a = l00 * gx[c, e] + l10 * gy[c, e]
-    b = l11 * gy[c, e]
+    a = l00 * q[_GX + e] + l10 * q[_GY + e]
+    b = l11 * q[_GY + e]
     nrm = math.sqrt(a * a + b * b)
     ct, st = (a / nrm, b / nrm) if nrm > 0 else (1.0, 0.0)
-    if has_dist:
-        for _ in range(rig.steps):
-            d1, d2 = edge_slope(e, ct, st, m0, m1, l00, l10, l11, k, Kc)
+    if q[_HASD] != 0.0:
+        for _ in range(steps):
+            d1, d2 = edge_slope(e, ct, st, m0, m1, l00, l10, l11, q)
             step = -d1 / d2 if d2 < 0 else 0.0
             step = min(max(step, -0.5), 0.5)
             if step != 0.0:  # rotate (cos θ, sin θ) by the step
@@ -194,21 +204,15 @@ def _edge_angle(e: int, c: int, m: tuple[float, float], el: tuple[float, float, 
     return ct, st
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _has_dist(dist: F64, c: int) -> bool:
-    return (dist[c, 0] != 0 or dist[c, 1] != 0 or dist[c, 2] != 0 or dist[c, 3] != 0
-            or dist[c, 4] != 0)
-
-
 @numba.njit(cache=True, nogil=True, inline="always")  # ~20 % faster than a call
 def pair_box(p: tuple[float, float, float], s: tuple[float, float, float], c: int, rig: BoxRig,
              want: bool, out: F64, n: int) -> float:
     """The box ``out[n, c] (4,)`` (``out (N, C, 4)``) of the ellipsoid with centre ``p`` and
     squared semi-axes ``s`` in camera ``c`` (NaN if behind it or not ``want``); returns the
     margin."""
-    K, dist = rig.K, rig.dist
-    X0, X1, X2, M00, M11, M22, M01, M02, M12 = _in_camera(p, s, c, rig)
-    mg = rig.ds[c] * X2 - math.sqrt(max(M22, 0.0))
+    q = rig.cam[c]
+    X0, X1, X2, M00, M11, M22, M01, M02, M12 = _in_camera(p, s, q)
+    mg = q[_DS] * X2 - math.sqrt(max(M22, 0.0))
     if not mg > 0 or not want:
         for e in range(4):
             out[n, c, e] = np.nan
@@ -219,23 +223,20 @@ def pair_box(p: tuple[float, float, float], s: tuple[float, float, float], c: in
     E00 = m0 * m0 - (M00 - X0 * X0) / c33
     E01 = m0 * m1 - (M01 - X0 * X1) / c33
     E11 = m1 * m1 - (M11 - X1 * X1) / c33
-    has_dist = _has_dist(dist, c)
-    if not has_dist and K[c, 0, 1] == 0:
+    if q[_HASD] == 0.0 and q[_K + 1] == 0:
         hx = math.sqrt(max(E00, 0.0))
         hy = math.sqrt(max(E11, 0.0))
-        out[n, c, 0] = K[c, 0, 0] * (m0 - hx) + K[c, 0, 2]
-        out[n, c, 1] = K[c, 1, 1] * (m1 - hy) + K[c, 1, 2]
-        out[n, c, 2] = K[c, 0, 0] * (m0 + hx) + K[c, 0, 2]
-        out[n, c, 3] = K[c, 1, 1] * (m1 + hy) + K[c, 1, 2]
+        out[n, c, 0] = q[_K] * (m0 - hx) + q[_K + 2]
+        out[n, c, 1] = q[_K + 4] * (m1 - hy) + q[_K + 5]
+        out[n, c, 2] = q[_K] * (m0 + hx) + q[_K + 2]
+        out[n, c, 3] = q[_K + 4] * (m1 + hy) + q[_K + 5]
         return mg
     l00 = math.sqrt(max(E00, 1e-300))
     l10 = E01 / l00
     l11 = math.sqrt(max(E11 - l10 * l10, 0.0))
-    k = dist[c]
-    Kc = K[c]
     for e in range(4):
-        ct, st = _edge_angle(e, c, (m0, m1), (l00, l10, l11), rig, has_dist)
-        v = edge_value(e, ct, st, m0, m1, l00, l10, l11, k, Kc)
+        ct, st = _edge_angle(e, (m0, m1), (l00, l10, l11), q, rig.steps)
+        v = edge_value(e, ct, st, m0, m1, l00, l10, l11, q)
         out[n, c, e] = -v if e < 2 else v
     return mg
 
@@ -253,9 +254,9 @@ def pair_box_grad(p: tuple[float, float, float], la: tuple[float, float, float],
     outline's centre ``m`` and the Cholesky factor ``L`` of its shape, forward mode, one
     parameter direction at a time."""
     s0, s1, s2 = math.exp(2.0 * la[0]), math.exp(2.0 * la[1]), math.exp(2.0 * la[2])
-    K, dist, R = rig.K, rig.dist, rig.R
-    X0, X1, X2, M00, M11, M22, M01, M02, M12 = _in_camera(p, (s0, s1, s2), c, rig)
-    mg = rig.ds[c] * X2 - math.sqrt(max(M22, 0.0))
+    q = rig.cam[c]
+    X0, X1, X2, M00, M11, M22, M01, M02, M12 = _in_camera(p, (s0, s1, s2), q)
+    mg = q[_DS] * X2 - math.sqrt(max(M22, 0.0))
     if not mg > 0:
         box[:] = np.nan
         grad[:, :] = np.nan
@@ -270,34 +271,31 @@ def pair_box_grad(p: tuple[float, float, float], la: tuple[float, float, float],
     l00 = math.sqrt(max(E00, 1e-300))
     l10 = E01 / l00
     l11 = math.sqrt(max(E11 - l10 * l10, 1e-300))
-    k = dist[c]
-    Kc = K[c]
-    has_dist = _has_dist(dist, c)
-    q = rig.Rc[c]
     for e in range(4):
-        ct, st = _edge_angle(e, c, (m0, m1), (l00, l10, l11), rig, has_dist)
-        v = edge_value(e, ct, st, m0, m1, l00, l10, l11, k, Kc)
+        ct, st = _edge_angle(e, (m0, m1), (l00, l10, l11), q, rig.steps)
+        v = edge_value(e, ct, st, m0, m1, l00, l10, l11, q)
         box[e] = -v if e < 2 else v
         # the distorted point's derivative by the undistorted one, at θ*
         x = m0 + l00 * ct
         y = m1 + l10 * ct + l11 * st
         r2 = x * x + y * y
-        radial = 1.0 + r2 * (k[0] + r2 * (k[1] + r2 * k[4]))
-        g = k[0] + r2 * (2.0 * k[1] + 3.0 * r2 * k[4])
-        dxx = radial + 2.0 * x * x * g + 2.0 * k[2] * y + 6.0 * k[3] * x
-        dxy = 2.0 * x * y * g + 2.0 * k[2] * x + 2.0 * k[3] * y
+        radial = 1.0 + r2 * (q[_DIST] + r2 * (q[_DIST + 1] + r2 * q[_DIST + 4]))
+        g = q[_DIST] + r2 * (2.0 * q[_DIST + 1] + 3.0 * r2 * q[_DIST + 4])
+        dxx = radial + 2.0 * x * x * g + 2.0 * q[_DIST + 2] * y + 6.0 * q[_DIST + 3] * x
+        dxy = 2.0 * x * y * g + 2.0 * q[_DIST + 2] * x + 2.0 * q[_DIST + 3] * y
         dyx = dxy
-        dyy = radial + 2.0 * y * y * g + 6.0 * k[2] * y + 2.0 * k[3] * x
+        dyy = radial + 2.0 * y * y * g + 6.0 * q[_DIST + 2] * y + 2.0 * q[_DIST + 3] * x
         for j in range(6):
             if j < 3:  # centre: X moves along R's column, M stays
-                dX0, dX1, dX2 = R[c, 0, j], R[c, 1, j], R[c, 2, j]
+                dX0, dX1, dX2 = q[_R + j], q[_R + 3 + j], q[_R + 6 + j]
                 dM00 = dM11 = dM22 = dM01 = dM02 = dM12 = 0.0
             else:  # log semi-axis a: M moves by 2 s_a q_a q_a^T, X stays
                 a = j - 3
                 sa = 2.0 * (s0 if a == 0 else (s1 if a == 1 else s2))
                 dX0 = dX1 = dX2 = 0.0
-                dM00, dM11, dM22 = sa * q[0, a] * q[0, a], sa * q[1, a] * q[1, a], sa * q[2, a] * q[2, a]
-                dM01, dM02, dM12 = sa * q[0, a] * q[1, a], sa * q[0, a] * q[2, a], sa * q[1, a] * q[2, a]
+                qa0, qa1, qa2 = q[_RC + a], q[_RC + 3 + a], q[_RC + 6 + a]
+                dM00, dM11, dM22 = sa * qa0 * qa0, sa * qa1 * qa1, sa * qa2 * qa2
+                dM01, dM02, dM12 = sa * qa0 * qa1, sa * qa0 * qa2, sa * qa1 * qa2
             dc33 = dM22 - 2.0 * X2 * dX2
             dm0 = (dM02 - dX0 * X2 - X0 * dX2 - m0 * dc33) / c33
             dm1 = (dM12 - dX1 * X2 - X1 * dX2 - m1 * dc33) / c33
@@ -314,7 +312,7 @@ def pair_box_grad(p: tuple[float, float, float], la: tuple[float, float, float],
             dy = dm1 + dl10 * ct + dl11 * st
             dxd = dxx * dx + dxy * dy
             dyd = dyx * dx + dyy * dy
-            grad[e, j] = Kc[0, 0] * dxd + Kc[0, 1] * dyd if e % 2 == 0 else Kc[1, 1] * dyd
+            grad[e, j] = q[_K] * dxd + q[_K + 1] * dyd if e % 2 == 0 else q[_K + 4] * dyd
     return mg
 
 
