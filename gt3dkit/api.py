@@ -116,23 +116,33 @@ def split_ids(scene: Scene, rows: Any, segs: Segments) -> tuple[Scene, dict[int,
 def restored_ids(tracks: TrackSet, back: dict[int, tuple[int, int]]) -> TrackSet:
     """``tracks`` of a scene made by :func:`split_ids` with the input's ids again (rows sorted as
     before: by frame, then id), and the pieces in ``info["identity"]["segments"]``."""
-    orig = np.array([back.get(int(i), (int(i), 0))[0] for i in tracks.track_id], dtype=np.int64)
-    piece = np.array([back.get(int(i), (int(i), 0))[1] for i in tracks.track_id], dtype=np.int64)
+    new = np.array(sorted(back), dtype=np.int64)
+    to = np.array([back[int(k)] for k in new], dtype=np.int64).reshape(-1, 2)  # (input id, piece)
+
+    def input_ids(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        k = np.minimum(np.searchsorted(new, ids), len(new) - 1)
+        hit = new[k] == ids
+        return np.where(hit, to[k, 0], ids), np.where(hit, to[k, 1], 0)
+
+    orig, piece = input_ids(tracks.track_id)
     order = np.lexsort((orig, tracks.frame))
     d = tracks.downweighted
     if d is not None:
-        d = dataclasses.replace(d, track_id=np.array([back.get(int(i), (int(i), 0))[0] for i in d.track_id],
-                                                     dtype=np.int64))
+        d = dataclasses.replace(d, track_id=input_ids(d.track_id)[0])
     out = dataclasses.replace(
         tracks, frame=tracks.frame[order], track_id=orig[order], center_world=tracks.center_world[order],
         semi_axes=tracks.semi_axes[order], center_sd=tracks.center_sd[order], n_views=tracks.n_views[order],
         kpt_world=tracks.kpt_world[order], kpt_sd=tracks.kpt_sd[order], downweighted=d)
-    segments = []
-    for i, s in sorted({(int(a), int(b)) for a, b in zip(orig, piece, strict=True)}):
-        f = tracks.frame[(orig == i) & (piece == s)]
-        segments.append({"id": i, "segment": s, "first_frame": int(f.min()), "last_frame": int(f.max()),
-                         "rows": int(len(f))})
-    out.info["segments"] = segments
+    pieces, inv = np.unique(np.c_[orig, piece], axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    first = np.full(len(pieces), np.iinfo(np.int64).max)
+    last = np.full(len(pieces), np.iinfo(np.int64).min)
+    np.minimum.at(first, inv, tracks.frame)
+    np.maximum.at(last, inv, tracks.frame)
+    count = np.bincount(inv, minlength=len(pieces))
+    out.info["segments"] = [
+        {"id": int(i), "segment": int(s), "first_frame": int(a), "last_frame": int(b), "rows": int(n)}
+        for (i, s), a, b, n in zip(pieces, first, last, count, strict=True)]
     return out
 
 

@@ -424,14 +424,13 @@ def motion_of(model: Any, cfg: Any, noise_rows: dict[str, F64] | None = None) ->
     R = len(model.rows)
     per = noise_rows or {}
 
-    def col(name: str, default: float | None) -> F64:
+    def col(name: str, default: F64 | None = None) -> F64:
         v = per.get(name, getattr(cfg, name))
         return contiguous(np.broadcast_to(np.asarray(default if v is None else v, dtype=np.float64), (R,)))
 
-    accel = col("accel_sd", None)
-    return Motion(accel, col("shape_sd", None), col("joint_accel_sd", None) if (
-        per.get("joint_accel_sd") is not None or cfg.joint_accel_sd is not None) else accel,
-        accel_shape(model.cams.up, cfg.vertical_ratio), model.layout.index)
+    accel = col("accel_sd")  # the joints move with the centre's noise unless given their own
+    return Motion(accel, col("shape_sd"), col("joint_accel_sd", accel),
+                  accel_shape(model.cams.up, cfg.vertical_ratio), model.layout.index)
 
 
 class LinearisedSearch:

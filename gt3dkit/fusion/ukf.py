@@ -263,10 +263,8 @@ def block_columns(blocks: Sequence[Block], m: int, robust: Robust | None) -> Col
     the state entries of each column's group and, with ``robust``, the points of its blocks with
     their thresholds (infinite when its config is disabled)."""
     d = max(b.dims.shape[1] for b in blocks)
-    dims = np.full((m, d), -1, np.int64)
-    for b in blocks:
-        k = b.cols.shape[1]
-        dims[b.cols.reshape(-1), :b.dims.shape[1]] = np.repeat(b.dims, k, axis=0)
+    dims = np.concatenate([np.pad(b.dims, ((0, 0), (0, d - b.dims.shape[1])), constant_values=-1)
+                           for b in blocks]).astype(np.int64)  # (G, d): each group's entries
     order = np.concatenate([b.cols.reshape(-1) for b in blocks]).astype(np.int64)
     sizes = np.concatenate([np.full(b.cols.shape[0], b.cols.shape[1]) for b in blocks])
     start = np.r_[0, np.cumsum(sizes)].astype(np.int64)

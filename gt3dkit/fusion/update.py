@@ -15,8 +15,8 @@ A row stops iterating once a pass's posterior is where it linearised and no weig
 The statistics (normalised innovation square, its degrees of freedom, log-likelihood) are of the
 last pass with its weights, by the matrix determinant lemma (no ``m x m`` matrix).
 
-Which state entries each measurement column depends on is a :class:`Columns` (a box edge: the
-centre and log semi-axes; a keypoint coordinate: its joint; a bone: its two joints), so one
+Which state entries each group of measurement columns depends on is a :class:`Columns` (a box:
+the centre and log semi-axes; a joint's projections: the joint; a bone: its two joints), so one
 implementation serves every measurement model; the regression itself is the measurement model's
 (:mod:`gt3dkit.fusion.boxupdate` for boxes, :func:`gt3dkit.fusion.ukf.block_regression` for the
 others). The compiled filter calls :func:`pass_row` per row, the filter over frames
@@ -48,13 +48,14 @@ SPREAD_TOL = 1e-3
 class Columns(NamedTuple):
     """The structure of the measurement vector (``m`` columns), the same for every row.
 
-    dims : (m, d) the state entries each column depends on (-1: padding)
+    dims : (G, d) the state entries of each group of columns (-1: padding)
     first : (m,) the first column of the column's point (robust reweighting)
     size : (m,) the entries of the column's point; 0: never reweighted
     c_thr, g_thr : (m,) the point's down-weighting and rejection thresholds on its score
     order, start, width : the columns by group: group ``g`` is the columns
-        ``order[start[g]:start[g + 1]]``, which all depend on the same ``width[g]`` entries (a
-        box on the ellipsoid, a joint's projections on the joint, a bone on its two joints)
+        ``order[start[g]:start[g + 1]]``, which all depend on the ``width[g]`` entries
+        ``dims[g]`` (a box on the ellipsoid, a joint's projections on the joint, a bone on its
+        two joints)
     """
 
     dims: I64
@@ -156,7 +157,7 @@ def information_pass(prior: Prior, lin: Regression, cols: Columns, wt: F64, post
     gv = np.empty(d)
     for q in range(cols.start.shape[0] - 1):  # a group's columns share their state entries
         w = cols.width[q]
-        dq = cols.dims[cols.order[cols.start[q]]]
+        dq = cols.dims[q]
         H[:w, :w] = 0.0
         gv[:w] = 0.0
         for k in cols.order[cols.start[q]:cols.start[q + 1]]:
@@ -238,7 +239,7 @@ def rescore(post: Posterior, lin: Regression, cols: Columns, cur: Current, score
     Pq = np.empty((d, d))
     for q in range(cols.start.shape[0] - 1):
         w = cols.width[q]
-        dq = cols.dims[cols.order[cols.start[q]]]
+        dq = cols.dims[q]
         for a in range(w):
             for b in range(w):
                 Pq[a, b] = post.P[dq[a], dq[b]]

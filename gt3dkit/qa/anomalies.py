@@ -102,7 +102,6 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | Non
                     f"views put it in frame {s.frame_before} ({s.speed_mps:.1f} m/s; allowed "
                     f"{s.limit_m:.2f} m): piece {s.segment} of this id from here, estimated on its own "
                     "(another person, or a mis-keyed id)"))
-    jumped = np.zeros(len(rows), bool)  # no object-frame is left out of the estimate
 
     if pre.use_box and have.any():
         z = rows.box_z[idx]
@@ -116,7 +115,7 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | Non
             size = np.sqrt(np.maximum(area(box), 1e-9))
             off = np.hypot((z[..., 0] + z[..., 2] - box[..., 0] - box[..., 2]) / 2,
                            (z[..., 1] + z[..., 3] - box[..., 1] - box[..., 3]) / 2) / size
-        bad = (score > cfg.box_sigmas) & usable.any(axis=2) & ~jumped[idx][:, None]
+        bad = (score > cfg.box_sigmas) & usable.any(axis=2)
         for n, c in zip(*np.nonzero(bad), strict=True):
             r = idx[n]
             sized = (ratio[n, c] > cfg.size_ratio or ratio[n, c] < 1 / cfg.size_ratio) and off[n, c] < 0.25
@@ -126,10 +125,10 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | Non
                         f"largest edge residual {score[n, c]:.1f} sigma"))
 
     if pre.use_kpt and have.any() and tracks.kpt_world.shape[1]:
-        _keypoints(scene, tracks, pre, cfg, r_of, have, jumped, frame_of, id_of, out)
+        _keypoints(scene, tracks, pre, cfg, r_of, have, frame_of, id_of, out)
 
     _world_frame(scene, tracks, cfg, out)
-    _missing_views(scene, tracks, pre, cfg, out, jumped, r_of, box, margin)
+    _missing_views(scene, tracks, pre, cfg, out, r_of, box, margin)
     offsets: list = []
     _time_offsets(scene, tracks, pre, cfg, offsets)
     if offsets:  # an unsynchronised camera's views all look wrong: one row says why
@@ -146,14 +145,14 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | Non
 
 
 def _keypoints(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, r_of: np.ndarray,
-               have: np.ndarray, jumped: np.ndarray, frame_of: np.ndarray, id_of: np.ndarray,
+               have: np.ndarray, frame_of: np.ndarray, id_of: np.ndarray,
                out: list) -> None:
     rows, cams = pre.rows, pre.cams
     names = scene.rig.names
     joints = SKELETONS[scene.skeleton].joints if scene.skeleton else ()
     ix = {j: i for i, j in enumerate(joints)}
     pairs = [(ix[j], ix["r_" + j[2:]]) for j in joints if j.startswith("l_") and "r_" + j[2:] in ix]
-    idx = np.flatnonzero(have & ~jumped)
+    idx = np.flatnonzero(have)
     X = tracks.kpt_world[r_of[idx]]  # (n, J, 3)
     uv, _ = project_points(X, cams.K, cams.dist, cams.R, cams.t, cams.depth_sign)  # (n, J, C, 2)
     uv = np.swapaxes(uv, 1, 2)  # (n, C, J, 2)
@@ -206,9 +205,8 @@ def _world_frame(scene: Scene, tracks: TrackSet, cfg: QAConfig, out: list) -> No
 
 
 def _missing_views(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, out: list,
-                   jumped: np.ndarray, r_of: np.ndarray, box: F64, margin: F64) -> None:
-    """``jumped`` (R,): object-frames flagged as identity jumps (their annotations are someone
-    else's: a view without them says nothing); ``r_of`` (R,) :func:`track_row_of`; ``box``,
+                   r_of: np.ndarray, box: F64, margin: F64) -> None:
+    """``r_of`` (R,) :func:`track_row_of`; ``box``,
     ``margin`` the tangent boxes of the rows ``r_of >= 0`` in every camera."""
     rows, cams = pre.rows, pre.cams
     names = scene.rig.names
@@ -225,7 +223,7 @@ def _missing_views(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, out:
         & (box[..., 3] < H - m) & (box[..., 3] - box[..., 1] > cfg.min_box_px) \
         & (box[..., 2] > box[..., 0]) & np.isfinite(box).all(-1)  # a folded projection is no box
     unannotated = rows.obs_row[idx] < 0  # (n, C)
-    cand = inside & unannotated & ((rows.n_views[idx] >= 2) & ~jumped[idx])[:, None]
+    cand = inside & unannotated & (rows.n_views[idx] >= 2)[:, None]
     if not cand.any():
         return
     t_of = rows.row_t[idx]

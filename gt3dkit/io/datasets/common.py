@@ -102,6 +102,15 @@ class RowBuilder:
         )
 
 
+def camera_ids(truth_id: np.ndarray, n_cameras: int, id_seed: int | None) -> list[dict[int, int]]:
+    """Each camera's :func:`local_ids` of the people in ``truth_id``, drawn in camera order from
+    one generator seeded ``id_seed`` (None: the people's own ids), as separate per-camera
+    annotation tasks number them."""
+    people = np.unique(truth_id)
+    rng = np.random.default_rng(id_seed) if id_seed is not None else None
+    return [local_ids(people, rng) for _ in range(n_cameras)]
+
+
 def local_ids(people: np.ndarray, rng: np.random.Generator | None) -> dict[int, int]:
     """Per-camera ids of ``people (P,)``: a random permutation of ``1..P`` (``rng``), or the
     people's own ids (None), as separate per-camera annotation tasks number them."""

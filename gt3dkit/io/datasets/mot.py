@@ -27,7 +27,7 @@ from gt3dkit.calib.formats import detect_format, read_calibration
 from gt3dkit.calib.formats.native import load_cameras
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import check_pixels
-from gt3dkit.io.datasets.common import RowBuilder, local_ids
+from gt3dkit.io.datasets.common import RowBuilder, camera_ids
 from gt3dkit.io.datasets.native import write_cameras
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
 from gt3dkit.parse import iter_csv_rows, parse_frame, parse_int, sha256
@@ -142,10 +142,8 @@ def write(sim: SimScene, tmp: Path, id_seed: int | None) -> None:
     :func:`load`."""
     write_cameras(sim.rig, sim.fps, tmp)
     (tmp / "mot").mkdir()
-    people = np.unique(sim.truth_id)
-    rng = np.random.default_rng(id_seed) if id_seed is not None else None
-    for c, cam in enumerate(sim.rig.cameras):
-        local = local_ids(people, rng)
+    ids = camera_ids(sim.truth_id, len(sim.rig.cameras), id_seed)
+    for c, (cam, local) in enumerate(zip(sim.rig.cameras, ids, strict=True)):
         lines = []
         for i in range(len(sim.truth_frame)):
             b = sim.boxes[i, c]

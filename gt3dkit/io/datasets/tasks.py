@@ -29,7 +29,7 @@ import numpy as np
 
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import check_pixels
-from gt3dkit.io.datasets.common import RowBuilder, local_ids
+from gt3dkit.io.datasets.common import RowBuilder, camera_ids, local_ids
 from gt3dkit.io.datasets.mot import DEFAULT_FPS, calibration_beside, match_cameras, natural_key
 from gt3dkit.io.datasets.native import read_kpt_truth, write_cameras, write_kpt_truth
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
@@ -215,9 +215,8 @@ def write_cvat(sim: SimScene, tmp: Path, id_seed: int | None) -> None:
     write_cameras(sim.rig, sim.fps, tmp)
     (tmp / "cvat").mkdir()
     people = np.unique(sim.truth_id)
-    rng = np.random.default_rng(id_seed) if id_seed is not None else None
-    for c, cam in enumerate(sim.rig.cameras):
-        local = local_ids(people, rng)
+    ids = camera_ids(sim.truth_id, len(sim.rig.cameras), id_seed)
+    for c, (cam, local) in enumerate(zip(sim.rig.cameras, ids, strict=True)):
         lines = ['<?xml version="1.0" encoding="utf-8"?>', "<annotations>", "  <version>1.1</version>",
                  f"  <meta><task><name>{cam.name}</name><size>{len(sim.frames)}</size>"
                  f"<mode>interpolation</mode><original_size><width>{cam.width}</width><height>{cam.height}</height></original_size>"
