@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from gt3dkit.arrays import lookup_rows
+from gt3dkit.arrays import frame_grid, lookup_rows
 from gt3dkit.calib.formats.native import rig_of_doc
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.associate import apply_association, associate, associate_detections, read_overrides
@@ -54,21 +54,31 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
 
 def reconstruct(scene: Scene | str | Path, estimator: str | Estimator = "ukf",
                 out: str | Path | None = None, extra_meta: dict[str, Any] | None = None,
-                on_stage: Callable[[str], None] | None = None, **config: Any) -> TrackSet:
+                on_stage: Callable[[str], None] | None = None, every_frame: int | None = None,
+                **config: Any) -> TrackSet:
     """Estimate tracks for a scene (or an input folder); write ``out`` if given (with
     ``extra_meta`` added to its meta.json). ``on_stage(name)`` is called as each stage starts
-    (a progress display)."""
+    (a progress display). ``every_frame``: None = a row for every annotated object-frame (one
+    camera or more); 0 = a row for every frame of the input's frame grid from each object's
+    first to its last annotation (interpolated where no camera sees it: ``n_views`` 0); ``k >
+    0`` = every ``k`` frame numbers (and every annotated frame)."""
     stage = on_stage or (lambda name: None)
 
     with small_matrix_blas():  # one BLAS thread for our small matrices (gt3dkit.threads)
         sc = scene if isinstance(scene, Scene) else load_scene(Path(scene))
         est = make_estimator(estimator, **config) if isinstance(estimator, str) else estimator
+        if every_frame is not None:
+            if not getattr(est, "interpolates", True):
+                raise InputError("--every-frame", f"the {est.name} estimator fits each frame on its own: "
+                                                  "it has no estimate between annotations (use ukf or gtsam)")
+            sc = dense_frames(sc, every_frame or None)
         stage("per-frame fits")
         own = getattr(est, "prepare", None)
         pre = own(sc) if callable(own) else prepare(sc)
         segs = identity_segments(pre, sc.fps)
         stage(f"{getattr(est, 'name', 'estimator')}")
-        tracks = estimate_scene(sc, est, pre if callable(own) else None, segs)
+        tracks = estimate_scene(sc, est, pre if callable(own) else None, segs,
+                                dense=every_frame is not None)
         if out is not None:
             stage("annotation QA, writing")
             qa = find_anomalies(sc, tracks, pre, splits=segs.splits)
@@ -77,10 +87,44 @@ def reconstruct(scene: Scene | str | Path, estimator: str | Estimator = "ukf",
     return tracks
 
 
-def estimate_scene(scene: Scene, est: Estimator, pre: Any | None, segs: Segments) -> TrackSet:
+def dense_frames(scene: Scene, step: int | None) -> Scene:
+    """``scene`` whose frame grid is every frame number from its first to its last annotated
+    frame at ``step`` (None: the input's own step, :func:`gt3dkit.arrays.frame_grid`), its
+    annotated frames included: the estimators then give every object a row on that grid from
+    its first to its last annotation."""
+    grid, _ = frame_grid(scene.frames, step)
+    return dataclasses.replace(scene, frames=np.union1d(grid, np.asarray(scene.frames, dtype=np.int64)))
+
+
+def take_rows(tracks: TrackSet, keep: np.ndarray) -> TrackSet:
+    """The rows ``keep (M,)`` of ``tracks`` (bool or indices)."""
+    return dataclasses.replace(
+        tracks, frame=tracks.frame[keep], track_id=tracks.track_id[keep], center_world=tracks.center_world[keep],
+        semi_axes=tracks.semi_axes[keep], center_sd=tracks.center_sd[keep], n_views=tracks.n_views[keep],
+        kpt_world=tracks.kpt_world[keep], kpt_sd=tracks.kpt_sd[keep])
+
+
+def estimate_scene(scene: Scene, est: Estimator, pre: Any | None, segs: Segments,
+                   dense: bool = False) -> TrackSet:
     """``est``'s tracks of ``scene``, each piece of a split id (:mod:`gt3dkit.fusion.identity`)
     estimated as an object of its own; the tracks carry the input's ids, ``info["identity"]``
-    the pieces. ``pre``: the estimator's own preparation of ``scene`` (None: it prepares)."""
+    the pieces. ``pre``: the estimator's own preparation of ``scene`` (None: it prepares).
+    A row for each annotated object-frame; ``dense``: also the rows of frames no camera saw
+    the object in (the estimator's interpolation, ``n_views`` 0)."""
+    tracks = _estimate_pieces(scene, est, pre, segs)
+    if dense:
+        tracks.info["every_frame"] = {
+            "frames": int(len(scene.frames)), "rows_interpolated": int(np.sum(tracks.n_views == 0)),
+            "note": "a row for every frame of the grid from each object's first to its last annotation; "
+                    "n_views 0 = no camera saw it there (interpolated by the motion model, its sd grows "
+                    "with the distance to the nearest view)"}
+    elif np.any(tracks.n_views == 0):
+        tracks = take_rows(tracks, tracks.n_views > 0)  # info and downweighted carried over
+    return tracks
+
+
+def _estimate_pieces(scene: Scene, est: Estimator, pre: Any | None, segs: Segments) -> TrackSet:
+    """:func:`estimate_scene` with every row the estimator gives."""
     if not segs.splits:
         tracks = est.estimate(scene, pre) if pre is not None else est.estimate(scene)
     else:

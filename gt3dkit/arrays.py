@@ -7,6 +7,17 @@ from typing import Any
 import numpy as np
 
 
+def frame_grid(frames: np.ndarray, step: int | None = None) -> tuple[np.ndarray, int]:
+    """All frame numbers from the first to the last of ``frames`` at ``step`` (None: the
+    input's own frame step, the greatest common divisor of the gaps between its frames):
+    ``(N,)`` int64 frame numbers and the step."""
+    u = np.unique(np.asarray(frames, dtype=np.int64))
+    if step is None:
+        step = int(np.gcd.reduce(np.diff(u))) if len(u) > 1 else 1
+    step = max(int(step), 1)
+    return np.arange(u[0], u[-1] + 1, step, dtype=np.int64), step
+
+
 def unique_rows(a: np.ndarray, return_index: bool = False, return_inverse: bool = False,
                 return_counts: bool = False) -> Any:
     """``np.unique(a, axis=0, ...)`` of an integer array ``a (N, K)``: the same results (rows

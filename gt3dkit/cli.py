@@ -74,6 +74,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--refine-calib", action="store_true",
                    help="refine the cameras from the annotations first (see gt3d calib refine)")
     r.add_argument("--no-smooth", action="store_true", help="forward filter only (no RTS)")
+    r.add_argument("--every-frame", nargs="?", const=0, type=number_type(int, 1, 10**9), metavar="STEP",
+                   help="a row for every frame of the input's frame grid (or every STEP frame numbers) from "
+                        "each object's first to its last annotation, through gaps and between keyframes; "
+                        "tracks.csv then has an n_views column (0 = interpolated). Default: annotated "
+                        "object-frames only")
     r.add_argument("--quiet", action="store_true", help="no progress display")
     r.add_argument("--no-bones", action="store_true", help="do not tie bone lengths")
     r.add_argument("--skeleton", choices=sorted(SKELETONS),

@@ -26,20 +26,13 @@ from typing import Any
 import numpy as np
 
 from gt3dkit.api import load_run
+from gt3dkit.arrays import frame_grid
 from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.results import Result, read_result
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import F64, I64
 from gt3dkit.viz.overview import colour_of
-
-
-def frame_grid(frames: I64) -> tuple[I64, int]:
-    """All frame numbers from the first to the last at the input's frame step (the greatest
-    common divisor of the gaps): (N,) frames, step."""
-    u = np.unique(frames)
-    step = int(np.gcd.reduce(np.diff(u))) if len(u) > 1 else 1
-    return np.arange(u[0], u[-1] + 1, max(step, 1), dtype=np.int64), max(step, 1)
 
 
 def markers(res: Result) -> tuple[list[str], I64, F64, F64, list[int]]:

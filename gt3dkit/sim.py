@@ -68,6 +68,14 @@ class Errors:
         out, as annotators skip people hidden behind others (None: keep them; boxes only)
     dropped : views (boxes) or keypoints left out at random; None: the generator's default
         (:data:`DROPPED_VIEWS` of the box views, :data:`DROPPED_KEYPOINTS` of the keypoints)
+    reused_ids : ids handed on: this many times a person's id goes, from some frame on, to
+        another person (who is annotated under it from then on; the first person from then on
+        not at all), as real label sets reuse the id of someone who left (boxes only)
+    exchanged_ids : this many times two people's ids are exchanged for 1-4 consecutive frames,
+        in every view (boxes only)
+
+    Both id errors are in the truth as well (as in WILDTRACK, whose positions carry the labels'
+    ids): the truth says where each annotated (frame, id) is, not who it is.
     """
 
     outliers: float = 0.0
@@ -80,8 +88,12 @@ class Errors:
     time_offset: tuple[int, int] | None = None
     hide_covered: float | None = None
     dropped: float | None = None
+    reused_ids: int = 0
+    exchanged_ids: int = 0
 
     def __post_init__(self) -> None:
+        if self.reused_ids < 0 or self.exchanged_ids < 0:
+            raise ValueError("reused_ids and exchanged_ids must be >= 0")
         for k in ("hide_covered", "dropped"):
             v = getattr(self, k)
             if v is not None and not 0 <= v < 1:
@@ -309,9 +321,63 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
             injected.append((int(truth_frame[m]), rig.cameras[c].name, int(truth_id[m]), "",
                              "shifted_box", f"moved {float(np.abs(d[m, c]).max()):.0f} px"))
     box = np.where(seen[..., None], box, np.nan)
+    if errors.reused_ids or errors.exchanged_ids:
+        keep, truth_id, more = _id_errors(truth_frame, truth_id, seen, errors, err_rng)
+        injected += more
+        truth_frame, truth_id = truth_frame[keep], truth_id[keep]
+        center, semi, box = center[keep], semi[keep], box[keep]
     return SimScene(rig=rig, frames=frame_numbers, fps=fps, truth_frame=truth_frame,
                     truth_id=truth_id, center_world=center, semi_axes=semi, boxes=box,
                     injected=tuple(injected))
+
+
+def _id_errors(frame: I64, ids: I64, seen: np.ndarray, errors: Errors, rng: np.random.Generator
+               ) -> tuple[np.ndarray, I64, list[tuple[int, str, int, str, str, str]]]:
+    """The id errors of ``errors`` on truth rows ``frame, ids (M,)`` whose views are ``seen (M,
+    C)``: the rows kept ``(M,)``, the ids they carry ``(M,)`` and the injected-error rows."""
+    keep = np.ones(len(frame), bool)
+    ids = ids.copy()
+    out: list[tuple[int, str, int, str, str, str]] = []
+    two = seen.sum(axis=1) >= 2
+
+    def frames_of(i: int) -> I64:
+        return np.unique(frame[keep & (ids == i) & two])
+
+    used: set[int] = set()  # each person in one id error at most (each error stays as listed)
+    for _ in range(errors.reused_ids):  # id a goes to person b from frame k on
+        people = [int(i) for i in np.unique(ids[keep]) if int(i) not in used]
+        pairs = [(a, b) for a in people for b in people if a != b]
+        rng.shuffle(pairs)
+        for a, b in pairs:
+            fa, fb = frames_of(int(a)), frames_of(int(b))
+            both = np.intersect1d(fa, fb)
+            if len(both) < 6:
+                continue
+            k = int(both[rng.integers(2, len(both) - 2)])
+            keep &= ~(((ids == a) & (frame >= k)) | ((ids == b) & (frame < k)))
+            ids[(ids == b) & (frame >= k)] = a
+            used |= {a, b}
+            out.append((k, "", int(a), "", "reused_id", f"person {int(b)} from here"))
+            break
+    for _ in range(errors.exchanged_ids):  # ids a and b exchanged for 1-4 frames
+        people = [int(i) for i in np.unique(ids[keep]) if int(i) not in used]
+        pairs = [(a, b) for a in people for b in people if a < b]
+        rng.shuffle(pairs)
+        for a, b in pairs:
+            both = np.intersect1d(frames_of(int(a)), frames_of(int(b)))
+            n = int(rng.integers(1, 5))
+            if len(both) < n + 4:
+                continue
+            i0 = int(rng.integers(2, len(both) - n - 1))
+            span = both[i0:i0 + n]
+            ra = keep & (ids == a) & np.isin(frame, span)
+            rb = keep & (ids == b) & np.isin(frame, span)
+            ids[ra], ids[rb] = b, a
+            used |= {a, b}
+            out.append((int(span[0]), "", int(a), "", "exchanged_ids",
+                        f"with {int(b)} for {n} frame{'s' if n > 1 else ''}"))
+            break
+    return keep, ids, out
 
 
 def write_scene(sim: SimScene, out: Path, layout: str, id_seed: int | None = 0) -> None:

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from gt3dkit.api import load_scene
+from gt3dkit.api import load_scene, take_rows
 from gt3dkit.errors import InputError
 from gt3dkit.eval.metrics import box_errors, relabel_to_truth
 from gt3dkit.eval.pose import mpjpe_by_id, score_tracks
@@ -147,6 +147,10 @@ def report_truth(scene: Any, tracks: Any, name: str, max_dist_m: float = 1.0) ->
     if scene.truth is None:
         return
     print(f"against {scene.truth.source}:")
+    on = np.isin(tracks.frame, scene.truth.frame)
+    if not on.all():  # a dense run's rows between the frames the truth has: nothing to score them by
+        print(f"({int((~on).sum())} rows in frames the truth has no row in are not scored)")
+        tracks = take_rows(tracks, on)
     if scene.association is not None:
         tracks = relabel_to_truth(tracks, scene.truth, scene.rig.up, max_dist_m)
         print("(ids are gt3dkit's cross-view association: each matched to its truth id for the errors)")

@@ -51,7 +51,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
               f"({res.report['seconds']:.1f} s; meta.json: calibration_refinement)")
     try:
         tracks = reconstruct(scene, args.estimator, out=args.out, extra_meta=extra, on_stage=stages,
-                             **config)
+                             every_frame=args.every_frame, **config)
     finally:
         stages.close()
     print_warnings(scene)

@@ -12,8 +12,10 @@ farther apart than the scene's objects move:
     d > v_{lim} \, \Delta t + k \sqrt{s_a^2 + s_b^2},\qquad
     v_{lim} = \max(f \, v_{95}, v_{min}),
 
-with ``v_95`` the 95th percentile of the speeds between consecutive multi-view fits of all ids
-(the scene's own scale: people or cars), ``s`` the fits' largest centre sd. Rows between the two
+with ``v_95`` the 95th percentile over ids of each id's median speed between its consecutive
+multi-view fits (the scene's own scale: people or cars; an id's median ignores the jumps of its
+own id errors, which in a short or crowded scene are more than 5 % of all steps), ``s`` the
+fits' largest centre sd. Rows between the two
 fits (seen by fewer views) stay with the earlier piece. Each piece is then an object of its own
 for every estimator (:func:`gt3dkit.api.estimate_scene`); the outputs keep the input's ids, and
 ``segments.csv`` says which frames of an id form which piece.
@@ -83,7 +85,9 @@ def identity_segments(pre: Any, fps: float, cfg: IdentityConfig | None = None) -
     dist = np.linalg.norm(centre[b] - centre[a], axis=1)
     dt = np.maximum(t_s[b] - t_s[a], 1e-9)
     speed = dist / dt
-    v95 = float(np.percentile(speed, 95)) if len(speed) else 0.0
+    own = rows.row_o[a]
+    medians = [float(np.median(speed[own == o])) for o in np.unique(own)]
+    v95 = float(np.percentile(medians, 95)) if medians else 0.0
     v_lim = max(cfg.speed_factor * v95, cfg.min_speed_mps)
     limit = v_lim * dt + cfg.sigmas * np.hypot(sd[a], sd[b])
     cut = np.flatnonzero(dist > limit)

@@ -80,12 +80,22 @@ def meta_of(scene: Scene, tracks: TrackSet) -> dict[str, Any]:
 
 
 def write_tracks_csv(path: Path, tracks: TrackSet) -> None:
+    """One row per (frame, id); a dense run (``info["every_frame"]``, rows where no camera saw
+    the object included) adds the column ``n_views`` (0: interpolated)."""
     a = np.column_stack([tracks.center_world, tracks.semi_axes, tracks.center_sd])
-    row = "%d,%d," + ",".join(["%.6f"] * a.shape[1]) + "\r\n"  # as csv.writer writes it
+    row = "%d,%d," + ",".join(["%.6f"] * a.shape[1])
+    dense = bool(tracks.info.get("every_frame"))
     with open(path, "w", newline="") as f:
-        csv.writer(f).writerow(TRACK_COLUMNS)
-        f.writelines(row % (f_, i, *v) for f_, i, v in zip(tracks.frame.tolist(), tracks.track_id.tolist(),
-                                                            a.tolist(), strict=True))
+        csv.writer(f).writerow(TRACK_COLUMNS + (("n_views",) if dense else ()))
+        if dense:
+            row += ",%d\r\n"  # as csv.writer writes it
+            f.writelines(row % (f_, i, *v, n) for f_, i, v, n in zip(
+                tracks.frame.tolist(), tracks.track_id.tolist(), a.tolist(), tracks.n_views.tolist(),
+                strict=True))
+        else:
+            row += "\r\n"
+            f.writelines(row % (f_, i, *v) for f_, i, v in zip(
+                tracks.frame.tolist(), tracks.track_id.tolist(), a.tolist(), strict=True))
 
 
 def write_keypoints_csv(path: Path, tracks: TrackSet) -> None:
@@ -191,8 +201,9 @@ def read_tracks_csv(path: Path) -> TrackSet:
     """Read a ``tracks.csv`` written by :func:`write_tracks_csv` (one row per frame and id,
     finite numbers, semi-axes and sds >= 0)."""
     path = Path(path)
-    rows, keys = [], {}
-    for line, r in iter_csv_rows(path, TRACK_COLUMNS):
+    rows, keys, views = [], {}, []
+    columns = TRACK_COLUMNS + (("n_views",) if _header(path)[len(TRACK_COLUMNS):][:1] == ["n_views"] else ())
+    for line, r in iter_csv_rows(path, columns):
         where = f"{path}: line {line}"
         key = (parse_frame(where, r["frame"]), parse_int(where, r["id"], "id"))
         if key in keys:
@@ -205,14 +216,29 @@ def read_tracks_csv(path: Path) -> TrackSet:
         if min(vals[3:]) < 0:
             raise InputError(where, "negative semi-axis or standard deviation")
         rows.append(vals)
+        if len(columns) > len(TRACK_COLUMNS):
+            views.append(parse_int(where, r["n_views"], "n_views"))
+            if views[-1] < 0:
+                raise InputError(where, f"n_views: {views[-1]} is negative")
     if not rows:
         raise InputError(str(path), "no tracks (only a header)")
     k = np.array(list(keys), dtype=np.int64).reshape(-1, 2)
     a = np.array(rows, dtype=np.float64).reshape(-1, len(TRACK_COLUMNS) - 2)
     n = len(a)
     return TrackSet(frame=k[:, 0], track_id=k[:, 1], center_world=a[:, 0:3], semi_axes=a[:, 3:6],
-                    center_sd=a[:, 6:9], n_views=np.full(n, -1, dtype=np.int64),
+                    center_sd=a[:, 6:9],
+                    n_views=np.array(views, dtype=np.int64) if views else np.full(n, -1, dtype=np.int64),
                     kpt_world=np.zeros((n, 0, 3)), kpt_sd=np.zeros((n, 0)), info={"source": str(path)})
+
+
+def _header(path: Path) -> list[str]:
+    """The first line of a CSV file as fields ([] when it cannot be read: the reader reports
+    why)."""
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            return [x.strip() for x in next(csv.reader(f), [])]
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return []
 
 
 def read_keypoints_csv(path: Path, tracks: TrackSet, n_joints: int) -> TrackSet:

@@ -81,3 +81,36 @@ def test_compare_runs_the_pieces_reconstruct_runs(scene: Scene, tmp_path: Path) 
     mine = (tmp_path / "rec" / "tracks.csv").read_text()
     assert (tmp_path / "cmp" / "ukf" / "tracks.csv").read_text() == mine
     assert alone.info["identity"]["splits"] == 1
+
+
+@pytest.mark.parametrize("seed", [11, 12])
+def test_simulated_reused_and_exchanged_ids_are_all_split(tmp_path: Path, seed: int) -> None:
+    """The simulator's id errors (an id handed to another person, two ids exchanged for 1-4
+    frames; the truth carries the labels' ids, as WILDTRACK's does): every one that places an id
+    where it cannot have got to is split there, no object-frame is left out and every row is
+    within 0.1 m of its truth."""
+    sc, sim = written_scene(tmp_path, "native", seed=seed, frames=30, people=10, noise_px=1.0, motion="walk",
+                            errors=Errors(dropped=0.0, reused_ids=2, exchanged_ids=2))
+    errs = [r for r in sim.injected if r[4] in ("reused_id", "exchanged_ids")]
+    assert len(errs) == 4
+    segs = identity_segments(prepare(sc), sc.fps)
+    split_at = {(s.track_id, s.frame_after) for s in segs.splits}
+    frames = np.unique(sc.obs.frame)
+    checked = 0
+    for frame, _, a, _, kind, detail in errs:
+        # where the id's views were the frame before and are now (the truth carries the labels' ids)
+        before = frames[np.searchsorted(frames, frame) - 1]
+
+        def where(f: int, i: int) -> np.ndarray:
+            return sc.truth.center_world[(sc.truth.frame == f) & (sc.truth.track_id == i)][0, :2]
+
+        jump = np.linalg.norm(where(frame, a) - where(before, a))
+        if jump > 1.0:  # 10 m/s at 10 fps: no walker gets there
+            assert (a, frame) in split_at, (kind, detail, frame, a, jump, sorted(split_at))
+            checked += 1
+    assert checked >= 3
+    tracks = reconstruct(sc, "ukf")
+    it, ig = match_rows(tracks, sc.truth)
+    assert len(ig) == len(sc.truth.frame)
+    err = np.linalg.norm(tracks.center_world[it, :2] - sc.truth.center_world[ig, :2], axis=1)
+    assert err.max() < 0.1, err.max()
