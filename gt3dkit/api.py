@@ -100,7 +100,8 @@ def take_rows(tracks: TrackSet, keep: np.ndarray) -> TrackSet:
     """The rows ``keep (M,)`` of ``tracks`` (bool or indices)."""
     return dataclasses.replace(
         tracks, frame=tracks.frame[keep], track_id=tracks.track_id[keep],
-        center_world=tracks.center_world[keep], semi_axes=tracks.semi_axes[keep], center_sd=tracks.center_sd[keep], n_views=tracks.n_views[keep],
+        center_world=tracks.center_world[keep], semi_axes=tracks.semi_axes[keep],
+        center_sd=tracks.center_sd[keep], n_views=tracks.n_views[keep],
         kpt_world=tracks.kpt_world[keep], kpt_sd=tracks.kpt_sd[keep])
 
 
