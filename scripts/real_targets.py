@@ -8,7 +8,10 @@ within the reported sd), coverage, MOTA, and the identity splits made.
   UKF and GTSAM each at most 1.05 x the per-frame triangulation's mean and p95, no row more
   than 0.3 m off, coverage 100 %, MOTA >= 99.9, error within the reported sd (widened by
   7.2 mm per axis for the 2.5 cm grid; chi-square 2 dof at 99 %) in at least 99 % of rows.
-* bundled MultiviewX: UKF and GTSAM at most the per-frame fit's mean ground error.
+* bundled MultiviewX: UKF and GTSAM at most the per-frame fit's mean ground error; QA flags at
+  most 0.5 % of its boxes (its labels are exact projections).
+* ``gt3d compare`` at most 4x ``gt3d reconstruct`` in time on WILDTRACK (both writing their
+  outputs, one process each as the commands run).
 
 Each estimator runs as ``gt3d reconstruct`` runs it (:func:`gt3dkit.api.reconstruct`: the same
 preparation and identity handling). Exit status 1 when a target is missed.
@@ -18,14 +21,16 @@ from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 from scipy.stats import chi2
 
-from gt3dkit.api import load_scene, reconstruct
+from gt3dkit.api import annotation_qa, load_scene, reconstruct
 from gt3dkit.commands.common import bundled
+from gt3dkit.compare import compare
 from gt3dkit.eval.metrics import ground_coords, match_rows
 from gt3dkit.eval.tracking import tracking_scores
 
@@ -85,6 +90,24 @@ def run(path: Path, label: str) -> dict[str, dict[str, float]]:
     return res
 
 
+def box_flags(scene, tracks) -> tuple[int, dict[str, int]]:
+    """Annotations QA flags (per-box kinds) and every kind's count."""
+    counts = annotation_qa(scene, tracks).counts()
+    per_box = sum(v for k, v in counts.items() if k in ("shifted_box", "size_outlier"))
+    return per_box, counts
+
+
+def timings(path: Path) -> tuple[float, float]:
+    """Seconds of ``gt3d reconstruct`` and of ``gt3d compare`` (loading, estimating, QA, writing)."""
+    with tempfile.TemporaryDirectory() as d:
+        t0 = time.perf_counter()
+        reconstruct(load_scene(path), "ukf", out=Path(d) / "rec")
+        t1 = time.perf_counter()
+        compare(load_scene(path), Path(d) / "cmp", progress=False)
+        t2 = time.perf_counter()
+    return t1 - t0, t2 - t1
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path,
@@ -105,9 +128,19 @@ def main() -> int:
             check(f"WILDTRACK {name} MOTA >= 99.9", e["mota"] >= 99.9, f"{e['mota']:.2f}")
             check(f"WILDTRACK {name} error within sd >= 99 %", e["within_sd"] >= 0.99,
                   f"{100 * e['within_sd']:.1f} %")
+        scene = load_scene(wt)
+        flagged, counts = box_flags(scene, reconstruct(scene, "ukf"))
+        print(f"  QA of the UKF run: {counts} ({flagged} of {len(scene.obs)} boxes flagged)")
+        rec_s, cmp_s = timings(wt)
+        check("WILDTRACK compare / reconstruct time <= 4", cmp_s <= 4 * rec_s,
+              f"{cmp_s:.1f} s / {rec_s:.1f} s = {cmp_s / rec_s:.2f}")
     else:
         print(f"{wt}: not found (research-only data beside the repository); WILDTRACK skipped")
     r = run(bundled("multiviewx"), "bundled MultiviewX")
+    scene = load_scene(bundled("multiviewx"))
+    flagged, counts = box_flags(scene, reconstruct(scene, "ukf"))
+    check("MultiviewX QA flags <= 0.5 % of its boxes", flagged <= 0.005 * len(scene.obs),
+          f"{flagged} of {len(scene.obs)} ({100 * flagged / len(scene.obs):.2f} %; {counts})")
     for name in ("ukf", "gtsam"):
         check(f"MultiviewX {name} mean <= triangulation's",
               r[name]["mean_mm"] <= r["triangulation"]["mean_mm"],

@@ -246,15 +246,22 @@ class Start(NamedTuple):
 
 
 class Motion(NamedTuple):
-    """The process noise of each row's step ``accel, shape, joint_accel (R,)``, the shape of the
-    centre's acceleration noise ``A (3, 3)`` (:func:`gt3dkit.fusion.motion.accel_shape`) and the
-    state's layout."""
+    """The process noise of each row's step ``accel, shape, joint_accel, position (R,)``
+    (:class:`gt3dkit.fusion.motion.Noise`), the shape of the centre's acceleration noise ``A (3,
+    3)`` (:func:`gt3dkit.fusion.motion.accel_shape`) and the state's layout."""
 
     accel: F64
     shape: F64
     joint_accel: F64
+    position: F64
     A: F64
     ix: StateIndex
+
+
+@numba.njit(cache=True, nogil=True)
+def motion_noise(motion: Motion, row: int) -> Noise:
+    """The noise of the step into row ``row``."""
+    return Noise(motion.accel[row], motion.shape[row], motion.joint_accel[row], motion.position[row])
 
 
 class Fading(NamedTuple):
@@ -284,8 +291,7 @@ def _predict(row: int, prev: int, chains: Chains, motion: Motion, out: RowsOut, 
              track: Track) -> None:
     """Row ``row``'s prediction from its filtered predecessor ``prev``."""
     transition(chains.t_s[row] - chains.t_s[prev],
-               Noise(motion.accel[row], motion.shape[row],
-                     motion.joint_accel[row]), motion.A, motion.ix, F, Q)
+               motion_noise(motion, row), motion.A, motion.ix, F, Q)
     predict_row(out.x[prev], out.P[prev], F, Q, track.x_p[row], track.P_p[row])
 
 
@@ -338,7 +344,7 @@ def backward(last: I64, chains: Chains, motion: Motion, track: Track, out: RowsO
         row = chains.prev_row[nxt]
         while row >= 0 and chains.run[row] and chains.run[nxt]:
             transition(chains.t_s[nxt] - chains.t_s[row],
-                       Noise(motion.accel[row], motion.shape[row], motion.joint_accel[row]), motion.A,
+                       motion_noise(motion, row), motion.A,
                        motion.ix, F, Q)
             rts_row(out.x[row], out.P[row], track.x_p[nxt], track.P_p[nxt], out.x[nxt], out.P[nxt], F,
                     out.x[row], out.P[row])
@@ -370,7 +376,7 @@ def linear_forward(first: I64, chains: Chains, start: Start, motion: Motion, lin
                 P_p[:, :] = start.P0[row]
             else:
                 transition(chains.t_s[row] - chains.t_s[prev],
-                           Noise(motion.accel[row], motion.shape[row], motion.joint_accel[row]), motion.A,
+                           motion_noise(motion, row), motion.A,
                            motion.ix, F, Q)
                 predict_row(post.x, post.P, F, Q, x_p, P_p)
             prior_factor(P_p, LP, Pinv)
@@ -429,7 +435,7 @@ def motion_of(model: Any, cfg: Any, noise_rows: dict[str, F64] | None = None) ->
         return contiguous(np.broadcast_to(np.asarray(default if v is None else v, dtype=np.float64), (R,)))
 
     accel = col("accel_sd")  # the joints move with the centre's noise unless given their own
-    return Motion(accel, col("shape_sd"), col("joint_accel_sd", accel),
+    return Motion(accel, col("shape_sd"), col("joint_accel_sd", accel), col("position_sd", 0.0),
                   accel_shape(model.cams.up, cfg.vertical_ratio), model.layout.index)
 
 
@@ -458,14 +464,14 @@ class LinearisedSearch:
         self.w0 = contiguous(np.broadcast_to(weights, (R, m)))
         self.model, self.cfg, self.cols = model, cfg, box.cols
 
-    def logliks(self, accel_sd: list[float], shape_sd: list[float]) -> list[float]:
-        """The forward pass's log-likelihood at each ``(accel_sd, shape_sd)`` pair (the pairs
-        split over threads)."""
-        out = [0.0] * len(accel_sd)
+    def logliks(self, settings: list[dict[str, float]]) -> list[float]:
+        """The forward pass's log-likelihood at each setting (process-noise values by name, the
+        others ``cfg``'s; the settings split over threads)."""
+        out = [0.0] * len(settings)
 
         def part(a: int, b: int) -> None:
             for i in range(a, b):
-                motion = motion_of(self.model, self.cfg, {"accel_sd": accel_sd[i], "shape_sd": shape_sd[i]})
+                motion = motion_of(self.model, self.cfg, settings[i])
                 out[i] = linear_forward(self.first, self.chains, self.start, motion, self.lins, self.w0,
                                         self.cols)
 

@@ -14,7 +14,11 @@ log semi-axes follow a random walk (the paper's model):
     \end{bmatrix} \otimes A,\quad Q_\sigma = q_\sigma^2 \Delta t\, I_3
 
 with ``A = I + (r^2 - 1) u u^T`` shaping the centre's acceleration noise (``r`` the vertical
-ratio, ``u`` the up direction; joints are isotropic). :func:`transition` is compiled: the
+ratio, ``u`` the up direction; joints are isotropic). The centre's position may also take a
+random walk of its own, ``Q_{cc} \mathrel{+}= q_p^2 \Delta t\, A``: where the labels place an
+object frame by frame (an annotator's click on a ground grid at 2 fps), its position departs
+from any smooth path by more than a walker's acceleration explains, and velocity should not
+follow those departures. :func:`transition` is compiled: the
 compiled filter calls it per step, :meth:`StateLayout.transition` per batch.
 """
 
@@ -50,11 +54,13 @@ class StateIndex(NamedTuple):
 
 class Noise(NamedTuple):
     """Process noise of one step: the centre's white acceleration (m/s^2/sqrt(Hz)), the log
-    semi-axes' random walk (1/sqrt(s)) and the joints' white acceleration."""
+    semi-axes' random walk (1/sqrt(s)), the joints' white acceleration and the centre position's
+    own random walk (m/sqrt(s); 0: none)."""
 
     accel_sd: float
     shape_sd: float
     joint_accel_sd: float
+    position_sd: float
 
 
 @dataclass(frozen=True)
@@ -102,7 +108,7 @@ class StateLayout:
 
     def transition(self, dt_s: F64, accel_sd: float, shape_sd: float,
                    joint_accel_sd: float | None = None, up: F64 | None = None,
-                   vertical_ratio: float = 1.0) -> tuple[F64, F64]:
+                   vertical_ratio: float = 1.0, position_sd: float = 0.0) -> tuple[F64, F64]:
         """``F, Q`` of shape ``(B, n, n)`` for time steps ``dt_s (B,)`` in seconds.
 
         The centre's acceleration noise along ``up`` is ``vertical_ratio * accel_sd``
@@ -112,7 +118,7 @@ class StateLayout:
         B, n = len(dt), self.n
         F, Q = np.empty((B, n, n)), np.empty((B, n, n))
         noise = Noise(float(accel_sd), float(shape_sd),
-                      float(accel_sd if joint_accel_sd is None else joint_accel_sd))
+                      float(accel_sd if joint_accel_sd is None else joint_accel_sd), float(position_sd))
         transitions(dt, noise, accel_shape(up, vertical_ratio), self.index, F, Q)
         return F, Q
 
@@ -135,6 +141,7 @@ def transition(dt: float, noise: Noise, A: F64, ix: StateIndex, F: F64, Q: F64) 
         F[i, i] = 1.0
     qa2 = noise.accel_sd * noise.accel_sd
     b00, b01, b11 = qa2 * dt**3 / 3.0, qa2 * dt**2 / 2.0, qa2 * dt
+    b00 += noise.position_sd * noise.position_sd * dt
     c, v, la = ix.centre, ix.velocity, ix.log_axes
     for i in range(SPACE):
         F[c + i, v + i] = dt

@@ -82,6 +82,9 @@ class UKFConfig:
     sigma_px : box-edge noise; ``None`` = robust residual level of the per-frame fits
     accel_sd : white-acceleration noise of the centre, m/s^2/sqrt(Hz); ``None`` = maximum
         likelihood of the forward pass within ``accel_bounds``
+    position_sd : random walk of the centre's position on top of it, m/sqrt(s)
+        (:mod:`gt3dkit.fusion.motion`: labels placed frame by frame depart from a smooth path);
+        ``None`` = maximum likelihood within ``position_bounds`` (boxes; 0 without boxes)
     vertical_ratio : the vertical acceleration noise is this times ``accel_sd``
     shape_sd : random-walk noise of the log semi-axes, 1/sqrt(s); ``None`` = maximum
         likelihood within ``shape_bounds``
@@ -107,6 +110,8 @@ class UKFConfig:
     sigma_px: float | None = None
     accel_sd: float | None = None
     accel_bounds: tuple[float, float] = (0.01, 100.0)
+    position_sd: float | None = None
+    position_bounds: tuple[float, float] = (1e-3, 1.0)
     vertical_ratio: float = 0.1
     shape_sd: float | None = None
     shape_bounds: tuple[float, float] = (1e-5, 0.3)
@@ -135,11 +140,11 @@ class UKFConfig:
             if isinstance(v, float) and not np.isfinite(v):
                 raise ValueError(f"UKFConfig.{k} must be finite, got {v}")
         for k in ("sigma_px", "kpt_sigma_px", "bone_sd_m", "accel_sd", "shape_sd",
-                  "joint_accel_sd"):
+                  "joint_accel_sd", "position_sd"):
             v = getattr(self, k)
             if v is not None and v <= 0:
                 raise ValueError(f"UKFConfig.{k} must be positive, got {v}")
-        for k in ("accel_bounds", "shape_bounds", "joint_accel_bounds"):
+        for k in ("accel_bounds", "shape_bounds", "joint_accel_bounds", "position_bounds"):
             lo, hi = getattr(self, k)
             if not 0 < lo < hi:
                 raise ValueError(f"UKFConfig.{k} must be 0 < lo < hi, got {(lo, hi)}")
@@ -462,8 +467,8 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
     def search(name: str, c: UKFConfig, bounds: tuple[float, float], n_scan: int) -> UKFConfig:
         def logliks(values: list[float]) -> list[float]:
             if lin is not None:  # boxes: the regression fixed per row, a linear pass per value
-                pairs = [replace(c, **{name: v}) for v in values]
-                return lin.logliks([p.accel_sd for p in pairs], [p.shape_sd for p in pairs])
+                return lin.logliks([{"accel_sd": c.accel_sd, "shape_sd": c.shape_sd,
+                                     "position_sd": c.position_sd or 0.0, name: v} for v in values])
             out: list[float] = []
             for i in range(0, len(values), per_pass):
                 part = values[i:i + per_pass]
@@ -482,6 +487,8 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
     cfg = start
     if use_box and given.accel_sd is None:
         cfg = search("accel_sd", cfg, cfg.accel_bounds, 5)
+    if use_box and given.position_sd is None:
+        cfg = search("position_sd", cfg, cfg.position_bounds, 4)
     if use_box and given.shape_sd is None:
         cfg = search("shape_sd", cfg, cfg.shape_bounds, 4)
     if use_kpt and given.joint_accel_sd is None:
@@ -489,6 +496,15 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
     if not use_box and given.accel_sd is None:
         cfg = replace(cfg, accel_sd=cfg.joint_accel_sd)
     return cfg, curves
+
+
+def noise_by_likelihood(pre: Prepared, fps: float, cfg: UKFConfig) -> tuple[UKFConfig, dict[str, Any]]:
+    """:func:`select_noise` of a preparation: the process noise (the values ``cfg`` leaves
+    ``None``) that maximises the marginal likelihood of the state-space model, by the Kalman
+    filter's prediction-error decomposition; what the GTSAM smoother's graph is tuned by too
+    (the same model, solved another way)."""
+    model = Model.of(pre)
+    return select_noise(model, initial_states(model, cfg), cfg, pre, fps)
 
 
 def search_rows(rows: Any, budget: int, seed: int = 0) -> np.ndarray | None:
@@ -679,7 +695,7 @@ def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
         """``F, Q (B, n, n)`` of rows ``r``, each distinct (time step, noise) computed once per
         run (a frame's rows mostly share one: then read-only broadcast views)."""
         dt = np.asarray(dt, dtype=np.float64).reshape(-1)
-        names = ("accel_sd", "shape_sd", "joint_accel_sd")
+        names = ("accel_sd", "shape_sd", "joint_accel_sd", "position_sd")
         vals = [per[k][r] if k in per else getattr(cfg, k) for k in names]
         cols = [dt] + [np.broadcast_to(np.asarray(-1.0 if v is None else v, dtype=np.float64), dt.shape)
                        for v in vals]  # -1: not set (noise is >= 0; NaN would never compare equal)
@@ -690,6 +706,7 @@ def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
         for key in map(tuple, uniq.tolist()):
             if key not in cache:
                 q = {k: (None if v == -1.0 else v) for k, v in zip(names, key[1:], strict=True)}
+                q["position_sd"] = q["position_sd"] or 0.0
                 F1, Q1 = layout.transition(np.array(key[:1]), **q, up=cams.up,
                                            vertical_ratio=cfg.vertical_ratio)
                 cache[key] = F1[0], Q1[0]

@@ -17,6 +17,7 @@ from gt3dkit.fusion import ukf_smoother as us
 from gt3dkit.fusion.boxfit import box_model as box_function
 from gt3dkit.fusion.boxupdate import LinearisedSearch
 from gt3dkit.fusion.measurement import Model
+from gt3dkit.fusion.motion import accel_shape
 from gt3dkit.fusion.robust import RobustConfig
 from gt3dkit.fusion.rows import replicate_rows
 from gt3dkit.fusion.ukf import Block, Robust, SigmaWeights, ukf_update_information
@@ -227,7 +228,7 @@ def test_linearised_search_pass_is_a_plain_kalman_filter(box_scene) -> None:
     lin = LinearisedSearch(model, init, cfg, 10.0, x_s, P_s, w, None)
     rows, lay = model.rows, model.layout
     dims = lay.ellipsoid_dims
-    for accel, shape in ((0.5, 0.01), (2.0, 0.001)):
+    for accel, shape, pos in ((0.5, 0.01, 0.0), (2.0, 0.001, 0.0), (0.3, 0.01, 0.05)):
         total = 0.0
         for start in np.flatnonzero(rows.prev_row < 0):
             r, prev = int(start), -1
@@ -237,6 +238,9 @@ def test_linearised_search_pass_is_a_plain_kalman_filter(box_scene) -> None:
                     dt = (rows.frames[rows.row_t[r]] - rows.frames[rows.row_t[prev]]) / 10.0
                     F, Q = lay.transition(np.array([dt]), accel, shape, up=model.cams.up,
                                           vertical_ratio=cfg.vertical_ratio)
+                    # the position's own random walk, written out here (motion.py adds it to Q)
+                    A = accel_shape(model.cams.up, cfg.vertical_ratio)
+                    Q[0, lay.center, lay.center] += pos**2 * dt * A
                     x, P = F[0] @ x, F[0] @ P @ F[0].T + Q[0]
                 use = lin.lins.used[r] & (w[r] > 0)
                 H = np.zeros((use.sum(), lay.n))
@@ -248,7 +252,8 @@ def test_linearised_search_pass_is_a_plain_kalman_filter(box_scene) -> None:
                 Kg = P @ H.T @ np.linalg.inv(S)
                 x, P = x + Kg @ (y - H @ x), P - Kg @ S @ Kg.T
                 prev, r = r, int(rows.next_row[r])
-        assert lin.logliks([accel], [shape])[0] == pytest.approx(total, rel=1e-9)
+        setting = {"accel_sd": accel, "shape_sd": shape, "position_sd": pos}
+        assert lin.logliks([setting])[0] == pytest.approx(total, rel=1e-9)
 
 
 def test_linearised_search_finds_the_full_search_values(tmp_path: Path) -> None:
