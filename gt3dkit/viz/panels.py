@@ -271,66 +271,92 @@ def track_plots(tracks: TrackSet, res: ViewResiduals, folder: Path) -> str:
 
 
 def anomaly_thumbnail(scene: Scene, res: ViewResiduals, frame: int, obj: int, camera: str,
-                      joint: int | None, path: Path, max_views: int = 4) -> bool:
+                      joint: int | None, path: Path, max_views: int = 4, before: int | None = None) -> bool:
     """A small picture of the views involved in one anomaly: the flagged view (red title)
-    and the object's other views at that frame, each cropped around the object. False when
-    there is nothing to draw."""
+    and the object's other views at that frame, each cropped around the object. ``before``: a
+    frame to show above it, each view cropped around the object there (an identity split: where
+    the id was, and where its views put it now). False when there is nothing to draw."""
     plt = _plt()
+    frames = [f for f in (before, frame) if f is not None]
+    picks = [_thumbnail_views(scene, res, f, obj, camera, max_views) for f in frames]
+    if not picks[-1]:
+        return False
+    picks = [p for p in picks if p]
+    width = max(len(p[1]) for p in picks)
+    fig, axes = plt.subplots(len(picks), width, figsize=(2.4 * width, 2.6 * len(picks)), dpi=90,
+                             squeeze=False)
+    labels = ("before", "now") if len(picks) > 1 else ("",)
+    for row, (n, cams), label in zip(axes, picks, labels, strict=True):
+        for ax, c in zip(row, cams, strict=False):
+            _thumbnail_view(ax, scene, res, n, c, camera, joint,
+                            f"{label} (frame {int(res.frame[n])}): " if label else "")
+        for ax in row[len(cams):]:
+            ax.set_axis_off()
+    fig.subplots_adjust(left=0.01, right=0.99, top=0.86 if len(picks) == 1 else 0.93, bottom=0.02,
+                        wspace=0.06, hspace=0.15)
+    fig.savefig(path)
+    plt.close(fig)
+    return True
+
+
+def _thumbnail_views(scene: Scene, res: ViewResiduals, frame: int, obj: int, camera: str,
+                     max_views: int) -> tuple[int, list[int]] | None:
+    """The residual row of ``obj`` at ``frame`` and the cameras to draw it in (the flagged
+    camera first, then the worst-fitting views), or None."""
     names = scene.rig.names
     rows = np.flatnonzero((res.frame == frame) & (res.obj == obj))
     if not len(rows):
-        return False
-    n = rows[0]
+        return None
+    n = int(rows[0])
     seen = np.isfinite(res.view_err[n])
     if res.box_z is not None:
         seen |= np.isfinite(res.box_z[n]).all(axis=1)
     if res.kpt_z is not None:
         seen |= np.isfinite(res.kpt_z[n][..., 0]).any(axis=1)
-    cams = [names.index(camera)] if camera in names else []
-    cams += [c for c in np.argsort(-np.nan_to_num(res.view_err[n], nan=-1)) if seen[c] and c not in cams]
+    cams = [names.index(camera)] if camera in names else []  # drawn even unannotated (missing_view)
+    cams += [int(c) for c in np.argsort(-np.nan_to_num(res.view_err[n], nan=-1)) if seen[c] and c not in cams]
     cams = cams[:max_views]
-    if not cams:
-        return False
-    bones = _bones(scene)
+    return (n, cams) if cams else None
+
+
+def _thumbnail_view(ax: Any, scene: Scene, res: ViewResiduals, n: int, c: int, camera: str,
+                    joint: int | None, prefix: str) -> None:
+    """Camera ``c``'s view of residual row ``n``, cropped around the object."""
+    names = scene.rig.names
+    frame = int(res.frame[n])
     others = np.flatnonzero(res.frame == frame)
-    fig, axes = plt.subplots(1, len(cams), figsize=(2.4 * len(cams), 2.6), dpi=90, squeeze=False)
-    for ax, c in zip(axes.flat, cams, strict=True):
-        core = _points(res, n, c, estimate=True)
-        extra = _points(res, n, c, estimate=False)
-        if not len(core):
-            core, extra = extra, core
-        if not len(core):
-            ax.set_axis_off()
-            continue
-        lo, hi = core.min(axis=0), core.max(axis=0)
-        size = max(float((hi - lo).max()), 20.0)
-        far = 0
-        if len(extra):  # annotations near the estimate widen the crop; far-off ones are counted
-            d = np.maximum(np.maximum(lo - extra, extra - hi), 0).max(axis=1)
-            near = extra[d <= size]
-            far = int((d > size).sum())
-            if len(near):
-                lo, hi = np.minimum(lo, near.min(axis=0)), np.maximum(hi, near.max(axis=0))
-        mid, half = (lo + hi) / 2, (hi - lo) / 2
-        half = np.maximum(half, 0.75 * half.max())  # not a sliver: a tall person gets some width
-        lo, hi = mid - half, mid + half
-        pad = 0.3 * max(float((hi - lo).max()), 20.0)
-        cam = scene.rig.cameras[c]
-        img = camera_image(scene, c, frame)
-        if img is not None:
-            ax.imshow(img, extent=(0, cam.width, cam.height, 0))
-        else:
-            ax.set_facecolor("#f2f2f2")
-        flagged = c == cams[0] and camera in names
-        draw_view(ax, scene, res, c, others, bones, lw=1.4, mark=(n, joint) if flagged else None, focus=n)
-        ax.set_xlim(lo[0] - pad, hi[0] + pad)
-        ax.set_ylim(hi[1] + pad, lo[1] - pad)
-        ax.set_aspect("equal")
-        ax.set_xticks([])
-        ax.set_yticks([])
-        ax.set_title(names[c] + (f" ({far} point{'s' if far > 1 else ''} far off)" if far else ""),
-                     fontsize=8, color="red" if names[c] == camera else "black")
-    fig.subplots_adjust(left=0.01, right=0.99, top=0.86, bottom=0.02, wspace=0.06)
-    fig.savefig(path)
-    plt.close(fig)
-    return True
+    core = _points(res, n, c, estimate=True)
+    extra = _points(res, n, c, estimate=False)
+    if not len(core):
+        core, extra = extra, core
+    if not len(core):
+        ax.set_axis_off()
+        return
+    lo, hi = core.min(axis=0), core.max(axis=0)
+    size = max(float((hi - lo).max()), 20.0)
+    far = 0
+    if len(extra):  # annotations near the estimate widen the crop; far-off ones are counted
+        d = np.maximum(np.maximum(lo - extra, extra - hi), 0).max(axis=1)
+        near = extra[d <= size]
+        far = int((d > size).sum())
+        if len(near):
+            lo, hi = np.minimum(lo, near.min(axis=0)), np.maximum(hi, near.max(axis=0))
+    mid, half = (lo + hi) / 2, (hi - lo) / 2
+    half = np.maximum(half, 0.75 * half.max())  # not a sliver: a tall person gets some width
+    lo, hi = mid - half, mid + half
+    pad = 0.3 * max(float((hi - lo).max()), 20.0)
+    cam = scene.rig.cameras[c]
+    img = camera_image(scene, c, frame)
+    if img is not None:
+        ax.imshow(img, extent=(0, cam.width, cam.height, 0))
+    else:
+        ax.set_facecolor("#f2f2f2")
+    flagged = names[c] == camera
+    draw_view(ax, scene, res, c, others, _bones(scene), lw=1.4, mark=(n, joint) if flagged else None, focus=n)
+    ax.set_xlim(lo[0] - pad, hi[0] + pad)
+    ax.set_ylim(hi[1] + pad, lo[1] - pad)
+    ax.set_aspect("equal")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    ax.set_title(prefix + names[c] + (f" ({far} point{'s' if far > 1 else ''} far off)" if far else ""),
+                 fontsize=8, color="red" if flagged else "black")

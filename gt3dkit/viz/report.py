@@ -27,6 +27,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.eval.metrics import match_rows
 from gt3dkit.fusion.prepare import prepare
 from gt3dkit.io.atomic import write_dir_atomically
+from gt3dkit.io.writers import SEGMENT_COLUMNS
 from gt3dkit.parse import read_csv_rows
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import Scene, TrackSet
@@ -150,6 +151,7 @@ def _anomaly_section(run: Run, res: Any, folder: Path) -> str:
 
     order = sorted(range(len(rows)), key=lambda i: -score(rows[i]))
     pictured = set(order[:MAX_PICTURES])
+    before = _split_frames(run.out)
     joints = _joint_names(run.scene)
     body = []
     (folder / "anomalies").mkdir(exist_ok=True)
@@ -160,8 +162,9 @@ def _anomaly_section(run: Run, res: Any, folder: Path) -> str:
         if i in pictured and r["id"].strip().lstrip("-").isdigit():
             name = f"anomalies/{i:05d}.png"
             j = int(r["joint"]) if r["joint"].strip().lstrip("-").isdigit() else None
+            prev = before.get((int(r["id"]), int(r["frame"]))) if r["kind"] == "identity_split" else None
             if anomaly_thumbnail(run.scene, res, int(r["frame"]), int(r["id"]), r["camera"], j,
-                                 folder / name):
+                                 folder / name, before=prev):
                 pic = f'<img src="{name}">'
         named = r["joint"].isdigit() and int(r["joint"]) < len(joints)
         joint = joints[int(r["joint"])] if named else r["joint"]
@@ -173,6 +176,27 @@ def _anomaly_section(run: Run, res: Any, folder: Path) -> str:
             f"{html.escape(_annotation_note())}; a flagged joint is circled red.</p>"
             + _table(body, ["frame", "camera", "id", "joint", "kind", "score", "detail", "views"],
                      raw_cols=(6, 7)) + more)
+
+
+def _split_frames(out: Path) -> dict[tuple[int, int], int]:
+    """``(id, first frame of a piece) -> last frame of the piece before it`` from ``segments.csv``
+    (an identity split's picture shows the id there and at the split)."""
+    path = out / "segments.csv"
+    if not path.is_file():
+        return {}
+    pieces: dict[int, list[tuple[int, int, int]]] = {}
+    for _, r in read_csv_rows(path, SEGMENT_COLUMNS):
+        try:
+            pieces.setdefault(int(r["id"]), []).append((int(r["segment"]), int(r["first_frame"]),
+                                                        int(r["last_frame"])))
+        except ValueError:
+            continue  # an edited file: the pictures go without the earlier place
+    out_map = {}
+    for i, ps in pieces.items():
+        ps.sort()
+        for (_, _, last), (_, first, _) in zip(ps, ps[1:], strict=False):
+            out_map[(i, first)] = last
+    return out_map
 
 
 def _annotation_note() -> str:

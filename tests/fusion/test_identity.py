@@ -114,3 +114,24 @@ def test_simulated_reused_and_exchanged_ids_are_all_split(tmp_path: Path, seed: 
     assert len(ig) == len(sc.truth.frame)
     err = np.linalg.norm(tracks.center_world[it, :2] - sc.truth.center_world[ig, :2], axis=1)
     assert err.max() < 0.1, err.max()
+
+
+def test_an_identity_split_picture_shows_both_places(scene: Scene, tmp_path: Path) -> None:
+    """The report's picture of an identity split: the id's views where it was (the previous
+    piece's last frame, from segments.csv) above its views at the split, each cropped there."""
+    import matplotlib.image as mpimg
+
+    from gt3dkit.viz.panels import anomaly_thumbnail, view_residuals
+    from gt3dkit.viz.report import _split_frames
+
+    a = int(np.unique(scene.obs.track_id)[0])
+    at = int(np.unique(scene.obs.frame)[12])
+    tracks = reconstruct(scene, "ukf", out=tmp_path / "run")
+    before = _split_frames(tmp_path / "run")
+    assert before == {(a, at): int(np.unique(scene.obs.frame)[11])}
+    res = view_residuals(tracks, prepare(scene))
+    one, two = tmp_path / "one.png", tmp_path / "two.png"
+    assert anomaly_thumbnail(scene, res, at, a, "", None, one)
+    assert anomaly_thumbnail(scene, res, at, a, "", None, two, before=before[(a, at)])
+    h1, h2 = mpimg.imread(one).shape[0], mpimg.imread(two).shape[0]
+    assert h2 == 2 * h1  # two rows of views: before, and at the split
