@@ -55,6 +55,7 @@ class Model:
     centre_determined: np.ndarray  # (R,) the per-frame box fit rests on 2+ views
     kpt_cov_frame: F64 | None = None  # (R, J, 3, 3) per-frame joints' covariance
     bones: np.ndarray | None = None  # (K, 2)
+    box_tail: float = 1.0  # box edges are tested at this multiple of their variance (Prepared.box_tail)
 
     @classmethod
     def of(cls, pre: Prepared) -> Model:
@@ -88,7 +89,8 @@ class Model:
                                           v_f[:, lay.joints], np.inf)
         return cls(rows, cams, lay, pre.use_box, np.where(mask, np.concatenate(zs, 1), 0.0),
                    mask, np.concatenate(vars_, 1), np.concatenate(w0, 1),
-                   tuple(blocks) if pre.robust.enabled else (), x_f, v_f, c6, det, kcov)
+                   tuple(blocks) if pre.robust.enabled else (), x_f, v_f, c6, det, kcov,
+                   box_tail=pre.box_tail)
 
     def take(self, rows: Rows, src: np.ndarray) -> Model:
         """This model for ``rows`` whose row ``i`` is this model's row ``src[i]``
@@ -213,7 +215,24 @@ class Model:
         """The measurement vector's :class:`gt3dkit.fusion.update.Columns`
         (:func:`gt3dkit.fusion.ukf.block_columns`)."""
         rule = Robust(robust, self.robust_blocks) if robust is not None and self.robust_blocks else None
-        return block_columns(self.blocks(), self.z.shape[1], rule)
+        cols = block_columns(self.blocks(), self.z.shape[1], rule)
+        if not (self.use_box and self.box_tail != 1.0):
+            return cols
+        scale = np.ones(self.z.shape[1])
+        scale[:self.n_box_columns] = np.sqrt(self.box_tail)
+        return cols._replace(c_thr=cols.c_thr * scale, g_thr=cols.g_thr * scale)
+
+    @property
+    def n_box_columns(self) -> int:
+        """The box edges lead the measurement vector: 4 per camera (0 without boxes)."""
+        return 4 * len(self.cams.K) if self.use_box else 0
+
+    def test_variance(self) -> F64:
+        """(m,) the variance factor each column's outlier test is made at (``box_tail`` for
+        box edges, 1 for the rest)."""
+        out = np.ones(self.z.shape[1])
+        out[:self.n_box_columns] = self.box_tail
+        return out
 
     def blocks(self) -> list[Block]:
         """The measurement vector as :class:`gt3dkit.fusion.ukf.Block` groups: the box edges of

@@ -36,6 +36,7 @@ from gt3dkit.fusion.robust import (
     chi2_isf,
     chi2_median,
     deleted_score2,
+    median_variance,
     point_weights,
     robust_variance,
 )
@@ -75,8 +76,10 @@ class Prepared:
     kpt_reliable : (R, J) the per-frame joint is a summary to trust on its own (three or more
         views kept, or two views and nothing rejected): with two views left after a
         rejection, a wrong point along the other's epipolar line looks consistent
-    sigma_box : (4,) box-edge noise per edge kind (px); sigma_kpt : (J,) keypoint noise per
-        joint (px)
+    sigma_box : (4,) box-edge noise per edge kind (px): the typical edge's, what the filters
+        weight an edge by; box_tail : the variance ratio of all edges (``info["boxes"]["sigma_px"]``,
+        heavy-tailed by the model's misfit) to it, >= 1: tests and flags are made at that level;
+        sigma_kpt : (J,) keypoint noise per joint (px)
     kpt_var : (R, C, J) each keypoint's variance (px^2) = sigma_kpt[j]^2 / confidence
     """
 
@@ -99,6 +102,7 @@ class Prepared:
     skeleton: Skeleton | None
     robust: RobustConfig
     info: dict[str, Any] = field(default_factory=dict)
+    box_tail: float = 1.0
 
     def frame_state(self) -> tuple[F64, F64, F64]:
         """Every row's own (per-frame) state, for initialisation and linearisation (computed
@@ -123,7 +127,7 @@ class Prepared:
             x[:, lay.center], x[:, lay.log_axes] = self.fit.center_world, self.fit.log_axes
             # a frame whose own views disagree (beyond what their noise explains) is trusted less
             dof = self.fit.n_edges - 6
-            chi = self.fit.rss_px2 / self.sigma_box[0] ** 2
+            chi = self.fit.rss_px2 / (self.sigma_box[0] ** 2 * self.box_tail)
             cov6 = self.fit.cov * disagreement_scale(chi, dof)[:, None, None]
         elif self.kpt0 is not None:
             c, s, _ = ellipsoid_around(self.kpt0, np.zeros(self.kpt0.shape[:2]), wfb)
@@ -217,7 +221,8 @@ def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = Non
             _check_determined(scene, rows, kpt0)
     return Prepared(rows, cams, StateLayout(J if use_kpt else 0), use_box, use_kpt, fit, box_keep,
                     reliable, kpt0, kpt0_cov, kpt_keep, kpt_reliable, sigma_box, sigma_kpt,
-                    kpt_var, prior, skel, robust, info)
+                    kpt_var, prior, skel, robust, info,
+                    box_tail=float(info["boxes"]["tail_variance_ratio"]) if use_box else 1.0)
 
 
 def disagreement_scale(chi2_sum: F64, dof: F64, tail_p: float = 0.01) -> F64:
@@ -274,6 +279,16 @@ def _group_variances(r2: F64, dof: F64, use: np.ndarray, group: np.ndarray, n_gr
             if np.isfinite(v) and v > 0:
                 out[g] = v
     return glob, out
+
+
+def _core_sigma(fit: BoxFit, keep: np.ndarray) -> float:
+    """The box-edge noise sd (px) of the typical edge (:func:`gt3dkit.fusion.robust.median_variance`
+    of the kept edges' residuals, dof as in :func:`_edge_sigmas`)."""
+    n = np.maximum(fit.n_edges, 1.0)
+    share = np.clip((fit.n_edges - 6) / n, 0.0, 1.0)
+    use = keep & (share[:, None, None] > 0) & np.isfinite(fit.residual_px)
+    v = median_variance(fit.residual_px[use] ** 2, np.broadcast_to(share[:, None, None], keep.shape)[use])
+    return float(np.sqrt(max(v, 0.1**2))) if np.isfinite(v) else float("nan")
 
 
 def _edge_sigmas(fit: BoxFit, keep: np.ndarray, robust: RobustConfig) -> tuple[F64, F64]:
@@ -343,16 +358,23 @@ def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
         fit = _merge_fit(fit, weak, fit_boxes(rows.box_z[weak], keep[weak], cams, sig,
                                               prior_log_axes=prior.mean, prior_sd=prior.sd,
                                               p0=params(fit, weak)))
-    info = {"sigma_px": float(sig[0]),
+    # the filters weight an edge by the typical edge's noise; the tails beyond it (a person is
+    # not an ellipsoid's tangent box: side edges 2-6 px off where the feet are within 0.5 px)
+    # are the model's misfit, not outliers: their tests are made at the whole level
+    core = float(sig[0]) if sigma_px is not None else _core_sigma(fit, keep)
+    core = min(core, float(sig[0])) if np.isfinite(core) else float(sig[0])
+    tail = (float(sig[0]) / core) ** 2
+    info = {"sigma_px": float(sig[0]), "sigma_px_core": core, "tail_variance_ratio": tail,
             "sigma_px_per_edge_kind": dict(zip(EDGES, _edge_sigmas(fit, keep, robust)[1].round(4)
                                                .tolist(), strict=True)),
             "sigma_source": "given" if sigma_px is not None else
-            "robust residual level of the per-frame fits (kept edges, with dof)",
+            "robust residual level of the per-frame fits (kept edges, with dof); the filters weight "
+            "each edge by sigma_px_core (the median edge's level) and test it against sigma_px",
             "edges_rejected_per_frame": int((rows.box_mask & ~keep).sum()),
             "edges_usable": int(rows.box_mask.sum()),
             "shape_prior": {"semi_axes_m": np.exp(prior.mean).round(4).tolist(),
                             "log_sd": prior.sd.round(4).tolist(), "source": prior.source}}
-    return fit, keep, sig, prior, info
+    return fit, keep, np.full(4, core), prior, info
 
 
 def _robust_keypoints(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,

@@ -91,6 +91,15 @@ def deleted_score2(r: F64, D: F64, p: F64, w: F64) -> F64:
     return rl * rl / (D + p / (1.0 - h))
 
 
+def median_variance(r2: F64, dof: F64, group_dof: int = 1) -> float:
+    """The noise variance the median point says (``median(r2 / dof) / median(chi2_d / d)``):
+    the level of the typical point, blind to the tails (:func:`robust_variance`'s start)."""
+    ok = np.isfinite(r2) & (dof > 0)
+    if not ok.any():
+        return float("nan")
+    return float(np.median(r2[ok] / dof[ok])) / (chi2_median(group_dof) / group_dof)
+
+
 def robust_variance(r2: F64, dof: F64, reject_p: float = 1e-7, group_dof: int = 1) -> float:
     r"""Noise variance from residuals with a few gross errors among them.
 
@@ -108,8 +117,7 @@ def robust_variance(r2: F64, dof: F64, reject_p: float = 1e-7, group_dof: int = 
     r2, dof = r2[ok], dof[ok]
     if r2.size == 0 or dof.sum() <= 0:
         return float("nan")
-    med = chi2_median(group_dof) / group_dof
-    var = float(np.median(r2 / dof)) / med
+    var = median_variance(r2, dof, group_dof)
     if not var > 0:
         var = float(r2.sum() / dof.sum())
     g2 = chi2_isf(reject_p, group_dof)

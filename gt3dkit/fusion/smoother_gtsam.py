@@ -188,6 +188,7 @@ class GTSAMSmoother:
         info = {"estimator": self.name,
                 "params": {**asdict(cfg),
                            "sigma_px": pre.info["boxes"]["sigma_px"] if use_box else None,
+                           "sigma_px_core": pre.info["boxes"]["sigma_px_core"] if use_box else None,
                            "kpt_sigma_px": pre.info.get("keypoints", {}).get("sigma_px"),
                            **tuned.as_dict(), "fps": scene.fps},
                 "process_noise_source": tuned.source,
@@ -218,6 +219,8 @@ class GTSAMSmoother:
         sym = gtsam.symbol
         n_rows = len(mine)
         huber = gtsam.noiseModel.mEstimator.Huber.Create(cfg.huber_k)
+        # box edges are weighted by the typical edge's noise and give way beyond the whole level
+        huber_box = gtsam.noiseModel.mEstimator.Huber.Create(cfg.huber_k * np.sqrt(pre.box_tail))
         # the motion too has heavy tails: people stop and turn between two annotations, and a
         # Gaussian motion factor would then outvote the views (the boxes' Huber loss gives way)
         motion_loss = huber if cfg.robust_motion else None
@@ -278,7 +281,7 @@ class GTSAMSmoother:
                     continue
                 z = rows.box_z[r].reshape(-1)[m]
                 noise = gtsam.noiseModel.Robust.Create(
-                    huber, gtsam.noiseModel.Diagonal.Sigmas(np.tile(sigma_box, C)[m]))
+                    huber_box, gtsam.noiseModel.Diagonal.Sigmas(np.tile(sigma_box, C)[m]))
                 meas.append(int(g.size()))
                 meas_dof += int(m.sum())
                 g.add(gtsam.CustomFactor(noise, [sym("c", k * 32), sym("s", k)],

@@ -237,6 +237,7 @@ class UKFSmoother:
                             else "max likelihood of the forward pass: log-spaced scan, then "
                                  "bisection and a parabola on log scale (curve in noise_search)")},
             "params": {**asdict(cfg), "sigma_px": pre.info["boxes"]["sigma_px"] if pre.use_box else None,
+                       "sigma_px_core": pre.info["boxes"]["sigma_px_core"] if pre.use_box else None,
                        "kpt_sigma_px": pre.info.get("keypoints", {}).get("sigma_px"),
                        "fps": scene.fps},
             "measurements": {"boxes": pre.use_box, "keypoints": pre.use_kpt,
@@ -272,7 +273,7 @@ def smoothed_weights(model: Model, x_s: F64, cfg: UKFConfig) -> F64:
     w = np.ones_like(model.z)
     zhat = model.h(x_s[:, None, :])[:, 0, :]
     r = np.where(model.mask & np.isfinite(zhat), model.z - zhat, 0.0)
-    e2 = r * r / model.var
+    e2 = r * r / (model.var * model.test_variance())
     B = len(x_s)
     for sl, d in model.robust_blocks:
         e2b = e2[:, sl].reshape(B, -1, d).sum(axis=2)

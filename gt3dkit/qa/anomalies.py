@@ -106,7 +106,8 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | Non
     if pre.use_box and have.any():
         z = rows.box_z[idx]
         usable = rows.box_mask[idx] & np.isfinite(z)
-        zs = np.where(usable, np.abs(box - z) / np.asarray(pre.sigma_box)[None, None, :], 0.0)
+        sd = np.asarray(pre.sigma_box) * np.sqrt(pre.box_tail)  # the whole level (misfit tails in)
+        zs = np.where(usable, np.abs(box - z) / sd[None, None, :], 0.0)
         score = zs.max(axis=2)  # (n, C)
         iou = _iou(box, z)
         area = lambda x: (x[..., 2] - x[..., 0]) * (x[..., 3] - x[..., 1])  # noqa: E731

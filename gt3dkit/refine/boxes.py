@@ -177,7 +177,7 @@ def refine_boxes(scene: Scene, pre: Any, cfg: Any) -> Any:
     X0, L0 = fit.center_world[use], fit.log_axes[use]
     obj = rows.row_o[use]
     obj = np.unique(obj, return_inverse=True)[1]
-    sigma = np.asarray(pre.sigma_box, dtype=np.float64)
+    sigma = np.asarray(pre.sigma_box, dtype=np.float64) * np.sqrt(pre.box_tail)  # the fits' level
     bottom = X0 @ rig.up - np.exp(L0[:, 2])  # ellipsoid bottoms' heights (input rig)
     floor_med = float(np.median(bottom)) if bottom.size else np.inf
     floor_sd = (max(1.4826 * float(np.median(np.abs(bottom - floor_med))), 0.01)
