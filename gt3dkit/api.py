@@ -21,7 +21,7 @@ from gt3dkit.fusion.identity import Segments, identity_segments
 from gt3dkit.fusion.prepare import prepare
 from gt3dkit.io.datasets import ASSOCIATED, checks, read_scene
 from gt3dkit.io.results import read_result
-from gt3dkit.io.writers import ANOMALY_COLUMNS, read_keypoints_csv, write_outputs
+from gt3dkit.io.writers import ANOMALY_COLUMNS, read_keypoints_csv, read_segments_csv, write_outputs
 from gt3dkit.parse import read_csv_rows
 from gt3dkit.qa.anomalies import find_anomalies
 from gt3dkit.threads import small_matrix_blas
@@ -32,11 +32,14 @@ __all__ = ["ESTIMATORS", "annotation_qa", "load_run", "load_scene", "make_estima
 
 def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None = None,
                fps: float | None = None, calib: Path | str | None = None,
-               association: Path | str | None = None, **panoptic_options: Any) -> Scene:
+               association: Path | str | None = None, segments: Path | str | None = None,
+               **panoptic_options: Any) -> Scene:
     """Load any supported input folder (layout detected when not given): read it
     (:func:`gt3dkit.io.datasets.read_scene`, whose arguments these are), give ids per camera or
     none global identities (:mod:`gt3dkit.fusion.associate`, with the overrides of the file
-    ``association``), then check it (:func:`gt3dkit.io.datasets.checks.check_scene`)."""
+    ``association``), then check it (:func:`gt3dkit.io.datasets.checks.check_scene`).
+    ``segments``: an edited ``segments.csv`` whose pieces replace the automatic identity splits
+    of the ids it lists (:func:`gt3dkit.fusion.identity.identity_segments`)."""
     scene = read_scene(root, layout, skeleton, fps, calib, association, **panoptic_options)
     if scene.layout in ASSOCIATED:  # ids per camera or none -> global identities, before the checks
         over = read_overrides(Path(association), scene.rig.names) if association is not None else None
@@ -49,7 +52,29 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
                                                          "confirms left out (association.csv, global id -1)"))
         if not len(scene.obs):
             raise InputError(str(root), "no person is seen by two cameras at once (nothing to reconstruct)")
-    return checks.check_scene(scene)
+    scene = checks.check_scene(scene)
+    if segments is not None:
+        scene = with_pieces(scene, Path(segments))
+    return scene
+
+
+def with_pieces(scene: Scene, path: Path) -> Scene:
+    """``scene`` with the pieces of an edited ``segments.csv``: every annotated frame of an id the
+    file lists must lie in one of its pieces."""
+    pieces = read_segments_csv(path)
+    for i in sorted({p[0] for p in pieces}):
+        f = np.unique(scene.obs.frame[scene.obs.track_id == i])
+        if not len(f):
+            raise InputError(str(path), f"id {i}: the input has no such id")
+        mine = [p for p in pieces if p[0] == i]
+        inside = np.zeros(len(f), bool)
+        for _, _, a, b in mine:
+            inside |= (f >= a) & (f <= b)
+        if not inside.all():
+            raise InputError(str(path), f"id {i}: annotated frame {int(f[~inside][0])} is in none of its "
+                                        "pieces")
+    opts = {**scene.load_options, "segments": str(path.resolve())}
+    return dataclasses.replace(scene, identity_pieces=pieces, load_options=opts)
 
 
 def reconstruct(scene: Scene | str | Path, estimator: str | Estimator = "ukf",
@@ -75,13 +100,13 @@ def reconstruct(scene: Scene | str | Path, estimator: str | Estimator = "ukf",
         stage("per-frame fits")
         own = getattr(est, "prepare", None)
         pre = own(sc) if callable(own) else prepare(sc)
-        segs = identity_segments(pre, sc.fps)
+        segs = identity_segments(pre, sc.fps, pieces=sc.identity_pieces)
         stage(f"{getattr(est, 'name', 'estimator')}")
         tracks = estimate_scene(sc, est, pre if callable(own) else None, segs,
                                 dense=every_frame is not None)
         if out is not None:
             stage("annotation QA, writing")
-            qa = find_anomalies(sc, tracks, pre, splits=segs.splits)
+            qa = find_anomalies(sc, tracks, pre, splits=segs.splits, exchanges=segs.exchanges)
             tracks.info["qa"] = {"anomalies": qa.counts(), "file": "anomalies.csv"}
             write_outputs(Path(out), sc, tracks, extra_meta, anomalies=qa)
     return tracks
@@ -133,7 +158,8 @@ def _estimate_pieces(scene: Scene, est: Estimator, pre: Any | None, segs: Segmen
         tracks = est.estimate(pieces)
         tracks = restored_ids(tracks, back)
     tracks.info["identity"] = {
-        "splits": len(segs.splits), "speed_limit_mps": round(segs.speed_limit_mps, 3),
+        "splits": len(segs.splits), "exchanges": len(segs.exchanges),
+        "speed_limit_mps": round(segs.speed_limit_mps, 3),
         "rule": "an id is split between two consecutive frames its views place farther apart than "
                 "the scene's objects move (2x their 95th-percentile speed, at least 3 m/s, plus 4 sd); "
                 "each piece is estimated on its own (segments.csv, identity_split in anomalies.csv)"}
@@ -195,7 +221,8 @@ def annotation_qa(scene: Scene, tracks: TrackSet) -> Any:
     """Every input annotation scored against ``tracks``, and every split id
     (:mod:`gt3dkit.fusion.identity`): :class:`gt3dkit.qa.anomalies.Anomalies`."""
     pre = prepare(scene)
-    return find_anomalies(scene, tracks, pre, splits=identity_segments(pre, scene.fps).splits)
+    segs = identity_segments(pre, scene.fps, pieces=scene.identity_pieces)
+    return find_anomalies(scene, tracks, pre, splits=segs.splits, exchanges=segs.exchanges)
 
 
 @dataclass
@@ -224,7 +251,8 @@ def _load_scene(out: Path, meta: dict[str, Any]) -> tuple[Scene, list[str]]:
                                 "draws the annotations)")
     if load.get("calib") and not Path(load["calib"]).exists():
         raise InputError(where, f"input: the calibration {load['calib']} is not there any more")
-    known = {"layout", "skeleton", "fps", "calib", "cameras", "noise_px", "seed", "min_conf", "association"}
+    known = {"layout", "skeleton", "fps", "calib", "cameras", "noise_px", "seed", "min_conf", "association",
+             "segments"}
     scene = load_scene(Path(root), **{k: v for k, v in load.items() if k in known})
     notes = []
     old = inp.get("files_sha256") or {}

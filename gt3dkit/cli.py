@@ -71,6 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--association", metavar="FILE",
                    help="per-camera ids (mot): an edited association.csv whose rows override the "
                         "automatic cross-view association")
+    r.add_argument("--segments", metavar="FILE", help="an edited segments.csv: its pieces replace the "
+                                                      "automatic identity splits of the ids it lists")
     r.add_argument("--refine-calib", action="store_true",
                    help="refine the cameras from the annotations first (see gt3d calib refine)")
     r.add_argument("--no-smooth", action="store_true", help="forward filter only (no RTS)")
@@ -147,6 +149,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--calib", help="calibration file or folder in any format, in place of the "
                                    "input's own")
     c.add_argument("--association", metavar="FILE", help="as for reconstruct")
+    c.add_argument("--segments", metavar="FILE", help="as for reconstruct")
     c.add_argument("--no-progress", "--quiet", dest="no_progress", action="store_true",
                    help="no progress bar")
     c.set_defaults(func=cmd_compare)

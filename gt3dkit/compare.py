@@ -91,7 +91,8 @@ def compare(scene: Scene, out: Path, estimators: tuple[str, ...] = COMPARE_ESTIM
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
     pre = prepare(scene)  # the robust per-frame fits and noise levels, shared
-    segs = identity_segments(pre, scene.fps)  # split ids: the same pieces as gt3d reconstruct's
+    # split ids: the same pieces as gt3d reconstruct's
+    segs = identity_segments(pre, scene.fps, pieces=scene.identity_pieces)
     t_pre = time.perf_counter() - t0
     failed: dict[str, str] = {}
     for name in tqdm(estimators, desc="estimators", disable=not progress, unit="est"):

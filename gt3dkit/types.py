@@ -150,6 +150,8 @@ class Scene:
     fps_assumed: str = ""  # why ``fps`` is a default, not the input's ("" = the input gives it)
     load_options: dict[str, Any] = field(default_factory=dict)  # load_scene's arguments (JSON-able)
     association: Any = None  # fusion.associate.Association when ids were per camera
+    # (id, segment, first frame, last frame) pieces an edited segments.csv gives (fusion.identity)
+    identity_pieces: tuple[tuple[int, int, int, int], ...] = ()
 
     @property
     def all_warnings(self) -> tuple[str, ...]:

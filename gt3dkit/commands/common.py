@@ -96,6 +96,8 @@ def load_input(args: argparse.Namespace) -> Any:
                 raise InputError(option, f"applies to CMU Panoptic inputs only, not {layout}")
     if getattr(args, "association", None) is not None:
         opts["association"] = args.association
+    if getattr(args, "segments", None) is not None:
+        opts["segments"] = args.segments
     scene = load_scene(Path(args.input), layout, args.skeleton, getattr(args, "fps", None),
                        calib=getattr(args, "calib", None), **opts)
     return scene

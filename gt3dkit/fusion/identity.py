@@ -55,6 +55,20 @@ class Split:
     views_before: int
     views_after: int
     limit_m: float
+    given: bool = False  # a piece boundary of the corrections file, not found here
+
+
+@dataclass(frozen=True)
+class Exchange:
+    """Two ids split at the same frame, each where the other was: their labels exchanged there
+    (``frame``: the first frame of the exchange; ``distance_m``: how far each id's new place is
+    from the other's last one)."""
+
+    frame: int
+    track_id: int
+    other_id: int
+    distance_m: tuple[float, float]
+    views: tuple[int, int]
 
 
 @dataclass(frozen=True)
@@ -65,11 +79,15 @@ class Segments:
     segment: I64
     splits: tuple[Split, ...]
     speed_limit_mps: float
+    exchanges: tuple[Exchange, ...] = ()
 
 
-def identity_segments(pre: Any, fps: float, cfg: IdentityConfig | None = None) -> Segments:
+def identity_segments(pre: Any, fps: float, cfg: IdentityConfig | None = None,
+                      pieces: tuple[tuple[int, int, int, int], ...] = ()) -> Segments:
     """The pieces of every id of ``pre.rows`` (a :class:`gt3dkit.fusion.prepare.Prepared`) at
-    frame rate ``fps`` (see the module doc)."""
+    frame rate ``fps`` (see the module doc). ``pieces``: ``(id, segment, first frame, last
+    frame)`` of an edited ``segments.csv``: the ids it lists are cut where it says instead
+    (splits marked ``given``; their exchanges are not looked for)."""
     cfg = cfg or IdentityConfig()
     rows = pre.rows
     R = len(rows)
@@ -105,4 +123,50 @@ def identity_segments(pre: Any, fps: float, cfg: IdentityConfig | None = None) -
                          int(frame_of[b[k]]), round(float(dist[k]), 3), round(float(speed[k]), 2),
                          int(rows.n_views[a[k]]), int(rows.n_views[b[k]]), round(float(limit[k]), 3))
                    for k in cut)
-    return Segments(seg, splits, v_lim)
+    if not pieces:
+        return Segments(seg, splits, v_lim, _exchanges(cut, a, b, centre, limit, rows))
+    listed = {p[0] for p in pieces}
+    auto = [k for k, s in zip(cut, splits, strict=True) if s.track_id not in listed]
+    splits = tuple(s for s in splits if s.track_id not in listed)
+    id_of = rows.obj_ids[rows.row_o]
+    for i in sorted(listed):
+        mine = np.flatnonzero(id_of == i)
+        if not len(mine):
+            continue
+        mine = mine[np.argsort(t_s[mine], kind="stable")]
+        spans = sorted((p[2], p[3]) for p in pieces if p[0] == i)
+        f = frame_of[mine]
+        # a row between two pieces (no annotation there) stays with the earlier piece
+        seg[mine] = np.maximum(np.searchsorted([s[0] for s in spans], f, side="right") - 1, 0)
+        for k in range(1, len(spans)):
+            at, before = mine[seg[mine] == k], mine[seg[mine] == k - 1]
+            if not (len(at) and len(before)):
+                continue
+            ra, rb = before[-1], at[0]
+            d = float(np.linalg.norm(centre[rb] - centre[ra]))
+            dt_k = max(float(t_s[rb] - t_s[ra]), 1e-9)
+            splits += (Split(int(i), k, int(frame_of[ra]), int(frame_of[rb]), round(d, 3), round(d / dt_k, 2),
+                             int(rows.n_views[ra]), int(rows.n_views[rb]), float("nan"), True),)
+    return Segments(seg, splits, v_lim, _exchanges(np.asarray(auto, np.int64), a, b, centre, limit, rows))
+
+
+def _exchanges(cut: I64, a: I64, b: I64, centre: np.ndarray, limit: np.ndarray, rows: Any
+               ) -> tuple[Exchange, ...]:
+    """The pairs of splits (``cut``: indices into the consecutive-fit pairs ``a -> b``) at the
+    same frame where each id's new place is within the other's allowed distance of where the
+    other was: an exchange of two labels, not two independent errors."""
+    frame_of = rows.frames[rows.row_t]
+    out, used = [], set()
+    for i, k in enumerate(cut):
+        for m in cut[i + 1:]:
+            if k in used or m in used or frame_of[b[k]] != frame_of[b[m]] \
+                    or rows.row_o[b[k]] == rows.row_o[b[m]]:
+                continue
+            d1 = float(np.linalg.norm(centre[b[k]] - centre[a[m]]))  # k's new place vs m's old
+            d2 = float(np.linalg.norm(centre[b[m]] - centre[a[k]]))
+            if d1 <= limit[m] and d2 <= limit[k]:
+                used |= {k, m}
+                out.append(Exchange(int(frame_of[b[k]]), int(rows.obj_ids[rows.row_o[b[k]]]),
+                                    int(rows.obj_ids[rows.row_o[b[m]]]), (round(d1, 3), round(d2, 3)),
+                                    (int(rows.n_views[b[k]]), int(rows.n_views[b[m]]))))
+    return tuple(out)

@@ -73,6 +73,8 @@ PROVISIONAL_MIN_SHAPE_SD = 0.05
 #: The noise search (and its provisional pass) runs on whole objects up to this many
 #: object-frames: the likelihood of two or three noise levels needs no more.
 SEARCH_OBJECT_FRAMES = 2500
+#: Rounds of coordinate ascent between the centre's acceleration and position noise at most.
+ASCENT_ROUNDS = 3
 
 
 @dataclass(frozen=True)
@@ -490,6 +492,12 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
         cfg = search("accel_sd", cfg, cfg.accel_bounds, 5)
     if use_box and given.position_sd is None:
         cfg = search("position_sd", cfg, cfg.position_bounds, 4)
+        for _ in range(ASCENT_ROUNDS if given.accel_sd is None else 0):
+            # the two trade off (a jittery label set is explained by either): coordinate ascent
+            was = (cfg.accel_sd, cfg.position_sd)
+            cfg = search("position_sd", search("accel_sd", cfg, cfg.accel_bounds, 5), cfg.position_bounds, 4)
+            if np.allclose(np.log([cfg.accel_sd, cfg.position_sd]), np.log(was), atol=0.05):
+                break
     if use_box and given.shape_sd is None:
         cfg = search("shape_sd", cfg, cfg.shape_bounds, 4)
     if use_kpt and given.joint_accel_sd is None:

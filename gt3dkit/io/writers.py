@@ -189,6 +189,31 @@ def write_segments_csv(path: Path, segments: list[dict[str, int]]) -> None:
         w.writerows([s[k] for k in SEGMENT_COLUMNS] for s in segments)
 
 
+def read_segments_csv(path: Path) -> tuple[tuple[int, int, int, int], ...]:
+    """An edited ``segments.csv`` (:func:`write_segments_csv`; the ``rows`` column may be left as
+    it is or empty): ``(id, segment, first_frame, last_frame)`` per piece, sorted by id and first
+    frame; one id's pieces may not overlap."""
+    path = Path(path)
+    out = []
+    for line, r in iter_csv_rows(path, SEGMENT_COLUMNS[:4], warnings=[]):
+        where = f"{path}: line {line}"
+        i = parse_int(where, r["id"], "id")
+        seg = parse_int(where, r["segment"], "segment", 0)
+        a, b = parse_frame(where, r["first_frame"]), parse_frame(where, r["last_frame"])
+        if b < a:
+            raise InputError(where, f"last_frame {b} is before first_frame {a}")
+        out.append((i, seg, a, b, line))
+    if not out:
+        raise InputError(str(path), "no pieces (only a header)")
+    out.sort()
+    out.sort(key=lambda p: (p[0], p[2]))
+    for p, q in zip(out, out[1:], strict=False):
+        if p[0] == q[0] and q[2] <= p[3]:
+            raise InputError(f"{path}: line {q[4]}", f"id {q[0]}: frames {q[2]}-{q[3]} overlap the piece of "
+                                                     f"line {p[4]} (frames {p[2]}-{p[3]})")
+    return tuple(p[:4] for p in out)
+
+
 def write_outputs(out: Path, scene: Scene, tracks: TrackSet,
                   extra_meta: dict[str, Any] | None = None, anomalies: Any = None) -> None:
     """Write ``OUT/tracks.csv`` (+ ``keypoints.csv``, ``anomalies.csv``) and ``OUT/meta.json``

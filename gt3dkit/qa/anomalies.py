@@ -80,9 +80,10 @@ def _iou(a: F64, b: F64) -> F64:
 
 
 def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | None = None,
-                   splits: tuple[Any, ...] = ()) -> Anomalies:
+                   splits: tuple[Any, ...] = (), exchanges: tuple[Any, ...] = ()) -> Anomalies:
     """Every flagged annotation of ``scene`` against ``tracks`` (see the module docstring), and
-    each place an id was split (``splits``, :func:`gt3dkit.fusion.identity.identity_segments`)."""
+    each place an id was split (``splits``, :func:`gt3dkit.fusion.identity.identity_segments`)
+    and each pair of ids whose labels were exchanged (``exchanges``: one row per id)."""
     cfg = cfg or QAConfig()
     rows, cams = pre.rows, pre.cams
     names = scene.rig.names
@@ -97,11 +98,24 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | Non
     id_of = rows.obj_ids[rows.row_o]
 
     for s in splits:
+        if s.given:
+            out.append((s.frame_after, "", s.track_id, "", "identity_split", s.distance_m,
+                        f"piece {s.segment} of this id from here, as the corrections file (segments) "
+                        f"says: its {s.views_after} views place it {s.distance_m:.2f} m from where "
+                        f"{s.views_before} views put it in frame {s.frame_before}"))
+            continue
         out.append((s.frame_after, "", s.track_id, "", "identity_split", s.distance_m,
                     f"its {s.views_after} views place it {s.distance_m:.2f} m from where {s.views_before} "
                     f"views put it in frame {s.frame_before} ({s.speed_mps:.1f} m/s; allowed "
                     f"{s.limit_m:.2f} m): piece {s.segment} of this id from here, estimated on its own "
                     "(another person, or a mis-keyed id)"))
+    for e in exchanges:
+        for me, other, d, v in ((e.track_id, e.other_id, e.distance_m[0], e.views[0]),
+                                (e.other_id, e.track_id, e.distance_m[1], e.views[1])):
+            out.append((e.frame, "", me, "", "identity_exchange", d,
+                        f"exchanged with id {other}: its {v} views place it {d:.2f} m from where id "
+                        f"{other} was, and id {other} where it was; both ids are split here "
+                        "(identity_split)"))
 
     if pre.use_box and have.any():
         z = rows.box_z[idx]

@@ -108,7 +108,13 @@ def test_simulated_reused_and_exchanged_ids_are_all_split(tmp_path: Path, seed: 
         if jump > 1.0:  # 10 m/s at 10 fps: no walker gets there
             assert (a, frame) in split_at, (kind, detail, frame, a, jump, sorted(split_at))
             checked += 1
+            if kind == "exchanged_ids":  # recognised as one exchange of the two ids
+                b = int(detail.split()[1])
+                assert any(e.frame == frame and {e.track_id, e.other_id} == {a, b} for e in segs.exchanges)
     assert checked >= 3
+    # an id reused by another person is no exchange
+    reuses = {(f, a) for f, _, a, _, kind, _ in errs if kind == "reused_id"}
+    assert not any((e.frame, e.track_id) in reuses or (e.frame, e.other_id) in reuses for e in segs.exchanges)
     tracks = reconstruct(sc, "ukf")
     it, ig = match_rows(tracks, sc.truth)
     assert len(ig) == len(sc.truth.frame)
@@ -135,3 +141,55 @@ def test_an_identity_split_picture_shows_both_places(scene: Scene, tmp_path: Pat
     assert anomaly_thumbnail(scene, res, at, a, "", None, two, before=before[(a, at)])
     h1, h2 = mpimg.imread(one).shape[0], mpimg.imread(two).shape[0]
     assert h2 == 2 * h1  # two rows of views: before, and at the split
+
+
+def _csv(path: Path) -> list[dict[str, str]]:
+    import csv
+
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_an_edited_segments_file_overrides_the_splits(tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """``--segments FILE``: the pieces of an edited segments.csv replace the automatic splits of the
+    ids it lists (merged back into one, or cut where the automatic test saw nothing); compare runs
+    the same pieces; a file whose pieces overlap is one error line, exit 2, nothing written."""
+    from gt3dkit.cli import main
+    from gt3dkit.io.writers import read_tracks_csv
+
+    root = tmp_path / "in"
+    sc, sim = written_scene(root, "native", seed=21, frames=24, people=5, noise_px=1.0, motion="walk",
+                            errors=Errors(dropped=0.0, reused_ids=1))
+    (frame, _, a, _, _, _), = [r for r in sim.injected if r[4] == "reused_id"]
+    assert main(["reconstruct", str(root), "--out", str(tmp_path / "auto"), "--quiet"]) == 0
+    auto = _csv(tmp_path / "auto" / "segments.csv")
+    assert [(int(r["id"]), int(r["first_frame"])) for r in auto if r["segment"] == "1"] == [(a, frame)]
+    other = int(next(i for i in np.unique(sc.obs.track_id) if i != a))
+    f_other = np.unique(sc.obs.frame[sc.obs.track_id == other])
+    cut = int(f_other[len(f_other) // 2])
+    edited = tmp_path / "segments.csv"
+    edited.write_text("id,segment,first_frame,last_frame,rows\n"
+                      f"{a},0,{sc.obs.frame.min()},{sc.obs.frame.max()},\n"  # merged: one person after all
+                      f"{other},0,{f_other[0]},{cut - 1},\n{other},1,{cut},{f_other[-1]},\n")
+    assert main(["reconstruct", str(root), "--out", str(tmp_path / "given"), "--segments", str(edited),
+                 "--quiet"]) == 0
+    rows = _csv(tmp_path / "given" / "segments.csv")
+    assert {(int(r["id"]), int(r["first_frame"])) for r in rows if r["segment"] != "0"} == {(other, cut)}
+    flags = [r for r in _csv(tmp_path / "given" / "anomalies.csv") if r["kind"] == "identity_split"]
+    assert [(int(r["id"]), int(r["frame"])) for r in flags] == [(other, cut)]
+    assert "corrections file" in flags[0]["detail"]
+    # the merged id is one track again, over the same rows
+    n = len(read_tracks_csv(tmp_path / "auto" / "tracks.csv"))
+    assert len(read_tracks_csv(tmp_path / "given" / "tracks.csv")) == n
+    assert main(["compare", str(root), "--out", str(tmp_path / "cmp"), "--segments", str(edited),
+                 "--quiet"]) == 0
+    key = [(r["id"], r["segment"], r["first_frame"]) for r in rows]
+    ukf = _csv(tmp_path / "cmp" / "ukf" / "segments.csv")
+    assert [(r["id"], r["segment"], r["first_frame"]) for r in ukf] == key
+    capsys.readouterr()
+    edited.write_text(f"id,segment,first_frame,last_frame,rows\n{a},0,0,10,\n{a},1,10,30,\n")
+    assert main(["reconstruct", str(root), "--out", str(tmp_path / "bad"), "--segments", str(edited)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {edited}: line 3: id {a}: frames 10-30 overlap"), err
+    assert not (tmp_path / "bad").exists()
