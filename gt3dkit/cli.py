@@ -99,8 +99,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--cameras", type=number_type(int, 1, 1000),
                    help="cameras (skeleton scenes: HD cameras, default 10; native boxes: 6)")
     s.add_argument("--fps", type=FPS, help="frame rate (skeletons: 30; native boxes: 10)")
-    s.add_argument("--motion", choices=("smooth", "walk"),
-                   help="box scenes: smooth paths (default) or real-trajectory-like walking")
+    s.add_argument("--motion", choices=("smooth", "walk", "stop-and-turn"),
+                   help="box scenes: smooth paths (default), walking, or walkers who stop and turn")
+    s.add_argument("--labels", choices=("ellipsoid", "cylinder"), default="ellipsoid",
+                   help="box scenes: an ellipsoid's tangent box, or a grid-placed cylinder's (WILDTRACK's)")
     s.add_argument("--outliers", type=FRACTION, default=0.0,
                    help="skeletons: fraction of keypoints replaced by far-off points")
     s.add_argument("--swaps", type=FRACTION, default=0.0,

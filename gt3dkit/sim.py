@@ -45,6 +45,8 @@ INJECTED_COLUMNS = ("frame", "camera", "id", "joint", "kind", "detail")
 
 #: Box views and keypoints left out at random unless :attr:`Errors.dropped` says otherwise.
 DROPPED_VIEWS = 0.15
+#: WILDTRACK's annotation tool places a person on a ground grid of this pitch (positionID).
+POSITION_GRID_M = 0.025
 DROPPED_KEYPOINTS = 0.05
 
 
@@ -185,10 +187,67 @@ def _walk(rng: np.random.Generator, t_s: F64, lo: F64, hi: F64) -> F64:
     return np.stack([np.interp(t_s, tt, out[:, 0]), np.interp(t_s, tt, out[:, 1])], -1)
 
 
+def _stop_and_turn(rng: np.random.Generator, t_s: F64, lo: F64, hi: F64) -> F64:
+    """(T, 2) a walker who stops and turns as people do between two annotations at 2 fps: walks
+    at 0.8-1.6 m/s, every 2-6 s either stands still for 0.5-2.5 s or turns by 45-150 degrees within
+    half a second (2.5-6 m/s^2 of the labels' own second differences), steers back near the
+    area's border. Integrated at 50 Hz, sampled at ``t_s``."""
+    dt = 0.02
+    tt = np.arange(t_s[0], t_s[-1] + dt, dt)
+    v0 = rng.uniform(0.8, 1.6)
+    p = rng.uniform(lo + 1, hi - 1)
+    head = rng.uniform(0, 2 * np.pi)
+    mid = (lo + hi) / 2
+    out = np.zeros((len(tt), 2))
+    next_event, stop_until, turn_left, turn_rate = rng.uniform(1, 4), -1.0, 0.0, 0.0
+    for k, now in enumerate(tt):
+        out[k] = p
+        if now >= next_event:
+            if rng.uniform() < 0.5:
+                stop_until = now + rng.uniform(0.5, 2.5)
+            else:
+                turn_left = 0.5
+                turn_rate = np.deg2rad(rng.uniform(45, 150)) * rng.choice([-1, 1]) / 0.5
+            next_event = now + rng.uniform(2, 6)
+        if turn_left > 0:
+            head += turn_rate * dt
+            turn_left -= dt
+        if np.any(p < lo + 1) or np.any(p > hi - 1):  # steer back towards the middle
+            want = np.arctan2(*(mid - p)[::-1])
+            head += 2.0 * np.angle(np.exp(1j * (want - head))) * dt
+        v = 0.0 if now < stop_until else v0
+        p = p + v * dt * np.array([np.cos(head), np.sin(head)])
+    return np.stack([np.interp(t_s, tt, out[:, 0]), np.interp(t_s, tt, out[:, 1])], -1)
+
+
+def cylinder_boxes(center_xy: F64, radius: F64, height: F64, cams: Cams, points: int = 48
+                   ) -> tuple[F64, F64]:
+    """Boxes of upright cylinders standing on the ground (z = 0), as WILDTRACK's annotation tool
+    drew them: the image extent of their top and bottom circles (``points`` each), distortion
+    included, not clipped at the image border. ``center_xy (M, 2)`` m, ``radius, height (M,)`` m.
+    Returns boxes ``(M, C, 4)`` and the nearest point's depth ``(M, C)`` (<= 0: behind)."""
+    a = np.linspace(0, 2 * np.pi, points, endpoint=False)
+    ring = np.stack([np.cos(a), np.sin(a)], -1)  # (P, 2)
+    xy = center_xy[:, None, :] + radius[:, None, None] * ring[None]  # (M, P, 2)
+    z = np.stack([np.zeros_like(radius), height], -1)  # (M, 2)
+    X = np.concatenate([np.broadcast_to(xy[:, None], (len(xy), 2) + xy.shape[1:]),
+                        np.broadcast_to(z[:, :, None, None], (len(xy), 2, points, 1))], -1)
+    uv, depth = project_points(X.reshape(len(xy), -1, 3), cams.K, cams.dist, cams.R, cams.t,
+                               cams.depth_sign)  # (M, 2P, C, 2), (M, 2P, C)
+    box = np.concatenate([uv.min(axis=1), uv.max(axis=1)], -1)  # NaN where any point is behind
+    return box, depth.min(axis=1)
+
+
 def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: int = 10,
              noise_px: float = 0.0, errors: Errors | None = None, motion: str = "smooth",
-             cameras: int | None = None, fps: float | None = None) -> SimScene:
+             cameras: int | None = None, fps: float | None = None, labels: str = "ellipsoid") -> SimScene:
     """Generate a seeded scene. See the module docstring.
+
+    ``motion``: ``smooth`` paths, ``walk`` (speed and turn rate wander) or ``stop-and-turn``
+    (:func:`_stop_and_turn`). ``labels``: ``ellipsoid`` (each box the tangent box of the person's
+    ellipsoid, clipped at the image border) or ``cylinder`` (WILDTRACK's labels: an upright
+    cylinder placed on a 2.5 cm ground grid, :func:`cylinder_boxes`, partly outside the image where
+    the person is; the truth is the cylinder's centre on the grid).
 
 
     ``cameras`` and ``fps`` set the native layout's camera count (default 6) and frame rate
@@ -200,8 +259,10 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
     dropout = DROPPED_VIEWS if errors.dropped is None else errors.dropped
     if frames < 2 or people < 1 or not noise_px >= 0:
         raise ValueError("need frames >= 2, people >= 1, noise_px >= 0")
-    if motion not in ("smooth", "walk"):
-        raise ValueError(f"motion must be smooth or walk, got {motion!r}")
+    if motion not in ("smooth", "walk", "stop-and-turn"):
+        raise ValueError(f"motion must be smooth, walk or stop-and-turn, got {motion!r}")
+    if labels not in ("ellipsoid", "cylinder"):
+        raise ValueError(f"labels must be ellipsoid or cylinder, got {labels!r}")
     if layout not in ("native", "mot") and (cameras is not None or fps is not None):
         raise ValueError("cameras and fps apply to the native layout (the others have theirs)")
     if cameras is not None and not 1 <= cameras <= 64:
@@ -239,7 +300,8 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
         first = int(rng.integers(0, max(frames // 3, 1)))
         last = int(rng.integers(2 * frames // 3, frames))
         walk = _walk(np.random.default_rng([seed, 2, pid]), t_s, lo, hi) if motion == "walk" \
-            else None
+            else _stop_and_turn(np.random.default_rng([seed, 3, pid]), t_s, lo, hi) \
+            if motion == "stop-and-turn" else None
         for k in range(first, last + 1):
             s = (t_s[k] - t_s[0]) / max(T, 1e-9)
             xy = p0 + (p1 - p0) * s + amp * np.sin(2 * np.pi * (t_s[k] - t_s[0]) / period + phase)
@@ -252,14 +314,20 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
     center = np.array(centers)
     semi = np.array(axes)
     cams = Cams.of(rig)
-    box, margin = ellipsoid_boxes(center, semi, cams.world_from_body, cams.K, cams.dist, cams.R,
-                                  cams.t, cams.depth_sign)
+    if labels == "cylinder":  # one radius, on the annotation tool's 2.5 cm grid
+        semi[:, :2] = semi[:, :2].mean(axis=1, keepdims=True)
+        center[:, :2] = np.round(center[:, :2] / POSITION_GRID_M) * POSITION_GRID_M
+        box, margin = cylinder_boxes(center[:, :2], semi[:, 0], 2 * semi[:, 2], cams)
+    else:
+        box, margin = ellipsoid_boxes(center, semi, cams.world_from_body, cams.K, cams.dist, cams.R,
+                                      cams.t, cams.depth_sign)
     box = box + rng.normal(scale=noise_px, size=box.shape) if noise_px > 0 else box
     W, H = cams.wh[:, 0], cams.wh[:, 1]
     inside = (margin > 0) & (box[..., 2] > 0) & (box[..., 0] < W - 1) & (box[..., 3] > 0) \
         & (box[..., 1] < H - 1)
-    box = np.stack([np.clip(box[..., 0], 0, W - 1), np.clip(box[..., 1], 0, H - 1),
-                    np.clip(box[..., 2], 0, W - 1), np.clip(box[..., 3], 0, H - 1)], -1)
+    if labels != "cylinder":  # an annotation tool's cylinder is drawn past the border whole
+        box = np.stack([np.clip(box[..., 0], 0, W - 1), np.clip(box[..., 1], 0, H - 1),
+                        np.clip(box[..., 2], 0, W - 1), np.clip(box[..., 3], 0, H - 1)], -1)
     box = np.trunc(box) if layout == "multiviewx" else np.rint(box)
     seen = inside & (rng.uniform(size=inside.shape) >= dropout)
     seen &= (box[..., 2] > box[..., 0]) & (box[..., 3] > box[..., 1])

@@ -117,7 +117,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     try:
         sim = simulate(args.layout, seed=args.seed, frames=args.frames, people=args.people,
                        noise_px=args.noise_px, errors=errors,
-                       motion=args.motion, cameras=args.cameras, fps=args.fps)
+                       motion=args.motion, cameras=args.cameras, fps=args.fps, labels=args.labels)
     except ValueError as e:
         raise InputError("simulate", str(e)) from None
     if args.format in ("mot", "cvat"):

@@ -1,0 +1,71 @@
+"""The simulator's real-label conditions (WILDTRACK's): boxes drawn from an upright cylinder placed
+on a 2.5 cm ground grid, partly outside the image; walkers who stop and turn between two
+annotations at 2 fps; and the estimators on them: the smoothers as good as the per-frame fit, no
+row far off, sds that cover."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from gt3dkit.api import reconstruct
+from gt3dkit.eval.metrics import match_rows
+from gt3dkit.geom.camera import Cams
+from gt3dkit.sim import POSITION_GRID_M, Errors, cylinder_boxes, simulate
+from tests.scenes import written_scene
+
+
+def test_a_cylinder_box_is_the_extent_of_its_silhouette() -> None:
+    """48 points per circle against 4 000 (the silhouette's extent), and a grid-placed truth."""
+    sim = simulate("wildtrack", seed=3, frames=6, people=8, labels="cylinder", errors=Errors(dropped=0.0))
+    cams = Cams.of(sim.rig)
+    xy, r, h = sim.center_world[:, :2], sim.semi_axes[:, 0], 2 * sim.semi_axes[:, 2]
+    coarse, _ = cylinder_boxes(xy, r, h, cams)
+    fine, _ = cylinder_boxes(xy, r, h, cams, points=4000)
+    ok = np.isfinite(coarse) & np.isfinite(fine)
+    assert ok.any() and np.abs(coarse - fine)[ok].max() < 0.5
+    np.testing.assert_allclose(sim.center_world[:, :2] / POSITION_GRID_M,
+                               np.round(sim.center_world[:, :2] / POSITION_GRID_M), atol=1e-9)
+    np.testing.assert_array_equal(sim.semi_axes[:, 0], sim.semi_axes[:, 1])  # round
+
+
+def test_stop_and_turn_walkers_stop_and_turn() -> None:
+    sim = simulate("wildtrack", seed=4, frames=60, people=10, motion="stop-and-turn", labels="cylinder")
+    dt = 5 / 10.0  # WILDTRACK: every 5th frame at 10 fps
+    stops = turns = 0
+    for i in np.unique(sim.truth_id):
+        p = sim.center_world[sim.truth_id == i, :2]
+        v = np.linalg.norm(np.diff(p, axis=0), axis=1) / dt
+        a = np.linalg.norm(np.diff(p, 2, axis=0), axis=1) / dt**2
+        stops += int(np.any((v[:-1] < 0.1) & (v[1:] < 0.1)))  # standing for a second
+        turns += int(np.any(a > 2.5))  # the labels' own accelerations
+    assert stops >= 5 and turns >= 5, (stops, turns)
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_smoothers_on_real_like_labels(tmp_path: Path, seed: int) -> None:
+    """Cylinder labels, partly outside the image, stop-and-turn walkers at 2 fps: UKF and GTSAM at
+    most 1.1x the per-frame fit's mean ground error, no row 0.1 m off, 98 % within the sd."""
+    sc, sim = written_scene(tmp_path, "wildtrack", seed=seed, frames=60, people=16, motion="stop-and-turn",
+                            labels="cylinder", errors=Errors(dropped=0.0))
+    W, H = sc.rig.wh[:, 0], sc.rig.wh[:, 1]
+    b = sc.obs.box_xyxy_px
+    outside = (b[:, 0] < 0) | (b[:, 1] < 0) | (b[:, 2] > W[sc.obs.cam] - 1) | (b[:, 3] > H[sc.obs.cam] - 1)
+    assert outside.sum() >= 20  # read as they are: no clipping
+    mean = {}
+    for est in ("ukf", "gtsam", "triangulation"):
+        t = reconstruct(sc, est)
+        it, ig = match_rows(t, sc.truth)
+        e2 = t.center_world[it, :2] - sc.truth.center_world[ig, :2]
+        err = np.linalg.norm(e2, axis=1)
+        mean[est] = err.mean()
+        if est != "triangulation":
+            assert len(np.unique(ig)) == len(sc.truth.frame)
+            assert err.max() < 0.1, (est, err.max())
+            z2 = np.sum(e2**2 / (t.center_sd[it, :2] ** 2 + (POSITION_GRID_M / np.sqrt(12)) ** 2), axis=1)
+            assert np.mean(z2 <= chi2.ppf(0.99, 2)) >= 0.98, est
+    assert mean["ukf"] <= 1.1 * mean["triangulation"], mean
+    assert mean["gtsam"] <= 1.1 * mean["triangulation"], mean
