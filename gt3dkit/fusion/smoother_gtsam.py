@@ -91,7 +91,9 @@ class GTSAMConfig:
     huber_k: float = 1.345
     clip_tol_px: float = 1.0
     max_iterations: int = 100
-    relative_error_tol: float = 1e-6
+    # stop when an iteration lowers the error by a smaller fraction (on WILDTRACK, 1e-6 moved no
+    # centre by more than 0.06 of its sd, in twice the time)
+    relative_error_tol: float = 1e-4
     discrepancy_steps: int = 3
     discrepancy_step: float = 3.0
     likelihood_noise: bool = True
