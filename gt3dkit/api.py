@@ -131,13 +131,15 @@ def take_rows(tracks: TrackSet, keep: np.ndarray) -> TrackSet:
 
 
 def estimate_scene(scene: Scene, est: Estimator, pre: Any | None, segs: Segments,
-                   dense: bool = False) -> TrackSet:
+                   dense: bool = False, pieces: tuple[Scene, Any, dict[int, tuple[int, int]]] | None = None
+                   ) -> TrackSet:
     """``est``'s tracks of ``scene``, each piece of a split id (:mod:`gt3dkit.fusion.identity`)
     estimated as an object of its own; the tracks carry the input's ids, ``info["identity"]``
     the pieces. ``pre``: the estimator's own preparation of ``scene`` (None: it prepares).
     A row for each annotated object-frame; ``dense``: also the rows of frames no camera saw
-    the object in (the estimator's interpolation, ``n_views`` 0)."""
-    tracks = _estimate_pieces(scene, est, pre, segs)
+    the object in (the estimator's interpolation, ``n_views`` 0). ``pieces``: :func:`split_scene`'s
+    result, shared by several estimators (``gt3d compare``)."""
+    tracks = _estimate_pieces(scene, est, pre, segs, pieces)
     if dense:
         tracks.info["every_frame"] = {
             "frames": int(len(scene.frames)), "rows_interpolated": int(np.sum(tracks.n_views == 0)),
@@ -149,10 +151,20 @@ def estimate_scene(scene: Scene, est: Estimator, pre: Any | None, segs: Segments
     return tracks
 
 
-def _estimate_pieces(scene: Scene, est: Estimator, pre: Any | None, segs: Segments) -> TrackSet:
+def split_scene(scene: Scene, pre: Any, segs: Segments) -> tuple[Scene, Any, dict[int, tuple[int, int]]]:
+    """The scene of the pieces (:func:`split_ids`), its preparation (:func:`prepare`'s defaults,
+    as ``gt3d compare`` shares one) and the map back to the input's ids."""
+    pieces, back = split_ids(scene, pre.rows, segs)
+    return pieces, prepare(pieces), back
+
+
+def _estimate_pieces(scene: Scene, est: Estimator, pre: Any | None, segs: Segments,
+                     shared: tuple[Scene, Any, dict[int, tuple[int, int]]] | None) -> TrackSet:
     """:func:`estimate_scene` with every row the estimator gives."""
     if not segs.splits:
         tracks = est.estimate(scene, pre) if pre is not None else est.estimate(scene)
+    elif shared is not None:
+        tracks = restored_ids(est.estimate(shared[0], shared[1]), shared[2])
     else:
         pieces, back = split_ids(scene, pre.rows if pre is not None else prepare(scene).rows, segs)
         tracks = est.estimate(pieces)
@@ -161,7 +173,8 @@ def _estimate_pieces(scene: Scene, est: Estimator, pre: Any | None, segs: Segmen
         "splits": len(segs.splits), "exchanges": len(segs.exchanges),
         "speed_limit_mps": round(segs.speed_limit_mps, 3),
         "rule": "an id is split between two consecutive frames its views place farther apart than "
-                "the scene's objects move (2x their 95th-percentile speed, at least 3 m/s, plus 4 sd); "
+                "the scene's objects move (2x the 95th percentile of the ids' median speeds, at least "
+                "3 m/s, plus 4 sd); "
                 "each piece is estimated on its own (segments.csv, identity_split in anomalies.csv)"}
     return tracks
 

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from gt3dkit.api import estimate_scene, make_estimator
+from gt3dkit.api import estimate_scene, make_estimator, split_scene
 from gt3dkit.errors import EstimationError
 from gt3dkit.eval.metrics import box_errors, match_rows, relabel_to_truth
 from gt3dkit.eval.pose import mpjpe_by_id
@@ -93,12 +93,13 @@ def compare(scene: Scene, out: Path, estimators: tuple[str, ...] = COMPARE_ESTIM
     pre = prepare(scene)  # the robust per-frame fits and noise levels, shared
     # split ids: the same pieces as gt3d reconstruct's
     segs = identity_segments(pre, scene.fps, pieces=scene.identity_pieces)
+    shared = split_scene(scene, pre, segs) if segs.splits else None  # the pieces, prepared once
     t_pre = time.perf_counter() - t0
     failed: dict[str, str] = {}
     for name in tqdm(estimators, desc="estimators", disable=not progress, unit="est"):
         t0 = time.perf_counter()
         try:
-            results[name] = estimate_scene(scene, make_estimator(name), pre, segs)
+            results[name] = estimate_scene(scene, make_estimator(name), pre, segs, pieces=shared)
         except EstimationError as e:  # one estimator's failure is a finding, not the end
             failed[name] = e.problem
             continue

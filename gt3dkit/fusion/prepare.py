@@ -103,6 +103,9 @@ class Prepared:
     robust: RobustConfig
     info: dict[str, Any] = field(default_factory=dict)
     box_tail: float = 1.0
+    # results computed from this preparation alone, kept for the next estimator that asks (the
+    # process noise of the model's likelihood: gt3dkit.fusion.ukf_smoother.noise_by_likelihood)
+    memo: dict[Any, Any] = field(default_factory=dict, repr=False, compare=False)
 
     def frame_state(self) -> tuple[F64, F64, F64]:
         """Every row's own (per-frame) state, for initialisation and linearisation (computed

@@ -180,6 +180,7 @@ class UKFSmoother:
         model = Model.of(pre)
         init = initial_states(model, cfg)
         cfg, search = select_noise(model, init, cfg, pre, scene.fps)
+        pre.memo[("noise_by_likelihood", self.config, scene.fps)] = (cfg, search)
         run = run_filter(model, init, cfg, scene.fps, collect=True)
         if cfg.robust and model.robust_blocks:
             # second pass: the weights start from every point's verdict against the smoothed
@@ -512,8 +513,17 @@ def noise_by_likelihood(pre: Prepared, fps: float, cfg: UKFConfig) -> tuple[UKFC
     ``None``) that maximises the marginal likelihood of the state-space model, by the Kalman
     filter's prediction-error decomposition; what the GTSAM smoother's graph is tuned by too
     (the same model, solved another way)."""
-    model = Model.of(pre)
-    return select_noise(model, initial_states(model, cfg), cfg, pre, fps)
+    key = ("noise_by_likelihood", cfg, fps)
+    if key not in pre.memo:  # the UKF of this preparation may have found it already
+        model = Model.of(pre)
+        pre.memo[key] = select_noise(model, initial_states(model, cfg), cfg, pre, fps)
+    found, curves = pre.memo[key]
+    return replace(found, **{k: v for k, v in asdict(cfg).items() if k not in NOISE_FIELDS}), curves
+
+
+#: The fields :func:`select_noise` finds (the others are the caller's).
+NOISE_FIELDS = ("accel_sd", "shape_sd", "joint_accel_sd", "position_sd")
+
 
 
 def search_rows(rows: Any, budget: int, seed: int = 0) -> np.ndarray | None:

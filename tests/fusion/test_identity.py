@@ -75,12 +75,14 @@ def test_an_unsplit_scene_is_estimated_as_it_was(tmp_path: Path) -> None:
 
 
 def test_compare_runs_the_pieces_reconstruct_runs(scene: Scene, tmp_path: Path) -> None:
-    """One estimation path: compare's UKF tracks are reconstruct's."""
-    compare(scene, tmp_path / "cmp", ("ukf", "triangulation"), progress=False)
-    alone = reconstruct(scene, "ukf", out=tmp_path / "rec")
-    mine = (tmp_path / "rec" / "tracks.csv").read_text()
-    assert (tmp_path / "cmp" / "ukf" / "tracks.csv").read_text() == mine
-    assert alone.info["identity"]["splits"] == 1
+    """One estimation path: compare's UKF and GTSAM tracks are reconstruct's (compare prepares
+    the pieces once, and GTSAM reuses the UKF's noise search on them)."""
+    compare(scene, tmp_path / "cmp", ("ukf", "gtsam", "triangulation"), progress=False)
+    for name in ("ukf", "gtsam"):
+        alone = reconstruct(scene, name, out=tmp_path / name)
+        mine = (tmp_path / name / "tracks.csv").read_text()
+        assert (tmp_path / "cmp" / name / "tracks.csv").read_text() == mine, name
+        assert alone.info["identity"]["splits"] == 1
 
 
 @pytest.mark.parametrize("seed", [11, 12])
