@@ -10,8 +10,8 @@ Odd but valid input is kept or dropped as said here, with one ``warning:`` line 
   alone, so expect errors of metres; their standard deviations say so);
 * a rig of one camera: every object is such an object;
 * gaps longer than :data:`GAP_S` seconds (and than one step of the scene's annotated frames)
-  in an object's annotations: kept (the estimate is interpolated there, with a growing
-  standard deviation).
+  in an object's annotations: kept (no rows there; ``--every-frame`` writes the motion
+  model's interpolation, with a growing standard deviation).
 """
 
 from __future__ import annotations
@@ -130,5 +130,5 @@ def check_scene(scene: Scene) -> Scene:
         warnings.append(f"{int(long.sum())} gaps of more than {GAP_S:g} s in the annotations of "
                         f"{who.size} objects (ids {_ids(who)}; longest {gap[worst] / scene.fps:.3g} s "
                         f"= {int(gap[worst])} frames, object {int(pairs[worst + 1, 0])} after frame "
-                        f"{int(pairs[worst, 1])}): estimates there are interpolated")
+                        f"{int(pairs[worst, 1])}): no rows there (--every-frame interpolates them)")
     return dataclasses.replace(scene, obs=obs, warnings=tuple(warnings))
