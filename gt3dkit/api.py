@@ -131,15 +131,15 @@ def take_rows(tracks: TrackSet, keep: np.ndarray) -> TrackSet:
 
 
 def estimate_scene(scene: Scene, est: Estimator, pre: Any | None, segs: Segments,
-                   dense: bool = False, pieces: tuple[Scene, Any, dict[int, tuple[int, int]]] | None = None
+                   dense: bool = False, split: tuple[Scene, Any, dict[int, tuple[int, int]]] | None = None
                    ) -> TrackSet:
     """``est``'s tracks of ``scene``, each piece of a split id (:mod:`gt3dkit.fusion.identity`)
     estimated as an object of its own; the tracks carry the input's ids, ``info["identity"]``
     the pieces. ``pre``: the estimator's own preparation of ``scene`` (None: it prepares).
     A row for each annotated object-frame; ``dense``: also the rows of frames no camera saw
-    the object in (the estimator's interpolation, ``n_views`` 0). ``pieces``: :func:`split_scene`'s
+    the object in (the estimator's interpolation, ``n_views`` 0). ``split``: :func:`split_scene`'s
     result, shared by several estimators (``gt3d compare``)."""
-    tracks = _estimate_pieces(scene, est, pre, segs, pieces)
+    tracks = _estimate_pieces(scene, est, pre, segs, split)
     if dense:
         tracks.info["every_frame"] = {
             "frames": int(len(scene.frames)), "rows_interpolated": int(np.sum(tracks.n_views == 0)),
@@ -162,13 +162,12 @@ def _estimate_pieces(scene: Scene, est: Estimator, pre: Any | None, segs: Segmen
                      shared: tuple[Scene, Any, dict[int, tuple[int, int]]] | None) -> TrackSet:
     """:func:`estimate_scene` with every row the estimator gives."""
     if not segs.splits:
-        tracks = est.estimate(scene, pre) if pre is not None else est.estimate(scene)
-    elif shared is not None:
-        tracks = restored_ids(est.estimate(shared[0], shared[1]), shared[2])
+        tracks = est.estimate(scene, pre)
     else:
-        pieces, back = split_ids(scene, pre.rows if pre is not None else prepare(scene).rows, segs)
-        tracks = est.estimate(pieces)
-        tracks = restored_ids(tracks, back)
+        if shared is None:  # the estimator prepares the pieces itself
+            pieces, back = split_ids(scene, (pre if pre is not None else prepare(scene)).rows, segs)
+            shared = (pieces, None, back)
+        tracks = restored_ids(est.estimate(shared[0], shared[1]), shared[2])
     tracks.info["identity"] = {
         "splits": len(segs.splits), "exchanges": len(segs.exchanges),
         "speed_limit_mps": round(segs.speed_limit_mps, 3),
@@ -213,10 +212,7 @@ def restored_ids(tracks: TrackSet, back: dict[int, tuple[int, int]]) -> TrackSet
     d = tracks.downweighted
     if d is not None:
         d = dataclasses.replace(d, track_id=input_ids(d.track_id)[0])
-    out = dataclasses.replace(
-        tracks, frame=tracks.frame[order], track_id=orig[order], center_world=tracks.center_world[order],
-        semi_axes=tracks.semi_axes[order], center_sd=tracks.center_sd[order], n_views=tracks.n_views[order],
-        kpt_world=tracks.kpt_world[order], kpt_sd=tracks.kpt_sd[order], downweighted=d)
+    out = take_rows(dataclasses.replace(tracks, track_id=orig, downweighted=d), order)
     pieces, inv = np.unique(np.c_[orig, piece], axis=0, return_inverse=True)
     inv = inv.reshape(-1)
     first = np.full(len(pieces), np.iinfo(np.int64).max)

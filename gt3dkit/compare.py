@@ -99,7 +99,7 @@ def compare(scene: Scene, out: Path, estimators: tuple[str, ...] = COMPARE_ESTIM
     for name in tqdm(estimators, desc="estimators", disable=not progress, unit="est"):
         t0 = time.perf_counter()
         try:
-            results[name] = estimate_scene(scene, make_estimator(name), pre, segs, pieces=shared)
+            results[name] = estimate_scene(scene, make_estimator(name), pre, segs, split=shared)
         except EstimationError as e:  # one estimator's failure is a finding, not the end
             failed[name] = e.problem
             continue

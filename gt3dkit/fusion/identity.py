@@ -103,9 +103,7 @@ def identity_segments(pre: Any, fps: float, cfg: IdentityConfig | None = None,
     dist = np.linalg.norm(centre[b] - centre[a], axis=1)
     dt = np.maximum(t_s[b] - t_s[a], 1e-9)
     speed = dist / dt
-    own = rows.row_o[a]
-    medians = [float(np.median(speed[own == o])) for o in np.unique(own)]
-    v95 = float(np.percentile(medians, 95)) if medians else 0.0
+    v95 = float(np.percentile(group_medians(speed, rows.row_o[a]), 95)) if len(speed) else 0.0
     v_lim = max(cfg.speed_factor * v95, cfg.min_speed_mps)
     limit = v_lim * dt + cfg.sigmas * np.hypot(sd[a], sd[b])
     cut = np.flatnonzero(dist > limit)
@@ -148,6 +146,14 @@ def identity_segments(pre: Any, fps: float, cfg: IdentityConfig | None = None,
             splits += (Split(int(i), k, int(frame_of[ra]), int(frame_of[rb]), round(d, 3), round(d / dt_k, 2),
                              int(rows.n_views[ra]), int(rows.n_views[rb]), float("nan"), True),)
     return Segments(seg, splits, v_lim, _exchanges(np.asarray(auto, np.int64), a, b, centre, limit, rows))
+
+
+def group_medians(values: np.ndarray, group: I64) -> np.ndarray:
+    """The median of ``values (N,)`` within each group of ``group (N,)``, groups in sorted order."""
+    order = np.lexsort((values, group))
+    v = values[order]
+    _, first, count = np.unique(group[order], return_index=True, return_counts=True)
+    return (v[first + (count - 1) // 2] + v[first + count // 2]) / 2
 
 
 def _exchanges(cut: I64, a: I64, b: I64, centre: np.ndarray, limit: np.ndarray, rows: Any

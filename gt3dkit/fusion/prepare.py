@@ -284,13 +284,21 @@ def _group_variances(r2: F64, dof: F64, use: np.ndarray, group: np.ndarray, n_gr
     return glob, out
 
 
+def _edge_residuals(fit: BoxFit, keep: np.ndarray) -> tuple[F64, F64, np.ndarray]:
+    """The kept edges' squared residuals ``(R, C, 4)`` (0 where unused), each edge's degrees of
+    freedom (its share of its fit's edges minus 6) and which edges are used."""
+    n = np.maximum(fit.n_edges, 1.0)
+    share = np.clip((fit.n_edges - 6) / n, 0.0, 1.0)  # each edge's share of the row's dof
+    use = keep & (share[:, None, None] > 0) & np.isfinite(fit.residual_px)
+    r2 = np.where(use, fit.residual_px, 0.0) ** 2
+    return r2, np.broadcast_to(share[:, None, None], keep.shape), use
+
+
 def _core_sigma(fit: BoxFit, keep: np.ndarray) -> float:
     """The box-edge noise sd (px) of the typical edge (:func:`gt3dkit.fusion.robust.median_variance`
-    of the kept edges' residuals, dof as in :func:`_edge_sigmas`)."""
-    n = np.maximum(fit.n_edges, 1.0)
-    share = np.clip((fit.n_edges - 6) / n, 0.0, 1.0)
-    use = keep & (share[:, None, None] > 0) & np.isfinite(fit.residual_px)
-    v = median_variance(fit.residual_px[use] ** 2, np.broadcast_to(share[:, None, None], keep.shape)[use])
+    of the kept edges' residuals)."""
+    r2, dof, use = _edge_residuals(fit, keep)
+    v = median_variance(r2[use], dof[use])
     return float(np.sqrt(max(v, 0.1**2))) if np.isfinite(v) else float("nan")
 
 
@@ -301,11 +309,7 @@ def _edge_sigmas(fit: BoxFit, keep: np.ndarray, robust: RobustConfig) -> tuple[F
     a sharp bottom edge, swinging arms ragged side edges), but weighting them apart was
     worse against MultiviewX's ground positions (16.4 vs 12.1 mm): the differences are the
     ellipsoid model's misfit, not noise, and the sharpest edge is not the truest."""
-    n = np.maximum(fit.n_edges, 1.0)
-    share = np.clip((fit.n_edges - 6) / n, 0.0, 1.0)  # each edge's share of the row's dof
-    use = keep & (share[:, None, None] > 0) & np.isfinite(fit.residual_px)
-    r2 = np.where(use, fit.residual_px, 0.0) ** 2
-    dof = np.broadcast_to(share[:, None, None], keep.shape)
+    r2, dof, use = _edge_residuals(fit, keep)
     glob, out = _group_variances(r2, dof, use, np.arange(4), 4, robust.reject_p, 1)
     out = np.where(np.isfinite(out) & (out > 0), out, 1.0)
     g = glob if np.isfinite(glob) and glob > 0 else 1.0

@@ -75,6 +75,8 @@ PROVISIONAL_MIN_SHAPE_SD = 0.05
 SEARCH_OBJECT_FRAMES = 2500
 #: Rounds of coordinate ascent between the centre's acceleration and position noise at most.
 ASCENT_ROUNDS = 3
+#: The fields :func:`select_noise` finds (the others are the caller's).
+NOISE_FIELDS = ("accel_sd", "shape_sd", "joint_accel_sd", "position_sd")
 
 
 @dataclass(frozen=True)
@@ -180,7 +182,7 @@ class UKFSmoother:
         model = Model.of(pre)
         init = initial_states(model, cfg)
         cfg, search = select_noise(model, init, cfg, pre, scene.fps)
-        pre.memo[("noise_by_likelihood", self.config, scene.fps)] = (cfg, search)
+        pre.memo[_noise_key(self.config, scene.fps)] = (cfg, search)  # for GTSAM on this preparation
         run = run_filter(model, init, cfg, scene.fps, collect=True)
         if cfg.robust and model.robust_blocks:
             # second pass: the weights start from every point's verdict against the smoothed
@@ -513,7 +515,7 @@ def noise_by_likelihood(pre: Prepared, fps: float, cfg: UKFConfig) -> tuple[UKFC
     ``None``) that maximises the marginal likelihood of the state-space model, by the Kalman
     filter's prediction-error decomposition; what the GTSAM smoother's graph is tuned by too
     (the same model, solved another way)."""
-    key = ("noise_by_likelihood", cfg, fps)
+    key = _noise_key(cfg, fps)
     if key not in pre.memo:  # the UKF of this preparation may have found it already
         model = Model.of(pre)
         pre.memo[key] = select_noise(model, initial_states(model, cfg), cfg, pre, fps)
@@ -521,9 +523,9 @@ def noise_by_likelihood(pre: Prepared, fps: float, cfg: UKFConfig) -> tuple[UKFC
     return replace(found, **{k: v for k, v in asdict(cfg).items() if k not in NOISE_FIELDS}), curves
 
 
-#: The fields :func:`select_noise` finds (the others are the caller's).
-NOISE_FIELDS = ("accel_sd", "shape_sd", "joint_accel_sd", "position_sd")
-
+def _noise_key(cfg: UKFConfig, fps: float) -> tuple[Any, ...]:
+    """Where :func:`noise_by_likelihood` keeps its result in ``Prepared.memo``."""
+    return ("noise_by_likelihood", cfg, fps)
 
 
 def search_rows(rows: Any, budget: int, seed: int = 0) -> np.ndarray | None:

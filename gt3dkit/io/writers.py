@@ -83,19 +83,13 @@ def write_tracks_csv(path: Path, tracks: TrackSet) -> None:
     """One row per (frame, id); a dense run (``info["every_frame"]``, rows where no camera saw
     the object included) adds the column ``n_views`` (0: interpolated)."""
     a = np.column_stack([tracks.center_world, tracks.semi_axes, tracks.center_sd])
-    row = "%d,%d," + ",".join(["%.6f"] * a.shape[1])
     dense = bool(tracks.info.get("every_frame"))
+    row = "%d,%d," + ",".join(["%.6f"] * a.shape[1]) + (",%d" if dense else "") + "\r\n"  # as csv.writer
+    tail = [(n,) for n in tracks.n_views.tolist()] if dense else [()] * len(tracks)
     with open(path, "w", newline="") as f:
         csv.writer(f).writerow(TRACK_COLUMNS + (("n_views",) if dense else ()))
-        if dense:
-            row += ",%d\r\n"  # as csv.writer writes it
-            f.writelines(row % (f_, i, *v, n) for f_, i, v, n in zip(
-                tracks.frame.tolist(), tracks.track_id.tolist(), a.tolist(), tracks.n_views.tolist(),
-                strict=True))
-        else:
-            row += "\r\n"
-            f.writelines(row % (f_, i, *v) for f_, i, v in zip(
-                tracks.frame.tolist(), tracks.track_id.tolist(), a.tolist(), strict=True))
+        f.writelines(row % (f_, i, *v, *t) for f_, i, v, t in zip(
+            tracks.frame.tolist(), tracks.track_id.tolist(), a.tolist(), tail, strict=True))
 
 
 def write_keypoints_csv(path: Path, tracks: TrackSet) -> None:
@@ -205,7 +199,6 @@ def read_segments_csv(path: Path) -> tuple[tuple[int, int, int, int], ...]:
         out.append((i, seg, a, b, line))
     if not out:
         raise InputError(str(path), "no pieces (only a header)")
-    out.sort()
     out.sort(key=lambda p: (p[0], p[2]))
     for p, q in zip(out, out[1:], strict=False):
         if p[0] == q[0] and q[2] <= p[3]:

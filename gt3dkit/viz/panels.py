@@ -286,9 +286,10 @@ def anomaly_thumbnail(scene: Scene, res: ViewResiduals, frame: int, obj: int, ca
     fig, axes = plt.subplots(len(picks), width, figsize=(2.4 * width, 2.6 * len(picks)), dpi=90,
                              squeeze=False)
     labels = ("before", "now") if len(picks) > 1 else ("",)
+    bones = _bones(scene)
     for row, (n, cams), label in zip(axes, picks, labels, strict=True):
         for ax, c in zip(row, cams, strict=False):
-            _thumbnail_view(ax, scene, res, n, c, camera, joint,
+            _thumbnail_view(ax, scene, res, (n, c), (camera, joint), bones,
                             f"{label} (frame {int(res.frame[n])}): " if label else "")
         for ax in row[len(cams):]:
             ax.set_axis_off()
@@ -319,9 +320,11 @@ def _thumbnail_views(scene: Scene, res: ViewResiduals, frame: int, obj: int, cam
     return (n, cams) if cams else None
 
 
-def _thumbnail_view(ax: Any, scene: Scene, res: ViewResiduals, n: int, c: int, camera: str,
-                    joint: int | None, prefix: str) -> None:
-    """Camera ``c``'s view of residual row ``n``, cropped around the object."""
+def _thumbnail_view(ax: Any, scene: Scene, res: ViewResiduals, row_cam: tuple[int, int],
+                    flag: tuple[str, int | None], bones: Any, prefix: str) -> None:
+    """Camera ``c``'s view of residual row ``n`` (``row_cam``), cropped around the object; the
+    flagged ``(camera, joint)`` marked."""
+    (n, c), (camera, joint) = row_cam, flag
     names = scene.rig.names
     frame = int(res.frame[n])
     others = np.flatnonzero(res.frame == frame)
@@ -352,7 +355,7 @@ def _thumbnail_view(ax: Any, scene: Scene, res: ViewResiduals, n: int, c: int, c
     else:
         ax.set_facecolor("#f2f2f2")
     flagged = names[c] == camera
-    draw_view(ax, scene, res, c, others, _bones(scene), lw=1.4, mark=(n, joint) if flagged else None, focus=n)
+    draw_view(ax, scene, res, c, others, bones, lw=1.4, mark=(n, joint) if flagged else None, focus=n)
     ax.set_xlim(lo[0] - pad, hi[0] + pad)
     ax.set_ylim(hi[1] + pad, lo[1] - pad)
     ax.set_aspect("equal")

@@ -27,7 +27,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.eval.metrics import match_rows
 from gt3dkit.fusion.prepare import prepare
 from gt3dkit.io.atomic import write_dir_atomically
-from gt3dkit.io.writers import SEGMENT_COLUMNS
+from gt3dkit.io.writers import read_segments_csv
 from gt3dkit.parse import read_csv_rows
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import Scene, TrackSet
@@ -184,19 +184,11 @@ def _split_frames(out: Path) -> dict[tuple[int, int], int]:
     path = out / "segments.csv"
     if not path.is_file():
         return {}
-    pieces: dict[int, list[tuple[int, int, int]]] = {}
-    for _, r in read_csv_rows(path, SEGMENT_COLUMNS):
-        try:
-            pieces.setdefault(int(r["id"]), []).append((int(r["segment"]), int(r["first_frame"]),
-                                                        int(r["last_frame"])))
-        except ValueError:
-            continue  # an edited file: the pictures go without the earlier place
-    out_map = {}
-    for i, ps in pieces.items():
-        ps.sort()
-        for (_, _, last), (_, first, _) in zip(ps, ps[1:], strict=False):
-            out_map[(i, first)] = last
-    return out_map
+    try:
+        pieces = read_segments_csv(path)  # sorted by id, then first frame
+    except InputError:
+        return {}  # an edited file: the pictures go without the earlier place
+    return {(q[0], q[2]): p[3] for p, q in zip(pieces, pieces[1:], strict=False) if p[0] == q[0]}
 
 
 def _annotation_note() -> str:
