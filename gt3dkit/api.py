@@ -17,15 +17,18 @@ from gt3dkit.calib.formats.native import rig_of_doc
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.associate import apply_association, associate, associate_detections, read_overrides
 from gt3dkit.fusion.base import ESTIMATORS, Estimator, make_estimator
+from gt3dkit.fusion.boxfit import choose_box_model
 from gt3dkit.fusion.identity import Segments, identity_segments
 from gt3dkit.fusion.prepare import prepare
+from gt3dkit.fusion.rows import build_rows
+from gt3dkit.geom.camera import Cams
 from gt3dkit.io.datasets import ASSOCIATED, checks, read_scene
 from gt3dkit.io.results import read_result
 from gt3dkit.io.writers import ANOMALY_COLUMNS, read_keypoints_csv, read_segments_csv, write_outputs
 from gt3dkit.parse import read_csv_rows
 from gt3dkit.qa.anomalies import find_anomalies
 from gt3dkit.threads import small_matrix_blas
-from gt3dkit.types import Scene, TrackSet
+from gt3dkit.types import BOX_MODELS, Scene, TrackSet
 
 __all__ = ["ESTIMATORS", "annotation_qa", "load_run", "load_scene", "make_estimator", "reconstruct"]
 
@@ -33,13 +36,15 @@ __all__ = ["ESTIMATORS", "annotation_qa", "load_run", "load_scene", "make_estima
 def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None = None,
                fps: float | None = None, calib: Path | str | None = None,
                association: Path | str | None = None, segments: Path | str | None = None,
-               **panoptic_options: Any) -> Scene:
+               box_model: str = "auto", **panoptic_options: Any) -> Scene:
     """Load any supported input folder (layout detected when not given): read it
     (:func:`gt3dkit.io.datasets.read_scene`, whose arguments these are), give ids per camera or
     none global identities (:mod:`gt3dkit.fusion.associate`, with the overrides of the file
     ``association``), then check it (:func:`gt3dkit.io.datasets.checks.check_scene`).
     ``segments``: an edited ``segments.csv`` whose pieces replace the automatic identity splits
-    of the ids it lists (:func:`gt3dkit.fusion.identity.identity_segments`)."""
+    of the ids it lists (:func:`gt3dkit.fusion.identity.identity_segments`). ``box_model``: how
+    the boxes are drawn (:data:`gt3dkit.types.BOX_MODELS`), or ``"auto"``: chosen from them
+    (:func:`with_box_model`)."""
     scene = read_scene(root, layout, skeleton, fps, calib, association, **panoptic_options)
     if scene.layout in ASSOCIATED:  # ids per camera or none -> global identities, before the checks
         over = read_overrides(Path(association), scene.rig.names) if association is not None else None
@@ -55,7 +60,21 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     scene = checks.check_scene(scene)
     if segments is not None:
         scene = with_pieces(scene, Path(segments))
-    return scene
+    return with_box_model(scene, box_model)
+
+
+def with_box_model(scene: Scene, box_model: str = "auto") -> Scene:
+    """``scene`` with the box model that draws its boxes: ``box_model`` when one of
+    :data:`gt3dkit.types.BOX_MODELS`, else the one its boxes' per-frame fits choose
+    (:func:`gt3dkit.fusion.boxfit.choose_box_model`). The choice is kept in ``load_options``, so a
+    report's reload draws the same boxes without choosing again."""
+    px: dict[str, float] = {}
+    if box_model not in BOX_MODELS:
+        rows = build_rows(scene)
+        box_model, px = ("ellipsoid", {}) if not np.isfinite(rows.box_z).any() else \
+            choose_box_model(rows.box_z, rows.box_mask, Cams.of(scene.rig))
+    opts = {**scene.load_options, "box_model": box_model}
+    return dataclasses.replace(scene, box_model=box_model, box_model_px=px, load_options=opts)
 
 
 def with_pieces(scene: Scene, path: Path) -> Scene:
@@ -261,7 +280,7 @@ def _load_scene(out: Path, meta: dict[str, Any]) -> tuple[Scene, list[str]]:
     if load.get("calib") and not Path(load["calib"]).exists():
         raise InputError(where, f"input: the calibration {load['calib']} is not there any more")
     known = {"layout", "skeleton", "fps", "calib", "cameras", "noise_px", "seed", "min_conf", "association",
-             "segments"}
+             "segments", "box_model"}
     scene = load_scene(Path(root), **{k: v for k, v in load.items() if k in known})
     notes = []
     old = inp.get("files_sha256") or {}

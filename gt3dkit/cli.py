@@ -41,11 +41,10 @@ from gt3dkit.commands.simulate import cmd_simulate
 from gt3dkit.errors import EstimationError, InputError
 from gt3dkit.export import FORMATS as EXPORT_FORMATS
 from gt3dkit.io.datasets import LAYOUTS
-from gt3dkit.sim import (
-    SIM_LAYOUTS,
-)
+from gt3dkit.sim import SIM_LAYOUTS
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.threads import small_matrix_blas
+from gt3dkit.types import BOX_MODELS
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -65,12 +64,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--accel-sd", type=ACCEL,
                    help="acceleration noise, m/s^2/sqrt(Hz) (default: max likelihood)")
     r.add_argument("--fps", type=FPS, help="frame-number rate (default: the layout's)")
-    r.add_argument("--calib", help="calibration file or folder in any format (cameras.json, "
-                                   "WILDTRACK/MultiviewX calibrations/, OpenCV .yml/.xml, Anipose/"
-                                   "Pose2Sim .toml, COLMAP model) in place of the input's own")
-    r.add_argument("--association", metavar="FILE",
-                   help="per-camera ids (mot): an edited association.csv whose rows override the "
-                        "automatic cross-view association")
+    r.add_argument("--calib", help="calibration file or folder in any format (cameras.json, WILDTRACK/"
+                   "MultiviewX calibrations/, OpenCV .yml/.xml, Anipose .toml, COLMAP) for the input's own")
+    r.add_argument("--association", metavar="FILE", help="per-camera ids (mot): an edited association.csv "
+                   "whose rows override the automatic cross-view association")
+    r.add_argument("--box-model", choices=("auto", *BOX_MODELS), default="auto", help="how boxes are "
+                   "drawn: an ellipsoid's tangent box, a cylinder's, an occupancy-map rectangle")
     r.add_argument("--segments", metavar="FILE", help="an edited segments.csv: its pieces replace the "
                                                       "automatic identity splits of the ids it lists")
     r.add_argument("--refine-calib", action="store_true",
@@ -101,8 +100,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--fps", type=FPS, help="frame rate (skeletons: 30; native boxes: 10)")
     s.add_argument("--motion", choices=("smooth", "walk", "stop-and-turn"),
                    help="box scenes: smooth paths (default), walking, or walkers who stop and turn")
-    s.add_argument("--labels", choices=("ellipsoid", "cylinder"), default="ellipsoid",
-                   help="box scenes: an ellipsoid's tangent box, or a grid-placed cylinder's (WILDTRACK's)")
+    s.add_argument("--labels", choices=BOX_MODELS, default="ellipsoid", help="box scenes: an ellipsoid's "
+                   "tangent box, or a grid-placed cylinder's or occupancy-map rectangle (WILDTRACK's)")
     s.add_argument("--outliers", type=FRACTION, default=0.0,
                    help="skeletons: fraction of keypoints replaced by far-off points")
     s.add_argument("--swaps", type=FRACTION, default=0.0,
@@ -152,6 +151,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "input's own")
     c.add_argument("--association", metavar="FILE", help="as for reconstruct")
     c.add_argument("--segments", metavar="FILE", help="as for reconstruct")
+    c.add_argument("--box-model", choices=("auto", *BOX_MODELS), default="auto", help="as for reconstruct")
     c.add_argument("--no-progress", "--quiet", dest="no_progress", action="store_true",
                    help="no progress bar")
     c.set_defaults(func=cmd_compare)

@@ -34,13 +34,14 @@ def _row_of(tracks: TrackSet, rows: Rows) -> np.ndarray:
 
 def reprojection_residuals(tracks: TrackSet, scene: Scene, rows: Rows) -> F64:
     """Image residuals (px) of every usable box edge (absolute) and every keypoint (distance)."""
-    cams = Cams.of(scene.rig)
+    cams = Cams.of(scene.rig, scene.box_model)
     r_of = _row_of(tracks, rows)
     ok = r_of >= 0
     out = []
     if np.isfinite(rows.box_z).any():
         box, _ = ellipsoid_boxes(tracks.center_world[ok], tracks.semi_axes[ok], cams.world_from_body,
-                                 cams.K, cams.dist, cams.R, cams.t, cams.depth_sign)
+                                 cams.K, cams.dist, cams.R, cams.t, cams.depth_sign,
+                                 box_model=cams.box_model)
         m = rows.box_mask[r_of[ok]]
         out.append(np.abs(box - rows.box_z[r_of[ok]])[m])
     if tracks.kpt_world.shape[1] and np.isfinite(rows.kpt_z).any():

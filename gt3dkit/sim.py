@@ -36,7 +36,7 @@ from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.datasets import LAYOUTS, openpose, tasks
 from gt3dkit.io.datasets.wildtrack import write_truth_csv
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import F64, I64, Camera, Observations, Rig, Scene, SimScene, SkeletonScene
+from gt3dkit.types import BOX_MODELS, F64, I64, Camera, Observations, Rig, Scene, SimScene, SkeletonScene
 
 SIM_LAYOUTS = ("wildtrack", "multiviewx", "native")
 WRITE_LAYOUTS = tuple(k for k, v in LAYOUTS.items() if v.write_boxes is not None)
@@ -220,34 +220,18 @@ def _stop_and_turn(rng: np.random.Generator, t_s: F64, lo: F64, hi: F64) -> F64:
     return np.stack([np.interp(t_s, tt, out[:, 0]), np.interp(t_s, tt, out[:, 1])], -1)
 
 
-def cylinder_boxes(center_xy: F64, radius: F64, height: F64, cams: Cams, points: int = 48
-                   ) -> tuple[F64, F64]:
-    """Boxes of upright cylinders standing on the ground (z = 0), as WILDTRACK's annotation tool
-    drew them: the image extent of their top and bottom circles (``points`` each), distortion
-    included, not clipped at the image border. ``center_xy (M, 2)`` m, ``radius, height (M,)`` m.
-    Returns boxes ``(M, C, 4)`` and the nearest point's depth ``(M, C)`` (<= 0: behind)."""
-    a = np.linspace(0, 2 * np.pi, points, endpoint=False)
-    ring = np.stack([np.cos(a), np.sin(a)], -1)  # (P, 2)
-    xy = center_xy[:, None, :] + radius[:, None, None] * ring[None]  # (M, P, 2)
-    z = np.stack([np.zeros_like(radius), height], -1)  # (M, 2)
-    X = np.concatenate([np.broadcast_to(xy[:, None], (len(xy), 2) + xy.shape[1:]),
-                        np.broadcast_to(z[:, :, None, None], (len(xy), 2, points, 1))], -1)
-    uv, depth = project_points(X.reshape(len(xy), -1, 3), cams.K, cams.dist, cams.R, cams.t,
-                               cams.depth_sign)  # (M, 2P, C, 2), (M, 2P, C)
-    box = np.concatenate([uv.min(axis=1), uv.max(axis=1)], -1)  # NaN where any point is behind
-    return box, depth.min(axis=1)
-
-
 def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: int = 10,
              noise_px: float = 0.0, errors: Errors | None = None, motion: str = "smooth",
              cameras: int | None = None, fps: float | None = None, labels: str = "ellipsoid") -> SimScene:
     """Generate a seeded scene. See the module docstring.
 
     ``motion``: ``smooth`` paths, ``walk`` (speed and turn rate wander) or ``stop-and-turn``
-    (:func:`_stop_and_turn`). ``labels``: ``ellipsoid`` (each box the tangent box of the person's
-    ellipsoid, clipped at the image border) or ``cylinder`` (WILDTRACK's labels: an upright
-    cylinder placed on a 2.5 cm ground grid, :func:`cylinder_boxes`, partly outside the image where
-    the person is; the truth is the cylinder's centre on the grid).
+    (:func:`_stop_and_turn`). ``labels``: the box model that draws the boxes
+    (:data:`gt3dkit.types.BOX_MODELS`): ``ellipsoid`` (each box the tangent box of the person's
+    ellipsoid, clipped at the image border), or an annotation tool's: ``cylinder`` (an upright
+    cylinder's box) or ``pom`` (the occupancy-map rectangle of WILDTRACK's and MultiviewX's labels),
+    one radius, placed on a 2.5 cm ground grid and drawn whole, partly outside the image where the
+    person is; the truth is the centre on the grid.
 
 
     ``cameras`` and ``fps`` set the native layout's camera count (default 6) and frame rate
@@ -261,8 +245,8 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
         raise ValueError("need frames >= 2, people >= 1, noise_px >= 0")
     if motion not in ("smooth", "walk", "stop-and-turn"):
         raise ValueError(f"motion must be smooth, walk or stop-and-turn, got {motion!r}")
-    if labels not in ("ellipsoid", "cylinder"):
-        raise ValueError(f"labels must be ellipsoid or cylinder, got {labels!r}")
+    if labels not in BOX_MODELS:
+        raise ValueError(f"labels must be one of {', '.join(BOX_MODELS)}, got {labels!r}")
     if layout not in ("native", "mot") and (cameras is not None or fps is not None):
         raise ValueError("cameras and fps apply to the native layout (the others have theirs)")
     if cameras is not None and not 1 <= cameras <= 64:
@@ -313,19 +297,18 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
             axes.append([ab[0], ab[1], c])
     center = np.array(centers)
     semi = np.array(axes)
-    cams = Cams.of(rig)
-    if labels == "cylinder":  # one radius, on the annotation tool's 2.5 cm grid
+    cams = Cams.of(rig, labels)
+    tool = labels != "ellipsoid"  # an annotation tool's solid: one radius, on its 2.5 cm grid
+    if tool:
         semi[:, :2] = semi[:, :2].mean(axis=1, keepdims=True)
         center[:, :2] = np.round(center[:, :2] / POSITION_GRID_M) * POSITION_GRID_M
-        box, margin = cylinder_boxes(center[:, :2], semi[:, 0], 2 * semi[:, 2], cams)
-    else:
-        box, margin = ellipsoid_boxes(center, semi, cams.world_from_body, cams.K, cams.dist, cams.R,
-                                      cams.t, cams.depth_sign)
+    box, margin = ellipsoid_boxes(center, semi, cams.world_from_body, cams.K, cams.dist, cams.R,
+                                  cams.t, cams.depth_sign, box_model=cams.box_model)
     box = box + rng.normal(scale=noise_px, size=box.shape) if noise_px > 0 else box
     W, H = cams.wh[:, 0], cams.wh[:, 1]
     inside = (margin > 0) & (box[..., 2] > 0) & (box[..., 0] < W - 1) & (box[..., 3] > 0) \
         & (box[..., 1] < H - 1)
-    if labels != "cylinder":  # an annotation tool's cylinder is drawn past the border whole
+    if not tool:  # an annotation tool's solid is drawn past the border whole
         box = np.stack([np.clip(box[..., 0], 0, W - 1), np.clip(box[..., 1], 0, H - 1),
                         np.clip(box[..., 2], 0, W - 1), np.clip(box[..., 3], 0, H - 1)], -1)
     box = np.trunc(box) if layout == "multiviewx" else np.rint(box)

@@ -34,6 +34,12 @@ F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
 B8 = npt.NDArray[np.bool_]
 
+#: How a state (centre, semi-axes along the body axes) draws a person's box in a camera
+#: (:mod:`gt3dkit.geom.boxkernel`): the ellipsoid's tangent box (the paper's), the vertical
+#: cylinder's box, or the rectangle of the probabilistic-occupancy-map generator (WILDTRACK's and
+#: MultiviewX's labels). A scene's is chosen from its boxes (:func:`gt3dkit.fusion.boxfit.choose_box_model`).
+BOX_MODELS = ("ellipsoid", "cylinder", "pom")
+
 
 @dataclass(frozen=True)
 class Observations:
@@ -152,6 +158,10 @@ class Scene:
     association: Any = None  # fusion.associate.Association when ids were per camera
     # (id, segment, first frame, last frame) pieces an edited segments.csv gives (fusion.identity)
     identity_pieces: tuple[tuple[int, int, int, int], ...] = ()
+    # how the boxes are drawn (BOX_MODELS) and the evidence that chose it (median edge residual,
+    # px, of per-frame fits under each model; empty when given, not chosen)
+    box_model: str = "ellipsoid"
+    box_model_px: dict[str, float] = field(default_factory=dict)
 
     @property
     def all_warnings(self) -> tuple[str, ...]:

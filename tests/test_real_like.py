@@ -1,7 +1,7 @@
-"""The simulator's real-label conditions (WILDTRACK's): boxes drawn from an upright cylinder placed
-on a 2.5 cm ground grid, partly outside the image; walkers who stop and turn between two
-annotations at 2 fps; and the estimators on them: the smoothers as good as the per-frame fit, no
-row far off, sds that cover."""
+"""The simulator's real-label conditions (WILDTRACK's): boxes an annotation tool drew from a solid
+placed on a 2.5 cm ground grid (the occupancy-map rectangle, or a cylinder's box), partly outside
+the image; walkers who stop and turn between two annotations at 2 fps; and the estimators on them:
+the smoothers as good as the per-frame fit, no row far off, sds that cover."""
 
 from __future__ import annotations
 
@@ -13,20 +13,14 @@ from scipy.stats import chi2
 
 from gt3dkit.api import reconstruct
 from gt3dkit.eval.metrics import match_rows
-from gt3dkit.geom.camera import Cams
-from gt3dkit.sim import POSITION_GRID_M, Errors, cylinder_boxes, simulate
+from gt3dkit.sim import POSITION_GRID_M, Errors, simulate
 from tests.scenes import written_scene
 
 
-def test_a_cylinder_box_is_the_extent_of_its_silhouette() -> None:
-    """48 points per circle against 4 000 (the silhouette's extent), and a grid-placed truth."""
-    sim = simulate("wildtrack", seed=3, frames=6, people=8, labels="cylinder", errors=Errors(dropped=0.0))
-    cams = Cams.of(sim.rig)
-    xy, r, h = sim.center_world[:, :2], sim.semi_axes[:, 0], 2 * sim.semi_axes[:, 2]
-    coarse, _ = cylinder_boxes(xy, r, h, cams)
-    fine, _ = cylinder_boxes(xy, r, h, cams, points=4000)
-    ok = np.isfinite(coarse) & np.isfinite(fine)
-    assert ok.any() and np.abs(coarse - fine)[ok].max() < 0.5
+@pytest.mark.parametrize("labels", ["cylinder", "pom"])
+def test_an_annotation_tools_solid_is_round_and_on_its_grid(labels: str) -> None:
+    """(The boxes themselves: tests/geom/test_box_models.py, against OpenCV.)"""
+    sim = simulate("wildtrack", seed=3, frames=6, people=8, labels=labels, errors=Errors(dropped=0.0))
     np.testing.assert_allclose(sim.center_world[:, :2] / POSITION_GRID_M,
                                np.round(sim.center_world[:, :2] / POSITION_GRID_M), atol=1e-9)
     np.testing.assert_array_equal(sim.semi_axes[:, 0], sim.semi_axes[:, 1])  # round
@@ -45,12 +39,14 @@ def test_stop_and_turn_walkers_stop_and_turn() -> None:
     assert stops >= 5 and turns >= 5, (stops, turns)
 
 
-@pytest.mark.parametrize("seed", [1, 3])
-def test_smoothers_on_real_like_labels(tmp_path: Path, seed: int) -> None:
-    """Cylinder labels, partly outside the image, stop-and-turn walkers at 2 fps: UKF and GTSAM at
-    most 1.1x the per-frame fit's mean ground error, no row 0.1 m off, 98 % within the sd."""
+@pytest.mark.parametrize(("seed", "labels"), [(1, "pom"), (3, "cylinder")])
+def test_smoothers_on_real_like_labels(tmp_path: Path, seed: int, labels: str) -> None:
+    """An annotation tool's labels, partly outside the image, stop-and-turn walkers at 2 fps: UKF
+    and GTSAM at most 1.1x the per-frame fit's mean ground error, no row 0.1 m off, 98 % within the
+    sd."""
     sc, sim = written_scene(tmp_path, "wildtrack", seed=seed, frames=60, people=16, motion="stop-and-turn",
-                            labels="cylinder", errors=Errors(dropped=0.0))
+                            labels=labels, errors=Errors(dropped=0.0))
+    assert sc.box_model == labels
     W, H = sc.rig.wh[:, 0], sc.rig.wh[:, 1]
     b = sc.obs.box_xyxy_px
     outside = (b[:, 0] < 0) | (b[:, 1] < 0) | (b[:, 2] > W[sc.obs.cam] - 1) | (b[:, 3] > H[sc.obs.cam] - 1)

@@ -98,6 +98,7 @@ def load_input(args: argparse.Namespace) -> Any:
         opts["association"] = args.association
     if getattr(args, "segments", None) is not None:
         opts["segments"] = args.segments
+    opts["box_model"] = getattr(args, "box_model", "auto")
     scene = load_scene(Path(args.input), layout, args.skeleton, getattr(args, "fps", None),
                        calib=getattr(args, "calib", None), **opts)
     return scene

@@ -6,6 +6,9 @@ r"""Boxes -> ellipsoids without a temporal model.
 * :func:`fit_boxes`: a batched Levenberg-Marquardt least-squares fit of one
   ellipsoid (centre, log semi-axes) per object-frame to all its views' boxes: the
   triangulation baseline for boxes and the UKF's initialisation.
+* :func:`choose_box_model`: which of the box models draws a label set's boxes.
+
+Every function takes the box model from ``cams.box_model``.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ from gt3dkit.fusion.boxlm import fit_compiled
 from gt3dkit.geom.boxkernel import BoxCameras
 from gt3dkit.geom.camera import Cams, pixel_rays
 from gt3dkit.geom.conics import ellipsoid_boxes, outline_ellipse
-from gt3dkit.types import B8, F64
+from gt3dkit.types import B8, BOX_MODELS, F64
 
 #: Prior semi-axes (m) for a standing person, used only as a weak regulariser and
 #: for a view with no usable bottom edge.
@@ -29,7 +32,8 @@ def box_model(center_world: F64, log_axes: F64, cams: Cams, want: np.ndarray | N
     """(..., 3) centres and (..., 3) log semi-axes -> (..., C, 4) boxes (px), NaN if behind;
     ``want`` (broadcastable to ``(..., C)``): only these cameras' boxes (the others NaN)."""
     box, _ = ellipsoid_boxes(center_world, np.exp(log_axes), cams.world_from_body, cams.K,
-                             cams.dist, cams.R, cams.t, cams.depth_sign, want=want)
+                             cams.dist, cams.R, cams.t, cams.depth_sign, want=want,
+                             box_model=cams.box_model)
     return box
 
 
@@ -152,3 +156,39 @@ def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: F64 | float = 1.0,
     return BoxFit(center_world=p[:, :3], log_axes=p[:, 3:], cov=cov, rss_px2=rss,
                   n_edges=n_edges, margin=margin, ok=ok, residual_px=res_px,
                   leverage=np.where(box_mask, lev, np.nan))
+
+
+#: A box model other than the paper's ellipsoid is chosen only when its per-frame fits leave the
+#: edges at most this fraction of the ellipsoid's median residual (a clear, not a marginal, win).
+OTHER_MODEL_GAIN = 0.9
+#: Object-frames (seen by three or more cameras, evenly spread) the choice fits.
+CHOICE_ROWS = 400
+
+
+def choose_box_model(box_z: F64, box_mask: B8, cams: Cams) -> tuple[str, dict[str, float]]:
+    """The box model (:data:`gt3dkit.types.BOX_MODELS`) that draws these boxes: the one whose
+    per-frame fits (the same six parameters under every model) leave the smallest median
+    absolute edge residual, on up to :data:`CHOICE_ROWS` object-frames seen by three or more
+    cameras. A label set's boxes are made one way: a tight box around a person (the ellipsoid),
+    a cylinder's projection, or the occupancy-map generator's rectangle from an annotated
+    ground position; fitting the wrong one leaves a misfit of several pixels that depends on
+    the viewing angle, which no noise level absorbs. Another model than the ellipsoid must beat
+    it by :data:`OTHER_MODEL_GAIN`.
+
+    Returns the name and each model's median residual (px); ``("ellipsoid", {})`` when fewer
+    than 20 object-frames are seen three times (nothing to choose from).
+    """
+    n_views = box_mask.any(axis=2).sum(axis=1)
+    idx = np.flatnonzero(n_views >= 3)
+    if idx.size < 20:
+        return "ellipsoid", {}
+    idx = idx[np.unique(np.linspace(0, idx.size - 1, min(CHOICE_ROWS, idx.size)).astype(np.int64))]
+    px: dict[str, float] = {}
+    for k, name in enumerate(BOX_MODELS):
+        fit = fit_boxes(box_z[idx], box_mask[idx], cams._replace(box_model=k))
+        r = np.abs(fit.residual_px[fit.ok])
+        px[name] = float(np.median(r[np.isfinite(r)]))
+    best = min(px, key=lambda m: px[m])
+    if px[best] > OTHER_MODEL_GAIN * px["ellipsoid"]:
+        best = "ellipsoid"
+    return best, px

@@ -183,7 +183,7 @@ def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = Non
     """Rows, robust per-frame fits, noise levels and input checks (see the module doc)."""
     robust = robust or RobustConfig()
     rows = build_rows(scene, clip_tol_px)
-    cams = Cams.of(scene.rig)
+    cams = Cams.of(scene.rig, scene.box_model)
     J = scene.obs.n_joints
     use_box = bool(np.isfinite(rows.box_z).any())
     use_kpt = J > 0 and bool(np.isfinite(rows.kpt_z).any())
@@ -371,7 +371,8 @@ def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
     core = float(sig[0]) if sigma_px is not None else _core_sigma(fit, keep)
     core = min(core, float(sig[0])) if np.isfinite(core) else float(sig[0])
     tail = (float(sig[0]) / core) ** 2
-    info = {"sigma_px": float(sig[0]), "sigma_px_core": core, "tail_variance_ratio": tail,
+    info = {"box_model": scene.box_model, "box_model_median_residual_px": scene.box_model_px,
+            "sigma_px": float(sig[0]), "sigma_px_core": core, "tail_variance_ratio": tail,
             "sigma_px_per_edge_kind": dict(zip(EDGES, _edge_sigmas(fit, keep, robust)[1].round(4)
                                                .tolist(), strict=True)),
             "sigma_source": "given" if sigma_px is not None else

@@ -12,6 +12,17 @@ reference's central differences.
 
 Per camera the work is chosen as in the reference: the closed form without distortion and skew,
 the value at the tangent angle with skew only, Newton steps with distortion.
+
+The same state (centre, semi-axes along the body axes, body axis 2 up) has three box models
+(:data:`BOX_MODELS`), for the three ways label sets draw a person's box:
+
+* ``ellipsoid``: the tangent box of the ellipsoid (the paper's model; hand-drawn tight boxes);
+* ``cylinder``: the box of the vertical cylinder with those radii and half-height, the union of
+  its two end discs' tangent boxes (the cylinder is their convex hull);
+* ``pom``: the rectangle of Fleuret et al.'s probabilistic occupancy map generator, with which
+  WILDTRACK and MultiviewX made their boxes from the annotated ground positions: left, top and
+  right are the extremes of the eight projected corners of the box-shaped person, the bottom the
+  mean row of its four lowest corners.
 """
 
 from __future__ import annotations
@@ -24,12 +35,14 @@ import numpy as np
 
 from gt3dkit.geom.kernel_cache import drop_stale
 from gt3dkit.threads import run_split
-from gt3dkit.types import F64
+from gt3dkit.types import BOX_MODELS, F64
 
 drop_stale()  # before any compiled function below is called (and its cache read)
 
 #: Edges of a box: left, top, right, bottom.
 EDGES = 4
+#: Indices of the box models of :data:`gt3dkit.types.BOX_MODELS` (module docstring).
+ELLIPSOID, CYLINDER, POM = (BOX_MODELS.index(m) for m in ("ellipsoid", "cylinder", "pom"))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -95,13 +108,15 @@ class BoxCameras(NamedTuple):
     R: F64
     t: F64
     depth_sign: F64
+    box_model: int = 0  # index into BOX_MODELS
 
     @classmethod
     def of(cls, cams: Any) -> BoxCameras:
         C = len(cams.K)
         return cls(contiguous(cams.world_from_body), contiguous(cams.K), contiguous(cams.dist),
                    contiguous(cams.R), contiguous(cams.t),
-                   contiguous(np.broadcast_to(np.asarray(cams.depth_sign, dtype=np.float64), (C,))))
+                   contiguous(np.broadcast_to(np.asarray(cams.depth_sign, dtype=np.float64), (C,))),
+                   int(getattr(cams, "box_model", 0)))
 
 
 #: Offsets in a row of :attr:`BoxRig.cam` (one camera): ``R`` (9, row-major), ``t`` (3), ``Rc = R Rb``
@@ -119,6 +134,7 @@ class BoxRig(NamedTuple):
 
     cam: F64
     steps: int
+    box_model: int  # index into BOX_MODELS
 
 
 @numba.njit(cache=True, nogil=True)
@@ -146,7 +162,7 @@ def box_rig(cams: BoxCameras, steps: int) -> BoxRig:
         q[_GX + 3], q[_GY + 3] = K[c, 1, 0], K[c, 1, 1]
         q[_DS] = cams.depth_sign[c]
         q[_HASD] = 1.0 if has else 0.0
-    return BoxRig(out, steps)
+    return BoxRig(out, steps, cams.box_model)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -204,19 +220,15 @@ def _edge_angle(e: int, m: tuple[float, float], el: tuple[float, float, float], 
     return ct, st
 
 
-@numba.njit(cache=True, nogil=True, inline="always")  # ~20 % faster than a call
-def pair_box(p: tuple[float, float, float], s: tuple[float, float, float], c: int, rig: BoxRig,
-             want: bool, out: F64, n: int) -> float:
-    """The box ``out[n, c] (4,)`` (``out (N, C, 4)``) of the ellipsoid with centre ``p`` and
-    squared semi-axes ``s`` in camera ``c`` (NaN if behind it or not ``want``); returns the
-    margin."""
-    q = rig.cam[c]
+@numba.njit(cache=True, nogil=True, inline="always")
+def _quadric_box(p: tuple[float, float, float], s: tuple[float, float, float], q: F64, steps: int
+                 ) -> tuple[float, float, float, float, float]:
+    """Margin and box (left, top, right, bottom) of the ellipsoid (or flat disc: ``s[2] = 0``) with
+    centre ``p`` and squared semi-axes ``s`` in camera row ``q``; NaN box if behind it."""
     X0, X1, X2, M00, M11, M22, M01, M02, M12 = _in_camera(p, s, q)
     mg = q[_DS] * X2 - math.sqrt(max(M22, 0.0))
-    if not mg > 0 or not want:
-        for e in range(4):
-            out[n, c, e] = np.nan
-        return mg
+    if not mg > 0:
+        return mg, np.nan, np.nan, np.nan, np.nan
     c33 = M22 - X2 * X2
     m0 = (M02 - X0 * X2) / c33
     m1 = (M12 - X1 * X2) / c33
@@ -226,24 +238,222 @@ def pair_box(p: tuple[float, float, float], s: tuple[float, float, float], c: in
     if q[_HASD] == 0.0 and q[_K + 1] == 0:
         hx = math.sqrt(max(E00, 0.0))
         hy = math.sqrt(max(E11, 0.0))
-        out[n, c, 0] = q[_K] * (m0 - hx) + q[_K + 2]
-        out[n, c, 1] = q[_K + 4] * (m1 - hy) + q[_K + 5]
-        out[n, c, 2] = q[_K] * (m0 + hx) + q[_K + 2]
-        out[n, c, 3] = q[_K + 4] * (m1 + hy) + q[_K + 5]
-        return mg
+        return (mg, q[_K] * (m0 - hx) + q[_K + 2], q[_K + 4] * (m1 - hy) + q[_K + 5],
+                q[_K] * (m0 + hx) + q[_K + 2], q[_K + 4] * (m1 + hy) + q[_K + 5])
     l00 = math.sqrt(max(E00, 1e-300))
     l10 = E01 / l00
     l11 = math.sqrt(max(E11 - l10 * l10, 0.0))
-    for e in range(4):
-        ct, st = _edge_angle(e, (m0, m1), (l00, l10, l11), q, rig.steps)
-        v = edge_value(e, ct, st, m0, m1, l00, l10, l11, q)
-        out[n, c, e] = -v if e < 2 else v
+    el = (l00, l10, l11)
+    c0, s0 = _edge_angle(0, (m0, m1), el, q, steps)
+    c1, s1 = _edge_angle(1, (m0, m1), el, q, steps)
+    c2, s2 = _edge_angle(2, (m0, m1), el, q, steps)
+    c3, s3 = _edge_angle(3, (m0, m1), el, q, steps)
+    return (mg, -edge_value(0, c0, s0, m0, m1, l00, l10, l11, q),
+            -edge_value(1, c1, s1, m0, m1, l00, l10, l11, q),
+            edge_value(2, c2, s2, m0, m1, l00, l10, l11, q), edge_value(3, c3, s3, m0, m1, l00, l10, l11, q))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _up(q: F64) -> tuple[float, float, float]:
+    """The body's axis 2 (up) in world coordinates, from camera row ``q``: ``R^T Rc[:, 2]``."""
+    u0 = q[_R] * q[_RC + 2] + q[_R + 3] * q[_RC + 5] + q[_R + 6] * q[_RC + 8]
+    u1 = q[_R + 1] * q[_RC + 2] + q[_R + 4] * q[_RC + 5] + q[_R + 7] * q[_RC + 8]
+    u2 = q[_R + 2] * q[_RC + 2] + q[_R + 5] * q[_RC + 5] + q[_R + 8] * q[_RC + 8]
+    return u0, u1, u2
+
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _point_px(X0: float, X1: float, X2: float, q: F64
+              ) -> tuple[float, float, float, float, float, float, float, float]:
+    """The pixel ``(u, v)`` of the camera-frame point ``X`` in camera row ``q`` (lens distortion
+    included) and its derivatives ``du/dX (3)``, ``dv/dX (3)``."""
+    x, y = X0 / X2, X1 / X2
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (q[_DIST] + r2 * (q[_DIST + 1] + r2 * q[_DIST + 4]))
+    xd = x * radial + 2.0 * q[_DIST + 2] * x * y + q[_DIST + 3] * (r2 + 2.0 * x * x)
+    yd = y * radial + q[_DIST + 2] * (r2 + 2.0 * y * y) + 2.0 * q[_DIST + 3] * x * y
+    g = q[_DIST] + r2 * (2.0 * q[_DIST + 1] + 3.0 * r2 * q[_DIST + 4])
+    dxx = radial + 2.0 * x * x * g + 2.0 * q[_DIST + 2] * y + 6.0 * q[_DIST + 3] * x
+    dxy = 2.0 * x * y * g + 2.0 * q[_DIST + 2] * x + 2.0 * q[_DIST + 3] * y
+    dyy = radial + 2.0 * y * y * g + 6.0 * q[_DIST + 2] * y + 2.0 * q[_DIST + 3] * x
+    u = q[_K] * xd + q[_K + 1] * yd + q[_K + 2]
+    v = q[_K + 4] * yd + q[_K + 5]
+    ux, uy = q[_K] * dxx + q[_K + 1] * dxy, q[_K] * dxy + q[_K + 1] * dyy  # du/dx, du/dy
+    vx, vy = q[_K + 4] * dxy, q[_K + 4] * dyy
+    iz = 1.0 / X2
+    return (u, v, ux * iz, uy * iz, -(ux * x + uy * y) * iz, vx * iz, vy * iz, -(vx * x + vy * y) * iz)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _pixel(X0: float, X1: float, X2: float, q: F64) -> tuple[float, float]:
+    """The pixel ``(u, v)`` of the camera-frame point ``X`` in camera row ``q`` (:func:`_point_px`
+    without the derivatives)."""
+    x, y = X0 / X2, X1 / X2
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (q[_DIST] + r2 * (q[_DIST + 1] + r2 * q[_DIST + 4]))
+    xd = x * radial + 2.0 * q[_DIST + 2] * x * y + q[_DIST + 3] * (r2 + 2.0 * x * x)
+    yd = y * radial + q[_DIST + 2] * (r2 + 2.0 * y * y) + 2.0 * q[_DIST + 3] * x * y
+    return q[_K] * xd + q[_K + 1] * yd + q[_K + 2], q[_K + 4] * yd + q[_K + 5]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _pom_value(p: tuple[float, float, float], e: tuple[float, float, float], q: F64
+               ) -> tuple[float, float, float, float, float]:
+    """Margin and POM rectangle (left, top, right, bottom) of :func:`_pom_box` without its
+    derivatives, in registers: the four lowest corners kept by insertion."""
+    base0 = q[_R] * p[0] + q[_R + 1] * p[1] + q[_R + 2] * p[2] + q[_T]
+    base1 = q[_R + 3] * p[0] + q[_R + 4] * p[1] + q[_R + 5] * p[2] + q[_T + 1]
+    base2 = q[_R + 6] * p[0] + q[_R + 7] * p[1] + q[_R + 8] * p[2] + q[_T + 2]
+    # the nearest corner's depth: the depth of the centre less the largest offset along the axis
+    mg = q[_DS] * base2 - (abs(e[0] * q[_RC + 6]) + abs(e[1] * q[_RC + 7]) + abs(e[2] * q[_RC + 8]))
+    if not mg > 0:
+        return mg, np.nan, np.nan, np.nan, np.nan
+    lo_u, lo_v, hi_u = np.inf, np.inf, -np.inf
+    v1 = v2 = v3 = v4 = -np.inf  # the four largest rows, v1 the largest
+    for k in range(8):
+        a0 = e[0] if k & 1 else -e[0]
+        a1 = e[1] if k & 2 else -e[1]
+        a2 = e[2] if k & 4 else -e[2]
+        X0 = base0 + a0 * q[_RC] + a1 * q[_RC + 1] + a2 * q[_RC + 2]
+        X1 = base1 + a0 * q[_RC + 3] + a1 * q[_RC + 4] + a2 * q[_RC + 5]
+        X2 = base2 + a0 * q[_RC + 6] + a1 * q[_RC + 7] + a2 * q[_RC + 8]
+        u, v = _pixel(X0, X1, X2, q)
+        lo_u, lo_v, hi_u = min(lo_u, u), min(lo_v, v), max(hi_u, u)
+        if v > v4:
+            if v > v1:
+                v1, v2, v3, v4 = v, v1, v2, v3
+            elif v > v2:
+                v2, v3, v4 = v, v2, v3
+            elif v > v3:
+                v3, v4 = v, v3
+            else:
+                v4 = v
+    return mg, lo_u, lo_v, hi_u, (v1 + v2 + v3 + v4) / 4.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _pom_box(p: tuple[float, float, float], e: tuple[float, float, float], q: F64, box: F64,
+             grad: F64, with_grad: bool) -> float:
+    """The POM rectangle (Fleuret et al.'s occupancy-map rectangles, the WILDTRACK and MultiviewX
+    labels) of the box-shaped person with centre ``p`` and half-extents ``e`` along the body axes
+    in camera row ``q``: left, top and right are the extremes of its eight projected corners, the
+    bottom the mean row of the four lowest. ``box (4,)``, with ``with_grad`` its derivatives ``grad
+    (4, 6)`` by (centre, log half-extents). Returns the margin (the nearest corner's depth)."""
+    X = np.empty((8, 3))
+    u = np.empty(8)
+    v = np.empty(8)
+    gu = np.empty((8, 6))
+    gv = np.empty((8, 6))
+    base0 = q[_R] * p[0] + q[_R + 1] * p[1] + q[_R + 2] * p[2] + q[_T]
+    base1 = q[_R + 3] * p[0] + q[_R + 4] * p[1] + q[_R + 5] * p[2] + q[_T + 1]
+    base2 = q[_R + 6] * p[0] + q[_R + 7] * p[1] + q[_R + 8] * p[2] + q[_T + 2]
+    mg = np.inf
+    for k in range(8):
+        sg0, sg1, sg2 = (1.0 if k & 1 else -1.0), (1.0 if k & 2 else -1.0), (1.0 if k & 4 else -1.0)
+        a0, a1, a2 = sg0 * e[0], sg1 * e[1], sg2 * e[2]
+        X[k, 0] = base0 + a0 * q[_RC] + a1 * q[_RC + 1] + a2 * q[_RC + 2]
+        X[k, 1] = base1 + a0 * q[_RC + 3] + a1 * q[_RC + 4] + a2 * q[_RC + 5]
+        X[k, 2] = base2 + a0 * q[_RC + 6] + a1 * q[_RC + 7] + a2 * q[_RC + 8]
+        mg = min(mg, q[_DS] * X[k, 2])
+    if not mg > 0:
+        box[:] = np.nan
+        if with_grad:
+            grad[:, :] = np.nan
+        return mg
+    for k in range(8):
+        uk, vk, u0, u1, u2, v0, v1, v2 = _point_px(X[k, 0], X[k, 1], X[k, 2], q)
+        u[k], v[k] = uk, vk
+        if with_grad:
+            for j in range(3):  # centre: X moves along R's column j
+                gu[k, j] = u0 * q[_R + j] + u1 * q[_R + 3 + j] + u2 * q[_R + 6 + j]
+                gv[k, j] = v0 * q[_R + j] + v1 * q[_R + 3 + j] + v2 * q[_R + 6 + j]
+            for a in range(3):  # log half-extent a: X moves by its offset along Rc's column a
+                sa = (1.0 if k & (1 << a) else -1.0) * e[a]
+                gu[k, 3 + a] = sa * (u0 * q[_RC + a] + u1 * q[_RC + 3 + a] + u2 * q[_RC + 6 + a])
+                gv[k, 3 + a] = sa * (v0 * q[_RC + a] + v1 * q[_RC + 3 + a] + v2 * q[_RC + 6 + a])
+    il, it, ir = np.argmin(u), np.argmin(v), np.argmax(u)
+    low = np.argsort(v)[4:]
+    box[0], box[1], box[2] = u[il], v[it], u[ir]
+    box[3] = (v[low[0]] + v[low[1]] + v[low[2]] + v[low[3]]) / 4.0
+    if with_grad:
+        for j in range(6):
+            grad[0, j], grad[1, j], grad[2, j] = gu[il, j], gv[it, j], gu[ir, j]
+            grad[3, j] = (gv[low[0], j] + gv[low[1], j] + gv[low[2], j] + gv[low[3], j]) / 4.0
+    return mg
+
+
+@numba.njit(cache=True, nogil=True, inline="always")  # ~20 % faster than a call
+def pair_box(p: tuple[float, float, float], s: tuple[float, float, float], c: int, rig: BoxRig,
+             want: bool, out: F64, n: int) -> float:
+    """The box ``out[n, c] (4,)`` (``out (N, C, 4)``) of the solid with centre ``p`` and
+    squared semi-axes ``s`` in camera ``c`` (NaN if behind it or not ``want``); returns the
+    margin. ``rig.box_model`` (:data:`BOX_MODELS`) says which box: the ellipsoid's tangent box, the
+    vertical cylinder's (the convex hull of its end discs: the union of their boxes) or the POM
+    rectangle (:func:`_pom_box`)."""
+    q = rig.cam[c]
+    if rig.box_model == POM:
+        mg, b0, b1, b2, b3 = _pom_value(p, (math.sqrt(s[0]), math.sqrt(s[1]), math.sqrt(s[2])), q)
+    elif rig.box_model == CYLINDER:
+        h = math.sqrt(s[2])
+        u0, u1, u2 = _up(q)
+        d = (s[0], s[1], 0.0)
+        mg, b0, b1, b2, b3 = _quadric_box((p[0] + h * u0, p[1] + h * u1, p[2] + h * u2), d, q, rig.steps)
+        mg2, a0, a1, a2, a3 = _quadric_box((p[0] - h * u0, p[1] - h * u1, p[2] - h * u2), d, q, rig.steps)
+        mg = min(mg, mg2)
+        b0, b1, b2, b3 = min(a0, b0), min(a1, b1), max(a2, b2), max(a3, b3)
+    else:
+        mg, b0, b1, b2, b3 = _quadric_box(p, s, q, rig.steps)
+    if not mg > 0 or not want:
+        for e in range(4):
+            out[n, c, e] = np.nan
+        return mg
+    out[n, c, 0], out[n, c, 1], out[n, c, 2], out[n, c, 3] = b0, b1, b2, b3
     return mg
 
 
 @numba.njit(cache=True, nogil=True)
 def pair_box_grad(p: tuple[float, float, float], la: tuple[float, float, float], c: int, rig: BoxRig,
                   box: F64, grad: F64) -> float:
+    """The box ``box (4,)`` of the solid (:func:`pair_box`) with centre ``p`` and log semi-axes
+    ``la`` in camera ``c`` and its derivatives ``grad (4, 6)`` by (centre, log semi-axes); NaN if
+    behind it. Returns the margin. The cylinder's edge is its end disc's that reaches further
+    (the derivative of a maximum, exact away from ties); the half-height moves the discs along
+    up."""
+    if rig.box_model == POM:
+        return _pom_box(p, (math.exp(la[0]), math.exp(la[1]), math.exp(la[2])), rig.cam[c], box, grad, True)
+    if rig.box_model != CYLINDER:
+        return _quadric_box_grad(p, (math.exp(2.0 * la[0]), math.exp(2.0 * la[1]),
+                                     math.exp(2.0 * la[2])), c, rig, box, grad)
+    q = rig.cam[c]
+    h = math.exp(la[2])
+    u0, u1, u2 = _up(q)
+    d = (math.exp(2.0 * la[0]), math.exp(2.0 * la[1]), 0.0)
+    b2 = np.empty(4)
+    g2 = np.empty((4, 6))
+    mg = _quadric_box_grad((p[0] + h * u0, p[1] + h * u1, p[2] + h * u2), d, c, rig, box, grad)
+    mg2 = _quadric_box_grad((p[0] - h * u0, p[1] - h * u1, p[2] - h * u2), d, c, rig, b2, g2)
+    if not (mg > 0 and mg2 > 0):
+        box[:] = np.nan
+        grad[:, :] = np.nan
+        return min(mg, mg2)
+    for e in range(4):
+        top = grad[e, 0] * u0 + grad[e, 1] * u1 + grad[e, 2] * u2
+        bot = g2[e, 0] * u0 + g2[e, 1] * u1 + g2[e, 2] * u2
+        second = b2[e] < box[e] if e < 2 else b2[e] > box[e]
+        if second:
+            box[e] = b2[e]
+            for j in range(5):
+                grad[e, j] = g2[e, j]
+            grad[e, 5] = -h * bot
+        else:
+            grad[e, 5] = h * top
+    return min(mg, mg2)
+
+
+@numba.njit(cache=True, nogil=True)
+def _quadric_box_grad(p: tuple[float, float, float], sq: tuple[float, float, float], c: int, rig: BoxRig,
+                      box: F64, grad: F64) -> float:
     """The box ``box (4,)`` of the ellipsoid with centre ``p`` and log semi-axes ``la`` in camera
     ``c`` and its derivatives ``grad (4, 6)`` by (centre, log semi-axes); NaN if behind it.
     Returns the margin.
@@ -253,7 +463,7 @@ def pair_box_grad(p: tuple[float, float, float], la: tuple[float, float, float],
     the extreme; the Newton steps stop within 1e-6 px of it). The chain runs through the
     outline's centre ``m`` and the Cholesky factor ``L`` of its shape, forward mode, one
     parameter direction at a time."""
-    s0, s1, s2 = math.exp(2.0 * la[0]), math.exp(2.0 * la[1]), math.exp(2.0 * la[2])
+    s0, s1, s2 = sq
     q = rig.cam[c]
     X0, X1, X2, M00, M11, M22, M01, M02, M12 = _in_camera(p, (s0, s1, s2), q)
     mg = q[_DS] * X2 - math.sqrt(max(M22, 0.0))
@@ -340,7 +550,7 @@ EVERY_CAMERA = np.ones((1, 1), dtype=np.bool_)
 
 def boxes_compiled(center_world: F64, semi_axes: F64, world_from_body: F64, K: F64, dist: F64,
                    R: F64, t: F64, depth_sign: F64 | float, newton_steps: int,
-                   want: np.ndarray | None = None) -> tuple[F64, F64]:
+                   want: np.ndarray | None = None, box_model: int = 0) -> tuple[F64, F64]:
     """:func:`gt3dkit.geom.conics.ellipsoid_boxes` for ``(..., 3)`` centres and semi-axes:
     ``(..., C, 4)`` boxes and ``(..., C)`` margins (numba compiles the kernel on first use and
     caches it on disk). ``want`` (broadcastable to ``(..., C)``): the pairs whose box is needed
@@ -364,7 +574,7 @@ def boxes_compiled(center_world: F64, semi_axes: F64, world_from_body: F64, K: F
     box = np.empty((N, C, 4))
     margin = np.empty((N, C))
     ds = arr(np.broadcast_to(np.asarray(depth_sign, dtype=np.float64), (C,)))
-    cam = BoxCameras(*(arr(a) for a in (world_from_body, K, dist, R, t)), ds)
+    cam = BoxCameras(*(arr(a) for a in (world_from_body, K, dist, R, t)), ds, int(box_model))
     every = wf is EVERY_CAMERA
 
     def part(a: int, b: int) -> None:

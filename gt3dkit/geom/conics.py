@@ -77,6 +77,7 @@ def ellipsoid_boxes(
     depth_sign: F64 | float = 1.0,
     newton_steps: int = 2,
     want: np.ndarray | None = None,
+    box_model: int = 0,
 ) -> tuple[F64, F64]:
     """Tight boxes of ellipsoids in every camera's distorted image (compiled,
     :mod:`gt3dkit.geom.boxkernel`: one loop over (ellipsoid, camera) pairs).
@@ -91,6 +92,8 @@ def ellipsoid_boxes(
     newton_steps : refinement steps along the outline for distortion
     want : broadcastable to ``(..., C)``: compute only these pairs' boxes (the others are NaN;
         margins are computed for all)
+    box_model : index into :data:`gt3dkit.types.BOX_MODELS`: the ellipsoid's tangent box (the
+        default), or the cylinder's or POM rectangle of the same state
 
     Returns
     -------
@@ -104,7 +107,7 @@ def ellipsoid_boxes(
     steps use exact derivatives, the reference's central differences).
     """
     return boxes_compiled(center_world, semi_axes, world_from_body, K, dist, R, t, depth_sign,
-                          newton_steps, want)
+                          newton_steps, want, box_model)
 
 
 def covered_fraction(box: F64, depth: F64, depth_tol_m: float = 0.0) -> F64:

@@ -93,7 +93,8 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | Non
     idx = np.flatnonzero(have)
     # every estimated object-frame's tangent box in every camera: (n, C, 4), margin (n, C)
     box, margin = ellipsoid_boxes(tracks.center_world[r_of[idx]], tracks.semi_axes[r_of[idx]],
-                                  cams.world_from_body, cams.K, cams.dist, cams.R, cams.t, cams.depth_sign)
+                                  cams.world_from_body, cams.K, cams.dist, cams.R, cams.t, cams.depth_sign,
+                                  box_model=cams.box_model)
     frame_of = rows.frames[rows.row_t]
     id_of = rows.obj_ids[rows.row_o]
 
@@ -287,7 +288,8 @@ def offset_residuals(tracks: TrackSet, pre: Any, max_shift: int) -> tuple[np.nda
         parts = []
         if pre.use_box:
             box, _ = ellipsoid_boxes(tracks.center_world[r_of[idx]], tracks.semi_axes[r_of[idx]],
-                                     cams.world_from_body, cams.K, cams.dist, cams.R, cams.t, cams.depth_sign)
+                                     cams.world_from_body, cams.K, cams.dist, cams.R, cams.t, cams.depth_sign,
+                                     box_model=cams.box_model)
             e = np.where(rows.box_mask[idx], np.abs(box - rows.box_z[idx]), np.nan)
             parts.append(e)
         if pre.use_kpt and tracks.kpt_world.shape[1]:

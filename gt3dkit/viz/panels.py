@@ -66,7 +66,7 @@ def view_residuals(tracks: TrackSet, pre: Any) -> ViewResiduals:
     parts = []
     if pre.use_box:
         box, _ = ellipsoid_boxes(tracks.center_world[r_of], tracks.semi_axes[r_of], cams.world_from_body,
-                                 cams.K, cams.dist, cams.R, cams.t, cams.depth_sign)
+                                 cams.K, cams.dist, cams.R, cams.t, cams.depth_sign, box_model=cams.box_model)
         box_z = rows.box_z[idx]
         box_err = np.where(rows.box_mask[idx], np.abs(box - box_z), np.nan)
         parts.append(box_err)
