@@ -18,7 +18,7 @@ from gt3dkit.fusion.identity import identity_segments
 from gt3dkit.fusion.prepare import prepare
 from gt3dkit.fusion.rows import Rows, build_rows
 from gt3dkit.geom.camera import Cams, project_points
-from gt3dkit.geom.conics import ellipsoid_boxes
+from gt3dkit.geom.conics import model_boxes
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.writers import write_result_files
 from gt3dkit.types import F64, Scene, TrackSet
@@ -39,9 +39,7 @@ def reprojection_residuals(tracks: TrackSet, scene: Scene, rows: Rows) -> F64:
     ok = r_of >= 0
     out = []
     if np.isfinite(rows.box_z).any():
-        box, _ = ellipsoid_boxes(tracks.center_world[ok], tracks.semi_axes[ok], cams.world_from_body,
-                                 cams.K, cams.dist, cams.R, cams.t, cams.depth_sign,
-                                 box_model=cams.box_model)
+        box, _ = model_boxes(tracks.center_world[ok], tracks.semi_axes[ok], cams)
         m = rows.box_mask[r_of[ok]]
         out.append(np.abs(box - rows.box_z[r_of[ok]])[m])
     if tracks.kpt_world.shape[1] and np.isfinite(rows.kpt_z).any():

@@ -4,7 +4,7 @@ People are vertical ellipsoids standing on the ground (centre height = vertical
 semi-axis) walking smooth paths (a straight line plus a slow sinusoid) over a
 rectangle seen by a ring of cameras with mild lens distortion. Each person is
 annotated from a random first to a random last frame. Boxes are the exact
-tangent boxes of the ellipsoids (:func:`gt3dkit.geom.conics.ellipsoid_boxes`),
+boxes of the people (:func:`gt3dkit.geom.conics.model_boxes`: tangent boxes of their ellipsoids),
 plus Gaussian noise on every edge, clipped to the image and rounded to whole
 pixels (truncated towards zero for the MultiviewX layout, as its generator does);
 a view is dropped at random with probability ``Errors.dropped``.
@@ -31,7 +31,7 @@ import numpy as np
 from gt3dkit.arrays import unique_rows
 from gt3dkit.calib.formats.grid import LAYOUTS as GRID_LAYOUTS
 from gt3dkit.geom.camera import Cams, project_points
-from gt3dkit.geom.conics import covered_fraction, ellipsoid_boxes
+from gt3dkit.geom.conics import covered_fraction, model_boxes
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.datasets import LAYOUTS, openpose, tasks
 from gt3dkit.io.datasets.wildtrack import write_truth_csv
@@ -302,8 +302,7 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
     if tool:
         semi[:, :2] = semi[:, :2].mean(axis=1, keepdims=True)
         center[:, :2] = np.round(center[:, :2] / POSITION_GRID_M) * POSITION_GRID_M
-    box, margin = ellipsoid_boxes(center, semi, cams.world_from_body, cams.K, cams.dist, cams.R,
-                                  cams.t, cams.depth_sign, box_model=cams.box_model)
+    box, margin = model_boxes(center, semi, cams)
     box = box + rng.normal(scale=noise_px, size=box.shape) if noise_px > 0 else box
     W, H = cams.wh[:, 0], cams.wh[:, 1]
     inside = (margin > 0) & (box[..., 2] > 0) & (box[..., 0] < W - 1) & (box[..., 3] > 0) \

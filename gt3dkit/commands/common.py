@@ -104,6 +104,21 @@ def load_input(args: argparse.Namespace) -> Any:
     return scene
 
 
+#: How each box model reads in a summary line.
+BOX_MODEL_NAMES = {"ellipsoid": "ellipsoid tangent boxes", "cylinder": "cylinder boxes",
+                   "pom": "occupancy-map rectangles"}
+
+
+def box_model_note(scene: Any) -> str:
+    """How the boxes are drawn, with the evidence when it was chosen: e.g. ``occupancy-map rectangles
+    (edges 0.27 px off; ellipsoid 0.83, cylinder 0.86)``."""
+    px = scene.box_model_px
+    if not px:
+        return BOX_MODEL_NAMES[scene.box_model]
+    others = ", ".join(f"{m} {v:.2f}" for m, v in px.items() if m != scene.box_model)
+    return f"{BOX_MODEL_NAMES[scene.box_model]} (edges {px[scene.box_model]:.2f} px off; {others})"
+
+
 def print_warnings(scene: Any) -> None:
     """The input's ``warning:`` lines, printed once the run succeeded (a failed run prints its
     one ``error:`` line only)."""

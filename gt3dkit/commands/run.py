@@ -15,6 +15,7 @@ from gt3dkit.api import load_scene, reconstruct
 from gt3dkit.calib.formats.native import cameras_doc
 from gt3dkit.commands.common import (
     Stages,
+    box_model_note,
     check_out_apart,
     check_output,
     estimator_config,
@@ -56,7 +57,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         stages.close()
     print_warnings(scene)
     info = tracks.info
-    kinds = " + ".join(k for k, v in (("boxes", scene.obs.has_box.any()),
+    kinds = " + ".join(k for k, v in ((f"boxes: {box_model_note(scene)}", scene.obs.has_box.any()),
                                       (f"{scene.skeleton} keypoints", scene.obs.n_joints > 0)) if v)
     fps = f"{scene.fps:g} fps" + (" (assumed)" if scene.fps_assumed else "")
     rob = info.get("robust", {})

@@ -20,7 +20,7 @@ import numpy as np
 from gt3dkit.fusion.boxlm import fit_compiled
 from gt3dkit.geom.boxkernel import BoxCameras
 from gt3dkit.geom.camera import Cams, pixel_rays
-from gt3dkit.geom.conics import ellipsoid_boxes, outline_ellipse
+from gt3dkit.geom.conics import model_boxes, outline_ellipse
 from gt3dkit.types import B8, BOX_MODELS, F64
 
 #: Prior semi-axes (m) for a standing person, used only as a weak regulariser and
@@ -31,9 +31,7 @@ PERSON_SEMI_AXES_M = np.array([0.3, 0.3, 0.85])
 def box_model(center_world: F64, log_axes: F64, cams: Cams, want: np.ndarray | None = None) -> F64:
     """(..., 3) centres and (..., 3) log semi-axes -> (..., C, 4) boxes (px), NaN if behind;
     ``want`` (broadcastable to ``(..., C)``): only these cameras' boxes (the others NaN)."""
-    box, _ = ellipsoid_boxes(center_world, np.exp(log_axes), cams.world_from_body, cams.K,
-                             cams.dist, cams.R, cams.t, cams.depth_sign, want=want,
-                             box_model=cams.box_model)
+    box, _ = model_boxes(center_world, np.exp(log_axes), cams, want)
     return box
 
 

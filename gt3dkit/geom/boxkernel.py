@@ -112,11 +112,9 @@ class BoxCameras(NamedTuple):
 
     @classmethod
     def of(cls, cams: Any) -> BoxCameras:
-        C = len(cams.K)
-        return cls(contiguous(cams.world_from_body), contiguous(cams.K), contiguous(cams.dist),
-                   contiguous(cams.R), contiguous(cams.t),
-                   contiguous(np.broadcast_to(np.asarray(cams.depth_sign, dtype=np.float64), (C,))),
-                   int(getattr(cams, "box_model", 0)))
+        """Of a :class:`gt3dkit.geom.camera.Cams` (its box model) or a rig (the ellipsoid)."""
+        return box_cameras(cams.world_from_body, cams.K, cams.dist, cams.R, cams.t, cams.depth_sign,
+                           getattr(cams, "box_model", 0))
 
 
 #: Offsets in a row of :attr:`BoxRig.cam` (one camera): ``R`` (9, row-major), ``t`` (3), ``Rc = R Rb``
@@ -548,37 +546,29 @@ MIN_PAIRS_PER_THREAD = 256
 EVERY_CAMERA = np.ones((1, 1), dtype=np.bool_)
 
 
-def boxes_compiled(center_world: F64, semi_axes: F64, world_from_body: F64, K: F64, dist: F64,
-                   R: F64, t: F64, depth_sign: F64 | float, newton_steps: int,
-                   want: np.ndarray | None = None, box_model: int = 0) -> tuple[F64, F64]:
-    """:func:`gt3dkit.geom.conics.ellipsoid_boxes` for ``(..., 3)`` centres and semi-axes:
-    ``(..., C, 4)`` boxes and ``(..., C)`` margins (numba compiles the kernel on first use and
-    caches it on disk). ``want`` (broadcastable to ``(..., C)``): the pairs whose box is needed
-    (the others are NaN; the margin is computed for every pair). Large calls are split over
-    threads (:func:`gt3dkit.threads.run_split`)."""
+def boxes_compiled(center_world: F64, semi_axes: F64, cams: BoxCameras, newton_steps: int,
+                   want: np.ndarray | None = None) -> tuple[F64, F64]:
+    """:func:`gt3dkit.geom.conics.ellipsoid_boxes` for ``(..., 3)`` centres and semi-axes in the
+    cameras ``cams`` (:func:`box_cameras`; their box model): ``(..., C, 4)`` boxes and ``(..., C)``
+    margins (numba compiles the kernel on first use and caches it on disk). ``want``
+    (broadcastable to ``(..., C)``): the pairs whose box is needed (the others are NaN; the margin
+    is computed for every pair). Large calls are split over threads
+    (:func:`gt3dkit.threads.run_split`)."""
     c, s = np.broadcast_arrays(np.asarray(center_world, dtype=np.float64),
                                np.asarray(semi_axes, dtype=np.float64))
     lead = c.shape[:-1]
-    C = K.shape[0]
-
-    def arr(a: Any, dtype: Any = np.float64) -> np.ndarray:  # one compiled signature: C order, writable
-        if type(a) is np.ndarray and a.dtype == dtype and a.flags.c_contiguous and a.flags.writeable:
-            return a  # the common case, without np.require's ~4 us (GTSAM's factors call this 40 000 times)
-        return np.require(a, dtype=dtype, requirements=["C", "W"])
-
-    cf = arr(c.reshape(-1, 3))
-    sf = arr(s.reshape(-1, 3))
+    C = cams.K.shape[0]
+    cf = _arr(c.reshape(-1, 3))
+    sf = _arr(s.reshape(-1, 3))
     N = cf.shape[0]
-    wf = EVERY_CAMERA if want is None else arr(np.broadcast_to(np.asarray(want, dtype=np.bool_),
-                                                         lead + (C,)).reshape(N, C), np.bool_)
+    wf = EVERY_CAMERA if want is None else _arr(np.broadcast_to(np.asarray(want, dtype=np.bool_),
+                                                          lead + (C,)).reshape(N, C), np.bool_)
     box = np.empty((N, C, 4))
     margin = np.empty((N, C))
-    ds = arr(np.broadcast_to(np.asarray(depth_sign, dtype=np.float64), (C,)))
-    cam = BoxCameras(*(arr(a) for a in (world_from_body, K, dist, R, t)), ds, int(box_model))
     every = wf is EVERY_CAMERA
 
     def part(a: int, b: int) -> None:
-        kernel(cf[a:b], sf[a:b], cam, int(newton_steps), wf if every else wf[a:b], box[a:b], margin[a:b])
+        kernel(cf[a:b], sf[a:b], cams, int(newton_steps), wf if every else wf[a:b], box[a:b], margin[a:b])
 
     per = max(MIN_PAIRS_PER_THREAD // max(C, 1), 1)
     if N < 2 * per:
@@ -586,6 +576,21 @@ def boxes_compiled(center_world: F64, semi_axes: F64, world_from_body: F64, K: F
     else:
         run_split(part, N, per)
     return box.reshape(lead + (C, 4)), margin.reshape(lead + (C,))
+
+
+def box_cameras(world_from_body: F64, K: F64, dist: F64, R: F64, t: F64, depth_sign: F64 | float,
+                box_model: int = 0) -> BoxCameras:
+    """:class:`BoxCameras` of stacked camera arrays (``depth_sign`` broadcast to ``(C,)``)."""
+    ds = _arr(np.broadcast_to(np.asarray(depth_sign, dtype=np.float64), (K.shape[0],)))
+    return BoxCameras(*(_arr(a) for a in (world_from_body, K, dist, R, t)), ds, int(box_model))
+
+
+def _arr(a: Any, dtype: Any = np.float64) -> np.ndarray:
+    """``a`` for a compiled call (one signature: C order, writable): as it is in the common case,
+    without :func:`contiguous`'s ~4 us (GTSAM's factors call this 40 000 times)."""
+    if type(a) is np.ndarray and a.dtype == dtype and a.flags.c_contiguous and a.flags.writeable:
+        return a
+    return np.require(a, dtype=dtype, requirements=["C", "W"])
 
 
 def contiguous(a: Any, dtype: Any = np.float64) -> np.ndarray:

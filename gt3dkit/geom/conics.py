@@ -23,10 +23,15 @@ zero distortion the result is the closed form exactly.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
-from gt3dkit.geom.boxkernel import boxes_compiled
+from gt3dkit.geom.boxkernel import BoxCameras, box_cameras, boxes_compiled
 from gt3dkit.types import F64
+
+if TYPE_CHECKING:
+    from gt3dkit.geom.camera import Cams
 
 
 def outline_ellipse(
@@ -77,7 +82,6 @@ def ellipsoid_boxes(
     depth_sign: F64 | float = 1.0,
     newton_steps: int = 2,
     want: np.ndarray | None = None,
-    box_model: int = 0,
 ) -> tuple[F64, F64]:
     """Tight boxes of ellipsoids in every camera's distorted image (compiled,
     :mod:`gt3dkit.geom.boxkernel`: one loop over (ellipsoid, camera) pairs).
@@ -92,8 +96,6 @@ def ellipsoid_boxes(
     newton_steps : refinement steps along the outline for distortion
     want : broadcastable to ``(..., C)``: compute only these pairs' boxes (the others are NaN;
         margins are computed for all)
-    box_model : index into :data:`gt3dkit.types.BOX_MODELS`: the ellipsoid's tangent box (the
-        default), or the cylinder's or POM rectangle of the same state
 
     Returns
     -------
@@ -106,8 +108,17 @@ def ellipsoid_boxes(
     (``tests/oracles.py``): boxes inside the image agree within 1e-9 px (the kernel's Newton
     steps use exact derivatives, the reference's central differences).
     """
-    return boxes_compiled(center_world, semi_axes, world_from_body, K, dist, R, t, depth_sign,
-                          newton_steps, want, box_model)
+    return boxes_compiled(center_world, semi_axes, box_cameras(world_from_body, K, dist, R, t, depth_sign),
+                          newton_steps, want)
+
+
+def model_boxes(center_world: F64, semi_axes: F64, cams: Cams, want: np.ndarray | None = None,
+                newton_steps: int = 2) -> tuple[F64, F64]:
+    """:func:`ellipsoid_boxes` under the cameras' box model (``cams.box_model``,
+    :data:`gt3dkit.types.BOX_MODELS`): the same state's ellipsoid tangent box, cylinder box or
+    occupancy-map rectangle. Returns ``(..., C, 4)`` boxes and ``(..., C)`` margins (the nearest
+    point's depth)."""
+    return boxes_compiled(center_world, semi_axes, BoxCameras.of(cams), newton_steps, want)
 
 
 def covered_fraction(box: F64, depth: F64, depth_tol_m: float = 0.0) -> F64:

@@ -30,7 +30,7 @@ import numpy as np
 
 from gt3dkit.arrays import lookup_rows
 from gt3dkit.geom.camera import project_points
-from gt3dkit.geom.conics import covered_fraction, ellipsoid_boxes
+from gt3dkit.geom.conics import covered_fraction, model_boxes
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import F64, Scene, TrackSet
 
@@ -92,9 +92,7 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | Non
     have = r_of >= 0
     idx = np.flatnonzero(have)
     # every estimated object-frame's tangent box in every camera: (n, C, 4), margin (n, C)
-    box, margin = ellipsoid_boxes(tracks.center_world[r_of[idx]], tracks.semi_axes[r_of[idx]],
-                                  cams.world_from_body, cams.K, cams.dist, cams.R, cams.t, cams.depth_sign,
-                                  box_model=cams.box_model)
+    box, margin = model_boxes(tracks.center_world[r_of[idx]], tracks.semi_axes[r_of[idx]], cams)
     frame_of = rows.frames[rows.row_t]
     id_of = rows.obj_ids[rows.row_o]
 
@@ -287,9 +285,7 @@ def offset_residuals(tracks: TrackSet, pre: Any, max_shift: int) -> tuple[np.nda
             continue
         parts = []
         if pre.use_box:
-            box, _ = ellipsoid_boxes(tracks.center_world[r_of[idx]], tracks.semi_axes[r_of[idx]],
-                                     cams.world_from_body, cams.K, cams.dist, cams.R, cams.t, cams.depth_sign,
-                                     box_model=cams.box_model)
+            box, _ = model_boxes(tracks.center_world[r_of[idx]], tracks.semi_axes[r_of[idx]], cams)
             e = np.where(rows.box_mask[idx], np.abs(box - rows.box_z[idx]), np.nan)
             parts.append(e)
         if pre.use_kpt and tracks.kpt_world.shape[1]:

@@ -20,7 +20,8 @@ from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.spatial.transform import Rotation
 
-from gt3dkit.geom.conics import ellipsoid_boxes
+from gt3dkit.geom.camera import Cams
+from gt3dkit.geom.conics import model_boxes
 from gt3dkit.refine.common import (
     RefineResult,
     align_to,
@@ -50,15 +51,15 @@ def _cams(rig: Rig, variable: np.ndarray, p: F64) -> tuple[F64, F64]:
     return R, t
 
 
-def fit_boxes(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, sigma: F64, start: tuple[F64, F64],
+def fit_boxes(rig: Rig, cams: Cams, z: F64, keep: np.ndarray, sigma: F64, start: tuple[F64, F64],
               variable: np.ndarray, obj: np.ndarray, max_nfev: int = 100,
-              floor_sd: float | None = None, box_model: int = 0) -> tuple[Rig, F64, F64]:
+              floor_sd: float | None = None) -> tuple[Rig, F64, F64]:
     """Least squares over the variable cameras, every row's centre and every object's log
     semi-axes (people keep their size: this is what makes boxes constrain the cameras).
 
     z : (N, C, 4) boxes; keep : (N, C, 4) edges to use; sigma : (4,) px; start : ``(X0, L0)``,
     (N, 3) start centres and log semi-axes; obj : (N,) object index 0..O-1 of each row.
-    box_model: how a state draws its box (:data:`gt3dkit.types.BOX_MODELS`).
+    cams: the input's cameras, for the body frame and the box model (the pose is ``rig``'s).
     Returns (rig, centres (N, 3), log axes (N, 3)).
     """
     X0, L0 = start
@@ -76,8 +77,7 @@ def fit_boxes(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, sigma: F64, start: t
     def resid(q: F64) -> F64:
         R, t = _cams(rig, variable, q[:a0])
         X, L = unpack(q)
-        box, _ = ellipsoid_boxes(X, np.exp(L), wfb, rig.K, rig.dist, R, t, rig.depth_sign,
-                                 box_model=box_model)
+        box, _ = model_boxes(X, np.exp(L), cams._replace(R=R, t=t))
         r = (box[ii, cc, ee] - z[ii, cc, ee]) / s
         prior = q[:a0].reshape(nv, 2, 3) / np.array([PRIOR_ROT_RAD, PRIOR_SHIFT_M])[None, :, None]
         out = [np.nan_to_num(r, nan=1e3, posinf=1e3, neginf=-1e3), prior.ravel()]
@@ -112,13 +112,11 @@ def fit_boxes(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, sigma: F64, start: t
     return Rig(cams, up=rig.up, frame_name=rig.frame_name), X, L
 
 
-def edge_sigmas(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, X: F64, L: F64, floor: float = 0.3,
-                box_model: int = 0) -> F64:
+def edge_sigmas(rig: Rig, cams: Cams, z: F64, keep: np.ndarray, X: F64, L: F64, floor: float = 0.3) -> F64:
     """(C, 4) robust noise level of each camera's edge kinds (1.4826 MAD of the signed residuals
     of a fit, at least ``floor`` px): vertical edges are often several times more precise than
     horizontal ones (a person's width changes as they turn, their height does not)."""
-    box, _ = ellipsoid_boxes(X, np.exp(L), wfb, rig.K, rig.dist, rig.R, rig.t, rig.depth_sign,
-                             box_model=box_model)
+    box, _ = model_boxes(X, np.exp(L), cams._replace(R=rig.R, t=rig.t))
     r = box - z
     C = keep.shape[1]
     mad = np.full((C, 4), np.nan)
@@ -131,17 +129,15 @@ def edge_sigmas(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, X: F64, L: F64, fl
     return np.maximum(np.where(np.isfinite(mad), mad, fallback), floor)
 
 
-def fit_reweighted(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, sigma: F64, X0: F64, L0: F64,
-                   variable: np.ndarray, obj: np.ndarray, floor_sd: float | None, box_model: int = 0
+def fit_reweighted(rig: Rig, cams: Cams, z: F64, keep: np.ndarray, sigma: F64, X0: F64, L0: F64,
+                   variable: np.ndarray, obj: np.ndarray, floor_sd: float | None
                    ) -> tuple[Rig, F64, F64, F64]:
     """:func:`fit_boxes`, then again with each camera's edge kinds weighted by their own noise
     level measured on the first fit; the result in the input's frame (:func:`back_to`).
     Returns (rig, centres, log axes, sigmas (C, 4))."""
-    new, X, L = fit_boxes(rig, wfb, z, keep, sigma, (X0, L0), variable, obj, floor_sd=floor_sd,
-                          box_model=box_model)
-    sig = edge_sigmas(new, wfb, z, keep, X, L, box_model=box_model)
-    new, X, L = fit_boxes(rig, wfb, z, keep, sig, (X, L), variable, obj, floor_sd=floor_sd,
-                          box_model=box_model)
+    new, X, L = fit_boxes(rig, cams, z, keep, sigma, (X0, L0), variable, obj, floor_sd=floor_sd)
+    sig = edge_sigmas(new, cams, z, keep, X, L)
+    new, X, L = fit_boxes(rig, cams, z, keep, sig, (X, L), variable, obj, floor_sd=floor_sd)
     return back_to(new, rig, variable, floor_sd is not None), X, L, sig
 
 
@@ -163,14 +159,12 @@ def back_to(new: Rig, ref: Rig, variable: np.ndarray, on_floor: bool) -> Rig:
     return transform_rig(new, s, Rw, B @ t2[:2])
 
 
-def box_residuals(rig: Rig, wfb: F64, z: F64, keep: np.ndarray, sigma: F64, X0: F64, L0: F64,
-                  obj: np.ndarray, box_model: int = 0) -> F64:
+def box_residuals(rig: Rig, cams: Cams, z: F64, keep: np.ndarray, sigma: F64, X0: F64, L0: F64,
+                  obj: np.ndarray) -> F64:
     """(N, C, 4) |edge residual| (px, NaN where unused) after re-fitting every row's ellipsoid
     with the cameras of ``rig`` held fixed."""
-    _, X, L = fit_boxes(rig, wfb, z, keep, sigma, (X0, L0), np.zeros(len(rig.cameras), bool), obj, 40,
-                        box_model=box_model)
-    box, _ = ellipsoid_boxes(X, np.exp(L), wfb, rig.K, rig.dist, rig.R, rig.t, rig.depth_sign,
-                             box_model=box_model)
+    _, X, L = fit_boxes(rig, cams, z, keep, sigma, (X0, L0), np.zeros(len(rig.cameras), bool), obj, 40)
+    box, _ = model_boxes(X, np.exp(L), cams._replace(R=rig.R, t=rig.t))
     return np.where(keep, np.abs(box - z), np.nan)
 
 
@@ -178,7 +172,7 @@ def refine_boxes(scene: Scene, pre: Any, cfg: Any) -> Any:
     t0 = time.perf_counter()
     rig, rows, fit = scene.rig, pre.rows, pre.fit
     C = len(rig.cameras)
-    wfb, bm = pre.cams.world_from_body, pre.cams.box_model
+    cams = pre.cams
     keep = pre.box_keep & np.isfinite(rows.box_z)
     use = fit.ok & (keep.any(axis=2).sum(axis=1) >= 2)  # rows seen by two or more cameras
     z, keep = rows.box_z[use], keep[use]
@@ -200,11 +194,11 @@ def refine_boxes(scene: Scene, pre: Any, cfg: Any) -> Any:
         variable = keep[a].any(axis=2).sum(axis=0) >= cfg.min_points
         if not variable.any():
             continue
-        cand, _, _, _ = fit_reweighted(rig, wfb, z[a], keep[a], sigma, X0[a], L0[a], variable,
-                                       np.unique(obj[a], return_inverse=True)[1], floor_sd, bm)
+        cand, _, _, _ = fit_reweighted(rig, cams, z[a], keep[a], sigma, X0[a], L0[a], variable,
+                                       np.unique(obj[a], return_inverse=True)[1], floor_sd)
         ob = np.unique(obj[b], return_inverse=True)[1]
-        e_in = box_residuals(rig, wfb, z[b], keep[b], sigma, X0[b], L0[b], ob, bm)
-        e_ref = box_residuals(cand, wfb, z[b], keep[b], sigma, X0[b], L0[b], ob, bm)
+        e_in = box_residuals(rig, cams, z[b], keep[b], sigma, X0[b], L0[b], ob)
+        e_ref = box_residuals(cand, cams, z[b], keep[b], sigma, X0[b], L0[b], ob)
         for c in range(C):
             ei, er = e_in[:, c][np.isfinite(e_in[:, c])], e_ref[:, c][np.isfinite(e_ref[:, c])]
             if ei.size < cfg.min_points:
@@ -214,9 +208,9 @@ def refine_boxes(scene: Scene, pre: Any, cfg: Any) -> Any:
     accept = np.all(gains > cfg.min_gain, axis=0)
     new = rig
     if accept.any():
-        new, _, _, sig = fit_reweighted(rig, wfb, z, keep, sigma, X0, L0, accept, obj, floor_sd, bm)
-    e_before = box_residuals(rig, wfb, z, keep, sigma, X0, L0, obj, bm)
-    e_after = box_residuals(new, wfb, z, keep, sigma, X0, L0, obj, bm) if accept.any() else e_before
+        new, _, _, sig = fit_reweighted(rig, cams, z, keep, sigma, X0, L0, accept, obj, floor_sd)
+    e_before = box_residuals(rig, cams, z, keep, sigma, X0, L0, obj)
+    e_after = box_residuals(new, cams, z, keep, sigma, X0, L0, obj) if accept.any() else e_before
     report: dict[str, Any] = {"method": "cameras + ellipsoids, tangent-box residual (scipy soft-L1)",
                               "floor": ({"used": True, "sd_m": floor_sd, "median_bottom_m": floor_med}
                                         if floor_sd is not None else

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from gt3dkit.geom.camera import project_points
-from gt3dkit.geom.conics import ellipsoid_boxes
+from gt3dkit.geom.conics import model_boxes
 from gt3dkit.qa.anomalies import track_row_of
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import F64, I64, Scene, TrackSet
@@ -65,8 +65,7 @@ def view_residuals(tracks: TrackSet, pre: Any) -> ViewResiduals:
     box = box_z = box_err = kpt = kpt_z = kpt_err = None
     parts = []
     if pre.use_box:
-        box, _ = ellipsoid_boxes(tracks.center_world[r_of], tracks.semi_axes[r_of], cams.world_from_body,
-                                 cams.K, cams.dist, cams.R, cams.t, cams.depth_sign, box_model=cams.box_model)
+        box, _ = model_boxes(tracks.center_world[r_of], tracks.semi_axes[r_of], cams)
         box_z = rows.box_z[idx]
         box_err = np.where(rows.box_mask[idx], np.abs(box - box_z), np.nan)
         parts.append(box_err)

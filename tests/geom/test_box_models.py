@@ -4,6 +4,7 @@ of a scene's box model from its boxes."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import cv2
@@ -13,7 +14,6 @@ import pytest
 from gt3dkit.api import reconstruct
 from gt3dkit.eval.metrics import match_rows
 from gt3dkit.geom import boxkernel as bk
-from gt3dkit.geom.conics import ellipsoid_boxes
 from gt3dkit.sim import Errors
 from gt3dkit.types import BOX_MODELS
 from tests.geom.test_boxkernel import random_cameras, rotation
@@ -25,7 +25,8 @@ def solid_points(c: np.ndarray, s: np.ndarray, Rb: np.ndarray, model: str, n: in
     (``n`` each), or the POM solid's eight corners."""
     if model == "cylinder":
         a = np.linspace(0, 2 * np.pi, n, endpoint=False)
-        body = np.concatenate([np.c_[s[0] * np.cos(a), s[1] * np.sin(a), np.full(n, z * s[2])] for z in (-1, 1)])
+        body = np.concatenate([np.c_[s[0] * np.cos(a), s[1] * np.sin(a), np.full(n, z * s[2])]
+                               for z in (-1, 1)])
     else:
         body = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)]) * s
     return c + body @ Rb.T
@@ -47,7 +48,8 @@ def test_box_models_equal_opencv_projection_of_the_solid(model: str, kind: str) 
     Rb = rotation(rng)
     c = rng.normal(size=(N, 3)) * 1.5
     s = np.exp(rng.normal(size=(N, 3)) * 0.3) * 0.4
-    box, margin = ellipsoid_boxes(c, s, Rb, K, dist, R, t, np.ones(C), box_model=BOX_MODELS.index(model))
+    cams = bk.box_cameras(Rb, K, dist, R, t, np.ones(C), BOX_MODELS.index(model))
+    box, margin = bk.boxes_compiled(c, s, cams, 2)
     checked = 0
     for n in range(N):
         for k in range(C):
@@ -107,12 +109,12 @@ def test_a_scene_box_model_is_chosen_from_its_boxes(tmp_path: Path, labels: str)
 
 
 def test_the_right_box_model_is_more_accurate(tmp_path: Path) -> None:
-    import dataclasses
     sc, _ = written_scene(tmp_path, "wildtrack", seed=5, frames=6, people=12, labels="pom",
                           errors=Errors(dropped=0.0))
     err = {}
     for model in ("pom", "ellipsoid"):
         t = reconstruct(dataclasses.replace(sc, box_model=model), "triangulation")
         it, ig = match_rows(t, sc.truth)
-        err[model] = float(np.linalg.norm(t.center_world[it, :2] - sc.truth.center_world[ig, :2], axis=1).mean())
+        d = t.center_world[it, :2] - sc.truth.center_world[ig, :2]
+        err[model] = float(np.linalg.norm(d, axis=1).mean())
     assert err["pom"] < 0.01 and err["ellipsoid"] > 2 * err["pom"], err
