@@ -106,29 +106,39 @@ def reconstruct(scene: Scene | str | Path, estimator: str | Estimator = "ukf",
     camera or more); 0 = a row for every frame of the input's frame grid from each object's
     first to its last annotation (interpolated where no camera sees it: ``n_views`` 0); ``k >
     0`` = every ``k`` frame numbers (and every annotated frame)."""
-    stage = on_stage or (lambda name: None)
-
     with small_matrix_blas():  # one BLAS thread for our small matrices (gt3dkit.threads)
         sc = scene if isinstance(scene, Scene) else load_scene(Path(scene))
         est = make_estimator(estimator, **config) if isinstance(estimator, str) else estimator
-        if every_frame is not None:
-            if not getattr(est, "interpolates", True):
-                raise InputError("--every-frame", f"the {est.name} estimator fits each frame on its own: "
-                                                  "it has no estimate between annotations (use ukf or gtsam)")
-            sc = dense_frames(sc, every_frame or None)
-        stage("per-frame fits")
-        own = getattr(est, "prepare", None)
-        pre = own(sc) if callable(own) else prepare(sc)
-        segs = identity_segments(pre, sc.fps, pieces=sc.identity_pieces)
-        stage(f"{getattr(est, 'name', 'estimator')}")
-        tracks = estimate_scene(sc, est, pre if callable(own) else None, segs,
-                                dense=every_frame is not None)
+        tracks, qa = estimate_checked(sc, est, every_frame, out is not None, on_stage)
         if out is not None:
-            stage("annotation QA, writing")
-            qa = find_anomalies(sc, tracks, pre, splits=segs.splits, exchanges=segs.exchanges)
-            tracks.info["qa"] = {"anomalies": qa.counts(), "file": "anomalies.csv"}
             write_outputs(Path(out), sc, tracks, extra_meta, anomalies=qa)
     return tracks
+
+
+def estimate_checked(scene: Scene, est: Estimator, every_frame: int | None = None, qa: bool = True,
+                     on_stage: Callable[[str], None] | None = None) -> tuple[TrackSet, Any]:
+    """:func:`reconstruct`'s pipeline on a loaded scene without the writing: per-frame fits,
+    identity segments, the estimator (``every_frame`` as there), and with ``qa`` the annotation
+    QA (:func:`gt3dkit.qa.anomalies.find_anomalies`; else None)."""
+    stage = on_stage or (lambda name: None)
+    sc = scene
+    if every_frame is not None:
+        if not getattr(est, "interpolates", True):
+            raise InputError("--every-frame", f"the {est.name} estimator fits each frame on its own: "
+                                              "it has no estimate between annotations (use ukf or gtsam)")
+        sc = dense_frames(sc, every_frame or None)
+    stage("per-frame fits")
+    own = getattr(est, "prepare", None)
+    pre = own(sc) if callable(own) else prepare(sc)
+    segs = identity_segments(pre, sc.fps, pieces=sc.identity_pieces)
+    stage(f"{getattr(est, 'name', 'estimator')}")
+    tracks = estimate_scene(sc, est, pre if callable(own) else None, segs, dense=every_frame is not None)
+    if not qa:
+        return tracks, None
+    stage("annotation QA, writing")
+    found = find_anomalies(sc, tracks, pre, splits=segs.splits, exchanges=segs.exchanges)
+    tracks.info["qa"] = {"anomalies": found.counts(), "file": "anomalies.csv"}
+    return tracks, found
 
 
 def dense_frames(scene: Scene, step: int | None) -> Scene:

@@ -76,17 +76,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="refine the cameras from the annotations first (see gt3d calib refine)")
     r.add_argument("--no-smooth", action="store_true", help="forward filter only (no RTS)")
     r.add_argument("--every-frame", nargs="?", const=0, type=number_type(int, 1, 10**9), metavar="STEP",
-                   help="a row for every frame of the input's frame grid (or every STEP frame numbers) from "
-                        "each object's first to its last annotation, through gaps and between keyframes; "
-                        "tracks.csv then has an n_views column (0 = interpolated). Default: annotated "
-                        "object-frames only")
+                   help="a row for every frame of the input's grid (or every STEP frame numbers) from each "
+                        "object's first to last annotation; tracks.csv gets n_views (0 = interpolated)")
+    r.add_argument("--window", type=number_type(int, 2, 10**9), metavar="FRAMES", help="long recordings: "
+                   "overlapping windows of FRAMES frames (memory bounded by the window)")
+    r.add_argument("--jobs", type=number_type(int, 1, 4096), help="--window: windows in N local processes")
+    r.add_argument("--scheduler", metavar="ADDRESS", help="--window: windows on a running Dask scheduler")
     r.add_argument("--quiet", action="store_true", help="no progress display")
     r.add_argument("--no-bones", action="store_true", help="do not tie bone lengths")
-    r.add_argument("--skeleton", choices=sorted(SKELETONS),
-                   help="joint order of keypoints.csv (default: from the data)")
+    r.add_argument("--skeleton", choices=sorted(SKELETONS), help="joint order of keypoints.csv")
     r.add_argument("--cameras", help="CMU Panoptic: comma-separated HD cameras (default all)")
-    r.add_argument("--noise-px", type=PIXELS, default=0.0,
-                   help="CMU Panoptic: Gaussian noise added to the projected 2D joints")
+    r.add_argument("--noise-px", type=PIXELS, default=0.0, help="CMU Panoptic: noise added to the 2D joints")
     r.add_argument("--seed", type=SEED, help="CMU Panoptic: seed of that noise (default 0)")
     r.set_defaults(func=cmd_reconstruct)
 

@@ -33,6 +33,7 @@ from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv
 from gt3dkit.many import read_manifest, run_many
 from gt3dkit.refine import refine, rig_digest
 from gt3dkit.viz.report import write_report
+from gt3dkit.windows import Plan, reconstruct_windows
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
@@ -50,9 +51,17 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         scene = dataclasses.replace(scene, rig=res.rig)
         print(f"calibration refined: {', '.join(res.report['refined_cameras']) or 'no camera'} "
               f"({res.report['seconds']:.1f} s; meta.json: calibration_refinement)")
+    if (args.jobs or args.scheduler) and not args.window:
+        raise InputError("--jobs" if args.jobs else "--scheduler", "applies to --window runs only")
     try:
-        tracks = reconstruct(scene, args.estimator, out=args.out, extra_meta=extra, on_stage=stages,
-                             every_frame=args.every_frame, **config)
+        if args.window:
+            plan = Plan(args.window, jobs=args.jobs or 1, scheduler=args.scheduler)
+            stages("windows")
+            tracks = reconstruct_windows(scene, args.estimator, plan, args.out, extra, args.every_frame,
+                                         lambda k, n: stages(f"windows ({k}/{n} done)"), **config)
+        else:
+            tracks = reconstruct(scene, args.estimator, out=args.out, extra_meta=extra, on_stage=stages,
+                                 every_frame=args.every_frame, **config)
     finally:
         stages.close()
     print_warnings(scene)

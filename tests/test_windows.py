@@ -1,0 +1,103 @@
+"""Long sequences in overlapping time windows (gt3dkit.windows): the stitched result against the
+whole-sequence smoother, the same output from one process, two processes and a Dask cluster on
+loopback, and misuse."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gt3dkit.api import load_scene, reconstruct
+from gt3dkit.cli import main
+from gt3dkit.sim import Errors, simulate_skeletons, write_skeleton_scene
+from gt3dkit.windows import Plan, plan_windows, reconstruct_windowed
+from tests.scenes import written_scene
+
+
+def _run(*argv: str) -> tuple[int, str, str]:
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(list(argv))
+    return code, out.getvalue(), err.getvalue()
+
+
+def test_windows_cover_every_frame_once() -> None:
+    frames = np.arange(0, 500, 5)
+    ws = plan_windows(frames, 30, 7)
+    cores = np.concatenate([frames[(frames >= w.first) & (frames <= w.last)] for w in ws])
+    np.testing.assert_array_equal(cores, frames)
+    for w in ws:
+        inside = frames[(frames >= w.lo) & (frames <= w.hi)]
+        assert w.lo <= w.first <= w.last <= w.hi
+        assert (np.sum(inside < w.first) == 7 or w.lo == frames[0]) and (np.sum(inside > w.last) == 7
+                                                                        or w.hi == frames[-1])
+
+
+@pytest.fixture(scope="module")
+def boxes(tmp_path_factory: pytest.TempPathFactory) -> object:
+    return written_scene(tmp_path_factory.mktemp("win"), "native", seed=1, frames=120, people=5, noise_px=1.0,
+                         motion="walk", errors=Errors(dropped=0.1))[0]
+
+
+def test_windowed_boxes_equal_the_whole_sequence(boxes: object) -> None:
+    """Windows of 30 frames with 20 of context, the process noise the whole run chose: every
+    centre within 0.1 of its sd of the whole-sequence smoother's."""
+    whole = reconstruct(boxes, "ukf")
+    p = whole.info["params"]
+    fixed = {k: p[k] for k in ("accel_sd", "position_sd", "shape_sd")}
+    part, qa = reconstruct_windowed(boxes, "ukf", Plan(30, overlap=20), **fixed)
+    np.testing.assert_array_equal(part.frame, whole.frame)
+    np.testing.assert_array_equal(part.track_id, whole.track_id)
+    z = np.abs(part.center_world - whole.center_world) / whole.center_sd
+    assert z.max() < 0.1, z.max()
+    assert part.info["windows"]["count"] == 4
+    assert part.info["windows"]["process_noise"]["accel_sd"] == pytest.approx(p["accel_sd"])
+
+
+def test_windowed_skeletons_near_the_whole_sequence(tmp_path: Path) -> None:
+    """Keypoints with bones, the process noise fixed: joints near the whole-sequence smoother's
+    (median 0.1 of their sd, 99 % within 0.5), all rows present. Each window measures its own
+    keypoint noise per joint and bone lengths (on 30 frames here), which moves them a little."""
+    sk = simulate_skeletons("native", seed=3, frames=90, people=2, cameras=5, noise_px=1.0)
+    write_skeleton_scene(sk, tmp_path / "sk", "native")
+    scene = load_scene(tmp_path / "sk")
+    whole = reconstruct(scene, "ukf")
+    p = whole.info["params"]
+    fixed = {k: p[k] for k in ("accel_sd", "shape_sd", "joint_accel_sd")}
+    part, _ = reconstruct_windowed(scene, "ukf", Plan(30, overlap=30), **fixed)
+    np.testing.assert_array_equal(part.frame, whole.frame)
+    z = np.linalg.norm(part.kpt_world - whole.kpt_world, axis=-1) / whole.kpt_sd
+    z = z[np.isfinite(z)]
+    assert np.median(z) < 0.1 and np.percentile(z, 99) < 0.5, (np.median(z), np.percentile(z, 99))
+
+
+def test_jobs_and_dask_give_the_one_process_output(boxes: object, tmp_path: Path) -> None:
+    root = Path(boxes.root)  # type: ignore[attr-defined]
+    outs = {}
+    for name, extra in (("one", ()), ("two", ("--jobs", "2"))):
+        code, so, se = _run("reconstruct", str(root), "--out", str(tmp_path / name), "--window", "40",
+                            "--quiet", *extra)
+        assert code == 0, se
+        outs[name] = (tmp_path / name / "tracks.csv").read_bytes()
+    assert outs["one"] == outs["two"]
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as cluster:
+        code, so, se = _run("reconstruct", str(root), "--out", str(tmp_path / "dask"), "--window", "40",
+                            "--quiet", "--scheduler", cluster.scheduler_address)
+    assert code == 0, se
+    assert (tmp_path / "dask" / "tracks.csv").read_bytes() == outs["one"]
+
+
+def test_window_misuse(boxes: object, tmp_path: Path) -> None:
+    root = str(boxes.root)  # type: ignore[attr-defined]
+    code, so, se = _run("reconstruct", root, "--out", str(tmp_path / "a"), "--jobs", "2")
+    assert code == 2 and se.strip() == "error: --jobs: applies to --window runs only"
+    code, so, se = _run("reconstruct", root, "--out", str(tmp_path / "b"), "--window", "30", "--estimator",
+                        "triangulation")
+    assert code == 2 and se.startswith("error: --window: ") and len(se.strip().splitlines()) == 1
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
