@@ -78,8 +78,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--every-frame", nargs="?", const=0, type=number_type(int, 1, 10**9), metavar="STEP",
                    help="a row for every frame of the input's grid (or every STEP frame numbers) from each "
                         "object's first to last annotation; tracks.csv gets n_views (0 = interpolated)")
-    r.add_argument("--window", type=number_type(int, 2, 10**9), metavar="FRAMES", help="long recordings: "
-                   "overlapping windows of FRAMES frames (memory bounded by the window)")
+    r.add_argument("--window", type=number_type(int, 0, 10**9), metavar="FRAMES", help="long recordings: "
+                   "overlapping windows of FRAMES frames (default: when too long for memory; 0: never)")
     r.add_argument("--jobs", type=number_type(int, 1, 4096), help="--window: windows in N local processes")
     r.add_argument("--scheduler", metavar="ADDRESS", help="--window: windows on a running Dask scheduler")
     r.add_argument("--quiet", action="store_true", help="no progress display")

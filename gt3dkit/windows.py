@@ -41,6 +41,9 @@ PROCESS_NOISE = ("accel_sd", "position_sd", "shape_sd", "joint_accel_sd")
 #: Default context on each side of a window, seconds (at least :data:`MIN_OVERLAP_FRAMES`).
 OVERLAP_S = 2.0
 MIN_OVERLAP_FRAMES = 20
+#: Bytes of a run's per-object-frame state beyond which ``gt3d reconstruct`` runs a sequence in
+#: windows by itself (:func:`auto_plan`): what a laptop has to spare.
+MEMORY_BUDGET_BYTES = 1.0e9
 
 
 @dataclass(frozen=True)
@@ -53,6 +56,7 @@ class Plan:
     overlap: int | None = None
     jobs: int = 1
     scheduler: str | None = None
+    why: str = ""  # why windows, when the user did not ask for them
 
 
 @dataclass(frozen=True)
@@ -82,6 +86,30 @@ def overlap_frames(scene: Scene) -> int:
     f = np.asarray(scene.frames)
     step = float(np.median(np.diff(f))) if len(f) > 1 else 1.0
     return max(MIN_OVERLAP_FRAMES, int(np.ceil(OVERLAP_S * scene.fps / max(step, 1.0))))
+
+
+def state_bytes(n_joints: int) -> float:
+    """Peak bytes a run holds per object-frame (measured: covariances of the whole state, ``n =
+    9 + 6 J``, about six times over during the noise search; ~11 kB of the rest): 0.73 MB with 19
+    joints, 15 kB for a box."""
+    n = 9 + 6 * n_joints
+    return 48.0 * n * n + 11e3
+
+
+def auto_plan(scene: Scene) -> Plan | None:
+    """Windows for a sequence whose state would exceed :data:`MEMORY_BUDGET_BYTES` whole (None:
+    it fits): as many frames as hold that much state for the busiest frames (95th percentile of
+    objects per frame), less the context."""
+    keys = np.unique(np.c_[scene.obs.frame, scene.obs.track_id], axis=0)
+    if not len(keys):
+        return None
+    per_row = state_bytes(scene.obs.n_joints)
+    if len(keys) * per_row <= MEMORY_BUDGET_BYTES:
+        return None
+    per_frame = float(np.percentile(np.unique(keys[:, 0], return_counts=True)[1], 95))
+    ov = overlap_frames(scene)
+    fit = int(MEMORY_BUDGET_BYTES // (per_row * max(per_frame, 1.0)))
+    return Plan(max(fit - 2 * ov, ov), ov, why="the whole sequence would not fit in memory")
 
 
 def window_scene(scene: Scene, lo: int, hi: int) -> Scene:
@@ -137,8 +165,8 @@ def _downweighted_rows(d: Downweighted, keep: np.ndarray) -> Downweighted:
     return Downweighted(**{f.name: getattr(d, f.name)[keep] for f in dataclasses.fields(d)})
 
 
-def stitch(parts: list[tuple[TrackSet, list[tuple[Any, ...]]]], windows: list[Window],
-           noise: dict[str, float]) -> tuple[TrackSet, Anomalies]:
+def stitch(parts: list[tuple[TrackSet, list[tuple[Any, ...]]]], windows: list[Window], plan: Plan,
+           overlap: int, noise: dict[str, float]) -> tuple[TrackSet, Anomalies]:
     """The windows' rows and findings as one run's (rows by frame, then id)."""
     ts = [p[0] for p in parts]
     cat = {k: np.concatenate([getattr(t, k) for t in ts]) for k in
@@ -149,7 +177,7 @@ def stitch(parts: list[tuple[TrackSet, list[tuple[Any, ...]]]], windows: list[Wi
                            for f in dataclasses.fields(Downweighted)}) if ds else None
     info = dict(ts[0].info)
     info["windows"] = {
-        "count": len(windows),
+        "count": len(windows), "frames": plan.size, "overlap_frames": overlap, "why": plan.why,
         "windows": [dataclasses.asdict(w) for w in windows], "process_noise": noise,
         "note": "each window run on its frames plus context, its own frames kept; the process noise "
                 "chosen once (gt3dkit.windows)"}
@@ -223,4 +251,4 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
         for k, w in enumerate(windows):  # one window's scene at a time
             parts[k] = run_window(job(w))
             done(k + 1, len(windows))
-    return stitch(parts, windows, noise)
+    return stitch(parts, windows, plan, ov, noise)

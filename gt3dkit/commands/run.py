@@ -8,6 +8,7 @@ import dataclasses
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -33,7 +34,7 @@ from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv
 from gt3dkit.many import read_manifest, run_many
 from gt3dkit.refine import refine, rig_digest
 from gt3dkit.viz.report import write_report
-from gt3dkit.windows import Plan, reconstruct_windows
+from gt3dkit.windows import Plan, auto_plan, reconstruct_windows
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
@@ -51,11 +52,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         scene = dataclasses.replace(scene, rig=res.rig)
         print(f"calibration refined: {', '.join(res.report['refined_cameras']) or 'no camera'} "
               f"({res.report['seconds']:.1f} s; meta.json: calibration_refinement)")
-    if (args.jobs or args.scheduler) and not args.window:
-        raise InputError("--jobs" if args.jobs else "--scheduler", "applies to --window runs only")
     try:
-        if args.window:
-            plan = Plan(args.window, jobs=args.jobs or 1, scheduler=args.scheduler)
+        plan = window_plan(args, scene)
+        if plan is not None:
             stages("windows")
             tracks = reconstruct_windows(scene, args.estimator, plan, args.out, extra, args.every_frame,
                                          lambda k, n: stages(f"windows ({k}/{n} done)"), **config)
@@ -75,12 +74,35 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     qa = info.get("qa", {}).get("anomalies", {})
     flagged += (", anomalies: " + ", ".join(f"{v} {k}" for k, v in qa.items()) + " (anomalies.csv)"
                 if qa else ", no anomalies")
+    win = info.get("windows")
+    if win:
+        flagged += (f", in {win['count']} windows of {win['frames']} frames with {win['overlap_frames']} of "
+                    "context" + (f" ({win['why']}; --window FRAMES to choose)" if win.get("why") else ""))
     print(f"{scene.layout}: {len(scene.obs)} annotation rows ({kinds}), {len(scene.rig.cameras)} "
           f"cameras, {fps} -> {len(tracks)} object-frames of {len(set(tracks.track_id.tolist()))} "
           f"objects ({args.estimator}, {info.get('seconds', 0):.2f} s{flagged}) written to "
           f"{args.out}")
     report_truth(scene, tracks, args.estimator)
     return 0
+
+
+def window_plan(args: argparse.Namespace, scene: Any) -> Plan | None:
+    """How ``gt3d reconstruct`` runs the sequence: whole (None), or in windows (``--window
+    FRAMES``; by itself when the whole would not fit in memory, :func:`gt3dkit.windows.auto_plan`;
+    as many as ``--jobs`` or a Dask scheduler's workers when only those are given)."""
+    spread = args.jobs or args.scheduler
+    option = "--jobs" if args.jobs else "--scheduler"
+    if args.window and args.estimator == "triangulation":
+        raise InputError("--window", "the triangulation fits each frame on its own: it needs no window")
+    if args.window == 0 or args.estimator == "triangulation":
+        if spread:
+            raise InputError(option, "runs windows of the sequence in parallel: not with --window 0 or the "
+                                     "triangulation (which fits each frame on its own)")
+        return None
+    plan = Plan(args.window) if args.window else auto_plan(scene)
+    if plan is None and spread:  # the sequence fits: one window per worker
+        plan = Plan(max(int(np.ceil(len(scene.frames) / (args.jobs or 2))), 2), why="one per worker")
+    return None if plan is None else dataclasses.replace(plan, jobs=args.jobs or 1, scheduler=args.scheduler)
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:

@@ -58,7 +58,7 @@ from gt3dkit.fusion.prepare import (
 )
 from gt3dkit.fusion.robust import RobustConfig, point_weights
 from gt3dkit.fusion.rows import replicate_rows
-from gt3dkit.fusion.split import split_entries, split_joints
+from gt3dkit.fusion.split import split_joints
 from gt3dkit.fusion.ukf import SigmaWeights, ukf_update_information
 from gt3dkit.fusion.update import Measured
 from gt3dkit.skeletons import Skeleton
@@ -73,6 +73,8 @@ PROVISIONAL_MIN_SHAPE_SD = 0.05
 #: The noise search (and its provisional pass) runs on whole objects up to this many
 #: object-frames: the likelihood of two or three noise levels needs no more.
 SEARCH_OBJECT_FRAMES = 2500
+#: Covariance bytes the values one pass of the noise search runs at once may hold (estimated).
+SEARCH_PASS_BYTES = 1e9
 #: Rounds of coordinate ascent between the centre's acceleration and position noise at most.
 ASCENT_ROUNDS = 3
 #: The fields :func:`select_noise` finds (the others are the caller's).
@@ -464,11 +466,10 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
     search_model = replace(model, weight0=weights)  # one pass each: no reweighting
     sel = np.flatnonzero(on) if on is not None else np.arange(len(model.rows))
 
-    J = model.layout.n_joints
-    # covariance entries per row (joints run as separate small filters: run_filter)
-    entries = split_entries(J) if J > 1 else model.layout.n ** 2
-    # several values in one pass (copies of the objects), as far as ~1 GB of covariances allows
-    per_pass = max(1, int(1e9 // (6 * 8 * entries * max(len(sel), 1))))
+    # several values in one pass (copies of the objects), as far as SEARCH_PASS_BYTES of
+    # covariances allow: the whole state's per row (the joints run as separate small filters,
+    # but each pass's result is merged back into it)
+    per_pass = max(1, int(SEARCH_PASS_BYTES // (6 * 8 * model.layout.n ** 2 * max(len(sel), 1))))
 
     def search(name: str, c: UKFConfig, bounds: tuple[float, float], n_scan: int) -> UKFConfig:
         def logliks(values: list[float]) -> list[float]:
