@@ -525,6 +525,15 @@ def _quadric_box_grad(p: tuple[float, float, float], sq: tuple[float, float, flo
 
 
 @numba.njit(cache=True, nogil=True)
+def box_jacobian(p: F64, rig: BoxRig, box: F64, grad: F64) -> None:
+    """The boxes ``box (C, 4)`` of the state ``p (6,)`` (centre, log semi-axes) in every camera of
+    ``rig`` and their derivatives ``grad (C, 4, 6)`` (:func:`pair_box_grad`; NaN behind a camera):
+    one call where central differences took thirteen box evaluations."""
+    for c in range(rig.cam.shape[0]):
+        pair_box_grad((p[0], p[1], p[2]), (p[3], p[4], p[5]), c, rig, box[c], grad[c])
+
+
+@numba.njit(cache=True, nogil=True)
 def kernel(center: F64, axes: F64, cams: BoxCameras, steps: int, want: np.ndarray, box: F64,
            margin: F64) -> None:
     """Boxes ``box (N, C, 4)`` and margins ``margin (N, C)`` of N ellipsoids (``center, axes (N,
