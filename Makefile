@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 APT_PKGS := python3-venv libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libegl1 libgl1 libgomp1 libegl-mesa0 libgl1-mesa-dri
 
-.PHONY: setup demo test bench lint clean
+.PHONY: setup demo test bench bench-env bench-long lint clean
 
 setup: $(VENV)/.installed
 
@@ -32,6 +32,18 @@ test: setup
 
 bench: setup
 	$(PY) scripts/box_targets.py
+
+# aniposelib (pyproject's bench extra) in an environment of its own, for scripts/bench_long.py
+bench-env: setup .venv-bench/.installed
+
+.venv-bench/.installed: pyproject.toml
+	@test -x .venv-bench/bin/python || python3 -m venv .venv-bench
+	.venv-bench/bin/python -m pip install -q --upgrade pip
+	.venv-bench/bin/python -m pip install -q $$($(PY) -c "import tomllib; print(' '.join(tomllib.load(open('pyproject.toml', 'rb'))['project']['optional-dependencies']['bench']))")
+	@touch $@
+
+bench-long: setup bench-env
+	$(PY) scripts/bench_long.py
 
 lint: setup
 	$(VENV)/bin/ruff check gt3dkit tests scripts

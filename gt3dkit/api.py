@@ -141,6 +141,22 @@ def estimate_checked(scene: Scene, est: Estimator, every_frame: int | None = Non
     return tracks, found
 
 
+def process_noise_of(scene: Scene, est: Estimator) -> dict[str, float] | None:
+    """The process noise ``est`` would choose for ``scene`` as :func:`estimate_checked` runs it
+    (on the pieces of split ids), by the estimator's own ``process_noise`` without the rest of
+    the estimate; None when the estimator has none (then only a whole run tells)."""
+    own = getattr(est, "process_noise", None)
+    if not callable(own):
+        return None
+    pre = est.prepare(scene)
+    segs = identity_segments(pre, scene.fps, pieces=scene.identity_pieces)
+    if segs.splits:
+        scene, _ = split_ids(scene, pre.rows, segs)
+        pre = est.prepare(scene)
+    found: dict[str, float] = own(scene, pre)
+    return found
+
+
 def dense_frames(scene: Scene, step: int | None) -> Scene:
     """``scene`` whose frame grid is every frame number from its first to its last annotated
     frame at ``step`` (None: the input's own step, :func:`gt3dkit.arrays.frame_grid`), its

@@ -102,6 +102,24 @@ def read_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | No
     return list(iter_csv_rows(path, columns, warnings, header))
 
 
+def iter_csv_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | None = None,
+                    size: int = 65536) -> Iterator[tuple[list[int], list[list[str]]]]:
+    """:func:`iter_csv_rows` (a header) in blocks of up to ``size`` rows: ``(line numbers, rows)``,
+    each row its fields as text (those of ``columns`` first, unstripped), for readers that check a
+    block at once with numpy and fall back to the row-by-row checks only for a block that fails
+    them. The same checks of the header and of every row's field count."""
+    lines: list[int] = []
+    rows: list[list[str]] = []
+    for line, row in _csv_records(path, columns, warnings):
+        lines.append(line)
+        rows.append(row)
+        if len(rows) >= size:
+            yield lines, rows
+            lines, rows = [], []
+    if rows:
+        yield lines, rows
+
+
 def iter_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | None = None,
                   header: bool = True) -> Iterator[tuple[int, dict[str, str]]]:
     """Rows of a CSV whose header starts with ``columns``; (line number, row), one at a time
@@ -131,23 +149,7 @@ def iter_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | No
                                          f"expected {want} fields ({','.join(columns)}, ...), got {len(row)}")
                     yield line, dict(zip(columns, (x.strip() for x in row), strict=False))
                 return
-            header = next(reader, None)
-            if header is None or tuple(h.strip() for h in header[: len(columns)]) != columns:
-                raise InputError(where, f"expected header {','.join(columns)}, got "
-                                        f"{','.join(header) if header else 'an empty file'}")
-            extra = [h.strip() for h in header[len(columns):]]
-            if extra:
-                if warnings is None:
-                    raise InputError(where, f"unexpected columns {extra} after {','.join(columns)}")
-                warnings.append(f"{path}: columns {', '.join(extra)} ignored")
-            for row in reader:
-                line = reader.line_num
-                where = f"{path}: line {line}"
-                if not row or all(not x.strip() for x in row):
-                    continue
-                if len(row) != len(header):
-                    raise InputError(where, f"expected {len(header)} fields (as the header), "
-                                            f"got {len(row)}")
+            for line, row in _csv_records(path, columns, warnings, reader):
                 yield line, dict(zip(columns, (x.strip() for x in row), strict=False))
     except UnicodeDecodeError as e:
         raise InputError(where, f"not a UTF-8 text CSV file ({e.reason} at byte {e.start})") from None
@@ -156,3 +158,42 @@ def iter_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | No
         raise InputError(f"{path}{line}", f"malformed CSV ({e})") from None
     except OSError as e:
         raise InputError(str(path), f"cannot read ({e.strerror})") from None
+
+
+def _csv_records(path: Path, columns: tuple[str, ...], warnings: list[str] | None,
+                 reader: Any = None) -> Iterator[tuple[int, list[str]]]:
+    """The rows after a header starting with ``columns`` (checked), as :func:`iter_csv_rows`
+    reads them: (line number, fields), blank lines skipped, every row as wide as the header.
+    ``reader``: a ``csv.reader`` already open on ``path`` (else the file is opened here)."""
+    where = str(path)
+    if reader is None:
+        try:
+            with open(path, newline="", encoding="utf-8-sig") as f:
+                r = csv.reader(f)
+                yield from _csv_records(path, columns, warnings, r)
+        except UnicodeDecodeError as e:
+            raise InputError(where, f"not a UTF-8 text CSV file ({e.reason} at byte {e.start})") from None
+        except csv.Error as e:
+            raise InputError(f"{path}: line {r.line_num}", f"malformed CSV ({e})") from None
+        except OSError as e:
+            raise InputError(str(path), f"cannot read ({e.strerror})") from None
+        return
+    header = next(reader, None)
+    if header is None or tuple(h.strip() for h in header[: len(columns)]) != columns:
+        raise InputError(where, f"expected header {','.join(columns)}, got "
+                                f"{','.join(header) if header else 'an empty file'}")
+    extra = [h.strip() for h in header[len(columns):]]
+    if extra:
+        if warnings is None:
+            raise InputError(where, f"unexpected columns {extra} after {','.join(columns)}")
+        warnings.append(f"{path}: columns {', '.join(extra)} ignored")
+    width = len(header)
+    for row in reader:
+        if len(row) != width:
+            if not row or all(not x.strip() for x in row):
+                continue
+            raise InputError(f"{path}: line {reader.line_num}", f"expected {width} fields (as the "
+                                                                 f"header), got {len(row)}")
+        if not row[0].strip() and all(not x.strip() for x in row):
+            continue
+        yield reader.line_num, row

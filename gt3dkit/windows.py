@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from gt3dkit.api import estimate_checked, take_rows
+from gt3dkit.api import estimate_checked, process_noise_of, take_rows
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.base import make_estimator
 from gt3dkit.io.writers import write_outputs
@@ -129,10 +129,13 @@ def chosen_noise(scene: Scene, windows: list[Window], estimator: str, config: di
     w = windows[int(np.argmax(counts))]
     with small_matrix_blas():
         est = make_estimator(estimator, **config)
-        tracks, _ = estimate_checked(window_scene(scene, w.lo, w.hi), est, qa=False)
-    params = tracks.info.get("params", {})
+        sample = window_scene(scene, w.lo, w.hi)
+        found = process_noise_of(sample, est)  # the search alone, where the estimator has one
+        if found is None:
+            tracks, _ = estimate_checked(sample, est, qa=False)
+            found = {k: v for k, v in tracks.info.get("params", {}).items() if v is not None}
     fields = {f.name for f in dataclasses.fields(est.config)} if hasattr(est, "config") else set()
-    chosen = {k: float(params[k]) for k in PROCESS_NOISE if k in fields and params.get(k) is not None}
+    chosen = {k: float(found[k]) for k in PROCESS_NOISE if k in fields and found.get(k) is not None}
     return {**chosen, **given}
 
 
@@ -212,7 +215,7 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
                          on_window: Callable[[int, int], None] | None = None,
                          **config: Any) -> tuple[TrackSet, Anomalies]:
     """``scene`` in windows (:mod:`gt3dkit.windows`, ``plan``): the stitched tracks and QA
-    findings; ``on_window(done, total)`` after each window."""
+    findings; ``on_window(done, total)`` as the windows start (0) and after each one."""
     if estimator == "triangulation":
         raise InputError("--window", "the triangulation fits each frame on its own: it needs no window")
     ov = overlap_frames(scene) if plan.overlap is None else plan.overlap
@@ -224,6 +227,7 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
         return WindowJob(window_scene(scene, w.lo, w.hi), w, estimator, cfg, every_frame)
 
     done = on_window or (lambda k, n: None)
+    done(0, len(windows))
     parts: list[Any] = [None] * len(windows)
     if scheduler:
         from distributed import Client, as_completed

@@ -1,17 +1,23 @@
-"""Issue 23 benchmark (part): long recordings, whole-process time and peak RSS of ``gt3d
-reconstruct`` on the whole sequence (``--window 0``) and in the windows it chooses by itself,
-with the MPJPE each gets against the simulator's truth.
+"""Issue 23 benchmark: long recordings. Whole-process time and peak RSS of ``gt3d reconstruct`` on
+long simulated scenes (the whole sequence, ``--window 0``, and in the windows it chooses by itself),
+side by side in the same run with aniposelib (``scripts/peer_aniposelib.py`` in the benchmark's own
+environment, ``make bench-env``), ``gt3d compare`` on the long box scene, and one sequence over a
+Dask ``LocalCluster`` of 1 and 2 workers.
 
-    .venv/bin/python scripts/bench_long.py [--frames 1000,3000] [--people 3] [--cameras 8]
-                                           [--modes whole,auto] [--box-frames 0]
+    .venv/bin/python scripts/bench_long.py [--frames 1000,10000] [--whole-up-to 3000]
+        [--shelf-frames 3000] [--box-frames 4000] [--dask-frames 4000] [--peer .venv-bench/bin/python]
 
-* skeletons: ``gt3d simulate --kind skeleton --layout native --cameras C --frames F --people P
-  --noise-px 1 --seed 1`` (19 joints, 30 fps), one scene per ``--frames`` value;
-* boxes (``--box-frames N``): a WILDTRACK-rig scene of ``--box-people`` walkers, 7 cameras.
+Scenes (``gt3d simulate``, seed 1):
+* skeleton: ``--kind skeleton --layout native --cameras 8 --people 3 --noise-px 1`` (19 joints, 30 fps);
+* Shelf-like: 5 cameras, 4 people, a detector's errors (``--noise-px 2 --outliers 0.02 --swaps 0.02
+  --glitch 0.005 --missing 0.1 --conf``);
+* boxes: the WILDTRACK rig (7 cameras), 40 walkers, 1 px.
 
-Every run is its own process, measured by ``/usr/bin/time`` (``%e`` wall seconds, ``%M`` peak
-RSS of the process and its workers); OPENBLAS_NUM_THREADS=1 unless set. Not yet here: aniposelib
-beside it (issue 23 asks for it in a ``bench`` extra).
+Every run is its own process, measured by ``/usr/bin/time`` (``%e`` wall seconds, ``%M`` peak RSS of
+the process or its largest child); OPENBLAS_NUM_THREADS=1 unless set. MPJPE against the simulator's
+truth, both tools scored by the same code (every joint both estimate). The Dask runs start a
+``LocalCluster`` (one thread per worker) in this process and pass its address with ``--scheduler``:
+their peak RSS is the client's, not the workers'.
 """
 
 from __future__ import annotations
@@ -24,7 +30,13 @@ import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np
+import pandas as pd
+
+from gt3dkit.skeletons import SKELETONS
+
 GT3D = str(Path(sys.executable).with_name("gt3d"))
+PEER = Path(__file__).with_name("peer_aniposelib.py")
 
 
 def timed(cmd: list[str]) -> tuple[float, float, str]:
@@ -37,43 +49,92 @@ def timed(cmd: list[str]) -> tuple[float, float, str]:
     return float(m.group(1)), int(m.group(2)) / 1e6, r.stdout
 
 
-def mpjpe(out: str) -> str:
-    m = re.search(r"ukf, all joints .* ([\d.]+)\s+[\d.]+\s*$", out, re.M)
-    return m.group(1) if m else "-"
+def mpjpe_mm(points: Path, truth: Path) -> float:
+    """Mean joint error (mm) of ``points`` (frame,id,joint,x,y,z) against the simulator's truth."""
+    m = pd.read_csv(points).merge(pd.read_csv(truth), on=["frame", "id", "joint"], suffixes=("", "_t"))
+    return float(1e3 * np.mean(np.sqrt(sum((m[c] - m[c + "_t"]) ** 2 for c in "xyz"))))
+
+
+def row(name: str, run: str, sec: float, gb: float, n: int, err: float | None, note: str = "") -> None:
+    e = f"{err:.4f}" if err is not None else "-"
+    per = 1e3 * sec / max(n, 1)
+    print(f"{name:<36}{run:<22}{sec:>9.1f}{gb:>9.2f}{per:>12.2f}{e:>10}  {note}", flush=True)
+
+
+def gt3d_run(name: str, src: Path, out: Path, extra: list[str], label: str) -> tuple[float, int]:
+    sec, gb, so = timed([GT3D, "reconstruct", str(src), "--out", str(out), "--quiet", *extra])
+    n = int(re.search(r"-> (\d+) object-frames", so).group(1))  # type: ignore[union-attr]
+    win = re.search(r"in (\d+) windows of (\d+) frames", so)
+    kp = out / "keypoints.csv"
+    err = mpjpe_mm(kp, src / "truth_keypoints.csv") if kp.exists() else None
+    row(name, label, sec, gb, n, err, f"{win.group(1)} windows of {win.group(2)}" if win else "")
+    return sec, n
+
+
+def peer_run(name: str, src: Path, out: Path, peer: str, skeleton: str) -> None:
+    bones = ",".join(f"{a}-{b}" for a, b in SKELETONS[skeleton].bones)
+    sec, gb, _ = timed([peer, str(PEER), str(src), "--bones", bones, "--out", str(out)])
+    n = len(pd.read_csv(out, usecols=["frame", "id"]).drop_duplicates())
+    row(name, "aniposelib", sec, gb, n, mpjpe_mm(out, src / "truth_keypoints.csv"))
+
+
+def dask_runs(name: str, src: Path, d: Path, workers: list[int]) -> None:
+    from distributed import LocalCluster
+
+    for k in workers:
+        with LocalCluster(n_workers=k, threads_per_worker=1, processes=True, dashboard_address=None) as c:
+            gt3d_run(name, src, d / f"dask{k}", ["--scheduler", c.scheduler_address], f"dask {k} worker(s)")
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--frames", default="1000,3000")
-    ap.add_argument("--people", type=int, default=3)
-    ap.add_argument("--cameras", type=int, default=8)
-    ap.add_argument("--modes", default="whole,auto")
-    ap.add_argument("--box-frames", type=int, default=0)
+    ap.add_argument("--frames", default="1000,10000", help="skeleton scenes' lengths")
+    ap.add_argument("--whole-up-to", type=int, default=3000, help="also run the whole sequence up to this")
+    ap.add_argument("--shelf-frames", type=int, default=3000)
+    ap.add_argument("--box-frames", type=int, default=4000)
     ap.add_argument("--box-people", type=int, default=40)
+    ap.add_argument("--dask-frames", type=int, default=4000, help="box scene run on 1 and 2 Dask workers")
+    ap.add_argument("--peer", default=".venv-bench/bin/python", help="the bench environment's python")
     args = ap.parse_args()
-    modes = {"whole": ["--window", "0"], "auto": []}
-    print(f"{'scene':<34}{'run':<8}{'seconds':>9}{'peak GB':>9}{'ms/object-frame':>17}{'MPJPE mm':>10}"
-          f"{'windows':>9}")
-    with tempfile.TemporaryDirectory() as d:
-        scenes = [(f"skeleton {f} fr x {args.people} x {args.cameras} cams",
-                   ["--kind", "skeleton", "--layout", "native", "--cameras", str(args.cameras), "--frames", f,
-                    "--people", str(args.people), "--noise-px", "1", "--seed", "1"])
+    peer = args.peer if Path(args.peer).exists() else None
+    if peer is None:
+        print(f"note: no {args.peer} (make bench-env): aniposelib not run")
+    print(f"{'scene':<36}{'run':<22}{'seconds':>9}{'peak GB':>9}{'ms/obj-frame':>12}{'MPJPE mm':>10}")
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(tmp)
+        skel = ["--kind", "skeleton", "--layout", "native", "--seed", "1"]
+        scenes = [(f"skeleton {f} fr x 3 x 8 cams", [*skel, "--cameras", "8", "--frames", f, "--people", "3",
+                                                     "--noise-px", "1"], int(f))
                   for f in args.frames.split(",") if f]
-        if args.box_frames:
-            scenes.append((f"boxes {args.box_frames} fr x {args.box_people} x 7 cams",
-                           ["--layout", "wildtrack", "--frames", str(args.box_frames), "--people",
-                            str(args.box_people), "--noise-px", "1", "--seed", "1"]))
-        for k, (name, sim) in enumerate(scenes):
-            src = Path(d) / f"s{k}"
+        if args.shelf_frames:
+            scenes.append((f"Shelf-like {args.shelf_frames} fr x 4 x 5 cams",
+                           [*skel, "--cameras", "5", "--frames", str(args.shelf_frames), "--people", "4",
+                            "--noise-px", "2", "--outliers", "0.02", "--swaps", "0.02", "--glitch", "0.005",
+                            "--missing", "0.1", "--conf"], args.shelf_frames))
+        for k, (name, sim, frames) in enumerate(scenes):
+            src = d / f"s{k}"
             subprocess.run([GT3D, "simulate", *sim, "--out", str(src)], check=True, capture_output=True)
-            for mode in args.modes.split(","):
-                out = Path(d) / f"o{k}{mode}"
-                sec, gb, so = timed([GT3D, "reconstruct", str(src), "--out", str(out), *modes[mode]])
-                found = re.search(r"-> (\d+) object-frames", so)
-                rows = int(found.group(1)) if found else 1
-                win = re.search(r"in (\d+) windows of (\d+) frames", so)
-                print(f"{name:<34}{mode:<8}{sec:>9.1f}{gb:>9.2f}{1e3 * sec / rows:>17.2f}{mpjpe(so):>10}"
-                      f"{(win.group(1) + 'x' + win.group(2)) if win else '-':>9}", flush=True)
+            if frames <= args.whole_up_to:
+                gt3d_run(name, src, d / f"o{k}w", ["--window", "0"], "gt3dkit whole")
+            gt3d_run(name, src, d / f"o{k}a", [], "gt3dkit")
+            if peer:
+                peer_run(name, src, d / f"p{k}.csv", peer, "coco19")
+        for frames, modes in ((args.box_frames, ("auto", "compare")), (args.dask_frames, ("dask",))):
+            if not frames:
+                continue
+            name = f"boxes {frames} fr x {args.box_people} x 7 cams"
+            src = d / f"b{frames}"
+            if not src.exists():
+                sim = ["--layout", "wildtrack", "--frames", str(frames), "--people", str(args.box_people),
+                       "--noise-px", "1", "--seed", "1", "--out", str(src)]
+                subprocess.run([GT3D, "simulate", *sim], check=True, capture_output=True)
+            if "auto" in modes:
+                rec, n = gt3d_run(name, src, d / f"ob{frames}", [], "gt3dkit")
+            if "compare" in modes:
+                sec, gb, _ = timed([GT3D, "compare", str(src), "--out", str(d / f"cb{frames}"), "--quiet"])
+                row(name, "gt3d compare", sec, gb, n, None, f"{sec / rec:.2f}x reconstruct")
+            if "dask" in modes:
+                dask_runs(name, src, d, [1, 2])
     return 0
 
 

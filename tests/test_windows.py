@@ -11,8 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gt3dkit.api import load_scene, reconstruct
+from gt3dkit.api import load_scene, process_noise_of, reconstruct
 from gt3dkit.cli import main
+from gt3dkit.commands.common import Stages, clock
+from gt3dkit.fusion.base import make_estimator
 from gt3dkit.sim import Errors, simulate_skeletons, write_skeleton_scene
 from gt3dkit.windows import Plan, plan_windows, reconstruct_windowed
 from tests.scenes import written_scene
@@ -103,3 +105,22 @@ def test_window_misuse(boxes: object, tmp_path: Path) -> None:
                         "triangulation")
     assert code == 2 and se.startswith("error: --window: ") and len(se.strip().splitlines()) == 1
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_process_noise_is_what_the_estimate_chooses(boxes: object) -> None:
+    """The windows' process noise, found by the UKF's search alone, is what a whole estimate of
+    the same scene runs with; the progress line's time left follows the pace of the parts."""
+    est = make_estimator("ukf")
+    found = process_noise_of(boxes, est)  # type: ignore[arg-type]
+    params = reconstruct(boxes, "ukf").info["params"]  # type: ignore[arg-type]
+    assert found is not None and {"accel_sd", "shape_sd"} <= set(found)
+    for k, v in found.items():
+        assert v == pytest.approx(params[k], rel=1e-12), k
+    assert process_noise_of(boxes, make_estimator("triangulation")) is None  # type: ignore[arg-type]
+    st = Stages(3, quiet=True)
+    st("windows")
+    st._stage_t0 -= 30.0  # the first of four windows took 30 s
+    st.part("windows", 1, 4)
+    assert st.name == "windows 1/4 done, about 01:30 left"
+    st.part("windows", 4, 4)
+    assert st.name == "windows 4/4 done" and clock(3725) == "1:02:05"

@@ -10,6 +10,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
@@ -186,14 +187,19 @@ def report_truth(scene: Any, tracks: Any, name: str, max_dist_m: float = 1.0) ->
                            mpjpe_by_id(tracks, scene.truth, j)[0]) for label, j in sets]))
 
 
+def clock(seconds: float) -> str:
+    """``mm:ss`` (``h:mm:ss`` from an hour) of a duration."""
+    s = int(round(max(seconds, 0.0)))
+    return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60:02d}:{s % 60:02d}"
+
+
 class Stages:
     """A one-line progress display of a run's stages on stderr (``stage [elapsed] k/n``): only on
     a terminal, only once the run has taken a second, never with ``--quiet``; erased at the end
-    so that the summary and ``warning:`` lines stay as they are."""
+    so that the summary and ``warning:`` lines stay as they are. :meth:`part` shows a stage's
+    progress with the time it has left (``windows 3/10 done [01:12, about 02:48 left]``)."""
 
     def __init__(self, total: int, quiet: bool) -> None:
-        import time
-
         self.total, self.k, self.name = total, 0, ""
         self.t0 = time.monotonic()
         self.shown = False
@@ -203,15 +209,10 @@ class Stages:
             threading.Thread(target=self._tick, daemon=True).start()
 
     def _line(self) -> str:
-        import time
-
-        s = int(time.monotonic() - self.t0)
-        return f"\r{self.name} [{s // 60:02d}:{s % 60:02d}] {self.k}/{self.total}\x1b[K"
+        return f"\r{self.name} [{clock(time.monotonic() - self.t0)}] {self.k}/{self.total}\x1b[K"
 
     def _tick(self) -> None:
         while not self._stop.wait(0.5):
-            import time
-
             if time.monotonic() - self.t0 >= 1.0:
                 with contextlib.suppress(Exception):
                     sys.stderr.write(self._line())
@@ -220,6 +221,16 @@ class Stages:
 
     def __call__(self, name: str) -> None:
         self.k, self.name = min(self.k + 1, self.total), name
+        self._stage_t0 = time.monotonic()
+
+    def part(self, what: str, done: int, total: int) -> None:
+        """``done`` of the current stage's ``total`` parts are finished (0: they start now): the
+        line says so, with the time left at the pace so far."""
+        if done == 0:  # the parts start now (after the stage's own preliminaries)
+            self._stage_t0 = time.monotonic()
+        spent = time.monotonic() - getattr(self, "_stage_t0", self.t0)
+        self.name = f"{what} {done}/{total} done" + (
+            f", about {clock(spent / done * (total - done))} left" if 0 < done < total else "")
 
     def close(self) -> None:
         self._stop.set()

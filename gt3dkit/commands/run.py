@@ -57,7 +57,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         if plan is not None:
             stages("windows")
             tracks = reconstruct_windows(scene, args.estimator, plan, args.out, extra, args.every_frame,
-                                         lambda k, n: stages(f"windows ({k}/{n} done)"), **config)
+                                         lambda k, n: stages.part("windows", k, n), **config)
         else:
             tracks = reconstruct(scene, args.estimator, out=args.out, extra_meta=extra, on_stage=stages,
                                  every_frame=args.every_frame, **config)

@@ -17,7 +17,10 @@ class Estimator(Protocol):
     """Anything that turns a loaded scene into tracks.
 
     ``name`` goes into ``meta.json``; the settings used (after any automatic tuning) go
-    into ``TrackSet.info``. ``pre`` lets several estimators share one preparation.
+    into ``TrackSet.info``. ``pre`` lets several estimators share one preparation. An estimator
+    that tunes its process noise may also offer ``process_noise(scene, pre) -> dict`` (the
+    values :meth:`estimate` would choose, without the estimate: :mod:`gt3dkit.windows` fixes
+    them once for a long sequence's windows).
     """
 
     name: str

@@ -175,6 +175,13 @@ class UKFSmoother:
         cfg = self.config
         return prepare(scene, cfg.clip_tol_px, cfg.sigma_px, cfg.kpt_sigma_px, cfg.robust_config)
 
+    def process_noise(self, scene: Scene, pre: Prepared | None = None) -> dict[str, float]:
+        """The process noise :meth:`estimate` would run ``scene`` with (the settings the config
+        leaves ``None`` found by :func:`select_noise`), without the rest of the estimate: what
+        :mod:`gt3dkit.windows` fixes once for all the windows of a long sequence."""
+        found, _ = noise_by_likelihood(pre or self.prepare(scene), scene.fps, self.config)
+        return {k: float(v) for k in NOISE_FIELDS if (v := getattr(found, k)) is not None}
+
     def estimate(self, scene: Scene, pre: Prepared | None = None) -> TrackSet:
         cfg = self.config
         t0 = time.perf_counter()

@@ -9,10 +9,11 @@ import pytest
 
 from gt3dkit.api import load_scene
 from gt3dkit.calib.formats.grid import MULTIVIEWX, WILDTRACK
+from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.conics import ellipsoid_boxes
-from gt3dkit.io.datasets import detect_layout
-from gt3dkit.sim import Errors
+from gt3dkit.io.datasets import detect_layout, native
+from gt3dkit.sim import Errors, simulate_skeletons, write_skeleton_scene
 from tests.scenes import written_scene
 
 
@@ -93,3 +94,49 @@ def test_wildtrack_plain_text_extrinsics(tmp_path: Path) -> None:
     again = load_scene(tmp_path)
     np.testing.assert_allclose(again.rig.cameras[2].R, cam.R, atol=1e-9)
     np.testing.assert_allclose(again.rig.cameras[2].t, cam.t, atol=1e-9)
+
+
+def _native_keypoints(root: Path, rows: list[str], conf: bool = False) -> Path:
+    """A native skeleton scene's folder with ``rows`` of ``keypoints.csv`` (cameras of a simulated one)."""
+    sim = simulate_skeletons("native", seed=2, frames=2, people=1, cameras=4)
+    write_skeleton_scene(sim, root, "native")
+    (root / "keypoints.csv").write_text("frame,camera,id,joint,u,v" + (",conf" if conf else "") + "\n"
+                                        + "".join(r + "\n" for r in rows))
+    return root
+
+
+@pytest.mark.parametrize("block", [3, 65536])
+def test_keypoints_read_in_blocks_as_row_by_row(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                 block: int) -> None:
+    """keypoints.csv read in checked blocks gives the scene the row-by-row reader gives (rows, origins,
+    confidences, undetected points skipped), and a bad row or a point given twice, in one block or
+    across two, is reported at its own line."""
+    monkeypatch.setattr(native, "KEYPOINT_BLOCK_ROWS", block)
+    sim = simulate_skeletons("native", seed=2, frames=6, people=2, noise_px=1.0, cameras=4)
+    write_skeleton_scene(sim, tmp_path / "a", "native")
+    fast = load_scene(tmp_path / "a")
+    monkeypatch.setattr(native, "_checked_keypoints", lambda *a: None)  # every block row by row
+    slow = load_scene(tmp_path / "a")
+    for k in ("frame", "cam", "track_id"):
+        np.testing.assert_array_equal(getattr(fast.obs, k), getattr(slow.obs, k))
+    np.testing.assert_array_equal(fast.obs.kpt_uv_px, slow.obs.kpt_uv_px)
+    assert fast.obs.origin == slow.obs.origin
+    monkeypatch.undo()
+    monkeypatch.setattr(native, "KEYPOINT_BLOCK_ROWS", block)
+    cam = sim.rig.names[0]
+    ok = [f"{f},{c},1,{j},100.5,200.25,{p}" for f, j, p in ((0, 0, 0.9), (0, 1, 0.0), (0, 2, 1), (1, 0, 0.5))
+          for c in sim.rig.names[:2]]  # lines 2-9
+    s = load_scene(_native_keypoints(tmp_path / "c", ok, conf=True))
+    assert len(s.obs) == 4 and s.obs.kpt_conf is not None
+    np.testing.assert_allclose(s.obs.kpt_conf[0, :3], [0.9, np.nan, 1.0])
+    assert any("2 keypoints with confidence 0" in w for w in s.warnings)
+    assert s.obs.origin[0].endswith("keypoints.csv: line 2")
+    for rows, line, what in (
+            (ok + [f"0,{cam},1,2,1,1,0.5"], 10, "second keypoint 2 for object 1 in frame 0"),
+            (ok + [f"1,{cam},1,0,1e9,20,0.5"], 10, "far outside"),
+            (ok + [f"1,{cam},1,0,10,20,1.5"], 10, "confidence must be in [0, 1]"),
+            (ok + ["1,nosuch,1,0,10,20,1"], 10, "unknown camera 'nosuch'"),
+            (ok + [f"1,{cam},1.5,0,10,20,1"], 10, "id must be an integer")):
+        with pytest.raises(InputError) as e:
+            load_scene(_native_keypoints(tmp_path / f"e{line}{what[:4]}", rows, conf=True))
+        assert e.value.where.endswith(f"keypoints.csv: line {line}") and what in e.value.problem, str(e.value)

@@ -20,6 +20,22 @@ def check_box(where: str, box: list[float]) -> None:
         raise InputError(where, f"degenerate box (need xmax > xmin and ymax > ymin): {box}")
 
 
+@dataclass(frozen=True)
+class JointBlock:
+    """Keypoints read and checked as a block (:meth:`RowBuilder.add_joint_block`), one per point:
+    ``frame, cam, tid, joint, line (P,)`` int64, ``uv (P, 2)``, ``conf (P,)`` or None; ``path``
+    names the file the line numbers are of."""
+
+    frame: np.ndarray
+    cam: np.ndarray
+    tid: np.ndarray
+    joint: np.ndarray
+    uv: F64
+    conf: F64 | None
+    line: np.ndarray
+    path: str
+
+
 @dataclass
 class RowBuilder:
     """Accumulates observation rows keyed by (frame, cam, id), merging boxes and joints."""
@@ -31,6 +47,7 @@ class RowBuilder:
     confs: list[np.ndarray] = field(default_factory=list)
     origin: list[str] = field(default_factory=list)
     has_conf: bool = False
+    blocks: list[JointBlock] = field(default_factory=list)
 
     def _row(self, frame: int, cam: int, tid: int, where: str) -> int:
         key = (frame, cam, tid)
@@ -85,7 +102,17 @@ class RowBuilder:
         self.kpts[r][joint] = uv
         self.confs[r][joint] = 1.0 if conf is None else conf
 
+    def add_joint_block(self, block: JointBlock) -> None:
+        """Keypoints already checked one by one as :meth:`add_joint` checks them (finite pixels,
+        joints of the skeleton, confidences in (0, 1]), added at once; a point given twice (here
+        or before) is found by :meth:`build`. Held as arrays, not a Python object per point."""
+        if block.conf is not None:
+            self.has_conf = True
+        self.blocks.append(block)
+
     def build(self) -> Observations:
+        if self.blocks:
+            return self._build_with_blocks()
         keys = list(self.rows)
         n = len(keys)
         arr = np.array(keys, dtype=np.int64).reshape(n, 3)
@@ -100,6 +127,58 @@ class RowBuilder:
             kpt_conf=(np.array(self.confs, dtype=np.float64).reshape(n, self.n_joints)[idx]
                       if self.has_conf and self.n_joints else None),
         )
+
+    def _build_with_blocks(self) -> Observations:
+        """:meth:`build` when keypoints came in blocks: every (frame, camera, id) of the rows added
+        one by one and of the blocks, in one sorted set of rows."""
+        J = self.n_joints
+        one = np.array(list(self.rows), dtype=np.int64).reshape(-1, 3)
+        idx = np.array(list(self.rows.values()), dtype=np.int64)
+        cat = {k: np.concatenate([getattr(b, k) for b in self.blocks]) for k in
+               ("frame", "cam", "tid", "joint", "line")}
+        uv = np.concatenate([b.uv for b in self.blocks])
+        conf = (np.concatenate([b.conf if b.conf is not None else np.ones(len(b.frame)) for b in self.blocks])
+                if self.has_conf else None)
+        src = np.concatenate([np.full(len(b.frame), k) for k, b in enumerate(self.blocks)])
+        pts = np.stack([cat["frame"], cat["cam"], cat["tid"]], axis=1)
+        keys, inv = np.unique(np.concatenate([one, pts]), axis=0, return_inverse=True)
+        inv = inv.reshape(-1)
+        row_one, row_pt = inv[: len(one)], inv[len(one):]
+        n = len(keys)
+        box = np.full((n, 4), np.nan)
+        kpt = np.full((n, J, 2), np.nan)
+        cf = np.full((n, J), np.nan)
+        if len(one):
+            box[row_one] = np.array(self.boxes, dtype=np.float64).reshape(-1, 4)[idx]
+            if J:
+                kpt[row_one] = np.array(self.kpts, dtype=np.float64).reshape(-1, J, 2)[idx]
+                cf[row_one] = np.array(self.confs, dtype=np.float64).reshape(-1, J)[idx]
+        # a point twice: in two blocks, or in a block and one by one (reported at the later line)
+        slot = row_pt * max(J, 1) + cat["joint"]
+        order = np.lexsort((cat["line"], src, slot))
+        twice = np.flatnonzero(slot[order][1:] == slot[order][:-1])
+        taken = np.isfinite(kpt.reshape(-1, 2)[slot, 0])
+        bad = np.concatenate([order[twice + 1], np.flatnonzero(taken)])
+        if len(bad):
+            b = bad[np.lexsort((cat["line"][bad], src[bad]))[0]]
+            raise InputError(f"{self.blocks[src[b]].path}: line {cat['line'][b]}",
+                             f"second keypoint {cat['joint'][b]} for object {cat['tid'][b]} in frame "
+                             f"{cat['frame'][b]} and this camera")
+        kpt.reshape(-1, 2)[slot] = uv
+        if conf is not None:
+            cf.reshape(-1)[slot] = conf
+        origin = [""] * n
+        for r, i in zip(row_one.tolist(), idx.tolist(), strict=True):
+            origin[r] = self.origin[i]
+        first = np.full(n, -1)
+        at = np.lexsort((cat["line"], src))[::-1]  # the first line of each row wins (written last)
+        first[row_pt[at]] = at
+        for r in np.flatnonzero((first >= 0) & np.array([not o for o in origin])).tolist():
+            p = first[r]
+            origin[r] = f"{self.blocks[src[p]].path}: line {cat['line'][p]}"
+        return Observations(frame=keys[:, 0], cam=keys[:, 1], track_id=keys[:, 2], box_xyxy_px=box,
+                            kpt_uv_px=kpt, origin=tuple(origin),
+                            kpt_conf=cf if self.has_conf and J else None)
 
 
 def camera_ids(truth_id: np.ndarray, n_cameras: int, id_seed: int | None) -> list[dict[int, int]]:

@@ -31,16 +31,27 @@ import numpy as np
 
 from gt3dkit.calib.formats.native import FPS_RANGE, cameras_doc, load_cameras  # noqa: F401
 from gt3dkit.errors import InputError
-from gt3dkit.io.datasets.checks import check_pixels
-from gt3dkit.io.datasets.common import RowBuilder
+from gt3dkit.io.datasets.checks import FAR_IMAGES, check_pixels
+from gt3dkit.io.datasets.common import JointBlock, RowBuilder
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
-from gt3dkit.parse import iter_csv_rows, parse_frame, parse_int, parse_metres, sha256
+from gt3dkit.parse import (
+    FRAME_MAX,
+    ID_MAX,
+    iter_csv_blocks,
+    iter_csv_rows,
+    parse_frame,
+    parse_int,
+    parse_metres,
+    sha256,
+)
 from gt3dkit.skeletons import SKELETONS, skeleton_for
 from gt3dkit.types import GroundTruth, Rig, Scene, SimScene, SkeletonScene
 
 BOX_COLUMNS = ("frame", "camera", "id", "xmin", "ymin", "xmax", "ymax")
 KPT_COLUMNS = ("frame", "camera", "id", "joint", "u", "v")
 DEFAULT_FPS = 10.0
+#: keypoints.csv rows parsed and checked at once (:func:`_checked_keypoints`)
+KEYPOINT_BLOCK_ROWS = 65536
 
 
 def camera_index(rig: Rig, name: str, where: str) -> int:
@@ -101,21 +112,16 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
         if unseen:
             warnings.append(f"{box_path}: {unseen} boxes of -1s read as not seen")
     undetected = 0
-    for line, r in iter_csv_rows(kpt_path, kpt_cols, warnings) if has_kpts else ():  # streamed
-        where = f"{kpt_path}: line {line}"
-        frame, tid = parse_frame(where, r["frame"]), parse_int(where, r["id"], "id")
-        joint = parse_int(where, r["joint"], "joint", 0, 10_000)
-        uv = (_number(where, r["u"], "u"), _number(where, r["v"], "v"))
-        conf = _number(where, r["conf"], "conf") if "conf" in r else None
-        if conf is not None and not 0 <= conf <= 1:  # NaN fails too
-            raise InputError(where, f"confidence must be in [0, 1], got {r['conf']}")
-        cam = camera_index(rig, r["camera"], where)
-        if conf == 0:
-            undetected += 1
+    blocks = iter_csv_blocks(kpt_path, kpt_cols, warnings, KEYPOINT_BLOCK_ROWS) if has_kpts else ()
+    for lines, block in blocks:  # streamed
+        checked = _checked_keypoints(kpt_path, rig, n_joints, lines, block, "conf" in kpt_cols)
+        if checked is not None:
+            rb.add_joint_block(checked[0])
+            undetected += checked[1]
             continue
-        if all(math.isfinite(v) for v in uv):
-            check_pixels(where, rig.cameras[cam], list(uv), "keypoint")
-        rb.add_joint(frame, cam, tid, joint, uv, where, conf)
+        for line, row in zip(lines, block, strict=True):  # the block failed a check: say where
+            r = dict(zip(kpt_cols, (x.strip() for x in row), strict=False))
+            undetected += _add_keypoint(rb, rig, f"{kpt_path}: line {line}", r)
     if undetected:
         warnings.append(f"{kpt_path}: {undetected} keypoints with confidence 0 read as not "
                         "detected")
@@ -131,6 +137,60 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
                  skeleton=skel_name if n_joints else None, files=files, root=str(root),
                  warnings=tuple(warnings),
                  fps_assumed=f"{cam_path} has no \"fps\"" if fps_doc is None else "")
+
+
+def _add_keypoint(rb: RowBuilder, rig: Rig, where: str, r: dict[str, str]) -> int:
+    """One row of ``keypoints.csv``, checked and added; 1 if it is an undetected point
+    (confidence 0: skipped), else 0."""
+    frame, tid = parse_frame(where, r["frame"]), parse_int(where, r["id"], "id")
+    joint = parse_int(where, r["joint"], "joint", 0, 10_000)
+    uv = (_number(where, r["u"], "u"), _number(where, r["v"], "v"))
+    conf = _number(where, r["conf"], "conf") if "conf" in r else None
+    if conf is not None and not 0 <= conf <= 1:  # NaN fails too
+        raise InputError(where, f"confidence must be in [0, 1], got {r['conf']}")
+    cam = camera_index(rig, r["camera"], where)
+    if conf == 0:
+        return 1
+    if all(math.isfinite(v) for v in uv):
+        check_pixels(where, rig.cameras[cam], list(uv), "keypoint")
+    rb.add_joint(frame, cam, tid, joint, uv, where, conf)
+    return 0
+
+
+def _checked_keypoints(path: Path, rig: Rig, n_joints: int, lines: list[int], rows: list[list[str]],
+                       with_conf: bool) -> tuple[JointBlock, int] | None:
+    """A block of ``keypoints.csv`` rows parsed and checked at once, as :func:`_add_keypoint` checks
+    each row, and the count of undetected points (confidence 0) it drops; None when any row fails
+    a check (the caller then goes row by row to say which and why). A 4-million-point file reads in
+    seconds and is held as arrays."""
+    cols = list(zip(*rows, strict=True))
+    try:
+        ints = [np.array(cols[k]).astype(np.int64) for k in (0, 2, 3)]  # frame, id, joint
+        uv = np.stack([np.array(cols[4]).astype(np.float64), np.array(cols[5]).astype(np.float64)], 1)
+        conf = np.array(cols[6]).astype(np.float64) if with_conf else None
+    except (ValueError, OverflowError):
+        return None
+    frame, tid, joint = ints
+    names, cam_of = np.unique(np.array(cols[1]), return_inverse=True)
+    known = {n: k for k, n in enumerate(rig.names)}
+    index = np.array([known.get(str(n).strip(), -1) for n in names], dtype=np.int64)
+    cam = index[cam_of.reshape(-1)]
+    size = np.array([[c.width, c.height] for c in rig.cameras], dtype=np.float64)[np.maximum(cam, 0)]
+    ok = ((frame >= 0) & (frame <= FRAME_MAX) & (np.abs(tid) <= ID_MAX) & (joint >= 0) & (joint < n_joints)
+          & (cam >= 0) & np.all(np.isfinite(uv), axis=1)
+          & np.all((uv >= -FAR_IMAGES * size) & (uv <= (1 + FAR_IMAGES) * size), axis=1))
+    undetected = 0
+    if conf is not None:
+        ok &= (conf >= 0) & (conf <= 1)
+        seen = conf > 0
+        undetected = int(np.sum(~seen & ok))
+    if not ok.all():
+        return None
+    keep = seen if conf is not None else slice(None)
+    line = np.asarray(lines, dtype=np.int64)[keep]
+    block = JointBlock(frame[keep], cam[keep], tid[keep], joint[keep], uv[keep],
+                       None if conf is None else conf[keep], line, str(path))
+    return block, undetected
 
 
 def _number(where: str, text: str, name: str) -> float:
