@@ -52,16 +52,18 @@ class JointSplit:
     owned: np.ndarray
     cols: I64
 
-    def merge(self, run: FilterRun) -> FilterRun:
+    def merge(self, run: FilterRun, covariances: bool = True) -> FilterRun:
         """The run of the original rows (states ``(R, n)``, block-diagonal covariances ``(R, n,
         n)``, per-row statistics summed over the parts, per-entry arrays in the original
-        columns) from a run of the split model."""
+        columns) from a run of the split model. ``covariances=False``: ``P`` is ``(R, 0, 0)``
+        (a caller that reads only the statistics, as the noise search, spares the whole state's
+        covariances: 121 kB a row with 19 joints)."""
         x, P = run.x, run.P
         xo = np.zeros((self.R, self.n))
         rr = np.broadcast_to(self.src[:, None], self.dims.shape)
         xo[rr[self.owned], self.dims[self.owned]] = x[self.owned]
-        Po = np.zeros((self.R, self.n, self.n))
-        for own in (self.part == 0, self.part > 0):
+        Po = np.zeros((self.R, self.n, self.n) if covariances else (self.R, 0, 0))
+        for own in (self.part == 0, self.part > 0) if covariances else ():
             if own.any():
                 k = np.flatnonzero(self.owned[np.flatnonzero(own)[0]])
                 d = self.dims[own][:, k]

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -473,10 +474,13 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
     search_model = replace(model, weight0=weights)  # one pass each: no reweighting
     sel = np.flatnonzero(on) if on is not None else np.arange(len(model.rows))
 
-    # several values in one pass (copies of the objects), as far as SEARCH_PASS_BYTES of
-    # covariances allow: the whole state's per row (the joints run as separate small filters,
-    # but each pass's result is merged back into it)
+    # several values in one pass (copies of the objects), as far as SEARCH_PASS_BYTES of the
+    # whole state's covariances would allow. With joints their separate small filters hold
+    # about a third of that, and only their likelihoods are read: the whole state's covariances
+    # are not put back together (run_frames(covariances=False)), so the search stays well
+    # inside the budget
     per_pass = max(1, int(SEARCH_PASS_BYTES // (6 * 8 * model.layout.n ** 2 * max(len(sel), 1))))
+    runner = run_filter if backend_for(model) == "objects" else partial(run_frames, covariances=False)
 
     def search(name: str, c: UKFConfig, bounds: tuple[float, float], n_scan: int) -> UKFConfig:
         def logliks(values: list[float]) -> list[float]:
@@ -487,9 +491,9 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
             for i in range(0, len(values), per_pass):
                 part = values[i:i + per_pass]
                 rows_k, src, copy = replicate_rows(model.rows, sel, len(part))
-                run = run_filter(search_model.take(rows_k, src), Init(init.x0[src], init.P0[src]),
-                                 replace(c, smooth=False, iterations=1), fps, fade=False,
-                                 noise_rows={name: np.asarray(part)[copy]})
+                run = runner(search_model.take(rows_k, src), Init(init.x0[src], init.P0[src]),
+                             replace(c, smooth=False, iterations=1), fps, fade=False,
+                             noise_rows={name: np.asarray(part)[copy]})
                 out += list(np.bincount(copy, weights=run.loglik_rows, minlength=len(part)))
             return out
 
@@ -692,18 +696,21 @@ def backend_for(model: Model) -> str:
 
 def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bool = False,
                fade: bool = True, on: np.ndarray | None = None,
-               noise_rows: dict[str, F64] | None = None, split: bool = True) -> FilterRun:
+               noise_rows: dict[str, F64] | None = None, split: bool = True,
+               covariances: bool = True) -> FilterRun:
     """The filter over the frame grid (arguments and outputs of :func:`run_filter`): per frame
     the prediction, fading and linearisation point of its rows as one batch, their update
     (:func:`gt3dkit.fusion.ukf.ukf_update_information`), then RTS backwards. ``split``: without
     bones, run the joints as separate filters (:mod:`gt3dkit.fusion.split`; the same result,
-    faster); False runs the whole state (the reference the tests hold it to)."""
+    faster); False runs the whole state (the reference the tests hold it to). ``covariances=False``:
+    a split run's ``P`` is not put back together (``(R, 0, 0)``: for callers that read the
+    statistics only)."""
     if split and model.layout.n_joints > 1 and model.bones is None:
         # no bones: the joints are independent filters, run as one batch of small ones
         sub, x0, P0, sp = split_joints(model, init.x0, init.P0)
         return sp.merge(run_frames(sub, Init(x0, P0), cfg, fps, collect, fade,
                                    None if on is None else on[sp.src],
-                                   {k: v[sp.src] for k, v in (noise_rows or {}).items()}))
+                                   {k: v[sp.src] for k, v in (noise_rows or {}).items()}), covariances)
     rows, cams, layout = model.rows, model.cams, model.layout
     n, R = layout.n, len(rows)
     w = SigmaWeights(n, cfg.alpha, cfg.beta, cfg.kappa)

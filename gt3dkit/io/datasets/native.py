@@ -164,6 +164,8 @@ def _checked_keypoints(path: Path, rig: Rig, n_joints: int, lines: list[int], ro
     a check (the caller then goes row by row to say which and why). A 4-million-point file reads in
     seconds and is held as arrays."""
     cols = list(zip(*rows, strict=True))
+    if any("\x00" in "".join(c) for c in cols):  # numpy's text arrays would drop a NUL unseen
+        return None
     try:
         ints = [np.array(cols[k]).astype(np.int64) for k in (0, 2, 3)]  # frame, id, joint
         uv = np.stack([np.array(cols[4]).astype(np.float64), np.array(cols[5]).astype(np.float64)], 1)
