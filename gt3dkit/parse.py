@@ -8,7 +8,7 @@ import csv
 import hashlib
 import json
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -110,7 +110,7 @@ def iter_csv_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | 
     them. The same checks of the header and of every row's field count."""
     lines: list[int] = []
     rows: list[list[str]] = []
-    for line, row in _csv_records(path, columns, warnings):
+    for line, row in _read_csv(path, lambda reader: _csv_records(path, columns, warnings, reader)):
         lines.append(line)
         rows.append(row)
         if len(rows) >= size:
@@ -131,28 +131,24 @@ def iter_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | No
     header (MOTChallenge), each row with at least ``len(columns)`` fields, the same number in
     every row.
     """
-    where = str(path)
+    def rows(reader: Any) -> Iterator[tuple[int, list[str]]]:
+        return _csv_records(path, columns, warnings, reader) if header else _headerless(path, columns, reader)
+
+    for line, row in _read_csv(path, rows):
+        yield line, dict(zip(columns, (x.strip() for x in row), strict=False))
+
+
+def _read_csv(path: Path, rows: Callable[[Any], Iterator[tuple[int, list[str]]]]
+              ) -> Iterator[tuple[int, list[str]]]:
+    """``rows(reader)`` of a ``csv.reader`` on ``path`` (UTF-8, a byte-order mark allowed), with
+    what goes wrong reading it as :class:`InputError` naming the file (and line)."""
     reader = None
     try:
         with open(path, newline="", encoding="utf-8-sig") as f:
             reader = csv.reader(f)
-            if not header:
-                width = None
-                for row in reader:
-                    line = reader.line_num
-                    if not row or all(not x.strip() for x in row):
-                        continue
-                    width = len(row) if width is None else width
-                    if len(row) < len(columns) or len(row) != width:
-                        want = width if len(row) >= len(columns) else len(columns)
-                        raise InputError(f"{path}: line {line}",
-                                         f"expected {want} fields ({','.join(columns)}, ...), got {len(row)}")
-                    yield line, dict(zip(columns, (x.strip() for x in row), strict=False))
-                return
-            for line, row in _csv_records(path, columns, warnings, reader):
-                yield line, dict(zip(columns, (x.strip() for x in row), strict=False))
+            yield from rows(reader)
     except UnicodeDecodeError as e:
-        raise InputError(where, f"not a UTF-8 text CSV file ({e.reason} at byte {e.start})") from None
+        raise InputError(str(path), f"not a UTF-8 text CSV file ({e.reason} at byte {e.start})") from None
     except csv.Error as e:
         line = f": line {reader.line_num}" if reader is not None else ""
         raise InputError(f"{path}{line}", f"malformed CSV ({e})") from None
@@ -160,24 +156,27 @@ def iter_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | No
         raise InputError(str(path), f"cannot read ({e.strerror})") from None
 
 
+def _headerless(path: Path, columns: tuple[str, ...], reader: Any) -> Iterator[tuple[int, list[str]]]:
+    """The rows of a CSV without a header (MOTChallenge): at least ``len(columns)`` fields, the
+    same number in every row; blank lines skipped."""
+    width = None
+    for row in reader:
+        line = reader.line_num
+        if not row or all(not x.strip() for x in row):
+            continue
+        width = len(row) if width is None else width
+        if len(row) < len(columns) or len(row) != width:
+            want = width if len(row) >= len(columns) else len(columns)
+            raise InputError(f"{path}: line {line}",
+                             f"expected {want} fields ({','.join(columns)}, ...), got {len(row)}")
+        yield line, row
+
+
 def _csv_records(path: Path, columns: tuple[str, ...], warnings: list[str] | None,
-                 reader: Any = None) -> Iterator[tuple[int, list[str]]]:
+                 reader: Any) -> Iterator[tuple[int, list[str]]]:
     """The rows after a header starting with ``columns`` (checked), as :func:`iter_csv_rows`
-    reads them: (line number, fields), blank lines skipped, every row as wide as the header.
-    ``reader``: a ``csv.reader`` already open on ``path`` (else the file is opened here)."""
+    reads them: (line number, fields), blank lines skipped, every row as wide as the header."""
     where = str(path)
-    if reader is None:
-        try:
-            with open(path, newline="", encoding="utf-8-sig") as f:
-                r = csv.reader(f)
-                yield from _csv_records(path, columns, warnings, r)
-        except UnicodeDecodeError as e:
-            raise InputError(where, f"not a UTF-8 text CSV file ({e.reason} at byte {e.start})") from None
-        except csv.Error as e:
-            raise InputError(f"{path}: line {r.line_num}", f"malformed CSV ({e})") from None
-        except OSError as e:
-            raise InputError(str(path), f"cannot read ({e.strerror})") from None
-        return
     header = next(reader, None)
     if header is None or tuple(h.strip() for h in header[: len(columns)]) != columns:
         raise InputError(where, f"expected header {','.join(columns)}, got "

@@ -201,7 +201,7 @@ class Stages:
 
     def __init__(self, total: int, quiet: bool) -> None:
         self.total, self.k, self.name = total, 0, ""
-        self.t0 = time.monotonic()
+        self.t0 = self._stage_t0 = time.monotonic()
         self.shown = False
         self._stop = threading.Event()
         self.on = not quiet and sys.stderr.isatty()
@@ -228,7 +228,7 @@ class Stages:
         line says so, with the time left at the pace so far."""
         if done == 0:  # the parts start now (after the stage's own preliminaries)
             self._stage_t0 = time.monotonic()
-        spent = time.monotonic() - getattr(self, "_stage_t0", self.t0)
+        spent = time.monotonic() - self._stage_t0
         self.name = f"{what} {done}/{total} done" + (
             f", about {clock(spent / done * (total - done))} left" if 0 < done < total else "")
 

@@ -23,15 +23,11 @@ zero distortion the result is the closed form exactly.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from gt3dkit.geom.boxkernel import BoxCameras, box_cameras, boxes_compiled
+from gt3dkit.geom.camera import Cams
 from gt3dkit.types import F64
-
-if TYPE_CHECKING:
-    from gt3dkit.geom.camera import Cams
 
 
 def outline_ellipse(

@@ -169,13 +169,14 @@ class RowBuilder:
             cf.reshape(-1)[slot] = conf
         origin = [""] * n
         for r, i in zip(row_one.tolist(), idx.tolist(), strict=True):
-            origin[r] = self.origin[i]
-        first = np.full(n, -1)
-        at = np.lexsort((cat["line"], src))[::-1]  # the first line of each row wins (written last)
-        first[row_pt[at]] = at
-        for r in np.flatnonzero((first >= 0) & np.array([not o for o in origin])).tolist():
-            p = first[r]
-            origin[r] = f"{self.blocks[src[p]].path}: line {cat['line'][p]}"
+            origin[r] = self.origin[i]  # a row added one by one keeps where it was first seen
+        in_file = np.lexsort((cat["line"], src))  # the points in reading order
+        rows, first = np.unique(row_pt[in_file], return_index=True)
+        fresh = np.ones(n, bool)
+        fresh[row_one] = False
+        for r, p in zip(rows.tolist(), in_file[first].tolist(), strict=True):
+            if fresh[r]:
+                origin[r] = f"{self.blocks[src[p]].path}: line {cat['line'][p]}"
         return Observations(frame=keys[:, 0], cam=keys[:, 1], track_id=keys[:, 2], box_xyxy_px=box,
                             kpt_uv_px=kpt, origin=tuple(origin),
                             kpt_conf=cf if self.has_conf and J else None)
