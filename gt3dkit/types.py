@@ -13,8 +13,9 @@ Conventions
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
 import numpy.typing as npt
@@ -41,6 +42,87 @@ B8 = npt.NDArray[np.bool_]
 BOX_MODELS = ("ellipsoid", "cylinder", "pom")
 
 
+@dataclass(frozen=True, eq=False)
+class Origins(Sequence[str]):
+    """Where each observation row came from (``"file: line 12"``, ``"file: personID 3, viewNum
+    2"``), for error messages; written out when read: row ``i`` is
+    ``templates[kind[i]].format(*args[i])``. A reader's rows share a few templates, so a long
+    recording holds three integers per row, not a string (whose objects, interleaved with the
+    reader's freed ones, also kept the reader's whole heap resident).
+
+    templates : tuple[str, ...] ``str.format`` templates of two positional fields at most;
+    kind : (N,) int64 index into ``templates``; args : (N, 2) int64 their fields.
+    """
+
+    templates: tuple[str, ...]
+    kind: I64
+    args: I64
+
+    @staticmethod
+    def literal(text: str) -> str:
+        """``text`` as a template that formats to itself."""
+        return text.replace("{", "{{").replace("}", "}}")
+
+    @classmethod
+    def of(cls, texts: Iterable[str]) -> Origins:
+        """Rows given as text, one string each."""
+        texts = list(texts)
+        index = {t: k for k, t in enumerate(dict.fromkeys(texts))}
+        return cls(tuple(cls.literal(t) for t in index), np.array([index[t] for t in texts], dtype=np.int64),
+                   np.zeros((len(texts), 2), dtype=np.int64))
+
+    @classmethod
+    def formatted(cls, template: str, *args: npt.ArrayLike) -> Origins:
+        """Rows of one ``template`` whose fields are ``args`` (one or two ``(N,)`` int arrays)."""
+        cols = [np.asarray(a, dtype=np.int64).reshape(-1) for a in args]
+        n = len(cols[0]) if cols else 0
+        a = np.zeros((n, 2), dtype=np.int64)
+        for k, c in enumerate(cols):
+            a[:, k] = c
+        return cls((template,), np.zeros(n, dtype=np.int64), a)
+
+    @classmethod
+    def concat(cls, parts: Sequence[Origins]) -> Origins:
+        """The rows of ``parts`` one after another."""
+        offsets = np.cumsum([0] + [len(p.templates) for p in parts])
+        return cls(tuple(t for p in parts for t in p.templates),
+                   np.concatenate([np.zeros(0, np.int64)]
+                                  + [p.kind + o for p, o in zip(parts, offsets, strict=False)]),
+                   np.concatenate([np.zeros((0, 2), np.int64)] + [p.args for p in parts]))
+
+    def take(self, idx: npt.ArrayLike) -> Origins:
+        """The rows ``idx`` (indices or a boolean mask)."""
+        i = np.asarray(idx)
+        i = np.flatnonzero(i) if i.dtype == bool else i.astype(np.int64).reshape(-1)
+        return Origins(self.templates, self.kind[i], self.args[i])
+
+    def __len__(self) -> int:
+        return len(self.kind)
+
+    @overload
+    def __getitem__(self, i: int) -> str: ...
+
+    @overload
+    def __getitem__(self, i: slice) -> list[str]: ...
+
+    def __getitem__(self, i: int | slice) -> str | list[str]:
+        if isinstance(i, slice):
+            return [self[k] for k in range(*i.indices(len(self)))]
+        k = int(i)
+        if not -len(self) <= k < len(self):
+            raise IndexError(f"row {k} of {len(self)}")
+        return self.templates[int(self.kind[k])].format(*self.args[k].tolist())
+
+    def __iter__(self) -> Iterator[str]:
+        return (self[k] for k in range(len(self)))
+
+    def __eq__(self, other: object) -> bool:
+        return (isinstance(other, Sequence) and not isinstance(other, str) and len(self) == len(other)
+                and all(a == b for a, b in zip(self, other, strict=True)))
+
+    __hash__ = None  # type: ignore[assignment]
+
+
 @dataclass(frozen=True)
 class Observations:
     """2D annotations, one row per (frame, camera, object).
@@ -55,8 +137,9 @@ class Observations:
         ``xmin, ymin, xmax, ymax`` in distorted pixels; NaN = no box in this row.
     kpt_uv_px : (N, J, 2) float64
         Keypoints in distorted pixels; NaN = not seen. ``J`` may be 0.
-    origin : tuple[str, ...]
-        For each row, where it came from (``"file: entry"``), for error messages.
+    origin : Origins
+        For each row, where it came from (``"file: entry"``), for error messages (any sequence
+        of strings is taken, and held as :class:`Origins`).
     kpt_conf : (N, J) float64 or None
         Detector confidence of each keypoint in ``(0, 1]`` (NaN where not seen); ``None``
         = no confidences given (every point counts fully).
@@ -67,7 +150,7 @@ class Observations:
     track_id: I64
     box_xyxy_px: F64
     kpt_uv_px: F64
-    origin: tuple[str, ...]
+    origin: Origins
     kpt_conf: F64 | None = None
 
     def __post_init__(self) -> None:
@@ -91,6 +174,8 @@ class Observations:
             if np.any(seen & ~((c > 0) & (c <= 1))):
                 raise ValueError("kpt_conf must be in (0, 1] for every seen keypoint")
             object.__setattr__(self, "kpt_conf", c)
+        if not isinstance(self.origin, Origins):
+            object.__setattr__(self, "origin", Origins.of(self.origin))
         if len(self.origin) != n:
             raise ValueError(f"expected {n} origins, got {len(self.origin)}")
 
@@ -111,7 +196,7 @@ class Observations:
         idx = np.flatnonzero(rows) if rows.dtype == bool else rows
         return Observations(self.frame[idx], self.cam[idx], self.track_id[idx],
                             self.box_xyxy_px[idx], self.kpt_uv_px[idx],
-                            tuple(self.origin[i] for i in idx),
+                            self.origin.take(idx),
                             None if self.kpt_conf is None else self.kpt_conf[idx])
 
 

@@ -328,7 +328,7 @@ def apply_association(scene: Scene, assoc: Association) -> Scene:
     order = np.lexsort((new, obs.cam, obs.frame))
     o2 = Observations(frame=obs.frame[order], cam=obs.cam[order], track_id=new[order],
                       box_xyxy_px=obs.box_xyxy_px[order], kpt_uv_px=obs.kpt_uv_px[order],
-                      origin=tuple(obs.origin[i] for i in order),
+                      origin=obs.origin.take(order),
                       kpt_conf=None if obs.kpt_conf is None else obs.kpt_conf[order])
     return dataclasses.replace(scene, obs=o2)
 

@@ -140,3 +140,53 @@ def test_keypoints_read_in_blocks_as_row_by_row(tmp_path: Path, monkeypatch: pyt
         with pytest.raises(InputError) as e:
             load_scene(_native_keypoints(tmp_path / f"e{line}{what[:4]}", rows, conf=True))
         assert e.value.where.endswith(f"keypoints.csv: line {line}") and what in e.value.problem, str(e.value)
+
+
+@pytest.mark.parametrize("block", [5, 65536])
+def test_boxes_read_in_blocks_as_row_by_row(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                            block: int) -> None:
+    """boxes.csv read in checked blocks gives the scene the row-by-row reader gives (rows, boxes,
+    origins, boxes of -1s skipped with their warning), and a bad row or a box given twice, in one
+    block or across two, is reported at its own line as the row-by-row reader reports it."""
+    monkeypatch.setattr(native, "KEYPOINT_BLOCK_ROWS", block)
+    fast, _ = written_scene(tmp_path / "a", "native", seed=3, frames=6, people=4, noise_px=1.0)
+    monkeypatch.setattr(native, "_checked_boxes", lambda *a: None)  # every block row by row
+    slow = load_scene(tmp_path / "a")
+    for k in ("frame", "cam", "track_id", "box_xyxy_px"):
+        np.testing.assert_array_equal(getattr(fast.obs, k), getattr(slow.obs, k))
+    assert fast.obs.origin == slow.obs.origin and len(fast.obs) > 20
+    assert fast.obs.origin[3] == slow.obs.origin[3] and ": line " in fast.obs.origin[3]
+    monkeypatch.undo()
+    monkeypatch.setattr(native, "KEYPOINT_BLOCK_ROWS", block)
+    text = (tmp_path / "a" / "boxes.csv").read_text().splitlines()
+    head, body = text[0], text[1:12]
+    cam = body[0].split(",")[1]
+    for extra, what in ((body[2], "second box for object"), (f"0,{cam},7,10,10,5,20", "degenerate box"),
+                        (f"0,{cam},7,10,10,1e9,20", "far outside"),
+                        ("0,nosuch,7,10,10,50,60", "unknown camera"),
+                        (f"0,{cam},7.5,10,10,50,60", "id must be an integer")):
+        root = tmp_path / f"e{what[:6]}"
+        root.mkdir()
+        (root / "cameras.json").write_text((tmp_path / "a" / "cameras.json").read_text())
+        (root / "boxes.csv").write_text("\n".join([head, *body, f"0,{cam},9,-1,-1,-1,-1", extra]) + "\n")
+        with pytest.raises(InputError) as e:
+            load_scene(root)
+        assert e.value.where.endswith(f"boxes.csv: line {len(body) + 3}"), str(e.value)
+        assert what in e.value.problem, str(e.value)
+    (root / "boxes.csv").write_text("\n".join([head, *body, f"0,{cam},9,-1,-1,-1,-1"]) + "\n")
+    s = load_scene(root)
+    assert len(s.obs) == len(body) and any("1 boxes of -1s read as not seen" in w for w in s.warnings)
+
+
+def test_wildtrack_rows_keep_their_entry(tmp_path: Path) -> None:
+    """A WILDTRACK-layout frame file's boxes (added as one checked block) name their file, person
+    and view; a second file of the same frame number giving a person again is reported."""
+    scene, _ = written_scene(tmp_path / "w", "wildtrack", seed=3, frames=4, people=3, noise_px=1.0)
+    o = scene.obs
+    k = len(o) - 1
+    assert o.origin[k].endswith(f": personID {o.track_id[k]}, viewNum {o.cam[k]}"), o.origin[k]
+    ann = sorted((tmp_path / "w" / "annotations_positions").glob("*.json"))
+    (ann[0].with_name("0" + ann[0].name)).write_text(ann[0].read_text())  # frame 0 again
+    with pytest.raises(InputError) as e:
+        load_scene(tmp_path / "w")
+    assert "second" in e.value.problem, str(e.value)

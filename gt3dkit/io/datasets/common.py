@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gt3dkit.errors import InputError
-from gt3dkit.types import F64, Observations
+from gt3dkit.types import F64, Observations, Origins
 
 
 def check_box(where: str, box: list[float]) -> None:
@@ -35,10 +35,30 @@ class JointBlock:
     line: np.ndarray
     path: str
 
+    @property
+    def origin(self) -> Origins:
+        """Each point's ``"<path>: line <n>"``."""
+        return Origins.formatted(Origins.literal(self.path) + ": line {0}", self.line)
+
+
+@dataclass(frozen=True)
+class BoxBlock:
+    """Boxes read and checked as a block (:meth:`RowBuilder.add_box_block`): ``frame, cam, tid (V,)``
+    int64, ``box (V, 4)`` (finite, not degenerate), ``origin`` each box's."""
+
+    frame: np.ndarray
+    cam: np.ndarray
+    tid: np.ndarray
+    box: F64
+    origin: Origins
+
 
 @dataclass
 class RowBuilder:
-    """Accumulates observation rows keyed by (frame, cam, id), merging boxes and joints."""
+    """Accumulates observation rows keyed by (frame, cam, id), merging boxes and joints: one by
+    one (:meth:`add_box`, :meth:`add_joint`: checked as they come) or as checked blocks of arrays
+    (:meth:`add_box_block`, :meth:`add_joint_block`: no Python object per row; a row given twice
+    is found by :meth:`build`)."""
 
     n_joints: int = 0
     rows: dict[tuple[int, int, int], int] = field(default_factory=dict)
@@ -48,6 +68,7 @@ class RowBuilder:
     origin: list[str] = field(default_factory=list)
     has_conf: bool = False
     blocks: list[JointBlock] = field(default_factory=list)
+    box_blocks: list[BoxBlock] = field(default_factory=list)
 
     def _row(self, frame: int, cam: int, tid: int, where: str) -> int:
         key = (frame, cam, tid)
@@ -69,19 +90,15 @@ class RowBuilder:
             raise InputError(where, f"second box for object {tid} in frame {frame} and this camera")
         self.boxes[r] = [float(v) for v in box]
 
-    def add_checked_boxes(self, frame: int, cams: np.ndarray, tids: np.ndarray, boxes: F64,
-                          origin: str) -> bool:
-        """Boxes ``(V, 4)`` of one frame already checked (finite, not degenerate, no (camera, id)
-        twice) added at once; ``origin`` is formatted with each row's id and camera
-        (``origin.format(tid, cam)``). Nothing is added and False returned when a row exists
-        already or the rows hold keypoints too (then :meth:`add_box` says what is wrong)."""
-        keys = [(frame, c, i) for c, i in zip(cams.tolist(), tids.tolist(), strict=True)]
-        if self.n_joints or any(k in self.rows for k in keys):
+    def add_box_block(self, block: BoxBlock) -> bool:
+        """Boxes already checked (finite, not degenerate) added at once. Nothing is added and False
+        returned when one of them has a row added one by one already (then :meth:`add_box` says
+        whether and why that is wrong); two boxes of one (frame, camera, id) in blocks are found by
+        :meth:`build`."""
+        if self.rows and any(k in self.rows for k in zip(block.frame.tolist(), block.cam.tolist(),
+                                                             block.tid.tolist(), strict=True)):
             return False
-        start = len(self.boxes)
-        self.rows.update(zip(keys, range(start, start + len(keys)), strict=True))
-        self.boxes.extend(boxes.tolist())
-        self.origin.extend(origin.format(i, c) for _, c, i in keys)
+        self.box_blocks.append(block)
         return True
 
     def add_joint(self, frame: int, cam: int, tid: int, joint: int, uv: tuple[float, float],
@@ -111,39 +128,21 @@ class RowBuilder:
         self.blocks.append(block)
 
     def build(self) -> Observations:
-        if self.blocks:
-            return self._build_with_blocks()
-        keys = list(self.rows)
-        n = len(keys)
-        arr = np.array(keys, dtype=np.int64).reshape(n, 3)
-        order = np.lexsort((arr[:, 2], arr[:, 1], arr[:, 0]))
-        idx = np.array([self.rows[k] for k in keys], dtype=np.int64)[order]
-        return Observations(
-            frame=arr[order, 0], cam=arr[order, 1], track_id=arr[order, 2],
-            box_xyxy_px=np.array(self.boxes, dtype=np.float64).reshape(-1, 4)[idx],
-            kpt_uv_px=(np.array(self.kpts, dtype=np.float64).reshape(n, self.n_joints, 2)[idx]
-                       if self.n_joints else np.zeros((n, 0, 2))),  # boxes only: no per-row arrays
-            origin=tuple(self.origin[i] for i in idx),
-            kpt_conf=(np.array(self.confs, dtype=np.float64).reshape(n, self.n_joints)[idx]
-                      if self.has_conf and self.n_joints else None),
-        )
-
-    def _build_with_blocks(self) -> Observations:
-        """:meth:`build` when keypoints came in blocks: every (frame, camera, id) of the rows added
-        one by one and of the blocks, in one sorted set of rows."""
+        """The rows, sorted by (frame, camera, id): those added one by one, the box blocks' and the
+        keypoint blocks' merged per (frame, camera, id). A box or point given twice is an
+        :class:`InputError` at the later one (a block's after the rows added one by one)."""
         J = self.n_joints
         one = np.array(list(self.rows), dtype=np.int64).reshape(-1, 3)
         idx = np.array(list(self.rows.values()), dtype=np.int64)
-        cat = {k: np.concatenate([getattr(b, k) for b in self.blocks]) for k in
-               ("frame", "cam", "tid", "joint", "line")}
-        uv = np.concatenate([b.uv for b in self.blocks])
-        conf = (np.concatenate([b.conf if b.conf is not None else np.ones(len(b.frame)) for b in self.blocks])
-                if self.has_conf else None)
-        src = np.concatenate([np.full(len(b.frame), k) for k, b in enumerate(self.blocks)])
+        bb, jb = self.box_blocks, self.blocks
+        bkeys = np.concatenate([np.zeros((0, 3), np.int64)]
+                               + [np.stack([b.frame, b.cam, b.tid], 1) for b in bb])
+        cat = {k: np.concatenate([np.zeros(0, np.int64)] + [getattr(b, k) for b in jb])
+               for k in ("frame", "cam", "tid", "joint", "line")}
         pts = np.stack([cat["frame"], cat["cam"], cat["tid"]], axis=1)
-        keys, inv = np.unique(np.concatenate([one, pts]), axis=0, return_inverse=True)
+        keys, inv = np.unique(np.concatenate([one, bkeys, pts]), axis=0, return_inverse=True)
         inv = inv.reshape(-1)
-        row_one, row_pt = inv[: len(one)], inv[len(one):]
+        row_one, row_box, row_pt = np.split(inv, [len(one), len(one) + len(bkeys)])
         n = len(keys)
         box = np.full((n, 4), np.nan)
         kpt = np.full((n, J, 2), np.nan)
@@ -153,33 +152,49 @@ class RowBuilder:
             if J:
                 kpt[row_one] = np.array(self.kpts, dtype=np.float64).reshape(-1, J, 2)[idx]
                 cf[row_one] = np.array(self.confs, dtype=np.float64).reshape(-1, J)[idx]
-        # a point twice: in two blocks, or in a block and one by one (reported at the later line)
-        slot = row_pt * max(J, 1) + cat["joint"]
-        order = np.lexsort((cat["line"], src, slot))
-        twice = np.flatnonzero(slot[order][1:] == slot[order][:-1])
-        taken = np.isfinite(kpt.reshape(-1, 2)[slot, 0])
-        bad = np.concatenate([order[twice + 1], np.flatnonzero(taken)])
-        if len(bad):
-            b = bad[np.lexsort((cat["line"][bad], src[bad]))[0]]
-            raise InputError(f"{self.blocks[src[b]].path}: line {cat['line'][b]}",
-                             f"second keypoint {cat['joint'][b]} for object {cat['tid'][b]} in frame "
-                             f"{cat['frame'][b]} and this camera")
-        kpt.reshape(-1, 2)[slot] = uv
-        if conf is not None:
-            cf.reshape(-1)[slot] = conf
-        origin = [""] * n
-        for r, i in zip(row_one.tolist(), idx.tolist(), strict=True):
-            origin[r] = self.origin[i]  # a row added one by one keeps where it was first seen
-        in_file = np.lexsort((cat["line"], src))  # the points in reading order
-        rows, first = np.unique(row_pt[in_file], return_index=True)
-        fresh = np.ones(n, bool)
-        fresh[row_one] = False
-        for r, p in zip(rows.tolist(), in_file[first].tolist(), strict=True):
-            if fresh[r]:
-                origin[r] = f"{self.blocks[src[p]].path}: line {cat['line'][p]}"
+        box_origin = Origins.concat([b.origin for b in bb])
+        if len(bkeys):
+            twice = _later_repeats(row_box, np.isfinite(box[:, 0]))
+            if len(twice):
+                b = int(twice[0])
+                raise InputError(box_origin[b], f"second box for object {bkeys[b, 2]} in frame "
+                                                f"{bkeys[b, 0]} and this camera")
+            box[row_box] = np.concatenate([b.box for b in bb])
+        pt_origin = Origins.concat([b.origin for b in jb])
+        if len(pts):
+            src = np.concatenate([np.full(len(b.frame), k) for k, b in enumerate(jb)])
+            in_file = np.lexsort((cat["line"], src))  # the points in reading order
+            slot = row_pt * max(J, 1) + cat["joint"]
+            twice = _later_repeats(slot[in_file], np.isfinite(kpt.reshape(-1, 2)[:, 0]))
+            if len(twice):
+                b = int(in_file[twice[0]])
+                raise InputError(pt_origin[b], f"second keypoint {cat['joint'][b]} for object "
+                                               f"{cat['tid'][b]} in frame {cat['frame'][b]} and this camera")
+            kpt.reshape(-1, 2)[slot] = np.concatenate([b.uv for b in jb])
+            if self.has_conf:
+                cf.reshape(-1)[slot] = np.concatenate([b.conf if b.conf is not None else np.ones(len(b.frame))
+                                                       for b in jb])
+        # each row's origin: where it was added one by one, else its box's, else its first point's
+        first = np.full(n, -1)
+        parts = [Origins.of(self.origin), box_origin, pt_origin]
+        offset = np.cumsum([0] + [len(p) for p in parts])
+        if len(pts):
+            for_rows, at = np.unique(row_pt[in_file], return_index=True)  # each row's first point
+            first[for_rows] = offset[2] + in_file[at]
+        first[row_box] = offset[1] + np.arange(len(row_box))
+        first[row_one] = idx
         return Observations(frame=keys[:, 0], cam=keys[:, 1], track_id=keys[:, 2], box_xyxy_px=box,
-                            kpt_uv_px=kpt, origin=tuple(origin),
+                            kpt_uv_px=kpt, origin=Origins.concat(parts).take(first),
                             kpt_conf=cf if self.has_conf and J else None)
+
+
+def _later_repeats(slot: np.ndarray, taken: np.ndarray) -> np.ndarray:
+    """Positions (ascending) of the entries of ``slot (P,)`` (in reading order) whose slot an
+    earlier entry, or ``taken`` (already filled), holds already."""
+    _, first = np.unique(slot, return_index=True)
+    again = np.ones(len(slot), bool)
+    again[first] = False
+    return np.flatnonzero(again | taken[slot])
 
 
 def camera_ids(truth_id: np.ndarray, n_cameras: int, id_seed: int | None) -> list[dict[int, int]]:

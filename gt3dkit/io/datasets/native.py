@@ -32,7 +32,7 @@ import numpy as np
 from gt3dkit.calib.formats.native import FPS_RANGE, cameras_doc, load_cameras  # noqa: F401
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import FAR_IMAGES, check_pixels
-from gt3dkit.io.datasets.common import JointBlock, RowBuilder
+from gt3dkit.io.datasets.common import BoxBlock, JointBlock, RowBuilder
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
 from gt3dkit.parse import (
     FRAME_MAX,
@@ -45,7 +45,7 @@ from gt3dkit.parse import (
     sha256,
 )
 from gt3dkit.skeletons import SKELETONS, skeleton_for
-from gt3dkit.types import GroundTruth, Rig, Scene, SimScene, SkeletonScene
+from gt3dkit.types import GroundTruth, Origins, Rig, Scene, SimScene, SkeletonScene
 
 BOX_COLUMNS = ("frame", "camera", "id", "xmin", "ymin", "xmax", "ymax")
 KPT_COLUMNS = ("frame", "camera", "id", "joint", "u", "v")
@@ -98,17 +98,14 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
     if box_path.exists():
         files["boxes.csv"] = sha256(box_path)
         unseen = 0
-        for line, r in iter_csv_rows(box_path, BOX_COLUMNS, warnings):
-            where = f"{box_path}: line {line}"
-            frame, tid = parse_frame(where, r["frame"]), parse_int(where, r["id"], "id")
-            box = [_number(where, r[k], k) for k in ("xmin", "ymin", "xmax", "ymax")]
-            cam = camera_index(rig, r["camera"], where)
-            if all(b == -1 for b in box):  # the WILDTRACK convention for "not seen"
-                unseen += 1
+        for lines, block in iter_csv_blocks(box_path, BOX_COLUMNS, warnings, KEYPOINT_BLOCK_ROWS):  # streamed
+            checked = _checked_boxes(box_path, rig, lines, block)
+            if checked is not None and rb.add_box_block(checked[0]):
+                unseen += checked[1]
                 continue
-            if all(math.isfinite(b) for b in box):
-                check_pixels(where, rig.cameras[cam], box, "box")
-            rb.add_box(frame, cam, tid, box, where)
+            for line, row in zip(lines, block, strict=True):  # the block failed a check: say where
+                r = dict(zip(BOX_COLUMNS, (x.strip() for x in row), strict=False))
+                unseen += _add_box(rb, rig, f"{box_path}: line {line}", r)
         if unseen:
             warnings.append(f"{box_path}: {unseen} boxes of -1s read as not seen")
     undetected = 0
@@ -137,6 +134,54 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
                  skeleton=skel_name if n_joints else None, files=files, root=str(root),
                  warnings=tuple(warnings),
                  fps_assumed=f"{cam_path} has no \"fps\"" if fps_doc is None else "")
+
+
+def _add_box(rb: RowBuilder, rig: Rig, where: str, r: dict[str, str]) -> int:
+    """One row of ``boxes.csv``, checked and added; 1 if it is a box of -1s (not seen: skipped),
+    else 0."""
+    frame, tid = parse_frame(where, r["frame"]), parse_int(where, r["id"], "id")
+    box = [_number(where, r[k], k) for k in ("xmin", "ymin", "xmax", "ymax")]
+    cam = camera_index(rig, r["camera"], where)
+    if all(b == -1 for b in box):  # the WILDTRACK convention for "not seen"
+        return 1
+    if all(math.isfinite(b) for b in box):
+        check_pixels(where, rig.cameras[cam], box, "box")
+    rb.add_box(frame, cam, tid, box, where)
+    return 0
+
+
+def _camera_column(rig: Rig, names: tuple[str, ...]) -> np.ndarray:
+    """``(P,)`` the camera index of each name (stripped), -1 for an unknown one."""
+    uniq, of = np.unique(np.array(names), return_inverse=True)
+    known = {n: k for k, n in enumerate(rig.names)}
+    return np.array([known.get(str(n).strip(), -1) for n in uniq], dtype=np.int64)[of.reshape(-1)]
+
+
+def _checked_boxes(path: Path, rig: Rig, lines: list[int], rows: list[list[str]]
+                   ) -> tuple[BoxBlock, int] | None:
+    """A block of ``boxes.csv`` rows parsed and checked at once, as :func:`_add_box` checks each
+    row, and the count of boxes of -1s (not seen) it drops; None when any row fails a check (the
+    caller then goes row by row to say which and why)."""
+    cols = list(zip(*rows, strict=True))
+    if any("\x00" in "".join(c) for c in cols):  # numpy's text arrays would drop a NUL unseen
+        return None
+    try:
+        frame, tid = (np.array(cols[k]).astype(np.int64) for k in (0, 2))
+        box = np.stack([np.array(cols[k]).astype(np.float64) for k in range(3, 7)], 1)
+    except (ValueError, OverflowError):
+        return None
+    cam = _camera_column(rig, cols[1])
+    unseen = np.all(box == -1, axis=1)
+    wh = np.array([[c.width, c.height] for c in rig.cameras], dtype=np.float64)
+    size = np.tile(wh[np.maximum(cam, 0)], 2)
+    ok = ((frame >= 0) & (frame <= FRAME_MAX) & (np.abs(tid) <= ID_MAX) & (cam >= 0)
+          & (unseen | (np.all(np.isfinite(box), axis=1) & (box[:, 2] > box[:, 0]) & (box[:, 3] > box[:, 1])
+                       & np.all((box >= -FAR_IMAGES * size) & (box <= (1 + FAR_IMAGES) * size), axis=1))))
+    if not ok.all():
+        return None
+    k = ~unseen
+    where = Origins.formatted(Origins.literal(str(path)) + ": line {0}", np.asarray(lines, dtype=np.int64)[k])
+    return BoxBlock(frame[k], cam[k], tid[k], box[k], where), int(unseen.sum())
 
 
 def _add_keypoint(rb: RowBuilder, rig: Rig, where: str, r: dict[str, str]) -> int:
@@ -173,10 +218,7 @@ def _checked_keypoints(path: Path, rig: Rig, n_joints: int, lines: list[int], ro
     except (ValueError, OverflowError):
         return None
     frame, tid, joint = ints
-    names, cam_of = np.unique(np.array(cols[1]), return_inverse=True)
-    known = {n: k for k, n in enumerate(rig.names)}
-    index = np.array([known.get(str(n).strip(), -1) for n in names], dtype=np.int64)
-    cam = index[cam_of.reshape(-1)]
+    cam = _camera_column(rig, cols[1])
     size = np.array([[c.width, c.height] for c in rig.cameras], dtype=np.float64)[np.maximum(cam, 0)]
     ok = ((frame >= 0) & (frame <= FRAME_MAX) & (np.abs(tid) <= ID_MAX) & (joint >= 0) & (joint < n_joints)
           & (cam >= 0) & np.all(np.isfinite(uv), axis=1)

@@ -34,9 +34,9 @@ from gt3dkit.calib.formats.grid import GridLayout, load_camera
 from gt3dkit.calib.formats.grid import write as write_grid
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import FAR_IMAGES, check_pixels
-from gt3dkit.io.datasets.common import RowBuilder
+from gt3dkit.io.datasets.common import BoxBlock, RowBuilder
 from gt3dkit.parse import ID_MAX, iter_csv_rows, load_json, parse_frame, parse_int, parse_metres, sha256
-from gt3dkit.types import F64, Camera, GroundTruth, Rig, Scene, SimScene
+from gt3dkit.types import F64, Camera, GroundTruth, Origins, Rig, Scene, SimScene
 
 
 def load(root: Path, g: GridLayout) -> Scene:
@@ -50,8 +50,8 @@ def load(root: Path, g: GridLayout) -> Scene:
         raise InputError(str(ann_dir), "no annotation files (*.json)")
     rb = RowBuilder()
     wh = np.array([[c.width, c.height] if c is not None else [0, 0] for c in cams], dtype=np.float64)
-    truth_rows: list[tuple[int, int, int]] = []
-    seen_ids: dict[tuple[int, int], int] = {}
+    truth_rows: list[np.ndarray] = []  # (k, 3) frame, personID, positionID
+    seen_ids: dict[int, dict[int, int]] = {}  # frame -> personID -> entry
     for p in paths:
         if not p.stem.isdigit():
             raise InputError(str(p), "file name is not a frame number")
@@ -61,14 +61,16 @@ def load(root: Path, g: GridLayout) -> Scene:
         if not isinstance(people, list):
             raise InputError(str(p), "expected a list of people")
         fast = _checked_views(people, cams, wh, g)
-        new = fast is not None and not any((frame, int(a)) in seen_ids for a in fast[0])
-        if new and rb.add_checked_boxes(frame, fast[2][:, 1].astype(np.int64), fast[2][:, 0].astype(np.int64),
-                                        fast[2][:, 2:], f"{p}: personID {{}}, viewNum {{}}"):
-            # every check passed as arrays: the rows were added at once
-            pids, pos, _ = fast
-            seen_ids.update(((frame, int(a)), i) for i, a in enumerate(pids))
-            truth_rows.extend((frame, int(a), int(b)) for a, b in zip(pids, pos, strict=True) if b >= 0)
-            continue
+        seen = seen_ids.setdefault(frame, {})
+        if fast is not None and not any(int(a) in seen for a in fast[0]):
+            pids, pos, v = fast
+            tid, vn = v[:, 0].astype(np.int64), v[:, 1].astype(np.int64)
+            where = Origins.formatted(f"{Origins.literal(str(p))}: personID {{0}}, viewNum {{1}}", tid, vn)
+            if rb.add_box_block(BoxBlock(np.full(len(v), frame), vn, tid, v[:, 2:], where)):
+                # every check passed as arrays: the rows were added at once
+                seen.update((int(a), i) for i, a in enumerate(pids))
+                truth_rows.append(np.stack([np.full(len(pids), frame), pids, pos], 1)[pos >= 0])
+                continue
         # entry by entry, with the exact error for the first bad one
         for i, person in enumerate(people):
             where = f"{p}: entry {i}"
@@ -78,11 +80,10 @@ def load(root: Path, g: GridLayout) -> Scene:
             pid = parse_int(where, person["personID"], "personID")
             where = f"{p}: personID {pid}"
             pos = parse_int(where, person["positionID"], "positionID", -1, g.n_positions - 1)
-            if seen_ids.setdefault((frame, pid), i) != i:
-                raise InputError(where, f"second entry for this person (entries "
-                                        f"{seen_ids[(frame, pid)]} and {i})")
+            if seen.setdefault(pid, i) != i:
+                raise InputError(where, f"second entry for this person (entries {seen[pid]} and {i})")
             if pos >= 0:  # -1: the dataset knows no ground position for this person-frame
-                truth_rows.append((frame, pid, pos))
+                truth_rows.append(np.array([[frame, pid, pos]], dtype=np.int64))
             for v in person["views"]:
                 if not (isinstance(v, dict) and {"viewNum", "xmin", "ymin", "xmax", "ymax"} <= v.keys()):
                     raise InputError(where, f"malformed view {str(v)[:80]} (expected viewNum, "
@@ -166,8 +167,9 @@ def _checked_views(people: list, cams: list[Camera | None], wh: F64, g: GridLayo
     return pp[:, 0], pp[:, 1], np.concatenate([ids, box], axis=1)
 
 
-def _truth_positions(g: GridLayout, rows: list[tuple[int, int, int]]) -> GroundTruth:
-    arr = np.array(rows, dtype=np.int64).reshape(-1, 3)
+def _truth_positions(g: GridLayout, rows: list[np.ndarray]) -> GroundTruth:
+    """The grid positions ``rows`` (blocks of ``(k, 3)`` frame, personID, positionID) as truth."""
+    arr = np.concatenate([np.zeros((0, 3), np.int64), *rows]).astype(np.int64)
     xy = g.position_to_xy(arr[:, 2])
     center = np.concatenate([xy, np.full((len(arr), 1), np.nan)], axis=1)
     return GroundTruth(frame=arr[:, 0], track_id=arr[:, 1], center_world=center,
