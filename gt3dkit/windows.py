@@ -3,8 +3,13 @@ by the window, not the sequence, and one sequence over several workers (``--jobs
 processes, or ``--scheduler ADDRESS``: the Dask cluster ``reconstruct-many`` uses).
 
 * The process noise (``accel_sd``, ``position_sd``, ``shape_sd``, ``joint_accel_sd``) is chosen
-  once, by the estimator's own maximum likelihood on the window with the most annotations
-  (:func:`chosen_noise`); every window then runs with it fixed, so that the windows agree.
+  once, by the estimator's own maximum likelihood on the window with the most annotations, cut to
+  at most :data:`NOISE_SAMPLE_OBJECT_FRAMES` object-frames around its middle
+  (:func:`noise_sample`, :func:`chosen_noise`); every window then runs with it fixed, so that the
+  windows agree.
+* Spread over workers, the windows the tool chose (not a ``--window`` the user gave) are made as
+  many as a multiple of the workers, of equal length (:func:`balanced_size`): no worker runs a
+  last window alone while the others wait.
 * Each window runs the whole pipeline (:func:`gt3dkit.api.estimate_checked`: per-frame fits,
   identity, the estimator, the annotation QA) on its frames plus ``overlap`` frames of context
   on each side, and keeps its own frames' rows and findings (:func:`run_window`). A smoother's
@@ -41,6 +46,9 @@ PROCESS_NOISE = ("accel_sd", "position_sd", "shape_sd", "joint_accel_sd")
 #: Default context on each side of a window, seconds (at least :data:`MIN_OVERLAP_FRAMES`).
 OVERLAP_S = 2.0
 MIN_OVERLAP_FRAMES = 20
+#: Object-frames the process-noise search runs on at most: thousands of object-frames fix a
+#: maximum-likelihood noise level to a few percent, and the search is the one step no worker shares.
+NOISE_SAMPLE_OBJECT_FRAMES = 20_000
 #: Bytes of a run's per-object-frame state beyond which ``gt3d reconstruct`` runs a sequence in
 #: windows by itself (:func:`auto_plan`): what a laptop has to spare.
 MEMORY_BUDGET_BYTES = 1.0e9
@@ -52,7 +60,7 @@ class Plan:
     on each side (None: :func:`overlap_frames`), in ``jobs`` local processes or on the Dask
     scheduler at ``scheduler``."""
 
-    size: int
+    size: int  # 0: one window per worker
     overlap: int | None = None
     jobs: int = 1
     scheduler: str | None = None
@@ -79,6 +87,14 @@ def plan_windows(frames: I64, size: int, overlap: int) -> list[Window]:
         out.append(Window(int(frames[max(a - overlap, 0)]), int(frames[a]), int(frames[b]),
                           int(frames[min(b + overlap, n - 1)])))
     return out
+
+
+def balanced_size(n_frames: int, size: int, workers: int) -> int:
+    """A window length near ``size`` (0: the whole) that cuts ``n_frames`` into a multiple of
+    ``workers`` windows of equal length."""
+    n_win = -(-n_frames // max(size or n_frames, 1))
+    n_win = -(-n_win // max(workers, 1)) * max(workers, 1)
+    return max(-(-n_frames // n_win), 1)
 
 
 def overlap_frames(scene: Scene) -> int:
@@ -120,16 +136,32 @@ def window_scene(scene: Scene, lo: int, hi: int) -> Scene:
                                frames=frames[(frames >= lo) & (frames <= hi)], truth=None, warnings=())
 
 
+def noise_sample(scene: Scene, windows: list[Window], limit: int = NOISE_SAMPLE_OBJECT_FRAMES
+                 ) -> tuple[int, int]:
+    """The frames ``lo, hi`` the process noise is chosen on: the window (with its context) holding
+    the most object-frames, cut around its middle to at most ``limit`` of them."""
+    keys = np.unique(np.c_[scene.obs.frame, scene.obs.track_id], axis=0)
+    frames, count = np.unique(keys[:, 0], return_counts=True)  # object-frames per frame
+    inside = [(frames >= w.lo) & (frames <= w.hi) for w in windows]
+    k = int(np.argmax([count[m].sum() for m in inside]))
+    f, c = frames[inside[k]], count[inside[k]]
+    if c.sum() <= limit:
+        return windows[k].lo, windows[k].hi
+    cum = np.cumsum(c)
+    a = int(np.searchsorted(cum, (cum[-1] - limit) / 2.0, side="right"))
+    b = int(np.searchsorted(cum, cum[a] - c[a] + limit, side="right")) - 1
+    return int(f[a]), int(f[max(b, a)])
+
+
 def chosen_noise(scene: Scene, windows: list[Window], estimator: str, config: dict[str, Any]
                  ) -> dict[str, float]:
     """The process noise every window runs with: the settings ``config`` gives, the others the
-    estimator's own choice on the window (with its context) that holds the most annotations."""
+    estimator's own choice on :func:`noise_sample`'s frames."""
     given = {k: config[k] for k in PROCESS_NOISE if config.get(k) is not None}
-    counts = [int(np.sum((scene.obs.frame >= w.lo) & (scene.obs.frame <= w.hi))) for w in windows]
-    w = windows[int(np.argmax(counts))]
+    lo, hi = noise_sample(scene, windows)
     with small_matrix_blas():
         est = make_estimator(estimator, **config)
-        sample = window_scene(scene, w.lo, w.hi)
+        sample = window_scene(scene, lo, hi)
         found = process_noise_of(sample, est)  # the search alone, where the estimator has one
         if found is None:
             tracks, _ = estimate_checked(sample, est, qa=False)
@@ -219,27 +251,45 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
     if estimator == "triangulation":
         raise InputError("--window", "the triangulation fits each frame on its own: it needs no window")
     ov = overlap_frames(scene) if plan.overlap is None else plan.overlap
-    windows = plan_windows(np.asarray(scene.frames, dtype=np.int64), plan.size, ov)
-    jobs, scheduler = plan.jobs, plan.scheduler
-    noise = chosen_noise(scene, windows, estimator, config)
-    cfg = {**config, **noise}
-    def job(w: Window) -> WindowJob:
-        return WindowJob(window_scene(scene, w.lo, w.hi), w, estimator, cfg, every_frame)
+    client = None
+    if plan.scheduler:
+        from distributed import Client
 
-    done = on_window or (lambda k, n: None)
+        client = Client(plan.scheduler, timeout="20s")
+    try:
+        workers = len(client.scheduler_info()["workers"]) if client is not None else plan.jobs
+        if plan.why:  # the tool's choice, not the user's: a multiple of the workers, equal lengths
+            plan = dataclasses.replace(plan, size=balanced_size(len(scene.frames), plan.size, workers))
+        windows = plan_windows(np.asarray(scene.frames, dtype=np.int64), plan.size, ov)
+        noise = chosen_noise(scene, windows, estimator, config)
+        parts = _run_windows(scene, windows, WindowJob(scene, windows[0], estimator, {**config, **noise},
+                                                       every_frame), client, plan.jobs,
+                             on_window or (lambda k, n: None))
+    finally:
+        if client is not None:
+            client.close()
+    return stitch(parts, windows, plan, ov, noise)
+
+
+def _run_windows(scene: Scene, windows: list[Window], like: WindowJob, client: Any, jobs: int,
+                 done: Callable[[int, int], None]) -> list[tuple[TrackSet, list[tuple[Any, ...]]]]:
+    """Every window's :func:`run_window` (``like`` with each window's scene and frames): on the
+    Dask ``client``, in ``jobs`` local processes, or one after the other in this process (one
+    window's scene at a time); ``done(k, n)`` as they start (0) and finish."""
+    def job(w: Window) -> WindowJob:
+        return dataclasses.replace(like, scene=window_scene(scene, w.lo, w.hi), window=w)
+
     done(0, len(windows))
     parts: list[Any] = [None] * len(windows)
-    if scheduler:
-        from distributed import Client, as_completed
+    if client is not None:
+        from distributed import as_completed
 
-        client = Client(scheduler, timeout="20s")
-        try:
-            futures = {client.submit(run_window, job(w), pure=False): k for k, w in enumerate(windows)}
-            for n, f in enumerate(as_completed(futures), 1):
-                parts[futures[f]] = f.result()
-                done(n, len(windows))
-        finally:
-            client.close()
+        # each window's scene goes to the cluster as data (scatter), not inside the task graph
+        futures = {client.submit(run_window, client.scatter(job(w), hash=False), pure=False): k
+                   for k, w in enumerate(windows)}
+        for n, f in enumerate(as_completed(futures), 1):
+            parts[futures[f]] = f.result()
+            done(n, len(windows))
     elif jobs > 1 and len(windows) > 1:
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
@@ -252,7 +302,7 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
                 parts[futs[f]] = f.result()
                 done(n, len(windows))
     else:
-        for k, w in enumerate(windows):  # one window's scene at a time
+        for k, w in enumerate(windows):
             parts[k] = run_window(job(w))
             done(k + 1, len(windows))
-    return stitch(parts, windows, plan, ov, noise)
+    return parts

@@ -16,7 +16,7 @@ from gt3dkit.cli import main
 from gt3dkit.commands.common import Stages, clock
 from gt3dkit.fusion.base import make_estimator
 from gt3dkit.sim import Errors, simulate_skeletons, write_skeleton_scene
-from gt3dkit.windows import Plan, plan_windows, reconstruct_windowed
+from gt3dkit.windows import Plan, Window, balanced_size, noise_sample, plan_windows, reconstruct_windowed
 from tests.scenes import written_scene
 
 
@@ -37,6 +37,36 @@ def test_windows_cover_every_frame_once() -> None:
         assert w.lo <= w.first <= w.last <= w.hi
         assert (np.sum(inside < w.first) == 7 or w.lo == frames[0]) and (np.sum(inside > w.last) == 7
                                                                         or w.hi == frames[-1])
+
+
+@pytest.mark.parametrize(("n", "size", "workers"), [(4000, 1639, 2), (4000, 1639, 1), (4000, 0, 3), (7, 2, 2),
+                                                   (100, 1000, 4)])
+def test_balanced_windows_are_a_multiple_of_the_workers(n: int, size: int, workers: int) -> None:
+    """The windows the tool chooses for ``workers``: a multiple of them (no worker runs the last one
+    alone), of lengths differing by at most one window's rounding, none longer than asked."""
+    ws = plan_windows(np.arange(n), balanced_size(n, size, workers), 5)
+    lengths = np.array([w.last - w.first + 1 for w in ws])
+    assert len(ws) % workers == 0 or len(ws) == n, lengths
+    assert lengths.sum() == n and lengths.max() <= (size or n)
+    assert lengths.max() - lengths.min() <= max(len(ws), 1), lengths
+
+
+def test_noise_sample_is_the_busiest_stretch_cut_to_the_limit(boxes: object) -> None:
+    """The process noise is chosen on the busiest window, cut around its middle to at most the
+    given number of object-frames."""
+    scene = boxes
+    f = np.asarray(scene.frames)  # type: ignore[attr-defined]
+    keys = np.unique(np.c_[scene.obs.frame, scene.obs.track_id], axis=0)  # type: ignore[attr-defined]
+    windows = [Window(int(f[0]), int(f[0]), int(f[59]), int(f[69])),
+               Window(int(f[50]), int(f[60]), int(f[-1]), int(f[-1]))]
+    per = [np.sum((keys[:, 0] >= w.lo) & (keys[:, 0] <= w.hi)) for w in windows]
+    busy = windows[int(np.argmax(per))]
+    assert noise_sample(scene, windows, 10**9) == (busy.lo, busy.hi)  # type: ignore[arg-type]
+    lo, hi = noise_sample(scene, windows, 100)  # type: ignore[arg-type]
+    inside = np.sum((keys[:, 0] >= lo) & (keys[:, 0] <= hi))
+    assert busy.lo <= lo <= hi <= busy.hi and 80 <= inside <= 100, (lo, hi, inside)
+    mid = (busy.lo + busy.hi) / 2
+    assert abs((lo + hi) / 2 - mid) < 0.25 * (busy.hi - busy.lo)
 
 
 @pytest.fixture(scope="module")

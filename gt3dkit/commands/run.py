@@ -101,7 +101,7 @@ def window_plan(args: argparse.Namespace, scene: Any) -> Plan | None:
         return None
     plan = Plan(args.window) if args.window else auto_plan(scene)
     if plan is None and spread:  # the sequence fits: one window per worker
-        plan = Plan(max(int(np.ceil(len(scene.frames) / (args.jobs or 2))), 2), why="one per worker")
+        plan = Plan(0, why="one per worker")
     return None if plan is None else dataclasses.replace(plan, jobs=args.jobs or 1, scheduler=args.scheduler)
 
 

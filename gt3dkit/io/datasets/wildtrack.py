@@ -24,6 +24,7 @@ positionID truth.
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import math
 from pathlib import Path
@@ -35,7 +36,18 @@ from gt3dkit.calib.formats.grid import write as write_grid
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import FAR_IMAGES, check_pixels
 from gt3dkit.io.datasets.common import BoxBlock, RowBuilder
-from gt3dkit.parse import ID_MAX, iter_csv_rows, load_json, parse_frame, parse_int, parse_metres, sha256
+from gt3dkit.parse import (
+    FRAME_MAX,
+    ID_MAX,
+    MAX_WORLD_M,
+    iter_csv_blocks,
+    iter_csv_rows,
+    load_json,
+    parse_frame,
+    parse_int,
+    parse_metres,
+    sha256,
+)
 from gt3dkit.types import F64, Camera, GroundTruth, Origins, Rig, Scene, SimScene
 
 
@@ -140,8 +152,8 @@ def _checked_views(people: list, cams: list[Camera | None], wh: F64, g: GridLayo
         return None
     if not all(type(a) is int and type(b) is int for a, b in persons):  # noqa: E721
         return None
-    if not all(type(r[1]) is int for r in raw) or not all(  # noqa: E721
-            type(x) in (int, float) for r in raw for x in r[2:]):
+    if not all(type(r[1]) is int for r in raw) or not (  # noqa: E721
+            set(map(type, itertools.chain.from_iterable(r[2:] for r in raw))) <= {int, float}):
         return None
     if len({a for a, _ in persons}) != len(persons) or len({r[:2] for r in raw}) != len(raw):
         return None  # a person twice, or a camera twice for one person
@@ -157,7 +169,7 @@ def _checked_views(people: list, cams: list[Camera | None], wh: F64, g: GridLayo
     ids, box, vn = ids[keep], box[keep], vn[keep]
     if g.truncated_px:
         box = box + np.where(box >= 0, 0.5, -0.5)
-    if ((vn < 0) | (vn >= len(g.cameras))).any() or any(cams[v] is None for v in np.unique(vn)):
+    if ((vn < 0) | (vn >= len(g.cameras))).any() or any(cams[v] is None for v in set(vn.tolist())):
         return None
     if not np.isfinite(box).all() or (box[:, 2] <= box[:, 0]).any() or (box[:, 3] <= box[:, 1]).any():
         return None
@@ -188,7 +200,14 @@ def _truth_csv(root: Path, files: dict[str, str]) -> GroundTruth | None:
 
 
 def read_truth_csv(p: Path, files: dict[str, str], root: Path) -> GroundTruth:
-    """``truth.csv`` = ``frame,id,x,y,z,a,b,c`` (metres), as written by ``gt3d simulate``."""
+    """``truth.csv`` = ``frame,id,x,y,z,a,b,c`` (metres), as written by ``gt3d simulate``: read in
+    numpy-checked blocks (:func:`_checked_truth`), row by row where a block fails a check (to
+    say where)."""
+    blocks = [_checked_truth(rows) for _, rows in iter_csv_blocks(p, TRUTH_COLUMNS, None, 65536)]
+    a = np.concatenate([np.zeros((0, 8))] + [b for b in blocks if b is not None])
+    if all(b is not None for b in blocks) and len(np.unique(a[:, :2], axis=0)) == len(a):
+        files[str(p.relative_to(root))] = sha256(p)
+        return _truth_of(a)
     rows = []
     keys: set[tuple[int, int]] = set()
     for line, r in iter_csv_rows(p, TRUTH_COLUMNS):
@@ -202,7 +221,27 @@ def read_truth_csv(p: Path, files: dict[str, str], root: Path) -> GroundTruth:
             raise InputError(where, f"semi-axes must be positive, got {vals[3:]}")
         rows.append((*key, *vals))
     files[str(p.relative_to(root))] = sha256(p)
-    a = np.array(rows, dtype=np.float64).reshape(-1, 8)
+    return _truth_of(np.array(rows, dtype=np.float64).reshape(-1, 8))
+
+
+def _checked_truth(rows: list[list[str]]) -> F64 | None:
+    """``(P, 8)`` a block of ``truth.csv`` rows parsed and checked as :func:`read_truth_csv`
+    checks each row (but for a row given twice), or None when any fails."""
+    cols = list(zip(*rows, strict=True))
+    if any("\x00" in "".join(c) for c in cols):
+        return None
+    try:
+        key = np.stack([np.array(cols[k]).astype(np.int64) for k in (0, 1)], 1)
+        val = np.stack([np.array(cols[k]).astype(np.float64) for k in range(2, 8)], 1)
+    except (ValueError, OverflowError):
+        return None
+    ok = ((key[:, 0] >= 0) & (key[:, 0] <= FRAME_MAX) & (np.abs(key[:, 1]) <= ID_MAX)
+          & np.all(np.isfinite(val) & (np.abs(val) <= MAX_WORLD_M), axis=1) & np.all(val[:, 3:] > 0, axis=1))
+    return np.concatenate([key, val], 1) if ok.all() else None
+
+
+def _truth_of(a: F64) -> GroundTruth:
+    """``(M, 8)`` frame, id, centre, semi-axes as the simulator's truth."""
     return GroundTruth(frame=a[:, 0].astype(np.int64), track_id=a[:, 1].astype(np.int64),
                        center_world=a[:, 2:5], semi_axes=a[:, 5:8],
                        kpt_world=np.zeros((len(a), 0, 3)), source="truth.csv")
