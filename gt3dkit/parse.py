@@ -120,6 +120,13 @@ def iter_csv_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | 
         yield lines, rows
 
 
+def block_columns(rows: list[list[str]]) -> list[tuple[str, ...]] | None:
+    """A block of :func:`iter_csv_blocks` as columns of text, or None when a field holds a NUL
+    byte (numpy's text arrays would drop it unseen: the caller then checks the rows one by one)."""
+    cols = list(zip(*rows, strict=True))
+    return None if any("\x00" in "".join(c) for c in cols) else cols
+
+
 def iter_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | None = None,
                   header: bool = True) -> Iterator[tuple[int, dict[str, str]]]:
     """Rows of a CSV whose header starts with ``columns``; (line number, row), one at a time

@@ -112,17 +112,24 @@ def state_bytes(n_joints: int) -> float:
     return 48.0 * n * n + 11e3
 
 
+def objects_per_frame(scene: Scene) -> tuple[I64, I64]:
+    """``(F,)`` the annotated frames and ``(F,)`` how many objects each holds (object-frames)."""
+    keys = np.unique(np.c_[scene.obs.frame, scene.obs.track_id], axis=0)
+    frames, count = np.unique(keys[:, 0], return_counts=True)
+    return frames.astype(np.int64), count.astype(np.int64)
+
+
 def auto_plan(scene: Scene) -> Plan | None:
     """Windows for a sequence whose state would exceed :data:`MEMORY_BUDGET_BYTES` whole (None:
     it fits): as many frames as hold that much state for the busiest frames (95th percentile of
     objects per frame), less the context."""
-    keys = np.unique(np.c_[scene.obs.frame, scene.obs.track_id], axis=0)
-    if not len(keys):
+    _, count = objects_per_frame(scene)
+    if not len(count):
         return None
     per_row = state_bytes(scene.obs.n_joints)
-    if len(keys) * per_row <= MEMORY_BUDGET_BYTES:
+    if count.sum() * per_row <= MEMORY_BUDGET_BYTES:
         return None
-    per_frame = float(np.percentile(np.unique(keys[:, 0], return_counts=True)[1], 95))
+    per_frame = float(np.percentile(count, 95))
     ov = overlap_frames(scene)
     fit = int(MEMORY_BUDGET_BYTES // (per_row * max(per_frame, 1.0)))
     return Plan(max(fit - 2 * ov, ov), ov, why="the whole sequence would not fit in memory")
@@ -140,8 +147,7 @@ def noise_sample(scene: Scene, windows: list[Window], limit: int = NOISE_SAMPLE_
                  ) -> tuple[int, int]:
     """The frames ``lo, hi`` the process noise is chosen on: the window (with its context) holding
     the most object-frames, cut around its middle to at most ``limit`` of them."""
-    keys = np.unique(np.c_[scene.obs.frame, scene.obs.track_id], axis=0)
-    frames, count = np.unique(keys[:, 0], return_counts=True)  # object-frames per frame
+    frames, count = objects_per_frame(scene)
     inside = [(frames >= w.lo) & (frames <= w.hi) for w in windows]
     k = int(np.argmax([count[m].sum() for m in inside]))
     f, c = frames[inside[k]], count[inside[k]]

@@ -37,6 +37,7 @@ from gt3dkit.io.datasets.wildtrack import read_truth_csv
 from gt3dkit.parse import (
     FRAME_MAX,
     ID_MAX,
+    block_columns,
     iter_csv_blocks,
     iter_csv_rows,
     parse_frame,
@@ -162,8 +163,8 @@ def _checked_boxes(path: Path, rig: Rig, lines: list[int], rows: list[list[str]]
     """A block of ``boxes.csv`` rows parsed and checked at once, as :func:`_add_box` checks each
     row, and the count of boxes of -1s (not seen) it drops; None when any row fails a check (the
     caller then goes row by row to say which and why)."""
-    cols = list(zip(*rows, strict=True))
-    if any("\x00" in "".join(c) for c in cols):  # numpy's text arrays would drop a NUL unseen
+    cols = block_columns(rows)
+    if cols is None:
         return None
     try:
         frame, tid = (np.array(cols[k]).astype(np.int64) for k in (0, 2))
@@ -208,8 +209,8 @@ def _checked_keypoints(path: Path, rig: Rig, n_joints: int, lines: list[int], ro
     each row, and the count of undetected points (confidence 0) it drops; None when any row fails
     a check (the caller then goes row by row to say which and why). A 4-million-point file reads in
     seconds and is held as arrays."""
-    cols = list(zip(*rows, strict=True))
-    if any("\x00" in "".join(c) for c in cols):  # numpy's text arrays would drop a NUL unseen
+    cols = block_columns(rows)
+    if cols is None:
         return None
     try:
         ints = [np.array(cols[k]).astype(np.int64) for k in (0, 2, 3)]  # frame, id, joint

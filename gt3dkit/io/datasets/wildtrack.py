@@ -40,6 +40,7 @@ from gt3dkit.parse import (
     FRAME_MAX,
     ID_MAX,
     MAX_WORLD_M,
+    block_columns,
     iter_csv_blocks,
     iter_csv_rows,
     load_json,
@@ -227,8 +228,8 @@ def read_truth_csv(p: Path, files: dict[str, str], root: Path) -> GroundTruth:
 def _checked_truth(rows: list[list[str]]) -> F64 | None:
     """``(P, 8)`` a block of ``truth.csv`` rows parsed and checked as :func:`read_truth_csv`
     checks each row (but for a row given twice), or None when any fails."""
-    cols = list(zip(*rows, strict=True))
-    if any("\x00" in "".join(c) for c in cols):
+    cols = block_columns(rows)
+    if cols is None:
         return None
     try:
         key = np.stack([np.array(cols[k]).astype(np.int64) for k in (0, 1)], 1)
