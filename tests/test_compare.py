@@ -24,6 +24,44 @@ def test_gtsam_on_exact_box_scene(small_native) -> None:
     assert tr.info["iterations"] > 0
 
 
+@pytest.mark.parametrize("fixed_noise", [False, True])
+def test_gtsam_box_chain_is_gtsams_own_graph(tmp_path: Path, monkeypatch, fixed_noise: bool) -> None:
+    """The box objects' graph linearised in batches (smoother_gtsam._solve_boxes) is GTSAM's
+    own nonlinear graph of CustomFactors and robust noise models (GTSAMSmoother._solve_object):
+    the same solution, iterations and marginal sds on a scene whose shifted boxes, gaps and
+    one-camera objects make the Huber losses and the rows without views matter; with the
+    process noise fixed, through the discrepancy principle's restarts as well."""
+    from gt3dkit.fusion import smoother_gtsam as sg
+    from gt3dkit.fusion.prepare import prepare
+    from gt3dkit.sim import Errors, simulate, write_scene
+
+    sim = simulate("native", seed=4, frames=30, people=4, noise_px=1.0,
+                   errors=Errors(shifted=0.05, gap=(10, 13), single_view=1, dropped=0.2),
+                   motion="stop-and-turn")
+    write_scene(sim, tmp_path, "native")
+    scene = load_scene(tmp_path)
+    pre = prepare(scene)
+    cfg = sg.GTSAMConfig(accel_sd=0.05, shape_sd=0.01, discrepancy_step=30.0) if fixed_noise \
+        else sg.GTSAMConfig()
+    est = sg.GTSAMSmoother(cfg)
+    batched = est.estimate(scene, pre)
+
+    def own_graph(gtsam, cfg, pre, mine, start_values, tuned, fps, start=None):
+        return est._solve_object(gtsam, pre, mine, start_values, None, [], tuned, fps, start)
+
+    monkeypatch.setattr(sg, "_solve_boxes", own_graph)
+    ref = est.estimate(scene, pre)
+    assert batched.info["iterations"] == ref.info["iterations"]
+    checks, ref_checks = (t.info["process_noise_discrepancy"] for t in (batched, ref))
+    assert [c["rescaled"] for c in checks] == [c["rescaled"] for c in ref_checks]
+    assert [c["measurement_chi2_per_entry"] for c in checks] == pytest.approx(
+        [c["measurement_chi2_per_entry"] for c in ref_checks], rel=1e-9)
+    assert checks[0]["rescaled"] if fixed_noise else not checks
+    np.testing.assert_allclose(batched.center_world, ref.center_world, atol=1e-7)
+    np.testing.assert_allclose(batched.semi_axes, ref.semi_axes, rtol=1e-7)
+    np.testing.assert_allclose(batched.center_sd, ref.center_sd, rtol=1e-6)
+
+
 def test_gtsam_on_skeleton_scene(tmp_path: Path) -> None:
     sim = simulate_skeletons("native", seed=6, frames=6, people=1, cameras=5, errors=Errors(dropped=0.05))
     write_skeleton_scene(sim, tmp_path, "native")
