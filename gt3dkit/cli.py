@@ -33,6 +33,7 @@ from gt3dkit.commands.run import (
     cmd_compare,
     cmd_evaluate,
     cmd_export,
+    cmd_project,
     cmd_reconstruct,
     cmd_reconstruct_many,
     cmd_report,
@@ -41,6 +42,7 @@ from gt3dkit.commands.simulate import cmd_simulate
 from gt3dkit.errors import EstimationError, InputError
 from gt3dkit.export import FORMATS as EXPORT_FORMATS
 from gt3dkit.io.datasets import LAYOUTS
+from gt3dkit.io.labels import LABEL_FORMATS
 from gt3dkit.sim import SIM_LAYOUTS
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.threads import small_matrix_blas
@@ -223,6 +225,25 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--format", required=True, choices=EXPORT_FORMATS)
     ex.add_argument("--to", metavar="DIR", help="folder to write (default OUT/export_FORMAT)")
     ex.set_defaults(func=cmd_export)
+
+    pj = sub.add_parser("project", parents=[common],
+                        help="a reconstruct output drawn back into every camera as CVAT, MOTChallenge or "
+                             "COCO labels for review: the labels, proposals for views without one, "
+                             "interpolations, each with its anomalies, sd and occlusion")
+    pj.add_argument("out", metavar="OUT", help="a gt3d reconstruct output folder (or one estimator's "
+                                               "folder of a gt3d compare output)")
+    pj.add_argument("--format", required=True, choices=LABEL_FORMATS)
+    pj.add_argument("--to", metavar="DIR", required=True,
+                    help="folder to write: <format>/<camera>.*, cameras.json, projection.json "
+                         "(gt3d reconstruct DIR reads it back)")
+    pj.add_argument("--every-frame", metavar="STEP", nargs="?", const=1, default=None,
+                    type=number_type(int, 1, 1_000_000),
+                    help="also every STEP-th frame (default 1) between an object's labelled frames, "
+                         "interpolated")
+    pj.add_argument("--cameras", help="comma-separated camera names (default: all)")
+    pj.add_argument("--only-flagged", action="store_true",
+                    help="only what needs a person: labels with anomalies, proposals, interpolations")
+    pj.set_defaults(func=cmd_project)
 
     d = sub.add_parser("demo", parents=[common],
                        help="reconstruct the bundled MultiviewX and Panoptic data, print errors")

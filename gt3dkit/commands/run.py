@@ -32,6 +32,7 @@ from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.results import read_result
 from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv
 from gt3dkit.many import read_manifest, run_many
+from gt3dkit.project import project
 from gt3dkit.refine import refine, rig_digest
 from gt3dkit.viz.report import write_report
 from gt3dkit.windows import Plan, auto_plan, reconstruct_windows
@@ -215,4 +216,30 @@ def cmd_export(args: argparse.Namespace) -> int:
     print(f"{args.format}: {', '.join(str(f) for f in files)} in {dest} ({info.get('units', '')}"
           f"{'; ' + info['world'] if 'world' in info else ''}"
           f"{'; open with: ' + info['open'] if 'open' in info else ''})")
+    return 0
+
+
+def cmd_project(args: argparse.Namespace) -> int:
+
+    out, dest = Path(args.out), Path(args.to)
+    res = read_result(out)
+    root = ((res.meta.get("input") or {}).get("load") or {}).get("root") or res.meta["input"].get("root")
+    check_out_apart(dest, out, "--to", inside_ok=True)
+    if isinstance(root, str) and root:
+        check_out_apart(dest, root, "--to")
+    for parent in dest.resolve().parents:  # not inside another run's output
+        if parent != out.resolve() and (parent / "meta.json").is_file() and (parent / "tracks.csv").is_file():
+            raise InputError("--to", f"{dest} lies inside another gt3d output ({parent}): choose a "
+                                     "folder of its own")
+    check_output(dest)
+    cameras = None
+    if args.cameras is not None:
+        cameras = tuple(c.strip() for c in args.cameras.split(",") if c.strip())
+        if not cameras:
+            raise InputError("--cameras", f"no camera names in {args.cameras!r}")
+    info = project(out, args.format, dest, args.every_frame, cameras, args.only_flagged)
+    print(f"{args.format}: {info['shapes']} shapes in {len(info['cameras'])} cameras -> {dest}/"
+          f"{args.format}/ ({info['annotated']} labels, {info['proposed']} proposed, "
+          f"{info['interpolated']} interpolated; {info['flagged']} flagged, {info['occluded']} "
+          f"occluded); read it back: gt3d reconstruct {dest} --association {dest}/association.csv")
     return 0

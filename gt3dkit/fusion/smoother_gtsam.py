@@ -164,14 +164,10 @@ class GTSAMSmoother:
         results: list[dict[str, Any]] = []
         for attempt in range(cfg.discrepancy_steps + 1):
             # a retry with more process noise starts where the previous solution ended
-            results = [
-                _solve_boxes(gtsam, cfg, pre, np.flatnonzero(rows.row_o == o),
-                             (x0, own, position_sd), tuned, scene.fps,
-                             results[o]["values"] if attempt else None) if not use_kpt else
-                self._solve_object(gtsam, pre, np.flatnonzero(rows.row_o == o),
-                                   (x0, own, position_sd), und, gcams, tuned, scene.fps,
+            results = [self._solve(gtsam, pre, np.flatnonzero(rows.row_o == o),
+                                   (x0, own, position_sd), (und, gcams), tuned, scene.fps,
                                    results[o]["values"] if attempt else None)
-                for o in range(len(rows.obj_ids))]
+                       for o in range(len(rows.obj_ids))]
             if attempt == cfg.discrepancy_steps or (cfg.accel_sd and cfg.joint_accel_sd) \
                     or by_likelihood:
                 break
@@ -211,6 +207,21 @@ class GTSAMSmoother:
         return TrackSet(frame=rows.frames[rows.row_t], track_id=rows.obj_ids[rows.row_o],
                         center_world=centre, semi_axes=semi, center_sd=c_sd, n_views=rows.n_views,
                         kpt_world=kpt, kpt_sd=kpt_sd, info=info)
+
+    def _solve(self, gtsam: Any, pre: Prepared, mine: np.ndarray,
+               start_values: tuple[F64, np.ndarray, float], kpt: tuple[F64 | None, list[Any]],
+               tuned: ProcessNoise, fps: float, start: Any = None) -> dict[str, Any]:
+        """One object's graph: batched for box objects (:func:`_solve_boxes`), GTSAM's
+        nonlinear factors for keypoints, and for a box object whose batched graph GTSAM finds
+        singular (its elimination of the stacked rows can be stricter than of the separate
+        factors, as for an object only one camera ever sees)."""
+        if not pre.use_kpt:
+            try:
+                return _solve_boxes(gtsam, self.config, pre, mine, start_values, tuned, fps, start)
+            except EstimationError:
+                start = None
+        return self._solve_object(gtsam, pre, mine, start_values, kpt[0], kpt[1], tuned, fps,
+                                  None if isinstance(start, np.ndarray) else start)
 
     def _solve_object(self, gtsam: Any, pre: Prepared, mine: np.ndarray,
                       start_values: tuple[F64, np.ndarray, float], und: F64 | None, gcams: list[Any],
@@ -475,7 +486,7 @@ def _solve_boxes(gtsam: Any, cfg: GTSAMConfig, pre: Prepared, mine: np.ndarray,
     covariances. A ``CustomFactor`` per box and per step called Python ~25 times per
     object-frame; this is 3-4x faster on long scenes and gives the same solution."""
     chain = _BoxChain(cfg, pre, mine, start_values, tuned, fps)
-    z = chain.start.copy() if start is None else start.copy()
+    z = start.copy() if isinstance(start, np.ndarray) else chain.start.copy()
     err = chain.errors(z)[0]
     iters = 0
     try:
