@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from gt3dkit.api import Run, load_run
+from gt3dkit.arrays import frame_grid
 from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import Cams, project_points
 from gt3dkit.geom.conics import covered_fraction, model_boxes
@@ -191,15 +192,10 @@ def project_run(run: Run, step: int | None = None, cameras: tuple[str, ...] | No
                       for r, cc in zip(rows, cam, strict=True))
     shapes = Shapes(st["frame"][rows], cam, st["id"][rows], st["seg"][rows], shape_box, kpt, source,
                     occluded[rows, cam], sd, conf, anomalies, st["centre"][rows],
-                    step=int(step or _frame_step(tr.frame)))
+                    step=int(step or frame_grid(tr.frame)[1]))
     if only_flagged:
         shapes = shapes.take((shapes.source != 0) | np.array([a != "" for a in anomalies], bool))
     return shapes
-
-
-def _frame_step(frames: I64) -> int:
-    u = np.unique(frames)
-    return int(np.gcd.reduce(np.diff(u))) if len(u) > 1 else 1
 
 
 def project(out: Path, fmt: str, dest: Path, step: int | None = None,

@@ -14,7 +14,7 @@ Factors
       edges (:func:`gt3dkit.fusion.boxfit.box_model`), Jacobian by central differences;
     * Huber-robust noise models on every measurement; weak priors (1 m, 10 m/s, 1.0 in log
       axes) at the per-frame initial values so that nothing is left undetermined.
-Solved by Gauss-Newton with a line search (:func:`_gauss_newton`, GTSAM's linearisation and
+Solved by Gauss-Newton with a line search (:func:`_gtsam_gauss_newton`, GTSAM's linearisation and
 elimination); each output's standard deviation from GTSAM's marginal covariances. Objects with
 boxes only (no keypoints) are linearised in batches instead (:func:`_solve_boxes`: the same
 factors, losses and steps as arrays, one ``JacobianFactor`` per row for GTSAM to eliminate; the
@@ -40,6 +40,7 @@ saw start between their object's placed rows, with no prior (:func:`_start_value
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -318,15 +319,11 @@ class GTSAMSmoother:
                     g.add(gtsam.TriangulationFactorCal3_S2(gcams[c], und[r, c, j], noise_k,
                                                            sym("p", k * 32 + int(j))))
         try:
-            result, iters, final = _gauss_newton(g, vals if start is None else start,
-                                                 cfg.max_iterations, cfg.relative_error_tol)
+            result, iters, final = _gtsam_gauss_newton(g, vals if start is None else start,
+                                                       cfg.max_iterations, cfg.relative_error_tol)
             marg = gtsam.Marginals(g, result)
         except RuntimeError as e:  # gtsam's IndeterminateLinearSystemException and kin
-            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-            oid = int(rows.obj_ids[rows.row_o[mine[0]]])
-            raise EstimationError(self.name, f"the factor graph of object {oid} is singular ({first}); "
-                                  f"process noise {tuned.accel_sd:.3g} m/s^2/sqrt(Hz) at {fps:g} fps: "
-                                  "check the frame rate, or use --estimator ukf") from None
+            raise _singular(e, pre, mine, tuned, fps) from None
         out: dict[str, Any] = {
             "centre": x0[mine][:, layout.center].copy(), "log_axes": x0[mine][:, layout.log_axes].copy(),
             "c_sd": np.full((n_rows, 3), np.nan),
@@ -487,39 +484,20 @@ def _solve_boxes(gtsam: Any, cfg: GTSAMConfig, pre: Prepared, mine: np.ndarray,
     object-frame; this is 3-4x faster on long scenes and gives the same solution."""
     chain = _BoxChain(cfg, pre, mine, start_values, tuned, fps)
     z = start.copy() if isinstance(start, np.ndarray) else chain.start.copy()
-    err = chain.errors(z)[0]
-    iters = 0
     try:
-        while iters < cfg.max_iterations:
-            iters += 1
-            delta = chain.linearized(gtsam, z).optimize().vector().reshape(chain.n, BOX_DIM)
-            step, new, new_err = 1.0, None, err
-            for _ in range(10):
-                cand = z + step * delta
-                new_err = chain.errors(cand)[0]
-                if new_err <= err:
-                    new = cand
-                    break
-                step *= 0.5
-            if new is None:  # no step lowers the error: a minimum
-                break
-            done = err - new_err <= cfg.relative_error_tol * max(err, 1e-300)
-            z, err = new, new_err
-            if done:
-                break
+        z, iters, err = _gauss_newton(
+            lambda v: chain.errors(v)[0],
+            lambda v: chain.linearized(gtsam, v).optimize().vector().reshape(chain.n, BOX_DIM),
+            lambda v, d, k: v + k * d, z, cfg.max_iterations, cfg.relative_error_tol)
         lin = chain.linearized(gtsam, z)
         marg = gtsam.Marginals(lin, lin.optimize())
     except RuntimeError as e:  # gtsam's IndeterminateLinearSystemException and kin
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        oid = int(pre.rows.obj_ids[pre.rows.row_o[mine[0]]])
-        raise EstimationError("gtsam", f"the factor graph of object {oid} is singular ({first}); "
-                              f"process noise {tuned.accel_sd:.3g} m/s^2/sqrt(Hz) at {fps:g} fps: "
-                              "check the frame rate, or use --estimator ukf") from None
+        raise _singular(e, pre, mine, tuned, fps) from None
     cov = np.array([marg.marginalCovariance(k)[:3, :3] for k in range(chain.n)])
     J = pre.layout.n_joints
     return {"centre": z[:, :3].copy(), "log_axes": z[:, 6:].copy(), "c_sd": axis_sd(cov),
             "kpt": np.full((chain.n, J, 3), np.nan), "kpt_sd": np.full((chain.n, J), np.nan),
-            "stats": {"iterations": iters, "final_error": float(err), "factors": chain.n},
+            "stats": {"iterations": iters, "final_error": err, "factors": chain.n},
             "values": z,
             # whitened squared residuals of the box edges (error = chi2 / 2, Huber-robust)
             "meas": (2.0 * chain.errors(z)[1], float(chain.keep.sum()))}
@@ -548,35 +526,60 @@ def _start_values(pre: Prepared, x0: F64) -> tuple[F64, np.ndarray]:
     return x0, own
 
 
-def _gauss_newton(g: Any, values: Any, max_iterations: int, rel_tol: float) -> tuple[Any, int, float]:
-    """Gauss-Newton on a GTSAM graph with a backtracking line search (halve the step until the
-    error falls, at most 10 times); stops when the error falls by less than ``rel_tol`` of itself.
+def _gauss_newton(error: Callable[[Any], float], step: Callable[[Any], Any],
+                  retract: Callable[[Any, Any, float], Any], values: Any, max_iterations: int,
+                  rel_tol: float) -> tuple[Any, int, float]:
+    """Gauss-Newton with a backtracking line search (halve the step until the error falls, at
+    most 10 times); stops when the error falls by less than ``rel_tol`` of itself. ``error``
+    the graph's error at values, ``step`` the linearised graph's solution there, ``retract``
+    values moved by a step scaled by a factor: GTSAM's graph and values
+    (:func:`_gtsam_gauss_newton`) or a box chain's arrays (:func:`_solve_boxes`).
 
-    The same linearise / eliminate / retract steps as GTSAM's own optimizers, driven from
-    Python: with our Python factors in the graph, ``LevenbergMarquardtOptimizer.optimize`` took
-    10x longer per iteration than these calls (1.4 s against 0.13 s on a 2 280-variable
-    skeleton graph), and the start (the per-frame fits) is close enough that no damping is
-    needed. Returns the values, the iterations and the final error."""
-    err = g.error(values)
+    Driven from Python: with our Python factors in the graph, GTSAM's own
+    ``LevenbergMarquardtOptimizer.optimize`` took 10x longer per iteration than these calls
+    (1.4 s against 0.13 s on a 2 280-variable skeleton graph), and the start (the per-frame fits)
+    is close enough that no damping is needed. Returns the values, the iterations and the final
+    error."""
+    err = error(values)
     iters = 0
     while iters < max_iterations:
         iters += 1
-        delta = g.linearize(values).optimize()
-        step, new, new_err = 1.0, values, err
+        delta = step(values)
+        scale, new, new_err = 1.0, None, err
         for _ in range(10):
-            cand = values.retract(delta if step == 1.0 else delta.scale(step))
-            new_err = g.error(cand)
+            cand = retract(values, delta, scale)
+            new_err = error(cand)
             if new_err <= err:
                 new = cand
                 break
-            step *= 0.5
-        if new is values:  # no step lowers the error: a minimum
+            scale *= 0.5
+        if new is None:  # no step lowers the error: a minimum
             break
         done = err - new_err <= rel_tol * max(err, 1e-300)
         values, err = new, new_err
         if done:
             break
     return values, iters, float(err)
+
+
+def _gtsam_gauss_newton(g: Any, values: Any, max_iterations: int, rel_tol: float
+                        ) -> tuple[Any, int, float]:
+    """:func:`_gauss_newton` on a GTSAM nonlinear graph (its linearisation, elimination and
+    retraction)."""
+    return _gauss_newton(g.error, lambda v: g.linearize(v).optimize(),
+                         lambda v, d, k: v.retract(d if k == 1.0 else d.scale(k)),
+                         values, max_iterations, rel_tol)
+
+
+def _singular(e: RuntimeError, pre: Prepared, mine: np.ndarray, tuned: ProcessNoise,
+              fps: float) -> EstimationError:
+    """GTSAM's IndeterminateLinearSystemException (and kin) on the graph of the object of rows
+    ``mine``, as the one-line error the user reads."""
+    first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+    oid = int(pre.rows.obj_ids[pre.rows.row_o[mine[0]]])
+    return EstimationError("gtsam", f"the factor graph of object {oid} is singular ({first}); "
+                           f"process noise {tuned.accel_sd:.3g} m/s^2/sqrt(Hz) at {fps:g} fps: "
+                           "check the frame rate, or use --estimator ukf")
 
 
 def cv_whitening(dts: F64, accel_sd: float, up: F64 | None, vertical_ratio: float,

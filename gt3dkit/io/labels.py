@@ -115,6 +115,7 @@ def write_cvat(shapes: Shapes, rig: Rig, joints: tuple[str, ...], folder: Path) 
     keypoints = shapes.kpt_uv_px.shape[1] > 0
     size = int(shapes.frame.max()) + 1 + shapes.step if len(shapes) else 0
     names = ("source", "anomalies", "sd_px", "confidence", "gt3d_id", "segment")
+    tid = piece_ids(shapes)
     out = []
     for c, cam in enumerate(rig.cameras):
         root = ET.Element("annotations")
@@ -137,7 +138,6 @@ def write_cvat(shapes: Shapes, rig: Rig, joints: tuple[str, ...], folder: Path) 
         osz = ET.SubElement(task, "original_size")
         ET.SubElement(osz, "width").text = str(cam.width)
         ET.SubElement(osz, "height").text = str(cam.height)
-        tid = piece_ids(shapes)
         for idx in _tracks(shapes, c):
             tr = ET.SubElement(root, "track", id=str(int(tid[idx[0]])), label=LABEL, source="auto")
             frames = shapes.frame[idx]
