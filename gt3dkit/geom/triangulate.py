@@ -68,6 +68,24 @@ def _null_point(M: F64) -> F64:
         return Xh[..., :3] / Xh[..., 3:]
 
 
+def _inhomogeneous_point(M: F64) -> F64:
+    """``(..., 4, 4)`` normal matrices -> ``(..., 3)`` the least-squares point with the
+    homogeneous coordinate fixed to 1 (``X = -M[:3, :3]^-1 M[:3, 3]``, the 3x3 inverse by
+    cofactors; NaN where singular: ``det < 1e-10 trace^3``, e.g. one view's ray). The same
+    point as :func:`_null_point` without noise and within the noise with it, at a tenth of
+    the time of a batched ``eigh``: the two-view hypotheses of :func:`robust_triangulate`,
+    which are only scored."""
+    A, b = M[..., :3, :3], -M[..., :3, 3]
+    c0 = np.cross(A[..., 1, :], A[..., 2, :])
+    c1 = np.cross(A[..., 2, :], A[..., 0, :])
+    c2 = np.cross(A[..., 0, :], A[..., 1, :])
+    det = np.einsum("...i,...i->...", A[..., 0, :], c0)
+    with np.errstate(divide="ignore", invalid="ignore"):  # A symmetric: A^-1 = [c0 c1 c2] / det
+        X = np.einsum("...ij,...j->...i", np.stack([c0, c1, c2], -1), b) / det[..., None]
+    singular = det <= 1e-10 * np.einsum("...ii->...", A) ** 3
+    return np.where(np.isfinite(X) & ~singular[..., None], X, np.nan)
+
+
 def triangulate_weighted(xy_n: F64, R: F64, t: F64, weight: F64, rows: F64 | None = None) -> F64:
     """DLT with a weight per view (rows scaled by it; 0 = view unused), solved as the smallest
     eigenvector of the 4x4 normal matrix ``sum_c w_c^2 (r_x r_x^T + r_y r_y^T)``.
@@ -150,7 +168,7 @@ def robust_triangulate(xy_n: F64, R: F64, t: F64, f_px: F64, thr_px: float,
         O = _dlt_rows(xy, R, t)
         cands = [triangulate_weighted(xy, R, t, sn.astype(np.float64), O)[:, None]]
         if len(pairs):
-            Xp = _null_point(O[:, pairs[:, 0]] + O[:, pairs[:, 1]])  # (n, P, 3)
+            Xp = _inhomogeneous_point(O[:, pairs[:, 0]] + O[:, pairs[:, 1]])  # (n, P, 3)
             both = sn[:, pairs[:, 0]] & sn[:, pairs[:, 1]]
             cands.append(np.where(both[..., None], Xp, np.nan))
         Xc = np.concatenate(cands, axis=1)  # (n, P+1, 3)

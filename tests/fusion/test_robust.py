@@ -107,6 +107,32 @@ def test_robust_triangulation_rejects_the_bad_view() -> None:
     assert np.linalg.norm(X[0] - (Xh[:3, 0] / Xh[3, 0])) < 1e-6
 
 
+def test_two_view_hypothesis_is_opencvs_point() -> None:
+    """The scored two-view hypotheses (the 3x3 inhomogeneous solve) give OpenCV's two-view
+    DLT point on clean views, within a millimetre of the eigenvector at 1 px of noise, and NaN
+    from one view (a ray)."""
+    import cv2
+
+    from gt3dkit.geom.triangulate import _dlt_rows, _inhomogeneous_point, _null_point
+
+    sim = simulate_skeletons("native", seed=2, frames=3, people=2, cameras=4)
+    rig = sim.rig
+    uv = np.swapaxes(sim.uv, 1, 2).reshape(-1, rig.K.shape[0], 2)  # (rows * J, C, 2), no noise
+    xy = normalized_points(uv, rig.K, rig.dist)
+    xy = xy[np.isfinite(xy[:, :2]).all(axis=(1, 2))]
+    O = _dlt_rows(xy, rig.R, rig.t)
+    X = _inhomogeneous_point(O[:, 0] + O[:, 1])
+    P0 = np.hstack([rig.R[0], rig.t[0][:, None]])
+    P1 = np.hstack([rig.R[1], rig.t[1][:, None]])
+    Xh = cv2.triangulatePoints(P0, P1, xy[:, 0].T.copy(), xy[:, 1].T.copy())
+    assert np.abs(X - (Xh[:3] / Xh[3]).T).max() < 1e-6
+    noisy = xy + np.random.default_rng(0).normal(0, 1 / rig.K[0, 0, 0], xy.shape)
+    On = _dlt_rows(noisy, rig.R, rig.t)
+    d = np.linalg.norm(_inhomogeneous_point(On[:, 0] + On[:, 1]) - _null_point(On[:, 0] + On[:, 1]), axis=1)
+    assert np.median(d) < 1e-3
+    assert np.isnan(_inhomogeneous_point(O[:1, 0])).all()  # one view: a ray, no point
+
+
 # -- outliers --------------------------------------------------------------------------------
 
 def test_injected_errors_barely_move_the_joints(clean_and_bad) -> None:
