@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 APT_PKGS := python3-venv libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libegl1 libgl1 libgomp1 libegl-mesa0 libgl1-mesa-dri
 
-.PHONY: setup demo test bench bench-env bench-long lint clean
+.PHONY: setup demo test bench bench-env labels-env bench-long lint clean
 
 setup: $(VENV)/.installed
 
@@ -27,7 +27,7 @@ $(VENV)/.installed: pyproject.toml
 demo: setup
 	$(VENV)/bin/gt3d demo --out out/demo
 
-test: setup
+test: setup labels-env
 	$(PY) -m pytest -q
 
 bench: setup
@@ -40,6 +40,16 @@ bench-env: setup .venv-bench/.installed
 	@test -x .venv-bench/bin/python || python3 -m venv .venv-bench
 	.venv-bench/bin/python -m pip install -q --upgrade pip
 	.venv-bench/bin/python -m pip install -q $$($(PY) -c "import tomllib; print(' '.join(tomllib.load(open('pyproject.toml', 'rb'))['project']['optional-dependencies']['bench']))")
+	@touch $@
+
+# datumaro (pyproject's labels-check extra: CVAT's own reader, for the tests of gt3d project's
+# CVAT files) in an environment of its own: it pins opencv-python-headless 4 and pandas 2
+labels-env: setup .venv-labels/.installed
+
+.venv-labels/.installed: pyproject.toml
+	@test -x .venv-labels/bin/python || python3 -m venv .venv-labels
+	.venv-labels/bin/python -m pip install -q --upgrade pip
+	.venv-labels/bin/python -m pip install -q $$($(PY) -c "import tomllib; print(' '.join(tomllib.load(open('pyproject.toml', 'rb'))['project']['optional-dependencies']['labels-check']))")
 	@touch $@
 
 bench-long: setup bench-env

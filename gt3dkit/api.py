@@ -48,6 +48,15 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     scene = read_scene(root, layout, skeleton, fps, calib, association, **panoptic_options)
     if scene.layout in ASSOCIATED:  # ids per camera or none -> global identities, before the checks
         over = read_overrides(Path(association), scene.rig.names) if association is not None else None
+        if over:  # a row whose camera has no such id (a track deleted, a drawn shape left out): unused
+            pairs = np.unique(np.c_[scene.obs.cam, scene.obs.track_id], axis=0)
+            have = {(scene.rig.names[int(c)], int(i)) for c, i in pairs}
+            unused = [k for k in over if (k[0], k[1]) not in have and k[2] is None]
+            if unused:
+                over = {k: v for k, v in over.items() if k not in unused}
+                scene = dataclasses.replace(scene, warnings=(*scene.warnings, (
+                    f"{association}: {len(unused)} rows name an id their camera does not have (first: "
+                    f"camera {unused[0][0]}, local id {unused[0][1]}): unused")))
         per_frame = scene.layout == "openpose" or scene.association == "detections"
         assoc = (associate_detections if per_frame else associate)(scene, overrides=over)
         scene = dataclasses.replace(apply_association(scene, assoc), association=assoc)

@@ -35,6 +35,8 @@ from gt3dkit.io.labels import (
     SOURCES,
     Shapes,
     piece_ids,
+    piece_of,
+    piece_track_ids,
     write_association,
     write_coco,
     write_cvat,
@@ -45,15 +47,6 @@ from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import F64, I64, TrackSet
 
 OCCLUDED_ABOVE = 0.5  # covered fraction above which a shape is ``occluded`` (CVAT's meaning)
-
-
-def piece_of(frame: I64, track_id: I64, pieces: tuple[tuple[int, int, int, int], ...]) -> I64:
-    """(M,) the piece (``segments.csv``: id, segment, first, last frame) each row belongs to; 0
-    for ids kept whole."""
-    out = np.zeros(len(frame), np.int64)
-    for i, seg, a, b in pieces:
-        out[(track_id == i) & (frame >= a) & (frame <= b)] = seg
-    return out
 
 
 def _states(tr: TrackSet, seg: I64, step: int | None) -> dict[str, Any]:
@@ -190,9 +183,11 @@ def project_run(run: Run, step: int | None = None, cameras: tuple[str, ...] | No
     anomalies = tuple(";".join(sorted({k for c, k in kinds.get((int(st["frame"][r]), int(st["id"][r])), [])
                                        if c in ("", names[cc])}))
                       for r, cc in zip(rows, cam, strict=True))
+    top = int(tr.track_id.max()) if len(tr.track_id) else 0
     shapes = Shapes(st["frame"][rows], cam, st["id"][rows], st["seg"][rows], shape_box, kpt, source,
                     occluded[rows, cam], sd, conf, anomalies, st["centre"][rows],
-                    step=int(step or frame_grid(tr.frame)[1]))
+                    step=int(step or frame_grid(tr.frame)[1]),
+                    piece_id=piece_track_ids(st["id"][rows], st["seg"][rows], pieces, top))
     if only_flagged:
         shapes = shapes.take((shapes.source != 0) | np.array([a != "" for a in anomalies], bool))
     return shapes

@@ -11,18 +11,25 @@ it is written as it was labelled, so that an untouched label comes back unchange
 at a frame between labelled frames). With it: the anomaly kinds that concern it, the estimate's
 sd in pixels, a confidence (1 for a label; for a drawn estimate ``sigma / sqrt(sigma^2 +
 sd^2)``, ``sigma`` the labels' own noise: 1 when the estimate is as sure as a label can be),
-and ``occluded`` where nearer objects cover more than half of it.
+and ``occluded`` where nearer objects cover more than half of it. A drawn shape carries the
+digest of its coordinates (``drawn_digest``, :func:`shape_digest`): read back unchanged it is
+left out (it is the estimate's own projection, no new label), moved by an annotator it is a
+label.
 
 * **CVAT for video 1.1** (the "Interpolation" part of CVAT's XML format): one file per camera
   (one CVAT task per camera video), one ``<track>`` per object (per piece of an id that the
   identity check split; track ids are the run's ids in every camera, a split id's later pieces
   numbered after the largest id: :func:`piece_ids`, the map in ``projection.json``), every
-  shape a keyframe, an ``outside="1"`` shape on the frame after each
-  run of frames (CVAT would otherwise carry the box on), the attributes as ``<attribute>``
-  children (declared in the task's label, as CVAT exports them), ``occluded`` as CVAT's own.
+  shape a keyframe carrying the track's id as a ``track_id`` attribute too (CVAT numbers the
+  tracks 0, 1, ... when it exports; the reader takes the attribute), an ``outside="1"`` shape
+  on the frame after each run of frames (CVAT would otherwise carry the box on), the
+  attributes as ``<attribute>`` children (declared in the task's label, as CVAT exports them),
+  ``occluded`` as CVAT's own.
   Keypoint runs write ``<skeleton>`` shapes with a ``<points>`` per joint.
 * **MOTChallenge**: ``frame,id,left,top,width,height,conf,x,y,z`` without a header, ``conf``
-  the confidence, ``x,y,z`` the estimate's centre (m; the 3D columns of the format).
+  the confidence (1 for a label; at most 0.9999 for a drawn shape, which is how the reader
+  tells them apart beside ``projection.json``), ``x,y,z`` the estimate's centre (m; the 3D
+  columns of the format).
 * **COCO**: per camera ``images`` (``frame_id``), ``annotations`` (``bbox``, ``area``,
   ``track_id``, ``score`` = the confidence, ``attributes`` with the rest, keypoints with
   visibility 2 / 1 (occluded) / 0 for keypoint runs), ``categories`` (``person``, its joint
@@ -31,6 +38,7 @@ and ``occluded`` where nearer objects cover more than half of it.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -38,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gt3dkit.arrays import lookup_rows
 from gt3dkit.types import F64, I64, Rig
 
 SOURCES = ("annotated", "proposed", "interpolated")
@@ -58,6 +67,7 @@ class Shapes:
     anomalies : (S,) the anomaly kinds that concern the shape, ``;``-joined ('' none)
     center_world : (S, 3) float64 metres, the estimate's centre
     step : the frame step of the sequence (a track's frames further apart are two runs)
+    piece_id : (S,) int64 the track id written (:func:`piece_track_ids`); None: ``track``
     """
 
     frame: I64
@@ -73,6 +83,7 @@ class Shapes:
     anomalies: tuple[str, ...]
     center_world: F64
     step: int = 1
+    piece_id: I64 | None = None
 
     def __len__(self) -> int:
         return len(self.frame)
@@ -82,13 +93,32 @@ class Shapes:
         return Shapes(self.frame[idx], self.cam[idx], self.track[idx], self.segment[idx],
                       self.box_xyxy_px[idx], self.kpt_uv_px[idx], self.source[idx],
                       self.occluded[idx], self.sd_px[idx], self.confidence[idx],
-                      tuple(self.anomalies[i] for i in idx), self.center_world[idx], self.step)
+                      tuple(self.anomalies[i] for i in idx), self.center_world[idx], self.step,
+                      None if self.piece_id is None else self.piece_id[idx])
 
-    def attributes(self, k: int) -> dict[str, str]:
-        """The attributes of shape ``k`` as the tools' text."""
+    def attributes(self, k: int, joints: tuple[str, ...] = (), with_box: bool = True) -> dict[str, str]:
+        """The attributes of shape ``k`` as the tools' text; ``drawn_digest`` of a drawn shape
+        (:func:`shape_digest` of its box if the format writes it, ``with_box``, and its joints
+        named ``joints``)."""
+        drawn = ""
+        if self.source[k] != 0:
+            pts = {n: (float(x), float(y)) for n, (x, y) in zip(joints, self.kpt_uv_px[k], strict=False)
+                   if np.isfinite(x) and np.isfinite(y)}
+            drawn = shape_digest(self.box_xyxy_px[k] if with_box else None, pts)
         return {"source": SOURCES[int(self.source[k])], "anomalies": self.anomalies[k],
                 "sd_px": f"{self.sd_px[k]:.2f}", "confidence": f"{self.confidence[k]:.3f}",
-                "gt3d_id": str(int(self.track[k])), "segment": str(int(self.segment[k]))}
+                "gt3d_id": str(int(self.track[k])), "segment": str(int(self.segment[k])),
+                "drawn_digest": drawn}
+
+
+def shape_digest(box: F64 | None, points: dict[str, tuple[float, float]]) -> str:
+    """12 hex digits of a drawn shape's coordinates as its file holds them (``box (4,)`` or
+    None; ``points``: joint name -> pixel, the joints drawn), each to 0.01 px (CVAT writes two
+    decimals): the ``drawn_digest`` attribute, by which a reader tells a drawn shape nobody
+    changed."""
+    parts = [] if box is None else [f"{v:.2f}" for v in np.asarray(box, dtype=np.float64)]
+    parts += [f"{n}:{x:.2f},{y:.2f}" for n, (x, y) in sorted(points.items())]
+    return hashlib.blake2b(";".join(parts).encode(), digest_size=6).hexdigest()
 
 
 def _num(x: float) -> str:
@@ -114,7 +144,8 @@ def write_cvat(shapes: Shapes, rig: Rig, joints: tuple[str, ...], folder: Path) 
     folder.mkdir(parents=True, exist_ok=True)
     keypoints = shapes.kpt_uv_px.shape[1] > 0
     size = int(shapes.frame.max()) + 1 + shapes.step if len(shapes) else 0
-    names = ("source", "anomalies", "sd_px", "confidence", "gt3d_id", "segment")
+    names = ("source", "anomalies", "sd_px", "confidence", "gt3d_id", "segment", "drawn_digest",
+             "track_id")
     tid = piece_ids(shapes)
     out = []
     for c, cam in enumerate(rig.cameras):
@@ -131,7 +162,8 @@ def write_cvat(shapes: Shapes, rig: Rig, joints: tuple[str, ...], folder: Path) 
         for n in names:
             a = ET.SubElement(attrs, "attribute")
             ET.SubElement(a, "name").text = n
-            ET.SubElement(a, "mutable").text = "False" if n in ("gt3d_id", "segment") else "True"
+            ET.SubElement(a, "mutable").text = "False" if n in ("gt3d_id", "segment", "drawn_digest",
+                                                                 "track_id") else "True"
             ET.SubElement(a, "input_type").text = "text"
             ET.SubElement(a, "default_value").text = ""
             ET.SubElement(a, "values").text = ""
@@ -142,11 +174,11 @@ def write_cvat(shapes: Shapes, rig: Rig, joints: tuple[str, ...], folder: Path) 
             tr = ET.SubElement(root, "track", id=str(int(tid[idx[0]])), label=LABEL, source="auto")
             frames = shapes.frame[idx]
             for pos, k in enumerate(idx):
-                _cvat_shape(tr, shapes, int(k), joints, outside=False)
+                _cvat_shape(tr, shapes, int(k), joints, outside=False, track_id=int(tid[idx[0]]))
                 nxt = frames[pos + 1] if pos + 1 < len(idx) else None
                 if nxt is None or nxt > frames[pos] + shapes.step:  # the run ends: end the track
                     _cvat_shape(tr, shapes, int(k), joints, outside=True,
-                                frame=int(frames[pos]) + shapes.step)
+                                frame=int(frames[pos]) + shapes.step, track_id=int(tid[idx[0]]))
         ET.indent(root)
         path = folder / f"{cam.name}.xml"
         ET.ElementTree(root).write(path, encoding="utf-8", xml_declaration=True)
@@ -155,7 +187,7 @@ def write_cvat(shapes: Shapes, rig: Rig, joints: tuple[str, ...], folder: Path) 
 
 
 def _cvat_shape(track: ET.Element, shapes: Shapes, k: int, joints: tuple[str, ...], outside: bool,
-                frame: int | None = None) -> None:
+                frame: int | None = None, track_id: int = -1) -> None:
     common = {"frame": str(int(shapes.frame[k]) if frame is None else frame),
               "outside": "1" if outside else "0", "occluded": str(int(shapes.occluded[k])),
               "keyframe": "1", "z_order": "0"}
@@ -171,7 +203,8 @@ def _cvat_shape(track: ET.Element, shapes: Shapes, k: int, joints: tuple[str, ..
         b = shapes.box_xyxy_px[k]
         el = ET.SubElement(track, "box", {**common, "xtl": _num(b[0]), "ytl": _num(b[1]),
                                           "xbr": _num(b[2]), "ybr": _num(b[3])})
-    for n, v in shapes.attributes(k).items():
+    attrs = shapes.attributes(k, joints, with_box=not shapes.kpt_uv_px.shape[1])
+    for n, v in {**attrs, "track_id": str(track_id)}.items():
         ET.SubElement(el, "attribute", name=n).text = v
 
 
@@ -197,8 +230,9 @@ def write_mot(shapes: Shapes, rig: Rig, folder: Path) -> list[Path]:
         lines = []
         for k in idx:
             b, x = shapes.box_xyxy_px[k], shapes.center_world[k]
+            conf = "1" if shapes.source[k] == 0 else f"{min(shapes.confidence[k], 0.9999):.4f}"
             lines.append(f"{int(shapes.frame[k])},{int(mot_id[k])},{_num(b[0])},{_num(b[1])},"
-                         f"{_num(b[2] - b[0])},{_num(b[3] - b[1])},{shapes.confidence[k]:.4f},"
+                         f"{_num(b[2] - b[0])},{_num(b[3] - b[1])},{conf},"
                          f"{x[0]:.4f},{x[1]:.4f},{x[2]:.4f}")
         path = folder / f"{cam.name}.txt"
         path.write_text("".join(f"{s}\n" for s in lines))
@@ -207,14 +241,30 @@ def write_mot(shapes: Shapes, rig: Rig, folder: Path) -> list[Path]:
 
 
 def piece_ids(shapes: Shapes) -> I64:
-    """(S,) one integer per (id, piece): the id for its first piece, numbers after the largest
-    id for the further pieces of split ids (formats whose track ids are integers)."""
-    out = shapes.track.copy()
-    extra = np.flatnonzero(shapes.segment > 0)
-    if len(extra):
-        pairs, inv = np.unique(np.c_[shapes.track[extra], shapes.segment[extra]], axis=0,
-                               return_inverse=True)
-        out[extra] = int(shapes.track.max()) + 1 + inv.reshape(-1)
+    """(S,) the track id each shape is written under (:func:`piece_track_ids`)."""
+    return shapes.track if shapes.piece_id is None else shapes.piece_id
+
+
+def piece_of(frame: I64, track_id: I64, pieces: tuple[tuple[int, int, int, int], ...]) -> I64:
+    """(M,) the piece (``segments.csv``: id, segment, first, last frame) each row belongs to; 0
+    for ids kept whole."""
+    out = np.zeros(len(frame), np.int64)
+    for i, seg, a, b in pieces:
+        out[(track_id == i) & (frame >= a) & (frame <= b)] = seg
+    return out
+
+
+def piece_track_ids(track_id: I64, segment: I64, pieces: tuple[tuple[int, int, int, int], ...],
+                    top: int) -> I64:
+    """(M,) one integer per (id, piece), as formats whose track ids are integers need: the id
+    for its first piece; the further pieces of split ids (``pieces``, ``segments.csv``'s rows)
+    ``top + 1, top + 2, ...`` in (id, piece) order, ``top`` the run's largest id. A function of
+    the run alone, so that every file written from it and the report agree."""
+    later = np.array(sorted({(int(i), int(s)) for i, s, _, _ in pieces if s > 0}),
+                     dtype=np.int64).reshape(-1, 2)
+    out = np.asarray(track_id, dtype=np.int64).copy()
+    at = lookup_rows(later, np.c_[track_id, segment])
+    out[at >= 0] = top + 1 + at[at >= 0]
     return out
 
 
@@ -239,7 +289,7 @@ def write_coco(shapes: Shapes, rig: Rig, joints: tuple[str, ...], bones: tuple[t
                 "bbox": [float(b[0]), float(b[1]), float(b[2] - b[0]), float(b[3] - b[1])],
                 "area": float((b[2] - b[0]) * (b[3] - b[1])), "iscrowd": 0,
                 "track_id": int(tid[k]), "score": round(float(shapes.confidence[k]), 4),
-                "attributes": {**shapes.attributes(k), "occluded": bool(shapes.occluded[k])}}
+                "attributes": {**shapes.attributes(k, joints), "occluded": bool(shapes.occluded[k])}}
             if J:
                 uv = shapes.kpt_uv_px[k]
                 seen = np.isfinite(uv).all(axis=1)

@@ -27,6 +27,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.eval.metrics import match_rows
 from gt3dkit.fusion.prepare import prepare
 from gt3dkit.io.atomic import write_dir_atomically
+from gt3dkit.io.labels import piece_of, piece_track_ids
 from gt3dkit.io.writers import read_segments_csv
 from gt3dkit.parse import read_csv_rows
 from gt3dkit.skeletons import SKELETONS
@@ -155,8 +156,9 @@ def _anomaly_section(run: Run, res: Any, folder: Path) -> str:
     joints = _joint_names(run.scene)
     body = []
     (folder / "anomalies").mkdir(exist_ok=True)
-    for i in sorted(order[:MAX_ROWS], key=lambda i: (int(rows[i]["frame"]), rows[i]["id"],
-                                                     rows[i]["camera"])):
+    shown = sorted(order[:MAX_ROWS], key=lambda i: (int(rows[i]["frame"]), rows[i]["id"], rows[i]["camera"]))
+    where = dict(zip(shown, cvat_pointers(run, [rows[i] for i in shown]), strict=True))
+    for i in shown:
         r = rows[i]
         pic = ""
         if i in pictured and r["id"].strip().lstrip("-").isdigit():
@@ -168,14 +170,45 @@ def _anomaly_section(run: Run, res: Any, folder: Path) -> str:
                 pic = f'<img src="{name}">'
         named = r["joint"].isdigit() and int(r["joint"]) < len(joints)
         joint = joints[int(r["joint"])] if named else r["joint"]
+        fix = "; ".join(f"{c}.xml track {t} frame {f}" for c, t, f in where[i])
         body.append([r["frame"], r["camera"] or "(all)", r["id"] or "(all)", joint, r["kind"], r["score"],
-                     html.escape(r["detail"]), pic])
+                     html.escape(r["detail"]), fix, pic])
     more = (f"<p>{len(rows) - MAX_ROWS} more rows in anomalies.csv.</p>" if len(rows) > MAX_ROWS else "")
     return (f"<p>{len(rows)} rows (anomalies.csv); pictures for the {min(len(rows), MAX_PICTURES)} highest "
             "scores: the flagged view (red name) and the object's other views at that frame, "
             f"{html.escape(_annotation_note())}; a flagged joint is circled red.</p>"
-            + _table(body, ["frame", "camera", "id", "joint", "kind", "score", "detail", "views"],
-                     raw_cols=(6, 7)) + more)
+            + "<p>open in CVAT: the task of that camera from <code>gt3d project OUT --format cvat</code>, "
+              "the track and frame to fix (a split id's later pieces are tracks of their own).</p>"
+            + _table(body, ["frame", "camera", "id", "joint", "kind", "score", "detail", "open in CVAT",
+                            "views"], raw_cols=(6, 8)) + more)
+
+
+def cvat_pointers(run: Run, rows: list[dict[str, str]]) -> list[list[tuple[str, int, int]]]:
+    """For each anomaly row, where to fix it in the files ``gt3d project`` writes from this run:
+    ``[(camera, track id, frame)]``, the row's camera or every camera that labelled the object
+    in that frame, the track id of the object's piece there (:func:`gt3dkit.io.labels.piece_track_ids`,
+    as the CVAT, MOT and COCO files number it). Empty for rows without a frame and id."""
+    pieces: tuple[tuple[int, int, int, int], ...] = ()
+    if (run.out / "segments.csv").is_file():
+        try:
+            pieces = read_segments_csv(run.out / "segments.csv")
+        except InputError:
+            pieces = ()
+    obs, names = run.scene.obs, run.scene.rig.names
+    top = int(run.tracks.track_id.max()) if len(run.tracks.track_id) else 0
+    out: list[list[tuple[str, int, int]]] = []
+    for r in rows:
+        try:
+            f, i = int(r["frame"]), int(r["id"])
+        except (KeyError, TypeError, ValueError):
+            out.append([])
+            continue
+        one = np.array([f]), np.array([i])
+        track = int(piece_track_ids(one[1], piece_of(*one, pieces), pieces, top)[0])
+        cams = [r["camera"]] if r.get("camera") else \
+            [names[c] for c in np.unique(obs.cam[(obs.frame == f) & (obs.track_id == i)])]
+        out.append([(c, track, f) for c in cams])
+    return out
 
 
 def _split_frames(out: Path) -> dict[tuple[int, int], int]:

@@ -5,7 +5,11 @@ Each ``mot/<camera>.txt`` is MOTChallenge's comma-separated text without a heade
 the distorted image; ``x,y,z`` ignored). The ids are the camera's own (every annotation task
 numbers its people): :mod:`gt3dkit.fusion.associate` turns them into global identities.
 Rows with ``conf`` 0 are MOTChallenge's "ignore" boxes and are skipped (with a warning); an id
-of -1 (a detection without a track) is an error, as the tracklets are what is associated.
+of -1 (a detection without a track) is an error, as the tracklets are what is associated. In a
+folder ``gt3d project`` wrote (it holds its ``projection.json``), rows with ``conf`` below 1
+are the shapes it drew from the estimate (:mod:`gt3dkit.io.labels`) that nobody changed (an
+annotation tool exporting MOT writes 1): not labels but the estimate's own projection, left out
+with a warning (see :mod:`gt3dkit.io.datasets.tasks`).
 
 The calibration is the first of ``cameras.json``, ``calibration/``, ``*.toml`` (not Pose2Sim's
 ``Config.toml``) or ``sparse/`` in the folder (any format of :mod:`gt3dkit.calib.formats`), or
@@ -96,6 +100,8 @@ def load(root: Path, calib: Path | str | None = None, fps: float | None = None) 
     cam_of = match_cameras([p.stem for p in txts], rig, str(folder), warnings)
     rb = RowBuilder()
     ignored = 0
+    projected = (root / "projection.json").is_file()
+    drawn = 0
     for p in txts:
         cam = cam_of[p.stem]
         for line, r in iter_csv_rows(p, MOT_COLUMNS, warnings, header=False):
@@ -111,6 +117,9 @@ def load(root: Path, calib: Path | str | None = None, fps: float | None = None) 
             if conf == 0:
                 ignored += 1
                 continue
+            if projected and conf < 1:
+                drawn += 1
+                continue
             if tid < 0:
                 raise InputError(where, f"id {tid}: a detection without a track id (gt3dkit associates "
                                         "per-camera tracks; run a tracker per camera first)")
@@ -123,6 +132,9 @@ def load(root: Path, calib: Path | str | None = None, fps: float | None = None) 
             rb.add_box(frame, cam, tid, box, where)
     if ignored:
         warnings.append(f"{folder}: {ignored} boxes with conf 0 (MOTChallenge's ignore flag) skipped")
+    if drawn:
+        warnings.append(f"{folder}: {drawn} boxes gt3d project drew that nobody changed (conf below 1 "
+                        "beside its projection.json) left out (the estimate's own projection, not labels)")
     obs = rb.build()
     if len(obs) == 0:
         raise InputError(str(root), "no annotations in any frame")

@@ -10,6 +10,18 @@
   h, and the track as ``track_id``, ``instance_id`` or ``attributes.track_id`` when present),
   ``categories[].keypoints`` = the joint names.
 
+A shape ``gt3d project`` drew from an estimate (a proposal or an interpolation: its
+``drawn_digest`` attribute, CVAT shape attributes or COCO ``attributes``) that nobody changed
+(its coordinates still give that digest, :func:`gt3dkit.io.labels.shape_digest`) is not a
+label: it is the estimate's own projection, and reading it as a measurement would count the
+estimate's information twice (a narrower sd than the labels support, and with the filter's
+nonlinearity a moved estimate). Such shapes are left out, with a warning; a drawn shape an
+annotator moved is a label like any other.
+
+CVAT numbers the tracks 0, 1, ... when it exports a task: a track whose shapes carry a
+``track_id`` attribute (``gt3d project`` writes one) keeps that id; tracks without one (drawn
+in the tool) are numbered after the largest, with a warning.
+
 Joint names in any usual spelling are matched to the smallest known skeleton holding them all
 (:func:`gt3dkit.skeletons.skeleton_for_names`). With track ids, the per-camera tracks are
 associated across cameras (:func:`gt3dkit.fusion.associate.associate`); without, each frame's
@@ -33,11 +45,23 @@ from gt3dkit.io.datasets.common import RowBuilder, camera_ids, local_ids
 from gt3dkit.io.datasets.mot import DEFAULT_FPS, calibration_beside, match_cameras, natural_key
 from gt3dkit.io.datasets.native import read_kpt_truth, write_cameras, write_kpt_truth
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
+from gt3dkit.io.labels import shape_digest
 from gt3dkit.parse import load_json, parse_frame, parse_int, sha256
 from gt3dkit.skeletons import SKELETONS, _norm_joint, skeleton_for_names
 from gt3dkit.types import Scene, SimScene, SkeletonScene
 
-Item = tuple[int, int, int, list[float] | None, dict[str, tuple[float, float, float]], str]
+#: (frame, track id, detection index, box or None, {joint: (x, y, conf)}, where, untouched):
+#: ``untouched`` a shape gt3d drew that nobody changed (see the module doc)
+Item = tuple[int, int, int, list[float] | None, dict[str, tuple[float, float, float]], str, bool]
+
+
+def _untouched(digest: Any, box: list[float] | None, pts: dict[str, tuple[float, float, float]]) -> bool:
+    """Whether a shape whose ``drawn_digest`` attribute is ``digest`` still has the coordinates
+    gt3d drew."""
+    if not digest:
+        return False
+    return str(digest).strip() == shape_digest(None if box is None else np.asarray(box),
+                                               {n: (x, y) for n, (x, y, _) in pts.items()})
 
 
 def _num(where: str, v: Any, name: str) -> float:
@@ -50,8 +74,33 @@ def _num(where: str, v: Any, name: str) -> float:
     return x
 
 
-def _read_cvat(path: Path) -> list[Item]:
-    """(frame, track id, -1, box or None, {joint: (x, y, 1)}, where) per shape."""
+def _cvat_track_ids(path: Path, root: Any, warnings: list[str]) -> dict[int, int]:
+    """Element id -> the track's id: its shapes' ``track_id`` attribute where every shape of
+    it carries the same one, else (a track drawn in the tool) numbers after the largest."""
+    out: dict[int, int] = {}
+    new: list[int] = []
+    for t in root.iter("track"):
+        where_t = f"{path}: track {t.get('id')!r}"
+        tid = parse_int(where_t, t.get("id"), "track id")
+        vals = {(a.text or "").strip() for sh in t for a in sh.findall("attribute")
+                if a.get("name") == "track_id"}
+        vals.discard("")
+        if len(vals) > 1:
+            raise InputError(where_t, f"its shapes carry different track_id attributes {sorted(vals)}")
+        if vals:
+            out[tid] = parse_int(where_t, vals.pop(), "track_id attribute")
+        else:
+            new.append(tid)
+    if out and new:
+        top = max(out.values())
+        out.update({t: top + 1 + k for k, t in enumerate(sorted(new))})
+        warnings.append(f"{path}: {len(new)} tracks without a track_id attribute (new in the annotation "
+                        f"tool) numbered {top + 1} and up")
+    return out or {t: t for t in new}
+
+
+def _read_cvat(path: Path, warnings: list[str]) -> list[Item]:
+    """(frame, track id, -1, box or None, {joint: (x, y, 1)}, where, untouched) per shape."""
     import xml.etree.ElementTree as ET
 
     import defusedxml.ElementTree as DET
@@ -70,9 +119,10 @@ def _read_cvat(path: Path) -> list[Item]:
     if root.tag != "annotations":
         raise InputError(str(path), f"expected <annotations> (CVAT for video 1.1), got <{root.tag}>")
     out: list[Item] = []
+    ids = _cvat_track_ids(path, root, warnings)
     for t in root.iter("track"):
         where_t = f"{path}: track {t.get('id')!r}"
-        tid = parse_int(where_t, t.get("id"), "track id")
+        tid = ids[parse_int(where_t, t.get("id"), "track id")]
         for shape in t:
             if shape.tag not in ("box", "skeleton") or shape.get("outside", "0") == "1":
                 continue
@@ -90,7 +140,9 @@ def _read_cvat(path: Path) -> list[Item]:
                         raise InputError(f"{where} joint {p.get('label')!r}", f"points must be x,y, got "
                                                                               f"{p.get('points')!r}")
                     pts[str(p.get("label"))] = (_num(where, xy[0], "x"), _num(where, xy[1], "y"), 1.0)
-            out.append((f, tid, -1, box, pts, where))
+            digest = next((a.text for a in shape.findall("attribute") if a.get("name") == "drawn_digest"),
+                          None)
+            out.append((f, tid, -1, box, pts, where, _untouched(digest, box, pts)))
     return out
 
 
@@ -145,7 +197,10 @@ def _read_coco(path: Path) -> list[Item]:
                 x, y, v = (_num(where, kp[3 * j + k], "keypoints") for k in range(3))
                 if v > 0:
                     pts[n] = (x, y, 1.0 if v >= 2 else 0.5)
-        out.append((f, -1 if tid is None else parse_int(where, tid, "track_id"), det, box, pts, where))
+        attrs = a.get("attributes")
+        digest = attrs.get("drawn_digest") if isinstance(attrs, dict) else None
+        out.append((f, -1 if tid is None else parse_int(where, tid, "track_id"), det, box, pts, where,
+                    _untouched(digest, box, pts)))
     return out
 
 
@@ -160,7 +215,7 @@ def load(root: Path, kind: str, skeleton: str | None = None, calib: Path | str |
     rig, fps_doc, cal = calibration_beside(root, calib)
     warnings: list[str] = []
     cam_of = match_cameras([p.stem for p in paths], rig, str(root / kind), warnings)
-    items = {p: (_read_cvat(p) if kind == "cvat" else _read_coco(p)) for p in paths}
+    items = {p: (_read_cvat(p, warnings) if kind == "cvat" else _read_coco(p)) for p in paths}
     names = sorted({n for its in items.values() for it in its for n in it[4]})
     skel = None
     index: dict[str, int] = {}
@@ -178,16 +233,23 @@ def load(root: Path, kind: str, skeleton: str | None = None, calib: Path | str |
         index = dict(zip(names, idx, strict=True))
     with_ids = all(it[1] >= 0 for its in items.values() for it in its)
     rb = RowBuilder(n_joints=skel.n_joints if skel else 0)
+    untouched = 0
     for p, its in items.items():
         c = cam_of[p.stem]
-        for f, tid, det, box, pts, where in its:
+        for f, tid, det, box, pts, where, as_drawn in its:
             key = tid if with_ids else det
+            if as_drawn:
+                untouched += 1
+                continue
             if box is not None:
                 check_pixels(where, rig.cameras[c], box, "box")
                 rb.add_box(f, c, key, box, where)
             for n, (x, y, conf) in pts.items():
                 check_pixels(where, rig.cameras[c], [x, y], "keypoint")
                 rb.add_joint(f, c, key, index[n], (x, y), f"{where} joint {n!r}", conf)
+    if untouched:
+        warnings.append(f"{root / kind}: {untouched} shapes gt3d project drew that nobody changed left out "
+                        "(the estimate's own projection, not labels; move one to make it a label)")
     obs = rb.build()
     if len(obs) == 0:
         raise InputError(str(root), "no annotations in any frame")
