@@ -296,6 +296,57 @@ def _predict(row: int, prev: int, chains: Chains, motion: Motion, out: RowsOut, 
 
 
 @numba.njit(cache=True, nogil=True)
+def _centre_fade(row: int, fading: Fading, track: Track, e: F64, S: F64, c0: int) -> float:
+    """:func:`gt3dkit.fusion.kalman.fade_factor` of row ``row``'s prediction against the frame's
+    own fit (``e (3,), S (3, 3)``: work arrays)."""
+    for i in range(SPACE):
+        e[i] = fading.x_frame[row, c0 + i] - track.x_p[row, c0 + i]
+        for j in range(SPACE):
+            S[i, j] = track.P_p[row, c0 + i, c0 + j] + fading.cov6[row, i, j]
+    return fade_factor(e, S, fading.limit)
+
+
+@numba.njit(cache=True, nogil=True)
+def _measured(row: int, data: Measured) -> bool:
+    for k in range(data.mask.shape[1]):
+        if data.mask[row, k]:
+            return True
+    return False
+
+
+@numba.njit(cache=True, nogil=True)
+def _spread_over_gap(row: int, f: float, chains: Chains, motion: Motion, data: Measured, out: RowsOut,
+                     F: F64, Q: F64, track: Track) -> bool:
+    """Where row ``row`` (whose prediction the frame's own views contradict by the fading factor
+    ``f``) follows rows without measurements (a dense run's frames between labels): the centre's
+    process noise of every step since the last measured row scaled by ``f`` (``Q <- f^2 Q`` on
+    centre and velocity) and those rows predicted again, their filtered values the new
+    predictions. The manoeuvre then has the whole gap to happen in, and the smoother spreads it
+    over the gap's frames instead of putting it into the last step (where the earlier frames
+    would keep the old heading). False, and nothing changed, where the previous row is measured
+    or no measured row precedes the gap."""
+    last = chains.prev_row[row]
+    while last >= 0 and chains.run[last] and not _measured(last, data):
+        last = chains.prev_row[last]
+    if last < 0 or not chains.run[last] or last == chains.prev_row[row]:
+        return False
+    prev = last
+    cur = chains.next_row[last]
+    while True:
+        noise = motion_noise(motion, cur)
+        transition(chains.t_s[cur] - chains.t_s[prev],
+                   Noise(noise.accel_sd * f, noise.shape_sd, noise.joint_accel_sd, noise.position_sd * f),
+                   motion.A, motion.ix, F, Q)
+        predict_row(out.x[prev], out.P[prev], F, Q, track.x_p[cur], track.P_p[cur])
+        if cur == row:
+            return True
+        out.x[cur] = track.x_p[cur]
+        out.P[cur] = track.P_p[cur]
+        prev = cur
+        cur = chains.next_row[cur]
+
+
+@numba.njit(cache=True, nogil=True)
 def forward(first: I64, chains: Chains, start: Start, motion: Motion, fading: Fading, data: Measured, w0: F64,
             box: BoxModel, out: RowsOut, track: Track) -> None:
     """Forward filter of every object whose first row is in ``first``: its rows along
@@ -317,13 +368,12 @@ def forward(first: I64, chains: Chains, start: Start, motion: Motion, fading: Fa
             else:
                 _predict(row, prev, chains, motion, out, F, Q, track)
                 if fading.on and fading.determined[row]:
-                    for i in range(SPACE):
-                        e[i] = fading.x_frame[row, c0 + i] - track.x_p[row, c0 + i]
-                        for j in range(SPACE):
-                            S[i, j] = track.P_p[row, c0 + i, c0 + j] + fading.cov6[row, i, j]
-                    f = fade_factor(e, S, fading.limit)
+                    f = _centre_fade(row, fading, track, e, S, c0)
                     if f != 1.0:
-                        fade_centre(track.P_p[row], f, ix)
+                        if _spread_over_gap(row, f, chains, motion, data, out, F, Q, track):
+                            f = _centre_fade(row, fading, track, e, S, c0)
+                        if f != 1.0:
+                            fade_centre(track.P_p[row], f, ix)
                         track.faded[row] = True
             ellipsoid_linearisation(track.x_p[row], track.P_p[row], fading.x_frame[row], fading.cov6[row],
                                     fading.frame_trace[row], box.sigma.dims, ix, x_l, P_l)

@@ -754,6 +754,31 @@ def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
         Q = np.stack([q for _, q in FQ])
         return F[inv.reshape(-1)], Q[inv.reshape(-1)]
 
+    measured = model.mask.any(axis=1)
+
+    def spread_over_gap(row: int, scale: F64) -> bool:
+        """Where row ``row``'s prediction, contradicted by the frame's own views (the fading
+        scales ``scale (n,)``), follows rows without measurements: the process noise of every
+        step since the last measured row as ``S Q S`` and those rows predicted again (as
+        :func:`gt3dkit.fusion.boxupdate._spread_over_gap`). False where no measured row
+        precedes the gap."""
+        gap = []
+        k = int(rows.prev_row[row])
+        while k >= 0 and (on is None or on[k]) and not measured[k]:
+            gap.append(k)
+            k = int(rows.prev_row[k])
+        if k < 0 or (on is not None and not on[k]) or not gap:
+            return False
+        prev = k
+        for cur in gap[::-1] + [row]:
+            F, Q = transition(frame_s[rows.row_t[cur]] - frame_s[rows.row_t[prev]], np.array([cur]))
+            x, P = predict_linear(x_f[prev][None], P_f[prev][None], F, scale[:, None] * Q * scale[None, :])
+            x_p[cur], P_p[cur] = x[0], P[0]
+            if cur != row:
+                x_f[cur], P_f[cur] = x[0], P[0]
+            prev = cur
+        return True
+
     blocks = model.blocks()
     columns = model.columns(robust)
     per_row = {k: np.zeros(R) for k in ("nis_rows", "dof_rows", "loglik_rows")}
@@ -781,6 +806,9 @@ def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
             if fade:
                 sc = model.prior_conflict(ro, x_p[ro], P_p[ro])
                 hit = np.any(sc > 1, axis=1)
+                gap = [g for g in np.flatnonzero(hit & ~measured[po]) if spread_over_gap(int(ro[g]), sc[g])]
+                if gap:  # what the spread noise does not explain fades the prediction as before
+                    sc[gap] = model.prior_conflict(ro[gap], x_p[ro[gap]], P_p[ro[gap]])
                 if hit.any():
                     P_p[ro[hit]] = sc[hit, :, None] * P_p[ro[hit]] * sc[hit, None, :]
                     faded += int(hit.sum())

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gt3dkit.api import load_scene
+from gt3dkit.api import dense_frames, load_scene
 from gt3dkit.fusion import ukf_smoother as us
 from gt3dkit.fusion.boxfit import box_model as box_function
 from gt3dkit.fusion.boxupdate import LinearisedSearch
@@ -31,6 +31,17 @@ def box_scene(tmp_path_factory: pytest.TempPathFactory):
     sim = simulate("wildtrack", seed=5, frames=6, people=12, noise_px=1.0, errors=Errors(outliers=0.05))
     write_scene(sim, root, "wildtrack")
     return sim, Model.of(us.UKFSmoother().prepare(load_scene(root)))
+
+
+@pytest.fixture(scope="module")
+def gap_model(tmp_path_factory: pytest.TempPathFactory) -> Model:
+    """Walkers at 2 fps who stop and turn, no labels in frames 3-6, rows at every frame (a dense
+    run): rows without measurements between measured ones."""
+    root = Path(tmp_path_factory.mktemp("boxgap")) / "in"
+    sim = simulate("native", seed=6, frames=14, people=8, noise_px=1.0, motion="stop-and-turn", fps=2.0,
+                   errors=Errors(gap=(3, 7), dropped=0.0))
+    write_scene(sim, root, "native")
+    return Model.of(us.UKFSmoother().prepare(dense_frames(load_scene(root), None)))
 
 
 @pytest.fixture(params=sorted(us.BACKENDS))
@@ -136,6 +147,21 @@ def test_the_backends_agree_on_a_box_model(box_scene, case: str) -> None:
     for k in ("predictions_faded", "object_frames", "pd_repairs", "update_passes_mean"):
         assert getattr(a, k) == getattr(b, k), k
     assert (a.predictions_faded > 0) == (case == "fade")
+
+
+def test_the_backends_agree_where_a_gap_ends_in_a_faded_prediction(gap_model: Model) -> None:
+    """A prediction faded at the first labelled frame after a gap: both loop orders predict the
+    gap's rows again with the scaled noise (the same numbers)."""
+    model = gap_model
+    unmeasured = ~model.mask.any(axis=1)
+    assert unmeasured.sum() >= 8
+    cfg, init, kw = _box_run(model, "fade")
+    a = us.BACKENDS["objects"](model, init, cfg, 2.0, **kw)
+    b = us.BACKENDS["frames"](model, init, cfg, 2.0, **kw)
+    assert a.predictions_faded == b.predictions_faded > 0
+    np.testing.assert_allclose(a.x, b.x, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(a.P, b.P, rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(a.loglik_rows, b.loglik_rows, rtol=1e-7, atol=1e-8)
 
 
 def test_each_backend_tracks_the_truth_and_rejects_outliers(box_scene, backend) -> None:
