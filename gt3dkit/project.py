@@ -173,9 +173,11 @@ def project_run(run: Run, step: int | None = None, cameras: tuple[str, ...] | No
     shape_box = np.r_[obs.box_xyxy_px[lab], np.round(clipped[r_p, c_p], 2)]  # drawn: 0.01 px
     kpt = np.r_[obs.kpt_uv_px[lab].reshape(len(lab), J, 2) if J else np.zeros((len(lab), 0, 2)),
                 np.round(uv[r_p, c_p], 2)]
+    box_drawn = source != 0
     if J:  # a keypoint label has no box of its own: the estimate's
         no_box = ~np.isfinite(shape_box).all(1)
-        shape_box[no_box] = clipped[rows[no_box], cam[no_box]]
+        shape_box[no_box] = np.round(clipped[rows[no_box], cam[no_box]], 2)
+        box_drawn |= no_box
     sd = sd_px[rows, cam]
     sigma = float(((run.meta.get("estimator") or {}).get("params") or {}).get("sigma_px") or 1.0)
     conf = np.where(source == 0, 1.0, sigma / np.sqrt(sigma**2 + sd**2))
@@ -187,7 +189,8 @@ def project_run(run: Run, step: int | None = None, cameras: tuple[str, ...] | No
     shapes = Shapes(st["frame"][rows], cam, st["id"][rows], st["seg"][rows], shape_box, kpt, source,
                     occluded[rows, cam], sd, conf, anomalies, st["centre"][rows],
                     step=int(step or frame_grid(tr.frame)[1]),
-                    piece_id=piece_track_ids(st["id"][rows], st["seg"][rows], pieces, top))
+                    piece_id=piece_track_ids(st["id"][rows], st["seg"][rows], pieces, top),
+                    box_drawn=box_drawn)
     if only_flagged:
         shapes = shapes.take((shapes.source != 0) | np.array([a != "" for a in anomalies], bool))
     return shapes

@@ -114,6 +114,22 @@ class BoxFit:
     leverage: F64
 
 
+def inverse_rows(A: F64) -> F64:
+    """``(N, k, k)`` inverses of ``A (N, k, k)``; a matrix LAPACK finds singular (a fit whose
+    Jacobian overflowed or vanished) gets NaN, the others their inverse (numpy's batched inverse
+    raises for the whole batch on one singular matrix)."""
+    try:
+        return np.linalg.inv(A)
+    except np.linalg.LinAlgError:
+        out = np.full(A.shape, np.nan)
+        for i, a in enumerate(A):
+            try:
+                out[i] = np.linalg.inv(a)
+            except np.linalg.LinAlgError:
+                pass  # stays NaN: the fit has no covariance, its row is not ok
+        return out
+
+
 def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: F64 | float = 1.0,
               prior_log_axes: F64 | None = None, prior_sd: F64 | float = 1.0,
               iters: int = 40, p0: F64 | None = None) -> BoxFit:
@@ -141,8 +157,8 @@ def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: F64 | float = 1.0,
     z = np.where(box_mask, box_z, 0.0)
     p, r, J = fit_compiled(p, z, box_mask, ok, np.asarray(sigma_px, dtype=np.float64), prior,
                            np.asarray(prior_sd, dtype=np.float64), iters, BoxCameras.of(cams))
-    A = np.matmul(J.transpose(0, 2, 1), J) + 1e-12 * np.eye(6)
-    cov = np.linalg.inv(A)
+    cov = inverse_rows(np.matmul(J.transpose(0, 2, 1), J) + 1e-12 * np.eye(6))
+    ok = ok & np.all(np.isfinite(cov), axis=(1, 2))
     n_edges = box_mask.reshape(N, -1).sum(axis=1).astype(np.float64)
     m = box_mask.reshape(N, -1).shape[1]
     Jm = J[:, :m]

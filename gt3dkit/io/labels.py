@@ -33,7 +33,9 @@ label.
 * **COCO**: per camera ``images`` (``frame_id``), ``annotations`` (``bbox``, ``area``,
   ``track_id``, ``score`` = the confidence, ``attributes`` with the rest, keypoints with
   visibility 2 / 1 (occluded) / 0 for keypoint runs), ``categories`` (``person``, its joint
-  names and bones).
+  names and bones). COCO wants a ``bbox`` on every annotation: where a keypoint shape's box is
+  the estimate's (a keypoint label without a box, a drawn shape), ``bbox_digest`` (its
+  :func:`shape_digest`) tells the reader to leave that bbox out unless an annotator changed it.
 """
 
 from __future__ import annotations
@@ -68,6 +70,8 @@ class Shapes:
     center_world : (S, 3) float64 metres, the estimate's centre
     step : the frame step of the sequence (a track's frames further apart are two runs)
     piece_id : (S,) int64 the track id written (:func:`piece_track_ids`); None: ``track``
+    box_drawn : (S,) bool the box is the estimate's, not a label's (a keypoint label without a
+        box, or a drawn shape); None: where ``source`` is not ``annotated``
     """
 
     frame: I64
@@ -84,6 +88,7 @@ class Shapes:
     center_world: F64
     step: int = 1
     piece_id: I64 | None = None
+    box_drawn: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.frame)
@@ -94,7 +99,8 @@ class Shapes:
                       self.box_xyxy_px[idx], self.kpt_uv_px[idx], self.source[idx],
                       self.occluded[idx], self.sd_px[idx], self.confidence[idx],
                       tuple(self.anomalies[i] for i in idx), self.center_world[idx], self.step,
-                      None if self.piece_id is None else self.piece_id[idx])
+                      None if self.piece_id is None else self.piece_id[idx],
+                      None if self.box_drawn is None else self.box_drawn[idx])
 
     def attributes(self, k: int, joints: tuple[str, ...] = (), with_box: bool = True) -> dict[str, str]:
         """The attributes of shape ``k`` as the tools' text; ``drawn_digest`` of a drawn shape
@@ -291,6 +297,9 @@ def write_coco(shapes: Shapes, rig: Rig, joints: tuple[str, ...], bones: tuple[t
                 "track_id": int(tid[k]), "score": round(float(shapes.confidence[k]), 4),
                 "attributes": {**shapes.attributes(k, joints), "occluded": bool(shapes.occluded[k])}}
             if J:
+                if shapes.source[k] != 0 or (shapes.box_drawn is not None and shapes.box_drawn[k]):
+                    # COCO wants a bbox: the estimate's, which a reader does not take for a label
+                    ann["attributes"]["bbox_digest"] = shape_digest(b, {})  # type: ignore[index]
                 uv = shapes.kpt_uv_px[k]
                 seen = np.isfinite(uv).all(axis=1)
                 vis = np.where(seen, 1 if shapes.occluded[k] else 2, 0)

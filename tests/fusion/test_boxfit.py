@@ -4,9 +4,10 @@ scipy's least_squares on the same residuals."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.optimize import least_squares
 
-from gt3dkit.fusion.boxfit import PERSON_SEMI_AXES_M, box_model, fit_boxes
+from gt3dkit.fusion.boxfit import PERSON_SEMI_AXES_M, box_model, fit_boxes, inverse_rows
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.conics import ellipsoid_boxes
 from gt3dkit.sim import simulate
@@ -79,3 +80,20 @@ def test_box_fit_from_a_start_behind_the_cameras_stays_finite() -> None:
     far = fit_boxes(z, mask, cams, p0=p0)
     assert np.isfinite(far.center_world[10]).all()
     assert np.isfinite(far.cov[10]).all()
+
+
+def test_a_singular_fit_has_no_covariance_and_does_not_sink_the_batch() -> None:
+    """numpy's batched inverse raises for the whole batch when one matrix is singular: that
+    row's covariance is NaN, every other row's is its own inverse."""
+    rng = np.random.default_rng(3)
+    B = rng.normal(size=(5, 6, 6))
+    A = B @ np.swapaxes(B, 1, 2) + np.eye(6)
+    A[2] = 0.0
+    A[2, 0, 0] = 1.0  # rank one: LAPACK finds it singular
+    with pytest.raises(np.linalg.LinAlgError):
+        np.linalg.inv(A)
+    cov = inverse_rows(A)
+    assert np.isnan(cov[2]).all()
+    keep = [0, 1, 3, 4]
+    np.testing.assert_allclose(cov[keep], np.linalg.inv(A[keep]), rtol=1e-12)
+    np.testing.assert_array_equal(inverse_rows(A[keep]), np.linalg.inv(A[keep]))

@@ -199,8 +199,12 @@ def _read_coco(path: Path) -> list[Item]:
                     pts[n] = (x, y, 1.0 if v >= 2 else 0.5)
         attrs = a.get("attributes")
         digest = attrs.get("drawn_digest") if isinstance(attrs, dict) else None
+        untouched = _untouched(digest, box, pts)
+        drawn_box = attrs.get("bbox_digest") if isinstance(attrs, dict) else None
+        if pts and box is not None and _untouched(drawn_box, box, {}):
+            box = None  # the bbox gt3d drew for COCO around keypoints, unchanged: not a box label
         out.append((f, -1 if tid is None else parse_int(where, tid, "track_id"), det, box, pts, where,
-                    _untouched(digest, box, pts)))
+                    untouched))
     return out
 
 
