@@ -15,6 +15,7 @@ from gt3dkit.fusion.kalman import predict_linear, rts_step
 from gt3dkit.fusion.motion import StateLayout
 from gt3dkit.fusion.ukf import SigmaWeights, ukf_update_information
 from gt3dkit.fusion.update import Measured
+from gt3dkit.geom.smallmat import matmul
 from tests.oracles import sigma_points, ukf_update, unscented_transform
 
 finite = st.floats(-3, 3, allow_nan=False, allow_infinity=False)
@@ -164,3 +165,34 @@ def test_information_form_equals_covariance_form_on_linear_model() -> None:
     np.testing.assert_allclose(Pi, Pc, atol=1e-9)
     assert ii["loglik"] == pytest.approx(ic["loglik"], rel=1e-9)
     assert ii["nis"] == pytest.approx(ic["nis"], rel=1e-9)
+
+
+def test_prediction_and_rts_skip_the_transitions_zeros_bit_for_bit() -> None:
+    """The prediction and RTS step multiply by the sparse ``F`` skipping its zeros: the same bits
+    as the dense products (compiled ``matmul``), on a 19-joint state with random covariances."""
+    lay = StateLayout(n_joints=19)
+    n = lay.n
+    F, Q = lay.transition(np.array([0.1, 0.35]), accel_sd=1.3, shape_sd=0.05, joint_accel_sd=4.0)
+    rng = np.random.default_rng(2)
+    A = rng.normal(size=(2, n, n))
+    P = A @ np.swapaxes(A, 1, 2) / n + 1e-3 * np.eye(n)
+    x = rng.normal(size=(2, n))
+
+    def dense(b: int) -> tuple[np.ndarray, np.ndarray]:
+        FP, Pp = np.empty((n, n)), np.empty((n, n))
+        matmul(F[b], P[b], FP)
+        matmul(FP, np.ascontiguousarray(F[b].T), Pp)
+        return F[b] @ x[b], 0.5 * ((Pp + Q[b]) + (Pp.T + Q[b].T))
+
+    x_p, P_p = predict_linear(x, P, F, Q)
+    for b in range(2):
+        xd, Pd = dense(b)
+        np.testing.assert_allclose(x_p[b], xd, rtol=1e-14, atol=1e-15)
+        np.testing.assert_array_equal(P_p[b], Pd)
+    # the RTS step against numpy's dense algebra
+    x_s, P_s = x_p + 0.01 * rng.normal(size=(2, n)), 0.9 * P_p
+    x_o, P_o = rts_step(x, P, x_p, P_p, x_s, P_s, F)
+    for b in range(2):
+        G = P[b] @ F[b].T @ np.linalg.inv(P_p[b])
+        np.testing.assert_allclose(x_o[b], x[b] + G @ (x_s[b] - x_p[b]), rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(P_o[b], P[b] + G @ (P_s[b] - P_p[b]) @ G.T, rtol=1e-7, atol=1e-10)
