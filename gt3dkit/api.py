@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from gt3dkit.arrays import frame_grid, lookup_rows
+from gt3dkit.arrays import frame_grid, lookup_rows, unique_rows
 from gt3dkit.calib.formats.native import rig_of_doc
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.associate import apply_association, associate, associate_detections, read_overrides
@@ -49,7 +49,7 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     if scene.layout in ASSOCIATED:  # ids per camera or none -> global identities, before the checks
         over = read_overrides(Path(association), scene.rig.names) if association is not None else None
         if over:  # a row whose camera has no such id (a track deleted, a drawn shape left out): unused
-            pairs = np.unique(np.c_[scene.obs.cam, scene.obs.track_id], axis=0)
+            pairs = unique_rows(np.c_[scene.obs.cam, scene.obs.track_id])
             have = {(scene.rig.names[int(c)], int(i)) for c, i in pairs}
             unused = [k for k in over if (k[0], k[1]) not in have and k[2] is None]
             if unused:

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from gt3dkit.api import estimate_checked, process_noise_of, take_rows
+from gt3dkit.arrays import unique_rows
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.base import make_estimator
 from gt3dkit.io.writers import write_outputs
@@ -114,7 +115,7 @@ def state_bytes(n_joints: int) -> float:
 
 def objects_per_frame(scene: Scene) -> tuple[I64, I64]:
     """``(F,)`` the annotated frames and ``(F,)`` how many objects each holds (object-frames)."""
-    keys = np.unique(np.c_[scene.obs.frame, scene.obs.track_id], axis=0)
+    keys = unique_rows(np.c_[scene.obs.frame, scene.obs.track_id])
     frames, count = np.unique(keys[:, 0], return_counts=True)
     return frames.astype(np.int64), count.astype(np.int64)
 

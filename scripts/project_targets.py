@@ -1,8 +1,8 @@
 """Issue 24's targets for ``gt3d project`` (the 3D labels back into the annotation tool).
 
 On the bundled real MultiviewX and a simulated WILDTRACK-layout scene (clean labels), every
-third frame is kept as a keyframe and 15 % of the keyframes' labels are left out; the rest is
-reconstructed (UKF, a row at every frame of the original grid) and projected:
+third frame (``--key-step``) is kept as a keyframe and 15 % of the keyframes' labels are left
+out; the rest is reconstructed (UKF, a row at every frame of the original grid) and projected:
 
 * every left-out view the QA names ``missing_view`` has a proposal with IoU >= 0.9 against the
   left-out label (both clipped to the image);
@@ -19,11 +19,12 @@ reconstructed (UKF, a row at every frame of the original grid) and projected:
 
 datumaro and pycocotools reading the files: tests/test_project.py.
 
-Usage: ``OPENBLAS_NUM_THREADS=1 .venv/bin/python scripts/project_targets.py``
+Usage: ``OPENBLAS_NUM_THREADS=1 .venv/bin/python scripts/project_targets.py [--key-step 3]``
 """
 
 from __future__ import annotations
 
+import argparse
 import subprocess
 import sys
 import tempfile
@@ -136,12 +137,12 @@ def tool_boxes(scene: Scene, keep: np.ndarray, keys: np.ndarray) -> np.ndarray:
     return out
 
 
-def scenario(name: str, scene: Scene, work: Path, rng: np.random.Generator) -> None:
+def scenario(name: str, scene: Scene, work: Path, rng: np.random.Generator, key_step: int) -> None:
     obs = scene.obs
     labelled = np.isfinite(obs.box_xyxy_px).all(axis=1)
     frames = np.unique(obs.frame[labelled])
     _, step = frame_grid(frames)
-    key_frames = frames[::3]
+    key_frames = frames[::key_step]
     at_key = np.isin(obs.frame, key_frames)
     dropped = labelled & at_key & (rng.random(len(obs)) < 0.15)
     keep = labelled & at_key & ~dropped
@@ -175,7 +176,7 @@ def scenario(name: str, scene: Scene, work: Path, rng: np.random.Generator) -> N
     v = iou(clip(truth, wh[named[:, 1]]), np.where(proposed[:, None], shapes.box_xyxy_px[at], 0.0))
     print(
         f"  {int(dropped.sum())} left out, {len(named)} named missing_view; IoU of their proposals: "
-        f"min {np.min(v, initial=np.nan):.3f}, median {np.median(v) if len(v) else np.nan:.3f}"
+        f"min {np.min(v) if len(v) else np.nan:.3f}, median {np.median(v) if len(v) else np.nan:.3f}"
     )
     target(
         f"{name} every missing_view gets a proposal with IoU >= 0.9",
@@ -294,15 +295,22 @@ def wildtrack(work: Path) -> None:
 
 
 def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--key-step", type=int, default=3, help="keep every STEP-th frame as a keyframe (3)")
+    step = ap.parse_args().key_step
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        scenario("MultiviewX", load_scene(bundled("multiviewx")), work, np.random.default_rng(0))
+        scenario("MultiviewX", load_scene(bundled("multiviewx")), work, np.random.default_rng(0), step)
         sim = simulate("wildtrack", seed=2, frames=60, people=12)
         (work / "sim").mkdir()
 
         write_scene(sim, work / "sim" / "in", "native")
         scenario(
-            "simulated WILDTRACK layout", load_scene(work / "sim" / "in"), work, np.random.default_rng(1)
+            "simulated WILDTRACK layout",
+            load_scene(work / "sim" / "in"),
+            work,
+            np.random.default_rng(1),
+            step,
         )
         wildtrack(work)
     print("ALL TARGETS PASS" if not FAILED else f"FAILED: {'; '.join(FAILED)}")
