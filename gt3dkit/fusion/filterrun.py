@@ -52,11 +52,27 @@ class FilterRun:
                if not isinstance(getattr(self, f.name), np.ndarray) and getattr(self, f.name) is not None}
         return {**out, "mean_nis_per_dof": self.mean_nis_per_dof, "loglik": self.loglik}
 
+    def scalars(self) -> dict[str, Any]:
+        """The counters and descriptions (no arrays): what :meth:`after` needs of a run."""
+        return {f.name: getattr(self, f.name) for f in fields(self)
+                if not isinstance(getattr(self, f.name), np.ndarray) and f.name not in
+                ("weights", "score2", "residual")}
+
+    def after(self, earlier: dict[str, Any]) -> FilterRun:
+        """This run (of every row) as :meth:`merged` makes it from an earlier run whose
+        :meth:`scalars` are ``earlier`` with ``on`` all rows, without that run's arrays (they
+        can go before this run's are made): the earlier run's descriptions, the counters
+        summed."""
+        return replace(self, **{**earlier, "pd_repairs": earlier["pd_repairs"] + self.pd_repairs,
+                                "predictions_faded": earlier["predictions_faded"] + self.predictions_faded})
+
     def merged(self, new: FilterRun, on: np.ndarray) -> FilterRun:
         """This run with the rows ``on (R,)`` taken from ``new`` (a run of those rows' objects):
         states and covariances updated in place (they can be gigabytes), every per-row array
         and the counters combined."""
-        self.x[on], self.P[on] = new.x[on], new.P[on]
+        self.x[on] = new.x[on]
+        if new.P is not self.P:  # (a run written into this one's covariances: already there)
+            self.P[on] = new.P[on]
 
         def take(a: F64 | None, b: F64 | None) -> F64 | None:
             if a is None or b is None:

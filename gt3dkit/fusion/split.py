@@ -52,22 +52,29 @@ class JointSplit:
     owned: np.ndarray
     cols: I64
 
-    def merge(self, run: FilterRun, covariances: bool = True) -> FilterRun:
+    def merge(self, run: FilterRun, covariances: bool = True, on: np.ndarray | None = None,
+              into: F64 | None = None) -> FilterRun:
         """The run of the original rows (states ``(R, n)``, block-diagonal covariances ``(R, n,
         n)``, per-row statistics summed over the parts, per-entry arrays in the original
         columns) from a run of the split model. ``covariances=False``: ``P`` is ``(R, 0, 0)``
         (a caller that reads only the statistics, as the noise search, spares the whole state's
-        covariances: 121 kB a row with 19 joints)."""
+        covariances: 121 kB a row with 19 joints). ``on (R,)``: the rows that ran (the others'
+        covariances are zero, and their pages of ``P`` are not written); ``into (R, n, n)``: the
+        array ``P`` is (the rows ``on`` written, the others left as they are)."""
         x, P = run.x, run.P
         xo = np.zeros((self.R, self.n))
         rr = np.broadcast_to(self.src[:, None], self.dims.shape)
         xo[rr[self.owned], self.dims[self.owned]] = x[self.owned]
-        Po = np.zeros((self.R, self.n, self.n) if covariances else (self.R, 0, 0))
+        Po = into if into is not None and covariances else \
+            np.zeros((self.R, self.n, self.n) if covariances else (self.R, 0, 0))
+        ran = np.ones(len(self.src), bool) if on is None else on[self.src]
         for own in (self.part == 0, self.part > 0) if covariances else ():
             if own.any():
                 k = np.flatnonzero(self.owned[np.flatnonzero(own)[0]])
-                d = self.dims[own][:, k]
-                Po[self.src[own][:, None, None], d[:, :, None], d[:, None, :]] = P[own][:, k[:, None], k]
+                at = np.flatnonzero(own & ran)
+                d = self.dims[at][:, k]
+                Po[self.src[at][:, None, None], d[:, :, None], d[:, None, :]] = \
+                    P[at[:, None, None], k[None, :, None], k[None, None, :]]
         ok = self.cols >= 0
 
         def entries(v: F64 | None) -> F64 | None:

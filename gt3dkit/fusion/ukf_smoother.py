@@ -202,11 +202,18 @@ class UKFSmoother:
             w0 = smoothed_weights(model, run.x, cfg)
             changed = objects_rows(rows, np.any((w0 != model.weight0) & model.mask, axis=1))
             model = replace(model, weight0=w0)
-            if changed.any():
-                run = run.merged(run_filter(model, init, cfg, scene.fps, collect=True, on=changed), changed)
+            if changed.all():  # the first pass's states go before the second's are made
+                first = run.scalars()
+                run = None
+                run = run_filter(model, init, cfg, scene.fps, collect=True).after(first)
+            elif changed.any():
+                run = rerun_objects(model, init, cfg, scene.fps, run, changed)
         bone_info: dict[str, Any] = {}
         if pre.use_kpt and cfg.bones and pre.skeleton is not None:
-            run, bone_info = rerun_with_bones(model, init, cfg, scene.fps, run.x, run.P, pre.skeleton)
+            lengths = bone_lengths(model, cfg, run.x, run.P, pre.skeleton)
+            binit = Init(run.x, StartRows(run.P, rows.prev_row < 0, 4.0))
+            run = init = None  # the first pass's covariances go before the second's are made
+            run, bone_info = rerun_with_bones(model, cfg, scene.fps, lengths, binit)
         x_s, P_s = run.x, run.P
         nis = run.mean_nis_per_dof
         inflation = max(nis, 1.0) if cfg.inflate and np.isfinite(nis) else 1.0
@@ -343,30 +350,95 @@ def single_view_rows(pre: Prepared) -> np.ndarray:
 @dataclass(frozen=True)
 class Init:
     """Initial state ``x0 (R, n)`` and covariance ``P0 (R, n, n)`` of every row (used where
-    an object starts): the row's own per-frame fit with its covariance."""
+    an object starts): the row's own per-frame fit with its covariance. ``P0`` an array or
+    one made when indexed (:class:`InitialCov`, :class:`StartRows`)."""
 
     x0: F64
-    P0: F64
+    P0: Any
 
 
-class ScaledRows:
-    """``scale * P[rows]`` when indexed: initial covariances ``(R, n, n)`` made from another
-    run's without a copy of all of them (a long keypoint sequence's are gigabytes)."""
+def rows_of(P0: Any, idx: np.ndarray) -> Any:
+    """The rows ``idx`` of initial covariances, lazy where they are."""
+    return P0.rows(idx) if isinstance(P0, InitialCov) else P0[idx]
 
-    def __init__(self, P: F64, scale: float) -> None:
-        self.P, self.scale = P, scale
+
+class InitialCov:
+    """The per-frame fits' covariances ``(R, n, n)`` as initial covariances, made when indexed
+    (a row's is read only where its object starts; all of them held at once would be 121 kB a
+    row with 19 joints): ``diag(var (R, n))`` with the fit's ``cov6 (R, 6, 6)`` on the entries
+    ``dims (6,)`` where ``ok (R,)``. Indexed by rows (``P0[rows]``: ``(k, n, n)``) or, as an
+    array, by broadcast integer arrays ``P0[rows, i, j]`` (any shape)."""
+
+    #: Entries made at once when indexed as an array (bounds the index arrays' memory).
+    CHUNK_ENTRIES = 1 << 20
+
+    def __init__(self, var: F64, cov6: F64, ok: np.ndarray, dims: np.ndarray) -> None:
+        self.var, self.cov6, self.ok = var, cov6, ok
+        self.pos = np.full(var.shape[1], -1, np.int64)  # state entry -> its place in dims
+        self.pos[dims] = np.arange(len(dims))
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        R, n = self.var.shape
+        return R, n, n
+
+    def rows(self, idx: Any) -> InitialCov:
+        """The rows ``idx`` as another lazy set."""
+        out = InitialCov.__new__(InitialCov)
+        out.var, out.cov6, out.ok, out.pos = self.var[idx], self.cov6[idx], self.ok[idx], self.pos
+        return out
+
+    def __getitem__(self, idx: Any) -> F64:
+        if not isinstance(idx, tuple):
+            n = self.var.shape[1]
+            r = np.arange(len(self.var))[idx]
+            i, j = np.arange(n)[:, None], np.arange(n)[None, :]
+            return self[r.reshape(r.shape + (1, 1)), i, j]
+        idx = tuple(np.asarray(a) for a in idx)
+        shape = np.broadcast_shapes(*(a.shape for a in idx))
+        out = np.empty(shape)
+        step = max(1, self.CHUNK_ENTRIES // max(int(np.prod(shape[1:])), 1)) if shape else 1
+        for a in range(0, shape[0] if shape else 1, step):  # bounded index temporaries
+            part = tuple(x[a:a + step] if x.ndim == len(shape) and x.shape[0] > 1 else x for x in idx)
+            r, i, j = np.broadcast_arrays(*part)
+            o = np.where(i == j, self.var[r, i], 0.0)
+            pi, pj = self.pos[i], self.pos[j]
+            blk = (pi >= 0) & (pj >= 0) & self.ok[r]
+            o[blk] = self.cov6[r[blk], pi[blk], pj[blk]]
+            if shape:
+                out[a:a + step] = o
+            else:
+                out[()] = o
+        return out
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> F64:
+        out = self[np.arange(len(self.var))]
+        return out if dtype is None else out.astype(dtype)
+
+
+class StartRows:
+    """``scale * P (R, n, n)`` kept at the rows ``starts (R,)`` only (where an object starts: the
+    only rows a filter reads its initial covariance at), indexed as the whole."""
+
+    def __init__(self, P: F64, starts: np.ndarray, scale: float) -> None:
+        at = np.flatnonzero(starts)
+        self.n_rows, self.P = len(starts), scale * P[at]
+        self.pos = np.full(len(starts), -1, np.int64)
+        self.pos[at] = np.arange(len(at))
 
     @property
     def shape(self) -> tuple[int, ...]:
-        return self.P.shape
+        return (self.n_rows,) + self.P.shape[1:]
 
     def __getitem__(self, idx: Any) -> F64:
-        return self.scale * self.P[idx]
+        pos = self.pos[idx]
+        if np.any(pos < 0):
+            raise IndexError("StartRows: a row where no object starts")
+        return self.P[pos]
 
 
 def initial_states(model: Model, cfg: UKFConfig) -> Init:
     lay = model.layout
-    R, n = model.x_frame.shape
     x0 = model.x_frame.copy()
     v = model.var_frame.copy()
     v[:, lay.velocity] = cfg.init_vel_sd_mps**2
@@ -375,13 +447,11 @@ def initial_states(model: Model, cfg: UKFConfig) -> Init:
         j = v[:, lay.joints]
         v[:, lay.joints] = np.where(np.isfinite(j), j, cfg.init_canon_sd_m**2)
     v = np.where(np.isfinite(v), v, 1.0)
-    P0 = v[:, :, None] * np.eye(n)
     c6 = model.cov6_frame
     ok = np.all(np.isfinite(c6), axis=(1, 2))
     dims = np.r_[np.arange(lay.center.start, lay.center.stop),
                  np.arange(lay.log_axes.start, lay.log_axes.stop)]
-    P0[np.ix_(np.flatnonzero(ok), dims, dims)] = c6[ok]
-    return Init(x0, P0)
+    return Init(x0, InitialCov(v, c6, ok, dims))
 
 
 def maximise_log(f: Any, lo: float, hi: float, n_scan: int, rounds: int = 2
@@ -460,7 +530,10 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
         # every point judged against the provisional *smoothed* estimate, as the second pass
         # judges them: a bad view in an object's first frames, which a forward pass cannot
         # tell yet, would otherwise bend the motion model's likelihood
-        prov_run = run_filter(model, init, start, fps, on=on)
+        # the provisional pass's covariances are read by the linearised box search only
+        prov_runner = partial(run_frames, covariances=False) if not linear and \
+            backend_for(model) == "frames" else run_filter
+        prov_run = prov_runner(model, init, start, fps, on=on)
         x_prov, P_prov = prov_run.x, prov_run.P
         if cfg.robust:
             weights = smoothed_weights(model, x_prov, start)
@@ -491,7 +564,7 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
             for i in range(0, len(values), per_pass):
                 part = values[i:i + per_pass]
                 rows_k, src, copy = replicate_rows(model.rows, sel, len(part))
-                run = runner(search_model.take(rows_k, src), Init(init.x0[src], init.P0[src]),
+                run = runner(search_model.take(rows_k, src), Init(init.x0[src], rows_of(init.P0, src)),
                              replace(c, smooth=False, iterations=1), fps, fade=False,
                              noise_rows={name: np.asarray(part)[copy]})
                 out += list(np.bincount(copy, weights=run.loglik_rows, minlength=len(part)))
@@ -596,18 +669,36 @@ def downweighted_of(model: Model, run: FilterRun) -> Downweighted:
                         edge=edge.astype(np.int64), weight=w, residual_px=res, score=s)
 
 
-def rerun_with_bones(model: Model, init: Init, cfg: UKFConfig, fps: float, x_s: F64, P_s: F64,
-                     skel: Skeleton) -> tuple[FilterRun, dict[str, Any]]:
-    r"""Second pass with bone-length pseudo-measurements ``|p_i - p_j| = L_b`` per person.
+@dataclass(frozen=True)
+class BoneLengths:
+    """Per person and bone: ``length (O, K)`` and ``sd (O, K)`` in metres (NaN length: never
+    measured), of the skeleton's bones ``bones (K, 2)``."""
 
-    ``L_b`` is the median of the first pass's smoothed lengths over the person's frames
-    where two or more views saw both joints. The pseudo-measurement's sd is the bone's
-    *true* variability: the variance of those lengths minus the mean variance the
-    first pass's own uncertainty explains (``u^T (P_ii + P_jj - P_ij - P_ji) u``), floored
-    at ``bone_sd_floor_m``; or ``cfg.bone_sd_m`` when given. So a rigid skeleton is held
-    rigid, while a bone whose length really varies (or that the truth does not hold
-    constant) is left almost free.
-    """
+    skeleton: Skeleton
+    length: F64
+    sd: F64
+
+    def info(self, obj_ids: np.ndarray) -> dict[str, Any]:
+        skel = self.skeleton
+        names = [f"{skel.joints[a]}-{skel.joints[b]}" for a, b in skel.bones]
+        return {"skeleton": skel.name, "units": "m", "per_person": {
+            str(int(obj_ids[o])): {
+                names[k]: {"length": None if not np.isfinite(self.length[o, k]) else
+                           round(float(self.length[o, k]), 5), "sd": round(float(self.sd[o, k]), 5)}
+                for k in range(len(names))}
+            for o in range(len(obj_ids))}}
+
+
+def bone_lengths(model: Model, cfg: UKFConfig, x_s: F64, P_s: F64, skel: Skeleton) -> BoneLengths:
+    r"""Every person's bone lengths and their true variability from a first pass's smoothed
+    ``x_s (R, n)``, ``P_s (R, n, n)``.
+
+    ``L_b`` is the median of the smoothed lengths over the person's frames where two or more
+    views saw both joints. Its sd is the bone's *true* variability: the variance of those
+    lengths minus the mean variance the first pass's own uncertainty explains
+    (``u^T (P_ii + P_jj - P_ij - P_ji) u``), floored at ``bone_sd_floor_m``; or
+    ``cfg.bone_sd_m`` when given. So a rigid skeleton is held rigid, while a bone whose length
+    really varies (or that the truth does not hold constant) is left almost free."""
     rows, layout = model.rows, model.layout
     R, J = len(rows), layout.n_joints
     bones = skel.bones
@@ -639,33 +730,41 @@ def rerun_with_bones(model: Model, init: Init, cfg: UKFConfig, fps: float, x_s: 
                     sd[o, k] = np.sqrt(max(spread - float(np.mean(var_est[sel, k])), 0.0))
     if cfg.bone_sd_m is not None:
         sd = np.full_like(sd, cfg.bone_sd_m)
-    sd = np.maximum(np.nan_to_num(sd, nan=0.05), cfg.bone_sd_floor_m)
-    zb = L[rows.row_o]
+    return BoneLengths(skel, L, np.maximum(np.nan_to_num(sd, nan=0.05), cfg.bone_sd_floor_m))
+
+
+def rerun_with_bones(model: Model, cfg: UKFConfig, fps: float, lengths: BoneLengths, binit: Init
+                     ) -> tuple[FilterRun, dict[str, Any]]:
+    """Second pass with bone-length pseudo-measurements ``|p_i - p_j| = L_b`` per person
+    (:func:`bone_lengths`), from ``binit``: the first pass's smoothed state where each object
+    starts, with 4x its covariance (not its first per-frame fit: rigid bones to joints that
+    frame barely sees would otherwise pull the linearisation far off and the views would look
+    like outliers)."""
+    rows, bones = model.rows, lengths.skeleton.bones
+    zb = lengths.length[rows.row_o]
     # a bone ties a joint to a measured one: where neither end has a view in a frame it would
     # only couple two extrapolations (and bend both along a sphere far from any evidence)
     seen1 = np.isfinite(rows.kpt_z[..., 0]).any(axis=1)  # (R, J)
     mb = np.isfinite(zb) & (seen1[:, bones[:, 0]] | seen1[:, bones[:, 1]])
     bmodel = replace(model, z=np.concatenate([model.z, np.nan_to_num(zb)], 1),
                      mask=np.concatenate([model.mask, mb], 1),
-                     var=np.concatenate([model.var, sd[rows.row_o] ** 2], 1),
+                     var=np.concatenate([model.var, lengths.sd[rows.row_o] ** 2], 1),
                      weight0=np.concatenate([model.weight0, np.ones_like(zb)], 1), bones=bones,
                      # a bone the views contradict gives way, not the views
                      robust_blocks=model.robust_blocks + ((slice(model.z.shape[1],
                                                                  model.z.shape[1] + zb.shape[1]),
                                                            1),) if model.robust_blocks else ())
-    # objects start from the first pass's smoothed state (4x its covariance), not from their
-    # first per-frame fit: rigid bones to joints that frame barely sees would otherwise pull
-    # the linearisation far off and the views would look like outliers
-    binit = Init(x_s.copy(), ScaledRows(P_s, 4.0))  # read only where an object starts
     run = run_filter(bmodel, binit, cfg, fps, collect=True)
-    names = [f"{skel.joints[a]}-{skel.joints[b]}" for a, b in bones]
-    per_person = {
-        str(int(rows.obj_ids[o])): {
-            names[k]: {"length": None if not np.isfinite(L[o, k]) else round(float(L[o, k]), 5),
-                       "sd": round(float(sd[o, k]), 5)}
-            for k in range(K)}
-        for o in range(O)}
-    return run, {"skeleton": skel.name, "units": "m", "per_person": per_person}
+    return run, lengths.info(rows.obj_ids)
+
+
+def rerun_objects(model: Model, init: Init, cfg: UKFConfig, fps: float, run: FilterRun, on: np.ndarray
+                  ) -> FilterRun:
+    """``run`` with the rows ``on (R,)`` (whole objects) run again: by the frames' filter their
+    covariances are written into ``run``'s own (no second array of every row's)."""
+    if backend_for(model) == "frames":
+        return run.merged(run_frames(model, init, cfg, fps, collect=True, on=on, into=run.P), on)
+    return run.merged(run_filter(model, init, cfg, fps, collect=True, on=on), on)
 
 
 def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bool = False,
@@ -697,28 +796,36 @@ def backend_for(model: Model) -> str:
 def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bool = False,
                fade: bool = True, on: np.ndarray | None = None,
                noise_rows: dict[str, F64] | None = None, split: bool = True,
-               covariances: bool = True) -> FilterRun:
+               covariances: bool = True, into: F64 | None = None) -> FilterRun:
     """The filter over the frame grid (arguments and outputs of :func:`run_filter`): per frame
     the prediction, fading and linearisation point of its rows as one batch, their update
     (:func:`gt3dkit.fusion.ukf.ukf_update_information`), then RTS backwards. ``split``: without
     bones, run the joints as separate filters (:mod:`gt3dkit.fusion.split`; the same result,
     faster); False runs the whole state (the reference the tests hold it to). ``covariances=False``:
     a split run's ``P`` is not put back together (``(R, 0, 0)``: for callers that read the
-    statistics only)."""
+    statistics only). ``into (R, n, n)``: the covariances of the rows ``on`` are written into
+    it, the others left as they are, and it is the run's ``P`` (a second pass over some objects
+    without a second array of every row's)."""
     if split and model.layout.n_joints > 1 and model.bones is None:
         # no bones: the joints are independent filters, run as one batch of small ones
         sub, x0, P0, sp = split_joints(model, init.x0, init.P0)
         return sp.merge(run_frames(sub, Init(x0, P0), cfg, fps, collect, fade,
                                    None if on is None else on[sp.src],
-                                   {k: v[sp.src] for k, v in (noise_rows or {}).items()}), covariances)
+                                   {k: v[sp.src] for k, v in (noise_rows or {}).items()}), covariances, on,
+                        into)
     rows, cams, layout = model.rows, model.cams, model.layout
     n, R = layout.n, len(rows)
     w = SigmaWeights(n, cfg.alpha, cfg.beta, cfg.kappa)
     robust = cfg.robust_config if cfg.robust else None
+    # per row: the prediction's mean, the filtered mean and covariance, and the scales that
+    # made the prediction's covariance (``fade S (F P_f F^T + Q') S``, ``Q' = q Q q``): the RTS
+    # makes it again from the previous row's filtered one instead of holding one more ``(n, n)``
+    # per row (121 kB with 19 joints)
     x_p = np.zeros((R, n))
-    P_p = np.zeros((R, n, n))
     x_f = np.zeros((R, n))
-    P_f = np.zeros((R, n, n))
+    P_f = np.zeros((R, n, n)) if into is None else into
+    fade_s = np.ones((R, n))
+    q_s = np.ones((R, n))
     frame_s = rows.frames / fps
     m = model.z.shape[1]
     out = {k: np.zeros((R, m)) for k in ("weights", "score2", "residual")} if collect else {}
@@ -756,28 +863,38 @@ def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
 
     measured = model.mask.any(axis=1)
 
-    def spread_over_gap(row: int, scale: F64) -> bool:
+    def predicted_cov(r: np.ndarray, nr: np.ndarray) -> F64:
+        """The prediction covariances ``(B, n, n)`` of rows ``nr`` made again from the filtered
+        ones of their previous rows ``r``, as the forward pass made them (the same bits)."""
+        F, Q = transition(frame_s[rows.row_t[nr]] - frame_s[rows.row_t[r]], nr)
+        qs = q_s[nr]
+        _, P = predict_linear(x_f[r], P_f[r], F, qs[:, :, None] * Q * qs[:, None, :])
+        fs = fade_s[nr]
+        return fs[:, :, None] * P * fs[:, None, :]
+
+    def spread_over_gap(row: int, scale: F64) -> F64 | None:
         """Where row ``row``'s prediction, contradicted by the frame's own views (the fading
         scales ``scale (n,)``), follows rows without measurements: the process noise of every
         step since the last measured row as ``S Q S`` and those rows predicted again (as
-        :func:`gt3dkit.fusion.boxupdate._spread_over_gap`). False where no measured row
-        precedes the gap."""
+        :func:`gt3dkit.fusion.boxupdate._spread_over_gap`); returns the row's new prediction
+        covariance ``(n, n)``. None where no measured row precedes the gap."""
         gap = []
         k = int(rows.prev_row[row])
         while k >= 0 and (on is None or on[k]) and not measured[k]:
             gap.append(k)
             k = int(rows.prev_row[k])
         if k < 0 or (on is not None and not on[k]) or not gap:
-            return False
+            return None
         prev = k
         for cur in gap[::-1] + [row]:
             F, Q = transition(frame_s[rows.row_t[cur]] - frame_s[rows.row_t[prev]], np.array([cur]))
             x, P = predict_linear(x_f[prev][None], P_f[prev][None], F, scale[:, None] * Q * scale[None, :])
-            x_p[cur], P_p[cur] = x[0], P[0]
+            x_p[cur] = x[0]
+            q_s[cur], fade_s[cur] = scale, 1.0
             if cur != row:
                 x_f[cur], P_f[cur] = x[0], P[0]
             prev = cur
-        return True
+        return P[0]
 
     blocks = model.blocks()
     columns = model.columns(robust)
@@ -795,26 +912,34 @@ def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
         if on is not None:  # a row whose predecessor is not run starts afresh
             prev = np.where((prev >= 0) & on[np.maximum(prev, 0)], prev, -1)
         new = prev < 0
+        P_p = np.empty((len(r), n, n))  # this frame's rows' predictions
         if new.any():
             rn = r[new]
             x_p[rn] = init.x0[rn]
-            P_p[rn] = init.P0[rn]
+            P_p[new] = init.P0[rn]
         if (~new).any():
-            ro, po = r[~new], prev[~new]
+            old = np.flatnonzero(~new)
+            ro, po = r[old], prev[old]
             F, Q = transition(frame_s[t] - frame_s[rows.row_t[po]], ro)
-            x_p[ro], P_p[ro] = predict_linear(x_f[po], P_f[po], F, Q)
+            x_p[ro], P_p[old] = predict_linear(x_f[po], P_f[po], F, Q)
             if fade:
-                sc = model.prior_conflict(ro, x_p[ro], P_p[ro])
+                sc = model.prior_conflict(ro, x_p[ro], P_p[old])
                 hit = np.any(sc > 1, axis=1)
-                gap = [g for g in np.flatnonzero(hit & ~measured[po]) if spread_over_gap(int(ro[g]), sc[g])]
+                gap = []
+                for g in np.flatnonzero(hit & ~measured[po]):
+                    spread = spread_over_gap(int(ro[g]), sc[g])
+                    if spread is not None:
+                        P_p[old[g]] = spread
+                        gap.append(g)
                 if gap:  # what the spread noise does not explain fades the prediction as before
-                    sc[gap] = model.prior_conflict(ro[gap], x_p[ro[gap]], P_p[ro[gap]])
+                    sc[gap] = model.prior_conflict(ro[gap], x_p[ro[gap]], P_p[old[gap]])
                 if hit.any():
-                    P_p[ro[hit]] = sc[hit, :, None] * P_p[ro[hit]] * sc[hit, None, :]
+                    P_p[old[hit]] = sc[hit, :, None] * P_p[old[hit]] * sc[hit, None, :]
+                    fade_s[ro[hit]] = sc[hit]
                     faded += int(hit.sum())
-        xl, Pl = model.linearisation_point(r, x_p[r], P_p[r])
+        xl, Pl = model.linearisation_point(r, x_p[r], P_p)
         x_f[r], P_f[r], inf = ukf_update_information(
-            x_p[r], P_p[r], Measured(model.z[r], model.mask[r], model.var[r]), blocks, w, cfg.iterations,
+            x_p[r], P_p, Measured(model.z[r], model.mask[r], model.var[r]), blocks, w, cfg.iterations,
             None if xl is None or Pl is None else (xl, Pl), weight0=model.weight0[r], columns=columns)
         repaired += int(inf["repaired"])
         passes[r] = inf["passes_rows"]
@@ -832,7 +957,8 @@ def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
                 continue
             nr = rows.next_row[r]
             F, _ = transition(frame_s[rows.row_t[nr]] - frame_s[t], r)
-            x_s[r], P_s[r] = rts_step(x_f[r], P_f[r], x_p[nr], P_p[nr], x_s[nr], P_s[nr], F)
+            P_p = predicted_cov(r, nr)  # before row r's filtered covariance is smoothed in place
+            x_s[r], P_s[r] = rts_step(x_f[r], P_f[r], x_p[nr], P_p, x_s[nr], P_s[nr], F)
     ran = passes > 0
     return FilterRun(x_s, P_s, per_row["nis_rows"], per_row["dof_rows"], per_row["loglik_rows"],
                      out.get("weights"), out.get("score2"), out.get("residual"), pd_repairs=repaired,

@@ -297,3 +297,66 @@ def test_linearised_search_finds_the_full_search_values(tmp_path: Path) -> None:
         assert ("linearisation" in tr.info["noise_search"]["provisional"]["use"]) == lin
     for k in ("accel_sd", "shape_sd"):
         assert found[True][k] == pytest.approx(found[False][k], rel=0.15), k
+
+
+def test_initial_covariances_made_when_indexed_equal_the_dense_ones(skeleton_model, monkeypatch) -> None:
+    """The per-frame fits' covariances as initial ones (made only where read) against the dense
+    array written out: a diagonal with the fit's 6 x 6 block, by rows, by the joint split's
+    broadcast index arrays (in chunks), and whole."""
+    model, init, _, _ = skeleton_model
+    P0, lay = init.P0, model.layout
+    assert isinstance(P0, us.InitialCov)
+    R, n = model.x_frame.shape
+    dims = np.r_[np.arange(lay.center.start, lay.center.stop),
+                 np.arange(lay.log_axes.start, lay.log_axes.stop)]
+    dense = P0.var[:, :, None] * np.eye(n)
+    ok = np.flatnonzero(np.all(np.isfinite(model.cov6_frame), axis=(1, 2)))
+    assert len(ok) > 0
+    dense[np.ix_(ok, dims, dims)] = model.cov6_frame[ok]
+    monkeypatch.setattr(us.InitialCov, "CHUNK_ENTRIES", 1000)  # many chunks
+    rows = np.array([3, 0, R - 1, 3])
+    np.testing.assert_array_equal(P0[rows], dense[rows])
+    mask = np.arange(R) % 3 == 0
+    np.testing.assert_array_equal(P0[mask], dense[mask])
+    d = np.stack([np.r_[np.arange(9), 9 + 6 * j + np.arange(6)] for j in range(4)] * 2)
+    src = np.repeat(rows[:2], 4)
+    idx = (src[:, None, None], d[:, :, None], d[:, None, :])
+    np.testing.assert_array_equal(P0[idx], dense[idx])
+    np.testing.assert_array_equal(np.asarray(P0), dense)
+    np.testing.assert_array_equal(us.rows_of(P0, rows)[np.arange(4)], dense[rows])
+
+
+def test_start_rows_hold_only_where_objects_start(skeleton_model) -> None:
+    model, _, _, _ = skeleton_model
+    starts = model.rows.prev_row < 0
+    P = np.random.default_rng(0).normal(size=(len(starts), 4, 4))
+    s = us.StartRows(P, starts, 4.0)
+    at = np.flatnonzero(starts)
+    assert s.P.shape[0] == len(at) < len(starts)
+    np.testing.assert_array_equal(s[at], 4.0 * P[at])
+    with pytest.raises(IndexError):
+        s[np.flatnonzero(~starts)[:1]]
+
+
+def test_objects_run_again_into_the_first_runs_covariances_equal_a_separate_run(skeleton_model) -> None:
+    """The robust second pass over some objects, written into the first pass's arrays, and over
+    all of them (the first pass's arrays gone first), against runs merged as before."""
+    model, init, cfg, fps = skeleton_model
+    on = model.rows.row_o == 0
+    assert 0 < on.sum() < len(on)
+    w = replace(model, weight0=np.where(np.random.default_rng(1).uniform(size=model.z.shape) < 0.1, 0.5, 1.0))
+    first = us.run_frames(model, init, cfg, fps, collect=True)
+    ref = us.run_frames(model, init, cfg, fps, collect=True).merged(
+        us.run_frames(w, init, cfg, fps, collect=True, on=on), on)
+    got = us.rerun_objects(w, init, cfg, fps, first, on)
+    assert got.P is first.P
+    for k in ("x", "P", "nis", "loglik_rows", "weights"):
+        np.testing.assert_array_equal(getattr(got, k), getattr(ref, k), err_msg=k)
+    assert got.scalars() == ref.scalars()
+    every = np.ones(len(on), bool)
+    ref_all = us.run_frames(model, init, cfg, fps, collect=True).merged(
+        us.run_frames(w, init, cfg, fps, collect=True), every)
+    got_all = us.run_frames(w, init, cfg, fps, collect=True).after(first.scalars())
+    for k in ("x", "P", "nis", "weights"):
+        np.testing.assert_array_equal(getattr(got_all, k), getattr(ref_all, k), err_msg=k)
+    assert got_all.scalars() == ref_all.scalars()
