@@ -51,8 +51,9 @@ MIN_OVERLAP_FRAMES = 20
 #: maximum-likelihood noise level to a few percent, and the search is the one step no worker shares.
 NOISE_SAMPLE_OBJECT_FRAMES = 20_000
 #: Bytes of a run's per-object-frame state beyond which ``gt3d reconstruct`` runs a sequence in
-#: windows by itself (:func:`auto_plan`): what a laptop has to spare.
-MEMORY_BUDGET_BYTES = 1.0e9
+#: windows by itself (:func:`auto_plan`), and that a window holds at most: with the process's own
+#: code and data (about 0.3 GB) a run stays under about 0.8 GB, what a laptop has to spare.
+MEMORY_BUDGET_BYTES = 0.4e9
 
 
 @dataclass(frozen=True)
@@ -106,11 +107,12 @@ def overlap_frames(scene: Scene) -> int:
 
 
 def state_bytes(n_joints: int) -> float:
-    """Peak bytes a run holds per object-frame (measured: covariances of the whole state, ``n =
-    9 + 6 J``, about six times over during the noise search; ~11 kB of the rest): 0.73 MB with 19
-    joints, 15 kB for a box."""
+    """Peak bytes a run holds per object-frame (measured on 300-1000 frames of 3 people with 19
+    joints: one covariance of the whole state, ``n = 9 + 6 J``, the joints' split filters' and the
+    arrays of the measurements, about 2.5 such covariances in all; ~11 kB of the rest): 0.31 MB
+    with 19 joints, 13 kB for a box."""
     n = 9 + 6 * n_joints
-    return 48.0 * n * n + 11e3
+    return 20.0 * n * n + 11e3
 
 
 def objects_per_frame(scene: Scene) -> tuple[I64, I64]:

@@ -22,6 +22,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from gt3dkit.fusion.filterrun import FilterRun
+from gt3dkit.fusion.initial import InitialCov
 from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.motion import StateLayout
 from gt3dkit.fusion.rows import Rows
@@ -156,4 +157,6 @@ def split_joints(model: Model, x0: F64, P0: F64) -> tuple[Model, F64, F64, Joint
                   cov6_frame=np.where(box0, model.cov6_frame[src], np.inf),
                   centre_determined=model.centre_determined[src] & (part == 0), kpt_cov_frame=kcov)
     sp = JointSplit(R, lay.n, model.z.shape[1], src, part, dims, owned, cols)
-    return sub, x0[rs, dims], P0[src[:, None, None], dims[:, :, None], dims[:, None, :]], sp
+    P0_sub = P0.entries(src, dims) if isinstance(P0, InitialCov) else \
+        P0[src[:, None, None], dims[:, :, None], dims[:, None, :]]
+    return sub, x0[rs, dims], P0_sub, sp

@@ -322,6 +322,10 @@ def test_initial_covariances_made_when_indexed_equal_the_dense_ones(skeleton_mod
     src = np.repeat(rows[:2], 4)
     idx = (src[:, None, None], d[:, :, None], d[:, None, :])
     np.testing.assert_array_equal(P0[idx], dense[idx])
+    sub = P0.entries(src, d)  # the joint split's parts, still made where read
+    np.testing.assert_array_equal(sub[np.arange(len(src))], dense[idx])
+    np.testing.assert_array_equal(sub.rows(np.array([5, 1]))[np.arange(2)], dense[idx][[5, 1]])
+    np.testing.assert_array_equal(np.asarray(sub.rows(np.array([5, 1]))), dense[idx][[5, 1]])
     np.testing.assert_array_equal(np.asarray(P0), dense)
     np.testing.assert_array_equal(us.rows_of(P0, rows)[np.arange(4)], dense[rows])
 

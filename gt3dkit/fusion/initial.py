@@ -1,0 +1,104 @@
+"""Initial covariances made where they are read: a filter reads a row's initial covariance only
+where its object starts, and all of them held at once would be one more ``(R, n, n)`` array
+(121 kB a row with 19 joints)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from gt3dkit.types import F64
+
+
+class InitialCov:
+    """The per-frame fits' covariances ``(R, n, n)`` as initial covariances, made when indexed
+    (a row's is read only where its object starts; all of them held at once would be 121 kB a
+    row with 19 joints): ``diag(var (R, n))`` with the fit's ``cov6 (R, 6, 6)`` on the entries
+    ``dims (6,)`` where ``ok (R,)``. Indexed by rows (``P0[rows]``: ``(k, n, n)``) or, as an
+    array, by broadcast integer arrays ``P0[rows, i, j]`` (any shape). ``pos`` maps a state entry
+    to its place in ``dims`` (-1: none), ``(n,)`` or per row ``(R, n)``."""
+
+    #: Entries made at once when indexed as an array (bounds the index arrays' memory).
+    CHUNK_ENTRIES = 1 << 20
+
+    def __init__(self, var: F64, cov6: F64, ok: np.ndarray, dims: np.ndarray) -> None:
+        self.var, self.cov6, self.ok = var, cov6, ok
+        self.pos = np.full(var.shape[1], -1, np.int64)  # state entry -> its place in dims
+        self.pos[dims] = np.arange(len(dims))
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        R, n = self.var.shape
+        return R, n, n
+
+    def rows(self, idx: Any) -> InitialCov:
+        """The rows ``idx`` as another lazy set."""
+        return self._of(self.var[idx], self.cov6[idx], self.ok[idx],
+                        self.pos if self.pos.ndim == 1 else self.pos[idx])
+
+    def entries(self, src: np.ndarray, dims: np.ndarray) -> InitialCov:
+        """``P0[src[:, None, None], dims[:, :, None], dims[:, None, :]]`` as another lazy set:
+        row ``k`` the entries ``dims[k] (m,)`` (distinct) of row ``src[k]`` (the joint split's
+        parts)."""
+        pos = self.pos[dims] if self.pos.ndim == 1 else self.pos[src[:, None], dims]
+        return self._of(self.var[src[:, None], dims], self.cov6[src], self.ok[src], pos)
+
+    @staticmethod
+    def _of(var: F64, cov6: F64, ok: np.ndarray, pos: np.ndarray) -> InitialCov:
+        out = InitialCov.__new__(InitialCov)
+        out.var, out.cov6, out.ok, out.pos = var, cov6, ok, pos
+        return out
+
+    def __getitem__(self, idx: Any) -> F64:
+        if not isinstance(idx, tuple):
+            n = self.var.shape[1]
+            r = np.arange(len(self.var))[idx]
+            i, j = np.arange(n)[:, None], np.arange(n)[None, :]
+            return self[r.reshape(r.shape + (1, 1)), i, j]
+        idx = tuple(np.asarray(a) for a in idx)
+        shape = np.broadcast_shapes(*(a.shape for a in idx))
+        out = np.empty(shape)
+        step = max(1, self.CHUNK_ENTRIES // max(int(np.prod(shape[1:])), 1)) if shape else 1
+        for a in range(0, shape[0] if shape else 1, step):  # bounded index temporaries
+            part = tuple(x[a:a + step] if x.ndim == len(shape) and x.shape[0] > 1 else x for x in idx)
+            r, i, j = np.broadcast_arrays(*part)
+            o = np.where(i == j, self.var[r, i], 0.0)
+            pi, pj = (self.pos[i], self.pos[j]) if self.pos.ndim == 1 else (self.pos[r, i], self.pos[r, j])
+            blk = (pi >= 0) & (pj >= 0) & self.ok[r]
+            o[blk] = self.cov6[r[blk], pi[blk], pj[blk]]
+            if shape:
+                out[a:a + step] = o
+            else:
+                out[()] = o
+        return out
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> F64:
+        out = self[np.arange(len(self.var))]
+        return out if dtype is None else out.astype(dtype)
+
+
+class StartRows:
+    """``scale * P (R, n, n)`` kept at the rows ``starts (R,)`` only (where an object starts: the
+    only rows a filter reads its initial covariance at), indexed as the whole."""
+
+    def __init__(self, P: F64, starts: np.ndarray, scale: float) -> None:
+        at = np.flatnonzero(starts)
+        self.n_rows, self.P = len(starts), scale * P[at]
+        self.pos = np.full(len(starts), -1, np.int64)
+        self.pos[at] = np.arange(len(at))
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return (self.n_rows,) + self.P.shape[1:]
+
+    def __getitem__(self, idx: Any) -> F64:
+        pos = self.pos[idx]
+        if np.any(pos < 0):
+            raise IndexError("StartRows: a row where no object starts")
+        return self.P[pos]
+
+
+def rows_of(P0: Any, idx: np.ndarray) -> Any:
+    """The rows ``idx`` of initial covariances, lazy where they are."""
+    return P0.rows(idx) if isinstance(P0, InitialCov) else P0[idx]
