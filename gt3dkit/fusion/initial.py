@@ -16,16 +16,17 @@ class InitialCov:
     (a row's is read only where its object starts; all of them held at once would be 121 kB a
     row with 19 joints): ``diag(var (R, n))`` with the fit's ``cov6 (R, 6, 6)`` on the entries
     ``dims (6,)`` where ``ok (R,)``. Indexed by rows (``P0[rows]``: ``(k, n, n)``) or, as an
-    array, by broadcast integer arrays ``P0[rows, i, j]`` (any shape). ``pos`` maps a state entry
-    to its place in ``dims`` (-1: none), ``(n,)`` or per row ``(R, n)``."""
+    array, by broadcast integer arrays ``P0[rows, i, j]`` (at least one dimension). ``pos (R, n)``
+    maps a row's state entry to its place in ``dims`` (-1: none)."""
 
     #: Entries made at once when indexed as an array (bounds the index arrays' memory).
     CHUNK_ENTRIES = 1 << 20
 
     def __init__(self, var: F64, cov6: F64, ok: np.ndarray, dims: np.ndarray) -> None:
         self.var, self.cov6, self.ok = var, cov6, ok
-        self.pos = np.full(var.shape[1], -1, np.int64)  # state entry -> its place in dims
-        self.pos[dims] = np.arange(len(dims))
+        pos = np.full(var.shape[1], -1, np.int64)  # state entry -> its place in dims
+        pos[dims] = np.arange(len(dims))
+        self.pos = np.broadcast_to(pos, var.shape)  # per row (a view: the same for all)
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -34,15 +35,14 @@ class InitialCov:
 
     def rows(self, idx: Any) -> InitialCov:
         """The rows ``idx`` as another lazy set."""
-        return self._of(self.var[idx], self.cov6[idx], self.ok[idx],
-                        self.pos if self.pos.ndim == 1 else self.pos[idx])
+        return self._of(self.var[idx], self.cov6[idx], self.ok[idx], self.pos[idx])
 
     def entries(self, src: np.ndarray, dims: np.ndarray) -> InitialCov:
         """``P0[src[:, None, None], dims[:, :, None], dims[:, None, :]]`` as another lazy set:
         row ``k`` the entries ``dims[k] (m,)`` (distinct) of row ``src[k]`` (the joint split's
         parts)."""
-        pos = self.pos[dims] if self.pos.ndim == 1 else self.pos[src[:, None], dims]
-        return self._of(self.var[src[:, None], dims], self.cov6[src], self.ok[src], pos)
+        return self._of(self.var[src[:, None], dims], self.cov6[src], self.ok[src],
+                        self.pos[src[:, None], dims])
 
     @staticmethod
     def _of(var: F64, cov6: F64, ok: np.ndarray, pos: np.ndarray) -> InitialCov:
@@ -59,18 +59,15 @@ class InitialCov:
         idx = tuple(np.asarray(a) for a in idx)
         shape = np.broadcast_shapes(*(a.shape for a in idx))
         out = np.empty(shape)
-        step = max(1, self.CHUNK_ENTRIES // max(int(np.prod(shape[1:])), 1)) if shape else 1
-        for a in range(0, shape[0] if shape else 1, step):  # bounded index temporaries
+        step = max(1, self.CHUNK_ENTRIES // max(int(np.prod(shape[1:])), 1))
+        for a in range(0, shape[0], step):  # bounded index temporaries
             part = tuple(x[a:a + step] if x.ndim == len(shape) and x.shape[0] > 1 else x for x in idx)
             r, i, j = np.broadcast_arrays(*part)
             o = np.where(i == j, self.var[r, i], 0.0)
-            pi, pj = (self.pos[i], self.pos[j]) if self.pos.ndim == 1 else (self.pos[r, i], self.pos[r, j])
+            pi, pj = self.pos[r, i], self.pos[r, j]
             blk = (pi >= 0) & (pj >= 0) & self.ok[r]
             o[blk] = self.cov6[r[blk], pi[blk], pj[blk]]
-            if shape:
-                out[a:a + step] = o
-            else:
-                out[()] = o
+            out[a:a + step] = o
         return out
 
     def __array__(self, dtype: Any = None, copy: Any = None) -> F64:
