@@ -586,5 +586,5 @@ def run_boxes(model: Any, init: Any, cfg: Any, fps: float, collect: bool, fade: 
 
 def applies_to_model(model: Any) -> bool:
     """Whether :func:`run_boxes` runs this model: the boxes alone measure it (no joints, no
-    bones)."""
-    return bool(model.use_box and not model.layout.n_joints and model.bones is None)
+    information added to them)."""
+    return bool(model.use_box and not model.layout.n_joints and model.joint_info is None)

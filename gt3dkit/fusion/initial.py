@@ -75,26 +75,6 @@ class InitialCov:
         return out if dtype is None else out.astype(dtype)
 
 
-class StartRows:
-    """``scale * P (R, n, n)`` kept at the rows ``starts (R,)`` only (where an object starts: the
-    only rows a filter reads its initial covariance at), indexed as the whole."""
-
-    def __init__(self, P: F64, starts: np.ndarray, scale: float) -> None:
-        at = np.flatnonzero(starts)
-        self.n_rows, self.P = len(starts), scale * P[at]
-        self.pos = np.full(len(starts), -1, np.int64)
-        self.pos[at] = np.arange(len(at))
-
-    @property
-    def shape(self) -> tuple[int, ...]:
-        return (self.n_rows,) + self.P.shape[1:]
-
-    def __getitem__(self, idx: Any) -> F64:
-        pos = self.pos[idx]
-        if np.any(pos < 0):
-            raise IndexError("StartRows: a row where no object starts")
-        return self.P[pos]
-
 
 def rows_of(P0: Any, idx: np.ndarray) -> Any:
     """The rows ``idx`` of initial covariances, lazy where they are."""

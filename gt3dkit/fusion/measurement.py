@@ -1,9 +1,9 @@
 """The UKF's stacked measurement model: what a row's state predicts in every camera.
 
-Measurement vector of a row: ``[box edges (C*4) | keypoints (C*J*2) | bones (K)]``, each
-block present only when the scene has it. Box edges are the exact tangent box of the
-projected ellipsoid (:func:`gt3dkit.fusion.boxfit.box_model`), keypoints the projection
-with distortion, bones the distance between two joints (pseudo-measurements).
+Measurement vector of a row: ``[box edges (C*4) | keypoints (C*J*2)]``, each block present
+only when the scene has it. Box edges are the exact tangent box of the projected ellipsoid
+(:func:`gt3dkit.fusion.boxfit.box_model`), keypoints the projection with distortion. Bones
+reach the joints as information added after the views (:mod:`gt3dkit.fusion.bones`).
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from gt3dkit.fusion.bones import JointInfo
 from gt3dkit.fusion.boxfit import box_model
 from gt3dkit.fusion.boxupdate import OUTLINE_STEPS, BoxModel, box_regressions, box_sigma
 from gt3dkit.fusion.kalman import ellipsoid_linearisations, fade_factors_of
@@ -35,7 +36,7 @@ class Model:
     the weights the update starts from (the per-frame fits' verdicts, 1 kept, 0 rejected;
     where a frame's verdict is contested the prior soon overrules it: such a frame neither
     fades the prediction nor sets the linearisation point); robust_blocks : the ``(slice,
-    entries per point)`` blocks whose points the update may down-weight (not bones);
+    entries per point)`` blocks whose points the update may down-weight;
     x_frame, var_frame, cov6_frame : each row's own per-frame state (see
     :meth:`gt3dkit.fusion.prepare.Prepared.frame_state`).
     """
@@ -54,7 +55,7 @@ class Model:
     cov6_frame: F64
     centre_determined: np.ndarray  # (R,) the per-frame box fit rests on 2+ views
     kpt_cov_frame: F64 | None = None  # (R, J, 3, 3) per-frame joints' covariance
-    bones: np.ndarray | None = None  # (K, 2)
+    joint_info: JointInfo | None = None  # added to the joints after each frame's views (bones)
     box_tail: float = 1.0  # box edges are tested at this multiple of their variance (Prepared.box_tail)
 
     @classmethod
@@ -238,7 +239,7 @@ class Model:
         """The measurement vector as :class:`gt3dkit.fusion.ukf.Block` groups: the box edges of
         all cameras (centre and log semi-axes; regressed by
         :func:`gt3dkit.fusion.boxupdate.box_regression`), each joint's projections into all
-        cameras (its three coordinates), each bone (its two joints)."""
+        cameras (its three coordinates)."""
         C, J = len(self.cams.K), self.layout.n_joints
         lay, cams = self.layout, self.cams
         out: list[Block] = []
@@ -263,12 +264,6 @@ class Model:
                 return uv.reshape(X.shape[:3] + (2 * C,))
 
             out.append(Block(jdims, cols.reshape(J, 2 * C), project))
-            if self.bones is not None:
-                K = len(self.bones)
-                bdims = np.concatenate([jdims[self.bones[:, 0]], jdims[self.bones[:, 1]]], axis=1)
-                at_b = at + C * J * 2
-                out.append(Block(bdims, at_b + np.arange(K)[:, None], lambda X: np.linalg.norm(
-                    X[..., :SPACE] - X[..., SPACE:], axis=-1)[..., None]))
         return out
 
     def h(self, X: F64) -> F64:
@@ -285,7 +280,4 @@ class Model:
             uv, _ = project_points(P3, self.cams.K, self.cams.dist, self.cams.R, self.cams.t,
                                    self.cams.depth_sign)  # (B,S,J,C,2)
             parts.append(np.swapaxes(uv, 2, 3).reshape(B, S, C * J * 2))
-            if self.bones is not None:
-                d = P3[..., self.bones[:, 0], :] - P3[..., self.bones[:, 1], :]
-                parts.append(np.linalg.norm(d, axis=-1))
         return np.concatenate(parts, axis=-1)

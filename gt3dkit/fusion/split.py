@@ -1,6 +1,6 @@
 r"""The keypoint filter factorised by joint.
 
-Without bone pseudo-measurements nothing couples two joints of a person: a joint's
+Nothing in a view couples two joints of a person: a joint's
 projections depend on its own three coordinates, the motion model moves it by its own
 velocity, and no initial covariance ties it to another joint or to the ellipsoid. The
 covariance then stays block-diagonal, one (position, velocity) block per joint and one block
@@ -12,7 +12,8 @@ ellipsoid and one joint: ``StateLayout(1)``), part 0 measured by the boxes, part
 joint ``j``'s keypoints; :meth:`JointSplit.merge` puts the results back. Per frame that is
 ``(J + 1) B`` rows of ``15 x 15`` algebra instead of ``B`` rows of ``(9 + 6J)^2``: for 19
 joints, 123-state matrices (one inverse is 1.9 Mflop) become 20 of 15 states (3.4 kflop each).
-The bone pass couples the joints and runs on the whole state.
+Bones reach each part as information added after the views (:mod:`gt3dkit.fusion.bones`), so
+the bone pass runs split too.
 """
 
 from __future__ import annotations
@@ -96,9 +97,8 @@ class JointSplit:
 
 def split_joints(model: Model, x0: F64, P0: F64) -> tuple[Model, F64, F64, JointSplit]:
     """The model, initial states ``(R, n)`` and covariances ``(R, n, n)`` as ``J + 1`` parts
-    per row (see the module doc). Only for a model without bones."""
-    if model.bones is not None:
-        raise ValueError("a model with bones couples its joints: it cannot be split")
+    per row (see the module doc). The model's :class:`gt3dkit.fusion.bones.JointInfo` goes with
+    each joint's part."""
     rows, lay = model.rows, model.layout
     R, J, C = len(rows), lay.n_joints, len(model.cams.K)
     parts = J + 1
@@ -155,7 +155,8 @@ def split_joints(model: Model, x0: F64, P0: F64) -> tuple[Model, F64, F64, Joint
                   weight0=take(model.weight0, 1.0), robust_blocks=tuple(blocks),
                   x_frame=model.x_frame[rs, dims], var_frame=var_frame,
                   cov6_frame=np.where(box0, model.cov6_frame[src], np.inf),
-                  centre_determined=model.centre_determined[src] & (part == 0), kpt_cov_frame=kcov)
+                  centre_determined=model.centre_determined[src] & (part == 0), kpt_cov_frame=kcov,
+                  joint_info=None if model.joint_info is None else model.joint_info.take(src, part - 1))
     sp = JointSplit(R, lay.n, model.z.shape[1], src, part, dims, owned, cols)
     P0_sub = P0.entries(src, dims) if isinstance(P0, InitialCov) else \
         P0[src[:, None, None], dims[:, :, None], dims[:, None, :]]

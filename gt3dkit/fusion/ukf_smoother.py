@@ -43,9 +43,10 @@ from typing import Any
 
 import numpy as np
 
+from gt3dkit.fusion.bones import BoneLengths, JointInfo, add_joint_info, bone_lengths, bone_messages
 from gt3dkit.fusion.boxupdate import LinearisedSearch, applies_to_model, run_boxes
 from gt3dkit.fusion.filterrun import FilterRun
-from gt3dkit.fusion.initial import InitialCov, StartRows, rows_of
+from gt3dkit.fusion.initial import InitialCov, rows_of
 from gt3dkit.fusion.kalman import predict_linear, rts_step
 from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.prepare import (
@@ -211,10 +212,12 @@ class UKFSmoother:
                 run = rerun_objects(model, init, cfg, scene.fps, run, changed)
         bone_info: dict[str, Any] = {}
         if pre.use_kpt and cfg.bones and pre.skeleton is not None:
-            lengths = bone_lengths(model, cfg, run.x, run.P, pre.skeleton)
-            binit = Init(run.x, StartRows(run.P, rows.prev_row < 0, 4.0))
-            run = init = None  # the first pass's covariances go before the second's are made
-            run, bone_info = rerun_with_bones(model, cfg, scene.fps, lengths, binit)
+            # the bones' messages from the first pass's smoothed joints, added to each joint's
+            # own filter run again (the views reweighted as before)
+            msgs, lengths = bone_messages_of(model, cfg, run, pre.skeleton)
+            run = None  # the first pass's covariances go before the second's are made
+            run = run_filter(replace(model, joint_info=msgs), init, cfg, scene.fps, collect=True)
+            bone_info = lengths.info(rows.obj_ids)
         x_s, P_s = run.x, run.P
         nis = run.mean_nis_per_dof
         inflation = max(nis, 1.0) if cfg.inflate and np.isfinite(nis) else 1.0
@@ -352,7 +355,7 @@ def single_view_rows(pre: Prepared) -> np.ndarray:
 class Init:
     """Initial state ``x0 (R, n)`` and covariance ``P0 (R, n, n)`` of every row (used where
     an object starts): the row's own per-frame fit with its covariance. ``P0`` an array or
-    one made when indexed (:class:`InitialCov`, :class:`StartRows`)."""
+    one made when indexed (:class:`InitialCov`)."""
 
     x0: F64
     P0: Any
@@ -590,93 +593,27 @@ def downweighted_of(model: Model, run: FilterRun) -> Downweighted:
                         edge=edge.astype(np.int64), weight=w, residual_px=res, score=s)
 
 
-@dataclass(frozen=True)
-class BoneLengths:
-    """Per person and bone: ``length (O, K)`` and ``sd (O, K)`` in metres (NaN length: never
-    measured), of the skeleton's bones ``bones (K, 2)``."""
-
-    skeleton: Skeleton
-    length: F64
-    sd: F64
-
-    def info(self, obj_ids: np.ndarray) -> dict[str, Any]:
-        skel = self.skeleton
-        names = [f"{skel.joints[a]}-{skel.joints[b]}" for a, b in skel.bones]
-        return {"skeleton": skel.name, "units": "m", "per_person": {
-            str(int(obj_ids[o])): {
-                names[k]: {"length": None if not np.isfinite(self.length[o, k]) else
-                           round(float(self.length[o, k]), 5), "sd": round(float(self.sd[o, k]), 5)}
-                for k in range(len(names))}
-            for o in range(len(obj_ids))}}
-
-
-def bone_lengths(model: Model, cfg: UKFConfig, x_s: F64, P_s: F64, skel: Skeleton) -> BoneLengths:
-    r"""Every person's bone lengths and their true variability from a first pass's smoothed
-    ``x_s (R, n)``, ``P_s (R, n, n)``.
-
-    ``L_b`` is the median of the smoothed lengths over the person's frames where two or more
-    views saw both joints. Its sd is the bone's *true* variability: the variance of those
-    lengths minus the mean variance the first pass's own uncertainty explains
-    (``u^T (P_ii + P_jj - P_ij - P_ji) u``), floored at ``bone_sd_floor_m``; or
-    ``cfg.bone_sd_m`` when given. So a rigid skeleton is held rigid, while a bone whose length
-    really varies (or that the truth does not hold constant) is left almost free."""
-    rows, layout = model.rows, model.layout
-    R, J = len(rows), layout.n_joints
+def bone_messages_of(model: Model, cfg: UKFConfig, run: FilterRun, skel: Skeleton
+                     ) -> tuple[JointInfo, BoneLengths]:
+    """The bones' messages to every joint of every row (:mod:`gt3dkit.fusion.bones`) and each
+    person's bone lengths, from a first pass ``run`` (split: independent joints)."""
+    rows, lay = model.rows, model.layout
+    R, J = len(rows), lay.n_joints
+    joints = run.x[:, lay.joints].reshape(R, J, 3)
+    idx = lay.joint_dims(np.arange(J))
+    cov = run.P[:, idx[:, :, None], idx[:, None, :]]
+    seen = np.isfinite(rows.kpt_z[..., 0])  # (R, C, J)
+    lengths = bone_lengths(rows.row_o, len(rows.obj_ids), seen.sum(axis=1) >= 2, joints, cov, skel,
+                           cfg.bone_sd_floor_m, cfg.bone_sd_m)
     bones = skel.bones
-    P3 = x_s[:, layout.joints].reshape(R, J, 3)
-    d = P3[:, bones[:, 0]] - P3[:, bones[:, 1]]  # (R, K, 3)
-    length = np.linalg.norm(d, axis=-1)
-    u = d / np.maximum(length[..., None], 1e-9)
-    j0 = layout.joints.start + 3 * bones[:, 0, None] + np.arange(3)  # (K, 3)
-    j1 = layout.joints.start + 3 * bones[:, 1, None] + np.arange(3)
-    Pd = (P_s[:, j0[:, :, None], j0[:, None, :]] + P_s[:, j1[:, :, None], j1[:, None, :]]
-          - P_s[:, j0[:, :, None], j1[:, None, :]] - P_s[:, j1[:, :, None], j0[:, None, :]])
-    var_est = np.einsum("rki,rkij,rkj->rk", u, Pd, u)
-    seen2 = np.isfinite(rows.kpt_z[..., 0]).sum(axis=1) >= 2  # (R, J)
-    both = seen2[:, bones[:, 0]] & seen2[:, bones[:, 1]]
-    O, K = len(rows.obj_ids), len(bones)
-    L = np.full((O, K), np.nan)
-    sd = np.full((O, K), np.nan)
-    for o in range(O):
-        mine = rows.row_o == o
-        for k in range(K):
-            sel = mine & both[:, k]
-            v = length[sel, k]
-            if v.size:
-                L[o, k] = np.median(v)
-                if v.size > 2:
-                    # plain (not robust) variance: a bone the data show changing, even in a
-                    # few frames, must not be forced rigid
-                    spread = float(np.var(v, ddof=1))
-                    sd[o, k] = np.sqrt(max(spread - float(np.mean(var_est[sel, k])), 0.0))
-    if cfg.bone_sd_m is not None:
-        sd = np.full_like(sd, cfg.bone_sd_m)
-    return BoneLengths(skel, L, np.maximum(np.nan_to_num(sd, nan=0.05), cfg.bone_sd_floor_m))
-
-
-def rerun_with_bones(model: Model, cfg: UKFConfig, fps: float, lengths: BoneLengths, binit: Init
-                     ) -> tuple[FilterRun, dict[str, Any]]:
-    """Second pass with bone-length pseudo-measurements ``|p_i - p_j| = L_b`` per person
-    (:func:`bone_lengths`), from ``binit``: the first pass's smoothed state where each object
-    starts, with 4x its covariance (not its first per-frame fit: rigid bones to joints that
-    frame barely sees would otherwise pull the linearisation far off and the views would look
-    like outliers)."""
-    rows, bones = model.rows, lengths.skeleton.bones
     zb = lengths.length[rows.row_o]
     # a bone ties a joint to a measured one: where neither end has a view in a frame it would
     # only couple two extrapolations (and bend both along a sphere far from any evidence)
-    seen1 = np.isfinite(rows.kpt_z[..., 0]).any(axis=1)  # (R, J)
+    seen1 = seen.any(axis=1)
     mb = np.isfinite(zb) & (seen1[:, bones[:, 0]] | seen1[:, bones[:, 1]])
-    bmodel = replace(model, z=np.concatenate([model.z, np.nan_to_num(zb)], 1),
-                     mask=np.concatenate([model.mask, mb], 1),
-                     var=np.concatenate([model.var, lengths.sd[rows.row_o] ** 2], 1),
-                     weight0=np.concatenate([model.weight0, np.ones_like(zb)], 1), bones=bones,
-                     # a bone the views contradict gives way, not the views
-                     robust_blocks=model.robust_blocks + ((slice(model.z.shape[1],
-                                                                 model.z.shape[1] + zb.shape[1]),
-                                                           1),) if model.robust_blocks else ())
-    run = run_filter(bmodel, binit, cfg, fps, collect=True)
-    return run, lengths.info(rows.obj_ids)
+    msgs = bone_messages(joints, cov, bones, np.nan_to_num(zb), lengths.sd[rows.row_o] ** 2, mb,
+                         cfg.robust_config if cfg.robust else None)
+    return msgs, lengths
 
 
 def rerun_objects(model: Model, init: Init, cfg: UKFConfig, fps: float, run: FilterRun, on: np.ndarray
@@ -720,15 +657,15 @@ def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
                covariances: bool = True, into: F64 | None = None) -> FilterRun:
     """The filter over the frame grid (arguments and outputs of :func:`run_filter`): per frame
     the prediction, fading and linearisation point of its rows as one batch, their update
-    (:func:`gt3dkit.fusion.ukf.ukf_update_information`), then RTS backwards. ``split``: without
-    bones, run the joints as separate filters (:mod:`gt3dkit.fusion.split`; the same result,
+    (:func:`gt3dkit.fusion.ukf.ukf_update_information`), then RTS backwards. ``split``: run
+    the joints as separate filters (:mod:`gt3dkit.fusion.split`; the same result,
     faster); False runs the whole state (the reference the tests hold it to). ``covariances=False``:
     a split run's ``P`` is not put back together (``(R, 0, 0)``: for callers that read the
     statistics only). ``into (R, n, n)``: the covariances of the rows ``on`` are written into
     it, the others left as they are, and it is the run's ``P`` (a second pass over some objects
     without a second array of every row's)."""
-    if split and model.layout.n_joints > 1 and model.bones is None:
-        # no bones: the joints are independent filters, run as one batch of small ones
+    if split and model.layout.n_joints > 1:
+        # the joints are independent filters, run as one batch of small ones
         sub, x0, P0, sp = split_joints(model, init.x0, init.P0)
         return sp.merge(run_frames(sub, Init(x0, P0), cfg, fps, collect, fade,
                                    None if on is None else on[sp.src],
@@ -819,6 +756,7 @@ def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
 
     blocks = model.blocks()
     columns = model.columns(robust)
+    joint_dims = layout.joint_dims(np.arange(layout.n_joints))
     per_row = {k: np.zeros(R) for k in ("nis_rows", "dof_rows", "loglik_rows")}
     repaired = 0
     faded = 0
@@ -862,6 +800,8 @@ def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
         x_f[r], P_f[r], inf = ukf_update_information(
             x_p[r], P_p, Measured(model.z[r], model.mask[r], model.var[r]), blocks, w, cfg.iterations,
             None if xl is None or Pl is None else (xl, Pl), weight0=model.weight0[r], columns=columns)
+        if model.joint_info is not None:
+            x_f[r], P_f[r] = add_joint_info(x_f[r], P_f[r], model.joint_info.rows(r), joint_dims)
         repaired += int(inf["repaired"])
         passes[r] = inf["passes_rows"]
         for k in per_row:

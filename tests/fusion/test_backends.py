@@ -330,18 +330,6 @@ def test_initial_covariances_made_when_indexed_equal_the_dense_ones(skeleton_mod
     np.testing.assert_array_equal(us.rows_of(P0, rows)[np.arange(4)], dense[rows])
 
 
-def test_start_rows_hold_only_where_objects_start(skeleton_model) -> None:
-    model, _, _, _ = skeleton_model
-    starts = model.rows.prev_row < 0
-    P = np.random.default_rng(0).normal(size=(len(starts), 4, 4))
-    s = us.StartRows(P, starts, 4.0)
-    at = np.flatnonzero(starts)
-    assert s.P.shape[0] == len(at) < len(starts)
-    np.testing.assert_array_equal(s[at], 4.0 * P[at])
-    with pytest.raises(IndexError):
-        s[np.flatnonzero(~starts)[:1]]
-
-
 def test_objects_run_again_into_the_first_runs_covariances_equal_a_separate_run(skeleton_model) -> None:
     """The robust second pass over some objects, written into the first pass's arrays, and over
     all of them (the first pass's arrays gone first), against runs merged as before."""

@@ -1,0 +1,221 @@
+r"""A person's bone lengths, tied by messages to each joint's own filter.
+
+A bone ties two joints: ``|p_a - p_b| = L_b``, with the bone's true variability ``s_b`` as its
+noise (:func:`bone_lengths`, from a first pass). As pseudo-measurements of the whole ``9 + 6J``
+state they would make every row's covariance dense (123 x 123 with 19 joints: 121 kB a row and
+``O(n^3)`` algebra a step, forward and back). Instead, as in expectation propagation (Minka,
+UAI 2001) with a fully factorised approximation (one Gaussian factor per joint and row):
+
+1. each frame's bones update the first pass's smoothed joints ``N(m_j, C_j)`` (independent
+   joints: the first pass is split, :mod:`gt3dkit.fusion.split`) by an iterated Kalman update
+   of the stacked positions (Gauss-Newton about the new estimate), each bone down-weighted or
+   rejected by its standardised innovation as a view's point is
+   (:func:`gt3dkit.fusion.robust.point_weights`): a bone the views contradict gives way;
+2. the bones' message to joint ``j`` is its posterior marginal ``N(m_j^+, C_j^+)`` divided by
+   its prior, in information form ``\Lambda_j = C_j^{+-1} - C_j^{-1}``, ``\eta_j = C_j^{+-1}
+   m_j^+ - C_j^{-1} m_j`` (a 3-vector and 3 x 3 per joint and row, :class:`JointInfo`);
+3. the filter runs again, split, and adds each row's messages to its joints after the frame's
+   views (:func:`add_joint_info`): the bones' information reaches the neighbouring frames through
+   each joint's motion model, forward and (RTS) back.
+
+On the simulator's 300-frame, 8-camera, 3-person skeleton scene this is as accurate as the
+whole-state bone pass it replaced (MPJPE 0.815 vs 0.817 mm, no bones 0.955) with its sds as
+honest (mean squared Mahalanobis error per coordinate 0.58 vs 0.56), in a quarter of the time.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from gt3dkit.fusion.robust import RobustConfig, point_weights
+from gt3dkit.skeletons import Skeleton
+from gt3dkit.types import F64, I64
+
+#: Rows per batch of the bones' update (its arrays are ``(rows, 3J, 3J)``).
+CHUNK_ROWS = 1024
+
+
+@dataclass(frozen=True)
+class BoneLengths:
+    """Per person and bone: ``length (O, K)`` and ``sd (O, K)`` in metres (NaN length: never
+    measured), of the skeleton's bones ``bones (K, 2)``."""
+
+    skeleton: Skeleton
+    length: F64
+    sd: F64
+
+    def info(self, obj_ids: np.ndarray) -> dict[str, Any]:
+        skel = self.skeleton
+        names = [f"{skel.joints[a]}-{skel.joints[b]}" for a, b in skel.bones]
+        return {"skeleton": skel.name, "units": "m", "per_person": {
+            str(int(obj_ids[o])): {
+                names[k]: {"length": None if not np.isfinite(self.length[o, k]) else
+                           round(float(self.length[o, k]), 5), "sd": round(float(self.sd[o, k]), 5)}
+                for k in range(len(names))}
+            for o in range(len(obj_ids))}}
+
+
+def bone_lengths(row_o: I64, n_obj: int, seen2: np.ndarray, joints: F64, cov: F64, skel: Skeleton,
+                 sd_floor_m: float, sd_m: float | None = None) -> BoneLengths:
+    r"""Every person's bone lengths and their true variability from a first pass's smoothed
+    joints ``joints (R, J, 3)`` with their covariances ``cov (R, J, 3, 3)`` (independent joints);
+    ``row_o (R,)`` each row's person of ``n_obj``, ``seen2 (R, J)`` the joints two or more views
+    saw in the row's frame.
+
+    ``L_b`` is the median of the smoothed lengths over the person's frames where two or more
+    views saw both joints. Its sd is the bone's *true* variability: the variance of those
+    lengths minus the mean variance the first pass's own uncertainty explains
+    (``u^T (C_a + C_b) u``), floored at ``sd_floor_m``; or ``sd_m`` when given. So a rigid
+    skeleton is held rigid, while a bone whose length really varies (or that the truth does not
+    hold constant) is left almost free."""
+    bones = skel.bones
+    d = joints[:, bones[:, 0]] - joints[:, bones[:, 1]]  # (R, K, 3)
+    length = np.linalg.norm(d, axis=-1)
+    u = d / np.maximum(length[..., None], 1e-9)
+    var_est = np.einsum("rki,rkij,rkj->rk", u, cov[:, bones[:, 0]] + cov[:, bones[:, 1]], u)
+    both = seen2[:, bones[:, 0]] & seen2[:, bones[:, 1]]
+    K = len(bones)
+    L = np.full((n_obj, K), np.nan)
+    sd = np.full((n_obj, K), np.nan)
+    for o in range(n_obj):
+        mine = row_o == o
+        for k in range(K):
+            sel = mine & both[:, k]
+            v = length[sel, k]
+            if v.size:
+                L[o, k] = np.median(v)
+                if v.size > 2:
+                    # plain (not robust) variance: a bone the data show changing, even in a
+                    # few frames, must not be forced rigid
+                    spread = float(np.var(v, ddof=1))
+                    sd[o, k] = np.sqrt(max(spread - float(np.mean(var_est[sel, k])), 0.0))
+    if sd_m is not None:
+        sd = np.full_like(sd, sd_m)
+    return BoneLengths(skel, L, np.maximum(np.nan_to_num(sd, nan=0.05), sd_floor_m))
+
+
+@dataclass(frozen=True)
+class JointInfo:
+    """Information on each joint's position per row, from outside the row's views (the bones'
+    messages): ``info (R, J, 3, 3)`` and ``eta (R, J, 3)`` (m^-2, m^-1); zero where none."""
+
+    info: F64
+    eta: F64
+
+    def rows(self, r: I64) -> JointInfo:
+        """The rows ``r``."""
+        return JointInfo(self.info[r], self.eta[r])
+
+    def take(self, rows: I64, joints: I64) -> JointInfo:
+        """Rows ``rows (R',)``, each with the one joint ``joints (R',)`` (-1: none): ``(R', 1, ...)``."""
+        j = np.maximum(joints, 0)
+        on = (joints >= 0)[:, None]
+        return JointInfo(np.where(on[..., None, None], self.info[rows, j][:, None], 0.0),
+                         np.where(on[..., None], self.eta[rows, j][:, None], 0.0))
+
+
+def add_joint_info(x: F64, P: F64, ji: JointInfo, dims: I64) -> tuple[F64, F64]:
+    r"""States ``x (B, n)``, ``P (B, n, n)`` with the information ``ji`` (``(B, J, ...)``) on
+    each joint's entries ``dims (J, 3)`` added: ``P^{+-1} = P^{-1} + E^\top \Lambda E``,
+    ``P^{+-1} x^+ = P^{-1} x + E^\top \eta``, joint by joint (information adds: the order does
+    not matter), without inverting ``P``:
+
+    .. math::
+        P^+ = P - U M U^\top,\quad M = \Lambda (I + C \Lambda)^{-1},\quad
+        x^+ = x + P^+ E^\top (\eta - \Lambda E x),
+
+    ``U = P E^\top``, ``C = E P E^\top``. Rows without any information are returned as they are."""
+    has = np.any(ji.info != 0.0, axis=(1, 2, 3))
+    if not has.any():
+        return x, P
+    x, P = x.copy(), P.copy()
+    at = np.flatnonzero(has)
+    for j in range(dims.shape[0]):
+        lam, eta = ji.info[at, j], ji.eta[at, j]
+        on = np.any(lam != 0.0, axis=(1, 2))
+        if not on.any():
+            continue
+        b, lam, eta = at[on], lam[on], eta[on]
+        e = dims[j]
+        U = P[b][:, :, e]  # (N, n, 3)
+        C = U[:, e, :]
+        # M^T = (I + Lam C)^-1 Lam (Lam, C symmetric); M is symmetric but for rounding
+        M = np.swapaxes(np.linalg.solve(np.eye(3) + lam @ C, lam), -1, -2)
+        M = 0.5 * (M + np.swapaxes(M, -1, -2))
+        Pn = P[b] - U @ M @ np.swapaxes(U, -1, -2)
+        Pn = 0.5 * (Pn + np.swapaxes(Pn, -1, -2))
+        innov = eta - np.einsum("nab,nb->na", lam, x[b][:, e])
+        x[b] = x[b] + np.einsum("nsa,na->ns", Pn[:, :, e], innov)
+        P[b] = Pn
+    return x, P
+
+
+def bone_messages(joints: F64, cov: F64, bones: I64, length: F64, var: F64, mask: np.ndarray,
+                  robust: RobustConfig | None, iterations: int = 5) -> JointInfo:
+    """The bones' messages to every joint (the module doc, steps 1-2) from the smoothed joints
+    ``joints (R, J, 3)``, ``cov (R, J, 3, 3)`` and per row the bones' ``length, var, mask (R,
+    K)``; in batches of :data:`CHUNK_ROWS` rows."""
+    R, J, _ = joints.shape
+    info = np.zeros((R, J, 3, 3))
+    eta = np.zeros((R, J, 3))
+    for lo in range(0, R, CHUNK_ROWS):
+        s = slice(lo, min(lo + CHUNK_ROWS, R))
+        if mask[s].any():
+            info[s], eta[s] = _messages(joints[s], cov[s], bones, length[s], var[s], mask[s], robust,
+                                        iterations)
+    return JointInfo(info, eta)
+
+
+def _messages(m0: F64, C: F64, bones: I64, length: F64, var: F64, mask: np.ndarray,
+              robust: RobustConfig | None, iterations: int) -> tuple[F64, F64]:
+    """:func:`bone_messages` of one batch of ``B`` rows."""
+    B, J, _ = m0.shape
+    K = len(bones)
+    a, b = bones[:, 0], bones[:, 1]
+    P0 = np.zeros((B, J, 3, J, 3))
+    P0[:, np.arange(J), :, np.arange(J), :] = np.moveaxis(C, 1, 0)  # block-diagonal prior
+    P0 = P0.reshape(B, 3 * J, 3 * J)
+    p0 = m0.reshape(B, 3 * J)
+    p = p0.copy()
+    w = np.ones((B, K))
+    for it in range(iterations):
+        q = p.reshape(B, J, 3)
+        d = q[:, a] - q[:, b]
+        ln = np.linalg.norm(d, axis=-1)
+        u = d / np.maximum(ln, 1e-12)[..., None]
+        H = np.zeros((B, K, J, 3))
+        H[:, np.arange(K), a] = u
+        H[:, np.arange(K), b] = -u
+        H = H.reshape(B, K, 3 * J)
+        PHt = P0 @ np.swapaxes(H, 1, 2)  # (B, 3J, K)
+        S = H @ PHt
+        r = length - ln + np.einsum("bki,bi->bk", H, p - p0)  # z - h(p) - H (p0 - p)
+        if it == 0 and robust is not None and robust.enabled:
+            e2 = r**2 / (np.diagonal(S, axis1=1, axis2=2) + var)
+            w = point_weights(e2, 1, robust)
+        use = mask & (w > 0)
+        D = np.where(use, var / np.maximum(w, 1e-300), 1.0)
+        S = np.where(use[:, :, None] & use[:, None, :], S, 0.0) + D[:, :, None] * np.eye(K)
+        r = np.where(use, r, 0.0)
+        PHt = np.where(use[:, None, :], PHt, 0.0)
+        p = p0 + np.einsum("bik,bk->bi", PHt, np.linalg.solve(S, r[..., None])[..., 0])
+    post = P0 - PHt @ np.linalg.solve(S, np.swapaxes(PHt, 1, 2))
+    idx = 3 * np.arange(J)[:, None] + np.arange(3)  # (J, 3)
+    Cp = post[:, idx[:, :, None], idx[:, None, :]]  # (B, J, 3, 3) the posterior's marginals
+    Ci, Cpi = _inverse(C), _inverse(Cp)
+    info = Cpi - Ci
+    info = 0.5 * (info + np.swapaxes(info, -1, -2))
+    eta = np.einsum("bjxy,bjy->bjx", Cpi, p.reshape(B, J, 3)) - np.einsum("bjxy,bjy->bjx", Ci, m0)
+    touched = np.zeros((B, J), bool)  # joints no used bone reaches get no message
+    np.logical_or.at(touched, (slice(None), a), use)
+    np.logical_or.at(touched, (slice(None), b), use)
+    return np.where(touched[..., None, None], info, 0.0), np.where(touched[..., None], eta, 0.0)
+
+
+def _inverse(C: F64) -> F64:
+    """Inverses of symmetric positive definite ``(..., 3, 3)``, symmetrised."""
+    Ci = np.linalg.inv(C)
+    return 0.5 * (Ci + np.swapaxes(Ci, -1, -2))
