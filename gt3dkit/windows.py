@@ -37,6 +37,7 @@ from gt3dkit.api import estimate_checked, process_noise_of, take_rows
 from gt3dkit.arrays import unique_rows
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.base import make_estimator
+from gt3dkit.fusion.split import split_entries
 from gt3dkit.io.writers import write_outputs
 from gt3dkit.qa.anomalies import Anomalies
 from gt3dkit.threads import small_matrix_blas
@@ -52,8 +53,8 @@ MIN_OVERLAP_FRAMES = 20
 NOISE_SAMPLE_OBJECT_FRAMES = 20_000
 #: Bytes of a run's per-object-frame state beyond which ``gt3d reconstruct`` runs a sequence in
 #: windows by itself (:func:`auto_plan`), and that a window holds at most: with the process's own
-#: code and data (about 0.3 GB) a run stays under about 0.8 GB, what a laptop has to spare.
-MEMORY_BUDGET_BYTES = 0.4e9
+#: code and data (about 0.27 GB) a run stays under about 0.5 GB, what a laptop has to spare.
+MEMORY_BUDGET_BYTES = 0.2e9
 
 
 @dataclass(frozen=True)
@@ -107,12 +108,13 @@ def overlap_frames(scene: Scene) -> int:
 
 
 def state_bytes(n_joints: int) -> float:
-    """Peak bytes a run holds per object-frame (measured on 300-1000 frames of 3 people with 19
-    joints: one covariance of the whole state, ``n = 9 + 6 J``, the joints' split filters' and the
-    arrays of the measurements, about 2.5 such covariances in all; ~11 kB of the rest): 0.31 MB
-    with 19 joints, 13 kB for a box."""
-    n = 9 + 6 * n_joints
-    return 20.0 * n * n + 11e3
+    """Peak bytes a run holds per object-frame, measured (whole runs of 300-1 000 frames of 3 people,
+    8 cameras): with joints, the split filters' parts (:func:`gt3dkit.fusion.split.split_entries`
+    covariance entries a row) about 4.3 times over with the measurements' arrays, 0.154 MB with 19
+    joints; a box's 9-entry state, its covariance about 20 times over and ~11 kB of the rest, 13 kB."""
+    if n_joints:
+        return 4.3 * 8 * split_entries(n_joints)
+    return 20.0 * 9 * 9 + 11e3
 
 
 def objects_per_frame(scene: Scene) -> tuple[I64, I64]:

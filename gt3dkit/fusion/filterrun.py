@@ -8,12 +8,17 @@ from typing import Any
 
 import numpy as np
 
+from gt3dkit.fusion.blockcov import BlockCov
 from gt3dkit.types import F64
+
+#: The fields that hold arrays (per row or entry), not counters or descriptions.
+ARRAYS = ("x", "P", "nis", "dof", "loglik_rows", "weights", "score2", "residual")
 
 
 @dataclass(frozen=True)
 class FilterRun:
-    """The rows' states ``x (R, n)`` and covariances ``P (R, n, n)`` (smoothed when the run
+    """The rows' states ``x (R, n)`` and covariances ``P (R, n, n)`` (an array, or its blocks
+    where the run was split: :class:`gt3dkit.fusion.blockcov.BlockCov`; smoothed when the run
     smoothed), per row the final update's normalised innovation square ``nis``, its degrees of
     freedom ``dof`` and log-likelihood ``loglik_rows`` ``(R,)`` (0 for rows not run), and, when
     the run collected them, per measurement entry the weights the final update used, each
@@ -25,7 +30,7 @@ class FilterRun:
     """
 
     x: F64
-    P: F64
+    P: F64 | BlockCov
     nis: F64
     dof: F64
     loglik_rows: F64
@@ -49,14 +54,12 @@ class FilterRun:
     def summary(self) -> dict[str, Any]:
         """The run's scalars (for ``meta.json``)."""
         out = {f.name: getattr(self, f.name) for f in fields(self)
-               if not isinstance(getattr(self, f.name), np.ndarray) and getattr(self, f.name) is not None}
+               if f.name not in ARRAYS and getattr(self, f.name) is not None}
         return {**out, "mean_nis_per_dof": self.mean_nis_per_dof, "loglik": self.loglik}
 
     def scalars(self) -> dict[str, Any]:
         """The counters and descriptions (no arrays): what :meth:`after` needs of a run."""
-        return {f.name: getattr(self, f.name) for f in fields(self)
-                if not isinstance(getattr(self, f.name), np.ndarray) and f.name not in
-                ("weights", "score2", "residual")}
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ARRAYS}
 
     def after(self, earlier: dict[str, Any]) -> FilterRun:
         """This run (of every row) as :meth:`merged` makes it from an earlier run whose

@@ -22,6 +22,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from gt3dkit.fusion.blockcov import BlockCov
 from gt3dkit.fusion.filterrun import FilterRun
 from gt3dkit.fusion.initial import InitialCov
 from gt3dkit.fusion.measurement import Model
@@ -54,29 +55,43 @@ class JointSplit:
     owned: np.ndarray
     cols: I64
 
+    @property
+    def n_parts(self) -> int:
+        """Parts per original row (the ellipsoid and each joint)."""
+        return int(self.part.max()) + 1
+
     def merge(self, run: FilterRun, covariances: bool = True, on: np.ndarray | None = None,
-              into: F64 | None = None) -> FilterRun:
-        """The run of the original rows (states ``(R, n)``, block-diagonal covariances ``(R, n,
-        n)``, per-row statistics summed over the parts, per-entry arrays in the original
-        columns) from a run of the split model. ``covariances=False``: ``P`` is ``(R, 0, 0)``
-        (a caller that reads only the statistics, as the noise search, spares the whole state's
-        covariances: 121 kB a row with 19 joints). ``on (R,)``: the rows that ran (the others'
-        covariances are zero, and their pages of ``P`` are not written); ``into (R, n, n)``: the
-        array ``P`` is (the rows ``on`` written, the others left as they are)."""
+              into: BlockCov | None = None) -> FilterRun:
+        """The run of the original rows (states ``(R, n)``, block-diagonal covariances as their
+        blocks, :class:`gt3dkit.fusion.blockcov.BlockCov`: 6 kB a row with 19 joints, the whole
+        ``(R, n, n)`` would be 121 kB; per-row statistics summed over the parts, per-entry arrays
+        in the original columns) from a run of the split model. ``covariances=False``: ``P`` is
+        ``(R, 0, 0)`` (a caller that reads only the statistics, as the noise search). ``on
+        (R,)``: the rows that ran (the others' covariances are zero); ``into``: the covariances
+        ``P`` is (the rows ``on`` written, the others left as they are)."""
         x, P = run.x, run.P
         xo = np.zeros((self.R, self.n))
         rr = np.broadcast_to(self.src[:, None], self.dims.shape)
         xo[rr[self.owned], self.dims[self.owned]] = x[self.owned]
-        Po = into if into is not None and covariances else \
-            np.zeros((self.R, self.n, self.n) if covariances else (self.R, 0, 0))
-        ran = np.ones(len(self.src), bool) if on is None else on[self.src]
-        for own in (self.part == 0, self.part > 0) if covariances else ():
-            if own.any():
-                k = np.flatnonzero(self.owned[np.flatnonzero(own)[0]])
-                at = np.flatnonzero(own & ran)
-                d = self.dims[at][:, k]
-                Po[self.src[at][:, None, None], d[:, :, None], d[:, None, :]] = \
-                    P[at[:, None, None], k[None, :, None], k[None, None, :]]
+        Po: BlockCov | F64 = np.zeros((self.R, 0, 0))
+        if covariances:
+            groups = []
+            for own in (self.part == 0, self.part > 0):
+                first = np.flatnonzero(own)[0]
+                k = np.flatnonzero(self.owned[first])
+                blocks = self.part[first:first + self.n_parts][own[first:first + self.n_parts]]
+                dims = self.dims[first:first + self.n_parts][own[first:first + self.n_parts]][:, k]
+                v = P[np.flatnonzero(own)[:, None, None], k[None, :, None], k[None, None, :]]
+                groups.append((dims, v.reshape(self.R, len(blocks), len(k), len(k))))
+            got = BlockCov(self.n, groups)
+            ran = np.ones(self.R, bool) if on is None else on
+            if into is not None:
+                into[ran] = got[ran]
+                Po = into
+            else:
+                for _, v in got.groups:
+                    v[~ran] = 0.0
+                Po = got
         ok = self.cols >= 0
 
         def entries(v: F64 | None) -> F64 | None:
