@@ -30,8 +30,11 @@ What differs from the paper's obvious implementation (and why):
 * **Backward RTS pass** (offline ground truth may use the future).
 
 Keypoints join the same state and update: each joint and its velocity (constant velocity),
-measured by the projection with distortion. A person's bone lengths are tied together by
-pseudo-measurements ``|p_i - p_j| = L_b`` whose lengths (and spread) come from a first pass.
+measured by the projection with distortion. A person's bone lengths tie its joints together:
+the lengths (and spread) come from a first pass, and a robust Gauss-Newton fit of the first
+pass's smoothed joints to them gives each joint a Gaussian message (expectation propagation,
+:mod:`gt3dkit.fusion.bones`) that the final pass adds to that joint's own filter, so the joints
+still run as separate small filters.
 """
 
 from __future__ import annotations
@@ -102,8 +105,9 @@ class UKFConfig:
         within ``joint_accel_bounds``
     robust : down-weight / reject measurements the other views disagree with
     huber_p, reject_p : tail probabilities where down-weighting starts / rejection is total
-    bones : tie each person's bone lengths together (second pass)
-    bone_sd_m : sd of the bone-length pseudo-measurement; ``None`` = the spread of that
+    bones : tie each person's bone lengths together (messages from the first pass's joints to
+        the final pass, :mod:`gt3dkit.fusion.bones`)
+    bone_sd_m : sd of a bone's length about its fitted value; ``None`` = the spread of that
         bone's length over the first pass, at least ``bone_sd_floor_m``
     init_vel_sd_mps : initial velocity sd; init_canon_sd_m : initial sd of a joint placed
         from the canonical pose (no two views agree on it in the object's first frame)

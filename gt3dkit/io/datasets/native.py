@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gt3dkit.arrays import unique_rows
 from gt3dkit.calib.formats.native import FPS_RANGE, cameras_doc, load_cameras  # noqa: F401
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import FAR_IMAGES, check_pixels
@@ -37,6 +38,7 @@ from gt3dkit.io.datasets.wildtrack import read_truth_csv
 from gt3dkit.parse import (
     FRAME_MAX,
     ID_MAX,
+    MAX_WORLD_M,
     block_columns,
     iter_csv_blocks,
     iter_csv_rows,
@@ -46,7 +48,7 @@ from gt3dkit.parse import (
     sha256,
 )
 from gt3dkit.skeletons import SKELETONS, skeleton_for
-from gt3dkit.types import GroundTruth, Origins, Rig, Scene, SimScene, SkeletonScene
+from gt3dkit.types import F64, GroundTruth, Origins, Rig, Scene, SimScene, SkeletonScene
 
 BOX_COLUMNS = ("frame", "camera", "id", "xmin", "ymin", "xmax", "ymax")
 KPT_COLUMNS = ("frame", "camera", "id", "joint", "u", "v")
@@ -259,10 +261,20 @@ KPT_TRUTH_COLUMNS = ("frame", "id", "joint", "x", "y", "z")
 
 
 def read_kpt_truth(path: Path, n_joints: int) -> GroundTruth:
-    """``truth_keypoints.csv`` = ``frame,id,joint,x,y,z`` (metres), as ``gt3d simulate`` writes."""
-    rows = iter_csv_rows(path, KPT_TRUTH_COLUMNS)
+    """``truth_keypoints.csv`` = ``frame,id,joint,x,y,z`` (metres), as ``gt3d simulate`` writes:
+    read in numpy-checked blocks (:func:`_checked_kpt_truth`), row by row where a block fails a
+    check or a joint is given twice (to say where)."""
+    blocks = [_checked_kpt_truth(rows, n_joints) for _, rows in
+              iter_csv_blocks(path, KPT_TRUTH_COLUMNS, None, KEYPOINT_BLOCK_ROWS)]
+    a = np.concatenate([np.zeros((0, 6))] + [b for b in blocks if b is not None])
+    ijk = a[:, :3].astype(np.int64)
+    if all(b is not None for b in blocks) and len(unique_rows(ijk)) == len(a):
+        keys, row = unique_rows(ijk[:, :2], return_inverse=True)
+        kpt = np.full((len(keys), n_joints, 3), np.nan)
+        kpt[row, ijk[:, 2]] = a[:, 3:]
+        return _kpt_truth_of(keys, kpt)
     poses: dict[tuple[int, int], np.ndarray] = {}
-    for line, r in rows:
+    for line, r in iter_csv_rows(path, KPT_TRUTH_COLUMNS):
         where = f"{path}: line {line}"
         key = (parse_frame(where, r["frame"]), parse_int(where, r["id"], "id"))
         j = parse_int(where, r["joint"], "joint", 0, max(n_joints - 1, 0))
@@ -274,12 +286,32 @@ def read_kpt_truth(path: Path, n_joints: int) -> GroundTruth:
             raise InputError(where, f"second row for joint {j} of object {key[1]} in frame {key[0]}")
         pose[j] = xyz
     keys = sorted(poses)
-    k = np.array(keys, dtype=np.int64).reshape(-1, 2)
+    return _kpt_truth_of(np.array(keys, dtype=np.int64).reshape(-1, 2),
+                         np.array([poses[q] for q in keys]).reshape(len(keys), n_joints, 3))
+
+
+def _checked_kpt_truth(rows: list[list[str]], n_joints: int) -> F64 | None:
+    """``(P, 6)`` a block of ``truth_keypoints.csv`` rows (frame, id, joint, x, y, z) parsed and
+    checked as :func:`read_kpt_truth` checks each row (but for a joint given twice), or None
+    when any fails."""
+    cols = block_columns(rows)
+    if cols is None or not n_joints:
+        return None
+    try:
+        key = np.stack([np.array(cols[k]).astype(np.int64) for k in (0, 1, 2)], 1)
+        xyz = np.stack([np.array(cols[k]).astype(np.float64) for k in (3, 4, 5)], 1)
+    except (ValueError, OverflowError):
+        return None
+    ok = ((key[:, 0] >= 0) & (key[:, 0] <= FRAME_MAX) & (np.abs(key[:, 1]) <= ID_MAX) & (key[:, 2] >= 0)
+          & (key[:, 2] < n_joints) & np.all(np.isfinite(xyz) & (np.abs(xyz) <= MAX_WORLD_M), axis=1))
+    return np.concatenate([key, xyz], 1) if ok.all() else None
+
+
+def _kpt_truth_of(keys: np.ndarray, kpt_world: F64) -> GroundTruth:
+    """``keys (n, 2)`` frame and id (sorted), ``kpt_world (n, J, 3)`` as the keypoint truth."""
     n = len(keys)
-    return GroundTruth(frame=k[:, 0], track_id=k[:, 1], center_world=np.full((n, 3), np.nan),
-                       semi_axes=np.full((n, 3), np.nan),
-                       kpt_world=np.array([poses[q] for q in keys]).reshape(n, n_joints, 3),
-                       source="truth_keypoints.csv")
+    return GroundTruth(frame=keys[:, 0], track_id=keys[:, 1], center_world=np.full((n, 3), np.nan),
+                       semi_axes=np.full((n, 3), np.nan), kpt_world=kpt_world, source="truth_keypoints.csv")
 
 
 def _merge_kpt_truth(boxes: GroundTruth | None, kpts: GroundTruth) -> GroundTruth:

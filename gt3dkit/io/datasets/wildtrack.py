@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gt3dkit.arrays import unique_rows
 from gt3dkit.calib.formats.grid import GridLayout, load_camera
 from gt3dkit.calib.formats.grid import write as write_grid
 from gt3dkit.errors import InputError
@@ -206,7 +207,7 @@ def read_truth_csv(p: Path, files: dict[str, str], root: Path) -> GroundTruth:
     say where)."""
     blocks = [_checked_truth(rows) for _, rows in iter_csv_blocks(p, TRUTH_COLUMNS, None, 65536)]
     a = np.concatenate([np.zeros((0, 8))] + [b for b in blocks if b is not None])
-    if all(b is not None for b in blocks) and len(np.unique(a[:, :2], axis=0)) == len(a):
+    if all(b is not None for b in blocks) and len(unique_rows(a[:, :2].astype(np.int64))) == len(a):
         files[str(p.relative_to(root))] = sha256(p)
         return _truth_of(a)
     rows = []
