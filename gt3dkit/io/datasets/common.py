@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from gt3dkit.arrays import unique_rows
 from gt3dkit.errors import InputError
 from gt3dkit.types import F64, Observations, Origins
 
@@ -140,8 +141,7 @@ class RowBuilder:
         cat = {k: np.concatenate([np.zeros(0, np.int64)] + [getattr(b, k) for b in jb])
                for k in ("frame", "cam", "tid", "joint", "line")}
         pts = np.stack([cat["frame"], cat["cam"], cat["tid"]], axis=1)
-        keys, inv = np.unique(np.concatenate([one, bkeys, pts]), axis=0, return_inverse=True)
-        inv = inv.reshape(-1)
+        keys, inv = unique_rows(np.concatenate([one, bkeys, pts]), return_inverse=True)
         row_one, row_box, row_pt = np.split(inv, [len(one), len(one) + len(bkeys)])
         n = len(keys)
         box = np.full((n, 4), np.nan)

@@ -44,7 +44,7 @@ from gt3dkit.parse import (
     block_columns,
     iter_csv_blocks,
     iter_csv_rows,
-    load_json,
+    load_json_hashed,
     parse_frame,
     parse_int,
     parse_metres,
@@ -70,8 +70,7 @@ def load(root: Path, g: GridLayout) -> Scene:
         if not p.stem.isdigit():
             raise InputError(str(p), "file name is not a frame number")
         frame = parse_frame(str(p), p.stem)
-        people = load_json(p)
-        files[str(p.relative_to(root))] = sha256(p)
+        people, files[str(p.relative_to(root))] = load_json_hashed(p)
         if not isinstance(people, list):
             raise InputError(str(p), "expected a list of people")
         fast = _checked_views(people, cams, wh, g)
