@@ -114,13 +114,20 @@ def test_keypoints_read_in_blocks_as_row_by_row(tmp_path: Path, monkeypatch: pyt
     monkeypatch.setattr(native, "KEYPOINT_BLOCK_ROWS", block)
     sim = simulate_skeletons("native", seed=2, frames=6, people=2, noise_px=1.0, cameras=4)
     write_skeleton_scene(sim, tmp_path / "a", "native")
-    fast = load_scene(tmp_path / "a")
-    monkeypatch.setattr(native, "_checked_keypoints", lambda *a: None)  # every block row by row
-    slow = load_scene(tmp_path / "a")
-    for k in ("frame", "cam", "track_id"):
-        np.testing.assert_array_equal(getattr(fast.obs, k), getattr(slow.obs, k))
-    np.testing.assert_array_equal(fast.obs.kpt_uv_px, slow.obs.kpt_uv_px)
-    assert fast.obs.origin == slow.obs.origin
+    head, *body = (tmp_path / "a" / "keypoints.csv").read_text().splitlines()
+    rng = np.random.default_rng(0)
+    for order, lines in (("as written", body), ("shuffled", [body[k] for k in rng.permutation(len(body))]),
+                         ("joint-major", sorted(body, key=lambda r: int(r.split(",")[3])))):
+        # a block's points are gathered into rows, whatever order the file holds them in
+        (tmp_path / "a" / "keypoints.csv").write_text("\n".join([head, *lines]) + "\n")
+        fast = load_scene(tmp_path / "a")
+        with monkeypatch.context() as m:
+            m.setattr(native, "_checked_keypoints", lambda *a: None)  # every block row by row
+            slow = load_scene(tmp_path / "a")
+        for k in ("frame", "cam", "track_id"):
+            np.testing.assert_array_equal(getattr(fast.obs, k), getattr(slow.obs, k))
+        np.testing.assert_array_equal(fast.obs.kpt_uv_px, slow.obs.kpt_uv_px)
+        assert fast.obs.origin == slow.obs.origin, order
     monkeypatch.undo()
     monkeypatch.setattr(native, "KEYPOINT_BLOCK_ROWS", block)
     cam = sim.rig.names[0]
@@ -133,6 +140,7 @@ def test_keypoints_read_in_blocks_as_row_by_row(tmp_path: Path, monkeypatch: pyt
     assert s.obs.origin[0].endswith("keypoints.csv: line 2")
     for rows, line, what in (
             (ok + [f"0,{cam},1,2,1,1,0.5"], 10, "second keypoint 2 for object 1 in frame 0"),
+            (ok[:1] + [f"0,{cam},1,0,1,1,0.5"] + ok[1:], 3, "second keypoint 0 for object 1 in frame 0"),
             (ok + [f"1,{cam},1,0,1e9,20,0.5"], 10, "far outside"),
             (ok + [f"1,{cam},1,0,10,20,1.5"], 10, "confidence must be in [0, 1]"),
             (ok + ["1,nosuch,1,0,10,20,1"], 10, "unknown camera 'nosuch'"),

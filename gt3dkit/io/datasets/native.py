@@ -40,6 +40,8 @@ from gt3dkit.parse import (
     ID_MAX,
     MAX_WORLD_M,
     block_columns,
+    float_column,
+    int_column,
     iter_csv_blocks,
     iter_csv_rows,
     parse_frame,
@@ -155,9 +157,9 @@ def _add_box(rb: RowBuilder, rig: Rig, where: str, r: dict[str, str]) -> int:
 
 def _camera_column(rig: Rig, names: tuple[str, ...]) -> np.ndarray:
     """``(P,)`` the camera index of each name (stripped), -1 for an unknown one."""
-    uniq, of = np.unique(np.array(names), return_inverse=True)
     known = {n: k for k, n in enumerate(rig.names)}
-    return np.array([known.get(str(n).strip(), -1) for n in uniq], dtype=np.int64)[of.reshape(-1)]
+    index = {n: known.get(n.strip(), -1) for n in set(names)}
+    return np.fromiter(map(index.__getitem__, names), np.int64, len(names))
 
 
 def _checked_boxes(path: Path, rig: Rig, lines: list[int], rows: list[list[str]]
@@ -166,11 +168,9 @@ def _checked_boxes(path: Path, rig: Rig, lines: list[int], rows: list[list[str]]
     row, and the count of boxes of -1s (not seen) it drops; None when any row fails a check (the
     caller then goes row by row to say which and why)."""
     cols = block_columns(rows)
-    if cols is None:
-        return None
     try:
-        frame, tid = (np.array(cols[k]).astype(np.int64) for k in (0, 2))
-        box = np.stack([np.array(cols[k]).astype(np.float64) for k in range(3, 7)], 1)
+        frame, tid = (int_column(cols[k]) for k in (0, 2))
+        box = np.stack([float_column(cols[k]) for k in range(3, 7)], 1)
     except (ValueError, OverflowError):
         return None
     cam = _camera_column(rig, cols[1])
@@ -212,12 +212,10 @@ def _checked_keypoints(path: Path, rig: Rig, n_joints: int, lines: list[int], ro
     a check (the caller then goes row by row to say which and why). A 4-million-point file reads in
     seconds and is held as arrays."""
     cols = block_columns(rows)
-    if cols is None:
-        return None
     try:
-        ints = [np.array(cols[k]).astype(np.int64) for k in (0, 2, 3)]  # frame, id, joint
-        uv = np.stack([np.array(cols[4]).astype(np.float64), np.array(cols[5]).astype(np.float64)], 1)
-        conf = np.array(cols[6]).astype(np.float64) if with_conf else None
+        ints = [int_column(cols[k]) for k in (0, 2, 3)]  # frame, id, joint
+        uv = np.stack([float_column(cols[4]), float_column(cols[5])], 1)
+        conf = float_column(cols[6]) if with_conf else None
     except (ValueError, OverflowError):
         return None
     frame, tid, joint = ints
@@ -294,12 +292,12 @@ def _checked_kpt_truth(rows: list[list[str]], n_joints: int) -> F64 | None:
     """``(P, 6)`` a block of ``truth_keypoints.csv`` rows (frame, id, joint, x, y, z) parsed and
     checked as :func:`read_kpt_truth` checks each row (but for a joint given twice), or None
     when any fails."""
-    cols = block_columns(rows)
-    if cols is None or not n_joints:
+    if not n_joints:
         return None
+    cols = block_columns(rows)
     try:
-        key = np.stack([np.array(cols[k]).astype(np.int64) for k in (0, 1, 2)], 1)
-        xyz = np.stack([np.array(cols[k]).astype(np.float64) for k in (3, 4, 5)], 1)
+        key = np.stack([int_column(cols[k]) for k in (0, 1, 2)], 1)
+        xyz = np.stack([float_column(cols[k]) for k in (3, 4, 5)], 1)
     except (ValueError, OverflowError):
         return None
     ok = ((key[:, 0] >= 0) & (key[:, 0] <= FRAME_MAX) & (np.abs(key[:, 1]) <= ID_MAX) & (key[:, 2] >= 0)

@@ -42,6 +42,8 @@ from gt3dkit.parse import (
     ID_MAX,
     MAX_WORLD_M,
     block_columns,
+    float_column,
+    int_column,
     iter_csv_blocks,
     iter_csv_rows,
     load_json_hashed,
@@ -229,11 +231,9 @@ def _checked_truth(rows: list[list[str]]) -> F64 | None:
     """``(P, 8)`` a block of ``truth.csv`` rows parsed and checked as :func:`read_truth_csv`
     checks each row (but for a row given twice), or None when any fails."""
     cols = block_columns(rows)
-    if cols is None:
-        return None
     try:
-        key = np.stack([np.array(cols[k]).astype(np.int64) for k in (0, 1)], 1)
-        val = np.stack([np.array(cols[k]).astype(np.float64) for k in range(2, 8)], 1)
+        key = np.stack([int_column(cols[k]) for k in (0, 1)], 1)
+        val = np.stack([float_column(cols[k]) for k in range(2, 8)], 1)
     except (ValueError, OverflowError):
         return None
     ok = ((key[:, 0] >= 0) & (key[:, 0] <= FRAME_MAX) & (np.abs(key[:, 1]) <= ID_MAX)
