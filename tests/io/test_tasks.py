@@ -152,11 +152,17 @@ def _trial(tmp_path: Path, skeleton: str = "body25", seed: int = 1) -> Path:
     return tmp_path / "trial"
 
 
-def test_openpose_trial(tmp_path: Path) -> None:
+def test_openpose_trial(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from gt3dkit.io.datasets import openpose
     from gt3dkit.skeletons import SKELETONS
 
     root = _trial(tmp_path)
     sc = load_scene(root)
+    monkeypatch.setattr(openpose, "CHUNK_FILES", 2)  # each camera's files gathered in many blocks
+    small = load_scene(root)
+    for k in ("frame", "cam", "track_id", "kpt_uv_px", "kpt_conf"):
+        np.testing.assert_array_equal(getattr(small.obs, k), getattr(sc.obs, k))
+    assert small.obs.origin == sc.obs.origin and sc.obs.origin[0].endswith("keypoints.json: people[0]")
     assert sc.layout == "openpose" and sc.skeleton == "body25" and sc.fps == 30.0 and not sc.fps_assumed
     assert sc.obs.n_joints == 25 and sc.obs.kpt_conf is not None  # every joint, confidences kept
     assert any("paired by sorted order" in w for w in sc.warnings)
@@ -198,6 +204,13 @@ def test_openpose_bad_files(tmp_path: Path) -> None:
     with pytest.raises(InputError) as e:
         load_scene(root)
     assert f.name in str(e.value)
+    far = json.loads(good)
+    far["people"][-1]["pose_keypoints_2d"][3 * 4 + 1] = -1e9  # joint 4's y, detected
+    far["people"][-1]["pose_keypoints_2d"][3 * 4 + 2] = 0.5
+    f.write_text(json.dumps(far))
+    with pytest.raises(InputError, match="far outside") as e:
+        load_scene(root)
+    assert e.value.where.endswith(f"{f.name}: people[{len(far['people']) - 1}]"), str(e.value)
     assert doc["people"]
 
 

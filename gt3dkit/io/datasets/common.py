@@ -44,22 +44,28 @@ class JointBlock:
 
 @dataclass(frozen=True)
 class JointRows:
-    """A :class:`JointBlock` gathered into its rows (:func:`gather_rows`): ``keys (r, 3)`` frame,
-    camera, id; ``joints (k,)`` the joints the block holds; ``uv (r, k, 2)`` (NaN: none),
-    ``conf (r, k)`` or None, ``line (r, k)`` each point's line (-1: none), of the file ``path``.
-    A row's 19 points held as one row, not 19 sets of five integers (a 10 000-frame, 3-person,
-    8-camera file peaked at 1.15 GB read as points, 0.1 GB of keypoints in the end)."""
+    """Keypoints as rows (:func:`gather_rows`, or a detector's detections, one row each):
+    ``keys (r, 3)`` frame, camera, id; ``joints (k,)`` the joints the rows hold; ``uv (r, k, 2)``
+    (NaN: none), ``conf (r, k)`` or None; ``line (r, k)`` each point's place in reading order
+    (-1: none); ``origin`` each row's (its first point's). A point's own origin is
+    ``point_template.format(line)`` (a CSV line), or its row's when that is None (a detection's
+    points share it). A row's 19 points held as one row, not 19 sets of five integers (a
+    10 000-frame, 3-person, 8-camera file peaked at 1.15 GB read as points, 0.1 GB of keypoints
+    in the end)."""
 
     keys: np.ndarray
     joints: np.ndarray
     uv: F64
     conf: F64 | None
     line: np.ndarray
-    path: str
+    origin: Origins
+    point_template: str | None = None
 
-    def first_line(self) -> np.ndarray:
-        """``(r,)`` each row's first line in the file (its first point's)."""
-        return np.where(self.line >= 0, self.line, np.iinfo(np.int64).max).min(axis=1)
+    def point_origin(self, r: int, c: int) -> str:
+        """Where the point of row ``r`` and joint column ``c`` came from."""
+        if self.point_template is None:
+            return self.origin[r]
+        return self.point_template.format(int(self.line[r, c]))
 
 
 def gather_rows(b: JointBlock) -> JointRows:
@@ -81,7 +87,9 @@ def gather_rows(b: JointBlock) -> JointRows:
         conf.reshape(-1)[slot] = b.conf
     line = np.full((len(keys), k), -1, dtype=np.int64)
     line.reshape(-1)[slot] = b.line
-    return JointRows(keys, joints, uv, conf, line, b.path)
+    _, first = np.unique(row, return_index=True)  # each row's first point (the points are in line order)
+    template = Origins.literal(b.path) + ": line {0}"
+    return JointRows(keys, joints, uv, conf, line, Origins.formatted(template, b.line[first]), template)
 
 
 def _repeat(joint: int, tid: int, frame: int) -> str:
@@ -175,6 +183,14 @@ class RowBuilder:
             self.has_conf = True
         self.blocks.append(gather_rows(block))
 
+    def add_joint_rows(self, rows: JointRows) -> None:
+        """Keypoint rows already checked as :meth:`add_joint` checks each point, each (row, joint)
+        once among them, added at once; a row's joint given again (here or before) is found by
+        :meth:`build`."""
+        if rows.conf is not None:
+            self.has_conf = True
+        self.blocks.append(rows)
+
     def build(self) -> Observations:
         """The rows, sorted by (frame, camera, id): those added one by one, the box blocks' and the
         keypoint blocks' merged per (frame, camera, id). A box or point given twice is an
@@ -208,8 +224,7 @@ class RowBuilder:
         rows_of = np.split(row_pt, np.cumsum([len(p.keys) for p in jb])[:-1]) if jb else []
         if jb:
             _merge_joint_rows(jb, rows_of, kpt, cf if self.has_conf else None)
-        pt_origin = Origins.concat([Origins.formatted(Origins.literal(p.path) + ": line {0}", p.first_line())
-                                    for p in jb])
+        pt_origin = Origins.concat([p.origin for p in jb])
         # each row's origin: where it was added one by one, else its box's, else its first point's
         # (the blocks are in reading order: a row's first block holds its first point)
         first = np.full(n, -1)
@@ -263,8 +278,7 @@ def _raise_repeat(parts: list[JointRows], slots: list[np.ndarray], shared: np.nd
     order = np.lexsort((line_a, src_a))
     q = int(order[_later_repeats(slot_a[order], taken)[0]])
     p, (r, c) = parts[int(src_a[q])], rc[q]
-    raise InputError(f"{p.path}: line {line_a[q]}",
-                     _repeat(int(p.joints[c]), int(p.keys[r, 2]), int(p.keys[r, 0])))
+    raise InputError(p.point_origin(r, c), _repeat(int(p.joints[c]), int(p.keys[r, 2]), int(p.keys[r, 0])))
 
 
 def _later_repeats(slot: np.ndarray, taken: np.ndarray) -> np.ndarray:

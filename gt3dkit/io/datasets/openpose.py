@@ -26,13 +26,13 @@ import numpy as np
 
 from gt3dkit.calib.formats import toml as toml_fmt
 from gt3dkit.errors import InputError
-from gt3dkit.io.datasets.checks import check_pixels
-from gt3dkit.io.datasets.common import RowBuilder
+from gt3dkit.io.datasets.checks import FAR_IMAGES, check_pixels
+from gt3dkit.io.datasets.common import JointRows, RowBuilder
 from gt3dkit.io.datasets.mot import calibration_beside, match_cameras, natural_key
 from gt3dkit.io.datasets.native import read_kpt_truth, write_kpt_truth
 from gt3dkit.parse import load_json, sha256
 from gt3dkit.skeletons import DETECTOR_SKELETONS, SKELETONS
-from gt3dkit.types import Rig, Scene, SkeletonScene
+from gt3dkit.types import Camera, Origins, Rig, Scene, SkeletonScene
 
 DEFAULT_FPS = 30.0
 
@@ -80,6 +80,65 @@ def _which_25(sample: list[np.ndarray]) -> str:
     return "body25" if not d or float(np.median(d)) < 0.25 else "body25b"
 
 
+#: Frame files of one camera gathered into one block of rows (:class:`_Detections`).
+CHUNK_FILES = 2048
+
+
+@dataclasses.dataclass
+class _Detections:
+    """One camera's detections of a run of frame files, gathered as arrays and added to a
+    :class:`RowBuilder` at once (a row per detection: the frame, the camera, its index in its file),
+    with :meth:`RowBuilder.add_joint` 's checks made on the arrays: a long recording is held as
+    arrays, not a Python object per detection."""
+
+    camera: Camera
+    cam: int
+    frame: list[int] = dataclasses.field(default_factory=list)
+    index: list[int] = dataclasses.field(default_factory=list)
+    kp: list[np.ndarray] = dataclasses.field(default_factory=list)
+    file_of: list[int] = dataclasses.field(default_factory=list)  # each detection's file
+    paths: list[str] = dataclasses.field(default_factory=list)
+
+    @property
+    def files(self) -> int:
+        return len(self.paths)
+
+    def add(self, frame: int, i: int, a: np.ndarray, path: Path) -> None:
+        """Detection ``i`` of the frame file ``path``: ``a (J, 3)`` x, y, confidence."""
+        if not self.paths or self.paths[-1] != str(path):
+            self.paths.append(str(path))
+        self.file_of.append(len(self.paths) - 1)
+        self.frame.append(frame)
+        self.index.append(i)
+        self.kp.append(a)
+
+    def flush_into(self, rb: RowBuilder | None, J: int | None) -> RowBuilder | None:
+        """The detections gathered so far added to ``rb`` (made with ``J`` joints when None);
+        :class:`InputError` at the first point (in reading order) no image could hold."""
+        if not self.frame or J is None:
+            return rb
+        kp = np.stack(self.kp)  # (D, J, 3)
+        index = np.asarray(self.index, dtype=np.int64)
+        origin = Origins(tuple(Origins.literal(p) + ": people[{0}]" for p in self.paths),
+                         np.asarray(self.file_of, dtype=np.int64), np.stack([index, np.zeros_like(index)], 1))
+        seen = kp[..., 2] > 0  # a confidence of 0: not detected
+        size = np.array([self.camera.width, self.camera.height], dtype=np.float64)
+        inside = (kp[..., :2] >= -FAR_IMAGES * size) & (kp[..., :2] <= (1 + FAR_IMAGES) * size)
+        far = seen & ~np.all(inside, axis=-1)
+        if far.any():
+            d, j = np.argwhere(far)[0]
+            check_pixels(origin[int(d)], self.camera, list(kp[d, j, :2]), "keypoint")
+        D = len(kp)
+        keys = np.stack([np.asarray(self.frame), np.full(D, self.cam), index], 1).astype(np.int64)
+        line = np.where(seen, np.arange(D)[:, None], -1)
+        rows = JointRows(keys, np.arange(J), np.where(seen[..., None], kp[..., :2], np.nan),
+                         np.where(seen, kp[..., 2], np.nan), line, origin)
+        rb = rb if rb is not None else RowBuilder(n_joints=J)
+        rb.add_joint_rows(rows)
+        self.frame, self.index, self.kp, self.file_of, self.paths = [], [], [], [], []
+        return rb
+
+
 def load(
     root: Path, skeleton: str | None = None, calib: Path | str | None = None, fps: float | None = None
 ) -> Scene:
@@ -93,11 +152,13 @@ def load(
     warnings: list[str] = []
     names = [p.name[: -len("_json")] for p in folders]
     cam_of = match_cameras(names, rig, str(root), warnings)
-    dets: list[tuple[int, int, int, np.ndarray, str]] = []  # frame, cam, index, (J, 3), where
     files: dict[str, str] = {}
     J = None
+    sample: list[np.ndarray] = []  # the first detections, to tell BODY_25 from BODY_25B
+    rb: RowBuilder | None = None
     for folder, name in zip(folders, names, strict=True):
         seen_frames: dict[int, Path] = {}
+        chunk = _Detections(rig.cameras[cam_of[name]], cam_of[name])
         for p in sorted(folder.glob("*.json"), key=lambda q: natural_key(q.name)):
             f = _frame_of(p)
             if f in seen_frames:
@@ -128,25 +189,20 @@ def load(
                     raise InputError(where, f"{len(a)} joints, the other detections have {J}")
                 if not np.isfinite(a).all() or (a[:, 2] < 0).any() or (a[:, 2] > 1).any():
                     raise InputError(where, "a non-finite value or a confidence outside [0, 1]")
-                dets.append((f, cam_of[name], i, a, where))
+                if len(sample) < 500:
+                    sample.append(a)
+                chunk.add(f, i, a, p)
+            if chunk.files >= CHUNK_FILES:  # held as arrays, not an object per detection
+                rb = chunk.flush_into(rb, J)
+        rb = chunk.flush_into(rb, J)
         files[f"{folder.name}/"] = f"{len(seen_frames)} files"
-    if not dets or J is None:
+    if rb is None or J is None:
         raise InputError(str(root), "no annotations in any frame (no people in the JSON files)")
     if skeleton is None:
         opts = DETECTOR_SKELETONS[J]
-        skeleton = opts[0] if len(opts) == 1 else _which_25([d[3] for d in dets[:500]])
+        skeleton = opts[0] if len(opts) == 1 else _which_25(sample)
     elif SKELETONS[skeleton].n_joints != J:
         raise InputError("--skeleton", f"{skeleton} has {SKELETONS[skeleton].n_joints} joints, the files {J}")
-    rb = RowBuilder(n_joints=J)
-    undetected = 0
-
-    for f, c, i, a, where in dets:
-        for j in range(J):
-            if a[j, 2] == 0:
-                undetected += 1
-                continue
-            check_pixels(where, rig.cameras[c], list(a[j, :2]), "keypoint")
-            rb.add_joint(f, c, i, j, (float(a[j, 0]), float(a[j, 1])), where, float(a[j, 2]))
     obs = rb.build()
     files[f"calibration:{cal.name}"] = sha256(cal) if cal.is_file() else "folder"
     truth = None
