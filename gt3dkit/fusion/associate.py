@@ -35,7 +35,7 @@ import numpy as np
 from gt3dkit.arrays import unique_rows
 from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import Cams, pixel_rays, project_points
-from gt3dkit.geom.triangulate import normalized_points, reprojection_sq_px, triangulate_dlt
+from gt3dkit.geom.triangulate import normalized_points, triangulate_dlt
 from gt3dkit.parse import parse_frame, parse_int, read_csv_rows
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import F64, Observations, Scene
@@ -362,18 +362,73 @@ class DetectionConfig:
     max_gap_s: float = 1.0  # a person unseen longer than this is a new track when seen again
 
 
-def _pair_cost(xa: F64, xb: F64, Ra, ta, Rb, tb, fa: float, fb: float) -> float:
-    """Median over the joints both saw of the two-view reprojection error (px) after
-    triangulating them from these two views; inf with too few joints."""
-    ok = np.isfinite(xa).all(axis=1) & np.isfinite(xb).all(axis=1)
-    if ok.sum() < 1:
-        return np.inf
-    xy = np.stack([xa[ok], xb[ok]], axis=1)  # (n, 2, 2)
-    R, t = np.stack([Ra, Rb]), np.stack([ta, tb])
-    X, _ = triangulate_dlt(xy, R, t)
-    e2 = reprojection_sq_px(X, xy, R, t, np.array([fa, fb]))
-    e = np.sqrt(np.nanmean(e2, axis=1))
-    return float(np.median(e)) if np.isfinite(e).any() else np.inf
+#: Detection pairs whose costs are computed at once (:func:`pair_costs`): ``(pairs, J, 4, 4)`` arrays.
+PAIR_CHUNK = 8192
+
+
+def frame_pairs(frame: np.ndarray, cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every pair of rows ``a < b`` of one frame and different cameras, frame by frame, in row
+    order (``frame (N,)`` sorted, ``cam (N,)``): ``(P,)`` each."""
+    out_a, out_b = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    starts = np.flatnonzero(np.r_[True, frame[1:] != frame[:-1]])
+    ends = np.r_[starts[1:], len(frame)]
+    for n in np.unique(ends - starts):  # frames with n rows together
+        lo = starts[(ends - starts) == n]
+        i, j = np.triu_indices(int(n), 1)
+        out_a.append((lo[:, None] + i).reshape(-1))
+        out_b.append((lo[:, None] + j).reshape(-1))
+    a, b = np.concatenate(out_a), np.concatenate(out_b)
+    order = np.lexsort((b, a))
+    a, b = a[order], b[order]
+    keep = cam[a] != cam[b]
+    return a[keep], b[keep]
+
+
+def pair_costs(xy: F64, a: np.ndarray, b: np.ndarray, Pw: F64, f_px: F64, min_joints: int) -> F64:
+    r"""For each pair of detections ``a, b (P,)`` (rows of ``xy (N, J, 2)``, undistorted normalised
+    joints, NaN = not confident; ``Pw (P, 2, 3, 4)`` the two views' ``[R | t]``, ``f_px (P, 2)``
+    their focal lengths): the median over the joints both saw of the two-view reprojection error
+    (px, the RMS of the two views) after triangulating each joint from the two views (DLT, the
+    rows of :func:`gt3dkit.geom.triangulate.triangulate_dlt`); ``inf`` with fewer than
+    ``min_joints`` such joints, NaN where an error is undefined. ``(P,)``, in chunks of
+    :data:`PAIR_CHUNK` pairs."""
+    out = np.full(len(a), np.inf)
+    for lo in range(0, len(a), PAIR_CHUNK):
+        s = slice(lo, lo + PAIR_CHUNK)
+        xa, xb = xy[a[s]], xy[b[s]]
+        ok = np.isfinite(xa).all(axis=-1) & np.isfinite(xb).all(axis=-1)  # (p, J)
+        n = ok.sum(axis=1)
+        use = n >= min_joints
+        if not use.any():
+            continue
+        ok, n = ok[use], n[use]
+        x2 = np.stack([xa[use], xb[use]], axis=2)  # (p, J, 2 views, 2)
+        x2 = np.where(ok[..., None, None], x2, 0.0)
+        P = Pw[s][use][:, None]  # (p, 1, 2, 3, 4)
+        rows_x = x2[..., 0, None] * P[..., 2, :] - P[..., 0, :]  # (p, J, 2, 4)
+        rows_y = x2[..., 1, None] * P[..., 2, :] - P[..., 1, :]
+        A = np.concatenate([rows_x, rows_y], axis=2)
+        # A's smallest right singular vector: the eigenvector of A^T A's smallest eigenvalue
+        # (a batched 4x4 eigh is 5x faster than the SVD; the same point to rounding)
+        Xh = np.linalg.eigh(np.swapaxes(A, -1, -2) @ A)[1][..., 0]
+        X = Xh[..., :3] / Xh[..., 3:]  # (p, J, 3)
+        Xc = np.einsum("pvij,pnj->pnvi", P[:, 0, :, :, :3], X) + P[:, 0, None, :, :, 3]  # (p, J, 2, 3)
+        z = Xc[..., 2]
+        d = Xc[..., :2] / z[..., None] - x2
+        e2 = np.where(z > 0, np.sum(d * d, axis=-1) * f_px[s][use][:, None] ** 2, np.inf)
+        e = np.sqrt(np.nanmean(e2, axis=-1))  # (p, J)
+        out[np.flatnonzero(use) + lo] = _masked_median(e, ok, n)
+    return out
+
+
+def _masked_median(e: F64, ok: np.ndarray, n: np.ndarray) -> F64:
+    """``(p,)`` the median of each row of ``e (p, J)`` over its ``ok`` entries (``n (p,)`` of them,
+    at least one): NaN where one of them is NaN, as ``np.median``."""
+    srt = np.sort(np.where(ok, e, np.inf), axis=1)  # the ok entries first (NaN after every inf)
+    r = np.arange(len(e))
+    lo, hi = srt[r, (n - 1) // 2], srt[r, n // 2]
+    med = np.where(n % 2 == 1, lo, (lo + hi) / 2.0)
+    return np.where(np.any(ok & np.isnan(e), axis=1), np.nan, med)
 
 
 def _flat(v: F64, up: F64) -> float:
@@ -408,22 +463,17 @@ def associate_detections(scene: Scene, cfg: DetectionConfig | None = None,
     tracks: list[dict] = []  # {"id", "frame", "X"}
     next_id = 0
     with np.errstate(all="ignore"):
-        for f in np.unique(obs.frame):
+        pa, pb = frame_pairs(obs.frame, obs.cam)  # every frame's pairs of views, costed at once
+        Pw = np.concatenate([cams.R, cams.t[:, :, None]], axis=2)  # (C, 3, 4)
+        cost = pair_costs(xy, pa, pb, np.stack([Pw[obs.cam[pa]], Pw[obs.cam[pb]]], 1),
+                          np.stack([f_px[obs.cam[pa]], f_px[obs.cam[pb]]], 1), cfg.min_joints)
+        good = cost <= cfg.max_reproj_px
+        pa, pb, cost = pa[good], pb[good], cost[good]
+        pair_at = np.searchsorted(obs.frame[pa], np.unique(obs.frame), side="left")
+        for k, f in enumerate(np.unique(obs.frame)):
             rows = np.flatnonzero(obs.frame == f)
-            pairs = []
-            for i, a in enumerate(rows):
-                for b in rows[i + 1:]:
-                    if obs.cam[a] == obs.cam[b]:
-                        continue
-                    ok = np.isfinite(xy[a]).all(axis=1) & np.isfinite(xy[b]).all(axis=1)
-                    if ok.sum() < cfg.min_joints:
-                        continue
-                    ca, cb = obs.cam[a], obs.cam[b]
-                    cost = _pair_cost(xy[a], xy[b], cams.R[ca], cams.t[ca], cams.R[cb], cams.t[cb],
-                                      f_px[ca], f_px[cb])
-                    if cost <= cfg.max_reproj_px:
-                        pairs.append((cost, int(a), int(b)))
-            pairs.sort()
+            s = slice(pair_at[k], pair_at[k + 1] if k + 1 < len(pair_at) else len(pa))
+            pairs = sorted(zip(cost[s].tolist(), pa[s].tolist(), pb[s].tolist(), strict=True))
             cost_of = {(a, b): c for c, a, b in pairs}
             group = {int(r): {int(r)} for r in rows}
             for _, a, b in pairs:

@@ -274,3 +274,45 @@ def test_cvat_skeleton_tracks_parse(tmp_path: Path) -> None:
     p.write_text(p.read_text().replace('points="100.5,200.25"', 'points="100.5"'))
     with pytest.raises(InputError, match="track '4' frame '7' joint 'left_ankle'"):
         _read_cvat(p, [])
+
+
+def test_pair_costs_are_opencvs_two_view_triangulation() -> None:
+    """The association's batched pair cost is, per pair of detections, the median over the joints
+    both saw of the RMS reprojection error (px) of OpenCV's two-view DLT (``cv2.triangulatePoints``;
+    inf behind a camera); inf with too few common joints; pairs of one frame and different cameras,
+    in row order. The detections are of different people: many pairs cannot be one."""
+    import cv2
+
+    from gt3dkit.fusion.associate import frame_pairs, pair_costs
+
+    rng = np.random.default_rng(4)
+    C, J, N = 3, 9, 12
+    R = np.stack([cv2.Rodrigues(rng.normal(scale=0.3, size=3))[0] for _ in range(C)])
+    t = np.c_[rng.normal(scale=0.5, size=(C, 2)), rng.uniform(4, 6, C)]
+    f = np.array([900.0, 1100.0, 1000.0])
+    X = rng.normal(scale=0.6, size=(N, J, 3))
+    cam = np.arange(N) % C
+    Xc = np.einsum("nij,nkj->nki", R[cam], X) + t[cam][:, None]
+    xy = Xc[..., :2] / Xc[..., 2:] + rng.normal(scale=3e-3, size=(N, J, 2))
+    xy[rng.random((N, J)) < 0.2] = np.nan
+    xy[5, :6] = np.nan  # too few joints for any pair
+    frame = np.repeat(np.arange(N // 4), 4)
+    a, b = frame_pairs(frame, cam)
+    want = [(i, k) for i in range(N) for k in range(i + 1, N) if frame[i] == frame[k] and cam[i] != cam[k]]
+    assert list(zip(a.tolist(), b.tolist(), strict=True)) == want
+    Pw = np.concatenate([R, t[:, :, None]], axis=2)
+    got = pair_costs(xy, a, b, np.stack([Pw[cam[a]], Pw[cam[b]]], 1), np.stack([f[cam[a]], f[cam[b]]], 1), 4)
+    for k, (i, j) in enumerate(want):
+        ok = np.isfinite(xy[i]).all(1) & np.isfinite(xy[j]).all(1)
+        if ok.sum() < 4:
+            assert got[k] == np.inf
+            continue
+        Xh = cv2.triangulatePoints(Pw[cam[i]], Pw[cam[j]], xy[i, ok].T, xy[j, ok].T)
+        P3 = (Xh[:3] / Xh[3]).T
+        e2 = []
+        for v, fv in ((cam[i], f[cam[i]]), (cam[j], f[cam[j]])):
+            q = P3 @ R[v].T + t[v]
+            d2 = np.sum((q[:, :2] / q[:, 2:] - xy[i if v == cam[i] else j, ok]) ** 2, axis=1) * fv**2
+            e2.append(np.where(q[:, 2] > 0, d2, np.inf))  # behind a camera: no reprojection
+        np.testing.assert_allclose(got[k], np.median(np.sqrt(np.mean(e2, axis=0))), rtol=1e-6)
+    assert np.isinf(got).any() and np.isfinite(got).sum() > 5
