@@ -23,9 +23,9 @@ def check_box(where: str, box: list[float]) -> None:
 
 @dataclass(frozen=True)
 class JointBlock:
-    """Keypoints read and checked as a block (:meth:`RowBuilder.add_joint_block`), one per point:
-    ``frame, cam, tid, joint, line (P,)`` int64, ``uv (P, 2)``, ``conf (P,)`` or None; ``path``
-    names the file the line numbers are of."""
+    """Keypoints read and checked as a block (:meth:`RowBuilder.add_joint_block`, which gathers
+    them into rows at once), one per point: ``frame, cam, tid, joint, line (P,)`` int64, ``uv (P,
+    2)``, ``conf (P,)`` or None; ``path`` names the file the line numbers are of."""
 
     frame: np.ndarray
     cam: np.ndarray
@@ -35,11 +35,6 @@ class JointBlock:
     conf: F64 | None
     line: np.ndarray
     path: str
-
-    @property
-    def origin(self) -> Origins:
-        """Each point's ``"<path>: line <n>"``."""
-        return Origins.formatted(Origins.literal(self.path) + ": line {0}", self.line)
 
 
 @dataclass(frozen=True)
