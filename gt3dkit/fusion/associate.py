@@ -27,8 +27,10 @@ from __future__ import annotations
 import csv
 import dataclasses
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -384,13 +386,14 @@ def frame_pairs(frame: np.ndarray, cam: np.ndarray) -> tuple[np.ndarray, np.ndar
     return a[keep], b[keep]
 
 
-def pair_costs(xy: F64, a: np.ndarray, b: np.ndarray, Pw: F64, f_px: F64, min_joints: int) -> F64:
+def pair_costs(xy: F64, a: np.ndarray, b: np.ndarray, cam: np.ndarray, Pw: F64, f_px: F64,
+               min_joints: int) -> F64:
     r"""For each pair of detections ``a, b (P,)`` (rows of ``xy (N, J, 2)``, undistorted normalised
-    joints, NaN = not confident; ``Pw (P, 2, 3, 4)`` the two views' ``[R | t]``, ``f_px (P, 2)``
-    their focal lengths): the median over the joints both saw of the two-view reprojection error
-    (px, the RMS of the two views) after triangulating each joint from the two views (DLT, the
-    rows of :func:`gt3dkit.geom.triangulate.triangulate_dlt`); ``inf`` with fewer than
-    ``min_joints`` such joints, NaN where an error is undefined. ``(P,)``, in chunks of
+    joints, NaN = not confident, seen by the cameras ``cam (N,)`` whose ``[R | t]`` are ``Pw (C, 3,
+    4)`` and focal lengths ``f_px (C,)``): the median over the joints both saw of the two-view
+    reprojection error (px, the RMS of the two views) after triangulating each joint from the two
+    views (DLT, the rows of :func:`gt3dkit.geom.triangulate.triangulate_dlt`); ``inf`` with fewer
+    than ``min_joints`` such joints, NaN where an error is undefined. ``(P,)``, in chunks of
     :data:`PAIR_CHUNK` pairs."""
     out = np.full(len(a), np.inf)
     for lo in range(0, len(a), PAIR_CHUNK):
@@ -404,7 +407,8 @@ def pair_costs(xy: F64, a: np.ndarray, b: np.ndarray, Pw: F64, f_px: F64, min_jo
         ok, n = ok[use], n[use]
         x2 = np.stack([xa[use], xb[use]], axis=2)  # (p, J, 2 views, 2)
         x2 = np.where(ok[..., None, None], x2, 0.0)
-        P = Pw[s][use][:, None]  # (p, 1, 2, 3, 4)
+        views = np.stack([cam[a[s]], cam[b[s]]], 1)[use]  # (p, 2)
+        P = Pw[views][:, None]  # (p, 1, 2, 3, 4)
         rows_x = x2[..., 0, None] * P[..., 2, :] - P[..., 0, :]  # (p, J, 2, 4)
         rows_y = x2[..., 1, None] * P[..., 2, :] - P[..., 1, :]
         A = np.concatenate([rows_x, rows_y], axis=2)
@@ -415,10 +419,38 @@ def pair_costs(xy: F64, a: np.ndarray, b: np.ndarray, Pw: F64, f_px: F64, min_jo
         Xc = np.einsum("pvij,pnj->pnvi", P[:, 0, :, :, :3], X) + P[:, 0, None, :, :, 3]  # (p, J, 2, 3)
         z = Xc[..., 2]
         d = Xc[..., :2] / z[..., None] - x2
-        e2 = np.where(z > 0, np.sum(d * d, axis=-1) * f_px[s][use][:, None] ** 2, np.inf)
+        e2 = np.where(z > 0, np.sum(d * d, axis=-1) * f_px[views][:, None] ** 2, np.inf)
         e = np.sqrt(np.nanmean(e2, axis=-1))  # (p, J)
         out[np.flatnonzero(use) + lo] = _masked_median(e, ok, n)
     return out
+
+
+#: Rows of consecutive frames whose pairs are costed together (:func:`_consistent_pairs`).
+FRAME_ROWS = 4096
+
+
+def _consistent_pairs(obs: Any, xy: F64, Pw: F64, f_px: F64, cfg: DetectionConfig
+                      ) -> Iterator[tuple[int, np.ndarray, list[tuple[float, int, int]]]]:
+    """Per frame (in order): its rows and its pairs of views within ``cfg.max_reproj_px``,
+    ``(cost, a, b)`` best first (:func:`pair_costs`, over runs of whole frames of about
+    :data:`FRAME_ROWS` rows: a long recording's pairs are never all held at once)."""
+    frames, start = np.unique(obs.frame, return_index=True)
+    end = np.r_[start[1:], len(obs.frame)]
+    k = 0
+    while k < len(frames):
+        k1 = max(int(np.searchsorted(start, start[k] + FRAME_ROWS, side="right")), k + 1)
+        lo, hi = int(start[k]), int(end[k1 - 1])
+        a, b = frame_pairs(obs.frame[lo:hi], obs.cam[lo:hi])
+        a, b = a + lo, b + lo
+        cost = pair_costs(xy, a, b, obs.cam, Pw, f_px, cfg.min_joints)
+        good = cost <= cfg.max_reproj_px
+        a, b, cost = a[good], b[good], cost[good]
+        at = np.searchsorted(a, np.r_[start[k:k1], hi])  # each frame's pairs
+        for q in range(k, k1):
+            s = slice(at[q - k], at[q - k + 1])
+            yield (int(frames[q]), np.arange(start[q], end[q]),
+                   sorted(zip(cost[s].tolist(), a[s].tolist(), b[s].tolist(), strict=True)))
+        k = k1
 
 
 def _masked_median(e: F64, ok: np.ndarray, n: np.ndarray) -> F64:
@@ -463,17 +495,8 @@ def associate_detections(scene: Scene, cfg: DetectionConfig | None = None,
     tracks: list[dict] = []  # {"id", "frame", "X"}
     next_id = 0
     with np.errstate(all="ignore"):
-        pa, pb = frame_pairs(obs.frame, obs.cam)  # every frame's pairs of views, costed at once
         Pw = np.concatenate([cams.R, cams.t[:, :, None]], axis=2)  # (C, 3, 4)
-        cost = pair_costs(xy, pa, pb, np.stack([Pw[obs.cam[pa]], Pw[obs.cam[pb]]], 1),
-                          np.stack([f_px[obs.cam[pa]], f_px[obs.cam[pb]]], 1), cfg.min_joints)
-        good = cost <= cfg.max_reproj_px
-        pa, pb, cost = pa[good], pb[good], cost[good]
-        pair_at = np.searchsorted(obs.frame[pa], np.unique(obs.frame), side="left")
-        for k, f in enumerate(np.unique(obs.frame)):
-            rows = np.flatnonzero(obs.frame == f)
-            s = slice(pair_at[k], pair_at[k + 1] if k + 1 < len(pair_at) else len(pa))
-            pairs = sorted(zip(cost[s].tolist(), pa[s].tolist(), pb[s].tolist(), strict=True))
+        for f, rows, pairs in _consistent_pairs(obs, xy, Pw, f_px, cfg):
             cost_of = {(a, b): c for c, a, b in pairs}
             group = {int(r): {int(r)} for r in rows}
             for _, a, b in pairs:

@@ -301,7 +301,7 @@ def test_pair_costs_are_opencvs_two_view_triangulation() -> None:
     want = [(i, k) for i in range(N) for k in range(i + 1, N) if frame[i] == frame[k] and cam[i] != cam[k]]
     assert list(zip(a.tolist(), b.tolist(), strict=True)) == want
     Pw = np.concatenate([R, t[:, :, None]], axis=2)
-    got = pair_costs(xy, a, b, np.stack([Pw[cam[a]], Pw[cam[b]]], 1), np.stack([f[cam[a]], f[cam[b]]], 1), 4)
+    got = pair_costs(xy, a, b, cam, Pw, f, 4)
     for k, (i, j) in enumerate(want):
         ok = np.isfinite(xy[i]).all(1) & np.isfinite(xy[j]).all(1)
         if ok.sum() < 4:
