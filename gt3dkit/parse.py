@@ -135,7 +135,9 @@ def iter_csv_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | 
 
 def _record_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | None, reader: Any,
                    size: int) -> Iterator[tuple[list[int], list[list[str]]]]:
-    """:func:`_csv_records` in blocks of up to ``size`` rows (:func:`iter_csv_blocks`)."""
+    """The rows after a header starting with ``columns`` (checked by :func:`_checked_header`), in
+    blocks of up to ``size`` rows ``(line numbers, rows)``: blank lines skipped, every row as wide as
+    the header (:func:`iter_csv_blocks`; one row a block for :func:`iter_csv_rows`)."""
     width = _checked_header(path, columns, warnings, reader)
     lines: list[int] = []
     rows: list[list[str]] = []
@@ -245,13 +247,5 @@ def _csv_records(path: Path, columns: tuple[str, ...], warnings: list[str] | Non
                  reader: Any) -> Iterator[tuple[int, list[str]]]:
     """The rows after a header starting with ``columns`` (checked), as :func:`iter_csv_rows`
     reads them: (line number, fields), blank lines skipped, every row as wide as the header."""
-    width = _checked_header(path, columns, warnings, reader)
-    for row in reader:
-        if len(row) != width:
-            if not row or all(not x.strip() for x in row):
-                continue
-            raise InputError(f"{path}: line {reader.line_num}", f"expected {width} fields (as the "
-                                                                 f"header), got {len(row)}")
-        if not row[0].strip() and all(not x.strip() for x in row):
-            continue
-        yield reader.line_num, row
+    for lines, rows in _record_blocks(path, columns, warnings, reader, 1):
+        yield lines[0], rows[0]

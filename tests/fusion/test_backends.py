@@ -22,7 +22,7 @@ from gt3dkit.fusion.robust import RobustConfig
 from gt3dkit.fusion.rows import replicate_rows
 from gt3dkit.fusion.ukf import Block, Robust, SigmaWeights, ukf_update_information
 from gt3dkit.fusion.update import Measured
-from gt3dkit.sim import Errors, simulate, simulate_skeletons, write_scene, write_skeleton_scene
+from gt3dkit.sim import Errors, simulate, write_scene
 
 
 @pytest.fixture(scope="module")
@@ -194,15 +194,8 @@ def test_each_backend_tracks_the_truth_and_rejects_outliers(box_scene, backend) 
 
 
 @pytest.fixture(scope="module")
-def skeleton_model(tmp_path_factory: pytest.TempPathFactory):
-    root = Path(tmp_path_factory.mktemp("split")) / "in"
-    sim = simulate_skeletons("native", seed=6, frames=10, people=2, cameras=5, noise_px=1.0)
-    write_skeleton_scene(sim, root, "native")
-    scene = load_scene(root)
-    est = us.UKFSmoother()
-    pre = est.prepare(scene)
-    model = Model.of(pre)
-    cfg = replace(est.config, accel_sd=0.5, shape_sd=0.01, joint_accel_sd=0.5)
+def skeleton_model(skeleton_prepared):
+    scene, _, model, cfg = skeleton_prepared
     return model, us.initial_states(model, cfg), cfg, scene.fps
 
 

@@ -6,18 +6,14 @@ filter with the messages against the whole-state filter with them."""
 from __future__ import annotations
 
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from gt3dkit.api import load_scene
 from gt3dkit.fusion import ukf_smoother as us
 from gt3dkit.fusion.bones import JointInfo, add_joint_info, bone_messages
-from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.robust import RobustConfig
-from gt3dkit.sim import simulate_skeletons, write_skeleton_scene
 
 BONES = np.array([[0, 1], [1, 2], [1, 3]])
 
@@ -106,18 +102,12 @@ def test_added_information_equals_the_information_form() -> None:
     np.testing.assert_array_equal(x1[1], x[1])
 
 
-def test_split_filter_with_bone_messages_equals_the_whole_state_filter(tmp_path: Path) -> None:
+def test_split_filter_with_bone_messages_equals_the_whole_state_filter(skeleton_prepared) -> None:
     """The messages added to the joints' separate filters and to the whole state's: the same
     filter (one update pass: equal to rounding), and the bones tie the lengths tighter than the
     first pass."""
-    root = tmp_path / "in"
-    sim = simulate_skeletons("native", seed=6, frames=10, people=2, cameras=5, noise_px=1.0)
-    write_skeleton_scene(sim, root, "native")
-    scene = load_scene(root)
-    est = us.UKFSmoother()
-    pre = est.prepare(scene)
-    model = Model.of(pre)
-    cfg = replace(est.config, accel_sd=0.5, shape_sd=0.01, joint_accel_sd=0.5, iterations=1)
+    scene, pre, model, cfg = skeleton_prepared
+    cfg = replace(cfg, iterations=1)
     init = us.initial_states(model, cfg)
     first = us.run_frames(model, init, cfg, scene.fps, collect=True)
     msgs, lengths = us.bone_messages_of(model, cfg, first, pre.skeleton)
