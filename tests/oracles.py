@@ -8,6 +8,7 @@ import numpy as np
 from gt3dkit.fusion.ukf import MeasureFn, SigmaWeights, safe_cholesky
 from gt3dkit.geom.camera import apply_K, distort
 from gt3dkit.geom.conics import outline_ellipse
+from gt3dkit.geom.triangulate import _dlt_rows, _pairs, reprojection_sq_px, triangulate_weighted
 from gt3dkit.types import F64
 
 # Directions of the four edges: xmin, ymin, xmax, ymax (we maximise dir . uv).
@@ -209,3 +210,64 @@ def ukf_update(
         xj, Pj = x_post, P_post
     info["repaired"] = repaired
     return x_post, P_post, info
+
+
+def inhomogeneous_point(M: F64) -> F64:
+    """``(..., 4, 4)`` normal matrices -> ``(..., 3)`` the least-squares point with the
+    homogeneous coordinate fixed to 1 (``X = -M[:3, :3]^-1 M[:3, 3]``, the 3x3 inverse by
+    cofactors; NaN where singular: ``det < 1e-10 trace^3``, e.g. one view's ray). The same
+    point as :func:`_null_point` without noise and within the noise with it, at a tenth of
+    the time of a batched ``eigh``: the two-view hypotheses of :func:`robust_triangulate`,
+    which are only scored."""
+    A, b = M[..., :3, :3], -M[..., :3, 3]
+    c0 = np.cross(A[..., 1, :], A[..., 2, :])
+    c1 = np.cross(A[..., 2, :], A[..., 0, :])
+    c2 = np.cross(A[..., 0, :], A[..., 1, :])
+    det = np.einsum("...i,...i->...", A[..., 0, :], c0)
+    with np.errstate(divide="ignore", invalid="ignore"):  # A symmetric: A^-1 = [c0 c1 c2] / det
+        X = np.einsum("...ij,...j->...i", np.stack([c0, c1, c2], -1), b) / det[..., None]
+    singular = det <= 1e-10 * np.einsum("...ii->...", A) ** 3
+    return np.where(np.isfinite(X) & ~singular[..., None], X, np.nan)
+
+
+def robust_triangulate_numpy(xy_n: F64, R: F64, t: F64, f_px: F64, thr_px: float,
+                             var_scale: F64 | None = None, depth_sign: F64 | float = 1.0, max_pairs: int = 64,
+                             chunk: int = 4096) -> tuple[F64, np.ndarray, F64]:
+    """The batched numpy formulation of :func:`gt3dkit.geom.triangulate.robust_triangulate` (finite
+    threshold) that the compiled one (:mod:`gt3dkit.geom.trikernel`) replaced: the same arguments
+    and results, in chunks of ``chunk`` points."""
+    N, C = xy_n.shape[:2]
+    seen = np.all(np.isfinite(xy_n), axis=-1)
+    s = np.ones((N, C)) if var_scale is None else var_scale
+    X = np.full((N, 3), np.nan)
+    inl = np.zeros((N, C), bool)
+    e2 = np.full((N, C), np.inf)
+    pairs = _pairs(C, max_pairs)
+    for a in range(0, N, chunk):
+        sl = slice(a, min(a + chunk, N))
+        xy, sn, sc = xy_n[sl], seen[sl], s[sl]
+        n = len(xy)
+        O = _dlt_rows(xy, R, t)
+        cands = [triangulate_weighted(xy, R, t, sn.astype(np.float64), O)[:, None]]
+        if len(pairs):
+            Xp = inhomogeneous_point(O[:, pairs[:, 0]] + O[:, pairs[:, 1]])  # (n, P, 3)
+            both = sn[:, pairs[:, 0]] & sn[:, pairs[:, 1]]
+            cands.append(np.where(both[..., None], Xp, np.nan))
+        Xc = np.concatenate(cands, axis=1)  # (n, P+1, 3)
+        ec = reprojection_sq_px(Xc, xy[:, None], R, t, f_px, depth_sign) / sc[:, None]
+        cost = np.sum(np.where(sn[:, None], np.minimum(np.nan_to_num(ec, nan=np.inf), thr_px**2),
+                               0.0), axis=2)
+        cost = np.where(np.all(np.isfinite(Xc), axis=2), cost, np.inf)
+        best = Xc[np.arange(n), np.argmin(cost, axis=1)]
+        for _ in range(2):
+            eb = reprojection_sq_px(best, xy, R, t, f_px, depth_sign) / sc
+            w = (sn & (np.nan_to_num(eb, nan=np.inf) < thr_px**2)).astype(np.float64)
+            refit = triangulate_weighted(xy, R, t, w / np.sqrt(sc), O)
+            best = np.where(np.isfinite(refit), refit, best)
+        eb = reprojection_sq_px(best, xy, R, t, f_px, depth_sign)
+        good = sn & (np.nan_to_num(eb / sc, nan=np.inf) < thr_px**2)
+        ok = good.sum(axis=1) >= 2
+        X[sl] = np.where(ok[:, None], best, np.nan)
+        inl[sl] = good & ok[:, None]
+        e2[sl] = np.where(sn, eb, np.inf)
+    return X, inl, e2

@@ -14,7 +14,7 @@ from pathlib import Path
 from gt3dkit.api import load_scene
 from gt3dkit.fusion import ukf_smoother as us
 from gt3dkit.fusion.measurement import Model
-from gt3dkit.sim import simulate, write_scene
+from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
 from gt3dkit.types import Scene
 
 
@@ -31,9 +31,17 @@ def _tiny_model() -> tuple[Model, us.Init, us.UKFConfig, float, us.UKFSmoother, 
 
 
 def compile_side() -> None:
-    """Compile the filter over frames (its batched steps) on a tiny scene."""
+    """Compile the filter over frames (its batched steps) on a tiny scene, and the joints' chains
+    on a tiny skeleton scene."""
     model, init, cfg, fps, _, _ = _tiny_model()
     us.run_frames(model, init, cfg, fps, collect=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        sim = simulate_skeletons("native", seed=0, frames=3, people=1, cameras=3)
+        write_skeleton_scene(sim, Path(tmp) / "in", "native")
+        scene = load_scene(Path(tmp) / "in")
+    model = Model.of(us.UKFSmoother().prepare(scene))
+    cfg = replace(cfg, joint_accel_sd=0.5)
+    us.run_filter(model, us.initial_states(model, cfg), cfg, scene.fps, collect=True)
 
 
 def warm_up() -> float:

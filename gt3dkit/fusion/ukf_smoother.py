@@ -50,6 +50,7 @@ from gt3dkit.fusion.bones import BoneLengths, JointInfo, add_joint_info, bone_le
 from gt3dkit.fusion.boxupdate import LinearisedSearch, applies_to_model, run_boxes
 from gt3dkit.fusion.filterrun import FilterRun
 from gt3dkit.fusion.initial import InitialCov, rows_of
+from gt3dkit.fusion.jointupdate import run_joints
 from gt3dkit.fusion.kalman import predict_linear, rts_step
 from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.prepare import (
@@ -459,8 +460,8 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
         # judges them: a bad view in an object's first frames, which a forward pass cannot
         # tell yet, would otherwise bend the motion model's likelihood
         # the provisional pass's covariances are read by the linearised box search only
-        prov_runner = partial(run_frames, covariances=False) if not linear and \
-            backend_for(model) == "frames" else run_filter
+        prov_runner = partial(run_joints, covariances=False) if not linear and \
+            backend_for(model) == "joints" else run_filter
         prov_run = prov_runner(model, init, start, fps, on=on)
         x_prov, P_prov = prov_run.x, prov_run.P
         if cfg.robust:
@@ -481,7 +482,7 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
     # are not put back together (run_frames(covariances=False)), so the search stays well
     # inside the budget
     per_pass = max(1, int(SEARCH_PASS_BYTES // (6 * 8 * model.layout.n ** 2 * max(len(sel), 1))))
-    runner = run_filter if backend_for(model) == "objects" else partial(run_frames, covariances=False)
+    runner = run_filter if backend_for(model) == "objects" else partial(run_joints, covariances=False)
 
     def search(name: str, c: UKFConfig, bounds: tuple[float, float], n_scan: int) -> UKFConfig:
         def logliks(values: list[float]) -> list[float]:
@@ -624,8 +625,8 @@ def rerun_objects(model: Model, init: Init, cfg: UKFConfig, fps: float, run: Fil
                   ) -> FilterRun:
     """``run`` with the rows ``on (R,)`` (whole objects) run again: by the frames' filter their
     covariances are written into ``run``'s own (no second array of every row's)."""
-    if backend_for(model) == "frames":
-        return run.merged(run_frames(model, init, cfg, fps, collect=True, on=on, into=run.P), on)
+    if backend_for(model) == "joints":
+        return run.merged(run_joints(model, init, cfg, fps, True, True, on, None, into=run.P), on)
     return run.merged(run_filter(model, init, cfg, fps, collect=True, on=on), on)
 
 
@@ -650,9 +651,11 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
 def backend_for(model: Model) -> str:
     """The filter that runs ``model``: ``"objects"`` (a boxes-only model: every object's rows as
     one compiled chain, objects in parallel, :func:`gt3dkit.fusion.boxupdate.run_boxes`) or
-    ``"frames"`` (any model: frame by frame, objects batched, :func:`run_frames`). Both call the
-    same steps; the tests hold them to each other."""
-    return "objects" if applies_to_model(model) else "frames"
+    ``"joints"`` (a model with joints: every joint of every person as a compiled chain, the
+    ellipsoid by the boxes' chains, :func:`gt3dkit.fusion.jointupdate.run_joints`). ``"frames"``
+    (any model: frame by frame, objects batched, :func:`run_frames`) is the reference the tests
+    hold both to; all call the same steps."""
+    return "joints" if model.layout.n_joints else "objects"
 
 
 def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bool = False,
@@ -832,4 +835,4 @@ def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
                      update_passes_mean=float(passes[ran].mean()) if ran.any() else 0.0)
 
 
-BACKENDS = {"objects": run_boxes, "frames": run_frames}
+BACKENDS = {"objects": run_boxes, "frames": run_frames, "joints": run_joints}

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from gt3dkit.geom.camera import unapply_K, undistort
+from gt3dkit.geom.trikernel import robust_triangulate_compiled
 from gt3dkit.types import F64
 
 
@@ -68,24 +69,6 @@ def _null_point(M: F64) -> F64:
         return Xh[..., :3] / Xh[..., 3:]
 
 
-def _inhomogeneous_point(M: F64) -> F64:
-    """``(..., 4, 4)`` normal matrices -> ``(..., 3)`` the least-squares point with the
-    homogeneous coordinate fixed to 1 (``X = -M[:3, :3]^-1 M[:3, 3]``, the 3x3 inverse by
-    cofactors; NaN where singular: ``det < 1e-10 trace^3``, e.g. one view's ray). The same
-    point as :func:`_null_point` without noise and within the noise with it, at a tenth of
-    the time of a batched ``eigh``: the two-view hypotheses of :func:`robust_triangulate`,
-    which are only scored."""
-    A, b = M[..., :3, :3], -M[..., :3, 3]
-    c0 = np.cross(A[..., 1, :], A[..., 2, :])
-    c1 = np.cross(A[..., 2, :], A[..., 0, :])
-    c2 = np.cross(A[..., 0, :], A[..., 1, :])
-    det = np.einsum("...i,...i->...", A[..., 0, :], c0)
-    with np.errstate(divide="ignore", invalid="ignore"):  # A symmetric: A^-1 = [c0 c1 c2] / det
-        X = np.einsum("...ij,...j->...i", np.stack([c0, c1, c2], -1), b) / det[..., None]
-    singular = det <= 1e-10 * np.einsum("...ii->...", A) ** 3
-    return np.where(np.isfinite(X) & ~singular[..., None], X, np.nan)
-
-
 def triangulate_weighted(xy_n: F64, R: F64, t: F64, weight: F64, rows: F64 | None = None) -> F64:
     """DLT with a weight per view (rows scaled by it; 0 = view unused), solved as the smallest
     eigenvector of the 4x4 normal matrix ``sum_c w_c^2 (r_x r_x^T + r_y r_y^T)``.
@@ -128,13 +111,13 @@ def _pairs(C: int, max_pairs: int) -> np.ndarray:
 
 def robust_triangulate(xy_n: F64, R: F64, t: F64, f_px: F64, thr_px: float,
                        var_scale: F64 | None = None, depth_sign: F64 | float = 1.0,
-                       max_pairs: int = 64, chunk: int = 4096) -> tuple[F64, np.ndarray, F64]:
+                       max_pairs: int = 64) -> tuple[F64, np.ndarray, F64]:
     r"""Triangulation that survives gross errors in a minority of views (MSAC + refit).
 
     Two-view DLT hypotheses from pairs of seen views (and the all-view DLT) are scored by
     the truncated reprojection cost ``sum_c min(e_c^2 / s_c, thr^2)`` (Torr & Zisserman,
     "MLESAC", CVIU 2000); the best one's inliers (``e^2 / s < thr^2``) are triangulated
-    again, twice.
+    again, twice (compiled, one point at a time: :mod:`gt3dkit.geom.trikernel`).
 
     Parameters
     ----------
@@ -157,38 +140,8 @@ def robust_triangulate(xy_n: F64, R: F64, t: F64, f_px: F64, thr_px: float,
         X = triangulate_weighted(xy_n, R, t, seen / np.sqrt(s))
         e2 = np.where(seen, reprojection_sq_px(X, xy_n, R, t, f_px, depth_sign), np.inf)
         return X, seen & np.all(np.isfinite(X), axis=1)[:, None], e2
-    X = np.full((N, 3), np.nan)
-    inl = np.zeros((N, C), bool)
-    e2 = np.full((N, C), np.inf)
-    pairs = _pairs(C, max_pairs)
-    for a in range(0, N, chunk):
-        sl = slice(a, min(a + chunk, N))
-        xy, sn, sc = xy_n[sl], seen[sl], s[sl]
-        n = len(xy)
-        O = _dlt_rows(xy, R, t)
-        cands = [triangulate_weighted(xy, R, t, sn.astype(np.float64), O)[:, None]]
-        if len(pairs):
-            Xp = _inhomogeneous_point(O[:, pairs[:, 0]] + O[:, pairs[:, 1]])  # (n, P, 3)
-            both = sn[:, pairs[:, 0]] & sn[:, pairs[:, 1]]
-            cands.append(np.where(both[..., None], Xp, np.nan))
-        Xc = np.concatenate(cands, axis=1)  # (n, P+1, 3)
-        ec = reprojection_sq_px(Xc, xy[:, None], R, t, f_px, depth_sign) / sc[:, None]
-        cost = np.sum(np.where(sn[:, None], np.minimum(np.nan_to_num(ec, nan=np.inf), thr_px**2),
-                               0.0), axis=2)
-        cost = np.where(np.all(np.isfinite(Xc), axis=2), cost, np.inf)
-        best = Xc[np.arange(n), np.argmin(cost, axis=1)]
-        for _ in range(2):
-            eb = reprojection_sq_px(best, xy, R, t, f_px, depth_sign) / sc
-            w = (sn & (np.nan_to_num(eb, nan=np.inf) < thr_px**2)).astype(np.float64)
-            refit = triangulate_weighted(xy, R, t, w / np.sqrt(sc), O)
-            best = np.where(np.isfinite(refit), refit, best)
-        eb = reprojection_sq_px(best, xy, R, t, f_px, depth_sign)
-        good = sn & (np.nan_to_num(eb / sc, nan=np.inf) < thr_px**2)
-        ok = good.sum(axis=1) >= 2
-        X[sl] = np.where(ok[:, None], best, np.nan)
-        inl[sl] = good & ok[:, None]
-        e2[sl] = np.where(sn, eb, np.inf)
-    return X, inl, e2
+    return robust_triangulate_compiled(xy_n, R, t, f_px, thr_px, s, np.broadcast_to(depth_sign, (C,)),
+                                       _pairs(C, max_pairs))
 
 
 def triangulation_cov(X_world: F64, R: F64, t: F64, f_px: F64, info_weight: F64) -> F64:

@@ -108,12 +108,19 @@ def test_robust_triangulation_rejects_the_bad_view() -> None:
 
 
 def test_two_view_hypothesis_is_opencvs_point() -> None:
-    """The scored two-view hypotheses (the 3x3 inhomogeneous solve) give OpenCV's two-view
+    """The scored two-view hypotheses (the compiled 3x3 inhomogeneous solve) give OpenCV's two-view
     DLT point on clean views, within a millimetre of the eigenvector at 1 px of noise, and NaN
     from one view (a ray)."""
     import cv2
 
-    from gt3dkit.geom.triangulate import _dlt_rows, _inhomogeneous_point, _null_point
+    from gt3dkit.geom.triangulate import _dlt_rows, _null_point
+    from gt3dkit.geom.trikernel import _inhomogeneous
+
+    def two_view(O: np.ndarray) -> np.ndarray:  # (N, 4, 4) -> (N, 3)
+        out = np.empty((len(O), 3))
+        for n in range(len(O)):
+            _inhomogeneous(np.ascontiguousarray(O[n]), out[n])
+        return out
 
     sim = simulate_skeletons("native", seed=2, frames=3, people=2, cameras=4)
     rig = sim.rig
@@ -121,16 +128,45 @@ def test_two_view_hypothesis_is_opencvs_point() -> None:
     xy = normalized_points(uv, rig.K, rig.dist)
     xy = xy[np.isfinite(xy[:, :2]).all(axis=(1, 2))]
     O = _dlt_rows(xy, rig.R, rig.t)
-    X = _inhomogeneous_point(O[:, 0] + O[:, 1])
+    X = two_view(O[:, 0] + O[:, 1])
     P0 = np.hstack([rig.R[0], rig.t[0][:, None]])
     P1 = np.hstack([rig.R[1], rig.t[1][:, None]])
     Xh = cv2.triangulatePoints(P0, P1, xy[:, 0].T.copy(), xy[:, 1].T.copy())
     assert np.abs(X - (Xh[:3] / Xh[3]).T).max() < 1e-6
     noisy = xy + np.random.default_rng(0).normal(0, 1 / rig.K[0, 0, 0], xy.shape)
     On = _dlt_rows(noisy, rig.R, rig.t)
-    d = np.linalg.norm(_inhomogeneous_point(On[:, 0] + On[:, 1]) - _null_point(On[:, 0] + On[:, 1]), axis=1)
+    d = np.linalg.norm(two_view(On[:, 0] + On[:, 1]) - _null_point(On[:, 0] + On[:, 1]), axis=1)
     assert np.median(d) < 1e-3
-    assert np.isnan(_inhomogeneous_point(O[:1, 0])).all()  # one view: a ray, no point
+    assert np.isnan(two_view(O[:1, 0])).all()  # one view: a ray, no point
+
+
+@pytest.mark.parametrize("cameras", [5, 14])
+def test_compiled_robust_triangulation_equals_the_numpy_formulation(cameras: int) -> None:
+    """The compiled MSAC triangulation against the batched numpy one it replaced
+    (``tests/oracles.py``): detector errors (outliers, swaps, zero glitches), missing views,
+    per-view variances, a camera behind some points, all pairs (5 views) and a spread of pairs
+    (14 views: 91 pairs > 64)."""
+    from tests.oracles import robust_triangulate_numpy
+
+    sim = simulate_skeletons("native", seed=7, frames=6, people=3, cameras=cameras, noise_px=1.5,
+                             errors=Errors(outliers=0.1, swaps=0.1, glitch=0.05))
+    rig = sim.rig
+    uv = np.swapaxes(sim.uv, 1, 2).reshape(-1, cameras, 2)
+    xy = normalized_points(uv, rig.K, rig.dist)
+    rng = np.random.default_rng(3)
+    s = rng.uniform(0.5, 2.0, xy.shape[:2])
+    f = rig.K[:, 0, 0]
+    ds = np.ones(cameras)
+    ds[1] = -1.0  # this camera sees every point behind it
+    for thr in (4.0, 20.0):
+        X, inl, e2 = robust_triangulate(xy, rig.R, rig.t, f, thr, s, ds)
+        Xr, inr, er = robust_triangulate_numpy(xy, rig.R, rig.t, f, thr, s, ds, chunk=50)
+        assert np.isfinite(Xr).all(axis=1).sum() > 0.8 * len(Xr)
+        np.testing.assert_array_equal(np.isfinite(X), np.isfinite(Xr))
+        np.testing.assert_allclose(X, Xr, rtol=1e-8, atol=1e-9)
+        np.testing.assert_array_equal(inl, inr)
+        np.testing.assert_allclose(e2, er, rtol=1e-6, atol=1e-9)
+        assert np.isinf(e2[:, 1]).all()
 
 
 # -- outliers --------------------------------------------------------------------------------

@@ -1,0 +1,632 @@
+r"""The keypoint filter as compiled chains: every (person, joint) its own filter of six entries.
+
+A joint's projections depend on its own three coordinates, the motion model moves it by its own
+velocity and nothing in the initial covariance ties it to another joint or to the ellipsoid
+(:mod:`gt3dkit.fusion.split`): the filter of a person's stacked state is one small filter per
+joint (its position and velocity, 6 entries) and one for the ellipsoid. :func:`run_joints` runs
+the ellipsoid's by the boxes' compiled chains (:func:`gt3dkit.fusion.boxupdate.run_boxes`; with
+keypoints alone nothing measures it and it stays the rows' initial state) and every joint's as a
+compiled chain along the person's rows, the joints of all persons dealt over
+:func:`gt3dkit.threads.compiled_threads` threads. The steps are the package's own: the prediction
+and RTS step of :mod:`gt3dkit.fusion.kalman`, the iterated robust update of
+:mod:`gt3dkit.fusion.update`; what is new here is the joint's sigma-point regression
+(:func:`point_regression`, the projection with distortion of :mod:`gt3dkit.geom.boxkernel`), the
+joint's fading and linearisation point (as :meth:`gt3dkit.fusion.measurement.Model.prior_conflict`
+and :meth:`~gt3dkit.fusion.measurement.Model.linearisation_point` per joint) and the bones'
+information (as :func:`gt3dkit.fusion.bones.add_joint_info`). The filter over frames
+(:func:`gt3dkit.fusion.ukf_smoother.run_frames`, split or whole) is the reference the tests hold
+it to: the same result within the iterated update's convergence tolerance (a part stops iterating
+on its own entries' spread, not on the stacked state's).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any, NamedTuple
+
+import numba
+import numpy as np
+
+from gt3dkit.fusion.blockcov import BlockCov
+from gt3dkit.fusion.boxupdate import Chains, _chains, run_boxes
+from gt3dkit.fusion.filterrun import FilterRun
+from gt3dkit.fusion.kalman import fade_factor, predict_row, rts_row
+from gt3dkit.fusion.motion import SPACE, StateLayout
+from gt3dkit.fusion.robust import chi2_isf
+from gt3dkit.fusion.ukf import Block, Robust, SigmaWeights, block_columns
+from gt3dkit.fusion.update import (
+    Columns,
+    Current,
+    Measured,
+    Posterior,
+    Prior,
+    Regression,
+    Scores,
+    pass_row,
+    prior_factor,
+    statistics,
+)
+from gt3dkit.geom.boxkernel import _DS, _R, _T, BoxRig, _pixel, contiguous
+from gt3dkit.geom.smallmat import safe_chol, solve_sym
+from gt3dkit.threads import run_split
+from gt3dkit.types import F64, I64
+
+#: Entries of a joint's filter: its position, then its velocity (m, m/s).
+N = 2 * SPACE
+
+
+class PointSigma(NamedTuple):
+    """The sigma-point rule of a joint's position (3 entries): weights ``Wm, Wc`` (without the
+    centre point where the rule gives it no weight) and the points' ``scale``."""
+
+    Wm: F64
+    Wc: F64
+    scale: float
+
+
+class JointModel(NamedTuple):
+    """What every joint's update shares: the sigma rule, the cameras (:class:`BoxRig` rows), the
+    ``2 C`` columns of a joint's views (:class:`gt3dkit.fusion.update.Columns`), the iterated
+    update's passes at most, whether it reweights, whether predictions fade and at which
+    chi-square(3) ``limit``."""
+
+    sigma: PointSigma
+    rig: BoxRig
+    cols: Columns
+    iterations: int
+    robust: bool
+    fade: bool
+    limit: float
+
+
+class JointData(NamedTuple):
+    """Per row and joint: the views ``z (R, J, C, 2)`` px, which are present ``mask``, their
+    variances ``var`` and start weights ``w0`` (the same shape); the per-frame joint ``x_frame (R,
+    J, 3)`` with its variances ``var_frame (R, J, 3)`` (inf: unreliable) and covariance ``cov_frame
+    (R, J, 3, 3)`` (inf: may not fade a prediction); the bones' information ``info (R, J, 3, 3)``,
+    ``eta (R, J, 3)`` (``(0, ...)``: none); each row's joint acceleration noise ``q (R,)``."""
+
+    z: F64
+    mask: np.ndarray
+    var: F64
+    w0: F64
+    x_frame: F64
+    var_frame: F64
+    cov_frame: F64
+    info: F64
+    eta: F64
+    q: F64
+
+
+class JointStart(NamedTuple):
+    """Each chain's first row ``row (K,)``, its joint ``joint (K,)`` and its initial state ``x0 (K,
+    6)`` and covariance ``P0 (K, 6, 6)``."""
+
+    row: I64
+    joint: I64
+    x0: F64
+    P0: F64
+
+
+class JointOut(NamedTuple):
+    """Per row and joint: the filtered (then smoothed) ``x (R, J, 6)``, ``P (R, J, 6, 6)``, the
+    prediction ``x_p, P_p`` (the same shapes), whether it was faded ``faded (R, J)``, the update's
+    ``stats (R, J, 5)`` (NIS, dof, log-likelihood, passes, repairs) and per view entry the final
+    ``weights``, squared leave-one-out ``score2`` and residual ``resid`` ``(R, J, C, 2)``."""
+
+    x: F64
+    P: F64
+    x_p: F64
+    P_p: F64
+    faded: np.ndarray
+    stats: F64
+    weights: F64
+    score2: F64
+    resid: F64
+
+
+@numba.njit(cache=True, nogil=True)
+def joint_transition(dt: float, q: float, F: F64, Q: F64) -> None:
+    """``F, Q (6, 6)`` of a joint's constant-velocity step ``dt`` (s) with white acceleration noise
+    ``q`` (m/s^2/sqrt(Hz)): the joint block of :func:`gt3dkit.fusion.motion.transition`."""
+    F[:, :] = 0.0
+    Q[:, :] = 0.0
+    q2 = q * q
+    for k in range(SPACE):
+        F[k, k] = 1.0
+        F[SPACE + k, SPACE + k] = 1.0
+        F[k, SPACE + k] = dt
+        Q[k, k] = q2 * dt**3 / 3.0
+        Q[k, SPACE + k] = q2 * dt**2 / 2.0
+        Q[SPACE + k, k] = q2 * dt**2 / 2.0
+        Q[SPACE + k, SPACE + k] = q2 * dt
+
+
+@numba.njit(cache=True, nogil=True)
+def point_regression(xj: F64, Pj: F64, meas: Measured, sig: PointSigma, rig: BoxRig, lin: Regression) -> int:
+    """Statistical linear regression of a joint's views (``meas``: ``(2 C,)``, camera by camera
+    ``u, v``) on the sigma points of its position's marginal of ``N(xj (6,), Pj (6, 6))``, into
+    ``lin``: as :func:`gt3dkit.fusion.ukf.block_regression` of the joint's block (a view is used
+    where present and every sigma point is in front of its camera). Returns 1 if the marginal's
+    factor needed a repair."""
+    C = rig.cam.shape[0]
+    m = 2 * C
+    S = sig.Wm.shape[0]
+    first = S - 2 * SPACE  # 1 with the centre point, 0 without (the cubature rule)
+    Pb = np.empty((SPACE, SPACE))
+    Lb = np.empty((SPACE, SPACE))
+    X = np.empty((S, SPACE))
+    Z = np.empty((S, m))
+    for i in range(SPACE):
+        for k in range(SPACE):
+            Pb[i, k] = Pj[i, k]
+    repaired = safe_chol(Pb, Lb)
+    if first == 1:
+        for i in range(SPACE):
+            X[0, i] = xj[i]
+    for s in range(SPACE):
+        for i in range(SPACE):
+            X[first + s, i] = xj[i] + sig.scale * Lb[i, s]
+            X[first + SPACE + s, i] = xj[i] - sig.scale * Lb[i, s]
+    for c in range(C):
+        if not (meas.mask[2 * c] or meas.mask[2 * c + 1]):
+            continue
+        q = rig.cam[c]
+        for s in range(S):
+            p = (X[s, 0], X[s, 1], X[s, 2])
+            c0 = q[_R] * p[0] + q[_R + 1] * p[1] + q[_R + 2] * p[2] + q[_T]
+            c1 = q[_R + 3] * p[0] + q[_R + 4] * p[1] + q[_R + 5] * p[2] + q[_T + 1]
+            c2 = q[_R + 6] * p[0] + q[_R + 7] * p[1] + q[_R + 8] * p[2] + q[_T + 2]
+            if c2 * q[_DS] > 1e-9:
+                Z[s, 2 * c], Z[s, 2 * c + 1] = _pixel(c0, c1, c2, q)
+            else:
+                Z[s, 2 * c], Z[s, 2 * c + 1] = np.nan, np.nan
+    mk = lin.used
+    zhat = np.zeros(m)
+    for k in range(m):
+        ok = meas.mask[k]
+        if ok:
+            for s in range(S):
+                if not np.isfinite(Z[s, k]):
+                    ok = False
+                    break
+        mk[k] = ok
+        if ok:
+            for s in range(S):
+                zhat[k] += sig.Wm[s] * Z[s, k]
+    var_z = np.zeros(m)
+    Pxz = np.zeros((SPACE, m))
+    At = np.empty((SPACE, m))
+    for s in range(S):
+        for k in range(m):
+            if not mk[k]:
+                continue
+            dz = Z[s, k] - zhat[k]
+            var_z[k] += sig.Wc[s] * dz * dz
+            for i in range(SPACE):
+                Pxz[i, k] += sig.Wc[s] * (X[s, i] - xj[i]) * dz
+    if not mk.any():
+        At[:, :] = 0.0
+    elif np.all(np.isfinite(Pxz)):
+        solve_sym(Pb, Pxz, At)
+    else:
+        At[:, :] = np.nan
+    for k in range(m):
+        om = var_z[k]
+        cc = meas.z[k] - zhat[k]
+        for i in range(SPACE):
+            om -= Pxz[i, k] * At[i, k]
+            cc += At[i, k] * xj[i]
+            lin.At[k, i] = At[i, k]
+        lin.c[k] = cc
+        lin.D[k] = meas.var[k] + (max(om, 0.0) if mk[k] else 0.0)
+    return repaired
+
+
+@numba.njit(cache=True, nogil=True)
+def add_info(x: F64, P: F64, lam: F64, eta: F64) -> None:
+    r"""A joint's state ``x (6,)``, ``P (6, 6)`` with the information ``lam (3, 3)``, ``eta (3,)`` on
+    its position added in place (:func:`gt3dkit.fusion.bones.add_joint_info` of one joint):
+    ``P^+ = P - U M U^T``, ``M = \Lambda (I + C \Lambda)^{-1}``, ``x^+ = x + P^+ E^T (\eta -
+    \Lambda E x)``."""
+    A = np.empty((SPACE, SPACE))  # I + lam C
+    for i in range(SPACE):
+        for j in range(SPACE):
+            s = 1.0 if i == j else 0.0
+            for k in range(SPACE):
+                s += lam[i, k] * P[k, j]
+            A[i, j] = s
+    Mt = np.empty((SPACE, SPACE))
+    _solve3(A, lam, Mt)  # M^T = (I + lam C)^-1 lam
+    M = np.empty((SPACE, SPACE))
+    for i in range(SPACE):
+        for j in range(SPACE):
+            M[i, j] = 0.5 * (Mt[j, i] + Mt[i, j])
+    UM = np.empty((N, SPACE))
+    for i in range(N):
+        for j in range(SPACE):
+            s = 0.0
+            for k in range(SPACE):
+                s += P[i, k] * M[k, j]
+            UM[i, j] = s
+    Pn = np.empty((N, N))
+    for i in range(N):
+        for j in range(N):
+            s = 0.0
+            for k in range(SPACE):
+                s += UM[i, k] * P[j, k]
+            Pn[i, j] = P[i, j] - s
+    for i in range(N):
+        for j in range(i + 1):
+            v = 0.5 * (Pn[i, j] + Pn[j, i])
+            P[i, j] = v
+            P[j, i] = v
+    innov = np.empty(SPACE)
+    for a in range(SPACE):
+        s = eta[a]
+        for b in range(SPACE):
+            s -= lam[a, b] * x[b]
+        innov[a] = s
+    for i in range(N):
+        s = 0.0
+        for a in range(SPACE):
+            s += P[i, a] * innov[a]
+        x[i] += s
+
+
+@numba.njit(cache=True, nogil=True)
+def _solve3(A: F64, B: F64, X: F64) -> None:
+    """``X = A^{-1} B`` for a general ``A (3, 3)`` (its adjugate); ``B, X (3, 3)``."""
+    c00 = A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1]
+    c01 = A[1, 2] * A[2, 0] - A[1, 0] * A[2, 2]
+    c02 = A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]
+    det = A[0, 0] * c00 + A[0, 1] * c01 + A[0, 2] * c02
+    inv = np.empty((3, 3))
+    inv[0, 0], inv[1, 0], inv[2, 0] = c00 / det, c01 / det, c02 / det
+    inv[0, 1] = (A[0, 2] * A[2, 1] - A[0, 1] * A[2, 2]) / det
+    inv[1, 1] = (A[0, 0] * A[2, 2] - A[0, 2] * A[2, 0]) / det
+    inv[2, 1] = (A[0, 1] * A[2, 0] - A[0, 0] * A[2, 1]) / det
+    inv[0, 2] = (A[0, 1] * A[1, 2] - A[0, 2] * A[1, 1]) / det
+    inv[1, 2] = (A[0, 2] * A[1, 0] - A[0, 0] * A[1, 2]) / det
+    inv[2, 2] = (A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]) / det
+    for i in range(3):
+        for j in range(3):
+            X[i, j] = inv[i, 0] * B[0, j] + inv[i, 1] * B[1, j] + inv[i, 2] * B[2, j]
+
+
+@numba.njit(cache=True, nogil=True)
+def update_joint(r: int, j: int, xl: F64, Pl: F64, data: JointData, jm: JointModel, out: JointOut) -> None:
+    """The iterated, robust update (:func:`gt3dkit.fusion.update.pass_row`) of joint ``j`` of row
+    ``r`` from its prediction ``out.x_p, out.P_p``, the first pass linearised at ``xl, Pl``; then
+    the bones' information; into ``out``."""
+    C = data.z.shape[2]
+    m = 2 * C
+    LP, Pinv = np.empty((N, N)), np.empty((N, N))
+    prior_factor(out.P_p[r, j], LP, Pinv)
+    prior = Prior(out.x_p[r, j], Pinv, LP)
+    meas = Measured(data.z[r, j].reshape(m), data.mask[r, j].reshape(m), data.var[r, j].reshape(m))
+    cur = Current(xl.copy(), Pl.copy(), data.w0[r, j].reshape(m).copy(), np.empty(m))
+    lin = Regression(np.zeros(m, np.bool_), np.zeros((m, SPACE)), np.zeros(m), np.ones(m))
+    post = Posterior(np.empty(N), np.empty((N, N)), np.empty((N, N)), np.empty((N, N)), np.empty(N),
+                     np.zeros(m), np.zeros(m))
+    scores = Scores(np.zeros(m), np.zeros(m))
+    repaired = 0
+    it = 0
+    for it in range(jm.iterations):
+        repaired += point_regression(cur.xj, cur.Pj, meas, jm.sigma, jm.rig, lin)
+        done, rep = pass_row(it, it == jm.iterations - 1, jm.robust, prior, lin, jm.cols, cur, post, scores)
+        repaired += rep
+        if done:
+            break
+    quad, dof, ll = statistics(prior, lin, cur.wt, post)
+    st = out.stats[r, j]
+    st[0], st[1], st[2], st[3], st[4] = quad, dof, ll, it + 1, repaired
+    w, s2, rs = out.weights[r, j].reshape(m), out.score2[r, j].reshape(m), out.resid[r, j].reshape(m)
+    for k in range(m):
+        w[k] = cur.wt[k] if meas.mask[k] else 1.0
+        s2[k] = scores.score2[k]
+        rs[k] = scores.resid[k]
+    out.x[r, j] = post.x
+    out.P[r, j] = post.P
+    if data.info.shape[0]:
+        lam = data.info[r, j]
+        if np.any(lam != 0.0):
+            add_info(out.x[r, j], out.P[r, j], lam, data.eta[r, j])
+
+
+@numba.njit(cache=True, nogil=True)
+def _fade(r: int, j: int, data: JointData, jm: JointModel, out: JointOut) -> float:
+    """:func:`gt3dkit.fusion.kalman.fade_factor` of joint ``j``'s prediction in row ``r`` against
+    the frame's own joint."""
+    e = np.empty(SPACE)
+    S = np.empty((SPACE, SPACE))
+    for a in range(SPACE):
+        e[a] = data.x_frame[r, j, a] - out.x_p[r, j, a]
+        for b in range(SPACE):
+            S[a, b] = out.P_p[r, j, a, b] + data.cov_frame[r, j, a, b]
+    return fade_factor(e, S, jm.limit)
+
+
+@numba.njit(cache=True, nogil=True)
+def _measured(r: int, j: int, data: JointData) -> bool:
+    for c in range(data.mask.shape[2]):
+        if data.mask[r, j, c, 0] or data.mask[r, j, c, 1]:
+            return True
+    return False
+
+
+@numba.njit(cache=True, nogil=True)
+def _predict(r: int, prev: int, j: int, f: float, chains: Chains, data: JointData, out: JointOut) -> None:
+    """Joint ``j``'s prediction of row ``r`` from row ``prev``'s filtered state, its process noise
+    scaled by ``f`` (``f Q f``)."""
+    F, Q = np.empty((N, N)), np.empty((N, N))
+    joint_transition(chains.t_s[r] - chains.t_s[prev], data.q[r], F, Q)
+    if f != 1.0:
+        for a in range(N):
+            for b in range(N):
+                Q[a, b] = f * Q[a, b] * f
+    predict_row(out.x[prev, j], out.P[prev, j], F, Q, out.x_p[r, j], out.P_p[r, j])
+
+
+@numba.njit(cache=True, nogil=True)
+def _spread_over_gap(r: int, j: int, f: float, chains: Chains, data: JointData, out: JointOut) -> bool:
+    """Where joint ``j`` of row ``r`` (whose prediction the frame's own joint contradicts by the
+    fading factor ``f``) follows rows where it has no views: the process noise of every step since
+    its last measured row scaled by ``f`` and those rows predicted again, their filtered values the
+    new predictions (:func:`gt3dkit.fusion.boxupdate._spread_over_gap` of a joint). False, and
+    nothing changed, where the previous row is measured or no measured row precedes the gap."""
+    last = chains.prev_row[r]
+    while last >= 0 and chains.run[last] and not _measured(last, j, data):
+        last = chains.prev_row[last]
+    if last < 0 or not chains.run[last] or last == chains.prev_row[r]:
+        return False
+    prev = last
+    cur = chains.next_row[last]
+    while True:
+        _predict(cur, prev, j, f, chains, data, out)
+        if cur == r:
+            return True
+        out.x[cur, j] = out.x_p[cur, j]
+        out.P[cur, j] = out.P_p[cur, j]
+        prev = cur
+        cur = chains.next_row[cur]
+
+
+@numba.njit(cache=True, nogil=True)
+def _linearisation(r: int, j: int, data: JointData, out: JointOut, xl: F64, Pl: F64) -> None:
+    """Where joint ``j`` of row ``r`` linearises first (:meth:`gt3dkit.fusion.measurement.Model.
+    linearisation_point`): its prediction, unless the prediction's position spread (trace) exceeds
+    the frame's own joint's; then that joint, with its variances, decorrelated from the velocity."""
+    xl[:] = out.x_p[r, j]
+    Pl[:, :] = out.P_p[r, j]
+    vj = Pl[0, 0] + Pl[1, 1] + Pl[2, 2]
+    vf = data.var_frame[r, j, 0] + data.var_frame[r, j, 1] + data.var_frame[r, j, 2]
+    if not (np.isfinite(vf) and vj > vf):
+        return
+    for a in range(SPACE):
+        xl[a] = data.x_frame[r, j, a]
+        for b in range(N):
+            Pl[a, b] = 0.0
+            Pl[b, a] = 0.0
+    for a in range(SPACE):
+        Pl[a, a] = data.var_frame[r, j, a]
+
+
+@numba.njit(cache=True, nogil=True)
+def forward(chain: I64, start: JointStart, chains: Chains, data: JointData, jm: JointModel, out: JointOut
+            ) -> None:
+    """Forward filter of the chains ``chain`` (indices into ``start``): each joint along its
+    person's rows (``chains.next_row`` while ``chains.run``)."""
+    xl, Pl = np.empty(N), np.empty((N, N))
+    for k in chain:
+        j = start.joint[k]
+        r = start.row[k]
+        prev = -1
+        while r >= 0 and chains.run[r]:
+            if prev < 0:
+                out.x_p[r, j] = start.x0[k]
+                out.P_p[r, j] = start.P0[k]
+            else:
+                _predict(r, prev, j, 1.0, chains, data, out)
+                if jm.fade:
+                    f = _fade(r, j, data, jm, out)
+                    if f != 1.0:
+                        if _spread_over_gap(r, j, f, chains, data, out):
+                            f = _fade(r, j, data, jm, out)
+                        if f != 1.0:
+                            P = out.P_p[r, j]
+                            for a in range(N):
+                                for b in range(N):
+                                    P[a, b] = f * P[a, b] * f
+                        out.faded[r, j] = True
+            _linearisation(r, j, data, out, xl, Pl)
+            update_joint(r, j, xl, Pl, data, jm, out)
+            prev = r
+            r = chains.next_row[r]
+
+
+@numba.njit(cache=True, nogil=True)
+def backward(chain: I64, start: JointStart, last: I64, chains: Chains, data: JointData, out: JointOut
+             ) -> None:
+    """RTS smoother of the chains ``chain`` (indices into ``start``) from their persons' last rows
+    ``last (K,)`` back (:func:`gt3dkit.fusion.kalman.rts_row`): ``out.x, out.P`` filtered on entry,
+    smoothed on exit."""
+    F, Q = np.empty((N, N)), np.empty((N, N))
+    for k in chain:
+        j = start.joint[k]
+        nxt = last[k]
+        r = chains.prev_row[nxt] if nxt >= 0 else -1
+        while r >= 0 and chains.run[r] and chains.run[nxt]:
+            joint_transition(chains.t_s[nxt] - chains.t_s[r], data.q[r], F, Q)
+            rts_row(out.x[r, j], out.P[r, j], out.x_p[nxt, j], out.P_p[nxt, j], out.x[nxt, j], out.P[nxt, j],
+                    F, out.x[r, j], out.P[r, j])
+            nxt = r
+            r = chains.prev_row[r]
+
+
+def point_sigma(alpha: float, beta: float, kappa: float) -> PointSigma:
+    """The :class:`PointSigma` of a joint's position under the scaled unscented rule."""
+    sw = SigmaWeights(SPACE, alpha, beta, kappa)
+    Wm, Wc = sw.Wm, sw.Wc
+    if Wm[0] == 0.0 and Wc[0] == 0.0:  # the cubature rule gives the centre no weight
+        Wm, Wc = Wm[1:], Wc[1:]
+    return PointSigma(contiguous(Wm), contiguous(Wc), float(np.sqrt(sw.n + sw.lam)))
+
+
+def joint_columns(C: int, robust: Any) -> Columns:
+    """The :class:`gt3dkit.fusion.update.Columns` of one joint's ``2 C`` views (its three
+    coordinates; points of two entries judged by ``robust``, a
+    :class:`gt3dkit.fusion.robust.RobustConfig`, or never reweighted: None)."""
+    blk = Block(np.arange(SPACE)[None], np.arange(2 * C)[None], None)
+    rule = Robust(robust, ((slice(0, 2 * C), 2),)) if robust is not None else None
+    return block_columns([blk], 2 * C, rule)
+
+
+def _per_joint(a: F64, R: int, C: int, J: int, at: int) -> F64:
+    """The keypoint columns ``at:`` of ``a (R, m)`` as ``(R, J, C, 2)`` (contiguous)."""
+    return contiguous(a[:, at:].reshape(R, C, J, 2).transpose(0, 2, 1, 3), a.dtype)
+
+
+def boxes_part(model: Any) -> Any:
+    """The boxes-only model of ``model``'s ellipsoid (its box columns, the state's first 9
+    entries): what :func:`gt3dkit.fusion.boxupdate.run_boxes` runs."""
+    E = StateLayout(0).n
+    mb = model.n_box_columns
+    blocks = tuple(b for b in model.robust_blocks if b[0].stop <= mb)
+    return replace(model, layout=StateLayout(0), z=model.z[:, :mb], mask=model.mask[:, :mb],
+                   var=model.var[:, :mb], weight0=model.weight0[:, :mb], robust_blocks=blocks,
+                   x_frame=model.x_frame[:, :E],
+                   var_frame=model.var_frame[:, :E], kpt_cov_frame=None, joint_info=None)
+
+
+def run_joints(model: Any, init: Any, cfg: Any, fps: float, collect: bool = False, fade: bool = True,
+               on: np.ndarray | None = None, noise_rows: dict[str, F64] | None = None,
+               covariances: bool = True, into: BlockCov | None = None) -> FilterRun:
+    """The filter (and RTS) of a model with joints as compiled chains (the module doc): the
+    arguments and outputs of :func:`gt3dkit.fusion.ukf_smoother.run_filter`; ``covariances=False``
+    leaves ``P`` out (``(R, 0, 0)``), ``into`` takes the covariances of the rows ``on`` (the others
+    left as they are) and is the run's ``P`` (as :meth:`gt3dkit.fusion.split.JointSplit.merge`)."""
+    rows, lay = model.rows, model.layout
+    R, J, C = len(rows), lay.n_joints, len(model.cams.K)
+    if not J:
+        return run_boxes(model, init, cfg, fps, collect, fade, on, noise_rows)
+    jd = np.concatenate([lay.joint_dims(np.arange(J)), lay.joint_dims(np.arange(J)) + SPACE * J], axis=1)
+    chains, first, last = _chains(model, fps, on)
+    per = noise_rows or {}
+    q = per.get("joint_accel_sd", cfg.joint_accel_sd if cfg.joint_accel_sd is not None else cfg.accel_sd)
+    at = model.n_box_columns
+    info = model.joint_info
+    kcov = model.kpt_cov_frame
+    data = JointData(
+        *(_per_joint(a, R, C, J, at) for a in (model.z, model.mask, model.var, model.weight0)),
+        contiguous(model.x_frame[:, lay.joints].reshape(R, J, SPACE)),
+        contiguous(model.var_frame[:, lay.joints].reshape(R, J, SPACE)),
+        contiguous(np.full((1, 1, 1, 1), np.inf) if kcov is None else kcov),
+        contiguous(np.zeros((0, J, SPACE, SPACE)) if info is None else info.info),
+        contiguous(np.zeros((0, J, SPACE)) if info is None else info.eta),
+        contiguous(np.broadcast_to(np.asarray(q, dtype=np.float64), (R,))))
+    robust = cfg.robust_config if cfg.robust and model.robust_blocks else None
+    cols = joint_columns(C, robust)
+    jm = JointModel(point_sigma(cfg.alpha, cfg.beta, cfg.kappa), model.box_rig, cols, int(cfg.iterations),
+                    bool(np.any(cols.size > 0)), bool(fade) and kcov is not None,
+                    float(chi2_isf(1e-3, SPACE)))
+    objs = np.flatnonzero(first >= 0)
+    srow = first[objs]
+    K = len(objs) * J
+    start = JointStart(contiguous(np.repeat(srow, J), np.int64),
+                       contiguous(np.tile(np.arange(J), len(objs)), np.int64),
+                       contiguous(init.x0[srow][:, jd].reshape(K, N)),
+                       contiguous(np.asarray(init.P0[srow[:, None, None, None], jd[None, :, :, None],
+                                                     jd[None, :, None, :]]).reshape(K, N, N)))
+    out = JointOut(np.zeros((R, J, N)), np.zeros((R, J, N, N)), np.zeros((R, J, N)), np.zeros((R, J, N, N)),
+                   np.zeros((R, J), bool), np.zeros((R, J, 5)), np.ones((R, J, C, 2)), np.zeros((R, J, C, 2)),
+                   np.zeros((R, J, C, 2)))
+    # the chains dealt alternately over the threads (each person's joints split between them)
+    size = np.bincount(rows.row_o, minlength=len(rows.obj_ids))[objs]
+    order = np.argsort(np.repeat(-size, J), kind="stable")
+    parts = [np.sort(order[i::2]).astype(np.int64) for i in range(2)] if K > 1 else \
+        [np.arange(K, dtype=np.int64)]
+
+    def fwd(a: int, b: int) -> None:
+        for p in parts[a:b]:
+            forward(p, start, chains, data, jm, out)
+
+    run_split(fwd, len(parts))
+    if cfg.smooth:
+        ends = contiguous(np.repeat(last[objs], J), np.int64)
+
+        def bwd(a: int, b: int) -> None:
+            for p in parts[a:b]:
+                backward(p, start, ends, chains, data, out)
+
+        run_split(bwd, len(parts))
+    return _assembled(model, init, cfg, fps, (collect, fade, on, noise_rows), chains, out, jd,
+                      covariances, into)
+
+
+def _assembled(model: Any, init: Any, cfg: Any, fps: float, args: tuple[Any, ...], chains: Chains,
+               out: JointOut, jd: I64, covariances: bool, into: BlockCov | None) -> FilterRun:
+    """The run of ``model``'s rows from the joints' chains ``out`` and the ellipsoid's run (the
+    boxes', or the rows' initial state without boxes)."""
+    collect, fade, on, noise_rows = args
+    rows, lay = model.rows, model.layout
+    R, J, C = len(rows), lay.n_joints, len(model.cams.K)
+    E = StateLayout(0).n
+    ran = chains.run
+    jran = ran[:, None] & (out.stats[:, :, 3] > 0)  # (R, J)
+    box = None
+    if model.use_box:
+        ell = boxes_part(model)
+        box = run_boxes(ell, replace(init, x0=init.x0[:, :E], P0=_leading(init.P0, E)), cfg, fps, collect,
+                        fade, on, noise_rows)
+    x = np.zeros((R, lay.n))
+    x[:, :E] = box.x if box is not None else init.x0[:, :E]
+    x[:, jd.reshape(-1)] = out.x.reshape(R, J * N)
+    x[~ran] = 0.0
+    P: BlockCov | F64 = np.zeros((R, 0, 0))
+    if covariances:
+        ell_cov = box.P if box is not None else np.asarray(_leading(init.P0, E)[np.arange(R)])
+        got = BlockCov(lay.n, [(np.arange(E)[None], ell_cov[:, None]), (jd, out.P)])
+        if into is not None:
+            into[ran] = got[ran]
+            P = into
+        else:
+            for _, v in got.groups:
+                v[~ran] = 0.0
+            P = got
+    st = np.where(jran[:, :, None], out.stats, 0.0)
+
+    def summed(k: int, boxes: F64 | None) -> F64:
+        v = st[:, :, k].sum(axis=1)
+        return v + boxes if boxes is not None else v
+
+    nis = summed(0, box.nis if box is not None else None)
+    dof = summed(1, box.dof if box is not None else None)
+    ll = summed(2, box.loglik_rows if box is not None else None)
+
+    def entries(a: F64, boxes: F64 | None) -> F64 | None:
+        if not collect:
+            return None
+        kp = np.where(jran[:, :, None, None], a, 0.0).transpose(0, 2, 1, 3).reshape(R, 2 * C * J)
+        return np.concatenate([boxes, kp], axis=1) if boxes is not None else kp
+
+    passes = st[:, :, 3][jran]
+    return FilterRun(
+        x, P, nis, dof, ll,
+        entries(out.weights, box.weights if box is not None else None),
+        entries(out.score2, box.score2 if box is not None else None),
+        entries(out.resid, box.residual if box is not None else None),
+        pd_repairs=int(st[:, :, 4].sum()) + (box.pd_repairs if box is not None else 0),
+        predictions_faded=int(out.faded.sum()) + (box.predictions_faded if box is not None else 0),
+        object_frames=R if on is None else int(ran.sum()),
+        update_form="information, iterated and reweighted (compiled, per joint)",
+        update_passes_mean=float(passes.mean()) if passes.size else 0.0)
+
+
+def _leading(P0: Any, E: int) -> Any:
+    """The leading ``E x E`` entries of initial covariances ``P0 (R, n, n)`` (lazy where ``P0`` is)."""
+    R = P0.shape[0]
+    e = np.arange(E)
+    if isinstance(P0, np.ndarray):
+        return P0[:, :E, :E]
+    return P0.entries(np.arange(R), np.broadcast_to(e, (R, E)))
