@@ -154,16 +154,22 @@ def process_noise_of(scene: Scene, est: Estimator) -> dict[str, float] | None:
     """The process noise ``est`` would choose for ``scene`` as :func:`estimate_checked` runs it
     (on the pieces of split ids), by the estimator's own ``process_noise`` without the rest of
     the estimate; None when the estimator has none (then only a whole run tells)."""
+    return process_noise_prepared(scene, est)[0]
+
+
+def process_noise_prepared(scene: Scene, est: Estimator) -> tuple[dict[str, float] | None, Any]:
+    """:func:`process_noise_of` and the preparation (per-frame fits) it was found on (None, None
+    when the estimator has no ``process_noise``)."""
     own = getattr(est, "process_noise", None)
     if not callable(own):
-        return None
+        return None, None
     pre = est.prepare(scene)
     segs = identity_segments(pre, scene.fps, pieces=scene.identity_pieces)
     if segs.splits:
         scene, _ = split_ids(scene, pre.rows, segs)
         pre = est.prepare(scene)
     found: dict[str, float] = own(scene, pre)
-    return found
+    return found, pre
 
 
 def dense_frames(scene: Scene, step: int | None) -> Scene:

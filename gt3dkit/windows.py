@@ -15,7 +15,12 @@ processes, or ``--scheduler ADDRESS``: the Dask cluster ``reconstruct-many`` use
   on each side, and keeps its own frames' rows and findings (:func:`run_window`). A smoother's
   estimate at a frame depends on frames farther away through the motion model only, with a
   weight that decays geometrically with the distance; the context makes that weight negligible
-  (``tests/test_windows.py`` holds the stitched result to the whole-sequence one).
+  (``tests/test_windows.py`` holds the stitched result to the whole-sequence one). How fast it
+  decays follows from the chosen process noise and the per-frame fits' noise (the steady-state
+  filter's and smoother's gains, :func:`context_steps`): keypoint sequences take the context
+  that brings it under :data:`CONTEXT_WEIGHT` (at least :data:`MIN_OVERLAP_FRAMES`, at most
+  :data:`OVERLAP_S`), not :data:`OVERLAP_S` whole; a window the tool sized keeps its frames
+  (its own frames grow as the context shrinks).
 * The measurement noise levels (robust residual levels of the per-frame fits) are each window's
   own: measured on thousands of residuals they agree across windows to a few percent.
 
@@ -33,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from gt3dkit.api import estimate_checked, process_noise_of, take_rows
+from gt3dkit.api import estimate_checked, process_noise_prepared, take_rows
 from gt3dkit.arrays import unique_rows
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.base import make_estimator
@@ -48,13 +53,20 @@ PROCESS_NOISE = ("accel_sd", "position_sd", "shape_sd", "joint_accel_sd")
 #: Default context on each side of a window, seconds (at least :data:`MIN_OVERLAP_FRAMES`).
 OVERLAP_S = 2.0
 MIN_OVERLAP_FRAMES = 20
+#: The weight a frame beyond a window's context keeps in the window's estimates, at most (the
+#: context of keypoint sequences, :func:`context_steps`; 1e-3: a start state off by 20 of its
+#: sds, as an unknown velocity is, moves the first kept frame by 0.02 sd).
+CONTEXT_WEIGHT = 1e-3
+#: The per-frame joint fits' sd (percentile over joints and frames) the context is sized for.
+CONTEXT_SD_PERCENTILE = 90.0
 #: Object-frames the process-noise search runs on at most: thousands of object-frames fix a
 #: maximum-likelihood noise level to a few percent, and the search is the one step no worker shares.
 NOISE_SAMPLE_OBJECT_FRAMES = 20_000
 #: Bytes of a run's per-object-frame state beyond which ``gt3d reconstruct`` runs a sequence in
 #: windows by itself (:func:`auto_plan`), and that a window holds at most: with the process's own
-#: code and data (about 0.27 GB) a run stays under about 0.5 GB, what a laptop has to spare.
-MEMORY_BUDGET_BYTES = 0.2e9
+#: code and data (about 0.33 GB: the compiled kernels, the libraries, the loaded sequence) a run
+#: stays under about 0.45 GB, what a laptop has to spare.
+MEMORY_BUDGET_BYTES = 0.1e9
 
 
 @dataclass(frozen=True)
@@ -68,6 +80,7 @@ class Plan:
     jobs: int = 1
     scheduler: str | None = None
     why: str = ""  # why windows, when the user did not ask for them
+    span: int = 0  # frames a window holds with its context (the tool's windows; 0: not fixed)
 
 
 @dataclass(frozen=True)
@@ -108,12 +121,14 @@ def overlap_frames(scene: Scene) -> int:
 
 
 def state_bytes(n_joints: int) -> float:
-    """Peak bytes a run holds per object-frame, measured (whole runs of 300-1 000 frames of 3 people,
-    8 cameras): with joints, the split filters' parts (:func:`gt3dkit.fusion.split.split_entries`
-    covariance entries a row) about 4.3 times over with the measurements' arrays, 0.154 MB with 19
-    joints; a box's 9-entry state, its covariance about 20 times over and ~11 kB of the rest, 13 kB."""
+    """Peak bytes a run holds per object-frame, measured (peak RSS of runs of 1 000 frames of 3
+    people, 8 cameras, in windows of 50 to 1 000 frames): with joints, about 2.2 times the
+    split filters' covariance entries (:func:`gt3dkit.fusion.split.split_entries`), 77 kB with 19
+    joints (the joints' chains' states and the measurements' arrays; the bones' pass holds a
+    fixed batch); a box's 9-entry state, its covariance about 20 times over and ~11 kB of the
+    rest, 13 kB."""
     if n_joints:
-        return 4.3 * 8 * split_entries(n_joints)
+        return 2.2 * 8 * split_entries(n_joints)
     return 20.0 * 9 * 9 + 11e3
 
 
@@ -137,7 +152,8 @@ def auto_plan(scene: Scene) -> Plan | None:
     per_frame = float(np.percentile(count, 95))
     ov = overlap_frames(scene)
     fit = int(MEMORY_BUDGET_BYTES // (per_row * max(per_frame, 1.0)))
-    return Plan(max(fit - 2 * ov, ov), ov, why="the whole sequence would not fit in memory")
+    return Plan(max(fit - 2 * ov, ov), why="the whole sequence would not fit in memory",
+                span=max(fit, 3 * ov))
 
 
 def window_scene(scene: Scene, lo: int, hi: int) -> Scene:
@@ -165,21 +181,67 @@ def noise_sample(scene: Scene, windows: list[Window], limit: int = NOISE_SAMPLE_
 
 
 def chosen_noise(scene: Scene, windows: list[Window], estimator: str, config: dict[str, Any]
-                 ) -> dict[str, float]:
-    """The process noise every window runs with: the settings ``config`` gives, the others the
-    estimator's own choice on :func:`noise_sample`'s frames."""
+                 ) -> tuple[dict[str, float], int | None]:
+    """The process noise every window runs with (the settings ``config`` gives, the others the
+    estimator's own choice on :func:`noise_sample`'s frames) and the context in frames that
+    noise needs (:func:`joint_context`; None: the default's)."""
     given = {k: config[k] for k in PROCESS_NOISE if config.get(k) is not None}
     lo, hi = noise_sample(scene, windows)
     with small_matrix_blas():
         est = make_estimator(estimator, **config)
         sample = window_scene(scene, lo, hi)
-        found = process_noise_of(sample, est)  # the search alone, where the estimator has one
+        found, pre = process_noise_prepared(sample, est)  # the search alone, where the estimator has one
         if found is None:
             tracks, _ = estimate_checked(sample, est, qa=False)
             found = {k: v for k, v in tracks.info.get("params", {}).items() if v is not None}
     fields = {f.name for f in dataclasses.fields(est.config)} if hasattr(est, "config") else set()
     chosen = {k: float(found[k]) for k in PROCESS_NOISE if k in fields and found.get(k) is not None}
-    return {**chosen, **given}
+    noise = {**chosen, **given}
+    return noise, joint_context(pre, noise, scene)
+
+
+def context_steps(accel_sd: float, meas_sd_m: float, dt_s: float, weight: float = CONTEXT_WEIGHT) -> int:
+    """Steps after which a measurement's weight falls under ``weight`` in a constant-velocity
+    filter and RTS smoother (white acceleration ``accel_sd`` m/s^2/sqrt(Hz), the motion model of
+    :mod:`gt3dkit.fusion.motion`; position measured with sd ``meas_sd_m`` every ``dt_s``), at
+    their steady state: with ``P`` the predicted covariance (the Riccati equation's fixed point)
+    and ``K`` the gain, the filter forgets its start by ``(I - K H) F`` a step and the smoother
+    weighs the future by ``G = P_f F^T P^-1`` a step; ``rho`` the larger spectral radius of the
+    two, ``ceil(log weight / log rho)``."""
+    from scipy.linalg import solve_discrete_are
+
+    F = np.array([[1.0, dt_s], [0.0, 1.0]])
+    Q = accel_sd**2 * np.array([[dt_s**3 / 3.0, dt_s**2 / 2.0], [dt_s**2 / 2.0, dt_s]])
+    H = np.array([[1.0, 0.0]])
+    Rm = np.array([[max(meas_sd_m, 1e-9) ** 2]])
+    P = solve_discrete_are(F.T, H.T, Q, Rm)
+    K = P @ H.T / (H @ P @ H.T + Rm)
+    Pf = (np.eye(2) - K @ H) @ P
+    rho = max(float(np.abs(np.linalg.eigvals((np.eye(2) - K @ H) @ F)).max()),
+              float(np.abs(np.linalg.eigvals(Pf @ F.T @ np.linalg.inv(P))).max()))
+    if not 0.0 < rho < 1.0:
+        return 10**9
+    return int(np.ceil(np.log(weight) / np.log(rho)))
+
+
+def joint_context(pre: Any, noise: dict[str, float], scene: Scene) -> int | None:
+    """The context in frames a keypoint sequence (no boxes) needs: :func:`context_steps` with
+    the chosen ``joint_accel_sd`` and the per-frame joint fits' sd (the largest axis, the
+    :data:`CONTEXT_SD_PERCENTILE` percentile over joints and frames of the preparation ``pre``),
+    divided by the share of joint-frames with a fit (a joint unseen for a while forgets nothing
+    meanwhile). None (the default context) for boxes, or when the preparation tells nothing."""
+    q = noise.get("joint_accel_sd")
+    if pre is None or q is None or getattr(pre, "use_box", True) or getattr(pre, "kpt0_cov", None) is None:
+        return None
+    var = np.diagonal(pre.kpt0_cov, axis1=-2, axis2=-1).max(axis=-1)  # (R, J) m^2
+    seen = np.isfinite(pre.kpt0).all(axis=-1) & np.isfinite(var)
+    if not seen.any():
+        return None
+    sd = float(np.sqrt(np.percentile(var[seen], CONTEXT_SD_PERCENTILE)))
+    f = np.asarray(scene.frames)
+    step = float(np.median(np.diff(f))) if len(f) > 1 else 1.0
+    steps = context_steps(float(q), sd, step / scene.fps)
+    return int(np.ceil(steps / float(seen.mean())))
 
 
 @dataclass(frozen=True)
@@ -269,10 +331,13 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
         client = Client(plan.scheduler, timeout="20s")
     try:
         workers = len(client.scheduler_info()["workers"]) if client is not None else plan.jobs
-        if plan.why:  # the tool's choice, not the user's: a multiple of the workers, equal lengths
-            plan = dataclasses.replace(plan, size=balanced_size(len(scene.frames), plan.size, workers))
-        windows = plan_windows(np.asarray(scene.frames, dtype=np.int64), plan.size, ov)
-        noise = chosen_noise(scene, windows, estimator, config)
+        frames = np.asarray(scene.frames, dtype=np.int64)
+        windows = plan_windows(frames, _sized(plan, ov, len(frames), workers).size, ov)
+        noise, needed = chosen_noise(scene, windows, estimator, config)
+        if plan.overlap is None and needed is not None and needed < ov:  # the noise's own context
+            ov = max(needed, MIN_OVERLAP_FRAMES)
+        plan = _sized(plan, ov, len(frames), workers)
+        windows = plan_windows(frames, plan.size, ov)
         parts = _run_windows(scene, windows, WindowJob(scene, windows[0], estimator, {**config, **noise},
                                                        every_frame), client, plan.jobs,
                              on_window or (lambda k, n: None))
@@ -280,6 +345,16 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
         if client is not None:
             client.close()
     return stitch(parts, windows, plan, ov, noise)
+
+
+def _sized(plan: Plan, overlap: int, n_frames: int, workers: int) -> Plan:
+    """``plan`` with the window length it runs: a window the tool sized holds ``span`` frames with
+    its ``overlap``, and the tool's windows are a multiple of the workers, of equal lengths
+    (:func:`balanced_size`); the user's ``--window`` stays as given."""
+    if not plan.why:
+        return plan
+    size = max(plan.span - 2 * overlap, overlap) if plan.span else plan.size
+    return dataclasses.replace(plan, size=balanced_size(n_frames, size, workers))
 
 
 def _run_windows(scene: Scene, windows: list[Window], like: WindowJob, client: Any, jobs: int,

@@ -154,3 +154,29 @@ def test_process_noise_is_what_the_estimate_chooses(boxes: object) -> None:
     assert st.name == "windows 1/4 done, about 01:30 left"
     st.part("windows", 4, 4)
     assert st.name == "windows 4/4 done" and clock(3725) == "1:02:05"
+
+
+@pytest.mark.parametrize(("accel_sd", "sd_m", "fps"),
+                         [(3.4, 0.001, 30.0), (1.0, 0.01, 30.0), (0.5, 0.05, 10.0), (0.1, 0.05, 30.0)])
+def test_context_steps_bound_the_smoothers_weight(accel_sd: float, sd_m: float, fps: float) -> None:
+    """The context :func:`context_steps` gives against the smoother solved as one least-squares
+    problem (the batch MAP estimate of the constant-velocity model, which RTS equals): a position
+    measurement ``n`` steps away weighs at most ~CONTEXT_WEIGHT of the frame's own in the middle
+    of a long sequence, and more than that at half the distance (the context is not oversized)."""
+    from gt3dkit.windows import CONTEXT_WEIGHT, context_steps
+
+    dt, N, k = 1.0 / fps, 400, 200
+    F = np.array([[1.0, dt], [0.0, 1.0]])
+    Qi = np.linalg.inv(accel_sd**2 * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]]))
+    L = np.eye(2 * N) * 1e-9
+    for i in range(N - 1):
+        A = np.zeros((2, 2 * N))
+        A[:, 2 * i:2 * i + 2], A[:, 2 * i + 2:2 * i + 4] = -F, np.eye(2)
+        L += A.T @ Qi @ A
+    H = np.zeros((N, 2 * N))
+    H[np.arange(N), 2 * np.arange(N)] = 1.0
+    L += H.T @ H / sd_m**2
+    w = np.abs(np.linalg.solve(L, H.T / sd_m**2)[2 * k])  # position at k <- each measurement
+    n = context_steps(accel_sd, sd_m, dt)
+    assert w[k + n] / w[k] < 1.5 * CONTEXT_WEIGHT and w[k - n] / w[k] < 1.5 * CONTEXT_WEIGHT
+    assert w[k + n // 2] / w[k] > CONTEXT_WEIGHT
