@@ -289,8 +289,8 @@ def _solve3(A: F64, B: F64, X: F64) -> None:
     inv[0, 2] = (A[0, 1] * A[1, 2] - A[0, 2] * A[1, 1]) / det
     inv[1, 2] = (A[0, 2] * A[1, 0] - A[0, 0] * A[1, 2]) / det
     inv[2, 2] = (A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]) / det
-    for i in range(3):
-        for j in range(3):
+    for i in range(SPACE):
+        for j in range(SPACE):
             X[i, j] = inv[i, 0] * B[0, j] + inv[i, 1] * B[1, j] + inv[i, 2] * B[2, j]
 
 

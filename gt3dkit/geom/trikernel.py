@@ -7,6 +7,8 @@ replaced (``tests/oracles.py``, 5x slower) and to OpenCV's two-view triangulatio
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numba
 import numpy as np
 
@@ -94,12 +96,33 @@ def _weighted(O: F64, w2: F64, X: F64) -> None:
     _null(M, X)
 
 
+class Views(NamedTuple):
+    """The points' views ``xy (N, C, 2)`` (normalised; NaN: not seen), their relative variances
+    ``s (N, C)``, and the cameras: ``Pc (C, 3, 4)`` = ``[R | t]``, focal lengths ``f (C,)`` px and
+    depth signs ``ds (C,)``."""
+
+    xy: F64
+    s: F64
+    Pc: F64
+    f: F64
+    ds: F64
+
+
+class Found(NamedTuple):
+    """What :func:`robust_points` writes: the points ``X (N, 3)`` (NaN: under two inliers), the
+    inliers ``inl (N, C)`` and the squared reprojection errors ``e2 (N, C)`` px^2 (inf: not seen)."""
+
+    X: F64
+    inl: np.ndarray
+    e2: F64
+
+
 @numba.njit(cache=True, nogil=True)
-def robust_points(a: int, b: int, xy: F64, Pc: F64, f: F64, thr2: float, s: F64, ds: F64, pairs: I64,
-                  X: F64, inl: np.ndarray, e2: F64) -> None:
-    """Points ``a..b-1`` of ``xy (N, C, 2)`` (see :func:`gt3dkit.geom.triangulate.robust_triangulate`;
-    ``Pc (C, 3, 4)`` the cameras, ``thr2`` the squared threshold, ``s (N, C)`` relative variances)
-    into ``X (N, 3)``, ``inl (N, C)``, ``e2 (N, C)``."""
+def robust_points(a: int, b: int, views: Views, thr2: float, pairs: I64, out: Found) -> None:
+    """Points ``a..b-1`` of ``views`` (see :func:`gt3dkit.geom.triangulate.robust_triangulate`;
+    ``thr2`` the squared threshold, ``pairs (P, 2)`` the two-view hypotheses' views) into ``out``."""
+    xy, s, Pc, f, ds = views
+    X, inl, e2 = out
     C = xy.shape[1]
     P = pairs.shape[0]
     O = np.zeros((C, 4, 4))
@@ -179,15 +202,13 @@ def robust_triangulate_compiled(xy_n: F64, R: F64, t: F64, f_px: F64, thr_px: fl
     N, C = xy_n.shape[:2]
     c = np.ascontiguousarray
     Pc = c(np.concatenate([R, t[:, :, None]], axis=2), dtype=np.float64)
-    X = np.empty((N, 3))
-    inl = np.zeros((N, C), np.bool_)
-    e2 = np.empty((N, C))
-    args = (c(xy_n, dtype=np.float64), Pc, c(f_px, dtype=np.float64), float(thr_px) ** 2,
-            c(np.broadcast_to(s, (N, C)), dtype=np.float64),
-            c(np.broadcast_to(depth_sign, (C,)), dtype=np.float64), c(pairs, dtype=np.int64).reshape(-1, 2))
+    out = Found(np.empty((N, 3)), np.zeros((N, C), np.bool_), np.empty((N, C)))
+    views = Views(c(xy_n, dtype=np.float64), c(np.broadcast_to(s, (N, C)), dtype=np.float64), Pc,
+                  c(f_px, dtype=np.float64), c(np.broadcast_to(depth_sign, (C,)), dtype=np.float64))
+    pairs = c(pairs, dtype=np.int64).reshape(-1, 2)
 
     def part(a: int, b: int) -> None:
-        robust_points(a, b, *args, X, inl, e2)
+        robust_points(a, b, views, float(thr_px) ** 2, pairs, out)
 
     run_split(part, N, min_per_thread=2048)
-    return X, inl, e2
+    return out
