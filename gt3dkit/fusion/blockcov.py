@@ -44,6 +44,17 @@ class BlockCov:
     def __len__(self) -> int:
         return self.shape[0]
 
+    def rows_that_ran(self, ran: np.ndarray, into: Any = None) -> Any:
+        """A run's covariances from these, of which only the rows ``ran (R,)`` were run: written
+        into ``into`` (the other rows left as they are; ``into`` is returned), or these with the
+        other rows zero."""
+        if into is not None:
+            into[ran] = self[ran]
+            return into
+        for _, v in self.groups:
+            v[~ran] = 0.0
+        return self
+
     def __array__(self, dtype: Any = None, copy: Any = None) -> F64:
         out = np.zeros(self.shape)
         for dims, v in self.groups:

@@ -105,15 +105,31 @@ def box_regression(xj: F64, Pj: F64, meas: Measured, sig: BoxSigma, rig: BoxRig,
     m = EDGES * C
     d = dims.shape[0]
     S = sig.Wm.shape[0]
-    first = S - 2 * d  # 1 with the centre point, 0 without (the cubature rule)
     Pb = np.empty((d, d))
-    Lb = np.empty((d, d))
     X = np.empty((S, d))
     Z = np.empty((S, C, EDGES))
     want = np.empty(C, dtype=np.bool_)
-    zhat = np.empty(m)
-    Pxz = np.empty((d, m))
-    At = np.empty((d, m))
+    repaired = sigma_points(xj, Pj, dims, sig.scale, Pb, X)
+    for c in range(C):
+        want[c] = False
+        for e in range(EDGES):
+            want[c] = want[c] or meas.mask[at + EDGES * c + e]
+    for s in range(S):
+        sq = (math.exp(2.0 * X[s, SPACE]), math.exp(2.0 * X[s, SPACE + 1]), math.exp(2.0 * X[s, SPACE + 2]))
+        for c in range(C):
+            pair_box((X[s, 0], X[s, 1], X[s, 2]), sq, c, rig, want[c], Z, s)
+    regress(X, Z.reshape(S, m), xj, dims, sig.Wm, sig.Wc, Pb, meas, at, lin)
+    return repaired
+
+
+@numba.njit(cache=True, nogil=True)
+def sigma_points(xj: F64, Pj: F64, dims: I64, scale: float, Pb: F64, X: F64) -> int:
+    """The sigma points ``X (S, d)`` of the marginal on ``dims (d,)`` of ``N(xj, Pj)``: with the
+    centre point first when ``S = 2 d + 1``, then ``+-scale`` times the columns of the marginal's
+    Cholesky factor; ``Pb (d, d)`` receives the marginal. Returns 1 if the factor needed a repair."""
+    d = dims.shape[0]
+    first = X.shape[0] - 2 * d  # 1 with the centre point, 0 without (the cubature rule)
+    Lb = np.empty((d, d))
     for i in range(d):
         for k in range(d):
             Pb[i, k] = Pj[dims[i], dims[k]]
@@ -123,40 +139,47 @@ def box_regression(xj: F64, Pj: F64, meas: Measured, sig: BoxSigma, rig: BoxRig,
             X[0, i] = xj[dims[i]]
     for s in range(d):
         for i in range(d):
-            X[first + s, i] = xj[dims[i]] + sig.scale * Lb[i, s]
-            X[first + d + s, i] = xj[dims[i]] - sig.scale * Lb[i, s]
-    for c in range(C):
-        want[c] = False
-        for e in range(EDGES):
-            want[c] = want[c] or meas.mask[at + EDGES * c + e]
-    for s in range(S):
-        sq = (math.exp(2.0 * X[s, SPACE]), math.exp(2.0 * X[s, SPACE + 1]), math.exp(2.0 * X[s, SPACE + 2]))
-        for c in range(C):
-            pair_box((X[s, 0], X[s, 1], X[s, 2]), sq, c, rig, want[c], Z, s)
+            X[first + s, i] = xj[dims[i]] + scale * Lb[i, s]
+            X[first + d + s, i] = xj[dims[i]] - scale * Lb[i, s]
+    return repaired
+
+
+@numba.njit(cache=True, nogil=True)
+def regress(X: F64, Z: F64, xj: F64, dims: I64, Wm: F64, Wc: F64, Pb: F64, meas: Measured, at: int,
+            lin: Regression) -> None:
+    """Statistical linear regression of the measurements ``Z (S, m)`` of the sigma points ``X (S,
+    d)`` (of the marginal ``Pb`` on ``dims`` of ``N(xj, .)``, weights ``Wm, Wc``) into the
+    columns ``at + k`` of ``lin``: ``z ~ A x + b + e``, ``e ~ N(0, D)`` (``D`` = the noise of
+    ``meas`` + the linearisation error); an entry is used where ``meas`` has it and every sigma
+    point's is finite."""
+    S, m = Z.shape
+    d = dims.shape[0]
     mk = lin.used[at:at + m]
+    zhat = np.empty(m)
     for k in range(m):
         ok = meas.mask[at + k]
         if ok:
             for s in range(S):
-                if not np.isfinite(Z[s, k // EDGES, k % EDGES]):
+                if not np.isfinite(Z[s, k]):
                     ok = False
                     break
         mk[k] = ok
         zh = 0.0
         if ok:
             for s in range(S):
-                zh += sig.Wm[s] * Z[s, k // EDGES, k % EDGES]
+                zh += Wm[s] * Z[s, k]
         zhat[k] = zh
     var_z = np.zeros(m)
-    Pxz[:, :] = 0.0
+    Pxz = np.zeros((d, m))
+    At = np.empty((d, m))
     for s in range(S):
         for k in range(m):
             if not mk[k]:
                 continue
-            dz = Z[s, k // EDGES, k % EDGES] - zhat[k]
-            var_z[k] += sig.Wc[s] * dz * dz
+            dz = Z[s, k] - zhat[k]
+            var_z[k] += Wc[s] * dz * dz
             for i in range(d):
-                Pxz[i, k] += sig.Wc[s] * (X[s, i] - xj[dims[i]]) * dz
+                Pxz[i, k] += Wc[s] * (X[s, i] - xj[dims[i]]) * dz
     if not mk.any():
         At[:, :] = 0.0
     elif np.all(np.isfinite(Pxz)):
@@ -172,7 +195,6 @@ def box_regression(xj: F64, Pj: F64, meas: Measured, sig: BoxSigma, rig: BoxRig,
             lin.At[at + k, i] = At[i, k]
         lin.c[at + k] = cc
         lin.D[at + k] = meas.var[at + k] + (max(om, 0.0) if mk[k] else 0.0)
-    return repaired
 
 
 @numba.njit(cache=True, nogil=True)

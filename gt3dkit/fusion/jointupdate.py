@@ -28,7 +28,7 @@ import numba
 import numpy as np
 
 from gt3dkit.fusion.blockcov import BlockCov
-from gt3dkit.fusion.boxupdate import Chains, _chains, run_boxes
+from gt3dkit.fusion.boxupdate import Chains, _chains, regress, run_boxes, sigma_points
 from gt3dkit.fusion.filterrun import FilterRun
 from gt3dkit.fusion.kalman import fade_factor, predict_row, rts_row
 from gt3dkit.fusion.motion import SPACE, StateLayout
@@ -47,7 +47,6 @@ from gt3dkit.fusion.update import (
     statistics,
 )
 from gt3dkit.geom.boxkernel import _DS, _R, _T, BoxRig, _pixel, contiguous
-from gt3dkit.geom.smallmat import safe_chol, solve_sym
 from gt3dkit.threads import run_split
 from gt3dkit.types import F64, I64
 
@@ -152,22 +151,11 @@ def point_regression(xj: F64, Pj: F64, meas: Measured, sig: PointSigma, rig: Box
     C = rig.cam.shape[0]
     m = 2 * C
     S = sig.Wm.shape[0]
-    first = S - 2 * SPACE  # 1 with the centre point, 0 without (the cubature rule)
     Pb = np.empty((SPACE, SPACE))
-    Lb = np.empty((SPACE, SPACE))
     X = np.empty((S, SPACE))
     Z = np.empty((S, m))
-    for i in range(SPACE):
-        for k in range(SPACE):
-            Pb[i, k] = Pj[i, k]
-    repaired = safe_chol(Pb, Lb)
-    if first == 1:
-        for i in range(SPACE):
-            X[0, i] = xj[i]
-    for s in range(SPACE):
-        for i in range(SPACE):
-            X[first + s, i] = xj[i] + sig.scale * Lb[i, s]
-            X[first + SPACE + s, i] = xj[i] - sig.scale * Lb[i, s]
+    dims = np.arange(SPACE)
+    repaired = sigma_points(xj, Pj, dims, sig.scale, Pb, X)
     for c in range(C):
         if not (meas.mask[2 * c] or meas.mask[2 * c + 1]):
             continue
@@ -181,45 +169,7 @@ def point_regression(xj: F64, Pj: F64, meas: Measured, sig: PointSigma, rig: Box
                 Z[s, 2 * c], Z[s, 2 * c + 1] = _pixel(c0, c1, c2, q)
             else:
                 Z[s, 2 * c], Z[s, 2 * c + 1] = np.nan, np.nan
-    mk = lin.used
-    zhat = np.zeros(m)
-    for k in range(m):
-        ok = meas.mask[k]
-        if ok:
-            for s in range(S):
-                if not np.isfinite(Z[s, k]):
-                    ok = False
-                    break
-        mk[k] = ok
-        if ok:
-            for s in range(S):
-                zhat[k] += sig.Wm[s] * Z[s, k]
-    var_z = np.zeros(m)
-    Pxz = np.zeros((SPACE, m))
-    At = np.empty((SPACE, m))
-    for s in range(S):
-        for k in range(m):
-            if not mk[k]:
-                continue
-            dz = Z[s, k] - zhat[k]
-            var_z[k] += sig.Wc[s] * dz * dz
-            for i in range(SPACE):
-                Pxz[i, k] += sig.Wc[s] * (X[s, i] - xj[i]) * dz
-    if not mk.any():
-        At[:, :] = 0.0
-    elif np.all(np.isfinite(Pxz)):
-        solve_sym(Pb, Pxz, At)
-    else:
-        At[:, :] = np.nan
-    for k in range(m):
-        om = var_z[k]
-        cc = meas.z[k] - zhat[k]
-        for i in range(SPACE):
-            om -= Pxz[i, k] * At[i, k]
-            cc += At[i, k] * xj[i]
-            lin.At[k, i] = At[i, k]
-        lin.c[k] = cc
-        lin.D[k] = meas.var[k] + (max(om, 0.0) if mk[k] else 0.0)
+    regress(X, Z, xj, dims, sig.Wm, sig.Wc, Pb, meas, 0, lin)
     return repaired
 
 
@@ -586,14 +536,7 @@ def _assembled(model: Any, init: Any, cfg: Any, fps: float, args: tuple[Any, ...
     P: BlockCov | F64 = np.zeros((R, 0, 0))
     if covariances:
         ell_cov = box.P if box is not None else np.asarray(_leading(init.P0, E)[np.arange(R)])
-        got = BlockCov(lay.n, [(np.arange(E)[None], ell_cov[:, None]), (jd, out.P)])
-        if into is not None:
-            into[ran] = got[ran]
-            P = into
-        else:
-            for _, v in got.groups:
-                v[~ran] = 0.0
-            P = got
+        P = BlockCov(lay.n, [(np.arange(E)[None], ell_cov[:, None]), (jd, out.P)]).rows_that_ran(ran, into)
     st = np.where(jran[:, :, None], out.stats, 0.0)
 
     def summed(k: int, boxes: F64 | None) -> F64:

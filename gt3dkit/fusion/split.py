@@ -83,15 +83,8 @@ class JointSplit:
                 dims = self.dims[first:first + self.n_parts][own[first:first + self.n_parts]][:, k]
                 v = P[np.flatnonzero(own)[:, None, None], k[None, :, None], k[None, None, :]]
                 groups.append((dims, v.reshape(self.R, len(blocks), len(k), len(k))))
-            got = BlockCov(self.n, groups)
             ran = np.ones(self.R, bool) if on is None else on
-            if into is not None:
-                into[ran] = got[ran]
-                Po = into
-            else:
-                for _, v in got.groups:
-                    v[~ran] = 0.0
-                Po = got
+            Po = BlockCov(self.n, groups).rows_that_ran(ran, into)
         ok = self.cols >= 0
 
         def entries(v: F64 | None) -> F64 | None:
