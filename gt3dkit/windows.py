@@ -45,7 +45,7 @@ from gt3dkit.fusion.base import make_estimator
 from gt3dkit.fusion.split import split_entries
 from gt3dkit.io.writers import write_outputs
 from gt3dkit.qa.anomalies import Anomalies
-from gt3dkit.threads import small_matrix_blas
+from gt3dkit.threads import roomy_malloc, small_matrix_blas
 from gt3dkit.types import I64, Downweighted, Scene, TrackSet
 
 #: The process-noise settings chosen once for all windows.
@@ -93,16 +93,33 @@ class Window:
     hi: int
 
 
-def plan_windows(frames: I64, size: int, overlap: int) -> list[Window]:
+def plan_windows(frames: I64, size: int, overlap: int, work: np.ndarray | None = None) -> list[Window]:
     """Windows of ``size`` frames of the grid ``frames`` (sorted), each with ``overlap`` frames of
-    context on each side (fewer at the ends)."""
+    context on each side (fewer at the ends). With ``work (F,)``, each frame's objects: as many
+    windows, cut where each holds an equal share of the object-frames instead of equal frames
+    (a window's time and memory go with its object-frames, not its frames)."""
     n = len(frames)
+    starts = list(range(0, n, max(size, 1)))
+    if work is not None and len(starts) > 1 and float(np.sum(work)) > 0:
+        before = np.cumsum(work) - work  # object-frames before each frame
+        share = float(np.sum(work)) * np.arange(1, len(starts)) / len(starts)
+        starts = [0, *np.unique(np.clip(np.searchsorted(before, share), 1, n - 1)).tolist()]
     out = []
-    for a in range(0, n, size):
-        b = min(a + size, n) - 1
+    for a, nxt in zip(starts, [*starts[1:], n], strict=True):
+        b = nxt - 1
         out.append(Window(int(frames[max(a - overlap, 0)]), int(frames[a]), int(frames[b]),
                           int(frames[min(b + overlap, n - 1)])))
     return out
+
+
+def frame_work(scene: Scene, frames: I64) -> np.ndarray:
+    """``(F,)`` the objects annotated in each frame of the grid ``frames``."""
+    f, count = objects_per_frame(scene)
+    work = np.zeros(len(frames))
+    at = np.searchsorted(frames, f)
+    ok = (at < len(frames)) & (frames[np.minimum(at, len(frames) - 1)] == f)
+    work[at[ok]] = count[ok]
+    return work
 
 
 def balanced_size(n_frames: int, size: int, workers: int) -> int:
@@ -259,7 +276,7 @@ class WindowJob:
 def run_window(job: WindowJob) -> tuple[TrackSet, list[tuple[Any, ...]]]:
     """One window's rows and QA findings in its own frames."""
     w = job.window
-    with small_matrix_blas():
+    with small_matrix_blas(), roomy_malloc():
         est = make_estimator(job.estimator, **job.config)
         tracks, qa = estimate_checked(job.scene, est, job.every_frame)
     keep = (tracks.frame >= w.first) & (tracks.frame <= w.last)
@@ -287,6 +304,7 @@ def stitch(parts: list[tuple[TrackSet, list[tuple[Any, ...]]]], windows: list[Wi
     info = dict(ts[0].info)
     info["windows"] = {
         "count": len(windows), "frames": plan.size, "overlap_frames": overlap, "why": plan.why,
+        "cut": "equal object-frames" if plan.why else "equal frames",
         "windows": [dataclasses.asdict(w) for w in windows], "process_noise": noise,
         "note": "each window run on its frames plus context, its own frames kept; the process noise "
                 "chosen once (gt3dkit.windows)"}
@@ -338,7 +356,8 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
         if plan.overlap is None and needed is not None and needed < ov:  # the noise's own context
             ov = max(needed, MIN_OVERLAP_FRAMES)
         plan = _sized(plan, ov, len(frames), workers)
-        windows = plan_windows(frames, plan.size, ov)
+        # the tool's windows hold equal object-frames (the workers finish together); --window as given
+        windows = plan_windows(frames, plan.size, ov, frame_work(scene, frames) if plan.why else None)
         parts = _run_windows(scene, windows, WindowJob(scene, windows[0], estimator, {**config, **noise},
                                                        every_frame), client, plan.jobs,
                              on_window or (lambda k, n: None))

@@ -64,7 +64,7 @@ def row(name: str, run: str, sec: float, gb: float, n: int, err: float | None, n
 def gt3d_run(name: str, src: Path, out: Path, extra: list[str], label: str) -> tuple[float, int]:
     sec, gb, so = timed([GT3D, "reconstruct", str(src), "--out", str(out), "--quiet", *extra])
     n = int(re.search(r"-> (\d+) object-frames", so).group(1))  # type: ignore[union-attr]
-    win = re.search(r"in (\d+) windows of (\d+) frames", so)
+    win = re.search(r"in (\d+) windows of (?:about )?(\d+) frames", so)
     kp = out / "keypoints.csv"
     err = mpjpe_mm(kp, src / "truth_keypoints.csv") if kp.exists() else None
     row(name, label, sec, gb, n, err, f"{win.group(1)} windows of {win.group(2)}" if win else "")

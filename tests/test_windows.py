@@ -51,6 +51,23 @@ def test_balanced_windows_are_a_multiple_of_the_workers(n: int, size: int, worke
     assert lengths.max() - lengths.min() <= max(len(ws), 1), lengths
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_windows_by_work_hold_equal_object_frames(seed: int) -> None:
+    """Cut by each frame's objects, the windows are as many as by frames, cover every frame once,
+    and hold equal object-frames to within a frame's; a stretch with nobody in it adds none."""
+    rng = np.random.default_rng(seed)
+    n = 997
+    work = rng.integers(0, 40, n).astype(float) * (np.arange(n) // 100 % 3 > 0)  # empty stretches
+    frames = np.arange(n) * 2
+    ws = plan_windows(frames, 120, 9, work)
+    assert len(ws) == len(plan_windows(frames, 120, 9)) == 9
+    cores = np.concatenate([frames[(frames >= w.first) & (frames <= w.last)] for w in ws])
+    np.testing.assert_array_equal(cores, frames)
+    held = np.array([work[(frames >= w.first) & (frames <= w.last)].sum() for w in ws])
+    assert np.ptp(held) <= 2 * work.max(), held
+    assert np.array_equal(plan_windows(frames, 120, 9, np.zeros(n)), plan_windows(frames, 120, 9))
+
+
 def test_noise_sample_is_the_busiest_stretch_cut_to_the_limit(boxes: object) -> None:
     """The process noise is chosen on the busiest window, cut around its middle to at most the
     given number of object-frames."""
@@ -117,7 +134,7 @@ def test_jobs_and_dask_give_the_one_process_output(boxes: object, tmp_path: Path
         outs[name] = (tmp_path / name / "tracks.csv").read_bytes()
     assert outs["one"] == outs["two"]
     code, so, se = _run("reconstruct", str(root), "--out", str(tmp_path / "spread"), "--quiet", "--jobs", "2")
-    assert code == 0 and "in 2 windows of 56 frames with 20 of context (one per worker" in so, so
+    assert code == 0 and "in 2 windows of about 56 frames with 20 of context (one per worker" in so, so
     distributed = pytest.importorskip("distributed")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
                                   dashboard_address=None) as cluster:

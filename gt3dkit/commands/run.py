@@ -77,8 +77,10 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
                 if qa else ", no anomalies")
     win = info.get("windows")
     if win:
-        flagged += (f", in {win['count']} windows of {win['frames']} frames with {win['overlap_frames']} of "
-                    "context" + (f" ({win['why']}; --window FRAMES to choose)" if win.get("why") else ""))
+        about = "about " if win.get("cut") == "equal object-frames" else ""
+        flagged += (f", in {win['count']} windows of {about}{win['frames']} frames with "
+                    f"{win['overlap_frames']} of context"
+                    + (f" ({win['why']}; --window FRAMES to choose)" if win.get("why") else ""))
     print(f"{scene.layout}: {len(scene.obs)} annotation rows ({kinds}), {len(scene.rig.cameras)} "
           f"cameras, {fps} -> {len(tracks)} object-frames of {len(set(tracks.track_id.tolist()))} "
           f"objects ({args.estimator}, {info.get('seconds', 0):.2f} s{flagged}) written to "

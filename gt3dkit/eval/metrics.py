@@ -16,23 +16,52 @@ Definitions (metres):
 from __future__ import annotations
 
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from gt3dkit.arrays import lookup_rows
 from gt3dkit.types import F64, GroundTruth, TrackSet
 
 
 def match_rows(tracks: TrackSet, truth: GroundTruth) -> tuple[np.ndarray, np.ndarray]:
-    """Indices ``(i_track, i_truth)`` of rows with the same (frame, id)."""
-    key_t = {(int(f), int(i)): k for k, (f, i) in enumerate(zip(truth.frame, truth.track_id, strict=True))}
-    pairs = [(k, key_t[(int(f), int(i))]) for k, (f, i) in
-             enumerate(zip(tracks.frame, tracks.track_id, strict=True)) if (int(f), int(i)) in key_t]
-    if not pairs:
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    a = np.array(pairs, dtype=np.int64)
-    return a[:, 0], a[:, 1]
+    """Indices ``(i_track, i_truth)`` of rows with the same (frame, id), in the tracks' order."""
+    at = lookup_rows(np.c_[truth.frame, truth.track_id].astype(np.int64),
+                     np.c_[tracks.frame, tracks.track_id].astype(np.int64))
+    it = np.flatnonzero(at >= 0)
+    return it, at[it]
+
+
+#: Pairs of rows :func:`frame_pairs` hands out at once (a few tens of MB of their arrays).
+PAIRS_PER_CHUNK = 1 << 20
+
+
+def frame_pairs(frame_a: np.ndarray, frame_b: np.ndarray, frames: np.ndarray, max_pairs: int = PAIRS_PER_CHUNK
+                ) -> Iterator[tuple[int, int, np.ndarray, np.ndarray, np.ndarray]]:
+    """Every pair of a row of table ``a`` and a row of table ``b`` in the same frame, for the
+    sorted frame numbers ``frames``, in chunks of whole frames of about ``max_pairs`` pairs:
+    yields ``(f0, f1, ia, ib, start)``, the frames ``frames[f0:f1]``, the pairs' rows ``(P,)`` in
+    ``a`` and in ``b`` (frame by frame; within a frame ``a``'s rows in table order, each with
+    ``b``'s rows in table order: the frame's ``(n_a, n_b)`` block, row-major) and ``start (f1 -
+    f0 + 1,)`` where each frame's pairs begin. One sort per table instead of a scan per frame."""
+    oa, ob = np.argsort(frame_a, kind="stable"), np.argsort(frame_b, kind="stable")
+    fa, fb = np.asarray(frame_a)[oa], np.asarray(frame_b)[ob]
+    lo_a, lo_b = np.searchsorted(fa, frames), np.searchsorted(fb, frames)
+    n_a = np.searchsorted(fa, frames, side="right") - lo_a
+    n_b = np.searchsorted(fb, frames, side="right") - lo_b
+    n_pair = n_a * n_b
+    end = np.cumsum(n_pair)
+    f0 = 0
+    while f0 < len(frames):
+        base = end[f0] - n_pair[f0]
+        f1 = max(int(np.searchsorted(end, base + max_pairs, side="right")), f0 + 1)
+        start = np.concatenate([[0], end[f0:f1] - base])
+        of = np.repeat(np.arange(f0, f1), n_pair[f0:f1])
+        k = np.arange(start[-1]) - start[of - f0]  # the pair's place in its frame's block
+        yield f0, f1, oa[lo_a[of] + k // n_b[of]], ob[lo_b[of] + k % n_b[of]], start
+        f0 = f1
 
 
 def _pair_counts(tracks: TrackSet, truth: GroundTruth, g_e: F64, g_t: F64, max_dist_m: float
@@ -41,12 +70,13 @@ def _pair_counts(tracks: TrackSet, truth: GroundTruth, g_e: F64, g_t: F64, max_d
     within ``max_dist_m`` of each other (ground positions ``g_e, g_t``); and the two id lists."""
     ids, ti = np.unique(tracks.track_id, return_inverse=True)
     tids, gi = np.unique(truth.track_id, return_inverse=True)
-    count = np.zeros((len(ids), len(tids)))
-    for f in np.intersect1d(tracks.frame, truth.frame):
-        a, b = np.flatnonzero(tracks.frame == f), np.flatnonzero(truth.frame == f)
-        d = np.linalg.norm(g_e[a][:, None] - g_t[b][None], axis=-1)
-        np.add.at(count, (ti[a][:, None].repeat(len(b), 1), gi[b][None].repeat(len(a), 0)), d <= max_dist_m)
-    return count, ids, tids
+    ti, gi = ti.ravel(), gi.ravel()
+    count = np.zeros(len(ids) * len(tids))
+    frames = np.intersect1d(tracks.frame, truth.frame)
+    for _, _, a, b, _ in frame_pairs(tracks.frame, truth.frame, frames):
+        near = np.linalg.norm(g_e[a] - g_t[b], axis=1) <= max_dist_m
+        count += np.bincount(ti[a[near]] * len(tids) + gi[b[near]], minlength=len(count))
+    return count.reshape(len(ids), len(tids)), ids, tids
 
 
 def ids_to_truth(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float = 1.0) -> dict[int, int]:
