@@ -46,11 +46,15 @@ def load_json(path: Path) -> Any:
     return _json_doc(path, _read_bytes(path))
 
 
-def load_json_hashed(path: Path) -> tuple[Any, str]:
-    """:func:`load_json` and the file's :func:`sha256`, from one read of the file (a folder of
-    thousands of per-frame files is read once, not twice)."""
+def read_hashed(path: Path) -> tuple[bytes, str]:
+    """A file's bytes and their :func:`sha256` (InputError when unreadable)."""
     raw = _read_bytes(path)
-    return _json_doc(path, raw), hashlib.sha256(raw).hexdigest()
+    return raw, hashlib.sha256(raw).hexdigest()
+
+
+def json_of(path: Path, raw: bytes) -> Any:
+    """The JSON document in ``raw``, the bytes of ``path``: :func:`load_json` of read bytes."""
+    return _json_doc(path, raw)
 
 
 def _read_bytes(path: Path) -> bytes:

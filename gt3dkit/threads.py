@@ -129,8 +129,9 @@ def roomy_malloc() -> Iterator[None]:
     64 kB, to hand freed memory back to the system: ``distributed.nanny.pre-spawn-environ``).
     Setting it also fixes glibc's mmap threshold at 128 kB (no longer raised as large blocks are
     freed): every larger temporary is then a fresh ``mmap``, page-faulted in and unmapped again.
-    A box window on such a worker ran 11 % slower, 14 % with two workers side by side
-    (``/tmp`` experiment, notes in the README's benchmark). For the block: mmap threshold
+    A box window (374 frames of the 4 000-frame, 40-person benchmark scene) on such a worker ran
+    11 % slower, 14 % with two workers side by side; 200 arrays of 3.2 MB page-fault 100 times
+    as often (``tests/test_threads.py``). For the block: mmap threshold
     32 MiB, trim threshold 256 MiB; after it the environment's values and ``malloc_trim(0)``, so
     that the worker hands the memory back as its nanny expects. Nothing elsewhere (no such
     variable, or not glibc)."""

@@ -1,7 +1,8 @@
 r"""Multi-object tracking metrics on ground-plane positions, as the paper reports them.
 
 * MOTA, IDF1, FP, FN, IDs: ``motmetrics``' rules (:func:`gt3dkit.eval.metrics.clear_mot`).
-* HOTA (Luiten et al., IJCV 2021): TrackEval's ``HOTA`` metric, with the similarity of a
+* HOTA (Luiten et al., IJCV 2021): TrackEval's ``HOTA`` metric (its algorithm on arrays,
+  :func:`hota`; the tests hold it to TrackEval), with the similarity of a
   truth and a track position ``max(0, 1 - d / cutoff)`` (the ground-plane similarity used
   for multi-view detection), averaged over TrackEval's localisation thresholds.
 * OSPA(2) (Beard, Vo & Vo, "A solution for large-scale multi-object tracking", IEEE TSP

