@@ -170,14 +170,15 @@ def _checked_views(raw: bytes, cams: list[Camera | None], wh: F64, g: GridLayout
         return None
     persons = [(q.personID, q.positionID) for q in people]
     rows = [(q.personID, v.viewNum, v.xmin, v.ymin, v.xmax, v.ymax) for q in people for v in q.views]
-    pp = np.array(persons, dtype=np.int64).reshape(-1, 2)
+    if len({a for a, _ in persons}) != len(persons) or len({r[:2] for r in rows}) != len(rows):
+        return None  # a person twice, or a camera twice for one person
+    try:
+        pp = np.array(persons, dtype=np.int64).reshape(-1, 2)
+        ids = np.array([r[:2] for r in rows], dtype=np.int64).reshape(-1, 2)
+    except OverflowError:  # an id beyond int64 (msgspec reads up to 2**64 - 1)
+        return None
     if (np.abs(pp[:, 0]) > ID_MAX).any() or (pp[:, 1] < -1).any() or (pp[:, 1] > g.n_positions - 1).any():
         return None
-    if len(np.unique(pp[:, 0])) != len(pp):
-        return None  # a person twice
-    ids = np.array([r[:2] for r in rows], dtype=np.int64).reshape(-1, 2)
-    if len(ids) and len(unique_rows(ids)) != len(ids):
-        return None  # a camera twice for one person
     box = np.array([r[2:] for r in rows], dtype=np.float64).reshape(-1, 4)
     vn = ids[:, 1]
     if ((vn < -1) | (vn > 10_000)).any():
