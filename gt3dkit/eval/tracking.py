@@ -21,6 +21,8 @@ r"""Multi-object tracking metrics on ground-plane positions, as the paper report
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
@@ -84,8 +86,6 @@ def hota(truth_frame: np.ndarray, truth_id: np.ndarray, truth_xy: F64, est_frame
     threshold in Python) took 1.3 s of a 4 000-frame, 40-person evaluation, the longest part of
     ``gt3d reconstruct``'s truth report; ``tests/eval/test_metrics.py`` holds this to TrackEval
     itself on random scenes with misses, false positives and identity swaps."""
-    from scipy.optimize import linear_sum_assignment
-
     n_a = len(HOTA_ALPHAS)
     if not len(est_id) or not len(truth_id):  # TrackEval's early return: every score 0
         return {"hota": 0.0, "deta": 0.0, "assa": 0.0}
@@ -96,21 +96,24 @@ def hota(truth_frame: np.ndarray, truth_id: np.ndarray, truth_xy: F64, est_frame
     n_g, n_e = int(g_inv.max()) + 1, len(e_ids)
     g_count = np.bincount(g_inv, minlength=n_g).astype(float)
     e_count = np.bincount(e_inv, minlength=n_e).astype(float)
-    chunks = []
+    def pairs() -> Iterator[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """Chunks of frames (:func:`frame_pairs`; twice through, not held): their count, where
+        each frame's pairs start, the pairs' truth and track rows, similarity and id cell."""
+        for f0, f1, a, b, start in frame_pairs(truth_frame, est_frame, frames):
+            sim = np.maximum(0.0, 1.0 - np.linalg.norm(truth_xy[a] - est_xy[b], axis=-1) / cutoff)
+            yield f1 - f0, start, a, b, sim, g_inv[a] * n_e + e_inv[b]
+
     potential = np.zeros(n_g * n_e)
-    for f0, f1, a, b, start in frame_pairs(truth_frame, est_frame, frames):
-        sim = np.maximum(0.0, 1.0 - np.linalg.norm(truth_xy[a] - est_xy[b], axis=-1) / cutoff)
+    for _, _, a, b, sim, cell in pairs():  # (1)
         rows = np.bincount(a, weights=sim, minlength=len(truth_frame))  # a truth row's pairs: one frame's
         cols = np.bincount(b, weights=sim, minlength=len(est_frame))
         denom = rows[a] + cols[b] - sim
         iou = np.where(denom > np.finfo(float).eps, sim / np.where(denom > 0, denom, 1.0), 0.0)
-        cell = g_inv[a] * n_e + e_inv[b]
         potential += np.bincount(cell, weights=iou, minlength=n_g * n_e)
-        chunks.append((f1 - f0, a, start, sim, cell))
     align = potential / (g_count.repeat(n_e) + np.tile(e_count, n_g) - potential)
     tp = np.zeros(n_a)
     matches = np.zeros((n_a, n_g * n_e))
-    for n_f, a, start, sim, cell in chunks:
+    for n_f, start, a, _, sim, cell in pairs():  # (2)
         score = align[cell] * sim
         picked = []
         for i in range(n_f):
