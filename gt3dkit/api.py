@@ -36,7 +36,7 @@ __all__ = ["ESTIMATORS", "annotation_qa", "load_run", "load_scene", "make_estima
 def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None = None,
                fps: float | None = None, calib: Path | str | None = None,
                association: Path | str | None = None, segments: Path | str | None = None,
-               box_model: str = "auto", map_chunks: Any = None, **panoptic_options: Any) -> Scene:
+               box_model: str = "auto", **panoptic_options: Any) -> Scene:
     """Load any supported input folder (layout detected when not given): read it
     (:func:`gt3dkit.io.datasets.read_scene`, whose arguments these are), give ids per camera or
     none global identities (:mod:`gt3dkit.fusion.associate`, with the overrides of the file
@@ -44,9 +44,8 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     ``segments``: an edited ``segments.csv`` whose pieces replace the automatic identity splits
     of the ids it lists (:func:`gt3dkit.fusion.identity.identity_segments`). ``box_model``: how
     the boxes are drawn (:data:`gt3dkit.types.BOX_MODELS`), or ``"auto"``: chosen from them
-    (:func:`with_box_model`). ``map_chunks``: where a reader may run its chunks of files
-    (:data:`gt3dkit.io.datasets.common.MapChunks`; e.g. a Dask cluster's workers)."""
-    scene = read_scene(root, layout, skeleton, fps, calib, association, map_chunks, **panoptic_options)
+    (:func:`with_box_model`)."""
+    scene = read_scene(root, layout, skeleton, fps, calib, association, **panoptic_options)
     if scene.layout in ASSOCIATED:  # ids per camera or none -> global identities, before the checks
         over = read_overrides(Path(association), scene.rig.names) if association is not None else None
         if over:  # a row whose camera has no such id (a track deleted, a drawn shape left out): unused

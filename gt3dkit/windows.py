@@ -30,9 +30,8 @@ in a window's context is found again by its neighbour); segment numbers restart 
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -44,7 +43,6 @@ from gt3dkit.arrays import unique_rows
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.base import make_estimator
 from gt3dkit.fusion.split import split_entries
-from gt3dkit.io.datasets.common import MapChunks
 from gt3dkit.io.writers import write_outputs
 from gt3dkit.qa.anomalies import Anomalies
 from gt3dkit.threads import roomy_malloc, small_matrix_blas
@@ -326,42 +324,6 @@ def stitch(parts: list[tuple[TrackSet, list[tuple[Any, ...]]]], windows: list[Wi
     return tracks, qa
 
 
-@contextlib.contextmanager
-def cluster_reader(address: str | None) -> Iterator[MapChunks | None]:
-    """Chunks of a reader's files run on the workers of the Dask scheduler at ``address`` (a
-    ``map_chunks``, :data:`gt3dkit.io.datasets.common.MapChunks`; None without an address), so that
-    a long sequence's frame files are read in parallel as its windows will run; a chunk that fails
-    there (a worker without gt3dkit, say) runs here."""
-    if not address:
-        yield None
-        return
-    client = _client(address)
-
-    def run(fn: Callable[[Any], Any], chunks: list[Any]) -> list[Any]:
-        out = []
-        for f, c in zip(client.map(fn, chunks, pure=False), chunks, strict=True):
-            try:
-                out.append(f.result())
-            except Exception:  # the cluster's failure, not the input's: the reader raises none
-                out.append(fn(c))
-        return out
-
-    try:
-        yield run
-    finally:
-        client.close()
-
-
-def _client(address: str) -> Any:
-    """A Dask client of the scheduler at ``address``, or InputError naming ``--scheduler``."""
-    from distributed import Client
-
-    try:
-        return Client(address, timeout="20s")
-    except (OSError, TimeoutError) as e:
-        raise InputError("--scheduler", f"cannot reach the Dask scheduler at {address} ({e})") from None
-
-
 def reconstruct_windows(scene: Scene, estimator: str, plan: Plan, out: str | None = None,
                         extra_meta: dict[str, Any] | None = None, every_frame: int | None = None,
                         on_window: Callable[[int, int], None] | None = None, **config: Any) -> TrackSet:
@@ -383,7 +345,9 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
     ov = overlap_frames(scene) if plan.overlap is None else plan.overlap
     client = None
     if plan.scheduler:
-        client = _client(plan.scheduler)
+        from distributed import Client
+
+        client = Client(plan.scheduler, timeout="20s")
     try:
         workers = len(client.scheduler_info()["workers"]) if client is not None else plan.jobs
         frames = np.asarray(scene.frames, dtype=np.int64)

@@ -144,24 +144,6 @@ def test_jobs_and_dask_give_the_one_process_output(boxes: object, tmp_path: Path
     assert (tmp_path / "dask" / "tracks.csv").read_bytes() == outs["one"]
 
 
-def test_dask_reads_the_frame_files_and_gives_the_one_process_output(tmp_path: Path) -> None:
-    """A WILDTRACK-layout sequence on a ``LocalCluster`` over loopback: its frame files read on
-    the workers (``windows.cluster_reader``), its windows run there; the output byte for byte the
-    one-process run's."""
-    distributed = pytest.importorskip("distributed")
-    root = tmp_path / "w"
-    written_scene(root, "wildtrack", seed=4, frames=60, people=5, noise_px=1.0)
-    code, so, se = _run("reconstruct", str(root), "--out", str(tmp_path / "one"), "--window", "20", "--quiet")
-    assert code == 0, se
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                  dashboard_address=None) as cluster:
-        code, so, se = _run("reconstruct", str(root), "--out", str(tmp_path / "dask"), "--window", "20",
-                            "--quiet", "--scheduler", cluster.scheduler_address)
-    assert code == 0, se
-    for f in ("tracks.csv", "anomalies.csv"):
-        assert (tmp_path / "dask" / f).read_bytes() == (tmp_path / "one" / f).read_bytes(), f
-
-
 def test_window_misuse(boxes: object, tmp_path: Path) -> None:
     root = str(boxes.root)  # type: ignore[attr-defined]
     code, so, se = _run("reconstruct", root, "--out", str(tmp_path / "a"), "--jobs", "2", "--window", "0")

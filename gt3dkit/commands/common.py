@@ -26,7 +26,6 @@ from gt3dkit.eval.tracking import tracking_scores
 from gt3dkit.fusion.base import REGISTRY
 from gt3dkit.io.atomic import check_out
 from gt3dkit.io.datasets import detect_layout
-from gt3dkit.windows import cluster_reader
 
 #: Published numbers of Ma et al. for the datasets we can compare on.
 PAPER = {"multiviewx": {"MOTA": 96.5, "OSPA2_m": 0.17}, "wildtrack": {"MOTA": 98.7, "OSPA2_m": 0.10},
@@ -101,9 +100,8 @@ def load_input(args: argparse.Namespace) -> Any:
     if getattr(args, "segments", None) is not None:
         opts["segments"] = args.segments
     opts["box_model"] = getattr(args, "box_model", "auto")
-    with cluster_reader(getattr(args, "scheduler", None)) as map_chunks:  # frame files on its workers
-        scene = load_scene(Path(args.input), layout, args.skeleton, getattr(args, "fps", None),
-                           calib=getattr(args, "calib", None), map_chunks=map_chunks, **opts)
+    scene = load_scene(Path(args.input), layout, args.skeleton, getattr(args, "fps", None),
+                       calib=getattr(args, "calib", None), **opts)
     return scene
 
 

@@ -198,36 +198,3 @@ def test_wildtrack_rows_keep_their_entry(tmp_path: Path) -> None:
     with pytest.raises(InputError) as e:
         load_scene(tmp_path / "w")
     assert "second" in e.value.problem, str(e.value)
-
-
-def test_wildtrack_files_read_elsewhere_as_here(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Frame files read in chunks elsewhere (the work and its results through pickle, as on a Dask
-    worker), one chunk the workers could not read and a file they found unusual read here: the
-    same scene as read here alone, and a bad file's exact error still."""
-    import pickle
-
-    from gt3dkit.io.datasets import wildtrack
-
-    monkeypatch.setattr(wildtrack, "FILES_PER_CHUNK", 7)
-    root = tmp_path / "w"
-    here, _ = written_scene(root, "wildtrack", seed=2, frames=30, people=4, noise_px=1.0)
-    calls: list[int] = []
-
-    def elsewhere(fn, chunks):  # type: ignore[no-untyped-def]
-        calls.append(len(chunks))
-        work = pickle.loads(pickle.dumps(fn))
-        out = [pickle.loads(pickle.dumps(work(c))) for c in chunks]
-        out[1] = [(None, None)] * len(chunks[1])  # a chunk not read there
-        out[2][0] = (out[2][0][0], None)  # a file found unusual there
-        return out
-
-    there = load_scene(root, map_chunks=elsewhere)
-    assert calls == [5]
-    for f in ("frame", "cam", "track_id", "box_xyxy_px"):
-        np.testing.assert_array_equal(getattr(there.obs, f), getattr(here.obs, f))
-    assert there.files == here.files and list(there.obs.origin) == list(here.obs.origin)
-    bad = sorted((root / "annotations_positions").glob("*.json"))[20]
-    bad.write_text(bad.read_text().replace('"positionID"', '"positionId"', 1))
-    with pytest.raises(InputError) as e:
-        load_scene(root, map_chunks=elsewhere)
-    assert str(bad) in str(e.value) and "expected {personID" in e.value.problem, str(e.value)

@@ -14,7 +14,6 @@ from gt3dkit.calib.formats import detect_format, read_calibration
 from gt3dkit.calib.formats.grid import LAYOUTS as GRID_LAYOUTS
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets import mot, native, openpose, panoptic, tasks, wildtrack
-from gt3dkit.io.datasets.common import MapChunks
 from gt3dkit.rig import Rig
 from gt3dkit.types import Scene, SimScene, SkeletonScene
 
@@ -26,7 +25,6 @@ class ReadOptions(NamedTuple):
     calib: Path | str | None
     fps: float | None
     panoptic: dict[str, Any]
-    map_chunks: MapChunks | None = None  # where a reader may run its chunks of files
 
 
 @dataclass(frozen=True)
@@ -49,8 +47,8 @@ class Layout:
 def _grid(name: str) -> Layout:
     g = GRID_LAYOUTS[name]
     return Layout(name, lambda root: (root / "calibrations" / g.intrinsic_dir).is_dir(),
-                  lambda root, o: wildtrack.load(root, g, o.map_chunks),
-                  lambda sim, tmp, seed: wildtrack.write(sim, tmp, g))
+                  lambda root, o: wildtrack.load(root, g), lambda sim, tmp, seed: wildtrack.write(sim, tmp,
+                                                                                                  g))
 
 
 #: Every input layout, in the order a folder is tested for it (the first found is its layout).
@@ -126,8 +124,7 @@ def _calib_digest(calib: Path | str) -> str:
 
 def read_scene(root: Path | str, layout: str | None = None, skeleton: str | None = None,
                fps: float | None = None, calib: Path | str | None = None,
-               association: Path | str | None = None, map_chunks: MapChunks | None = None,
-               **panoptic_options: Any) -> Scene:
+               association: Path | str | None = None, **panoptic_options: Any) -> Scene:
     """Read any supported input folder (layout detected when not given), as its files say: a
     layout with ids per camera or none (:data:`ASSOCIATED`) still has them (the cross-camera
     association is estimation, :func:`gt3dkit.api.load_scene`), and the scene is not checked
@@ -137,8 +134,7 @@ def read_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     data); ``fps`` overrides the input's frame rate. ``panoptic_options`` go to
     :func:`gt3dkit.io.datasets.panoptic.load` (``cameras``, ``noise_px``, ``seed``,
     ``min_conf``). ``calib`` replaces the input's cameras by those of a calibration in any
-    format (:func:`with_calibration`). ``map_chunks`` runs the per-frame files' reading elsewhere
-    (WILDTRACK/MultiviewX folders: :func:`gt3dkit.io.datasets.wildtrack.load`).
+    format (:func:`with_calibration`).
     """
     layout = layout or detect_layout(Path(root))
     if layout not in LAYOUTS:
@@ -151,7 +147,7 @@ def read_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     if association is not None and layout not in ASSOCIATED:
         raise InputError("--association", "applies to inputs with per-camera ids or none "
                                           f"({', '.join(ASSOCIATED)}), not {layout}")
-    scene = LAYOUTS[layout].read(Path(root), ReadOptions(skeleton, calib, fps, panoptic_options, map_chunks))
+    scene = LAYOUTS[layout].read(Path(root), ReadOptions(skeleton, calib, fps, panoptic_options))
     if len(scene.obs) == 0:
         raise InputError(str(root), "no annotations in any frame")
     if calib is not None and layout not in ASSOCIATED:  # these read their calibration themselves

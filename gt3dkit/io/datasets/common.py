@@ -4,19 +4,13 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
 from gt3dkit.arrays import unique_rows
 from gt3dkit.errors import InputError
 from gt3dkit.types import F64, Observations, Origins
-
-#: ``map_chunks(fn, chunks)``: ``[fn(c) for c in chunks]``, run elsewhere (a reader's chunks of
-#: files on a cluster's workers), the results in the chunks' order
-MapChunks = Callable[[Callable[[Any], Any], list[Any]], list[Any]]
 
 
 def check_box(where: str, box: list[float]) -> None:

@@ -25,8 +25,6 @@ from __future__ import annotations
 
 import csv
 import functools
-import hashlib
-import itertools
 import json
 import math
 from pathlib import Path
@@ -39,7 +37,7 @@ from gt3dkit.calib.formats.grid import GridLayout, load_camera
 from gt3dkit.calib.formats.grid import write as write_grid
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import FAR_IMAGES, check_pixels
-from gt3dkit.io.datasets.common import BoxBlock, MapChunks, RowBuilder
+from gt3dkit.io.datasets.common import BoxBlock, RowBuilder
 from gt3dkit.parse import (
     FRAME_MAX,
     ID_MAX,
@@ -58,16 +56,9 @@ from gt3dkit.parse import (
 )
 from gt3dkit.types import F64, Camera, GroundTruth, Origins, Rig, Scene, SimScene
 
-#: Frame files read and checked in one task (:func:`load`'s ``map_chunks``)
-FILES_PER_CHUNK = 256
 
-
-def load(root: Path, g: GridLayout, map_chunks: MapChunks | None = None) -> Scene:
-    """Load a WILDTRACK- or MultiviewX-layout folder into a :class:`Scene`. ``map_chunks``: runs
-    the reading and checking of chunks of frame files elsewhere (a Dask cluster's workers,
-    :func:`gt3dkit.windows.cluster_reader`); the results are assembled here in file order, and a
-    file they could not read or found unusual is read here again (the exact error, or a folder
-    the workers do not see)."""
+def load(root: Path, g: GridLayout) -> Scene:
+    """Load a WILDTRACK- or MultiviewX-layout folder into a :class:`Scene`."""
     root = Path(root)
     files: dict[str, str] = {}
     cams = [load_camera(root, g, n, files) for n in g.cameras]
@@ -79,18 +70,12 @@ def load(root: Path, g: GridLayout, map_chunks: MapChunks | None = None) -> Scen
     wh = np.array([[c.width, c.height] if c is not None else [0, 0] for c in cams], dtype=np.float64)
     truth_rows: list[np.ndarray] = []  # (k, 3) frame, personID, positionID
     seen_ids: dict[int, dict[int, int]] = {}  # frame -> personID -> entry
-    chunks = [[str(p) for p in paths[k:k + FILES_PER_CHUNK]] for k in range(0, len(paths), FILES_PER_CHUNK)]
-    read = functools.partial(read_frame_files, cams=cams, wh=wh, g=g)
-    done = map_chunks(read, chunks) if map_chunks is not None else [read(c) for c in chunks]
-    for p, (digest, fast) in zip(paths, itertools.chain.from_iterable(done), strict=True):
+    for p in paths:
         if not p.stem.isdigit():
             raise InputError(str(p), "file name is not a frame number")
         frame = parse_frame(str(p), p.stem)
-        raw = b""
-        if digest is None or fast is None:  # unread or unusual: here, for the exact error
-            raw, digest = read_hashed(p)
-            fast = None
-        files[str(p.relative_to(root))] = digest
+        raw, files[str(p.relative_to(root))] = read_hashed(p)
+        fast = _checked_views(raw, cams, wh, g)
         seen = seen_ids.setdefault(frame, {})
         if fast is not None and not any(int(a) in seen for a in fast[0]):
             pids, pos, v = fast
@@ -102,7 +87,7 @@ def load(root: Path, g: GridLayout, map_chunks: MapChunks | None = None) -> Scen
                 truth_rows.append(np.stack([np.full(len(pids), frame), pids, pos], 1)[pos >= 0])
                 continue
         # entry by entry, with the exact error for the first bad one
-        people = json_of(p, raw or read_hashed(p)[0])
+        people = json_of(p, raw)
         if not isinstance(people, list):
             raise InputError(str(p), "expected a list of people")
         for i, person in enumerate(people):
@@ -154,21 +139,6 @@ def load(root: Path, g: GridLayout, map_chunks: MapChunks | None = None) -> Scen
     truth = _truth_csv(root, files) or _truth_positions(g, truth_rows)
     return Scene(rig=rig, obs=obs, layout=g.name, fps=g.fps, frames=frames, truth=truth,
                  files=files, root=str(root))
-
-
-def read_frame_files(paths: list[str], cams: list[Camera | None], wh: F64, g: GridLayout
-                     ) -> list[tuple[str | None, tuple[np.ndarray, np.ndarray, np.ndarray] | None]]:
-    """Each frame file's SHA-256 and :func:`_checked_views` arrays (None where unusual), or
-    ``(None, None)`` where it cannot be read: one chunk of :func:`load`'s work, run anywhere."""
-    out: list[tuple[str | None, Any]] = []
-    for p in paths:
-        try:
-            raw = Path(p).read_bytes()
-        except OSError:
-            out.append((None, None))
-            continue
-        out.append((hashlib.sha256(raw).hexdigest(), _checked_views(raw, cams, wh, g)))
-    return out
 
 
 @functools.cache
