@@ -324,6 +324,16 @@ def stitch(parts: list[tuple[TrackSet, list[tuple[Any, ...]]]], windows: list[Wi
     return tracks, qa
 
 
+def _client(address: str) -> Any:
+    """A Dask client of the scheduler at ``address``, or InputError naming ``--scheduler``."""
+    from distributed import Client
+
+    try:
+        return Client(address, timeout="20s")
+    except (OSError, TimeoutError) as e:
+        raise InputError("--scheduler", f"cannot reach the Dask scheduler at {address} ({e})") from None
+
+
 def reconstruct_windows(scene: Scene, estimator: str, plan: Plan, out: str | None = None,
                         extra_meta: dict[str, Any] | None = None, every_frame: int | None = None,
                         on_window: Callable[[int, int], None] | None = None, **config: Any) -> TrackSet:
@@ -345,9 +355,7 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
     ov = overlap_frames(scene) if plan.overlap is None else plan.overlap
     client = None
     if plan.scheduler:
-        from distributed import Client
-
-        client = Client(plan.scheduler, timeout="20s")
+        client = _client(plan.scheduler)
     try:
         workers = len(client.scheduler_info()["workers"]) if client is not None else plan.jobs
         frames = np.asarray(scene.frames, dtype=np.int64)
