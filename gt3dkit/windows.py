@@ -7,9 +7,12 @@ processes, or ``--scheduler ADDRESS``: the Dask cluster ``reconstruct-many`` use
   at most :data:`NOISE_SAMPLE_OBJECT_FRAMES` object-frames around its middle
   (:func:`noise_sample`, :func:`chosen_noise`); every window then runs with it fixed, so that the
   windows agree.
-* Spread over workers, the windows the tool chose (not a ``--window`` the user gave) are made as
-  many as a multiple of the workers, of equal length (:func:`balanced_size`): no worker runs a
-  last window alone while the others wait.
+* The windows the tool chose (not a ``--window`` the user gave) are cut where each holds an
+  equal share of the object-frames (:func:`plan_windows` with each frame's objects): a window's
+  time and memory go with its object-frames, not its frames. Spread over workers they are made
+  as many as a multiple of the workers (:func:`balanced_size`): no worker runs a last window
+  alone while the others wait. On a Dask worker a window gives glibc's allocator room while it
+  runs (:func:`gt3dkit.threads.roomy_malloc`).
 * Each window runs the whole pipeline (:func:`gt3dkit.api.estimate_checked`: per-frame fits,
   identity, the estimator, the annotation QA) on its frames plus ``overlap`` frames of context
   on each side, and keeps its own frames' rows and findings (:func:`run_window`). A smoother's
