@@ -96,31 +96,35 @@ def hota(truth_frame: np.ndarray, truth_id: np.ndarray, truth_xy: F64, est_frame
     n_g, n_e = int(g_inv.max()) + 1, len(e_ids)
     g_count = np.bincount(g_inv, minlength=n_g).astype(float)
     e_count = np.bincount(e_inv, minlength=n_e).astype(float)
-    def pairs() -> Iterator[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-        """Chunks of frames (:func:`frame_pairs`; twice through, not held): their count, where
-        each frame's pairs start, the pairs' truth and track rows, similarity and id cell."""
+    both = g_count.repeat(n_e) + np.tile(e_count, n_g)  # (n_g * n_e,) the two identities' rows
+    fe = np.sort(est_frame)
+    tracks_in = np.searchsorted(fe, frames, side="right") - np.searchsorted(fe, frames)  # (F,)
+
+    def pairs() -> Iterator[tuple[int, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """Chunks of frames (:func:`frame_pairs`; twice through, not held): the frames ``f0:f1``,
+        where each frame's pairs start, the pairs' truth and track rows, similarity and id cell."""
         for f0, f1, a, b, start in frame_pairs(truth_frame, est_frame, frames):
             sim = np.maximum(0.0, 1.0 - np.linalg.norm(truth_xy[a] - est_xy[b], axis=-1) / cutoff)
-            yield f1 - f0, start, a, b, sim, g_inv[a] * n_e + e_inv[b]
+            yield f0, f1, start, a, b, sim, g_inv[a] * n_e + e_inv[b]
 
     potential = np.zeros(n_g * n_e)
-    for _, _, a, b, sim, cell in pairs():  # (1)
+    for _, _, _, a, b, sim, cell in pairs():  # (1)
         rows = np.bincount(a, weights=sim, minlength=len(truth_frame))  # a truth row's pairs: one frame's
         cols = np.bincount(b, weights=sim, minlength=len(est_frame))
         denom = rows[a] + cols[b] - sim
         iou = np.where(denom > np.finfo(float).eps, sim / np.where(denom > 0, denom, 1.0), 0.0)
         potential += np.bincount(cell, weights=iou, minlength=n_g * n_e)
-    align = potential / (g_count.repeat(n_e) + np.tile(e_count, n_g) - potential)
+    align = potential / (both - potential)
     tp = np.zeros(n_a)
     matches = np.zeros((n_a, n_g * n_e))
-    for n_f, start, a, _, sim, cell in pairs():  # (2)
+    for f0, f1, start, _, _, sim, cell in pairs():  # (2)
         score = align[cell] * sim
         picked = []
-        for i in range(n_f):
+        for i in range(f1 - f0):
             k0, k1 = start[i], start[i + 1]
             if k1 == k0:
                 continue
-            n_b = int(np.sum(a[k0:k1] == a[k0]))  # the frame's tracks: its first truth row's pairs
+            n_b = int(tracks_in[f0 + i])
             r, c = linear_sum_assignment(-score[k0:k1].reshape(-1, n_b))
             picked.append(k0 + r * n_b + c)
         if not picked:
@@ -131,7 +135,6 @@ def hota(truth_frame: np.ndarray, truth_id: np.ndarray, truth_xy: F64, est_frame
         for k in range(n_a):
             matches[k] += np.bincount(cell[m[ok[k]]], minlength=n_g * n_e)
     fn, fp = len(truth_id) - tp, len(est_id) - tp
-    both = g_count.repeat(n_e) + np.tile(e_count, n_g)
     ass = (matches * (matches / np.maximum(1.0, both - matches))).sum(axis=1) / np.maximum(1.0, tp)
     det = tp / np.maximum(1.0, tp + fn + fp)
     return {"hota": float(np.mean(np.sqrt(det * ass))), "deta": float(np.mean(det)),
