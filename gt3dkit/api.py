@@ -172,6 +172,23 @@ def process_noise_prepared(scene: Scene, est: Estimator) -> tuple[dict[str, floa
     return found, pre
 
 
+def bone_samples_checked(scene: Scene, est: Estimator) -> Any | None:
+    """The first pass's bones (:class:`gt3dkit.fusion.bones.BoneSamples`, ``obj``: the input's
+    ids) that :func:`estimate_checked` would tie ``scene``'s joints with, by the estimator's own
+    ``bone_samples`` without the rest of the estimate; the rows of a split id's later pieces left
+    out (their ids are this run's own). None when the estimator ties no bones."""
+    own = getattr(est, "bone_samples", None)
+    if not callable(own):
+        return None
+    pre = est.prepare(scene)
+    segs = identity_segments(pre, scene.fps, pieces=scene.identity_pieces)
+    if not segs.splits:
+        return own(scene, pre)
+    pieces, back = split_ids(scene, pre.rows, segs)
+    s = own(pieces)
+    return None if s is None else s.take(~np.isin(s.obj, np.fromiter(back, np.int64)))
+
+
 def dense_frames(scene: Scene, step: int | None) -> Scene:
     """``scene`` whose frame grid is every frame number from its first to its last annotated
     frame at ``step`` (None: the input's own step, :func:`gt3dkit.arrays.frame_grid`), its

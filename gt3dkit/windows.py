@@ -41,11 +41,19 @@ from typing import Any
 
 import numpy as np
 
-from gt3dkit.api import estimate_checked, process_noise_prepared, take_rows
+from gt3dkit.api import (
+    bone_samples_checked,
+    dense_frames,
+    estimate_checked,
+    process_noise_prepared,
+    take_rows,
+)
 from gt3dkit.arrays import unique_rows
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.base import make_estimator
+from gt3dkit.fusion.bones import BoneSamples, PersonBones
 from gt3dkit.fusion.split import split_entries
+from gt3dkit.fusion.ukf_smoother import UKFConfig
 from gt3dkit.io.writers import write_outputs
 from gt3dkit.qa.anomalies import Anomalies
 from gt3dkit.threads import roomy_malloc, small_matrix_blas
@@ -274,13 +282,17 @@ class WindowJob:
     estimator: str
     config: dict[str, Any]
     every_frame: int | None
+    bones: PersonBones | None = None  # every person's bones, pooled over the windows
 
 
 def run_window(job: WindowJob) -> tuple[TrackSet, list[tuple[Any, ...]]]:
-    """One window's rows and QA findings in its own frames."""
+    """One window's rows and QA findings in its own frames (the persons' bones ``job.bones``
+    where given: the window's own ids only, its split pieces' ids are its own)."""
     w = job.window
     with small_matrix_blas(), roomy_malloc():
         est = make_estimator(job.estimator, **job.config)
+        if job.bones is not None:
+            est.bones = job.bones.of(np.unique(job.scene.obs.track_id))
         tracks, qa = estimate_checked(job.scene, est, job.every_frame)
     keep = (tracks.frame >= w.first) & (tracks.frame <= w.last)
     d = tracks.downweighted
@@ -288,6 +300,26 @@ def run_window(job: WindowJob) -> tuple[TrackSet, list[tuple[Any, ...]]]:
         d = _downweighted_rows(d, (d.frame >= w.first) & (d.frame <= w.last))
     out = take_rows(dataclasses.replace(tracks, downweighted=d), keep)
     return out, [r for r in qa.rows if w.first <= r[0] <= w.last]
+
+
+def window_bones(job: WindowJob) -> BoneSamples | None:
+    """One window's first-pass bones in its own frames (:func:`gt3dkit.api.bone_samples_checked`;
+    None: its estimator ties no bones)."""
+    w = job.window
+    scene = job.scene if job.every_frame is None else dense_frames(job.scene, job.every_frame or None)
+    with small_matrix_blas(), roomy_malloc():
+        s = bone_samples_checked(scene, make_estimator(job.estimator, **job.config))
+    return None if s is None else s.take((s.frame >= w.first) & (s.frame <= w.last))
+
+
+def pooled_bones(parts: list[BoneSamples | None], config: dict[str, Any]) -> PersonBones | None:
+    """Every person's bones from the windows' first-pass bones ``parts`` (None: no window ties
+    any), as the whole sequence's run finds them (its config's ``bone_sd_floor_m``, ``bone_sd_m``)."""
+    got = [p for p in parts if p is not None]
+    if not got:
+        return None
+    cfg = UKFConfig(**{k: config[k] for k in ("bone_sd_floor_m", "bone_sd_m") if k in config})
+    return PersonBones.pooled(BoneSamples.joined(got), cfg.bone_sd_floor_m, cfg.bone_sd_m)
 
 
 def _downweighted_rows(d: Downweighted, keep: np.ndarray) -> Downweighted:
@@ -369,9 +401,16 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
         plan = _sized(plan, ov, len(frames), workers)
         # the tool's windows hold equal object-frames (the workers finish together); --window as given
         windows = plan_windows(frames, plan.size, ov, frame_work(scene, frames) if plan.why else None)
-        parts = _run_windows(scene, windows, WindowJob(scene, windows[0], estimator, {**config, **noise},
-                                                       every_frame), client, plan.jobs,
-                             on_window or (lambda k, n: None))
+        like = WindowJob(scene, windows[0], estimator, {**config, **noise}, every_frame)
+        done = on_window or (lambda k, n: None)
+        n = len(windows)
+        if ties_bones(scene, estimator, config) and n > 1:  # two rounds: the bones first, then the rest
+            samples = _run_windows(scene, windows, like, client, plan.jobs, lambda k, _: done(k, 2 * n),
+                                   window_bones)
+            like = dataclasses.replace(like, bones=pooled_bones(samples, config))
+            parts = _run_windows(scene, windows, like, client, plan.jobs, lambda k, _: done(n + k, 2 * n))
+        else:
+            parts = _run_windows(scene, windows, like, client, plan.jobs, done)
     finally:
         if client is not None:
             client.close()
@@ -388,10 +427,18 @@ def _sized(plan: Plan, overlap: int, n_frames: int, workers: int) -> Plan:
     return dataclasses.replace(plan, size=balanced_size(n_frames, size, workers))
 
 
+def ties_bones(scene: Scene, estimator: str, config: dict[str, Any]) -> bool:
+    """Whether ``estimator`` ties the joints of ``scene`` by its persons' bones (then the windows
+    pool theirs first: :func:`window_bones`, :func:`pooled_bones`)."""
+    est = make_estimator(estimator, **config)
+    return (callable(getattr(est, "bone_samples", None)) and scene.obs.n_joints > 0
+            and bool(getattr(est.config, "bones", False)))
+
+
 def _run_windows(scene: Scene, windows: list[Window], like: WindowJob, client: Any, jobs: int,
-                 done: Callable[[int, int], None]) -> list[tuple[TrackSet, list[tuple[Any, ...]]]]:
-    """Every window's :func:`run_window` (``like`` with each window's scene and frames): on the
-    Dask ``client``, in ``jobs`` local processes, or one after the other in this process (one
+                 done: Callable[[int, int], None], fn: Callable[[WindowJob], Any] = run_window) -> list[Any]:
+    """Every window's ``fn`` (:func:`run_window`; ``like`` with each window's scene and frames): on
+    the Dask ``client``, in ``jobs`` local processes, or one after the other in this process (one
     window's scene at a time); ``done(k, n)`` as they start (0) and finish."""
     def job(w: Window) -> WindowJob:
         return dataclasses.replace(like, scene=window_scene(scene, w.lo, w.hi), window=w)
@@ -402,7 +449,7 @@ def _run_windows(scene: Scene, windows: list[Window], like: WindowJob, client: A
         from distributed import as_completed
 
         # each window's scene goes to the cluster as data (scatter), not inside the task graph
-        futures = {client.submit(run_window, client.scatter(job(w), hash=False), pure=False): k
+        futures = {client.submit(fn, client.scatter(job(w), hash=False), pure=False): k
                    for k, w in enumerate(windows)}
         for n, f in enumerate(as_completed(futures), 1):
             parts[futures[f]] = f.result()
@@ -414,12 +461,12 @@ def _run_windows(scene: Scene, windows: list[Window], like: WindowJob, client: A
 
         with ProcessPoolExecutor(max_workers=min(jobs, len(windows)),
                                  mp_context=mp.get_context("spawn")) as pool:
-            futs = {pool.submit(run_window, job(w)): k for k, w in enumerate(windows)}
+            futs = {pool.submit(fn, job(w)): k for k, w in enumerate(windows)}
             for n, f in enumerate(finished(futs), 1):
                 parts[futs[f]] = f.result()
                 done(n, len(windows))
     else:
         for k, w in enumerate(windows):
-            parts[k] = run_window(job(w))
+            parts[k] = fn(job(w))
             done(k + 1, len(windows))
     return parts

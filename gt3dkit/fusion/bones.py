@@ -59,12 +59,54 @@ class BoneLengths:
             for o in range(len(obj_ids))}}
 
 
-def bone_lengths(row_o: I64, n_obj: int, seen2: np.ndarray, joints: F64, cov: F64, skel: Skeleton,
-                 sd_floor_m: float, sd_m: float | None = None) -> BoneLengths:
-    r"""Every person's bone lengths and their true variability from a first pass's smoothed
-    joints ``joints (R, J, 3)`` with their covariances ``cov (R, J, 3, 3)`` (independent joints);
-    ``row_o (R,)`` each row's person of ``n_obj``, ``seen2 (R, J)`` the joints two or more views
-    saw in the row's frame.
+@dataclass(frozen=True)
+class BoneSamples:
+    """A first pass's bones, row by row: ``obj (R,)`` each row's person (an index or an id),
+    ``frame (R,)`` its frame, ``length (R, K)`` the smoothed length in metres, ``var (R, K)``
+    the variance of it the first pass's own uncertainty explains (m^2), ``both (R, K)`` whether
+    two or more views saw both ends in that frame. What :func:`lengths_of` needs, and small (17
+    bytes a bone and row): the windows of a long sequence pool theirs for one estimate of each
+    person's bones (:mod:`gt3dkit.windows`)."""
+
+    skeleton: Skeleton
+    obj: I64
+    frame: I64
+    length: F64
+    var: F64
+    both: np.ndarray
+
+    def take(self, keep: np.ndarray) -> BoneSamples:
+        """The rows ``keep`` (bool or indices)."""
+        return BoneSamples(self.skeleton, *(getattr(self, k)[keep] for k in _ROWS))
+
+    @staticmethod
+    def joined(parts: list[BoneSamples]) -> BoneSamples:
+        """The rows of ``parts`` (of one skeleton), one after the other."""
+        return BoneSamples(parts[0].skeleton, *(np.concatenate([getattr(p, k) for p in parts])
+                                                for k in _ROWS))
+
+
+_ROWS = ("obj", "frame", "length", "var", "both")
+
+
+def bone_samples(row_o: I64, row_f: I64, seen2: np.ndarray, joints: F64, cov: F64, skel: Skeleton
+                 ) -> BoneSamples:
+    """Each row's bones from a first pass's smoothed joints ``joints (R, J, 3)`` with their
+    covariances ``cov (R, J, 3, 3)`` (independent joints); ``row_o (R,)`` each row's person and
+    ``row_f (R,)`` its frame, ``seen2 (R, J)`` the joints two or more views saw in that frame."""
+    bones = skel.bones
+    d = joints[:, bones[:, 0]] - joints[:, bones[:, 1]]  # (R, K, 3)
+    length = np.linalg.norm(d, axis=-1)
+    u = d / np.maximum(length[..., None], 1e-9)
+    var_est = np.einsum("rki,rkij,rkj->rk", u, cov[:, bones[:, 0]] + cov[:, bones[:, 1]], u)
+    return BoneSamples(skel, np.asarray(row_o), np.asarray(row_f), length, var_est,
+                       seen2[:, bones[:, 0]] & seen2[:, bones[:, 1]])
+
+
+def lengths_of(s: BoneSamples, objs: np.ndarray, sd_floor_m: float, sd_m: float | None = None
+               ) -> BoneLengths:
+    r"""The bone lengths and their true variability of the persons ``objs (O,)`` (as ``s.obj``
+    names them) from their rows' samples ``s``.
 
     ``L_b`` is the median of the smoothed lengths over the person's frames where two or more
     views saw both joints. Its sd is the bone's *true* variability: the variance of those
@@ -72,30 +114,56 @@ def bone_lengths(row_o: I64, n_obj: int, seen2: np.ndarray, joints: F64, cov: F6
     (``u^T (C_a + C_b) u``), floored at ``sd_floor_m``; or ``sd_m`` when given. So a rigid
     skeleton is held rigid, while a bone whose length really varies (or that the truth does not
     hold constant) is left almost free."""
-    bones = skel.bones
-    d = joints[:, bones[:, 0]] - joints[:, bones[:, 1]]  # (R, K, 3)
-    length = np.linalg.norm(d, axis=-1)
-    u = d / np.maximum(length[..., None], 1e-9)
-    var_est = np.einsum("rki,rkij,rkj->rk", u, cov[:, bones[:, 0]] + cov[:, bones[:, 1]], u)
-    both = seen2[:, bones[:, 0]] & seen2[:, bones[:, 1]]
-    K = len(bones)
-    L = np.full((n_obj, K), np.nan)
-    sd = np.full((n_obj, K), np.nan)
-    for o in range(n_obj):
-        mine = row_o == o
+    K = len(s.skeleton.bones)
+    L = np.full((len(objs), K), np.nan)
+    sd = np.full((len(objs), K), np.nan)
+    order = np.argsort(s.obj, kind="stable")
+    sorted_obj = s.obj[order]
+    for o, ob in enumerate(objs):
+        mine = order[np.searchsorted(sorted_obj, ob, "left"):np.searchsorted(sorted_obj, ob, "right")]
         for k in range(K):
-            sel = mine & both[:, k]
-            v = length[sel, k]
+            sel = mine[s.both[mine, k]]
+            v = s.length[sel, k]
             if v.size:
                 L[o, k] = np.median(v)
                 if v.size > 2:
                     # plain (not robust) variance: a bone the data show changing, even in a
                     # few frames, must not be forced rigid
                     spread = float(np.var(v, ddof=1))
-                    sd[o, k] = np.sqrt(max(spread - float(np.mean(var_est[sel, k])), 0.0))
+                    sd[o, k] = np.sqrt(max(spread - float(np.mean(s.var[sel, k])), 0.0))
     if sd_m is not None:
         sd = np.full_like(sd, sd_m)
-    return BoneLengths(skel, L, np.maximum(np.nan_to_num(sd, nan=0.05), sd_floor_m))
+    return BoneLengths(s.skeleton, L, np.maximum(np.nan_to_num(sd, nan=0.05), sd_floor_m))
+
+
+@dataclass(frozen=True)
+class PersonBones:
+    """Bone lengths found outside a run, by person id: ``ids (O,)`` sorted, ``lengths`` theirs. A
+    run given them (:class:`gt3dkit.fusion.ukf_smoother.UKFSmoother`) ties those persons' joints
+    to these lengths instead of its own frames' (the windows of one sequence, to its whole)."""
+
+    ids: I64
+    lengths: BoneLengths
+
+    @staticmethod
+    def pooled(s: BoneSamples, sd_floor_m: float, sd_m: float | None = None) -> PersonBones:
+        """:func:`lengths_of` every person of the samples ``s`` (``s.obj``: person ids)."""
+        ids = np.unique(s.obj).astype(np.int64)
+        return PersonBones(ids, lengths_of(s, ids, sd_floor_m, sd_m))
+
+    def of(self, ids: np.ndarray) -> PersonBones:
+        """These bones of the persons ``ids`` only."""
+        keep = np.isin(self.ids, ids)
+        b = self.lengths
+        return PersonBones(self.ids[keep], BoneLengths(b.skeleton, b.length[keep], b.sd[keep]))
+
+    def applied(self, own: BoneLengths, obj_ids: I64) -> BoneLengths:
+        """``own`` (of the persons ``obj_ids (O,)``) with these persons' rows in its place."""
+        k = np.minimum(np.searchsorted(self.ids, obj_ids), max(len(self.ids) - 1, 0))
+        hit = (self.ids[k] == obj_ids) if len(self.ids) else np.zeros(len(obj_ids), bool)
+        L, sd = own.length.copy(), own.sd.copy()
+        L[hit], sd[hit] = self.lengths.length[k[hit]], self.lengths.sd[k[hit]]
+        return BoneLengths(own.skeleton, L, sd)
 
 
 @dataclass(frozen=True)

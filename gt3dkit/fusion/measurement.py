@@ -114,7 +114,8 @@ class Model:
 
         Beyond the ``1 - tail_p`` quantile of chi-square(3) the motion model has failed for
         that block (a turn at 4 fps, a process noise set far too small): the block's position
-        and velocity are scaled by ``sqrt(d^2 / 3)`` in ``P^- <- S P^- S`` (a fading-memory
+        and velocity are scaled by :func:`gt3dkit.fusion.kalman.fade_factor` (``sqrt(1 + (d^2 -
+        limit) / 3)``) in ``P^- <- S P^- S`` (a fading-memory
         filter, per block), so that its views are not rejected as outliers against a
         confident but wrong prediction. Other joints are left alone.
         """

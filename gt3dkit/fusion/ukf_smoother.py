@@ -46,7 +46,16 @@ from typing import Any
 
 import numpy as np
 
-from gt3dkit.fusion.bones import BoneLengths, JointInfo, add_joint_info, bone_lengths, bone_messages
+from gt3dkit.fusion.bones import (
+    BoneLengths,
+    BoneSamples,
+    JointInfo,
+    PersonBones,
+    add_joint_info,
+    bone_messages,
+    bone_samples,
+    lengths_of,
+)
 from gt3dkit.fusion.boxupdate import LinearisedSearch, applies_to_model, run_boxes
 from gt3dkit.fusion.filterrun import FilterRun
 from gt3dkit.fusion.initial import InitialCov, rows_of
@@ -176,8 +185,9 @@ class UKFSmoother:
 
     name = "ukf"
 
-    def __init__(self, config: UKFConfig | None = None) -> None:
+    def __init__(self, config: UKFConfig | None = None, bones: PersonBones | None = None) -> None:
         self.config = config or UKFConfig()
+        self.bones = bones  # persons' bone lengths found outside the run (gt3dkit.windows)
 
     def prepare(self, scene: Scene) -> Prepared:
         cfg = self.config
@@ -190,15 +200,24 @@ class UKFSmoother:
         found, _ = noise_by_likelihood(pre or self.prepare(scene), scene.fps, self.config)
         return {k: float(v) for k in NOISE_FIELDS if (v := getattr(found, k)) is not None}
 
-    def estimate(self, scene: Scene, pre: Prepared | None = None) -> TrackSet:
-        cfg = self.config
-        t0 = time.perf_counter()
+    def bone_samples(self, scene: Scene, pre: Prepared | None = None) -> BoneSamples | None:
+        """The first pass's bones of every row (``obj``: the person's id) that :meth:`estimate`
+        would tie the joints with, without the rest of the estimate (None: it ties none): what
+        the windows of a long sequence pool for one estimate of each person's bones."""
         pre = pre or self.prepare(scene)
-        rows, cams, layout = pre.rows, pre.cams, pre.layout
-        R = len(rows)
+        if not (pre.use_kpt and self.config.bones and pre.skeleton is not None):
+            return None
+        model, _, _, _, run = self._first_pass(scene, pre)
+        s = bone_samples_of(model, run, pre.skeleton)
+        return replace(s, obj=model.rows.obj_ids[s.obj])
+
+    def _first_pass(self, scene: Scene, pre: Prepared
+                    ) -> tuple[Model, Init, UKFConfig, dict[str, Any], FilterRun]:
+        """The model, start, chosen noise and its search, and the filter's and smoother's first
+        pass (the views reweighted by the smoothed estimate)."""
         model = Model.of(pre)
-        init = initial_states(model, cfg)
-        cfg, search = select_noise(model, init, cfg, pre, scene.fps)
+        init = initial_states(model, self.config)
+        cfg, search = select_noise(model, init, self.config, pre, scene.fps)
         pre.memo[_noise_key(self.config, scene.fps)] = (cfg, search)  # for GTSAM on this preparation
         run = run_filter(model, init, cfg, scene.fps, collect=True)
         if cfg.robust and model.robust_blocks:
@@ -207,7 +226,7 @@ class UKFSmoother:
             # where the forward pass had only the frame itself to judge by). Objects are
             # independent: only those with a changed verdict are run again.
             w0 = smoothed_weights(model, run.x, cfg)
-            changed = objects_rows(rows, np.any((w0 != model.weight0) & model.mask, axis=1))
+            changed = objects_rows(model.rows, np.any((w0 != model.weight0) & model.mask, axis=1))
             model = replace(model, weight0=w0)
             if changed.all():  # the first pass's states go before the second's are made
                 first = run.scalars()
@@ -215,11 +234,19 @@ class UKFSmoother:
                 run = run_filter(model, init, cfg, scene.fps, collect=True).after(first)
             elif changed.any():
                 run = rerun_objects(model, init, cfg, scene.fps, run, changed)
+        return model, init, cfg, search, run
+
+    def estimate(self, scene: Scene, pre: Prepared | None = None) -> TrackSet:
+        t0 = time.perf_counter()
+        pre = pre or self.prepare(scene)
+        rows, cams, layout = pre.rows, pre.cams, pre.layout
+        R = len(rows)
+        model, init, cfg, search, run = self._first_pass(scene, pre)
         bone_info: dict[str, Any] = {}
         if pre.use_kpt and cfg.bones and pre.skeleton is not None:
             # the bones' messages from the first pass's smoothed joints, added to each joint's
             # own filter run again (the views reweighted as before)
-            msgs, lengths = bone_messages_of(model, cfg, run, pre.skeleton)
+            msgs, lengths = bone_messages_of(model, cfg, run, pre.skeleton, self.bones)
             run = None  # the first pass's covariances go before the second's are made
             run = run_filter(replace(model, joint_info=msgs), init, cfg, scene.fps, collect=True)
             bone_info = lengths.info(rows.obj_ids)
@@ -598,18 +625,34 @@ def downweighted_of(model: Model, run: FilterRun) -> Downweighted:
                         edge=edge.astype(np.int64), weight=w, residual_px=res, score=s)
 
 
-def bone_messages_of(model: Model, cfg: UKFConfig, run: FilterRun, skel: Skeleton
-                     ) -> tuple[JointInfo, BoneLengths]:
-    """The bones' messages to every joint of every row (:mod:`gt3dkit.fusion.bones`) and each
-    person's bone lengths, from a first pass ``run`` (split: independent joints)."""
+def first_joints(model: Model, run: FilterRun) -> tuple[F64, F64, np.ndarray]:
+    """A first pass's (split: independent joints) smoothed joints ``(R, J, 3)``, their
+    covariances ``(R, J, 3, 3)`` and which views saw each ``(R, C, J)``."""
     rows, lay = model.rows, model.layout
-    R, J = len(rows), lay.n_joints
-    joints = run.x[:, lay.joints].reshape(R, J, 3)
-    idx = lay.joint_dims(np.arange(J))
-    cov = run.P[:, idx[:, :, None], idx[:, None, :]]
-    seen = np.isfinite(rows.kpt_z[..., 0])  # (R, C, J)
-    lengths = bone_lengths(rows.row_o, len(rows.obj_ids), seen.sum(axis=1) >= 2, joints, cov, skel,
-                           cfg.bone_sd_floor_m, cfg.bone_sd_m)
+    joints = run.x[:, lay.joints].reshape(len(rows), lay.n_joints, 3)
+    idx = lay.joint_dims(np.arange(lay.n_joints))
+    return joints, run.P[:, idx[:, :, None], idx[:, None, :]], np.isfinite(rows.kpt_z[..., 0])
+
+
+def bone_samples_of(model: Model, run: FilterRun, skel: Skeleton) -> BoneSamples:
+    """:func:`gt3dkit.fusion.bones.bone_samples` of a first pass ``run``; ``obj``: each row's
+    person index."""
+    joints, cov, seen = first_joints(model, run)
+    rows = model.rows
+    return bone_samples(rows.row_o, rows.frames[rows.row_t], seen.sum(axis=1) >= 2, joints, cov, skel)
+
+
+def bone_messages_of(model: Model, cfg: UKFConfig, run: FilterRun, skel: Skeleton,
+                     fixed: PersonBones | None = None) -> tuple[JointInfo, BoneLengths]:
+    """The bones' messages to every joint of every row (:mod:`gt3dkit.fusion.bones`) and each
+    person's bone lengths, from a first pass ``run`` (split: independent joints); the persons
+    ``fixed`` holds take its lengths."""
+    rows = model.rows
+    lengths = lengths_of(bone_samples_of(model, run, skel), np.arange(len(rows.obj_ids)), cfg.bone_sd_floor_m,
+                         cfg.bone_sd_m)
+    if fixed is not None:
+        lengths = fixed.applied(lengths, rows.obj_ids)
+    joints, cov, seen = first_joints(model, run)
     bones = skel.bones
     zb = lengths.length[rows.row_o]
     # a bone ties a joint to a measured one: where neither end has a view in a frame it would

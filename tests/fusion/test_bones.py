@@ -127,3 +127,36 @@ def test_split_filter_with_bone_messages_equals_the_whole_state_filter(skeleton_
         return float(np.mean(np.abs(ln - lengths.length[model.rows.row_o])))
 
     assert spread(b.x) < 0.5 * spread(first.x)
+
+
+def test_pooled_bones_are_each_persons_over_all_its_rows() -> None:
+    """Bones pooled from parts (the windows of a sequence, rows of several persons in any order)
+    are each person's as found from all its rows at once; a run given them takes them for the
+    persons they hold and keeps its own for the others."""
+    from gt3dkit.fusion.bones import BoneSamples, PersonBones, bone_samples, lengths_of
+    from gt3dkit.skeletons import SKELETONS
+
+    skel = SKELETONS["coco17"]
+    rng = np.random.default_rng(5)
+    R, J = 400, skel.n_joints
+    row_o = rng.integers(0, 3, R)
+    joints = rng.normal(size=(J, 3))[None] * 0.3 + rng.normal(scale=0.01, size=(R, J, 3)) + row_o[:, None, None]
+    A = rng.normal(scale=0.003, size=(R, J, 3, 3))
+    cov = A @ np.swapaxes(A, -1, -2)
+    seen2 = rng.random((R, J)) > 0.2
+    s = bone_samples(row_o, np.arange(R), seen2, joints, cov, skel)
+    whole = lengths_of(s, np.arange(3), 0.001)
+    ids = np.array([70, 12, 40])
+    named = BoneSamples(skel, ids[row_o], s.frame, s.length, s.var, s.both)
+    cut = rng.permutation(R)
+    parts = [named.take(np.sort(cut[:150])), named.take(np.sort(cut[150:]))]
+    pooled = PersonBones.pooled(BoneSamples.joined(parts), 0.001)
+    np.testing.assert_array_equal(pooled.ids, np.sort(ids))
+    order = np.argsort(ids)
+    np.testing.assert_allclose(pooled.lengths.length, whole.length[order], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(pooled.lengths.sd, whole.sd[order], rtol=1e-9)
+    own = lengths_of(s, np.arange(2), 0.001)
+    other = PersonBones(pooled.ids, replace(pooled.lengths, length=pooled.lengths.length + 1.0))
+    applied = other.of(np.array([12, 99])).applied(own, np.array([12, 5]))
+    np.testing.assert_array_equal(applied.length[0], other.lengths.length[0])  # id 12 (sorted first)
+    np.testing.assert_array_equal(applied.length[1], own.length[1])  # id 5: not pooled

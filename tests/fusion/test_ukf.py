@@ -196,3 +196,24 @@ def test_prediction_and_rts_skip_the_transitions_zeros_bit_for_bit() -> None:
         G = P[b] @ F[b].T @ np.linalg.inv(P_p[b])
         np.testing.assert_allclose(x_o[b], x[b] + G @ (x_s[b] - x_p[b]), rtol=1e-8, atol=1e-10)
         np.testing.assert_allclose(P_o[b], P[b] + G @ (P_s[b] - P_p[b]) @ G.T, rtol=1e-7, atol=1e-10)
+
+
+def test_fading_is_continuous_in_the_prediction_s_distance() -> None:
+    """The fading factor is 1 up to the chi-square limit and grows continuously beyond it (the
+    excess per degree of freedom), approaching ``sqrt(d^2 / 3)`` far beyond; written out against
+    ``e^T S^-1 e`` by numpy."""
+    from gt3dkit.fusion.kalman import fade_factors_of
+
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(3, 3))
+    S = A @ A.T + 0.5 * np.eye(3)
+    u = rng.normal(size=3)
+    u /= np.sqrt(u @ np.linalg.solve(S, u))  # d^2 = 1 along u
+    limit = 16.27
+    d2 = np.array([0.0, 4.0, limit - 1e-9, limit + 1e-9, limit + 3.0, 300.0, 3e4])
+    e = np.sqrt(d2)[:, None] * u
+    f = fade_factors_of(e, np.broadcast_to(S, (len(d2), 3, 3)).copy(), limit)
+    want = np.sqrt(1.0 + np.maximum(d2 - limit, 0.0) / 3.0)
+    np.testing.assert_allclose(f, want, rtol=1e-9)
+    assert abs(f[3] - f[2]) < 1e-6  # no jump at the limit
+    assert f[-1] / np.sqrt(d2[-1] / 3.0) > 0.999
