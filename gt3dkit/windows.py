@@ -24,6 +24,12 @@ processes, or ``--scheduler ADDRESS``: the Dask cluster ``reconstruct-many`` use
   that brings it under :data:`CONTEXT_WEIGHT` (at least :data:`MIN_OVERLAP_FRAMES`, at most
   :data:`OVERLAP_S`), not :data:`OVERLAP_S` whole; a window the tool sized keeps its frames
   (its own frames grow as the context shrinks).
+* A person's bone lengths (keypoints with bones) are found once for the whole sequence, as the
+  whole run finds them: a first round over the windows runs each one's first pass and returns
+  its own frames' bone samples (:func:`window_bones`: 17 bytes a bone and person-frame), pooled
+  by person (:func:`pooled_bones`, :class:`gt3dkit.fusion.bones.PersonBones`); the second round
+  runs the windows with them. On 1 000 frames of 3 people the windows' joints sat up to 0.46 of
+  their sd from the whole run's with each window's own lengths, 0.18 with them pooled.
 * The measurement noise levels (robust residual levels of the per-frame fits) are each window's
   own: measured on thousands of residuals they agree across windows to a few percent.
 
@@ -414,7 +420,11 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
     finally:
         if client is not None:
             client.close()
-    return stitch(parts, windows, plan, ov, noise)
+    tracks, qa = stitch(parts, windows, plan, ov, noise)
+    if like.bones is not None:  # every person's, not the first window's
+        tracks.info["bones"] = {**like.bones.lengths.info(like.bones.ids),
+                                "pooled": "over every window's own frames (gt3dkit.windows)"}
+    return tracks, qa
 
 
 def _sized(plan: Plan, overlap: int, n_frames: int, workers: int) -> Plan:
