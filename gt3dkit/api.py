@@ -28,7 +28,7 @@ from gt3dkit.io.writers import ANOMALY_COLUMNS, read_keypoints_csv, read_segment
 from gt3dkit.parse import read_csv_rows
 from gt3dkit.qa.anomalies import find_anomalies
 from gt3dkit.threads import small_matrix_blas
-from gt3dkit.types import BOX_MODELS, Scene, TrackSet
+from gt3dkit.types import BOX_MODELS, I64, Scene, TrackSet
 
 __all__ = ["ESTIMATORS", "annotation_qa", "load_run", "load_scene", "make_estimator", "reconstruct"]
 
@@ -172,21 +172,24 @@ def process_noise_prepared(scene: Scene, est: Estimator) -> tuple[dict[str, floa
     return found, pre
 
 
-def bone_samples_checked(scene: Scene, est: Estimator) -> Any | None:
+def bone_samples_checked(scene: Scene, est: Estimator) -> tuple[Any | None, I64]:
     """The first pass's bones (:class:`gt3dkit.fusion.bones.BoneSamples`, ``obj``: the input's
     ids) that :func:`estimate_checked` would tie ``scene``'s joints with, by the estimator's own
-    ``bone_samples`` without the rest of the estimate; the rows of a split id's later pieces left
-    out (their ids are this run's own). None when the estimator ties no bones."""
+    ``bone_samples`` without the rest of the estimate (None when it ties no bones), and the ids
+    it splits ``(S,)``: their rows are left out (an id's pieces may be different people)."""
     own = getattr(est, "bone_samples", None)
     if not callable(own):
-        return None
+        return None, np.zeros(0, np.int64)
     pre = est.prepare(scene)
     segs = identity_segments(pre, scene.fps, pieces=scene.identity_pieces)
     if not segs.splits:
-        return own(scene, pre)
+        return own(scene, pre), np.zeros(0, np.int64)
+    split = np.unique(pre.rows.obj_ids[pre.rows.row_o[segs.segment > 0]]).astype(np.int64)
     pieces, back = split_ids(scene, pre.rows, segs)
     s = own(pieces)
-    return None if s is None else s.take(~np.isin(s.obj, np.fromiter(back, np.int64)))
+    if s is None:
+        return None, split
+    return s.take(~np.isin(s.obj, np.fromiter(back, np.int64)) & ~np.isin(s.obj, split)), split
 
 
 def dense_frames(scene: Scene, step: int | None) -> Scene:

@@ -308,24 +308,29 @@ def run_window(job: WindowJob) -> tuple[TrackSet, list[tuple[Any, ...]]]:
     return out, [r for r in qa.rows if w.first <= r[0] <= w.last]
 
 
-def window_bones(job: WindowJob) -> BoneSamples | None:
-    """One window's first-pass bones in its own frames (:func:`gt3dkit.api.bone_samples_checked`;
-    None: its estimator ties no bones)."""
+def window_bones(job: WindowJob) -> tuple[BoneSamples | None, I64]:
+    """One window's first-pass bones in its own frames and the ids it splits
+    (:func:`gt3dkit.api.bone_samples_checked`; None: its estimator ties no bones)."""
     w = job.window
     scene = job.scene if job.every_frame is None else dense_frames(job.scene, job.every_frame or None)
     with small_matrix_blas(), roomy_malloc():
-        s = bone_samples_checked(scene, make_estimator(job.estimator, **job.config))
-    return None if s is None else s.take((s.frame >= w.first) & (s.frame <= w.last))
+        s, split = bone_samples_checked(scene, make_estimator(job.estimator, **job.config))
+    return (None if s is None else s.take((s.frame >= w.first) & (s.frame <= w.last))), split
 
 
-def pooled_bones(parts: list[BoneSamples | None], config: dict[str, Any]) -> PersonBones | None:
-    """Every person's bones from the windows' first-pass bones ``parts`` (None: no window ties
-    any), as the whole sequence's run finds them (its config's ``bone_sd_floor_m``, ``bone_sd_m``)."""
-    got = [p for p in parts if p is not None]
+def pooled_bones(parts: list[tuple[BoneSamples | None, I64]], config: dict[str, Any]) -> PersonBones | None:
+    """Every person's bones from the windows' first-pass bones and split ids ``parts``
+    (:func:`window_bones`), as the whole sequence's run finds them (its config's
+    ``bone_sd_floor_m``, ``bone_sd_m``): of the ids no window splits (a split id's pieces may
+    be different people: each window keeps its own pieces' bones). None: no window ties any."""
+    got = [p[0] for p in parts if p[0] is not None]
     if not got:
         return None
+    split = np.concatenate([p[1] for p in parts])
+    s = BoneSamples.joined(got)
+    s = s.take(~np.isin(s.obj, split))
     cfg = UKFConfig(**{k: config[k] for k in ("bone_sd_floor_m", "bone_sd_m") if k in config})
-    return PersonBones.pooled(BoneSamples.joined(got), cfg.bone_sd_floor_m, cfg.bone_sd_m)
+    return PersonBones.pooled(s, cfg.bone_sd_floor_m, cfg.bone_sd_m)
 
 
 def _downweighted_rows(d: Downweighted, keep: np.ndarray) -> Downweighted:

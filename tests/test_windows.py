@@ -205,3 +205,30 @@ def test_context_steps_bound_the_smoothers_weight(accel_sd: float, sd_m: float, 
     n = context_steps(accel_sd, sd_m, dt)
     assert w[k + n] / w[k] < 1.5 * CONTEXT_WEIGHT and w[k - n] / w[k] < 1.5 * CONTEXT_WEIGHT
     assert w[k + n // 2] / w[k] > CONTEXT_WEIGHT
+
+
+def test_pooled_bones_leave_out_ids_a_window_splits() -> None:
+    """An id one window splits into pieces (which may be different people) gets no pooled bones:
+    every window keeps its own pieces' lengths; the other ids pool all their windows' rows."""
+    from gt3dkit.fusion.bones import BoneSamples
+    from gt3dkit.skeletons import SKELETONS
+    from gt3dkit.windows import pooled_bones
+
+    skel = SKELETONS["coco17"]
+    K = len(skel.bones)
+    rng = np.random.default_rng(2)
+
+    def part(ids: list[int], frames: np.ndarray) -> BoneSamples:
+        obj = np.repeat(ids, len(frames))
+        R = len(obj)
+        return BoneSamples(skel, obj, np.tile(frames, len(ids)), 0.3 + obj[:, None] * 0.01 + rng.normal(
+            scale=1e-3, size=(R, K)), np.full((R, K), 1e-7), np.ones((R, K), bool))
+
+    a, b = part([1, 2], np.arange(0, 50)), part([1, 2, 3], np.arange(50, 100))
+    pooled = pooled_bones([(a, np.zeros(0, np.int64)), (b, np.array([2])), (None, np.zeros(0, np.int64))], {})
+    assert pooled is not None
+    np.testing.assert_array_equal(pooled.ids, [1, 3])
+    both = BoneSamples.joined([a, b])
+    one = both.length[both.obj == 1]
+    np.testing.assert_allclose(pooled.lengths.length[0], np.median(one, axis=0), rtol=0, atol=1e-15)
+    assert pooled_bones([(None, np.zeros(0, np.int64))], {}) is None

@@ -140,7 +140,8 @@ def test_pooled_bones_are_each_persons_over_all_its_rows() -> None:
     rng = np.random.default_rng(5)
     R, J = 400, skel.n_joints
     row_o = rng.integers(0, 3, R)
-    joints = rng.normal(size=(J, 3))[None] * 0.3 + rng.normal(scale=0.01, size=(R, J, 3)) + row_o[:, None, None]
+    joints = rng.normal(size=(J, 3))[None] * 0.3 + rng.normal(scale=0.01, size=(R, J, 3))
+    joints = joints + row_o[:, None, None]
     A = rng.normal(scale=0.003, size=(R, J, 3, 3))
     cov = A @ np.swapaxes(A, -1, -2)
     seen2 = rng.random((R, J)) > 0.2
