@@ -3,11 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
-import traceback
 import warnings
-from pathlib import Path
 
 from gt3dkit.api import ESTIMATORS
 from gt3dkit.calib.formats import WRITABLE
@@ -17,15 +14,14 @@ from gt3dkit.commands.common import (
     FPS,
     FRACTION,
     PIXELS,
-    RECEIVED_SIGNALS,
     SEED,
     SIGMA_PX,
     Parser,
     Terminated,
     number_type,
-    on_interrupt,
-    on_terminate,
     quiet_stdout,
+    signals_handled,
+    unexpected_error,
 )
 from gt3dkit.commands.demo import cmd_demo
 from gt3dkit.commands.run import (
@@ -262,22 +258,12 @@ def main(argv: list[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
     except SystemExit as e:  # --help (0) or a usage error (2, already printed)
         return int(e.code or 0)
-    previous = {}
-    handlers = [(signal.SIGTERM, on_terminate), (signal.SIGHUP, on_terminate)]
-    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not ignored (background job)
-        handlers.append((signal.SIGINT, on_interrupt))
-    RECEIVED_SIGNALS.clear()
-    for sig, handler in handlers:
-        try:
-            previous[sig] = signal.signal(sig, handler)
-        except ValueError:  # not the main thread
-            pass
     try:
-        with warnings.catch_warnings(), small_matrix_blas():
+        with signals_handled(), warnings.catch_warnings(), small_matrix_blas():
             if not debug:  # numerical warnings are ours to handle, never the user's to read
                 warnings.simplefilter("ignore", RuntimeWarning)
             code = int(args.func(args))
-        sys.stdout.flush()  # here, where a closed pipe is handled, not at interpreter exit
+            sys.stdout.flush()  # here, where a closed pipe is handled, not at interpreter exit
         return code
     except InputError as e:
         print(f"error: {e}", file=sys.stderr)
@@ -301,20 +287,7 @@ def main(argv: list[str] | None = None) -> int:
         print("error: out of memory: the input is too large for this machine", file=sys.stderr)
         return 1
     except Exception as e:  # noqa: BLE001 - the one place that turns a bug into one line
-        if RECEIVED_SIGNALS:  # a signal's exception, wrapped by the code it interrupted
-            how = ("interrupted (Ctrl-C)" if RECEIVED_SIGNALS[0] == signal.SIGINT
-                   else f"stopped by {signal.Signals(RECEIVED_SIGNALS[0]).name}")
-            print(f"error: {how}: no output written or changed", file=sys.stderr)
-            return 128 + RECEIVED_SIGNALS[0]
-        if debug:
-            traceback.print_exc()
-        where = traceback.extract_tb(e.__traceback__)[-1]
-        print(f"error: internal error, {type(e).__name__}: {e} (at {Path(where.filename).name}:"
-              f"{where.lineno}; please report it, --debug shows the traceback)", file=sys.stderr)
-        return 1
-    finally:
-        for sig, h in previous.items():
-            signal.signal(sig, h)
+        return unexpected_error(e, debug)
 
 
 if __name__ == "__main__":

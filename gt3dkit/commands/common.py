@@ -11,6 +11,7 @@ import signal
 import sys
 import threading
 import time
+import traceback
 from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
@@ -294,6 +295,45 @@ def on_terminate(signum: int, frame: Any) -> None:
 def on_interrupt(signum: int, frame: Any) -> None:
     RECEIVED_SIGNALS.append(signum)
     raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def signals_handled() -> Any:
+    """While a command runs: SIGTERM and SIGHUP raise :class:`Terminated`, SIGINT (unless the
+    shell ignores it, as for a background job) ``KeyboardInterrupt``, each noted in
+    :data:`RECEIVED_SIGNALS`; the previous handlers are put back after (not in a thread other
+    than the main one, where handlers cannot be set)."""
+    previous = {}
+    handlers = [(signal.SIGTERM, on_terminate), (signal.SIGHUP, on_terminate)]
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        handlers.append((signal.SIGINT, on_interrupt))
+    RECEIVED_SIGNALS.clear()
+    for sig, handler in handlers:
+        try:
+            previous[sig] = signal.signal(sig, handler)
+        except ValueError:  # not the main thread
+            pass
+    try:
+        yield
+    finally:
+        for sig, h in previous.items():
+            signal.signal(sig, h)
+
+
+def unexpected_error(e: Exception, debug: bool) -> int:
+    """The one line (and exit status) of an exception nothing else handled: a signal's, wrapped by
+    the code it interrupted (130 / 143), else a bug (1; ``debug`` prints the traceback)."""
+    if RECEIVED_SIGNALS:
+        how = ("interrupted (Ctrl-C)" if RECEIVED_SIGNALS[0] == signal.SIGINT
+               else f"stopped by {signal.Signals(RECEIVED_SIGNALS[0]).name}")
+        print(f"error: {how}: no output written or changed", file=sys.stderr)
+        return 128 + RECEIVED_SIGNALS[0]
+    if debug:
+        traceback.print_exc()
+    where = traceback.extract_tb(e.__traceback__)[-1]
+    print(f"error: internal error, {type(e).__name__}: {e} (at {Path(where.filename).name}:"
+          f"{where.lineno}; please report it, --debug shows the traceback)", file=sys.stderr)
+    return 1
 
 
 def quiet_stdout() -> None:

@@ -408,15 +408,15 @@ def pair_costs(xy: F64, a: np.ndarray, b: np.ndarray, cam: np.ndarray, Pw: F64, 
         x2 = np.stack([xa[use], xb[use]], axis=2)  # (p, J, 2 views, 2)
         x2 = np.where(ok[..., None, None], x2, 0.0)
         views = np.stack([cam[a[s]], cam[b[s]]], 1)[use]  # (p, 2)
-        P = Pw[views][:, None]  # (p, 1, 2, 3, 4)
-        rows_x = x2[..., 0, None] * P[..., 2, :] - P[..., 0, :]  # (p, J, 2, 4)
-        rows_y = x2[..., 1, None] * P[..., 2, :] - P[..., 1, :]
+        proj = Pw[views][:, None]  # (p, 1, 2, 3, 4) the two views' projection matrices
+        rows_x = x2[..., 0, None] * proj[..., 2, :] - proj[..., 0, :]  # (p, J, 2, 4)
+        rows_y = x2[..., 1, None] * proj[..., 2, :] - proj[..., 1, :]
         A = np.concatenate([rows_x, rows_y], axis=2)
         # A's smallest right singular vector: the eigenvector of A^T A's smallest eigenvalue
         # (a batched 4x4 eigh is 5x faster than the SVD; the same point to rounding)
         Xh = np.linalg.eigh(np.swapaxes(A, -1, -2) @ A)[1][..., 0]
         X = Xh[..., :3] / Xh[..., 3:]  # (p, J, 3)
-        Xc = np.einsum("pvij,pnj->pnvi", P[:, 0, :, :, :3], X) + P[:, 0, None, :, :, 3]  # (p, J, 2, 3)
+        Xc = np.einsum("pvij,pnj->pnvi", proj[:, 0, :, :, :3], X) + proj[:, 0, None, :, :, 3]  # (p, J, 2, 3)
         z = Xc[..., 2]
         d = Xc[..., :2] / z[..., None] - x2
         e2 = np.where(z > 0, np.sum(d * d, axis=-1) * f_px[views][:, None] ** 2, np.inf)

@@ -704,23 +704,20 @@ def backend_for(model: Model) -> str:
 def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bool = False,
                fade: bool = True, on: np.ndarray | None = None,
                noise_rows: dict[str, F64] | None = None, split: bool = True,
-               covariances: bool = True, into: F64 | None = None) -> FilterRun:
+               covariances: bool = True) -> FilterRun:
     """The filter over the frame grid (arguments and outputs of :func:`run_filter`): per frame
     the prediction, fading and linearisation point of its rows as one batch, their update
     (:func:`gt3dkit.fusion.ukf.ukf_update_information`), then RTS backwards. ``split``: run
     the joints as separate filters (:mod:`gt3dkit.fusion.split`; the same result,
     faster); False runs the whole state (the reference the tests hold it to). ``covariances=False``:
     a split run's ``P`` is not put back together (``(R, 0, 0)``: for callers that read the
-    statistics only). ``into (R, n, n)``: the covariances of the rows ``on`` are written into
-    it, the others left as they are, and it is the run's ``P`` (a second pass over some objects
-    without a second array of every row's)."""
+    statistics only)."""
     if split and model.layout.n_joints > 1:
         # the joints are independent filters, run as one batch of small ones
         sub, x0, P0, sp = split_joints(model, init.x0, init.P0)
         return sp.merge(run_frames(sub, Init(x0, P0), cfg, fps, collect, fade,
                                    None if on is None else on[sp.src],
-                                   {k: v[sp.src] for k, v in (noise_rows or {}).items()}), covariances, on,
-                        into)
+                                   {k: v[sp.src] for k, v in (noise_rows or {}).items()}), covariances, on)
     rows, cams, layout = model.rows, model.cams, model.layout
     n, R = layout.n, len(rows)
     w = SigmaWeights(n, cfg.alpha, cfg.beta, cfg.kappa)
@@ -731,7 +728,7 @@ def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
     # per row (121 kB with 19 joints)
     x_p = np.zeros((R, n))
     x_f = np.zeros((R, n))
-    P_f = np.zeros((R, n, n)) if into is None else into
+    P_f = np.zeros((R, n, n))
     fade_s = np.ones((R, n))
     q_s = np.ones((R, n))
     frame_s = rows.frames / fps
