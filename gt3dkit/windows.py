@@ -39,6 +39,7 @@ in a window's context is found again by its neighbour); segment numbers restart 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -281,9 +282,8 @@ def joint_context(pre: Any, noise: dict[str, float], scene: Scene) -> int | None
 
 @dataclass(frozen=True)
 class WindowJob:
-    """What a worker needs for one window (picklable)."""
+    """What a worker needs for one window besides its scene (picklable)."""
 
-    scene: Scene
     window: Window
     estimator: str
     config: dict[str, Any]
@@ -291,15 +291,15 @@ class WindowJob:
     bones: PersonBones | None = None  # every person's bones, pooled over the windows
 
 
-def run_window(job: WindowJob) -> tuple[TrackSet, list[tuple[Any, ...]]]:
-    """One window's rows and QA findings in its own frames (the persons' bones ``job.bones``
-    where given: the window's own ids only, its split pieces' ids are its own)."""
+def run_window(job: WindowJob, scene: Scene) -> tuple[TrackSet, list[tuple[Any, ...]]]:
+    """One window's rows and QA findings in its own frames, from its ``scene`` (the persons' bones
+    ``job.bones`` where given: the window's own ids only, its split pieces' ids are its own)."""
     w = job.window
     with small_matrix_blas(), roomy_malloc():
         est = make_estimator(job.estimator, **job.config)
         if job.bones is not None:
-            est.bones = job.bones.of(np.unique(job.scene.obs.track_id))
-        tracks, qa = estimate_checked(job.scene, est, job.every_frame)
+            est.bones = job.bones.of(np.unique(scene.obs.track_id))
+        tracks, qa = estimate_checked(scene, est, job.every_frame)
     keep = (tracks.frame >= w.first) & (tracks.frame <= w.last)
     d = tracks.downweighted
     if d is not None:
@@ -308,11 +308,12 @@ def run_window(job: WindowJob) -> tuple[TrackSet, list[tuple[Any, ...]]]:
     return out, [r for r in qa.rows if w.first <= r[0] <= w.last]
 
 
-def window_bones(job: WindowJob) -> tuple[BoneSamples | None, I64]:
-    """One window's first-pass bones in its own frames and the ids it splits
+def window_bones(job: WindowJob, scene: Scene) -> tuple[BoneSamples | None, I64]:
+    """One window's first-pass bones in its own frames and the ids it splits, from its ``scene``
     (:func:`gt3dkit.api.bone_samples_checked`; None: its estimator ties no bones)."""
     w = job.window
-    scene = job.scene if job.every_frame is None else dense_frames(job.scene, job.every_frame or None)
+    if job.every_frame is not None:
+        scene = dense_frames(scene, job.every_frame or None)
     with small_matrix_blas(), roomy_malloc():
         s, split = bone_samples_checked(scene, make_estimator(job.estimator, **job.config))
     return (None if s is None else s.take((s.frame >= w.first) & (s.frame <= w.last))), split
@@ -412,16 +413,21 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
         plan = _sized(plan, ov, len(frames), workers)
         # the tool's windows hold equal object-frames (the workers finish together); --window as given
         windows = plan_windows(frames, plan.size, ov, frame_work(scene, frames) if plan.why else None)
-        like = WindowJob(scene, windows[0], estimator, {**config, **noise}, every_frame)
+        like = WindowJob(windows[0], estimator, {**config, **noise}, every_frame)
         done = on_window or (lambda k, n: None)
         n = len(windows)
-        if ties_bones(scene, estimator, config) and n > 1:  # two rounds: the bones first, then the rest
-            samples = _run_windows(scene, windows, like, client, plan.jobs, lambda k, _: done(k, 2 * n),
-                                   window_bones)
-            like = dataclasses.replace(like, bones=pooled_bones(samples, config))
-            parts = _run_windows(scene, windows, like, client, plan.jobs, lambda k, _: done(n + k, 2 * n))
-        else:
-            parts = _run_windows(scene, windows, like, client, plan.jobs, done)
+        with contextlib.ExitStack() as stack:
+            runner = client
+            if client is None and plan.jobs > 1 and n > 1:
+                runner = stack.enter_context(_process_pool(min(plan.jobs, n)))
+            scenes = _window_scenes(scene, windows, client)
+            if ties_bones(scene, estimator, config) and n > 1:  # two rounds: the bones, then the rest
+                samples = _run_windows(scenes, windows, like, runner, lambda k, _: done(k, 2 * n),
+                                       window_bones)
+                like = dataclasses.replace(like, bones=pooled_bones(samples, config))
+                parts = _run_windows(scenes, windows, like, runner, lambda k, _: done(n + k, 2 * n))
+            else:
+                parts = _run_windows(scenes, windows, like, runner, done)
     finally:
         if client is not None:
             client.close()
@@ -450,38 +456,48 @@ def ties_bones(scene: Scene, estimator: str, config: dict[str, Any]) -> bool:
             and bool(getattr(est.config, "bones", False)))
 
 
-def _run_windows(scene: Scene, windows: list[Window], like: WindowJob, client: Any, jobs: int,
-                 done: Callable[[int, int], None], fn: Callable[[WindowJob], Any] = run_window) -> list[Any]:
-    """Every window's ``fn`` (:func:`run_window`; ``like`` with each window's scene and frames): on
-    the Dask ``client``, in ``jobs`` local processes, or one after the other in this process (one
-    window's scene at a time); ``done(k, n)`` as they start (0) and finish."""
-    def job(w: Window) -> WindowJob:
-        return dataclasses.replace(like, scene=window_scene(scene, w.lo, w.hi), window=w)
+def _process_pool(workers: int) -> Any:
+    """``workers`` local processes (spawned: no fork of a process that holds threads)."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
 
+    return ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
+
+
+def _window_scenes(scene: Scene, windows: list[Window], client: Any) -> Callable[[int], Any]:
+    """Window ``k``'s scene: made when asked (one window's at a time in this process), or on a
+    Dask ``client`` scattered once to the cluster as data (not inside the task graph) and its
+    future given to every round."""
+    if client is None:
+        return lambda k: window_scene(scene, windows[k].lo, windows[k].hi)
+    futures = [client.scatter(window_scene(scene, w.lo, w.hi), hash=False) for w in windows]
+    return futures.__getitem__
+
+
+def _run_windows(scenes: Callable[[int], Any], windows: list[Window], like: WindowJob, runner: Any,
+                 done: Callable[[int, int], None], fn: Callable[[WindowJob, Scene], Any] = run_window
+                 ) -> list[Any]:
+    """Every window's ``fn`` (:func:`run_window`; ``like`` with each window's frames, ``scenes(k)``
+    its scene): on the Dask client or the process pool ``runner``, or one after the other in this
+    process (None); ``done(k, n)`` as they start (0) and finish."""
     done(0, len(windows))
     parts: list[Any] = [None] * len(windows)
-    if client is not None:
+    if runner is None:
+        for k, w in enumerate(windows):
+            parts[k] = fn(dataclasses.replace(like, window=w), scenes(k))
+            done(k + 1, len(windows))
+        return parts
+    if hasattr(runner, "scatter"):  # a Dask client
         from distributed import as_completed
 
-        # each window's scene goes to the cluster as data (scatter), not inside the task graph
-        futures = {client.submit(fn, client.scatter(job(w), hash=False), pure=False): k
+        futures = {runner.submit(fn, dataclasses.replace(like, window=w), scenes(k), pure=False): k
                    for k, w in enumerate(windows)}
-        for n, f in enumerate(as_completed(futures), 1):
-            parts[futures[f]] = f.result()
-            done(n, len(windows))
-    elif jobs > 1 and len(windows) > 1:
-        import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor
-        from concurrent.futures import as_completed as finished
-
-        with ProcessPoolExecutor(max_workers=min(jobs, len(windows)),
-                                 mp_context=mp.get_context("spawn")) as pool:
-            futs = {pool.submit(fn, job(w)): k for k, w in enumerate(windows)}
-            for n, f in enumerate(finished(futs), 1):
-                parts[futs[f]] = f.result()
-                done(n, len(windows))
     else:
-        for k, w in enumerate(windows):
-            parts[k] = fn(job(w))
-            done(k + 1, len(windows))
+        from concurrent.futures import as_completed
+
+        futures = {runner.submit(fn, dataclasses.replace(like, window=w), scenes(k)): k
+                   for k, w in enumerate(windows)}
+    for n, f in enumerate(as_completed(futures), 1):
+        parts[futures[f]] = f.result()
+        done(n, len(windows))
     return parts

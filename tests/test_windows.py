@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import json
 from pathlib import Path
 
 import numpy as np
@@ -150,6 +151,30 @@ def test_jobs_and_dask_give_the_one_process_output(boxes: object, tmp_path: Path
                             "--quiet", "--scheduler", cluster.scheduler_address)
     assert code == 0, se
     assert (tmp_path / "dask" / "tracks.csv").read_bytes() == outs["one"]
+
+
+def test_skeleton_windows_give_the_one_process_output_in_processes_and_on_dask(tmp_path: Path) -> None:
+    """Keypoints with bones run in two rounds (the bones pooled, then the windows): two local
+    processes and a Dask cluster on loopback write the one-process ``keypoints.csv`` byte for byte,
+    and ``meta.json`` lists every person's pooled bones."""
+    sk = simulate_skeletons("native", seed=5, frames=60, people=2, cameras=4, noise_px=1.0)
+    write_skeleton_scene(sk, tmp_path / "sk", "native")
+    args = (str(tmp_path / "sk"), "--window", "20", "--quiet")
+    outs = {}
+    for name, extra in (("one", ()), ("two", ("--jobs", "2"))):
+        code, so, se = _run("reconstruct", *args, "--out", str(tmp_path / name), *extra)
+        assert code == 0, se
+        outs[name] = (tmp_path / name / "keypoints.csv").read_bytes()
+    assert outs["one"] == outs["two"]
+    bones = json.loads((tmp_path / "one" / "meta.json").read_text())["estimator"]["bones"]
+    assert sorted(bones["per_person"]) == ["0", "1"] and "pooled" in bones
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as cluster:
+        code, so, se = _run("reconstruct", *args, "--out", str(tmp_path / "dask"), "--scheduler",
+                            cluster.scheduler_address)
+    assert code == 0, se
+    assert (tmp_path / "dask" / "keypoints.csv").read_bytes() == outs["one"]
 
 
 def test_window_misuse(boxes: object, tmp_path: Path) -> None:
