@@ -1,9 +1,9 @@
 r"""A person's bone lengths, tied by messages to each joint's own filter.
 
 A bone ties two joints: ``|p_a - p_b| = L_b``, with the bone's true variability ``s_b`` as its
-noise (:func:`bone_lengths`, from a first pass). As pseudo-measurements of the whole ``9 + 6J``
-state they would make every row's covariance dense (123 x 123 with 19 joints: 121 kB a row and
-``O(n^3)`` algebra a step, forward and back). Instead, as in expectation propagation (Minka,
+noise (:func:`lengths_of` the first pass's :func:`bone_samples`). As pseudo-measurements of the
+whole ``9 + 6J`` state they would make every row's covariance dense (123 x 123 with 19 joints:
+121 kB a row and ``O(n^3)`` algebra a step, forward and back). Instead, as in expectation propagation (Minka,
 UAI 2001) with a fully factorised approximation (one Gaussian factor per joint and row):
 
 1. each frame's bones update the first pass's smoothed joints ``N(m_j, C_j)`` (independent
