@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -308,18 +309,22 @@ def run_window(job: WindowJob, scene: Scene) -> tuple[TrackSet, list[tuple[Any, 
     return out, [r for r in qa.rows if w.first <= r[0] <= w.last]
 
 
-def window_bones(job: WindowJob, scene: Scene) -> tuple[BoneSamples | None, I64]:
-    """One window's first-pass bones in its own frames and the ids it splits, from its ``scene``
-    (:func:`gt3dkit.api.bone_samples_checked`; None: its estimator ties no bones)."""
+def window_bones(job: WindowJob, scene: Scene) -> tuple[BoneSamples | None, I64, float]:
+    """One window's first-pass bones in its own frames, the ids it splits, from its ``scene``
+    (:func:`gt3dkit.api.bone_samples_checked`; None: its estimator ties no bones), and the
+    seconds it took."""
+    t0 = time.perf_counter()
     w = job.window
     if job.every_frame is not None:
         scene = dense_frames(scene, job.every_frame or None)
     with small_matrix_blas(), roomy_malloc():
         s, split = bone_samples_checked(scene, make_estimator(job.estimator, **job.config))
-    return (None if s is None else s.take((s.frame >= w.first) & (s.frame <= w.last))), split
+    s = None if s is None else s.take((s.frame >= w.first) & (s.frame <= w.last))
+    return s, split, time.perf_counter() - t0
 
 
-def pooled_bones(parts: list[tuple[BoneSamples | None, I64]], config: dict[str, Any]) -> PersonBones | None:
+def pooled_bones(parts: list[tuple[BoneSamples | None, I64, float]], config: dict[str, Any]
+                 ) -> PersonBones | None:
     """Every person's bones from the windows' first-pass bones and split ids ``parts``
     (:func:`window_bones`), as the whole sequence's run finds them (its config's
     ``bone_sd_floor_m``, ``bone_sd_m``): of the ids no window splits (a split id's pieces may
@@ -427,6 +432,7 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
                 like = dataclasses.replace(like, bones=pooled_bones(samples, config))
                 parts = _run_windows(scenes, windows, like, runner, lambda k, _: done(n + k, 2 * n))
             else:
+                samples = []
                 parts = _run_windows(scenes, windows, like, runner, done)
     finally:
         if client is not None:
@@ -435,6 +441,10 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
     if like.bones is not None:  # every person's, not the first window's
         tracks.info["bones"] = {**like.bones.lengths.info(like.bones.ids),
                                 "pooled": "over every window's own frames (gt3dkit.windows)"}
+    if samples:  # the bones' round is the estimator's time too
+        first = float(sum(p[2] for p in samples))
+        tracks.info["seconds"] += first
+        tracks.info["windows"]["bones_round_seconds"] = first
     return tracks, qa
 
 

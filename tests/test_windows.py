@@ -166,8 +166,9 @@ def test_skeleton_windows_give_the_one_process_output_in_processes_and_on_dask(t
         assert code == 0, se
         outs[name] = (tmp_path / name / "keypoints.csv").read_bytes()
     assert outs["one"] == outs["two"]
-    bones = json.loads((tmp_path / "one" / "meta.json").read_text())["estimator"]["bones"]
-    assert sorted(bones["per_person"]) == ["0", "1"] and "pooled" in bones
+    meta = json.loads((tmp_path / "one" / "meta.json").read_text())["estimator"]
+    assert sorted(meta["bones"]["per_person"]) == ["0", "1"] and "pooled" in meta["bones"]
+    assert 0 < meta["windows"]["bones_round_seconds"] < meta["seconds"]
     distributed = pytest.importorskip("distributed")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
                                   dashboard_address=None) as cluster:
@@ -250,10 +251,11 @@ def test_pooled_bones_leave_out_ids_a_window_splits() -> None:
             scale=1e-3, size=(R, K)), np.full((R, K), 1e-7), np.ones((R, K), bool))
 
     a, b = part([1, 2], np.arange(0, 50)), part([1, 2, 3], np.arange(50, 100))
-    pooled = pooled_bones([(a, np.zeros(0, np.int64)), (b, np.array([2])), (None, np.zeros(0, np.int64))], {})
+    none = np.zeros(0, np.int64)
+    pooled = pooled_bones([(a, none, 1.0), (b, np.array([2]), 1.0), (None, none, 0.1)], {})
     assert pooled is not None
     np.testing.assert_array_equal(pooled.ids, [1, 3])
     both = BoneSamples.joined([a, b])
     one = both.length[both.obj == 1]
     np.testing.assert_allclose(pooled.lengths.length[0], np.median(one, axis=0), rtol=0, atol=1e-15)
-    assert pooled_bones([(None, np.zeros(0, np.int64))], {}) is None
+    assert pooled_bones([(None, none, 0.1)], {}) is None
