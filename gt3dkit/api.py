@@ -176,7 +176,8 @@ def bone_samples_checked(scene: Scene, est: Estimator) -> tuple[Any | None, I64]
     """The first pass's bones (:class:`gt3dkit.fusion.bones.BoneSamples`, ``obj``: the input's
     ids) that :func:`estimate_checked` would tie ``scene``'s joints with, by the estimator's own
     ``bone_samples`` without the rest of the estimate (None when it ties no bones), and the ids
-    it splits ``(S,)``: their rows are left out (an id's pieces may be different people)."""
+    it splits ``(S,)`` (an id's pieces may be different people: the caller leaves them out; the
+    rows of the pieces after an id's first, whose ids are this run's own, are left out here)."""
     own = getattr(est, "bone_samples", None)
     if not callable(own):
         return None, np.zeros(0, np.int64)
@@ -189,7 +190,7 @@ def bone_samples_checked(scene: Scene, est: Estimator) -> tuple[Any | None, I64]
     s = own(pieces)
     if s is None:
         return None, split
-    return s.take(~np.isin(s.obj, np.fromiter(back, np.int64)) & ~np.isin(s.obj, split)), split
+    return s.take(~np.isin(s.obj, np.fromiter(back, np.int64))), split
 
 
 def dense_frames(scene: Scene, step: int | None) -> Scene:

@@ -208,7 +208,7 @@ class UKFSmoother:
         if not (pre.use_kpt and self.config.bones and pre.skeleton is not None):
             return None
         model, _, _, _, run = self._first_pass(scene, pre)
-        s = bone_samples_of(model, run, pre.skeleton)
+        s = bone_samples_of(model, first_joints(model, run), pre.skeleton)
         return replace(s, obj=model.rows.obj_ids[s.obj])
 
     def _first_pass(self, scene: Scene, pre: Prepared
@@ -634,10 +634,10 @@ def first_joints(model: Model, run: FilterRun) -> tuple[F64, F64, np.ndarray]:
     return joints, run.P[:, idx[:, :, None], idx[:, None, :]], np.isfinite(rows.kpt_z[..., 0])
 
 
-def bone_samples_of(model: Model, run: FilterRun, skel: Skeleton) -> BoneSamples:
-    """:func:`gt3dkit.fusion.bones.bone_samples` of a first pass ``run``; ``obj``: each row's
-    person index."""
-    joints, cov, seen = first_joints(model, run)
+def bone_samples_of(model: Model, first: tuple[F64, F64, np.ndarray], skel: Skeleton) -> BoneSamples:
+    """:func:`gt3dkit.fusion.bones.bone_samples` of a first pass's :func:`first_joints`
+    ``first``; ``obj``: each row's person index."""
+    joints, cov, seen = first
     rows = model.rows
     return bone_samples(rows.row_o, rows.frames[rows.row_t], seen.sum(axis=1) >= 2, joints, cov, skel)
 
@@ -648,11 +648,12 @@ def bone_messages_of(model: Model, cfg: UKFConfig, run: FilterRun, skel: Skeleto
     person's bone lengths, from a first pass ``run`` (split: independent joints); the persons
     ``fixed`` holds take its lengths."""
     rows = model.rows
-    lengths = lengths_of(bone_samples_of(model, run, skel), np.arange(len(rows.obj_ids)), cfg.bone_sd_floor_m,
-                         cfg.bone_sd_m)
+    first = first_joints(model, run)
+    lengths = lengths_of(bone_samples_of(model, first, skel), np.arange(len(rows.obj_ids)),
+                         cfg.bone_sd_floor_m, cfg.bone_sd_m)
     if fixed is not None:
         lengths = fixed.applied(lengths, rows.obj_ids)
-    joints, cov, seen = first_joints(model, run)
+    joints, cov, seen = first
     bones = skel.bones
     zb = lengths.length[rows.row_o]
     # a bone ties a joint to a measured one: where neither end has a view in a frame it would
