@@ -16,9 +16,8 @@ Definitions (metres):
 from __future__ import annotations
 
 import warnings
-from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -34,49 +33,88 @@ def match_rows(tracks: TrackSet, truth: GroundTruth) -> tuple[np.ndarray, np.nda
     return it, at[it]
 
 
-#: Pairs of rows :func:`frame_pairs` hands out at once (their arrays a few MB: a 4 000-frame,
-#: 40-person truth report peaked 120 MB above its inputs with 2**20, nothing above with 2**17).
-PAIRS_PER_CHUNK = 1 << 17
+#: Candidate pairs :func:`near_pairs` expands at once (their arrays a few tens of MB at most).
+CANDIDATES_PER_CHUNK = 1 << 20
 
 
-def frame_pairs(frame_a: np.ndarray, frame_b: np.ndarray, frames: np.ndarray, max_pairs: int = PAIRS_PER_CHUNK
-                ) -> Iterator[tuple[int, int, np.ndarray, np.ndarray, np.ndarray]]:
-    """Every pair of a row of table ``a`` and a row of table ``b`` in the same frame, for the
-    sorted frame numbers ``frames``, in chunks of whole frames of about ``max_pairs`` pairs:
-    yields ``(f0, f1, ia, ib, start)``, the frames ``frames[f0:f1]``, the pairs' rows ``(P,)`` in
-    ``a`` and in ``b`` (frame by frame; within a frame ``a``'s rows in table order, each with
-    ``b``'s rows in table order: the frame's ``(n_a, n_b)`` block, row-major) and ``start (f1 -
-    f0 + 1,)`` where each frame's pairs begin. One sort per table instead of a scan per frame."""
-    oa, ob = np.argsort(frame_a, kind="stable"), np.argsort(frame_b, kind="stable")
-    fa, fb = np.asarray(frame_a)[oa], np.asarray(frame_b)[ob]
-    lo_a, lo_b = np.searchsorted(fa, frames), np.searchsorted(fb, frames)
-    n_a = np.searchsorted(fa, frames, side="right") - lo_a
-    n_b = np.searchsorted(fb, frames, side="right") - lo_b
-    n_pair = n_a * n_b
-    end = np.cumsum(n_pair)
-    f0 = 0
-    while f0 < len(frames):
-        base = end[f0] - n_pair[f0]
-        f1 = max(int(np.searchsorted(end, base + max_pairs, side="right")), f0 + 1)
-        start = np.concatenate([[0], end[f0:f1] - base])
-        of = np.repeat(np.arange(f0, f1), n_pair[f0:f1])
-        k = np.arange(start[-1]) - start[of - f0]  # the pair's place in its frame's block
-        yield f0, f1, oa[lo_a[of] + k // n_b[of]], ob[lo_b[of] + k % n_b[of]], start
-        f0 = f1
+class NearPairs(NamedTuple):
+    """Pairs of a row of table ``a`` and a row of table ``b`` in the same frame (:func:`near_pairs`):
+    their rows ``(P,)`` and distance ``(P,)``, metres."""
+
+    a: np.ndarray
+    b: np.ndarray
+    d: F64
 
 
-def _pair_counts(tracks: TrackSet, truth: GroundTruth, g_e: F64, g_t: F64, max_dist_m: float
-                 ) -> tuple[F64, np.ndarray, np.ndarray]:
+def near_pairs(frame_a: np.ndarray, xy_a: F64, frame_b: np.ndarray, xy_b: F64, cutoff: float) -> NearPairs:
+    """Every pair of a row of table ``a`` and a row of table ``b`` in the same frame whose
+    positions (``(N, D)``, metres) are at most ``cutoff`` apart, with their distance (the norm
+    of ``xy_a[a] - xy_b[b]``): grouped by frame in frame order, ``a``'s rows in table order
+    within a frame. Rows with a non-finite position pair with none.
+
+    A sweep, not every pair of a frame: ``b``'s rows are sorted by frame and by the coordinate
+    that spreads most, and each ``a`` row meets only the ``b`` rows of its frame within
+    ``cutoff`` along that coordinate (a superset, then the exact distance). For 26 people a
+    frame, 4 000 frames, that was 5 candidates a row instead of 26."""
+    xy_a, xy_b = np.asarray(xy_a, float), np.asarray(xy_b, float)
+    frame_a, frame_b = np.asarray(frame_a), np.asarray(frame_b)
+    ok_a = np.flatnonzero(np.isfinite(xy_a).all(axis=1))
+    ok_b = np.flatnonzero(np.isfinite(xy_b).all(axis=1))
+    if not len(ok_a) or not len(ok_b):
+        return NearPairs(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+    ok_a = ok_a[np.argsort(frame_a[ok_a], kind="stable")]  # a's rows by frame, in table order
+    lo = np.minimum(xy_a[ok_a].min(axis=0), xy_b[ok_b].min(axis=0))
+    axis = int(np.argmax(np.maximum(xy_a[ok_a].max(axis=0), xy_b[ok_b].max(axis=0)) - lo))
+    frames = np.union1d(frame_a[ok_a], frame_b[ok_b])
+    x_a, x_b = xy_a[ok_a, axis] - lo[axis], xy_b[ok_b, axis] - lo[axis]
+    width = float(max(x_a.max(), x_b.max())) + 2.0 * cutoff + 1.0  # the frames' keys never overlap
+    key_b = np.searchsorted(frames, frame_b[ok_b]) * width + x_b
+    ob = np.argsort(key_b, kind="stable")
+    ok_b, key_b = ok_b[ob], key_b[ob]
+    key_a = np.searchsorted(frames, frame_a[ok_a]) * width + x_a
+    pad = cutoff + 1e-9 * (1.0 + float(np.abs(key_b).max()))  # the keys' rounding: a superset
+    start = np.searchsorted(key_b, key_a - pad)
+    count = np.searchsorted(key_b, key_a + pad, side="right") - start
+    out: list[tuple[np.ndarray, np.ndarray, F64]] = []
+    ends = np.cumsum(count)
+    k = 0
+    while k < len(ok_a):  # chunks of a's rows of about CANDIDATES_PER_CHUNK candidates
+        base = ends[k] - count[k]
+        k1 = max(int(np.searchsorted(ends, base + CANDIDATES_PER_CHUNK, side="right")), k + 1)
+        ia = np.repeat(np.arange(k, k1), count[k:k1])
+        ra, rb = ok_a[ia], ok_b[start[ia] + np.arange(len(ia)) - (ends[ia] - count[ia] - base)]
+        sq = (xy_a[ra, 0] - xy_b[rb, 0]) ** 2  # as np.linalg.norm sums them
+        for c in range(1, xy_a.shape[1]):
+            sq += (xy_a[ra, c] - xy_b[rb, c]) ** 2
+        d = np.sqrt(sq)
+        keep = (d <= cutoff) & (frame_a[ra] == frame_b[rb])
+        out.append((ra[keep], rb[keep], d[keep]))
+        k = k1
+    return NearPairs(*(np.concatenate(x) for x in zip(*out, strict=True)))
+
+
+def frame_blocks(frame: np.ndarray, frames: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A table's rows by frame, for the sorted frame numbers ``frames (F,)``: ``order (N,)`` the
+    rows sorted by frame (stable: table order within a frame), ``lo, hi (F,)`` each frame's
+    rows ``order[lo:hi]``, and ``pos (N,)`` each row's place among its frame's rows."""
+    order = np.argsort(frame, kind="stable")
+    f = np.asarray(frame)[order]
+    pos = np.empty(len(order), np.int64)
+    pos[order] = np.arange(len(order)) - np.searchsorted(f, f)
+    return order, np.searchsorted(f, frames), np.searchsorted(f, frames, side="right"), pos
+
+
+def _pair_counts(tracks: TrackSet, truth: GroundTruth, g_e: F64, g_t: F64, max_dist_m: float,
+                 pairs: NearPairs | None = None) -> tuple[F64, np.ndarray, np.ndarray]:
     """``count (n_track_ids, n_truth_ids)``: the frames in which a track and a truth identity are
-    within ``max_dist_m`` of each other (ground positions ``g_e, g_t``); and the two id lists."""
+    within ``max_dist_m`` of each other (ground positions ``g_e, g_t``; ``pairs``: the truth's
+    and the tracks' :func:`near_pairs` within at least that, when known); and the two id lists."""
     ids, ti = np.unique(tracks.track_id, return_inverse=True)
     tids, gi = np.unique(truth.track_id, return_inverse=True)
-    ti, gi = ti.ravel(), gi.ravel()
-    count = np.zeros(len(ids) * len(tids))
-    frames = np.intersect1d(tracks.frame, truth.frame)
-    for _, _, a, b, _ in frame_pairs(tracks.frame, truth.frame, frames):
-        near = np.linalg.norm(g_e[a] - g_t[b], axis=1) <= max_dist_m
-        count += np.bincount(ti[a[near]] * len(tids) + gi[b[near]], minlength=len(count))
+    b, a, d = pairs if pairs is not None else near_pairs(truth.frame, g_t, tracks.frame, g_e, max_dist_m)
+    near = d <= max_dist_m
+    count = np.bincount(ti.ravel()[a[near]] * len(tids) + gi.ravel()[b[near]], minlength=len(ids) * len(tids))
     return count.reshape(len(ids), len(tids)), ids, tids
 
 
@@ -163,8 +201,8 @@ def box_errors(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float 
         radius_mean_m=_nanmean(radius), **mot)
 
 
-def clear_mot(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float = 1.0
-              ) -> dict[str, float | int]:
+def clear_mot(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float = 1.0,
+              pairs: NearPairs | None = None) -> dict[str, float | int]:
     """MOTA, IDF1, FP, FN, IDs on ground positions, a truth and a track paired when within
     ``max_dist_m``: the event rules of py-motmetrics (``MOTAccumulator.update`` and its ID
     measures, Heindl et al.), written out on arrays.
@@ -176,7 +214,9 @@ def clear_mot(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float =
     an identity switch; (3) unmatched truths are misses, unmatched tracks false positives.
     MOTA ``= 1 - (FN + FP + IDs) / truths``. IDF1 ``= 2 IDTP / (truths + tracks)``, IDTP the
     frames of the one-to-one pairing of truth and track identities that share the most frames
-    within reach (Ristani et al. 2016).
+    within reach (Ristani et al. 2016). Only the pairs within reach are looked at
+    (:func:`near_pairs`; ``pairs``: the truth's and the tracks' within at least ``max_dist_m``,
+    when known), each frame's distance matrix built from them.
 
     Written out rather than calling motmetrics because its accumulator builds pandas frames
     per frame: its import and updates were ~0.8 s of every 400-frame evaluation (most of a box
@@ -187,44 +227,58 @@ def clear_mot(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float =
 
     g_t = ground_coords(np.nan_to_num(truth.center_world), up)
     g_e = ground_coords(tracks.center_world, up)
-    ot = np.argsort(truth.frame, kind="stable")
-    oe = np.argsort(tracks.frame, kind="stable")
-    ft, fe = truth.frame[ot], tracks.frame[oe]
-    frames = np.union1d(ft, fe)
-    lo_t, hi_t = np.searchsorted(ft, frames), np.searchsorted(ft, frames, side="right")
-    lo_e, hi_e = np.searchsorted(fe, frames), np.searchsorted(fe, frames, side="right")
-    max_d2 = max_dist_m**2
-    last: dict[int, int] = {}  # truth id -> the track it was last matched to
+    frames = np.union1d(truth.frame, tracks.frame)
+    ot, lo_t, hi_t, pos_t = frame_blocks(truth.frame, frames)
+    oe, lo_e, hi_e, pos_e = frame_blocks(tracks.frame, frames)
+    # the pairs within reach: a hair beyond it found, then motmetrics' own test on the squared
+    # distance of the two ground positions, as its distance matrix has it
+    pairs = pairs or near_pairs(truth.frame, g_t, tracks.frame, g_e, max_dist_m * (1.0 + 1e-9))
+    pt, pe = pairs.a, pairs.b
+    d2p = np.sum((g_t[pt] - g_e[pe]) ** 2, axis=-1)
+    near = d2p <= max_dist_m**2
+    pt, pe, d2p = pt[near], pe[near], d2p[near]
+    p_lo = np.searchsorted(np.searchsorted(frames, truth.frame[pt]), np.arange(len(frames) + 1))
+    t_ids, t_idx = np.unique(truth.track_id, return_inverse=True)
+    e_ids, e_idx = np.unique(tracks.track_id, return_inverse=True)
+    t_idx, e_idx = t_idx.ravel(), e_idx.ravel()
+    last = np.full(len(t_ids), -1)  # truth id -> the track (index in e_ids) it was last matched to
+    col = np.full(len(e_ids), -1)  # a frame's track -> its column (-1: not in the frame)
     fp = fn = ids = 0
-    for a, b, c, d in zip(lo_t, hi_t, lo_e, hi_e, strict=True):
-        gi, hi = ot[a:b], oe[c:d]
-        o, h = truth.track_id[gi].tolist(), tracks.track_id[hi].tolist()
-        om, hm = np.zeros(len(o), bool), np.zeros(len(h), bool)
-        if o and h:
-            d2 = np.sum((g_t[gi][:, None] - g_e[hi][None]) ** 2, axis=-1)
-            d2[d2 > max_d2] = np.nan
-            col = {t: j for j, t in enumerate(h)}
-            for i, oid in enumerate(o):  # (1) carry the previous matches forward
-                j = col.get(last[oid], -1) if oid in last else -1
-                if j >= 0 and not hm[j] and np.isfinite(d2[i, j]):
-                    om[i] = hm[j] = True
+    for f in range(len(frames)):
+        gi, hi = ot[lo_t[f]:hi_t[f]], oe[lo_e[f]:hi_e[f]]
+        om, hm = np.zeros(len(gi), bool), np.zeros(len(hi), bool)
+        k0, k1 = p_lo[f], p_lo[f + 1]
+        if k1 > k0:
+            d2 = np.full((len(gi), len(hi)), np.nan)
+            d2[pos_t[pt[k0:k1]], pos_e[pe[k0:k1]]] = d2p[k0:k1]
+            o, h = t_idx[gi], e_idx[hi]
+            col[h] = np.arange(len(h))  # (1) carry the previous matches forward
+            j = np.where(last[o] >= 0, col[np.maximum(last[o], 0)], -1)
+            col[h] = -1
+            i = np.flatnonzero(j >= 0)
+            i = i[np.isfinite(d2[i, j[i]])]
+            hm[j[i]] = True
+            if hm.sum() < len(i):  # a track two truths last had: the first truth's, in order
+                _, first = np.unique(j[i], return_index=True)
+                i = np.sort(i[first])
+            om[i] = True
             rest = d2[~om][:, ~hm]
             if np.isfinite(rest).any():  # (2) the rest, most pairs first, then least distance
                 valid = np.isfinite(rest)
                 big = 2 * min(rest.shape) * (np.abs(rest[valid]).max() + 1) + 1
                 r, cc = linear_sum_assignment(np.where(valid, rest, big))
                 ri, ci = np.flatnonzero(~om)[r], np.flatnonzero(~hm)[cc]
-                for i, j in zip(ri.tolist(), ci.tolist(), strict=True):
-                    if not np.isfinite(d2[i, j]):
+                for a, b in zip(ri.tolist(), ci.tolist(), strict=True):
+                    if not np.isfinite(d2[a, b]):
                         continue
-                    if o[i] in last and last[o[i]] != h[j]:
+                    if last[o[a]] >= 0 and last[o[a]] != h[b]:
                         ids += 1
-                    last[o[i]] = h[j]
-                    om[i] = hm[j] = True
+                    last[o[a]] = h[b]
+                    om[a] = hm[b] = True
         fn += int((~om).sum())
         fp += int((~hm).sum())
     n_truth, n_est = len(truth.frame), len(tracks.frame)
-    count, _, _ = _pair_counts(tracks, truth, g_e, g_t, max_dist_m)
+    count, _, _ = _pair_counts(tracks, truth, g_e, g_t, max_dist_m, pairs)
     idtp = 0.0
     if count.size:
         r, c = linear_sum_assignment(-count)

@@ -21,43 +21,47 @@ r"""Multi-object tracking metrics on ground-plane positions, as the paper report
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from gt3dkit.eval.metrics import clear_mot, frame_pairs, ground_coords
+from gt3dkit.eval.metrics import NearPairs, clear_mot, frame_blocks, ground_coords, near_pairs
 from gt3dkit.types import F64, GroundTruth, TrackSet
 
 
 def ospa2(truth_frame: np.ndarray, truth_id: np.ndarray, truth_xy: F64, est_frame: np.ndarray,
-          est_id: np.ndarray, est_xy: F64, cutoff: float = 1.0, order: float = 1.0) -> float:
-    """OSPA(2) between two sets of tracks (see module doc). Positions ``(N, D)``, metres.
+          est_id: np.ndarray, est_xy: F64, cutoff: float = 1.0, order: float = 1.0,
+          pairs: NearPairs | None = None) -> float:
+    """OSPA(2) between two sets of tracks (see module doc). Positions ``(N, D)``, metres; one row
+    per frame and id (of two, the later counts); a row with a non-finite position is absent.
 
-    The track distance is the mean over the frames either track is in of the cut-off distance
-    (``cutoff`` where only one of them is there), computed for one truth track against every
-    estimated track at a time on frame-indexed arrays."""
-    frames, f_inv = np.unique(np.concatenate([truth_frame, est_frame]), return_inverse=True)
-    ft, fe = f_inv[:len(truth_frame)], f_inv[len(truth_frame):]
+    The track distance over the frames either track is in, ``U = n_x + n_y - n_xy`` (``n_xy``
+    the frames both are in), is ``(c U - sum (c - d_t)) / U``: the frames where both are within
+    ``c`` of each other (:func:`gt3dkit.eval.metrics.near_pairs`; ``pairs``: the two tables'
+    within at least ``c``, when known) bring it below ``c``."""
     tx, ti = np.unique(truth_id, return_inverse=True)
     ey, ei = np.unique(est_id, return_inverse=True)
     if not len(tx) and not len(ey):
         return 0.0
     if not len(tx) or not len(ey):
         return float(cutoff)
-    F, Dm = len(frames), truth_xy.shape[1]
-    X = np.full((len(tx), F, Dm), np.nan)
-    X[ti, ft] = truth_xy
-    Y = np.full((len(ey), F, Dm), np.nan)
-    Y[ei, fe] = est_xy
-    px, py = ~np.isnan(X[..., 0]), ~np.isnan(Y[..., 0])
-    D = np.zeros((len(tx), len(ey)))
-    for i in range(len(tx)):
-        d = np.minimum(np.linalg.norm(X[i][None] - Y, axis=-1), cutoff)  # (ny, F), NaN if absent
-        both = px[i][None] & py
-        union = px[i][None] | py
-        tot = np.where(both, d, np.where(union, cutoff, 0.0)).sum(axis=1)
-        D[i] = tot / np.maximum(union.sum(axis=1), 1)
+    frames = np.union1d(truth_frame, est_frame)
+    t_rows = _present(ti.ravel(), np.searchsorted(frames, truth_frame), truth_xy)
+    e_rows = _present(ei.ravel(), np.searchsorted(frames, est_frame), est_xy)
+    n_x = np.bincount(ti.ravel()[t_rows], minlength=len(tx)).astype(float)
+    n_y = np.bincount(ei.ravel()[e_rows], minlength=len(ey)).astype(float)
+    both = _frames_shared(ti.ravel()[t_rows], np.searchsorted(frames, truth_frame[t_rows]), len(tx),
+                          ei.ravel()[e_rows], np.searchsorted(frames, est_frame[e_rows]), len(ey),
+                          len(frames))
+    union = n_x[:, None] + n_y[None] - both
+    a, b, d = pairs or near_pairs(truth_frame, truth_xy, est_frame, est_xy, cutoff)
+    on = np.zeros(len(truth_frame), bool)
+    on[t_rows] = True
+    on_e = np.zeros(len(est_frame), bool)
+    on_e[e_rows] = True
+    k = on[a] & on_e[b] & (d < cutoff)
+    closer = np.bincount(ti.ravel()[a[k]] * len(ey) + ei.ravel()[b[k]], weights=cutoff - d[k],
+                         minlength=len(tx) * len(ey)).reshape(len(tx), len(ey))
+    D = (cutoff * union - closer) / np.maximum(union, 1)
     n = max(len(tx), len(ey))
     m = min(len(tx), len(ey))
     C = D if len(tx) <= len(ey) else D.T
@@ -66,12 +70,33 @@ def ospa2(truth_frame: np.ndarray, truth_id: np.ndarray, truth_xy: F64, est_fram
     return float((cost / n) ** (1.0 / order))
 
 
+def _present(ident: np.ndarray, frame_at: np.ndarray, xy: F64) -> np.ndarray:
+    """The rows that place an id in a frame: a finite position, the last of an id's rows in a
+    frame."""
+    key = ident.astype(np.int64) * (int(frame_at.max(initial=0)) + 1) + frame_at
+    _, last = np.unique(key[::-1], return_index=True)
+    rows = np.sort(len(key) - 1 - last)
+    return rows[np.isfinite(xy[rows]).all(axis=1)]
+
+
+def _frames_shared(a_id: np.ndarray, a_frame: np.ndarray, n_a: int, b_id: np.ndarray, b_frame: np.ndarray,
+                   n_b: int, n_frames: int) -> F64:
+    """``(n_a, n_b)`` the frames in which each id of table ``a`` and each of ``b`` are both
+    present (one row per frame and id): the product of the two sparse presence matrices."""
+    from scipy.sparse import csr_matrix
+
+    pa = csr_matrix((np.ones(len(a_id)), (a_id, a_frame)), shape=(n_a, n_frames))
+    pb = csr_matrix((np.ones(len(b_id)), (b_id, b_frame)), shape=(n_b, n_frames))
+    return np.asarray((pa @ pb.T).toarray(), dtype=float)
+
+
 #: HOTA's localisation thresholds (TrackEval's ``HOTA.array_labels``)
 HOTA_ALPHAS = np.arange(0.05, 0.99, 0.05)
 
 
 def hota(truth_frame: np.ndarray, truth_id: np.ndarray, truth_xy: F64, est_frame: np.ndarray,
-         est_id: np.ndarray, est_xy: F64, cutoff: float = 1.0) -> dict[str, float]:
+         est_id: np.ndarray, est_xy: F64, cutoff: float = 1.0, pairs: NearPairs | None = None
+         ) -> dict[str, float]:
     """HOTA, DetA, AssA on ground positions (similarity ``max(0, 1 - d / cutoff)``), averaged
     over :data:`HOTA_ALPHAS`: TrackEval's ``HOTA.eval_sequence`` written out on arrays.
 
@@ -85,11 +110,12 @@ def hota(truth_frame: np.ndarray, truth_id: np.ndarray, truth_xy: F64, est_frame
     Written out rather than calling TrackEval because its per-frame loop (threshold by
     threshold in Python) took 1.3 s of a 4 000-frame, 40-person evaluation, the longest part of
     ``gt3d reconstruct``'s truth report; ``tests/eval/test_metrics.py`` holds this to TrackEval
-    itself on random scenes with misses, false positives and identity swaps."""
+    itself on random scenes with misses, false positives and identity swaps. Only the pairs of
+    a frame with a similarity above 0 are looked at (:func:`gt3dkit.eval.metrics.near_pairs`;
+    ``pairs``: the two tables' within at least ``cutoff``, when known)."""
     n_a = len(HOTA_ALPHAS)
     if not len(est_id) or not len(truth_id):  # TrackEval's early return: every score 0
         return {"hota": 0.0, "deta": 0.0, "assa": 0.0}
-    frames = np.union1d(np.unique(truth_frame), np.unique(est_frame))
     _, g_inv = np.unique(truth_id, return_inverse=True)
     e_ids, e_inv = np.unique(est_id, return_inverse=True)
     g_inv, e_inv = g_inv.ravel(), e_inv.ravel()
@@ -97,43 +123,39 @@ def hota(truth_frame: np.ndarray, truth_id: np.ndarray, truth_xy: F64, est_frame
     g_count = np.bincount(g_inv, minlength=n_g).astype(float)
     e_count = np.bincount(e_inv, minlength=n_e).astype(float)
     both = g_count.repeat(n_e) + np.tile(e_count, n_g)  # (n_g * n_e,) the two identities' rows
-    fe = np.sort(est_frame)
-    tracks_in = np.searchsorted(fe, frames, side="right") - np.searchsorted(fe, frames)  # (F,)
-
-    def pairs() -> Iterator[tuple[int, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-        """Chunks of frames (:func:`frame_pairs`; twice through, not held): the frames ``f0:f1``,
-        where each frame's pairs start, the pairs' truth and track rows, similarity and id cell."""
-        for f0, f1, a, b, start in frame_pairs(truth_frame, est_frame, frames):
-            sim = np.maximum(0.0, 1.0 - np.linalg.norm(truth_xy[a] - est_xy[b], axis=-1) / cutoff)
-            yield f0, f1, start, a, b, sim, g_inv[a] * n_e + e_inv[b]
-
-    potential = np.zeros(n_g * n_e)
-    for _, _, _, a, b, sim, cell in pairs():  # (1)
-        rows = np.bincount(a, weights=sim, minlength=len(truth_frame))  # a truth row's pairs: one frame's
-        cols = np.bincount(b, weights=sim, minlength=len(est_frame))
-        denom = rows[a] + cols[b] - sim
-        iou = np.where(denom > np.finfo(float).eps, sim / np.where(denom > 0, denom, 1.0), 0.0)
-        potential += np.bincount(cell, weights=iou, minlength=n_g * n_e)
+    # farther pairs add nothing to (1) and (2): a similarity of 0
+    a, b, d = pairs or near_pairs(truth_frame, truth_xy, est_frame, est_xy, cutoff)
+    k = d < cutoff
+    a, b, d = a[k], b[k], d[k]
+    sim = 1.0 - d / cutoff
+    cell = g_inv[a] * n_e + e_inv[b]
+    rows = np.bincount(a, weights=sim, minlength=len(truth_frame))  # a truth row's pairs: one frame's
+    cols = np.bincount(b, weights=sim, minlength=len(est_frame))
+    denom = rows[a] + cols[b] - sim
+    iou = np.where(denom > np.finfo(float).eps, sim / np.where(denom > 0, denom, 1.0), 0.0)
+    potential = np.bincount(cell, weights=iou, minlength=n_g * n_e)  # (1)
     align = potential / (both - potential)
-    tp = np.zeros(n_a)
-    matches = np.zeros((n_a, n_g * n_e))
-    for f0, f1, start, _, _, sim, cell in pairs():  # (2)
-        score = align[cell] * sim
-        picked = []
-        for i in range(f1 - f0):
-            k0, k1 = start[i], start[i + 1]
-            if k1 == k0:
-                continue
-            n_b = int(tracks_in[f0 + i])
-            r, c = linear_sum_assignment(-score[k0:k1].reshape(-1, n_b))
-            picked.append(k0 + r * n_b + c)
-        if not picked:
-            continue
-        m = np.concatenate(picked)
-        ok = sim[m][None] >= HOTA_ALPHAS[:, None] - np.finfo(float).eps  # (A, M)
-        tp += ok.sum(axis=1)
-        for k in range(n_a):
-            matches[k] += np.bincount(cell[m[ok[k]]], minlength=n_g * n_e)
+    score = align[cell] * sim
+    frames = np.union1d(truth_frame, est_frame)
+    _, lo_t, hi_t, pos_t = frame_blocks(truth_frame, frames)
+    _, lo_e, hi_e, pos_e = frame_blocks(est_frame, frames)
+    at = np.searchsorted(frames, truth_frame[a])
+    starts = np.flatnonzero(np.r_[True, at[1:] != at[:-1]]).tolist() if len(a) else []
+    picked = []
+    for k0, k1 in zip(starts, [*starts[1:], len(a)][:len(starts)], strict=True):  # (2)
+        f = at[k0]
+        block = np.zeros((hi_t[f] - lo_t[f], hi_e[f] - lo_e[f]))  # the frame's truth x tracks
+        i, j = pos_t[a[k0:k1]], pos_e[b[k0:k1]]
+        block[i, j] = score[k0:k1]
+        pair = np.full(block.shape, -1)
+        pair[i, j] = np.arange(k0, k1)
+        r, c = linear_sum_assignment(-block)
+        picked.append(pair[r, c])
+    m = np.concatenate(picked) if picked else np.zeros(0, np.int64)
+    m = m[m >= 0]  # a pair without similarity counts at no threshold
+    ok = sim[m][None] >= HOTA_ALPHAS[:, None] - np.finfo(float).eps  # (A, M)
+    tp = ok.sum(axis=1).astype(float)
+    matches = np.stack([np.bincount(cell[m[ok[k]]], minlength=n_g * n_e) for k in range(n_a)]).astype(float)
     fn, fp = len(truth_id) - tp, len(est_id) - tp
     ass = (matches * (matches / np.maximum(1.0, both - matches))).sum(axis=1) / np.maximum(1.0, tp)
     det = tp / np.maximum(1.0, tp + fn + fp)
@@ -146,8 +168,9 @@ def tracking_scores(tracks: TrackSet, truth: GroundTruth, up: F64, cutoff_m: flo
     """MOTA, IDF1, FP, FN, IDs, HOTA, DetA, AssA and OSPA(2) on ground positions."""
     g_t = ground_coords(np.nan_to_num(truth.center_world), up)
     g_e = ground_coords(tracks.center_world, up)
-    out: dict[str, float | int] = dict(clear_mot(tracks, truth, up, cutoff_m))
-    out.update(hota(truth.frame, truth.track_id, g_t, tracks.frame, tracks.track_id, g_e, cutoff_m))
+    pairs = near_pairs(truth.frame, g_t, tracks.frame, g_e, cutoff_m * (1.0 + 1e-9))  # each metric's own test
+    out: dict[str, float | int] = dict(clear_mot(tracks, truth, up, cutoff_m, pairs))
+    out.update(hota(truth.frame, truth.track_id, g_t, tracks.frame, tracks.track_id, g_e, cutoff_m, pairs))
     out["ospa2_m"] = ospa2(truth.frame, truth.track_id, g_t, tracks.frame, tracks.track_id, g_e,
-                           cutoff_m, 1.0)
+                           cutoff_m, 1.0, pairs)
     return out

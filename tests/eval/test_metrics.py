@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from gt3dkit.eval.metrics import box_errors, clear_mot, frame_pairs
+from gt3dkit.eval.metrics import box_errors, clear_mot, ground_coords, near_pairs
 from gt3dkit.eval.tracking import hota, ospa2, tracking_scores
 from gt3dkit.types import GroundTruth, TrackSet
 
@@ -142,21 +142,77 @@ def test_hota_equals_trackeval() -> None:
                 np.zeros((0, 2)))["hota"] == 0.0
 
 
-def test_frame_pairs_are_every_same_frame_pair_once() -> None:
-    """Chunks of whole frames, every pair of rows in the same frame once, blocks row-major."""
+def test_near_pairs_are_every_close_same_frame_pair_once() -> None:
+    """Every pair of rows in the same frame within the cut-off, once, grouped by frame, against
+    brute force; in small chunks too; a NaN position pairs with none; the distance exactly
+    ``np.linalg.norm``'s."""
+    import gt3dkit.eval.metrics as metrics
+
     rng = np.random.default_rng(3)
-    fa, fb = rng.integers(0, 30, 200), rng.integers(5, 40, 150)
-    frames = np.union1d(fa, fb)
-    got = []
-    for f0, f1, ia, ib, start in frame_pairs(fa, fb, frames, max_pairs=37):
-        assert len(start) == f1 - f0 + 1 and start[-1] == len(ia)
-        for i, f in enumerate(frames[f0:f1]):
-            a, b = ia[start[i]:start[i + 1]], ib[start[i]:start[i + 1]]
-            assert (fa[a] == f).all() and (fb[b] == f).all()
-            want = [(x, y) for x in np.flatnonzero(fa == f) for y in np.flatnonzero(fb == f)]
-            assert list(zip(a.tolist(), b.tolist(), strict=True)) == want
-        got += list(zip(ia.tolist(), ib.tolist(), strict=True))
-    assert len(got) == len(set(got)) == sum(np.sum(fa == f) * np.sum(fb == f) for f in frames)
+    for trial in range(40):
+        n_a, n_b = int(rng.integers(0, 200)), int(rng.integers(0, 150))
+        fa, fb = rng.integers(0, 30, n_a), rng.integers(5, 40, n_b)
+        scale = float(rng.choice([1.0, 5.0, 100.0]))
+        xa, xb = rng.uniform(0, scale, (n_a, 3)), rng.uniform(0, scale, (n_b, 3))
+        if n_a and trial % 3 == 0:
+            xa[rng.integers(0, n_a)] = np.nan
+        if n_b and trial % 4 == 0:  # exactly at the cut-off counts
+            i = int(rng.integers(0, n_b))
+            if n_a:
+                fb[i], xb[i] = fa[0], xa[0] + np.array([0.0, 1.0, 0.0])
+        want = [(i, j) for i in range(n_a) for j in range(n_b)
+                if fa[i] == fb[j] and np.linalg.norm(xa[i] - xb[j]) <= 1.0]
+        want.sort(key=lambda p: (fa[p[0]], p[0], p[1]))
+        for chunk in (1 << 20, 7):
+            old, metrics.CANDIDATES_PER_CHUNK = metrics.CANDIDATES_PER_CHUNK, chunk
+            try:
+                ia, ib, d = near_pairs(fa, xa, fb, xb, 1.0)
+            finally:
+                metrics.CANDIDATES_PER_CHUNK = old
+            got = list(zip(ia.tolist(), ib.tolist(), strict=True))
+            assert sorted(got, key=lambda p: (fa[p[0]], p[0], p[1])) == want  # each pair once
+            by = [(fa[i], i) for i in ia.tolist()]
+            assert by == sorted(by)  # by frame, a's rows in table order
+            assert np.array_equal(d, np.linalg.norm(xa[ia] - xb[ib], axis=-1))
+
+
+def _ospa2_brute(tf: np.ndarray, ti: np.ndarray, txy: np.ndarray, ef: np.ndarray, ei: np.ndarray,
+                 exy: np.ndarray, c: float, p: float) -> float:
+    """OSPA(2) straight from its definition (Beard, Vo & Vo 2020, eq. 9-10), track by track and
+    frame by frame, every assignment of the smaller set tried."""
+    from itertools import permutations
+
+    def tracks(f: np.ndarray, ids: np.ndarray, xy: np.ndarray) -> list[dict[int, np.ndarray]]:
+        return [{int(f[k]): xy[k] for k in np.flatnonzero(ids == i)} for i in np.unique(ids)]
+
+    def dist(x: dict[int, np.ndarray], y: dict[int, np.ndarray]) -> float:
+        frames = set(x) | set(y)
+        return sum(min(c, float(np.linalg.norm(x[f] - y[f]))) if f in x and f in y else c
+                   for f in frames) / len(frames)
+
+    xs, ys = tracks(tf, ti, txy), tracks(ef, ei, exy)
+    if len(xs) > len(ys):
+        xs, ys = ys, xs
+    n, m = len(ys), len(xs)
+    best = min(sum(dist(x, ys[j]) ** p for x, j in zip(xs, perm, strict=True))
+               for perm in permutations(range(n), m))
+    return float(((best + c**p * (n - m)) / n) ** (1 / p))
+
+
+def test_ospa2_equals_its_definition() -> None:
+    """OSPA(2) against the definition written out by brute force on random small scenes."""
+    rng = np.random.default_rng(4)
+    for _ in range(60):
+        F, nt, ne = int(rng.integers(1, 8)), int(rng.integers(1, 5)), int(rng.integers(1, 5))
+        def table(n: int, F: int = F) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            rows = [(f, i) for f in range(F) for i in range(n) if rng.random() < 0.7] or [(0, 0)]
+            fr, ids = np.array(rows).T
+            return fr, ids, rng.uniform(0, float(rng.choice([0.5, 3.0])), (len(fr), 2))
+        tf, ti, txy = table(nt)
+        ef, ei, exy = table(ne)
+        for c, p in ((1.0, 1.0), (0.7, 2.0)):
+            assert ospa2(tf, ti, txy, ef, ei + 10, exy, c, p) == pytest.approx(
+                _ospa2_brute(tf, ti, txy, ef, ei + 10, exy, c, p), abs=1e-12)
 
 
 def test_clear_mot_equals_motmetrics() -> None:
@@ -183,3 +239,22 @@ def test_clear_mot_equals_motmetrics() -> None:
                                                          int(s["num_switches"].iloc[0]))
         switches += ours["ids"]
     assert switches > 50  # the cases exercise identity switches
+
+
+def test_tracking_scores_share_one_set_of_pairs() -> None:
+    """``tracking_scores`` finds the pairs once for every metric: each score as its own
+    function gives it alone, at two reaches."""
+    rng = np.random.default_rng(5)
+    for _ in range(40):
+        est, truth = _random_tracking(rng)
+        g_t, g_e = ground_coords(truth.center_world, UP), ground_coords(est.center_world, UP)
+        for reach in (1.0, 0.3):
+            got = tracking_scores(est, truth, UP, reach)
+            want = {**clear_mot(est, truth, UP, reach),
+                    **hota(truth.frame, truth.track_id, g_t, est.frame, est.track_id, g_e, reach),
+                    "ospa2_m": ospa2(truth.frame, truth.track_id, g_t, est.frame, est.track_id, g_e, reach)}
+            for k, v in want.items():
+                assert got[k] == pytest.approx(v, abs=1e-12), (k, got, want)
+    far = _tracks(EST.frame, EST.track_id, EST.center_world[:, :2] + 10.0)  # no pair within reach
+    s = tracking_scores(far, TRUTH, UP)
+    assert (s["hota"], s["idf1"], s["ospa2_m"], s["fp"], s["fn"]) == (0.0, 0.0, 1.0, len(EST.frame), len(TRUTH.frame))
