@@ -9,6 +9,7 @@ APT_PKGS := python3-venv libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libegl1 lib
 .PHONY: setup demo test bench bench-env labels-env bench-long lint clean
 
 setup: $(VENV)/.installed
+	@$(PY) -m compileall -q gt3dkit >/dev/null  # bytecode kept, also where PYTHONDONTWRITEBYTECODE is set
 
 $(VENV)/.installed: pyproject.toml
 	@missing=""; for p in $(APT_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \

@@ -571,17 +571,22 @@ def _noise_key(cfg: UKFConfig, fps: float) -> tuple[Any, ...]:
 
 def search_rows(rows: Any, budget: int, seed: int = 0) -> np.ndarray | None:
     """(R,) the rows of whole objects, drawn in a seeded random order until they hold
-    ``budget`` object-frames; ``None`` (all rows) when the scene has no more than that.
-    (Windows of the sequence with every object in them were tried: per pass they were no
-    faster, the batches grew as the frames shrank, and a shape's random walk showed less.)"""
+    ``budget`` object-frames (:func:`drawn_objects`); ``None`` (all rows) when the scene has no
+    more than that. (Windows of the sequence with every object in them were tried: per pass they
+    were no faster, the batches grew as the frames shrank, and a shape's random walk showed less.)"""
     if len(rows) <= budget:
         return None
-    count = np.bincount(rows.row_o, minlength=len(rows.obj_ids))
+    return drawn_objects(np.bincount(rows.row_o, minlength=len(rows.obj_ids)), budget, seed)[rows.row_o]
+
+
+def drawn_objects(count: np.ndarray, budget: int, seed: int = 0) -> np.ndarray:
+    """``(O,)`` which objects the noise search runs on, of objects with ``count (O,)``
+    object-frames each: in a random order (``seed``) until they hold ``budget`` of them."""
     order = np.random.default_rng(seed).permutation(len(count))
     take = order[: int(np.searchsorted(np.cumsum(count[order]), budget)) + 1]
     obj = np.zeros(len(count), bool)
     obj[take] = True
-    return obj[rows.row_o]
+    return obj
 
 
 def joints_of(x_s: F64, P_s: F64, layout: Any, rows: Any) -> tuple[F64, F64]:
