@@ -197,6 +197,14 @@ def auto_plan(scene: Scene) -> Plan | None:
                 span=max(fit, 3 * ov))
 
 
+def occupied(windows: list[Window], scene: Scene) -> list[Window]:
+    """The ``windows`` that hold an annotation, with their context (a gap in the annotations
+    longer than a window and its context holds nothing to estimate); all when none does."""
+    f = np.unique(scene.obs.frame)
+    keep = [w for w in windows if np.searchsorted(f, w.hi, side="right") > np.searchsorted(f, w.lo)]
+    return keep or windows
+
+
 def window_scene(scene: Scene, lo: int, hi: int) -> Scene:
     """``scene`` cut to the frame numbers ``lo..hi`` (no truth: scored on the stitched tracks)."""
     keep = (scene.obs.frame >= lo) & (scene.obs.frame <= hi)
@@ -454,7 +462,8 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
                 ov = max(needed, MIN_OVERLAP_FRAMES)
             plan = _sized(plan, ov, len(frames), workers)
             # the tool's windows hold equal object-frames (the workers finish together); --window as given
-            windows = plan_windows(frames, plan.size, ov, frame_work(scene, frames) if plan.why else None)
+            windows = occupied(plan_windows(frames, plan.size, ov, frame_work(scene, frames) if plan.why
+                                            else None), scene)
             like = WindowJob(windows[0], estimator, {**config, **noise}, every_frame)
             done = on_window or (lambda k, n: None)
             n = len(windows)

@@ -108,6 +108,25 @@ def test_windowed_boxes_equal_the_whole_sequence(boxes: object) -> None:
     assert part.info["windows"]["process_noise"]["accel_sd"] == pytest.approx(p["accel_sd"])
 
 
+def test_a_gap_longer_than_a_window_runs(boxes: object) -> None:
+    """A stretch of frames without annotations longer than a window and its context: the
+    windows that hold nothing are left out, the others give the rows of the whole run (a window
+    of nothing to estimate was an internal error)."""
+    import dataclasses
+
+    scene = boxes
+    frames = np.asarray(scene.frames)  # type: ignore[attr-defined]
+    gap = (scene.obs.frame > frames[20]) & (scene.obs.frame < frames[60])  # type: ignore[attr-defined]
+    holed = dataclasses.replace(scene, obs=scene.obs.select(~gap), truth=None)  # type: ignore[call-overload]
+    whole = reconstruct(holed, "ukf")
+    p = whole.info["params"]
+    part, _ = reconstruct_windowed(holed, "ukf", Plan(8, overlap=5),
+                                   **{k: p[k] for k in ("accel_sd", "position_sd", "shape_sd")})
+    assert part.info["windows"]["count"] < len(plan_windows(frames, 8, 5))
+    np.testing.assert_array_equal(part.frame, whole.frame)
+    np.testing.assert_array_equal(part.track_id, whole.track_id)
+
+
 def test_windowed_skeletons_near_the_whole_sequence(tmp_path: Path) -> None:
     """Keypoints with bones, the process noise fixed: every person's bones pooled over the
     windows are the whole run's (within 0.1 mm: each window's first pass, with its own keypoint
