@@ -80,8 +80,9 @@ MIN_OVERLAP_FRAMES = 20
 CONTEXT_WEIGHT = 1e-3
 #: The per-frame joint fits' sd (percentile over joints and frames) the context is sized for.
 CONTEXT_SD_PERCENTILE = 90.0
-#: Object-frames the process-noise search runs on at most: thousands of object-frames fix a
-#: maximum-likelihood noise level to a few percent, and the search is the one step no worker shares.
+#: Object-frames the process-noise search's sample holds at most (of which the search draws its
+#: whole objects, :func:`searched_objects`): thousands of object-frames fix a maximum-likelihood
+#: noise level to a few percent, and the search is the one step the other workers wait for.
 NOISE_SAMPLE_OBJECT_FRAMES = 20_000
 #: Frames each Dask worker estimates first, to load its imports and kernels (:func:`_warm_workers`).
 WARM_FRAMES = 3

@@ -78,12 +78,35 @@ def peer_run(name: str, src: Path, out: Path, peer: str, skeleton: str) -> None:
     row(name, "aniposelib", sec, gb, n, mpjpe_mm(out, src / "truth_keypoints.csv"))
 
 
+#: A fixed piece of pure-Python work (about 2 s on this machine) for :func:`side_by_side`.
+SPIN = ("import time\nt = time.perf_counter()\nx = 0\nfor i in range(20_000_000):\n    x += i\n"
+        "print(time.perf_counter() - t)")
+
+
+def side_by_side(k: int) -> float:
+    """How much more work ``k`` processes do side by side than one alone in the same time: the
+    machine's own ceiling for ``k`` workers against one (1 alone, then ``k`` at once; ``k`` times
+    the one's seconds over the slowest of the ``k``). On a shared virtual machine it moves with
+    the other guests' load, so the Dask rows print it beside their ratio."""
+    def run(n: int) -> list[float]:
+        procs = [subprocess.Popen([sys.executable, "-c", SPIN], stdout=subprocess.PIPE, text=True)
+                 for _ in range(n)]
+        return [float(p.communicate()[0]) for p in procs]
+
+    return k * run(1)[0] / max(run(k))
+
+
 def dask_runs(name: str, src: Path, d: Path, workers: list[int]) -> None:
     from distributed import LocalCluster
 
+    sec: dict[int, float] = {}
     for k in workers:
         with LocalCluster(n_workers=k, threads_per_worker=1, processes=True, dashboard_address=None) as c:
-            gt3d_run(name, src, d / f"dask{k}", ["--scheduler", c.scheduler_address], f"dask {k} worker(s)")
+            sec[k], _ = gt3d_run(name, src, d / f"dask{k}", ["--scheduler", c.scheduler_address],
+                                 f"dask {k} worker(s)")
+    for k in workers[1:]:
+        print(f"{'':<36}dask {k} against {workers[0]}: {sec[workers[0]] / sec[k]:.2f}x; the machine now: "
+              f"{k} processes side by side do {side_by_side(k):.2f}x the work of one", flush=True)
 
 
 def main() -> int:
