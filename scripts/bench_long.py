@@ -85,15 +85,20 @@ SPIN = ("import time\nt = time.perf_counter()\nx = 0\nfor i in range(20_000_000)
 
 def side_by_side(k: int) -> float:
     """How much more work ``k`` processes do side by side than one alone in the same time: the
-    machine's own ceiling for ``k`` workers against one (1 alone, then ``k`` at once; ``k`` times
-    the one's seconds over the slowest of the ``k``). On a shared virtual machine it moves with
-    the other guests' load, so the Dask rows print it beside their ratio."""
+    machine's own ceiling for ``k`` workers against one (1 alone, then ``k`` at once, three times;
+    ``k`` times the median of the one's seconds over the median of the slowest of the ``k``). On a
+    shared virtual machine it moves with the other guests' load, so the Dask rows print it beside
+    their ratio."""
     def run(n: int) -> list[float]:
         procs = [subprocess.Popen([sys.executable, "-c", SPIN], stdout=subprocess.PIPE, text=True)
                  for _ in range(n)]
         return [float(p.communicate()[0]) for p in procs]
 
-    return k * run(1)[0] / max(run(k))
+    alone, together = [], []
+    for _ in range(3):  # interleaved, medians: the machine's speed drifts over seconds
+        alone += run(1)
+        together.append(max(run(k)))
+    return k * float(np.median(alone)) / float(np.median(together))
 
 
 def dask_runs(name: str, src: Path, d: Path, workers: list[int]) -> None:
@@ -106,7 +111,8 @@ def dask_runs(name: str, src: Path, d: Path, workers: list[int]) -> None:
                                  f"dask {k} worker(s)")
     for k in workers[1:]:
         print(f"{'':<36}dask {k} against {workers[0]}: {sec[workers[0]] / sec[k]:.2f}x; the machine now: "
-              f"{k} processes side by side do {side_by_side(k):.2f}x the work of one", flush=True)
+              f"{k} processes side by side do {side_by_side(k):.2f}x the pure-Python work of one",
+              flush=True)
 
 
 def main() -> int:
