@@ -232,7 +232,8 @@ def clear_mot(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float =
     oe, lo_e, hi_e, pos_e = frame_blocks(tracks.frame, frames)
     # the pairs within reach: a hair beyond it found, then motmetrics' own test on the squared
     # distance of the two ground positions, as its distance matrix has it
-    pairs = pairs or near_pairs(truth.frame, g_t, tracks.frame, g_e, max_dist_m * (1.0 + 1e-9))
+    if pairs is None:
+        pairs = near_pairs(truth.frame, g_t, tracks.frame, g_e, max_dist_m * (1.0 + 1e-9))
     pt, pe = pairs.a, pairs.b
     d2p = np.sum((g_t[pt] - g_e[pe]) ** 2, axis=-1)
     near = d2p <= max_dist_m**2

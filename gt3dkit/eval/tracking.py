@@ -53,7 +53,7 @@ def ospa2(truth_frame: np.ndarray, truth_id: np.ndarray, truth_xy: F64, est_fram
                           ei.ravel()[e_rows], np.searchsorted(frames, est_frame[e_rows]), len(ey),
                           len(frames))
     union = n_x[:, None] + n_y[None] - both
-    a, b, d = pairs or near_pairs(truth_frame, truth_xy, est_frame, est_xy, cutoff)
+    a, b, d = pairs if pairs is not None else near_pairs(truth_frame, truth_xy, est_frame, est_xy, cutoff)
     on = np.zeros(len(truth_frame), bool)
     on[t_rows] = True
     on_e = np.zeros(len(est_frame), bool)
@@ -124,7 +124,7 @@ def hota(truth_frame: np.ndarray, truth_id: np.ndarray, truth_xy: F64, est_frame
     e_count = np.bincount(e_inv, minlength=n_e).astype(float)
     both = g_count.repeat(n_e) + np.tile(e_count, n_g)  # (n_g * n_e,) the two identities' rows
     # farther pairs add nothing to (1) and (2): a similarity of 0
-    a, b, d = pairs or near_pairs(truth_frame, truth_xy, est_frame, est_xy, cutoff)
+    a, b, d = pairs if pairs is not None else near_pairs(truth_frame, truth_xy, est_frame, est_xy, cutoff)
     k = d < cutoff
     a, b, d = a[k], b[k], d[k]
     sim = 1.0 - d / cutoff
