@@ -36,7 +36,11 @@ processes, or ``--scheduler ADDRESS``: the Dask cluster ``reconstruct-many`` use
   own: measured on thousands of residuals they agree across windows to a few percent.
 
 What a window cannot know: an identity split is found from the frames the window holds (a split
-in a window's context is found again by its neighbour); segment numbers restart per window.
+in a window's context is found again by its neighbour); segment numbers restart per window. With
+``--every-frame``, an object's rows between two of its annotations come from a window that holds
+both: where an object goes unannotated for longer than a window's context, the windows inside
+that stretch hold at most one side of it, and its rows there are missing (the whole run has
+them). A window with no annotation at all, context included, is left out (:func:`occupied`).
 """
 
 from __future__ import annotations
