@@ -36,11 +36,15 @@ processes, or ``--scheduler ADDRESS``: the Dask cluster ``reconstruct-many`` use
   own: measured on thousands of residuals they agree across windows to a few percent.
 
 What a window cannot know: an identity split is found from the frames the window holds (a split
-in a window's context is found again by its neighbour); segment numbers restart per window. With
-``--every-frame``, an object's rows between two of its annotations come from a window that holds
-both: where an object goes unannotated for longer than a window's context, the windows inside
-that stretch hold at most one side of it, and its rows there are missing (the whole run has
-them). A window with no annotation at all, context included, is left out (:func:`occupied`).
+in a window's context is found again by its neighbour); segment numbers restart per window.
+
+With ``--every-frame``, an object's rows between two of its annotations need both in the window:
+each window also holds, of each object whose annotations span some of its own frames, the
+object's ``overlap`` annotated frames nearest before and after them, wherever they are
+(:func:`bridging_rows`). So an object unannotated for longer than a window and its context still
+gets the whole run's rows across the stretch (they were missing, or estimated from one annotated
+frame of one side and 6.7 sd off). A window that holds nothing, context and those included, is
+left out (:func:`occupied`; it was an internal error).
 """
 
 from __future__ import annotations
@@ -202,20 +206,53 @@ def auto_plan(scene: Scene) -> Plan | None:
                 span=max(fit, 3 * ov))
 
 
-def occupied(windows: list[Window], scene: Scene) -> list[Window]:
-    """The ``windows`` that hold an annotation, with their context (a gap in the annotations
-    longer than a window and its context holds nothing to estimate); all when none does."""
+def occupied(windows: list[Window], scene: Scene, bridge: int | None = None) -> list[Window]:
+    """The ``windows`` that hold an annotation, with their context, or (``bridge``) a
+    :func:`bridging_rows`' row: a gap in the annotations longer than a window and its context
+    holds nothing to estimate; all when none does."""
     f = np.unique(scene.obs.frame)
-    keep = [w for w in windows if np.searchsorted(f, w.hi, side="right") > np.searchsorted(f, w.lo)]
+    keep = [w for w in windows if np.searchsorted(f, w.hi, side="right") > np.searchsorted(f, w.lo)
+            or (bridge is not None and bridging_rows(scene, w, bridge).any())]
     return keep or windows
 
 
-def window_scene(scene: Scene, lo: int, hi: int) -> Scene:
-    """``scene`` cut to the frame numbers ``lo..hi`` (no truth: scored on the stitched tracks)."""
+def window_scene(scene: Scene, lo: int, hi: int, bridge: Window | None = None, count: int = 0) -> Scene:
+    """``scene`` cut to the frame numbers ``lo..hi`` (no truth: scored on the stitched tracks);
+    with ``bridge``, the window's rows plus :func:`bridging_rows` (``count`` a side), its frames
+    reaching theirs."""
     keep = (scene.obs.frame >= lo) & (scene.obs.frame <= hi)
+    if bridge is not None:
+        keep |= bridging_rows(scene, bridge, count)
+        held = scene.obs.frame[keep]
+        lo, hi = min(lo, int(held.min(initial=lo))), max(hi, int(held.max(initial=hi)))
     frames = np.asarray(scene.frames)
     return dataclasses.replace(scene, obs=scene.obs.select(keep),
                                frames=frames[(frames >= lo) & (frames <= hi)], truth=None, warnings=())
+
+
+def bridging_rows(scene: Scene, w: Window, count: int) -> np.ndarray:
+    """``(N,)`` the rows of each object whose annotations span some of the window ``w``'s own
+    frames: its ``count`` annotated frames nearest before ``w.first`` and nearest after
+    ``w.last``, wherever they are. Each such object then has its own context on both sides of
+    the window's frames, as a window's context gives an object seen in every frame, however
+    long it goes unannotated: its rows between annotations (``--every-frame``) are the whole
+    run's (they were missing, or estimated from one side, where it went unannotated for longer
+    than the context)."""
+    keys, inv = unique_rows(np.c_[scene.obs.track_id, scene.obs.frame], return_inverse=True)  # by id, frame
+    _, obj = np.unique(keys[:, 0], return_inverse=True)
+    obj = obj.ravel().astype(np.int64)
+    span = int(keys[:, 1].max(initial=0)) + 2
+    key = obj * span + keys[:, 1]  # sorted
+    start = np.searchsorted(obj, np.arange(int(obj.max(initial=-1)) + 1))
+    end = np.r_[start[1:], len(keys)]
+    base = np.arange(len(start)) * span
+    first = np.searchsorted(key, base + w.first)  # each object's first annotation at or after w.first
+    last = np.searchsorted(key, base + w.last, side="right")  # and after its last at or before w.last
+    take = np.zeros(len(keys), bool)
+    for o in np.flatnonzero((first > start) & (last < end) | (last > first)):  # it spans w's frames
+        take[max(start[o], first[o] - count):first[o]] = True
+        take[last[o]:min(end[o], last[o] + count)] = True
+    return take[inv]
 
 
 def noise_sample(scene: Scene, windows: list[Window], limit: int = NOISE_SAMPLE_OBJECT_FRAMES
@@ -467,14 +504,15 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
                 ov = max(needed, MIN_OVERLAP_FRAMES)
             plan = _sized(plan, ov, len(frames), workers)
             # the tool's windows hold equal object-frames (the workers finish together); --window as given
+            bridge = ov if every_frame is not None else None  # the rows between annotations
             windows = occupied(plan_windows(frames, plan.size, ov, frame_work(scene, frames) if plan.why
-                                            else None), scene)
+                                            else None), scene, bridge)
             like = WindowJob(windows[0], estimator, {**config, **noise}, every_frame)
             done = on_window or (lambda k, n: None)
             n = len(windows)
             if client is None and n == 1:
                 runner = None
-            scenes = _window_scenes(scene, windows, client)
+            scenes = _window_scenes(scene, windows, client, bridge)
             if ties_bones(scene, estimator, config) and n > 1:  # two rounds: the bones, then the rest
                 samples = _run_windows(scenes, windows, like, runner, lambda k, _: done(k, 2 * n),
                                        window_bones)
@@ -550,13 +588,18 @@ def _workers(client: Any) -> list[str]:
     return sorted(client.scheduler_info()["workers"])
 
 
-def _window_scenes(scene: Scene, windows: list[Window], client: Any) -> Callable[[int], Any]:
+def _window_scenes(scene: Scene, windows: list[Window], client: Any, bridge: int | None = None
+                   ) -> Callable[[int], Any]:
     """Window ``k``'s scene: made when asked (one window's at a time in this process), or on a
     Dask ``client`` scattered once to the cluster as data (not inside the task graph) and its
-    future given to every round."""
+    future given to every round; ``bridge``: with :func:`bridging_rows`, that many a side (the
+    rows between annotations, ``--every-frame``)."""
+    def cut(w: Window) -> Scene:
+        return window_scene(scene, w.lo, w.hi, w if bridge is not None else None, bridge or 0)
+
     if client is None:
-        return lambda k: window_scene(scene, windows[k].lo, windows[k].hi)
-    futures = [client.scatter(window_scene(scene, w.lo, w.hi), hash=False) for w in windows]
+        return lambda k: cut(windows[k])
+    futures = [client.scatter(cut(w), hash=False) for w in windows]
     return futures.__getitem__
 
 
