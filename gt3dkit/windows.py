@@ -246,8 +246,11 @@ def bridging_rows(scene: Scene, w: Window, count: int) -> np.ndarray:
     start = np.searchsorted(obj, np.arange(int(obj.max(initial=-1)) + 1))
     end = np.r_[start[1:], len(keys)]
     base = np.arange(len(start)) * span
-    first = np.searchsorted(key, base + w.first)  # each object's first annotation at or after w.first
-    last = np.searchsorted(key, base + w.last, side="right")  # and after its last at or before w.last
+    def at(frame: int, side: str) -> np.ndarray:  # within each object's block: frames past all its own
+        return np.searchsorted(key, base + min(max(frame, 0), span - 1), side=side)  # type: ignore[call-overload]
+
+    first = at(w.first, "left")  # each object's first annotation at or after w.first
+    last = at(w.last, "right")  # and after its last at or before w.last
     take = np.zeros(len(keys), bool)
     for o in np.flatnonzero((first > start) & (last < end) | (last > first)):  # it spans w's frames
         take[max(start[o], first[o] - count):first[o]] = True

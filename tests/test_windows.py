@@ -127,6 +127,28 @@ def test_a_gap_longer_than_a_window_runs(boxes: object) -> None:
     np.testing.assert_array_equal(part.track_id, whole.track_id)
 
 
+def test_bridging_rows_hand_worked() -> None:
+    """Id 7 at frames 0-4 and 20-24, id 9 at 10-30: a window's objects bring their own
+    annotated frames nearest its frames, two a side, where they span them; windows past every
+    annotation bring none (frames beyond the last annotation once read the next id's rows)."""
+    from types import SimpleNamespace
+
+    from gt3dkit.windows import bridging_rows
+
+    fr = np.r_[np.arange(5), np.arange(20, 25), np.arange(10, 31)]
+    tid = np.r_[np.full(10, 7), np.full(21, 9)]
+    scene = SimpleNamespace(obs=SimpleNamespace(frame=fr, track_id=tid))
+
+    def rows(w: Window) -> list[tuple[int, int]]:
+        m = bridging_rows(scene, w, 2)  # type: ignore[arg-type]
+        return sorted(zip(tid[m].tolist(), fr[m].tolist(), strict=True))
+
+    assert rows(Window(8, 10, 12, 14)) == [(7, 3), (7, 4), (7, 20), (7, 21), (9, 13), (9, 14)]
+    assert rows(Window(26, 28, 40, 45)) == [(9, 26), (9, 27)]  # id 7 ended before: not its window
+    assert rows(Window(90, 100, 120, 130)) == []
+    assert rows(Window(40, 44, 46, 50)) == []  # past both ids' last annotations
+
+
 @pytest.mark.parametrize("who", ["everyone", "one person"])
 def test_dense_rows_across_a_gap_longer_than_a_window(boxes: object, who: str) -> None:
     """``--every-frame`` in windows where nobody, or one person, goes unannotated for longer than
