@@ -41,7 +41,7 @@ in a window's context is found again by its neighbour); segment numbers restart 
 With ``--every-frame``, an object's rows between two of its annotations need both in the window:
 each window also holds, of each object whose annotations span some of its own frames, the
 object's ``overlap`` annotated frames nearest before and after them, wherever they are
-(:func:`bridging_rows`). So an object unannotated for longer than a window and its context still
+(:meth:`Bridge.rows`). So an object unannotated for longer than a window and its context still
 gets the whole run's rows across the stretch (they were missing, or estimated from one annotated
 frame of one side and 6.7 sd off). A window that holds nothing, context and those included, is
 left out (:func:`occupied`; it was an internal error).
@@ -206,23 +206,22 @@ def auto_plan(scene: Scene) -> Plan | None:
                 span=max(fit, 3 * ov))
 
 
-def occupied(windows: list[Window], scene: Scene, bridge: int | None = None) -> list[Window]:
-    """The ``windows`` that hold an annotation, with their context, or (``bridge``) a
-    :func:`bridging_rows`' row: a gap in the annotations longer than a window and its context
-    holds nothing to estimate; all when none does."""
+def occupied(windows: list[Window], scene: Scene, bridge: Bridge | None = None) -> list[Window]:
+    """The ``windows`` that hold an annotation, with their context, or a ``bridge`` row
+    (:meth:`Bridge.rows`): a gap in the annotations longer than a window and its context holds
+    nothing to estimate; all when none does."""
     f = np.unique(scene.obs.frame)
     keep = [w for w in windows if np.searchsorted(f, w.hi, side="right") > np.searchsorted(f, w.lo)
-            or (bridge is not None and bridging_rows(scene, w, bridge).any())]
+            or (bridge is not None and bridge.rows(w).any())]
     return keep or windows
 
 
-def window_scene(scene: Scene, lo: int, hi: int, bridge: Window | None = None, count: int = 0) -> Scene:
-    """``scene`` cut to the frame numbers ``lo..hi`` (no truth: scored on the stitched tracks);
-    with ``bridge``, the window's rows plus :func:`bridging_rows` (``count`` a side), its frames
-    reaching theirs."""
+def window_scene(scene: Scene, lo: int, hi: int, extra: np.ndarray | None = None) -> Scene:
+    """``scene`` cut to the frame numbers ``lo..hi`` (no truth: scored on the stitched tracks),
+    and the rows ``extra (N,)`` (:meth:`Bridge.rows`), its frames reaching theirs."""
     keep = (scene.obs.frame >= lo) & (scene.obs.frame <= hi)
-    if bridge is not None:
-        keep |= bridging_rows(scene, bridge, count)
+    if extra is not None:
+        keep |= extra
         held = scene.obs.frame[keep]
         lo, hi = min(lo, int(held.min(initial=lo))), max(hi, int(held.max(initial=hi)))
     frames = np.asarray(scene.frames)
@@ -230,32 +229,50 @@ def window_scene(scene: Scene, lo: int, hi: int, bridge: Window | None = None, c
                                frames=frames[(frames >= lo) & (frames <= hi)], truth=None, warnings=())
 
 
-def bridging_rows(scene: Scene, w: Window, count: int) -> np.ndarray:
-    """``(N,)`` the rows of each object whose annotations span some of the window ``w``'s own
-    frames: its ``count`` annotated frames nearest before ``w.first`` and nearest after
-    ``w.last``, wherever they are. Each such object then has its own context on both sides of
-    the window's frames, as a window's context gives an object seen in every frame, however
-    long it goes unannotated: its rows between annotations (``--every-frame``) are the whole
-    run's (they were missing, or estimated from one side, where it went unannotated for longer
-    than the context)."""
-    keys, inv = unique_rows(np.c_[scene.obs.track_id, scene.obs.frame], return_inverse=True)  # by id, frame
-    _, obj = np.unique(keys[:, 0], return_inverse=True)
-    obj = obj.ravel().astype(np.int64)
-    span = int(keys[:, 1].max(initial=0)) + 2
-    key = obj * span + keys[:, 1]  # sorted
-    start = np.searchsorted(obj, np.arange(int(obj.max(initial=-1)) + 1))
-    end = np.r_[start[1:], len(keys)]
-    base = np.arange(len(start)) * span
-    def at(frame: int, side: str) -> np.ndarray:  # within each object's block: frames past all its own
-        return np.searchsorted(key, base + min(max(frame, 0), span - 1), side=side)  # type: ignore[call-overload]
+@dataclass(frozen=True)
+class Bridge:
+    """Each object's annotated frames of a scene, once for all its windows: ``key (K,)`` one
+    sorted int64 per object and frame (``span`` apart per object), ``start, end (O,)`` each
+    object's entries, ``entry (N,)`` each scene row's; :meth:`rows` of a window, ``count`` a
+    side."""
 
-    first = at(w.first, "left")  # each object's first annotation at or after w.first
-    last = at(w.last, "right")  # and after its last at or before w.last
-    take = np.zeros(len(keys), bool)
-    for o in np.flatnonzero((first > start) & (last < end) | (last > first)):  # it spans w's frames
-        take[max(start[o], first[o] - count):first[o]] = True
-        take[last[o]:min(end[o], last[o] + count)] = True
-    return take[inv]
+    key: I64
+    start: I64
+    end: I64
+    span: int
+    entry: I64
+    count: int
+
+    @classmethod
+    def of(cls, scene: Scene, count: int) -> Bridge:
+        keys, entry = unique_rows(np.c_[scene.obs.track_id, scene.obs.frame], return_inverse=True)
+        _, obj = np.unique(keys[:, 0], return_inverse=True)
+        obj = obj.ravel().astype(np.int64)
+        span = int(keys[:, 1].max(initial=0)) + 2
+        start = np.searchsorted(obj, np.arange(int(obj.max(initial=-1)) + 1))
+        return cls(obj * span + keys[:, 1], start, np.r_[start[1:], len(keys)], span, entry, count)
+
+    def rows(self, w: Window) -> np.ndarray:
+        """``(N,)`` the rows of each object whose annotations span some of the window ``w``'s own
+        frames: its ``count`` annotated frames nearest before ``w.first`` and nearest after
+        ``w.last``, wherever they are. Each such object then has its own context on both sides
+        of the window's frames, as a window's context gives an object seen in every frame,
+        however long it goes unannotated: its rows between annotations (``--every-frame``) are
+        the whole run's (they were missing, or estimated from one side, where it went
+        unannotated for longer than the context)."""
+        base = np.arange(len(self.start)) * self.span
+
+        def at(frame: int, side: str) -> np.ndarray:  # within each object's entries: past all its own
+            return np.searchsorted(self.key, base + min(max(frame, 0), self.span - 1),
+                                   side=side)  # type: ignore[call-overload]
+
+        first, last = at(w.first, "left"), at(w.last, "right")  # its entries from w.first, after w.last
+        spans = ((first > self.start) & (last < self.end)) | (last > first)
+        begin = np.r_[np.maximum(self.start, first - self.count)[spans], last[spans]]
+        stop = np.r_[first[spans], np.minimum(self.end, last + self.count)[spans]]
+        n = len(self.key) + 1
+        inside = np.cumsum(np.bincount(begin, minlength=n) - np.bincount(stop, minlength=n))[:-1] > 0
+        return inside[self.entry]
 
 
 def noise_sample(scene: Scene, windows: list[Window], limit: int = NOISE_SAMPLE_OBJECT_FRAMES
@@ -507,7 +524,7 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
                 ov = max(needed, MIN_OVERLAP_FRAMES)
             plan = _sized(plan, ov, len(frames), workers)
             # the tool's windows hold equal object-frames (the workers finish together); --window as given
-            bridge = ov if every_frame is not None else None  # the rows between annotations
+            bridge = Bridge.of(scene, ov) if every_frame is not None else None  # rows between annotations
             windows = occupied(plan_windows(frames, plan.size, ov, frame_work(scene, frames) if plan.why
                                             else None), scene, bridge)
             like = WindowJob(windows[0], estimator, {**config, **noise}, every_frame)
@@ -591,14 +608,14 @@ def _workers(client: Any) -> list[str]:
     return sorted(client.scheduler_info()["workers"])
 
 
-def _window_scenes(scene: Scene, windows: list[Window], client: Any, bridge: int | None = None
+def _window_scenes(scene: Scene, windows: list[Window], client: Any, bridge: Bridge | None = None
                    ) -> Callable[[int], Any]:
     """Window ``k``'s scene: made when asked (one window's at a time in this process), or on a
     Dask ``client`` scattered once to the cluster as data (not inside the task graph) and its
-    future given to every round; ``bridge``: with :func:`bridging_rows`, that many a side (the
-    rows between annotations, ``--every-frame``)."""
+    future given to every round; with the ``bridge`` rows (the rows between annotations,
+    ``--every-frame``)."""
     def cut(w: Window) -> Scene:
-        return window_scene(scene, w.lo, w.hi, w if bridge is not None else None, bridge or 0)
+        return window_scene(scene, w.lo, w.hi, bridge.rows(w) if bridge is not None else None)
 
     if client is None:
         return lambda k: cut(windows[k])

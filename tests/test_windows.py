@@ -127,20 +127,20 @@ def test_a_gap_longer_than_a_window_runs(boxes: object) -> None:
     np.testing.assert_array_equal(part.track_id, whole.track_id)
 
 
-def test_bridging_rows_hand_worked() -> None:
+def test_bridge_rows_hand_worked() -> None:
     """Id 7 at frames 0-4 and 20-24, id 9 at 10-30: a window's objects bring their own
     annotated frames nearest its frames, two a side, where they span them; windows past every
     annotation bring none (frames beyond the last annotation once read the next id's rows)."""
     from types import SimpleNamespace
 
-    from gt3dkit.windows import bridging_rows
+    from gt3dkit.windows import Bridge
 
     fr = np.r_[np.arange(5), np.arange(20, 25), np.arange(10, 31)]
     tid = np.r_[np.full(10, 7), np.full(21, 9)]
     scene = SimpleNamespace(obs=SimpleNamespace(frame=fr, track_id=tid))
 
     def rows(w: Window) -> list[tuple[int, int]]:
-        m = bridging_rows(scene, w, 2)  # type: ignore[arg-type]
+        m = Bridge.of(scene, 2).rows(w)  # type: ignore[arg-type]
         return sorted(zip(tid[m].tolist(), fr[m].tolist(), strict=True))
 
     assert rows(Window(8, 10, 12, 14)) == [(7, 3), (7, 4), (7, 20), (7, 21), (9, 13), (9, 14)]
@@ -153,7 +153,7 @@ def test_bridging_rows_hand_worked() -> None:
 def test_dense_rows_across_a_gap_longer_than_a_window(boxes: object, who: str) -> None:
     """``--every-frame`` in windows where nobody, or one person, goes unannotated for longer than
     a window and its context: each object's windows bring its own annotations beyond the stretch
-    (``bridging_rows``), so every row between annotations is there, near the whole run's (within
+    (``Bridge.rows``), so every row between annotations is there, near the whole run's (within
     0.1 of their sd inside the stretch). Without that they were missing, or 6.7 sd off where a
     window held one annotated frame of one side."""
     import dataclasses
