@@ -5,6 +5,8 @@ run back with its scene."""
 from __future__ import annotations
 
 import dataclasses
+import functools
+import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,10 +29,26 @@ from gt3dkit.io.results import read_result
 from gt3dkit.io.writers import ANOMALY_COLUMNS, read_keypoints_csv, read_segments_csv, write_outputs
 from gt3dkit.parse import read_csv_rows
 from gt3dkit.qa.anomalies import find_anomalies
+from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
 from gt3dkit.threads import small_matrix_blas
 from gt3dkit.types import BOX_MODELS, I64, Scene, TrackSet
 
 __all__ = ["ESTIMATORS", "annotation_qa", "load_run", "load_scene", "make_estimator", "reconstruct"]
+
+
+@functools.cache
+def tiny_scenes() -> tuple[Scene, Scene]:
+    """Two small simulated scenes, written and read back as any input is: 4 frames of 2 people
+    boxed by the WILDTRACK rig's 7 cameras (1 px of noise), and 3 frames of one COCO-19 skeleton
+    seen by 3 cameras. Estimating both compiles, or loads from numba's cache, the kernels a run
+    uses (:mod:`gt3dkit.commands.warmup`; :func:`gt3dkit.windows.warm_worker`, a Dask worker's
+    while the sequence loads)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        write_scene(simulate("wildtrack", seed=0, frames=4, people=2, noise_px=1.0), Path(tmp) / "boxes",
+                    "wildtrack")
+        write_skeleton_scene(simulate_skeletons("native", seed=0, frames=3, people=1, cameras=3),
+                             Path(tmp) / "joints", "native")
+        return load_scene(Path(tmp) / "boxes"), load_scene(Path(tmp) / "joints")
 
 
 def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None = None,

@@ -15,6 +15,7 @@ pool alone). threadpoolctl changes the pool at run time (numpy's BLAS is already
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import functools
 import os
 from collections.abc import Callable, Iterator
@@ -83,10 +84,28 @@ def compiled_threads() -> int:
     v = _env_threads("GT3D_THREADS")
     if v is not None:
         return v
+    if _EVERY_CORE.get():
+        return _cores()
     worker = os.environ.get("GT3D_BLAS_THREADS") == "1"
     if worker or threading.current_thread() is not threading.main_thread():
         return 1
     return _cores()
+
+
+#: Set by :func:`every_core` for the block it runs (in this thread and context).
+_EVERY_CORE: contextvars.ContextVar[bool] = contextvars.ContextVar("gt3dkit_every_core", default=False)
+
+
+@contextlib.contextmanager
+def every_core() -> Iterator[None]:
+    """:func:`compiled_threads` gives every core in the block, in any thread (``GT3D_THREADS``
+    still decides where set): for a step the rest of the run waits for, on a worker whose
+    siblings are idle meanwhile (:func:`gt3dkit.windows.sample_noise` on a Dask worker)."""
+    token = _EVERY_CORE.set(True)
+    try:
+        yield
+    finally:
+        _EVERY_CORE.reset(token)
 
 
 @functools.cache

@@ -7,8 +7,10 @@ processes, or ``--scheduler ADDRESS``: the Dask cluster ``reconstruct-many`` use
   at most :data:`NOISE_SAMPLE_OBJECT_FRAMES` object-frames around its middle
   (:func:`noise_sample`, :func:`chosen_noise`), of which the search's own draw of whole objects
   (:func:`searched_objects`); every window then runs with it fixed, so that the windows agree.
-  Where the windows run on workers, so does the search (a Dask cluster's other workers load
-  their imports and compiled kernels meanwhile, :func:`_warm_workers`).
+  Where the windows run on workers, so does the search; on a Dask cluster on every core of its
+  worker, as the others wait for it (:func:`searched_on_worker`). ``gt3d reconstruct
+  --scheduler`` connects while the sequence loads, and every worker loads gt3dkit's imports and
+  compiled kernels meanwhile (:class:`Cluster`, :func:`warm_worker`): the search starts warm.
 * The windows the tool chose (not a ``--window`` the user gave) are cut where each holds an
   equal share of the object-frames (:func:`plan_windows` with each frame's objects): a window's
   time and memory go with its object-frames, not its frames. Spread over workers they are made
@@ -51,6 +53,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -65,6 +68,7 @@ from gt3dkit.api import (
     estimate_checked,
     process_noise_prepared,
     take_rows,
+    tiny_scenes,
 )
 from gt3dkit.arrays import unique_rows
 from gt3dkit.errors import InputError
@@ -74,7 +78,7 @@ from gt3dkit.fusion.split import split_entries
 from gt3dkit.fusion.ukf_smoother import SEARCH_OBJECT_FRAMES, UKFConfig, drawn_objects
 from gt3dkit.io.writers import write_outputs
 from gt3dkit.qa.anomalies import Anomalies
-from gt3dkit.threads import roomy_malloc, small_matrix_blas
+from gt3dkit.threads import every_core, roomy_malloc, small_matrix_blas
 from gt3dkit.types import I64, Downweighted, Scene, TrackSet
 
 #: The process-noise settings chosen once for all windows.
@@ -92,8 +96,6 @@ CONTEXT_SD_PERCENTILE = 90.0
 #: whole objects, :func:`searched_objects`): thousands of object-frames fix a maximum-likelihood
 #: noise level to a few percent, and the search is the one step the other workers wait for.
 NOISE_SAMPLE_OBJECT_FRAMES = 20_000
-#: Frames each Dask worker estimates first, to load its imports and kernels (:func:`_warm_workers`).
-WARM_FRAMES = 3
 #: Bytes of a run's per-object-frame state beyond which ``gt3d reconstruct`` runs a sequence in
 #: windows by itself (:func:`auto_plan`), and that a window holds at most: with the process's own
 #: code and data (about 0.3 GB: the compiled kernels, the libraries, the loaded sequence) a run
@@ -305,9 +307,9 @@ def chosen_noise(scene: Scene, windows: list[Window], estimator: str, config: di
     if runner is None:
         return sample_noise(sample, estimator, config, step_s)
     if hasattr(runner, "scatter"):  # a Dask client: the sample as data, not inside the task graph
-        first = _workers(runner)[:1] or None  # the one _warm_workers leaves out
-        return runner.submit(sample_noise, runner.scatter(sample, hash=False, workers=first), estimator,
-                             config, step_s, workers=first, pure=False).result()
+        first = _workers(runner)[:1] or None  # the one a Cluster made in the run leaves unwarmed
+        return runner.submit(searched_on_worker, runner.scatter(sample, hash=False, workers=first),
+                             estimator, config, step_s, workers=first, pure=False).result()
     return runner.submit(sample_noise, sample, estimator, config, step_s).result()
 
 
@@ -338,6 +340,15 @@ def sample_noise(sample: Scene, estimator: str, config: dict[str, Any], step_s: 
     chosen = {k: float(found[k]) for k in PROCESS_NOISE if k in fields and found.get(k) is not None}
     noise = {**chosen, **given}
     return noise, joint_context(pre, noise, step_s)
+
+
+def searched_on_worker(sample: Scene, estimator: str, config: dict[str, Any], step_s: float
+                       ) -> tuple[dict[str, float], int | None]:
+    """:func:`sample_noise` on a Dask worker, on every core of its machine (the compiled loops'
+    threads, :func:`gt3dkit.threads.every_core`; a worker's task thread gets one): every worker
+    waits for it. On the 4 000-frame box scene ... ."""
+    with every_core():
+        return sample_noise(sample, estimator, config, step_s)
 
 
 def context_steps(accel_sd: float, meas_sd_m: float, dt_s: float, weight: float = CONTEXT_WEIGHT) -> int:
@@ -488,29 +499,80 @@ def _client(address: str) -> Any:
         raise InputError("--scheduler", f"cannot reach the Dask scheduler at {address} ({e})") from None
 
 
+class Cluster:
+    """The Dask scheduler at ``address`` (``--scheduler``), connected in a thread while this
+    process goes on (loading the sequence: ``gt3d reconstruct`` makes it first), its workers
+    loading gt3dkit's imports and compiled kernels meanwhile (:func:`warm_worker`): every one
+    with ``loading``, else all but the first, which starts the noise search at once
+    (:func:`chosen_noise`) and would only do the same work first. A context manager; the client
+    or the connection's error (:class:`InputError` naming ``--scheduler``) from :meth:`client`."""
+
+    def __init__(self, address: str, estimator: str, config: dict[str, Any], loading: bool = True) -> None:
+        self.address = address
+        self._client: Any = None
+        self._warming: list[Any] = []  # held until closed: a future let go is a task cancelled
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._connect, args=(estimator, config, loading),
+                                        name="gt3dkit-dask-connect", daemon=True)
+        self._thread.start()
+
+    def _connect(self, estimator: str, config: dict[str, Any], loading: bool) -> None:
+        try:
+            self._client = _client(self.address)
+            workers = _workers(self._client)[0 if loading else 1:]
+            self._warming = [self._client.submit(warm_worker, estimator, config, workers=[w],
+                                                 allow_other_workers=False, pure=False) for w in workers]
+        except BaseException as e:  # raised in the caller's thread, by client()
+            self._error = e
+
+    def client(self) -> Any:
+        """The connected Dask client (waits for the connection)."""
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._client
+
+    def close(self) -> None:
+        self._thread.join()
+        self._warming = []
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+
+    def __enter__(self) -> Cluster:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
 def reconstruct_windows(scene: Scene, estimator: str, plan: Plan, out: str | None = None,
                         extra_meta: dict[str, Any] | None = None, every_frame: int | None = None,
-                        on_window: Callable[[int, int], None] | None = None, **config: Any) -> TrackSet:
+                        on_window: Callable[[int, int], None] | None = None, cluster: Cluster | None = None,
+                        **config: Any) -> TrackSet:
     """:func:`gt3dkit.api.reconstruct` of a long sequence by ``plan``; writes ``out`` if given
-    (atomically, as one run)."""
-    tracks, qa = reconstruct_windowed(scene, estimator, plan, every_frame, on_window, **config)
+    (atomically, as one run). ``cluster``: ``plan.scheduler``'s, connected early by the caller
+    (who closes it)."""
+    tracks, qa = reconstruct_windowed(scene, estimator, plan, every_frame, on_window, cluster, **config)
     if out is not None:
         write_outputs(Path(out), scene, tracks, extra_meta, anomalies=qa)
     return tracks
 
 
 def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: int | None = None,
-                         on_window: Callable[[int, int], None] | None = None,
+                         on_window: Callable[[int, int], None] | None = None, cluster: Cluster | None = None,
                          **config: Any) -> tuple[TrackSet, Anomalies]:
     """``scene`` in windows (:mod:`gt3dkit.windows`, ``plan``): the stitched tracks and QA
-    findings; ``on_window(done, total)`` as the windows start (0) and after each one."""
+    findings; ``on_window(done, total)`` as the windows start (0) and after each one; ``cluster``
+    as :func:`reconstruct_windows`."""
     if estimator == "triangulation":
         raise InputError("--window", "the triangulation fits each frame on its own: it needs no window")
     ov = overlap_frames(scene) if plan.overlap is None else plan.overlap
-    client = None
-    if plan.scheduler:
-        client = _client(plan.scheduler)
+    own = cluster is None and bool(plan.scheduler)
+    if own:
+        cluster = Cluster(str(plan.scheduler), estimator, config, loading=False)
     try:
+        client = cluster.client() if cluster is not None else None
         workers = len(client.scheduler_info()["workers"]) if client is not None else plan.jobs
         frames = np.asarray(scene.frames, dtype=np.int64)
         windows = plan_windows(frames, _sized(plan, ov, len(frames), workers).size, ov)
@@ -518,7 +580,6 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
             runner = client
             if client is None and plan.jobs > 1 and len(windows) > 1:
                 runner = stack.enter_context(_process_pool(min(plan.jobs, len(windows))))
-            warming = _warm_workers(client, scene, estimator, config) if client is not None else []
             noise, needed = chosen_noise(scene, windows, estimator, config, runner)
             if plan.overlap is None and needed is not None and needed < ov:  # the noise's own context
                 ov = max(needed, MIN_OVERLAP_FRAMES)
@@ -541,10 +602,9 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
             else:
                 samples = []
                 parts = _run_windows(scenes, windows, like, runner, done)
-            del warming
     finally:
-        if client is not None:
-            client.close()
+        if own and cluster is not None:
+            cluster.close()
     tracks, qa = stitch(parts, windows, plan, ov, noise)
     if like.bones is not None:  # every person's, not the first window's
         tracks.info["bones"] = {**like.bones.lengths.info(like.bones.ids),
@@ -582,25 +642,13 @@ def _process_pool(workers: int) -> Any:
     return ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
 
 
-def warm_worker(scene: Scene, estimator: str, config: dict[str, Any]) -> None:
-    """Estimate ``scene`` (a few frames) and drop the result: this process's imports and compiled
-    kernels loaded (:func:`_warm_workers`); an error is left to the windows to find."""
+def warm_worker(estimator: str, config: dict[str, Any]) -> None:
+    """Estimate two tiny simulated scenes, boxes and joints (:func:`gt3dkit.api.tiny_scenes`),
+    and drop the results: this process's imports and compiled kernels loaded (a Dask worker's,
+    :class:`Cluster`); an error is left to the windows to find."""
     with contextlib.suppress(Exception), small_matrix_blas():
-        estimate_checked(scene, make_estimator(estimator, **config))
-
-
-def _warm_workers(client: Any, scene: Scene, estimator: str, config: dict[str, Any]) -> list[Any]:
-    """The sequence's first annotated frames estimated and dropped on the Dask ``client``'s
-    workers but the first (:func:`warm_worker`): while the first searches the noise
-    (:func:`chosen_noise`), the others load their imports and compiled kernels (a second or two
-    a process) instead of on their first window. Their futures, to hold until the windows run
-    (a future let go is a task cancelled)."""
-    f = np.unique(scene.obs.frame)[:WARM_FRAMES]  # the first annotated frames
-    if not len(f):
-        return []
-    tiny = window_scene(scene, int(f[0]), int(f[-1]))  # small: inside the task
-    return [client.submit(warm_worker, tiny, estimator, config, workers=[w], allow_other_workers=False,
-                          pure=False) for w in _workers(client)[1:]]
+        for scene in tiny_scenes():
+            estimate_checked(scene, make_estimator(estimator, **config))
 
 
 def _workers(client: Any) -> list[str]:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_info
 
-from gt3dkit.threads import blas_threads, compiled_threads, small_matrix_blas
+from gt3dkit.threads import blas_threads, compiled_threads, every_core, small_matrix_blas
 
 
 def _blas_threads_now() -> list[int]:
@@ -85,7 +85,8 @@ def test_split_work_survives_a_fork(monkeypatch) -> None:
 
 def test_compiled_threads_choice(monkeypatch) -> None:
     """Every core in the main thread; one in reconstruct-many workers and in other threads (they
-    are the parallelism there); GT3D_THREADS overrides."""
+    are the parallelism there), but inside ``every_core`` (and only there); GT3D_THREADS
+    overrides."""
     import os
     import threading
 
@@ -97,10 +98,22 @@ def test_compiled_threads_choice(monkeypatch) -> None:
     t.start()
     t.join()
     assert seen == [1]
+
+    def in_every_core() -> None:  # a step the idle siblings wait for (a Dask worker's thread)
+        with every_core():
+            seen.append(compiled_threads())
+        seen.append(compiled_threads())
+
+    t = threading.Thread(target=in_every_core)
+    t.start()
+    t.join()
+    assert seen == [1, os.cpu_count() or 1, 1]
     monkeypatch.setenv("GT3D_BLAS_THREADS", "1")  # what a reconstruct-many worker sets
     assert compiled_threads() == 1
     monkeypatch.setenv("GT3D_THREADS", "3")
     assert compiled_threads() == 3
+    with every_core():
+        assert compiled_threads() == 3
 
 
 def test_roomy_malloc_on_a_dask_like_worker() -> None:

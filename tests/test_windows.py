@@ -17,7 +17,16 @@ from gt3dkit.cli import main
 from gt3dkit.commands.common import Stages, clock
 from gt3dkit.fusion.base import make_estimator
 from gt3dkit.sim import Errors, simulate_skeletons, write_skeleton_scene
-from gt3dkit.windows import Plan, Window, balanced_size, noise_sample, plan_windows, reconstruct_windowed
+from gt3dkit.windows import (
+    Cluster,
+    Plan,
+    Window,
+    balanced_size,
+    noise_sample,
+    plan_windows,
+    reconstruct_windowed,
+    reconstruct_windows,
+)
 from tests.scenes import written_scene
 
 
@@ -220,8 +229,45 @@ def test_jobs_and_dask_give_the_one_process_output(boxes: object, tmp_path: Path
                                   dashboard_address=None) as cluster:
         code, so, se = _run("reconstruct", str(root), "--out", str(tmp_path / "dask"), "--window", "40",
                             "--quiet", "--scheduler", cluster.scheduler_address)
+        # the library's own connection (no Cluster given: made in the run, the first worker unwarmed)
+        reconstruct_windows(load_scene(root), "ukf", Plan(40, scheduler=cluster.scheduler_address),
+                            str(tmp_path / "library"))
     assert code == 0, se
     assert (tmp_path / "dask" / "tracks.csv").read_bytes() == outs["one"]
+    assert (tmp_path / "library" / "tracks.csv").read_bytes() == outs["one"]
+
+
+def _tiny_scenes_made() -> int:
+    import sys
+
+    api = sys.modules.get("gt3dkit.api")
+    return 0 if api is None else api.tiny_scenes.cache_info().currsize
+
+
+def test_a_cluster_warms_every_worker_while_the_caller_goes_on() -> None:
+    """``Cluster`` has every worker estimate the tiny scenes (with ``loading``: while the caller
+    loads the sequence), or every worker but the first (without: the first starts the noise search
+    at once)."""
+    import time
+
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as cluster:
+        with Cluster(cluster.scheduler_address, "ukf", {}, loading=False) as c:
+            client = c.client()
+            for _ in range(600):  # until the second worker's warm-up is done (seconds)
+                made = client.run(_tiny_scenes_made)
+                if sorted(made.values()) == [0, 1]:
+                    break
+                time.sleep(0.1)
+            assert made[sorted(made)[0]] == 0 and made[sorted(made)[1]] == 1, made
+        with Cluster(cluster.scheduler_address, "ukf", {}) as c:
+            client = c.client()
+            for _ in range(600):
+                if set(client.run(_tiny_scenes_made).values()) == {1}:
+                    break
+                time.sleep(0.1)
+            assert set(client.run(_tiny_scenes_made).values()) == {1}
 
 
 def test_skeleton_windows_give_the_one_process_output_in_processes_and_on_dask(tmp_path: Path) -> None:

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import sys
@@ -35,12 +36,27 @@ from gt3dkit.many import read_manifest, run_many
 from gt3dkit.project import project
 from gt3dkit.refine import refine, rig_digest
 from gt3dkit.viz.report import write_report
-from gt3dkit.windows import Plan, auto_plan, reconstruct_windows
+from gt3dkit.windows import Cluster, Plan, auto_plan, reconstruct_windows
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
 
     config = estimator_config(args)
+    with early_cluster(args, config) as cluster:
+        return reconstructed(args, config, cluster)
+
+
+def early_cluster(args: argparse.Namespace, config: dict[str, Any]) -> Any:
+    """``--scheduler``'s Dask cluster, connected and its workers warmed while the input loads
+    (:class:`gt3dkit.windows.Cluster`); a null context where the run uses none (``--window 0`` and
+    the triangulation are refused after the input loads, by :func:`window_plan`)."""
+    if not args.scheduler or args.window == 0 or args.estimator == "triangulation":
+        return contextlib.nullcontext()
+    return Cluster(args.scheduler, args.estimator, config)
+
+
+def reconstructed(args: argparse.Namespace, config: dict[str, Any], cluster: Cluster | None) -> int:
+    """``gt3d reconstruct``'s run, on ``cluster`` where given."""
     stages = Stages(5, args.quiet)
     stages("loading")
     scene = load_input(args)
@@ -58,7 +74,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         if plan is not None:
             stages("windows")
             tracks = reconstruct_windows(scene, args.estimator, plan, args.out, extra, args.every_frame,
-                                         lambda k, n: stages.part("windows", k, n), **config)
+                                         lambda k, n: stages.part("windows", k, n), cluster, **config)
         else:
             tracks = reconstruct(scene, args.estimator, out=args.out, extra_meta=extra, on_stage=stages,
                                  every_frame=args.every_frame, **config)

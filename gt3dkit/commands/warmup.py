@@ -6,24 +6,18 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import tempfile
 import time
 from dataclasses import replace
-from pathlib import Path
 
-from gt3dkit.api import load_scene
+from gt3dkit.api import tiny_scenes
 from gt3dkit.fusion import ukf_smoother as us
 from gt3dkit.fusion.measurement import Model
-from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
 from gt3dkit.types import Scene
 
 
 def _tiny_model() -> tuple[Model, us.Init, us.UKFConfig, float, us.UKFSmoother, Scene]:
     """A 4-frame, 2-person simulated scene's model, initial states and a config with its noise set."""
-    with tempfile.TemporaryDirectory() as tmp:
-        write_scene(simulate("wildtrack", seed=0, frames=4, people=2, noise_px=1.0), Path(tmp) / "in",
-                    "wildtrack")
-        scene = load_scene(Path(tmp) / "in")
+    scene = tiny_scenes()[0]
     est = us.UKFSmoother()
     model = Model.of(est.prepare(scene))  # the per-frame fits (gt3dkit.fusion.boxlm)
     cfg = replace(est.config, accel_sd=0.5, shape_sd=0.01)
@@ -35,10 +29,7 @@ def compile_side() -> None:
     on a tiny skeleton scene."""
     model, init, cfg, fps, _, _ = _tiny_model()
     us.run_frames(model, init, cfg, fps, collect=True)
-    with tempfile.TemporaryDirectory() as tmp:
-        sim = simulate_skeletons("native", seed=0, frames=3, people=1, cameras=3)
-        write_skeleton_scene(sim, Path(tmp) / "in", "native")
-        scene = load_scene(Path(tmp) / "in")
+    scene = tiny_scenes()[1]
     model = Model.of(us.UKFSmoother().prepare(scene))
     cfg = replace(cfg, joint_accel_sd=0.5)
     us.run_filter(model, us.initial_states(model, cfg), cfg, scene.fps, collect=True)
