@@ -9,8 +9,9 @@ processes, or ``--scheduler ADDRESS``: the Dask cluster ``reconstruct-many`` use
   (:func:`searched_objects`); every window then runs with it fixed, so that the windows agree.
   Where the windows run on workers, so does the search; on a Dask cluster on every core of its
   worker, as the others wait for it (:func:`searched_on_worker`). ``gt3d reconstruct
-  --scheduler`` connects while the sequence loads, and every worker loads gt3dkit's imports and
-  compiled kernels meanwhile (:class:`Cluster`, :func:`warm_worker`): the search starts warm.
+  --scheduler`` connects while the sequence loads, and the search's worker loads gt3dkit's
+  imports and compiled kernels meanwhile (:class:`Cluster`, :func:`warm_first`): the search
+  starts warm. The other workers do that during the search (:func:`_warm_workers`).
 * The windows the tool chose (not a ``--window`` the user gave) are cut where each holds an
   equal share of the object-frames (:func:`plan_windows` with each frame's objects): a window's
   time and memory go with its object-frames, not its frames. Spread over workers they are made
@@ -53,7 +54,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -76,11 +76,18 @@ from gt3dkit.fusion.base import make_estimator
 from gt3dkit.fusion.bones import BoneSamples, PersonBones
 from gt3dkit.fusion.split import split_entries
 from gt3dkit.fusion.ukf_smoother import SEARCH_OBJECT_FRAMES, UKFConfig, drawn_objects
-from gt3dkit.io.writers import write_outputs
+from gt3dkit.io.atomic import write_dir_atomically
+from gt3dkit.io.writers import StreamedRows, write_result_files
 from gt3dkit.qa.anomalies import Anomalies
 from gt3dkit.threads import every_core, roomy_malloc, small_matrix_blas
 from gt3dkit.types import I64, Downweighted, Scene, TrackSet
 
+#: What a window's rows and findings go to as it finishes (:func:`reconstruct_windowed`): its index,
+#: its tracks and its QA rows.
+OnPart = Callable[[int, TrackSet, list[tuple[Any, ...]]], None]
+#: Frames each Dask worker but the first estimates first, to load its imports and kernels
+#: (:func:`_warm_workers`).
+WARM_FRAMES = 3
 #: The process-noise settings chosen once for all windows.
 PROCESS_NOISE = ("accel_sd", "position_sd", "shape_sd", "joint_accel_sd")
 #: Default context on each side of a window, seconds (at least :data:`MIN_OVERLAP_FRAMES`).
@@ -294,23 +301,25 @@ def noise_sample(scene: Scene, windows: list[Window], limit: int = NOISE_SAMPLE_
 
 
 def chosen_noise(scene: Scene, windows: list[Window], estimator: str, config: dict[str, Any],
-                 runner: Any = None) -> tuple[dict[str, float], int | None]:
+                 runner: Any = None) -> Callable[[], tuple[dict[str, float], int | None]]:
     """The process noise every window runs with (the settings ``config`` gives, the others the
     estimator's own choice on :func:`noise_sample`'s frames, :func:`sample_noise`) and the
-    context in frames that noise needs (:func:`joint_context`; None: the default's): in this
-    process, or where the windows run (``runner``: the Dask client or the process pool), whose
-    workers need the estimator's compiled kernels anyway."""
+    context in frames that noise needs (:func:`joint_context`; None: the default's), when the
+    returned function is called: found in this process, or where the windows run (``runner``:
+    the Dask client or the process pool, whose workers need the estimator's compiled kernels
+    anyway), this process free to go on meanwhile."""
     lo, hi = noise_sample(scene, windows)
     sample = searched_objects(window_scene(scene, lo, hi))
     f = np.asarray(scene.frames)
     step_s = (float(np.median(np.diff(f))) if len(f) > 1 else 1.0) / scene.fps
     if runner is None:
-        return sample_noise(sample, estimator, config, step_s)
+        found = sample_noise(sample, estimator, config, step_s)
+        return lambda: found
     if hasattr(runner, "scatter"):  # a Dask client: the sample as data, not inside the task graph
-        first = _workers(runner)[:1] or None  # the one a Cluster made in the run leaves unwarmed
+        first = _workers(runner)[:1] or None  # warmed as the sequence loaded (Cluster); not warmed again
         return runner.submit(searched_on_worker, runner.scatter(sample, hash=False, workers=first),
-                             estimator, config, step_s, workers=first, pure=False).result()
-    return runner.submit(sample_noise, sample, estimator, config, step_s).result()
+                             estimator, config, step_s, workers=first, pure=False).result
+    return runner.submit(sample_noise, sample, estimator, config, step_s).result
 
 
 def searched_objects(sample: Scene, budget: int = SEARCH_OBJECT_FRAMES) -> Scene:
@@ -419,7 +428,13 @@ def run_window(job: WindowJob, scene: Scene) -> tuple[TrackSet, list[tuple[Any, 
     if d is not None:
         d = _downweighted_rows(d, (d.frame >= w.first) & (d.frame <= w.last))
     out = take_rows(dataclasses.replace(tracks, downweighted=d), keep)
-    return out, [r for r in qa.rows if w.first <= r[0] <= w.last]
+    return out, sorted((r for r in qa.rows if w.first <= r[0] <= w.last), key=finding_order)
+
+
+def finding_order(row: tuple[Any, ...]) -> tuple[Any, ...]:
+    """A QA finding's place in ``anomalies.csv``: by frame, camera, id (a window's, and so the
+    windows' in order: :class:`gt3dkit.io.writers.StreamedRows`)."""
+    return row[0], str(row[1]), row[2]
 
 
 def window_bones(job: WindowJob, scene: Scene) -> tuple[BoneSamples | None, I64, float]:
@@ -482,7 +497,7 @@ def stitch(parts: list[tuple[TrackSet, list[tuple[Any, ...]]]], windows: list[Wi
     segs = [s for t in ts for s in t.info.get("segments", [])]
     if segs:
         info["segments"] = segs
-    rows = sorted((r for p in parts for r in p[1]), key=lambda r: (r[0], str(r[1]), r[2]))
+    rows = [r for p in parts for r in p[1]]  # each window's sorted, the windows in frame order
     qa = Anomalies(rows)
     info["qa"] = {"anomalies": qa.counts(), "file": "anomalies.csv"}
     tracks = TrackSet(**{k: v[order] for k, v in cat.items()}, info=info, downweighted=down)
@@ -500,44 +515,26 @@ def _client(address: str) -> Any:
 
 
 class Cluster:
-    """The Dask scheduler at ``address`` (``--scheduler``), connected in a thread while this
-    process goes on (loading the sequence: ``gt3d reconstruct`` makes it first), its workers
-    loading gt3dkit's imports and compiled kernels meanwhile (:func:`warm_worker`): every one
-    with ``loading``, else all but the first, which starts the noise search at once
-    (:func:`chosen_noise`) and would only do the same work first. A context manager; the client
-    or the connection's error (:class:`InputError` naming ``--scheduler``) from :meth:`client`."""
+    """The Dask scheduler at ``address`` (``--scheduler``): a client, connected at once (an
+    unreachable scheduler is an :class:`InputError` naming ``--scheduler``). With ``loading``
+    (``gt3d reconstruct`` makes it before it loads the sequence) its first worker, the one the
+    noise search runs on (:func:`chosen_noise`), loads gt3dkit's imports and compiled kernels
+    while the sequence loads (:func:`warm_first`); without, it would only do that before the
+    search. The others do it during the search, on the sequence's own first frames
+    (:func:`_warm_workers`): warming them all during the loading slowed it on 2 cores (4.5-5 s
+    for a 2.5-3 s read), and so did connecting in a thread beside it (4.5 s against 3.4 s, the
+    mean of 4 runs; connecting first took 0.3-0.45 s). A context manager."""
 
     def __init__(self, address: str, estimator: str, config: dict[str, Any], loading: bool = True) -> None:
-        self.address = address
-        self._client: Any = None
-        self._warming: list[Any] = []  # held until closed: a future let go is a task cancelled
-        self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._connect, args=(estimator, config, loading),
-                                        name="gt3dkit-dask-connect", daemon=True)
-        self._thread.start()
-
-    def _connect(self, estimator: str, config: dict[str, Any], loading: bool) -> None:
-        try:
-            self._client = _client(self.address)
-            workers = _workers(self._client)[0 if loading else 1:]
-            self._warming = [self._client.submit(warm_worker, estimator, config, workers=[w],
-                                                 allow_other_workers=False, pure=False) for w in workers]
-        except BaseException as e:  # raised in the caller's thread, by client()
-            self._error = e
-
-    def client(self) -> Any:
-        """The connected Dask client (waits for the connection)."""
-        self._thread.join()
-        if self._error is not None:
-            raise self._error
-        return self._client
+        self.client = _client(address)
+        first = _workers(self.client)[:1] if loading else []
+        # held until closed: a future let go is a task cancelled
+        self._warming = [self.client.submit(warm_first, estimator, config, workers=first,
+                                            allow_other_workers=False, pure=False)] if first else []
 
     def close(self) -> None:
-        self._thread.join()
         self._warming = []
-        if self._client is not None:
-            self._client.close()
-            self._client = None
+        self.client.close()
 
     def __enter__(self) -> Cluster:
         return self
@@ -550,21 +547,33 @@ def reconstruct_windows(scene: Scene, estimator: str, plan: Plan, out: str | Non
                         extra_meta: dict[str, Any] | None = None, every_frame: int | None = None,
                         on_window: Callable[[int, int], None] | None = None, cluster: Cluster | None = None,
                         **config: Any) -> TrackSet:
-    """:func:`gt3dkit.api.reconstruct` of a long sequence by ``plan``; writes ``out`` if given
-    (atomically, as one run). ``cluster``: ``plan.scheduler``'s, connected early by the caller
-    (who closes it)."""
-    tracks, qa = reconstruct_windowed(scene, estimator, plan, every_frame, on_window, cluster, **config)
-    if out is not None:
-        write_outputs(Path(out), scene, tracks, extra_meta, anomalies=qa)
-    return tracks
+    """:func:`gt3dkit.api.reconstruct` of a long sequence by ``plan``; writes ``out`` if given,
+    atomically as one run: each window's rows as soon as they are final (the windows before it
+    done, :class:`gt3dkit.io.writers.StreamedRows`; on the 4 000-frame box scene that left 0.1 s
+    of the 0.6 s of writing for after the last window), into a folder that replaces ``out`` at the
+    end. ``cluster``: ``plan.scheduler``'s, connected early by the caller (who closes it)."""
+    if out is None:
+        return reconstruct_windowed(scene, estimator, plan, every_frame, on_window, cluster, **config)[0]
+    made: list[TrackSet] = []
+
+    def run(tmp: Path) -> None:
+        with StreamedRows(tmp) as rows:
+            tracks, qa = reconstruct_windowed(scene, estimator, plan, every_frame, on_window, cluster,
+                                              rows.add, **config)
+        write_result_files(tmp, scene, tracks, extra_meta, qa, streamed=True)
+        made.append(tracks)
+
+    write_dir_atomically(Path(out), run)
+    return made[0]
 
 
 def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: int | None = None,
                          on_window: Callable[[int, int], None] | None = None, cluster: Cluster | None = None,
-                         **config: Any) -> tuple[TrackSet, Anomalies]:
+                         on_part: OnPart | None = None, **config: Any) -> tuple[TrackSet, Anomalies]:
     """``scene`` in windows (:mod:`gt3dkit.windows`, ``plan``): the stitched tracks and QA
     findings; ``on_window(done, total)`` as the windows start (0) and after each one; ``cluster``
-    as :func:`reconstruct_windows`."""
+    as :func:`reconstruct_windows`; ``on_part(k, tracks, anomaly_rows)`` with each window's final
+    rows and findings as it finishes (:func:`run_window`)."""
     if estimator == "triangulation":
         raise InputError("--window", "the triangulation fits each frame on its own: it needs no window")
     ov = overlap_frames(scene) if plan.overlap is None else plan.overlap
@@ -572,7 +581,7 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
     if own:
         cluster = Cluster(str(plan.scheduler), estimator, config, loading=False)
     try:
-        client = cluster.client() if cluster is not None else None
+        client = cluster.client if cluster is not None else None
         workers = len(client.scheduler_info()["workers"]) if client is not None else plan.jobs
         frames = np.asarray(scene.frames, dtype=np.int64)
         windows = plan_windows(frames, _sized(plan, ov, len(frames), workers).size, ov)
@@ -580,28 +589,33 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
             runner = client
             if client is None and plan.jobs > 1 and len(windows) > 1:
                 runner = stack.enter_context(_process_pool(min(plan.jobs, len(windows))))
-            noise, needed = chosen_noise(scene, windows, estimator, config, runner)
+            warming = _warm_workers(client, scene, estimator, config) if client is not None else []
+            noise_when_done = chosen_noise(scene, windows, estimator, config, runner)
+            # meanwhile the windows, cut (and sent to the cluster) for the context the noise leaves
+            # as it is (always, for boxes), again if it needs less
+            windows, bridge, scenes = _cut_windows(scene, _sized(plan, ov, len(frames), workers), ov,
+                                                   client, every_frame)
+            noise, needed = noise_when_done()
             if plan.overlap is None and needed is not None and needed < ov:  # the noise's own context
                 ov = max(needed, MIN_OVERLAP_FRAMES)
+                windows, bridge, scenes = _cut_windows(scene, _sized(plan, ov, len(frames), workers), ov,
+                                                       client, every_frame)
             plan = _sized(plan, ov, len(frames), workers)
-            # the tool's windows hold equal object-frames (the workers finish together); --window as given
-            bridge = Bridge.of(scene, ov) if every_frame is not None else None  # rows between annotations
-            windows = occupied(plan_windows(frames, plan.size, ov, frame_work(scene, frames) if plan.why
-                                            else None), scene, bridge)
             like = WindowJob(windows[0], estimator, {**config, **noise}, every_frame)
             done = on_window or (lambda k, n: None)
             n = len(windows)
             if client is None and n == 1:
                 runner = None
-            scenes = _window_scenes(scene, windows, client, bridge)
             if ties_bones(scene, estimator, config) and n > 1:  # two rounds: the bones, then the rest
                 samples = _run_windows(scenes, windows, like, runner, lambda k, _: done(k, 2 * n),
                                        window_bones)
                 like = dataclasses.replace(like, bones=pooled_bones(samples, config))
-                parts = _run_windows(scenes, windows, like, runner, lambda k, _: done(n + k, 2 * n))
+                parts = _run_windows(scenes, windows, like, runner, lambda k, _: done(n + k, 2 * n),
+                                     on_part=on_part)
             else:
                 samples = []
-                parts = _run_windows(scenes, windows, like, runner, done)
+                parts = _run_windows(scenes, windows, like, runner, done, on_part=on_part)
+            del warming
     finally:
         if own and cluster is not None:
             cluster.close()
@@ -642,18 +656,52 @@ def _process_pool(workers: int) -> Any:
     return ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
 
 
-def warm_worker(estimator: str, config: dict[str, Any]) -> None:
-    """Estimate two tiny simulated scenes, boxes and joints (:func:`gt3dkit.api.tiny_scenes`),
-    and drop the results: this process's imports and compiled kernels loaded (a Dask worker's,
-    :class:`Cluster`); an error is left to the windows to find."""
+def warm_first(estimator: str, config: dict[str, Any]) -> None:
+    """:func:`warm_worker` on two tiny simulated scenes, boxes and joints
+    (:func:`gt3dkit.api.tiny_scenes`): the first Dask worker's, while the sequence loads
+    (:class:`Cluster`)."""
+    for scene in tiny_scenes():
+        warm_worker(scene, estimator, config)
+
+
+def warm_worker(scene: Scene, estimator: str, config: dict[str, Any]) -> None:
+    """Estimate ``scene`` (a few frames) and drop the result: this process's imports and compiled
+    kernels loaded (:func:`_warm_workers`, :func:`warm_first`); an error is left to the windows
+    to find."""
     with contextlib.suppress(Exception), small_matrix_blas():
-        for scene in tiny_scenes():
-            estimate_checked(scene, make_estimator(estimator, **config))
+        estimate_checked(scene, make_estimator(estimator, **config))
+
+
+def _warm_workers(client: Any, scene: Scene, estimator: str, config: dict[str, Any]) -> list[Any]:
+    """The sequence's first annotated frames estimated and dropped on the Dask ``client``'s
+    workers but the first (:func:`warm_worker`): while the first searches the noise
+    (:func:`chosen_noise`), the others load their imports and compiled kernels (a second or two
+    a process) instead of on their first window. Their futures, to hold until the windows run
+    (a future let go is a task cancelled)."""
+    f = np.unique(scene.obs.frame)[:WARM_FRAMES]  # the first annotated frames
+    if not len(f):
+        return []
+    tiny = window_scene(scene, int(f[0]), int(f[-1]))  # small: inside the task
+    return [client.submit(warm_worker, tiny, estimator, config, workers=[w], allow_other_workers=False,
+                          pure=False) for w in _workers(client)[1:]]
 
 
 def _workers(client: Any) -> list[str]:
     """The Dask ``client``'s workers' addresses, sorted."""
     return sorted(client.scheduler_info()["workers"])
+
+
+def _cut_windows(scene: Scene, plan: Plan, overlap: int, client: Any, every_frame: int | None
+                 ) -> tuple[list[Window], Bridge | None, Callable[[int], Any]]:
+    """The windows of ``plan`` with ``overlap`` frames of context, the rows between annotations
+    they bring (``--every-frame``: :class:`Bridge`) and their scenes (:func:`_window_scenes`). The
+    tool's windows hold equal object-frames (the workers finish together); a ``--window`` is cut
+    as given."""
+    frames = np.asarray(scene.frames, dtype=np.int64)
+    bridge = Bridge.of(scene, overlap) if every_frame is not None else None
+    windows = occupied(plan_windows(frames, plan.size, overlap, frame_work(scene, frames) if plan.why
+                                    else None), scene, bridge)
+    return windows, bridge, _window_scenes(scene, windows, client, bridge)
 
 
 def _window_scenes(scene: Scene, windows: list[Window], client: Any, bridge: Bridge | None = None
@@ -672,16 +720,19 @@ def _window_scenes(scene: Scene, windows: list[Window], client: Any, bridge: Bri
 
 
 def _run_windows(scenes: Callable[[int], Any], windows: list[Window], like: WindowJob, runner: Any,
-                 done: Callable[[int, int], None], fn: Callable[[WindowJob, Scene], Any] = run_window
-                 ) -> list[Any]:
+                 done: Callable[[int, int], None], fn: Callable[[WindowJob, Scene], Any] = run_window,
+                 on_part: OnPart | None = None) -> list[Any]:
     """Every window's ``fn`` (:func:`run_window`; ``like`` with each window's frames, ``scenes(k)``
     its scene): on the Dask client or the process pool ``runner``, or one after the other in this
-    process (None); ``done(k, n)`` as they start (0) and finish."""
+    process (None); ``done(k, n)`` as they start (0) and finish, ``on_part(k, *part)`` with window
+    ``k``'s part as it comes."""
     done(0, len(windows))
     parts: list[Any] = [None] * len(windows)
+    got = on_part or (lambda k, *part: None)
     if runner is None:
         for k, w in enumerate(windows):
             parts[k] = fn(dataclasses.replace(like, window=w), scenes(k))
+            got(k, *parts[k])
             done(k + 1, len(windows))
         return parts
     if hasattr(runner, "scatter"):  # a Dask client
@@ -696,5 +747,6 @@ def _run_windows(scenes: Callable[[int], Any], windows: list[Window], like: Wind
                    for k, w in enumerate(windows)}
     for n, f in enumerate(as_completed(futures), 1):
         parts[futures[f]] = f.result()
+        got(futures[f], *parts[futures[f]])
         done(n, len(windows))
     return parts

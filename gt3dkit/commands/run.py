@@ -47,9 +47,10 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
 
 
 def early_cluster(args: argparse.Namespace, config: dict[str, Any]) -> Any:
-    """``--scheduler``'s Dask cluster, connected and its workers warmed while the input loads
-    (:class:`gt3dkit.windows.Cluster`); a null context where the run uses none (``--window 0`` and
-    the triangulation are refused after the input loads, by :func:`window_plan`)."""
+    """``--scheduler``'s Dask cluster, connected before the input loads and its first worker
+    warmed while it loads (:class:`gt3dkit.windows.Cluster`); a null context where the run uses
+    none (``--window 0`` and the triangulation are refused after the input loads, by
+    :func:`window_plan`)."""
     if not args.scheduler or args.window == 0 or args.estimator == "triangulation":
         return contextlib.nullcontext()
     return Cluster(args.scheduler, args.estimator, config)

@@ -82,14 +82,23 @@ def meta_of(scene: Scene, tracks: TrackSet) -> dict[str, Any]:
 def write_tracks_csv(path: Path, tracks: TrackSet) -> None:
     """One row per (frame, id); a dense run (``info["every_frame"]``, rows where no camera saw
     the object included) adds the column ``n_views`` (0: interpolated)."""
+    with open(path, "w", newline="") as f:
+        csv.writer(f).writerow(TRACK_COLUMNS + (("n_views",) if _dense(tracks) else ()))
+        _tracks_rows(f, tracks)
+
+
+def _dense(tracks: TrackSet) -> bool:
+    return bool(tracks.info.get("every_frame"))
+
+
+def _tracks_rows(f: Any, tracks: TrackSet) -> None:
+    """``tracks``' rows of :func:`write_tracks_csv` into the open file ``f``."""
     a = np.column_stack([tracks.center_world, tracks.semi_axes, tracks.center_sd])
-    dense = bool(tracks.info.get("every_frame"))
+    dense = _dense(tracks)
     row = "%d,%d," + ",".join(["%.6f"] * a.shape[1]) + (",%d" if dense else "") + "\r\n"  # as csv.writer
     tail = [(n,) for n in tracks.n_views.tolist()] if dense else [()] * len(tracks)
-    with open(path, "w", newline="") as f:
-        csv.writer(f).writerow(TRACK_COLUMNS + (("n_views",) if dense else ()))
-        f.writelines(row % (f_, i, *v, *t) for f_, i, v, t in zip(
-            tracks.frame.tolist(), tracks.track_id.tolist(), a.tolist(), tail, strict=True))
+    f.writelines(row % (f_, i, *v, *t) for f_, i, v, t in zip(
+        tracks.frame.tolist(), tracks.track_id.tolist(), a.tolist(), tail, strict=True))
 
 
 def write_keypoints_csv(path: Path, tracks: TrackSet) -> None:
@@ -97,11 +106,74 @@ def write_keypoints_csv(path: Path, tracks: TrackSet) -> None:
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(KPT_COLUMNS)
-        ok = np.isfinite(tracks.kpt_world).all(axis=-1)
-        for r, j in zip(*np.nonzero(ok), strict=True):
-            x = tracks.kpt_world[r, j]
-            w.writerow([int(tracks.frame[r]), int(tracks.track_id[r]), int(j),
-                        f"{x[0]:.6f}", f"{x[1]:.6f}", f"{x[2]:.6f}", f"{tracks.kpt_sd[r, j]:.6f}"])
+        _keypoint_rows(w, tracks)
+
+
+def _keypoint_rows(w: Any, tracks: TrackSet) -> None:
+    """``tracks``' rows of :func:`write_keypoints_csv` into the CSV writer ``w``."""
+    ok = np.isfinite(tracks.kpt_world).all(axis=-1)
+    for r, j in zip(*np.nonzero(ok), strict=True):
+        x = tracks.kpt_world[r, j]
+        w.writerow([int(tracks.frame[r]), int(tracks.track_id[r]), int(j),
+                    f"{x[0]:.6f}", f"{x[1]:.6f}", f"{x[2]:.6f}", f"{tracks.kpt_sd[r, j]:.6f}"])
+
+
+class StreamedRows:
+    """``tracks.csv``, ``keypoints.csv`` and ``anomalies.csv`` of a run that comes in parts, written
+    into the folder ``d`` as the parts come: the windows of a long sequence
+    (:mod:`gt3dkit.windows`), each a :class:`TrackSet` of its own frames (rows by frame, then id)
+    and its QA findings (sorted as :func:`write_anomalies_csv` writes them), the windows in frame
+    order. Part ``k``'s rows go out as soon as parts ``0..k`` are all in (they are final, and
+    the files then read as the whole run's), so that little is left to write when the last one
+    comes; each part is checked as :func:`check_tracks` checks a whole run. A context manager;
+    :func:`write_result_files` with ``streamed`` writes the rest."""
+
+    def __init__(self, d: Path) -> None:
+        self.d = Path(d)
+        self._next = 0
+        self._waiting: dict[int, tuple[TrackSet, list[tuple[Any, ...]]]] = {}
+        self._files: dict[str, Any] = {}
+
+    def add(self, k: int, tracks: TrackSet, anomaly_rows: list[tuple[Any, ...]]) -> None:
+        """Part ``k`` (from 0) is in: it and every part after it that waited for it are written."""
+        check_tracks(tracks)
+        self._waiting[k] = (tracks, anomaly_rows)
+        while self._next in self._waiting:
+            t, rows = self._waiting.pop(self._next)
+            self._write(t, rows)
+            self._next += 1
+
+    def _writer(self, name: str, header: tuple[str, ...]) -> Any:
+        if name not in self._files:
+            f = open(self.d / name, "w", newline="")  # noqa: SIM115 (closed by close())
+            self._files[name] = (f, csv.writer(f))
+            self._files[name][1].writerow(header)
+        return self._files[name]
+
+    def _write(self, tracks: TrackSet, anomaly_rows: list[tuple[Any, ...]]) -> None:
+        f, _ = self._writer("tracks.csv", TRACK_COLUMNS + (("n_views",) if _dense(tracks) else ()))
+        _tracks_rows(f, tracks)
+        if tracks.kpt_world.shape[1]:
+            _keypoint_rows(self._writer("keypoints.csv", KPT_COLUMNS)[1], tracks)
+        self._writer("anomalies.csv", ANOMALY_COLUMNS)[1].writerows(anomaly_rows)
+
+    def close(self) -> None:
+        """Close the files (every part must be in: a gap is a RuntimeError)."""
+        for f, _ in self._files.values():
+            f.close()
+        self._files = {}
+        if self._waiting:
+            raise RuntimeError(f"parts {sorted(self._waiting)} came without part {self._next}")
+
+    def __enter__(self) -> StreamedRows:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if exc[0] is None:
+            self.close()
+        else:  # the run failed: its folder is thrown away
+            for f, _ in self._files.values():
+                f.close()
 
 
 def write_downweighted_csv(path: Path, scene: Scene, tracks: TrackSet) -> None:
@@ -148,21 +220,24 @@ def write_anomalies_csv(path: Path, anomalies: Any) -> None:
         w.writerows(anomalies.rows)
 
 
-def write_result_files(d: Path, scene: Scene, tracks: TrackSet,
-                       extra_meta: dict[str, Any] | None = None, anomalies: Any = None) -> None:
+def write_result_files(d: Path, scene: Scene, tracks: TrackSet, extra_meta: dict[str, Any] | None = None,
+                       anomalies: Any = None, streamed: bool = False) -> None:
     """``tracks.csv``, ``keypoints.csv`` (with joints), ``anomalies.csv`` (when QA ran),
-    ``segments.csv`` (when an id was split) and ``meta.json`` into folder ``d``."""
-    check_tracks(tracks)
-    if anomalies is not None:
-        write_anomalies_csv(d / "anomalies.csv", anomalies)
+    ``segments.csv`` (when an id was split) and ``meta.json`` into folder ``d``; ``streamed``:
+    the first three are there already (:class:`StreamedRows`)."""
+    if not streamed:
+        check_tracks(tracks)
+        if anomalies is not None:
+            write_anomalies_csv(d / "anomalies.csv", anomalies)
     if scene.association is not None:
         scene.association.write(d / "association.csv")
     meta = meta_of(scene, tracks)
     if extra_meta:
         meta.update(_jsonable(extra_meta))
-    write_tracks_csv(d / "tracks.csv", tracks)
-    if tracks.kpt_world.shape[1]:
-        write_keypoints_csv(d / "keypoints.csv", tracks)
+    if not streamed:
+        write_tracks_csv(d / "tracks.csv", tracks)
+        if tracks.kpt_world.shape[1]:
+            write_keypoints_csv(d / "keypoints.csv", tracks)
     if tracks.downweighted is not None:
         write_downweighted_csv(d / "downweighted.csv", scene, tracks)
     if tracks.info.get("segments"):
