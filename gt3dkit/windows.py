@@ -355,7 +355,8 @@ def searched_on_worker(sample: Scene, estimator: str, config: dict[str, Any], st
                        ) -> tuple[dict[str, float], int | None]:
     """:func:`sample_noise` on a Dask worker, on every core of its machine (the compiled loops'
     threads, :func:`gt3dkit.threads.every_core`; a worker's task thread gets one): every worker
-    waits for it. On the 4 000-frame box scene ... ."""
+    waits for it. On the 4 000-frame box scene's sample, on a warm worker of a 2-core machine:
+    1.34-1.96 s on one thread, 1.25-1.37 s on both cores (4 runs each), the same noise."""
     with every_core():
         return sample_noise(sample, estimator, config, step_s)
 
@@ -549,9 +550,9 @@ def reconstruct_windows(scene: Scene, estimator: str, plan: Plan, out: str | Non
                         **config: Any) -> TrackSet:
     """:func:`gt3dkit.api.reconstruct` of a long sequence by ``plan``; writes ``out`` if given,
     atomically as one run: each window's rows as soon as they are final (the windows before it
-    done, :class:`gt3dkit.io.writers.StreamedRows`; on the 4 000-frame box scene that left 0.1 s
-    of the 0.6 s of writing for after the last window), into a folder that replaces ``out`` at the
-    end. ``cluster``: ``plan.scheduler``'s, connected early by the caller (who closes it)."""
+    done, :class:`gt3dkit.io.writers.StreamedRows`; on the 4 000-frame box scene, what is left
+    for after the last window went from 0.6-1.0 s of writing to its rows and 0.02 s of
+    ``meta.json``), into a folder that replaces ``out`` at the end. ``cluster``: ``plan.scheduler``'s, connected early by the caller (who closes it)."""
     if out is None:
         return reconstruct_windowed(scene, estimator, plan, every_frame, on_window, cluster, **config)[0]
     made: list[TrackSet] = []
