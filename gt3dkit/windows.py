@@ -9,9 +9,12 @@ processes, or ``--scheduler ADDRESS``: the Dask cluster ``reconstruct-many`` use
   (:func:`searched_objects`); every window then runs with it fixed, so that the windows agree.
   Where the windows run on workers, so does the search; on a Dask cluster on every core of its
   worker, as the others wait for it (:func:`searched_on_worker`). ``gt3d reconstruct
-  --scheduler`` connects while the sequence loads, and the search's worker loads gt3dkit's
-  imports and compiled kernels meanwhile (:class:`Cluster`, :func:`warm_first`): the search
-  starts warm. The other workers do that during the search (:func:`_warm_workers`).
+  --scheduler`` connects before it loads the sequence, and the search's worker loads gt3dkit's
+  imports and compiled kernels while it loads (:class:`Cluster`, :func:`warm_first`): the
+  search starts warm. The other workers do that during the search (:func:`_warm_workers`), and
+  the windows are cut and sent to the workers meanwhile (:func:`_cut_windows`).
+* Each window's rows are written as soon as they are final (every window before it done:
+  :class:`gt3dkit.io.writers.StreamedRows`), into the folder that replaces ``OUT`` at the end.
 * The windows the tool chose (not a ``--window`` the user gave) are cut where each holds an
   equal share of the object-frames (:func:`plan_windows` with each frame's objects): a window's
   time and memory go with its object-frames, not its frames. Spread over workers they are made
@@ -528,10 +531,14 @@ class Cluster:
 
     def __init__(self, address: str, estimator: str, config: dict[str, Any], loading: bool = True) -> None:
         self.client = _client(address)
-        first = _workers(self.client)[:1] if loading else []
-        # held until closed: a future let go is a task cancelled
-        self._warming = [self.client.submit(warm_first, estimator, config, workers=first,
-                                            allow_other_workers=False, pure=False)] if first else []
+        try:
+            first = _workers(self.client)[:1] if loading else []
+            # held until closed: a future let go is a task cancelled
+            self._warming = [self.client.submit(warm_first, estimator, config, workers=first,
+                                                allow_other_workers=False, pure=False)] if first else []
+        except BaseException:
+            self.client.close()
+            raise
 
     def close(self) -> None:
         self._warming = []
@@ -552,7 +559,8 @@ def reconstruct_windows(scene: Scene, estimator: str, plan: Plan, out: str | Non
     atomically as one run: each window's rows as soon as they are final (the windows before it
     done, :class:`gt3dkit.io.writers.StreamedRows`; on the 4 000-frame box scene, what is left
     for after the last window went from 0.6-1.0 s of writing to its rows and 0.02 s of
-    ``meta.json``), into a folder that replaces ``out`` at the end. ``cluster``: ``plan.scheduler``'s, connected early by the caller (who closes it)."""
+    ``meta.json``), into a folder that replaces ``out`` at the end. ``cluster``:
+    ``plan.scheduler``'s, connected early by the caller (who closes it)."""
     if out is None:
         return reconstruct_windowed(scene, estimator, plan, every_frame, on_window, cluster, **config)[0]
     made: list[TrackSet] = []
