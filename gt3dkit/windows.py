@@ -525,9 +525,9 @@ class Cluster:
     noise search runs on (:func:`chosen_noise`), loads gt3dkit's imports and compiled kernels
     while the sequence loads (:func:`warm_first`); without, it would only do that before the
     search. The others do it during the search, on the sequence's own first frames
-    (:func:`_warm_workers`): warming them all during the loading slowed it on 2 cores (4.5-5 s
-    for a 2.5-3 s read), and so did connecting in a thread beside it (4.5 s against 3.4 s, the
-    mean of 4 runs; connecting first took 0.3-0.45 s). A context manager."""
+    (:func:`_warm_workers`): on 2 cores, warming them all during the loading slowed it (4.3 s
+    against 3.4 s, means of 4 runs), and so did connecting in a thread beside it with the second
+    worker warming (4.5 s against 3.9 s; connecting first took 0.3-0.45 s). A context manager."""
 
     def __init__(self, address: str, estimator: str, config: dict[str, Any], loading: bool = True) -> None:
         self.client = _client(address)
