@@ -113,7 +113,7 @@ _KPT_ROW = "%d,%d,%d,%.6f,%.6f,%.6f,%.6f\r\n"  # KPT_COLUMNS, as csv.writer writ
 
 def _keypoint_rows(f: Any, tracks: TrackSet) -> None:
     """``tracks``' rows of :func:`write_keypoints_csv` into the open file ``f``: the bytes
-    ``csv.writer`` wrote of each row's numbers (``%.6f``, ``\r\n``), formatted as one
+    ``csv.writer`` wrote of each row's numbers (``%.6f``, CRLF line ends), formatted as one
     ``%``-template per row over lists (541 000 joint-rows: 3.9 s row by row, 2.3 s so)."""
     r, j = np.nonzero(np.isfinite(tracks.kpt_world).all(axis=-1))
     v = np.column_stack([tracks.kpt_world[r, j], tracks.kpt_sd[r, j]])
