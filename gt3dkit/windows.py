@@ -601,14 +601,17 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
             warming = _warm_workers(client, scene, estimator, config) if client is not None else []
             noise_when_done = chosen_noise(scene, windows, estimator, config, runner)
             # meanwhile the windows, cut (and sent to the cluster) for the context the noise leaves
-            # as it is (always, for boxes), again if it needs less
+            # as it is (always, for boxes), again if it needs less; each frame's objects and each
+            # object's annotated frames (--every-frame) found once for both
+            work = frame_work(scene, frames) if plan.why else None
+            index = Bridge.of(scene, ov) if every_frame is not None else None
             windows, bridge, scenes = _cut_windows(scene, _sized(plan, ov, len(frames), workers), ov,
-                                                   client, every_frame)
+                                                   client, index, work)
             noise, needed = noise_when_done()
             if plan.overlap is None and needed is not None and needed < ov:  # the noise's own context
                 ov = max(needed, MIN_OVERLAP_FRAMES)
                 windows, bridge, scenes = _cut_windows(scene, _sized(plan, ov, len(frames), workers), ov,
-                                                       client, every_frame)
+                                                       client, index, work)
             plan = _sized(plan, ov, len(frames), workers)
             like = WindowJob(windows[0], estimator, {**config, **noise}, every_frame)
             done = on_window or (lambda k, n: None)
@@ -700,16 +703,15 @@ def _workers(client: Any) -> list[str]:
     return sorted(client.scheduler_info()["workers"])
 
 
-def _cut_windows(scene: Scene, plan: Plan, overlap: int, client: Any, every_frame: int | None
-                 ) -> tuple[list[Window], Bridge | None, Callable[[int], Any]]:
+def _cut_windows(scene: Scene, plan: Plan, overlap: int, client: Any, index: Bridge | None,
+                 work: np.ndarray | None) -> tuple[list[Window], Bridge | None, Callable[[int], Any]]:
     """The windows of ``plan`` with ``overlap`` frames of context, the rows between annotations
-    they bring (``--every-frame``: :class:`Bridge`) and their scenes (:func:`_window_scenes`). The
-    tool's windows hold equal object-frames (the workers finish together); a ``--window`` is cut
-    as given."""
+    they bring (``--every-frame``: ``index``, :class:`Bridge`, with ``overlap`` a side) and their
+    scenes (:func:`_window_scenes`). The tool's windows hold equal object-frames (``work``, each
+    frame's objects: the workers finish together); a ``--window`` is cut as given (None)."""
     frames = np.asarray(scene.frames, dtype=np.int64)
-    bridge = Bridge.of(scene, overlap) if every_frame is not None else None
-    windows = occupied(plan_windows(frames, plan.size, overlap, frame_work(scene, frames) if plan.why
-                                    else None), scene, bridge)
+    bridge = dataclasses.replace(index, count=overlap) if index is not None else None
+    windows = occupied(plan_windows(frames, plan.size, overlap, work), scene, bridge)
     return windows, bridge, _window_scenes(scene, windows, client, bridge)
 
 

@@ -232,15 +232,14 @@ def write_result_files(d: Path, scene: Scene, tracks: TrackSet, extra_meta: dict
         check_tracks(tracks)
         if anomalies is not None:
             write_anomalies_csv(d / "anomalies.csv", anomalies)
+        write_tracks_csv(d / "tracks.csv", tracks)
+        if tracks.kpt_world.shape[1]:
+            write_keypoints_csv(d / "keypoints.csv", tracks)
     if scene.association is not None:
         scene.association.write(d / "association.csv")
     meta = meta_of(scene, tracks)
     if extra_meta:
         meta.update(_jsonable(extra_meta))
-    if not streamed:
-        write_tracks_csv(d / "tracks.csv", tracks)
-        if tracks.kpt_world.shape[1]:
-            write_keypoints_csv(d / "keypoints.csv", tracks)
     if tracks.downweighted is not None:
         write_downweighted_csv(d / "downweighted.csv", scene, tracks)
     if tracks.info.get("segments"):
