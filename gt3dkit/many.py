@@ -30,6 +30,7 @@ from gt3dkit.io.atomic import MARKER
 from gt3dkit.threads import small_matrix_blas
 from gt3dkit.version import __version__
 from gt3dkit.viz.report import write_report
+from gt3dkit.windows import connect_scheduler
 
 SUMMARY_COLUMNS = ("input", "output", "status", "seconds", "objects", "object_frames", "anomalies",
                    "error")
@@ -137,28 +138,39 @@ def run_many(inputs: list[Path], out: Path, estimator: str = "ukf", jobs: int | 
         o, r = out.resolve(), i.resolve()
         if o == r or r in o.parents or o in r.parents:
             raise InputError("--out", f"{out} is, contains or lies inside the input folder {i}")
-    out.mkdir(parents=True, exist_ok=True)
-    (out / MARKER).write_text(json.dumps({"writer": "gt3d reconstruct-many"}))
-    todo = [Job(str(i), str(out / i.name), estimator, report) for i in inputs]
-    rows: list[dict[str, Any]] = []
+    client = connect_scheduler(scheduler) if scheduler else None  # an unreachable one: nothing written
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / MARKER).write_text(json.dumps({"writer": "gt3d reconstruct-many"}))
+        todo = [Job(str(i), str(out / i.name), estimator, report) for i in inputs]
+        rows = _ran(todo, client, jobs, progress)
+    finally:
+        if client is not None:
+            client.close()
+    order = {j.input: k for k, j in enumerate(todo)}
+    rows.sort(key=lambda r: order[r["input"]])
+    with open(out / "summary.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=SUMMARY_COLUMNS)
+        w.writeheader()
+        w.writerows(rows)
+    if report:
+        _index(out, rows)
+    return rows
+
+
+def _ran(todo: list[Job], client: Any, jobs: int | None, progress: bool) -> list[dict[str, Any]]:
+    """Every job's summary row, in the order they finish: on the Dask ``client``'s workers, or
+    in ``jobs`` local processes (spawned)."""
     from tqdm import tqdm
 
+    rows: list[dict[str, Any]] = []
     bar = tqdm(total=len(todo), desc="sequences", unit="seq", disable=not progress)
-    if scheduler:
-        from distributed import Client, as_completed
+    if client is not None:
+        from distributed import as_completed
 
-        try:
-            client = Client(scheduler, timeout="20s")
-        except (OSError, TimeoutError) as e:
-            raise InputError("--scheduler", f"cannot reach the Dask scheduler at {scheduler} ({e})") \
-                from None
-        try:
-            futures = client.map(run_job, todo, pure=False)
-            for f in as_completed(futures):
-                rows.append(f.result())
-                bar.update()
-        finally:
-            client.close()
+        for f in as_completed(client.map(run_job, todo, pure=False)):
+            rows.append(f.result())
+            bar.update()
     else:
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
@@ -170,14 +182,6 @@ def run_many(inputs: list[Path], out: Path, estimator: str = "ukf", jobs: int | 
                 rows.append(f.result())
                 bar.update()
     bar.close()
-    order = {j.input: k for k, j in enumerate(todo)}
-    rows.sort(key=lambda r: order[r["input"]])
-    with open(out / "summary.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=SUMMARY_COLUMNS)
-        w.writeheader()
-        w.writerows(rows)
-    if report:
-        _index(out, rows)
     return rows
 
 

@@ -508,12 +508,15 @@ def stitch(parts: list[tuple[TrackSet, list[tuple[Any, ...]]]], windows: list[Wi
     return tracks, qa
 
 
-def _client(address: str) -> Any:
-    """A Dask client of the scheduler at ``address``, or InputError naming ``--scheduler``."""
+def connect_scheduler(address: str) -> Any:
+    """A Dask client of the scheduler at ``address`` (``--scheduler``, here and in
+    ``reconstruct-many``), or InputError naming ``--scheduler``. It waits as long as Dask's own
+    ``distributed.comm.timeouts.connect`` says (30 s unless the user's Dask configuration or
+    ``DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT`` says otherwise)."""
     from distributed import Client
 
     try:
-        return Client(address, timeout="20s")
+        return Client(address)
     except (OSError, TimeoutError) as e:
         raise InputError("--scheduler", f"cannot reach the Dask scheduler at {address} ({e})") from None
 
@@ -530,7 +533,7 @@ class Cluster:
     worker warming (4.5 s against 3.9 s; connecting first took 0.3-0.45 s). A context manager."""
 
     def __init__(self, address: str, estimator: str, config: dict[str, Any], loading: bool = True) -> None:
-        self.client = _client(address)
+        self.client = connect_scheduler(address)
         try:
             first = _workers(self.client)[:1] if loading else []
             # held until closed: a future let go is a task cancelled

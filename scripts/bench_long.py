@@ -2,10 +2,11 @@
 long simulated scenes (the whole sequence, ``--window 0``, and in the windows it chooses by itself),
 side by side in the same run with aniposelib (``scripts/peer_aniposelib.py`` in the benchmark's own
 environment, ``make bench-env``), ``gt3d compare`` on the long box scene, and one sequence over a
-Dask ``LocalCluster`` of 1 and 2 workers.
+Dask ``LocalCluster`` of 1 and 2 workers (``--dask-pairs`` pairs, the order alternating).
 
     .venv/bin/python scripts/bench_long.py [--frames 1000,10000] [--whole-up-to 3000]
-        [--shelf-frames 3000] [--box-frames 4000] [--dask-frames 4000] [--peer .venv-bench/bin/python]
+        [--shelf-frames 3000] [--box-frames 4000] [--dask-frames 4000] [--dask-pairs 3]
+        [--peer .venv-bench/bin/python]
 
 Scenes (``gt3d simulate``, seed 1):
 * skeleton: ``--kind skeleton --layout native --cameras 8 --people 3 --noise-px 1`` (19 joints, 30 fps);
@@ -101,18 +102,39 @@ def side_by_side(k: int) -> float:
     return k * float(np.median(alone)) / float(np.median(together))
 
 
-def dask_runs(name: str, src: Path, d: Path, workers: list[int]) -> None:
+def dask_runs(name: str, src: Path, d: Path, pairs: int) -> None:
+    """The sequence on a ``LocalCluster`` of 1 and of 2 workers, ``pairs`` times in the order 1, 2,
+    then 2, 1, ... (the machine's speed drifts over minutes: alternating the order cancels a
+    steady drift): each pair's ratio, their median, and how far the 2-worker output is from the
+    1-worker one (in the estimate's own sd)."""
     from distributed import LocalCluster
 
-    sec: dict[int, float] = {}
-    for k in workers:
-        with LocalCluster(n_workers=k, threads_per_worker=1, processes=True, dashboard_address=None) as c:
-            sec[k], _ = gt3d_run(name, src, d / f"dask{k}", ["--scheduler", c.scheduler_address],
-                                 f"dask {k} worker(s)")
-    for k in workers[1:]:
-        print(f"{'':<36}dask {k} against {workers[0]}: {sec[workers[0]] / sec[k]:.2f}x; the machine now: "
-              f"{k} processes side by side do {side_by_side(k):.2f}x the pure-Python work of one",
-              flush=True)
+    ratios = []
+    for p in range(pairs):
+        sec: dict[int, float] = {}
+        for k in (1, 2) if p % 2 == 0 else (2, 1):
+            with LocalCluster(n_workers=k, threads_per_worker=1, processes=True, dashboard_address=None) as c:
+                sec[k], _ = gt3d_run(name, src, d / f"dask{k}", ["--scheduler", c.scheduler_address],
+                                     f"dask {k} worker(s)")
+        ratios.append(sec[1] / sec[2])
+        gap = output_gap(d / "dask1", d / "dask2")
+        print(f"{'':<36}pair {p + 1}: 2 workers against 1: {ratios[-1]:.2f}x; {gap}", flush=True)
+    print(f"{'':<36}dask 2 against 1, median of {pairs} pair(s): {float(np.median(ratios)):.2f}x "
+          f"({', '.join(f'{r:.2f}' for r in ratios)}); the machine now: 2 processes side by side do "
+          f"{side_by_side(2):.2f}x the pure-Python work of one", flush=True)
+
+
+def output_gap(a: Path, b: Path) -> str:
+    """How far run ``b``'s ``tracks.csv`` is from run ``a``'s: the same bytes, or the largest
+    difference of a centre coordinate in ``a``'s sd of it."""
+    ta, tb = (a / "tracks.csv").read_bytes(), (b / "tracks.csv").read_bytes()
+    if ta == tb:
+        return "outputs: the same bytes"
+    m = pd.read_csv(a / "tracks.csv").merge(pd.read_csv(b / "tracks.csv"), on=["frame", "id"], how="outer",
+                                            suffixes=("", "_b"), indicator=True)
+    both = m[m["_merge"] == "both"]
+    gap = max(float(np.max(np.abs(both[c] - both[c + "_b"]) / both["s" + c])) for c in "xyz")
+    return f"outputs: {int((m['_merge'] != 'both').sum())} rows in one only, centres within {gap:.3f} sd"
 
 
 def main() -> int:
@@ -123,6 +145,7 @@ def main() -> int:
     ap.add_argument("--box-frames", type=int, default=4000)
     ap.add_argument("--box-people", type=int, default=40)
     ap.add_argument("--dask-frames", type=int, default=4000, help="box scene run on 1 and 2 Dask workers")
+    ap.add_argument("--dask-pairs", type=int, default=3, help="1- and 2-worker runs, order alternating")
     ap.add_argument("--peer", default=".venv-bench/bin/python", help="the bench environment's python")
     args = ap.parse_args()
     peer = args.peer if Path(args.peer).exists() else None
@@ -163,7 +186,7 @@ def main() -> int:
                 sec, gb, _ = timed([GT3D, "compare", str(src), "--out", str(d / f"cb{frames}"), "--quiet"])
                 row(name, "gt3d compare", sec, gb, n, None, f"{sec / rec:.2f}x reconstruct")
             if "dask" in modes:
-                dask_runs(name, src, d, [1, 2])
+                dask_runs(name, src, d, args.dask_pairs)
     return 0
 
 

@@ -5,6 +5,9 @@ from __future__ import annotations
 import contextlib
 import csv
 import io
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -75,3 +78,24 @@ def test_local_pool_and_misuse(manifest: Path, tmp_path: Path) -> None:
     bad.write_text("nowhere/*\n")
     code, _, se = _run("reconstruct-many", str(bad), "--out", str(tmp_path / "o2"))
     assert code == 2 and "bad.txt: line 1" in se and "matches no folder" in se
+
+
+@pytest.mark.parametrize("command", ["reconstruct", "reconstruct-many"])
+def test_an_unreachable_scheduler_is_one_error_line_and_nothing_written(command: str, tmp_path: Path) -> None:
+    """Nothing listens on port 9 of loopback: after Dask's own connect timeout (1 s here, by its
+    configuration's environment variable) one ``error:`` line naming ``--scheduler``, exit 2, no
+    output folder (``reconstruct-many`` used to make it, and its marker, before connecting)."""
+    pytest.importorskip("distributed")
+    src = Path(__file__).parents[1] / "gt3dkit" / "data" / "multiviewx"
+    arg = str(src)
+    if command == "reconstruct-many":
+        arg = str(tmp_path / "m.txt")
+        Path(arg).write_text(f"{src}\n")
+    out = tmp_path / "o"
+    env = {**os.environ, "DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT": "1s"}
+    r = subprocess.run([sys.executable, "-m", "gt3dkit.cli", command, arg, "--out", str(out), "--scheduler",
+                        "tcp://127.0.0.1:9"], capture_output=True, text=True, env=env, cwd=tmp_path)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.count("\n") == 1 and r.stderr.startswith(
+        "error: --scheduler: cannot reach the Dask scheduler at tcp://127.0.0.1:9 ("), r.stderr
+    assert "Traceback" not in r.stderr and not out.exists()
