@@ -510,15 +510,27 @@ def stitch(parts: list[tuple[TrackSet, list[tuple[Any, ...]]]], windows: list[Wi
 
 def connect_scheduler(address: str) -> Any:
     """A Dask client of the scheduler at ``address`` (``--scheduler``, here and in
-    ``reconstruct-many``), or InputError naming ``--scheduler``. It waits as long as Dask's own
+    ``reconstruct-many``) with at least one worker, or InputError naming ``--scheduler``. It waits
+    for the connection, and then for a first worker, as long as Dask's own
     ``distributed.comm.timeouts.connect`` says (30 s unless the user's Dask configuration or
-    ``DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT`` says otherwise)."""
+    ``DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT`` says otherwise): a scheduler no worker joins
+    made ``reconstruct-many`` wait for ever and ``reconstruct`` fail inside Dask."""
+    import dask
+    from dask.utils import parse_timedelta
     from distributed import Client
 
+    wait = parse_timedelta(dask.config.get("distributed.comm.timeouts.connect"), default="s")
     try:
-        return Client(address)
+        client = Client(address)
     except (OSError, TimeoutError) as e:
         raise InputError("--scheduler", f"cannot reach the Dask scheduler at {address} ({e})") from None
+    try:
+        client.wait_for_workers(1, timeout=wait)
+    except TimeoutError:
+        client.close()
+        raise InputError("--scheduler", f"the Dask scheduler at {address} has no worker (none joined "
+                                        f"in {wait:g} s)") from None
+    return client
 
 
 class Cluster:

@@ -80,12 +80,10 @@ def test_local_pool_and_misuse(manifest: Path, tmp_path: Path) -> None:
     assert code == 2 and "bad.txt: line 1" in se and "matches no folder" in se
 
 
-@pytest.mark.parametrize("command", ["reconstruct", "reconstruct-many"])
-def test_an_unreachable_scheduler_is_one_error_line_and_nothing_written(command: str, tmp_path: Path) -> None:
-    """Nothing listens on port 9 of loopback: after Dask's own connect timeout (1 s here, by its
-    configuration's environment variable) one ``error:`` line naming ``--scheduler``, exit 2, no
-    output folder (``reconstruct-many`` used to make it, and its marker, before connecting)."""
-    pytest.importorskip("distributed")
+def _gt3d_on_scheduler(command: str, address: str, tmp_path: Path
+                       ) -> tuple[subprocess.CompletedProcess, Path]:
+    """``gt3d COMMAND`` of the bundled MultiviewX (a one-line manifest of it for ``reconstruct-many``)
+    on the scheduler at ``address``, Dask's connect timeout 1 s: the process and its ``--out``."""
     src = Path(__file__).parents[1] / "gt3dkit" / "data" / "multiviewx"
     arg = str(src)
     if command == "reconstruct-many":
@@ -93,9 +91,33 @@ def test_an_unreachable_scheduler_is_one_error_line_and_nothing_written(command:
         Path(arg).write_text(f"{src}\n")
     out = tmp_path / "o"
     env = {**os.environ, "DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT": "1s"}
-    r = subprocess.run([sys.executable, "-m", "gt3dkit.cli", command, arg, "--out", str(out), "--scheduler",
-                        "tcp://127.0.0.1:9"], capture_output=True, text=True, env=env, cwd=tmp_path)
+    argv = [sys.executable, "-m", "gt3dkit.cli", command, arg, "--out", str(out), "--scheduler", address,
+            "--quiet"]
+    return subprocess.run(argv, capture_output=True, text=True, env=env, cwd=tmp_path), out
+
+
+@pytest.mark.parametrize("command", ["reconstruct", "reconstruct-many"])
+def test_an_unreachable_scheduler_is_one_error_line_and_nothing_written(command: str, tmp_path: Path) -> None:
+    """Nothing listens on port 9 of loopback: after Dask's own connect timeout (1 s here, by its
+    configuration's environment variable) one ``error:`` line naming ``--scheduler``, exit 2, no
+    output folder (``reconstruct-many`` used to make it, and its marker, before connecting)."""
+    pytest.importorskip("distributed")
+    r, out = _gt3d_on_scheduler(command, "tcp://127.0.0.1:9", tmp_path)
     assert r.returncode == 2, r.stderr
     assert r.stderr.count("\n") == 1 and r.stderr.startswith(
         "error: --scheduler: cannot reach the Dask scheduler at tcp://127.0.0.1:9 ("), r.stderr
     assert "Traceback" not in r.stderr and not out.exists()
+
+
+@pytest.mark.parametrize("command", ["reconstruct", "reconstruct-many"])
+def test_a_scheduler_without_workers_is_one_error_line_and_nothing_written(command: str, tmp_path: Path
+                                                                           ) -> None:
+    """A scheduler no worker joins within Dask's connect timeout: one ``error:`` line, exit 2, no
+    output (``reconstruct-many`` waited for ever, ``reconstruct`` failed inside Dask's scatter)."""
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=0, processes=True, host="127.0.0.1", dashboard_address=None) as c:
+        r, out = _gt3d_on_scheduler(command, c.scheduler_address, tmp_path)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr == (f"error: --scheduler: the Dask scheduler at {c.scheduler_address} has no worker "
+                        "(none joined in 1 s)\n"), r.stderr
+    assert not out.exists()
