@@ -57,8 +57,9 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -74,7 +75,7 @@ from gt3dkit.api import (
     tiny_scenes,
 )
 from gt3dkit.arrays import unique_rows
-from gt3dkit.errors import InputError
+from gt3dkit.errors import EstimationError, InputError
 from gt3dkit.fusion.base import make_estimator
 from gt3dkit.fusion.bones import BoneSamples, PersonBones
 from gt3dkit.fusion.split import split_entries
@@ -91,6 +92,9 @@ OnPart = Callable[[int, TrackSet, list[tuple[Any, ...]]], None]
 #: Frames each Dask worker but the first estimates first, to load its imports and kernels
 #: (:func:`_warm_workers`).
 WARM_FRAMES = 3
+#: Times a window is submitted to a Dask cluster whose workers holding its scene are lost, at most
+#: (:func:`_on_dask`).
+WINDOW_TRIES = 3
 #: The process-noise settings chosen once for all windows.
 PROCESS_NOISE = ("accel_sd", "position_sd", "shape_sd", "joint_accel_sd")
 #: Default context on each side of a window, seconds (at least :data:`MIN_OVERLAP_FRAMES`).
@@ -318,11 +322,34 @@ def chosen_noise(scene: Scene, windows: list[Window], estimator: str, config: di
     if runner is None:
         found = sample_noise(sample, estimator, config, step_s)
         return lambda: found
-    if hasattr(runner, "scatter"):  # a Dask client: the sample as data, not inside the task graph
-        first = _workers(runner)[:1] or None  # warmed as the sequence loaded (Cluster); not warmed again
-        return runner.submit(searched_on_worker, runner.scatter(sample, hash=False, workers=first),
-                             estimator, config, step_s, workers=first, pure=False).result
+    if hasattr(runner, "scatter"):  # a Dask client
+        return _search_on_dask(runner, sample, estimator, config, step_s)
     return runner.submit(sample_noise, sample, estimator, config, step_s).result
+
+
+def _search_on_dask(client: Any, sample: Scene, estimator: str, config: dict[str, Any], step_s: float
+                    ) -> Callable[[], tuple[dict[str, float], int | None]]:
+    """:func:`searched_on_worker` of ``sample`` (scattered as data, not inside the task graph) on
+    the Dask ``client``'s first worker, warmed as the sequence loaded (:class:`Cluster`); the
+    result when the returned function is called. If that worker is lost, the search runs again on
+    any other (:func:`_on_dask`)."""
+    first = _workers(client)[:1] or None
+    future = client.submit(searched_on_worker, client.scatter(sample, hash=False, workers=first),
+                           estimator, config, step_s, workers=first, pure=False)
+
+    def found() -> tuple[dict[str, float], int | None]:
+        from distributed.client import FutureCancelledError
+
+        try:
+            return future.result()
+        except FutureCancelledError:
+            def task(_: int) -> tuple[Any, ...]:
+                return searched_on_worker, client.scatter(sample, hash=False), estimator, config, step_s
+
+            again = _on_dask(client, task, 1, lambda _: "the process-noise search")
+            return next(again)[1]
+
+    return found
 
 
 def searched_objects(sample: Scene, budget: int = SEARCH_OBJECT_FRAMES) -> Scene:
@@ -734,15 +761,29 @@ def _window_scenes(scene: Scene, windows: list[Window], client: Any, bridge: Bri
                    ) -> Callable[[int], Any]:
     """Window ``k``'s scene: made when asked (one window's at a time in this process), or on a
     Dask ``client`` scattered once to the cluster as data (not inside the task graph) and its
-    future given to every round; with the ``bridge`` rows (the rows between annotations,
-    ``--every-frame``)."""
+    future given to every round (:class:`Scattered`); with the ``bridge`` rows (the rows between
+    annotations, ``--every-frame``)."""
     def cut(w: Window) -> Scene:
         return window_scene(scene, w.lo, w.hi, bridge.rows(w) if bridge is not None else None)
 
     if client is None:
         return lambda k: cut(windows[k])
-    futures = [client.scatter(cut(w), hash=False) for w in windows]
-    return futures.__getitem__
+    return Scattered(client, [functools.partial(cut, w) for w in windows])
+
+
+class Scattered:
+    """Scenes scattered to a Dask cluster as data, each one's future when called with its index;
+    a scene whose worker was lost (scattered data cannot be recomputed) is cut and scattered
+    again (:func:`_run_windows` then runs its window again)."""
+
+    def __init__(self, client: Any, cuts: list[Callable[[], Scene]]) -> None:
+        self.client, self.cuts = client, cuts
+        self.futures = [client.scatter(cut(), hash=False) for cut in cuts]
+
+    def __call__(self, k: int) -> Any:
+        if self.futures[k].status != "finished":
+            self.futures[k] = self.client.scatter(self.cuts[k](), hash=False)
+        return self.futures[k]
 
 
 def _run_windows(scenes: Callable[[int], Any], windows: list[Window], like: WindowJob, runner: Any,
@@ -751,7 +792,8 @@ def _run_windows(scenes: Callable[[int], Any], windows: list[Window], like: Wind
     """Every window's ``fn`` (:func:`run_window`; ``like`` with each window's frames, ``scenes(k)``
     its scene): on the Dask client or the process pool ``runner``, or one after the other in this
     process (None); ``done(k, n)`` as they start (0) and finish, ``on_part(k, *part)`` with window
-    ``k``'s part as it comes."""
+    ``k``'s part as it comes. On Dask, a window whose worker was lost runs again on the others
+    (:func:`_on_dask`)."""
     done(0, len(windows))
     parts: list[Any] = [None] * len(windows)
     got = on_part or (lambda k, *part: None)
@@ -762,17 +804,55 @@ def _run_windows(scenes: Callable[[int], Any], windows: list[Window], like: Wind
             done(k + 1, len(windows))
         return parts
     if hasattr(runner, "scatter"):  # a Dask client
-        from distributed import as_completed
-
-        futures = {runner.submit(fn, dataclasses.replace(like, window=w), scenes(k), pure=False): k
-                   for k, w in enumerate(windows)}
+        finished = _on_dask(runner, lambda k: (fn, dataclasses.replace(like, window=windows[k]), scenes(k)),
+                            len(windows), lambda k: f"window {k + 1} (frames {windows[k].lo}-"
+                                                    f"{windows[k].hi})")
     else:
         from concurrent.futures import as_completed
 
         futures = {runner.submit(fn, dataclasses.replace(like, window=w), scenes(k)): k
                    for k, w in enumerate(windows)}
-    for n, f in enumerate(as_completed(futures), 1):
-        parts[futures[f]] = f.result()
-        got(futures[f], *parts[futures[f]])
+        finished = ((futures[f], f.result()) for f in as_completed(futures))
+    for n, (k, part) in enumerate(finished, 1):
+        parts[k] = part
+        got(k, *part)
         done(n, len(windows))
     return parts
+
+
+def _on_dask(client: Any, task: Callable[[int], tuple[Any, ...]], n: int, what: Callable[[int], str]
+             ) -> Iterator[tuple[int, Any]]:
+    """Tasks ``task(k) = (fn, *args)``, ``k < n``, on the Dask ``client``: ``(k, result)`` as they
+    finish. A task cancelled because the worker holding its input was lost (a worker killed or
+    gone: a scattered scene cannot be recomputed) is submitted again, its input scattered again
+    (:class:`Scattered`), up to :data:`WINDOW_TRIES` times; one that kills its worker (Dask's
+    ``KilledWorker``, after Dask's own retries) is an :class:`EstimationError` naming it
+    (``what(k)``)."""
+    from distributed import as_completed
+    from distributed.client import FutureCancelledError
+    from distributed.scheduler import KilledWorker
+
+    def submit(k: int) -> Any:
+        fn, *args = task(k)
+        return client.submit(fn, *args, pure=False)
+
+    futures = {submit(k): k for k in range(n)}
+    tries = [1] * n
+    pending = as_completed(futures)
+    for f in pending:
+        k = futures.pop(f)
+        try:
+            result = f.result()
+        except FutureCancelledError:
+            if tries[k] >= WINDOW_TRIES:
+                raise EstimationError("--scheduler", f"{what(k)} lost its Dask worker {tries[k]} times: is "
+                                                     "the cluster stable?") from None
+            tries[k] += 1
+            again = submit(k)
+            futures[again] = k
+            pending.add(again)
+            continue
+        except KilledWorker:
+            raise EstimationError("--scheduler", f"{what(k)} killed the Dask workers that ran it (out of "
+                                                 "memory? a smaller --window needs less)") from None
+        yield k, result

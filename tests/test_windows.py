@@ -21,11 +21,15 @@ from gt3dkit.windows import (
     Cluster,
     Plan,
     Window,
+    WindowJob,
+    _run_windows,
+    _window_scenes,
     balanced_size,
     noise_sample,
     plan_windows,
     reconstruct_windowed,
     reconstruct_windows,
+    run_window,
 )
 from tests.scenes import written_scene
 
@@ -235,6 +239,37 @@ def test_jobs_and_dask_give_the_one_process_output(boxes: object, tmp_path: Path
     assert code == 0, se
     assert (tmp_path / "dask" / "tracks.csv").read_bytes() == outs["one"]
     assert (tmp_path / "library" / "tracks.csv").read_bytes() == outs["one"]
+
+
+def test_a_window_whose_dask_worker_dies_runs_again_on_the_others(boxes: object, tmp_path: Path) -> None:
+    """The first window to run kills its worker (``os._exit``, as a machine lost or the kernel's
+    out-of-memory killer would): the scenes scattered to it are lost (Dask cannot recompute
+    scattered data) and the windows that needed them were cancelled (the run failed with
+    ``FutureCancelledError``). They are scattered and run again: every window's part is the one
+    the same window gives in this process."""
+    import os
+
+    distributed = pytest.importorskip("distributed")
+    scene = boxes
+    windows = plan_windows(np.asarray(scene.frames, dtype=np.int64), 30, 20)  # type: ignore[attr-defined]
+    like = WindowJob(windows[0], "ukf", {"accel_sd": 0.5, "shape_sd": 0.01}, None)
+    marker = tmp_path / "died"
+
+    def dies_once(job: WindowJob, s: object) -> object:
+        if not marker.exists():
+            marker.write_text("a worker died here")
+            os._exit(1)
+        return run_window(job, s)
+
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        parts = _run_windows(_window_scenes(scene, windows, client), windows, like, client, lambda k, n: None,
+                             dies_once)
+    assert marker.exists()
+    for k, w in enumerate(windows):
+        alone = _run_windows(_window_scenes(scene, [w], None), [w], like, None, lambda k, n: None)[0]
+        for name in ("frame", "track_id", "center_world", "center_sd"):
+            np.testing.assert_array_equal(getattr(parts[k][0], name), getattr(alone[0], name), err_msg=name)
 
 
 def _tiny_scenes_made() -> int:
