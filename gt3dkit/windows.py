@@ -778,12 +778,24 @@ class Scattered:
 
     def __init__(self, client: Any, cuts: list[Callable[[], Scene]]) -> None:
         self.client, self.cuts = client, cuts
-        self.futures = [client.scatter(cut(), hash=False) for cut in cuts]
+        self.futures = [self._sent(k) for k in range(len(cuts))]
 
     def __call__(self, k: int) -> Any:
         if self.futures[k].status != "finished":
-            self.futures[k] = self.client.scatter(self.cuts[k](), hash=False)
+            self.futures[k] = self._sent(k)
         return self.futures[k]
+
+    def _sent(self, k: int) -> Any:
+        """Scene ``k`` scattered; again a second later if the worker it went to was just lost
+        (the scheduler drops it meanwhile), up to :data:`WINDOW_TRIES` times."""
+        for attempt in range(1, WINDOW_TRIES + 1):
+            try:
+                return self.client.scatter(self.cuts[k](), hash=False)
+            except OSError as e:  # distributed's CommClosedError
+                if attempt == WINDOW_TRIES:
+                    raise EstimationError("--scheduler", f"could not send a window's frames to the Dask "
+                                                         f"workers ({e})") from None
+                time.sleep(1.0)
 
 
 def _run_windows(scenes: Callable[[int], Any], windows: list[Window], like: WindowJob, runner: Any,
@@ -805,8 +817,8 @@ def _run_windows(scenes: Callable[[int], Any], windows: list[Window], like: Wind
         return parts
     if hasattr(runner, "scatter"):  # a Dask client
         finished = _on_dask(runner, lambda k: (fn, dataclasses.replace(like, window=windows[k]), scenes(k)),
-                            len(windows), lambda k: f"window {k + 1} (frames {windows[k].lo}-"
-                                                    f"{windows[k].hi})")
+                            len(windows), lambda k: f"window {k + 1} (frames {windows[k].first}-"
+                                                    f"{windows[k].last})")
     else:
         from concurrent.futures import as_completed
 
