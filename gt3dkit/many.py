@@ -20,6 +20,7 @@ import html
 import json
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -158,31 +159,52 @@ def run_many(inputs: list[Path], out: Path, estimator: str = "ukf", jobs: int | 
     return rows
 
 
-def _ran(todo: list[Job], client: Any, jobs: int | None, progress: bool) -> list[dict[str, Any]]:
-    """Every job's summary row, in the order they finish: on the Dask ``client``'s workers, or
-    in ``jobs`` local processes (spawned)."""
+def _ran(todo: list[Job], client: Any, jobs: int | None, progress: bool,
+         fn: Callable[[Job], dict[str, Any]] = run_job) -> list[dict[str, Any]]:
+    """Every job's summary row (``fn``, :func:`run_job`), in the order they finish: on the Dask
+    ``client``'s workers, or in ``jobs`` local processes (spawned). A sequence whose process died
+    (the out-of-memory killer, a crash in a library) is a failed row, not the end of the run: Dask
+    retries it on another worker first and gives up with ``KilledWorker``; a dead local process
+    breaks its pool, and the sequences not yet done are failed rows too (a rerun does them)."""
     from tqdm import tqdm
 
     rows: list[dict[str, Any]] = []
     bar = tqdm(total=len(todo), desc="sequences", unit="seq", disable=not progress)
     if client is not None:
         from distributed import as_completed
+        from distributed.scheduler import KilledWorker
 
-        for f in as_completed(client.map(run_job, todo, pure=False)):
-            rows.append(f.result())
+        futures = dict(zip(client.map(fn, todo, pure=False), todo, strict=True))
+        for f in as_completed(futures):
+            try:
+                rows.append(f.result())
+            except KilledWorker:
+                rows.append(_died(futures[f], "it killed the Dask workers that ran it (out of memory?)"))
             bar.update()
     else:
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
         from concurrent.futures import as_completed as done
+        from concurrent.futures.process import BrokenProcessPool
 
         n = max(1, min(jobs or os.cpu_count() or 1, len(todo)))
         with ProcessPoolExecutor(max_workers=n, mp_context=mp.get_context("spawn")) as pool:
-            for f in done([pool.submit(run_job, j) for j in todo]):
-                rows.append(f.result())
+            submitted = {pool.submit(fn, j): j for j in todo}
+            for f in done(submitted):
+                try:
+                    rows.append(f.result())
+                except BrokenProcessPool:
+                    rows.append(_died(submitted[f], "a worker process died (out of memory?) before it "
+                                                    "was done: run again to do it"))
                 bar.update()
     bar.close()
     return rows
+
+
+def _died(job: Job, why: str) -> dict[str, Any]:
+    """The summary row of ``job``, failed because its process died (``why``)."""
+    return {"input": job.input, "output": job.output, "status": "failed", "seconds": "", "objects": "",
+            "object_frames": "", "anomalies": "", "error": f"error: {why}"}
 
 
 def _index(out: Path, rows: list[dict[str, Any]]) -> None:

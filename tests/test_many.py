@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from gt3dkit.cli import main
+from gt3dkit.many import Job, _ran, run_job
 from gt3dkit.sim import Errors, simulate, write_scene
 
 
@@ -121,3 +122,35 @@ def test_a_scheduler_without_workers_is_one_error_line_and_nothing_written(comma
     assert r.stderr == (f"error: --scheduler: the Dask scheduler at {c.scheduler_address} has no worker "
                         "(none joined in 1 s)\n"), r.stderr
     assert not out.exists()
+
+
+def _dies_on_s2(job: Job) -> dict[str, object]:
+    """:func:`run_job`, but the process running sequence ``s2`` dies (as the out-of-memory killer
+    ends it)."""
+    if Path(job.input).name == "s2":
+        os._exit(1)
+    return run_job(job)
+
+
+@pytest.mark.parametrize("where", ["dask", "processes"])
+def test_a_sequence_whose_process_dies_is_a_failed_row(manifest: Path, where: str, tmp_path: Path) -> None:
+    """The summary still comes: on Dask (which tries it on 4 workers first) the dead sequence alone
+    fails, with why; in local processes its pool breaks, so the sequences not done by then fail too, and say
+    that a rerun does them."""
+    todo = [Job(str(p), str(tmp_path / p.name), "triangulation", False)
+            for p in sorted((manifest.parent / "seqs").glob("s[123]"))]
+    if where == "dask":
+        distributed = pytest.importorskip("distributed")
+        with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                      dashboard_address=None) as cluster:
+            with distributed.Client(cluster) as client:
+                rows = {Path(r["input"]).name: r for r in _ran(todo, client, None, False, _dies_on_s2)}
+        # a sequence done on a worker that then died is done again, and found up to date
+        assert [rows[k]["status"] for k in ("s1", "s3")] in (["done"] * 2, ["up to date", "done"],
+                                                             ["done", "up to date"], ["up to date"] * 2), rows
+        assert rows["s2"]["status"] == "failed", rows
+    else:
+        rows = {Path(r["input"]).name: r for r in _ran(todo, None, 1, False, _dies_on_s2)}
+        assert rows["s1"]["status"] == "done" and rows["s2"]["status"] == "failed", rows
+        assert "run again" in rows["s2"]["error"]
+    assert "out of memory?" in rows["s2"]["error"]
