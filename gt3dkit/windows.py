@@ -820,16 +820,32 @@ def _run_windows(scenes: Callable[[int], Any], windows: list[Window], like: Wind
                             len(windows), lambda k: f"window {k + 1} (frames {windows[k].first}-"
                                                     f"{windows[k].last})")
     else:
-        from concurrent.futures import as_completed
-
         futures = {runner.submit(fn, dataclasses.replace(like, window=w), scenes(k)): k
                    for k, w in enumerate(windows)}
-        finished = ((futures[f], f.result()) for f in as_completed(futures))
+        finished = _in_pool(futures, windows)
     for n, (k, part) in enumerate(finished, 1):
         parts[k] = part
         got(k, *part)
         done(n, len(windows))
     return parts
+
+
+def _in_pool(futures: dict[Any, int], windows: list[Window]) -> Iterator[tuple[int, Any]]:
+    """``(k, result)`` of the local process pool's ``futures`` (window ``k`` each) as they finish;
+    a process of the pool that died (the out-of-memory killer, a signal) is an
+    :class:`EstimationError` naming the window it was running, not an internal error."""
+    from concurrent.futures import as_completed
+    from concurrent.futures.process import BrokenProcessPool
+
+    for f in as_completed(futures):
+        k = futures[f]
+        try:
+            yield k, f.result()
+        except BrokenProcessPool:
+            w = windows[k]
+            raise EstimationError("--jobs", f"a worker process died (out of memory? a shorter --window or "
+                                            f"fewer --jobs need less) with window {k + 1} (frames "
+                                            f"{w.first}-{w.last}) not done") from None
 
 
 def _on_dask(client: Any, task: Callable[[int], tuple[Any, ...]], n: int, what: Callable[[int], str]

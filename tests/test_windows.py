@@ -22,6 +22,7 @@ from gt3dkit.windows import (
     Plan,
     Window,
     WindowJob,
+    _process_pool,
     _run_windows,
     _window_scenes,
     balanced_size,
@@ -270,6 +271,25 @@ def test_a_window_whose_dask_worker_dies_runs_again_on_the_others(boxes: object,
         alone = _run_windows(_window_scenes(scene, [w], None), [w], like, None, lambda k, n: None)[0]
         for name in ("frame", "track_id", "center_world", "center_sd"):
             np.testing.assert_array_equal(getattr(parts[k][0], name), getattr(alone[0], name), err_msg=name)
+
+
+def _dies(job: WindowJob, scene: object) -> object:
+    """A window whose process dies (as the out-of-memory killer ends it)."""
+    import os
+
+    os._exit(1)
+
+
+def test_a_dead_pool_process_is_an_error_naming_the_window(boxes: object) -> None:
+    """``--jobs``: a pool process that dies is an EstimationError (``error: --jobs: ...``, exit 1),
+    not an internal error asking for a bug report."""
+    from gt3dkit.errors import EstimationError
+
+    windows = plan_windows(np.asarray(boxes.frames, dtype=np.int64), 30, 20)  # type: ignore[attr-defined]
+    like = WindowJob(windows[0], "ukf", {"accel_sd": 0.5, "shape_sd": 0.01}, None)
+    said = r"^--jobs: a worker process died \(out of memory\? .*\) with window \d+ \(frames \d+-\d+\)"
+    with _process_pool(2) as pool, pytest.raises(EstimationError, match=said):
+        _run_windows(_window_scenes(boxes, windows, None), windows, like, pool, lambda k, n: None, _dies)
 
 
 def _tiny_scenes_made() -> int:
