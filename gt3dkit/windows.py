@@ -85,6 +85,7 @@ from gt3dkit.io.writers import StreamedRows, write_result_files
 from gt3dkit.qa.anomalies import Anomalies
 from gt3dkit.threads import every_core, roomy_malloc, small_matrix_blas
 from gt3dkit.types import I64, Downweighted, Scene, TrackSet
+from gt3dkit.version import __version__
 
 #: What a window's rows and findings go to as it finishes (:func:`reconstruct_windowed`): its index,
 #: its tracks and its QA rows.
@@ -541,7 +542,9 @@ def connect_scheduler(address: str) -> Any:
     for the connection, and then for a first worker, as long as Dask's own
     ``distributed.comm.timeouts.connect`` says (30 s unless the user's Dask configuration or
     ``DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT`` says otherwise): a scheduler no worker joins
-    made ``reconstruct-many`` wait for ever and ``reconstruct`` fail inside Dask."""
+    made ``reconstruct-many`` wait for ever and ``reconstruct`` fail inside Dask. Every worker
+    there must have this gt3dkit (its version; a worker without it, or with another, failed
+    inside the first task or wrote another output)."""
     import dask
     from dask.utils import parse_timedelta
     from distributed import Client
@@ -553,11 +556,26 @@ def connect_scheduler(address: str) -> Any:
         raise InputError("--scheduler", f"cannot reach the Dask scheduler at {address} ({e})") from None
     try:
         client.wait_for_workers(1, timeout=wait)
+        found = client.run(_gt3dkit_here, on_error="return")  # an error: no gt3dkit to load it with
+        found = {w: v if isinstance(v, str) else "none" for w, v in sorted(found.items())}
+        others = {w: v for w, v in found.items() if v != __version__}
     except TimeoutError:
         client.close()
         raise InputError("--scheduler", f"the Dask scheduler at {address} has no worker (none joined "
                                         f"in {wait:g} s)") from None
+    if others:  # the windows must run the code this process runs (the same output)
+        client.close()
+        w, v = next(iter(others.items()))
+        raise InputError("--scheduler", f"the Dask worker {w} has gt3dkit {v}, this process {__version__} "
+                                        f"({len(others)} worker(s) differ): install this gt3dkit on every "
+                                        "worker")
     return client
+
+
+def _gt3dkit_here() -> str:
+    """The version of gt3dkit the process running this has (on each Dask worker, by
+    :func:`connect_scheduler`; a worker without gt3dkit fails to load this function)."""
+    return __version__
 
 
 class Cluster:

@@ -154,3 +154,20 @@ def test_a_sequence_whose_process_dies_is_a_failed_row(manifest: Path, where: st
         assert rows["s1"]["status"] == "done" and rows["s2"]["status"] == "failed", rows
         assert "run again" in rows["s2"]["error"]
     assert "out of memory?" in rows["s2"]["error"]
+
+
+def test_a_worker_with_another_gt3dkit_is_one_error_line(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The workers have gt3dkit 0.1.0 (this checkout); this process says it has another: the
+    connection is refused before anything runs, naming a worker and both versions."""
+    distributed = pytest.importorskip("distributed")
+    import gt3dkit.windows as windows
+    from gt3dkit.errors import InputError
+
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as cluster:
+        windows.connect_scheduler(cluster.scheduler_address).close()  # the same gt3dkit: connected
+        monkeypatch.setattr(windows, "__version__", "0.0.0-other")
+        said = (r"^--scheduler: the Dask worker tcp://127\.0\.0\.1:\d+ has gt3dkit \S+, this process "
+                r"0\.0\.0-other \(2 worker\(s\) differ\)")
+        with pytest.raises(InputError, match=said):
+            windows.connect_scheduler(cluster.scheduler_address)
