@@ -13,6 +13,11 @@ processes, or ``--scheduler ADDRESS``: the Dask cluster ``reconstruct-many`` use
   imports and compiled kernels while it loads (:class:`Cluster`, :func:`warm_first`): the
   search starts warm. The other workers do that during the search (:func:`_warm_workers`), and
   the windows are cut and sent to the workers meanwhile (:func:`_cut_windows`).
+* On a Dask cluster, a window (or the search) whose worker is lost runs again on the others: the
+  window scenes scattered to that worker went with it, and are scattered again
+  (:class:`Scattered`, :func:`_on_dask`); a local process that dies (``--jobs``) is an error
+  naming its window (:func:`_in_pool`). :func:`connect_scheduler` refuses a scheduler without
+  workers and workers without this gt3dkit.
 * Each window's rows are written as soon as they are final (every window before it done:
   :class:`gt3dkit.io.writers.StreamedRows`), into the folder that replaces ``OUT`` at the end.
 * The windows the tool chose (not a ``--window`` the user gave) are cut where each holds an
