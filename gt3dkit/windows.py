@@ -343,19 +343,10 @@ def _search_on_dask(client: Any, sample: Scene, estimator: str, config: dict[str
     future = client.submit(searched_on_worker, client.scatter(sample, hash=False, workers=first),
                            estimator, config, step_s, workers=first, pure=False)
 
-    def found() -> tuple[dict[str, float], int | None]:
-        from distributed.client import FutureCancelledError
+    def again(_: int) -> tuple[Any, ...]:  # on any worker
+        return searched_on_worker, client.scatter(sample, hash=False), estimator, config, step_s
 
-        try:
-            return future.result()
-        except FutureCancelledError:
-            def task(_: int) -> tuple[Any, ...]:
-                return searched_on_worker, client.scatter(sample, hash=False), estimator, config, step_s
-
-            again = _on_dask(client, task, 1, lambda _: "the process-noise search")
-            return next(again)[1]
-
-    return found
+    return lambda: next(_on_dask(client, again, 1, lambda _: "the process-noise search", {future: 0}))[1]
 
 
 def searched_objects(sample: Scene, budget: int = SEARCH_OBJECT_FRAMES) -> Scene:
@@ -871,14 +862,14 @@ def _in_pool(futures: dict[Any, int], windows: list[Window]) -> Iterator[tuple[i
                                             f"{w.first}-{w.last}) not done") from None
 
 
-def _on_dask(client: Any, task: Callable[[int], tuple[Any, ...]], n: int, what: Callable[[int], str]
-             ) -> Iterator[tuple[int, Any]]:
+def _on_dask(client: Any, task: Callable[[int], tuple[Any, ...]], n: int, what: Callable[[int], str],
+             submitted: dict[Any, int] | None = None) -> Iterator[tuple[int, Any]]:
     """Tasks ``task(k) = (fn, *args)``, ``k < n``, on the Dask ``client``: ``(k, result)`` as they
-    finish. A task cancelled because the worker holding its input was lost (a worker killed or
-    gone: a scattered scene cannot be recomputed) is submitted again, its input scattered again
-    (:class:`Scattered`), up to :data:`WINDOW_TRIES` times; one that kills its worker (Dask's
-    ``KilledWorker``, after Dask's own retries) is an :class:`EstimationError` naming it
-    (``what(k)``)."""
+    finish (``submitted``: their futures, already submitted by the caller). A task cancelled
+    because the worker holding its input was lost (a worker killed or gone: a scattered scene
+    cannot be recomputed) is submitted again, its input scattered again (:class:`Scattered`), up
+    to :data:`WINDOW_TRIES` times; one that kills its worker (Dask's ``KilledWorker``, after Dask's
+    own retries) is an :class:`EstimationError` naming it (``what(k)``)."""
     from distributed import as_completed
     from distributed.client import FutureCancelledError
     from distributed.scheduler import KilledWorker
@@ -887,7 +878,7 @@ def _on_dask(client: Any, task: Callable[[int], tuple[Any, ...]], n: int, what: 
         fn, *args = task(k)
         return client.submit(fn, *args, pure=False)
 
-    futures = {submit(k): k for k in range(n)}
+    futures = submitted if submitted is not None else {submit(k): k for k in range(n)}
     tries = [1] * n
     pending = as_completed(futures)
     for f in pending:
