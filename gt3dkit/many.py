@@ -97,8 +97,7 @@ def run_job(job: Job) -> dict[str, Any]:
     import warnings
 
 
-    row: dict[str, Any] = {"input": job.input, "output": job.output, "status": "", "seconds": 0.0,
-                           "objects": "", "object_frames": "", "anomalies": "", "error": ""}
+    row = _row(job, seconds=0.0)
     t0 = time.perf_counter()
     os.environ.setdefault("GT3D_BLAS_THREADS", "1")  # the workers are the parallelism
     try:
@@ -201,10 +200,14 @@ def _ran(todo: list[Job], client: Any, jobs: int | None, progress: bool,
     return rows
 
 
+def _row(job: Job, **fields: Any) -> dict[str, Any]:
+    """``job``'s summary row (:data:`SUMMARY_COLUMNS`), empty but for ``fields``."""
+    return {"input": job.input, "output": job.output, **dict.fromkeys(SUMMARY_COLUMNS[2:], ""), **fields}
+
+
 def _died(job: Job, why: str) -> dict[str, Any]:
     """The summary row of ``job``, failed because its process died (``why``)."""
-    return {"input": job.input, "output": job.output, "status": "failed", "seconds": "", "objects": "",
-            "object_frames": "", "anomalies": "", "error": f"error: {why}"}
+    return _row(job, status="failed", error=f"error: {why}")
 
 
 def _index(out: Path, rows: list[dict[str, Any]]) -> None:

@@ -552,9 +552,9 @@ def connect_scheduler(address: str) -> Any:
         raise InputError("--scheduler", f"cannot reach the Dask scheduler at {address} ({e})") from None
     try:
         client.wait_for_workers(1, timeout=wait)
-        found = client.run(_gt3dkit_here, on_error="return")  # an error: no gt3dkit to load it with
-        found = {w: v if isinstance(v, str) else "none" for w, v in sorted(found.items())}
-        others = {w: v for w, v in found.items() if v != __version__}
+        # a worker's error: no gt3dkit there to load the function with
+        others = {w: v if isinstance(v, str) else "none" for w, v in
+                  sorted(client.run(_gt3dkit_here, on_error="return").items()) if v != __version__}
     except TimeoutError:
         client.close()
         raise InputError("--scheduler", f"the Dask scheduler at {address} has no worker (none joined "

@@ -83,12 +83,17 @@ def write_tracks_csv(path: Path, tracks: TrackSet) -> None:
     """One row per (frame, id); a dense run (``info["every_frame"]``, rows where no camera saw
     the object included) adds the column ``n_views`` (0: interpolated)."""
     with open(path, "w", newline="") as f:
-        csv.writer(f).writerow(TRACK_COLUMNS + (("n_views",) if _dense(tracks) else ()))
+        csv.writer(f).writerow(_tracks_header(tracks))
         _tracks_rows(f, tracks)
 
 
 def _dense(tracks: TrackSet) -> bool:
     return bool(tracks.info.get("every_frame"))
+
+
+def _tracks_header(tracks: TrackSet) -> tuple[str, ...]:
+    """``tracks.csv``'s columns: ``n_views`` last in a dense run."""
+    return TRACK_COLUMNS + (("n_views",) if _dense(tracks) else ())
 
 
 def _tracks_rows(f: Any, tracks: TrackSet) -> None:
@@ -154,29 +159,25 @@ class StreamedRows:
         return self._files[name]
 
     def _write(self, tracks: TrackSet, anomaly_rows: list[tuple[Any, ...]]) -> None:
-        f, _ = self._writer("tracks.csv", TRACK_COLUMNS + (("n_views",) if _dense(tracks) else ()))
+        f, _ = self._writer("tracks.csv", _tracks_header(tracks))
         _tracks_rows(f, tracks)
         if tracks.kpt_world.shape[1]:
             _keypoint_rows(self._writer("keypoints.csv", KPT_COLUMNS)[0], tracks)
         self._writer("anomalies.csv", ANOMALY_COLUMNS)[1].writerows(anomaly_rows)
 
-    def close(self) -> None:
-        """Close the files (every part must be in: a gap is a RuntimeError)."""
+    def close(self, complete: bool = True) -> None:
+        """Close the files; with ``complete``, every part must be in (a gap is a RuntimeError)."""
         for f, _ in self._files.values():
             f.close()
         self._files = {}
-        if self._waiting:
+        if complete and self._waiting:
             raise RuntimeError(f"parts {sorted(self._waiting)} came without part {self._next}")
 
     def __enter__(self) -> StreamedRows:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        if exc[0] is None:
-            self.close()
-        else:  # the run failed: its folder is thrown away
-            for f, _ in self._files.values():
-                f.close()
+        self.close(complete=exc[0] is None)  # a failed run's folder is thrown away
 
 
 def write_downweighted_csv(path: Path, scene: Scene, tracks: TrackSet) -> None:
