@@ -15,7 +15,16 @@
   ``range()`` argument or a comparison operand on a name that holds a state (``x``, ``X``,
   ``P``, ``x_*``, ``P_*``, ``xb*``, ``Pb*``, ``xj``, ``Pj``, ``dims``, ``i``/``k`` loops over state
   entries) -- a heuristic: it lists what it counts (``--list``);
-* **cli.py** lines.
+* **cli.py** lines;
+* issue 45's targets: **parameters typed ``Any``** (the annotation is exactly ``Any``) and
+  **``dict[str, Any]``** written anywhere in the package (at most 10 each); **modules over 600
+  lines** and **functions over 80 lines** (from ``def`` to the last line of the body, decorators
+  and docstring included); **README.md lines** (at most 250); **top-level modules in no
+  import-linter layer** (every ``gt3dkit.X`` of the package must be named by the ``layers``
+  contract of ``pyproject.toml``); **near-duplicate blocks**: pairs of places sharing six or more
+  consecutive lines of the same shape (identifiers, numbers and strings replaced by their kind;
+  blank lines, comments and docstrings left out; runs of field declarations not counted), at most ``DUPLICATE_BUDGET`` (the count when
+  issue 45 began: no block added since).
 
 Exit status 1 when a target is missed.
 """
@@ -24,7 +33,11 @@ from __future__ import annotations
 
 import argparse
 import ast
+import io
+import re
 import sys
+import tokenize
+import tomllib
 from collections import defaultdict
 from pathlib import Path
 
@@ -34,6 +47,15 @@ STATE_PREFIXES = ("x_", "P_", "xb", "Pb", "X_s")
 STATE_INTS = {3, 6, 9}
 MAX_PARAMS = 10
 MAX_CLI_LINES = 300
+MAX_ANY = 10
+MAX_MODULE_LINES = 600
+MAX_FUNCTION_LINES = 80
+MAX_README_LINES = 250
+DUPLICATE_WINDOW = 6
+#: near-duplicate pairs on main when issue 45 began (no block may be added)
+DUPLICATE_BUDGET = 13
+PYPROJECT = ROOT.parent / "pyproject.toml"
+README = ROOT.parent / "README.md"
 
 
 def modules(root: Path = ROOT) -> dict[str, Path]:
@@ -203,6 +225,108 @@ def state_literals(mods: dict[str, Path]) -> list[tuple[str, int, str]]:
     return sorted(set(out))
 
 
+def any_parameters(mods: dict[str, Path]) -> list[tuple[str, int, str]]:
+    """Parameters annotated exactly ``Any`` (``self``/``cls`` never are)."""
+    out = []
+    for m, p in mods.items():
+        for node in ast.walk(ast.parse(p.read_text())):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                a = node.args
+                for x in a.posonlyargs + a.args + a.kwonlyargs + [v for v in (a.vararg, a.kwarg) if v]:
+                    if x.annotation is not None and ast.unparse(x.annotation) == "Any":
+                        out.append((m, node.lineno, f"{node.name}({x.arg})"))
+    return out
+
+
+def dict_any(mods: dict[str, Path]) -> list[tuple[str, int]]:
+    """Every ``dict[str, Any]`` written in the package (annotations, casts, aliases)."""
+    return [(m, i + 1) for m, p in mods.items() for i, line in enumerate(p.read_text().splitlines())
+            for _ in re.finditer(r"dict\[str,\s*Any\]", line)]
+
+
+def long_modules(mods: dict[str, Path]) -> list[tuple[str, int]]:
+    return [(m, n) for m, p in mods.items() if (n := len(p.read_text().splitlines())) > MAX_MODULE_LINES]
+
+
+def long_functions(mods: dict[str, Path]) -> list[tuple[str, int, str, int]]:
+    out = []
+    for m, p in mods.items():
+        for node in ast.walk(ast.parse(p.read_text())):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                first = min([node.lineno] + [d.lineno for d in node.decorator_list])
+                n = (node.end_lineno or node.lineno) - first + 1
+                if n > MAX_FUNCTION_LINES:
+                    out.append((m, node.lineno, node.name, n))
+    return out
+
+
+def unlayered(mods: dict[str, Path]) -> list[str]:
+    """Top-level modules and subpackages of gt3dkit that the ``layers`` contract does not name."""
+    conf = tomllib.loads(PYPROJECT.read_text())["tool"]["importlinter"]["contracts"]
+    named = {name.strip() for c in conf if c.get("type") == "layers" for layer in c["layers"]
+             for name in layer.split("|")}
+    tops = {".".join(m.split(".")[:2]) for m in mods if m != "gt3dkit"}
+    return sorted(t for t in tops if t not in named and not t.endswith("__main__"))
+
+
+def _shapes(p: Path) -> list[tuple[int, str]]:
+    """Each code line of ``p`` as ``(line number, its tokens' shape)``: names, numbers and strings
+    by kind, docstrings and comments left out."""
+    src = p.read_text()
+    doc_lines: set[int] = set()
+    for node in ast.walk(ast.parse(src)):
+        if isinstance(node, ast.Module | ast.ClassDef | ast.FunctionDef | ast.AsyncFunctionDef) and node.body:
+            first = node.body[0]
+            if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) \
+                    and isinstance(first.value.value, str):
+                doc_lines.update(range(first.lineno, (first.end_lineno or first.lineno) + 1))
+    lines: dict[int, list[str]] = {}
+    for tok in tokenize.generate_tokens(io.StringIO(src).readline):
+        if tok.type in (tokenize.COMMENT, tokenize.NL, tokenize.NEWLINE, tokenize.INDENT,
+                        tokenize.DEDENT, tokenize.ENDMARKER) or tok.start[0] in doc_lines:
+            continue
+        kind = {tokenize.NAME: "N", tokenize.NUMBER: "0", tokenize.STRING: "S"}.get(tok.type)
+        if tok.type == tokenize.NAME and tok.string in KEYWORDS:
+            kind = tok.string
+        lines.setdefault(tok.start[0], []).append(kind or tok.string)
+    return [(n, " ".join(t)) for n, t in sorted(lines.items())]
+
+
+KEYWORDS = {"def", "class", "return", "if", "elif", "else", "for", "while", "in", "not", "and", "or",
+            "is", "None", "True", "False", "with", "as", "try", "except", "finally", "raise", "import",
+            "from", "lambda", "yield", "continue", "break", "pass", "del", "global", "assert"}
+
+
+def near_duplicates(mods: dict[str, Path]) -> list[tuple[str, int, str, int]]:
+    """Pairs of places whose ``DUPLICATE_WINDOW`` consecutive code lines have the same shape
+    (overlapping windows of one pair counted once; windows of imports or of brackets alone are
+    not counted)."""
+    seen: dict[str, tuple[str, int]] = {}
+    pairs: dict[tuple[str, str], tuple[str, int, str, int]] = {}
+    last: dict[tuple[str, str], tuple[int, int]] = {}
+    for m, p in mods.items():
+        shapes = _shapes(p)
+        for i in range(len(shapes) - DUPLICATE_WINDOW + 1):
+            win = [s for _, s in shapes[i:i + DUPLICATE_WINDOW]]
+            if sum(len(s.split()) > 3 for s in win) < DUPLICATE_WINDOW - 1 or any(
+                    s.startswith(("import", "from")) for s in win) or all(
+                    s.startswith("N :") for s in win):  # a dataclass's fields
+                continue
+            key = "\n".join(win)
+            here = (m, shapes[i][0])
+            if key in seen and seen[key] != here:
+                a, b = seen[key], here
+                pk = (a[0], b[0])
+                prev = last.get(pk)
+                if prev is None or not (abs(a[1] - prev[0]) <= DUPLICATE_WINDOW
+                                        and abs(b[1] - prev[1]) <= DUPLICATE_WINDOW):
+                    pairs[(a[0] + str(a[1]), b[0] + str(b[1]))] = (a[0], a[1], b[0], b[1])
+                last[pk] = (a[1], b[1])
+            else:
+                seen.setdefault(key, here)
+    return list(pairs.values())
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--list", action="store_true", help="list every finding")
@@ -219,6 +343,11 @@ def main(argv: list[str] | None = None) -> int:
     sigs = long_signatures(mods)
     lits = state_literals(mods)
     cli_lines = len((ROOT / "cli.py").read_text().splitlines())
+    anys, dicts = any_parameters(mods), dict_any(mods)
+    big_mods, big_funcs = long_modules(mods), long_functions(mods)
+    readme = len(README.read_text().splitlines())
+    loose = unlayered(mods)
+    dups = near_duplicates(mods)
     rows = [
         ("import loops between modules", sum(len(c) for c in mod_loops), len(mod_loops) == 0),
         ("import loops between subpackages", sum(len(c) for c in sub_loops), len(sub_loops) == 0),
@@ -226,6 +355,13 @@ def main(argv: list[str] | None = None) -> int:
         (f"functions over {MAX_PARAMS} parameters", len(sigs), not sigs),
         ("state-index literals outside StateLayout", len(lits), not lits),
         (f"cli.py lines (<= {MAX_CLI_LINES})", cli_lines, cli_lines <= MAX_CLI_LINES),
+        (f"parameters typed Any (<= {MAX_ANY})", len(anys), len(anys) <= MAX_ANY),
+        (f"dict[str, Any] written (<= {MAX_ANY})", len(dicts), len(dicts) <= MAX_ANY),
+        (f"modules over {MAX_MODULE_LINES} lines", len(big_mods), not big_mods),
+        (f"functions over {MAX_FUNCTION_LINES} lines", len(big_funcs), not big_funcs),
+        (f"README.md lines (<= {MAX_README_LINES})", readme, readme <= MAX_README_LINES),
+        ("top-level modules in no import-linter layer", len(loose), not loose),
+        (f"near-duplicate blocks (<= {DUPLICATE_BUDGET})", len(dups), len(dups) <= DUPLICATE_BUDGET),
     ]
     print(f"package: {ROOT} ({len(mods)} modules)")
     for what, n, ok in rows:
@@ -241,6 +377,18 @@ def main(argv: list[str] | None = None) -> int:
             print(f"parameters: {m}:{ln} {name} ({k})")
         for m, ln, s in lits:
             print(f"state literal: {m}:{ln} {s}")
+        for m, ln, s in anys:
+            print(f"Any parameter: {m}:{ln} {s}")
+        for m, ln in dicts:
+            print(f"dict[str, Any]: {m}:{ln}")
+        for m, n in big_mods:
+            print(f"long module: {m} ({n} lines)")
+        for m, ln, name, n in big_funcs:
+            print(f"long function: {m}:{ln} {name} ({n} lines)")
+        for t in loose:
+            print(f"no layer: {t}")
+        for a, la, b, lb in dups:
+            print(f"near-duplicate: {a}:{la} ~ {b}:{lb}")
     return 0 if all(ok for _, _, ok in rows) else 1
 
 

@@ -44,3 +44,33 @@ def test_the_loop_finder_finds_a_loop() -> None:
     st = _structure()
     assert st.cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
     assert st.cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_every_top_level_module_sits_in_a_layer() -> None:
+    st = _structure()
+    assert st.unlayered(st.modules()) == []
+
+
+def test_no_near_duplicate_block_added() -> None:
+    st = _structure()
+    dups = st.near_duplicates(st.modules())
+    assert len(dups) <= st.DUPLICATE_BUDGET, dups
+
+
+def test_the_duplicate_finder_finds_a_renamed_copy(tmp_path: Path) -> None:
+    st = _structure()
+    body = ("def {f}(a, b):\n    c = a + b * 2\n    d = c - a / 3\n    e = d * c + 1\n"
+            "    g = e - d * 4\n    h = g + e / 5\n    return h * g - 6\n")
+    (tmp_path / "one.py").write_text(body.format(f="first"))
+    (tmp_path / "two.py").write_text(body.format(f="second").replace("c", "cc").replace("2", "7"))
+    (tmp_path / "three.py").write_text("def third(a):\n    return a\n")
+    mods = {p.stem: p for p in sorted(tmp_path.glob("*.py"))}
+    found = st.near_duplicates(mods)
+    assert len(found) == 1 and {found[0][0], found[0][2]} == {"one", "two"}
+
+
+def test_the_unlayered_finder_reads_the_contract() -> None:
+    st = _structure()
+    mods = dict(st.modules())
+    mods["gt3dkit.brand_new"] = ROOT / "gt3dkit" / "cli.py"
+    assert st.unlayered(mods) == ["gt3dkit.brand_new"]
