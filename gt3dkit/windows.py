@@ -83,6 +83,7 @@ from gt3dkit.arrays import unique_rows
 from gt3dkit.errors import EstimationError, InputError
 from gt3dkit.fusion.base import make_estimator
 from gt3dkit.fusion.bones import BoneSamples, PersonBones
+from gt3dkit.fusion.motion import position_step
 from gt3dkit.fusion.split import split_entries
 from gt3dkit.fusion.ukf_smoother import SEARCH_OBJECT_FRAMES, UKFConfig, drawn_objects
 from gt3dkit.io.atomic import write_dir_atomically
@@ -398,8 +399,7 @@ def context_steps(accel_sd: float, meas_sd_m: float, dt_s: float, weight: float 
     two, ``ceil(log weight / log rho)``."""
     from scipy.linalg import solve_discrete_are
 
-    F = np.array([[1.0, dt_s], [0.0, 1.0]])
-    Q = accel_sd**2 * np.array([[dt_s**3 / 3.0, dt_s**2 / 2.0], [dt_s**2 / 2.0, dt_s]])
+    F, Q = position_step(dt_s, accel_sd)
     H = np.array([[1.0, 0.0]])
     Rm = np.array([[max(meas_sd_m, 1e-9) ** 2]])
     P = solve_discrete_are(F.T, H.T, Q, Rm)

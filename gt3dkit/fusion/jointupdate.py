@@ -31,7 +31,7 @@ from gt3dkit.fusion.blockcov import BlockCov
 from gt3dkit.fusion.boxupdate import Chains, _chains, regress, run_boxes, sigma_points
 from gt3dkit.fusion.filterrun import FilterRun
 from gt3dkit.fusion.kalman import fade_factor, predict_row, rts_row
-from gt3dkit.fusion.motion import SPACE, StateLayout
+from gt3dkit.fusion.motion import SPACE, StateLayout, joint_step
 from gt3dkit.fusion.robust import chi2_isf
 from gt3dkit.fusion.ukf import Block, Robust, SigmaWeights, block_columns
 from gt3dkit.fusion.update import (
@@ -122,23 +122,6 @@ class JointOut(NamedTuple):
     weights: F64
     score2: F64
     resid: F64
-
-
-@numba.njit(cache=True, nogil=True)
-def joint_transition(dt: float, q: float, F: F64, Q: F64) -> None:
-    """``F, Q (6, 6)`` of a joint's constant-velocity step ``dt`` (s) with white acceleration noise
-    ``q`` (m/s^2/sqrt(Hz)): the joint block of :func:`gt3dkit.fusion.motion.transition`."""
-    F[:, :] = 0.0
-    Q[:, :] = 0.0
-    q2 = q * q
-    for k in range(SPACE):
-        F[k, k] = 1.0
-        F[SPACE + k, SPACE + k] = 1.0
-        F[k, SPACE + k] = dt
-        Q[k, k] = q2 * dt**3 / 3.0
-        Q[k, SPACE + k] = q2 * dt**2 / 2.0
-        Q[SPACE + k, k] = q2 * dt**2 / 2.0
-        Q[SPACE + k, SPACE + k] = q2 * dt
 
 
 @numba.njit(cache=True, nogil=True)
@@ -310,7 +293,7 @@ def _predict(r: int, prev: int, j: int, f: float, chains: Chains, data: JointDat
     """Joint ``j``'s prediction of row ``r`` from row ``prev``'s filtered state, its process noise
     scaled by ``f`` (``f Q f``)."""
     F, Q = np.empty((N, N)), np.empty((N, N))
-    joint_transition(chains.t_s[r] - chains.t_s[prev], data.q[r], F, Q)
+    joint_step(chains.t_s[r] - chains.t_s[prev], data.q[r], F, Q)
     if f != 1.0:
         for a in range(N):
             for b in range(N):
@@ -407,7 +390,7 @@ def backward(chain: I64, start: JointStart, last: I64, chains: Chains, data: Joi
         nxt = last[k]
         r = chains.prev_row[nxt] if nxt >= 0 else -1
         while r >= 0 and chains.run[r] and chains.run[nxt]:
-            joint_transition(chains.t_s[nxt] - chains.t_s[r], data.q[r], F, Q)
+            joint_step(chains.t_s[nxt] - chains.t_s[r], data.q[r], F, Q)
             rts_row(out.x[r, j], out.P[r, j], out.x_p[nxt, j], out.P_p[nxt, j], out.x[nxt, j], out.P[nxt, j],
                     F, out.x[r, j], out.P[r, j])
             nxt = r

@@ -18,8 +18,15 @@ ratio, ``u`` the up direction; joints are isotropic). The centre's position may 
 random walk of its own, ``Q_{cc} \mathrel{+}= q_p^2 \Delta t\, A``: where the labels place an
 object frame by frame (an annotator's click on a ground grid at 2 fps), its position departs
 from any smooth path by more than a walker's acceleration explains, and velocity should not
-follow those departures. :func:`transition` is compiled: the
-compiled filter calls it per step, :meth:`StateLayout.transition` per batch.
+follow those departures.
+
+This module is the one place the motion model is written. :class:`MotionModel` is its typed
+value (the noise levels and the acceleration's shape); :func:`cv_block` the constant-velocity
+noise of one coordinate, which the centre, every joint (:func:`joint_step`, one joint's block
+alone), the windows' steady-state context (:func:`position_step`), the moment estimate of the
+noise (:func:`second_difference_var`, :func:`walk_var`) and GTSAM's factors (:func:`walk_sd`,
+:meth:`MotionModel.transition`) all read. :func:`transition` is compiled: the compiled filters
+call it per step, :meth:`MotionModel.transition` per batch.
 """
 
 from __future__ import annotations
@@ -61,6 +68,42 @@ class Noise(NamedTuple):
     shape_sd: float
     joint_accel_sd: float
     position_sd: float
+
+
+@dataclass(frozen=True)
+class MotionModel:
+    """The motion model's noise levels, one typed value (units as in :class:`Noise`):
+    ``accel_sd`` the centre's white acceleration, ``shape_sd`` the log semi-axes' random walk,
+    ``joint_accel_sd`` the joints' white acceleration (None: ``accel_sd``), ``position_sd`` the
+    centre position's own random walk; the centre's acceleration noise along the unit vector
+    ``up (3,)`` is ``vertical_ratio`` times ``accel_sd`` (None: isotropic)."""
+
+    accel_sd: float
+    shape_sd: float
+    joint_accel_sd: float | None = None
+    position_sd: float = 0.0
+    up: F64 | None = None
+    vertical_ratio: float = 1.0
+
+    @property
+    def noise(self) -> Noise:
+        """The levels as the compiled kernels take them."""
+        return Noise(float(self.accel_sd), float(self.shape_sd),
+                     float(self.accel_sd if self.joint_accel_sd is None else self.joint_accel_sd),
+                     float(self.position_sd))
+
+    @property
+    def accel_shape(self) -> F64:
+        """``A (3, 3)``: the shape of the centre's acceleration noise (:func:`accel_shape`)."""
+        return accel_shape(self.up, self.vertical_ratio)
+
+    def transition(self, layout: StateLayout, dt_s: F64) -> tuple[F64, F64]:
+        """``F, Q (B, n, n)`` of the state ``layout`` for time steps ``dt_s (B,)`` in seconds."""
+        dt = np.ascontiguousarray(dt_s, dtype=np.float64).reshape(-1)
+        B, n = len(dt), layout.n
+        F, Q = np.empty((B, n, n)), np.empty((B, n, n))
+        transitions(dt, self.noise, self.accel_shape, layout.index, F, Q)
+        return F, Q
 
 
 @dataclass(frozen=True)
@@ -114,13 +157,8 @@ class StateLayout:
         The centre's acceleration noise along ``up`` is ``vertical_ratio * accel_sd``
         (objects on the ground rarely accelerate vertically); joints are isotropic.
         """
-        dt = np.ascontiguousarray(dt_s, dtype=np.float64).reshape(-1)
-        B, n = len(dt), self.n
-        F, Q = np.empty((B, n, n)), np.empty((B, n, n))
-        noise = Noise(float(accel_sd), float(shape_sd),
-                      float(accel_sd if joint_accel_sd is None else joint_accel_sd), float(position_sd))
-        transitions(dt, noise, accel_shape(up, vertical_ratio), self.index, F, Q)
-        return F, Q
+        return MotionModel(accel_sd, shape_sd, joint_accel_sd, position_sd, up,
+                           vertical_ratio).transition(self, dt_s)
 
 
 def accel_shape(up: F64 | None, vertical_ratio: float) -> F64:
@@ -133,14 +171,22 @@ def accel_shape(up: F64 | None, vertical_ratio: float) -> F64:
 
 
 @numba.njit(cache=True, nogil=True)
+def cv_block(q2: float, dt: float) -> tuple[float, float, float]:
+    r"""The process noise of one coordinate's (position, velocity) under white acceleration of
+    spectral density ``q2`` over a step ``dt`` (s): ``Q = q^2 [[dt^3/3, dt^2/2], [dt^2/2,
+    dt]]``, as ``(Q_pp, Q_pv, Q_vv)`` (Bar-Shalom, Li & Kirubarajan, "Estimation with
+    Applications to Tracking and Navigation", 2001, 6.2.2)."""
+    return q2 * dt**3 / 3.0, q2 * dt**2 / 2.0, q2 * dt
+
+
+@numba.njit(cache=True, nogil=True)
 def transition(dt: float, noise: Noise, A: F64, ix: StateIndex, F: F64, Q: F64) -> None:
     """``F, Q (n, n)`` of one step ``dt`` (s) into ``F, Q`` (see the module doc)."""
     F[:, :] = 0.0
     Q[:, :] = 0.0
     for i in range(ix.n):
         F[i, i] = 1.0
-    qa2 = noise.accel_sd * noise.accel_sd
-    b00, b01, b11 = qa2 * dt**3 / 3.0, qa2 * dt**2 / 2.0, qa2 * dt
+    b00, b01, b11 = cv_block(noise.accel_sd * noise.accel_sd, dt)
     b00 += noise.position_sd * noise.position_sd * dt
     c, v, la = ix.centre, ix.velocity, ix.log_axes
     for i in range(SPACE):
@@ -151,14 +197,64 @@ def transition(dt: float, noise: Noise, A: F64, ix: StateIndex, F: F64, Q: F64) 
             Q[v + i, c + j] = b01 * A[i, j]
             Q[v + i, v + j] = b11 * A[i, j]
         Q[la + i, la + i] = noise.shape_sd * noise.shape_sd * dt
-    qj2 = noise.joint_accel_sd * noise.joint_accel_sd
+    j00, j01, j11 = cv_block(noise.joint_accel_sd * noise.joint_accel_sd, dt)
     p, w = ix.joints, ix.joint_velocity
     for k in range(SPACE * ix.n_joints):
         F[p + k, w + k] = dt
-        Q[p + k, p + k] = qj2 * dt**3 / 3.0
-        Q[p + k, w + k] = qj2 * dt**2 / 2.0
-        Q[w + k, p + k] = qj2 * dt**2 / 2.0
-        Q[w + k, w + k] = qj2 * dt
+        Q[p + k, p + k] = j00
+        Q[p + k, w + k] = j01
+        Q[w + k, p + k] = j01
+        Q[w + k, w + k] = j11
+
+
+@numba.njit(cache=True, nogil=True)
+def joint_step(dt: float, q: float, F: F64, Q: F64) -> None:
+    """``F, Q (6, 6)`` of one joint alone (position, velocity) over a step ``dt`` (s) with white
+    acceleration noise ``q`` (m/s^2/sqrt(Hz)): the joint block of :func:`transition`."""
+    F[:, :] = 0.0
+    Q[:, :] = 0.0
+    b00, b01, b11 = cv_block(q * q, dt)
+    for k in range(SPACE):
+        F[k, k] = 1.0
+        F[SPACE + k, SPACE + k] = 1.0
+        F[k, SPACE + k] = dt
+        Q[k, k] = b00
+        Q[k, SPACE + k] = b01
+        Q[SPACE + k, k] = b01
+        Q[SPACE + k, SPACE + k] = b11
+
+
+def position_step(dt_s: float, accel_sd: float) -> tuple[F64, F64]:
+    """``F, Q (2, 2)`` of one coordinate's (position, velocity) over a step ``dt_s`` under white
+    acceleration ``accel_sd`` (:func:`cv_block`): the model the windows' steady state is
+    computed for."""
+    b00, b01, b11 = cv_block(float(accel_sd) ** 2, float(dt_s))
+    return np.array([[1.0, dt_s], [0.0, 1.0]]), np.array([[b00, b01], [b01, b11]])
+
+
+def second_difference_var(dt_s: F64) -> F64:
+    r"""Variance of a position's second difference ``x_{k+1} - 2 x_k + x_{k-1}`` over frames
+    ``dt_s`` apart under unit white acceleration: ``\int`` of the triangular kernel squared,
+    ``(2/3) dt^3`` (the moment estimate of ``q^2``)."""
+    return 2.0 / 3.0 * np.asarray(dt_s) ** 3
+
+
+def lag_two_excess_var() -> float:
+    r"""``(V(2 dt) - V(dt)) / dt^3`` of :func:`second_difference_var`: the second difference at
+    lag 2 spans twice the time, ``(2/3) (8 - 1)`` (a white per-frame noise adds the same to both
+    and cancels)."""
+    return 7 * 2.0 / 3.0
+
+
+def walk_var(dt_s: F64) -> F64:
+    """Variance of a random walk's step over ``dt_s`` per unit spectral density (the log
+    semi-axes' and the centre position's walk): ``dt``."""
+    return np.asarray(dt_s, dtype=np.float64)
+
+
+def walk_sd(sd: float, dt_s: F64) -> F64:
+    """The sd of a random walk's step over ``dt_s`` with noise ``sd`` per sqrt(s)."""
+    return sd * np.sqrt(dt_s)
 
 
 @numba.njit(cache=True, nogil=True)

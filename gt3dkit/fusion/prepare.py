@@ -30,7 +30,7 @@ import numpy as np
 
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.boxfit import PERSON_SEMI_AXES_M, BoxFit, fit_boxes
-from gt3dkit.fusion.motion import StateLayout
+from gt3dkit.fusion.motion import StateLayout, lag_two_excess_var, second_difference_var, walk_var
 from gt3dkit.fusion.robust import (
     RobustConfig,
     chi2_isf,
@@ -606,7 +606,7 @@ def moment_process_noise(pre: Prepared, x: F64, var: F64, fps: float,
         vs = var[:, block][:, dims]
         d = xs[b[r]] - 2 * xs[r] + xs[a[r]]
         nv = vs[b[r]] + 4 * vs[r] + vs[a[r]]
-        u = np.broadcast_to((2.0 / 3.0 * dt**3)[:, None], d.shape)
+        u = np.broadcast_to(second_difference_var(dt)[:, None], d.shape)
         return (d**2).reshape(-1), nv.reshape(-1), u.reshape(-1)
 
     # five equally spaced frames: second differences at lags 1 and 2 (for the lag test)
@@ -638,7 +638,7 @@ def moment_process_noise(pre: Prepared, x: F64, var: F64, fps: float,
             scale = np.median(v) / med
             return float(np.mean(v[v < 23.9 * scale])) if scale > 0 else float(np.mean(v))
 
-        return float((mean_var(s2) - mean_var(s1)) / (7 * 2.0 / 3.0))
+        return float((mean_var(s2) - mean_var(s1)) / lag_two_excess_var())
 
     accel, shape, joint = accel_sd, shape_sd, joint_accel_sd
     if pre.use_box and accel is None:
@@ -656,7 +656,7 @@ def moment_process_noise(pre: Prepared, x: F64, var: F64, fps: float,
         lv = var[:, lay.log_axes]
         d2 = ((la[p] - la[a[p]]) ** 2).reshape(-1)
         nv = (lv[p] + lv[a[p]]).reshape(-1)
-        u = np.repeat(dtp, 3)
+        u = np.repeat(walk_var(dtp), 3)
         s2 = _moment_q2(d2, nv, u, 1e-10)
         shape = float(np.clip(np.sqrt(s2), 1e-5, 0.3)) if np.isfinite(s2) else 0.003
         src.append("shape_sd: first differences of the per-frame log semi-axes")

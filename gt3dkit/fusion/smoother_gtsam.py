@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from gt3dkit.errors import EstimationError
-from gt3dkit.fusion.motion import StateLayout
+from gt3dkit.fusion.motion import MotionModel, StateLayout, walk_sd
 from gt3dkit.fusion.prepare import (
     Prepared,
     ProcessNoise,
@@ -269,11 +269,11 @@ class GTSAMSmoother:
             for k, dt in enumerate(dts):
                 g.add(gtsam.BetweenFactorVector(
                     sym("s", k), sym("s", k + 1), np.zeros(3),
-                    gtsam.noiseModel.Isotropic.Sigma(3, tuned.shape_sd * np.sqrt(dt * tau))))
+                    gtsam.noiseModel.Isotropic.Sigma(3, walk_sd(tuned.shape_sd, dt * tau))))
         for j in np.flatnonzero(seen_j):
             blocks.append(("p", int(j), tuned.joint_accel_sd))
         blocks = [(ch, j, q * tau**1.5) for ch, j, q in blocks]  # m/s^2/sqrt(Hz) -> per step
-        pos_step = position_sd * np.sqrt(tau)  # m/sqrt(s) -> per step
+        pos_step = walk_sd(position_sd, tau)  # m/sqrt(s) -> per step
         meas: list[int] = []
         meas_dof = 0
         for ch, j, q in blocks:
@@ -374,8 +374,8 @@ class _BoxChain:
         tau = float(np.median(dts)) if dts.size else 1.0
         self.dts = dts / tau
         self.W = cv_whitening(self.dts, tuned.accel_sd * tau**1.5, cams.up, cfg.vertical_ratio,
-                              position_sd * np.sqrt(tau))  # (n-1, 6, 6)
-        self.inv_shape_sd = 1.0 / (tuned.shape_sd * np.sqrt(self.dts * tau))  # (n-1,)
+                              walk_sd(position_sd, tau))  # (n-1, 6, 6)
+        self.inv_shape_sd = 1.0 / walk_sd(tuned.shape_sd, self.dts * tau)  # (n-1,)
         # weak priors: centre (1 m) and log axes (1.0) where the row's own views placed it,
         # velocity (10 m/s) everywhere
         self.prior_at = np.c_[x0[mine][:, lay.center], np.zeros((n, 3)), x0[mine][:, lay.log_axes]]
@@ -588,10 +588,9 @@ def cv_whitening(dts: F64, accel_sd: float, up: F64 | None, vertical_ratio: floa
     v_{k+1} - v_k]`` of steps ``dts (B,)`` (``W Q W^T = I``, ``Q`` the exact discrete-time
     process noise of :class:`gt3dkit.fusion.motion.StateLayout`), one per distinct step."""
     steps, inverse = np.unique(np.asarray(dts, dtype=np.float64), return_inverse=True)
-    lay = StateLayout(0)
-    _, Q = lay.transition(steps, accel_sd, 1.0, up=up,
-                          vertical_ratio=vertical_ratio if up is not None else 1.0,
-                          position_sd=position_sd)
+    model = MotionModel(accel_sd, 1.0, position_sd=position_sd, up=up,
+                        vertical_ratio=vertical_ratio if up is not None else 1.0)
+    _, Q = model.transition(StateLayout(0), steps)
     W = np.linalg.inv(np.linalg.cholesky(Q[:, :6, :6]))
     return W[inverse.reshape(-1)]
 

@@ -18,7 +18,8 @@ import pytest
 from gt3dkit.api import dense_frames, load_scene
 from gt3dkit.fusion import ukf_smoother as us
 from gt3dkit.fusion.bones import JointInfo, add_joint_info
-from gt3dkit.fusion.jointupdate import add_info, joint_transition, run_joints
+from gt3dkit.fusion.jointupdate import add_info, run_joints
+from gt3dkit.fusion.motion import joint_step
 from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.motion import StateLayout
 from gt3dkit.sim import Errors, simulate_skeletons, write_skeleton_scene
@@ -129,7 +130,7 @@ def test_joint_steps_equal_numpy() -> None:
     lay = StateLayout(1)
     F, Q = lay.transition(np.array([0.04]), 0.3, 0.01, joint_accel_sd=1.7)
     Fj, Qj = np.empty((6, 6)), np.empty((6, 6))
-    joint_transition(0.04, 1.7, Fj, Qj)
+    joint_step(0.04, 1.7, Fj, Qj)
     e = np.r_[lay.joints.start:lay.n]
     np.testing.assert_allclose(Fj, F[0][np.ix_(e, e)], rtol=0, atol=0)
     np.testing.assert_allclose(Qj, Q[0][np.ix_(e, e)], rtol=1e-15, atol=0)
