@@ -21,7 +21,7 @@ from gt3dkit.fusion.associate import apply_association, associate, associate_det
 from gt3dkit.fusion.base import ESTIMATORS, Estimator, make_estimator
 from gt3dkit.fusion.boxfit import choose_box_model
 from gt3dkit.fusion.identity import Segments, identity_segments
-from gt3dkit.fusion.prepare import prepare
+from gt3dkit.fusion.prepare import prepare, undetermined_objects
 from gt3dkit.fusion.rows import build_rows
 from gt3dkit.geom.camera import Cams
 from gt3dkit.io.datasets import ASSOCIATED, checks, read_scene
@@ -84,10 +84,36 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
                                                          "confirms left out (association.csv, global id -1)"))
         if not len(scene.obs):
             raise InputError(str(root), "no person is seen by two cameras at once (nothing to reconstruct)")
+        scene = without_undetermined(scene)
     scene = checks.check_scene(scene)
     if segments is not None:
         scene = with_pieces(scene, Path(segments))
     return with_box_model(scene, box_model)
+
+
+def without_undetermined(scene: Scene) -> Scene:
+    """A keypoints-only scene whose people the association made: those that no two views ever
+    agree on (:func:`gt3dkit.fusion.prepare.undetermined_objects`) left out, with a warning, and
+    listed in ``Scene.left_out`` (the anomalies name them): one such person must not cost the
+    others their estimate."""
+    ids = undetermined_objects(scene)
+    if not ids.size:
+        return scene
+    obs = scene.obs
+    out = np.isin(obs.track_id, ids)
+    left = []
+    for i in ids:
+        m = obs.track_id == i
+        cams = ", ".join(sorted({scene.rig.names[int(c)] for c in np.unique(obs.cam[m])}))
+        left.append((int(i), int(obs.frame[m].min()), int(obs.frame[m].max()), int(m.sum()), cams))
+    if out.all():
+        raise InputError(str(scene.root), "no person the association made is ever seen by two cameras at "
+                                          "once that agree (nothing to reconstruct)")
+    shown = ", ".join(str(i) for i in ids[:5]) + (" ..." if len(ids) > 5 else "")
+    warn = (f"{len(ids)} person(s) no two views ever agree on left out (id {shown}: "
+            f"{int(out.sum())} detections; anomalies.csv lists them as undetermined_person)")
+    return dataclasses.replace(scene, obs=obs.select(~out), warnings=(*scene.warnings, warn),
+                               left_out=tuple(left))
 
 
 def with_box_model(scene: Scene, box_model: str = "auto") -> Scene:
@@ -345,7 +371,7 @@ class Run:
     notes: list[str]
 
 
-def _load_scene(out: Path, meta: dict[str, Any]) -> tuple[Scene, list[str]]:
+def _load_scene(out: Path, meta: dict[str, Any], why: str) -> tuple[Scene, list[str]]:
     where = str(out / "meta.json")
     inp = meta.get("input")
     if not isinstance(inp, dict) or not isinstance(inp.get("load", inp), dict):
@@ -355,8 +381,7 @@ def _load_scene(out: Path, meta: dict[str, Any]) -> tuple[Scene, list[str]]:
     if not isinstance(root, str) or not root:
         raise InputError(where, "input: no input folder recorded")
     if not Path(root).is_dir():
-        raise InputError(where, f"input: the input folder {root} is not there any more (the report "
-                                "draws the annotations)")
+        raise InputError(where, f"input: the input folder {root} is not there any more ({why})")
     if load.get("calib") and not Path(load["calib"]).exists():
         raise InputError(where, f"input: the calibration {load['calib']} is not there any more")
     known = {"layout", "skeleton", "fps", "calib", "cameras", "noise_px", "seed", "min_conf", "association",
@@ -367,7 +392,8 @@ def _load_scene(out: Path, meta: dict[str, Any]) -> tuple[Scene, list[str]]:
     changed = sorted(k for k, v in scene.files.items() if old.get(k) not in (None, v))
     if changed:
         notes.append(f"input files changed since the run: {', '.join(changed[:5])}"
-                     + (" ..." if len(changed) > 5 else "") + " (the pictures show today's files)")
+                     + (" ..." if len(changed) > 5 else "") + " (today's annotations beside the run's "
+                     "estimate: run gt3d reconstruct again to bring them together)")
     refined = (meta.get("calibration_refinement") or {}).get("refined_rig")
     if refined:
         scene = dataclasses.replace(scene, rig=rig_of_doc(refined, f"{where}: calibration_refinement"))
@@ -375,11 +401,13 @@ def _load_scene(out: Path, meta: dict[str, Any]) -> tuple[Scene, list[str]]:
     return scene, notes
 
 
-def load_run(out: Path) -> Run:
-    """:func:`read_result` plus the scene it was made from and its anomalies."""
+def load_run(out: Path, why: str) -> Run:
+    """:func:`read_result` plus the scene it was made from and its anomalies; ``why`` the caller
+    needs the scene (said where the input folder is gone). ``Run.notes``: what the user should
+    know (input files changed since the run, a refined calibration)."""
     res = read_result(out)
     out = res.out
-    scene, notes = _load_scene(out, res.meta)
+    scene, notes = _load_scene(out, res.meta, why)
     tracks = res.tracks
     if (out / "keypoints.csv").is_file() and scene.obs.n_joints \
             and tracks.kpt_world.shape[1] != scene.obs.n_joints:

@@ -20,6 +20,7 @@ from gt3dkit.commands.common import (
     Terminated,
     number_type,
     quiet_stdout,
+    scheduler_address,
     signals_handled,
     unexpected_error,
 )
@@ -79,7 +80,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--window", type=number_type(int, 0, 10**9), metavar="FRAMES", help="long recordings: "
                    "overlapping windows of FRAMES frames (default: when too long for memory; 0: never)")
     r.add_argument("--jobs", type=number_type(int, 1, 4096), help="--window: windows in N local processes")
-    r.add_argument("--scheduler", metavar="ADDRESS", help="--window: windows on a running Dask scheduler")
+    r.add_argument("--scheduler", metavar="ADDRESS", type=scheduler_address,
+                   help="--window: windows on a running Dask scheduler")
     r.add_argument("--quiet", action="store_true", help="no progress display")
     r.add_argument("--no-bones", action="store_true", help="do not tie bone lengths")
     r.add_argument("--skeleton", choices=sorted(SKELETONS), help="joint order of keypoints.csv")
@@ -194,7 +196,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--out", required=True, help="output folder: OUT/<input folder name>/ per sequence")
     m.add_argument("--estimator", choices=ESTIMATORS, default="ukf")
     m.add_argument("--jobs", type=number_type(int, 1, 4096), help="local worker processes (default: cores)")
-    m.add_argument("--scheduler", metavar="ADDRESS",
+    m.add_argument("--scheduler", metavar="ADDRESS", type=scheduler_address,
                    help="a running Dask distributed scheduler (tcp://host:8786) instead of local processes")
     m.add_argument("--report", action="store_true", help="also each sequence's report and OUT/index.html")
     m.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -180,7 +180,7 @@ def write_rerun(res: Result, path: Path) -> dict[str, Any]:
     import rerun as rr
 
 
-    run = load_run(res.out)
+    run = load_run(res.out, "the Rerun recording shows the annotations in every camera")
     sc, tr = run.scene, run.tracks
     up, wfb, _ = _frame_info(res)
     rec = rr.RecordingStream("gt3dkit", recording_id=f"gt3dkit-{res.out.resolve()}")
@@ -254,7 +254,7 @@ def write_rerun(res: Result, path: Path) -> dict[str, Any]:
     rec.flush()
     rec.disconnect()
     return {"file": path.name, "frames": len(frames), "cameras": len(names), "anomalies": len(run.anomalies),
-            "open": f"rerun {path.name}"}
+            "open with": f"rerun {path.name}", "notes": list(run.notes)}
 
 
 #: Every export format: its writer of a result into the export folder (returns what it wrote).
@@ -280,5 +280,5 @@ def export(out: Path, fmt: str, dest: Path) -> dict[str, Any]:
         info.update({"format": fmt, "source": str(Path(out).resolve())})
         (tmp / "export.json").write_text(json.dumps(info, indent=1))
 
-    write_dir_atomically(Path(dest), write)
+    write_dir_atomically(Path(dest), write, "--to")
     return info

@@ -44,9 +44,18 @@ from gt3dkit.io.labels import (
 )
 from gt3dkit.io.writers import read_segments_csv
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import F64, I64, TrackSet
+from gt3dkit.types import F64, I64, Scene, TrackSet
 
 OCCLUDED_ABOVE = 0.5  # covered fraction above which a shape is ``occluded`` (CVAT's meaning)
+
+
+def _lost(scene: Scene) -> list[str]:
+    """What the labels cannot carry of the run's input: a detector's per-keypoint confidences."""
+    conf = scene.obs.kpt_conf
+    if conf is None or not np.any(np.isfinite(conf) & (conf < 1.0)):
+        return []
+    return ["the labels carry no per-keypoint confidence (the input's detector confidences): read back, "
+            "every keypoint weighs alike, so the estimate moves from this run's"]
 
 
 def _states(tr: TrackSet, seg: I64, step: int | None) -> dict[str, Any]:
@@ -205,7 +214,7 @@ def project(out: Path, fmt: str, dest: Path, step: int | None = None,
     Returns that summary."""
     if fmt not in LABEL_FORMATS:
         raise InputError("--format", f"{fmt!r} is not one of {', '.join(LABEL_FORMATS)}")
-    run = load_run(out)
+    run = load_run(out, "the labels are drawn into its cameras beside its annotations")
     scene = run.scene
     J = run.tracks.kpt_world.shape[1]
     if fmt == "mot" and J:
@@ -220,7 +229,7 @@ def project(out: Path, fmt: str, dest: Path, step: int | None = None,
         "run": str(Path(out).resolve()), "format": fmt, "shapes": len(shapes), **counts,
         "flagged": int(sum(a != "" for a in shapes.anomalies)),
         "occluded": int(shapes.occluded.sum()), "frame_step": shapes.step,
-        "only_flagged": only_flagged,
+        "only_flagged": only_flagged, "notes": list(run.notes) + _lost(scene),
         "cameras": [c.name for k, c in enumerate(scene.rig.cameras) if (shapes.cam == k).any()],
         "pieces": sorted({(int(i), int(t), int(s)) for i, t, s in
                           zip(ids, shapes.track, shapes.segment, strict=True) if s > 0})}
@@ -238,5 +247,5 @@ def project(out: Path, fmt: str, dest: Path, step: int | None = None,
                                      for a, b, c in summary["pieces"]]}
         (tmp / "projection.json").write_text(json.dumps(doc, indent=1))
 
-    write_dir_atomically(Path(dest), write)
+    write_dir_atomically(Path(dest), write, "--to")
     return summary

@@ -247,6 +247,9 @@ class Scene:
     # px, of per-frame fits under each model; empty when given, not chosen)
     box_model: str = "ellipsoid"
     box_model_px: dict[str, float] = field(default_factory=dict)
+    # people the association made that no two views ever agree on, left out of the estimate:
+    # (id, first frame, last frame, detections, cameras that saw it) each (gt3dkit.api)
+    left_out: tuple[tuple[int, int, int, int, str], ...] = ()
 
     @property
     def all_warnings(self) -> tuple[str, ...]:

@@ -546,6 +546,7 @@ def connect_scheduler(address: str) -> Any:
     from distributed import Client
 
     wait = parse_timedelta(dask.config.get("distributed.comm.timeouts.connect"), default="s")
+    check_scheduler_address(address)
     try:
         client = Client(address)
     except (OSError, TimeoutError) as e:
@@ -566,6 +567,26 @@ def connect_scheduler(address: str) -> Any:
                                         f"({len(others)} worker(s) differ): install this gt3dkit on every "
                                         "worker")
     return client
+
+
+def check_scheduler_address(address: str) -> None:
+    """InputError naming ``--scheduler`` unless ``address`` is one Dask can connect to: a known
+    scheme (``tcp://`` when none is given) and, for the network schemes, a host and a port
+    (Dask's own parsers; they raised inside the client as an internal error)."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+    from distributed.comm.registry import backends
+
+    try:
+        scheme, loc = parse_address(address)
+        if scheme not in backends:
+            raise ValueError(f"unknown address scheme {scheme!r} (known: {', '.join(sorted(backends))})")
+        if scheme in ("tcp", "tls", "ws", "wss"):
+            host, _ = parse_host_port(loc)
+            if not host:
+                raise ValueError("no host")
+    except ValueError as e:
+        raise InputError("--scheduler", f"{address!r} is not a Dask scheduler address ({e}): give "
+                                        "tcp://HOST:PORT") from None
 
 
 def _gt3dkit_here() -> str:

@@ -98,7 +98,7 @@ def write_mot(scene: Scene, keep: np.ndarray, folder: Path) -> None:
 
 
 def centres(out: Path) -> dict[tuple[int, int], np.ndarray]:
-    tr = load_run(out).tracks
+    tr = load_run(out, "the projection is checked against the input").tracks
     return {(int(f), int(i)): x for f, i, x in zip(tr.frame, tr.track_id, tr.center_world, strict=True)}
 
 
@@ -149,7 +149,7 @@ def scenario(name: str, scene: Scene, work: Path, rng: np.random.Generator, key_
     folder, out = work / f"{name}_in", work / f"{name}_out"
     write_mot(scene, keep, folder)
     reconstruct(load_scene(folder, association=folder / "association.csv"), "ukf", out=out, every_frame=step)
-    run = load_run(out)
+    run = load_run(out, "the projection is checked against the input")
     shapes = project_run(run)
     wh = run.scene.rig.wh.astype(np.float64)
     key_obs = np.c_[obs.frame, obs.cam, obs.track_id]
@@ -271,7 +271,7 @@ def wildtrack(work: Path) -> None:
     t_proj = timed(["project", str(out), "--format", "cvat", "--to", str(dest)])
     print(f"WILDTRACK first half: gt3d reconstruct {t_rec:.1f} s, gt3d project (CVAT) {t_proj:.1f} s")
     target("WILDTRACK project / reconstruct time < 2", t_proj / t_rec < 2, f"{t_proj / t_rec:.2f}")
-    run = load_run(out)
+    run = load_run(out, "the projection is checked against the input")
     held: set[tuple[str, int, int]] = set()
     for path in (dest / "cvat").glob("*.xml"):
         for track in ET.parse(path).getroot().iter("track"):

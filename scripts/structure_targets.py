@@ -23,8 +23,8 @@
   import-linter layer** (every ``gt3dkit.X`` of the package must be named by the ``layers``
   contract of ``pyproject.toml``); **near-duplicate blocks**: pairs of places sharing six or more
   consecutive lines of the same shape (identifiers, numbers and strings replaced by their kind;
-  blank lines, comments and docstrings left out; runs of field declarations not counted), at most ``DUPLICATE_BUDGET`` (the count when
-  issue 45 began: no block added since).
+  blank lines, comments and docstrings left out; runs of field declarations not counted), at
+  most ``DUPLICATE_BUDGET`` (the count when issue 45 began: no block added since).
 
 Exit status 1 when a target is missed.
 """

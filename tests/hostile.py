@@ -665,6 +665,7 @@ def cases(seed: int = 0) -> list[Case]:
     out += _option_cases()
     out += _report_cases()
     out += _format_cases()
+    out += newer_command_cases()
     return out
 
 
@@ -821,8 +822,12 @@ def _format_cases() -> list[Case]:
              ERROR, ("already global",)),
         Case("openpose: people is not a list", "openpose", rec, ERROR, ("cam2_json", "people"),
              op_doc({"people": 3})),
-        Case("openpose: a confidence of 2", "openpose", rec, ERROR, ("cam2_json", "confidence"),
-             op_doc({"people": [{"pose_keypoints_2d": [10, 10, 2] * 25}]})),
+        Case("openpose: a confidence of 2 (a heatmap peak: read as 1, warned)", "openpose", rec, WARN,
+             ("confidence above 1",), op_doc({"people": [{"pose_keypoints_2d": [10, 10, 2] * 25}]})),
+        Case("openpose: a negative confidence", "openpose", rec, ERROR, ("cam2_json", "negative confidence"),
+             op_doc({"people": [{"pose_keypoints_2d": [10, 10, -0.5] * 25}]})),
+        Case("openpose: pose_keypoints_2d holding true", "openpose", rec, ERROR, ("cam2_json", "numbers"),
+             op_doc({"people": [{"pose_keypoints_2d": [10, 10, True] * 25}]})),
         Case("openpose: 24 joints", "openpose", rec, ERROR, ("cam2_json", "24 joints"),
              op_doc({"people": [{"pose_keypoints_2d": [10, 10, 0.5] * 24}]})),
         Case("openpose: a truncated file", "openpose", rec, ERROR, ("cam2_json",),
@@ -864,6 +869,63 @@ def _report_cases() -> list[Case]:
          csv_edit("tracks.csv", lambda ls: [ls[0], ",".join([*ls[1].split(",")[:2], *["nan"] * 9]),
                                             *ls[2:]])),
     )]
+
+
+def _as_compare_output(root: Path) -> None:
+    """A reconstruct output moved into ``ukf/`` beside a ``comparison.csv``: what gt3d compare writes."""
+    (root / "ukf").mkdir()
+    for p in list(root.iterdir()):
+        if p.name != "ukf":
+            p.rename(root / "ukf" / p.name)
+    (root / "comparison.csv").write_text("estimator\nukf\n")
+
+
+def _keypoints_in_one_camera(root: Path) -> None:
+    lines = _lines(root / "keypoints.csv")
+    cam = lines[1].split(",")[1]
+    _write_lines(root / "keypoints.csv", [lines[0], *(x for x in lines[1:] if x.split(",")[1] == cam)])
+
+
+def newer_command_cases() -> list[Case]:
+    """Issue 49: the newer commands used as a hostile or careless user would (each failed on the
+    main before it: an internal error, a wrong option named, a silent acceptance)."""
+    rec = ("reconstruct", "{in}", "--out", "{out}")
+    many = ("reconstruct-many", "{work}/m.txt", "--out", "{out}")
+
+    def manifest(root: Path) -> None:
+        (root.parent / "m.txt").write_text(f"{root}\n")
+
+    def user_file(root: Path) -> None:
+        (root.parent / "mine").mkdir()
+        (root.parent / "mine" / "notes.txt").write_text("mine\n")
+
+    proj = ("project", "{in}", "--format", "mot", "--to", "{work}/mine")
+    return [
+        Case("--scheduler not-an-address", "boxes", (*rec, "--scheduler", "not-an-address"), ERROR,
+             ("--scheduler", "not-an-address")),
+        Case("--scheduler with an unknown scheme", "boxes", (*rec, "--scheduler", "foo://127.0.0.1:8786"),
+             ERROR, ("--scheduler", "foo")),
+        Case("reconstruct-many --scheduler not-an-address", "boxes", (*many, "--scheduler", "not-an-address"),
+             ERROR, ("--scheduler",), manifest),
+        Case("--scheduler '' (an unset variable)", "boxes", (*rec, "--scheduler", ""), ERROR,
+             ("--scheduler", "empty")),
+        Case("project --to a folder of the user's", "result", proj, ERROR, ("--to", "notes.txt"), user_file,
+             prev=False, writes=False),
+        Case("export --to a folder of the user's", "result",
+             ("export", "{in}", "--format", "json", "--to", "{work}/mine"), ERROR, ("--to",), user_file,
+             prev=False, writes=False),
+        Case("project a gt3d compare output", "result",
+             ("project", "{in}", "--format", "mot", "--to", "{work}/p"), ERROR, ("ukf", "compare"),
+             _as_compare_output, prev=False, writes=False),
+        Case("--box-model cylinder on keypoints", "kpts", (*rec, "--box-model", "cylinder"), ERROR,
+             ("--box-model", "keypoints only")),
+        Case("keypoints seen by one camera only", "kpts", rec, ERROR, ("only in camera",),
+             _keypoints_in_one_camera),
+        Case("panoptic --cameras naming one camera", "panoptic", (*rec, "--cameras", "00_01"), ERROR,
+             ("--cameras", "one camera")),
+        Case("panoptic: every joint below the confidence kept", "panoptic", rec, ERROR,
+             ("joints19", "confidence"), _panoptic_conf_zero),
+    ]
 
 
 def issue_cases() -> list[Case]:

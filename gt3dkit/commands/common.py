@@ -72,11 +72,12 @@ def check_out_apart(out: str | Path, inp: str | Path, option: str = "--out", ins
                                  "choose an output folder apart from the input")
 
 
-def check_output(out: str | Path, inputs: tuple[str | Path, ...] = ()) -> None:
-    """Every check of an output folder that can be made before the work starts."""
+def check_output(out: str | Path, inputs: tuple[str | Path, ...] = (), option: str = "--out") -> None:
+    """Every check of an output folder (the user's ``option``) that can be made before the work
+    starts."""
     for inp in inputs:
-        check_out_apart(out, inp)
-    check_out(out)
+        check_out_apart(out, inp, option)
+    check_out(out, option)
 
 
 def load_input(args: argparse.Namespace) -> Any:
@@ -103,6 +104,10 @@ def load_input(args: argparse.Namespace) -> Any:
     opts["box_model"] = getattr(args, "box_model", "auto")
     scene = load_scene(Path(args.input), layout, args.skeleton, getattr(args, "fps", None),
                        calib=getattr(args, "calib", None), **opts)
+    if opts["box_model"] != "auto" and not scene.obs.has_box.any():
+        # one rule for an option the input has nothing for (as --skeleton on boxes, --association
+        # on a native input): refused, not ignored
+        raise InputError("--box-model", f"applies to inputs with boxes: {args.input} has keypoints only")
     return scene
 
 
@@ -264,6 +269,16 @@ def number_type(kind: type, lo: float, hi: float, *, lo_open: bool = False,
                 f"must be in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}, got {text}")
         return v
     return parse
+
+
+def scheduler_address(text: str) -> str:
+    """argparse type of ``--scheduler``: a non-empty address (an unset shell variable gives an
+    empty one, which would otherwise run locally without a word); Dask's own check of it runs
+    when the client connects (:func:`gt3dkit.windows.check_scheduler_address`)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty address (an unset variable?): give tcp://HOST:PORT, "
+                                         "or leave --scheduler out to run here")
+    return text.strip()
 
 
 FRACTION = number_type(float, 0, 1)

@@ -229,12 +229,15 @@ def cmd_export(args: argparse.Namespace) -> int:
     check_out_apart(dest, out, "--to", inside_ok=True)
     if isinstance(root, str) and root:
         check_out_apart(dest, root, "--to")
-    check_output(dest)
+    check_output(dest, option="--to")
     info = export(out, args.format, dest)
     files = info.get("files") or [info.get("file")]
-    print(f"{args.format}: {', '.join(str(f) for f in files)} in {dest} ({info.get('units', '')}"
-          f"{'; ' + info['world'] if 'world' in info else ''}"
-          f"{'; open with: ' + info['open'] if 'open' in info else ''})")
+    for note in info.get("notes", ()):
+        print(f"warning: {note}", file=sys.stderr)
+    said = [f"{k}: {info[k]}" if k == "open with" else str(info[k])
+            for k in ("units", "world", "open with") if info.get(k)]
+    print(f"{args.format}: {', '.join(str(f) for f in files)} in {dest}"
+          + (f" ({'; '.join(said)})" if said else ""))
     return 0
 
 
@@ -250,13 +253,15 @@ def cmd_project(args: argparse.Namespace) -> int:
         if parent != out.resolve() and (parent / "meta.json").is_file() and (parent / "tracks.csv").is_file():
             raise InputError("--to", f"{dest} lies inside another gt3d output ({parent}): choose a "
                                      "folder of its own")
-    check_output(dest)
+    check_output(dest, option="--to")
     cameras = None
     if args.cameras is not None:
         cameras = tuple(c.strip() for c in args.cameras.split(",") if c.strip())
         if not cameras:
             raise InputError("--cameras", f"no camera names in {args.cameras!r}")
     info = project(out, args.format, dest, args.every_frame, cameras, args.only_flagged)
+    for note in info["notes"]:
+        print(f"warning: {note}", file=sys.stderr)
     print(f"{args.format}: {info['shapes']} shapes in {len(info['cameras'])} cameras -> {dest}/"
           f"{args.format}/ ({info['annotated']} labels, {info['proposed']} proposed, "
           f"{info['interpolated']} interpolated; {info['flagged']} flagged, {info['occluded']} "

@@ -111,7 +111,9 @@ def lengths_of(s: BoneSamples, objs: np.ndarray, sd_floor_m: float, sd_m: float 
     ``L_b`` is the median of the smoothed lengths over the person's frames where two or more
     views saw both joints. Its sd is the bone's *true* variability: the variance of those
     lengths minus the mean variance the first pass's own uncertainty explains
-    (``u^T (C_a + C_b) u``), floored at ``sd_floor_m``; or ``sd_m`` when given. So a rigid
+    (``u^T (C_a + C_b) u``), plus the error of ``L_b`` itself (``(pi/2)`` that mean variance: a
+    median of smoothed lengths, which share their measurements, is known no better than one of
+    them), floored at ``sd_floor_m``; or ``sd_m`` when given. So a rigid
     skeleton is held rigid, while a bone whose length really varies (or that the truth does not
     hold constant) is left almost free."""
     K = len(s.skeleton.bones)
@@ -130,7 +132,12 @@ def lengths_of(s: BoneSamples, objs: np.ndarray, sd_floor_m: float, sd_m: float 
                     # plain (not robust) variance: a bone the data show changing, even in a
                     # few frames, must not be forced rigid
                     spread = float(np.var(v, ddof=1))
-                    sd[o, k] = np.sqrt(max(spread - float(np.mean(s.var[sel, k])), 0.0))
+                    mean_var = float(np.mean(s.var[sel, k]))
+                    # plus the length's own error: the median of the first pass's smoothed
+                    # lengths, (pi/2) their variance, not divided by their number (smoothed
+                    # neighbours share their measurements: not independent samples). Held as
+                    # exact, a few frames of two views made the joints' sds too small by 2x
+                    sd[o, k] = np.sqrt(max(spread - mean_var, 0.0) + np.pi / 2 * mean_var)
     if sd_m is not None:
         sd = np.full_like(sd, sd_m)
     return BoneLengths(s.skeleton, L, np.maximum(np.nan_to_num(sd, nan=0.05), sd_floor_m))

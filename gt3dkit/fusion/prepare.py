@@ -44,7 +44,7 @@ from gt3dkit.fusion.rows import Rows, build_rows
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.triangulate import normalized_points, robust_triangulate, triangulation_cov
 from gt3dkit.skeletons import SKELETONS, Skeleton, skeleton_for
-from gt3dkit.types import F64, Scene
+from gt3dkit.types import F64, I64, Scene
 
 #: Smallest confidence used as a weight (``sigma^2 / conf``: at most 7x the sd).
 CONF_FLOOR = 0.02
@@ -459,25 +459,51 @@ def _check_keypoints_in_front(scene: Scene, rows: Rows, e2: F64, seen: np.ndarra
                          f"other views place): keypoints and calibration disagree")
 
 
-def _check_determined(scene: Scene, rows: Rows, kpt0: F64) -> None:
-    """Keypoints only: an object no two views ever agree on has no 3D position."""
+def _undetermined(rows: Rows, kpt0: F64) -> np.ndarray:
+    """Keypoints only: the objects ``(O,)`` no two views ever agree on (no 3D position)."""
     have = np.isfinite(kpt0[..., 0]).any(axis=1)  # (R,)
     ever = np.zeros(len(rows.obj_ids), bool)
     np.logical_or.at(ever, rows.row_o, have)
-    if not ever.all():
-        o = int(np.flatnonzero(~ever)[0])
+    return ~ever
+
+
+def _check_determined(scene: Scene, rows: Rows, kpt0: F64) -> None:
+    """Keypoints only: an object no two views ever agree on has no 3D position (an error naming
+    its id and its first keypoint: the user's own ids name a person the data cannot place)."""
+    bad = _undetermined(rows, kpt0)
+    if bad.any():
+        o = int(np.flatnonzero(bad)[0])
         r, c = np.argwhere((rows.row_o == o)[:, None] & (rows.obs_row >= 0))[0]
         first = scene.obs.origin[int(rows.obs_row[r, c])]
-        raise InputError(first, f"object {int(rows.obj_ids[o])} is never seen by two cameras "
-                                "at once (that agree): its 3D position is undetermined from "
-                                "keypoints alone")
+        cams = sorted({scene.rig.names[int(k)] for k in np.flatnonzero((rows.obs_row[rows.row_o == o] >= 0)
+                                                                         .any(axis=0))})
+        raise InputError(first, f"id {int(rows.obj_ids[o])} is never seen by two cameras at once (that "
+                                f"agree; it is seen by {', '.join(cams)}): its 3D position is undetermined "
+                                f"from keypoints alone: give it a second view, or leave id "
+                                f"{int(rows.obj_ids[o])} out")
 
 
-def never_seen(rows: Rows, n_joints: int) -> np.ndarray:
-    """(R, J) joints whose object never showed them in any view of any frame."""
-    seen = np.isfinite(rows.kpt_z[..., 0]).any(axis=1)  # (R, J)
+def undetermined_objects(scene: Scene, robust: RobustConfig | None = None) -> I64:
+    """The ids of a keypoints-only scene that no two views ever agree on (what :func:`prepare`
+    refuses): the per-frame robust triangulation of :func:`prepare`, nothing else."""
+    rows = build_rows(scene)
+    if scene.obs.n_joints == 0 or np.isfinite(rows.box_z).any() or not np.isfinite(rows.kpt_z).any():
+        return np.zeros(0, np.int64)
+    kpt0 = _robust_keypoints(scene, rows, Cams.of(scene.rig, scene.box_model), robust or RobustConfig(),
+                             None)[0]
+    return np.asarray(rows.obj_ids[_undetermined(rows, kpt0)], dtype=np.int64)
+
+
+def never_determined(rows: Rows, kpt0: F64) -> np.ndarray:
+    """(R, J) joints whose object's views never placed them in any frame (no two views agreeing:
+    ``kpt0 (R, J, 3)``, the per-frame triangulation, never finite): one view alone gives a ray,
+    not a point; the estimate there would be the canonical pose's guess along it."""
+    return _never(rows, np.isfinite(kpt0[..., 0]), kpt0.shape[1])
+
+
+def _never(rows: Rows, have: np.ndarray, n_joints: int) -> np.ndarray:
     ever = np.zeros((len(rows.obj_ids), n_joints), bool)
-    np.logical_or.at(ever, rows.row_o, seen)
+    np.logical_or.at(ever, rows.row_o, have)
     return ~ever[rows.row_o]
 
 

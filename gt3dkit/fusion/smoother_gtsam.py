@@ -54,7 +54,7 @@ from gt3dkit.fusion.prepare import (
     axis_sd,
     ellipsoid_around,
     moment_process_noise,
-    never_seen,
+    never_determined,
     prepare,
 )
 from gt3dkit.fusion.ukf_smoother import UKFConfig, noise_by_likelihood
@@ -186,8 +186,8 @@ class GTSAMSmoother:
                 kpt[mine], kpt_sd[mine] = res["kpt"], res["kpt_sd"]
         semi = np.exp(log_axes)
         if use_kpt:
-            # never shown, or every point of it rejected: no estimate (x0 is only a guess)
-            nv = never_seen(rows, J) | ~np.isfinite(kpt_sd)
+            # never placed by two views, or every point of it rejected: no estimate (x0 is only a guess)
+            nv = never_determined(rows, pre.kpt0) | ~np.isfinite(kpt_sd)
             kpt[nv], kpt_sd[nv] = np.nan, np.nan
             if not use_box:
                 centre, semi, c_sd = ellipsoid_around(kpt, kpt_sd, cams.world_from_body)

@@ -69,7 +69,7 @@ from gt3dkit.fusion.prepare import (
     largest_sd,
     moment_process_noise,
     nearest_same_object,
-    never_seen,
+    never_determined,
     prepare,
 )
 from gt3dkit.fusion.robust import RobustConfig, point_weights
@@ -120,7 +120,10 @@ class UKFConfig:
     bone_sd_m : sd of a bone's length about its fitted value; ``None`` = the spread of that
         bone's length over the first pass, at least ``bone_sd_floor_m``
     init_vel_sd_mps : initial velocity sd; init_canon_sd_m : initial sd of a joint placed
-        from the canonical pose (no two views agree on it in the object's first frame)
+        from the canonical pose (no two views agree on it in the object's first frame): half a
+        person's height, since the pose is scaled from the joints the frame did place (a knee
+        placed from a head and shoulders was 0.85 m off; at 0.15 m its first views faded the
+        prediction, velocity too, and the joint's filter diverged)
     clip_tol_px : edges this close to the image border count as clipped
     iterations : passes of the iterated, reweighted update
     inflate : inflate covariances by the NIS per degree of freedom when above 1
@@ -148,7 +151,7 @@ class UKFConfig:
     bone_sd_m: float | None = None
     bone_sd_floor_m: float = 0.001
     init_vel_sd_mps: float = 1.5
-    init_canon_sd_m: float = 0.15
+    init_canon_sd_m: float = 0.5
     alpha: float = 1.0
     beta: float = 0.0
     kappa: float = 0.0
@@ -271,7 +274,7 @@ class UKFSmoother:
         kpt = np.zeros((R, 0, 3))
         kpt_sd = np.zeros((R, 0))
         if pre.use_kpt:
-            kpt, kpt_sd = joints_of(x_s, P_s, layout, rows)
+            kpt, kpt_sd = joints_of(x_s, P_s, layout, rows, pre.kpt0)
             if not pre.use_box:
                 centre, semi, sd = ellipsoid_around(kpt, kpt_sd, cams.world_from_body)
         down = downweighted_of(model, run)
@@ -589,15 +592,15 @@ def drawn_objects(count: np.ndarray, budget: int, seed: int = 0) -> np.ndarray:
     return obj
 
 
-def joints_of(x_s: F64, P_s: F64, layout: Any, rows: Any) -> tuple[F64, F64]:
-    """Joints ``(R, J, 3)`` and their largest-axis sd ``(R, J)``; NaN for joints an object
-    never showed."""
+def joints_of(x_s: F64, P_s: F64, layout: Any, rows: Any, kpt0: F64) -> tuple[F64, F64]:
+    """Joints ``(R, J, 3)`` and their largest-axis sd ``(R, J)``; NaN for joints an object's
+    views never placed (``kpt0 (R, J, 3)``: the per-frame triangulation; :func:`never_determined`)."""
     R, J = len(rows), layout.n_joints
     kpt = x_s[:, layout.joints].reshape(R, J, 3).copy()
     idx = layout.joints.start + 3 * np.arange(J)[:, None] + np.arange(3)  # (J, 3)
     cov = P_s[:, idx[:, :, None], idx[:, None, :]]  # (R, J, 3, 3)
     sd = largest_sd(cov)
-    never = never_seen(rows, J)
+    never = never_determined(rows, kpt0)
     kpt[never] = np.nan
     sd[never] = np.nan
     return kpt, sd

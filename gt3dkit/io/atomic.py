@@ -144,14 +144,15 @@ def _swap_in(tmp: Path, out: Path) -> None:
     os.rename(old, tmp)
 
 
-def write_dir_atomically(out: str | Path, write: Callable[[Path], None]) -> None:
-    """Call ``write(tmpdir)`` and make what it wrote be ``out``, whole, in one step.
+def write_dir_atomically(out: str | Path, write: Callable[[Path], None], option: str = "--out") -> None:
+    """Call ``write(tmpdir)`` and make what it wrote be ``out``, whole, in one step (a folder
+    that cannot take it is an :class:`InputError` naming ``option``, the user's option for it).
 
     On any failure or interruption (``KeyboardInterrupt``, SIGTERM turned into
     ``SystemExit``) the temporary folder is removed and ``out`` is left as it was.
     """
     out = Path(out).absolute()
-    check_out(out)
+    check_out(out, option)
     out.parent.mkdir(parents=True, exist_ok=True)
     clean_stale(out)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}{_TMP}{os.getpid()}-", dir=out.parent))
@@ -164,7 +165,7 @@ def write_dir_atomically(out: str | Path, write: Callable[[Path], None]) -> None
         os.umask(umask)
         os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes 0o700
         with _locked(out.parent):
-            check_out(out)  # another program may have put files there meanwhile
+            check_out(out, option)  # another program may have put files there meanwhile
             _swap_in(tmp, out)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

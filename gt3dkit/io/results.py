@@ -46,7 +46,13 @@ def read_result(out: Path) -> Result:
         raise InputError(str(out), "not a folder")
     for f in ("tracks.csv", "meta.json"):
         if not (out / f).is_file():
-            raise InputError(str(out), f"no {f}: not a gt3d reconstruct or compare output")
+            runs = sorted(d.name for d in out.iterdir() if (d / "tracks.csv").is_file()
+                          and (d / "meta.json").is_file())
+            if runs:  # a gt3d compare output: one run per estimator
+                raise InputError(str(out), f"no {f}: a gt3d compare output holds one run per estimator: "
+                                           f"pass one of them ({', '.join(str(out / r) for r in runs)})")
+            raise InputError(str(out), f"no {f}: not a gt3d reconstruct output (nor an estimator's "
+                                       "folder of a gt3d compare output)")
     meta = load_json(out / "meta.json")
     if not isinstance(meta, dict) or not isinstance(meta.get("input"), dict) \
             or not isinstance(meta.get("frame"), dict):

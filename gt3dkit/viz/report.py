@@ -297,7 +297,7 @@ def write_report(out: Path) -> tuple[Path, list[str]]:
         raise InputError(str(out), "not a folder")
     if (out / "comparison.csv").is_file():
         return _write_compare_report(out)
-    run = load_run(out)
+    run = load_run(out, "the report draws the annotations")
     warnings: list[str] = []
 
     def write(tmp: Path) -> None:
@@ -319,7 +319,7 @@ def _write_compare_report(out: Path) -> tuple[Path, list[str]]:
              if not r.get("failed") and (out / r["estimator"] / "tracks.csv").is_file()]
     if not names:
         raise InputError(str(out / "comparison.csv"), "no estimator's output beside it")
-    runs = {n: load_run(out / n) for n in names}
+    runs = {n: load_run(out / n, "the report draws the annotations") for n in names}
     first = runs[names[0]]
     warnings: list[str] = []
 

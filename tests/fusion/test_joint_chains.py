@@ -19,9 +19,8 @@ from gt3dkit.api import dense_frames, load_scene
 from gt3dkit.fusion import ukf_smoother as us
 from gt3dkit.fusion.bones import JointInfo, add_joint_info
 from gt3dkit.fusion.jointupdate import add_info, run_joints
-from gt3dkit.fusion.motion import joint_step
 from gt3dkit.fusion.measurement import Model
-from gt3dkit.fusion.motion import StateLayout
+from gt3dkit.fusion.motion import StateLayout, joint_step
 from gt3dkit.sim import Errors, simulate_skeletons, write_skeleton_scene
 
 

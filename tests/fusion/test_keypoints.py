@@ -246,7 +246,7 @@ def test_objects_that_two_views_never_see_together(tmp_path, skel_native, capsys
     line = _append(root / "keypoints.csv", "100,00_01,42,3,900,500")
     _append(root / "keypoints.csv", "101,00_02,42,3,900,500")
     err = _run(tmp_path, root, capsys)
-    assert f"line {line}" in err and "object 42 is never seen by two cameras" in err
+    assert f"line {line}" in err and "id 42 is never seen by two cameras" in err
 
 
 def test_ellipsoid_around_ignores_joints_known_to_a_metre_only() -> None:

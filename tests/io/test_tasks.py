@@ -194,7 +194,8 @@ def test_openpose_bad_files(tmp_path: Path) -> None:
     doc = json.loads(good)
     for bad, needle in (({"people": 3}, "people"),
                         ({"people": [{"pose_keypoints_2d": [1, 2, 0.5] * 24}]}, "24 joints"),
-                        ({"people": [{"pose_keypoints_2d": [1, 2, 1.5] * 25}]}, "confidence"),
+                        ({"people": [{"pose_keypoints_2d": [1, 2, -0.5] * 25}]}, "negative confidence"),
+                        ({"people": [{"pose_keypoints_2d": [1, 2, True] * 25}]}, "numbers"),
                         ({"people": [{"pose_keypoints_2d": ["a"] * 75}]}, "numbers")):
         f.write_text(json.dumps(bad))
         with pytest.raises(InputError, match=needle) as e:
@@ -316,3 +317,19 @@ def test_pair_costs_are_opencvs_two_view_triangulation() -> None:
             e2.append(np.where(q[:, 2] > 0, d2, np.inf))  # behind a camera: no reprojection
         np.testing.assert_allclose(got[k], np.median(np.sqrt(np.mean(e2, axis=0))), rtol=1e-6)
     assert np.isinf(got).any() and np.isfinite(got).sum() > 5
+
+
+def test_openpose_confidences_above_one_are_read_as_one_with_a_warning(tmp_path: Path) -> None:
+    """OpenPose's confidences are heatmap peaks (real files hold up to ~1.04): a folder with some
+    runs, each such value read as 1, and one warning line says how many and the largest."""
+    import json
+
+    root = _trial(tmp_path)
+    files = sorted((root / "pose" / "cam2_json").glob("*.json"))
+    doc = json.loads(files[1].read_text())
+    doc["people"][0]["pose_keypoints_2d"][2] = 1.037
+    files[1].write_text(json.dumps(doc))
+    scene = load_scene(root)
+    said = [w for w in scene.warnings if "confidence above 1" in w]
+    assert len(said) == 1 and "1.037" in said[0] and said[0].startswith("1 detection")
+    assert np.nanmax(scene.obs.kpt_conf) == 1.0

@@ -22,7 +22,7 @@ import numpy as np
 
 from gt3dkit.arrays import unique_rows
 from gt3dkit.errors import InputError
-from gt3dkit.types import Camera, Scene
+from gt3dkit.types import Camera, Observations, Scene
 
 #: A coordinate more than this many image sizes outside the image is an error, not a label.
 FAR_IMAGES = 10.0
@@ -52,6 +52,28 @@ def _cameras_per_object(track_id: np.ndarray, cam: np.ndarray) -> dict[int, int]
     pairs = unique_rows(np.stack([track_id, cam], 1))
     ids, n = np.unique(pairs[:, 0], return_counts=True)
     return dict(zip(ids.tolist(), n.tolist(), strict=True))
+
+
+def _redundancy(scene: Scene, obs: Observations) -> list[str]:
+    """Warnings where the views cannot check each other: calibrated cameras without a single
+    annotation (an empty camera folder), and keypoints no more than two views ever see at once
+    (two views determine a point, none is left over to tell a wrong one from a right one)."""
+    out = []
+    names = scene.rig.names
+    empty = [names[c] for c in range(len(names)) if not np.any(obs.cam == c)]
+    if empty and len(empty) < len(names):
+        out.append(f"camera{'s' if len(empty) > 1 else ''} {', '.join(empty[:5])}"
+                   f"{' ...' if len(empty) > 5 else ''} ha{'ve' if len(empty) > 1 else 's'} no annotation "
+                   f"(of {len(names)} calibrated): the estimate comes from the other "
+                   f"{len(names) - len(empty)}")
+    kpt = np.isfinite(obs.kpt_uv_px[..., 0]).any(axis=1)
+    if len(names) > 1 and kpt.any():
+        views = unique_rows(np.stack([obs.frame[kpt], obs.track_id[kpt]], 1), return_counts=True)[1]
+        if views.max() <= 2:
+            out.append("no object is seen by more than two cameras at once: nothing is redundant (a wrong "
+                       "keypoint cannot be told from a right one, and a joint only one view shows is left "
+                       "out); the sds assume every view is right")
+    return out
 
 
 def check_scene(scene: Scene) -> Scene:
@@ -101,8 +123,11 @@ def check_scene(scene: Scene) -> Scene:
     if lone_kpt.size:
         obs = obs.select(~np.isin(obs.track_id, lone_kpt))
         if len(obs) == 0:
-            raise InputError(scene.root or "input", "no object is seen by two cameras: keypoints "
-                                                    "alone give no 3D position")
+            seen = sorted({scene.rig.names[int(c)] for c in np.unique(scene.obs.cam)})
+            raise InputError(scene.root or "input",
+                             f"no object is seen by two cameras (annotations only in camera "
+                             f"{', '.join(seen)} of {len(scene.rig.cameras)}): keypoints alone give no "
+                             "3D position")
         warnings.append(f"{lone_kpt.size} objects with keypoints only are only ever seen by one "
                         f"camera (ids {_ids(lone_kpt)}): left out, one view gives them no 3D "
                         "position")
@@ -116,6 +141,8 @@ def check_scene(scene: Scene) -> Scene:
             warnings.append(f"{lone.size} objects are only ever seen by one camera (ids "
                             f"{_ids(lone)}): their distance comes from the size prior alone "
                             "(expect errors of metres; their sd says so)")
+
+    warnings += _redundancy(scene, obs)
 
     # gaps: an object unannotated for longer than GAP_S and than one step of the scene's frames
     pairs = unique_rows(np.stack([obs.track_id, obs.frame], 1))  # sorted by id, frame

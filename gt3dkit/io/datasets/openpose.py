@@ -69,15 +69,23 @@ def _config_fps(root: Path) -> float | None:
 
 
 def _which_25(sample: list[np.ndarray]) -> str:
-    """BODY_25 (joint 1 = the neck, midway between the shoulders 2 and 5) or BODY_25B (joint 1 =
-    the left eye, 2 the right eye, 5 the left shoulder): the distance of joint 1 from the
-    midpoint of joints 2 and 5, in units of their distance, is near 0 for BODY_25 only."""
+    """BODY_25 (joint 1 = the neck, below the nose 0 by about the nose's distance from a shoulder
+    5) or BODY_25B (joint 1 = the left eye, beside the nose): the distance of joint 1 from joint 0
+    in units of joint 0's from joint 5, median over the detections that show all three (every
+    view of a head and shoulders keeps the two apart: the real Shelf BODY_25 files give 0.92,
+    BODY_25B about 0.2). The earlier test, joint 1 at the shoulders' midpoint, read a neck drawn
+    above the shoulder line, or shoulders seen edge-on, as BODY_25B."""
     d = []
     for k in sample:
-        if (k[[1, 2, 5], 2] > 0).all():
-            w = np.linalg.norm(k[2, :2] - k[5, :2]) + 1e-9
-            d.append(np.linalg.norm(k[1, :2] - (k[2, :2] + k[5, :2]) / 2) / w)
-    return "body25" if not d or float(np.median(d)) < 0.25 else "body25b"
+        if (k[[0, 1, 5], 2] > 0).all():
+            w = np.linalg.norm(k[0, :2] - k[5, :2]) + 1e-9
+            d.append(np.linalg.norm(k[1, :2] - k[0, :2]) / w)
+    return "body25" if not d or float(np.median(d)) > BODY_25B_BELOW else "body25b"
+
+
+#: :func:`_which_25`'s boundary: BODY_25's neck-nose distance is 0.6-1.3 nose-shoulder
+#: distances (10th-90th percentile of real and simulated files), BODY_25B's eye-nose 0.15-0.27.
+BODY_25B_BELOW = 0.4
 
 
 #: Frame files of one camera gathered into one block of rows (:class:`_Detections`).
@@ -156,6 +164,7 @@ def load(
     J = None
     sample: list[np.ndarray] = []  # the first detections, to tell BODY_25 from BODY_25B
     rb: RowBuilder | None = None
+    above: list[float] = []  # detections with a confidence above 1: the largest of each
     for folder, name in zip(folders, names, strict=True):
         seen_frames: dict[int, Path] = {}
         chunk = _Detections(rig.cameras[cam_of[name]], cam_of[name])
@@ -172,6 +181,8 @@ def load(
                 where = f"{p}: people[{i}]"
                 kp = person.get("pose_keypoints_2d") if isinstance(person, dict) else None
                 try:
+                    if not isinstance(kp, list) or not all(type(v) in (int, float) for v in kp):
+                        raise TypeError  # true/false are not numbers here (JSON's bool is an int to numpy)
                     a = np.asarray(kp, dtype=np.float64).reshape(-1, 3)
                 except (TypeError, ValueError):
                     raise InputError(
@@ -187,8 +198,11 @@ def load(
                         )
                 if len(a) != J:
                     raise InputError(where, f"{len(a)} joints, the other detections have {J}")
-                if not np.isfinite(a).all() or (a[:, 2] < 0).any() or (a[:, 2] > 1).any():
-                    raise InputError(where, "a non-finite value or a confidence outside [0, 1]")
+                if not np.isfinite(a).all() or (a[:, 2] < 0).any():
+                    raise InputError(where, "a non-finite value or a negative confidence")
+                if (a[:, 2] > 1).any():  # a heatmap's peak, not a probability: OpenPose writes up to ~1.04
+                    above.append(float(a[:, 2].max()))
+                    a[:, 2] = np.minimum(a[:, 2], 1.0)
                 if len(sample) < 500:
                     sample.append(a)
                 chunk.add(f, i, a, p)
@@ -198,6 +212,9 @@ def load(
         files[f"{folder.name}/"] = f"{len(seen_frames)} files"
     if rb is None or J is None:
         raise InputError(str(root), "no annotations in any frame (no people in the JSON files)")
+    if above:
+        warnings.append(f"{len(above)} detection(s) with a confidence above 1 (up to {max(above):.4g}; "
+                        "OpenPose's confidences are heatmap peaks): read as 1")
     if skeleton is None:
         opts = DETECTOR_SKELETONS[J]
         skeleton = opts[0] if len(opts) == 1 else _which_25(sample)

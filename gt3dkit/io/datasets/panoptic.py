@@ -49,6 +49,9 @@ def load(root: Path, cameras: list[str] | None = None, noise_px: float = 0.0, se
         raise InputError(str(root), "no calibration_<seq>.json")
     files = {calib.name: sha256(calib)}
     rig = load_rig(calib, cameras)
+    if cameras is not None and len(rig.cameras) < 2:
+        raise InputError("--cameras", f"{', '.join(c.name for c in rig.cameras)}: one camera; keypoints need "
+                                      "two or more to place a joint (name at least two HD cameras)")
     pose_files = sorted((root / POSE_DIR).glob("body3DScene_*.json"))
     if not pose_files:
         raise InputError(str(root / POSE_DIR), "no body3DScene_<frame>.json files")
@@ -87,8 +90,10 @@ def load(root: Path, cameras: list[str] | None = None, noise_px: float = 0.0, se
     ids = np.array(t_id, dtype=np.int64)
     X = np.array(t_joints).reshape(-1, J, 3)
     if not np.isfinite(X).any():
-        raise InputError(str(root / POSE_DIR), f"no body has a joint of confidence >= {min_conf:g}"
-                                               f" ({len(ids)} bodies in {len(pose_files)} files)")
+        raise InputError(str(root / POSE_DIR), f"joints19: every joint's confidence (each fourth value) is "
+                                               f"below {min_conf:g}, the least a joint is kept with "
+                                               f"({len(ids)} bodies in {len(pose_files)} files): no joint "
+                                               "to reconstruct")
     pairs, counts = unique_rows(np.stack([frames, ids], 1), return_counts=True)
     if (counts > 1).any():
         bad = pairs[counts > 1][0]
