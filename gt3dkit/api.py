@@ -18,7 +18,7 @@ from gt3dkit.arrays import frame_grid, lookup_rows, unique_rows
 from gt3dkit.calib.formats.native import rig_of_doc
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.associate import apply_association, associate, associate_detections, read_overrides
-from gt3dkit.fusion.base import ESTIMATORS, Estimator, make_estimator
+from gt3dkit.fusion.base import ESTIMATORS, Estimator, make_estimator, over_time
 from gt3dkit.fusion.boxfit import choose_box_model
 from gt3dkit.fusion.identity import Segments, identity_segments
 from gt3dkit.fusion.prepare import prepare, undetermined_objects
@@ -176,7 +176,7 @@ def estimate_checked(scene: Scene, est: Estimator, every_frame: int | None = Non
     stage = on_stage or (lambda name: None)
     sc = scene
     if every_frame is not None:
-        if not getattr(est, "interpolates", True):
+        if not over_time(est.name):
             raise InputError("--every-frame", f"the {est.name} estimator fits each frame on its own: "
                                               "it has no estimate between annotations (use ukf or gtsam)")
         sc = dense_frames(sc, every_frame or None)
@@ -194,15 +194,10 @@ def estimate_checked(scene: Scene, est: Estimator, every_frame: int | None = Non
     return tracks, found
 
 
-def process_noise_of(scene: Scene, est: Estimator) -> dict[str, float] | None:
-    """The process noise ``est`` would choose for ``scene`` as :func:`estimate_checked` runs it
-    (on the pieces of split ids), by the estimator's own ``process_noise`` without the rest of
-    the estimate; None when the estimator has none (then only a whole run tells)."""
-    return process_noise_prepared(scene, est)[0]
-
-
 def process_noise_prepared(scene: Scene, est: Estimator) -> tuple[dict[str, float] | None, Any]:
-    """:func:`process_noise_of` and the preparation (per-frame fits) it was found on (None, None
+    """The process noise ``est`` would choose for ``scene`` as :func:`estimate_checked` runs it
+    (on the pieces of split ids), by the estimator's own ``process_noise`` without the rest of the
+    estimate, and the preparation (per-frame fits) it was found on (None, None
     when the estimator has no ``process_noise``)."""
     own = getattr(est, "process_noise", None)
     if not callable(own):

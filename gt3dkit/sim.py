@@ -28,7 +28,6 @@ from pathlib import Path
 
 import numpy as np
 
-from gt3dkit.arrays import unique_rows
 from gt3dkit.calib.formats.grid import LAYOUTS as GRID_LAYOUTS
 from gt3dkit.geom.camera import Cams, project_points
 from gt3dkit.geom.conics import covered_fraction, model_boxes
@@ -36,7 +35,7 @@ from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.datasets import LAYOUTS, openpose, tasks
 from gt3dkit.io.datasets.wildtrack import write_truth_csv
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import BOX_MODELS, F64, I64, Camera, Observations, Rig, Scene, SimScene, SkeletonScene
+from gt3dkit.types import BOX_MODELS, F64, I64, Camera, Rig, SimScene, SkeletonScene
 
 SIM_LAYOUTS = ("wildtrack", "multiviewx", "native")
 WRITE_LAYOUTS = tuple(k for k, v in LAYOUTS.items() if v.write_boxes is not None)
@@ -686,31 +685,3 @@ def write_coco(sim: SkeletonScene, out: Path, track_ids: bool = True, seed: int 
     """Write as ``coco/<camera>.json`` + ``cameras.json`` + ``truth_keypoints.csv`` (atomically;
     :func:`gt3dkit.io.datasets.tasks.write_coco`)."""
     write_dir_atomically(Path(out), lambda tmp: tasks.write_coco(sim, tmp, track_ids, seed))
-
-
-def corrupt_keypoints(scene: Scene, errors: Errors, seed: int = 0
-                      ) -> tuple[Scene, tuple[tuple[int, str, int, str, str, str], ...]]:
-    """A loaded keypoint scene (e.g. real CMU Panoptic) with detector ``errors`` injected.
-
-    The same errors as the skeleton simulator makes, on any :class:`Scene`'s keypoints; the
-    returned scene carries confidences. Returns the scene and the injected errors.
-    """
-    import dataclasses
-
-    obs = scene.obs
-    if obs.n_joints == 0 or scene.skeleton is None:
-        raise ValueError("corrupt_keypoints needs a keypoint scene with a named skeleton")
-    keys, m_of = unique_rows(np.stack([obs.frame, obs.track_id], 1), return_inverse=True)
-    m_of = m_of.reshape(-1)
-    C, J = len(scene.rig.cameras), obs.n_joints
-    uv = np.full((len(keys), C, J, 2), np.nan)
-    uv[m_of, obs.cam] = obs.kpt_uv_px
-    uv2, conf, injected = _detector_errors(uv, scene.rig, scene.skeleton, keys[:, 0], keys[:, 1],
-                                           np.asarray(scene.frames), errors,
-                                           np.random.default_rng([seed, 1]))
-    kpt = uv2[m_of, obs.cam]
-    c = conf[m_of, obs.cam]
-    keep = np.isfinite(kpt[..., 0]).any(axis=1)
-    new = Observations(obs.frame, obs.cam, obs.track_id, obs.box_xyxy_px, kpt, obs.origin,
-                       np.where(np.isfinite(kpt[..., 0]), c, np.nan)).select(keep)
-    return dataclasses.replace(scene, obs=new), tuple(injected)

@@ -81,7 +81,7 @@ from gt3dkit.api import (
 )
 from gt3dkit.arrays import unique_rows
 from gt3dkit.errors import EstimationError, InputError
-from gt3dkit.fusion.base import make_estimator
+from gt3dkit.fusion.base import make_estimator, over_time
 from gt3dkit.fusion.bones import BoneSamples, PersonBones
 from gt3dkit.fusion.motion import position_step
 from gt3dkit.fusion.split import split_entries
@@ -660,8 +660,8 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
     findings; ``on_window(done, total)`` as the windows start (0) and after each one; ``cluster``
     as :func:`reconstruct_windows`; ``on_part(k, tracks, anomaly_rows)`` with each window's final
     rows and findings as it finishes (:func:`run_window`)."""
-    if estimator == "triangulation":
-        raise InputError("--window", "the triangulation fits each frame on its own: it needs no window")
+    if not over_time(estimator):
+        raise InputError("--window", f"the {estimator} fits each frame on its own: it needs no window")
     ov = overlap_frames(scene) if plan.overlap is None else plan.overlap
     own = cluster is None and bool(plan.scheduler)
     if own:

@@ -31,8 +31,10 @@ import numpy as np
 from gt3dkit.api import annotation_qa, load_scene, reconstruct
 from gt3dkit.commands.common import bundled
 from gt3dkit.eval.metrics import box_errors
-from gt3dkit.qa.inject import move_person, shift_box
-from gt3dkit.sim import Errors, corrupt_keypoints, simulate, write_scene
+from gt3dkit.sim import Errors, simulate, write_scene
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from tests.inject import corrupt_keypoints, move_person, shift_box  # noqa: E402
 
 
 def check(label: str, ok: bool, value: str) -> bool:

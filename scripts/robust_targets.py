@@ -38,12 +38,14 @@ from gt3dkit.fusion.rows import build_rows
 from gt3dkit.geom.camera import Cams
 from gt3dkit.sim import (
     Errors,
-    corrupt_keypoints,
     simulate,
     simulate_skeletons,
     write_scene,
     write_skeleton_scene,
 )
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from tests.inject import corrupt_keypoints  # noqa: E402
 
 CHECKS: list[tuple[str, float, float, str]] = []  # (what, value, limit, "<=" or ">=")
 

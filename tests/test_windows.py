@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gt3dkit.api import load_scene, process_noise_of, reconstruct, take_rows
+from gt3dkit.api import load_scene, process_noise_prepared, reconstruct, take_rows
 from gt3dkit.cli import main
 from gt3dkit.commands.common import Stages, clock
 from gt3dkit.fusion.base import make_estimator
@@ -362,12 +362,12 @@ def test_process_noise_is_what_the_estimate_chooses(boxes: object) -> None:
     """The windows' process noise, found by the UKF's search alone, is what a whole estimate of
     the same scene runs with; the progress line's time left follows the pace of the parts."""
     est = make_estimator("ukf")
-    found = process_noise_of(boxes, est)  # type: ignore[arg-type]
+    found = process_noise_prepared(boxes, est)[0]  # type: ignore[arg-type]
     params = reconstruct(boxes, "ukf").info["params"]  # type: ignore[arg-type]
     assert found is not None and {"accel_sd", "shape_sd"} <= set(found)
     for k, v in found.items():
         assert v == pytest.approx(params[k], rel=1e-12), k
-    assert process_noise_of(boxes, make_estimator("triangulation")) is None  # type: ignore[arg-type]
+    assert process_noise_prepared(boxes, make_estimator("triangulation"))[0] is None  # type: ignore[arg-type]
     st = Stages(3, quiet=True)
     st("windows")
     st._stage_t0 -= 30.0  # the first of four windows took 30 s

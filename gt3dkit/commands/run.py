@@ -29,6 +29,7 @@ from gt3dkit.commands.common import (
 from gt3dkit.compare import compare
 from gt3dkit.errors import InputError
 from gt3dkit.export import export
+from gt3dkit.fusion.base import over_time
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.results import read_result
 from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv
@@ -51,7 +52,7 @@ def early_cluster(args: argparse.Namespace, config: dict[str, Any]) -> Any:
     warmed while it loads (:class:`gt3dkit.windows.Cluster`); a null context where the run uses
     none (``--window 0`` and the triangulation are refused after the input loads, by
     :func:`window_plan`)."""
-    if not args.scheduler or args.window == 0 or args.estimator == "triangulation":
+    if not args.scheduler or args.window == 0 or not over_time(args.estimator):
         return contextlib.nullcontext()
     return Cluster(args.scheduler, args.estimator, config)
 
@@ -112,12 +113,12 @@ def window_plan(args: argparse.Namespace, scene: Any) -> Plan | None:
     as many as ``--jobs`` or a Dask scheduler's workers when only those are given)."""
     spread = args.jobs or args.scheduler
     option = "--jobs" if args.jobs else "--scheduler"
-    if args.window and args.estimator == "triangulation":
-        raise InputError("--window", "the triangulation fits each frame on its own: it needs no window")
-    if args.window == 0 or args.estimator == "triangulation":
+    if args.window and not over_time(args.estimator):
+        raise InputError("--window", f"the {args.estimator} fits each frame on its own: it needs no window")
+    if args.window == 0 or not over_time(args.estimator):
         if spread:
             raise InputError(option, "runs windows of the sequence in parallel: not with --window 0 or the "
-                                     "triangulation (which fits each frame on its own)")
+                                     f"{args.estimator} (which fits each frame on its own)")
         return None
     plan = Plan(args.window) if args.window else auto_plan(scene)
     if plan is None and spread:  # the sequence fits: one window per worker

@@ -34,12 +34,16 @@ class Estimator(Protocol):
 
 @dataclass(frozen=True)
 class Entry:
-    """Where an estimator lives (imported lazily: GTSAM is heavy) and what it is."""
+    """Where an estimator lives (imported lazily: GTSAM is heavy), what it is, and what it can
+    do: ``over_time`` -- it estimates each object over its frames together (a motion model), so
+    it has estimates between annotations (``--every-frame``) and gains from time windows
+    (``--window``, ``--jobs``, ``--scheduler``); False: each frame on its own."""
 
     module: str
     cls: str
     config: str
     summary: str
+    over_time: bool = True
 
 
 REGISTRY: dict[str, Entry] = {
@@ -48,9 +52,14 @@ REGISTRY: dict[str, Entry] = {
     "gtsam": Entry("gt3dkit.fusion.smoother_gtsam", "GTSAMSmoother", "GTSAMConfig",
                    "GTSAM factor-graph smoother (independent cross-check)"),
     "triangulation": Entry("gt3dkit.fusion.triangulate", "Triangulation", "TriangulationConfig",
-                           "robust per-frame fits, no temporal model (baseline)"),
+                           "robust per-frame fits, no temporal model (baseline)", over_time=False),
 }
 ESTIMATORS = tuple(REGISTRY)
+
+
+def over_time(name: str) -> bool:
+    """Whether the estimator ``name`` estimates over time (:attr:`Entry.over_time`)."""
+    return REGISTRY[name].over_time if name in REGISTRY else True
 
 
 def make_estimator(name: str = "ukf", **config: Any) -> Estimator:

@@ -33,7 +33,6 @@ class Triangulation:
     """Per-frame least-squares fit (boxes) and DLT (keypoints); no temporal model."""
 
     name = "triangulation"
-    interpolates = False  # no estimate between annotations (``--every-frame`` refuses it)
 
     def __init__(self, config: TriangulationConfig | None = None) -> None:
         self.config = config or TriangulationConfig()

@@ -8,8 +8,8 @@ import json
 import numpy as np
 
 from gt3dkit.api import load_scene, reconstruct
-from gt3dkit.qa.inject import move_person, shift_box
 from gt3dkit.sim import Errors, simulate, simulate_skeletons, write_scene, write_skeleton_scene
+from tests.inject import move_person, shift_box
 
 
 def _rows(path):
