@@ -83,8 +83,8 @@ from gt3dkit.arrays import unique_rows
 from gt3dkit.errors import EstimationError, InputError
 from gt3dkit.fusion.base import make_estimator, over_time
 from gt3dkit.fusion.bones import BoneSamples, PersonBones
+from gt3dkit.fusion.jointupdate import covariance_entries
 from gt3dkit.fusion.motion import position_step
-from gt3dkit.fusion.split import split_entries
 from gt3dkit.fusion.ukf_smoother import SEARCH_OBJECT_FRAMES, UKFConfig, drawn_objects
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.writers import StreamedRows, write_result_files
@@ -195,13 +195,14 @@ def overlap_frames(scene: Scene) -> int:
 def state_bytes(n_joints: int) -> float:
     """Bytes a window is budgeted per object-frame. With joints: measured 77 kB with 19 joints and
     8 cameras (peak RSS of runs of 1 000 frames of 3 people in windows of 50 to 1 000 frames:
-    about 2.2 times the split filters' covariance entries, :func:`gt3dkit.fusion.split.split_entries`;
+    about 2.2 times the per-joint filters' covariance entries,
+    :func:`gt3dkit.fusion.jointupdate.covariance_entries`;
     the joints' chains' states and the measurements' arrays, the bones' pass a fixed batch); the
     measurements' arrays grow with the cameras (~3.5 kB a camera with 19 joints by their
     shapes: 31 cameras add ~80 kB), so twice the 8-camera figure is budgeted. A box's 9-entry
     state, its covariance about 20 times over and ~11 kB of the rest, 13 kB (measured)."""
     if n_joints:
-        return 2 * 2.2 * 8 * split_entries(n_joints)
+        return 2 * 2.2 * 8 * covariance_entries(n_joints)
     return 20.0 * 9 * 9 + 11e3
 
 

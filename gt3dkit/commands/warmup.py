@@ -25,10 +25,8 @@ def _tiny_model() -> tuple[Model, us.Init, us.UKFConfig, float, us.UKFSmoother, 
 
 
 def compile_side() -> None:
-    """Compile the filter over frames (its batched steps) on a tiny scene, and the joints' chains
-    on a tiny skeleton scene."""
+    """Compile the joints' chains on a tiny skeleton scene."""
     model, init, cfg, fps, _, _ = _tiny_model()
-    us.run_frames(model, init, cfg, fps, collect=True)
     scene = tiny_scenes()[1]
     model = Model.of(us.UKFSmoother().prepare(scene))
     cfg = replace(cfg, joint_accel_sd=0.5)
@@ -38,8 +36,8 @@ def compile_side() -> None:
 def warm_up() -> float:
     """Compile (or load from numba's disk cache) every compiled function by reconstructing a tiny
     simulated scene; returns the seconds it took. ``make setup`` runs it once, so that a first
-    real run does not spend a minute compiling. The filter over frames compiles meanwhile in a
-    second process (numba compiles on one core)."""
+    real run does not spend a minute compiling. The joints' chains compile meanwhile in a second
+    process (numba compiles on one core)."""
     t0 = time.perf_counter()
     side = subprocess.Popen([sys.executable, "-c", "from gt3dkit.commands.warmup import "
                              "compile_side as f; f()"])
@@ -47,7 +45,6 @@ def warm_up() -> float:
     est.estimate(scene)  # the linearised noise search, forward, backward
     us.run_filter(model, init, cfg, fps)
     side.wait()
-    us.run_frames(model, init, cfg, fps, collect=True)  # from the cache by now
     return time.perf_counter() - t0
 
 

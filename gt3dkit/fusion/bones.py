@@ -7,7 +7,7 @@ whole ``9 + 6J`` state they would make every row's covariance dense (123 x 123 w
 UAI 2001) with a fully factorised approximation (one Gaussian factor per joint and row):
 
 1. each frame's bones update the first pass's smoothed joints ``N(m_j, C_j)`` (independent
-   joints: the first pass is split, :mod:`gt3dkit.fusion.split`) by an iterated Kalman update
+   joints: the first pass runs per joint, :mod:`gt3dkit.fusion.jointupdate`) by an iterated Kalman update
    of the stacked positions (Gauss-Newton about the new estimate), each bone down-weighted or
    rejected by its standardised innovation as a view's point is
    (:func:`gt3dkit.fusion.robust.point_weights`): a bone the views contradict gives way;
@@ -15,7 +15,8 @@ UAI 2001) with a fully factorised approximation (one Gaussian factor per joint a
    its prior, in information form ``\Lambda_j = C_j^{+-1} - C_j^{-1}``, ``\eta_j = C_j^{+-1}
    m_j^+ - C_j^{-1} m_j`` (a 3-vector and 3 x 3 per joint and row, :class:`JointInfo`);
 3. the filter runs again, split, and adds each row's messages to its joints after the frame's
-   views (:func:`add_joint_info`): the bones' information reaches the neighbouring frames through
+   views (the reference ``add_joint_info`` (``tests/oracles_frames.py``)): the bones' information
+   reaches the neighbouring frames through
    each joint's motion model, forward and (RTS) back.
 
 On the simulator's 300-frame, 8-camera, 3-person skeleton scene this is as accurate as the
@@ -191,42 +192,6 @@ class JointInfo:
         on = (joints >= 0)[:, None]
         return JointInfo(np.where(on[..., None, None], self.info[rows, j][:, None], 0.0),
                          np.where(on[..., None], self.eta[rows, j][:, None], 0.0))
-
-
-def add_joint_info(x: F64, P: F64, ji: JointInfo, dims: I64) -> tuple[F64, F64]:
-    r"""States ``x (B, n)``, ``P (B, n, n)`` with the information ``ji`` (``(B, J, ...)``) on
-    each joint's entries ``dims (J, 3)`` added: ``P^{+-1} = P^{-1} + E^\top \Lambda E``,
-    ``P^{+-1} x^+ = P^{-1} x + E^\top \eta``, joint by joint (information adds: the order does
-    not matter), without inverting ``P``:
-
-    .. math::
-        P^+ = P - U M U^\top,\quad M = \Lambda (I + C \Lambda)^{-1},\quad
-        x^+ = x + P^+ E^\top (\eta - \Lambda E x),
-
-    ``U = P E^\top``, ``C = E P E^\top``. Rows without any information are returned as they are."""
-    has = np.any(ji.info != 0.0, axis=(1, 2, 3))
-    if not has.any():
-        return x, P
-    x, P = x.copy(), P.copy()
-    at = np.flatnonzero(has)
-    for j in range(dims.shape[0]):
-        lam, eta = ji.info[at, j], ji.eta[at, j]
-        on = np.any(lam != 0.0, axis=(1, 2))
-        if not on.any():
-            continue
-        b, lam, eta = at[on], lam[on], eta[on]
-        e = dims[j]
-        U = P[b][:, :, e]  # (N, n, 3)
-        C = U[:, e, :]
-        # M^T = (I + Lam C)^-1 Lam (Lam, C symmetric); M is symmetric but for rounding
-        M = np.swapaxes(np.linalg.solve(np.eye(3) + lam @ C, lam), -1, -2)
-        M = 0.5 * (M + np.swapaxes(M, -1, -2))
-        Pn = P[b] - U @ M @ np.swapaxes(U, -1, -2)
-        Pn = 0.5 * (Pn + np.swapaxes(Pn, -1, -2))
-        innov = eta - np.einsum("nab,nb->na", lam, x[b][:, e])
-        x[b] = x[b] + np.einsum("nsa,na->ns", Pn[:, :, e], innov)
-        P[b] = Pn
-    return x, P
 
 
 def bone_messages(joints: F64, cov: F64, bones: I64, length: F64, var: F64, mask: np.ndarray,

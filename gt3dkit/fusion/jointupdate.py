@@ -1,22 +1,24 @@
 r"""The keypoint filter as compiled chains: every (person, joint) its own filter of six entries.
 
 A joint's projections depend on its own three coordinates, the motion model moves it by its own
-velocity and nothing in the initial covariance ties it to another joint or to the ellipsoid
-(:mod:`gt3dkit.fusion.split`): the filter of a person's stacked state is one small filter per
-joint (its position and velocity, 6 entries) and one for the ellipsoid. :func:`run_joints` runs
-the ellipsoid's by the boxes' compiled chains (:func:`gt3dkit.fusion.boxupdate.run_boxes`; with
+velocity and nothing in the initial covariance ties it to another joint or to the ellipsoid: the
+covariance of a person's stacked ``9 + 6J`` state stays block-diagonal, and its filter is one
+small filter per joint (its position and velocity, 6 entries) and one for the ellipsoid, exactly
+(but for when the iterated update stops: each part on its own, within the update's convergence
+tolerance); for 19 joints, 123-entry matrices (one inverse is 1.9 Mflop) become 20 small ones.
+:func:`run_joints` runs the ellipsoid's by the boxes' compiled chains
+(:func:`gt3dkit.fusion.boxupdate.run_boxes`; with
 keypoints alone nothing measures it and it stays the rows' initial state) and every joint's as a
 compiled chain along the person's rows, the joints of all persons dealt over
 :func:`gt3dkit.threads.compiled_threads` threads. The steps are the package's own: the prediction
 and RTS step of :mod:`gt3dkit.fusion.kalman`, the iterated robust update of
 :mod:`gt3dkit.fusion.update`; what is new here is the joint's sigma-point regression
 (:func:`point_regression`, the projection with distortion of :mod:`gt3dkit.geom.boxkernel`), the
-joint's fading and linearisation point (as :meth:`gt3dkit.fusion.measurement.Model.prior_conflict`
-and :meth:`~gt3dkit.fusion.measurement.Model.linearisation_point` per joint) and the bones'
-information (as :func:`gt3dkit.fusion.bones.add_joint_info`). The filter over frames
-(:func:`gt3dkit.fusion.ukf_smoother.run_frames`, split or whole) is the reference the tests hold
-it to: the same result within the iterated update's convergence tolerance (a part stops iterating
-on its own entries' spread, not on the stacked state's).
+joint's fading and linearisation point (:func:`_fade`, :func:`_linearisation`) and the bones'
+information (:func:`add_info`). The filter over the frame grid in ``tests/oracles_frames.py``
+(split or whole) is the reference the tests hold it to: the same result within the iterated
+update's convergence tolerance (a part stops iterating on its own entries' spread, not on the
+stacked state's).
 """
 
 from __future__ import annotations
@@ -128,7 +130,8 @@ class JointOut(NamedTuple):
 def point_regression(xj: F64, Pj: F64, meas: Measured, sig: PointSigma, rig: BoxRig, lin: Regression) -> int:
     """Statistical linear regression of a joint's views (``meas``: ``(2 C,)``, camera by camera
     ``u, v``) on the sigma points of its position's marginal of ``N(xj (6,), Pj (6, 6))``, into
-    ``lin``: as :func:`gt3dkit.fusion.ukf.block_regression` of the joint's block (a view is used
+    ``lin``: as the reference ``block_regression`` (``tests/oracles_frames.py``) of the joint's
+    block (a view is used
     where present and every sigma point is in front of its camera). Returns 1 if the marginal's
     factor needed a repair."""
     C = rig.cam.shape[0]
@@ -159,7 +162,7 @@ def point_regression(xj: F64, Pj: F64, meas: Measured, sig: PointSigma, rig: Box
 @numba.njit(cache=True, nogil=True)
 def add_info(x: F64, P: F64, lam: F64, eta: F64) -> None:
     r"""A joint's state ``x (6,)``, ``P (6, 6)`` with the information ``lam (3, 3)``, ``eta (3,)`` on
-    its position added in place (:func:`gt3dkit.fusion.bones.add_joint_info` of one joint):
+    its position added in place (the reference ``add_joint_info`` (``tests/oracles_frames.py``) of one joint):
     ``P^+ = P - U M U^T``, ``M = \Lambda (I + C \Lambda)^{-1}``, ``x^+ = x + P^+ E^T (\eta -
     \Lambda E x)``."""
     A = np.empty((SPACE, SPACE))  # I + lam C
@@ -327,8 +330,8 @@ def _spread_over_gap(r: int, j: int, f: float, chains: Chains, data: JointData, 
 
 @numba.njit(cache=True, nogil=True)
 def _linearisation(r: int, j: int, data: JointData, out: JointOut, xl: F64, Pl: F64) -> None:
-    """Where joint ``j`` of row ``r`` linearises first (:meth:`gt3dkit.fusion.measurement.Model.
-    linearisation_point`): its prediction, unless the prediction's position spread (trace) exceeds
+    """Where joint ``j`` of row ``r`` linearises first: its prediction, unless the prediction's
+    position spread (trace) exceeds
     the frame's own joint's; then that joint, with its variances, decorrelated from the velocity."""
     xl[:] = out.x_p[r, j]
     Pl[:, :] = out.P_p[r, j]
@@ -397,6 +400,13 @@ def backward(chain: I64, start: JointStart, last: I64, chains: Chains, data: Joi
             r = chains.prev_row[r]
 
 
+def covariance_entries(n_joints: int) -> int:
+    """Covariance entries a row of a person with ``n_joints`` joints is budgeted by the windows
+    (:func:`gt3dkit.windows.state_bytes`): ``J + 1`` parts of the ellipsoid and one joint
+    (``StateLayout(1)``, 15 entries) each, as the per-joint filters were first held."""
+    return (n_joints + 1) * StateLayout(1).n ** 2
+
+
 def point_sigma(alpha: float, beta: float, kappa: float) -> PointSigma:
     """The :class:`PointSigma` of a joint's position under the scaled unscented rule."""
     sw = SigmaWeights(SPACE, alpha, beta, kappa)
@@ -438,7 +448,7 @@ def run_joints(model: Any, init: Any, cfg: Any, fps: float, collect: bool = Fals
     """The filter (and RTS) of a model with joints as compiled chains (the module doc): the
     arguments and outputs of :func:`gt3dkit.fusion.ukf_smoother.run_filter`; ``covariances=False``
     leaves ``P`` out (``(R, 0, 0)``), ``into`` takes the covariances of the rows ``on`` (the others
-    left as they are) and is the run's ``P`` (as :meth:`gt3dkit.fusion.split.JointSplit.merge`)."""
+    left as they are) and is the run's ``P``."""
     rows, lay = model.rows, model.layout
     R, J, C = len(rows), lay.n_joints, len(model.cams.K)
     if not J:

@@ -55,15 +55,6 @@ def predict_rows(x: F64, P: F64, F: F64, Q: F64, x_out: F64, P_out: F64) -> None
         predict_row(x[b], P[b], F[b], Q[b], x_out[b], P_out[b])
 
 
-def predict_linear(x: F64, P: F64, F: F64, Q: F64) -> tuple[F64, F64]:
-    """Linear prediction of ``(B, n)``, ``(B, n, n)`` with ``F, Q (B, n, n)`` or ``(n, n)``."""
-    c = contiguous
-    B, n = x.shape
-    x_out, P_out = np.empty((B, n)), np.empty((B, n, n))
-    predict_rows(c(x), c(P), c(np.broadcast_to(F, P.shape)), c(np.broadcast_to(Q, P.shape)), x_out, P_out)
-    return x_out, P_out
-
-
 @numba.njit(cache=True, nogil=True)
 def rts_row(x_f: F64, P_f: F64, x_p: F64, P_p: F64, x_s: F64, P_s: F64, F: F64, x_out: F64,
             P_out: F64) -> None:
@@ -104,18 +95,6 @@ def rts_rows(x_f: F64, P_f: F64, x_p: F64, P_p: F64, x_s: F64, P_s: F64, F: F64,
     """:func:`rts_row` of every row of a batch (means ``(B, n)``, matrices ``(B, n, n)``)."""
     for b in range(x_f.shape[0]):
         rts_row(x_f[b], P_f[b], x_p[b], P_p[b], x_s[b], P_s[b], F[b], x_out[b], P_out[b])
-
-
-def rts_step(x_f: F64, P_f: F64, x_p_next: F64, P_p_next: F64, x_s_next: F64, P_s_next: F64, F: F64
-             ) -> tuple[F64, F64]:
-    """:func:`rts_row` of a batch: means ``(B, n)``, covariances ``(B, n, n)``, ``F (B, n, n)`` or
-    ``(n, n)``; returns the smoothed ``(B, n)``, ``(B, n, n)``."""
-    c = contiguous
-    B, n = x_f.shape
-    x_out, P_out = np.empty((B, n)), np.empty((B, n, n))
-    rts_rows(c(x_f), c(P_f), c(x_p_next), c(P_p_next), c(x_s_next), c(P_s_next),
-             c(np.broadcast_to(F, P_f.shape)), x_out, P_out)
-    return x_out, P_out
 
 
 @numba.njit(cache=True, nogil=True)
@@ -167,8 +146,8 @@ def fade_centre(P: F64, f: float, ix: StateIndex) -> None:
 @numba.njit(cache=True, nogil=True)
 def ellipsoid_linearisation(x: F64, P: F64, x_frame: F64, cov_frame: F64, frame_trace: float,
                             dims: I64, ix: StateIndex, x_l: F64, P_l: F64) -> bool:
-    """Where a row's update linearises the ellipsoid (:meth:`gt3dkit.fusion.measurement.Model.
-    linearisation_point`): ``x_l, P_l`` = the prior ``x, P``, except where the prior's centre
+    """Where a row's update linearises the ellipsoid: ``x_l, P_l`` = the prior ``x, P``, except
+    where the prior's centre
     trace exceeds the frame's own fit's ``frame_trace``: then the ellipsoid entries ``dims (6,)``
     are the fit's ``x_frame (n,)`` with its covariance ``cov_frame (6, 6)``, decorrelated from
     the rest. Returns whether it moved."""

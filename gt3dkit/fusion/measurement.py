@@ -16,14 +16,13 @@ import numpy as np
 from gt3dkit.fusion.bones import JointInfo
 from gt3dkit.fusion.boxfit import box_model
 from gt3dkit.fusion.boxupdate import OUTLINE_STEPS, BoxModel, box_regressions, box_sigma
-from gt3dkit.fusion.kalman import ellipsoid_linearisations, fade_factors_of
 from gt3dkit.fusion.motion import SPACE, StateLayout
 from gt3dkit.fusion.prepare import Prepared
-from gt3dkit.fusion.robust import RobustConfig, chi2_isf
+from gt3dkit.fusion.robust import RobustConfig
 from gt3dkit.fusion.rows import Rows
 from gt3dkit.fusion.ukf import Block, Robust, SigmaWeights, block_columns
 from gt3dkit.fusion.update import Columns, Measured, Regression
-from gt3dkit.geom.boxkernel import EDGES, BoxCameras, BoxRig, box_rig, contiguous
+from gt3dkit.geom.boxkernel import EDGES, BoxCameras, BoxRig, box_rig
 from gt3dkit.geom.camera import Cams, project_points
 from gt3dkit.types import F64
 
@@ -102,50 +101,6 @@ class Model:
                        centre_determined=self.centre_determined[src],
                        kpt_cov_frame=None if self.kpt_cov_frame is None else self.kpt_cov_frame[src])
 
-    def prior_conflict(self, r: np.ndarray, x: F64, P: F64, tail_p: float = 1e-3) -> F64:
-        r"""Per-state-entry fading scales ``(B, n)`` >= 1 for predictions the frame's own views
-        contradict.
-
-        The frame's per-frame fits (no prior) are compared with the prediction, block by
-        block: the centre where two or more box views determine it, and every joint two views
-        triangulate,
-
-        .. math:: d^2 = (x_{fit} - x^-)^\top (P^- + P_{fit})^{-1} (x_{fit} - x^-).
-
-        Beyond the ``1 - tail_p`` quantile of chi-square(3) the motion model has failed for
-        that block (a turn at 4 fps, a process noise set far too small): the block's position
-        and velocity are scaled by :func:`gt3dkit.fusion.kalman.fade_factor` (``sqrt(1 + (d^2 -
-        limit) / 3)``) in ``P^- <- S P^- S`` (a fading-memory
-        filter, per block), so that its views are not rejected as outliers against a
-        confident but wrong prediction. Other joints are left alone.
-        """
-        lay = self.layout
-        B = len(r)
-        scale = np.ones((B, lay.n))
-        lim = chi2_isf(tail_p, SPACE)
-        if self.use_box:
-            ok = self.centre_determined[r]
-            if ok.any():
-                e = (self.x_frame[r, lay.center] - x[:, lay.center])[ok]
-                S = P[ok][:, lay.center, lay.center] + self.cov6_frame[r[ok], :SPACE, :SPACE]
-                f = np.ones(B)
-                f[ok] = fade_factors_of(e, S, lim)
-                scale[:, lay.center] = f[:, None]
-                scale[:, lay.velocity] = f[:, None]
-        J = lay.n_joints
-        if J and self.kpt_cov_frame is not None:
-            C0 = self.kpt_cov_frame[r]  # (B, J, 3, 3)
-            ok = np.all(np.isfinite(C0), axis=(2, 3))
-            if ok.any():
-                idx = lay.joint_dims(np.arange(J))
-                Pj = P[:, idx[:, :, None], idx[:, None, :]]  # (B, J, 3, 3)
-                e = self.x_frame[r][:, lay.joints].reshape(B, J, SPACE) - x[:, lay.joints].reshape(B, J,
-                                                                                                   SPACE)
-                f = np.ones((B, J))
-                f[ok] = fade_factors_of(e[ok], Pj[ok] + C0[ok], lim)
-                scale[:, lay.joints] = np.repeat(f, SPACE, axis=1)
-                scale[:, lay.joint_velocity] = np.repeat(f, SPACE, axis=1)
-        return scale
 
     @functools.cached_property
     def frame_centre_trace(self) -> F64:
@@ -156,47 +111,6 @@ class Model:
                & np.all(np.isfinite(self.x_frame[:, self.layout.center]), axis=1))
         return np.where(ok6, np.einsum("rii->r", np.nan_to_num(c6[:, :SPACE, :SPACE])), np.inf)
 
-    def linearisation_point(self, r: np.ndarray, x: F64, P: F64) -> tuple[F64 | None, F64 | None]:
-        """Where the first update pass linearises for rows ``r`` with priors ``x, P``.
-
-        The prior, except where the row's own views say more than the prior does: an
-        object after a gap, re-appearing, at its first frame, or a joint the filter has
-        lost. There the ellipsoid (centre, axes) and the joints are taken from the per-frame
-        fits with their covariance, so that the sigma points stay where the views put the
-        object instead of far out along a weak prediction (where some of them fall behind
-        a camera and the views would be ignored).
-        """
-        lay = self.layout
-        B = len(r)
-        xl, Pl = x, P
-        changed = False
-        if self.use_box:
-            xl, Pl, moved = np.empty_like(x), np.empty_like(P), np.zeros(B, np.bool_)
-            ellipsoid_linearisations(contiguous(x), contiguous(P), contiguous(self.x_frame[r]),
-                                     contiguous(self.cov6_frame[r]), contiguous(self.frame_centre_trace[r]),
-                                     lay.ellipsoid_dims, lay.index, xl, Pl, moved)
-            changed = bool(moved.any())
-            if not changed:
-                xl, Pl = x, P
-        J = lay.n_joints
-        if J:
-            sl = lay.joints
-            vj = np.diagonal(P, axis1=1, axis2=2)[:, sl].reshape(B, J, SPACE).sum(axis=2)
-            vf = self.var_frame[r][:, sl].reshape(B, J, SPACE).sum(axis=2)
-            lost = np.isfinite(vf) & (vj > vf)
-            if lost.any():
-                if not changed:
-                    xl, Pl = x.copy(), P.copy()
-                bb, jj = np.nonzero(lost)
-                dims = lay.joint_dims(jj)  # (L, 3)
-                xl[bb[:, None], dims] = self.x_frame[r[bb][:, None], dims]
-                for k in range(SPACE):  # decorrelate the replaced joints
-                    Pl[bb, dims[:, k], :] = 0.0
-                    Pl[bb, :, dims[:, k]] = 0.0
-                vals = self.var_frame[r[bb][:, None], dims]
-                Pl[bb[:, None], dims, dims] = vals
-                changed = True
-        return (xl, Pl) if changed else (None, None)
 
     @functools.cached_property
     def box_cameras(self) -> BoxCameras:

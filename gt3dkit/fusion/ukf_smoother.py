@@ -51,7 +51,6 @@ from gt3dkit.fusion.bones import (
     BoneSamples,
     JointInfo,
     PersonBones,
-    add_joint_info,
     bone_messages,
     bone_samples,
     lengths_of,
@@ -60,7 +59,6 @@ from gt3dkit.fusion.boxupdate import LinearisedSearch, applies_to_model, run_box
 from gt3dkit.fusion.filterrun import FilterRun
 from gt3dkit.fusion.initial import InitialCov, rows_of
 from gt3dkit.fusion.jointupdate import run_joints
-from gt3dkit.fusion.kalman import predict_linear, rts_step
 from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.prepare import (
     Prepared,
@@ -74,9 +72,6 @@ from gt3dkit.fusion.prepare import (
 )
 from gt3dkit.fusion.robust import RobustConfig, point_weights
 from gt3dkit.fusion.rows import replicate_rows
-from gt3dkit.fusion.split import split_joints
-from gt3dkit.fusion.ukf import SigmaWeights, ukf_update_information
-from gt3dkit.fusion.update import Measured
 from gt3dkit.skeletons import Skeleton
 from gt3dkit.types import F64, Downweighted, Scene, TrackSet
 
@@ -509,7 +504,7 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
     # several values in one pass (copies of the objects), as far as SEARCH_PASS_BYTES of the
     # whole state's covariances would allow. With joints their separate small filters hold
     # about a third of that, and only their likelihoods are read: the whole state's covariances
-    # are not put back together (run_frames(covariances=False)), so the search stays well
+    # are not put back together (``covariances=False``), so the search stays well
     # inside the budget
     per_pass = max(1, int(SEARCH_PASS_BYTES // (6 * 8 * model.layout.n ** 2 * max(len(sel), 1))))
     runner = run_filter if backend_for(model) == "objects" else partial(run_joints, covariances=False)
@@ -688,7 +683,8 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
     """Forward UKF, then (optionally) RTS, by the backend that serves the model
     (:func:`backend_for`): a :class:`gt3dkit.fusion.filterrun.FilterRun`; with ``collect`` it
     holds the final weights, scores and residuals ``(R, m)``. ``fade`` lets the frame's own
-    views weaken a contradicted prediction (:meth:`Model.prior_conflict`); the noise search runs
+    views weaken a contradicted prediction (the fading rule of :mod:`gt3dkit.fusion.kalman`); the
+    noise search runs
     without it, so that its likelihood judges the motion model as it is. ``on (R,)`` runs the
     rows of some objects only (whole objects: each object's filter is independent of the
     others); the other rows' outputs are zero and their statistics absent
@@ -704,184 +700,10 @@ def backend_for(model: Model) -> str:
     """The filter that runs ``model``: ``"objects"`` (a boxes-only model: every object's rows as
     one compiled chain, objects in parallel, :func:`gt3dkit.fusion.boxupdate.run_boxes`) or
     ``"joints"`` (a model with joints: every joint of every person as a compiled chain, the
-    ellipsoid by the boxes' chains, :func:`gt3dkit.fusion.jointupdate.run_joints`). ``"frames"``
-    (any model: frame by frame, objects batched, :func:`run_frames`) is the reference the tests
-    hold both to; all call the same steps."""
+    ellipsoid by the boxes' chains, :func:`gt3dkit.fusion.jointupdate.run_joints`). The tests hold
+    both to a filter over the frame grid (``tests/oracles_frames.py``), which calls the same
+    steps."""
     return "joints" if model.layout.n_joints else "objects"
 
 
-def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bool = False,
-               fade: bool = True, on: np.ndarray | None = None,
-               noise_rows: dict[str, F64] | None = None, split: bool = True,
-               covariances: bool = True) -> FilterRun:
-    """The filter over the frame grid (arguments and outputs of :func:`run_filter`): per frame
-    the prediction, fading and linearisation point of its rows as one batch, their update
-    (:func:`gt3dkit.fusion.ukf.ukf_update_information`), then RTS backwards. ``split``: run
-    the joints as separate filters (:mod:`gt3dkit.fusion.split`; the same result,
-    faster); False runs the whole state (the reference the tests hold it to). ``covariances=False``:
-    a split run's ``P`` is not put back together (``(R, 0, 0)``: for callers that read the
-    statistics only)."""
-    if split and model.layout.n_joints > 1:
-        # the joints are independent filters, run as one batch of small ones
-        sub, x0, P0, sp = split_joints(model, init.x0, init.P0)
-        return sp.merge(run_frames(sub, Init(x0, P0), cfg, fps, collect, fade,
-                                   None if on is None else on[sp.src],
-                                   {k: v[sp.src] for k, v in (noise_rows or {}).items()}), covariances, on)
-    rows, cams, layout = model.rows, model.cams, model.layout
-    n, R = layout.n, len(rows)
-    w = SigmaWeights(n, cfg.alpha, cfg.beta, cfg.kappa)
-    robust = cfg.robust_config if cfg.robust else None
-    # per row: the prediction's mean, the filtered mean and covariance, and the scales that
-    # made the prediction's covariance (``fade S (F P_f F^T + Q') S``, ``Q' = q Q q``): the RTS
-    # makes it again from the previous row's filtered one instead of holding one more ``(n, n)``
-    # per row (121 kB with 19 joints)
-    x_p = np.zeros((R, n))
-    x_f = np.zeros((R, n))
-    P_f = np.zeros((R, n, n))
-    fade_s = np.ones((R, n))
-    q_s = np.ones((R, n))
-    frame_s = rows.frames / fps
-    m = model.z.shape[1]
-    out = {k: np.zeros((R, m)) for k in ("weights", "score2", "residual")} if collect else {}
-
-    per = noise_rows or {}
-
-    cache: dict[tuple[float, ...], tuple[F64, F64]] = {}
-
-    def transition(dt: F64, r: np.ndarray) -> tuple[F64, F64]:
-        """``F, Q (B, n, n)`` of rows ``r``, each distinct (time step, noise) computed once per
-        run (a frame's rows mostly share one: then read-only broadcast views)."""
-        dt = np.asarray(dt, dtype=np.float64).reshape(-1)
-        names = ("accel_sd", "shape_sd", "joint_accel_sd", "position_sd")
-        vals = [per[k][r] if k in per else getattr(cfg, k) for k in names]
-        cols = [dt] + [np.broadcast_to(np.asarray(-1.0 if v is None else v, dtype=np.float64), dt.shape)
-                       for v in vals]  # -1: not set (noise is >= 0; NaN would never compare equal)
-        keys = np.stack(cols, axis=1)
-        uniq, inv = (keys[:1], np.zeros(len(dt), np.int64)) if (keys == keys[0]).all() else \
-            np.unique(keys, axis=0, return_inverse=True)
-        FQ = []
-        for key in map(tuple, uniq.tolist()):
-            if key not in cache:
-                q = {k: (None if v == -1.0 else v) for k, v in zip(names, key[1:], strict=True)}
-                q["position_sd"] = q["position_sd"] or 0.0
-                F1, Q1 = layout.transition(np.array(key[:1]), **q, up=cams.up,
-                                           vertical_ratio=cfg.vertical_ratio)
-                cache[key] = F1[0], Q1[0]
-            FQ.append(cache[key])
-        if len(FQ) == 1:
-            shape = (len(dt),) + FQ[0][0].shape
-            return np.broadcast_to(FQ[0][0], shape), np.broadcast_to(FQ[0][1], shape)
-        F = np.stack([f for f, _ in FQ])
-        Q = np.stack([q for _, q in FQ])
-        return F[inv.reshape(-1)], Q[inv.reshape(-1)]
-
-    measured = model.mask.any(axis=1)
-
-    def predicted_cov(r: np.ndarray, nr: np.ndarray) -> F64:
-        """The prediction covariances ``(B, n, n)`` of rows ``nr`` made again from the filtered
-        ones of their previous rows ``r``, as the forward pass made them (the same bits)."""
-        F, Q = transition(frame_s[rows.row_t[nr]] - frame_s[rows.row_t[r]], nr)
-        qs = q_s[nr]
-        _, P = predict_linear(x_f[r], P_f[r], F, qs[:, :, None] * Q * qs[:, None, :])
-        fs = fade_s[nr]
-        return fs[:, :, None] * P * fs[:, None, :]
-
-    def spread_over_gap(row: int, scale: F64) -> F64 | None:
-        """Where row ``row``'s prediction, contradicted by the frame's own views (the fading
-        scales ``scale (n,)``), follows rows without measurements: the process noise of every
-        step since the last measured row as ``S Q S`` and those rows predicted again (as
-        :func:`gt3dkit.fusion.boxupdate._spread_over_gap`); returns the row's new prediction
-        covariance ``(n, n)``. None where no measured row precedes the gap."""
-        gap = []
-        k = int(rows.prev_row[row])
-        while k >= 0 and (on is None or on[k]) and not measured[k]:
-            gap.append(k)
-            k = int(rows.prev_row[k])
-        if k < 0 or (on is not None and not on[k]) or not gap:
-            return None
-        prev = k
-        for cur in gap[::-1] + [row]:
-            F, Q = transition(frame_s[rows.row_t[cur]] - frame_s[rows.row_t[prev]], np.array([cur]))
-            x, P = predict_linear(x_f[prev][None], P_f[prev][None], F, scale[:, None] * Q * scale[None, :])
-            x_p[cur] = x[0]
-            q_s[cur], fade_s[cur] = scale, 1.0
-            if cur != row:
-                x_f[cur], P_f[cur] = x[0], P[0]
-            prev = cur
-        return P[0]
-
-    blocks = model.blocks()
-    columns = model.columns(robust)
-    joint_dims = layout.joint_dims(np.arange(layout.n_joints))
-    per_row = {k: np.zeros(R) for k in ("nis_rows", "dof_rows", "loglik_rows")}
-    repaired = 0
-    faded = 0
-    passes = np.zeros(R)
-    for t in range(len(rows.frames)):
-        r = np.arange(rows.t_start[t], rows.t_start[t + 1])
-        if on is not None:
-            r = r[on[r]]
-        if len(r) == 0:
-            continue
-        prev = rows.prev_row[r]
-        if on is not None:  # a row whose predecessor is not run starts afresh
-            prev = np.where((prev >= 0) & on[np.maximum(prev, 0)], prev, -1)
-        new = prev < 0
-        P_p = np.empty((len(r), n, n))  # this frame's rows' predictions
-        if new.any():
-            rn = r[new]
-            x_p[rn] = init.x0[rn]
-            P_p[new] = init.P0[rn]
-        if (~new).any():
-            old = np.flatnonzero(~new)
-            ro, po = r[old], prev[old]
-            F, Q = transition(frame_s[t] - frame_s[rows.row_t[po]], ro)
-            x_p[ro], P_p[old] = predict_linear(x_f[po], P_f[po], F, Q)
-            if fade:
-                sc = model.prior_conflict(ro, x_p[ro], P_p[old])
-                hit = np.any(sc > 1, axis=1)
-                gap = []
-                for g in np.flatnonzero(hit & ~measured[po]):
-                    spread = spread_over_gap(int(ro[g]), sc[g])
-                    if spread is not None:
-                        P_p[old[g]] = spread
-                        gap.append(g)
-                if gap:  # what the spread noise does not explain fades the prediction as before
-                    sc[gap] = model.prior_conflict(ro[gap], x_p[ro[gap]], P_p[old[gap]])
-                if hit.any():
-                    P_p[old[hit]] = sc[hit, :, None] * P_p[old[hit]] * sc[hit, None, :]
-                    fade_s[ro[hit]] = sc[hit]
-                    faded += int(hit.sum())
-        xl, Pl = model.linearisation_point(r, x_p[r], P_p)
-        x_f[r], P_f[r], inf = ukf_update_information(
-            x_p[r], P_p, Measured(model.z[r], model.mask[r], model.var[r]), blocks, w, cfg.iterations,
-            None if xl is None or Pl is None else (xl, Pl), weight0=model.weight0[r], columns=columns)
-        if model.joint_info is not None:
-            x_f[r], P_f[r] = add_joint_info(x_f[r], P_f[r], model.joint_info.rows(r), joint_dims)
-        repaired += int(inf["repaired"])
-        passes[r] = inf["passes_rows"]
-        for k in per_row:
-            per_row[k][r] = inf[k]
-        for k in out:
-            out[k][r] = inf[k]
-    x_s, P_s = x_f, P_f  # smoothed in place, backwards (a row's filtered values are read first)
-    if cfg.smooth:
-        for t in range(len(rows.frames) - 2, -1, -1):
-            r = np.arange(rows.t_start[t], rows.t_start[t + 1])
-            nxt = rows.next_row[r]
-            r = r[(nxt >= 0) & (True if on is None else on[r] & on[np.maximum(nxt, 0)])]
-            if len(r) == 0:
-                continue
-            nr = rows.next_row[r]
-            F, _ = transition(frame_s[rows.row_t[nr]] - frame_s[t], r)
-            P_p = predicted_cov(r, nr)  # before row r's filtered covariance is smoothed in place
-            x_s[r], P_s[r] = rts_step(x_f[r], P_f[r], x_p[nr], P_p, x_s[nr], P_s[nr], F)
-    ran = passes > 0
-    return FilterRun(x_s, P_s, per_row["nis_rows"], per_row["dof_rows"], per_row["loglik_rows"],
-                     out.get("weights"), out.get("score2"), out.get("residual"), pd_repairs=repaired,
-                     predictions_faded=faded, object_frames=R if on is None else int(on.sum()),
-                     update_form="information, iterated and reweighted",
-                     update_passes_mean=float(passes[ran].mean()) if ran.any() else 0.0)
-
-
-BACKENDS = {"objects": run_boxes, "frames": run_frames, "joints": run_joints}
+BACKENDS = {"objects": run_boxes, "joints": run_joints}

@@ -18,7 +18,8 @@ last pass with its weights, by the matrix determinant lemma (no ``m x m`` matrix
 Which state entries each group of measurement columns depends on is a :class:`Columns` (a box:
 the centre and log semi-axes; a joint's projections: the joint; a bone: its two joints), so one
 implementation serves every measurement model; the regression itself is the measurement model's
-(:mod:`gt3dkit.fusion.boxupdate` for boxes, :func:`gt3dkit.fusion.ukf.block_regression` for the
+(:mod:`gt3dkit.fusion.boxupdate` for boxes, the reference ``block_regression``
+(``tests/oracles_frames.py``) for the
 others). The compiled filter calls :func:`pass_row` per row, the filter over frames
 :func:`pass_rows` per batch.
 """

@@ -1,4 +1,4 @@
-"""The filter's two loop orders (gt3dkit.fusion.ukf_smoother.BACKENDS: every object's rows as one
+"""The filter's loop orders (tests/oracles_frames.BACKENDS: every object's rows as one
 compiled chain, or frame by frame with the objects batched) call the same steps and must give the
 same result; each is also held to what a filter must do. And the ways work is shared (the box
 block's compiled regression, joints as separate filters, several noise values in one pass, the
@@ -20,9 +20,10 @@ from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.motion import accel_shape
 from gt3dkit.fusion.robust import RobustConfig
 from gt3dkit.fusion.rows import replicate_rows
-from gt3dkit.fusion.ukf import Block, Robust, SigmaWeights, ukf_update_information
+from gt3dkit.fusion.ukf import Block, Robust, SigmaWeights
 from gt3dkit.fusion.update import Measured
 from gt3dkit.sim import Errors, simulate, write_scene
+from tests.oracles_frames import BACKENDS, run_frames, ukf_update_information
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +47,7 @@ def gap_model(tmp_path_factory: pytest.TempPathFactory) -> Model:
 
 @pytest.fixture(params=["frames", "objects"])  # "joints" runs a boxes-only model as "objects"
 def backend(request: pytest.FixtureRequest):
-    return request.param, us.BACKENDS[request.param]
+    return request.param, BACKENDS[request.param]
 
 
 @pytest.mark.parametrize("sigma", ["cubature", "scaled"])
@@ -138,8 +139,8 @@ def test_the_backends_agree_on_a_box_model(box_scene, case: str) -> None:
     _, model = box_scene
     assert us.backend_for(model) == "objects"
     cfg, init, kw = _box_run(model, case)
-    a = us.BACKENDS["objects"](model, init, cfg, 10.0, **kw)
-    b = us.BACKENDS["frames"](model, init, cfg, 10.0, **kw)
+    a = BACKENDS["objects"](model, init, cfg, 10.0, **kw)
+    b = BACKENDS["frames"](model, init, cfg, 10.0, **kw)
     np.testing.assert_allclose(a.x, b.x, rtol=1e-9, atol=1e-10)
     np.testing.assert_allclose(a.P, b.P, rtol=1e-8, atol=1e-12)
     for k in ("loglik_rows", "nis", "dof", "weights", "score2", "residual"):
@@ -156,8 +157,8 @@ def test_the_backends_agree_where_a_gap_ends_in_a_faded_prediction(gap_model: Mo
     unmeasured = ~model.mask.any(axis=1)
     assert unmeasured.sum() >= 8
     cfg, init, kw = _box_run(model, "fade")
-    a = us.BACKENDS["objects"](model, init, cfg, 2.0, **kw)
-    b = us.BACKENDS["frames"](model, init, cfg, 2.0, **kw)
+    a = BACKENDS["objects"](model, init, cfg, 2.0, **kw)
+    b = BACKENDS["frames"](model, init, cfg, 2.0, **kw)
     assert a.predictions_faded == b.predictions_faded > 0
     np.testing.assert_allclose(a.x, b.x, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(a.P, b.P, rtol=1e-8, atol=1e-12)
@@ -207,8 +208,8 @@ def test_split_joint_filters_equal_the_whole_state_filter(skeleton_model) -> Non
     assert us.backend_for(model) == "joints"
     for it in (1, 4):
         c = replace(cfg, iterations=it)
-        a = us.run_frames(model, init, c, fps, collect=True, split=False)
-        b = us.run_frames(model, init, c, fps, collect=True, split=True)
+        a = run_frames(model, init, c, fps, collect=True, split=False)
+        b = run_frames(model, init, c, fps, collect=True, split=True)
         sd = np.sqrt(np.einsum("rii->ri", a.P))
         assert np.max(np.abs(b.x - a.x) / sd) < (1e-8 if it == 1 else 0.02)
         np.testing.assert_allclose(b.P, a.P, rtol=1e-3 if it > 1 else 1e-9, atol=1e-9)

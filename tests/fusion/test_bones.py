@@ -12,8 +12,9 @@ import pytest
 from scipy.optimize import least_squares
 
 from gt3dkit.fusion import ukf_smoother as us
-from gt3dkit.fusion.bones import JointInfo, add_joint_info, bone_messages
+from gt3dkit.fusion.bones import JointInfo, bone_messages
 from gt3dkit.fusion.robust import RobustConfig
+from tests.oracles_frames import add_joint_info, run_frames
 
 BONES = np.array([[0, 1], [1, 2], [1, 3]])
 
@@ -109,12 +110,12 @@ def test_split_filter_with_bone_messages_equals_the_whole_state_filter(skeleton_
     scene, pre, model, cfg = skeleton_prepared
     cfg = replace(cfg, iterations=1)
     init = us.initial_states(model, cfg)
-    first = us.run_frames(model, init, cfg, scene.fps, collect=True)
+    first = run_frames(model, init, cfg, scene.fps, collect=True)
     msgs, lengths = us.bone_messages_of(model, cfg, first, pre.skeleton)
     assert msgs.info.any()
     bm = replace(model, joint_info=msgs)
-    a = us.run_frames(bm, init, cfg, scene.fps, collect=True, split=False)
-    b = us.run_frames(bm, init, cfg, scene.fps, collect=True, split=True)
+    a = run_frames(bm, init, cfg, scene.fps, collect=True, split=False)
+    b = run_frames(bm, init, cfg, scene.fps, collect=True, split=True)
     sd = np.sqrt(np.einsum("rii->ri", a.P))
     assert np.max(np.abs(b.x - a.x) / sd) < 1e-7
     np.testing.assert_allclose(b.P, a.P, rtol=1e-7, atol=1e-12)

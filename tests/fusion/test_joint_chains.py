@@ -17,11 +17,12 @@ import pytest
 
 from gt3dkit.api import dense_frames, load_scene
 from gt3dkit.fusion import ukf_smoother as us
-from gt3dkit.fusion.bones import JointInfo, add_joint_info
+from gt3dkit.fusion.bones import JointInfo
 from gt3dkit.fusion.jointupdate import add_info, run_joints
 from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.motion import StateLayout, joint_step
 from gt3dkit.sim import Errors, simulate_skeletons, write_skeleton_scene
+from tests.oracles_frames import add_joint_info, run_frames
 
 
 def _held(a, b, lay: StateLayout, one_pass: bool, entries: np.ndarray | None = None) -> None:
@@ -50,7 +51,7 @@ def test_joint_chains_equal_the_filter_over_frames(skeleton_prepared, case: str,
     init = us.initial_states(model, cfg)
     kw: dict = {"collect": True, "fade": True, "on": None, "noise_rows": None}
     if case == "bones":
-        first = us.run_frames(model, init, cfg, scene.fps, collect=True)
+        first = run_frames(model, init, cfg, scene.fps, collect=True)
         msgs, _ = us.bone_messages_of(model, cfg, first, pre.skeleton)
         assert msgs.info.any()
         model = replace(model, joint_info=msgs)
@@ -59,7 +60,7 @@ def test_joint_chains_equal_the_filter_over_frames(skeleton_prepared, case: str,
         kw = {"collect": True, "fade": False, "on": on,
               "noise_rows": {"joint_accel_sd": np.where(model.rows.frames[model.rows.row_t] % 2, 0.3, 1.5)}}
         cfg = replace(cfg, smooth=False)
-    a = us.run_frames(model, init, cfg, scene.fps, **kw)
+    a = run_frames(model, init, cfg, scene.fps, **kw)
     b = run_joints(model, init, cfg, scene.fps, **kw)
     if case == "fade":
         assert b.predictions_faded > 0
@@ -80,7 +81,7 @@ def test_joint_chains_spread_a_manoeuvre_over_a_gap_as_the_frames_filter(tmp_pat
     assert not model.mask.any(axis=1).all()  # rows without a view
     cfg = replace(est.config, accel_sd=0.5, shape_sd=0.01, joint_accel_sd=0.003, iterations=1)
     init = us.initial_states(model, cfg)
-    a = us.run_frames(model, init, cfg, 30.0, collect=True)
+    a = run_frames(model, init, cfg, 30.0, collect=True)
     b = run_joints(model, init, cfg, 30.0, collect=True)
     assert b.predictions_faded > 0
     _held(a, b, model.layout, True)
@@ -118,14 +119,14 @@ def test_joint_chains_with_boxes_equal_the_filter_over_frames(tmp_path: Path, pa
     model = Model.of(pre)
     cfg = replace(est.config, accel_sd=0.5, shape_sd=0.01, joint_accel_sd=0.5, iterations=passes)
     init = us.initial_states(model, cfg)
-    a = us.run_frames(model, init, cfg, 30.0, collect=True)
+    a = run_frames(model, init, cfg, 30.0, collect=True)
     b = run_joints(model, init, cfg, 30.0, collect=True)
     _held(a, b, model.layout, passes == 1, np.arange(model.layout.n))
 
 
 def test_joint_steps_equal_numpy() -> None:
     """The chains' transition against the layout's (one joint), and the bones' information added
-    to one joint against :func:`gt3dkit.fusion.bones.add_joint_info`."""
+    to one joint against :func:`tests.oracles_frames.add_joint_info`."""
     lay = StateLayout(1)
     F, Q = lay.transition(np.array([0.04]), 0.3, 0.01, joint_accel_sd=1.7)
     Fj, Qj = np.empty((6, 6)), np.empty((6, 6))

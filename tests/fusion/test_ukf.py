@@ -11,12 +11,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from gt3dkit.fusion.kalman import predict_linear, rts_step
 from gt3dkit.fusion.motion import StateLayout
-from gt3dkit.fusion.ukf import SigmaWeights, ukf_update_information
+from gt3dkit.fusion.ukf import SigmaWeights
 from gt3dkit.fusion.update import Measured
 from gt3dkit.geom.smallmat import matmul
 from tests.oracles import sigma_points, ukf_update, unscented_transform
+from tests.oracles_frames import predict_linear, rts_step, ukf_update_information
 
 finite = st.floats(-3, 3, allow_nan=False, allow_infinity=False)
 
