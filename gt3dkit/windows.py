@@ -85,7 +85,8 @@ from gt3dkit.fusion.base import make_estimator, over_time
 from gt3dkit.fusion.bones import BoneSamples, PersonBones
 from gt3dkit.fusion.jointupdate import covariance_entries
 from gt3dkit.fusion.motion import position_step
-from gt3dkit.fusion.ukf_smoother import SEARCH_OBJECT_FRAMES, UKFConfig, drawn_objects
+from gt3dkit.fusion.noise import SEARCH_OBJECT_FRAMES, drawn_objects
+from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.writers import StreamedRows, write_result_files
 from gt3dkit.qa.anomalies import Anomalies
@@ -353,7 +354,7 @@ def _search_on_dask(client: Any, sample: Scene, estimator: str, config: dict[str
 
 def searched_objects(sample: Scene, budget: int = SEARCH_OBJECT_FRAMES) -> Scene:
     """``sample`` cut to the objects the noise search runs on, drawn before their per-frame fits
-    (:func:`gt3dkit.fusion.ukf_smoother.drawn_objects`, whole objects up to ``budget``
+    (:func:`gt3dkit.fusion.noise.drawn_objects`, whole objects up to ``budget``
     object-frames): the other objects' fits would only feed the search's provisional values.
     On 4 000 frames of 40 people that halved the search (2.4 s to 1.2 s), the same noise chosen."""
     keys = unique_rows(np.c_[sample.obs.frame, sample.obs.track_id])

@@ -41,6 +41,7 @@ import numpy as np
 from gt3dkit.fusion.blockcov import BlockCov
 from gt3dkit.fusion.bones import JointInfo
 from gt3dkit.fusion.boxupdate import run_boxes
+from gt3dkit.fusion.filtering import Init
 from gt3dkit.fusion.filterrun import FilterRun
 from gt3dkit.fusion.initial import InitialCov
 from gt3dkit.fusion.jointupdate import run_joints
@@ -55,7 +56,7 @@ from gt3dkit.fusion.motion import SPACE, StateLayout
 from gt3dkit.fusion.robust import chi2_isf
 from gt3dkit.fusion.rows import Rows
 from gt3dkit.fusion.ukf import Block, MeasureFn, Robust, SigmaWeights, block_columns, safe_cholesky
-from gt3dkit.fusion.ukf_smoother import Init, UKFConfig
+from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.fusion.update import Columns, Measured, Regression, pass_rows, row_state, statistics_rows
 from gt3dkit.geom.boxkernel import contiguous
 from gt3dkit.types import F64, I64

@@ -511,51 +511,11 @@ def motion_of(model: Any, cfg: Any, noise_rows: dict[str, F64] | None = None) ->
                   accel_shape(model.cams.up, cfg.vertical_ratio), model.layout.index)
 
 
-class LinearisedSearch:
-    """The likelihood of the box forward pass at many process-noise values, each the price of a
-    linear Kalman filter: the boxes are regressed (:func:`box_regression`) once per row, about a
-    smoothed estimate ``N(x_lin, P_lin)`` of the rows ``on`` (posterior linearisation:
-    García-Fernández, Svensson & Särkkä, "Iterated posterior linearization smoother", IEEE TAC
-    62, 2017), and every noise value reuses that regression. The full pass re-linearises at each
-    prediction (:func:`forward`); for boxes, whose tangent box bends little over a prediction's
-    spread, the two likelihoods' maxima are close (the tests compare the noise values found)."""
-
-    def __init__(self, model: Any, init: Any, cfg: Any, fps: float, x_lin: F64, P_lin: F64, weights: F64,
-                 on: np.ndarray | None) -> None:
-        R = len(model.rows)
-        m = model.z.shape[1]
-        box = model.box_model(cfg.alpha, cfg.beta, cfg.kappa, None)
-        self.chains, first, _ = _chains(model, fps, on)
-        self.lins = regression_rows(R, m, box.cols.dims.shape[1])
-        box_regressions(np.flatnonzero(self.chains.run).astype(np.int64), contiguous(x_lin),
-                        contiguous(P_lin),
-                        measured(model.z, model.mask, model.var), box.sigma, box.rig, box.at, self.lins,
-                        np.zeros(R, np.int64))
-        self.first = first[first >= 0]
-        self.start = Start(contiguous(init.x0), contiguous(init.P0))
-        self.w0 = contiguous(np.broadcast_to(weights, (R, m)))
-        self.model, self.cfg, self.cols = model, cfg, box.cols
-
-    def logliks(self, settings: list[dict[str, float]]) -> list[float]:
-        """The forward pass's log-likelihood at each setting (process-noise values by name, the
-        others ``cfg``'s; the settings split over threads)."""
-        out = [0.0] * len(settings)
-
-        def part(a: int, b: int) -> None:
-            for i in range(a, b):
-                motion = motion_of(self.model, self.cfg, settings[i])
-                out[i] = linear_forward(self.first, self.chains, self.start, motion, self.lins, self.w0,
-                                        self.cols)
-
-        run_split(part, len(out))
-        return out
-
-
 def run_boxes(model: Any, init: Any, cfg: Any, fps: float, collect: bool, fade: bool,
               on: np.ndarray | None, noise_rows: dict[str, F64] | None) -> FilterRun:
     """The filter (and RTS) of a boxes-only model (:func:`applies_to_model`) as chains of rows,
     objects in parallel: the arguments and outputs of
-    :func:`gt3dkit.fusion.ukf_smoother.run_filter`."""
+    :func:`gt3dkit.fusion.filtering.run_filter`."""
     rows, layout = model.rows, model.layout
     R, n = len(rows), layout.n
     m = model.z.shape[1]

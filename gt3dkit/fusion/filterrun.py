@@ -1,4 +1,4 @@
-"""What one run of the UKF's filter returns (:func:`gt3dkit.fusion.ukf_smoother.run_filter`):
+"""What one run of the UKF's filter returns (:func:`gt3dkit.fusion.filtering.run_filter`):
 a typed result instead of a dictionary of arrays."""
 
 from __future__ import annotations

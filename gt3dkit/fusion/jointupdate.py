@@ -446,7 +446,7 @@ def run_joints(model: Any, init: Any, cfg: Any, fps: float, collect: bool = Fals
                on: np.ndarray | None = None, noise_rows: dict[str, F64] | None = None,
                covariances: bool = True, into: BlockCov | None = None) -> FilterRun:
     """The filter (and RTS) of a model with joints as compiled chains (the module doc): the
-    arguments and outputs of :func:`gt3dkit.fusion.ukf_smoother.run_filter`; ``covariances=False``
+    arguments and outputs of :func:`gt3dkit.fusion.filtering.run_filter`; ``covariances=False``
     leaves ``P`` out (``(R, 0, 0)``), ``into`` takes the covariances of the rows ``on`` (the others
     left as they are) and is the run's ``P``."""
     rows, lay = model.rows, model.layout

@@ -30,11 +30,10 @@ import numpy as np
 
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.boxfit import PERSON_SEMI_AXES_M, BoxFit, fit_boxes
-from gt3dkit.fusion.motion import StateLayout, lag_two_excess_var, second_difference_var, walk_var
+from gt3dkit.fusion.motion import StateLayout
 from gt3dkit.fusion.robust import (
     RobustConfig,
     chi2_isf,
-    chi2_median,
     deleted_score2,
     median_variance,
     point_weights,
@@ -104,7 +103,7 @@ class Prepared:
     info: dict[str, Any] = field(default_factory=dict)
     box_tail: float = 1.0
     # results computed from this preparation alone, kept for the next estimator that asks (the
-    # process noise of the model's likelihood: gt3dkit.fusion.ukf_smoother.noise_by_likelihood)
+    # process noise of the model's likelihood: gt3dkit.fusion.noise.noise_by_likelihood)
     memo: dict[Any, Any] = field(default_factory=dict, repr=False, compare=False)
 
     def frame_state(self) -> tuple[F64, F64, F64]:
@@ -565,132 +564,3 @@ def largest_sd(cov: F64) -> F64:
     return out
 
 
-@dataclass(frozen=True)
-class ProcessNoise:
-    accel_sd: float
-    shape_sd: float
-    joint_accel_sd: float
-    source: str
-
-    def as_dict(self) -> dict[str, float]:
-        return {"accel_sd": self.accel_sd, "shape_sd": self.shape_sd,
-                "joint_accel_sd": self.joint_accel_sd}
-
-
-def _moment_q2(d2: F64, noise_var: F64, unit_var: F64, floor: float) -> float:
-    r"""``q^2`` with ``d^2 ~ (q^2 u + n) chi^2_1`` from samples ``d2, noise_var n, unit_var u``:
-    the value that puts the median of ``d^2 / (q^2 u + n)`` at the median of chi-square(1)
-    (bisection on ``log q^2``), so that gross jumps (a swapped identity) do not count;
-    ``floor`` when the noise explains it all. The median of a heavy-tailed motion (real
-    joints jitter) is below what its mean would say: this is the process noise of the
-    typical frame, which smooths more."""
-    ok = np.isfinite(d2) & np.isfinite(noise_var) & (unit_var > 0)
-    d2, nv, u = d2[ok], noise_var[ok], unit_var[ok]
-    if d2.size < 3:
-        return float("nan")
-    target = chi2_median(1)
-
-    def med(q2: float) -> float:
-        return float(np.median(d2 / (q2 * u + nv)))
-
-    lo, hi = np.log(floor), np.log(max(float(np.max(d2 / u)), floor) * 10)
-    if med(float(np.exp(lo))) > target:
-        for _ in range(60):
-            mid = 0.5 * (lo + hi)
-            if med(float(np.exp(mid))) > target:
-                lo = mid
-            else:
-                hi = mid
-    return max(float(np.exp(0.5 * (lo + hi))), floor)
-
-
-def moment_process_noise(pre: Prepared, x: F64, var: F64, fps: float,
-                         accel_sd: float | None = None, shape_sd: float | None = None,
-                         joint_accel_sd: float | None = None) -> ProcessNoise:
-    r"""Process noise from the per-frame fits alone (independent of the UKF's likelihood).
-
-    For a constant-velocity model under white acceleration ``q``, the second difference of
-    positions three equally spaced frames apart has variance ``(2/3) q^2 dt^3`` plus the
-    per-frame fits' own variance ``v_{k-1} + 4 v_k + v_{k+1}``; the first difference of
-    the log semi-axes has ``s^2 dt + v_k + v_{k+1}``. ``q^2`` and ``s^2`` are the moment
-    estimates over all objects (centre: horizontal axes; joints: all), with gross jumps
-    trimmed. Values given are kept. ``x, var`` are :meth:`Prepared.frame_state`'s.
-    """
-    rows, lay = pre.rows, pre.layout
-    t_s = rows.frames[rows.row_t] / fps
-    a, b = rows.prev_row, rows.next_row
-    trip = (a >= 0) & (b >= 0)
-    r = np.flatnonzero(trip)
-    dt1 = t_s[r] - t_s[a[r]]
-    dt2 = t_s[b[r]] - t_s[r]
-    even = np.abs(dt1 - dt2) < 1e-9 * np.maximum(dt1, 1e-9)
-    r, dt = r[even], dt1[even]
-    src = []
-
-    def second(block: slice, dims: np.ndarray) -> tuple[F64, F64, F64]:
-        xs = x[:, block][:, dims]
-        vs = var[:, block][:, dims]
-        d = xs[b[r]] - 2 * xs[r] + xs[a[r]]
-        nv = vs[b[r]] + 4 * vs[r] + vs[a[r]]
-        u = np.broadcast_to(second_difference_var(dt)[:, None], d.shape)
-        return (d**2).reshape(-1), nv.reshape(-1), u.reshape(-1)
-
-    # five equally spaced frames: second differences at lags 1 and 2 (for the lag test)
-    aa = np.where(a >= 0, a[np.maximum(a, 0)], -1)
-    bb = np.where(b >= 0, b[np.maximum(b, 0)], -1)
-    r5 = r[(aa[r] >= 0) & (bb[r] >= 0)]
-    if r5.size:
-        e1 = t_s[r5] - t_s[aa[r5]]
-        e2 = t_s[bb[r5]] - t_s[r5]
-        d1 = t_s[r5] - t_s[a[r5]]
-        r5 = r5[(np.abs(e1 - e2) < 1e-9 * e1) & (np.abs(e1 - 2 * d1) < 1e-9 * e1)]
-
-    def lagged(block: slice, dims: np.ndarray) -> float:
-        r"""``q^2`` from the robust variances of second differences at lags 1 and 2,
-        ``V_2 - V_1 = 7 (2/3) q^2 dt^3``: the per-frame fits' own noise (white in time) is
-        the same ``6 v`` in both and cancels, however wrong their covariances are."""
-        if r5.size < 10:
-            return float("nan")
-        xs = x[:, block][:, dims]
-        dt1 = t_s[r5] - t_s[a[r5]]
-        g1 = xs[b[r5]] - 2 * xs[r5] + xs[a[r5]]
-        g2 = xs[bb[r5]] - 2 * xs[r5] + xs[aa[r5]]
-        med = 0.4549364  # median of chi-square(1)
-        s1, s2 = g1**2 / dt1[:, None] ** 3, g2**2 / dt1[:, None] ** 3
-
-        def mean_var(v: F64) -> float:
-            # a mean (heavy tails count: real motion turns, real joints jitter), without only
-            # the gross jumps (beyond 24x the median's scale: the chi-square 1e-6 tail)
-            scale = np.median(v) / med
-            return float(np.mean(v[v < 23.9 * scale])) if scale > 0 else float(np.mean(v))
-
-        return float((mean_var(s2) - mean_var(s1)) / lag_two_excess_var())
-
-    accel, shape, joint = accel_sd, shape_sd, joint_accel_sd
-    if pre.use_box and accel is None:
-        up = pre.cams.up
-        horiz = np.flatnonzero(np.abs(up) < 0.9)[:2]
-        q2 = lagged(lay.center, horiz)
-        if not (np.isfinite(q2) and q2 > 0):
-            q2 = _moment_q2(*second(lay.center, horiz), 1e-4)
-        accel = float(np.clip(np.sqrt(q2), 0.01, 100.0)) if np.isfinite(q2) else 0.5
-        src.append("accel_sd: second differences of the per-frame centres")
-    if pre.use_box and shape is None:
-        p = np.flatnonzero(a >= 0)
-        dtp = t_s[p] - t_s[a[p]]
-        la = x[:, lay.log_axes]
-        lv = var[:, lay.log_axes]
-        d2 = ((la[p] - la[a[p]]) ** 2).reshape(-1)
-        nv = (lv[p] + lv[a[p]]).reshape(-1)
-        u = np.repeat(walk_var(dtp), 3)
-        s2 = _moment_q2(d2, nv, u, 1e-10)
-        shape = float(np.clip(np.sqrt(s2), 1e-5, 0.3)) if np.isfinite(s2) else 0.003
-        src.append("shape_sd: first differences of the per-frame log semi-axes")
-    if pre.use_kpt and joint is None:
-        q2 = lagged(lay.joints, np.arange(3 * lay.n_joints))
-        if not (np.isfinite(q2) and q2 > 0):
-            q2 = _moment_q2(*second(lay.joints, np.arange(3 * lay.n_joints)), 1e-4)
-        joint = float(np.clip(np.sqrt(q2), 0.03, 100.0)) if np.isfinite(q2) else 1.0
-        src.append("joint_accel_sd: second differences of the per-frame joints")
-    return ProcessNoise(float(accel or joint or 0.5), float(shape or 0.003), float(joint or 1.0),
-                        "; ".join(src) or "given")

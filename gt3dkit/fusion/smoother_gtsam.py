@@ -26,7 +26,7 @@ Conventions are converted here and only here: GTSAM's camera pose is ``world_fro
 Noise levels: measurement noise from :func:`gt3dkit.fusion.prepare.prepare` (the robust
 per-frame residual levels every estimator shares; points the per-frame fits rejected get no
 factor, the rest a Huber loss). Process noise of box scenes: the maximum of the model's
-marginal likelihood (:func:`gt3dkit.fusion.ukf_smoother.noise_by_likelihood`, the Kalman
+marginal likelihood (:func:`gt3dkit.fusion.noise.noise_by_likelihood`, the Kalman
 filter's prediction-error decomposition of the same state-space model; the graph then solves it
 another way, as one batch). The moment estimates from the per-frame fits it used before
 (:func:`moment_process_noise`, raised by Morozov's discrepancy principle) fit neither real set:
@@ -48,16 +48,15 @@ import numpy as np
 
 from gt3dkit.errors import EstimationError
 from gt3dkit.fusion.motion import MotionModel, StateLayout, walk_sd
+from gt3dkit.fusion.noise import ProcessNoise, moment_process_noise, noise_by_likelihood
 from gt3dkit.fusion.prepare import (
     Prepared,
-    ProcessNoise,
     axis_sd,
     ellipsoid_around,
-    moment_process_noise,
     never_determined,
     prepare,
 )
-from gt3dkit.fusion.ukf_smoother import UKFConfig, noise_by_likelihood
+from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.geom.boxkernel import EVERY_CAMERA, BoxCameras, box_jacobian, box_rig, kernel
 from gt3dkit.geom.camera import apply_K
 from gt3dkit.geom.triangulate import normalized_points

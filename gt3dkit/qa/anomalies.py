@@ -141,10 +141,9 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | Non
     if pre.use_kpt and have.any() and tracks.kpt_world.shape[1]:
         _keypoints(scene, tracks, pre, cfg, r_of, have, frame_of, id_of, out)
 
-    for i, first, last, n, cams in scene.left_out:  # no estimate: the person is left out
-        out.append((first, "", i, "", "undetermined_person", float(n),
-                    f"its {n} detections (frames {first}-{last}, cameras {cams}) are never seen by two "
-                    "cameras at once that agree: left out of the estimate"))
+    out += [(first, "", i, "", "undetermined_person", float(n),
+             f"its {n} detections (frames {first}-{last}, cameras {cams}) are never seen by two cameras at "
+             "once that agree: left out of the estimate") for i, first, last, n, cams in scene.left_out]
     _world_frame(scene, tracks, cfg, out)
     _missing_views(scene, tracks, pre, cfg, out, r_of, box, margin)
     offsets: list = []

@@ -15,9 +15,11 @@ import pytest
 from gt3dkit.api import dense_frames, load_scene
 from gt3dkit.fusion import ukf_smoother as us
 from gt3dkit.fusion.boxfit import box_model as box_function
-from gt3dkit.fusion.boxupdate import LinearisedSearch
+from gt3dkit.fusion.filtering import backend_for
+from gt3dkit.fusion.initial import InitialCov, rows_of
 from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.motion import accel_shape
+from gt3dkit.fusion.noise import LinearisedSearch, search_rows
 from gt3dkit.fusion.robust import RobustConfig
 from gt3dkit.fusion.rows import replicate_rows
 from gt3dkit.fusion.ukf import Block, Robust, SigmaWeights
@@ -126,7 +128,7 @@ def _box_run(model: Model, case: str):
     init = us.initial_states(model, cfg)
     kw: dict = {"collect": True, "fade": True, "on": None, "noise_rows": None}
     if case == "search":
-        on = us.search_rows(model.rows, len(model.rows) // 2, seed=1)
+        on = search_rows(model.rows, len(model.rows) // 2, seed=1)
         kw = {"on": on, "fade": False, "noise_rows": {"accel_sd": np.where(model.rows.row_o % 2, 0.3, 1.5)},
               "collect": True}
         cfg = replace(cfg, smooth=False)
@@ -137,7 +139,7 @@ def _box_run(model: Model, case: str):
 def test_the_backends_agree_on_a_box_model(box_scene, case: str) -> None:
     """Objects as compiled chains (split over threads) against the loop over frames."""
     _, model = box_scene
-    assert us.backend_for(model) == "objects"
+    assert backend_for(model) == "objects"
     cfg, init, kw = _box_run(model, case)
     a = BACKENDS["objects"](model, init, cfg, 10.0, **kw)
     b = BACKENDS["frames"](model, init, cfg, 10.0, **kw)
@@ -205,7 +207,7 @@ def test_split_joint_filters_equal_the_whole_state_filter(skeleton_model) -> Non
     stops iterating its update on its own (within the convergence tolerance, 0.01 sd per pass),
     the whole state when its last joint has; with one pass they are equal to rounding."""
     model, init, cfg, fps = skeleton_model
-    assert us.backend_for(model) == "joints"
+    assert backend_for(model) == "joints"
     for it in (1, 4):
         c = replace(cfg, iterations=it)
         a = run_frames(model, init, c, fps, collect=True, split=False)
@@ -299,7 +301,7 @@ def test_initial_covariances_made_when_indexed_equal_the_dense_ones(skeleton_mod
     broadcast index arrays (in chunks), and whole."""
     model, init, _, _ = skeleton_model
     P0, lay = init.P0, model.layout
-    assert isinstance(P0, us.InitialCov)
+    assert isinstance(P0, InitialCov)
     R, n = model.x_frame.shape
     dims = np.r_[np.arange(lay.center.start, lay.center.stop),
                  np.arange(lay.log_axes.start, lay.log_axes.stop)]
@@ -307,7 +309,7 @@ def test_initial_covariances_made_when_indexed_equal_the_dense_ones(skeleton_mod
     ok = np.flatnonzero(np.all(np.isfinite(model.cov6_frame), axis=(1, 2)))
     assert len(ok) > 0
     dense[np.ix_(ok, dims, dims)] = model.cov6_frame[ok]
-    monkeypatch.setattr(us.InitialCov, "CHUNK_ENTRIES", 1000)  # many chunks
+    monkeypatch.setattr(InitialCov, "CHUNK_ENTRIES", 1000)  # many chunks
     rows = np.array([3, 0, R - 1, 3])
     np.testing.assert_array_equal(P0[rows], dense[rows])
     mask = np.arange(R) % 3 == 0
@@ -321,7 +323,7 @@ def test_initial_covariances_made_when_indexed_equal_the_dense_ones(skeleton_mod
     np.testing.assert_array_equal(sub.rows(np.array([5, 1]))[np.arange(2)], dense[idx][[5, 1]])
     np.testing.assert_array_equal(np.asarray(sub.rows(np.array([5, 1]))), dense[idx][[5, 1]])
     np.testing.assert_array_equal(np.asarray(P0), dense)
-    np.testing.assert_array_equal(us.rows_of(P0, rows)[np.arange(4)], dense[rows])
+    np.testing.assert_array_equal(rows_of(P0, rows)[np.arange(4)], dense[rows])
 
 
 def test_objects_run_again_into_the_first_runs_covariances_equal_a_separate_run(skeleton_model) -> None:

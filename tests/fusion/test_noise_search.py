@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gt3dkit.fusion import ukf_smoother as us
+from gt3dkit.fusion.noise import maximise_log
 
 
 def test_the_search_finds_the_top_of_a_curve() -> None:
@@ -15,7 +15,7 @@ def test_the_search_finds_the_top_of_a_curve() -> None:
         calls.append(len(values))
         return [-(np.log(v) - np.log(0.37)) ** 2 for v in values]
 
-    best, seen = us.maximise_log(f, 0.01, 100.0, 5)
+    best, seen = maximise_log(f, 0.01, 100.0, 5)
     assert best == pytest.approx(0.37, rel=1e-6)  # a parabola in log q: the vertex is exact
     assert max(seen, key=lambda v: seen[v]) == best
     assert len(calls) == 3  # the scan and two rounds, each one batch

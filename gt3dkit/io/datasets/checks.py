@@ -76,6 +76,25 @@ def _redundancy(scene: Scene, obs: Observations) -> list[str]:
     return out
 
 
+def _gaps(scene: Scene, obs: Observations) -> list[str]:
+    """A warning where an object is unannotated for longer than GAP_S and than one step of the
+    scene's frames."""
+    pairs = unique_rows(np.stack([obs.track_id, obs.frame], 1))  # sorted by id, frame
+    same = pairs[1:, 0] == pairs[:-1, 0]
+    steps = np.diff(np.unique(obs.frame))
+    step = float(np.median(steps)) if steps.size else 1.0
+    gap = np.where(same, np.diff(pairs[:, 1]), 0).astype(np.float64)
+    long = (gap / scene.fps > GAP_S) & (gap > 1.5 * step)
+    if not long.any():
+        return []
+    who = np.unique(pairs[1:, 0][long])
+    worst = int(np.argmax(np.where(long, gap, 0)))
+    return [f"{int(long.sum())} gaps of more than {GAP_S:g} s in the annotations of "
+            f"{who.size} objects (ids {_ids(who)}; longest {gap[worst] / scene.fps:.3g} s "
+            f"= {int(gap[worst])} frames, object {int(pairs[worst + 1, 0])} after frame "
+            f"{int(pairs[worst, 1])}): no rows there (--every-frame interpolates them)"]
+
+
 def check_scene(scene: Scene) -> Scene:
     """``scene`` with off-image annotations dropped and its odd-input warnings added."""
     obs = scene.obs
@@ -144,18 +163,5 @@ def check_scene(scene: Scene) -> Scene:
 
     warnings += _redundancy(scene, obs)
 
-    # gaps: an object unannotated for longer than GAP_S and than one step of the scene's frames
-    pairs = unique_rows(np.stack([obs.track_id, obs.frame], 1))  # sorted by id, frame
-    same = pairs[1:, 0] == pairs[:-1, 0]
-    steps = np.diff(np.unique(obs.frame))
-    step = float(np.median(steps)) if steps.size else 1.0
-    gap = np.where(same, np.diff(pairs[:, 1]), 0).astype(np.float64)
-    long = (gap / scene.fps > GAP_S) & (gap > 1.5 * step)
-    if long.any():
-        who = np.unique(pairs[1:, 0][long])
-        worst = int(np.argmax(np.where(long, gap, 0)))
-        warnings.append(f"{int(long.sum())} gaps of more than {GAP_S:g} s in the annotations of "
-                        f"{who.size} objects (ids {_ids(who)}; longest {gap[worst] / scene.fps:.3g} s "
-                        f"= {int(gap[worst])} frames, object {int(pairs[worst + 1, 0])} after frame "
-                        f"{int(pairs[worst, 1])}): no rows there (--every-frame interpolates them)")
+    warnings += _gaps(scene, obs)
     return dataclasses.replace(scene, obs=obs, warnings=tuple(warnings))

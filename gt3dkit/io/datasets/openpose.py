@@ -147,6 +147,29 @@ class _Detections:
         return rb
 
 
+def _skeleton_of(skeleton: str | None, J: int, sample: list[np.ndarray]) -> str:
+    """The detector skeleton of ``J``-joint detections (``sample``: some of them), or the given
+    ``skeleton`` checked against ``J``."""
+    if skeleton is None:
+        opts = DETECTOR_SKELETONS[J]
+        return opts[0] if len(opts) == 1 else _which_25(sample)
+    if SKELETONS[skeleton].n_joints != J:
+        raise InputError("--skeleton", f"{skeleton} has {SKELETONS[skeleton].n_joints} joints, the files {J}")
+    return skeleton
+
+
+def _keypoints(where: str, person: object) -> np.ndarray:
+    """One detection's ``pose_keypoints_2d`` as ``(J, 3)`` x, y, confidence (finite, confidence >=
+    0); an error naming ``where`` otherwise. JSON's true/false are refused, not read as 1/0."""
+    kp = person.get("pose_keypoints_2d") if isinstance(person, dict) else None
+    if not isinstance(kp, list) or not all(type(v) in (int, float) for v in kp) or len(kp) % 3:
+        raise InputError(where, "pose_keypoints_2d must be numbers x, y, confidence per joint")
+    a = np.asarray(kp, dtype=np.float64).reshape(-1, 3)
+    if not np.isfinite(a).all() or (a[:, 2] < 0).any():
+        raise InputError(where, "a non-finite value or a negative confidence")
+    return a
+
+
 def load(
     root: Path, skeleton: str | None = None, calib: Path | str | None = None, fps: float | None = None
 ) -> Scene:
@@ -179,15 +202,7 @@ def load(
                 raise InputError(str(p), 'expected {"people": [...]}')
             for i, person in enumerate(people):
                 where = f"{p}: people[{i}]"
-                kp = person.get("pose_keypoints_2d") if isinstance(person, dict) else None
-                try:
-                    if not isinstance(kp, list) or not all(type(v) in (int, float) for v in kp):
-                        raise TypeError  # true/false are not numbers here (JSON's bool is an int to numpy)
-                    a = np.asarray(kp, dtype=np.float64).reshape(-1, 3)
-                except (TypeError, ValueError):
-                    raise InputError(
-                        where, "pose_keypoints_2d must be numbers x, y, confidence per joint"
-                    ) from None
+                a = _keypoints(where, person)
                 if J is None:
                     J = len(a)
                     if skeleton is None and J not in DETECTOR_SKELETONS:
@@ -198,8 +213,6 @@ def load(
                         )
                 if len(a) != J:
                     raise InputError(where, f"{len(a)} joints, the other detections have {J}")
-                if not np.isfinite(a).all() or (a[:, 2] < 0).any():
-                    raise InputError(where, "a non-finite value or a negative confidence")
                 if (a[:, 2] > 1).any():  # a heatmap's peak, not a probability: OpenPose writes up to ~1.04
                     above.append(float(a[:, 2].max()))
                     a[:, 2] = np.minimum(a[:, 2], 1.0)
@@ -215,11 +228,7 @@ def load(
     if above:
         warnings.append(f"{len(above)} detection(s) with a confidence above 1 (up to {max(above):.4g}; "
                         "OpenPose's confidences are heatmap peaks): read as 1")
-    if skeleton is None:
-        opts = DETECTOR_SKELETONS[J]
-        skeleton = opts[0] if len(opts) == 1 else _which_25(sample)
-    elif SKELETONS[skeleton].n_joints != J:
-        raise InputError("--skeleton", f"{skeleton} has {SKELETONS[skeleton].n_joints} joints, the files {J}")
+    skeleton = _skeleton_of(skeleton, J, sample)
     obs = rb.build()
     files[f"calibration:{cal.name}"] = sha256(cal) if cal.is_file() else "folder"
     truth = None
