@@ -100,7 +100,7 @@ _EVERY_CORE: contextvars.ContextVar[bool] = contextvars.ContextVar("gt3dkit_ever
 def every_core() -> Iterator[None]:
     """:func:`compiled_threads` gives every core in the block, in any thread (``GT3D_THREADS``
     still decides where set): for a step the rest of the run waits for, on a worker whose
-    siblings are idle meanwhile (:func:`gt3dkit.windows.sample_noise` on a Dask worker)."""
+    siblings are idle meanwhile (:func:`gt3dkit.windows.noise.sample_noise` on a Dask worker)."""
     token = _EVERY_CORE.set(True)
     try:
         yield

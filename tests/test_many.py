@@ -160,7 +160,7 @@ def test_a_worker_with_another_gt3dkit_is_one_error_line(monkeypatch: pytest.Mon
     """The workers have gt3dkit 0.1.0 (this checkout); this process says it has another: the
     connection is refused before anything runs, naming a worker and both versions."""
     distributed = pytest.importorskip("distributed")
-    import gt3dkit.windows as windows
+    import gt3dkit.windows.cluster as windows
     from gt3dkit.errors import InputError
 
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",

@@ -21,17 +21,15 @@ from gt3dkit.windows import (
     Cluster,
     Plan,
     Window,
-    WindowJob,
-    _process_pool,
     _run_windows,
     _window_scenes,
-    balanced_size,
-    noise_sample,
-    plan_windows,
     reconstruct_windowed,
     reconstruct_windows,
-    run_window,
 )
+from gt3dkit.windows.cluster import _process_pool
+from gt3dkit.windows.noise import noise_sample
+from gt3dkit.windows.plan import balanced_size, plan_windows
+from gt3dkit.windows.stitch import WindowJob, run_window
 from tests.scenes import written_scene
 
 
@@ -147,7 +145,7 @@ def test_bridge_rows_hand_worked() -> None:
     annotation bring none (frames beyond the last annotation once read the next id's rows)."""
     from types import SimpleNamespace
 
-    from gt3dkit.windows import Bridge
+    from gt3dkit.windows.plan import Bridge
 
     fr = np.r_[np.arange(5), np.arange(20, 25), np.arange(10, 31)]
     tid = np.r_[np.full(10, 7), np.full(21, 9)]
@@ -384,7 +382,7 @@ def test_context_steps_bound_the_smoothers_weight(accel_sd: float, sd_m: float, 
     problem (the batch MAP estimate of the constant-velocity model, which RTS equals): a position
     measurement ``n`` steps away weighs at most ~CONTEXT_WEIGHT of the frame's own in the middle
     of a long sequence, and more than that at half the distance (the context is not oversized)."""
-    from gt3dkit.windows import CONTEXT_WEIGHT, context_steps
+    from gt3dkit.windows.noise import CONTEXT_WEIGHT, context_steps
 
     dt, N, k = 1.0 / fps, 400, 200
     F = np.array([[1.0, dt], [0.0, 1.0]])
@@ -408,7 +406,7 @@ def test_pooled_bones_leave_out_ids_a_window_splits() -> None:
     every window keeps its own pieces' lengths; the other ids pool all their windows' rows."""
     from gt3dkit.fusion.bones import BoneSamples
     from gt3dkit.skeletons import SKELETONS
-    from gt3dkit.windows import pooled_bones
+    from gt3dkit.windows.stitch import pooled_bones
 
     skel = SKELETONS["coco17"]
     K = len(skel.bones)

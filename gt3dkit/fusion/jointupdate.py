@@ -402,7 +402,7 @@ def backward(chain: I64, start: JointStart, last: I64, chains: Chains, data: Joi
 
 def covariance_entries(n_joints: int) -> int:
     """Covariance entries a row of a person with ``n_joints`` joints is budgeted by the windows
-    (:func:`gt3dkit.windows.state_bytes`): ``J + 1`` parts of the ellipsoid and one joint
+    (:func:`gt3dkit.windows.plan.state_bytes`): ``J + 1`` parts of the ellipsoid and one joint
     (``StateLayout(1)``, 15 entries) each, as the per-joint filters were first held."""
     return (n_joints + 1) * StateLayout(1).n ** 2
 

@@ -1,0 +1,254 @@
+"""Where the windows run: local processes (``--jobs``) or a Dask cluster (``--scheduler``): the
+connection and its checks, the workers warmed, scenes scattered and sent again when a worker is
+lost, and each failure as one error naming its window."""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import numpy as np
+
+from gt3dkit.api import (
+    estimate_checked,
+    tiny_scenes,
+)
+from gt3dkit.errors import EstimationError, InputError
+from gt3dkit.fusion.base import make_estimator
+from gt3dkit.threads import small_matrix_blas
+from gt3dkit.types import Scene
+from gt3dkit.version import __version__
+from gt3dkit.windows.plan import Window, window_scene
+
+#: Frames each Dask worker but the first estimates first, to load its imports and kernels
+#: (:func:`_warm_workers`).
+WARM_FRAMES = 3
+
+
+#: Times a window is submitted to a Dask cluster whose workers holding its scene are lost, at most
+#: (:func:`_on_dask`).
+WINDOW_TRIES = 3
+
+
+def connect_scheduler(address: str) -> Any:
+    """A Dask client of the scheduler at ``address`` (``--scheduler``, here and in
+    ``reconstruct-many``) with at least one worker, or InputError naming ``--scheduler``. It waits
+    for the connection, and then for a first worker, as long as Dask's own
+    ``distributed.comm.timeouts.connect`` says (30 s unless the user's Dask configuration or
+    ``DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT`` says otherwise): a scheduler no worker joins
+    made ``reconstruct-many`` wait for ever and ``reconstruct`` fail inside Dask. Every worker
+    there must have this gt3dkit (its version; a worker without it, or with another, failed
+    inside the first task or wrote another output)."""
+    import dask
+    from dask.utils import parse_timedelta
+    from distributed import Client
+
+    wait = parse_timedelta(dask.config.get("distributed.comm.timeouts.connect"), default="s")
+    check_scheduler_address(address)
+    try:
+        client = Client(address)
+    except (OSError, TimeoutError) as e:
+        raise InputError("--scheduler", f"cannot reach the Dask scheduler at {address} ({e})") from None
+    try:
+        client.wait_for_workers(1, timeout=wait)
+        # a worker's error: no gt3dkit there to load the function with
+        others = {w: v if isinstance(v, str) else "none" for w, v in
+                  sorted(client.run(_gt3dkit_here, on_error="return").items()) if v != __version__}
+    except TimeoutError:
+        client.close()
+        raise InputError("--scheduler", f"the Dask scheduler at {address} has no worker (none joined "
+                                        f"in {wait:g} s)") from None
+    if others:  # the windows must run the code this process runs (the same output)
+        client.close()
+        w, v = next(iter(others.items()))
+        raise InputError("--scheduler", f"the Dask worker {w} has gt3dkit {v}, this process {__version__} "
+                                        f"({len(others)} worker(s) differ): install this gt3dkit on every "
+                                        "worker")
+    return client
+
+
+def check_scheduler_address(address: str) -> None:
+    """InputError naming ``--scheduler`` unless ``address`` is one Dask can connect to: a known
+    scheme (``tcp://`` when none is given) and, for the network schemes, a host and a port
+    (Dask's own parsers; they raised inside the client as an internal error)."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+    from distributed.comm.registry import backends
+
+    try:
+        scheme, loc = parse_address(address)
+        if scheme not in backends:
+            raise ValueError(f"unknown address scheme {scheme!r} (known: {', '.join(sorted(backends))})")
+        if scheme in ("tcp", "tls", "ws", "wss"):
+            host, _ = parse_host_port(loc)
+            if not host:
+                raise ValueError("no host")
+    except ValueError as e:
+        raise InputError("--scheduler", f"{address!r} is not a Dask scheduler address ({e}): give "
+                                        "tcp://HOST:PORT") from None
+
+
+def _gt3dkit_here() -> str:
+    """The version of gt3dkit the process running this has (on each Dask worker, by
+    :func:`connect_scheduler`; a worker without gt3dkit fails to load this function)."""
+    return __version__
+
+
+class Cluster:
+    """The Dask scheduler at ``address`` (``--scheduler``): a client, connected at once (an
+    unreachable scheduler is an :class:`InputError` naming ``--scheduler``). With ``loading``
+    (``gt3d reconstruct`` makes it before it loads the sequence) its first worker, the one the
+    noise search runs on (:func:`chosen_noise`), loads gt3dkit's imports and compiled kernels
+    while the sequence loads (:func:`warm_first`); without, it would only do that before the
+    search. The others do it during the search, on the sequence's own first frames
+    (:func:`_warm_workers`): on 2 cores, warming them all during the loading slowed it (4.3 s
+    against 3.4 s, means of 4 runs), and so did connecting in a thread beside it with the second
+    worker warming (4.5 s against 3.9 s; connecting first took 0.3-0.45 s). A context manager."""
+
+    def __init__(self, address: str, estimator: str, config: dict[str, Any], loading: bool = True) -> None:
+        self.client = connect_scheduler(address)
+        try:
+            first = _workers(self.client)[:1] if loading else []
+            # held until closed: a future let go is a task cancelled
+            self._warming = [self.client.submit(warm_first, estimator, config, workers=first,
+                                                allow_other_workers=False, pure=False)] if first else []
+        except BaseException:
+            self.client.close()
+            raise
+
+    def close(self) -> None:
+        self._warming = []
+        self.client.close()
+
+    def __enter__(self) -> Cluster:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _process_pool(workers: int) -> Any:
+    """``workers`` local processes (spawned: no fork of a process that holds threads)."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    return ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
+
+
+def warm_first(estimator: str, config: dict[str, Any]) -> None:
+    """:func:`warm_worker` on two tiny simulated scenes, boxes and joints
+    (:func:`gt3dkit.api.tiny_scenes`): the first Dask worker's, while the sequence loads
+    (:class:`Cluster`)."""
+    for scene in tiny_scenes():
+        warm_worker(scene, estimator, config)
+
+
+def warm_worker(scene: Scene, estimator: str, config: dict[str, Any]) -> None:
+    """Estimate ``scene`` (a few frames) and drop the result: this process's imports and compiled
+    kernels loaded (:func:`_warm_workers`, :func:`warm_first`); an error is left to the windows
+    to find."""
+    with contextlib.suppress(Exception), small_matrix_blas():
+        estimate_checked(scene, make_estimator(estimator, **config))
+
+
+def _warm_workers(client: Any, scene: Scene, estimator: str, config: dict[str, Any]) -> list[Any]:
+    """The sequence's first annotated frames estimated and dropped on the Dask ``client``'s
+    workers but the first (:func:`warm_worker`): while the first searches the noise
+    (:func:`chosen_noise`), the others load their imports and compiled kernels (a second or two
+    a process) instead of on their first window. Their futures, to hold until the windows run
+    (a future let go is a task cancelled)."""
+    f = np.unique(scene.obs.frame)[:WARM_FRAMES]  # the first annotated frames
+    if not len(f):
+        return []
+    tiny = window_scene(scene, int(f[0]), int(f[-1]))  # small: inside the task
+    return [client.submit(warm_worker, tiny, estimator, config, workers=[w], allow_other_workers=False,
+                          pure=False) for w in _workers(client)[1:]]
+
+
+def _workers(client: Any) -> list[str]:
+    """The Dask ``client``'s workers' addresses, sorted."""
+    return sorted(client.scheduler_info()["workers"])
+
+
+class Scattered:
+    """Scenes scattered to a Dask cluster as data, each one's future when called with its index;
+    a scene whose worker was lost (scattered data cannot be recomputed) is cut and scattered
+    again (:func:`_run_windows` then runs its window again)."""
+
+    def __init__(self, client: Any, cuts: list[Callable[[], Scene]]) -> None:
+        self.client, self.cuts = client, cuts
+        self.futures = [self._sent(k) for k in range(len(cuts))]
+
+    def __call__(self, k: int) -> Any:
+        if self.futures[k].status != "finished":
+            self.futures[k] = self._sent(k)
+        return self.futures[k]
+
+    def _sent(self, k: int) -> Any:
+        """Scene ``k`` scattered; again a second later if the worker it went to was just lost
+        (the scheduler drops it meanwhile), up to :data:`WINDOW_TRIES` times."""
+        for attempt in range(1, WINDOW_TRIES + 1):
+            try:
+                return self.client.scatter(self.cuts[k](), hash=False)
+            except OSError as e:  # distributed's CommClosedError
+                if attempt == WINDOW_TRIES:
+                    raise EstimationError("--scheduler", f"could not send a window's frames to the Dask "
+                                                         f"workers ({e})") from None
+                time.sleep(1.0)
+
+
+def _in_pool(futures: dict[Any, int], windows: list[Window]) -> Iterator[tuple[int, Any]]:
+    """``(k, result)`` of the local process pool's ``futures`` (window ``k`` each) as they finish;
+    a process of the pool that died (the out-of-memory killer, a signal) is an
+    :class:`EstimationError` naming the window it was running, not an internal error."""
+    from concurrent.futures import as_completed
+    from concurrent.futures.process import BrokenProcessPool
+
+    for f in as_completed(futures):
+        k = futures[f]
+        try:
+            yield k, f.result()
+        except BrokenProcessPool:
+            w = windows[k]
+            raise EstimationError("--jobs", f"a worker process died (out of memory? a shorter --window or "
+                                            f"fewer --jobs need less) with window {k + 1} (frames "
+                                            f"{w.first}-{w.last}) not done") from None
+
+
+def _on_dask(client: Any, task: Callable[[int], tuple[Any, ...]], n: int, what: Callable[[int], str],
+             submitted: dict[Any, int] | None = None) -> Iterator[tuple[int, Any]]:
+    """Tasks ``task(k) = (fn, *args)``, ``k < n``, on the Dask ``client``: ``(k, result)`` as they
+    finish (``submitted``: their futures, already submitted by the caller). A task cancelled
+    because the worker holding its input was lost (a worker killed or gone: a scattered scene
+    cannot be recomputed) is submitted again, its input scattered again (:class:`Scattered`), up
+    to :data:`WINDOW_TRIES` times; one that kills its worker (Dask's ``KilledWorker``, after Dask's
+    own retries) is an :class:`EstimationError` naming it (``what(k)``)."""
+    from distributed import as_completed
+    from distributed.client import FutureCancelledError
+    from distributed.scheduler import KilledWorker
+
+    def submit(k: int) -> Any:
+        fn, *args = task(k)
+        return client.submit(fn, *args, pure=False)
+
+    futures = submitted if submitted is not None else {submit(k): k for k in range(n)}
+    tries = [1] * n
+    pending = as_completed(futures)
+    for f in pending:
+        k = futures.pop(f)
+        try:
+            result = f.result()
+        except FutureCancelledError:
+            if tries[k] >= WINDOW_TRIES:
+                raise EstimationError("--scheduler", f"{what(k)} lost its Dask worker {tries[k]} times: is "
+                                                     "the cluster stable?") from None
+            tries[k] += 1
+            again = submit(k)
+            futures[again] = k
+            pending.add(again)
+            continue
+        except KilledWorker:
+            raise EstimationError("--scheduler", f"{what(k)} killed the Dask workers that ran it (out of "
+                                                 "memory? a smaller --window needs less)") from None
+        yield k, result

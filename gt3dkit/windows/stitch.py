@@ -1,0 +1,131 @@
+"""One window's run (its own frames' rows and findings from its scene with context), the bones
+pooled over the windows, and the windows' rows stitched into the sequence's."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from gt3dkit.api import (
+    bone_samples_checked,
+    dense_frames,
+    estimate_checked,
+    take_rows,
+)
+from gt3dkit.fusion.base import make_estimator
+from gt3dkit.fusion.bones import BoneSamples, PersonBones
+from gt3dkit.fusion.ukf_config import UKFConfig
+from gt3dkit.qa.anomalies import Anomalies
+from gt3dkit.threads import roomy_malloc, small_matrix_blas
+from gt3dkit.types import I64, Downweighted, Scene, TrackSet
+from gt3dkit.windows.plan import Plan, Window
+
+#: What a window's rows and findings go to as it finishes (:func:`reconstruct_windowed`): its index,
+#: its tracks and its QA rows.
+OnPart = Callable[[int, TrackSet, list[tuple[Any, ...]]], None]
+
+
+@dataclass(frozen=True)
+class WindowJob:
+    """What a worker needs for one window besides its scene (picklable)."""
+
+    window: Window
+    estimator: str
+    config: dict[str, Any]
+    every_frame: int | None
+    bones: PersonBones | None = None  # every person's bones, pooled over the windows
+
+
+def run_window(job: WindowJob, scene: Scene) -> tuple[TrackSet, list[tuple[Any, ...]]]:
+    """One window's rows and QA findings in its own frames, from its ``scene`` (the persons' bones
+    ``job.bones`` where given: the window's own ids only, its split pieces' ids are its own)."""
+    w = job.window
+    with small_matrix_blas(), roomy_malloc():
+        est = make_estimator(job.estimator, **job.config)
+        if job.bones is not None:
+            est.bones = job.bones.of(np.unique(scene.obs.track_id))
+        tracks, qa = estimate_checked(scene, est, job.every_frame)
+    keep = (tracks.frame >= w.first) & (tracks.frame <= w.last)
+    d = tracks.downweighted
+    if d is not None:
+        d = _downweighted_rows(d, (d.frame >= w.first) & (d.frame <= w.last))
+    out = take_rows(dataclasses.replace(tracks, downweighted=d), keep)
+    return out, sorted((r for r in qa.rows if w.first <= r[0] <= w.last), key=finding_order)
+
+
+def finding_order(row: tuple[Any, ...]) -> tuple[Any, ...]:
+    """A QA finding's place in ``anomalies.csv``: by frame, camera, id (a window's, and so the
+    windows' in order: :class:`gt3dkit.io.writers.StreamedRows`)."""
+    return row[0], str(row[1]), row[2]
+
+
+def window_bones(job: WindowJob, scene: Scene) -> tuple[BoneSamples | None, I64, float]:
+    """One window's first-pass bones in its own frames, the ids it splits, from its ``scene``
+    (:func:`gt3dkit.api.bone_samples_checked`; None: its estimator ties no bones), and the
+    seconds it took."""
+    t0 = time.perf_counter()
+    w = job.window
+    if job.every_frame is not None:
+        scene = dense_frames(scene, job.every_frame or None)
+    with small_matrix_blas(), roomy_malloc():
+        s, split = bone_samples_checked(scene, make_estimator(job.estimator, **job.config))
+    s = None if s is None else s.take((s.frame >= w.first) & (s.frame <= w.last))
+    return s, split, time.perf_counter() - t0
+
+
+def pooled_bones(parts: list[tuple[BoneSamples | None, I64, float]], config: dict[str, Any]
+                 ) -> PersonBones | None:
+    """Every person's bones from the windows' first-pass bones and split ids ``parts``
+    (:func:`window_bones`), as the whole sequence's run finds them (its config's
+    ``bone_sd_floor_m``, ``bone_sd_m``): of the ids no window splits (a split id's pieces may
+    be different people: each window keeps its own pieces' bones). None: no window ties any."""
+    got = [p[0] for p in parts if p[0] is not None]
+    if not got:
+        return None
+    split = np.concatenate([p[1] for p in parts])
+    s = BoneSamples.joined(got)
+    s = s.take(~np.isin(s.obj, split))
+    cfg = UKFConfig(**{k: config[k] for k in ("bone_sd_floor_m", "bone_sd_m") if k in config})
+    return PersonBones.pooled(s, cfg.bone_sd_floor_m, cfg.bone_sd_m)
+
+
+def _downweighted_rows(d: Downweighted, keep: np.ndarray) -> Downweighted:
+    return Downweighted(**{f.name: getattr(d, f.name)[keep] for f in dataclasses.fields(d)})
+
+
+def stitch(parts: list[tuple[TrackSet, list[tuple[Any, ...]]]], windows: list[Window], plan: Plan,
+           overlap: int, noise: dict[str, float]) -> tuple[TrackSet, Anomalies]:
+    """The windows' rows and findings as one run's (rows by frame, then id)."""
+    ts = [p[0] for p in parts]
+    cat = {k: np.concatenate([getattr(t, k) for t in ts]) for k in
+           ("frame", "track_id", "center_world", "semi_axes", "center_sd", "n_views", "kpt_world", "kpt_sd")}
+    order = np.lexsort((cat["track_id"], cat["frame"]))
+    ds = [t.downweighted for t in ts if t.downweighted is not None]
+    down = Downweighted(**{f.name: np.concatenate([getattr(d, f.name) for d in ds])
+                           for f in dataclasses.fields(Downweighted)}) if ds else None
+    info = dict(ts[0].info)
+    info["windows"] = {
+        "count": len(windows), "frames": plan.size, "overlap_frames": overlap, "why": plan.why,
+        "cut": "equal object-frames" if plan.why else "equal frames",
+        "windows": [dataclasses.asdict(w) for w in windows], "process_noise": noise,
+        "note": "each window run on its frames plus context, its own frames kept; the process noise "
+                "chosen once (gt3dkit.windows)"}
+    info["seconds"] = float(sum(t.info.get("seconds", 0.0) for t in ts))
+    info["object_frames"] = int(len(order))
+    for key in ("robust",):
+        if key in info and isinstance(info[key], dict) and down is not None:
+            info[key] = {**info[key], "downweighted": int(np.sum(down.weight > 0)),
+                         "rejected": int(np.sum(down.weight == 0))}
+    segs = [s for t in ts for s in t.info.get("segments", [])]
+    if segs:
+        info["segments"] = segs
+    rows = [r for p in parts for r in p[1]]  # each window's sorted, the windows in frame order
+    qa = Anomalies(rows)
+    info["qa"] = {"anomalies": qa.counts(), "file": "anomalies.csv"}
+    tracks = TrackSet(**{k: v[order] for k, v in cat.items()}, info=info, downweighted=down)
+    return tracks, qa
