@@ -31,6 +31,7 @@ import numpy as np
 from gt3dkit.arrays import lookup_rows
 from gt3dkit.geom.camera import project_points
 from gt3dkit.geom.conics import covered_fraction, model_boxes
+from gt3dkit.qa.view import PreparedView, RowsView
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import F64, Scene, TrackSet
 
@@ -65,7 +66,7 @@ class Anomalies:
         return dict(sorted(out.items()))
 
 
-def track_row_of(tracks: TrackSet, rows: Any) -> np.ndarray:
+def track_row_of(tracks: TrackSet, rows: RowsView) -> np.ndarray:
     """(R,) the row of ``tracks`` estimating each object-frame of ``rows`` (-1: none)."""
     return lookup_rows(np.stack([tracks.frame, tracks.track_id], 1),
                        np.stack([rows.frames[rows.row_t], rows.obj_ids[rows.row_o]], 1))
@@ -79,7 +80,7 @@ def _iou(a: F64, b: F64) -> F64:
     return inter / np.maximum(area(a) + area(b) - inter, 1e-9)
 
 
-def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | None = None,
+def find_anomalies(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QAConfig | None = None,
                    splits: tuple[Any, ...] = (), exchanges: tuple[Any, ...] = ()) -> Anomalies:
     """Every flagged annotation of ``scene`` against ``tracks`` (see the module docstring), and
     each place an id was split (``splits``, :func:`gt3dkit.fusion.identity.identity_segments`)
@@ -161,7 +162,7 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig | Non
     return Anomalies(out)
 
 
-def _keypoints(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, r_of: np.ndarray,
+def _keypoints(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QAConfig, r_of: np.ndarray,
                have: np.ndarray, frame_of: np.ndarray, id_of: np.ndarray,
                out: list) -> None:
     rows, cams = pre.rows, pre.cams
@@ -221,7 +222,7 @@ def _world_frame(scene: Scene, tracks: TrackSet, cfg: QAConfig, out: list) -> No
                         "over its frames)"))
 
 
-def _missing_views(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, out: list,
+def _missing_views(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QAConfig, out: list,
                    r_of: np.ndarray, box: F64, margin: F64) -> None:
     """``r_of`` (R,) :func:`track_row_of`; ``box``,
     ``margin`` the tangent boxes of the rows ``r_of >= 0`` in every camera."""
@@ -267,7 +268,7 @@ def _missing_views(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, out:
                         f"{100 * cov[k, c]:.0f}% covered by nearer objects, not annotated"))
 
 
-def offset_residuals(tracks: TrackSet, pre: Any, max_shift: int) -> tuple[np.ndarray, F64]:
+def offset_residuals(tracks: TrackSet, pre: PreparedView, max_shift: int) -> tuple[np.ndarray, F64]:
     """Per camera and shift s in -max_shift..max_shift frames, the median residual (px) of
     that camera's annotations against the estimate ``s`` frame steps later: (shifts,
     (C, S) medians, NaN where too few pairs)."""
@@ -304,7 +305,7 @@ def offset_residuals(tracks: TrackSet, pre: Any, max_shift: int) -> tuple[np.nda
     return shifts, med
 
 
-def _time_offsets(scene: Scene, tracks: TrackSet, pre: Any, cfg: QAConfig, out: list) -> None:
+def _time_offsets(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QAConfig, out: list) -> None:
     if len(pre.rows.frames) < 2 * cfg.max_offset_frames + 3 or cfg.max_offset_frames < 1:
         return
     shifts, med = offset_residuals(tracks, pre, cfg.max_offset_frames)
