@@ -21,8 +21,8 @@ from gt3dkit.fusion.associate import apply_association, associate, associate_det
 from gt3dkit.fusion.base import ESTIMATORS, Estimator, make_estimator, over_time
 from gt3dkit.fusion.boxfit import choose_box_model
 from gt3dkit.fusion.identity import Segments, identity_segments
-from gt3dkit.fusion.prepare import prepare, undetermined_objects
-from gt3dkit.fusion.rows import build_rows
+from gt3dkit.fusion.prepare import Prepared, prepare, undetermined_objects
+from gt3dkit.fusion.rows import Rows, build_rows
 from gt3dkit.geom.camera import Cams
 from gt3dkit.io.datasets import ASSOCIATED, checks, read_scene
 from gt3dkit.io.results import read_result
@@ -271,7 +271,7 @@ def estimate_scene(scene: Scene, est: Estimator, pre: Any | None, segs: Segments
     return tracks
 
 
-def split_scene(scene: Scene, pre: Any, segs: Segments) -> tuple[Scene, Any, dict[int, tuple[int, int]]]:
+def split_scene(scene: Scene, pre: Prepared, segs: Segments) -> tuple[Scene, Any, dict[int, tuple[int, int]]]:
     """The scene of the pieces (:func:`split_ids`), its preparation (:func:`prepare`'s defaults,
     as ``gt3d compare`` shares one) and the map back to the input's ids."""
     pieces, back = split_ids(scene, pre.rows, segs)
@@ -298,7 +298,7 @@ def _estimate_pieces(scene: Scene, est: Estimator, pre: Any | None, segs: Segmen
     return tracks
 
 
-def split_ids(scene: Scene, rows: Any, segs: Segments) -> tuple[Scene, dict[int, tuple[int, int]]]:
+def split_ids(scene: Scene, rows: Rows, segs: Segments) -> tuple[Scene, dict[int, tuple[int, int]]]:
     """``scene`` with the annotations of every piece after an id's first given an id of its own,
     and the map back: new id -> (input id, piece)."""
     frame_of = rows.frames[rows.row_t]

@@ -23,7 +23,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from gt3dkit.api import load_scene, reconstruct
 from gt3dkit.errors import EstimationError, InputError
@@ -32,6 +32,9 @@ from gt3dkit.threads import small_matrix_blas
 from gt3dkit.version import __version__
 from gt3dkit.viz.report import write_report
 from gt3dkit.windows import connect_scheduler
+
+if TYPE_CHECKING:
+    from distributed import Client
 
 SUMMARY_COLUMNS = ("input", "output", "status", "seconds", "objects", "object_frames", "anomalies",
                    "error")
@@ -158,7 +161,7 @@ def run_many(inputs: list[Path], out: Path, estimator: str = "ukf", jobs: int | 
     return rows
 
 
-def _ran(todo: list[Job], client: Any, jobs: int | None, progress: bool,
+def _ran(todo: list[Job], client: Client | None, jobs: int | None, progress: bool,
          fn: Callable[[Job], dict[str, Any]] = run_job) -> list[dict[str, Any]]:
     """Every job's summary row (``fn``, :func:`run_job`), in the order they finish: on the Dask
     ``client``'s workers, or in ``jobs`` local processes (spawned). A sequence whose process died

@@ -15,6 +15,7 @@ import traceback
 from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 import numpy as np
@@ -27,6 +28,7 @@ from gt3dkit.eval.tracking import tracking_scores
 from gt3dkit.fusion.base import REGISTRY
 from gt3dkit.io.atomic import check_out
 from gt3dkit.io.datasets import detect_layout
+from gt3dkit.types import Scene, TrackSet
 
 #: Published numbers of Ma et al. for the datasets we can compare on.
 PAPER = {"multiviewx": {"MOTA": 96.5, "OSPA2_m": 0.17}, "wildtrack": {"MOTA": 98.7, "OSPA2_m": 0.10},
@@ -116,7 +118,7 @@ BOX_MODEL_NAMES = {"ellipsoid": "ellipsoid tangent boxes", "cylinder": "cylinder
                    "pom": "occupancy-map rectangles"}
 
 
-def box_model_note(scene: Any) -> str:
+def box_model_note(scene: Scene) -> str:
     """How the boxes are drawn, with the evidence when it was chosen: e.g. ``occupancy-map rectangles
     (edges 0.27 px off; ellipsoid 0.83, cylinder 0.86)``."""
     px = scene.box_model_px
@@ -126,7 +128,7 @@ def box_model_note(scene: Any) -> str:
     return f"{BOX_MODEL_NAMES[scene.box_model]} (edges {px[scene.box_model]:.2f} px off; {others})"
 
 
-def print_warnings(scene: Any) -> None:
+def print_warnings(scene: Scene) -> None:
     """The input's ``warning:`` lines, printed once the run succeeded (a failed run prints its
     one ``error:`` line only)."""
     for w in scene.all_warnings:
@@ -166,7 +168,7 @@ def pose_table(rows: list[tuple[str, Any, float]]) -> str:
     return "\n".join(lines)
 
 
-def report_truth(scene: Any, tracks: Any, name: str, max_dist_m: float = 1.0) -> None:
+def report_truth(scene: Scene, tracks: TrackSet, name: str, max_dist_m: float = 1.0) -> None:
     """Print errors against the input's truth: boxes/positions and/or keypoints; tracking scores
     count an estimate within ``max_dist_m`` (ground plane) of a true object as a match."""
     if scene.truth is None:
@@ -302,12 +304,12 @@ class Terminated(BaseException):
 RECEIVED_SIGNALS: list[int] = []
 
 
-def on_terminate(signum: int, frame: Any) -> None:
+def on_terminate(signum: int, frame: FrameType | None) -> None:
     RECEIVED_SIGNALS.append(signum)
     raise Terminated(signum)
 
 
-def on_interrupt(signum: int, frame: Any) -> None:
+def on_interrupt(signum: int, frame: FrameType | None) -> None:
     RECEIVED_SIGNALS.append(signum)
     raise KeyboardInterrupt
 

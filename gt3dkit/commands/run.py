@@ -36,6 +36,7 @@ from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv
 from gt3dkit.many import read_manifest, run_many
 from gt3dkit.project import project
 from gt3dkit.refine import refine, rig_digest
+from gt3dkit.types import Scene
 from gt3dkit.viz.report import write_report
 from gt3dkit.windows import Cluster, Plan, auto_plan, reconstruct_windows
 
@@ -107,7 +108,7 @@ def reconstructed(args: argparse.Namespace, config: dict[str, Any], cluster: Clu
     return 0
 
 
-def window_plan(args: argparse.Namespace, scene: Any) -> Plan | None:
+def window_plan(args: argparse.Namespace, scene: Scene) -> Plan | None:
     """How ``gt3d reconstruct`` runs the sequence: whole (None), or in windows (``--window
     FRAMES``; by itself when the whole would not fit in memory, :func:`gt3dkit.windows.auto_plan`;
     as many as ``--jobs`` or a Dask scheduler's workers when only those are given)."""

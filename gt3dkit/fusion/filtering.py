@@ -17,6 +17,7 @@ from gt3dkit.fusion.initial import InitialCov
 from gt3dkit.fusion.jointupdate import run_joints
 from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.robust import point_weights
+from gt3dkit.fusion.rows import Rows
 from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.types import F64
 
@@ -48,7 +49,7 @@ def initial_states(model: Model, cfg: UKFConfig) -> Init:
     return Init(x0, InitialCov(v, c6, ok, dims))
 
 
-def objects_rows(rows: Any, hit: np.ndarray) -> np.ndarray:
+def objects_rows(rows: Rows, hit: np.ndarray) -> np.ndarray:
     """(R,) every row of the objects that have a row in ``hit (R,)``."""
     obj = np.zeros(len(rows.obj_ids), bool)
     obj[rows.row_o[hit]] = True

@@ -15,6 +15,7 @@ r"""The process noise, found from the data: where a change to how the noise is c
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from functools import partial
 from typing import Any
@@ -38,7 +39,7 @@ from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.motion import lag_two_excess_var, second_difference_var, walk_var
 from gt3dkit.fusion.prepare import Prepared
 from gt3dkit.fusion.robust import chi2_median
-from gt3dkit.fusion.rows import replicate_rows
+from gt3dkit.fusion.rows import Rows, replicate_rows
 from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.geom.boxkernel import contiguous
 from gt3dkit.threads import run_split
@@ -203,8 +204,8 @@ class LinearisedSearch:
     prediction (:func:`forward`); for boxes, whose tangent box bends little over a prediction's
     spread, the two likelihoods' maxima are close (the tests compare the noise values found)."""
 
-    def __init__(self, model: Any, init: Any, cfg: Any, fps: float, x_lin: F64, P_lin: F64, weights: F64,
-                 on: np.ndarray | None) -> None:
+    def __init__(self, model: Model, init: Init, cfg: UKFConfig, fps: float, x_lin: F64, P_lin: F64,
+                 weights: F64, on: np.ndarray | None) -> None:
         R = len(model.rows)
         m = model.z.shape[1]
         box = model.box_model(cfg.alpha, cfg.beta, cfg.kappa, None)
@@ -234,7 +235,7 @@ class LinearisedSearch:
         return out
 
 
-def maximise_log(f: Any, lo: float, hi: float, n_scan: int, rounds: int = 2
+def maximise_log(f: Callable[[list[float]], list[float]], lo: float, hi: float, n_scan: int, rounds: int = 2
                  ) -> tuple[float, dict[float, float]]:
     """Maximiser of a smooth ``f`` over ``[lo, hi]`` on log scale, evaluated in batches:
     ``f(values) -> logliks`` takes a list. A log-spaced scan of ``n_scan`` values, then
@@ -403,7 +404,7 @@ def _noise_key(cfg: UKFConfig, fps: float) -> tuple[Any, ...]:
     return ("noise_by_likelihood", cfg, fps)
 
 
-def search_rows(rows: Any, budget: int, seed: int = 0) -> np.ndarray | None:
+def search_rows(rows: Rows, budget: int, seed: int = 0) -> np.ndarray | None:
     """(R,) the rows of whole objects, drawn in a seeded random order until they hold
     ``budget`` object-frames (:func:`drawn_objects`); ``None`` (all rows) when the scene has no
     more than that. (Windows of the sequence with every object in them were tried: per pass they

@@ -64,6 +64,7 @@ from gt3dkit.fusion.filtering import (
 )
 from gt3dkit.fusion.filterrun import FilterRun
 from gt3dkit.fusion.measurement import Model
+from gt3dkit.fusion.motion import StateLayout
 from gt3dkit.fusion.noise import NOISE_FIELDS, _noise_key, noise_by_likelihood, select_noise
 from gt3dkit.fusion.prepare import (
     Prepared,
@@ -74,6 +75,7 @@ from gt3dkit.fusion.prepare import (
     never_determined,
     prepare,
 )
+from gt3dkit.fusion.rows import Rows
 from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.skeletons import Skeleton
 from gt3dkit.types import F64, Downweighted, Scene, TrackSet
@@ -259,7 +261,7 @@ def single_view_rows(pre: Prepared) -> np.ndarray:
     return ~multi[rows.row_o] & (nv >= 1) & pre.fit.ok
 
 
-def joints_of(x_s: F64, P_s: F64, layout: Any, rows: Any, kpt0: F64) -> tuple[F64, F64]:
+def joints_of(x_s: F64, P_s: F64, layout: StateLayout, rows: Rows, kpt0: F64) -> tuple[F64, F64]:
     """Joints ``(R, J, 3)`` and their largest-axis sd ``(R, J)``; NaN for joints an object's
     views never placed (``kpt0 (R, J, 3)``: the per-frame triangulation; :func:`never_determined`)."""
     R, J = len(rows), layout.n_joints

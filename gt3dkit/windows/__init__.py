@@ -65,7 +65,7 @@ import dataclasses
 import functools
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -99,6 +99,9 @@ from gt3dkit.windows.plan import (
     window_scene,
 )
 from gt3dkit.windows.stitch import OnPart, WindowJob, pooled_bones, run_window, stitch, window_bones
+
+if TYPE_CHECKING:
+    from distributed import Client
 
 #: What the commands use; the rest is in the submodules (plan, noise, cluster, stitch).
 __all__ = ["Cluster", "Plan", "Window", "auto_plan", "connect_scheduler", "reconstruct_windowed",
@@ -203,7 +206,7 @@ def ties_bones(scene: Scene, estimator: str, config: dict[str, Any]) -> bool:
             and bool(getattr(est.config, "bones", False)))
 
 
-def _cut_windows(scene: Scene, plan: Plan, overlap: int, client: Any, index: Bridge | None,
+def _cut_windows(scene: Scene, plan: Plan, overlap: int, client: Client | None, index: Bridge | None,
                  work: np.ndarray | None) -> tuple[list[Window], Bridge | None, Callable[[int], Any]]:
     """The windows of ``plan`` with ``overlap`` frames of context, the rows between annotations
     they bring (``--every-frame``: ``index``, :class:`Bridge`, with ``overlap`` a side) and their
@@ -215,7 +218,7 @@ def _cut_windows(scene: Scene, plan: Plan, overlap: int, client: Any, index: Bri
     return windows, bridge, _window_scenes(scene, windows, client, bridge)
 
 
-def _window_scenes(scene: Scene, windows: list[Window], client: Any, bridge: Bridge | None = None
+def _window_scenes(scene: Scene, windows: list[Window], client: Client | None, bridge: Bridge | None = None
                    ) -> Callable[[int], Any]:
     """Window ``k``'s scene: made when asked (one window's at a time in this process), or on a
     Dask ``client`` scattered once to the cluster as data (not inside the task graph) and its

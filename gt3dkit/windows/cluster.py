@@ -7,7 +7,7 @@ from __future__ import annotations
 import contextlib
 import time
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -21,6 +21,9 @@ from gt3dkit.threads import small_matrix_blas
 from gt3dkit.types import Scene
 from gt3dkit.version import __version__
 from gt3dkit.windows.plan import Window, window_scene
+
+if TYPE_CHECKING:
+    from distributed import Client
 
 #: Frames each Dask worker but the first estimates first, to load its imports and kernels
 #: (:func:`_warm_workers`).
@@ -152,7 +155,7 @@ def warm_worker(scene: Scene, estimator: str, config: dict[str, Any]) -> None:
         estimate_checked(scene, make_estimator(estimator, **config))
 
 
-def _warm_workers(client: Any, scene: Scene, estimator: str, config: dict[str, Any]) -> list[Any]:
+def _warm_workers(client: Client, scene: Scene, estimator: str, config: dict[str, Any]) -> list[Any]:
     """The sequence's first annotated frames estimated and dropped on the Dask ``client``'s
     workers but the first (:func:`warm_worker`): while the first searches the noise
     (:func:`chosen_noise`), the others load their imports and compiled kernels (a second or two
@@ -166,7 +169,7 @@ def _warm_workers(client: Any, scene: Scene, estimator: str, config: dict[str, A
                           pure=False) for w in _workers(client)[1:]]
 
 
-def _workers(client: Any) -> list[str]:
+def _workers(client: Client) -> list[str]:
     """The Dask ``client``'s workers' addresses, sorted."""
     return sorted(client.scheduler_info()["workers"])
 
@@ -176,7 +179,7 @@ class Scattered:
     a scene whose worker was lost (scattered data cannot be recomputed) is cut and scattered
     again (:func:`_run_windows` then runs its window again)."""
 
-    def __init__(self, client: Any, cuts: list[Callable[[], Scene]]) -> None:
+    def __init__(self, client: Client, cuts: list[Callable[[], Scene]]) -> None:
         self.client, self.cuts = client, cuts
         self.futures = [self._sent(k) for k in range(len(cuts))]
 
@@ -216,7 +219,7 @@ def _in_pool(futures: dict[Any, int], windows: list[Window]) -> Iterator[tuple[i
                                             f"{w.first}-{w.last}) not done") from None
 
 
-def _on_dask(client: Any, task: Callable[[int], tuple[Any, ...]], n: int, what: Callable[[int], str],
+def _on_dask(client: Client, task: Callable[[int], tuple[Any, ...]], n: int, what: Callable[[int], str],
              submitted: dict[Any, int] | None = None) -> Iterator[tuple[int, Any]]:
     """Tasks ``task(k) = (fn, *args)``, ``k < n``, on the Dask ``client``: ``(k, result)`` as they
     finish (``submitted``: their futures, already submitted by the caller). A task cancelled

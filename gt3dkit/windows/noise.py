@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -22,6 +22,9 @@ from gt3dkit.threads import every_core, roomy_malloc, small_matrix_blas
 from gt3dkit.types import Scene
 from gt3dkit.windows.cluster import _on_dask, _workers
 from gt3dkit.windows.plan import Window, objects_per_frame, window_scene
+
+if TYPE_CHECKING:
+    from distributed import Client
 
 #: The process-noise settings chosen once for all windows.
 PROCESS_NOISE = ("accel_sd", "position_sd", "shape_sd", "joint_accel_sd")
@@ -79,7 +82,7 @@ def chosen_noise(scene: Scene, windows: list[Window], estimator: str, config: di
     return runner.submit(sample_noise, sample, estimator, config, step_s).result
 
 
-def _search_on_dask(client: Any, sample: Scene, estimator: str, config: dict[str, Any], step_s: float
+def _search_on_dask(client: Client, sample: Scene, estimator: str, config: dict[str, Any], step_s: float
                     ) -> Callable[[], tuple[dict[str, float], int | None]]:
     """:func:`searched_on_worker` of ``sample`` (scattered as data, not inside the task graph) on
     the Dask ``client``'s first worker, warmed as the sequence loaded (:class:`Cluster`); the
