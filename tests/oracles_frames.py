@@ -41,9 +41,8 @@ import numpy as np
 from gt3dkit.fusion.blockcov import BlockCov
 from gt3dkit.fusion.bones import JointInfo
 from gt3dkit.fusion.boxupdate import run_boxes
-from gt3dkit.fusion.filtering import Init
 from gt3dkit.fusion.filterrun import FilterRun
-from gt3dkit.fusion.initial import InitialCov
+from gt3dkit.fusion.initial import Init, InitialCov
 from gt3dkit.fusion.jointupdate import run_joints
 from gt3dkit.fusion.kalman import (
     ellipsoid_linearisations,

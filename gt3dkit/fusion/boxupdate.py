@@ -28,10 +28,12 @@ import numba
 import numpy as np
 
 from gt3dkit.fusion.filterrun import FilterRun
+from gt3dkit.fusion.initial import Init
 from gt3dkit.fusion.kalman import ellipsoid_linearisation, fade_centre, fade_factor, predict_row, rts_row
 from gt3dkit.fusion.motion import SPACE, Noise, StateIndex, accel_shape, transition
 from gt3dkit.fusion.robust import chi2_isf
 from gt3dkit.fusion.ukf import SigmaWeights
+from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.fusion.update import (
     Columns,
     Current,
@@ -497,7 +499,7 @@ def _chains(model: Any, fps: float, on: np.ndarray | None) -> tuple[Chains, I64,
                   t_s), first, last
 
 
-def motion_of(model: Any, cfg: Any, noise_rows: dict[str, F64] | None = None) -> Motion:
+def motion_of(model: Any, cfg: UKFConfig, noise_rows: dict[str, F64] | None = None) -> Motion:
     """The rows' process noise (``cfg``'s, or ``noise_rows``' per row) as :class:`Motion`."""
     R = len(model.rows)
     per = noise_rows or {}
@@ -511,7 +513,7 @@ def motion_of(model: Any, cfg: Any, noise_rows: dict[str, F64] | None = None) ->
                   accel_shape(model.cams.up, cfg.vertical_ratio), model.layout.index)
 
 
-def run_boxes(model: Any, init: Any, cfg: Any, fps: float, collect: bool, fade: bool,
+def run_boxes(model: Any, init: Init, cfg: UKFConfig, fps: float, collect: bool, fade: bool,
               on: np.ndarray | None, noise_rows: dict[str, F64] | None) -> FilterRun:
     """The filter (and RTS) of a boxes-only model (:func:`applies_to_model`) as chains of rows,
     objects in parallel: the arguments and outputs of

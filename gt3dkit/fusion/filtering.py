@@ -6,30 +6,17 @@ smoothed estimate gives every measurement."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
-
 import numpy as np
 
 from gt3dkit.fusion.boxupdate import run_boxes
 from gt3dkit.fusion.filterrun import FilterRun
-from gt3dkit.fusion.initial import InitialCov
+from gt3dkit.fusion.initial import Init, InitialCov
 from gt3dkit.fusion.jointupdate import run_joints
 from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.robust import point_weights
 from gt3dkit.fusion.rows import Rows
 from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.types import F64
-
-
-@dataclass(frozen=True)
-class Init:
-    """Initial state ``x0 (R, n)`` and covariance ``P0 (R, n, n)`` of every row (used where
-    an object starts): the row's own per-frame fit with its covariance. ``P0`` an array or
-    one made when indexed (:class:`InitialCov`)."""
-
-    x0: F64
-    P0: Any
 
 
 def initial_states(model: Model, cfg: UKFConfig) -> Init:

@@ -4,6 +4,7 @@ where its object starts, and all of them held at once would be one more ``(R, n,
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -79,3 +80,13 @@ class InitialCov:
 def rows_of(P0: Any, idx: np.ndarray) -> Any:
     """The rows ``idx`` of initial covariances, lazy where they are."""
     return P0.rows(idx) if isinstance(P0, InitialCov) else P0[idx]
+
+
+@dataclass(frozen=True)
+class Init:
+    """Initial state ``x0 (R, n)`` and covariance ``P0 (R, n, n)`` of every row (used where
+    an object starts): the row's own per-frame fit with its covariance. ``P0`` an array or
+    one made when indexed (:class:`InitialCov`)."""
+
+    x0: F64
+    P0: F64 | InitialCov

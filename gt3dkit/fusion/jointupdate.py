@@ -32,10 +32,12 @@ import numpy as np
 from gt3dkit.fusion.blockcov import BlockCov
 from gt3dkit.fusion.boxupdate import Chains, _chains, regress, run_boxes, sigma_points
 from gt3dkit.fusion.filterrun import FilterRun
+from gt3dkit.fusion.initial import Init
 from gt3dkit.fusion.kalman import fade_factor, predict_row, rts_row
 from gt3dkit.fusion.motion import SPACE, StateLayout, joint_step
 from gt3dkit.fusion.robust import chi2_isf
 from gt3dkit.fusion.ukf import Block, Robust, SigmaWeights, block_columns
+from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.fusion.update import (
     Columns,
     Current,
@@ -442,7 +444,7 @@ def boxes_part(model: Any) -> Any:
                    var_frame=model.var_frame[:, :E], kpt_cov_frame=None, joint_info=None)
 
 
-def run_joints(model: Any, init: Any, cfg: Any, fps: float, collect: bool = False, fade: bool = True,
+def run_joints(model: Any, init: Init, cfg: UKFConfig, fps: float, collect: bool = False, fade: bool = True,
                on: np.ndarray | None = None, noise_rows: dict[str, F64] | None = None,
                covariances: bool = True, into: BlockCov | None = None) -> FilterRun:
     """The filter (and RTS) of a model with joints as compiled chains (the module doc): the
@@ -507,7 +509,7 @@ def run_joints(model: Any, init: Any, cfg: Any, fps: float, collect: bool = Fals
                       covariances, into)
 
 
-def _assembled(model: Any, init: Any, cfg: Any, fps: float, args: tuple[Any, ...], chains: Chains,
+def _assembled(model: Any, init: Init, cfg: UKFConfig, fps: float, args: tuple[Any, ...], chains: Chains,
                out: JointOut, jd: I64, covariances: bool, into: BlockCov | None) -> FilterRun:
     """The run of ``model``'s rows from the joints' chains ``out`` and the ellipsoid's run (the
     boxes', or the rows' initial state without boxes)."""

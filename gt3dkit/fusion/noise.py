@@ -32,8 +32,8 @@ from gt3dkit.fusion.boxupdate import (
     motion_of,
     regression_rows,
 )
-from gt3dkit.fusion.filtering import Init, backend_for, initial_states, run_filter, smoothed_weights
-from gt3dkit.fusion.initial import rows_of
+from gt3dkit.fusion.filtering import backend_for, initial_states, run_filter, smoothed_weights
+from gt3dkit.fusion.initial import Init, rows_of
 from gt3dkit.fusion.jointupdate import run_joints
 from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.motion import lag_two_excess_var, second_difference_var, walk_var

@@ -55,7 +55,6 @@ from gt3dkit.fusion.bones import (
     lengths_of,
 )
 from gt3dkit.fusion.filtering import (
-    Init,
     initial_states,
     objects_rows,
     rerun_objects,
@@ -63,6 +62,7 @@ from gt3dkit.fusion.filtering import (
     smoothed_weights,
 )
 from gt3dkit.fusion.filterrun import FilterRun
+from gt3dkit.fusion.initial import Init
 from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.motion import StateLayout
 from gt3dkit.fusion.noise import NOISE_FIELDS, _noise_key, noise_by_likelihood, select_noise
