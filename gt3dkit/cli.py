@@ -43,7 +43,7 @@ from gt3dkit.io.labels import LABEL_FORMATS
 from gt3dkit.sim import SIM_LAYOUTS
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.threads import small_matrix_blas
-from gt3dkit.types import BOX_MODELS
+from gt3dkit.types import BOX_MODEL_REGISTRY, BOX_MODELS
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -68,7 +68,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--association", metavar="FILE", help="per-camera ids (mot): an edited association.csv "
                    "whose rows override the automatic cross-view association")
     r.add_argument("--box-model", choices=("auto", *BOX_MODELS), default="auto", help="how boxes are "
-                   "drawn: an ellipsoid's tangent box, a cylinder's, an occupancy-map rectangle")
+                   "drawn: " + ", ".join(f"{e.name} ({e.summary})" for e in BOX_MODEL_REGISTRY.values())
+                   + "; auto: chosen from the boxes")
     r.add_argument("--segments", metavar="FILE", help="an edited segments.csv: its pieces replace the "
                                                       "automatic identity splits of the ids it lists")
     r.add_argument("--refine-calib", action="store_true",

@@ -39,7 +39,25 @@ B8 = npt.NDArray[np.bool_]
 #: (:mod:`gt3dkit.geom.boxkernel`): the ellipsoid's tangent box (the paper's), the vertical
 #: cylinder's box, or the rectangle of the probabilistic-occupancy-map generator (WILDTRACK's and
 #: MultiviewX's labels). A scene's is chosen from its boxes (:func:`gt3dkit.fusion.boxfit.choose_box_model`).
-BOX_MODELS = ("ellipsoid", "cylinder", "pom")
+@dataclass(frozen=True)
+class BoxModelEntry:
+    """One way boxes are drawn: its ``name`` (the option value), what it draws (``summary``, how
+    a run's summary line and the command line's help name it) and ``index``, how the compiled
+    kernels of :mod:`gt3dkit.geom.boxkernel` select it (its value and gradient there)."""
+
+    name: str
+    index: int
+    summary: str
+
+
+#: Every box model, registered once: the command line's choices and help, the summary line, the
+#: chooser (:func:`gt3dkit.fusion.boxfit.choose_box_model`), the simulator and the kernels read it.
+BOX_MODEL_REGISTRY: dict[str, BoxModelEntry] = {e.name: e for e in (
+    BoxModelEntry("ellipsoid", 0, "ellipsoid tangent boxes"),
+    BoxModelEntry("cylinder", 1, "cylinder boxes"),
+    BoxModelEntry("pom", 2, "occupancy-map rectangles"),
+)}
+BOX_MODELS = tuple(BOX_MODEL_REGISTRY)
 
 
 @dataclass(frozen=True, eq=False)

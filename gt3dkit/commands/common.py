@@ -28,7 +28,7 @@ from gt3dkit.eval.tracking import tracking_scores
 from gt3dkit.fusion.base import REGISTRY
 from gt3dkit.io.atomic import check_out
 from gt3dkit.io.datasets import detect_layout
-from gt3dkit.types import Scene, TrackSet
+from gt3dkit.types import BOX_MODEL_REGISTRY, Scene, TrackSet
 
 #: Published numbers of Ma et al. for the datasets we can compare on.
 PAPER = {"multiviewx": {"MOTA": 96.5, "OSPA2_m": 0.17}, "wildtrack": {"MOTA": 98.7, "OSPA2_m": 0.10},
@@ -113,19 +113,14 @@ def load_input(args: argparse.Namespace) -> Any:
     return scene
 
 
-#: How each box model reads in a summary line.
-BOX_MODEL_NAMES = {"ellipsoid": "ellipsoid tangent boxes", "cylinder": "cylinder boxes",
-                   "pom": "occupancy-map rectangles"}
-
-
 def box_model_note(scene: Scene) -> str:
     """How the boxes are drawn, with the evidence when it was chosen: e.g. ``occupancy-map rectangles
     (edges 0.27 px off; ellipsoid 0.83, cylinder 0.86)``."""
     px = scene.box_model_px
     if not px:
-        return BOX_MODEL_NAMES[scene.box_model]
+        return BOX_MODEL_REGISTRY[scene.box_model].summary
     others = ", ".join(f"{m} {v:.2f}" for m, v in px.items() if m != scene.box_model)
-    return f"{BOX_MODEL_NAMES[scene.box_model]} (edges {px[scene.box_model]:.2f} px off; {others})"
+    return f"{BOX_MODEL_REGISTRY[scene.box_model].summary} (edges {px[scene.box_model]:.2f} px off; {others})"
 
 
 def print_warnings(scene: Scene) -> None:

@@ -35,14 +35,14 @@ import numpy as np
 
 from gt3dkit.geom.kernel_cache import drop_stale
 from gt3dkit.threads import run_split
-from gt3dkit.types import BOX_MODELS, F64
+from gt3dkit.types import BOX_MODEL_REGISTRY, F64
 
 drop_stale()  # before any compiled function below is called (and its cache read)
 
 #: Edges of a box: left, top, right, bottom.
 EDGES = 4
 #: Indices of the box models of :data:`gt3dkit.types.BOX_MODELS` (module docstring).
-ELLIPSOID, CYLINDER, POM = (BOX_MODELS.index(m) for m in ("ellipsoid", "cylinder", "pom"))
+ELLIPSOID, CYLINDER, POM = (BOX_MODEL_REGISTRY[m].index for m in ("ellipsoid", "cylinder", "pom"))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -108,7 +108,7 @@ class BoxCameras(NamedTuple):
     R: F64
     t: F64
     depth_sign: F64
-    box_model: int = 0  # index into BOX_MODELS
+    box_model: int = 0  # BoxModelEntry.index (gt3dkit.types.BOX_MODEL_REGISTRY)
 
     @classmethod
     def of(cls, cams: Any) -> BoxCameras:
@@ -132,7 +132,7 @@ class BoxRig(NamedTuple):
 
     cam: F64
     steps: int
-    box_model: int  # index into BOX_MODELS
+    box_model: int  # BoxModelEntry.index (gt3dkit.types.BOX_MODEL_REGISTRY)
 
 
 @numba.njit(cache=True, nogil=True)

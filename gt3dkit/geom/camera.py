@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from gt3dkit.types import BOX_MODELS, F64, Rig
+from gt3dkit.types import BOX_MODEL_REGISTRY, F64, Rig
 
 
 def cam_from_world_points(X_world: F64, R: F64, t: F64) -> F64:
@@ -159,12 +159,12 @@ class Cams(NamedTuple):
     world_from_body: F64  # (3, 3), body z = up
     up: F64  # (3,)
     depth_sign: F64  # (C,) +1, or -1 for left-handed calibrations (see Camera)
-    box_model: int = 0  # how a state draws its box: index into geom.boxkernel.BOX_MODELS
+    box_model: int = 0  # how a state draws its box: BoxModelEntry.index (types.BOX_MODEL_REGISTRY)
 
     @classmethod
     def of(cls, rig: Rig, box_model: str = "ellipsoid") -> Cams:
         return cls(rig.K, rig.dist, rig.R, rig.t, rig.wh, rig.world_from_body(), rig.up,
-                   rig.depth_sign, BOX_MODELS.index(box_model))
+                   rig.depth_sign, BOX_MODEL_REGISTRY[box_model].index)
 
     def take(self, idx: np.ndarray) -> Cams:
         """The cameras ``idx`` only (same body frame and box model)."""
