@@ -90,3 +90,17 @@ def _pack(*arrays: np.ndarray) -> tuple[np.ndarray, ...] | None:
             key = key * span[k] + (a[:, k].astype(np.int64) - lo[k])
         out.append(key)
     return tuple(out)
+
+
+def compiled_arg(a: Any, dtype: Any = np.float64) -> np.ndarray:
+    """``a`` for a compiled call (one signature: C order, writable): as it is in the common case,
+    without :func:`contiguous`'s ~4 us (GTSAM's factors call this 40 000 times)."""
+    if type(a) is np.ndarray and a.dtype == dtype and a.flags.c_contiguous and a.flags.writeable:
+        return a
+    return np.require(a, dtype=dtype, requirements=["C", "W"])
+
+
+def contiguous(a: Any, dtype: Any = np.float64) -> np.ndarray:
+    """``a`` as a C-contiguous, writable array of ``dtype``: numba compiles a function once per
+    argument type, and a read-only array (a broadcast view) is another type."""
+    return np.require(a, dtype=dtype, requirements=["C", "W"])

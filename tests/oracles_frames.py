@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from gt3dkit.arrays import contiguous
 from gt3dkit.fusion.blockcov import BlockCov
 from gt3dkit.fusion.bones import JointInfo
 from gt3dkit.fusion.boxupdate import run_boxes
@@ -57,7 +58,6 @@ from gt3dkit.fusion.rows import Rows
 from gt3dkit.fusion.ukf import Block, MeasureFn, Robust, SigmaWeights, block_columns, safe_cholesky
 from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.fusion.update import Columns, Measured, Regression, pass_rows, row_state, statistics_rows
-from gt3dkit.geom.boxkernel import contiguous
 from gt3dkit.types import F64, I64
 
 #: The state of one part: the ellipsoid entries and one joint with its velocity.

@@ -27,6 +27,7 @@ from typing import Any, NamedTuple
 import numba
 import numpy as np
 
+from gt3dkit.arrays import contiguous
 from gt3dkit.fusion.filterrun import FilterRun
 from gt3dkit.fusion.initial import Init
 from gt3dkit.fusion.kalman import ellipsoid_linearisation, fade_centre, fade_factor, predict_row, rts_row
@@ -47,7 +48,7 @@ from gt3dkit.fusion.update import (
     prior_factor,
     statistics,
 )
-from gt3dkit.geom.boxkernel import EDGES, BoxRig, contiguous, pair_box
+from gt3dkit.geom.boxkernel import EDGES, BoxRig, pair_box
 from gt3dkit.geom.smallmat import safe_chol, solve_sym
 from gt3dkit.threads import run_split
 from gt3dkit.types import F64, I64

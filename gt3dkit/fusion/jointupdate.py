@@ -29,6 +29,7 @@ from typing import Any, NamedTuple
 import numba
 import numpy as np
 
+from gt3dkit.arrays import contiguous
 from gt3dkit.fusion.blockcov import BlockCov
 from gt3dkit.fusion.boxupdate import Chains, _chains, regress, run_boxes, sigma_points
 from gt3dkit.fusion.filterrun import FilterRun
@@ -50,7 +51,7 @@ from gt3dkit.fusion.update import (
     prior_factor,
     statistics,
 )
-from gt3dkit.geom.boxkernel import _DS, _R, _T, BoxRig, _pixel, contiguous
+from gt3dkit.geom.boxkernel import BoxRig, world_pixel
 from gt3dkit.threads import run_split
 from gt3dkit.types import F64, I64
 
@@ -149,14 +150,7 @@ def point_regression(xj: F64, Pj: F64, meas: Measured, sig: PointSigma, rig: Box
             continue
         q = rig.cam[c]
         for s in range(S):
-            p = (X[s, 0], X[s, 1], X[s, 2])
-            c0 = q[_R] * p[0] + q[_R + 1] * p[1] + q[_R + 2] * p[2] + q[_T]
-            c1 = q[_R + 3] * p[0] + q[_R + 4] * p[1] + q[_R + 5] * p[2] + q[_T + 1]
-            c2 = q[_R + 6] * p[0] + q[_R + 7] * p[1] + q[_R + 8] * p[2] + q[_T + 2]
-            if c2 * q[_DS] > 1e-9:
-                Z[s, 2 * c], Z[s, 2 * c + 1] = _pixel(c0, c1, c2, q)
-            else:
-                Z[s, 2 * c], Z[s, 2 * c + 1] = np.nan, np.nan
+            Z[s, 2 * c], Z[s, 2 * c + 1] = world_pixel(X[s, 0], X[s, 1], X[s, 2], q)
     regress(X, Z, xj, dims, sig.Wm, sig.Wc, Pb, meas, 0, lin)
     return repaired
 

@@ -18,8 +18,8 @@ import math
 import numba
 import numpy as np
 
+from gt3dkit.arrays import contiguous
 from gt3dkit.fusion.motion import SPACE, StateIndex
-from gt3dkit.geom.boxkernel import contiguous
 from gt3dkit.geom.kernel_cache import drop_stale
 from gt3dkit.geom.smallmat import matmul, matmul_sparse_left, solve_sym
 from gt3dkit.types import F64, I64

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from gt3dkit.arrays import contiguous
 from gt3dkit.fusion.boxupdate import (
     Start,
     _chains,
@@ -41,7 +42,6 @@ from gt3dkit.fusion.prepare import Prepared
 from gt3dkit.fusion.robust import chi2_median
 from gt3dkit.fusion.rows import Rows, replicate_rows
 from gt3dkit.fusion.ukf_config import UKFConfig
-from gt3dkit.geom.boxkernel import contiguous
 from gt3dkit.threads import run_split
 from gt3dkit.types import F64, I64
 

@@ -32,7 +32,7 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
-from gt3dkit.geom.boxkernel import contiguous
+from gt3dkit.arrays import contiguous
 from gt3dkit.geom.kernel_cache import drop_stale
 from gt3dkit.geom.smallmat import chol, chol_solve, lower_inverse, safe_chol, solve_sym, symmetrised
 from gt3dkit.types import F64, I64

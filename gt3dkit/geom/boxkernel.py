@@ -33,8 +33,8 @@ from typing import Any, NamedTuple
 import numba
 import numpy as np
 
+from gt3dkit.arrays import compiled_arg
 from gt3dkit.geom.kernel_cache import drop_stale
-from gt3dkit.threads import run_split
 from gt3dkit.types import BOX_MODEL_REGISTRY, F64
 
 drop_stale()  # before any compiled function below is called (and its cache read)
@@ -296,6 +296,18 @@ def _pixel(X0: float, X1: float, X2: float, q: F64) -> tuple[float, float]:
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
+def world_pixel(p0: float, p1: float, p2: float, q: F64) -> tuple[float, float]:
+    """The pixel ``(u, v)`` of the world point ``p`` in camera row ``q`` (lens distortion
+    included); NaN where the point is not in front of the camera."""
+    c0 = q[_R] * p0 + q[_R + 1] * p1 + q[_R + 2] * p2 + q[_T]
+    c1 = q[_R + 3] * p0 + q[_R + 4] * p1 + q[_R + 5] * p2 + q[_T + 1]
+    c2 = q[_R + 6] * p0 + q[_R + 7] * p1 + q[_R + 8] * p2 + q[_T + 2]
+    if c2 * q[_DS] > 1e-9:
+        return _pixel(c0, c1, c2, q)
+    return np.nan, np.nan
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
 def _pom_value(p: tuple[float, float, float], e: tuple[float, float, float], q: F64
                ) -> tuple[float, float, float, float, float]:
     """Margin and POM rectangle (left, top, right, bottom) of :func:`_pom_box` without its
@@ -549,60 +561,11 @@ def kernel(center: F64, axes: F64, cams: BoxCameras, steps: int, want: np.ndarra
                                     every or want[n, c], box, n)
 
 
-#: pairs per thread below which a call is not split (a thread hand-off costs ~20 us; a pair
-#: ~0.3 us)
-MIN_PAIRS_PER_THREAD = 256
 EVERY_CAMERA = np.ones((1, 1), dtype=np.bool_)
-
-
-def boxes_compiled(center_world: F64, semi_axes: F64, cams: BoxCameras, newton_steps: int,
-                   want: np.ndarray | None = None) -> tuple[F64, F64]:
-    """:func:`gt3dkit.geom.conics.ellipsoid_boxes` for ``(..., 3)`` centres and semi-axes in the
-    cameras ``cams`` (:func:`box_cameras`; their box model): ``(..., C, 4)`` boxes and ``(..., C)``
-    margins (numba compiles the kernel on first use and caches it on disk). ``want``
-    (broadcastable to ``(..., C)``): the pairs whose box is needed (the others are NaN; the margin
-    is computed for every pair). Large calls are split over threads
-    (:func:`gt3dkit.threads.run_split`)."""
-    c, s = np.broadcast_arrays(np.asarray(center_world, dtype=np.float64),
-                               np.asarray(semi_axes, dtype=np.float64))
-    lead = c.shape[:-1]
-    C = cams.K.shape[0]
-    cf = _arr(c.reshape(-1, 3))
-    sf = _arr(s.reshape(-1, 3))
-    N = cf.shape[0]
-    wf = EVERY_CAMERA if want is None else _arr(np.broadcast_to(np.asarray(want, dtype=np.bool_),
-                                                          lead + (C,)).reshape(N, C), np.bool_)
-    box = np.empty((N, C, 4))
-    margin = np.empty((N, C))
-    every = wf is EVERY_CAMERA
-
-    def part(a: int, b: int) -> None:
-        kernel(cf[a:b], sf[a:b], cams, int(newton_steps), wf if every else wf[a:b], box[a:b], margin[a:b])
-
-    per = max(MIN_PAIRS_PER_THREAD // max(C, 1), 1)
-    if N < 2 * per:
-        part(0, N)  # too small to split: no thread policy to consult
-    else:
-        run_split(part, N, per)
-    return box.reshape(lead + (C, 4)), margin.reshape(lead + (C,))
 
 
 def box_cameras(world_from_body: F64, K: F64, dist: F64, R: F64, t: F64, depth_sign: F64 | float,
                 box_model: int = 0) -> BoxCameras:
     """:class:`BoxCameras` of stacked camera arrays (``depth_sign`` broadcast to ``(C,)``)."""
-    ds = _arr(np.broadcast_to(np.asarray(depth_sign, dtype=np.float64), (K.shape[0],)))
-    return BoxCameras(*(_arr(a) for a in (world_from_body, K, dist, R, t)), ds, int(box_model))
-
-
-def _arr(a: Any, dtype: Any = np.float64) -> np.ndarray:
-    """``a`` for a compiled call (one signature: C order, writable): as it is in the common case,
-    without :func:`contiguous`'s ~4 us (GTSAM's factors call this 40 000 times)."""
-    if type(a) is np.ndarray and a.dtype == dtype and a.flags.c_contiguous and a.flags.writeable:
-        return a
-    return np.require(a, dtype=dtype, requirements=["C", "W"])
-
-
-def contiguous(a: Any, dtype: Any = np.float64) -> np.ndarray:
-    """``a`` as a C-contiguous, writable array of ``dtype``: numba compiles a function once per
-    argument type, and a read-only array (a broadcast view) is another type."""
-    return np.require(a, dtype=dtype, requirements=["C", "W"])
+    ds = compiled_arg(np.broadcast_to(np.asarray(depth_sign, dtype=np.float64), (K.shape[0],)))
+    return BoxCameras(*(compiled_arg(a) for a in (world_from_body, K, dist, R, t)), ds, int(box_model))

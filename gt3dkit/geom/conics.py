@@ -25,8 +25,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from gt3dkit.geom.boxkernel import BoxCameras, box_cameras, boxes_compiled
+from gt3dkit.arrays import compiled_arg
+from gt3dkit.geom.boxkernel import EVERY_CAMERA, BoxCameras, box_cameras, kernel
 from gt3dkit.geom.camera import Cams
+from gt3dkit.threads import run_split
 from gt3dkit.types import F64
 
 
@@ -133,3 +135,40 @@ def covered_fraction(box: F64, depth: F64, depth_tol_m: float = 0.0) -> F64:
     nearer &= ~np.eye(len(box), dtype=bool)[:, :, None]
     inter = np.where(nearer & np.isfinite(inter), inter, 0.0)
     return np.minimum(inter.sum(axis=1) / area, 1.0)
+
+
+#: pairs per thread below which a call is not split (a thread hand-off costs ~20 us; a pair
+#: ~0.3 us)
+MIN_PAIRS_PER_THREAD = 256
+
+
+def boxes_compiled(center_world: F64, semi_axes: F64, cams: BoxCameras, newton_steps: int,
+                   want: np.ndarray | None = None) -> tuple[F64, F64]:
+    """:func:`gt3dkit.geom.conics.ellipsoid_boxes` for ``(..., 3)`` centres and semi-axes in the
+    cameras ``cams`` (:func:`box_cameras`; their box model): ``(..., C, 4)`` boxes and ``(..., C)``
+    margins (numba compiles the kernel on first use and caches it on disk). ``want``
+    (broadcastable to ``(..., C)``): the pairs whose box is needed (the others are NaN; the margin
+    is computed for every pair). Large calls are split over threads
+    (:func:`gt3dkit.threads.run_split`)."""
+    c, s = np.broadcast_arrays(np.asarray(center_world, dtype=np.float64),
+                               np.asarray(semi_axes, dtype=np.float64))
+    lead = c.shape[:-1]
+    C = cams.K.shape[0]
+    cf = compiled_arg(c.reshape(-1, 3))
+    sf = compiled_arg(s.reshape(-1, 3))
+    N = cf.shape[0]
+    wf = EVERY_CAMERA if want is None else compiled_arg(np.broadcast_to(np.asarray(want, dtype=np.bool_),
+                                                          lead + (C,)).reshape(N, C), np.bool_)
+    box = np.empty((N, C, 4))
+    margin = np.empty((N, C))
+    every = wf is EVERY_CAMERA
+
+    def part(a: int, b: int) -> None:
+        kernel(cf[a:b], sf[a:b], cams, int(newton_steps), wf if every else wf[a:b], box[a:b], margin[a:b])
+
+    per = max(MIN_PAIRS_PER_THREAD // max(C, 1), 1)
+    if N < 2 * per:
+        part(0, N)  # too small to split: no thread policy to consult
+    else:
+        run_split(part, N, per)
+    return box.reshape(lead + (C, 4)), margin.reshape(lead + (C,))
