@@ -10,7 +10,7 @@ import pytest
 def test_gauss_newton_reaches_gtsam_levenberg_marquardt() -> None:
     import gtsam
 
-    from gt3dkit.fusion.smoother_gtsam import _gtsam_gauss_newton
+    from gt3dkit.fusion.gtsam_factors import _gtsam_gauss_newton
 
     rng = np.random.default_rng(7)
     g = gtsam.NonlinearFactorGraph()
