@@ -78,7 +78,7 @@ def read_truth(path: Path) -> dict[int, dict[int, np.ndarray]]:
     return out
 
 
-def score(frames: np.ndarray, ids: np.ndarray, shelf: np.ndarray, truth: dict) -> dict:
+def score(frames: np.ndarray, shelf: np.ndarray, truth: dict) -> dict:
     """PCP per actor and limb, MPJPE over limb joints and the number beyond 300 mm."""
     correct: dict[int, np.ndarray] = {}
     total: dict[int, int] = {}
@@ -130,7 +130,7 @@ def main() -> int:
     took = time.perf_counter() - t0
     names = SKELETONS[scene.skeleton].marker_names
     coco = tracks.kpt_world[:, [names.index(n) for n in COCO_NAMES]]
-    res = score(tracks.frame, tracks.track_id, to_shelf(coco), read_truth(root / "truth_shelf15.csv"))
+    res = score(tracks.frame, to_shelf(coco), read_truth(root / "truth_shelf15.csv"))
     print(f"Shelf frames 0-149, real OpenPose {scene.skeleton}, no identities ({took:.1f} s, {out}):")
     print(f"  PCP {100 * res['pcp']:.1f} (actors 1-3: "
           + ", ".join(f"{a}: {100 * v:.1f}" for a, v in res["per_actor"].items()) + ")")

@@ -23,7 +23,8 @@
   import-linter layer** (every ``gt3dkit.X`` of the package must be named by the ``layers``
   contract of ``pyproject.toml``); **near-duplicate blocks**: pairs of places sharing six or more
   consecutive lines of the same shape (identifiers, numbers and strings replaced by their kind;
-  blank lines, comments and docstrings left out; runs of field declarations not counted), at
+  blank lines, comments and docstrings left out; runs of field declarations and runs that cross
+  into another definition not counted), at
   most ``DUPLICATE_BUDGET`` (the count when issue 45 began: no block added since).
 
 Exit status 1 when a target is missed.
@@ -53,7 +54,7 @@ MAX_FUNCTION_LINES = 80
 MAX_README_LINES = 250
 DUPLICATE_WINDOW = 6
 #: near-duplicate pairs on main when issue 45 began (no block may be added)
-DUPLICATE_BUDGET = 13
+DUPLICATE_BUDGET = 11
 PYPROJECT = ROOT.parent / "pyproject.toml"
 README = ROOT.parent / "README.md"
 
@@ -310,7 +311,8 @@ def near_duplicates(mods: dict[str, Path]) -> list[tuple[str, int, str, int]]:
             win = [s for _, s in shapes[i:i + DUPLICATE_WINDOW]]
             if sum(len(s.split()) > 3 for s in win) < DUPLICATE_WINDOW - 1 or any(
                     s.startswith(("import", "from")) for s in win) or all(
-                    s.startswith("N :") for s in win):  # a dataclass's fields
+                    s.startswith("N :") for s in win) or any(  # a dataclass's fields
+                    s.startswith(("def", "class", "@")) for s in win[1:]):  # across a definition
                 continue
             key = "\n".join(win)
             here = (m, shapes[i][0])

@@ -26,7 +26,7 @@ from gt3dkit.windows import (
     reconstruct_windowed,
     reconstruct_windows,
 )
-from gt3dkit.windows.cluster import _process_pool
+from gt3dkit.windows.cluster import process_pool
 from gt3dkit.windows.noise import noise_sample
 from gt3dkit.windows.plan import balanced_size, plan_windows
 from gt3dkit.windows.stitch import WindowJob, run_window
@@ -286,7 +286,7 @@ def test_a_dead_pool_process_is_an_error_naming_the_window(boxes: object) -> Non
     windows = plan_windows(np.asarray(boxes.frames, dtype=np.int64), 30, 20)  # type: ignore[attr-defined]
     like = WindowJob(windows[0], "ukf", {"accel_sd": 0.5, "shape_sd": 0.01}, None)
     said = r"^--jobs: a worker process died \(out of memory\? .*\) with window \d+ \(frames \d+-\d+\)"
-    with _process_pool(2) as pool, pytest.raises(EstimationError, match=said):
+    with process_pool(2) as pool, pytest.raises(EstimationError, match=said):
         _run_windows(_window_scenes(boxes, windows, None), windows, like, pool, lambda k, n: None, _dies)
 
 

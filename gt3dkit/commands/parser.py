@@ -49,27 +49,33 @@ def _panoptic_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=SEED, help="CMU Panoptic: seed of that noise (default 0)")
 
 
+def _scene_options(p: argparse.ArgumentParser) -> None:
+    """How an input folder is read into a scene (``reconstruct`` and ``compare``)."""
+    p.add_argument("--layout", choices=tuple(LAYOUTS), help="input layout (default: detected)")
+    p.add_argument("--skeleton", choices=sorted(SKELETONS), help="joint order of keypoints.csv")
+    _panoptic_options(p)
+    p.add_argument("--fps", type=FPS, help="frame-number rate (default: the layout's)")
+    p.add_argument("--calib", help="calibration file or folder in any format (cameras.json, WILDTRACK/"
+                   "MultiviewX calibrations/, OpenCV .yml/.xml, Anipose .toml, COLMAP) for the input's own")
+    p.add_argument("--association", metavar="FILE", help="per-camera ids (mot): an edited association.csv "
+                   "whose rows override the automatic cross-view association")
+    p.add_argument("--segments", metavar="FILE", help="an edited segments.csv: its pieces replace the "
+                                                      "automatic identity splits of the ids it lists")
+    p.add_argument("--box-model", choices=("auto", *BOX_MODELS), default="auto", help="how boxes are "
+                   "drawn: " + ", ".join(f"{e.name} ({e.summary})" for e in BOX_MODEL_REGISTRY.values())
+                   + "; auto: chosen from the boxes")
+
+
 def _add_reconstruct(sub: argparse._SubParsersAction[Parser], common: argparse.ArgumentParser) -> None:
     """``gt3d reconstruct``'s options."""
     r = sub.add_parser("reconstruct", parents=[common],
-                       help="2D boxes from calibrated cameras -> 3D ellipsoid tracks")
-    r.add_argument("input", help="input folder (native, WILDTRACK or MultiviewX layout)")
+                       help="2D boxes or keypoints from calibrated cameras -> 3D tracks")
+    r.add_argument("input", help="input folder (any layout)")
     r.add_argument("--out", required=True, help="output folder (tracks.csv, meta.json)")
-    r.add_argument("--layout", choices=tuple(LAYOUTS), help="input layout (default: detected)")
     r.add_argument("--estimator", choices=ESTIMATORS, default="ukf")
     r.add_argument("--sigma-px", type=SIGMA_PX, help="box-edge noise (default: from the data)")
     r.add_argument("--accel-sd", type=ACCEL,
                    help="acceleration noise, m/s^2/sqrt(Hz) (default: max likelihood)")
-    r.add_argument("--fps", type=FPS, help="frame-number rate (default: the layout's)")
-    r.add_argument("--calib", help="calibration file or folder in any format (cameras.json, WILDTRACK/"
-                   "MultiviewX calibrations/, OpenCV .yml/.xml, Anipose .toml, COLMAP) for the input's own")
-    r.add_argument("--association", metavar="FILE", help="per-camera ids (mot): an edited association.csv "
-                   "whose rows override the automatic cross-view association")
-    r.add_argument("--box-model", choices=("auto", *BOX_MODELS), default="auto", help="how boxes are "
-                   "drawn: " + ", ".join(f"{e.name} ({e.summary})" for e in BOX_MODEL_REGISTRY.values())
-                   + "; auto: chosen from the boxes")
-    r.add_argument("--segments", metavar="FILE", help="an edited segments.csv: its pieces replace the "
-                                                      "automatic identity splits of the ids it lists")
     r.add_argument("--refine-calib", action="store_true",
                    help="refine the cameras from the annotations first (see gt3d calib refine)")
     r.add_argument("--no-smooth", action="store_true", help="forward filter only (no RTS)")
@@ -83,8 +89,7 @@ def _add_reconstruct(sub: argparse._SubParsersAction[Parser], common: argparse.A
                    help="--window: windows on a running Dask scheduler")
     r.add_argument("--quiet", action="store_true", help="no progress display")
     r.add_argument("--no-bones", action="store_true", help="do not tie bone lengths")
-    r.add_argument("--skeleton", choices=sorted(SKELETONS), help="joint order of keypoints.csv")
-    _panoptic_options(r)
+    _scene_options(r)
     r.set_defaults(func=cmd_reconstruct)
 
 
@@ -141,15 +146,7 @@ def _add_compare(sub: argparse._SubParsersAction[Parser], common: argparse.Argum
                        help="UKF, GTSAM smoother and triangulation side by side")
     c.add_argument("input", help="input folder (any layout)")
     c.add_argument("--out", required=True, help="output folder (<estimator>/, comparison.csv)")
-    c.add_argument("--layout", choices=tuple(LAYOUTS))
-    c.add_argument("--skeleton", choices=sorted(SKELETONS))
-    _panoptic_options(c)
-    c.add_argument("--fps", type=FPS)
-    c.add_argument("--calib", help="calibration file or folder in any format, in place of the "
-                                   "input's own")
-    c.add_argument("--association", metavar="FILE", help="as for reconstruct")
-    c.add_argument("--segments", metavar="FILE", help="as for reconstruct")
-    c.add_argument("--box-model", choices=("auto", *BOX_MODELS), default="auto", help="as for reconstruct")
+    _scene_options(c)
     c.add_argument("--no-progress", "--quiet", dest="no_progress", action="store_true",
                    help="no progress bar")
     c.set_defaults(func=cmd_compare)

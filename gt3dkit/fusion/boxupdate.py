@@ -484,7 +484,7 @@ def regression_rows(B: int, m: int, d: int) -> Regression:
     return Regression(np.zeros((B, m), np.bool_), np.zeros((B, m, d)), np.zeros((B, m)), np.ones((B, m)))
 
 
-def _chains(model: Any, fps: float, on: np.ndarray | None) -> tuple[Chains, I64, I64]:
+def object_chains(model: Any, fps: float, on: np.ndarray | None) -> tuple[Chains, I64, I64]:
     """The rows as :class:`Chains` and each object's first and last row ``(O,)`` (-1: not run)."""
     rows = model.rows
     R, O = len(rows), len(rows.obj_ids)
@@ -525,7 +525,7 @@ def run_boxes(model: Any, init: Init, cfg: UKFConfig, fps: float, collect: bool,
     robust = cfg.robust_config if cfg.robust else None
     box = model.box_model(cfg.alpha, cfg.beta, cfg.kappa, robust)._replace(
         iterations=int(cfg.iterations), robust=robust is not None and bool(model.robust_blocks))
-    chains, first, last = _chains(model, fps, on)
+    chains, first, last = object_chains(model, fps, on)
     motion = motion_of(model, cfg, noise_rows)
     fading = Fading(bool(fade), float(chi2_isf(1e-3, SPACE)), contiguous(model.centre_determined, np.bool_),
                     contiguous(model.x_frame), contiguous(model.cov6_frame),

@@ -75,10 +75,9 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
     (:func:`backend_for`): a :class:`gt3dkit.fusion.filterrun.FilterRun`; with ``collect`` it
     holds the final weights, scores and residuals ``(R, m)``. ``fade`` lets the frame's own
     views weaken a contradicted prediction (the fading rule of :mod:`gt3dkit.fusion.kalman`); the
-    noise search runs
-    without it, so that its likelihood judges the motion model as it is. ``on (R,)`` runs the
-    rows of some objects only (whole objects: each object's filter is independent of the
-    others); the other rows' outputs are zero and their statistics absent
+    noise search runs without it, so that its likelihood judges the motion model as it is.
+    ``on (R,)`` runs the rows of some objects only (whole objects: each object's filter is
+    independent of the others); the other rows' outputs are zero and their statistics absent
     (:meth:`FilterRun.merged` combines runs). ``noise_rows`` gives some of ``accel_sd``,
     ``shape_sd``, ``joint_accel_sd`` per row ``(R,)`` instead of ``cfg``'s (the noise search runs
     several values at once)."""

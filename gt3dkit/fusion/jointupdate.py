@@ -31,7 +31,7 @@ import numpy as np
 
 from gt3dkit.arrays import contiguous
 from gt3dkit.fusion.blockcov import BlockCov
-from gt3dkit.fusion.boxupdate import Chains, _chains, regress, run_boxes, sigma_points
+from gt3dkit.fusion.boxupdate import Chains, object_chains, regress, run_boxes, sigma_points
 from gt3dkit.fusion.filterrun import FilterRun
 from gt3dkit.fusion.initial import Init
 from gt3dkit.fusion.kalman import fade_factor, predict_row, rts_row
@@ -450,7 +450,7 @@ def run_joints(model: Any, init: Init, cfg: UKFConfig, fps: float, collect: bool
     if not J:
         return run_boxes(model, init, cfg, fps, collect, fade, on, noise_rows)
     jd = np.concatenate([lay.joint_dims(np.arange(J)), lay.joint_dims(np.arange(J)) + SPACE * J], axis=1)
-    chains, first, last = _chains(model, fps, on)
+    chains, first, last = object_chains(model, fps, on)
     per = noise_rows or {}
     q = per.get("joint_accel_sd", cfg.joint_accel_sd if cfg.joint_accel_sd is not None else cfg.accel_sd)
     at = model.n_box_columns

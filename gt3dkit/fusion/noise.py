@@ -25,12 +25,12 @@ import numpy as np
 from gt3dkit.arrays import contiguous
 from gt3dkit.fusion.boxupdate import (
     Start,
-    _chains,
     applies_to_model,
     box_regressions,
     linear_forward,
     measured,
     motion_of,
+    object_chains,
     regression_rows,
 )
 from gt3dkit.fusion.filtering import backend_for, initial_states, run_filter, smoothed_weights
@@ -209,7 +209,7 @@ class LinearisedSearch:
         R = len(model.rows)
         m = model.z.shape[1]
         box = model.box_model(cfg.alpha, cfg.beta, cfg.kappa, None)
-        self.chains, first, _ = _chains(model, fps, on)
+        self.chains, first, _ = object_chains(model, fps, on)
         self.lins = regression_rows(R, m, box.cols.dims.shape[1])
         box_regressions(np.flatnonzero(self.chains.run).astype(np.int64), contiguous(x_lin),
                         contiguous(P_lin),
@@ -391,7 +391,7 @@ def noise_by_likelihood(pre: Prepared, fps: float, cfg: UKFConfig) -> tuple[UKFC
     ``None``) that maximises the marginal likelihood of the state-space model, by the Kalman
     filter's prediction-error decomposition; what the GTSAM smoother's graph is tuned by too
     (the same model, solved another way)."""
-    key = _noise_key(cfg, fps)
+    key = noise_key(cfg, fps)
     if key not in pre.memo:  # the UKF of this preparation may have found it already
         model = Model.of(pre)
         pre.memo[key] = select_noise(model, initial_states(model, cfg), cfg, pre, fps)
@@ -399,7 +399,7 @@ def noise_by_likelihood(pre: Prepared, fps: float, cfg: UKFConfig) -> tuple[UKFC
     return replace(found, **{k: v for k, v in asdict(cfg).items() if k not in NOISE_FIELDS}), curves
 
 
-def _noise_key(cfg: UKFConfig, fps: float) -> tuple[Any, ...]:
+def noise_key(cfg: UKFConfig, fps: float) -> tuple[Any, ...]:
     """Where :func:`noise_by_likelihood` keeps its result in ``Prepared.memo``."""
     return ("noise_by_likelihood", cfg, fps)
 

@@ -11,12 +11,12 @@ processes, or ``--scheduler ADDRESS``: the Dask cluster ``reconstruct-many`` use
   worker, as the others wait for it (:func:`searched_on_worker`). ``gt3d reconstruct
   --scheduler`` connects before it loads the sequence, and the search's worker loads gt3dkit's
   imports and compiled kernels while it loads (:class:`Cluster`, :func:`warm_first`): the
-  search starts warm. The other workers do that during the search (:func:`_warm_workers`), and
+  search starts warm. The other workers do that during the search (:func:`warm_workers`), and
   the windows are cut and sent to the workers meanwhile (:func:`_cut_windows`).
 * On a Dask cluster, a window (or the search) whose worker is lost runs again on the others: the
   window scenes scattered to that worker went with it, and are scattered again
-  (:class:`Scattered`, :func:`_on_dask`); a local process that dies (``--jobs``) is an error
-  naming its window (:func:`_in_pool`). :func:`connect_scheduler` refuses a scheduler without
+  (:class:`Scattered`, :func:`on_dask`); a local process that dies (``--jobs``) is an error
+  naming its window (:func:`in_pool`). :func:`connect_scheduler` refuses a scheduler without
   workers and workers without this gt3dkit.
 * Each window's rows are written as soon as they are final (every window before it done:
   :class:`gt3dkit.io.writers.StreamedRows`), into the folder that replaces ``OUT`` at the end.
@@ -78,11 +78,11 @@ from gt3dkit.types import Scene, TrackSet
 from gt3dkit.windows.cluster import (
     Cluster,
     Scattered,
-    _in_pool,
-    _on_dask,
-    _process_pool,
-    _warm_workers,
     connect_scheduler,
+    in_pool,
+    on_dask,
+    process_pool,
+    warm_workers,
 )
 from gt3dkit.windows.noise import chosen_noise
 from gt3dkit.windows.plan import (
@@ -90,12 +90,12 @@ from gt3dkit.windows.plan import (
     Bridge,
     Plan,
     Window,
-    _sized,
     auto_plan,
     frame_work,
     occupied,
     overlap_frames,
     plan_windows,
+    sized_plan,
     window_scene,
 )
 from gt3dkit.windows.stitch import OnPart, WindowJob, pooled_bones, run_window, stitch, window_bones
@@ -149,26 +149,26 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
         client = cluster.client if cluster is not None else None
         workers = len(client.scheduler_info()["workers"]) if client is not None else plan.jobs
         frames = np.asarray(scene.frames, dtype=np.int64)
-        windows = plan_windows(frames, _sized(plan, ov, len(frames), workers).size, ov)
+        windows = plan_windows(frames, sized_plan(plan, ov, len(frames), workers).size, ov)
         with contextlib.ExitStack() as stack:
             runner = client
             if client is None and plan.jobs > 1 and len(windows) > 1:
-                runner = stack.enter_context(_process_pool(min(plan.jobs, len(windows))))
-            warming = _warm_workers(client, scene, estimator, config) if client is not None else []
+                runner = stack.enter_context(process_pool(min(plan.jobs, len(windows))))
+            warming = warm_workers(client, scene, estimator, config) if client is not None else []
             noise_when_done = chosen_noise(scene, windows, estimator, config, runner)
             # meanwhile the windows, cut (and sent to the cluster) for the context the noise leaves
             # as it is (always, for boxes), again if it needs less; each frame's objects and each
             # object's annotated frames (--every-frame) found once for both
             work = frame_work(scene, frames) if plan.why else None
             index = Bridge.of(scene, ov) if every_frame is not None else None
-            windows, bridge, scenes = _cut_windows(scene, _sized(plan, ov, len(frames), workers), ov,
+            windows, bridge, scenes = _cut_windows(scene, sized_plan(plan, ov, len(frames), workers), ov,
                                                    client, index, work)
             noise, needed = noise_when_done()
             if plan.overlap is None and needed is not None and needed < ov:  # the noise's own context
                 ov = max(needed, MIN_OVERLAP_FRAMES)
-                windows, bridge, scenes = _cut_windows(scene, _sized(plan, ov, len(frames), workers), ov,
+                windows, bridge, scenes = _cut_windows(scene, sized_plan(plan, ov, len(frames), workers), ov,
                                                        client, index, work)
-            plan = _sized(plan, ov, len(frames), workers)
+            plan = sized_plan(plan, ov, len(frames), workers)
             like = WindowJob(windows[0], estimator, {**config, **noise}, every_frame)
             done = on_window or (lambda k, n: None)
             n = len(windows)
@@ -239,7 +239,7 @@ def _run_windows(scenes: Callable[[int], Any], windows: list[Window], like: Wind
     its scene): on the Dask client or the process pool ``runner``, or one after the other in this
     process (None); ``done(k, n)`` as they start (0) and finish, ``on_part(k, *part)`` with window
     ``k``'s part as it comes. On Dask, a window whose worker was lost runs again on the others
-    (:func:`_on_dask`)."""
+    (:func:`on_dask`)."""
     done(0, len(windows))
     parts: list[Any] = [None] * len(windows)
     got = on_part or (lambda k, *part: None)
@@ -250,13 +250,13 @@ def _run_windows(scenes: Callable[[int], Any], windows: list[Window], like: Wind
             done(k + 1, len(windows))
         return parts
     if hasattr(runner, "scatter"):  # a Dask client
-        finished = _on_dask(runner, lambda k: (fn, dataclasses.replace(like, window=windows[k]), scenes(k)),
+        finished = on_dask(runner, lambda k: (fn, dataclasses.replace(like, window=windows[k]), scenes(k)),
                             len(windows), lambda k: f"window {k + 1} (frames {windows[k].first}-"
                                                     f"{windows[k].last})")
     else:
         futures = {runner.submit(fn, dataclasses.replace(like, window=w), scenes(k)): k
                    for k, w in enumerate(windows)}
-        finished = _in_pool(futures, windows)
+        finished = in_pool(futures, windows)
     for n, (k, part) in enumerate(finished, 1):
         parts[k] = part
         got(k, *part)

@@ -26,12 +26,12 @@ if TYPE_CHECKING:
     from distributed import Client
 
 #: Frames each Dask worker but the first estimates first, to load its imports and kernels
-#: (:func:`_warm_workers`).
+#: (:func:`warm_workers`).
 WARM_FRAMES = 3
 
 
 #: Times a window is submitted to a Dask cluster whose workers holding its scene are lost, at most
-#: (:func:`_on_dask`).
+#: (:func:`on_dask`).
 WINDOW_TRIES = 3
 
 
@@ -105,14 +105,14 @@ class Cluster:
     noise search runs on (:func:`chosen_noise`), loads gt3dkit's imports and compiled kernels
     while the sequence loads (:func:`warm_first`); without, it would only do that before the
     search. The others do it during the search, on the sequence's own first frames
-    (:func:`_warm_workers`): on 2 cores, warming them all during the loading slowed it (4.3 s
+    (:func:`warm_workers`): on 2 cores, warming them all during the loading slowed it (4.3 s
     against 3.4 s, means of 4 runs), and so did connecting in a thread beside it with the second
     worker warming (4.5 s against 3.9 s; connecting first took 0.3-0.45 s). A context manager."""
 
     def __init__(self, address: str, estimator: str, config: dict[str, Any], loading: bool = True) -> None:
         self.client = connect_scheduler(address)
         try:
-            first = _workers(self.client)[:1] if loading else []
+            first = worker_addresses(self.client)[:1] if loading else []
             # held until closed: a future let go is a task cancelled
             self._warming = [self.client.submit(warm_first, estimator, config, workers=first,
                                                 allow_other_workers=False, pure=False)] if first else []
@@ -131,7 +131,7 @@ class Cluster:
         self.close()
 
 
-def _process_pool(workers: int) -> Any:
+def process_pool(workers: int) -> Any:
     """``workers`` local processes (spawned: no fork of a process that holds threads)."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
@@ -149,13 +149,13 @@ def warm_first(estimator: str, config: dict[str, Any]) -> None:
 
 def warm_worker(scene: Scene, estimator: str, config: dict[str, Any]) -> None:
     """Estimate ``scene`` (a few frames) and drop the result: this process's imports and compiled
-    kernels loaded (:func:`_warm_workers`, :func:`warm_first`); an error is left to the windows
+    kernels loaded (:func:`warm_workers`, :func:`warm_first`); an error is left to the windows
     to find."""
     with contextlib.suppress(Exception), small_matrix_blas():
         estimate_checked(scene, make_estimator(estimator, **config))
 
 
-def _warm_workers(client: Client, scene: Scene, estimator: str, config: dict[str, Any]) -> list[Any]:
+def warm_workers(client: Client, scene: Scene, estimator: str, config: dict[str, Any]) -> list[Any]:
     """The sequence's first annotated frames estimated and dropped on the Dask ``client``'s
     workers but the first (:func:`warm_worker`): while the first searches the noise
     (:func:`chosen_noise`), the others load their imports and compiled kernels (a second or two
@@ -166,10 +166,10 @@ def _warm_workers(client: Client, scene: Scene, estimator: str, config: dict[str
         return []
     tiny = window_scene(scene, int(f[0]), int(f[-1]))  # small: inside the task
     return [client.submit(warm_worker, tiny, estimator, config, workers=[w], allow_other_workers=False,
-                          pure=False) for w in _workers(client)[1:]]
+                          pure=False) for w in worker_addresses(client)[1:]]
 
 
-def _workers(client: Client) -> list[str]:
+def worker_addresses(client: Client) -> list[str]:
     """The Dask ``client``'s workers' addresses, sorted."""
     return sorted(client.scheduler_info()["workers"])
 
@@ -201,7 +201,7 @@ class Scattered:
                 time.sleep(1.0)
 
 
-def _in_pool(futures: dict[Any, int], windows: list[Window]) -> Iterator[tuple[int, Any]]:
+def in_pool(futures: dict[Any, int], windows: list[Window]) -> Iterator[tuple[int, Any]]:
     """``(k, result)`` of the local process pool's ``futures`` (window ``k`` each) as they finish;
     a process of the pool that died (the out-of-memory killer, a signal) is an
     :class:`EstimationError` naming the window it was running, not an internal error."""
@@ -219,7 +219,7 @@ def _in_pool(futures: dict[Any, int], windows: list[Window]) -> Iterator[tuple[i
                                             f"{w.first}-{w.last}) not done") from None
 
 
-def _on_dask(client: Client, task: Callable[[int], tuple[Any, ...]], n: int, what: Callable[[int], str],
+def on_dask(client: Client, task: Callable[[int], tuple[Any, ...]], n: int, what: Callable[[int], str],
              submitted: dict[Any, int] | None = None) -> Iterator[tuple[int, Any]]:
     """Tasks ``task(k) = (fn, *args)``, ``k < n``, on the Dask ``client``: ``(k, result)`` as they
     finish (``submitted``: their futures, already submitted by the caller). A task cancelled

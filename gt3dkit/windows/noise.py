@@ -20,7 +20,7 @@ from gt3dkit.fusion.motion import position_step
 from gt3dkit.fusion.noise import SEARCH_OBJECT_FRAMES, drawn_objects
 from gt3dkit.threads import every_core, roomy_malloc, small_matrix_blas
 from gt3dkit.types import Scene
-from gt3dkit.windows.cluster import _on_dask, _workers
+from gt3dkit.windows.cluster import on_dask, worker_addresses
 from gt3dkit.windows.plan import Window, objects_per_frame, window_scene
 
 if TYPE_CHECKING:
@@ -87,15 +87,15 @@ def _search_on_dask(client: Client, sample: Scene, estimator: str, config: dict[
     """:func:`searched_on_worker` of ``sample`` (scattered as data, not inside the task graph) on
     the Dask ``client``'s first worker, warmed as the sequence loaded (:class:`Cluster`); the
     result when the returned function is called. If that worker is lost, the search runs again on
-    any other (:func:`_on_dask`)."""
-    first = _workers(client)[:1] or None
+    any other (:func:`on_dask`)."""
+    first = worker_addresses(client)[:1] or None
     future = client.submit(searched_on_worker, client.scatter(sample, hash=False, workers=first),
                            estimator, config, step_s, workers=first, pure=False)
 
     def again(_: int) -> tuple[Any, ...]:  # on any worker
         return searched_on_worker, client.scatter(sample, hash=False), estimator, config, step_s
 
-    return lambda: next(_on_dask(client, again, 1, lambda _: "the process-noise search", {future: 0}))[1]
+    return lambda: next(on_dask(client, again, 1, lambda _: "the process-noise search", {future: 0}))[1]
 
 
 def searched_objects(sample: Scene, budget: int = SEARCH_OBJECT_FRAMES) -> Scene:

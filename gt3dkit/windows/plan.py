@@ -202,7 +202,7 @@ class Bridge:
         return inside[self.entry]
 
 
-def _sized(plan: Plan, overlap: int, n_frames: int, workers: int) -> Plan:
+def sized_plan(plan: Plan, overlap: int, n_frames: int, workers: int) -> Plan:
     """``plan`` with the window length it runs: a window the tool sized holds ``span`` frames with
     its ``overlap``, and the tool's windows are a multiple of the workers, of equal lengths
     (:func:`balanced_size`); the user's ``--window`` stays as given."""
