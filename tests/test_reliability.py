@@ -167,6 +167,36 @@ def _snapshot(out: Path) -> dict[str, bytes]:
     return {str(q.relative_to(out)): q.read_bytes() for q in sorted(out.rglob("*")) if q.is_file()}
 
 
+# an object a signal leaves half-built (numba's compiler, interrupted inside llvmlite) fails in
+# its finaliser as the process ends: that must not add a traceback under the one error line
+HALF_BUILT = """
+import os, signal, sys, time
+from gt3dkit.commands.common import signals_handled, unexpected_error
+class HalfBuilt:
+    def __del__(self):
+        raise AttributeError("no attribute '_as_parameter_'")
+kept = []
+try:
+    with signals_handled():
+        kept.append(HalfBuilt())
+        os.kill(os.getpid(), signal.{sig})
+        time.sleep(30)
+except BaseException as e:
+    code = unexpected_error(e, False) if not isinstance(e, KeyboardInterrupt) else 130
+    if isinstance(e, KeyboardInterrupt):
+        print("error: interrupted (Ctrl-C): no output written or changed", file=sys.stderr)
+    sys.exit(code)
+"""
+
+
+@pytest.mark.parametrize("sig,code", [("SIGTERM", 143), ("SIGINT", 130)])
+def test_finalisers_after_a_signal_add_nothing(sig, code) -> None:
+    p = subprocess.run([sys.executable, "-c", HALF_BUILT.format(sig=sig)], capture_output=True,
+                       text=True, timeout=60, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert p.returncode == code, p.stderr
+    assert p.stderr.startswith("error: ") and p.stderr.count("\n") == 1, p.stderr
+
+
 def test_killed_run_then_rerun(scenes, tmp_path) -> None:
     """SIGKILL at any moment: the folder holds the old or the new result, and the next run
     removes what the killed one left."""

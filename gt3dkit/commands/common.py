@@ -299,13 +299,20 @@ class Terminated(BaseException):
 RECEIVED_SIGNALS: list[int] = []
 
 
+def _after_a_signal(unraisable: sys.UnraisableHookArgs) -> None:
+    """Objects the signal left half-built (numba's compiler, interrupted mid-function) may fail in
+    their finalisers as the process ends; the user has their one ``error:`` line already."""
+
+
 def on_terminate(signum: int, frame: FrameType | None) -> None:
     RECEIVED_SIGNALS.append(signum)
+    sys.unraisablehook = _after_a_signal
     raise Terminated(signum)
 
 
 def on_interrupt(signum: int, frame: FrameType | None) -> None:
     RECEIVED_SIGNALS.append(signum)
+    sys.unraisablehook = _after_a_signal
     raise KeyboardInterrupt
 
 
