@@ -17,9 +17,10 @@ import numpy as np
 from gt3dkit.arrays import frame_grid, lookup_rows, unique_rows
 from gt3dkit.calib.formats.native import rig_of_doc
 from gt3dkit.errors import InputError
-from gt3dkit.fusion.associate import apply_association, associate, associate_detections, read_overrides
+from gt3dkit.fusion.associate import apply_association, associate, read_overrides
 from gt3dkit.fusion.base import ESTIMATORS, Estimator, make_estimator, over_time
 from gt3dkit.fusion.boxfit import choose_box_model
+from gt3dkit.fusion.detections import associate_detections
 from gt3dkit.fusion.identity import Segments, identity_segments
 from gt3dkit.fusion.prepare import Prepared, prepare, undetermined_objects
 from gt3dkit.fusion.rows import Rows, build_rows
@@ -31,7 +32,7 @@ from gt3dkit.parse import read_csv_rows
 from gt3dkit.qa.anomalies import find_anomalies
 from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
 from gt3dkit.threads import small_matrix_blas
-from gt3dkit.types import BOX_MODELS, I64, Scene, TrackSet
+from gt3dkit.types import BOX_MODELS, I64, JsonDict, OptionValue, Scene, TrackSet
 
 __all__ = ["ESTIMATORS", "annotation_qa", "load_run", "load_scene", "make_estimator", "reconstruct"]
 
@@ -150,9 +151,9 @@ def with_pieces(scene: Scene, path: Path) -> Scene:
 
 
 def reconstruct(scene: Scene | str | Path, estimator: str | Estimator = "ukf",
-                out: str | Path | None = None, extra_meta: dict[str, Any] | None = None,
+                out: str | Path | None = None, extra_meta: JsonDict | None = None,
                 on_stage: Callable[[str], None] | None = None, every_frame: int | None = None,
-                **config: Any) -> TrackSet:
+                **config: OptionValue) -> TrackSet:
     """Estimate tracks for a scene (or an input folder); write ``out`` if given (with
     ``extra_meta`` added to its meta.json). ``on_stage(name)`` is called as each stage starts
     (a progress display). ``every_frame``: None = a row for every annotated object-frame (one
@@ -359,14 +360,14 @@ class Run:
     """A reconstruct output read back, with the scene it was made from."""
 
     out: Path
-    meta: dict[str, Any]
+    meta: JsonDict
     scene: Scene
     tracks: TrackSet
     anomalies: list[dict[str, str]]
     notes: list[str]
 
 
-def _load_scene(out: Path, meta: dict[str, Any], why: str) -> tuple[Scene, list[str]]:
+def _load_scene(out: Path, meta: JsonDict, why: str) -> tuple[Scene, list[str]]:
     where = str(out / "meta.json")
     inp = meta.get("input")
     if not isinstance(inp, dict) or not isinstance(inp.get("load", inp), dict):

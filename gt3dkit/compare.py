@@ -5,7 +5,6 @@ from __future__ import annotations
 import csv
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -21,7 +20,7 @@ from gt3dkit.geom.camera import Cams, project_points
 from gt3dkit.geom.conics import model_boxes
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.writers import write_result_files
-from gt3dkit.types import F64, Scene, TrackSet
+from gt3dkit.types import F64, JsonDict, Scene, TrackSet
 
 
 def _row_of(tracks: TrackSet, rows: Rows) -> np.ndarray:
@@ -80,7 +79,7 @@ def disagreement(a: TrackSet, b: TrackSet, seen_a: np.ndarray | None = None) -> 
 
 
 def compare(scene: Scene, out: Path, estimators: tuple[str, ...] = COMPARE_ESTIMATORS,
-            progress: bool = True) -> list[dict[str, Any]]:
+            progress: bool = True) -> list[JsonDict]:
     """Run ``estimators`` on ``scene``; write ``out/<name>/`` outputs and ``out/comparison.csv``
     (all at once, atomically). Returns the comparison rows."""
     from tqdm import tqdm
@@ -110,7 +109,7 @@ def compare(scene: Scene, out: Path, estimators: tuple[str, ...] = COMPARE_ESTIM
     seen = {name: seen_joints(tr, rows) for name, tr in results.items()}
     for name, tr in results.items():
         res = reprojection_residuals(tr, scene, rows)
-        row: dict[str, Any] = {
+        row: JsonDict = {
             "estimator": name, "rows": len(tr),
             "skipped_rows": int(tr.info.get("skipped_lt2_views", 0)),
             "reproj_mean_px": float(np.mean(res)) if res.size else float("nan"),

@@ -21,7 +21,6 @@ from __future__ import annotations
 import json
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -31,7 +30,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.results import Result, read_result
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import F64, I64
+from gt3dkit.types import F64, I64, JsonDict
 from gt3dkit.viz.overview import colour_of
 
 
@@ -90,7 +89,7 @@ def _frame_info(res: Result) -> tuple[F64, F64, str]:
     return up, wfb, str(fr.get("name", ""))
 
 
-def write_c3d(res: Result, path: Path) -> dict[str, Any]:
+def write_c3d(res: Result, path: Path) -> JsonDict:
     import ezc3d
 
     names, grid, X, S, _ = markers(res)
@@ -117,7 +116,7 @@ def write_c3d(res: Result, path: Path) -> dict[str, Any]:
             f"up = {up.tolist()} (GT3DKIT:UP)", "first_frame": int(grid[0])}
 
 
-def write_trc(res: Result, folder: Path) -> dict[str, Any]:
+def write_trc(res: Result, folder: Path) -> JsonDict:
     names, grid, X, _, owner = markers(res)
     up, wfb, _ = _frame_info(res)
     R = y_up_rotation(up, wfb)
@@ -143,7 +142,7 @@ def write_trc(res: Result, folder: Path) -> dict[str, Any]:
             "(OpenSim): trc = R @ world", "R": R.tolist(), "first_frame": int(grid[0])}
 
 
-def write_json(res: Result, path: Path) -> dict[str, Any]:
+def write_json(res: Result, path: Path) -> JsonDict:
     tr = res.tracks
     up, wfb, frame_name = _frame_info(res)
     joints = res.joints if tr.kpt_world.shape[1] else ()
@@ -156,7 +155,7 @@ def write_json(res: Result, path: Path) -> dict[str, Any]:
     for f in np.unique(tr.frame):
         objs = []
         for k in order[tr.frame[order] == f]:
-            o: dict[str, Any] = {"id": int(tr.track_id[k]), "centre": num(tr.center_world[k]),
+            o: JsonDict = {"id": int(tr.track_id[k]), "centre": num(tr.center_world[k]),
                                  "semi_axes": num(tr.semi_axes[k]), "centre_sd": num(tr.center_sd[k])}
             if joints:
                 o["keypoints"] = [None if not np.isfinite(x).all() else num(x) for x in tr.kpt_world[k]]
@@ -176,7 +175,7 @@ def write_json(res: Result, path: Path) -> dict[str, Any]:
     return {"file": path.name, "frames": len(frames), "units": "m"}
 
 
-def write_rerun(res: Result, path: Path) -> dict[str, Any]:
+def write_rerun(res: Result, path: Path) -> JsonDict:
     import rerun as rr
 
 
@@ -258,7 +257,7 @@ def write_rerun(res: Result, path: Path) -> dict[str, Any]:
 
 
 #: Every export format: its writer of a result into the export folder (returns what it wrote).
-EXPORTERS: dict[str, Callable[[Result, Path], dict[str, Any]]] = {
+EXPORTERS: dict[str, Callable[[Result, Path], JsonDict]] = {
     "c3d": lambda res, tmp: write_c3d(res, tmp / "tracks.c3d"),
     "trc": write_trc,
     "json": lambda res, tmp: write_json(res, tmp / "tracks.json"),
@@ -267,13 +266,13 @@ EXPORTERS: dict[str, Callable[[Result, Path], dict[str, Any]]] = {
 FORMATS = tuple(EXPORTERS)
 
 
-def export(out: Path, fmt: str, dest: Path) -> dict[str, Any]:
+def export(out: Path, fmt: str, dest: Path) -> JsonDict:
     """Export the reconstruct output ``out`` as ``fmt`` into the folder ``dest`` (atomically);
     returns what was written (also in ``dest/export.json``)."""
     if fmt not in FORMATS:
         raise InputError("--format", f"unknown format {fmt!r} (known: {', '.join(FORMATS)})")
     res = read_result(Path(out))
-    info: dict[str, Any] = {}
+    info: JsonDict = {}
 
     def write(tmp: Path) -> None:
         info.update(EXPORTERS[fmt](res, tmp))

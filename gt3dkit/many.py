@@ -23,12 +23,13 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from gt3dkit.api import load_scene, reconstruct
 from gt3dkit.errors import EstimationError, InputError
 from gt3dkit.io.atomic import MARKER
 from gt3dkit.threads import small_matrix_blas
+from gt3dkit.types import JsonDict, JsonValue, Scene
 from gt3dkit.version import __version__
 from gt3dkit.viz.report import write_report
 from gt3dkit.windows import connect_scheduler
@@ -83,7 +84,7 @@ class Job:
     report: bool
 
 
-def _current(out: Path, scene: Any, estimator: str) -> bool:
+def _current(out: Path, scene: Scene, estimator: str) -> bool:
     """``out`` holds a complete output of this input (same checksums), estimator and version."""
     try:
         meta = json.loads((out / "meta.json").read_text())
@@ -95,7 +96,7 @@ def _current(out: Path, scene: Any, estimator: str) -> bool:
             and (meta.get("input") or {}).get("files_sha256") == scene.files)
 
 
-def run_job(job: Job) -> dict[str, Any]:
+def run_job(job: Job) -> JsonDict:
     """Reconstruct one sequence (in a worker process): a summary row, never an exception."""
     import warnings
 
@@ -130,7 +131,7 @@ def run_job(job: Job) -> dict[str, Any]:
 
 def run_many(inputs: list[Path], out: Path, estimator: str = "ukf", jobs: int | None = None,
              scheduler: str | None = None, report: bool = False,
-             progress: bool = True) -> list[dict[str, Any]]:
+             progress: bool = True) -> list[JsonDict]:
     """Run every input; returns the summary rows (also ``OUT/summary.csv``)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -162,7 +163,7 @@ def run_many(inputs: list[Path], out: Path, estimator: str = "ukf", jobs: int | 
 
 
 def _ran(todo: list[Job], client: Client | None, jobs: int | None, progress: bool,
-         fn: Callable[[Job], dict[str, Any]] = run_job) -> list[dict[str, Any]]:
+         fn: Callable[[Job], JsonDict] = run_job) -> list[JsonDict]:
     """Every job's summary row (``fn``, :func:`run_job`), in the order they finish: on the Dask
     ``client``'s workers, or in ``jobs`` local processes (spawned). A sequence whose process died
     (the out-of-memory killer, a crash in a library) is a failed row, not the end of the run: Dask
@@ -170,7 +171,7 @@ def _ran(todo: list[Job], client: Client | None, jobs: int | None, progress: boo
     breaks its pool, and the sequences not yet done are failed rows too (a rerun does them)."""
     from tqdm import tqdm
 
-    rows: list[dict[str, Any]] = []
+    rows: list[JsonDict] = []
     bar = tqdm(total=len(todo), desc="sequences", unit="seq", disable=not progress)
     if client is not None:
         from distributed import as_completed
@@ -203,17 +204,17 @@ def _ran(todo: list[Job], client: Client | None, jobs: int | None, progress: boo
     return rows
 
 
-def _row(job: Job, **fields: Any) -> dict[str, Any]:
+def _row(job: Job, **fields: JsonValue) -> JsonDict:
     """``job``'s summary row (:data:`SUMMARY_COLUMNS`), empty but for ``fields``."""
     return {"input": job.input, "output": job.output, **dict.fromkeys(SUMMARY_COLUMNS[2:], ""), **fields}
 
 
-def _died(job: Job, why: str) -> dict[str, Any]:
+def _died(job: Job, why: str) -> JsonDict:
     """The summary row of ``job``, failed because its process died (``why``)."""
     return _row(job, status="failed", error=f"error: {why}")
 
 
-def _index(out: Path, rows: list[dict[str, Any]]) -> None:
+def _index(out: Path, rows: list[JsonDict]) -> None:
     """``OUT/index.html``: every sequence with its status, counts and a link to its report."""
     body = []
     for r in rows:

@@ -11,7 +11,7 @@ import math
 from collections.abc import Callable, Iterator
 from operator import itemgetter
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, TypeAlias, TypeVar
 
 import numpy as np
 
@@ -19,6 +19,9 @@ from gt3dkit.errors import InputError
 from gt3dkit.rig import MAX_WORLD_M
 
 T = TypeVar("T")
+
+#: A CSV file's rows as :func:`csv.reader` gives them.
+CsvRows: TypeAlias = Iterator[list[str]]
 
 
 def sha256(path: Path) -> str:
@@ -86,7 +89,7 @@ def read_json_field(path: Path, key: str, what: str) -> Any:
     return doc[key]
 
 
-def parse_int(where: str, text: Any, name: str, lo: int = -ID_MAX, hi: int = ID_MAX) -> int:
+def parse_int(where: str, text: object, name: str, lo: int = -ID_MAX, hi: int = ID_MAX) -> int:
     """An integer field (text or JSON value) in ``[lo, hi]``, or :class:`InputError`."""
     if isinstance(text, bool) or isinstance(text, float) and not text.is_integer():
         raise InputError(where, f"{name} must be an integer, got {text!r}")
@@ -99,11 +102,11 @@ def parse_int(where: str, text: Any, name: str, lo: int = -ID_MAX, hi: int = ID_
     return v
 
 
-def parse_frame(where: str, text: Any) -> int:
+def parse_frame(where: str, text: object) -> int:
     return parse_int(where, text, "frame", 0, FRAME_MAX)
 
 
-def parse_float(where: str, text: Any, name: str, limit: float = math.inf) -> float:
+def parse_float(where: str, text: object, name: str, limit: float = math.inf) -> float:
     """A finite number field of magnitude up to ``limit``, or :class:`InputError`."""
     try:
         v = float(text)
@@ -116,7 +119,7 @@ def parse_float(where: str, text: Any, name: str, limit: float = math.inf) -> fl
     return v
 
 
-def parse_metres(where: str, text: Any, name: str) -> float:
+def parse_metres(where: str, text: object, name: str) -> float:
     """A world coordinate or length (m): finite, within :data:`MAX_WORLD_M`."""
     return parse_float(where, text, f"{name} (m)", MAX_WORLD_M)
 
@@ -137,7 +140,7 @@ def iter_csv_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | 
     return _read_csv(path, lambda reader: _record_blocks(path, columns, warnings, reader, size))
 
 
-def _record_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | None, reader: Any,
+def _record_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | None, reader: CsvRows,
                    size: int) -> Iterator[tuple[list[int], list[list[str]]]]:
     """The rows after a header starting with ``columns`` (checked by :func:`_checked_header`), in
     blocks of up to ``size`` rows ``(line numbers, rows)``: blank lines skipped, every row as wide as
@@ -191,14 +194,14 @@ def iter_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | No
     header (MOTChallenge), each row with at least ``len(columns)`` fields, the same number in
     every row.
     """
-    def rows(reader: Any) -> Iterator[tuple[int, list[str]]]:
+    def rows(reader: CsvRows) -> Iterator[tuple[int, list[str]]]:
         return _csv_records(path, columns, warnings, reader) if header else _headerless(path, columns, reader)
 
     for line, row in _read_csv(path, rows):
         yield line, dict(zip(columns, (x.strip() for x in row), strict=False))
 
 
-def _read_csv(path: Path, rows: Callable[[Any], Iterator[T]]) -> Iterator[T]:
+def _read_csv(path: Path, rows: Callable[[CsvRows], Iterator[T]]) -> Iterator[T]:
     """``rows(reader)`` of a ``csv.reader`` on ``path`` (UTF-8, a byte-order mark allowed), with
     what goes wrong reading it as :class:`InputError` naming the file (and line)."""
     reader = None
@@ -215,7 +218,7 @@ def _read_csv(path: Path, rows: Callable[[Any], Iterator[T]]) -> Iterator[T]:
         raise InputError(str(path), f"cannot read ({e.strerror})") from None
 
 
-def _headerless(path: Path, columns: tuple[str, ...], reader: Any) -> Iterator[tuple[int, list[str]]]:
+def _headerless(path: Path, columns: tuple[str, ...], reader: CsvRows) -> Iterator[tuple[int, list[str]]]:
     """The rows of a CSV without a header (MOTChallenge): at least ``len(columns)`` fields, the
     same number in every row; blank lines skipped."""
     width = None
@@ -231,7 +234,7 @@ def _headerless(path: Path, columns: tuple[str, ...], reader: Any) -> Iterator[t
         yield line, row
 
 
-def _checked_header(path: Path, columns: tuple[str, ...], warnings: list[str] | None, reader: Any) -> int:
+def _checked_header(path: Path, columns: tuple[str, ...], warnings: list[str] | None, reader: CsvRows) -> int:
     """Reads the header, which must start with ``columns`` (more columns: a note in ``warnings``,
     an error when that is None); its width."""
     where = str(path)
@@ -248,7 +251,7 @@ def _checked_header(path: Path, columns: tuple[str, ...], warnings: list[str] | 
 
 
 def _csv_records(path: Path, columns: tuple[str, ...], warnings: list[str] | None,
-                 reader: Any) -> Iterator[tuple[int, list[str]]]:
+                 reader: CsvRows) -> Iterator[tuple[int, list[str]]]:
     """The rows after a header starting with ``columns`` (checked), as :func:`iter_csv_rows`
     reads them: (line number, fields), blank lines skipped, every row as wide as the header."""
     for lines, rows in _record_blocks(path, columns, warnings, reader, 1):

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -44,7 +43,7 @@ from gt3dkit.io.labels import (
 )
 from gt3dkit.io.writers import read_segments_csv
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import F64, I64, Scene, TrackSet
+from gt3dkit.types import F64, I64, JsonDict, Scene, TrackSet
 
 OCCLUDED_ABOVE = 0.5  # covered fraction above which a shape is ``occluded`` (CVAT's meaning)
 
@@ -58,7 +57,7 @@ def _lost(scene: Scene) -> list[str]:
             "every keypoint weighs alike, so the estimate moves from this run's"]
 
 
-def _states(tr: TrackSet, seg: I64, step: int | None) -> dict[str, Any]:
+def _states(tr: TrackSet, seg: I64, step: int | None) -> JsonDict:
     """The estimate's rows, and with ``step`` every ``step``-th frame from each (id, piece)'s first
     to its last frame, interpolated where the run has no row. ``interpolated (M,)``: rows no
     view labelled (the motion model's or this interpolation's)."""
@@ -206,7 +205,7 @@ def project_run(run: Run, step: int | None = None, cameras: tuple[str, ...] | No
 
 
 def project(out: Path, fmt: str, dest: Path, step: int | None = None,
-            cameras: tuple[str, ...] | None = None, only_flagged: bool = False) -> dict[str, Any]:
+            cameras: tuple[str, ...] | None = None, only_flagged: bool = False) -> JsonDict:
     """Write the shapes of the run ``out`` to ``dest`` (atomically): ``<fmt>/<camera>.*``, the
     calibration as ``cameras.json`` (so that ``gt3d reconstruct dest`` reads the reviewed set)
     ``association.csv`` (the run's ids in every camera: ``gt3d reconstruct dest --association
@@ -225,7 +224,7 @@ def project(out: Path, fmt: str, dest: Path, step: int | None = None,
     bones = tuple(skel.bones) if skel is not None else ()
     counts = {s: int((shapes.source == k).sum()) for k, s in enumerate(SOURCES)}
     ids = piece_ids(shapes)
-    summary: dict[str, Any] = {
+    summary: JsonDict = {
         "run": str(Path(out).resolve()), "format": fmt, "shapes": len(shapes), **counts,
         "flagged": int(sum(a != "" for a in shapes.anomalies)),
         "occluded": int(shapes.occluded.sum()), "frame_step": shapes.step,

@@ -11,7 +11,6 @@ that does not fold the image, magnitudes.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -19,7 +18,7 @@ import numpy.typing as npt
 F64 = npt.NDArray[np.float64]
 
 
-def as_array(x: Any, shape: tuple[int | None, ...], name: str, *, finite: bool = True) -> F64:
+def as_array(x: npt.ArrayLike, shape: tuple[int | None, ...], name: str, *, finite: bool = True) -> F64:
     """``x`` as float64 of ``shape`` (None = any length), or ValueError naming ``name``."""
     a = np.asarray(x, dtype=np.float64)
     if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape, strict=True)):

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Any, overload
+from typing import Any, TypeAlias, overload
 
 import numpy as np
 import numpy.typing as npt
@@ -34,6 +34,19 @@ from gt3dkit.rig import (  # noqa: F401 - the camera model lives in gt3dkit.rig
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
 B8 = npt.NDArray[np.bool_]
+
+#: Rows of a batch as numpy indexes them: one, a slice, integer indices or a mask.
+RowIndex: TypeAlias = "int | slice | np.ndarray"
+#: A value a JSON file holds (``meta.json``, a summary, a report's numbers), nested; numpy's
+#: scalars count as the Python numbers they subclass or convert to when written.
+JsonValue: TypeAlias = ("str | int | float | bool | None | list[JsonValue] | tuple[JsonValue, ...]"
+                        " | dict[str, JsonValue]")
+#: A JSON object by its keys.
+JsonDict: TypeAlias = "dict[str, JsonValue]"
+#: An estimator option: a field of its config set by keyword (a number, a switch, bounds).
+OptionValue: TypeAlias = float | int | bool | str | tuple[float, float] | None
+#: Estimator options by config field (``gt3d``'s ``--sigma-px`` and the like, or the API's keywords).
+Options: TypeAlias = dict[str, OptionValue]
 
 #: How a state (centre, semi-axes along the body axes) draws a person's box in a camera
 #: (:mod:`gt3dkit.geom.boxkernel`): the ellipsoid's tangent box (the paper's), the vertical
@@ -257,7 +270,7 @@ class Scene:
     root: str = ""
     warnings: tuple[str, ...] = ()  # odd but valid input: printed as ``warning:`` lines
     fps_assumed: str = ""  # why ``fps`` is a default, not the input's ("" = the input gives it)
-    load_options: dict[str, Any] = field(default_factory=dict)  # load_scene's arguments (JSON-able)
+    load_options: JsonDict = field(default_factory=dict)  # load_scene's arguments (JSON-able)
     association: Any = None  # fusion.associate.Association when ids were per camera
     # (id, segment, first frame, last frame) pieces an edited segments.csv gives (fusion.identity)
     identity_pieces: tuple[tuple[int, int, int, int], ...] = ()
@@ -321,7 +334,7 @@ class TrackSet:
     n_views: I64
     kpt_world: F64
     kpt_sd: F64
-    info: dict[str, Any] = field(default_factory=dict)
+    info: JsonDict = field(default_factory=dict)
     downweighted: Downweighted | None = None
 
     def __len__(self) -> int:

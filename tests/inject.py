@@ -13,7 +13,7 @@ import numpy as np
 
 from gt3dkit.arrays import unique_rows
 from gt3dkit.geom.conics import ellipsoid_boxes
-from gt3dkit.sim import Errors, _detector_errors
+from gt3dkit.sim import Errors, detector_errors
 from gt3dkit.types import Observations, Rig, Scene
 
 
@@ -62,7 +62,7 @@ def corrupt_keypoints(scene: Scene, errors: Errors, seed: int = 0
     C, J = len(scene.rig.cameras), obs.n_joints
     uv = np.full((len(keys), C, J, 2), np.nan)
     uv[m_of, obs.cam] = obs.kpt_uv_px
-    uv2, conf, injected = _detector_errors(uv, scene.rig, scene.skeleton, keys[:, 0], keys[:, 1],
+    uv2, conf, injected = detector_errors(uv, scene.rig, scene.skeleton, keys[:, 0], keys[:, 1],
                                            np.asarray(scene.frames), errors,
                                            np.random.default_rng([seed, 1]))
     kpt = uv2[m_of, obs.cam]

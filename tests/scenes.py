@@ -9,8 +9,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from gt3dkit.api import load_scene
-from gt3dkit.sim import Errors, SimScene, simulate, write_scene
-from gt3dkit.types import Scene
+from gt3dkit.sim import Errors, simulate, write_scene
+from gt3dkit.types import Scene, SimScene
 
 
 def written_scene(root: Path, layout: str = "native", **kw: object) -> tuple[Scene, SimScene]:

@@ -26,7 +26,7 @@ def test_gtsam_on_exact_box_scene(small_native) -> None:
 
 @pytest.mark.parametrize("fixed_noise", [False, True])
 def test_gtsam_box_chain_is_gtsams_own_graph(tmp_path: Path, monkeypatch, fixed_noise: bool) -> None:
-    """The box objects' graph linearised in batches (smoother_gtsam._solve_boxes) is GTSAM's
+    """The box objects' graph linearised in batches (gtsam_chain.solve_boxes) is GTSAM's
     own nonlinear graph of CustomFactors and robust noise models (GTSAMSmoother._solve_object):
     the same solution, iterations and marginal sds on a scene whose shifted boxes, gaps and
     one-camera objects make the Huber losses and the rows without views matter; with the
@@ -49,7 +49,7 @@ def test_gtsam_box_chain_is_gtsams_own_graph(tmp_path: Path, monkeypatch, fixed_
     def own_graph(gtsam, cfg, pre, mine, start_values, tuned, fps, start=None):
         return est._solve_object(gtsam, pre, mine, start_values, None, [], tuned, fps, start)
 
-    monkeypatch.setattr(sg, "_solve_boxes", own_graph)
+    monkeypatch.setattr(sg, "solve_boxes", own_graph)
     ref = est.estimate(scene, pre)
     assert batched.info["iterations"] == ref.info["iterations"]
     checks, ref_checks = (t.info["process_noise_discrepancy"] for t in (batched, ref))

@@ -12,14 +12,13 @@ joints sit well below the floor or whose highest are above 3 m (up or the floor 
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
 from gt3dkit.rig import Rig
+from gt3dkit.types import JsonDict
 
 
-def camera_table(rig: Rig) -> list[dict[str, Any]]:
+def camera_table(rig: Rig) -> list[JsonDict]:
     out = []
     for c in rig.cameras:
         look = c.depth_sign * c.R[2]  # optical axis in the world

@@ -28,7 +28,7 @@ from gt3dkit.eval.tracking import tracking_scores
 from gt3dkit.fusion.base import REGISTRY
 from gt3dkit.io.atomic import check_out
 from gt3dkit.io.datasets import detect_layout
-from gt3dkit.types import BOX_MODEL_REGISTRY, Scene, TrackSet
+from gt3dkit.types import BOX_MODEL_REGISTRY, JsonDict, Options, Scene, TrackSet
 
 #: Published numbers of Ma et al. for the datasets we can compare on.
 PAPER = {"multiviewx": {"MOTA": 96.5, "OSPA2_m": 0.17}, "wildtrack": {"MOTA": 98.7, "OSPA2_m": 0.10},
@@ -45,7 +45,7 @@ _CONFIG_OPTIONS = {"sigma_px": ("--sigma-px", "sigma_px"), "accel_sd": ("--accel
                    "no_smooth": ("--no-smooth", "smooth"), "no_bones": ("--no-bones", "bones")}
 
 
-def estimator_config(args: argparse.Namespace) -> dict[str, Any]:
+def estimator_config(args: argparse.Namespace) -> Options:
     """The estimator's config from the options given; an option the estimator has no use for
     is an error, never silently ignored."""
     from importlib import import_module
@@ -53,7 +53,7 @@ def estimator_config(args: argparse.Namespace) -> dict[str, Any]:
 
     e = REGISTRY[args.estimator]
     fields = {f.name for f in dataclasses.fields(getattr(import_module(e.module), e.config))}
-    cfg: dict[str, Any] = {}
+    cfg: Options = {}
     for attr, (option, name) in _CONFIG_OPTIONS.items():
         v = getattr(args, attr, None)
         if v is None or v is False:
@@ -87,7 +87,7 @@ def load_input(args: argparse.Namespace) -> Any:
     if getattr(args, "out", None) is not None:
         check_output(args.out, (args.input,))
     layout = args.layout or detect_layout(Path(args.input))
-    opts: dict[str, Any] = {}
+    opts: JsonDict = {}
     if layout == "panoptic":
         if args.cameras is not None:
             opts["cameras"] = [c.strip() for c in args.cameras.split(",") if c.strip()]

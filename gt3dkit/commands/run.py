@@ -36,7 +36,7 @@ from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv
 from gt3dkit.many import read_manifest, run_many
 from gt3dkit.project import project
 from gt3dkit.refine import refine, rig_digest
-from gt3dkit.types import Scene
+from gt3dkit.types import Options, Scene
 from gt3dkit.viz.report import write_report
 from gt3dkit.windows import Cluster, Plan, auto_plan, reconstruct_windows
 
@@ -48,7 +48,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         return reconstructed(args, config, cluster)
 
 
-def early_cluster(args: argparse.Namespace, config: dict[str, Any]) -> Any:
+def early_cluster(args: argparse.Namespace, config: Options) -> Any:
     """``--scheduler``'s Dask cluster, connected before the input loads and its first worker
     warmed while it loads (:class:`gt3dkit.windows.Cluster`); a null context where the run uses
     none (``--window 0`` and the triangulation are refused after the input loads, by
@@ -58,7 +58,7 @@ def early_cluster(args: argparse.Namespace, config: dict[str, Any]) -> Any:
     return Cluster(args.scheduler, args.estimator, config)
 
 
-def reconstructed(args: argparse.Namespace, config: dict[str, Any], cluster: Cluster | None) -> int:
+def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | None) -> int:
     """``gt3d reconstruct``'s run, on ``cluster`` where given."""
     stages = Stages(5, args.quiet)
     stages("loading")

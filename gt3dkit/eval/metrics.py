@@ -17,12 +17,12 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
 from gt3dkit.arrays import lookup_rows
-from gt3dkit.types import F64, GroundTruth, TrackSet
+from gt3dkit.types import F64, I64, GroundTruth, JsonDict, TrackSet
 
 
 def match_rows(tracks: TrackSet, truth: GroundTruth) -> tuple[np.ndarray, np.ndarray]:
@@ -178,7 +178,7 @@ def _nanmean(x: F64) -> float:
 
 
 def box_errors(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float = 1.0,
-               mot: dict[str, Any] | None = None) -> BoxErrors:
+               mot: JsonDict | None = None) -> BoxErrors:
     """Errors of matched rows and :func:`clear_mot` (``mot``: its result when already computed,
     e.g. by :func:`gt3dkit.eval.tracking.tracking_scores` with the same arguments)."""
     it, ig = match_rows(tracks, truth)
@@ -199,6 +199,41 @@ def box_errors(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float 
         ground_median_m=float(np.median(ground)) if ground.size else float("nan"),
         centre_mean_m=_nanmean(centre), height_mean_m=_nanmean(height),
         radius_mean_m=_nanmean(radius), **mot)
+
+
+def _match_frame(d2: F64, o: I64, h: I64, last: I64, col: I64, om: np.ndarray, hm: np.ndarray) -> int:
+    """One frame of :func:`clear_mot`: its truths ``o`` and tracks ``h`` (indices of the ids),
+    their squared distances ``d2`` (NaN: out of reach). Each truth keeps the track it was last
+    matched to (``last``, updated) where within reach, the rest are assigned; ``om``, ``hm``
+    mark the matched truths and tracks (``col``: a scratch map, left all -1). Returns the
+    identity switches."""
+    from scipy.optimize import linear_sum_assignment
+
+    switches = 0
+    col[h] = np.arange(len(h))  # (1) carry the previous matches forward
+    j = np.where(last[o] >= 0, col[np.maximum(last[o], 0)], -1)
+    col[h] = -1
+    i = np.flatnonzero(j >= 0)
+    i = i[np.isfinite(d2[i, j[i]])]
+    hm[j[i]] = True
+    if hm.sum() < len(i):  # a track two truths last had: the first truth's, in order
+        _, first = np.unique(j[i], return_index=True)
+        i = np.sort(i[first])
+    om[i] = True
+    rest = d2[~om][:, ~hm]
+    if np.isfinite(rest).any():  # (2) the rest, most pairs first, then least distance
+        valid = np.isfinite(rest)
+        big = 2 * min(rest.shape) * (np.abs(rest[valid]).max() + 1) + 1
+        r, cc = linear_sum_assignment(np.where(valid, rest, big))
+        ri, ci = np.flatnonzero(~om)[r], np.flatnonzero(~hm)[cc]
+        for a, b in zip(ri.tolist(), ci.tolist(), strict=True):
+            if not np.isfinite(d2[a, b]):
+                continue
+            if last[o[a]] >= 0 and last[o[a]] != h[b]:
+                switches += 1
+            last[o[a]] = h[b]
+            om[a] = hm[b] = True
+    return switches
 
 
 def clear_mot(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float = 1.0,
@@ -252,30 +287,7 @@ def clear_mot(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float =
         if k1 > k0:
             d2 = np.full((len(gi), len(hi)), np.nan)
             d2[pos_t[pt[k0:k1]], pos_e[pe[k0:k1]]] = d2p[k0:k1]
-            o, h = t_idx[gi], e_idx[hi]
-            col[h] = np.arange(len(h))  # (1) carry the previous matches forward
-            j = np.where(last[o] >= 0, col[np.maximum(last[o], 0)], -1)
-            col[h] = -1
-            i = np.flatnonzero(j >= 0)
-            i = i[np.isfinite(d2[i, j[i]])]
-            hm[j[i]] = True
-            if hm.sum() < len(i):  # a track two truths last had: the first truth's, in order
-                _, first = np.unique(j[i], return_index=True)
-                i = np.sort(i[first])
-            om[i] = True
-            rest = d2[~om][:, ~hm]
-            if np.isfinite(rest).any():  # (2) the rest, most pairs first, then least distance
-                valid = np.isfinite(rest)
-                big = 2 * min(rest.shape) * (np.abs(rest[valid]).max() + 1) + 1
-                r, cc = linear_sum_assignment(np.where(valid, rest, big))
-                ri, ci = np.flatnonzero(~om)[r], np.flatnonzero(~hm)[cc]
-                for a, b in zip(ri.tolist(), ci.tolist(), strict=True):
-                    if not np.isfinite(d2[a, b]):
-                        continue
-                    if last[o[a]] >= 0 and last[o[a]] != h[b]:
-                        ids += 1
-                    last[o[a]] = h[b]
-                    om[a] = hm[b] = True
+            ids += _match_frame(d2, t_idx[gi], e_idx[hi], last, col, om, hm)
         fn += int((~om).sum())
         fp += int((~hm).sum())
     n_truth, n_est = len(truth.frame), len(tracks.frame)

@@ -27,20 +27,18 @@ from __future__ import annotations
 import csv
 import dataclasses
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from gt3dkit.arrays import unique_rows
 from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import Cams, pixel_rays, project_points
-from gt3dkit.geom.triangulate import normalized_points, triangulate_dlt
 from gt3dkit.parse import parse_frame, parse_int, read_csv_rows
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import F64, Observations, Scene
+from gt3dkit.types import F64, I64, Observations, Scene
 
 COLUMNS = ("camera", "local_id", "frame", "global_id", "confidence", "frames", "median_m", "note")
 
@@ -165,7 +163,8 @@ def ground_points(scene: Scene, cfg: AssocConfig) -> F64:
     return out
 
 
-def _axis_distances(scene: Scene, tl: np.ndarray, t_of: np.ndarray, T: int, F: int):
+def _axis_distances(scene: Scene, tl: np.ndarray, t_of: np.ndarray, T: int, F: int
+                    ) -> Callable[[int, F64], F64]:
     """A function (tracklet, (F, 3) ground points of a cluster) -> (F,) horizontal distance (m)
     between the ray through the tracklet's box centre and the cluster's vertical axis."""
     obs = scene.obs
@@ -192,26 +191,24 @@ def _axis_distances(scene: Scene, tl: np.ndarray, t_of: np.ndarray, T: int, F: i
     return dist
 
 
-def associate(scene: Scene, cfg: AssocConfig | None = None,
-              overrides: dict[tuple[str, int], int] | None = None) -> Association:
-    """Global identities for the per-camera ids of ``scene.obs`` (see the module docstring)."""
-    cfg = cfg or AssocConfig()
-    obs = scene.obs
-    names = scene.rig.names
-    keys, tl = unique_rows(np.stack([obs.cam, obs.track_id], axis=1), return_inverse=True)
-    tl = tl.ravel()
-    frames, t_of = np.unique(obs.frame, return_inverse=True)
-    T, F, C = len(keys), len(frames), len(names)
-    g = ground_points(scene, cfg)
-    traj = np.full((T, F, 3), np.nan)
-    traj[tl, t_of] = g
-    occ = np.zeros((T, C, F), bool)
-    occ[tl, obs.cam, t_of] = True
-    n_frames = occ.any(axis=1).sum(axis=1)
-    weight = np.isfinite(traj[..., 0]).astype(float)  # (K, F) members with a ground point
-    sums = np.nan_to_num(traj) * weight[..., None]
-    alive = np.ones(T, bool)
-    member = np.arange(T)
+@dataclass
+class _Clusters:
+    """Tracklets being merged into people: per cluster (indexed by a tracklet of it) the sum and
+    the count of its members' ground points per frame ``(T, F, 3)``, ``(T, F)``, the cameras and
+    frames it occupies ``(T, C, F)`` and whether it remains ``(T,)``; each tracklet's cluster."""
+
+    sums: F64
+    weight: F64
+    occ: np.ndarray
+    alive: np.ndarray
+    member: I64
+
+
+def _merge_on_ground(cl: _Clusters, cfg: AssocConfig) -> None:
+    """Merge the closest two clusters (median ground distance over their common frames, never
+    two that share a camera and frame) while within ``cfg.max_ground_m``."""
+    sums, weight, occ, alive, member = cl.sums, cl.weight, cl.occ, cl.alive, cl.member
+    T = len(member)
 
     def costs(a: int) -> F64:
         mean_a = sums[a] / np.maximum(weight[a], 1e-12)[:, None]
@@ -244,11 +241,14 @@ def associate(scene: Scene, cfg: AssocConfig | None = None,
             cost[b, :] = cost[:, b] = np.inf
             cost[a] = costs(a)
             cost[:, a] = cost[a]
-    # tracklets with (almost) no ground point (feet cut off by the image's bottom edge: someone
-    # close to the camera) or still alone: joined to the cluster whose vertical axis their
-    # box-centre rays pass closest to, when that is clearly the best
-    axis_d = _axis_distances(scene, tl, t_of, T, F)
-    # (and any track still alone: its foot points may be off, a foot ray grazing the floor)
+
+
+def _join_by_axis(cl: _Clusters, axis_d: Callable[[int, F64], F64], cfg: AssocConfig) -> None:
+    """Every tracklet still alone (its foot points may be off, a foot ray grazing the floor)
+    joined to the cluster whose vertical axis its box-centre rays pass closest to
+    (``axis_d``), when that is within ``cfg.max_axis_m`` and clearly the best."""
+    sums, weight, occ, alive, member = cl.sums, cl.weight, cl.occ, cl.alive, cl.member
+    T = len(member)
     cut = np.flatnonzero(alive & (np.bincount(member, minlength=T) == 1))
     for t in cut:
         if member[t] != t or (member == t).sum() > 1:
@@ -268,6 +268,45 @@ def associate(scene: Scene, cfg: AssocConfig | None = None,
             occ[k] |= occ[t]
             alive[t] = False
             member[member == t] = k
+
+
+def _median_to_rest(traj: F64, t: int, others: list[int]) -> float:
+    """The median ground distance of tracklet ``t``'s points ``traj (T, F, 3)`` to the mean of
+    the ``others`` of its cluster over their common frames (NaN: none)."""
+    if not others:
+        return np.nan
+    rest = np.nansum([np.nan_to_num(traj[u]) for u in others], axis=0)
+    cnt = np.sum([np.isfinite(traj[u][:, 0]) for u in others], axis=0)
+    both = (cnt > 0) & np.isfinite(traj[t][:, 0])
+    if not both.any():
+        return np.nan
+    return float(np.median(np.linalg.norm(traj[t][both] - rest[both] / cnt[both, None], axis=1)))
+
+
+def associate(scene: Scene, cfg: AssocConfig | None = None,
+              overrides: dict[tuple[str, int], int] | None = None) -> Association:
+    """Global identities for the per-camera ids of ``scene.obs`` (see the module docstring)."""
+    cfg = cfg or AssocConfig()
+    obs = scene.obs
+    names = scene.rig.names
+    keys, tl = unique_rows(np.stack([obs.cam, obs.track_id], axis=1), return_inverse=True)
+    tl = tl.ravel()
+    frames, t_of = np.unique(obs.frame, return_inverse=True)
+    T, F, C = len(keys), len(frames), len(names)
+    g = ground_points(scene, cfg)
+    traj = np.full((T, F, 3), np.nan)
+    traj[tl, t_of] = g
+    occ = np.zeros((T, C, F), bool)
+    occ[tl, obs.cam, t_of] = True
+    n_frames = occ.any(axis=1).sum(axis=1)
+    weight = np.isfinite(traj[..., 0]).astype(float)  # (K, F) members with a ground point
+    cl = _Clusters(np.nan_to_num(traj) * weight[..., None], weight, occ, np.ones(T, bool), np.arange(T))
+    _merge_on_ground(cl, cfg)
+    # tracklets with (almost) no ground point (feet cut off by the image's bottom edge: someone
+    # close to the camera) or still alone: joined to the cluster whose vertical axis their
+    # box-centre rays pass closest to, when that is clearly the best
+    _join_by_axis(cl, _axis_distances(scene, tl, t_of, T, F), cfg)
+    member = cl.member
     # per tracklet: median distance to the rest of its cluster (its confidence)
     clusters = np.unique(member)
     order = sorted(clusters, key=lambda k: (int(np.flatnonzero(occ[k].any(axis=0))[0])
@@ -277,22 +316,19 @@ def associate(scene: Scene, cfg: AssocConfig | None = None,
     for t in range(T):
         k = int(member[t])
         others = [u for u in np.flatnonzero(member == k) if u != t]
-        med = np.nan
-        if others:
-            rest = np.nansum([np.nan_to_num(traj[u]) for u in others], axis=0)
-            cnt = np.sum([np.isfinite(traj[u][:, 0]) for u in others], axis=0)
-            both = (cnt > 0) & np.isfinite(traj[t][:, 0])
-            if both.any():
-                med = float(np.median(np.linalg.norm(traj[t][both] - rest[both] / cnt[both, None], axis=1)))
+        med = _median_to_rest(traj, t, others)
         conf = float(np.clip(1 - med / cfg.max_ground_m, 0, 1)) if np.isfinite(med) else (
             1.0 if others else np.nan)
         note = "" if others else "seen by this camera only (single view)"
         rows.append([names[int(keys[t, 0])], int(keys[t, 1]), None, gid[k], conf, int(n_frames[t]), med,
                      note])
-    return _finish(rows, overrides)
+    return finish_association(rows, overrides)
 
 
-def _finish(rows: list[list], overrides: dict[tuple[str, int, int | None], int] | None) -> Association:
+def finish_association(rows: list[list], overrides: dict[tuple[str, int, int | None], int] | None
+                       ) -> Association:
+    """The association of ``rows`` (:data:`COLUMNS`), the user's ``overrides`` applied, sorted by
+    global id (the left-out, -1, last), frame, camera and local id."""
     if overrides:
         known = {(r[0], r[1], r[2]) for r in rows}
         for key in overrides:
@@ -349,206 +385,3 @@ def read_overrides(path: Path, names: tuple[str, ...]) -> dict[tuple[str, int, i
             raise InputError(where, f"second row for camera {key[0]} local id {key[1]}")
         out[key] = parse_int(where, r["global_id"], "global_id")
     return out
-
-
-@dataclass(frozen=True)
-class DetectionConfig:
-    """Per-frame detections (no ids) -> people."""
-
-    max_reproj_px: float = 25.0  # two detections are one person when their common joints,
-    #                              triangulated from the two views, reproject this close (median)
-    min_joints: int = 4  # common confident joints needed to compare two detections
-    min_conf: float = 0.3
-    max_speed_mps: float = 4.0  # a person's centroid moves at most this fast between frames
-    link_margin_m: float = 0.3
-    max_gap_s: float = 1.0  # a person unseen longer than this is a new track when seen again
-
-
-#: Detection pairs whose costs are computed at once (:func:`pair_costs`): ``(pairs, J, 4, 4)`` arrays.
-PAIR_CHUNK = 8192
-
-
-def frame_pairs(frame: np.ndarray, cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Every pair of rows ``a < b`` of one frame and different cameras, frame by frame, in row
-    order (``frame (N,)`` sorted, ``cam (N,)``): ``(P,)`` each."""
-    out_a, out_b = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
-    starts = np.flatnonzero(np.r_[True, frame[1:] != frame[:-1]])
-    ends = np.r_[starts[1:], len(frame)]
-    for n in np.unique(ends - starts):  # frames with n rows together
-        lo = starts[(ends - starts) == n]
-        i, j = np.triu_indices(int(n), 1)
-        out_a.append((lo[:, None] + i).reshape(-1))
-        out_b.append((lo[:, None] + j).reshape(-1))
-    a, b = np.concatenate(out_a), np.concatenate(out_b)
-    order = np.lexsort((b, a))
-    a, b = a[order], b[order]
-    keep = cam[a] != cam[b]
-    return a[keep], b[keep]
-
-
-def pair_costs(xy: F64, a: np.ndarray, b: np.ndarray, cam: np.ndarray, Pw: F64, f_px: F64,
-               min_joints: int) -> F64:
-    r"""For each pair of detections ``a, b (P,)`` (rows of ``xy (N, J, 2)``, undistorted normalised
-    joints, NaN = not confident, seen by the cameras ``cam (N,)`` whose ``[R | t]`` are ``Pw (C, 3,
-    4)`` and focal lengths ``f_px (C,)``): the median over the joints both saw of the two-view
-    reprojection error (px, the RMS of the two views) after triangulating each joint from the two
-    views (DLT, the rows of :func:`gt3dkit.geom.triangulate.triangulate_dlt`); ``inf`` with fewer
-    than ``min_joints`` such joints, NaN where an error is undefined. ``(P,)``, in chunks of
-    :data:`PAIR_CHUNK` pairs."""
-    out = np.full(len(a), np.inf)
-    for lo in range(0, len(a), PAIR_CHUNK):
-        s = slice(lo, lo + PAIR_CHUNK)
-        xa, xb = xy[a[s]], xy[b[s]]
-        ok = np.isfinite(xa).all(axis=-1) & np.isfinite(xb).all(axis=-1)  # (p, J)
-        n = ok.sum(axis=1)
-        use = n >= min_joints
-        if not use.any():
-            continue
-        ok, n = ok[use], n[use]
-        x2 = np.stack([xa[use], xb[use]], axis=2)  # (p, J, 2 views, 2)
-        x2 = np.where(ok[..., None, None], x2, 0.0)
-        views = np.stack([cam[a[s]], cam[b[s]]], 1)[use]  # (p, 2)
-        proj = Pw[views][:, None]  # (p, 1, 2, 3, 4) the two views' projection matrices
-        rows_x = x2[..., 0, None] * proj[..., 2, :] - proj[..., 0, :]  # (p, J, 2, 4)
-        rows_y = x2[..., 1, None] * proj[..., 2, :] - proj[..., 1, :]
-        A = np.concatenate([rows_x, rows_y], axis=2)
-        # A's smallest right singular vector: the eigenvector of A^T A's smallest eigenvalue
-        # (a batched 4x4 eigh is 5x faster than the SVD; the same point to rounding)
-        Xh = np.linalg.eigh(np.swapaxes(A, -1, -2) @ A)[1][..., 0]
-        X = Xh[..., :3] / Xh[..., 3:]  # (p, J, 3)
-        Xc = np.einsum("pvij,pnj->pnvi", proj[:, 0, :, :, :3], X) + proj[:, 0, None, :, :, 3]  # (p, J, 2, 3)
-        z = Xc[..., 2]
-        d = Xc[..., :2] / z[..., None] - x2
-        e2 = np.where(z > 0, np.sum(d * d, axis=-1) * f_px[views][:, None] ** 2, np.inf)
-        e = np.sqrt(np.nanmean(e2, axis=-1))  # (p, J)
-        out[np.flatnonzero(use) + lo] = _masked_median(e, ok, n)
-    return out
-
-
-#: Rows of consecutive frames whose pairs are costed together (:func:`_consistent_pairs`).
-FRAME_ROWS = 4096
-
-
-def _consistent_pairs(obs: Any, xy: F64, Pw: F64, f_px: F64, cfg: DetectionConfig
-                      ) -> Iterator[tuple[int, np.ndarray, list[tuple[float, int, int]]]]:
-    """Per frame (in order): its rows and its pairs of views within ``cfg.max_reproj_px``,
-    ``(cost, a, b)`` best first (:func:`pair_costs`, over runs of whole frames of about
-    :data:`FRAME_ROWS` rows: a long recording's pairs are never all held at once)."""
-    frames, start = np.unique(obs.frame, return_index=True)
-    end = np.r_[start[1:], len(obs.frame)]
-    k = 0
-    while k < len(frames):
-        k1 = max(int(np.searchsorted(start, start[k] + FRAME_ROWS, side="right")), k + 1)
-        lo, hi = int(start[k]), int(end[k1 - 1])
-        a, b = frame_pairs(obs.frame[lo:hi], obs.cam[lo:hi])
-        a, b = a + lo, b + lo
-        cost = pair_costs(xy, a, b, obs.cam, Pw, f_px, cfg.min_joints)
-        good = cost <= cfg.max_reproj_px
-        a, b, cost = a[good], b[good], cost[good]
-        at = np.searchsorted(a, np.r_[start[k:k1], hi])  # each frame's pairs
-        for q in range(k, k1):
-            s = slice(at[q - k], at[q - k + 1])
-            yield (int(frames[q]), np.arange(start[q], end[q]),
-                   sorted(zip(cost[s].tolist(), a[s].tolist(), b[s].tolist(), strict=True)))
-        k = k1
-
-
-def _masked_median(e: F64, ok: np.ndarray, n: np.ndarray) -> F64:
-    """``(p,)`` the median of each row of ``e (p, J)`` over its ``ok`` entries (``n (p,)`` of them,
-    at least one): NaN where one of them is NaN, as ``np.median``."""
-    srt = np.sort(np.where(ok, e, np.inf), axis=1)  # the ok entries first (NaN after every inf)
-    r = np.arange(len(e))
-    lo, hi = srt[r, (n - 1) // 2], srt[r, n // 2]
-    med = np.where(n % 2 == 1, lo, (lo + hi) / 2.0)
-    return np.where(np.any(ok & np.isnan(e), axis=1), np.nan, med)
-
-
-def _flat(v: F64, up: F64) -> float:
-    """|v| on the floor plane (the component along ``up`` removed)."""
-    return float(np.linalg.norm(v - (v @ up) * up))
-
-
-def associate_detections(scene: Scene, cfg: DetectionConfig | None = None,
-                         overrides: dict[tuple[str, int, int | None], int] | None = None) -> Association:
-    """People from per-frame keypoint detections without identities (OpenPose): per frame,
-    detections of different cameras whose confident joints triangulate consistently (the
-    two-view reprojection error) are grouped greedily, best pair first, one detection per
-    camera, every pair of a group consistent; groups of two or more views are triangulated and
-    linked over time by their centroid on the floor plane (Hungarian, gated by a walking speed);
-    detections no second view confirms are left out (their row has global id -1)."""
-    from scipy.optimize import linear_sum_assignment
-
-
-    cfg = cfg or DetectionConfig()
-    obs = scene.obs
-    names = scene.rig.names
-    cams = Cams.of(scene.rig)
-    f_px = cams.K[:, 0, 0]
-    conf = obs.kpt_conf if obs.kpt_conf is not None else np.ones(obs.kpt_uv_px.shape[:2])
-    kp = np.where((conf >= cfg.min_conf)[..., None], obs.kpt_uv_px, np.nan)
-    xy = np.full(kp.shape, np.nan)
-    for c in np.unique(obs.cam):
-        m = obs.cam == c
-        xy[m] = normalized_points(kp[m][:, :, None, :], cams.K[c:c + 1], cams.dist[c:c + 1])[:, :, 0]
-    gid = np.full(len(obs), -1, dtype=np.int64)
-    gconf = np.full(len(obs), np.nan)
-    tracks: list[dict] = []  # {"id", "frame", "X"}
-    next_id = 0
-    with np.errstate(all="ignore"):
-        Pw = np.concatenate([cams.R, cams.t[:, :, None]], axis=2)  # (C, 3, 4)
-        for f, rows, pairs in _consistent_pairs(obs, xy, Pw, f_px, cfg):
-            cost_of = {(a, b): c for c, a, b in pairs}
-            group = {int(r): {int(r)} for r in rows}
-            for _, a, b in pairs:
-                ga, gb = group[a], group[b]
-                if ga is gb:
-                    continue
-                if {obs.cam[r] for r in ga} & {obs.cam[r] for r in gb}:
-                    continue
-                if not all((min(r, q), max(r, q)) in cost_of for r in ga for q in gb):
-                    continue
-                merged = ga | gb
-                for r in merged:
-                    group[r] = merged
-            found = []
-            for g in {id(g): g for g in group.values()}.values():
-                if len(g) < 2:
-                    continue
-                members = sorted(g)
-                cs = [cams.take(np.array([obs.cam[r] for r in members]))]
-                X, _ = triangulate_dlt(np.stack([xy[r] for r in members], axis=1), cs[0].R, cs[0].t)
-                if not np.isfinite(X).all(axis=1).any():
-                    continue
-                centroid = np.nanmedian(X[np.isfinite(X).all(axis=1)], axis=0)
-                pc = [cost_of[(min(r, q), max(r, q))] for r in members for q in members if r < q]
-                found.append((members, centroid, float(np.mean(pc))))
-            # link to the tracks alive
-            alive = [t for t in tracks if (f - t["frame"]) / scene.fps <= cfg.max_gap_s]
-            if alive and found:
-                # on the floor plane: the joints a frame sees move a median centroid up and down
-                D = np.array([[_flat(t["X"] - g[1], scene.rig.up) for g in found] for t in alive])
-                gate = np.array([cfg.max_speed_mps * (f - t["frame"]) / scene.fps + cfg.link_margin_m
-                                 for t in alive])
-                D = np.where(D <= gate[:, None], D, 1e9)
-                ri, ci = linear_sum_assignment(D)
-                taken = {}
-                for i, j in zip(ri, ci, strict=True):
-                    if D[i, j] < 1e9:
-                        taken[j] = alive[i]
-            else:
-                taken = {}
-            for j, (members, centroid, pc) in enumerate(found):
-                t = taken.get(j)
-                if t is None:
-                    t = {"id": next_id, "frame": f, "X": centroid}
-                    tracks.append(t)
-                    next_id += 1
-                t["frame"], t["X"] = f, centroid
-                gid[members] = t["id"]
-                gconf[members] = float(np.clip(1 - pc / cfg.max_reproj_px, 0, 1))
-    rows_out = []
-    for r in range(len(obs)):
-        rows_out.append([names[int(obs.cam[r])], int(obs.track_id[r]), int(obs.frame[r]), int(gid[r]),
-                         float(gconf[r]), 1, np.nan,
-                         "" if gid[r] >= 0 else "no second view confirms it: left out"])
-    return _finish(rows_out, overrides)

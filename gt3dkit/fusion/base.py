@@ -5,9 +5,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from importlib import import_module
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Protocol
 
-from gt3dkit.types import Scene, TrackSet
+from gt3dkit.types import OptionValue, Scene, TrackSet
 
 if TYPE_CHECKING:
     from gt3dkit.fusion.prepare import Prepared
@@ -62,7 +62,7 @@ def over_time(name: str) -> bool:
     return REGISTRY[name].over_time if name in REGISTRY else True
 
 
-def make_estimator(name: str = "ukf", **config: Any) -> Estimator:
+def make_estimator(name: str = "ukf", **config: OptionValue) -> Estimator:
     """An estimator by name with its config fields as keyword arguments."""
     if name not in REGISTRY:
         raise ValueError(f"unknown estimator {name!r} (known: {', '.join(ESTIMATORS)})")

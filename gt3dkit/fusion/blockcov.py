@@ -10,11 +10,10 @@ the dense array where one is wanted (``np.asarray``).
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
+import numpy.typing as npt
 
-from gt3dkit.types import F64, I64
+from gt3dkit.types import F64, I64, RowIndex
 
 
 class BlockCov:
@@ -44,7 +43,7 @@ class BlockCov:
     def __len__(self) -> int:
         return self.shape[0]
 
-    def rows_that_ran(self, ran: np.ndarray, into: Any = None) -> Any:
+    def rows_that_ran(self, ran: np.ndarray, into: F64 | BlockCov | None = None) -> F64 | BlockCov:
         """A run's covariances from these, of which only the rows ``ran (R,)`` were run: written
         into ``into`` (the other rows left as they are; ``into`` is returned), or these with the
         other rows zero."""
@@ -55,13 +54,14 @@ class BlockCov:
             v[~ran] = 0.0
         return self
 
-    def __array__(self, dtype: Any = None, copy: Any = None) -> F64:
+    def __array__(self, dtype: npt.DTypeLike | None = None, copy: bool | None = None) -> F64:
         out = np.zeros(self.shape)
         for dims, v in self.groups:
             out[:, dims[:, :, None], dims[:, None, :]] = v
         return out if dtype is None else out.astype(dtype)
 
-    def __getitem__(self, key: Any) -> Any:
+    def __getitem__(self, key: RowIndex | tuple[RowIndex, np.ndarray | slice, np.ndarray | slice]
+                    ) -> BlockCov | F64:
         """``P[rows]`` (a :class:`BlockCov` of those rows) or ``P[rows, I, J]`` (the entries,
         as numpy indexes the dense array: two slices make a block, two integer arrays
         broadcast)."""
@@ -86,7 +86,7 @@ class BlockCov:
             out = np.zeros((nr,) + i.shape)
         return out
 
-    def __setitem__(self, rows: Any, other: BlockCov) -> None:
+    def __setitem__(self, rows: RowIndex, other: BlockCov) -> None:
         """``P[rows] = Q[rows]`` of two runs' covariances alike."""
         for (_, v), (_, w) in zip(self.groups, other.groups, strict=True):
             v[rows] = w

@@ -27,13 +27,12 @@ honest (mean squared Mahalanobis error per coordinate 0.58 vs 0.56), in a quarte
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from gt3dkit.fusion.robust import RobustConfig, point_weights
 from gt3dkit.skeletons import Skeleton
-from gt3dkit.types import F64, I64
+from gt3dkit.types import F64, I64, JsonDict
 
 #: Rows per batch of the bones' update: its arrays are ``(rows, 3J, 3J)``, ~0.1 MB a row with
 #: 19 joints over the temporaries; 128 rows hold ~13 MB whatever the window, at no cost in time.
@@ -49,7 +48,7 @@ class BoneLengths:
     length: F64
     sd: F64
 
-    def info(self, obj_ids: np.ndarray) -> dict[str, Any]:
+    def info(self, obj_ids: np.ndarray) -> JsonDict:
         skel = self.skeleton
         names = [f"{skel.joints[a]}-{skel.joints[b]}" for a, b in skel.bones]
         return {"skeleton": skel.name, "units": "m", "per_person": {

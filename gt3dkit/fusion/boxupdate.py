@@ -22,7 +22,7 @@ regression fixed per row.
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -33,6 +33,7 @@ from gt3dkit.fusion.initial import Init
 from gt3dkit.fusion.kalman import ellipsoid_linearisation, fade_centre, fade_factor, predict_row, rts_row
 from gt3dkit.fusion.motion import SPACE, Noise, StateIndex, accel_shape, transition
 from gt3dkit.fusion.robust import chi2_isf
+from gt3dkit.fusion.rowsmodel import BoxModel, BoxSigma, RowsModel
 from gt3dkit.fusion.ukf import SigmaWeights
 from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.fusion.update import (
@@ -52,33 +53,6 @@ from gt3dkit.geom.boxkernel import EDGES, BoxRig, pair_box
 from gt3dkit.geom.smallmat import safe_chol, solve_sym
 from gt3dkit.threads import run_split
 from gt3dkit.types import F64, I64
-
-#: Newton steps along the outline with lens distortion (:func:`gt3dkit.geom.boxkernel.pair_box`).
-OUTLINE_STEPS = 2
-
-
-class BoxSigma(NamedTuple):
-    """The sigma-point rule of the ellipsoid's marginal: its state entries ``dims (6,)`` (centre,
-    log semi-axes), the weights ``Wm, Wc`` (without the centre point where the rule gives it no
-    weight) and the points' ``scale``."""
-
-    dims: I64
-    Wm: F64
-    Wc: F64
-    scale: float
-
-
-class BoxModel(NamedTuple):
-    """Everything the box update needs besides the rows: the sigma rule, the cameras prepared,
-    the measurement vector's :class:`gt3dkit.fusion.update.Columns`, the box's first column, the
-    iterated update's passes (at most) and whether it reweights."""
-
-    sigma: BoxSigma
-    rig: BoxRig
-    cols: Columns
-    at: int
-    iterations: int
-    robust: bool
 
 
 class RowsOut(NamedTuple):
@@ -484,7 +458,7 @@ def regression_rows(B: int, m: int, d: int) -> Regression:
     return Regression(np.zeros((B, m), np.bool_), np.zeros((B, m, d)), np.zeros((B, m)), np.ones((B, m)))
 
 
-def object_chains(model: Any, fps: float, on: np.ndarray | None) -> tuple[Chains, I64, I64]:
+def object_chains(model: RowsModel, fps: float, on: np.ndarray | None) -> tuple[Chains, I64, I64]:
     """The rows as :class:`Chains` and each object's first and last row ``(O,)`` (-1: not run)."""
     rows = model.rows
     R, O = len(rows), len(rows.obj_ids)
@@ -500,7 +474,7 @@ def object_chains(model: Any, fps: float, on: np.ndarray | None) -> tuple[Chains
                   t_s), first, last
 
 
-def motion_of(model: Any, cfg: UKFConfig, noise_rows: dict[str, F64] | None = None) -> Motion:
+def motion_of(model: RowsModel, cfg: UKFConfig, noise_rows: dict[str, F64] | None = None) -> Motion:
     """The rows' process noise (``cfg``'s, or ``noise_rows``' per row) as :class:`Motion`."""
     R = len(model.rows)
     per = noise_rows or {}
@@ -514,7 +488,7 @@ def motion_of(model: Any, cfg: UKFConfig, noise_rows: dict[str, F64] | None = No
                   accel_shape(model.cams.up, cfg.vertical_ratio), model.layout.index)
 
 
-def run_boxes(model: Any, init: Init, cfg: UKFConfig, fps: float, collect: bool, fade: bool,
+def run_boxes(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, collect: bool, fade: bool,
               on: np.ndarray | None, noise_rows: dict[str, F64] | None) -> FilterRun:
     """The filter (and RTS) of a boxes-only model (:func:`applies_to_model`) as chains of rows,
     objects in parallel: the arguments and outputs of
@@ -569,7 +543,7 @@ def run_boxes(model: Any, init: Init, cfg: UKFConfig, fps: float, collect: bool,
         update_passes_mean=float(stats[done, 3].mean()) if done.any() else 0.0)
 
 
-def applies_to_model(model: Any) -> bool:
+def applies_to_model(model: RowsModel) -> bool:
     """Whether :func:`run_boxes` runs this model: the boxes alone measure it (no joints, no
     information added to them)."""
     return bool(model.use_box and not model.layout.n_joints and model.joint_info is None)

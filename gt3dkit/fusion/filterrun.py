@@ -4,12 +4,11 @@ a typed result instead of a dictionary of arrays."""
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
-from typing import Any
 
 import numpy as np
 
 from gt3dkit.fusion.blockcov import BlockCov
-from gt3dkit.types import F64
+from gt3dkit.types import F64, JsonDict
 
 #: The fields that hold arrays (per row or entry), not counters or descriptions.
 ARRAYS = ("x", "P", "nis", "dof", "loglik_rows", "weights", "score2", "residual")
@@ -51,17 +50,17 @@ class FilterRun:
     def loglik(self) -> float:
         return float(self.loglik_rows.sum())
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> JsonDict:
         """The run's scalars (for ``meta.json``)."""
         out = {f.name: getattr(self, f.name) for f in fields(self)
                if f.name not in ARRAYS and getattr(self, f.name) is not None}
         return {**out, "mean_nis_per_dof": self.mean_nis_per_dof, "loglik": self.loglik}
 
-    def scalars(self) -> dict[str, Any]:
+    def scalars(self) -> JsonDict:
         """The counters and descriptions (no arrays): what :meth:`after` needs of a run."""
         return {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ARRAYS}
 
-    def after(self, earlier: dict[str, Any]) -> FilterRun:
+    def after(self, earlier: JsonDict) -> FilterRun:
         """This run (of every row) as :meth:`merged` makes it from an earlier run whose
         :meth:`scalars` are ``earlier`` with ``on`` all rows, without that run's arrays (they
         can go before this run's are made): the earlier run's descriptions, the counters

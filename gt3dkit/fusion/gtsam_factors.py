@@ -5,13 +5,20 @@ Gauss-Newton loops (the batched one of the box chains, GTSAM's own for the rest)
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from types import ModuleType
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 
 from gt3dkit.fusion.motion import MotionModel, StateLayout
-from gt3dkit.geom.boxkernel import EVERY_CAMERA, box_jacobian, box_rig, kernel
+from gt3dkit.geom.boxkernel import EVERY_CAMERA, BoxCameras, box_jacobian, box_rig, kernel
 from gt3dkit.types import F64
+
+if TYPE_CHECKING:
+    import gtsam
+
+V = TypeVar("V")  # the values a Gauss-Newton loop moves (GTSAM's Values, or an array)
+D = TypeVar("D")  # a step of them
 
 
 def huber_loss(norm: F64, k: float) -> F64:
@@ -25,14 +32,14 @@ def huber_sqrt_weight(norm: F64, k: float) -> F64:
     return np.sqrt(np.where(norm <= k, 1.0, k / np.maximum(norm, 1e-300)))
 
 
-def _gauss_newton(error: Callable[[Any], float], step: Callable[[Any], Any],
-                  retract: Callable[[Any, Any, float], Any], values: Any, max_iterations: int,
-                  rel_tol: float) -> tuple[Any, int, float]:
+def gauss_newton(error: Callable[[V], float], step: Callable[[V], D],
+                 retract: Callable[[V, D, float], V], values: V, max_iterations: int,
+                 rel_tol: float) -> tuple[V, int, float]:
     """Gauss-Newton with a backtracking line search (halve the step until the error falls, at
     most 10 times); stops when the error falls by less than ``rel_tol`` of itself. ``error``
     the graph's error at values, ``step`` the linearised graph's solution there, ``retract``
     values moved by a step scaled by a factor: GTSAM's graph and values
-    (:func:`_gtsam_gauss_newton`) or a box chain's arrays (:func:`_solve_boxes`).
+    (:func:`gtsam_gauss_newton`) or a box chain's arrays (:func:`_solve_boxes`).
 
     Driven from Python: with our Python factors in the graph, GTSAM's own
     ``LevenbergMarquardtOptimizer.optimize`` took 10x longer per iteration than these calls
@@ -61,11 +68,11 @@ def _gauss_newton(error: Callable[[Any], float], step: Callable[[Any], Any],
     return values, iters, float(err)
 
 
-def _gtsam_gauss_newton(g: Any, values: Any, max_iterations: int, rel_tol: float
-                        ) -> tuple[Any, int, float]:
-    """:func:`_gauss_newton` on a GTSAM nonlinear graph (its linearisation, elimination and
+def gtsam_gauss_newton(g: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int,
+                       rel_tol: float) -> tuple[gtsam.Values, int, float]:
+    """:func:`gauss_newton` on a GTSAM nonlinear graph (its linearisation, elimination and
     retraction)."""
-    return _gauss_newton(g.error, lambda v: g.linearize(v).optimize(),
+    return gauss_newton(g.error, lambda v: g.linearize(v).optimize(),
                          lambda v, d, k: v.retract(d if k == 1.0 else d.scale(k)),
                          values, max_iterations, rel_tol)
 
@@ -83,7 +90,8 @@ def cv_whitening(dts: F64, accel_sd: float, up: F64 | None, vertical_ratio: floa
     return W[inverse.reshape(-1)]
 
 
-def _cv_factor(gtsam: Any, keys: list[int], dt: float, W: F64, loss: Any = None) -> Any:
+def cv_factor(gtsam: ModuleType, keys: list[int], dt: float, W: F64,
+              loss: gtsam.noiseModel.mEstimator.Base | None = None) -> gtsam.CustomFactor:
     """Constant velocity between ``(x_k, v_k)`` and ``(x_{k+1}, v_{k+1})``: the residual
     ``[x_{k+1} - x_k - dt v_k ; v_{k+1} - v_k]`` whitened by ``W (6, 6)`` (:func:`cv_whitening`),
     unit noise model. Linear, so its Jacobians are constants."""
@@ -91,7 +99,7 @@ def _cv_factor(gtsam: Any, keys: list[int], dt: float, W: F64, loss: Any = None)
     blocks = [W @ np.vstack([-I3, Z3]), W @ np.vstack([-dt * I3, -I3]),
               W @ np.vstack([I3, Z3]), W @ np.vstack([Z3, I3])]
 
-    def error(this: Any, v: Any, H: Any) -> F64:
+    def error(this: gtsam.CustomFactor, v: gtsam.Values, H: list[F64] | None) -> F64:
         ks = this.keys()
         x0, v0, x1, v1 = (v.atPoint3(ks[i]) for i in range(4))
         e = W @ np.concatenate([x1 - x0 - dt * v0, v1 - v0])
@@ -105,7 +113,8 @@ def _cv_factor(gtsam: Any, keys: list[int], dt: float, W: F64, loss: Any = None)
     return gtsam.CustomFactor(model, keys, error)
 
 
-def _box_error(bc: Any, z: F64, m: np.ndarray, C: int) -> Any:
+def box_error(bc: BoxCameras, z: F64, m: np.ndarray, C: int
+              ) -> Callable[[gtsam.CustomFactor, gtsam.Values, list[F64] | None], F64]:
     """Error function of a box factor on (centre Point3, log semi-axes Vector3); ``bc`` the
     cameras as :class:`gt3dkit.geom.boxkernel.BoxCameras` (the compiled box is called directly:
     GTSAM calls this ~10 000 times per 1 000 object-frames, and the general entry point's
@@ -115,7 +124,7 @@ def _box_error(bc: Any, z: F64, m: np.ndarray, C: int) -> Any:
     box, grad = np.empty((C, 4)), np.empty((C, 4, 6))
     margin = np.empty((1, C))
 
-    def error(this: Any, v: Any, H: Any) -> F64:
+    def error(this: gtsam.CustomFactor, v: gtsam.Values, H: list[F64] | None) -> F64:
         ks = this.keys()
         p = np.concatenate([v.atPoint3(ks[0]), v.atVector(ks[1])])
         if H is None:

@@ -24,10 +24,11 @@ for every estimator (:func:`gt3dkit.api.estimate_scene`); the outputs keep the i
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
+from gt3dkit.fusion.prepare import Prepared
+from gt3dkit.fusion.rows import Rows
 from gt3dkit.types import I64
 
 
@@ -82,7 +83,7 @@ class Segments:
     exchanges: tuple[Exchange, ...] = ()
 
 
-def identity_segments(pre: Any, fps: float, cfg: IdentityConfig | None = None,
+def identity_segments(pre: Prepared, fps: float, cfg: IdentityConfig | None = None,
                       pieces: tuple[tuple[int, int, int, int], ...] = ()) -> Segments:
     """The pieces of every id of ``pre.rows`` (a :class:`gt3dkit.fusion.prepare.Prepared`) at
     frame rate ``fps`` (see the module doc). ``pieces``: ``(id, segment, first frame, last
@@ -156,7 +157,7 @@ def group_medians(values: np.ndarray, group: I64) -> np.ndarray:
     return (v[first + (count - 1) // 2] + v[first + count // 2]) / 2
 
 
-def _exchanges(cut: I64, a: I64, b: I64, centre: np.ndarray, limit: np.ndarray, rows: Any
+def _exchanges(cut: I64, a: I64, b: I64, centre: np.ndarray, limit: np.ndarray, rows: Rows
                ) -> tuple[Exchange, ...]:
     """The pairs of splits (``cut``: indices into the consecutive-fit pairs ``a -> b``) at the
     same frame where each id's new place is within the other's allowed distance of where the

@@ -5,11 +5,11 @@ where its object starts, and all of them held at once would be one more ``(R, n,
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
-from gt3dkit.types import F64
+from gt3dkit.types import F64, RowIndex
 
 
 class InitialCov:
@@ -34,7 +34,7 @@ class InitialCov:
         R, n = self.var.shape
         return R, n, n
 
-    def rows(self, idx: Any) -> InitialCov:
+    def rows(self, idx: RowIndex) -> InitialCov:
         """The rows ``idx`` as another lazy set."""
         return self._of(self.var[idx], self.cov6[idx], self.ok[idx], self.pos[idx])
 
@@ -51,7 +51,7 @@ class InitialCov:
         out.var, out.cov6, out.ok, out.pos = var, cov6, ok, pos
         return out
 
-    def __getitem__(self, idx: Any) -> F64:
+    def __getitem__(self, idx: RowIndex | tuple[np.ndarray, np.ndarray, np.ndarray]) -> F64:
         if not isinstance(idx, tuple):
             n = self.var.shape[1]
             r = np.arange(len(self.var))[idx]
@@ -71,13 +71,13 @@ class InitialCov:
             out[a:a + step] = o
         return out
 
-    def __array__(self, dtype: Any = None, copy: Any = None) -> F64:
+    def __array__(self, dtype: npt.DTypeLike | None = None, copy: bool | None = None) -> F64:
         out = self[np.arange(len(self.var))]
         return out if dtype is None else out.astype(dtype)
 
 
 
-def rows_of(P0: Any, idx: np.ndarray) -> Any:
+def rows_of(P0: F64 | InitialCov, idx: np.ndarray) -> F64 | InitialCov:
     """The rows ``idx`` of initial covariances, lazy where they are."""
     return P0.rows(idx) if isinstance(P0, InitialCov) else P0[idx]
 

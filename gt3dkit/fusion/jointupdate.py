@@ -33,10 +33,11 @@ from gt3dkit.arrays import contiguous
 from gt3dkit.fusion.blockcov import BlockCov
 from gt3dkit.fusion.boxupdate import Chains, object_chains, regress, run_boxes, sigma_points
 from gt3dkit.fusion.filterrun import FilterRun
-from gt3dkit.fusion.initial import Init
+from gt3dkit.fusion.initial import Init, InitialCov
 from gt3dkit.fusion.kalman import fade_factor, predict_row, rts_row
 from gt3dkit.fusion.motion import SPACE, StateLayout, joint_step
-from gt3dkit.fusion.robust import chi2_isf
+from gt3dkit.fusion.robust import RobustConfig, chi2_isf
+from gt3dkit.fusion.rowsmodel import RowsModel
 from gt3dkit.fusion.ukf import Block, Robust, SigmaWeights, block_columns
 from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.fusion.update import (
@@ -412,7 +413,7 @@ def point_sigma(alpha: float, beta: float, kappa: float) -> PointSigma:
     return PointSigma(contiguous(Wm), contiguous(Wc), float(np.sqrt(sw.n + sw.lam)))
 
 
-def joint_columns(C: int, robust: Any) -> Columns:
+def joint_columns(C: int, robust: RobustConfig | None) -> Columns:
     """The :class:`gt3dkit.fusion.update.Columns` of one joint's ``2 C`` views (its three
     coordinates; points of two entries judged by ``robust``, a
     :class:`gt3dkit.fusion.robust.RobustConfig`, or never reweighted: None)."""
@@ -426,7 +427,7 @@ def _per_joint(a: F64, R: int, C: int, J: int, at: int) -> F64:
     return contiguous(a[:, at:].reshape(R, C, J, 2).transpose(0, 2, 1, 3), a.dtype)
 
 
-def boxes_part(model: Any) -> Any:
+def boxes_part(model: RowsModel) -> RowsModel:
     """The boxes-only model of ``model``'s ellipsoid (its box columns, the state's first 9
     entries): what :func:`gt3dkit.fusion.boxupdate.run_boxes` runs."""
     E = StateLayout(0).n
@@ -438,8 +439,8 @@ def boxes_part(model: Any) -> Any:
                    var_frame=model.var_frame[:, :E], kpt_cov_frame=None, joint_info=None)
 
 
-def run_joints(model: Any, init: Init, cfg: UKFConfig, fps: float, collect: bool = False, fade: bool = True,
-               on: np.ndarray | None = None, noise_rows: dict[str, F64] | None = None,
+def run_joints(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, collect: bool = False,
+               fade: bool = True, on: np.ndarray | None = None, noise_rows: dict[str, F64] | None = None,
                covariances: bool = True, into: BlockCov | None = None) -> FilterRun:
     """The filter (and RTS) of a model with joints as compiled chains (the module doc): the
     arguments and outputs of :func:`gt3dkit.fusion.filtering.run_filter`; ``covariances=False``
@@ -503,8 +504,8 @@ def run_joints(model: Any, init: Init, cfg: UKFConfig, fps: float, collect: bool
                       covariances, into)
 
 
-def _assembled(model: Any, init: Init, cfg: UKFConfig, fps: float, args: tuple[Any, ...], chains: Chains,
-               out: JointOut, jd: I64, covariances: bool, into: BlockCov | None) -> FilterRun:
+def _assembled(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, args: tuple[Any, ...],
+               chains: Chains, out: JointOut, jd: I64, covariances: bool, into: BlockCov | None) -> FilterRun:
     """The run of ``model``'s rows from the joints' chains ``out`` and the ellipsoid's run (the
     boxes', or the rows' initial state without boxes)."""
     collect, fade, on, noise_rows = args
@@ -555,7 +556,7 @@ def _assembled(model: Any, init: Init, cfg: UKFConfig, fps: float, args: tuple[A
         update_passes_mean=float(passes.mean()) if passes.size else 0.0)
 
 
-def _leading(P0: Any, E: int) -> Any:
+def _leading(P0: F64 | InitialCov, E: int) -> F64 | InitialCov:
     """The leading ``E x E`` entries of initial covariances ``P0 (R, n, n)`` (lazy where ``P0`` is)."""
     R = P0.shape[0]
     e = np.arange(E)

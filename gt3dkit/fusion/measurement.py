@@ -15,11 +15,12 @@ import numpy as np
 
 from gt3dkit.fusion.bones import JointInfo
 from gt3dkit.fusion.boxfit import box_model
-from gt3dkit.fusion.boxupdate import OUTLINE_STEPS, BoxModel, box_regressions, box_sigma
+from gt3dkit.fusion.boxupdate import box_regressions, box_sigma
 from gt3dkit.fusion.motion import SPACE, StateLayout
 from gt3dkit.fusion.prepare import Prepared
 from gt3dkit.fusion.robust import RobustConfig
 from gt3dkit.fusion.rows import Rows
+from gt3dkit.fusion.rowsmodel import OUTLINE_STEPS, BoxModel
 from gt3dkit.fusion.ukf import Block, Robust, SigmaWeights, block_columns
 from gt3dkit.fusion.update import Columns, Measured, Regression
 from gt3dkit.geom.boxkernel import EDGES, BoxCameras, BoxRig, box_rig

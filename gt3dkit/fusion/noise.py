@@ -43,7 +43,7 @@ from gt3dkit.fusion.robust import chi2_median
 from gt3dkit.fusion.rows import Rows, replicate_rows
 from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.threads import run_split
-from gt3dkit.types import F64, I64
+from gt3dkit.types import F64, I64, JsonDict
 
 #: The provisional robust pass that fixes the noise search's weights runs at this multiple of
 #: the moment estimates of the process noise.
@@ -272,7 +272,7 @@ def maximise_log(f: Callable[[list[float]], list[float]], lo: float, hi: float, 
 
 
 def _provisional(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: float,
-                 curves: dict[str, Any]
+                 curves: JsonDict
                  ) -> tuple[UKFConfig, F64, np.ndarray | None, LinearisedSearch | None]:
     """:func:`select_noise`'s start: the provisional values (the moment estimates, loosened), the
     measurements' weights a robust provisional pass at them gives, the rows the search runs on
@@ -319,7 +319,7 @@ def _provisional(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
 
 
 def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: float
-                 ) -> tuple[UKFConfig, dict[str, Any]]:
+                 ) -> tuple[UKFConfig, JsonDict]:
     """Process noise by maximum likelihood of the forward pass (no smoothing, no bones).
 
     The likelihood must not be bent by outliers, and a single pass cannot reweight: so a
@@ -332,7 +332,7 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
     then ``joint_accel_sd`` with keypoints) by :func:`maximise_log`. Returns the tuned config
     and, per searched parameter, the likelihood curve (``value, loglik``, sorted).
     """
-    curves: dict[str, Any] = {}
+    curves: JsonDict = {}
     use_box, use_kpt = pre.use_box, pre.use_kpt
     start, weights, on, lin = _provisional(model, init, cfg, pre, fps, curves)
     search_model = replace(model, weight0=weights)  # one pass each: no reweighting
@@ -386,7 +386,7 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
     return cfg, curves
 
 
-def noise_by_likelihood(pre: Prepared, fps: float, cfg: UKFConfig) -> tuple[UKFConfig, dict[str, Any]]:
+def noise_by_likelihood(pre: Prepared, fps: float, cfg: UKFConfig) -> tuple[UKFConfig, JsonDict]:
     """:func:`select_noise` of a preparation: the process noise (the values ``cfg`` leaves
     ``None``) that maximises the marginal likelihood of the state-space model, by the Kalman
     filter's prediction-error decomposition; what the GTSAM smoother's graph is tuned by too

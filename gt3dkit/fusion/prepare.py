@@ -43,7 +43,7 @@ from gt3dkit.fusion.rows import Rows, build_rows
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.triangulate import normalized_points, robust_triangulate, triangulation_cov
 from gt3dkit.skeletons import SKELETONS, Skeleton, skeleton_for
-from gt3dkit.types import F64, I64, Scene
+from gt3dkit.types import F64, I64, JsonDict, Scene
 
 #: Smallest confidence used as a weight (``sigma^2 / conf``: at most 7x the sd).
 CONF_FLOOR = 0.02
@@ -100,7 +100,7 @@ class Prepared:
     shape_prior: ShapePrior
     skeleton: Skeleton | None
     robust: RobustConfig
-    info: dict[str, Any] = field(default_factory=dict)
+    info: JsonDict = field(default_factory=dict)
     box_tail: float = 1.0
     # results computed from this preparation alone, kept for the next estimator that asks (the
     # process noise of the model's likelihood: gt3dkit.fusion.noise.noise_by_likelihood)
@@ -186,7 +186,7 @@ def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = Non
     J = scene.obs.n_joints
     use_box = bool(np.isfinite(rows.box_z).any())
     use_kpt = J > 0 and bool(np.isfinite(rows.kpt_z).any())
-    info: dict[str, Any] = {}
+    info: JsonDict = {}
     skel = None
     if J:
         skel = SKELETONS[scene.skeleton] if scene.skeleton else skeleton_for(J)
@@ -317,7 +317,7 @@ def _edge_sigmas(fit: BoxFit, keep: np.ndarray, robust: RobustConfig) -> tuple[F
 
 def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
                      sigma_px: float | None
-                     ) -> tuple[BoxFit, np.ndarray, F64, ShapePrior, dict[str, Any]]:
+                     ) -> tuple[BoxFit, np.ndarray, F64, ShapePrior, JsonDict]:
     """Per-frame box fits weighted by per-edge noise; edges rejected by their leave-one-out
     score; shape prior for weakly seen object-frames."""
     keep = rows.box_mask.copy()
@@ -386,7 +386,7 @@ def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
 
 def _robust_keypoints(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
                       kpt_sigma_px: float | None
-                      ) -> tuple[F64, F64, np.ndarray, F64, dict[str, Any]]:
+                      ) -> tuple[F64, F64, np.ndarray, F64, JsonDict]:
     """Per-frame robust triangulation of every joint, per-joint noise, input checks."""
     R, C, J = rows.kpt_z.shape[:3]
     obs = np.swapaxes(rows.kpt_z, 1, 2).reshape(R * J, C, 2)

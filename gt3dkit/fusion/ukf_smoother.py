@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, replace
-from typing import Any
 
 import numpy as np
 
@@ -78,7 +77,7 @@ from gt3dkit.fusion.prepare import (
 from gt3dkit.fusion.rows import Rows
 from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.skeletons import Skeleton
-from gt3dkit.types import F64, Downweighted, Scene, TrackSet
+from gt3dkit.types import F64, Downweighted, JsonDict, Scene, TrackSet
 
 
 class UKFSmoother:
@@ -113,7 +112,7 @@ class UKFSmoother:
         return replace(s, obj=model.rows.obj_ids[s.obj])
 
     def _first_pass(self, scene: Scene, pre: Prepared
-                    ) -> tuple[Model, Init, UKFConfig, dict[str, Any], FilterRun]:
+                    ) -> tuple[Model, Init, UKFConfig, JsonDict, FilterRun]:
         """The model, start, chosen noise and its search, and the filter's and smoother's first
         pass (the views reweighted by the smoothed estimate)."""
         model = Model.of(pre)
@@ -143,7 +142,7 @@ class UKFSmoother:
         rows, cams, layout = pre.rows, pre.cams, pre.layout
         R = len(rows)
         model, init, cfg, search, run = self._first_pass(scene, pre)
-        bone_info: dict[str, Any] = {}
+        bone_info: JsonDict = {}
         if pre.use_kpt and cfg.bones and pre.skeleton is not None:
             # the bones' messages from the first pass's smoothed joints, added to each joint's
             # own filter run again (the views reweighted as before)
@@ -176,7 +175,7 @@ class UKFSmoother:
             if not pre.use_box:
                 centre, semi, sd = ellipsoid_around(kpt, kpt_sd, cams.world_from_body)
         down = downweighted_of(model, run)
-        info: dict[str, Any] = {
+        info: JsonDict = {
             "estimator": self.name,
             **run.summary(),
             "covariance_inflation": inflation,

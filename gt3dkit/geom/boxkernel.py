@@ -28,14 +28,15 @@ The same state (centre, semi-axes along the body axes, body axis 2 up) has three
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numba
 import numpy as np
 
 from gt3dkit.arrays import compiled_arg
+from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.kernel_cache import drop_stale
-from gt3dkit.types import BOX_MODEL_REGISTRY, F64
+from gt3dkit.types import BOX_MODEL_REGISTRY, F64, Rig
 
 drop_stale()  # before any compiled function below is called (and its cache read)
 
@@ -111,7 +112,7 @@ class BoxCameras(NamedTuple):
     box_model: int = 0  # BoxModelEntry.index (gt3dkit.types.BOX_MODEL_REGISTRY)
 
     @classmethod
-    def of(cls, cams: Any) -> BoxCameras:
+    def of(cls, cams: Cams | Rig) -> BoxCameras:
         """Of a :class:`gt3dkit.geom.camera.Cams` (its box model) or a rig (the ellipsoid)."""
         return box_cameras(cams.world_from_body, cams.K, cams.dist, cams.R, cams.t, cams.depth_sign,
                            getattr(cams, "box_model", 0))

@@ -5,13 +5,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from gt3dkit.errors import InputError
 from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv
 from gt3dkit.parse import load_json
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import TrackSet
+from gt3dkit.types import JsonDict, TrackSet
 
 
 @dataclass
@@ -19,7 +18,7 @@ class Result:
     """A reconstruct output without its input: tracks (with keypoints when written), meta.json."""
 
     out: Path
-    meta: dict[str, Any]
+    meta: JsonDict
     tracks: TrackSet
 
     @property

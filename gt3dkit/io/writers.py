@@ -6,7 +6,7 @@ import csv
 import datetime as _dt
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, TextIO
 
 import numpy as np
 
@@ -15,8 +15,9 @@ from gt3dkit.calib.formats.native import write as write_native
 from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.parse import iter_csv_rows, parse_float, parse_frame, parse_int, parse_metres
+from gt3dkit.rig import Rig
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import Scene, TrackSet
+from gt3dkit.types import JsonDict, JsonValue, Scene, TrackSet
 from gt3dkit.version import __version__
 
 TRACK_COLUMNS = ("frame", "id", "x", "y", "z", "a", "b", "c", "sx", "sy", "sz")
@@ -26,7 +27,26 @@ ANOMALY_COLUMNS = ("frame", "camera", "id", "joint", "kind", "score", "detail")
 EDGE_NAMES = ("xmin", "ymin", "xmax", "ymax")
 
 
-def _jsonable(x: Any) -> Any:
+class AnomalyRows(Protocol):
+    """What the writers read of the QA's findings (:class:`gt3dkit.qa.anomalies.Anomalies`, a
+    layer above): one tuple per finding, in :data:`ANOMALY_COLUMNS`' order."""
+
+    @property
+    def rows(self) -> list[tuple[int, str, int, int | str, str, float, str]]: ...
+
+
+class RefinedRig(Protocol):
+    """What the writers read of a calibration refinement (:class:`gt3dkit.refine.RefineResult`,
+    a layer above): the refined rig and the report of how it was found."""
+
+    @property
+    def rig(self) -> Rig: ...
+
+    @property
+    def report(self) -> JsonDict: ...
+
+
+def _jsonable(x: object) -> JsonValue:
     if isinstance(x, dict):
         return {str(k): _jsonable(v) for k, v in x.items()}
     if isinstance(x, list | tuple):
@@ -38,7 +58,7 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
-def meta_of(scene: Scene, tracks: TrackSet) -> dict[str, Any]:
+def meta_of(scene: Scene, tracks: TrackSet) -> JsonDict:
     """What ``meta.json`` says: frame, axes, units, estimator, input and counts."""
     up = scene.rig.up
     wfb = scene.rig.world_from_body()
@@ -96,7 +116,7 @@ def _tracks_header(tracks: TrackSet) -> tuple[str, ...]:
     return TRACK_COLUMNS + (("n_views",) if _dense(tracks) else ())
 
 
-def _tracks_rows(f: Any, tracks: TrackSet) -> None:
+def _tracks_rows(f: TextIO, tracks: TrackSet) -> None:
     """``tracks``' rows of :func:`write_tracks_csv` into the open file ``f``."""
     a = np.column_stack([tracks.center_world, tracks.semi_axes, tracks.center_sd])
     dense = _dense(tracks)
@@ -116,7 +136,7 @@ def write_keypoints_csv(path: Path, tracks: TrackSet) -> None:
 _KPT_ROW = "%d,%d,%d,%.6f,%.6f,%.6f,%.6f\r\n"  # KPT_COLUMNS, as csv.writer writes them
 
 
-def _keypoint_rows(f: Any, tracks: TrackSet) -> None:
+def _keypoint_rows(f: TextIO, tracks: TrackSet) -> None:
     """``tracks``' rows of :func:`write_keypoints_csv` into the open file ``f``: the bytes
     ``csv.writer`` wrote of each row's numbers (``%.6f``, CRLF line ends), formatted as one
     ``%``-template per row over lists (541 000 joint-rows: 3.9 s row by row, 2.3 s so)."""
@@ -140,7 +160,7 @@ class StreamedRows:
         self.d = Path(d)
         self._next = 0
         self._waiting: dict[int, tuple[TrackSet, list[tuple[Any, ...]]]] = {}
-        self._files: dict[str, Any] = {}
+        self._files: dict[str, tuple[TextIO, Any]] = {}  # (file, its csv.writer)
 
     def add(self, k: int, tracks: TrackSet, anomaly_rows: list[tuple[Any, ...]]) -> None:
         """Part ``k`` (from 0) is in: it and every part after it that waited for it are written."""
@@ -216,7 +236,7 @@ def check_tracks(tracks: TrackSet) -> None:
             f"{int(tracks.track_id[r])}); nothing was written")
 
 
-def write_anomalies_csv(path: Path, anomalies: Any) -> None:
+def write_anomalies_csv(path: Path, anomalies: AnomalyRows) -> None:
     """``frame,camera,id,joint,kind,score,detail`` (see :mod:`gt3dkit.qa.anomalies`)."""
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
@@ -224,8 +244,8 @@ def write_anomalies_csv(path: Path, anomalies: Any) -> None:
         w.writerows(anomalies.rows)
 
 
-def write_result_files(d: Path, scene: Scene, tracks: TrackSet, extra_meta: dict[str, Any] | None = None,
-                       anomalies: Any = None, streamed: bool = False) -> None:
+def write_result_files(d: Path, scene: Scene, tracks: TrackSet, extra_meta: JsonDict | None = None,
+                       anomalies: AnomalyRows = None, streamed: bool = False) -> None:
     """``tracks.csv``, ``keypoints.csv`` (with joints), ``anomalies.csv`` (when QA ran),
     ``segments.csv`` (when an id was split) and ``meta.json`` into folder ``d``; ``streamed``:
     the first three are there already (:class:`StreamedRows`)."""
@@ -286,7 +306,7 @@ def read_segments_csv(path: Path) -> tuple[tuple[int, int, int, int], ...]:
 
 
 def write_outputs(out: Path, scene: Scene, tracks: TrackSet,
-                  extra_meta: dict[str, Any] | None = None, anomalies: Any = None) -> None:
+                  extra_meta: JsonDict | None = None, anomalies: AnomalyRows = None) -> None:
     """Write ``OUT/tracks.csv`` (+ ``keypoints.csv``, ``anomalies.csv``) and ``OUT/meta.json``
     (all or nothing)."""
     write_dir_atomically(Path(out), lambda tmp: write_result_files(tmp, scene, tracks, extra_meta,
@@ -363,7 +383,7 @@ def read_keypoints_csv(path: Path, tracks: TrackSet, n_joints: int) -> TrackSet:
     return dataclasses.replace(tracks, kpt_world=kpt, kpt_sd=sd)
 
 
-def write_refined_calibration(out: Path, scene: Scene, result: Any, fmt: str | None = None) -> None:
+def write_refined_calibration(out: Path, scene: Scene, result: RefinedRig, fmt: str | None = None) -> None:
     """``OUT/cameras.json`` (the refined rig, with the scene's fps), ``OUT/calib_report.json`` and,
     with ``fmt``, ``OUT/calibration/`` in that format (all or nothing)."""
     def write(tmp: Path) -> None:

@@ -13,16 +13,17 @@ Validated like the keypoint refinement (held-out time blocks, :mod:`gt3dkit.refi
 from __future__ import annotations
 
 import time
-from typing import Any
 
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.spatial.transform import Rotation
 
+from gt3dkit.fusion.prepare import Prepared
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.conics import model_boxes
 from gt3dkit.refine.common import (
+    RefineConfig,
     RefineResult,
     align_to,
     check_enough,
@@ -32,7 +33,7 @@ from gt3dkit.refine.common import (
     umeyama,
 )
 from gt3dkit.rig import Camera, Rig
-from gt3dkit.types import F64, Scene
+from gt3dkit.types import F64, JsonDict, Scene
 
 PRIOR_ROT_RAD = np.radians(2.0)
 PRIOR_SHIFT_M = 0.2
@@ -168,7 +169,7 @@ def box_residuals(rig: Rig, cams: Cams, z: F64, keep: np.ndarray, sigma: F64, X0
     return np.where(keep, np.abs(box - z), np.nan)
 
 
-def refine_boxes(scene: Scene, pre: Any, cfg: Any) -> Any:
+def refine_boxes(scene: Scene, pre: Prepared, cfg: RefineConfig) -> RefineResult:
     t0 = time.perf_counter()
     rig, rows, fit = scene.rig, pre.rows, pre.fit
     C = len(rig.cameras)
@@ -211,7 +212,7 @@ def refine_boxes(scene: Scene, pre: Any, cfg: Any) -> Any:
         new, _, _, sig = fit_reweighted(rig, cams, z, keep, sigma, X0, L0, accept, obj, floor_sd)
     e_before = box_residuals(rig, cams, z, keep, sigma, X0, L0, obj)
     e_after = box_residuals(new, cams, z, keep, sigma, X0, L0, obj) if accept.any() else e_before
-    report: dict[str, Any] = {"method": "cameras + ellipsoids, tangent-box residual (scipy soft-L1)",
+    report: JsonDict = {"method": "cameras + ellipsoids, tangent-box residual (scipy soft-L1)",
                               "floor": ({"used": True, "sd_m": floor_sd, "median_bottom_m": floor_med}
                                         if floor_sd is not None else
                                         {"used": False, "median_bottom_m": floor_med}),

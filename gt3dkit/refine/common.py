@@ -6,14 +6,13 @@ from __future__ import annotations
 import hashlib
 import json
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
 from gt3dkit.calib.formats.native import cameras_doc
 from gt3dkit.errors import InputError
 from gt3dkit.rig import Camera, Rig
-from gt3dkit.types import F64
+from gt3dkit.types import F64, JsonDict
 
 
 @dataclass(frozen=True)
@@ -36,7 +35,7 @@ class RefineConfig:
 @dataclass
 class RefineResult:
     rig: Rig
-    report: dict[str, Any] = field(default_factory=dict)
+    report: JsonDict = field(default_factory=dict)
 
 
 # ----------------------------------------------------------------------------- geometry

@@ -22,19 +22,18 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from gt3dkit.calib.formats.colmap import intrinsics_of, to_reconstruction
 from gt3dkit.errors import InputError
-from gt3dkit.fusion.prepare import prepare
+from gt3dkit.fusion.prepare import Prepared, prepare
 from gt3dkit.geom.camera import project_points
 from gt3dkit.geom.triangulate import normalized_points, triangulate_weighted
 from gt3dkit.refine.boxes import refine_boxes
 from gt3dkit.refine.common import RefineConfig, RefineResult, align_to, check_enough, pose_change, time_blocks
 from gt3dkit.rig import Camera, Rig
-from gt3dkit.types import F64, Scene
+from gt3dkit.types import F64, JsonDict, Scene
 
 
 @dataclass(frozen=True)
@@ -55,7 +54,7 @@ class Tracks:
         return Tracks(self.X0[idx], self.time[idx], new[self.point[m]], self.cam[m], self.uv[m])
 
 
-def keypoint_tracks(pre: Any) -> Tracks | None:
+def keypoint_tracks(pre: Prepared) -> Tracks | None:
     """The tracks of a prepared scene: kept keypoints of joints triangulated in their frame."""
     if pre.kpt0 is None:
         return None
@@ -168,7 +167,7 @@ def refine(scene: Scene, cfg: RefineConfig | None = None) -> RefineResult:
             held["input_px"][f, c], held["refined_px"][f, c] = a, b
             gains[f, c] = (a - b) / max(a, 1e-12)
     accept = np.all(gains > cfg.min_gain, axis=0)
-    report: dict[str, Any] = {"method": "pycolmap bundle adjustment of keypoint tracks (Cauchy loss)",
+    report: JsonDict = {"method": "pycolmap bundle adjustment of keypoint tracks (Cauchy loss)",
                               "keypoint_sigma_px": sigma, "folds": cfg.folds,
                               "refine_intrinsics": cfg.refine_intrinsics, "cameras": {}}
     new = rig

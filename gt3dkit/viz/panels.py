@@ -9,16 +9,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from gt3dkit.geom.camera import project_points
 from gt3dkit.geom.conics import model_boxes
 from gt3dkit.qa.anomalies import track_row_of
+from gt3dkit.qa.view import PreparedView
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import F64, I64, Scene, TrackSet
 from gt3dkit.viz.overview import colour_of
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
 
 ANNOTATION_NOTE = "annotation: solid box / dots; estimate: dashed box / crosses"
 
@@ -57,7 +61,7 @@ class ViewResiduals:
     view_err: F64
 
 
-def view_residuals(tracks: TrackSet, pre: Any) -> ViewResiduals:
+def view_residuals(tracks: TrackSet, pre: PreparedView) -> ViewResiduals:
     rows, cams = pre.rows, pre.cams
     r_of = track_row_of(tracks, rows)
     idx = np.flatnonzero(r_of >= 0)
@@ -121,7 +125,7 @@ def _points(res: ViewResiduals, n: int, c: int, estimate: bool) -> F64:
     return np.array(pts).reshape(-1, 2)
 
 
-def draw_view(ax: Any, scene: Scene, res: ViewResiduals, cam: int, sel: np.ndarray,
+def draw_view(ax: Axes, scene: Scene, res: ViewResiduals, cam: int, sel: np.ndarray,
               skeleton_bones: list[tuple[int, int]] | None = None, lw: float = 1.6,
               mark: tuple[int, int | None] | None = None, focus: int | None = None) -> None:
     """Draw the annotations and the projected estimate of the residual rows ``sel`` in camera
@@ -319,8 +323,8 @@ def _thumbnail_views(scene: Scene, res: ViewResiduals, frame: int, obj: int, cam
     return (n, cams) if cams else None
 
 
-def _thumbnail_view(ax: Any, scene: Scene, res: ViewResiduals, row_cam: tuple[int, int],
-                    flag: tuple[str, int | None], bones: Any, prefix: str) -> None:
+def _thumbnail_view(ax: Axes, scene: Scene, res: ViewResiduals, row_cam: tuple[int, int],
+                    flag: tuple[str, int | None], bones: list[tuple[int, int]] | None, prefix: str) -> None:
     """Camera ``c``'s view of residual row ``n`` (``row_cam``), cropped around the object; the
     flagged ``(camera, joint)`` marked."""
     (n, c), (camera, joint) = row_cam, flag

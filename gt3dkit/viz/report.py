@@ -35,6 +35,7 @@ from gt3dkit.types import Scene, TrackSet
 from gt3dkit.viz.overview import colour_of, write_overview
 from gt3dkit.viz.panels import (
     ANNOTATION_NOTE,
+    ViewResiduals,
     _plt,
     anomaly_thumbnail,
     residual_histograms,
@@ -57,7 +58,7 @@ STYLE = ("body{font-family:sans-serif;max-width:1500px;margin:auto;padding:0 12p
 
 
 def _table(rows: list[list[Any]], head: list[str] | None = None, raw_cols: tuple[int, ...] = ()) -> str:
-    def cell(i: int, x: Any) -> str:
+    def cell(i: int, x: object) -> str:
         return str(x) if i in raw_cols else html.escape(str(x))
 
     h = "<tr>" + "".join(f"<th>{html.escape(str(x))}</th>" for x in head) + "</tr>" if head else ""
@@ -65,7 +66,7 @@ def _table(rows: list[list[Any]], head: list[str] | None = None, raw_cols: tuple
     return f"<table>{h}{b}</table>"
 
 
-def _fmt(v: Any) -> str:
+def _fmt(v: object) -> str:
     if isinstance(v, float):
         return "-" if not np.isfinite(v) else f"{v:.4g}"
     if isinstance(v, dict):
@@ -75,7 +76,7 @@ def _fmt(v: Any) -> str:
     return "-" if v is None else str(v)
 
 
-def _numbers(run: Run, res: Any) -> list[list[Any]]:
+def _numbers(run: Run, res: ViewResiduals) -> list[list[Any]]:
     sc, tr, meta = run.scene, run.tracks, run.meta
     est = meta.get("estimator", {}) if isinstance(meta.get("estimator"), dict) else {}
     prep = est.get("preparation", {}) if isinstance(est.get("preparation"), dict) else {}
@@ -136,7 +137,7 @@ def _calibration(run: Run) -> str:
     return out
 
 
-def _anomaly_section(run: Run, res: Any, folder: Path) -> str:
+def _anomaly_section(run: Run, res: ViewResiduals, folder: Path) -> str:
     rows = run.anomalies
     if not (run.out / "anomalies.csv").is_file():
         return ("<p>This output has no anomalies.csv (gt3d compare does not run the annotation QA; "

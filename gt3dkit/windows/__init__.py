@@ -64,6 +64,7 @@ import contextlib
 import dataclasses
 import functools
 from collections.abc import Callable
+from concurrent.futures import Executor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -74,9 +75,10 @@ from gt3dkit.fusion.base import make_estimator, over_time
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.writers import StreamedRows, write_result_files
 from gt3dkit.qa.anomalies import Anomalies
-from gt3dkit.types import Scene, TrackSet
+from gt3dkit.types import Options, OptionValue, Scene, TrackSet
 from gt3dkit.windows.cluster import (
     Cluster,
+    Runner,
     Scattered,
     connect_scheduler,
     in_pool,
@@ -110,7 +112,7 @@ __all__ = ["Cluster", "Plan", "Window", "auto_plan", "connect_scheduler", "recon
 def reconstruct_windows(scene: Scene, estimator: str, plan: Plan, out: str | None = None,
                         extra_meta: dict[str, Any] | None = None, every_frame: int | None = None,
                         on_window: Callable[[int, int], None] | None = None, cluster: Cluster | None = None,
-                        **config: Any) -> TrackSet:
+                        **config: OptionValue) -> TrackSet:
     """:func:`gt3dkit.api.reconstruct` of a long sequence by ``plan``; writes ``out`` if given,
     atomically as one run: each window's rows as soon as they are final (the windows before it
     done, :class:`gt3dkit.io.writers.StreamedRows`; on the 4 000-frame box scene, what is left
@@ -134,7 +136,7 @@ def reconstruct_windows(scene: Scene, estimator: str, plan: Plan, out: str | Non
 
 def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: int | None = None,
                          on_window: Callable[[int, int], None] | None = None, cluster: Cluster | None = None,
-                         on_part: OnPart | None = None, **config: Any) -> tuple[TrackSet, Anomalies]:
+                         on_part: OnPart | None = None, **config: OptionValue) -> tuple[TrackSet, Anomalies]:
     """``scene`` in windows (:mod:`gt3dkit.windows`, ``plan``): the stitched tracks and QA
     findings; ``on_window(done, total)`` as the windows start (0) and after each one; ``cluster``
     as :func:`reconstruct_windows`; ``on_part(k, tracks, anomaly_rows)`` with each window's final
@@ -198,7 +200,7 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
     return tracks, qa
 
 
-def ties_bones(scene: Scene, estimator: str, config: dict[str, Any]) -> bool:
+def ties_bones(scene: Scene, estimator: str, config: Options) -> bool:
     """Whether ``estimator`` ties the joints of ``scene`` by its persons' bones (then the windows
     pool theirs first: :func:`window_bones`, :func:`pooled_bones`)."""
     est = make_estimator(estimator, **config)
@@ -232,7 +234,7 @@ def _window_scenes(scene: Scene, windows: list[Window], client: Client | None, b
     return Scattered(client, [functools.partial(cut, w) for w in windows])
 
 
-def _run_windows(scenes: Callable[[int], Any], windows: list[Window], like: WindowJob, runner: Any,
+def _run_windows(scenes: Callable[[int], Any], windows: list[Window], like: WindowJob, runner: Runner,
                  done: Callable[[int, int], None], fn: Callable[[WindowJob, Scene], Any] = run_window,
                  on_part: OnPart | None = None) -> list[Any]:
     """Every window's ``fn`` (:func:`run_window`; ``like`` with each window's frames, ``scenes(k)``
@@ -249,7 +251,7 @@ def _run_windows(scenes: Callable[[int], Any], windows: list[Window], like: Wind
             got(k, *parts[k])
             done(k + 1, len(windows))
         return parts
-    if hasattr(runner, "scatter"):  # a Dask client
+    if not isinstance(runner, Executor):  # a Dask client
         finished = on_dask(runner, lambda k: (fn, dataclasses.replace(like, window=windows[k]), scenes(k)),
                             len(windows), lambda k: f"window {k + 1} (frames {windows[k].first}-"
                                                     f"{windows[k].last})")

@@ -7,7 +7,7 @@ from __future__ import annotations
 import contextlib
 import time
 from collections.abc import Callable, Iterator
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeAlias
 
 import numpy as np
 
@@ -18,12 +18,17 @@ from gt3dkit.api import (
 from gt3dkit.errors import EstimationError, InputError
 from gt3dkit.fusion.base import make_estimator
 from gt3dkit.threads import small_matrix_blas
-from gt3dkit.types import Scene
+from gt3dkit.types import Options, Scene
 from gt3dkit.version import __version__
 from gt3dkit.windows.plan import Window, window_scene
 
 if TYPE_CHECKING:
+    from concurrent.futures import Executor
+
     from distributed import Client
+
+#: Where windows run: a Dask cluster's client, a local process pool, or this process (None).
+Runner: TypeAlias = "Client | Executor | None"
 
 #: Frames each Dask worker but the first estimates first, to load its imports and kernels
 #: (:func:`warm_workers`).
@@ -109,7 +114,7 @@ class Cluster:
     against 3.4 s, means of 4 runs), and so did connecting in a thread beside it with the second
     worker warming (4.5 s against 3.9 s; connecting first took 0.3-0.45 s). A context manager."""
 
-    def __init__(self, address: str, estimator: str, config: dict[str, Any], loading: bool = True) -> None:
+    def __init__(self, address: str, estimator: str, config: Options, loading: bool = True) -> None:
         self.client = connect_scheduler(address)
         try:
             first = worker_addresses(self.client)[:1] if loading else []
@@ -139,7 +144,7 @@ def process_pool(workers: int) -> Any:
     return ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
 
 
-def warm_first(estimator: str, config: dict[str, Any]) -> None:
+def warm_first(estimator: str, config: Options) -> None:
     """:func:`warm_worker` on two tiny simulated scenes, boxes and joints
     (:func:`gt3dkit.api.tiny_scenes`): the first Dask worker's, while the sequence loads
     (:class:`Cluster`)."""
@@ -147,7 +152,7 @@ def warm_first(estimator: str, config: dict[str, Any]) -> None:
         warm_worker(scene, estimator, config)
 
 
-def warm_worker(scene: Scene, estimator: str, config: dict[str, Any]) -> None:
+def warm_worker(scene: Scene, estimator: str, config: Options) -> None:
     """Estimate ``scene`` (a few frames) and drop the result: this process's imports and compiled
     kernels loaded (:func:`warm_workers`, :func:`warm_first`); an error is left to the windows
     to find."""
@@ -155,7 +160,7 @@ def warm_worker(scene: Scene, estimator: str, config: dict[str, Any]) -> None:
         estimate_checked(scene, make_estimator(estimator, **config))
 
 
-def warm_workers(client: Client, scene: Scene, estimator: str, config: dict[str, Any]) -> list[Any]:
+def warm_workers(client: Client, scene: Scene, estimator: str, config: Options) -> list[Any]:
     """The sequence's first annotated frames estimated and dropped on the Dask ``client``'s
     workers but the first (:func:`warm_worker`): while the first searches the noise
     (:func:`chosen_noise`), the others load their imports and compiled kernels (a second or two

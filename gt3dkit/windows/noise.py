@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from concurrent.futures import Executor
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -18,9 +19,10 @@ from gt3dkit.arrays import unique_rows
 from gt3dkit.fusion.base import make_estimator
 from gt3dkit.fusion.motion import position_step
 from gt3dkit.fusion.noise import SEARCH_OBJECT_FRAMES, drawn_objects
+from gt3dkit.fusion.prepare import Prepared
 from gt3dkit.threads import every_core, roomy_malloc, small_matrix_blas
-from gt3dkit.types import Scene
-from gt3dkit.windows.cluster import on_dask, worker_addresses
+from gt3dkit.types import Options, Scene
+from gt3dkit.windows.cluster import Runner, on_dask, worker_addresses
 from gt3dkit.windows.plan import Window, objects_per_frame, window_scene
 
 if TYPE_CHECKING:
@@ -62,8 +64,8 @@ def noise_sample(scene: Scene, windows: list[Window], limit: int = NOISE_SAMPLE_
     return int(f[a]), int(f[max(b, a)])
 
 
-def chosen_noise(scene: Scene, windows: list[Window], estimator: str, config: dict[str, Any],
-                 runner: Any = None) -> Callable[[], tuple[dict[str, float], int | None]]:
+def chosen_noise(scene: Scene, windows: list[Window], estimator: str, config: Options,
+                 runner: Runner = None) -> Callable[[], tuple[dict[str, float], int | None]]:
     """The process noise every window runs with (the settings ``config`` gives, the others the
     estimator's own choice on :func:`noise_sample`'s frames, :func:`sample_noise`) and the
     context in frames that noise needs (:func:`joint_context`; None: the default's), when the
@@ -77,12 +79,12 @@ def chosen_noise(scene: Scene, windows: list[Window], estimator: str, config: di
     if runner is None:
         found = sample_noise(sample, estimator, config, step_s)
         return lambda: found
-    if hasattr(runner, "scatter"):  # a Dask client
+    if not isinstance(runner, Executor):  # a Dask client
         return _search_on_dask(runner, sample, estimator, config, step_s)
     return runner.submit(sample_noise, sample, estimator, config, step_s).result
 
 
-def _search_on_dask(client: Client, sample: Scene, estimator: str, config: dict[str, Any], step_s: float
+def _search_on_dask(client: Client, sample: Scene, estimator: str, config: Options, step_s: float
                     ) -> Callable[[], tuple[dict[str, float], int | None]]:
     """:func:`searched_on_worker` of ``sample`` (scattered as data, not inside the task graph) on
     the Dask ``client``'s first worker, warmed as the sequence loaded (:class:`Cluster`); the
@@ -111,7 +113,7 @@ def searched_objects(sample: Scene, budget: int = SEARCH_OBJECT_FRAMES) -> Scene
     return dataclasses.replace(sample, obs=sample.obs.select(keep))
 
 
-def sample_noise(sample: Scene, estimator: str, config: dict[str, Any], step_s: float
+def sample_noise(sample: Scene, estimator: str, config: Options, step_s: float
                  ) -> tuple[dict[str, float], int | None]:
     """:func:`chosen_noise` on its ``sample`` of the sequence (frames ``step_s`` seconds apart)."""
     given = {k: config[k] for k in PROCESS_NOISE if config.get(k) is not None}
@@ -127,7 +129,7 @@ def sample_noise(sample: Scene, estimator: str, config: dict[str, Any], step_s: 
     return noise, joint_context(pre, noise, step_s)
 
 
-def searched_on_worker(sample: Scene, estimator: str, config: dict[str, Any], step_s: float
+def searched_on_worker(sample: Scene, estimator: str, config: Options, step_s: float
                        ) -> tuple[dict[str, float], int | None]:
     """:func:`sample_noise` on a Dask worker, on every core of its machine (the compiled loops'
     threads, :func:`gt3dkit.threads.every_core`; a worker's task thread gets one): every worker
@@ -160,7 +162,7 @@ def context_steps(accel_sd: float, meas_sd_m: float, dt_s: float, weight: float 
     return int(np.ceil(np.log(weight) / np.log(rho)))
 
 
-def joint_context(pre: Any, noise: dict[str, float], step_s: float) -> int | None:
+def joint_context(pre: Prepared, noise: dict[str, float], step_s: float) -> int | None:
     """The context in frames a keypoint sequence (no boxes) needs: :func:`context_steps` with
     the chosen ``joint_accel_sd`` and the per-frame joint fits' sd (the largest axis, the
     :data:`CONTEXT_SD_PERCENTILE` percentile over joints and frames of the preparation ``pre``),

@@ -22,7 +22,7 @@ from gt3dkit.fusion.bones import BoneSamples, PersonBones
 from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.qa.anomalies import Anomalies
 from gt3dkit.threads import roomy_malloc, small_matrix_blas
-from gt3dkit.types import I64, Downweighted, Scene, TrackSet
+from gt3dkit.types import I64, Downweighted, Options, Scene, TrackSet
 from gt3dkit.windows.plan import Plan, Window
 
 #: What a window's rows and findings go to as it finishes (:func:`reconstruct_windowed`): its index,
@@ -36,7 +36,7 @@ class WindowJob:
 
     window: Window
     estimator: str
-    config: dict[str, Any]
+    config: Options
     every_frame: int | None
     bones: PersonBones | None = None  # every person's bones, pooled over the windows
 
@@ -78,7 +78,7 @@ def window_bones(job: WindowJob, scene: Scene) -> tuple[BoneSamples | None, I64,
     return s, split, time.perf_counter() - t0
 
 
-def pooled_bones(parts: list[tuple[BoneSamples | None, I64, float]], config: dict[str, Any]
+def pooled_bones(parts: list[tuple[BoneSamples | None, I64, float]], config: Options
                  ) -> PersonBones | None:
     """Every person's bones from the windows' first-pass bones and split ids ``parts``
     (:func:`window_bones`), as the whole sequence's run finds them (its config's

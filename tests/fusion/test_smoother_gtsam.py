@@ -10,7 +10,7 @@ import pytest
 def test_gauss_newton_reaches_gtsam_levenberg_marquardt() -> None:
     import gtsam
 
-    from gt3dkit.fusion.gtsam_factors import _gtsam_gauss_newton
+    from gt3dkit.fusion.gtsam_factors import gtsam_gauss_newton
 
     rng = np.random.default_rng(7)
     g = gtsam.NonlinearFactorGraph()
@@ -26,7 +26,7 @@ def test_gauss_newton_reaches_gtsam_levenberg_marquardt() -> None:
             g.add(gtsam.TriangulationFactorCal3_S2(cam, uv, gtsam.noiseModel.Robust.Create(
                 huber, gtsam.noiseModel.Isotropic.Sigma(2, 1.0)), j))
         vals.insert(j, p + rng.normal(size=3) * 0.05)
-    ours, iters, err = _gtsam_gauss_newton(g, vals, 100, 1e-12)
+    ours, iters, err = gtsam_gauss_newton(g, vals, 100, 1e-12)
     params = gtsam.LevenbergMarquardtParams()
     params.setRelativeErrorTol(1e-14)
     params.setAbsoluteErrorTol(1e-14)

@@ -10,7 +10,6 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -18,6 +17,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.parse import load_json, parse_float, parse_int
 from gt3dkit.rig import Camera, Rig
 from gt3dkit.skeletons import SKELETONS
+from gt3dkit.types import JsonDict, JsonValue
 
 #: Frame rates accepted in cameras.json and by --fps: one frame per 17 minutes .. 1 MHz.
 FPS_RANGE = (1e-3, 1e6)
@@ -35,7 +35,7 @@ def load_cameras(path: Path) -> tuple[Rig, float | None, str | None]:
     return rig, fps, _skeleton_of(doc, path)
 
 
-def rig_of_doc(doc: Any, path: Path | str) -> Rig:
+def rig_of_doc(doc: JsonValue, path: Path | str) -> Rig:
     """The rig of a ``cameras.json`` document (as :func:`cameras_doc` writes it); ``path``
     names it in errors."""
     if not isinstance(doc, dict) or not isinstance(doc.get("cameras"), list):
@@ -58,14 +58,14 @@ def rig_of_doc(doc: Any, path: Path | str) -> Rig:
     return rig
 
 
-def _skeleton_of(doc: dict[str, Any], path: Path) -> str | None:
+def _skeleton_of(doc: JsonDict, path: Path) -> str | None:
     skel = doc.get("skeleton")
     if skel is not None and (not isinstance(skel, str) or skel not in SKELETONS):
         raise InputError(str(path), f"unknown skeleton {skel!r} (known: {', '.join(SKELETONS)})")
     return skel if skel is None else str(skel)
 
 
-def cameras_doc(rig: Rig, fps: float | None, **extra: Any) -> dict[str, Any]:
+def cameras_doc(rig: Rig, fps: float | None, **extra: JsonValue) -> JsonDict:
     """The ``cameras.json`` document of a rig (what :func:`load_cameras` reads back)."""
     return {"up": rig.up.tolist(), "fps": fps, **extra,
             "cameras": [{"name": c.name, "width": c.width, "height": c.height, "K": c.K.tolist(),
@@ -74,7 +74,7 @@ def cameras_doc(rig: Rig, fps: float | None, **extra: Any) -> dict[str, Any]:
                         for c in rig.cameras]}
 
 
-def _camera(c: dict[str, Any]) -> Camera:
+def _camera(c: JsonDict) -> Camera:
     size = [parse_int("", c[k], k, 1, 100_000) for k in ("width", "height")]
     return Camera(name=str(c["name"]), width=size[0], height=size[1],
                   K=np.asarray(c["K"], dtype=np.float64),
@@ -88,7 +88,7 @@ def read(path: Path) -> Rig:
     return load_cameras(path)[0]
 
 
-def write(rig: Rig, path: Path, fps: float | None = None, **extra: Any) -> None:
+def write(rig: Rig, path: Path, fps: float | None = None, **extra: JsonValue) -> None:
     """Write ``rig`` as ``cameras.json`` (``fps`` and ``extra`` keys if given)."""
     import json
 

@@ -15,7 +15,7 @@ from gt3dkit.calib.formats.grid import LAYOUTS as GRID_LAYOUTS
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets import mot, native, openpose, panoptic, tasks, wildtrack
 from gt3dkit.rig import Rig
-from gt3dkit.types import Scene, SimScene, SkeletonScene
+from gt3dkit.types import JsonDict, Scene, SimScene, SkeletonScene
 
 
 class ReadOptions(NamedTuple):
@@ -24,7 +24,7 @@ class ReadOptions(NamedTuple):
     skeleton: str | None
     calib: Path | str | None
     fps: float | None
-    panoptic: dict[str, Any]
+    panoptic: JsonDict
 
 
 @dataclass(frozen=True)

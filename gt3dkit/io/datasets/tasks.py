@@ -25,7 +25,7 @@ in the tool) are numbered after the largest, with a warning.
 Joint names in any usual spelling are matched to the smallest known skeleton holding them all
 (:func:`gt3dkit.skeletons.skeleton_for_names`). With track ids, the per-camera tracks are
 associated across cameras (:func:`gt3dkit.fusion.associate.associate`); without, each frame's
-detections are (:func:`~gt3dkit.fusion.associate.associate_detections`). Calibration, camera
+detections are (:func:`~gt3dkit.fusion.detections.associate_detections`). Calibration, camera
 matching and frame rate as for :mod:`gt3dkit.io.datasets.mot`.
 """
 
@@ -35,6 +35,7 @@ import json
 import math
 from pathlib import Path
 from typing import Any
+from xml.etree.ElementTree import Element
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
@@ -55,7 +56,8 @@ from gt3dkit.types import Scene, SimScene, SkeletonScene
 Item = tuple[int, int, int, list[float] | None, dict[str, tuple[float, float, float]], str, bool]
 
 
-def _untouched(digest: Any, box: list[float] | None, pts: dict[str, tuple[float, float, float]]) -> bool:
+def _untouched(digest: str | None, box: list[float] | None,
+               pts: dict[str, tuple[float, float, float]]) -> bool:
     """Whether a shape whose ``drawn_digest`` attribute is ``digest`` still has the coordinates
     gt3d drew."""
     if not digest:
@@ -64,7 +66,7 @@ def _untouched(digest: Any, box: list[float] | None, pts: dict[str, tuple[float,
                                                {n: (x, y) for n, (x, y, _) in pts.items()})
 
 
-def _num(where: str, v: Any, name: str) -> float:
+def _num(where: str, v: object, name: str) -> float:
     try:
         x = float(v)
     except (TypeError, ValueError):
@@ -74,7 +76,7 @@ def _num(where: str, v: Any, name: str) -> float:
     return x
 
 
-def _cvat_track_ids(path: Path, root: Any, warnings: list[str]) -> dict[int, int]:
+def _cvat_track_ids(path: Path, root: Element, warnings: list[str]) -> dict[int, int]:
     """Element id -> the track's id: its shapes' ``track_id`` attribute where every shape of
     it carries the same one, else (a track drawn in the tool) numbers after the largest."""
     out: dict[int, int] = {}

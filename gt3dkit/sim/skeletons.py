@@ -1,0 +1,242 @@
+"""Scenes of people as skeletons seen by a dome of cameras (:func:`simulate_skeletons`), with a
+detector's errors, written as keypoint files (:func:`write_skeleton_scene`, OpenPose, COCO)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from gt3dkit.geom.camera import project_points
+from gt3dkit.io.atomic import write_dir_atomically
+from gt3dkit.io.datasets import LAYOUTS, openpose, tasks
+from gt3dkit.sim.common import DROPPED_KEYPOINTS, Errors, gap_mask, keep_one_view, write_injected
+from gt3dkit.skeletons import SKELETONS
+from gt3dkit.types import F64, I64, Camera, Rig, SkeletonScene
+
+
+def make_dome(n_cams: int, rng: np.random.Generator, up: F64, names: list[str]) -> Rig:
+    """HD cameras (1920x1080, Panoptic-like focal length and distortion) on a dome of radius
+    ~2.9 m (CMU Panoptic's HD cameras: f ~ 1600 px, k1 ~ -0.22)."""
+    up = up / np.linalg.norm(up)
+    ref = np.eye(3)[int(np.argmin(np.abs(up)))]
+    e1 = ref - up * (ref @ up)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    cams = []
+    for i in range(n_cams):
+        ang = 2 * np.pi * (i + rng.uniform(-0.2, 0.2)) / n_cams
+        h = rng.uniform(0.8, 2.8)
+        r = rng.uniform(2.6, 3.1)
+        pos = r * (np.cos(ang) * e1 + np.sin(ang) * e2) + h * up
+        target = 0.9 * up + rng.uniform(-0.2, 0.2) * e1
+        z = target - pos
+        z /= np.linalg.norm(z)
+        x = np.cross(z, up)
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        R = np.stack([x, y, z])
+        f = rng.uniform(1400, 1700)
+        K = np.array([[f, 0, 960 + rng.uniform(-15, 15)], [0, f, 540 + rng.uniform(-15, 15)],
+                      [0, 0, 1]])
+        dist = np.array([rng.uniform(-0.25, -0.15), rng.uniform(0.05, 0.2),
+                         rng.uniform(-1e-3, 1e-3), rng.uniform(-1e-3, 1e-3), rng.uniform(0, 0.03)])
+        cams.append(Camera(names[i], 1920, 1080, K, dist, R, -R @ pos))
+    return Rig(tuple(cams), up=up, frame_name="synthetic world")
+
+
+def _rot(axis: F64, ang: F64) -> F64:
+    """Rotations (..., 3, 3) about unit ``axis`` (3,) by angles ``ang`` (...,) (Rodrigues)."""
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    a = np.asarray(ang)[..., None, None]
+    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * (K @ K)
+
+
+def skeleton_motion(skel_name: str, t_s: F64, rng: np.random.Generator) -> F64:
+    """(T, J, 3) body-frame joints of one person: canonical pose scaled, limbs swinging
+    about their parent joints (bone lengths exact), turning and walking slowly."""
+    skel = SKELETONS[skel_name]
+    names = skel.joints
+    ix = {n: i for i, n in enumerate(names)}
+    base = skel.canonical() * rng.uniform(0.9, 1.1)
+    T = len(t_s)
+    P = np.repeat(base[None], T, axis=0)
+    lat = np.array([1.0, 0.0, 0.0])
+    chains = [("l_shoulder", ("l_elbow", "l_wrist")), ("r_shoulder", ("r_elbow", "r_wrist")),
+              ("l_hip", ("l_knee", "l_ankle")), ("r_hip", ("r_knee", "r_ankle"))]
+    w = rng.uniform(2.0, 4.0)
+    for k, (root, kids) in enumerate(chains):
+        amp = rng.uniform(0.2, 0.5) * (1 if k % 2 == 0 else -1)
+        Rt = _rot(lat, amp * np.sin(w * t_s + rng.uniform(0, 0.3)))  # (T,3,3)
+        o = base[ix[root]]
+        for kid in kids:
+            if kid in ix:
+                P[:, ix[kid]] = o + np.einsum("tij,j->ti", Rt, base[ix[kid]] - o)
+        # the lower link bends further about the middle joint
+        if len(kids) == 2 and all(c in ix for c in kids):
+            mid, end = ix[kids[0]], ix[kids[1]]
+            R2 = _rot(lat, 0.3 * amp * (1 + np.sin(1.3 * w * t_s)))
+            P[:, end] = P[:, mid] + np.einsum("tij,tj->ti", R2, P[:, end] - P[:, mid])
+    yaw = rng.uniform(0, 2 * np.pi) + rng.uniform(-0.4, 0.4) * np.sin(0.5 * t_s)
+    Rz = _rot(np.array([0.0, 0.0, 1.0]), yaw)
+    root_xy = rng.uniform(-0.8, 0.8, 2) + np.stack([0.3 * np.sin(0.4 * t_s + rng.uniform(0, 6)),
+                                                     0.3 * np.cos(0.3 * t_s)], -1)
+    P = np.einsum("tij,tkj->tki", Rz, P)
+    P[..., :2] += root_xy[:, None, :]
+    return P
+
+
+def simulate_skeletons(layout: str = "native", seed: int = 0, frames: int = 30, people: int = 3,
+                       noise_px: float = 0.0, cameras: int = 10,
+                       skeleton: str = "coco19", fps: float = 30.0, errors: Errors | None = None,
+                       confidences: bool = False) -> SkeletonScene:
+    """People as moving skeletons seen by a dome of HD cameras, in a y-down world.
+
+    2D points are exact projections (with distortion) plus ``noise_px`` Gaussian noise;
+    points behind a camera or outside its image are dropped, and a fraction
+    ``Errors.dropped`` of the rest at random. ``errors`` (native layout) adds detector errors;
+    ``confidences`` writes a detector-like confidence per point (lower for worse points).
+    """
+    if layout not in ("native", "panoptic"):
+        raise ValueError(f"skeleton scenes are written as native or panoptic, not {layout!r}")
+    errors = errors or Errors()
+    missing = DROPPED_KEYPOINTS if errors.dropped is None else errors.dropped
+    if layout == "panoptic" and replace(errors, dropped=None) != Errors():
+        raise ValueError("detector errors are written in the native layout (the Panoptic "
+                         "layout's loader makes its own 2D points)")
+    if frames < 2 or people < 1 or cameras < 2 or not noise_px >= 0:
+        raise ValueError("need frames >= 2, people >= 1, cameras >= 2, noise_px >= 0")
+    rng = np.random.default_rng(seed)
+    up = np.array([0.0, -1.0, 0.0])
+    names = [f"00_{i:02d}" for i in range(cameras)]
+    rig = make_dome(cameras, rng, up, names)
+    t_s = np.arange(frames) / fps
+    frame_numbers = np.arange(frames, dtype=np.int64) + 100
+    wfb = rig.world_from_body()
+    kpts, fr, ids = [], [], []
+    for pid in range(people):
+        body = skeleton_motion(skeleton, t_s, rng)
+        body[..., :2] += np.array([1.2 * np.cos(2 * np.pi * pid / people),
+                                   1.2 * np.sin(2 * np.pi * pid / people)]) * (people > 1)
+        kpts.append(np.einsum("ij,tkj->tki", wfb, body))
+        fr.append(frame_numbers)
+        ids.append(np.full(frames, pid))
+    X = np.concatenate(kpts)
+    uv, depth = project_points(X, rig.K, rig.dist, rig.R, rig.t)  # (M,J,C,2)
+    if noise_px > 0:
+        uv = uv + rng.normal(scale=noise_px, size=uv.shape)
+    ok = (depth > 0) & np.all((uv >= 0) & (uv <= rig.wh - 1), axis=-1)
+    ok &= rng.uniform(size=ok.shape) >= missing
+    uv = np.swapaxes(np.where(ok[..., None], uv, np.nan), 1, 2)  # (M, C, J, 2)
+    truth_frame, truth_id = np.concatenate(fr), np.concatenate(ids)
+    uv, conf, injected = detector_errors(uv, rig, skeleton, truth_frame, truth_id, frame_numbers,
+                                          errors, np.random.default_rng([seed, 1]))
+    return SkeletonScene(rig=rig, frames=frame_numbers, fps=fps, skeleton=skeleton,
+                         truth_frame=truth_frame, truth_id=truth_id, kpt_world=X, uv=uv,
+                         conf=conf if confidences else None, injected=tuple(injected))
+
+
+def detector_errors(uv: F64, rig: Rig, skeleton: str, truth_frame: I64, truth_id: I64,
+                     frames: I64, errors: Errors, rng: np.random.Generator
+                     ) -> tuple[F64, F64, list[tuple[int, str, int, str, str, str]]]:
+    """Inject ``errors`` into keypoints ``uv (M, C, J, 2)``; confidences ``(M, C, J)``."""
+    M, C, J = uv.shape[:3]
+    uv = uv.copy()
+    seen = np.isfinite(uv[..., 0])
+    # a clean point's confidence: high, lower for the noisier ones
+    conf = np.clip(0.92 - 0.08 * rng.standard_normal((M, C, J)) ** 2
+                   + 0.04 * rng.standard_normal((M, C, J)), 0.3, 1.0)
+    injected: list[tuple[int, str, int, str, str, str]] = []
+    names = rig.names
+
+    def note(m: int, c: int, j: int | str, kind: str, detail: str) -> None:
+        injected.append((int(truth_frame[m]), names[c], int(truth_id[m]), str(j), kind, detail))
+
+    gap = gap_mask(frames, truth_frame, errors.gap)
+    seen &= ~gap[:, None, None]
+    if errors.single_view:
+        sv, chosen = keep_one_view(seen.any(axis=2), truth_id, errors.single_view, rng)
+        seen &= sv[..., None]
+        injected += [(-1, "", p, "", "single_view", "detected in one camera only") for p in chosen]
+    if errors.swaps:
+        joints = SKELETONS[skeleton].joints
+        pairs = [(joints.index(a), joints.index("r_" + a[2:])) for a in joints
+                 if a.startswith("l_") and "r_" + a[2:] in joints]
+        hit = np.argwhere(seen.any(axis=2) & (rng.uniform(size=(M, C)) < errors.swaps))
+        for m, c in hit:
+            a, b = pairs[int(rng.integers(len(pairs)))]
+            if seen[m, c, a] and seen[m, c, b]:
+                d = float(np.linalg.norm(uv[m, c, a] - uv[m, c, b]))
+                uv[m, c, [a, b]] = uv[m, c, [b, a]]
+                note(m, c, f"{a}+{b}", "swapped_joints", f"{joints[a]}<->{joints[b]} {d:.0f} px")
+    if errors.outliers:
+        hit = seen & (rng.uniform(size=seen.shape) < errors.outliers)
+        for m, c, j in np.argwhere(hit):
+            W, H = rig.wh[c]
+            for _ in range(20):
+                ang, r = rng.uniform(0, 2 * np.pi), rng.uniform(100, 300)
+                p = uv[m, c, j] + r * np.array([np.cos(ang), np.sin(ang)])
+                if 0 <= p[0] <= W - 1 and 0 <= p[1] <= H - 1:
+                    uv[m, c, j] = p
+                    conf[m, c, j] = rng.uniform(0.2, 0.7)
+                    note(m, c, j, "keypoint_outlier", f"{r:.0f} px away")
+                    break
+    if errors.glitch:
+        hit = seen & (rng.uniform(size=seen.shape) < errors.glitch)
+        for m, c, j in np.argwhere(hit):
+            both = rng.uniform() < 0.3
+            uv[m, c, j] = [0.0, 0.0] if both else [0.0, uv[m, c, j, 1]]
+            conf[m, c, j] = rng.uniform(0.6, 0.9)
+            note(m, c, j, "glitch", "u = v = 0" if both else "u = 0")
+    uv = np.where(seen[..., None], uv, np.nan)
+    return uv, np.where(seen, conf, np.nan), injected
+
+
+#: y-down (the skeleton simulator's world) -> z-up (Pose2Sim's): X_zup = Q_ZUP @ X_ydown
+Q_ZUP = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])
+
+
+def to_z_up(sim: SkeletonScene) -> SkeletonScene:
+    """The same scene in a z-up world (cameras and truth rotated; images unchanged)."""
+    import dataclasses as _dc
+
+    cams = tuple(_dc.replace(c, R=c.R @ Q_ZUP.T) for c in sim.rig.cameras)
+    rig = Rig(cams, up=np.array([0.0, 0.0, 1.0]), frame_name="synthetic z-up world")
+    return _dc.replace(sim, rig=rig, kpt_world=sim.kpt_world @ Q_ZUP.T)
+
+
+def write_skeleton_scene(sim: SkeletonScene, out: Path, layout: str) -> None:
+    """Write as an input folder of ``layout`` (atomically, by the layout's writer in
+    :data:`gt3dkit.io.datasets.LAYOUTS`: native ``cameras.json``, ``keypoints.csv``,
+    ``truth_keypoints.csv``; or a CMU Panoptic sequence, whose loader makes the 2D points), with
+    ``injected.csv`` (native)."""
+    writer = LAYOUTS[layout].write_keypoints if layout in LAYOUTS else None
+    if writer is None:
+        raise ValueError(f"unknown layout {layout!r}")
+
+    def write(tmp: Path) -> None:
+        writer(sim, tmp)
+        if layout == "native":
+            write_injected(sim.injected, tmp / "injected.csv")
+
+    write_dir_atomically(Path(out), write)
+
+
+def write_openpose(sim: SkeletonScene, out: Path, seed: int = 0,
+                   folder_names: list[str] | None = None) -> None:
+    """Write as a Pose2Sim/OpenPose trial (atomically; :func:`gt3dkit.io.datasets.openpose.write`)
+    with ``injected.csv``. ``sim`` must be in a z-up world (:func:`to_z_up`) and a detector
+    skeleton (body25, ...)."""
+
+    def write(tmp: Path) -> None:
+        openpose.write(sim, tmp, seed, folder_names)
+        write_injected(sim.injected, tmp / "injected.csv")
+
+    write_dir_atomically(Path(out), write)
+
+
+def write_coco(sim: SkeletonScene, out: Path, track_ids: bool = True, seed: int = 0) -> None:
+    """Write as ``coco/<camera>.json`` + ``cameras.json`` + ``truth_keypoints.csv`` (atomically;
+    :func:`gt3dkit.io.datasets.tasks.write_coco`)."""
+    write_dir_atomically(Path(out), lambda tmp: tasks.write_coco(sim, tmp, track_ids, seed))
