@@ -32,7 +32,7 @@ from gt3dkit.parse import read_csv_rows
 from gt3dkit.qa.anomalies import find_anomalies
 from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
 from gt3dkit.threads import small_matrix_blas
-from gt3dkit.types import BOX_MODELS, I64, JsonDict, OptionValue, Scene, TrackSet
+from gt3dkit.types import BOX_MODELS, I64, JsonDict, JsonValue, OptionValue, Scene, TrackSet
 
 __all__ = ["ESTIMATORS", "annotation_qa", "load_run", "load_scene", "make_estimator", "reconstruct"]
 
@@ -55,7 +55,7 @@ def tiny_scenes() -> tuple[Scene, Scene]:
 def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None = None,
                fps: float | None = None, calib: Path | str | None = None,
                association: Path | str | None = None, segments: Path | str | None = None,
-               box_model: str = "auto", **panoptic_options: Any) -> Scene:
+               box_model: str = "auto", **panoptic_options: JsonValue) -> Scene:
     """Load any supported input folder (layout detected when not given): read it
     (:func:`gt3dkit.io.datasets.read_scene`, whose arguments these are), give ids per camera or
     none global identities (:mod:`gt3dkit.fusion.associate`, with the overrides of the file

@@ -75,7 +75,7 @@ from gt3dkit.fusion.base import make_estimator, over_time
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.writers import StreamedRows, write_result_files
 from gt3dkit.qa.anomalies import Anomalies
-from gt3dkit.types import Options, OptionValue, Scene, TrackSet
+from gt3dkit.types import JsonDict, Options, OptionValue, Scene, TrackSet
 from gt3dkit.windows.cluster import (
     Cluster,
     Runner,
@@ -110,7 +110,7 @@ __all__ = ["Cluster", "Plan", "Window", "auto_plan", "connect_scheduler", "recon
            "reconstruct_windows"]
 
 def reconstruct_windows(scene: Scene, estimator: str, plan: Plan, out: str | None = None,
-                        extra_meta: dict[str, Any] | None = None, every_frame: int | None = None,
+                        extra_meta: JsonDict | None = None, every_frame: int | None = None,
                         on_window: Callable[[int, int], None] | None = None, cluster: Cluster | None = None,
                         **config: OptionValue) -> TrackSet:
     """:func:`gt3dkit.api.reconstruct` of a long sequence by ``plan``; writes ``out`` if given,

@@ -6,7 +6,7 @@ import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
@@ -15,7 +15,7 @@ from gt3dkit.calib.formats.grid import LAYOUTS as GRID_LAYOUTS
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets import mot, native, openpose, panoptic, tasks, wildtrack
 from gt3dkit.rig import Rig
-from gt3dkit.types import JsonDict, Scene, SimScene, SkeletonScene
+from gt3dkit.types import JsonDict, JsonValue, Scene, SimScene, SkeletonScene
 
 
 class ReadOptions(NamedTuple):
@@ -124,7 +124,7 @@ def _calib_digest(calib: Path | str) -> str:
 
 def read_scene(root: Path | str, layout: str | None = None, skeleton: str | None = None,
                fps: float | None = None, calib: Path | str | None = None,
-               association: Path | str | None = None, **panoptic_options: Any) -> Scene:
+               association: Path | str | None = None, **panoptic_options: JsonValue) -> Scene:
     """Read any supported input folder (layout detected when not given), as its files say: a
     layout with ids per camera or none (:data:`ASSOCIATED`) still has them (the cross-camera
     association is estimation, :func:`gt3dkit.api.load_scene`), and the scene is not checked
