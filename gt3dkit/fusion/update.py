@@ -10,7 +10,7 @@ updates the prior ``N(x, P)`` in state space:
 
 ``W`` a weight per entry. Robust (iteratively reweighted): after every pass but the last, each
 measurement point's leave-one-out score against the new posterior gives its weight
-(:mod:`gt3dkit.fusion.robust`, the same rule as :func:`gt3dkit.fusion.robust.point_weights`).
+(:func:`gt3dkit.fusion.robust.point_weight`, the one rule every estimator's weights follow).
 A row stops iterating once a pass's posterior is where it linearised and no weight changes.
 The statistics (normalised innovation square, its degrees of freedom, log-likelihood) are of the
 last pass with its weights, by the matrix determinant lemma (no ``m x m`` matrix).
@@ -33,6 +33,7 @@ import numba
 import numpy as np
 
 from gt3dkit.arrays import contiguous
+from gt3dkit.fusion.robust import point_weight
 from gt3dkit.geom.kernel_cache import drop_stale
 from gt3dkit.geom.smallmat import chol, chol_solve, lower_inverse, safe_chol, solve_sym, symmetrised
 from gt3dkit.types import F64, I64
@@ -215,18 +216,6 @@ def converged(post: Posterior, xj: F64, Pj: F64) -> bool:
         tp += post.P[i, i]
         tj += Pj[i, i]
     return q < STEP_TOL2 and abs(tp / tj - 1.0) < SPREAD_TOL
-
-
-@numba.njit(cache=True, nogil=True)
-def point_weight(e2: float, c_thr: float, g_thr: float) -> float:
-    """:func:`gt3dkit.fusion.robust.point_weights` of one point's squared score."""
-    e = math.sqrt(max(0.0 if np.isnan(e2) else e2, 0.0))
-    if e >= g_thr:
-        return 0.0
-    if e <= c_thr:
-        return 1.0
-    taper = min(max(1.0 - ((e - c_thr) / (g_thr - c_thr)) ** 2, 0.0), 1.0)
-    return (c_thr / max(e, 1e-300)) * taper * taper
 
 
 @numba.njit(cache=True, nogil=True)

@@ -15,7 +15,7 @@ from scipy.stats import chi2
 from gt3dkit import load_scene, reconstruct
 from gt3dkit.cli import main
 from gt3dkit.eval.metrics import match_rows
-from gt3dkit.fusion.robust import RobustConfig, deleted_score2, point_weights, robust_variance
+from gt3dkit.fusion.robust import RobustConfig, deleted_score2, point_weight, point_weights, robust_variance
 from gt3dkit.geom.triangulate import normalized_points, robust_triangulate
 from gt3dkit.sim import Errors, simulate, simulate_skeletons, write_scene, write_skeleton_scene
 
@@ -54,6 +54,25 @@ def test_point_weights_follow_the_chi_square_thresholds() -> None:
         assert w[4] == w[5] == 0.0
         assert np.all(np.diff(w) <= 0)
     assert np.all(point_weights(np.array([1e9]), 2, RobustConfig(enabled=False)) == 1.0)
+
+
+def test_point_weights_are_the_one_rule_on_any_shape() -> None:
+    """The arrays' weights are the per-point rule the compiled update calls (one definition), the
+    shape kept; against the rule written out here: Huber's c/e times the squared taper."""
+    from gt3dkit.fusion import update
+
+    assert update.point_weight is point_weight
+    cfg = RobustConfig(huber_p=1e-3, reject_p=1e-6)
+    c, g = cfg.thresholds(2)
+    e2 = np.random.default_rng(0).uniform(0, 1.2 * g * g, (5, 7))
+    e2[0, :3] = np.nan, np.inf, -1.0
+    w = point_weights(e2, 2, cfg)
+    assert w.shape == (5, 7)
+    e = np.sqrt(np.clip(np.nan_to_num(e2[1:]), 0, None))
+    ref = np.where(e <= c, 1.0, np.where(e >= g, 0.0, c / e * (1 - ((e - c) / (g - c)) ** 2) ** 2))
+    np.testing.assert_allclose(w[1:], ref, rtol=1e-12, atol=0)
+    assert list(w[0, :3]) == [1.0, 0.0, 1.0]  # NaN: no score; inf: rejected; negative: 0
+    assert [point_weight(float(v), c, g) for v in e2[2]] == list(w[2])
 
 
 def test_deleted_score_equals_brute_force_leave_one_out() -> None:
