@@ -575,7 +575,7 @@ def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
         """Where row ``row``'s prediction, contradicted by the frame's own views (the fading
         scales ``scale (n,)``), follows rows without measurements: the process noise of every
         step since the last measured row as ``S Q S`` and those rows predicted again (as
-        :func:`gt3dkit.fusion.boxupdate._spread_over_gap`); returns the row's new prediction
+        :func:`gt3dkit.fusion.filterloop.spread_over_gap`); returns the row's new prediction
         covariance ``(n, n)``. None where no measured row precedes the gap."""
         gap = []
         k = int(rows.prev_row[row])

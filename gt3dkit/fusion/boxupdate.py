@@ -28,6 +28,7 @@ import numba
 import numpy as np
 
 from gt3dkit.arrays import contiguous
+from gt3dkit.fusion.filterloop import Chains, backward_chain, forward_chain, register
 from gt3dkit.fusion.filterrun import FilterRun
 from gt3dkit.fusion.initial import Init
 from gt3dkit.fusion.kalman import ellipsoid_linearisation, fade_centre, fade_factor, predict_row, rts_row
@@ -226,16 +227,6 @@ def update_row(b: int, x: F64, P: F64, xl: F64, Pl: F64, data: Measured, w0: F64
         out.resid[b, k] = scores.resid[k]
 
 
-class Chains(NamedTuple):
-    """Each object's rows as a chain: ``next_row, prev_row (R,)`` (-1: none), the rows taken
-    ``run (R,)`` and their times ``t_s (R,)`` (s)."""
-
-    next_row: I64
-    prev_row: I64
-    run: np.ndarray
-    t_s: F64
-
-
 class Start(NamedTuple):
     """Initial state ``x0 (R, n)`` and covariance ``P0 (R, n, n)`` of every row (read where an
     object starts)."""
@@ -285,28 +276,74 @@ class Track(NamedTuple):
     faded: np.ndarray
 
 
-@numba.njit(cache=True, nogil=True)
-def _predict(row: int, prev: int, chains: Chains, motion: Motion, out: RowsOut, F: F64, Q: F64,
-             track: Track) -> None:
-    """Row ``row``'s prediction from its filtered predecessor ``prev``."""
-    transition(chains.t_s[row] - chains.t_s[prev],
-               motion_noise(motion, row), motion.A, motion.ix, F, Q)
-    predict_row(out.x[prev], out.P[prev], F, Q, track.x_p[row], track.P_p[row])
+class BoxChain(NamedTuple):
+    """The box kind's bundle for :mod:`gt3dkit.fusion.filterloop`: the chains, the initial
+    states, the motion, fading, the measurements and first weights, the box model, the rows'
+    outputs and predictions, and work arrays ``F, Q (n, n)``, the linearisation point ``x_l (n,),
+    P_l (n, n)`` and the fading test's ``e (3,), S (3, 3)``."""
+
+    chains: Chains
+    start: Start
+    motion: Motion
+    fading: Fading
+    data: Measured
+    w0: F64
+    box: BoxModel
+    out: RowsOut
+    track: Track
+    F: F64
+    Q: F64
+    x_l: F64
+    P_l: F64
+    e: F64
+    S: F64
 
 
 @numba.njit(cache=True, nogil=True)
-def _centre_fade(row: int, fading: Fading, track: Track, e: F64, S: F64, c0: int) -> float:
+def _start(ctx: BoxChain, e: int, row: int) -> None:
+    ctx.track.x_p[row] = ctx.start.x0[row]
+    ctx.track.P_p[row] = ctx.start.P0[row]
+
+
+@numba.njit(cache=True, nogil=True)
+def _predict(ctx: BoxChain, e: int, row: int, prev: int, f: float) -> None:
+    """Row ``row``'s prediction from its filtered predecessor ``prev``, the centre's noise scaled
+    by ``f``."""
+    motion, track = ctx.motion, ctx.track
+    noise = motion_noise(motion, row)
+    transition(ctx.chains.t_s[row] - ctx.chains.t_s[prev],
+               Noise(noise.accel_sd * f, noise.shape_sd, noise.joint_accel_sd, noise.position_sd * f),
+               motion.A, motion.ix, ctx.F, ctx.Q)
+    predict_row(ctx.out.x[prev], ctx.out.P[prev], ctx.F, ctx.Q, track.x_p[row], track.P_p[row])
+
+
+@numba.njit(cache=True, nogil=True)
+def _fades(ctx: BoxChain, e: int, row: int) -> bool:
+    return ctx.fading.on and ctx.fading.determined[row]
+
+
+@numba.njit(cache=True, nogil=True)
+def _centre_fade(ctx: BoxChain, e: int, row: int) -> float:
     """:func:`gt3dkit.fusion.kalman.fade_factor` of row ``row``'s prediction against the frame's
-    own fit (``e (3,), S (3, 3)``: work arrays)."""
+    own fit."""
+    fading, track, c0 = ctx.fading, ctx.track, ctx.motion.ix.centre
     for i in range(SPACE):
-        e[i] = fading.x_frame[row, c0 + i] - track.x_p[row, c0 + i]
+        ctx.e[i] = fading.x_frame[row, c0 + i] - track.x_p[row, c0 + i]
         for j in range(SPACE):
-            S[i, j] = track.P_p[row, c0 + i, c0 + j] + fading.cov6[row, i, j]
-    return fade_factor(e, S, fading.limit)
+            ctx.S[i, j] = track.P_p[row, c0 + i, c0 + j] + fading.cov6[row, i, j]
+    return fade_factor(ctx.e, ctx.S, fading.limit)
 
 
 @numba.njit(cache=True, nogil=True)
-def _measured(row: int, data: Measured) -> bool:
+def _faded(ctx: BoxChain, e: int, row: int, f: float) -> None:
+    if f != 1.0:
+        fade_centre(ctx.track.P_p[row], f, ctx.motion.ix)
+    ctx.track.faded[row] = True
+
+
+@numba.njit(cache=True, nogil=True)
+def _measured(ctx: BoxChain, e: int, row: int) -> bool:
+    data = ctx.data
     for k in range(data.mask.shape[1]):
         if data.mask[row, k]:
             return True
@@ -314,91 +351,57 @@ def _measured(row: int, data: Measured) -> bool:
 
 
 @numba.njit(cache=True, nogil=True)
-def _spread_over_gap(row: int, f: float, chains: Chains, motion: Motion, data: Measured, out: RowsOut,
-                     F: F64, Q: F64, track: Track) -> bool:
-    """Where row ``row`` (whose prediction the frame's own views contradict by the fading factor
-    ``f``) follows rows without measurements (a dense run's frames between labels): the centre's
-    process noise of every step since the last measured row scaled by ``f`` (``Q <- f^2 Q`` on
-    centre and velocity) and those rows predicted again, their filtered values the new
-    predictions. The manoeuvre then has the whole gap to happen in, and the smoother spreads it
-    over the gap's frames instead of putting it into the last step (where the earlier frames
-    would keep the old heading). False, and nothing changed, where the previous row is measured
-    or no measured row precedes the gap."""
-    last = chains.prev_row[row]
-    while last >= 0 and chains.run[last] and not _measured(last, data):
-        last = chains.prev_row[last]
-    if last < 0 or not chains.run[last] or last == chains.prev_row[row]:
-        return False
-    prev = last
-    cur = chains.next_row[last]
-    while True:
-        noise = motion_noise(motion, cur)
-        transition(chains.t_s[cur] - chains.t_s[prev],
-                   Noise(noise.accel_sd * f, noise.shape_sd, noise.joint_accel_sd, noise.position_sd * f),
-                   motion.A, motion.ix, F, Q)
-        predict_row(out.x[prev], out.P[prev], F, Q, track.x_p[cur], track.P_p[cur])
-        if cur == row:
-            return True
-        out.x[cur] = track.x_p[cur]
-        out.P[cur] = track.P_p[cur]
-        prev = cur
-        cur = chains.next_row[cur]
+def _keep(ctx: BoxChain, e: int, row: int) -> None:
+    ctx.out.x[row] = ctx.track.x_p[row]
+    ctx.out.P[row] = ctx.track.P_p[row]
 
 
 @numba.njit(cache=True, nogil=True)
-def forward(first: I64, chains: Chains, start: Start, motion: Motion, fading: Fading, data: Measured, w0: F64,
-            box: BoxModel, out: RowsOut, track: Track) -> None:
-    """Forward filter of every object whose first row is in ``first``: its rows along
-    ``chains.next_row`` while ``chains.run``; the filtered rows into ``out``, the predictions
-    into ``track``."""
-    ix = motion.ix
-    n = ix.n
-    c0 = ix.centre
-    F, Q = np.empty((n, n)), np.empty((n, n))
-    x_l, P_l = np.empty(n), np.empty((n, n))
-    e, S = np.empty(SPACE), np.empty((SPACE, SPACE))
-    for row0 in first:
-        row = row0
-        prev = -1
-        while row >= 0 and chains.run[row]:
-            if prev < 0:
-                track.x_p[row] = start.x0[row]
-                track.P_p[row] = start.P0[row]
-            else:
-                _predict(row, prev, chains, motion, out, F, Q, track)
-                if fading.on and fading.determined[row]:
-                    f = _centre_fade(row, fading, track, e, S, c0)
-                    if f != 1.0:
-                        if _spread_over_gap(row, f, chains, motion, data, out, F, Q, track):
-                            f = _centre_fade(row, fading, track, e, S, c0)
-                        if f != 1.0:
-                            fade_centre(track.P_p[row], f, ix)
-                        track.faded[row] = True
-            ellipsoid_linearisation(track.x_p[row], track.P_p[row], fading.x_frame[row], fading.cov6[row],
-                                    fading.frame_trace[row], box.sigma.dims, ix, x_l, P_l)
-            update_row(row, track.x_p[row], track.P_p[row], x_l, P_l, data, w0, box, out)
-            prev = row
-            row = chains.next_row[row]
+def _update(ctx: BoxChain, e: int, row: int) -> None:
+    track, fading = ctx.track, ctx.fading
+    ellipsoid_linearisation(track.x_p[row], track.P_p[row], fading.x_frame[row], fading.cov6[row],
+                            fading.frame_trace[row], ctx.box.sigma.dims, ctx.motion.ix, ctx.x_l, ctx.P_l)
+    update_row(row, track.x_p[row], track.P_p[row], ctx.x_l, ctx.P_l, ctx.data, ctx.w0, ctx.box, ctx.out)
 
 
 @numba.njit(cache=True, nogil=True)
-def backward(last: I64, chains: Chains, motion: Motion, track: Track, out: RowsOut) -> None:
-    """RTS smoother along each object's rows, from its last row in ``last`` back along
-    ``chains.prev_row`` while ``chains.run``: ``out.x, out.P`` hold the filtered values on entry
-    and the smoothed ones on exit (:func:`gt3dkit.fusion.kalman.rts_row`)."""
+def _smooth(ctx: BoxChain, e: int, row: int, nxt: int) -> None:
+    motion, out, track = ctx.motion, ctx.out, ctx.track
+    transition(ctx.chains.t_s[nxt] - ctx.chains.t_s[row], motion_noise(motion, row), motion.A,
+               motion.ix, ctx.F, ctx.Q)
+    rts_row(out.x[row], out.P[row], track.x_p[nxt], track.P_p[nxt], out.x[nxt], out.P[nxt], ctx.F,
+            out.x[row], out.P[row])
+
+
+register(BoxChain, start=_start, predict=_predict, fades=_fades, fade=_centre_fade, faded=_faded,
+         measured=_measured, keep=_keep, update=_update, smooth=_smooth)
+
+
+def box_chain(chains: Chains, start: Start, motion: Motion, fading: Fading, data: Measured, w0: F64,
+              box: BoxModel, out: RowsOut, track: Track) -> BoxChain:
+    """The bundle of a run, with its own work arrays (one per thread)."""
     n = motion.ix.n
-    F, Q = np.empty((n, n)), np.empty((n, n))
+    return BoxChain(chains, start, motion, fading, data, w0, box, out, track, np.empty((n, n)),
+                    np.empty((n, n)), np.empty(n), np.empty((n, n)), np.empty(SPACE),
+                    np.empty((SPACE, SPACE)))
+
+
+@numba.njit(cache=True, nogil=True)
+def forward(first: I64, ctx: BoxChain) -> None:
+    """Forward filter (:func:`gt3dkit.fusion.filterloop.forward_chain`) of every object whose
+    first row is in ``first``: the filtered rows into ``ctx.out``, the predictions into
+    ``ctx.track``."""
+    for row0 in first:
+        forward_chain(ctx, 0, row0)
+
+
+@numba.njit(cache=True, nogil=True)
+def backward(last: I64, ctx: BoxChain) -> None:
+    """RTS smoother (:func:`gt3dkit.fusion.filterloop.backward_chain`) of every object from its
+    last row in ``last``: ``ctx.out`` holds the filtered values on entry and the smoothed ones on
+    exit."""
     for nxt0 in last:
-        nxt = nxt0
-        row = chains.prev_row[nxt]
-        while row >= 0 and chains.run[row] and chains.run[nxt]:
-            transition(chains.t_s[nxt] - chains.t_s[row],
-                       motion_noise(motion, row), motion.A,
-                       motion.ix, F, Q)
-            rts_row(out.x[row], out.P[row], track.x_p[nxt], track.P_p[nxt], out.x[nxt], out.P[nxt], F,
-                    out.x[row], out.P[row])
-            nxt = row
-            row = chains.prev_row[row]
+        backward_chain(ctx, 0, nxt0)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -519,13 +522,15 @@ def run_boxes(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, collect:
 
     def fwd(a: int, b: int) -> None:
         for g in groups[a:b]:
-            forward(contiguous(first[g], np.int64), chains, start, motion, fading, data, w0, box, out, track)
+            forward(contiguous(first[g], np.int64),
+                    box_chain(chains, start, motion, fading, data, w0, box, out, track))
 
     run_split(fwd, parts)
     if cfg.smooth:
         def bwd(a: int, b: int) -> None:
             for g in groups[a:b]:
-                backward(contiguous(last[g], np.int64), chains, motion, track, out)
+                backward(contiguous(last[g], np.int64),
+                         box_chain(chains, start, motion, fading, data, w0, box, out, track))
 
         run_split(bwd, parts)
     stats = out.stats

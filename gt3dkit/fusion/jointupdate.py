@@ -14,7 +14,8 @@ compiled chain along the person's rows, the joints of all persons dealt over
 and RTS step of :mod:`gt3dkit.fusion.kalman`, the iterated robust update of
 :mod:`gt3dkit.fusion.update`; what is new here is the joint's sigma-point regression
 (:func:`point_regression`, the projection with distortion of :mod:`gt3dkit.geom.boxkernel`), the
-joint's fading and linearisation point (:func:`_fade`, :func:`_linearisation`) and the bones'
+joint's steps in the one filter loop (:class:`JointChain`, :mod:`gt3dkit.fusion.filterloop`), its
+fading and linearisation point (:func:`_fade`, :func:`_linearisation`) and the bones'
 information (:func:`add_info`). The filter over the frame grid in ``tests/oracles_frames.py``
 (split or whole) is the reference the tests hold it to: the same result within the iterated
 update's convergence tolerance (a part stops iterating on its own entries' spread, not on the
@@ -31,7 +32,8 @@ import numpy as np
 
 from gt3dkit.arrays import contiguous
 from gt3dkit.fusion.blockcov import BlockCov
-from gt3dkit.fusion.boxupdate import Chains, object_chains, regress, run_boxes, sigma_points
+from gt3dkit.fusion.boxupdate import object_chains, regress, run_boxes, sigma_points
+from gt3dkit.fusion.filterloop import Chains, backward_chain, forward_chain, register
 from gt3dkit.fusion.filterrun import FilterRun
 from gt3dkit.fusion.initial import Init, InitialCov
 from gt3dkit.fusion.kalman import fade_factor, predict_row, rts_row
@@ -267,33 +269,36 @@ def update_joint(r: int, j: int, xl: F64, Pl: F64, data: JointData, jm: JointMod
             add_info(out.x[r, j], out.P[r, j], lam, data.eta[r, j])
 
 
-@numba.njit(cache=True, nogil=True)
-def _fade(r: int, j: int, data: JointData, jm: JointModel, out: JointOut) -> float:
-    """:func:`gt3dkit.fusion.kalman.fade_factor` of joint ``j``'s prediction in row ``r`` against
-    the frame's own joint."""
-    e = np.empty(SPACE)
-    S = np.empty((SPACE, SPACE))
-    for a in range(SPACE):
-        e[a] = data.x_frame[r, j, a] - out.x_p[r, j, a]
-        for b in range(SPACE):
-            S[a, b] = out.P_p[r, j, a, b] + data.cov_frame[r, j, a, b]
-    return fade_factor(e, S, jm.limit)
+class JointChain(NamedTuple):
+    """The joint kind's bundle for :mod:`gt3dkit.fusion.filterloop` (the element ``e`` of a step:
+    the chain's index into ``start``): the chains, the chains' starts, the joints' data and
+    model, the outputs, and work arrays ``F, Q (6, 6)`` and the linearisation point ``xl (6,),
+    Pl (6, 6)``."""
+
+    chains: Chains
+    start: JointStart
+    data: JointData
+    jm: JointModel
+    out: JointOut
+    F: F64
+    Q: F64
+    xl: F64
+    Pl: F64
 
 
 @numba.njit(cache=True, nogil=True)
-def _measured(r: int, j: int, data: JointData) -> bool:
-    for c in range(data.mask.shape[2]):
-        if data.mask[r, j, c, 0] or data.mask[r, j, c, 1]:
-            return True
-    return False
+def _start(ctx: JointChain, e: int, r: int) -> None:
+    j = ctx.start.joint[e]
+    ctx.out.x_p[r, j] = ctx.start.x0[e]
+    ctx.out.P_p[r, j] = ctx.start.P0[e]
 
 
 @numba.njit(cache=True, nogil=True)
-def _predict(r: int, prev: int, j: int, f: float, chains: Chains, data: JointData, out: JointOut) -> None:
+def _predict(ctx: JointChain, e: int, r: int, prev: int, f: float) -> None:
     """Joint ``j``'s prediction of row ``r`` from row ``prev``'s filtered state, its process noise
     scaled by ``f`` (``f Q f``)."""
-    F, Q = np.empty((N, N)), np.empty((N, N))
-    joint_step(chains.t_s[r] - chains.t_s[prev], data.q[r], F, Q)
+    j, out, F, Q = ctx.start.joint[e], ctx.out, ctx.F, ctx.Q
+    joint_step(ctx.chains.t_s[r] - ctx.chains.t_s[prev], ctx.data.q[r], F, Q)
     if f != 1.0:
         for a in range(N):
             for b in range(N):
@@ -302,27 +307,68 @@ def _predict(r: int, prev: int, j: int, f: float, chains: Chains, data: JointDat
 
 
 @numba.njit(cache=True, nogil=True)
-def _spread_over_gap(r: int, j: int, f: float, chains: Chains, data: JointData, out: JointOut) -> bool:
-    """Where joint ``j`` of row ``r`` (whose prediction the frame's own joint contradicts by the
-    fading factor ``f``) follows rows where it has no views: the process noise of every step since
-    its last measured row scaled by ``f`` and those rows predicted again, their filtered values the
-    new predictions (:func:`gt3dkit.fusion.boxupdate._spread_over_gap` of a joint). False, and
-    nothing changed, where the previous row is measured or no measured row precedes the gap."""
-    last = chains.prev_row[r]
-    while last >= 0 and chains.run[last] and not _measured(last, j, data):
-        last = chains.prev_row[last]
-    if last < 0 or not chains.run[last] or last == chains.prev_row[r]:
-        return False
-    prev = last
-    cur = chains.next_row[last]
-    while True:
-        _predict(cur, prev, j, f, chains, data, out)
-        if cur == r:
+def _fades(ctx: JointChain, e: int, r: int) -> bool:
+    return ctx.jm.fade
+
+
+@numba.njit(cache=True, nogil=True)
+def _fade(ctx: JointChain, e: int, r: int) -> float:
+    """:func:`gt3dkit.fusion.kalman.fade_factor` of the joint's prediction in row ``r`` against
+    the frame's own joint."""
+    j, data, out = ctx.start.joint[e], ctx.data, ctx.out
+    d = np.empty(SPACE)
+    S = np.empty((SPACE, SPACE))
+    for a in range(SPACE):
+        d[a] = data.x_frame[r, j, a] - out.x_p[r, j, a]
+        for b in range(SPACE):
+            S[a, b] = out.P_p[r, j, a, b] + data.cov_frame[r, j, a, b]
+    return fade_factor(d, S, ctx.jm.limit)
+
+
+@numba.njit(cache=True, nogil=True)
+def _faded(ctx: JointChain, e: int, r: int, f: float) -> None:
+    j = ctx.start.joint[e]
+    if f != 1.0:
+        P = ctx.out.P_p[r, j]
+        for a in range(N):
+            for b in range(N):
+                P[a, b] = f * P[a, b] * f
+    ctx.out.faded[r, j] = True
+
+
+@numba.njit(cache=True, nogil=True)
+def _measured(ctx: JointChain, e: int, r: int) -> bool:
+    j, data = ctx.start.joint[e], ctx.data
+    for c in range(data.mask.shape[2]):
+        if data.mask[r, j, c, 0] or data.mask[r, j, c, 1]:
             return True
-        out.x[cur, j] = out.x_p[cur, j]
-        out.P[cur, j] = out.P_p[cur, j]
-        prev = cur
-        cur = chains.next_row[cur]
+    return False
+
+
+@numba.njit(cache=True, nogil=True)
+def _keep(ctx: JointChain, e: int, r: int) -> None:
+    j = ctx.start.joint[e]
+    ctx.out.x[r, j] = ctx.out.x_p[r, j]
+    ctx.out.P[r, j] = ctx.out.P_p[r, j]
+
+
+@numba.njit(cache=True, nogil=True)
+def _update(ctx: JointChain, e: int, r: int) -> None:
+    j = ctx.start.joint[e]
+    _linearisation(r, j, ctx.data, ctx.out, ctx.xl, ctx.Pl)
+    update_joint(r, j, ctx.xl, ctx.Pl, ctx.data, ctx.jm, ctx.out)
+
+
+@numba.njit(cache=True, nogil=True)
+def _smooth(ctx: JointChain, e: int, r: int, nxt: int) -> None:
+    j, out, F, Q = ctx.start.joint[e], ctx.out, ctx.F, ctx.Q
+    joint_step(ctx.chains.t_s[nxt] - ctx.chains.t_s[r], ctx.data.q[r], F, Q)
+    rts_row(out.x[r, j], out.P[r, j], out.x_p[nxt, j], out.P_p[nxt, j], out.x[nxt, j], out.P[nxt, j],
+            F, out.x[r, j], out.P[r, j])
+
+
+register(JointChain, start=_start, predict=_predict, fades=_fades, fade=_fade, faded=_faded,
+         measured=_measured, keep=_keep, update=_update, smooth=_smooth)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -345,56 +391,28 @@ def _linearisation(r: int, j: int, data: JointData, out: JointOut, xl: F64, Pl: 
         Pl[a, a] = data.var_frame[r, j, a]
 
 
-@numba.njit(cache=True, nogil=True)
-def forward(chain: I64, start: JointStart, chains: Chains, data: JointData, jm: JointModel, out: JointOut
-            ) -> None:
-    """Forward filter of the chains ``chain`` (indices into ``start``): each joint along its
-    person's rows (``chains.next_row`` while ``chains.run``)."""
-    xl, Pl = np.empty(N), np.empty((N, N))
-    for k in chain:
-        j = start.joint[k]
-        r = start.row[k]
-        prev = -1
-        while r >= 0 and chains.run[r]:
-            if prev < 0:
-                out.x_p[r, j] = start.x0[k]
-                out.P_p[r, j] = start.P0[k]
-            else:
-                _predict(r, prev, j, 1.0, chains, data, out)
-                if jm.fade:
-                    f = _fade(r, j, data, jm, out)
-                    if f != 1.0:
-                        if _spread_over_gap(r, j, f, chains, data, out):
-                            f = _fade(r, j, data, jm, out)
-                        if f != 1.0:
-                            P = out.P_p[r, j]
-                            for a in range(N):
-                                for b in range(N):
-                                    P[a, b] = f * P[a, b] * f
-                        out.faded[r, j] = True
-            _linearisation(r, j, data, out, xl, Pl)
-            update_joint(r, j, xl, Pl, data, jm, out)
-            prev = r
-            r = chains.next_row[r]
+def joint_chain(start: JointStart, chains: Chains, data: JointData, jm: JointModel, out: JointOut
+                ) -> JointChain:
+    """The bundle of a run, with its own work arrays (one per thread)."""
+    return JointChain(chains, start, data, jm, out, np.empty((N, N)), np.empty((N, N)), np.empty(N),
+                      np.empty((N, N)))
 
 
 @numba.njit(cache=True, nogil=True)
-def backward(chain: I64, start: JointStart, last: I64, chains: Chains, data: JointData, out: JointOut
-             ) -> None:
-    """RTS smoother of the chains ``chain`` (indices into ``start``) from their persons' last rows
-    ``last (K,)`` back (:func:`gt3dkit.fusion.kalman.rts_row`): ``out.x, out.P`` filtered on entry,
-    smoothed on exit."""
-    F, Q = np.empty((N, N)), np.empty((N, N))
+def forward(chain: I64, ctx: JointChain) -> None:
+    """Forward filter (:func:`gt3dkit.fusion.filterloop.forward_chain`) of the chains ``chain``
+    (indices into ``ctx.start``): each joint along its person's rows."""
     for k in chain:
-        j = start.joint[k]
-        nxt = last[k]
-        r = chains.prev_row[nxt] if nxt >= 0 else -1
-        while r >= 0 and chains.run[r] and chains.run[nxt]:
-            joint_step(chains.t_s[nxt] - chains.t_s[r], data.q[r], F, Q)
-            rts_row(out.x[r, j], out.P[r, j], out.x_p[nxt, j], out.P_p[nxt, j], out.x[nxt, j], out.P[nxt, j],
-                    F, out.x[r, j], out.P[r, j])
-            nxt = r
-            r = chains.prev_row[r]
+        forward_chain(ctx, k, ctx.start.row[k])
+
+
+@numba.njit(cache=True, nogil=True)
+def backward(chain: I64, last: I64, ctx: JointChain) -> None:
+    """RTS smoother (:func:`gt3dkit.fusion.filterloop.backward_chain`) of the chains ``chain``
+    (indices into ``ctx.start``) from their persons' last rows ``last (K,)`` back:
+    ``ctx.out.x, ctx.out.P`` filtered on entry, smoothed on exit."""
+    for k in chain:
+        backward_chain(ctx, k, last[k])
 
 
 def covariance_entries(n_joints: int) -> int:
@@ -489,7 +507,7 @@ def run_joints(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, collect
 
     def fwd(a: int, b: int) -> None:
         for p in parts[a:b]:
-            forward(p, start, chains, data, jm, out)
+            forward(p, joint_chain(start, chains, data, jm, out))
 
     run_split(fwd, len(parts))
     if cfg.smooth:
@@ -497,7 +515,7 @@ def run_joints(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, collect
 
         def bwd(a: int, b: int) -> None:
             for p in parts[a:b]:
-                backward(p, start, ends, chains, data, out)
+                backward(p, ends, joint_chain(start, chains, data, jm, out))
 
         run_split(bwd, len(parts))
     return _assembled(model, init, cfg, fps, (collect, fade, on, noise_rows), chains, out, jd,

@@ -1,0 +1,247 @@
+r"""The filter loop, written once: forward along a chain of rows with fading and the gap's
+spread, then the RTS pass back, for the boxes' ellipsoid (:mod:`gt3dkit.fusion.boxupdate`, a
+chain per object) and for each joint (:mod:`gt3dkit.fusion.jointupdate`, a chain per person and
+joint) alike.
+
+The loop reads and writes a chain's states only through its *steps*, each a compiled function of
+the kind's bundle ``ctx`` (a NamedTuple: the chains, the arrays it reads and writes, work
+arrays), the element ``e`` (what the kind needs to find a chain's own states: the joint chain's
+index; the boxes need none) and the rows:
+
+========================== =============================================================
+``start(ctx, e, row)``     the chain's first prediction: its initial state
+``predict(ctx, e, row, prev, f)`` row's prediction from ``prev``'s filtered state, the motion's
+                           noise on position and velocity scaled by ``f`` (1: as it is)
+``fades(ctx, e, row)``     whether the prediction is tested against the frame's own fit
+``fade(ctx, e, row)``      the fading factor (:func:`gt3dkit.fusion.kalman.fade_factor`)
+``faded(ctx, e, row, f)``  the prediction's covariance widened by ``f`` (``f`` != 1) and
+                           the row marked faded
+``measured(ctx, e, row)``  whether the row has a measurement of this chain
+``keep(ctx, e, row)``      the filtered state := the prediction (a row without measurements)
+``update(ctx, e, row)``    the measurement update (its linearisation point, the iterated
+                           robust update of :mod:`gt3dkit.fusion.update`)
+``smooth(ctx, e, row, nxt)`` the RTS step of ``row`` from the smoothed ``nxt``
+========================== =============================================================
+
+A kind registers its steps for its bundle's class (:func:`register`); the loop's compiled code
+is specialised per bundle (numba's overloads), so each kind runs as fast as its own loop did.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import numba
+import numpy as np
+from numba import types
+from numba.extending import overload
+
+from gt3dkit.geom.kernel_cache import drop_stale
+from gt3dkit.types import F64, I64
+
+drop_stale()  # before any compiled function below is called (and its cache read)
+
+
+class Chains(NamedTuple):
+    """Each object's rows as a chain: ``next_row, prev_row (R,)`` (-1: none), the rows taken
+    ``run (R,)`` and their times ``t_s (R,)`` (s)."""
+
+    next_row: I64
+    prev_row: I64
+    run: np.ndarray
+    t_s: F64
+
+
+#: (step name, bundle class) -> the kind's compiled step.
+_STEPS: dict[tuple[str, type], Callable[..., object]] = {}
+STEP_NAMES = ("start", "predict", "fades", "fade", "faded", "measured", "keep", "update", "smooth")
+
+
+def register(bundle: type, **steps: Callable[..., object]) -> None:
+    """The compiled ``steps`` (every one of :data:`STEP_NAMES`) of a kind whose bundle is of
+    class ``bundle``."""
+    if set(steps) != set(STEP_NAMES):
+        raise ValueError(f"steps must be exactly {', '.join(STEP_NAMES)}")
+    for name, fn in steps.items():
+        _STEPS[(name, bundle)] = fn
+
+
+def _step(name: str, ctx: types.Type) -> Callable[..., object] | None:
+    if isinstance(ctx, types.BaseNamedTuple):
+        return _STEPS.get((name, ctx.instance_class))
+    return None
+
+
+# the steps as the loop calls them; numba resolves each to the kind's (see the module doc)
+
+def start(ctx, e, row):  # noqa: ANN001, ANN201 - a stub numba overloads per bundle
+    raise NotImplementedError
+
+
+def predict(ctx, e, row, prev, f):  # noqa: ANN001, ANN201
+    raise NotImplementedError
+
+
+def fades(ctx, e, row):  # noqa: ANN001, ANN201
+    raise NotImplementedError
+
+
+def fade(ctx, e, row):  # noqa: ANN001, ANN201
+    raise NotImplementedError
+
+
+def faded(ctx, e, row, f):  # noqa: ANN001, ANN201
+    raise NotImplementedError
+
+
+def measured(ctx, e, row):  # noqa: ANN001, ANN201
+    raise NotImplementedError
+
+
+def keep(ctx, e, row):  # noqa: ANN001, ANN201
+    raise NotImplementedError
+
+
+def update(ctx, e, row):  # noqa: ANN001, ANN201
+    raise NotImplementedError
+
+
+def smooth(ctx, e, row, nxt):  # noqa: ANN001, ANN201
+    raise NotImplementedError
+
+
+@overload(start)
+def _start(ctx, e, row):  # noqa: ANN001, ANN202
+    impl = _step("start", ctx)
+    if impl is not None:
+        return lambda ctx, e, row: impl(ctx, e, row)
+    return None
+
+
+@overload(predict)
+def _predict(ctx, e, row, prev, f):  # noqa: ANN001, ANN202
+    impl = _step("predict", ctx)
+    if impl is not None:
+        return lambda ctx, e, row, prev, f: impl(ctx, e, row, prev, f)
+    return None
+
+
+@overload(fades)
+def _fades(ctx, e, row):  # noqa: ANN001, ANN202
+    impl = _step("fades", ctx)
+    if impl is not None:
+        return lambda ctx, e, row: impl(ctx, e, row)
+    return None
+
+
+@overload(fade)
+def _fade(ctx, e, row):  # noqa: ANN001, ANN202
+    impl = _step("fade", ctx)
+    if impl is not None:
+        return lambda ctx, e, row: impl(ctx, e, row)
+    return None
+
+
+@overload(faded)
+def _faded(ctx, e, row, f):  # noqa: ANN001, ANN202
+    impl = _step("faded", ctx)
+    if impl is not None:
+        return lambda ctx, e, row, f: impl(ctx, e, row, f)
+    return None
+
+
+@overload(measured)
+def _measured(ctx, e, row):  # noqa: ANN001, ANN202
+    impl = _step("measured", ctx)
+    if impl is not None:
+        return lambda ctx, e, row: impl(ctx, e, row)
+    return None
+
+
+@overload(keep)
+def _keep(ctx, e, row):  # noqa: ANN001, ANN202
+    impl = _step("keep", ctx)
+    if impl is not None:
+        return lambda ctx, e, row: impl(ctx, e, row)
+    return None
+
+
+@overload(update)
+def _update(ctx, e, row):  # noqa: ANN001, ANN202
+    impl = _step("update", ctx)
+    if impl is not None:
+        return lambda ctx, e, row: impl(ctx, e, row)
+    return None
+
+
+@overload(smooth)
+def _smooth(ctx, e, row, nxt):  # noqa: ANN001, ANN202
+    impl = _step("smooth", ctx)
+    if impl is not None:
+        return lambda ctx, e, row, nxt: impl(ctx, e, row, nxt)
+    return None
+
+
+@numba.njit(cache=True, nogil=True)
+def spread_over_gap(ctx: NamedTuple, e: int, row: int, f: float) -> bool:
+    """Where row ``row`` (whose prediction the frame's own fit contradicts by the fading factor
+    ``f``) follows rows without measurements (a dense run's frames between labels): the process
+    noise of every step since the last measured row scaled by ``f`` and those rows predicted
+    again, their filtered values the new predictions. The manoeuvre then has the whole gap to
+    happen in, and the smoother spreads it over the gap's frames instead of putting it into the
+    last step (where the earlier frames would keep the old heading). False, and nothing changed,
+    where the previous row is measured or no measured row precedes the gap."""
+    chains = ctx.chains
+    last = chains.prev_row[row]
+    while last >= 0 and chains.run[last] and not measured(ctx, e, last):
+        last = chains.prev_row[last]
+    if last < 0 or not chains.run[last] or last == chains.prev_row[row]:
+        return False
+    prev = last
+    cur = chains.next_row[last]
+    while True:
+        predict(ctx, e, cur, prev, f)
+        if cur == row:
+            return True
+        keep(ctx, e, cur)
+        prev = cur
+        cur = chains.next_row[cur]
+
+
+@numba.njit(cache=True, nogil=True)
+def forward_chain(ctx: NamedTuple, e: int, row0: int) -> None:
+    """The forward filter of one chain from its first row ``row0`` along ``chains.next_row``
+    while ``chains.run``: each row predicted (the first: its initial state), tested against the
+    frame's own fit and faded where that contradicts it (the gap before it spread, where it
+    follows rows without measurements), then updated."""
+    chains = ctx.chains
+    row = row0
+    prev = -1
+    while row >= 0 and chains.run[row]:
+        if prev < 0:
+            start(ctx, e, row)
+        else:
+            predict(ctx, e, row, prev, 1.0)
+            if fades(ctx, e, row):
+                f = fade(ctx, e, row)
+                if f != 1.0:
+                    if spread_over_gap(ctx, e, row, f):
+                        f = fade(ctx, e, row)
+                    faded(ctx, e, row, f)
+        update(ctx, e, row)
+        prev = row
+        row = chains.next_row[row]
+
+
+@numba.njit(cache=True, nogil=True)
+def backward_chain(ctx: NamedTuple, e: int, last: int) -> None:
+    """The RTS smoother of one chain from its last row ``last`` back along ``chains.prev_row``
+    while ``chains.run``: the filtered states on entry, the smoothed ones on exit."""
+    chains = ctx.chains
+    nxt = last
+    row = chains.prev_row[nxt] if nxt >= 0 else -1
+    while row >= 0 and chains.run[row] and chains.run[nxt]:
+        smooth(ctx, e, row, nxt)
+        nxt = row
+        row = chains.prev_row[row]
