@@ -67,120 +67,31 @@ def register(bundle: type, **steps: Callable[..., object]) -> None:
         _STEPS[(name, bundle)] = fn
 
 
-def _step(name: str, ctx: types.Type) -> Callable[..., object] | None:
-    if isinstance(ctx, types.BaseNamedTuple):
-        return _STEPS.get((name, ctx.instance_class))
-    return None
+def _stub(name: str) -> Callable[..., object]:
+    """Step ``name`` as the loop calls it (its arguments: the module doc's table): a stub numba
+    resolves to the kind's compiled step (:func:`_resolved`); never run in Python."""
+    def step(*args: object) -> object:
+        raise NotImplementedError(f"{name} runs inside compiled code only")
+    step.__name__ = step.__qualname__ = name
+    return step
 
 
-# the steps as the loop calls them; numba resolves each to the kind's (see the module doc)
-
-def start(ctx, e, row):  # noqa: ANN001, ANN201 - a stub numba overloads per bundle
-    raise NotImplementedError
+start, predict, fades, fade, faded, measured, keep, update, smooth = (_stub(n) for n in STEP_NAMES)
 
 
-def predict(ctx, e, row, prev, f):  # noqa: ANN001, ANN201
-    raise NotImplementedError
+def _resolved(name: str) -> Callable[..., object]:
+    """numba's typing of step ``name``: the kind's compiled step for the bundle's class."""
+    def typer(ctx, *args):  # noqa: ANN001, ANN002, ANN202
+        impl = _STEPS.get((name, ctx.instance_class)) if isinstance(ctx, types.BaseNamedTuple) else None
+        if impl is None:
+            return None
+        return lambda ctx, *args: impl(ctx, *args)
+    return typer
 
 
-def fades(ctx, e, row):  # noqa: ANN001, ANN201
-    raise NotImplementedError
-
-
-def fade(ctx, e, row):  # noqa: ANN001, ANN201
-    raise NotImplementedError
-
-
-def faded(ctx, e, row, f):  # noqa: ANN001, ANN201
-    raise NotImplementedError
-
-
-def measured(ctx, e, row):  # noqa: ANN001, ANN201
-    raise NotImplementedError
-
-
-def keep(ctx, e, row):  # noqa: ANN001, ANN201
-    raise NotImplementedError
-
-
-def update(ctx, e, row):  # noqa: ANN001, ANN201
-    raise NotImplementedError
-
-
-def smooth(ctx, e, row, nxt):  # noqa: ANN001, ANN201
-    raise NotImplementedError
-
-
-@overload(start)
-def _start(ctx, e, row):  # noqa: ANN001, ANN202
-    impl = _step("start", ctx)
-    if impl is not None:
-        return lambda ctx, e, row: impl(ctx, e, row)
-    return None
-
-
-@overload(predict)
-def _predict(ctx, e, row, prev, f):  # noqa: ANN001, ANN202
-    impl = _step("predict", ctx)
-    if impl is not None:
-        return lambda ctx, e, row, prev, f: impl(ctx, e, row, prev, f)
-    return None
-
-
-@overload(fades)
-def _fades(ctx, e, row):  # noqa: ANN001, ANN202
-    impl = _step("fades", ctx)
-    if impl is not None:
-        return lambda ctx, e, row: impl(ctx, e, row)
-    return None
-
-
-@overload(fade)
-def _fade(ctx, e, row):  # noqa: ANN001, ANN202
-    impl = _step("fade", ctx)
-    if impl is not None:
-        return lambda ctx, e, row: impl(ctx, e, row)
-    return None
-
-
-@overload(faded)
-def _faded(ctx, e, row, f):  # noqa: ANN001, ANN202
-    impl = _step("faded", ctx)
-    if impl is not None:
-        return lambda ctx, e, row, f: impl(ctx, e, row, f)
-    return None
-
-
-@overload(measured)
-def _measured(ctx, e, row):  # noqa: ANN001, ANN202
-    impl = _step("measured", ctx)
-    if impl is not None:
-        return lambda ctx, e, row: impl(ctx, e, row)
-    return None
-
-
-@overload(keep)
-def _keep(ctx, e, row):  # noqa: ANN001, ANN202
-    impl = _step("keep", ctx)
-    if impl is not None:
-        return lambda ctx, e, row: impl(ctx, e, row)
-    return None
-
-
-@overload(update)
-def _update(ctx, e, row):  # noqa: ANN001, ANN202
-    impl = _step("update", ctx)
-    if impl is not None:
-        return lambda ctx, e, row: impl(ctx, e, row)
-    return None
-
-
-@overload(smooth)
-def _smooth(ctx, e, row, nxt):  # noqa: ANN001, ANN202
-    impl = _step("smooth", ctx)
-    if impl is not None:
-        return lambda ctx, e, row, nxt: impl(ctx, e, row, nxt)
-    return None
+for _name, _fn in zip(STEP_NAMES, (start, predict, fades, fade, faded, measured, keep, update, smooth),
+                      strict=True):
+    overload(_fn)(_resolved(_name))
 
 
 @numba.njit(cache=True, nogil=True)
