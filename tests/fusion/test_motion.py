@@ -104,3 +104,14 @@ def test_moments_follow_from_q(dt: float) -> None:
 def test_noise_defaults_joints_to_the_centre() -> None:
     assert MotionModel(0.8, 0.01).noise.joint_accel_sd == 0.8
     assert MotionModel(0.8, 0.01, joint_accel_sd=2.5).noise.joint_accel_sd == 2.5
+
+
+@pytest.mark.parametrize("ratio", [1.0, 0.1])
+def test_transition_noise_is_symmetric_psd_and_anisotropic(ratio: float) -> None:
+    lay = StateLayout(2)
+    up = np.array([0.0, -1.0, 0.0])
+    F, Q = lay.transition(np.array([0.1, 0.5]), 1.0, 0.01, up=up, vertical_ratio=ratio)
+    assert F.shape == Q.shape == (2, lay.n, lay.n)
+    np.testing.assert_allclose(Q, np.swapaxes(Q, 1, 2))
+    assert np.linalg.eigvalsh(Q).min() > -1e-15
+    np.testing.assert_allclose(Q[1, 1, 1] / Q[1, 0, 0], ratio**2)

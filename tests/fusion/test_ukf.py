@@ -14,7 +14,6 @@ from hypothesis.extra.numpy import arrays
 from gt3dkit.fusion.motion import StateLayout
 from gt3dkit.fusion.ukf import SigmaWeights
 from gt3dkit.fusion.update import Measured
-from gt3dkit.geom.smallmat import matmul
 from tests.oracles import sigma_points, ukf_update, unscented_transform
 from tests.oracles_frames import predict_linear, rts_step, ukf_update_information
 
@@ -138,17 +137,6 @@ def test_rts_matches_filterpy_rts_smoother() -> None:
     np.testing.assert_allclose(np.concatenate(out[::-1]), ms, atol=1e-9)
 
 
-@pytest.mark.parametrize("ratio", [1.0, 0.1])
-def test_transition_noise_is_symmetric_psd_and_anisotropic(ratio: float) -> None:
-    lay = StateLayout(2)
-    up = np.array([0.0, -1.0, 0.0])
-    F, Q = lay.transition(np.array([0.1, 0.5]), 1.0, 0.01, up=up, vertical_ratio=ratio)
-    assert F.shape == Q.shape == (2, lay.n, lay.n)
-    np.testing.assert_allclose(Q, np.swapaxes(Q, 1, 2))
-    assert np.linalg.eigvalsh(Q).min() > -1e-15
-    np.testing.assert_allclose(Q[1, 1, 1] / Q[1, 0, 0], ratio**2)
-
-
 def test_information_form_equals_covariance_form_on_linear_model() -> None:
     _, _, H = _linear_model()
     rng = np.random.default_rng(4)
@@ -165,55 +153,3 @@ def test_information_form_equals_covariance_form_on_linear_model() -> None:
     np.testing.assert_allclose(Pi, Pc, atol=1e-9)
     assert ii["loglik"] == pytest.approx(ic["loglik"], rel=1e-9)
     assert ii["nis"] == pytest.approx(ic["nis"], rel=1e-9)
-
-
-def test_prediction_and_rts_skip_the_transitions_zeros_bit_for_bit() -> None:
-    """The prediction and RTS step multiply by the sparse ``F`` skipping its zeros: the same bits
-    as the dense products (compiled ``matmul``), on a 19-joint state with random covariances."""
-    lay = StateLayout(n_joints=19)
-    n = lay.n
-    F, Q = lay.transition(np.array([0.1, 0.35]), accel_sd=1.3, shape_sd=0.05, joint_accel_sd=4.0)
-    rng = np.random.default_rng(2)
-    A = rng.normal(size=(2, n, n))
-    P = A @ np.swapaxes(A, 1, 2) / n + 1e-3 * np.eye(n)
-    x = rng.normal(size=(2, n))
-
-    def dense(b: int) -> tuple[np.ndarray, np.ndarray]:
-        FP, Pp = np.empty((n, n)), np.empty((n, n))
-        matmul(F[b], P[b], FP)
-        matmul(FP, np.ascontiguousarray(F[b].T), Pp)
-        return F[b] @ x[b], 0.5 * ((Pp + Q[b]) + (Pp.T + Q[b].T))
-
-    x_p, P_p = predict_linear(x, P, F, Q)
-    for b in range(2):
-        xd, Pd = dense(b)
-        np.testing.assert_allclose(x_p[b], xd, rtol=1e-14, atol=1e-15)
-        np.testing.assert_array_equal(P_p[b], Pd)
-    # the RTS step against numpy's dense algebra
-    x_s, P_s = x_p + 0.01 * rng.normal(size=(2, n)), 0.9 * P_p
-    x_o, P_o = rts_step(x, P, x_p, P_p, x_s, P_s, F)
-    for b in range(2):
-        G = P[b] @ F[b].T @ np.linalg.inv(P_p[b])
-        np.testing.assert_allclose(x_o[b], x[b] + G @ (x_s[b] - x_p[b]), rtol=1e-8, atol=1e-10)
-        np.testing.assert_allclose(P_o[b], P[b] + G @ (P_s[b] - P_p[b]) @ G.T, rtol=1e-7, atol=1e-10)
-
-
-def test_fading_is_continuous_in_the_prediction_s_distance() -> None:
-    """The fading factor is 1 up to the chi-square limit and grows continuously beyond it (the
-    excess per degree of freedom), approaching ``sqrt(d^2 / 3)`` far beyond; written out against
-    ``e^T S^-1 e`` by numpy."""
-    from gt3dkit.fusion.kalman import fade_factors_of
-
-    rng = np.random.default_rng(4)
-    A = rng.normal(size=(3, 3))
-    S = A @ A.T + 0.5 * np.eye(3)
-    u = rng.normal(size=3)
-    u /= np.sqrt(u @ np.linalg.solve(S, u))  # d^2 = 1 along u
-    limit = 16.27
-    d2 = np.array([0.0, 4.0, limit - 1e-9, limit + 1e-9, limit + 3.0, 300.0, 3e4])
-    e = np.sqrt(d2)[:, None] * u
-    f = fade_factors_of(e, np.broadcast_to(S, (len(d2), 3, 3)).copy(), limit)
-    want = np.sqrt(1.0 + np.maximum(d2 - limit, 0.0) / 3.0)
-    np.testing.assert_allclose(f, want, rtol=1e-9)
-    assert abs(f[3] - f[2]) < 1e-6  # no jump at the limit
-    assert f[-1] / np.sqrt(d2[-1] / 3.0) > 0.999
