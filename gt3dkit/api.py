@@ -79,10 +79,15 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
         per_frame = scene.layout == "openpose" or scene.association == "detections"
         assoc = (associate_detections if per_frame else associate)(scene, overrides=over)
         scene = dataclasses.replace(apply_association(scene, assoc), association=assoc)
-        out = sum(1 for r in assoc.rows if r[3] < 0)
+        twice = sum(1 for r in assoc.rows if r[3] < 0 and r[7].startswith("a second detection"))
+        out = sum(1 for r in assoc.rows if r[3] < 0) - twice
         if out:
             scene = dataclasses.replace(scene, warnings=(*scene.warnings, f"{out} detections no second view "
                                                          "confirms left out (association.csv, global id -1)"))
+        if twice:
+            scene = dataclasses.replace(scene, warnings=(*scene.warnings, (
+                f"{twice} detections of a person a camera had already detected in that frame left out "
+                "(association.csv, global id -1)")))
         if not len(scene.obs):
             raise InputError(str(root), "no person is seen by two cameras at once (nothing to reconstruct)")
         scene = without_undetermined(scene)

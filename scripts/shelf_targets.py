@@ -78,11 +78,14 @@ def read_truth(path: Path) -> dict[int, dict[int, np.ndarray]]:
     return out
 
 
-def score(frames: np.ndarray, shelf: np.ndarray, truth: dict) -> dict:
-    """PCP per actor and limb, MPJPE over limb joints and the number beyond 300 mm."""
+def score(frames: np.ndarray, shelf: np.ndarray, truth: dict, ids: np.ndarray | None = None) -> dict:
+    """PCP per actor and limb, MPJPE over limb joints and the number beyond 300 mm; per actor the
+    person-frames with an estimate within 0.5 m (mean over the 14 joints) and the share of its
+    frames its most frequent id covers (``ids``: each estimate row's person id)."""
     correct: dict[int, np.ndarray] = {}
     total: dict[int, int] = {}
     errs: list[np.ndarray] = []
+    near: dict[int, list[int]] = {}  # actor -> the id of the estimate within 0.5 m per frame (-1: none)
     for fr, actors in truth.items():
         mine = np.flatnonzero(frames == fr)
         for a, gt in actors.items():
@@ -92,10 +95,15 @@ def score(frames: np.ndarray, shelf: np.ndarray, truth: dict) -> dict:
             total[a] = total.get(a, 0) + 1
             if not mine.size:
                 errs.append(np.full(12, np.inf))
+                near.setdefault(a, []).append(-1)
                 continue
             d = np.linalg.norm(shelf[mine] - gt[None, :14], axis=-1)  # (P, 14)
             d = np.where(np.isfinite(d), d, 10.0)
-            p = d[int(np.argmin(d.mean(axis=1)))]
+            best = int(np.argmin(d.mean(axis=1)))
+            p = d[best]
+            within = d[best].mean() <= 0.5
+            near.setdefault(a, []).append(int(ids[mine[best]]) if ids is not None and within else
+                                          (0 if within else -1))
             pred = shelf[mine][int(np.argmin(d.mean(axis=1)))]
             for k, (s, e) in enumerate(LIMBS):
                 correct[a][k] += (p[s] + p[e]) / 2 <= 0.5 * np.linalg.norm(gt[s] - gt[e])
@@ -107,7 +115,14 @@ def score(frames: np.ndarray, shelf: np.ndarray, truth: dict) -> dict:
     per_actor = {a: float(correct[a].sum() / (10 * total[a])) for a in sorted(correct)}
     groups = {g: float(np.mean([correct[a][list(ks)].sum() / (len(ks) * total[a])
                                 for a in sorted(correct) if a <= 3])) for g, ks in GROUPS.items()}
+    within = {a: float(np.mean(np.asarray(v) >= 0)) for a, v in sorted(near.items())}
+    cover = {}
+    for a, v in sorted(near.items()):
+        v = np.asarray(v)
+        top = np.bincount(v[v >= 0]).max() if (v >= 0).any() else 0
+        cover[a] = float(top / len(v))
     return {"pcp": float(np.mean([v for a, v in per_actor.items() if a <= 3])), "per_actor": per_actor,
+            "within_0_5m": within, "one_id": cover,
             "groups": groups, "mpjpe_mm": 1000 * float(np.mean(np.minimum(e, 10.0))),
             "over_300mm": int(np.sum(e > 0.3)), "joints": int(e.size)}
 
@@ -130,7 +145,7 @@ def main() -> int:
     took = time.perf_counter() - t0
     names = SKELETONS[scene.skeleton].marker_names
     coco = tracks.kpt_world[:, [names.index(n) for n in COCO_NAMES]]
-    res = score(tracks.frame, to_shelf(coco), read_truth(root / "truth_shelf15.csv"))
+    res = score(tracks.frame, to_shelf(coco), read_truth(root / "truth_shelf15.csv"), tracks.track_id)
     print(f"Shelf frames 0-149, real OpenPose {scene.skeleton}, no identities ({took:.1f} s, {out}):")
     print(f"  PCP {100 * res['pcp']:.1f} (actors 1-3: "
           + ", ".join(f"{a}: {100 * v:.1f}" for a, v in res["per_actor"].items()) + ")")
@@ -138,6 +153,10 @@ def main() -> int:
     print(f"  MPJPE {res['mpjpe_mm']:.1f} mm over the 12 limb joints; {res['over_300mm']} of {res['joints']} "
           "joints more than 300 mm off")
     print(f"  person ids: {len(np.unique(tracks.track_id))} (the truth has 4 actors)")
+    print("  truth person-frames with an estimate within 0.5 m: "
+          + ", ".join(f"actor {a} {100 * v:.1f} %" for a, v in res["within_0_5m"].items()))
+    print("  frames covered by each actor's most frequent id: "
+          + ", ".join(f"actor {a} {100 * v:.1f} %" for a, v in res["one_id"].items()))
     return 0
 
 

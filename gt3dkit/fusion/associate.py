@@ -80,7 +80,8 @@ class Association:
         if any(r[2] is not None for r in self.rows):
             out = len(self.rows) - len(kept)
             return (f"{len(self.rows)} detections -> {len(g)} people"
-                    + (f" ({out} seen by one camera only, left out)" if out else ""))
+                    + (f" ({out} left out: seen by one camera only, or a camera's second detection of a "
+                       "person)" if out else ""))
         single = len(g - {r[3] for r in kept if np.isfinite(r[4])})
         return (f"{len(self.rows)} per-camera tracks -> {len(g)} people ({single} seen by one camera "
                 "only)")

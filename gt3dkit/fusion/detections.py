@@ -134,10 +134,11 @@ def _flat(v: F64, up: F64) -> float:
 
 
 def _frame_groups(rows: np.ndarray, pairs: list[tuple[float, int, int]], cam: I64, xy: F64, cams: Cams
-                  ) -> list[tuple[list[int], F64, float]]:
+                  ) -> tuple[list[tuple[list[int], F64, float]], list[int]]:
     """One frame's detections ``rows`` grouped greedily by their consistent ``pairs`` (best first;
-    one detection per camera, every pair of a group consistent): per group of two or more views
-    its members, the median of its triangulated joints (m) and its pairs' mean cost (px)."""
+    one detection per camera, every pair of a group consistent; :func:`_one_per_person`): per
+    group of two or more views its members, the median of its triangulated joints (m) and its
+    pairs' mean cost (px); and the detections left out as a camera's second of a person."""
     cost_of = {(a, b): c for c, a, b in pairs}
     group = {int(r): {int(r)} for r in rows}
     for _, a, b in pairs:
@@ -151,8 +152,10 @@ def _frame_groups(rows: np.ndarray, pairs: list[tuple[float, int, int]], cam: I6
         merged = ga | gb
         for r in merged:
             group[r] = merged
+    groups, dropped = _one_per_person(list({id(g): g for g in group.values()}.values()), cost_of, cam,
+                                      np.isfinite(xy[..., 0]))
     found = []
-    for g in {id(g): g for g in group.values()}.values():
+    for g in groups:
         if len(g) < 2:
             continue
         members = sorted(g)
@@ -161,9 +164,47 @@ def _frame_groups(rows: np.ndarray, pairs: list[tuple[float, int, int]], cam: I6
         if not np.isfinite(X).all(axis=1).any():
             continue
         centroid = np.nanmedian(X[np.isfinite(X).all(axis=1)], axis=0)
-        pc = [cost_of[(min(r, q), max(r, q))] for r in members for q in members if r < q]
+        pc = [cost_of[(min(r, q), max(r, q))] for r in members for q in members
+              if r < q and (min(r, q), max(r, q)) in cost_of]
         found.append((members, centroid, float(np.mean(pc))))
-    return found
+    return found, dropped
+
+
+def _one_per_person(groups: list[set[int]], cost_of: dict[tuple[int, int], float], cam: I64,
+                    seen: np.ndarray, shared_joints: int = 2) -> tuple[list[set[int]], list[int]]:
+    """The groups with every two that are one person split by a detector merged. OpenPose can
+    find one person in a view as two skeletons (the upper body and the legs), and the
+    one-detection-per-camera rule then makes two groups of that person. Two groups are one
+    person when, in every camera they share, their two detections have at most
+    ``shared_joints`` joints in common (``seen (N, J)``: the confident joints; two people's
+    skeletons share most), and most pairs of their detections in different cameras (two at
+    least, half of them) are consistent (two people a step apart have none: their views do not
+    triangulate together; a partial skeleton may lack the joints to compare with one view). The
+    merged group keeps the larger group's detections and the other's in cameras it lacks; the
+    other's in the shared cameras are left out (returned)."""
+    def consistent(a: set[int], b: set[int]) -> bool:
+        parts = all((seen[r] & seen[q]).sum() <= shared_joints for r in a for q in b if cam[r] == cam[q])
+        cross = [(min(r, q), max(r, q)) for r in a for q in b if cam[r] != cam[q]]
+        agree = sum(k in cost_of for k in cross)
+        return parts and agree >= 2 and 2 * agree >= len(cross)
+
+    groups = list(groups)
+    dropped: list[int] = []
+    k = 0
+    while k < len(groups):
+        cams_k = {int(cam[r]) for r in groups[k]}
+        m = next((m for m in range(k + 1, len(groups))
+                  if cams_k & {int(cam[r]) for r in groups[m]} and consistent(groups[k], groups[m])), None)
+        if m is None:
+            k += 1
+            continue
+        a, b = groups[k], groups.pop(m)
+        if len(b) > len(a):  # the larger group keeps its views (the merged one keeps a's place)
+            a, b = b, a
+        have = {int(cam[r]) for r in a}
+        dropped += [r for r in b if int(cam[r]) in have]
+        groups[k] = a | {r for r in b if int(cam[r]) not in have}
+    return groups, dropped
 
 
 def _linked(tracks: list[dict], found: list[tuple[list[int], F64, float]], f: int, scene: Scene,
@@ -209,12 +250,14 @@ def associate_detections(scene: Scene, cfg: DetectionConfig | None = None,
         xy[m] = normalized_points(kp[m][:, :, None, :], cams.K[c:c + 1], cams.dist[c:c + 1])[:, :, 0]
     gid = np.full(len(obs), -1, dtype=np.int64)
     gconf = np.full(len(obs), np.nan)
+    twice = np.zeros(len(obs), bool)  # a camera's second detection of a person
     tracks: list[dict] = []  # {"id", "frame", "X"}
     next_id = 0
     with np.errstate(all="ignore"):
         Pw = np.concatenate([cams.R, cams.t[:, :, None]], axis=2)  # (C, 3, 4)
         for f, rows, pairs in _consistent_pairs(obs, xy, Pw, f_px, cfg):
-            found = _frame_groups(rows, pairs, obs.cam, xy, cams)
+            found, dropped = _frame_groups(rows, pairs, obs.cam, xy, cams)
+            twice[dropped] = True
             taken = _linked(tracks, found, f, scene, cfg)
             for j, (members, centroid, pc) in enumerate(found):
                 t = taken.get(j)
@@ -229,5 +272,6 @@ def associate_detections(scene: Scene, cfg: DetectionConfig | None = None,
     for r in range(len(obs)):
         rows_out.append([names[int(obs.cam[r])], int(obs.track_id[r]), int(obs.frame[r]), int(gid[r]),
                          float(gconf[r]), 1, np.nan,
-                         "" if gid[r] >= 0 else "no second view confirms it: left out"])
+                         "" if gid[r] >= 0 else "a second detection of a person in this camera: left out"
+                         if twice[r] else "no second view confirms it: left out"])
     return finish_association(rows_out, overrides)
