@@ -333,3 +333,20 @@ def test_openpose_confidences_above_one_are_read_as_one_with_a_warning(tmp_path:
     said = [w for w in scene.warnings if "confidence above 1" in w]
     assert len(said) == 1 and "1.037" in said[0] and said[0].startswith("1 detection")
     assert np.nanmax(scene.obs.kpt_conf) == 1.0
+
+
+def test_openpose_files_without_people_are_said(tmp_path: Path) -> None:
+    """A frame where the detector found no one in a camera (``"people": []``, as OpenPose writes
+    it) is valid: read, and counted in one warning line."""
+    import json
+
+    root = _trial(tmp_path)
+    assert not any("list no person" in w for w in load_scene(root).warnings)
+    pages = sorted((root / "pose" / "cam2_json").glob("*.json"))[2:4]
+    for page in pages:
+        doc = json.loads(page.read_text())
+        doc["people"] = []
+        page.write_text(json.dumps(doc))
+    n = sum(1 for _ in (root / "pose").glob("*/*.json"))
+    said = [w for w in load_scene(root).warnings if "list no person" in w]
+    assert said == [f"2 of {n} files list no person (frames where the detector found no one in that camera)"]

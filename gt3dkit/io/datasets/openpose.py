@@ -188,6 +188,8 @@ def load(
     sample: list[np.ndarray] = []  # the first detections, to tell BODY_25 from BODY_25B
     rb: RowBuilder | None = None
     above: list[float] = []  # detections with a confidence above 1: the largest of each
+    empty = 0  # files whose people list is empty (frames where the detector found no one)
+    n_files = 0
     for folder, name in zip(folders, names, strict=True):
         seen_frames: dict[int, Path] = {}
         chunk = _Detections(rig.cameras[cam_of[name]], cam_of[name])
@@ -200,6 +202,8 @@ def load(
             people = doc.get("people") if isinstance(doc, dict) else None
             if not isinstance(people, list):
                 raise InputError(str(p), 'expected {"people": [...]}')
+            n_files += 1
+            empty += not people
             for i, person in enumerate(people):
                 where = f"{p}: people[{i}]"
                 a = _keypoints(where, person)
@@ -228,6 +232,9 @@ def load(
     if above:
         warnings.append(f"{len(above)} detection(s) with a confidence above 1 (up to {max(above):.4g}; "
                         "OpenPose's confidences are heatmap peaks): read as 1")
+    if empty:
+        warnings.append(f"{empty} of {n_files} files list no person (frames where the detector found no "
+                        "one in that camera)")
     skeleton = _skeleton_of(skeleton, J, sample)
     obs = rb.build()
     files[f"calibration:{cal.name}"] = sha256(cal) if cal.is_file() else "folder"
