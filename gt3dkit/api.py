@@ -20,7 +20,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.fusion.associate import apply_association, associate, read_overrides
 from gt3dkit.fusion.base import ESTIMATORS, Estimator, make_estimator, over_time
 from gt3dkit.fusion.boxfit import choose_box_model
-from gt3dkit.fusion.detections import associate_detections
+from gt3dkit.fusion.detections import SECOND_DETECTION, associate_detections
 from gt3dkit.fusion.identity import Segments, identity_segments
 from gt3dkit.fusion.prepare import Prepared, prepare, undetermined_objects
 from gt3dkit.fusion.rows import Rows, build_rows
@@ -79,7 +79,7 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
         per_frame = scene.layout == "openpose" or scene.association == "detections"
         assoc = (associate_detections if per_frame else associate)(scene, overrides=over)
         scene = dataclasses.replace(apply_association(scene, assoc), association=assoc)
-        twice = sum(1 for r in assoc.rows if r[3] < 0 and r[7].startswith("a second detection"))
+        twice = sum(1 for r in assoc.rows if r[3] < 0 and r[7] == SECOND_DETECTION)
         out = sum(1 for r in assoc.rows if r[3] < 0) - twice
         if out:
             scene = dataclasses.replace(scene, warnings=(*scene.warnings, f"{out} detections no second view "

@@ -29,6 +29,11 @@ class DetectionConfig:
     max_gap_s: float = 1.0  # a person unseen longer than this is a new track when seen again
 
 
+#: The notes of the detections left out (``association.csv``): no second view confirms the
+#: detection, or a camera's second detection of a person (:func:`_one_per_person`).
+UNCONFIRMED = "no second view confirms it: left out"
+SECOND_DETECTION = "a second detection of a person in this camera: left out"
+
 #: Detection pairs whose costs are computed at once (:func:`pair_costs`): ``(pairs, J, 4, 4)`` arrays.
 PAIR_CHUNK = 8192
 
@@ -272,6 +277,5 @@ def associate_detections(scene: Scene, cfg: DetectionConfig | None = None,
     for r in range(len(obs)):
         rows_out.append([names[int(obs.cam[r])], int(obs.track_id[r]), int(obs.frame[r]), int(gid[r]),
                          float(gconf[r]), 1, np.nan,
-                         "" if gid[r] >= 0 else "a second detection of a person in this camera: left out"
-                         if twice[r] else "no second view confirms it: left out"])
+                         "" if gid[r] >= 0 else SECOND_DETECTION if twice[r] else UNCONFIRMED])
     return finish_association(rows_out, overrides)

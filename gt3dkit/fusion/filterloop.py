@@ -67,16 +67,20 @@ def register(bundle: type, **steps: Callable[..., object]) -> None:
         _STEPS[(name, bundle)] = fn
 
 
-def _stub(name: str) -> Callable[..., object]:
-    """Step ``name`` as the loop calls it (its arguments: the module doc's table): a stub numba
-    resolves to the kind's compiled step (:func:`_resolved`); never run in Python."""
-    def step(*args: object) -> object:
-        raise NotImplementedError(f"{name} runs inside compiled code only")
+def _step(name: str) -> Callable[..., object]:
+    """Step ``name`` as the loop calls it (its arguments: the module doc's table): the kind's
+    step for the bundle's class. In compiled code numba resolves it (:func:`_resolved`); called
+    from Python (a test, a debugger) it calls that step the same way."""
+    def step(ctx: tuple, *args: object) -> object:
+        impl = _STEPS.get((name, type(ctx)))
+        if impl is None:
+            raise TypeError(f"no kind registered for {type(ctx).__name__} (filterloop.register)")
+        return impl(ctx, *args)
     step.__name__ = step.__qualname__ = name
     return step
 
 
-start, predict, fades, fade, faded, measured, keep, update, smooth = (_stub(n) for n in STEP_NAMES)
+start, predict, fades, fade, faded, measured, keep, update, smooth = (_step(n) for n in STEP_NAMES)
 
 
 def _resolved(name: str) -> Callable[..., object]:

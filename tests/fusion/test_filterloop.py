@@ -169,3 +169,20 @@ def test_a_faded_row_spreads_its_gap(gap: bool) -> None:
 def test_a_kind_registers_every_step() -> None:
     with pytest.raises(ValueError, match="steps must be exactly"):
         register(Toy, start=_start)
+
+
+def test_the_steps_called_from_python_are_the_kinds() -> None:
+    """Outside compiled code a step calls the kind's own (the same state written); a bundle of no
+    registered kind is refused by name."""
+    from gt3dkit.fusion import filterloop
+
+    ctx = _toy(np.array([0.5, np.nan]), np.array([0.0, 0.1]))
+    filterloop.start(ctx, 0, 0)
+    filterloop.update(ctx, 0, 0)
+    assert filterloop.measured(ctx, 0, 0) and not filterloop.measured(ctx, 0, 1)
+    ref = _toy(np.array([0.5, np.nan]), np.array([0.0, 0.1]))
+    _start(ref, 0, 0)
+    _update(ref, 0, 0)
+    np.testing.assert_array_equal(ctx.x, ref.x)
+    with pytest.raises(TypeError, match="no kind registered for Chains"):
+        filterloop.keep(ctx.chains, 0, 0)
