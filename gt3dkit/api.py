@@ -196,7 +196,7 @@ def estimate_checked(scene: Scene, est: Estimator, every_frame: int | None = Non
         return tracks, None
     stage("annotation QA, writing")
     found = find_anomalies(sc, tracks, pre, splits=segs.splits, exchanges=segs.exchanges)
-    tracks.info["qa"] = {"anomalies": found.counts(), "file": "anomalies.csv"}
+    tracks.info.qa = {"anomalies": found.counts(), "file": "anomalies.csv"}
     return tracks, found
 
 
@@ -260,14 +260,14 @@ def estimate_scene(scene: Scene, est: Estimator, pre: Any | None, segs: Segments
                    dense: bool = False, split: tuple[Scene, Any, dict[int, tuple[int, int]]] | None = None
                    ) -> TrackSet:
     """``est``'s tracks of ``scene``, each piece of a split id (:mod:`gt3dkit.fusion.identity`)
-    estimated as an object of its own; the tracks carry the input's ids, ``info["identity"]``
+    estimated as an object of its own; the tracks carry the input's ids, ``info.identity``
     the pieces. ``pre``: the estimator's own preparation of ``scene`` (None: it prepares).
     A row for each annotated object-frame; ``dense``: also the rows of frames no camera saw
     the object in (the estimator's interpolation, ``n_views`` 0). ``split``: :func:`split_scene`'s
     result, shared by several estimators (``gt3d compare``)."""
     tracks = _estimate_pieces(scene, est, pre, segs, split)
     if dense:
-        tracks.info["every_frame"] = {
+        tracks.info.every_frame = {
             "frames": int(len(scene.frames)), "rows_interpolated": int(np.sum(tracks.n_views == 0)),
             "note": "a row for every frame of the grid from each object's first to its last annotation; "
                     "n_views 0 = no camera saw it there (interpolated by the motion model, its sd grows "
@@ -294,7 +294,7 @@ def _estimate_pieces(scene: Scene, est: Estimator, pre: Any | None, segs: Segmen
             pieces, back = split_ids(scene, (pre if pre is not None else prepare(scene)).rows, segs)
             shared = (pieces, None, back)
         tracks = restored_ids(est.estimate(shared[0], shared[1]), shared[2])
-    tracks.info["identity"] = {
+    tracks.info.identity = {
         "splits": len(segs.splits), "exchanges": len(segs.exchanges),
         "speed_limit_mps": round(segs.speed_limit_mps, 3),
         "rule": "an id is split between two consecutive frames its views place farther apart than "
@@ -324,7 +324,7 @@ def split_ids(scene: Scene, rows: Rows, segs: Segments) -> tuple[Scene, dict[int
 
 def restored_ids(tracks: TrackSet, back: dict[int, tuple[int, int]]) -> TrackSet:
     """``tracks`` of a scene made by :func:`split_ids` with the input's ids again (rows sorted as
-    before: by frame, then id), and the pieces in ``info["identity"]["segments"]``."""
+    before: by frame, then id), and the pieces in ``info.segments``."""
     new = np.array(sorted(back), dtype=np.int64)
     to = np.array([back[int(k)] for k in new], dtype=np.int64).reshape(-1, 2)  # (input id, piece)
 
@@ -346,7 +346,7 @@ def restored_ids(tracks: TrackSet, back: dict[int, tuple[int, int]]) -> TrackSet
     np.minimum.at(first, inv, tracks.frame)
     np.maximum.at(last, inv, tracks.frame)
     count = np.bincount(inv, minlength=len(pieces))
-    out.info["segments"] = [
+    out.info.segments = [
         {"id": int(i), "segment": int(s), "first_frame": int(a), "last_frame": int(b), "rows": int(n)}
         for (i, s), a, b, n in zip(pieces, first, last, count, strict=True)]
     return out

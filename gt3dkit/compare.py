@@ -111,7 +111,7 @@ def compare(scene: Scene, out: Path, estimators: tuple[str, ...] = COMPARE_ESTIM
         res = reprojection_residuals(tr, scene, rows)
         row: JsonDict = {
             "estimator": name, "rows": len(tr),
-            "skipped_rows": int(tr.info.get("skipped_lt2_views", 0)),
+            "skipped_rows": int(tr.info.skipped_lt2_views or 0),
             "reproj_mean_px": float(np.mean(res)) if res.size else float("nan"),
             "reproj_median_px": float(np.median(res)) if res.size else float("nan"),
             "reproj_p95_px": float(np.percentile(res, 95)) if res.size else float("nan"),

@@ -305,6 +305,49 @@ class Scene:
                 for c in self.rig.cameras if c.r_deviation > 0}
 
 
+@dataclass
+class RunInfo:
+    """What a run used and found (``meta.json``'s ``estimator`` object, :meth:`as_json`): the
+    fields other modules read, typed; each estimator's own diagnostics in ``details``.
+
+    estimator : the estimator's name (:data:`gt3dkit.fusion.base.REGISTRY`)
+    params : the settings used after any automatic tuning (the chosen process noise included)
+    seconds : the estimator's time
+    object_frames : rows estimated; skipped_lt2_views : rows a per-frame fit left out
+    robust : the robust update's rule and counts; bones : the persons' bone lengths
+    every_frame, identity, segments, qa, windows : what the run added around the estimator
+        (dense rows, the identity check, its split ids' pieces, the anomaly counts, the time
+        windows of a long sequence)
+    details : everything else the estimator reports, as it reports it
+    """
+
+    estimator: str = ""
+    params: JsonDict = field(default_factory=dict)
+    seconds: float = 0.0
+    object_frames: int | None = None
+    skipped_lt2_views: int | None = None
+    robust: JsonDict | None = None
+    bones: JsonDict | None = None
+    every_frame: JsonDict | None = None
+    identity: JsonDict | None = None
+    segments: list[JsonDict] = field(default_factory=list)
+    qa: JsonDict | None = None
+    windows: JsonDict | None = None
+    details: JsonDict = field(default_factory=dict)
+
+    def as_json(self) -> JsonDict:
+        """The fields as ``meta.json`` writes them (unset ones left out, ``details`` inline)."""
+        out: JsonDict = {"estimator": self.estimator, "params": self.params, **self.details}
+        for key in ("robust", "bones", "every_frame", "identity", "qa", "windows", "object_frames",
+                    "skipped_lt2_views"):
+            if getattr(self, key) is not None:
+                out[key] = getattr(self, key)
+        if self.segments:
+            out["segments"] = self.segments
+        out["seconds"] = self.seconds
+        return out
+
+
 @dataclass(frozen=True)
 class TrackSet:
     """Estimator output: one row per (frame, object).
@@ -320,7 +363,7 @@ class TrackSet:
     kpt_sd : (M, J) float64, metres: the largest standard deviation over all directions
         (square root of the largest eigenvalue of the joint's 3x3 covariance), so that the
         error along any axis is within ``k * sd`` at least as often as a 1-D Gaussian says
-    info : dict
+    info : RunInfo
         Estimator name, parameters and diagnostics for ``meta.json``.
     downweighted : Downweighted or None
         Every measurement the robust update down-weighted or rejected.
@@ -334,7 +377,7 @@ class TrackSet:
     n_views: I64
     kpt_world: F64
     kpt_sd: F64
-    info: JsonDict = field(default_factory=dict)
+    info: RunInfo = field(default_factory=RunInfo)
     downweighted: Downweighted | None = None
 
     def __len__(self) -> int:

@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
             for e in ESTS:
                 tr = reconstruct(scene, e)
                 mm, matched, total = mpjpe_by_id(tr, scene.truth)
-                sk[e].append([mm, matched / total, tr.info["seconds"]])
+                sk[e].append([mm, matched / total, tr.info.seconds])
         with tempfile.TemporaryDirectory() as d:
             sim2 = simulate("wildtrack", seed=seed, frames=40, people=10, noise_px=2.0)
             write_scene(sim2, Path(d), "wildtrack")
@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
                 t = tracking_scores(tr, scene.truth, scene.rig.up)
                 bx[e].append([1e3 * er.centre_mean_m, 1e3 * er.height_mean_m, er.coverage,
                               100 * t["mota"], 100 * t["idf1"], 100 * t["hota"], t["ospa2_m"],
-                              tr.info["seconds"]])
+                              tr.info.seconds])
     S = {e: np.mean(v, axis=0) for e, v in sk.items()}
     B = {e: np.mean(v, axis=0) for e, v in bx.items()}
     print(f"skeletons, 10 cameras, 2 px noise ({args.seeds} seeds)")

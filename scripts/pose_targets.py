@@ -37,7 +37,7 @@ def evaluate(scene, joints=None) -> dict[str, dict[str, float]]:
         out[est] = {"mpjpe": by_id, "ap25": 100 * p.ap[25], "ap50": 100 * p.ap[50],
                     "ap100": 100 * p.ap[100], "ap150": 100 * p.ap[150],
                     "rec500": 100 * p.recall_500, "covered": matched / total,
-                    "seconds": tr.info["seconds"]}
+                    "seconds": tr.info.seconds}
     return out
 
 

@@ -21,7 +21,7 @@ def test_gtsam_on_exact_box_scene(small_native) -> None:
     e = box_errors(tr, scene.truth, scene.rig.up)
     assert e.coverage == 1.0 and e.centre_mean_m < 0.004 and e.height_mean_m < 0.004
     assert np.all(np.isfinite(tr.center_sd)) and np.all(tr.center_sd > 0)
-    assert tr.info["iterations"] > 0
+    assert tr.info.details["iterations"] > 0
 
 
 @pytest.mark.parametrize("fixed_noise", [False, True])
@@ -51,8 +51,8 @@ def test_gtsam_box_chain_is_gtsams_own_graph(tmp_path: Path, monkeypatch, fixed_
 
     monkeypatch.setattr(sg, "solve_boxes", own_graph)
     ref = est.estimate(scene, pre)
-    assert batched.info["iterations"] == ref.info["iterations"]
-    checks, ref_checks = (t.info["process_noise_discrepancy"] for t in (batched, ref))
+    assert batched.info.details["iterations"] == ref.info.details["iterations"]
+    checks, ref_checks = (t.info.details["process_noise_discrepancy"] for t in (batched, ref))
     assert [c["rescaled"] for c in checks] == [c["rescaled"] for c in ref_checks]
     assert [c["measurement_chi2_per_entry"] for c in checks] == pytest.approx(
         [c["measurement_chi2_per_entry"] for c in ref_checks], rel=1e-9)

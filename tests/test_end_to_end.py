@@ -57,7 +57,7 @@ def test_every_estimator_on_exact_synthetic_scene(small_native, name: str) -> No
     if name != "triangulation":
         assert e.coverage == 1.0
     else:
-        assert tracks.info["skipped_lt2_views"] == e.rows_truth - e.rows_matched
+        assert tracks.info.skipped_lt2_views == e.rows_truth - e.rows_matched
 
 
 def test_ukf_covers_frames_with_fewer_than_two_views(tmp_path: Path) -> None:
@@ -94,14 +94,14 @@ def test_sigma_is_estimated_from_the_data(small_native) -> None:
     scene, _ = small_native
     info = reconstruct(scene).info
     # whole-pixel rounding: uniform error of 1 px width has sd 1/sqrt(12) = 0.29 px
-    assert 0.2 < info["params"]["sigma_px"] < 0.4
-    assert info["noise_source"]["process"].startswith("max likelihood")
+    assert 0.2 < info.params["sigma_px"] < 0.4
+    assert info.details["noise_source"]["process"].startswith("max likelihood")
     # the search evaluated a curve whose best point is the value chosen, strictly inside
     # its bounds (no grid edge)
-    curve = info["noise_search"]["accel_sd"]
+    curve = info.details["noise_search"]["accel_sd"]
     best = max(curve, key=lambda d: d["loglik"])
-    assert best["value"] == info["params"]["accel_sd"]
-    lo, hi = info["params"]["accel_bounds"]
+    assert best["value"] == info.params["accel_sd"]
+    lo, hi = info.params["accel_bounds"]
     assert lo < best["value"] < hi and len(curve) >= 6
 
 

@@ -109,15 +109,15 @@ def test_windowed_boxes_equal_the_whole_sequence(boxes: object) -> None:
     """Windows of 30 frames with 20 of context, the process noise the whole run chose: every
     centre within 0.1 of its sd of the whole-sequence smoother's."""
     whole = reconstruct(boxes, "ukf")
-    p = whole.info["params"]
+    p = whole.info.params
     fixed = {k: p[k] for k in ("accel_sd", "position_sd", "shape_sd")}
     part, qa = reconstruct_windowed(boxes, "ukf", Plan(30, overlap=20), **fixed)
     np.testing.assert_array_equal(part.frame, whole.frame)
     np.testing.assert_array_equal(part.track_id, whole.track_id)
     z = np.abs(part.center_world - whole.center_world) / whole.center_sd
     assert z.max() < 0.1, z.max()
-    assert part.info["windows"]["count"] == 4
-    assert part.info["windows"]["process_noise"]["accel_sd"] == pytest.approx(p["accel_sd"])
+    assert part.info.windows["count"] == 4
+    assert part.info.windows["process_noise"]["accel_sd"] == pytest.approx(p["accel_sd"])
 
 
 def test_a_gap_longer_than_a_window_runs(boxes: object) -> None:
@@ -131,10 +131,10 @@ def test_a_gap_longer_than_a_window_runs(boxes: object) -> None:
     gap = (scene.obs.frame > frames[20]) & (scene.obs.frame < frames[60])  # type: ignore[attr-defined]
     holed = dataclasses.replace(scene, obs=scene.obs.select(~gap), truth=None)  # type: ignore[call-overload]
     whole = reconstruct(holed, "ukf")
-    p = whole.info["params"]
+    p = whole.info.params
     part, _ = reconstruct_windowed(holed, "ukf", Plan(8, overlap=5),
                                    **{k: p[k] for k in ("accel_sd", "position_sd", "shape_sd")})
-    assert part.info["windows"]["count"] < len(plan_windows(frames, 8, 5))
+    assert part.info.windows["count"] < len(plan_windows(frames, 8, 5))
     np.testing.assert_array_equal(part.frame, whole.frame)
     np.testing.assert_array_equal(part.track_id, whole.track_id)
 
@@ -179,7 +179,7 @@ def test_dense_rows_across_a_gap_longer_than_a_window(boxes: object, who: str) -
         gap &= obs.track_id == ids[np.argmax(n)]
     holed = dataclasses.replace(scene, obs=obs.select(~gap), truth=None)  # type: ignore[call-overload]
     whole = reconstruct(holed, "ukf", every_frame=0)
-    p = whole.info["params"]
+    p = whole.info.params
     part, _ = reconstruct_windowed(holed, "ukf", Plan(8, overlap=20), every_frame=0,
                                    **{k: p[k] for k in ("accel_sd", "position_sd", "shape_sd")})
     np.testing.assert_array_equal(part.frame, whole.frame)
@@ -202,11 +202,11 @@ def test_windowed_skeletons_near_the_whole_sequence(tmp_path: Path) -> None:
     write_skeleton_scene(sk, tmp_path / "sk", "native")
     scene = load_scene(tmp_path / "sk")
     whole = reconstruct(scene, "ukf")
-    p = whole.info["params"]
+    p = whole.info.params
     fixed = {k: p[k] for k in ("accel_sd", "shape_sd", "joint_accel_sd")}
     part, _ = reconstruct_windowed(scene, "ukf", Plan(30, overlap=30), **fixed)
     np.testing.assert_array_equal(part.frame, whole.frame)
-    bones = [b["per_person"] for b in (whole.info["bones"], part.info["bones"])]
+    bones = [b["per_person"] for b in (whole.info.bones, part.info.bones)]
     assert set(bones[1]) == set(bones[0])
     for person, got in bones[1].items():
         for bone, v in got.items():
@@ -361,7 +361,7 @@ def test_process_noise_is_what_the_estimate_chooses(boxes: object) -> None:
     the same scene runs with; the progress line's time left follows the pace of the parts."""
     est = make_estimator("ukf")
     found = process_noise_prepared(boxes, est)[0]  # type: ignore[arg-type]
-    params = reconstruct(boxes, "ukf").info["params"]  # type: ignore[arg-type]
+    params = reconstruct(boxes, "ukf").info.params  # type: ignore[arg-type]
     assert found is not None and {"accel_sd", "shape_sd"} <= set(found)
     for k, v in found.items():
         assert v == pytest.approx(params[k], rel=1e-12), k

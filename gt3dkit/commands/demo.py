@@ -40,7 +40,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         if scene.truth is not None:
             mot.append((name, tracking_scores(tracks, scene.truth, scene.rig.up)))
             rows.append((name, box_errors(tracks, scene.truth, scene.rig.up, mot=mot[-1][1])))
-        print(f"  {name}: {len(tracks)} rows in {tracks.info['seconds']:.2f} s -> {out}/tracks.csv")
+        print(f"  {name}: {len(tracks)} rows in {tracks.info.seconds:.2f} s -> {out}/tracks.csv")
     print("\nErrors against the dataset's own positions (positionID grid, 2.5 cm cells):")
     print(error_table(rows))
     p = PAPER["multiviewx"]
@@ -65,7 +65,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
             rows.append((f"ukf {noise:g}px, {label}", score_tracks(tracks, truth, j),
                          mpjpe_by_id(tracks, truth, j)[0]))
         print(f"  {noise:g} px noise: {len(tracks)} poses from {len(scene.rig.cameras)} HD cameras "
-              f"in {tracks.info['seconds']:.1f} s")
+              f"in {tracks.info.seconds:.1f} s")
     print(pose_table(rows))
     lo, hi = PAPER["panoptic"]["MPJPE_mm"]
     print(f"\nPaper (Ma et al., UKF) on CMU Panoptic: MPJPE {lo}-{hi} mm")

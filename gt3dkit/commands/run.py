@@ -88,13 +88,13 @@ def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | 
     kinds = " + ".join(k for k, v in ((f"boxes: {box_model_note(scene)}", scene.obs.has_box.any()),
                                       (f"{scene.skeleton} keypoints", scene.obs.n_joints > 0)) if v)
     fps = f"{scene.fps:g} fps" + (" (assumed)" if scene.fps_assumed else "")
-    rob = info.get("robust", {})
+    rob = info.robust or {}
     flagged = (f", {rob['rejected']} measurements rejected and {rob['downweighted']} "
                f"down-weighted (downweighted.csv)" if rob.get("enabled") else "")
-    qa = info.get("qa", {}).get("anomalies", {})
+    qa = (info.qa or {}).get("anomalies", {})
     flagged += (", anomalies: " + ", ".join(f"{v} {k}" for k, v in qa.items()) + " (anomalies.csv)"
                 if qa else ", no anomalies")
-    win = info.get("windows")
+    win = info.windows
     if win:
         about = "about " if win.get("cut") == "equal object-frames" else ""
         flagged += (f", in {win['count']} windows of {about}{win['frames']} frames with "
@@ -102,7 +102,7 @@ def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | 
                     + (f" ({win['why']}; --window FRAMES to choose)" if win.get("why") else ""))
     print(f"{scene.layout}: {len(scene.obs)} annotation rows ({kinds}), {len(scene.rig.cameras)} "
           f"cameras, {fps} -> {len(tracks)} object-frames of {len(set(tracks.track_id.tolist()))} "
-          f"objects ({args.estimator}, {info.get('seconds', 0):.2f} s{flagged}) written to "
+          f"objects ({args.estimator}, {info.seconds:.2f} s{flagged}) written to "
           f"{args.out}")
     report_truth(scene, tracks, args.estimator)
     return 0

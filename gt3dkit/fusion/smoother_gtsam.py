@@ -69,7 +69,7 @@ from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.geom.boxkernel import BoxCameras
 from gt3dkit.geom.camera import apply_K
 from gt3dkit.geom.triangulate import normalized_points
-from gt3dkit.types import F64, JsonDict, Scene, TrackSet
+from gt3dkit.types import F64, JsonDict, RunInfo, Scene, TrackSet
 
 if TYPE_CHECKING:
     import gtsam
@@ -150,20 +150,21 @@ class GTSAMSmoother:
         stats = {"iterations": sum(r.iterations for r in results),
                  "final_error": sum((r.final_error for r in results), 0.0),
                  "factors": sum(r.factors for r in results)}
-        info = {"estimator": self.name,
-                "params": {**asdict(cfg),
-                           "sigma_px": pre.info["boxes"]["sigma_px"] if use_box else None,
-                           "sigma_px_core": pre.info["boxes"]["sigma_px_core"] if use_box else None,
-                           "kpt_sigma_px": pre.info.get("keypoints", {}).get("sigma_px"),
-                           **tuned.as_dict(), "fps": scene.fps},
-                "process_noise_source": tuned.source,
-                "process_noise_likelihood": noise.curves, "position_sd": noise.position_sd,
-                "motion_loss": f"Huber k={cfg.huber_k}" if cfg.robust_motion else "Gaussian",
-                "process_noise_moment_estimate": noise.tuned.as_dict(),
-                "process_noise_discrepancy": checks,
-                "preparation": pre.info,
-                "optimizer": "Gauss-Newton, line search (GTSAM), one graph per object", **stats,
-                "object_frames": len(pre.rows), "seconds": time.perf_counter() - t0}
+        params: JsonDict = {**asdict(cfg),
+                            "sigma_px": pre.info["boxes"]["sigma_px"] if use_box else None,
+                            "sigma_px_core": pre.info["boxes"]["sigma_px_core"] if use_box else None,
+                            "kpt_sigma_px": pre.info.get("keypoints", {}).get("sigma_px"),
+                            **tuned.as_dict(), "fps": scene.fps}
+        details: JsonDict = {
+            "process_noise_source": tuned.source,
+            "process_noise_likelihood": noise.curves, "position_sd": noise.position_sd,
+            "motion_loss": f"Huber k={cfg.huber_k}" if cfg.robust_motion else "Gaussian",
+            "process_noise_moment_estimate": noise.tuned.as_dict(),
+            "process_noise_discrepancy": checks,
+            "preparation": pre.info,
+            "optimizer": "Gauss-Newton, line search (GTSAM), one graph per object", **stats}
+        info = RunInfo(self.name, params, time.perf_counter() - t0, object_frames=len(pre.rows),
+                       details=details)
         rows = pre.rows
         return TrackSet(frame=rows.frames[rows.row_t], track_id=rows.obj_ids[rows.row_o],
                         center_world=centre, semi_axes=semi, center_sd=c_sd, n_views=rows.n_views,

@@ -7,7 +7,7 @@
   its first-order covariance.
 
 Object-frames seen by fewer than two cameras get no row; their number is in
-``info["skipped_lt2_views"]``. Keypoint-only objects get the ellipsoid around their
+``info.skipped_lt2_views``. Keypoint-only objects get the ellipsoid around their
 joints, as the UKF does.
 """
 
@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gt3dkit.fusion.prepare import Prepared, axis_sd, ellipsoid_around, largest_sd, prepare
-from gt3dkit.types import Scene, TrackSet
+from gt3dkit.types import JsonDict, RunInfo, Scene, TrackSet
 
 
 @dataclass(frozen=True)
@@ -45,7 +45,7 @@ class Triangulation:
         pre = pre or self.prepare(scene)
         rows, cams, fit = pre.rows, pre.cams, pre.fit
         R = len(rows)
-        info: dict[str, object] = {"estimator": self.name, "params": dict(self.config.__dict__)}
+        details: JsonDict = {}
         keep = np.zeros(R, bool)
         centre = np.full((R, 3), np.nan)
         semi = np.full((R, 3), np.nan)
@@ -58,7 +58,7 @@ class Triangulation:
             keep |= ok
             centre[ok], semi[ok] = fit.center_world[ok], np.exp(fit.log_axes[ok])
             sd[ok] = axis_sd(fit.cov[ok][:, :3, :3])
-            info["sigma_px"] = pre.info["boxes"]["sigma_px"]
+            details["sigma_px"] = pre.info["boxes"]["sigma_px"]
         if pre.kpt0 is not None and pre.kpt0_cov is not None:
             kpt = pre.kpt0
             kpt_sd = largest_sd(pre.kpt0_cov)
@@ -68,11 +68,11 @@ class Triangulation:
             c2, s2, d2 = ellipsoid_around(kpt, kpt_sd, cams.world_from_body)
             centre[nobox], semi[nobox], sd[nobox] = c2[nobox], s2[nobox], d2[nobox]
             keep |= has
-            info["kpt_sigma_px"] = pre.info["keypoints"]["sigma_px"]
-        info["preparation"] = pre.info
+            details["kpt_sigma_px"] = pre.info["keypoints"]["sigma_px"]
+        details["preparation"] = pre.info
         k = np.flatnonzero(keep)
-        info.update({"skipped_lt2_views": int(R - k.size), "object_frames": int(k.size),
-                     "seconds": time.perf_counter() - t0})
+        info = RunInfo(self.name, dict(self.config.__dict__), time.perf_counter() - t0,
+                       object_frames=int(k.size), skipped_lt2_views=int(R - k.size), details=details)
         return TrackSet(frame=rows.frames[rows.row_t[k]], track_id=rows.obj_ids[rows.row_o[k]],
                         center_world=centre[k], semi_axes=semi[k], center_sd=sd[k],
                         n_views=rows.n_views[k], kpt_world=kpt[k], kpt_sd=kpt_sd[k], info=info)

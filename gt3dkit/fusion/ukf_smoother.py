@@ -77,7 +77,7 @@ from gt3dkit.fusion.prepare import (
 from gt3dkit.fusion.rows import Rows
 from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.skeletons import Skeleton
-from gt3dkit.types import F64, Downweighted, JsonDict, Scene, TrackSet
+from gt3dkit.types import F64, Downweighted, JsonDict, RunInfo, Scene, TrackSet
 
 
 class UKFSmoother:
@@ -175,8 +175,16 @@ class UKFSmoother:
             if not pre.use_box:
                 centre, semi, sd = ellipsoid_around(kpt, kpt_sd, cams.world_from_body)
         down = downweighted_of(model, run)
-        info: JsonDict = {
-            "estimator": self.name,
+        robust = {"enabled": cfg.robust, "downweighted": int(np.sum(down.weight > 0)),
+                  "rejected": int(np.sum(down.weight == 0)),
+                  "rule": "leave-one-out score against prior + other views; weight 1 "
+                          f"below the chi-square tail probability {cfg.huber_p:g}, 0 "
+                          f"beyond {cfg.reject_p:g}"}
+        params: JsonDict = {**asdict(cfg), "sigma_px": pre.info["boxes"]["sigma_px"] if pre.use_box else None,
+                            "sigma_px_core": pre.info["boxes"]["sigma_px_core"] if pre.use_box else None,
+                            "kpt_sigma_px": pre.info.get("keypoints", {}).get("sigma_px"),
+                            "fps": scene.fps}
+        details: JsonDict = {
             **run.summary(),
             "covariance_inflation": inflation,
             "single_view_rows_widened": widened,
@@ -194,22 +202,13 @@ class UKFSmoother:
                                                                   or not pre.use_kpt)
                             else "max likelihood of the forward pass: log-spaced scan, then "
                                  "bisection and a parabola on log scale (curve in noise_search)")},
-            "params": {**asdict(cfg), "sigma_px": pre.info["boxes"]["sigma_px"] if pre.use_box else None,
-                       "sigma_px_core": pre.info["boxes"]["sigma_px_core"] if pre.use_box else None,
-                       "kpt_sigma_px": pre.info.get("keypoints", {}).get("sigma_px"),
-                       "fps": scene.fps},
             "measurements": {"boxes": pre.use_box, "keypoints": pre.use_kpt,
                              "skeleton": pre.skeleton.name if pre.use_kpt and pre.skeleton
                              else None},
             "preparation": pre.info,
-            "robust": {"enabled": cfg.robust, "downweighted": int(np.sum(down.weight > 0)),
-                       "rejected": int(np.sum(down.weight == 0)),
-                       "rule": "leave-one-out score against prior + other views; weight 1 "
-                               f"below the chi-square tail probability {cfg.huber_p:g}, 0 "
-                               f"beyond {cfg.reject_p:g}"},
-            **({"bones": bone_info} if bone_info else {}),
-            "seconds": time.perf_counter() - t0,
         }
+        info = RunInfo(self.name, params, time.perf_counter() - t0, robust=robust,
+                       bones=bone_info or None, details=details)
         return TrackSet(
             frame=rows.frames[rows.row_t], track_id=rows.obj_ids[rows.row_o],
             center_world=centre, semi_axes=semi, center_sd=sd, n_views=rows.n_views,

@@ -29,7 +29,7 @@ label.
 * **MOTChallenge**: ``frame,id,left,top,width,height,conf,x,y,z`` without a header, ``conf``
   the confidence (1 for a label; at most 0.9999 for a drawn shape, which is how the reader
   tells them apart beside ``projection.json``), ``x,y,z`` the estimate's centre (m; the 3D
-  columns of the format).
+  columns of the format; ``-1,-1,-1`` for labels without one).
 * **COCO**: per camera ``images`` (``frame_id``), ``annotations`` (``bbox``, ``area``,
   ``track_id``, ``score`` = the confidence, ``attributes`` with the rest, keypoints with
   visibility 2 / 1 (occluded) / 0 for keypoint runs), ``categories`` (``person``, its joint
@@ -101,6 +101,18 @@ class Shapes:
                       tuple(self.anomalies[i] for i in idx), self.center_world[idx], self.step,
                       None if self.piece_id is None else self.piece_id[idx],
                       None if self.box_drawn is None else self.box_drawn[idx])
+
+    @classmethod
+    def labelled(cls, frame: I64, cam: I64, track: I64, box_xyxy_px: F64, kpt_uv_px: F64,
+                 step: int = 1) -> Shapes:
+        """``S`` labels as an annotation tool holds them (``source`` annotated, confidence 1,
+        not occluded, no estimate: ``center_world`` NaN), e.g. a simulated scene's: ``frame, cam,
+        track (S,)``, ``box_xyxy_px (S, 4)``, ``kpt_uv_px (S, J, 2)``."""
+        n = len(frame)
+        zeros = np.zeros(n, np.int64)
+        return cls(np.asarray(frame, np.int64), np.asarray(cam, np.int64), np.asarray(track, np.int64),
+                   zeros, np.asarray(box_xyxy_px, np.float64), np.asarray(kpt_uv_px, np.float64), zeros,
+                   np.zeros(n, bool), np.zeros(n), np.ones(n), ("",) * n, np.full((n, 3), np.nan), step)
 
     def attributes(self, k: int, joints: tuple[str, ...] = (), with_box: bool = True) -> dict[str, str]:
         """The attributes of shape ``k`` as the tools' text; ``drawn_digest`` of a drawn shape
@@ -237,9 +249,9 @@ def write_mot(shapes: Shapes, rig: Rig, folder: Path) -> list[Path]:
         for k in idx:
             b, x = shapes.box_xyxy_px[k], shapes.center_world[k]
             conf = "1" if shapes.source[k] == 0 else f"{min(shapes.confidence[k], 0.9999):.4f}"
+            xyz = f"{x[0]:.4f},{x[1]:.4f},{x[2]:.4f}" if np.isfinite(x).all() else "-1,-1,-1"
             lines.append(f"{int(shapes.frame[k])},{int(mot_id[k])},{_num(b[0])},{_num(b[1])},"
-                         f"{_num(b[2] - b[0])},{_num(b[3] - b[1])},{conf},"
-                         f"{x[0]:.4f},{x[1]:.4f},{x[2]:.4f}")
+                         f"{_num(b[2] - b[0])},{_num(b[3] - b[1])},{conf},{xyz}")
         path = folder / f"{cam.name}.txt"
         path.write_text("".join(f"{s}\n" for s in lines))
         out.append(path)
@@ -275,8 +287,9 @@ def piece_track_ids(track_id: I64, segment: I64, pieces: tuple[tuple[int, int, i
 
 
 def write_coco(shapes: Shapes, rig: Rig, joints: tuple[str, ...], bones: tuple[tuple[int, int], ...],
-               folder: Path) -> list[Path]:
-    """``folder/<camera>.json`` per camera (COCO; see the module doc)."""
+               folder: Path, track_ids: bool = True) -> list[Path]:
+    """``folder/<camera>.json`` per camera (COCO; see the module doc); without ``track_id``s when
+    not ``track_ids`` (plain COCO detections, as a detector's export has them)."""
     folder.mkdir(parents=True, exist_ok=True)
     tid = piece_ids(shapes)
     out = []
@@ -296,6 +309,10 @@ def write_coco(shapes: Shapes, rig: Rig, joints: tuple[str, ...], bones: tuple[t
                 "area": float((b[2] - b[0]) * (b[3] - b[1])), "iscrowd": 0,
                 "track_id": int(tid[k]), "score": round(float(shapes.confidence[k]), 4),
                 "attributes": {**shapes.attributes(k, joints), "occluded": bool(shapes.occluded[k])}}
+            if not track_ids:  # no identity anywhere in the file
+                del ann["track_id"]
+                for key in ("gt3d_id", "segment"):
+                    del ann["attributes"][key]  # type: ignore[attr-defined]
             if J:
                 if shapes.source[k] != 0 or (shapes.box_drawn is not None and shapes.box_drawn[k]):
                     # COCO wants a bbox: the estimate's, which a reader does not take for a label

@@ -17,7 +17,7 @@ from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.parse import iter_csv_rows, parse_float, parse_frame, parse_int, parse_metres
 from gt3dkit.rig import Rig
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import JsonDict, JsonValue, Scene, TrackSet
+from gt3dkit.types import JsonDict, JsonValue, RunInfo, Scene, TrackSet
 from gt3dkit.version import __version__
 
 TRACK_COLUMNS = ("frame", "id", "x", "y", "z", "a", "b", "c", "sx", "sy", "sz")
@@ -82,7 +82,7 @@ def meta_of(scene: Scene, tracks: TrackSet) -> JsonDict:
                 "joints": list(SKELETONS[scene.skeleton].joints) if scene.skeleton else None}
                if tracks.kpt_world.shape[1] else {}),
         },
-        "estimator": _jsonable(tracks.info),
+        "estimator": _jsonable(tracks.info.as_json()),
         "input": {"root": scene.root, "layout": scene.layout, "fps": scene.fps,
                   "fps_assumed": scene.fps_assumed or None, "warnings": list(scene.all_warnings),
                   "calibration_notes": scene.calibration_notes,
@@ -100,7 +100,7 @@ def meta_of(scene: Scene, tracks: TrackSet) -> JsonDict:
 
 
 def write_tracks_csv(path: Path, tracks: TrackSet) -> None:
-    """One row per (frame, id); a dense run (``info["every_frame"]``, rows where no camera saw
+    """One row per (frame, id); a dense run (``info.every_frame``, rows where no camera saw
     the object included) adds the column ``n_views`` (0: interpolated)."""
     with open(path, "w", newline="") as f:
         csv.writer(f).writerow(_tracks_header(tracks))
@@ -108,7 +108,7 @@ def write_tracks_csv(path: Path, tracks: TrackSet) -> None:
 
 
 def _dense(tracks: TrackSet) -> bool:
-    return bool(tracks.info.get("every_frame"))
+    return bool(tracks.info.every_frame)
 
 
 def _tracks_header(tracks: TrackSet) -> tuple[str, ...]:
@@ -231,7 +231,7 @@ def check_tracks(tracks: TrackSet) -> None:
     if bad.any():
         r = int(np.flatnonzero(bad)[0])
         raise FloatingPointError(
-            f"the {tracks.info.get('estimator', 'estimator')} result has non-finite values in "
+            f"the {tracks.info.estimator or 'estimator'} result has non-finite values in "
             f"{int(bad.sum())} rows (first: frame {int(tracks.frame[r])}, object "
             f"{int(tracks.track_id[r])}); nothing was written")
 
@@ -263,8 +263,8 @@ def write_result_files(d: Path, scene: Scene, tracks: TrackSet, extra_meta: Json
         meta.update(_jsonable(extra_meta))
     if tracks.downweighted is not None:
         write_downweighted_csv(d / "downweighted.csv", scene, tracks)
-    if tracks.info.get("segments"):
-        write_segments_csv(d / "segments.csv", tracks.info["segments"])
+    if tracks.info.segments:
+        write_segments_csv(d / "segments.csv", tracks.info.segments)
     (d / "meta.json").write_text(json.dumps(_jsonable(meta), indent=2, allow_nan=False,
                                             default=_jsonable))
 
@@ -344,7 +344,8 @@ def read_tracks_csv(path: Path) -> TrackSet:
     return TrackSet(frame=k[:, 0], track_id=k[:, 1], center_world=a[:, 0:3], semi_axes=a[:, 3:6],
                     center_sd=a[:, 6:9],
                     n_views=np.array(views, dtype=np.int64) if views else np.full(n, -1, dtype=np.int64),
-                    kpt_world=np.zeros((n, 0, 3)), kpt_sd=np.zeros((n, 0)), info={"source": str(path)})
+                    kpt_world=np.zeros((n, 0, 3)), kpt_sd=np.zeros((n, 0)),
+                    info=RunInfo(details={"source": str(path)}))
 
 
 def _header(path: Path) -> list[str]:

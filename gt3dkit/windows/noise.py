@@ -122,7 +122,7 @@ def sample_noise(sample: Scene, estimator: str, config: Options, step_s: float
         found, pre = process_noise_prepared(sample, est)  # the search alone, where the estimator has one
         if found is None:
             tracks, _ = estimate_checked(sample, est, qa=False)
-            found = {k: v for k, v in tracks.info.get("params", {}).items() if v is not None}
+            found = {k: v for k, v in tracks.info.params.items() if v is not None}
     fields = {f.name for f in dataclasses.fields(est.config)} if hasattr(est, "config") else set()
     chosen = {k: float(found[k]) for k in PROCESS_NOISE if k in fields and found.get(k) is not None}
     noise = {**chosen, **given}

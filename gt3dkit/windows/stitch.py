@@ -108,24 +108,21 @@ def stitch(parts: list[tuple[TrackSet, list[tuple[Any, ...]]]], windows: list[Wi
     ds = [t.downweighted for t in ts if t.downweighted is not None]
     down = Downweighted(**{f.name: np.concatenate([getattr(d, f.name) for d in ds])
                            for f in dataclasses.fields(Downweighted)}) if ds else None
-    info = dict(ts[0].info)
-    info["windows"] = {
-        "count": len(windows), "frames": plan.size, "overlap_frames": overlap, "why": plan.why,
-        "cut": "equal object-frames" if plan.why else "equal frames",
-        "windows": [dataclasses.asdict(w) for w in windows], "process_noise": noise,
-        "note": "each window run on its frames plus context, its own frames kept; the process noise "
-                "chosen once (gt3dkit.windows)"}
-    info["seconds"] = float(sum(t.info.get("seconds", 0.0) for t in ts))
-    info["object_frames"] = int(len(order))
-    for key in ("robust",):
-        if key in info and isinstance(info[key], dict) and down is not None:
-            info[key] = {**info[key], "downweighted": int(np.sum(down.weight > 0)),
-                         "rejected": int(np.sum(down.weight == 0))}
-    segs = [s for t in ts for s in t.info.get("segments", [])]
-    if segs:
-        info["segments"] = segs
+    first = ts[0].info
+    robust = first.robust
+    if robust is not None and down is not None:
+        robust = {**robust, "downweighted": int(np.sum(down.weight > 0)),
+                  "rejected": int(np.sum(down.weight == 0))}
     rows = [r for p in parts for r in p[1]]  # each window's sorted, the windows in frame order
     qa = Anomalies(rows)
-    info["qa"] = {"anomalies": qa.counts(), "file": "anomalies.csv"}
+    info = dataclasses.replace(
+        first, seconds=float(sum(t.info.seconds for t in ts)), object_frames=int(len(order)),
+        robust=robust, segments=[s for t in ts for s in t.info.segments],
+        qa={"anomalies": qa.counts(), "file": "anomalies.csv"},
+        windows={"count": len(windows), "frames": plan.size, "overlap_frames": overlap, "why": plan.why,
+                 "cut": "equal object-frames" if plan.why else "equal frames",
+                 "windows": [dataclasses.asdict(w) for w in windows], "process_noise": noise,
+                 "note": "each window run on its frames plus context, its own frames kept; the process "
+                         "noise chosen once (gt3dkit.windows)"})
     tracks = TrackSet(**{k: v[order] for k, v in cat.items()}, info=info, downweighted=down)
     return tracks, qa

@@ -289,8 +289,8 @@ def test_linearised_search_finds_the_full_search_values(tmp_path: Path) -> None:
     for lin in (True, False):
         est = us.UKFSmoother(replace(us.UKFConfig(), search_linearised=lin))
         tr = est.estimate(scene)
-        found[lin] = tr.info["params"]
-        assert ("linearisation" in tr.info["noise_search"]["provisional"]["use"]) == lin
+        found[lin] = tr.info.params
+        assert ("linearisation" in tr.info.details["noise_search"]["provisional"]["use"]) == lin
     for k in ("accel_sd", "shape_sd"):
         assert found[True][k] == pytest.approx(found[False][k], rel=0.15), k
 

@@ -214,7 +214,7 @@ def test_every_far_off_point_is_reported(clean_and_bad) -> None:
     far = [(int(r["frame"]), r["camera"], int(r["id"]), int(r["joint"])) for r in inj
            if r["kind"] in ("keypoint_outlier", "glitch")]
     assert far and all(k in low for k in far)
-    assert tb.info["robust"]["rejected"] >= len(far)
+    assert tb.info.robust["rejected"] >= len(far)
 
 
 def test_downweighted_csv_is_written(tmp_path, clean_and_bad) -> None:
@@ -269,7 +269,7 @@ def test_no_divergence_at_extreme_process_noise(tmp_path, accel) -> None:
     tr = reconstruct(sc, accel_sd=accel)
     it, ig = match_rows(tr, sc.truth)
     e = np.linalg.norm(tr.center_world[it] - sc.truth.center_world[ig], axis=1)
-    assert e.max() < 0.3 and tr.info["pd_repairs"] == 0
+    assert e.max() < 0.3 and tr.info.details["pd_repairs"] == 0
 
 
 def test_single_view_track_reports_an_honest_spread(tmp_path) -> None:
@@ -299,7 +299,7 @@ def test_confidence_scales_the_variance(tmp_path) -> None:
     sc = load_scene(root)
     assert sc.obs.kpt_conf is not None and np.nanmin(sc.obs.kpt_conf) > 0
     tr = reconstruct(sc)
-    assert tr.info["preparation"]["keypoints"]["confidence"].startswith("given")
+    assert tr.info.details["preparation"]["keypoints"]["confidence"].startswith("given")
 
 
 def _write_kpt(root: Path, mutate) -> int:

@@ -154,7 +154,7 @@ def test_a_huge_sd_reads_back(tmp_path: Path) -> None:
     n = 2
     tr = TrackSet(frame=np.array([0, 1]), track_id=np.array([3, 3]), center_world=np.ones((n, 3)),
                   semi_axes=np.full((n, 3), 0.3), center_sd=np.array([[0.01] * 3, [2e6, 3e7, 0.5]]),
-                  n_views=np.array([2, 1]), kpt_world=np.zeros((n, 0, 3)), kpt_sd=np.zeros((n, 0)), info={})
+                  n_views=np.array([2, 1]), kpt_world=np.zeros((n, 0, 3)), kpt_sd=np.zeros((n, 0)))
     write_tracks_csv(tmp_path / "tracks.csv", tr)
     back = read_tracks_csv(tmp_path / "tracks.csv")
     assert np.allclose(back.center_sd, tr.center_sd, rtol=1e-6)

@@ -10,7 +10,8 @@ import numpy as np
 
 from gt3dkit.arrays import unique_rows
 from gt3dkit.errors import InputError
-from gt3dkit.types import F64, Observations, Origins
+from gt3dkit.io.labels import Shapes
+from gt3dkit.types import F64, Observations, Origins, SimScene
 
 
 def check_box(where: str, box: list[float]) -> None:
@@ -299,3 +300,11 @@ def local_ids(people: np.ndarray, rng: np.random.Generator | None) -> dict[int, 
     people's own ids (None), as separate per-camera annotation tasks number them."""
     ids = rng.permutation(len(people)) + 1 if rng is not None else people
     return dict(zip(people.tolist(), ids.tolist(), strict=True))
+
+
+def sim_box_labels(sim: SimScene, ids: list[dict[int, int]]) -> Shapes:
+    """A simulated box scene's boxes as label shapes: every (person, camera) where it is seen,
+    under the camera's id of the person (``ids``, :func:`camera_ids`)."""
+    k, c = np.nonzero(np.isfinite(sim.boxes).all(axis=2))
+    track = np.array([ids[int(cc)][int(sim.truth_id[kk])] for kk, cc in zip(k, c, strict=True)], np.int64)
+    return Shapes.labelled(sim.truth_frame[k], c, track, sim.boxes[k, c], np.zeros((len(k), 0, 2)))

@@ -30,8 +30,9 @@ import numpy as np
 from gt3dkit.calib.formats import detect_format, read_calibration
 from gt3dkit.calib.formats.native import load_cameras
 from gt3dkit.errors import InputError
+from gt3dkit.io import labels
 from gt3dkit.io.datasets.checks import check_pixels
-from gt3dkit.io.datasets.common import RowBuilder, camera_ids
+from gt3dkit.io.datasets.common import RowBuilder, camera_ids, sim_box_labels
 from gt3dkit.io.datasets.native import write_cameras
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
 from gt3dkit.parse import iter_csv_rows, parse_frame, parse_int, sha256
@@ -150,16 +151,8 @@ def load(root: Path, calib: Path | str | None = None, fps: float | None = None) 
 
 def write(sim: SimScene, tmp: Path, id_seed: int | None) -> None:
     """A simulated scene as ``cameras.json`` + ``mot/<camera>.txt`` in ``tmp``, each camera's ids
-    a random permutation of the people (``id_seed``; None keeps the global ids), read by
-    :func:`load`."""
+    a random permutation of the people (``id_seed``; None keeps the global ids), written by
+    :func:`gt3dkit.io.labels.write_mot` (what ``gt3d project`` writes), read by :func:`load`."""
     write_cameras(sim.rig, sim.fps, tmp)
-    (tmp / "mot").mkdir()
     ids = camera_ids(sim.truth_id, len(sim.rig.cameras), id_seed)
-    for c, (cam, local) in enumerate(zip(sim.rig.cameras, ids, strict=True)):
-        lines = []
-        for i in range(len(sim.truth_frame)):
-            b = sim.boxes[i, c]
-            if np.all(np.isfinite(b)):
-                lines.append(f"{int(sim.truth_frame[i])},{local[int(sim.truth_id[i])]},{b[0]:g},{b[1]:g},"
-                             f"{b[2] - b[0]:g},{b[3] - b[1]:g},1,-1,-1,-1")
-        (tmp / "mot" / f"{cam.name}.txt").write_text("\n".join(lines) + ("\n" if lines else ""))
+    labels.write_mot(sim_box_labels(sim, ids), sim.rig, tmp / "mot")

@@ -31,22 +31,21 @@ matching and frame rate as for :mod:`gt3dkit.io.datasets.mot`.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any
 from xml.etree.ElementTree import Element
-from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
 from gt3dkit.errors import InputError
+from gt3dkit.io import labels
 from gt3dkit.io.datasets.checks import check_pixels
-from gt3dkit.io.datasets.common import RowBuilder, camera_ids, local_ids
+from gt3dkit.io.datasets.common import RowBuilder, camera_ids, sim_box_labels
 from gt3dkit.io.datasets.mot import DEFAULT_FPS, calibration_beside, match_cameras, natural_key
 from gt3dkit.io.datasets.native import read_kpt_truth, write_cameras, write_kpt_truth
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
-from gt3dkit.io.labels import shape_digest
+from gt3dkit.io.labels import Shapes, shape_digest
 from gt3dkit.parse import load_json, parse_frame, parse_int, sha256
 from gt3dkit.skeletons import SKELETONS, _norm_joint, skeleton_for_names
 from gt3dkit.types import Scene, SimScene, SkeletonScene
@@ -279,62 +278,25 @@ def load(root: Path, kind: str, skeleton: str | None = None, calib: Path | str |
 
 def write_cvat(sim: SimScene, tmp: Path, id_seed: int | None) -> None:
     """``cvat/<camera>.xml``: one "CVAT for video 1.1" task per camera, one track per person
-    seen there (its own id), a box in every frame it is seen."""
+    seen there (its own id), a box in every frame it is seen, written by
+    :func:`gt3dkit.io.labels.write_cvat` (what ``gt3d project`` writes)."""
     write_cameras(sim.rig, sim.fps, tmp)
-    (tmp / "cvat").mkdir()
-    people = np.unique(sim.truth_id)
     ids = camera_ids(sim.truth_id, len(sim.rig.cameras), id_seed)
-    for c, (cam, local) in enumerate(zip(sim.rig.cameras, ids, strict=True)):
-        lines = ['<?xml version="1.0" encoding="utf-8"?>', "<annotations>", "  <version>1.1</version>",
-                 f"  <meta><task><name>{cam.name}</name><size>{len(sim.frames)}</size>"
-                 f"<mode>interpolation</mode><original_size><width>{cam.width}</width><height>{cam.height}</height></original_size>"
-                 "</task></meta>"]
-        for p in people:
-            m = np.flatnonzero((sim.truth_id == p) & np.isfinite(sim.boxes[:, c, 0]))
-            if not len(m):
-                continue
-            lines.append(f'  <track id="{local[int(p)]}" label={quoteattr("person")} source="manual">')
-            for k in m:
-                b = sim.boxes[k, c]
-                lines.append(f'    <box frame="{int(sim.truth_frame[k])}" outside="0" occluded="0" '
-                             f'keyframe="1" xtl="{b[0]:.2f}" ytl="{b[1]:.2f}" xbr="{b[2]:.2f}" '
-                             f'ybr="{b[3]:.2f}" z_order="0"></box>')
-            lines.append("  </track>")
-        lines.append("</annotations>")
-        (tmp / "cvat" / f"{cam.name}.xml").write_text("\n".join(lines) + "\n")
+    labels.write_cvat(sim_box_labels(sim, ids), sim.rig, (), tmp / "cvat")
 
 
 def write_coco(sim: SkeletonScene, tmp: Path, track_ids: bool = True, seed: int = 0) -> None:
     """A simulated skeleton scene as ``coco/<camera>.json`` in ``tmp`` (COCO keypoints per camera,
-    joint names in ``categories``; ``track_id`` numbered per camera when ``track_ids``, else
-    none) + ``cameras.json`` + ``truth_keypoints.csv``, read by :func:`load`."""
+    joint names in ``categories``, each ``bbox`` its joints' extent; ``track_id`` numbered per
+    camera when ``track_ids``, else none; :func:`gt3dkit.io.labels.write_coco`, what ``gt3d
+    project`` writes) + ``cameras.json`` + ``truth_keypoints.csv``, read by :func:`load`."""
     skel = SKELETONS[sim.skeleton]
-    rng = np.random.default_rng([seed, 3])
-
     write_cameras(sim.rig, sim.fps, tmp)
-    (tmp / "coco").mkdir()
-    people = np.unique(sim.truth_id)
-    for c, cam in enumerate(sim.rig.cameras):
-        local = local_ids(people, rng)
-        images = [{"id": int(k), "file_name": f"{cam.name}/frame_{int(f):06d}.jpg", "frame_id": int(f),
-                   "width": cam.width, "height": cam.height} for k, f in enumerate(sim.frames)]
-        img_of = {int(f): int(k) for k, f in enumerate(sim.frames)}
-        anns = []
-        for a in rng.permutation(len(sim.truth_frame)):
-            uv = sim.uv[a, c]
-            seen = np.isfinite(uv).all(axis=1)
-            if seen.sum() < 1:
-                continue
-            kp = np.column_stack([np.nan_to_num(uv), np.where(seen, 2, 0)]).ravel()
-            lo, hi = uv[seen].min(axis=0), uv[seen].max(axis=0)
-            ann = {"id": len(anns) + 1, "image_id": img_of[int(sim.truth_frame[a])], "category_id": 1,
-                   "keypoints": [round(float(v), 3) for v in kp], "num_keypoints": int(seen.sum()),
-                   "bbox": [round(float(v), 2) for v in (*lo, *(hi - lo))], "iscrowd": 0}
-            if track_ids:
-                ann["track_id"] = local[int(sim.truth_id[a])]
-            anns.append(ann)
-        coco = {"images": images, "annotations": anns,
-                "categories": [{"id": 1, "name": "person", "keypoints": list(skel.marker_names),
-                                "skeleton": [[int(a) + 1, int(b) + 1] for a, b in skel.bones]}]}
-        (tmp / "coco" / f"{cam.name}.json").write_text(json.dumps(coco))
+    ids = camera_ids(sim.truth_id, len(sim.rig.cameras), seed)
+    k, c = np.nonzero(np.isfinite(sim.uv).all(axis=3).any(axis=2))
+    uv = sim.uv[k, c]
+    box = np.c_[np.nanmin(uv, axis=1), np.nanmax(uv, axis=1)]
+    track = np.array([ids[int(cc)][int(sim.truth_id[kk])] for kk, cc in zip(k, c, strict=True)], np.int64)
+    shapes = Shapes.labelled(sim.truth_frame[k], c, track, box, uv)
+    labels.write_coco(shapes, sim.rig, tuple(skel.marker_names), tuple(skel.bones), tmp / "coco", track_ids)
     write_kpt_truth(sim, tmp / "truth_keypoints.csv")
