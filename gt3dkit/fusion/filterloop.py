@@ -70,12 +70,13 @@ def register(bundle: type, **steps: Callable[..., object]) -> None:
 def _step(name: str) -> Callable[..., object]:
     """Step ``name`` as the loop calls it (its arguments: the module doc's table): the kind's
     step for the bundle's class. In compiled code numba resolves it (:func:`_resolved`); called
-    from Python (a test, a debugger) it calls that step the same way."""
+    from Python (a test, a debugger) it runs that step's Python source (``py_func``: nothing
+    compiled for the call, and a debugger steps into it)."""
     def step(ctx: tuple, *args: object) -> object:
         impl = _STEPS.get((name, type(ctx)))
         if impl is None:
             raise TypeError(f"no kind registered for {type(ctx).__name__} (filterloop.register)")
-        return impl(ctx, *args)
+        return getattr(impl, "py_func", impl)(ctx, *args)
     step.__name__ = step.__qualname__ = name
     return step
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import F64, Scene, TrackSet
-from gt3dkit.viz.render3d import Drawing, View, render, unit_sphere
+from gt3dkit.viz.render3d import Drawing, View, render_all, unit_sphere
 
 GRID_COLOUR = (0.80, 0.80, 0.80)
 CAMERA_COLOUR = (0.15, 0.15, 0.15)
@@ -111,17 +111,25 @@ def _content_box(img: np.ndarray, margin: int = 24) -> tuple[int, int, int, int]
             min(int(u.max()) + margin, img.shape[1]), min(int(v.max()) + margin, img.shape[0]))
 
 
-def write_overview(scene: Scene, tracks: TrackSet, frame: int, path: Path,
-                   tracks_b: TrackSet | None = None, title: str = "", close_up: bool = False) -> None:
-    """Render the overview at ``frame`` into the PNG ``path``, cropped to what it shows
-    (:class:`RenderError` if open3d cannot render here)."""
+def write_overviews(scene: Scene, tracks: TrackSet, frame: int, pictures: list[tuple[Path, bool]],
+                    tracks_b: TrackSet | None = None, title: str = "") -> None:
+    """Render the overview at ``frame`` into each PNG path of ``pictures`` (with its
+    ``close_up``), cropped to what it shows, all in one open3d process (:class:`RenderError` if
+    open3d cannot render here)."""
+    drawn = [overview_drawing(scene, tracks, frame, tracks_b, close_up) for _, close_up in pictures]
+    imgs = render_all([(d, view) for d, view, _ in drawn])
+    for (path, _), (_, view, cams), img in zip(pictures, drawn, imgs, strict=True):
+        _captioned(img, view, cams, scene, tracks, frame, path, tracks_b, title)
+
+
+def _captioned(img: np.ndarray, view: View, cams: F64, scene: Scene, tracks: TrackSet, frame: int,
+               path: Path, tracks_b: TrackSet | None, title: str) -> None:
+    """The render ``img`` cropped, with the cameras' names, the ids and a caption, into ``path``."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    d, view, cams = overview_drawing(scene, tracks, frame, tracks_b, close_up)
-    img = render(d, view)
     u0, v0, u1, v1 = _content_box(img)
     u0, u1 = (0, view.width) if u1 - u0 < 900 else (u0, u1)  # room for the caption
     fig = plt.figure(figsize=((u1 - u0) / 100, (v1 - v0) / 100), dpi=100)

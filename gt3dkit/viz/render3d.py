@@ -135,30 +135,39 @@ def unit_sphere(n_lat: int = 12, n_lon: int = 24) -> tuple[F64, I64]:
 def render(drawing: Drawing, view: View, timeout_s: float = RENDER_TIMEOUT_S) -> np.ndarray:
     """(H, W, 3) uint8 picture of ``drawing`` seen through ``view``, on white, rendered by
     open3d in a child process; :class:`RenderError` when that fails."""
+    return render_all([(drawing, view)], timeout_s)[0]
+
+
+def render_all(jobs: list[tuple[Drawing, View]], timeout_s: float = RENDER_TIMEOUT_S) -> list[np.ndarray]:
+    """:func:`render` of several drawings in one child process (open3d's import and window,
+    ~1.5 s, paid once; ``timeout_s`` for each picture); :class:`RenderError` when it fails."""
     with tempfile.TemporaryDirectory(prefix="gt3d-render-") as tmp:
-        job, png = Path(tmp) / "job.npz", Path(tmp) / "out.png"
-        arrays: dict[str, np.ndarray] = {
-            "intrinsic": view.intrinsic, "extrinsic": view.extrinsic,
-            "size": np.array([view.width, view.height])}
-        for kind, items in (("line", drawing.lines), ("mesh", drawing.meshes)):
-            for i, (P, S, col) in enumerate(items):
-                arrays[f"{kind}{i}_p"], arrays[f"{kind}{i}_s"] = P, S
-                arrays[f"{kind}{i}_c"] = np.asarray(col, dtype=np.float64)
-        np.savez(job, **arrays)
+        argv = []
+        for n, (drawing, view) in enumerate(jobs):
+            job, png = Path(tmp) / f"job{n}.npz", Path(tmp) / f"out{n}.png"
+            arrays: dict[str, np.ndarray] = {
+                "intrinsic": view.intrinsic, "extrinsic": view.extrinsic,
+                "size": np.array([view.width, view.height])}
+            for kind, items in (("line", drawing.lines), ("mesh", drawing.meshes)):
+                for i, (P, S, col) in enumerate(items):
+                    arrays[f"{kind}{i}_p"], arrays[f"{kind}{i}_s"] = P, S
+                    arrays[f"{kind}{i}_c"] = np.asarray(col, dtype=np.float64)
+            np.savez(job, **arrays)
+            argv += [str(job), str(png)]
         env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore"}
         try:
-            p = subprocess.run([sys.executable, "-m", "gt3dkit.viz.render3d", str(job), str(png)],  # noqa: S603
-                               capture_output=True, text=True, timeout=timeout_s, env=env)
+            p = subprocess.run([sys.executable, "-m", "gt3dkit.viz.render3d", *argv],  # noqa: S603
+                               capture_output=True, text=True, timeout=timeout_s * len(jobs), env=env)
         except subprocess.TimeoutExpired:
-            raise RenderError(f"open3d did not finish within {timeout_s:g} s") from None
-        if p.returncode != 0 or not png.is_file():
+            raise RenderError(f"open3d did not finish within {timeout_s:g} s a picture") from None
+        pngs = [Path(f) for f in argv[1::2]]
+        if p.returncode != 0 or not all(f.is_file() for f in pngs):
             lines = [ln for ln in (p.stderr + p.stdout).splitlines() if ln.strip() and "INFO" not in ln]
             why = lines[-1].strip() if lines else f"exit status {p.returncode}"
             raise RenderError(f"open3d failed ({why})")
         import matplotlib.image as mpimg
 
-        img = mpimg.imread(png)
-        return (np.clip(img[..., :3], 0, 1) * 255).round().astype(np.uint8)
+        return [(np.clip(mpimg.imread(f)[..., :3], 0, 1) * 255).round().astype(np.uint8) for f in pngs]
 
 
 def _child(job: Path, png: Path) -> None:
@@ -207,4 +216,5 @@ def _child(job: Path, png: Path) -> None:
 
 
 if __name__ == "__main__":
-    _child(Path(sys.argv[1]), Path(sys.argv[2]))
+    for _job, _png in zip(sys.argv[1::2], sys.argv[2::2], strict=True):
+        _child(Path(_job), Path(_png))

@@ -32,7 +32,7 @@ from gt3dkit.io.writers import read_segments_csv
 from gt3dkit.parse import read_csv_rows
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import Scene, TrackSet
-from gt3dkit.viz.overview import colour_of, write_overview
+from gt3dkit.viz.overview import colour_of, write_overviews
 from gt3dkit.viz.panels import (
     ANNOTATION_NOTE,
     ViewResiduals,
@@ -256,16 +256,15 @@ def run_sections(run: Run, tmp: Path, prefix: str = "", tracks_b: TrackSet | Non
     sub = tmp / prefix if prefix else tmp
     sub.mkdir(parents=True, exist_ok=True)
     p = f"{prefix}/" if prefix else ""
-    renders = []
-    for name, close, caption in (
-            ("overview.png", False, f"The rig and every track; ellipsoids or skeletons at frame {frame}"),
-            ("closeup.png", True, f"The objects at frame {frame}, closer")):
-        try:
-            write_overview(sc, tr, frame, sub / name, tracks_b=tracks_b, close_up=close,
-                           title=title_b)
-            renders.append(_figure(p + name, caption, wide=not close))
-        except RenderError as e:
-            warnings.append(f"3D render {name} not made: {e}")
+    pictures = (("overview.png", False, f"The rig and every track; ellipsoids or skeletons at frame {frame}"),
+                ("closeup.png", True, f"The objects at frame {frame}, closer"))
+    try:
+        write_overviews(sc, tr, frame, [(sub / name, close) for name, close, _ in pictures],
+                        tracks_b=tracks_b, title=title_b)
+        renders = [_figure(p + name, caption, wide=not close) for name, close, caption in pictures]
+    except RenderError as e:
+        renders = []
+        warnings.append(f"3D renders {', '.join(n for n, _, _ in pictures)} not made: {e}")
     parts = ["<h2>Numbers</h2>", _table([[k, v] for k, v in _numbers(run, res)])]
     if run.notes:
         parts.append("".join(f'<p class="warn">{html.escape(n)}</p>' for n in run.notes))
