@@ -33,7 +33,7 @@ from scipy.optimize import least_squares
 from gt3dkit import load_scene, reconstruct
 from gt3dkit.commands.common import bundled
 from gt3dkit.eval.metrics import match_rows
-from gt3dkit.fusion.boxfit import box_model, ground_init
+from gt3dkit.fusion.boxfit import ground_init, state_boxes
 from gt3dkit.fusion.rows import build_rows
 from gt3dkit.geom.camera import Cams
 from gt3dkit.sim import (
@@ -226,7 +226,7 @@ def plain_fit(scene) -> tuple[np.ndarray, np.ndarray]:
         m = rows.box_mask[r]
 
         def f(p, r=r, m=m):
-            b = box_model(p[:3], p[3:], cams)
+            b = state_boxes(p[:3], p[3:], cams)
             return np.nan_to_num((b - rows.box_z[r])[m], nan=1e4)
 
         sol = least_squares(f, np.r_[c0[r], la0[r]], method="lm" if m.sum() >= 6 else "trf")

@@ -1,6 +1,6 @@
 r"""Boxes -> ellipsoids without a temporal model.
 
-* :func:`box_model`: the measurement function, ellipsoid parameters -> tangent boxes.
+* :func:`state_boxes`: the measurement function, ellipsoid parameters -> tangent boxes.
 * :func:`ground_init`: the paper's initialisation (box bottom-centre through the
   ground-plane homography, averaged over views), with box size for the semi-axes.
 * :func:`fit_boxes`: a batched Levenberg-Marquardt least-squares fit of one
@@ -28,7 +28,7 @@ from gt3dkit.types import B8, BOX_MODELS, F64
 PERSON_SEMI_AXES_M = np.array([0.3, 0.3, 0.85])
 
 
-def box_model(center_world: F64, log_axes: F64, cams: Cams, want: np.ndarray | None = None) -> F64:
+def state_boxes(center_world: F64, log_axes: F64, cams: Cams, want: np.ndarray | None = None) -> F64:
     """(..., 3) centres and (..., 3) log semi-axes -> (..., C, 4) boxes (px), NaN if behind;
     ``want`` (broadcastable to ``(..., C)``): only these cameras' boxes (the others NaN)."""
     box, _ = model_boxes(center_world, np.exp(log_axes), cams, want)

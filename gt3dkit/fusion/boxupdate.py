@@ -500,7 +500,7 @@ def run_boxes(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, collect:
     R, n = len(rows), layout.n
     m = model.z.shape[1]
     robust = cfg.robust_config if cfg.robust else None
-    box = model.box_model(cfg.alpha, cfg.beta, cfg.kappa, robust)._replace(
+    box = model.box_measurement(cfg.alpha, cfg.beta, cfg.kappa, robust)._replace(
         iterations=int(cfg.iterations), robust=robust is not None and bool(model.robust_blocks))
     chains, first, last = object_chains(model, fps, on)
     motion = motion_of(model, cfg, noise_rows)

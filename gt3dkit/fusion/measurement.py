@@ -2,7 +2,7 @@
 
 Measurement vector of a row: ``[box edges (C*4) | keypoints (C*J*2)]``, each block present
 only when the scene has it. Box edges are the exact tangent box of the projected ellipsoid
-(:func:`gt3dkit.fusion.boxfit.box_model`), keypoints the projection with distortion. Bones
+(:func:`gt3dkit.fusion.boxfit.state_boxes`), keypoints the projection with distortion. Bones
 reach the joints as information added after the views (:mod:`gt3dkit.fusion.bones`).
 """
 
@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from gt3dkit.fusion.bones import JointInfo
-from gt3dkit.fusion.boxfit import box_model
+from gt3dkit.fusion.boxfit import state_boxes
 from gt3dkit.fusion.boxupdate import box_regressions, box_sigma
 from gt3dkit.fusion.motion import SPACE, StateLayout
 from gt3dkit.fusion.prepare import Prepared
@@ -121,7 +121,8 @@ class Model:
     def box_rig(self) -> BoxRig:
         return box_rig(self.box_cameras, OUTLINE_STEPS)
 
-    def box_model(self, alpha: float, beta: float, kappa: float, robust: RobustConfig | None) -> BoxModel:
+    def box_measurement(self, alpha: float, beta: float, kappa: float,
+                        robust: RobustConfig | None) -> BoxModel:
         """The box update's :class:`gt3dkit.fusion.boxupdate.BoxModel` under the sigma rule
         ``alpha, beta, kappa``, the measurement points judged by ``robust`` (None: none); one
         pass, not reweighting."""
@@ -189,7 +190,7 @@ class Model:
         lay = self.layout
         parts = []
         if self.use_box:
-            parts.append(box_model(X[..., lay.center], X[..., lay.log_axes],
+            parts.append(state_boxes(X[..., lay.center], X[..., lay.log_axes],
                                    self.cams).reshape(B, S, C * 4))
         if J:
             P3 = X[..., lay.joints].reshape(B, S, J, SPACE)

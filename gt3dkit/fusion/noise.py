@@ -208,7 +208,7 @@ class LinearisedSearch:
                  weights: F64, on: np.ndarray | None) -> None:
         R = len(model.rows)
         m = model.z.shape[1]
-        box = model.box_model(cfg.alpha, cfg.beta, cfg.kappa, None)
+        box = model.box_measurement(cfg.alpha, cfg.beta, cfg.kappa, None)
         self.chains, first, _ = object_chains(model, fps, on)
         self.lins = regression_rows(R, m, box.cols.dims.shape[1])
         box_regressions(np.flatnonzero(self.chains.run).astype(np.int64), contiguous(x_lin),

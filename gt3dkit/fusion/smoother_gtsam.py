@@ -11,7 +11,7 @@ Factors
     * one ``TriangulationFactorCal3_S2`` per 2D keypoint: GTSAM's projection factor with the
       calibrated camera; the keypoint is undistorted first (GTSAM's ``Cal3DS2`` has no ``k3``);
     * one ``CustomFactor`` per box whose error is the tangent-box residual of its usable
-      edges (:func:`gt3dkit.fusion.boxfit.box_model`), Jacobian by central differences;
+      edges (:func:`gt3dkit.fusion.boxfit.state_boxes`), Jacobian by central differences;
     * Huber-robust noise models on every measurement; weak priors (1 m, 10 m/s, 1.0 in log
       axes) at the per-frame initial values so that nothing is left undetermined.
 Solved by Gauss-Newton with a line search

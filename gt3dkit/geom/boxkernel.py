@@ -394,48 +394,46 @@ def _pom_box(p: tuple[float, float, float], e: tuple[float, float, float], q: F6
     return mg
 
 
-@numba.njit(cache=True, nogil=True, inline="always")  # ~20 % faster than a call
-def pair_box(p: tuple[float, float, float], s: tuple[float, float, float], c: int, rig: BoxRig,
-             want: bool, out: F64, n: int) -> float:
-    """The box ``out[n, c] (4,)`` (``out (N, C, 4)``) of the solid with centre ``p`` and
-    squared semi-axes ``s`` in camera ``c`` (NaN if behind it or not ``want``); returns the
-    margin. ``rig.box_model`` (:data:`BOX_MODELS`) says which box: the ellipsoid's tangent box, the
-    vertical cylinder's (the convex hull of its end discs: the union of their boxes) or the POM
-    rectangle (:func:`_pom_box`)."""
-    q = rig.cam[c]
-    if rig.box_model == POM:
-        mg, b0, b1, b2, b3 = _pom_value(p, (math.sqrt(s[0]), math.sqrt(s[1]), math.sqrt(s[2])), q)
-    elif rig.box_model == CYLINDER:
-        h = math.sqrt(s[2])
-        u0, u1, u2 = _up(q)
-        d = (s[0], s[1], 0.0)
-        mg, b0, b1, b2, b3 = _quadric_box((p[0] + h * u0, p[1] + h * u1, p[2] + h * u2), d, q, rig.steps)
-        mg2, a0, a1, a2, a3 = _quadric_box((p[0] - h * u0, p[1] - h * u1, p[2] - h * u2), d, q, rig.steps)
-        mg = min(mg, mg2)
-        b0, b1, b2, b3 = min(a0, b0), min(a1, b1), max(a2, b2), max(a3, b3)
-    else:
-        mg, b0, b1, b2, b3 = _quadric_box(p, s, q, rig.steps)
-    if not mg > 0 or not want:
-        for e in range(4):
-            out[n, c, e] = np.nan
-        return mg
-    out[n, c, 0], out[n, c, 1], out[n, c, 2], out[n, c, 3] = b0, b1, b2, b3
-    return mg
+# Each box model is one pair, its value (margin and box from the centre ``p`` and squared
+# semi-axes ``s`` in camera row ``q``) and its gradient (box and derivatives by centre and log
+# semi-axes ``la`` in camera ``c``), listed in :data:`BOX_KERNELS` under its name in
+# :data:`gt3dkit.types.BOX_MODEL_REGISTRY`; :func:`pair_box` and :func:`pair_box_grad` pick the
+# pair by the rig's ``box_model`` (the entry's index).
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def ellipsoid_value(p: tuple[float, float, float], s: tuple[float, float, float], q: F64, steps: int
+                    ) -> tuple[float, float, float, float, float]:
+    """The ellipsoid's tangent box (:func:`_quadric_box`)."""
+    return _quadric_box(p, s, q, steps)
 
 
 @numba.njit(cache=True, nogil=True)
-def pair_box_grad(p: tuple[float, float, float], la: tuple[float, float, float], c: int, rig: BoxRig,
+def ellipsoid_grad(p: tuple[float, float, float], la: tuple[float, float, float], c: int, rig: BoxRig,
+                   box: F64, grad: F64) -> float:
+    """The ellipsoid's tangent box and its derivatives (:func:`_quadric_box_grad`)."""
+    return _quadric_box_grad(p, (math.exp(2.0 * la[0]), math.exp(2.0 * la[1]), math.exp(2.0 * la[2])),
+                             c, rig, box, grad)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def cylinder_value(p: tuple[float, float, float], s: tuple[float, float, float], q: F64, steps: int
+                   ) -> tuple[float, float, float, float, float]:
+    """The vertical cylinder's box: the union of its two end discs' tangent boxes (the cylinder
+    is their convex hull), the discs ``sqrt(s[2])`` above and below the centre along up."""
+    h = math.sqrt(s[2])
+    u0, u1, u2 = _up(q)
+    d = (s[0], s[1], 0.0)
+    mg, b0, b1, b2, b3 = _quadric_box((p[0] + h * u0, p[1] + h * u1, p[2] + h * u2), d, q, steps)
+    mg2, a0, a1, a2, a3 = _quadric_box((p[0] - h * u0, p[1] - h * u1, p[2] - h * u2), d, q, steps)
+    return min(mg, mg2), min(a0, b0), min(a1, b1), max(a2, b2), max(a3, b3)
+
+
+@numba.njit(cache=True, nogil=True)
+def cylinder_grad(p: tuple[float, float, float], la: tuple[float, float, float], c: int, rig: BoxRig,
                   box: F64, grad: F64) -> float:
-    """The box ``box (4,)`` of the solid (:func:`pair_box`) with centre ``p`` and log semi-axes
-    ``la`` in camera ``c`` and its derivatives ``grad (4, 6)`` by (centre, log semi-axes); NaN if
-    behind it. Returns the margin. The cylinder's edge is its end disc's that reaches further
+    """The cylinder's box and its derivatives: each edge is the end disc's that reaches further
     (the derivative of a maximum, exact away from ties); the half-height moves the discs along
     up."""
-    if rig.box_model == POM:
-        return _pom_box(p, (math.exp(la[0]), math.exp(la[1]), math.exp(la[2])), rig.cam[c], box, grad, True)
-    if rig.box_model != CYLINDER:
-        return _quadric_box_grad(p, (math.exp(2.0 * la[0]), math.exp(2.0 * la[1]),
-                                     math.exp(2.0 * la[2])), c, rig, box, grad)
     q = rig.cam[c]
     h = math.exp(la[2])
     u0, u1, u2 = _up(q)
@@ -460,6 +458,59 @@ def pair_box_grad(p: tuple[float, float, float], la: tuple[float, float, float],
         else:
             grad[e, 5] = h * top
     return min(mg, mg2)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def pom_value(p: tuple[float, float, float], s: tuple[float, float, float], q: F64, steps: int
+              ) -> tuple[float, float, float, float, float]:
+    """The occupancy-map rectangle (:func:`_pom_value`) of half-extents ``sqrt(s)``."""
+    return _pom_value(p, (math.sqrt(s[0]), math.sqrt(s[1]), math.sqrt(s[2])), q)
+
+
+@numba.njit(cache=True, nogil=True)
+def pom_grad(p: tuple[float, float, float], la: tuple[float, float, float], c: int, rig: BoxRig,
+             box: F64, grad: F64) -> float:
+    """The occupancy-map rectangle and its derivatives (:func:`_pom_box`)."""
+    return _pom_box(p, (math.exp(la[0]), math.exp(la[1]), math.exp(la[2])), rig.cam[c], box, grad, True)
+
+
+#: Every box model's (value, gradient) pair by its name in :data:`gt3dkit.types.BOX_MODEL_REGISTRY`.
+BOX_KERNELS = {"ellipsoid": (ellipsoid_value, ellipsoid_grad), "cylinder": (cylinder_value, cylinder_grad),
+               "pom": (pom_value, pom_grad)}
+
+
+@numba.njit(cache=True, nogil=True, inline="always")  # ~20 % faster than a call
+def pair_box(p: tuple[float, float, float], s: tuple[float, float, float], c: int, rig: BoxRig,
+             want: bool, out: F64, n: int) -> float:
+    """The box ``out[n, c] (4,)`` (``out (N, C, 4)``) of the solid with centre ``p`` and
+    squared semi-axes ``s`` in camera ``c`` (NaN if behind it or not ``want``), by the rig's box
+    model's value (:data:`BOX_KERNELS`); returns the margin."""
+    q = rig.cam[c]
+    if rig.box_model == POM:
+        mg, b0, b1, b2, b3 = pom_value(p, s, q, rig.steps)
+    elif rig.box_model == CYLINDER:
+        mg, b0, b1, b2, b3 = cylinder_value(p, s, q, rig.steps)
+    else:
+        mg, b0, b1, b2, b3 = ellipsoid_value(p, s, q, rig.steps)
+    if not mg > 0 or not want:
+        for e in range(4):
+            out[n, c, e] = np.nan
+        return mg
+    out[n, c, 0], out[n, c, 1], out[n, c, 2], out[n, c, 3] = b0, b1, b2, b3
+    return mg
+
+
+@numba.njit(cache=True, nogil=True)
+def pair_box_grad(p: tuple[float, float, float], la: tuple[float, float, float], c: int, rig: BoxRig,
+                  box: F64, grad: F64) -> float:
+    """The box ``box (4,)`` of the solid (:func:`pair_box`) with centre ``p`` and log semi-axes
+    ``la`` in camera ``c`` and its derivatives ``grad (4, 6)`` by (centre, log semi-axes), by the
+    rig's box model's gradient (:data:`BOX_KERNELS`); NaN if behind it. Returns the margin."""
+    if rig.box_model == POM:
+        return pom_grad(p, la, c, rig, box, grad)
+    if rig.box_model == CYLINDER:
+        return cylinder_grad(p, la, c, rig, box, grad)
+    return ellipsoid_grad(p, la, c, rig, box, grad)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -14,7 +14,7 @@ import pytest
 
 from gt3dkit.api import dense_frames, load_scene
 from gt3dkit.fusion import ukf_smoother as us
-from gt3dkit.fusion.boxfit import box_model as box_function
+from gt3dkit.fusion.boxfit import state_boxes as box_function
 from gt3dkit.fusion.filtering import backend_for
 from gt3dkit.fusion.initial import InitialCov, rows_of
 from gt3dkit.fusion.measurement import Model

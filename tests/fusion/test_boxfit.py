@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from gt3dkit.fusion.boxfit import PERSON_SEMI_AXES_M, box_model, fit_boxes, inverse_rows
+from gt3dkit.fusion.boxfit import PERSON_SEMI_AXES_M, fit_boxes, inverse_rows, state_boxes
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.conics import ellipsoid_boxes
 from gt3dkit.sim import simulate
@@ -39,7 +39,7 @@ def _scene(seed: int = 4):
 
 def _scipy_fit(p0, z, mask, cams, sigma, prior, prior_sd):
     def res(q):
-        box = box_model(q[None, :3], q[None, 3:], cams, mask.any(-1)[None])[0]
+        box = state_boxes(q[None, :3], q[None, 3:], cams, mask.any(-1)[None])[0]
         r = np.where(mask, (box - np.nan_to_num(z)) / sigma, 0.0).ravel()
         return np.r_[np.nan_to_num(r, nan=1e6), (q[3:] - prior) / prior_sd]
 
