@@ -191,7 +191,7 @@ class Model:
         parts = []
         if self.use_box:
             parts.append(state_boxes(X[..., lay.center], X[..., lay.log_axes],
-                                   self.cams).reshape(B, S, C * 4))
+                                     self.cams).reshape(B, S, C * 4))
         if J:
             P3 = X[..., lay.joints].reshape(B, S, J, SPACE)
             uv, _ = project_points(P3, self.cams.K, self.cams.dist, self.cams.R, self.cams.t,
