@@ -31,15 +31,13 @@ from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.datasets.native import write_cameras
 from gt3dkit.io.labels import (
     LABEL_FORMATS,
+    LABEL_WRITERS,
     SOURCES,
     Shapes,
     piece_ids,
     piece_of,
     piece_track_ids,
     write_association,
-    write_coco,
-    write_cvat,
-    write_mot,
 )
 from gt3dkit.io.writers import read_segments_csv
 from gt3dkit.skeletons import SKELETONS
@@ -216,8 +214,9 @@ def project(out: Path, fmt: str, dest: Path, step: int | None = None,
     run = load_run(out, "the labels are drawn into its cameras beside its annotations")
     scene = run.scene
     J = run.tracks.kpt_world.shape[1]
-    if fmt == "mot" and J:
-        raise InputError("--format", "mot holds boxes only: this run has keypoints (use cvat or coco)")
+    if J and not LABEL_WRITERS[fmt].keypoints:
+        others = " or ".join(k for k, v in LABEL_WRITERS.items() if v.keypoints)
+        raise InputError("--format", f"{fmt} holds boxes only: this run has keypoints (use {others})")
     shapes = project_run(run, step, cameras, only_flagged)
     skel = SKELETONS.get(scene.skeleton) if scene.skeleton else None
     joints = tuple(skel.marker_names) if skel is not None else ()
@@ -236,12 +235,7 @@ def project(out: Path, fmt: str, dest: Path, step: int | None = None,
     def write(tmp: Path) -> None:
         write_cameras(scene.rig, scene.fps, tmp)
         write_association(shapes, scene.rig, tmp / "association.csv")
-        if fmt == "cvat":
-            write_cvat(shapes, scene.rig, joints, tmp / "cvat")
-        elif fmt == "mot":
-            write_mot(shapes, scene.rig, tmp / "mot")
-        else:
-            write_coco(shapes, scene.rig, joints, bones, tmp / "coco")
+        LABEL_WRITERS[fmt].write(shapes, scene.rig, joints, bones, tmp / fmt)
         doc = {**summary, "pieces": [{"track_id": a, "id": b, "segment": c}
                                      for a, b, c in summary["pieces"]]}
         (tmp / "projection.json").write_text(json.dumps(doc, indent=1))

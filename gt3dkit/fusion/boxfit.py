@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gt3dkit.fusion.boxlm import fit_compiled
-from gt3dkit.geom.boxkernel import BoxCameras
+from gt3dkit.geom.boxrig import BoxCameras
 from gt3dkit.geom.camera import Cams, pixel_rays
 from gt3dkit.geom.conics import model_boxes, outline_ellipse
 from gt3dkit.types import B8, BOX_MODELS, F64

@@ -23,7 +23,8 @@ import numpy as np
 
 from gt3dkit.arrays import contiguous
 from gt3dkit.fusion.motion import SPACE
-from gt3dkit.geom.boxkernel import EDGES, BoxCameras, BoxRig, box_rig, pair_box, pair_box_grad
+from gt3dkit.geom.boxkernel import EDGES, pair_box, pair_box_grad
+from gt3dkit.geom.boxrig import BoxCameras, BoxRig, box_rig
 from gt3dkit.geom.smallmat import solve_sym
 from gt3dkit.threads import run_split
 from gt3dkit.types import F64

@@ -50,7 +50,8 @@ from gt3dkit.fusion.update import (
     prior_factor,
     statistics,
 )
-from gt3dkit.geom.boxkernel import EDGES, BoxRig, pair_box
+from gt3dkit.geom.boxkernel import EDGES, pair_box
+from gt3dkit.geom.boxrig import BoxRig
 from gt3dkit.geom.smallmat import safe_chol, solve_sym
 from gt3dkit.threads import run_split
 from gt3dkit.types import F64, I64

@@ -15,7 +15,8 @@ from gt3dkit.fusion.gtsam_factors import cv_whitening, gauss_newton, huber_loss,
 from gt3dkit.fusion.motion import walk_sd
 from gt3dkit.fusion.noise import ProcessNoise
 from gt3dkit.fusion.prepare import Prepared, axis_sd
-from gt3dkit.geom.boxkernel import EVERY_CAMERA, BoxCameras, box_jacobian, box_rig, kernel
+from gt3dkit.geom.boxkernel import box_jacobian, kernel
+from gt3dkit.geom.boxrig import EVERY_CAMERA, BoxCameras, box_rig
 from gt3dkit.types import F64
 
 if TYPE_CHECKING:

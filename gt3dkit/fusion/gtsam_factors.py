@@ -11,7 +11,8 @@ from typing import TYPE_CHECKING, TypeVar
 import numpy as np
 
 from gt3dkit.fusion.motion import MotionModel, StateLayout
-from gt3dkit.geom.boxkernel import EVERY_CAMERA, BoxCameras, box_jacobian, box_rig, kernel
+from gt3dkit.geom.boxkernel import box_jacobian, kernel
+from gt3dkit.geom.boxrig import EVERY_CAMERA, BoxCameras, box_rig
 from gt3dkit.types import F64
 
 if TYPE_CHECKING:
@@ -116,7 +117,7 @@ def cv_factor(gtsam: ModuleType, keys: list[int], dt: float, W: F64,
 def box_error(bc: BoxCameras, z: F64, m: np.ndarray, C: int
               ) -> Callable[[gtsam.CustomFactor, gtsam.Values, list[F64] | None], F64]:
     """Error function of a box factor on (centre Point3, log semi-axes Vector3); ``bc`` the
-    cameras as :class:`gt3dkit.geom.boxkernel.BoxCameras` (the compiled box is called directly:
+    cameras as :class:`gt3dkit.geom.boxrig.BoxCameras` (the compiled box is called directly:
     GTSAM calls this ~10 000 times per 1 000 object-frames, and the general entry point's
     argument checks were 2/3 of its time). The Jacobian is the box's analytic derivative
     (:func:`gt3dkit.geom.boxkernel.box_jacobian`, held to central differences by the tests)."""

@@ -54,7 +54,8 @@ from gt3dkit.fusion.update import (
     prior_factor,
     statistics,
 )
-from gt3dkit.geom.boxkernel import BoxRig, world_pixel
+from gt3dkit.geom.boxkernel import world_pixel
+from gt3dkit.geom.boxrig import BoxRig
 from gt3dkit.threads import run_split
 from gt3dkit.types import F64, I64
 

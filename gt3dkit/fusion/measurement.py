@@ -23,7 +23,8 @@ from gt3dkit.fusion.rows import Rows
 from gt3dkit.fusion.rowsmodel import OUTLINE_STEPS, BoxModel
 from gt3dkit.fusion.ukf import Block, Robust, SigmaWeights, block_columns
 from gt3dkit.fusion.update import Columns, Measured, Regression
-from gt3dkit.geom.boxkernel import EDGES, BoxCameras, BoxRig, box_rig
+from gt3dkit.geom.boxkernel import EDGES
+from gt3dkit.geom.boxrig import BoxCameras, BoxRig, box_rig
 from gt3dkit.geom.camera import Cams, project_points
 from gt3dkit.types import F64
 

@@ -13,7 +13,7 @@ from gt3dkit.fusion.motion import StateLayout
 from gt3dkit.fusion.robust import RobustConfig
 from gt3dkit.fusion.rows import Rows
 from gt3dkit.fusion.update import Columns
-from gt3dkit.geom.boxkernel import BoxRig
+from gt3dkit.geom.boxrig import BoxRig
 from gt3dkit.geom.camera import Cams
 from gt3dkit.types import F64, I64
 

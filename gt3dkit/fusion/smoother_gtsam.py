@@ -66,7 +66,7 @@ from gt3dkit.fusion.prepare import (
     prepare,
 )
 from gt3dkit.fusion.ukf_config import UKFConfig
-from gt3dkit.geom.boxkernel import BoxCameras
+from gt3dkit.geom.boxrig import BoxCameras
 from gt3dkit.geom.camera import apply_K
 from gt3dkit.geom.triangulate import normalized_points
 from gt3dkit.types import F64, JsonDict, RunInfo, Scene, TrackSet

@@ -28,15 +28,44 @@ The same state (centre, semi-axes along the body axes, body axis 2 up) has three
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import numba
 import numpy as np
 
-from gt3dkit.arrays import compiled_arg
-from gt3dkit.geom.camera import Cams
+from gt3dkit.geom.boxrig import (
+    ROW_DIST as _DIST,
+)
+from gt3dkit.geom.boxrig import (
+    ROW_DS as _DS,
+)
+from gt3dkit.geom.boxrig import (
+    ROW_GX as _GX,
+)
+from gt3dkit.geom.boxrig import (
+    ROW_GY as _GY,
+)
+from gt3dkit.geom.boxrig import (
+    ROW_HASD as _HASD,
+)
+from gt3dkit.geom.boxrig import (
+    ROW_K as _K,
+)
+from gt3dkit.geom.boxrig import (
+    ROW_R as _R,
+)
+from gt3dkit.geom.boxrig import (
+    ROW_RC as _RC,
+)
+from gt3dkit.geom.boxrig import (
+    ROW_T as _T,
+)
+from gt3dkit.geom.boxrig import (
+    BoxCameras,
+    BoxRig,
+    box_rig,
+)
 from gt3dkit.geom.kernel_cache import drop_stale
-from gt3dkit.types import BOX_MODEL_REGISTRY, F64, Rig
+from gt3dkit.types import BOX_MODEL_REGISTRY, F64
 
 drop_stale()  # before any compiled function below is called (and its cache read)
 
@@ -97,71 +126,6 @@ def edge_slope(e: int, ct: float, st: float, m0: float, m1: float, l00: float, l
     if e == 2:
         return q[_K] * xd1 + q[_K + 1] * yd1, q[_K] * xd2 + q[_K + 1] * yd2
     return q[_K + 4] * yd1, q[_K + 4] * yd2
-
-
-class BoxCameras(NamedTuple):
-    """The camera arrays the compiled tangent box needs (contiguous float64): ``world_from_body
-    (3, 3)``, ``K (C, 3, 3)``, ``dist (C, 5)``, ``R (C, 3, 3)``, ``t (C, 3)``, ``depth_sign (C,)``."""
-
-    world_from_body: F64
-    K: F64
-    dist: F64
-    R: F64
-    t: F64
-    depth_sign: F64
-    box_model: int = 0  # BoxModelEntry.index (gt3dkit.types.BOX_MODEL_REGISTRY)
-
-    @classmethod
-    def of(cls, cams: Cams | Rig) -> BoxCameras:
-        """Of a :class:`gt3dkit.geom.camera.Cams` (its box model) or a rig (the ellipsoid)."""
-        return box_cameras(cams.world_from_body, cams.K, cams.dist, cams.R, cams.t, cams.depth_sign,
-                           getattr(cams, "box_model", 0))
-
-
-#: Offsets in a row of :attr:`BoxRig.cam` (one camera): ``R`` (9, row-major), ``t`` (3), ``Rc = R Rb``
-#: (9), ``K``'s ``K00, K01, K02, K10, K11, K12``, the distortion ``k1, k2, p1, p2, k3``, the four edge
-#: directions ``A^T dir`` as ``gx`` (4) and ``gy`` (4) (``A = K[:2, :2]``), the depth sign, whether
-#: the lens distorts (1.0 / 0.0).
-_R, _T, _RC, _K, _DIST, _GX, _GY, _DS, _HASD = 0, 9, 12, 21, 27, 32, 36, 40, 41
-CAM_WIDTH = 42
-
-
-class BoxRig(NamedTuple):
-    """:class:`BoxCameras` prepared for :func:`pair_box` (:func:`box_rig`): one row per camera
-    ``cam (C, CAM_WIDTH)`` (the offsets above: a pair reads its camera from one row), and the
-    Newton ``steps`` along the outline with distortion."""
-
-    cam: F64
-    steps: int
-    box_model: int  # BoxModelEntry.index (gt3dkit.types.BOX_MODEL_REGISTRY)
-
-
-@numba.njit(cache=True, nogil=True)
-def box_rig(cams: BoxCameras, steps: int) -> BoxRig:
-    """The :class:`BoxRig` of ``cams``, shared by every pair of :func:`pair_box`."""
-    K, R, Rb, dist = cams.K, cams.R, cams.world_from_body, cams.dist
-    C = K.shape[0]
-    out = np.zeros((C, CAM_WIDTH))
-    for c in range(C):
-        q = out[c]
-        for i in range(3):
-            q[_T + i] = cams.t[c, i]
-            for j in range(3):
-                q[_R + 3 * i + j] = R[c, i, j]
-                q[_RC + 3 * i + j] = R[c, i, 0] * Rb[0, j] + R[c, i, 1] * Rb[1, j] + R[c, i, 2] * Rb[2, j]
-        q[_K], q[_K + 1], q[_K + 2] = K[c, 0, 0], K[c, 0, 1], K[c, 0, 2]
-        q[_K + 3], q[_K + 4], q[_K + 5] = K[c, 1, 0], K[c, 1, 1], K[c, 1, 2]
-        has = False
-        for i in range(5):
-            q[_DIST + i] = dist[c, i]
-            has = has or dist[c, i] != 0
-        q[_GX], q[_GY] = -K[c, 0, 0], -K[c, 0, 1]
-        q[_GX + 1], q[_GY + 1] = -K[c, 1, 0], -K[c, 1, 1]
-        q[_GX + 2], q[_GY + 2] = K[c, 0, 0], K[c, 0, 1]
-        q[_GX + 3], q[_GY + 3] = K[c, 1, 0], K[c, 1, 1]
-        q[_DS] = cams.depth_sign[c]
-        q[_HASD] = 1.0 if has else 0.0
-    return BoxRig(out, steps, cams.box_model)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -611,13 +575,3 @@ def kernel(center: F64, axes: F64, cams: BoxCameras, steps: int, want: np.ndarra
         for c in range(C):
             margin[n, c] = pair_box((center[n, 0], center[n, 1], center[n, 2]), s, c, rig,
                                     every or want[n, c], box, n)
-
-
-EVERY_CAMERA = np.ones((1, 1), dtype=np.bool_)
-
-
-def box_cameras(world_from_body: F64, K: F64, dist: F64, R: F64, t: F64, depth_sign: F64 | float,
-                box_model: int = 0) -> BoxCameras:
-    """:class:`BoxCameras` of stacked camera arrays (``depth_sign`` broadcast to ``(C,)``)."""
-    ds = compiled_arg(np.broadcast_to(np.asarray(depth_sign, dtype=np.float64), (K.shape[0],)))
-    return BoxCameras(*(compiled_arg(a) for a in (world_from_body, K, dist, R, t)), ds, int(box_model))

@@ -26,7 +26,8 @@ from __future__ import annotations
 import numpy as np
 
 from gt3dkit.arrays import compiled_arg
-from gt3dkit.geom.boxkernel import EVERY_CAMERA, BoxCameras, box_cameras, kernel
+from gt3dkit.geom.boxkernel import kernel
+from gt3dkit.geom.boxrig import EVERY_CAMERA, BoxCameras, box_cameras
 from gt3dkit.geom.camera import Cams
 from gt3dkit.threads import run_split
 from gt3dkit.types import F64

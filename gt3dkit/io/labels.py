@@ -43,6 +43,7 @@ from __future__ import annotations
 import hashlib
 import json
 import xml.etree.ElementTree as ET
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -53,7 +54,6 @@ from gt3dkit.types import F64, I64, Rig
 
 SOURCES = ("annotated", "proposed", "interpolated")
 LABEL = "person"
-LABEL_FORMATS = ("cvat", "mot", "coco")
 
 
 @dataclass(frozen=True)
@@ -334,3 +334,24 @@ def write_coco(shapes: Shapes, rig: Rig, joints: tuple[str, ...], bones: tuple[t
         path.write_text(json.dumps(doc))
         out.append(path)
     return out
+
+
+@dataclass(frozen=True)
+class LabelFormat:
+    """One format ``gt3d project`` writes: ``write(shapes, rig, joints, bones, folder)`` (the
+    files, one per camera) and whether it holds keypoints."""
+
+    write: Callable[[Shapes, Rig, tuple[str, ...], tuple[tuple[int, int], ...], Path], list[Path]]
+    keypoints: bool
+
+
+#: Every label format by its ``--format`` name, registered once (the command line's choices
+#: and ``gt3d project`` read it).
+LABEL_WRITERS: dict[str, LabelFormat] = {
+    "cvat": LabelFormat(lambda shapes, rig, joints, bones, folder: write_cvat(shapes, rig, joints, folder),
+                        keypoints=True),
+    "mot": LabelFormat(lambda shapes, rig, joints, bones, folder: write_mot(shapes, rig, folder),
+                       keypoints=False),
+    "coco": LabelFormat(write_coco, keypoints=True),
+}
+LABEL_FORMATS = tuple(LABEL_WRITERS)

@@ -14,6 +14,7 @@ import pytest
 from gt3dkit.api import reconstruct
 from gt3dkit.eval.metrics import match_rows
 from gt3dkit.geom import boxkernel as bk
+from gt3dkit.geom.boxrig import box_cameras
 from gt3dkit.geom.conics import boxes_compiled
 from gt3dkit.sim import Errors
 from gt3dkit.types import BOX_MODELS
@@ -49,7 +50,7 @@ def test_box_models_equal_opencv_projection_of_the_solid(model: str, kind: str) 
     Rb = rotation(rng)
     c = rng.normal(size=(N, 3)) * 1.5
     s = np.exp(rng.normal(size=(N, 3)) * 0.3) * 0.4
-    cams = bk.box_cameras(Rb, K, dist, R, t, np.ones(C), BOX_MODELS.index(model))
+    cams = box_cameras(Rb, K, dist, R, t, np.ones(C), BOX_MODELS.index(model))
     box, margin = boxes_compiled(c, s, cams, 2)
     checked = 0
     for n in range(N):

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from gt3dkit.geom import boxkernel as bk
+from gt3dkit.geom.boxrig import EVERY_CAMERA
 from gt3dkit.geom.conics import ellipsoid_boxes
 from tests.oracles import ellipsoid_boxes_numpy
 
@@ -57,7 +58,7 @@ def test_split_and_masked_tangent_box_equal_the_whole_call(monkeypatch) -> None:
     want = rng.uniform(size=(N, C)) < 0.7
     box, margin = np.empty((N, C, 4)), np.empty((N, C))
     cams = bk.BoxCameras(Rb, K, dist, R, t, np.ones(C))
-    bk.kernel(c, s, cams, 2, bk.EVERY_CAMERA, box, margin)  # one call, one thread
+    bk.kernel(c, s, cams, 2, EVERY_CAMERA, box, margin)  # one call, one thread
     monkeypatch.setenv("GT3D_THREADS", "3")
     b3, m3 = ellipsoid_boxes(c, s, Rb, K, dist, R, t, np.ones(C))
     np.testing.assert_array_equal(b3, box)

@@ -170,6 +170,56 @@ def _keypoints(where: str, person: object) -> np.ndarray:
     return a
 
 
+@dataclasses.dataclass
+class _Reading:
+    """What reading the files has found so far: the joints per detection ``J``, the first
+    detections (to tell BODY_25 from BODY_25B), the largest confidence of each detection with
+    one above 1, the files read and those whose people list is empty."""
+
+    skeleton: str | None
+    J: int | None = None
+    sample: list[np.ndarray] = dataclasses.field(default_factory=list)
+    above: list[float] = dataclasses.field(default_factory=list)
+    n_files: int = 0
+    empty: int = 0
+
+    def read(self, p: Path, f: int, chunk: _Detections) -> None:
+        """The detections of file ``p`` (frame ``f``) into ``chunk``."""
+        doc = load_json(p)
+        people = doc.get("people") if isinstance(doc, dict) else None
+        if not isinstance(people, list):
+            raise InputError(str(p), 'expected {"people": [...]}')
+        self.n_files += 1
+        self.empty += not people
+        for i, person in enumerate(people):
+            where = f"{p}: people[{i}]"
+            a = _keypoints(where, person)
+            if self.J is None:
+                self.J = len(a)
+                if self.skeleton is None and self.J not in DETECTOR_SKELETONS:
+                    raise InputError(where, f"{self.J} joints: no known detector skeleton has that many "
+                                            f"({', '.join(f'{k}' for k in DETECTOR_SKELETONS)})")
+            if len(a) != self.J:
+                raise InputError(where, f"{len(a)} joints, the other detections have {self.J}")
+            if (a[:, 2] > 1).any():  # a heatmap's peak, not a probability: OpenPose writes up to ~1.04
+                self.above.append(float(a[:, 2].max()))
+                a[:, 2] = np.minimum(a[:, 2], 1.0)
+            if len(self.sample) < 500:
+                self.sample.append(a)
+            chunk.add(f, i, a, p)
+
+    def warnings(self) -> list[str]:
+        """The warnings of odd but valid files: confidences above 1, empty people lists."""
+        out = []
+        if self.above:
+            out.append(f"{len(self.above)} detection(s) with a confidence above 1 (up to "
+                       f"{max(self.above):.4g}; OpenPose's confidences are heatmap peaks): read as 1")
+        if self.empty:
+            out.append(f"{self.empty} of {self.n_files} files list no person (frames where the detector "
+                       "found no one in that camera)")
+        return out
+
+
 def load(
     root: Path, skeleton: str | None = None, calib: Path | str | None = None, fps: float | None = None
 ) -> Scene:
@@ -184,12 +234,8 @@ def load(
     names = [p.name[: -len("_json")] for p in folders]
     cam_of = match_cameras(names, rig, str(root), warnings)
     files: dict[str, str] = {}
-    J = None
-    sample: list[np.ndarray] = []  # the first detections, to tell BODY_25 from BODY_25B
+    reading = _Reading(skeleton)
     rb: RowBuilder | None = None
-    above: list[float] = []  # detections with a confidence above 1: the largest of each
-    empty = 0  # files whose people list is empty (frames where the detector found no one)
-    n_files = 0
     for folder, name in zip(folders, names, strict=True):
         seen_frames: dict[int, Path] = {}
         chunk = _Detections(rig.cameras[cam_of[name]], cam_of[name])
@@ -198,44 +244,16 @@ def load(
             if f in seen_frames:
                 raise InputError(str(p), f"frame {f} again (also {seen_frames[f].name})")
             seen_frames[f] = p
-            doc = load_json(p)
-            people = doc.get("people") if isinstance(doc, dict) else None
-            if not isinstance(people, list):
-                raise InputError(str(p), 'expected {"people": [...]}')
-            n_files += 1
-            empty += not people
-            for i, person in enumerate(people):
-                where = f"{p}: people[{i}]"
-                a = _keypoints(where, person)
-                if J is None:
-                    J = len(a)
-                    if skeleton is None and J not in DETECTOR_SKELETONS:
-                        raise InputError(
-                            where,
-                            f"{J} joints: no known detector skeleton has that many "
-                            f"({', '.join(f'{k}' for k in DETECTOR_SKELETONS)})",
-                        )
-                if len(a) != J:
-                    raise InputError(where, f"{len(a)} joints, the other detections have {J}")
-                if (a[:, 2] > 1).any():  # a heatmap's peak, not a probability: OpenPose writes up to ~1.04
-                    above.append(float(a[:, 2].max()))
-                    a[:, 2] = np.minimum(a[:, 2], 1.0)
-                if len(sample) < 500:
-                    sample.append(a)
-                chunk.add(f, i, a, p)
+            reading.read(p, f, chunk)
             if chunk.files >= CHUNK_FILES:  # held as arrays, not an object per detection
-                rb = chunk.flush_into(rb, J)
-        rb = chunk.flush_into(rb, J)
+                rb = chunk.flush_into(rb, reading.J)
+        rb = chunk.flush_into(rb, reading.J)
         files[f"{folder.name}/"] = f"{len(seen_frames)} files"
+    J = reading.J
     if rb is None or J is None:
         raise InputError(str(root), "no annotations in any frame (no people in the JSON files)")
-    if above:
-        warnings.append(f"{len(above)} detection(s) with a confidence above 1 (up to {max(above):.4g}; "
-                        "OpenPose's confidences are heatmap peaks): read as 1")
-    if empty:
-        warnings.append(f"{empty} of {n_files} files list no person (frames where the detector found no "
-                        "one in that camera)")
-    skeleton = _skeleton_of(skeleton, J, sample)
+    warnings += reading.warnings()
+    skeleton = _skeleton_of(skeleton, J, reading.sample)
     obs = rb.build()
     files[f"calibration:{cal.name}"] = sha256(cal) if cal.is_file() else "folder"
     truth = None
