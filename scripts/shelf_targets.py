@@ -111,6 +111,7 @@ def score(frames: np.ndarray, shelf: np.ndarray, truth: dict, ids: np.ndarray | 
             eh = np.linalg.norm(ph - gh) if np.isfinite(ph).all() else 10.0
             correct[a][9] += (eh + p[12]) / 2 <= 0.5 * np.linalg.norm(gh - gt[12])
             errs.append(p[LIMB_JOINTS])
+    per_joint = np.mean(np.minimum(np.array(errs), 10.0), axis=0) if errs else np.zeros(12)
     e = np.concatenate(errs) if errs else np.zeros(0)
     per_actor = {a: float(correct[a].sum() / (10 * total[a])) for a in sorted(correct)}
     groups = {g: float(np.mean([correct[a][list(ks)].sum() / (len(ks) * total[a])
@@ -124,7 +125,8 @@ def score(frames: np.ndarray, shelf: np.ndarray, truth: dict, ids: np.ndarray | 
     return {"pcp": float(np.mean([v for a, v in per_actor.items() if a <= 3])), "per_actor": per_actor,
             "within_0_5m": within, "one_id": cover,
             "groups": groups, "mpjpe_mm": 1000 * float(np.mean(np.minimum(e, 10.0))),
-            "over_300mm": int(np.sum(e > 0.3)), "joints": int(e.size)}
+            "over_300mm": int(np.sum(e > 0.3)), "joints": int(e.size),
+            "per_joint_mm": dict(zip(SHELF_JOINTS[:12], (1000 * per_joint).round(1).tolist(), strict=True))}
 
 
 def main() -> int:
@@ -152,6 +154,8 @@ def main() -> int:
     print("  by limb: " + ", ".join(f"{g} {100 * v:.1f}" for g, v in res["groups"].items()))
     print(f"  MPJPE {res['mpjpe_mm']:.1f} mm over the 12 limb joints; {res['over_300mm']} of {res['joints']} "
           "joints more than 300 mm off")
+    print("  MPJPE by joint (mm): " + ", ".join(f"{j} {v:.0f}" for j, v in sorted(
+        res["per_joint_mm"].items(), key=lambda kv: -kv[1])))
     print(f"  person ids: {len(np.unique(tracks.track_id))} (the truth has 4 actors)")
     print("  truth person-frames with an estimate within 0.5 m: "
           + ", ".join(f"actor {a} {100 * v:.1f} %" for a, v in res["within_0_5m"].items()))

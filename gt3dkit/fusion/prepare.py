@@ -30,6 +30,7 @@ import numpy as np
 
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.boxfit import PERSON_SEMI_AXES_M, BoxFit, fit_boxes
+from gt3dkit.fusion.confidence import INVERSE, ConfidenceCurve, group_variances, learn_curve
 from gt3dkit.fusion.motion import StateLayout
 from gt3dkit.fusion.robust import (
     RobustConfig,
@@ -37,7 +38,6 @@ from gt3dkit.fusion.robust import (
     deleted_score2,
     median_variance,
     point_weights,
-    robust_variance,
 )
 from gt3dkit.fusion.rows import Rows, build_rows
 from gt3dkit.geom.camera import Cams
@@ -209,13 +209,13 @@ def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = Non
     sigma_kpt = np.ones(J)
     kpt_var = np.ones((len(rows), len(cams.K), J))
     if use_kpt:
-        kpt0, kpt0_cov, kpt_keep, sigma_kpt, kinfo = _robust_keypoints(scene, rows, cams, robust,
-                                                                       kpt_sigma_px)
+        kpt0, kpt0_cov, kpt_keep, sigma_kpt, curve, kinfo = _robust_keypoints(scene, rows, cams, robust,
+                                                                              kpt_sigma_px)
         n_in = kpt_keep.sum(axis=1)
         n_seen = np.isfinite(rows.kpt_z[..., 0]).sum(axis=1)
         kpt_reliable = np.isfinite(kpt0[..., 0]) & ((n_in >= 3) | ((n_in == 2) & (n_seen == 2)))
         conf = np.maximum(rows.kpt_conf, CONF_FLOOR)
-        kpt_var = sigma_kpt[None, None, :] ** 2 / conf
+        kpt_var = sigma_kpt[None, None, :] ** 2 * curve(conf)
         info["keypoints"] = kinfo
         if not use_box:
             prior = ShapePrior(np.log(PERSON_SEMI_AXES_M), np.full(3, 0.25),
@@ -266,23 +266,6 @@ def _merge_fit(fit: BoxFit, sel: np.ndarray, sub: BoxFit) -> BoxFit:
 EDGES = ("xmin", "ymin", "xmax", "ymax")
 
 
-def _group_variances(r2: F64, dof: F64, use: np.ndarray, group: np.ndarray, n_groups: int,
-                     reject_p: float, group_dof: int, min_points: int = 30) -> tuple[float, F64]:
-    """:func:`robust_variance` of all used points and of each group (``group`` broadcasts
-    against ``use``) with at least ``min_points``; a group with fewer, or with no finite
-    positive estimate, gets the overall one."""
-    group = np.broadcast_to(group, use.shape)
-    glob = robust_variance(r2[use], dof[use], reject_p, group_dof)
-    out = np.full(n_groups, glob)
-    for g in range(n_groups):
-        u = use & (group == g)
-        if u.sum() >= min_points:
-            v = robust_variance(r2[u], dof[u], reject_p, group_dof)
-            if np.isfinite(v) and v > 0:
-                out[g] = v
-    return glob, out
-
-
 def _edge_residuals(fit: BoxFit, keep: np.ndarray) -> tuple[F64, F64, np.ndarray]:
     """The kept edges' squared residuals ``(R, C, 4)`` (0 where unused), each edge's degrees of
     freedom (its share of its fit's edges minus 6) and which edges are used."""
@@ -309,7 +292,7 @@ def _edge_sigmas(fit: BoxFit, keep: np.ndarray, robust: RobustConfig) -> tuple[F
     worse against MultiviewX's ground positions (16.4 vs 12.1 mm): the differences are the
     ellipsoid model's misfit, not noise, and the sharpest edge is not the truest."""
     r2, dof, use = _edge_residuals(fit, keep)
-    glob, out = _group_variances(r2, dof, use, np.arange(4), 4, robust.reject_p, 1)
+    glob, out = group_variances(r2, dof, use, np.arange(4), 4, robust.reject_p, 1)
     out = np.where(np.isfinite(out) & (out > 0), out, 1.0)
     g = glob if np.isfinite(glob) and glob > 0 else 1.0
     return np.full(4, np.sqrt(max(g, 0.1**2))), np.sqrt(np.maximum(out, 0.1**2))
@@ -386,7 +369,7 @@ def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
 
 def _robust_keypoints(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
                       kpt_sigma_px: float | None
-                      ) -> tuple[F64, F64, np.ndarray, F64, JsonDict]:
+                      ) -> tuple[F64, F64, np.ndarray, F64, ConfidenceCurve, JsonDict]:
     """Per-frame robust triangulation of every joint, per-joint noise, input checks."""
     R, C, J = rows.kpt_z.shape[:3]
     obs = np.swapaxes(rows.kpt_z, 1, 2).reshape(R * J, C, 2)
@@ -398,16 +381,19 @@ def _robust_keypoints(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig
     g2 = chi2_isf(robust.reject_p, 2)
     joint_of = np.tile(np.arange(J), R)
 
-    def joint_sigmas(e2: F64, keep: np.ndarray) -> tuple[F64, float]:
+    def joint_sigmas(e2: F64, keep: np.ndarray) -> tuple[F64, float, ConfidenceCurve]:
+        """The joints' levels (sd, px, at full confidence), the overall one and the curve."""
         n_in = keep.sum(axis=1)
         share = np.clip((2 * n_in - 3) / np.maximum(2 * n_in, 1), 0.0, 1.0)
-        r2 = np.where(keep, e2 * conf, np.nan)  # residual of a unit-confidence point
         dof = np.broadcast_to((2 * share)[:, None], keep.shape)
         use = keep & (n_in[:, None] >= 3)
-        glob, out = _group_variances(r2, dof, use, joint_of[:, None], J, robust.reject_p, 2)
+        curve, level = learn_curve(np.where(keep, e2, np.nan), dof, use, conf, joint_of[:, None], J,
+                                   robust.reject_p)
+        glob, _ = group_variances(np.where(keep, e2 / curve(conf), np.nan), dof, use, joint_of[:, None], J,
+                                  robust.reject_p, 2)
         glob = glob if np.isfinite(glob) and glob > 0 else 1.0
-        out = np.where(np.isfinite(out) & (out > 0), out, glob)
-        return np.sqrt(np.maximum(out, 0.05**2)), float(np.sqrt(max(glob, 0.05**2)))
+        level = np.where(np.isfinite(level) & (level > 0), level, glob)
+        return np.sqrt(np.maximum(level, 0.05**2)), float(np.sqrt(max(glob, 0.05**2))), curve
 
     thr1 = max(0.015 * diag, 4.0) if robust.enabled else np.inf
     X, keep, e2 = robust_triangulate(xy, cams.R, cams.t, f, thr1, 1.0 / conf, cams.depth_sign)
@@ -415,15 +401,16 @@ def _robust_keypoints(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig
     if kpt_sigma_px is not None:
         sig_j = np.full(J, float(kpt_sigma_px))
         sig = float(kpt_sigma_px)
+        curve = INVERSE
     else:
-        sig_j, sig = joint_sigmas(e2, keep)
+        sig_j, sig, curve = joint_sigmas(e2, keep)
     if robust.enabled:
-        scale = (sig_j[joint_of] / sig)[:, None] ** 2 / conf
+        scale = (sig_j[joint_of] / sig)[:, None] ** 2 * curve(conf)
         X, keep, e2 = robust_triangulate(xy, cams.R, cams.t, f, float(np.sqrt(g2)) * sig, scale,
                                          cams.depth_sign)
         if kpt_sigma_px is None:
-            sig_j, sig = joint_sigmas(e2, keep)
-    w = np.where(keep, conf / sig_j[joint_of][:, None] ** 2, 0.0)
+            sig_j, sig, curve = joint_sigmas(e2, keep)
+    w = np.where(keep, 1.0 / (sig_j[joint_of][:, None] ** 2 * curve(conf)), 0.0)
     cov = triangulation_cov(np.nan_to_num(X), cams.R, cams.t, f, w)
     # a point whose views disagree beyond what their noise explains is trusted less
     n_in = keep.sum(axis=1)
@@ -435,9 +422,8 @@ def _robust_keypoints(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig
             "sigma_source": "given" if kpt_sigma_px is not None else
             "robust reprojection level of the per-frame triangulation (kept points, with dof)",
             "points": int(seen.sum()), "points_rejected_per_frame": int((seen & ~keep).sum()),
-            "confidence": "given: variance = sigma_joint^2 / conf" if scene.obs.kpt_conf is not None
-            else "none given"}
-    return (X.reshape(R, J, 3), cov.reshape(R, J, 3, 3), kept, sig_j, info)
+            "confidence": curve.info() if scene.obs.kpt_conf is not None else "none given"}
+    return (X.reshape(R, J, 3), cov.reshape(R, J, 3, 3), kept, sig_j, curve, info)
 
 
 def _check_keypoints_in_front(scene: Scene, rows: Rows, e2: F64, seen: np.ndarray, X: F64,
