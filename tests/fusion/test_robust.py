@@ -310,7 +310,7 @@ def _write_kpt(root: Path, mutate) -> int:
     return line
 
 
-@pytest.mark.parametrize("value,needle", [("1.5", "confidence must be in [0, 1]"),
+@pytest.mark.parametrize("value,needle", [("2.5", "confidence must be in [0, 1]"),
                                           ("nan", "confidence must be in [0, 1]"),
                                           ("-0.1", "confidence must be in [0, 1]"),
                                           ("high", "malformed")])

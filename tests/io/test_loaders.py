@@ -138,11 +138,17 @@ def test_keypoints_read_in_blocks_as_row_by_row(tmp_path: Path, monkeypatch: pyt
     np.testing.assert_allclose(s.obs.kpt_conf[0, :3], [0.9, np.nan, 1.0])
     assert any("2 keypoints with confidence 0" in w for w in s.warnings)
     assert s.obs.origin[0].endswith("keypoints.csv: line 2")
+    # a detector's heatmap peak above 1 (OpenPose writes up to ~1.04): read as 1, one warning
+    s = load_scene(_native_keypoints(tmp_path / "peak", ok[:1] + [f"1,{cam},1,3,10,20,1.03"] + ok[1:],
+                                     conf=True))
+    assert s.obs.kpt_conf is not None and np.nanmax(s.obs.kpt_conf) == 1.0
+    said = [w for w in s.warnings if "confidence above 1" in w]
+    assert len(said) == 1 and "1 keypoint(s)" in said[0] and "up to 1.03" in said[0], s.warnings
     for rows, line, what in (
             (ok + [f"0,{cam},1,2,1,1,0.5"], 10, "second keypoint 2 for object 1 in frame 0"),
             (ok[:1] + [f"0,{cam},1,0,1,1,0.5"] + ok[1:], 3, "second keypoint 0 for object 1 in frame 0"),
             (ok + [f"1,{cam},1,0,1e9,20,0.5"], 10, "far outside"),
-            (ok + [f"1,{cam},1,0,10,20,1.5"], 10, "confidence must be in [0, 1]"),
+            (ok + [f"1,{cam},1,0,10,20,2.5"], 10, "confidence must be in [0, 1]"),
             (ok + ["1,nosuch,1,0,10,20,1"], 10, "unknown camera 'nosuch'"),
             (ok + [f"1,{cam},1.5,0,10,20,1"], 10, "id must be an integer")):
         with pytest.raises(InputError) as e:

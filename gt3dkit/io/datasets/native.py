@@ -12,9 +12,10 @@ assumed and the run says so (a warning and the summary line).
 ``boxes.csv``: header ``frame,camera,id,xmin,ymin,xmax,ymax``; pixels of the distorted image.
 
 ``keypoints.csv``: header ``frame,camera,id,joint,u,v`` and optionally ``conf`` (a detector's
-confidence in [0, 1], in every row or none); pixels of the distorted image; a missing row
-means not seen, and so does a confidence of 0 (OpenPose writes undetected joints as
-``0,0,0``). A confidence scales the point's variance (``sigma^2 / conf``). Its joint order
+confidence in [0, 1], in every row or none; a heatmap peak up to 2 is read as 1 with a
+warning); pixels of the distorted image; a missing row means not seen, and so does a
+confidence of 0 (OpenPose writes undetected joints as ``0,0,0``). A confidence scales the
+point's variance by a factor learnt from the data (:mod:`gt3dkit.fusion.confidence`). Its joint order
 is ``--skeleton`` (or ``"skeleton"`` in ``cameras.json``), else the smallest known skeleton
 holding the largest joint index.
 Boxes and keypoints of the same (frame, camera, id) update the same object.
@@ -55,6 +56,9 @@ from gt3dkit.types import F64, GroundTruth, Origins, Rig, Scene, SimScene, Skele
 BOX_COLUMNS = ("frame", "camera", "id", "xmin", "ymin", "xmax", "ymax")
 KPT_COLUMNS = ("frame", "camera", "id", "joint", "u", "v")
 DEFAULT_FPS = 10.0
+#: The largest confidence read (as 1): detectors' heatmap peaks pass 1 (OpenPose up to ~1.04);
+#: beyond this it is no confidence.
+MAX_CONFIDENCE = 2.0
 #: keypoints.csv rows parsed and checked at once (:func:`_checked_keypoints`)
 KEYPOINT_BLOCK_ROWS = 65536
 
@@ -114,16 +118,20 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
         if unseen:
             warnings.append(f"{box_path}: {unseen} boxes of -1s read as not seen")
     undetected = 0
+    above: list[float] = []
     blocks = iter_csv_blocks(kpt_path, kpt_cols, warnings, KEYPOINT_BLOCK_ROWS) if has_kpts else ()
     for lines, block in blocks:  # streamed
-        checked = _checked_keypoints(kpt_path, rig, n_joints, lines, block, "conf" in kpt_cols)
+        checked = _checked_keypoints(kpt_path, rig, n_joints, lines, block, "conf" in kpt_cols, above)
         if checked is not None:
             rb.add_joint_block(checked[0])
             undetected += checked[1]
             continue
         for line, row in zip(lines, block, strict=True):  # the block failed a check: say where
             r = dict(zip(kpt_cols, (x.strip() for x in row), strict=False))
-            undetected += _add_keypoint(rb, rig, f"{kpt_path}: line {line}", r)
+            undetected += _add_keypoint(rb, rig, f"{kpt_path}: line {line}", r, above)
+    if above:
+        warnings.append(f"{kpt_path}: {len(above)} keypoint(s) with a confidence above 1 (up to "
+                        f"{max(above):.4g}; a detector's heatmap peak): read as 1")
     if undetected:
         warnings.append(f"{kpt_path}: {undetected} keypoints with confidence 0 read as not "
                         "detected")
@@ -187,15 +195,20 @@ def _checked_boxes(path: Path, rig: Rig, lines: list[int], rows: list[list[str]]
     return BoxBlock(frame[k], cam[k], tid[k], box[k], where), int(unseen.sum())
 
 
-def _add_keypoint(rb: RowBuilder, rig: Rig, where: str, r: dict[str, str]) -> int:
+def _add_keypoint(rb: RowBuilder, rig: Rig, where: str, r: dict[str, str], above: list[float]) -> int:
     """One row of ``keypoints.csv``, checked and added; 1 if it is an undetected point
-    (confidence 0: skipped), else 0."""
+    (confidence 0: skipped), else 0. A confidence above 1 (a detector's heatmap peak, as
+    OpenPose writes up to ~1.04) is read as 1 and listed in ``above``."""
     frame, tid = parse_frame(where, r["frame"]), parse_int(where, r["id"], "id")
     joint = parse_int(where, r["joint"], "joint", 0, 10_000)
     uv = (_number(where, r["u"], "u"), _number(where, r["v"], "v"))
     conf = _number(where, r["conf"], "conf") if "conf" in r else None
-    if conf is not None and not 0 <= conf <= 1:  # NaN fails too
-        raise InputError(where, f"confidence must be in [0, 1], got {r['conf']}")
+    if conf is not None and not (0 <= conf <= MAX_CONFIDENCE):  # NaN fails too
+        raise InputError(where, f"confidence must be in [0, 1] (a detector's peak up to "
+                                f"{MAX_CONFIDENCE:g}), got {r['conf']}")
+    if conf is not None and conf > 1:
+        above.append(conf)
+        conf = 1.0
     cam = camera_index(rig, r["camera"], where)
     if conf == 0:
         return 1
@@ -206,7 +219,7 @@ def _add_keypoint(rb: RowBuilder, rig: Rig, where: str, r: dict[str, str]) -> in
 
 
 def _checked_keypoints(path: Path, rig: Rig, n_joints: int, lines: list[int], rows: list[list[str]],
-                       with_conf: bool) -> tuple[JointBlock, int] | None:
+                       with_conf: bool, above: list[float]) -> tuple[JointBlock, int] | None:
     """A block of ``keypoints.csv`` rows parsed and checked at once, as :func:`_add_keypoint` checks
     each row, and the count of undetected points (confidence 0) it drops; None when any row fails
     a check (the caller then goes row by row to say which and why). A 4-million-point file reads in
@@ -226,11 +239,14 @@ def _checked_keypoints(path: Path, rig: Rig, n_joints: int, lines: list[int], ro
           & np.all((uv >= -FAR_IMAGES * size) & (uv <= (1 + FAR_IMAGES) * size), axis=1))
     undetected = 0
     if conf is not None:
-        ok &= (conf >= 0) & (conf <= 1)
+        ok &= (conf >= 0) & (conf <= MAX_CONFIDENCE)
         seen = conf > 0
         undetected = int(np.sum(~seen & ok))
     if not ok.all():
         return None
+    if conf is not None and (conf > 1).any():  # as _add_keypoint: read as 1, listed
+        above.extend(conf[conf > 1].tolist())
+        conf = np.minimum(conf, 1.0)
     keep = seen if conf is not None else slice(None)
     line = np.asarray(lines, dtype=np.int64)[keep]
     block = JointBlock(frame[keep], cam[keep], tid[keep], joint[keep], uv[keep],
