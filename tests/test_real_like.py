@@ -65,3 +65,39 @@ def test_smoothers_on_real_like_labels(tmp_path: Path, seed: int, labels: str) -
             assert np.mean(z2 <= chi2.ppf(0.99, 2)) >= 0.98, est
     assert mean["ukf"] <= 1.1 * mean["triangulation"], mean
     assert mean["gtsam"] <= 1.1 * mean["triangulation"], mean
+
+
+def test_a_detector_in_a_crowd() -> None:
+    """Detections as a detector in a crowd makes them (:class:`Errors`): joints hidden behind a
+    nearer person guessed at low confidence, joints taken from another person, left/right swaps,
+    confidences above 1, and pixel noise that grows as the confidence falls. The run reads the
+    confidences above 1 with one warning, learns that the least confident points are the
+    noisiest (the factor of the lowest confidence bin well above ``1/conf``'s), keeps every joint
+    within centimetres, and flags the joints taken from another person and the swaps."""
+    from gt3dkit.api import estimate_checked, load_scene
+    from gt3dkit.fusion.base import make_estimator
+    from gt3dkit.sim import simulate_skeletons, write_skeleton_scene
+
+    errors = Errors(occluded=0.5, wrong_person=0.02, over_one=0.05, noise_by_confidence=True, swaps=0.02)
+    sk = simulate_skeletons("native", seed=5, frames=30, people=4, cameras=6, noise_px=1.5, errors=errors,
+                            confidences=True)
+    kinds = [k for *_, k, _ in sk.injected]
+    for kind in ("occluded_joint", "wrong_person_joint", "swapped_joints", "confidence_above_1"):
+        assert kinds.count(kind) >= 2, kind
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        write_skeleton_scene(sk, Path(tmp) / "in", "native")
+        scene = load_scene(Path(tmp) / "in")
+    assert sum("confidence above 1" in w for w in scene.all_warnings) == 1
+    tracks, qa = estimate_checked(scene, make_estimator("ukf"))
+    curve = tracks.info.details["preparation"]["keypoints"]["confidence"]
+    assert curve["factor"][0] > 2.0 * curve["confidence"][-1] / curve["confidence"][0]
+    it, ig = match_rows(tracks, scene.truth)
+    e = np.linalg.norm(tracks.kpt_world[it] - scene.truth.kpt_world[ig], axis=-1)
+    assert np.nanmedian(e) < 0.003 and np.nanmax(e) < 0.05
+    flagged = {(int(f), c, int(i), str(j)) for f, c, i, j, *_ in qa.rows}
+    for kind in ("wrong_person_joint", "swapped_joints"):
+        hits = [(f, c, i, str(j).split("+")[0]) for f, c, i, j, k, _ in sk.injected if k == kind]
+        found = [h for h in hits if h in flagged]
+        assert len(found) >= 0.8 * len(hits), (kind, hits, sorted(flagged))

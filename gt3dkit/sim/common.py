@@ -49,6 +49,16 @@ class Errors:
         not at all), as real label sets reuse the id of someone who left (boxes only)
     exchanged_ids : this many times two people's ids are exchanged for 1-4 consecutive frames,
         in every view (boxes only)
+    occluded : keypoints hidden behind a nearer person in a view (inside the 2-D extent of the
+        joints of a person at least 0.3 m nearer the camera) that the detector guesses: moved by
+        8-25 px, confidence 0.1-0.5 (keypoints only)
+    wrong_person : keypoints taken from another person in the view (the same joint of the
+        nearest other person within 300 px), confidence 0.4-0.8 (keypoints only)
+    over_one : confident keypoints (confidence above 0.9) whose confidence is 1.0-1.04, as
+        OpenPose's heatmap peaks (keypoints only)
+    noise_by_confidence : the pixel noise of a keypoint grows as its confidence falls, its
+        variance ``noise_px^2 (0.92 / conf)^3`` below 0.92 (the law real OpenPose output on
+        Shelf follows; keypoints only)
 
     Both id errors are in the truth as well (as in WILDTRACK, whose positions carry the labels'
     ids): the truth says where each annotated (frame, id) is, not who it is.
@@ -66,6 +76,10 @@ class Errors:
     dropped: float | None = None
     reused_ids: int = 0
     exchanged_ids: int = 0
+    occluded: float = 0.0
+    wrong_person: float = 0.0
+    over_one: float = 0.0
+    noise_by_confidence: bool = False
 
     def __post_init__(self) -> None:
         if self.reused_ids < 0 or self.exchanged_ids < 0:
@@ -74,7 +88,8 @@ class Errors:
             v = getattr(self, k)
             if v is not None and not 0 <= v < 1:
                 raise ValueError(f"{k} must be a fraction in [0, 1), got {v}")
-        for k in ("outliers", "swaps", "glitch", "shifted", "single_view", "missing"):
+        for k in ("outliers", "swaps", "glitch", "shifted", "single_view", "missing", "occluded",
+                  "wrong_person", "over_one"):
             v = getattr(self, k)
             if not 0 <= v <= 1:
                 raise ValueError(f"{k} must be a fraction in [0, 1], got {v}")

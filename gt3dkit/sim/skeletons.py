@@ -3,6 +3,7 @@ detector's errors, written as keypoint files (:func:`write_skeleton_scene`, Open
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -131,16 +132,20 @@ def simulate_skeletons(layout: str = "native", seed: int = 0, frames: int = 30, 
     uv = np.swapaxes(np.where(ok[..., None], uv, np.nan), 1, 2)  # (M, C, J, 2)
     truth_frame, truth_id = np.concatenate(fr), np.concatenate(ids)
     uv, conf, injected = detector_errors(uv, rig, skeleton, truth_frame, truth_id, frame_numbers,
-                                          errors, np.random.default_rng([seed, 1]))
+                                          errors, np.random.default_rng([seed, 1]),
+                                          np.swapaxes(depth, 1, 2), noise_px)
     return SkeletonScene(rig=rig, frames=frame_numbers, fps=fps, skeleton=skeleton,
                          truth_frame=truth_frame, truth_id=truth_id, kpt_world=X, uv=uv,
                          conf=conf if confidences else None, injected=tuple(injected))
 
 
 def detector_errors(uv: F64, rig: Rig, skeleton: str, truth_frame: I64, truth_id: I64,
-                     frames: I64, errors: Errors, rng: np.random.Generator
+                     frames: I64, errors: Errors, rng: np.random.Generator,
+                     depth_m: F64 | None = None, noise_px: float = 0.0
                      ) -> tuple[F64, F64, list[tuple[int, str, int, str, str, str]]]:
-    """Inject ``errors`` into keypoints ``uv (M, C, J, 2)``; confidences ``(M, C, J)``."""
+    """Inject ``errors`` into keypoints ``uv (M, C, J, 2)``; confidences ``(M, C, J)``.
+    ``depth_m (M, C, J)``: each point's depth in its camera (occlusion needs it); ``noise_px``:
+    the pixel noise already in ``uv`` (scaled by confidence with ``noise_by_confidence``)."""
     M, C, J = uv.shape[:3]
     uv = uv.copy()
     seen = np.isfinite(uv[..., 0])
@@ -189,8 +194,67 @@ def detector_errors(uv: F64, rig: Rig, skeleton: str, truth_frame: I64, truth_id
             uv[m, c, j] = [0.0, 0.0] if both else [0.0, uv[m, c, j, 1]]
             conf[m, c, j] = rng.uniform(0.6, 0.9)
             note(m, c, j, "glitch", "u = v = 0" if both else "u = 0")
+    if errors.occluded or errors.wrong_person or errors.over_one or errors.noise_by_confidence:
+        _view_errors(uv, conf, seen, truth_frame, errors, rng, depth_m, noise_px, note)
     uv = np.where(seen[..., None], uv, np.nan)
     return uv, np.where(seen, conf, np.nan), injected
+
+
+def _view_errors(uv: F64, conf: F64, seen: np.ndarray, truth_frame: I64, errors: Errors,
+                 rng: np.random.Generator, depth_m: F64 | None, noise_px: float,
+                 note: Callable[[int, int, int | str, str, str], None]) -> None:
+    """The errors of a detector that sees several people in a view (in place): joints hidden
+    behind a nearer person guessed, joints taken from another person, confidences above 1, noise
+    that grows as the confidence falls (:class:`Errors`)."""
+    M, C, J = seen.shape
+    clean = seen & (conf >= 0.3)
+    if errors.noise_by_confidence and noise_px > 0:
+        extra = noise_px * np.sqrt(np.maximum((0.92 / conf) ** 3 - 1.0, 0.0))
+        uv += rng.standard_normal(uv.shape) * np.where(clean, extra, 0.0)[..., None]
+    if errors.occluded or errors.wrong_person:
+        if errors.occluded and depth_m is None:
+            raise ValueError("occluded needs each point's depth")
+        for f in np.unique(truth_frame):
+            rows = np.flatnonzero(truth_frame == f)
+            for c in range(C):
+                _frame_view(uv, conf, seen, rows, c, errors, rng, depth_m, note)
+    if errors.over_one:
+        hit = seen & (conf > 0.9) & (rng.uniform(size=seen.shape) < errors.over_one)
+        conf[hit] = rng.uniform(1.0, 1.04, size=int(hit.sum()))
+        for m, c, j in np.argwhere(hit):
+            note(m, c, j, "confidence_above_1", f"{conf[m, c, j]:.3f}")
+
+
+def _frame_view(uv: F64, conf: F64, seen: np.ndarray, rows: I64, c: int, errors: Errors,
+                rng: np.random.Generator, depth_m: F64 | None,
+                note: Callable[[int, int, int | str, str, str], None]) -> None:
+    """:func:`_view_errors`' occlusion and wrong-person joints of one frame's ``rows`` in camera ``c``."""
+    here = [m for m in rows if seen[m, c].sum() >= 3]
+    for m in here:
+        for n in here:
+            if n == m:
+                continue
+            pts = uv[n, c][seen[n, c]]
+            lo, hi = pts.min(axis=0) - 10.0, pts.max(axis=0) + 10.0
+            if errors.occluded and depth_m is not None and (
+                    np.nanmedian(depth_m[n, c]) < np.nanmedian(depth_m[m, c]) - 0.3):
+                inside = seen[m, c] & np.all((uv[m, c] >= lo) & (uv[m, c] <= hi), axis=1)
+                for j in np.flatnonzero(inside & (rng.uniform(size=len(inside)) < errors.occluded)):
+                    r, ang = rng.uniform(8.0, 25.0), rng.uniform(0, 2 * np.pi)
+                    uv[m, c, j] += r * np.array([np.cos(ang), np.sin(ang)])
+                    conf[m, c, j] = rng.uniform(0.1, 0.5)
+                    note(m, c, j, "occluded_joint", f"behind a nearer person: moved {r:.0f} px")
+        if errors.wrong_person:
+            others = [n for n in here if n != m]
+            for j in np.flatnonzero(seen[m, c] & (rng.uniform(size=seen.shape[2]) < errors.wrong_person)):
+                cand = [(float(np.linalg.norm(uv[n, c, j] - uv[m, c, j])), n) for n in others
+                        if seen[n, c, j]]
+                cand = [(d, n) for d, n in cand if d <= 300.0]
+                if cand:
+                    d, n = min(cand)
+                    uv[m, c, j] = uv[n, c, j] + rng.normal(scale=1.0, size=2)
+                    conf[m, c, j] = rng.uniform(0.4, 0.8)
+                    note(m, c, j, "wrong_person_joint", f"another person's, {d:.0f} px away")
 
 
 #: y-down (the skeleton simulator's world) -> z-up (Pose2Sim's): X_zup = Q_ZUP @ X_ydown
