@@ -76,6 +76,32 @@ def _fmt(v: object) -> str:
     return "-" if v is None else str(v)
 
 
+def _keypoint_noise(run: Run) -> str:
+    """The keypoint noise the run learnt from the data (:mod:`gt3dkit.fusion.confidence`): each
+    joint's pixel sd at full confidence, and how the detector's confidence scales it; '' when
+    the run has no keypoints."""
+    est = run.meta.get("estimator", {}) if isinstance(run.meta.get("estimator"), dict) else {}
+    kp = ((est.get("preparation") or {}).get("keypoints") or {}) if isinstance(est, dict) else {}
+    per_joint = kp.get("sigma_px_per_joint")
+    if not per_joint or not run.scene.skeleton:
+        return ""
+    names = SKELETONS[run.scene.skeleton].marker_names
+    rows = [[n, f"{v:.2f}"] for n, v in sorted(zip(names, per_joint, strict=False), key=lambda nv: -nv[1])]
+    parts = ["<h2>Keypoint noise learnt from the data</h2>",
+             "<p>Each joint's pixel sd at the detector's full confidence (the per-frame "
+             "triangulation's residuals; " + html.escape(str(kp.get("sigma_source", ""))) + ").</p>",
+             _table(rows, ["joint", "sd (px)"])]
+    curve = kp.get("confidence")
+    if isinstance(curve, dict) and curve.get("confidence"):
+        parts += ["<p>" + html.escape(f"{curve['rule']}: {curve['source']}.") + "</p>",
+                  _table([[f"{c:.3f}", f"{f:.3g}", f"{np.sqrt(f):.2f}x"]
+                          for c, f in zip(curve["confidence"], curve["factor"], strict=True)],
+                         ["confidence", "variance factor", "sd"])]
+    elif isinstance(curve, dict):
+        parts.append("<p>" + html.escape(f"{curve['rule']}: {curve['source']}.") + "</p>")
+    return "".join(parts)
+
+
 def _numbers(run: Run, res: ViewResiduals) -> list[list[Any]]:
     sc, tr, meta = run.scene, run.tracks, run.meta
     est = meta.get("estimator", {}) if isinstance(meta.get("estimator"), dict) else {}
@@ -268,6 +294,7 @@ def run_sections(run: Run, tmp: Path, prefix: str = "", tracks_b: TrackSet | Non
     parts = ["<h2>Numbers</h2>", _table([[k, v] for k, v in _numbers(run, res)])]
     if run.notes:
         parts.append("".join(f'<p class="warn">{html.escape(n)}</p>' for n in run.notes))
+    parts.append(_keypoint_noise(run))
     parts += ["<h2>3D (open3d, off-screen)</h2>",
               "".join(renders) or '<p class="warn">' + html.escape("; ".join(warnings)) + "</p>"]
     panels = worst_frames(sc, res, sub)

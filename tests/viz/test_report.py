@@ -104,6 +104,8 @@ def test_report_of_a_keypoint_run_and_a_comparison(tmp_path: Path, box_run: Path
     assert r.returncode == 0, r.stderr
     srcs = _check_page(tmp_path / "out" / "report")
     assert len(srcs) >= 4 and "closeup.png" in srcs
+    page = (tmp_path / "out" / "report" / "index.html").read_text()
+    assert "Keypoint noise learnt from the data" in page and "<td>nose</td>" in page.lower()
     r = _run("compare", str(box_run / "in"), "--out", str(tmp_path / "cmp"), "--no-progress")
     assert r.returncode == 0, r.stderr
     r = _run("report", str(tmp_path / "cmp"))
