@@ -212,7 +212,7 @@ def _bad_values(kind: str) -> tuple[tuple[str, str], ...]:
     if kind == "coord":
         return (*((v, ERROR) for v in BAD_COORD if v != "1,,2"), *((v, EITHER) for v in ODD_COORD))
     if kind == "conf":
-        return (("-0.1", ERROR), ("1.5", ERROR), ("nan", ERROR), ("abc", ERROR), ("0", WARN),
+        return (("-0.1", ERROR), ("1.5", WARN), ("2.5", ERROR), ("nan", ERROR), ("abc", ERROR), ("0", WARN),
                 ("1e-9", EITHER))
     if kind == "pos":
         return (("nan", ERROR), ("abc", ERROR), ("inf", ERROR), ("-1", ERROR), ("", ERROR))

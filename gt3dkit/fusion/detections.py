@@ -99,11 +99,19 @@ def pair_costs(xy: F64, a: np.ndarray, b: np.ndarray, cam: np.ndarray, Pw: F64, 
 FRAME_ROWS = 4096
 
 
+FramePairs = tuple[int, np.ndarray, list[tuple[float, int, int]], set[tuple[int, int]]]
+
+
 def _consistent_pairs(obs: Observations, xy: F64, Pw: F64, f_px: F64, cfg: DetectionConfig
-                      ) -> Iterator[tuple[int, np.ndarray, list[tuple[float, int, int]]]]:
-    """Per frame (in order): its rows and its pairs of views within ``cfg.max_reproj_px``,
-    ``(cost, a, b)`` best first (:func:`pair_costs`, over runs of whole frames of about
-    :data:`FRAME_ROWS` rows: a long recording's pairs are never all held at once)."""
+                      ) -> Iterator[FramePairs]:
+    """Per frame (in order): its rows, its pairs of views within ``cfg.max_reproj_px``,
+    ``(cost, a, b)``: the pairs with ``2 * cfg.min_joints`` confident joints in common or more
+    first, then the rest, each best first (:func:`pair_costs`, over runs of whole frames of
+    about :data:`FRAME_ROWS` rows: a long recording's pairs are never all held at once). A pair
+    of a few joints (a partial skeleton: a leg) agrees with many more detections than it should
+    and, grouped first, kept a whole detection of that person from the person's other views
+    (real Shelf, frame 6: a leg in one view took the person's view in another into a second id);
+    and the pairs compared (``cfg.min_joints`` in common) and beyond ``cfg.max_reproj_px``."""
     frames, start = np.unique(obs.frame, return_index=True)
     end = np.r_[start[1:], len(obs.frame)]
     k = 0
@@ -113,13 +121,20 @@ def _consistent_pairs(obs: Observations, xy: F64, Pw: F64, f_px: F64, cfg: Detec
         a, b = frame_pairs(obs.frame[lo:hi], obs.cam[lo:hi])
         a, b = a + lo, b + lo
         cost = pair_costs(xy, a, b, obs.cam, Pw, f_px, cfg.min_joints)
+        seen = np.isfinite(xy[..., 0])
+        common = (seen[a] & seen[b]).sum(axis=1)
         good = cost <= cfg.max_reproj_px
-        a, b, cost = a[good], b[good], cost[good]
+        against = ~good & (common >= cfg.min_joints)  # compared, and they disagree
         at = np.searchsorted(a, np.r_[start[k:k1], hi])  # each frame's pairs
         for q in range(k, k1):
-            s = slice(at[q - k], at[q - k + 1])
+            s = np.arange(at[q - k], at[q - k + 1])
+            g = s[good[s]]
+            weak = common[g] < 2 * cfg.min_joints  # a few joints in common
+            order = g[np.lexsort((b[g], a[g], cost[g], weak))]  # the well-supported pairs first
+            bad = s[against[s]]
             yield (int(frames[q]), np.arange(start[q], end[q]),
-                   sorted(zip(cost[s].tolist(), a[s].tolist(), b[s].tolist(), strict=True)))
+                   list(zip(cost[order].tolist(), a[order].tolist(), b[order].tolist(), strict=True)),
+                   set(zip(a[bad].tolist(), b[bad].tolist(), strict=True)))
         k = k1
 
 
@@ -138,12 +153,15 @@ def _flat(v: F64, up: F64) -> float:
     return float(np.linalg.norm(v - (v @ up) * up))
 
 
-def _frame_groups(rows: np.ndarray, pairs: list[tuple[float, int, int]], cam: I64, xy: F64, cams: Cams
-                  ) -> tuple[list[tuple[list[int], F64, float]], list[int]]:
-    """One frame's detections ``rows`` grouped greedily by their consistent ``pairs`` (best first;
-    one detection per camera, every pair of a group consistent; :func:`_one_per_person`): per
-    group of two or more views its members, the median of its triangulated joints (m) and its
-    pairs' mean cost (px); and the detections left out as a camera's second of a person."""
+def _frame_groups(rows: np.ndarray, pairs: list[tuple[float, int, int]], against: set[tuple[int, int]],
+                  cam: I64, xy: F64, cams: Cams) -> tuple[list[tuple[list[int], F64, float]], list[int]]:
+    """One frame's detections ``rows`` grouped greedily by their consistent ``pairs`` (in the
+    order given; one detection per camera; no two detections of a group compared and found to
+    disagree, ``against``: two views with too few joints in common to compare, a partial
+    skeleton and a view of the other side, neither join nor part a group;
+    :func:`_one_per_person`): per group of two or more views its members, the median of its
+    triangulated joints (m) and its pairs' mean cost (px); and the detections left out as a
+    camera's second of a person."""
     cost_of = {(a, b): c for c, a, b in pairs}
     group = {int(r): {int(r)} for r in rows}
     for _, a, b in pairs:
@@ -152,7 +170,7 @@ def _frame_groups(rows: np.ndarray, pairs: list[tuple[float, int, int]], cam: I6
             continue
         if {cam[r] for r in ga} & {cam[r] for r in gb}:
             continue
-        if not all((min(r, q), max(r, q)) in cost_of for r in ga for q in gb):
+        if any((min(r, q), max(r, q)) in against for r in ga for q in gb):
             continue
         merged = ga | gb
         for r in merged:
@@ -260,8 +278,8 @@ def associate_detections(scene: Scene, cfg: DetectionConfig | None = None,
     next_id = 0
     with np.errstate(all="ignore"):
         Pw = np.concatenate([cams.R, cams.t[:, :, None]], axis=2)  # (C, 3, 4)
-        for f, rows, pairs in _consistent_pairs(obs, xy, Pw, f_px, cfg):
-            found, dropped = _frame_groups(rows, pairs, obs.cam, xy, cams)
+        for f, rows, pairs, against in _consistent_pairs(obs, xy, Pw, f_px, cfg):
+            found, dropped = _frame_groups(rows, pairs, against, obs.cam, xy, cams)
             twice[dropped] = True
             taken = _linked(tracks, found, f, scene, cfg)
             for j, (members, centroid, pc) in enumerate(found):
