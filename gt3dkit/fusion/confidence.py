@@ -39,7 +39,9 @@ class ConfidenceCurve:
 
     knots : (B,) the bins' median confidences, increasing; factors : (B,) the variance factor
     there, non-increasing, 1 at the most confident bin (a joint's level is its sd there);
-    between knots linear in log confidence, constant beyond. ``knots`` empty: ``1 / conf``.
+    between knots a power law (log factor linear in log confidence), below the first knot the
+    first segment's power law continued (the least confident bin's median is not its least
+    confident point), constant above the last. ``knots`` empty: ``1 / conf``.
     """
 
     knots: F64
@@ -50,7 +52,10 @@ class ConfidenceCurve:
         c = np.asarray(conf, dtype=np.float64)
         if not len(self.knots):
             return 1.0 / c
-        return np.interp(np.log(c), np.log(self.knots), self.factors)
+        lc, lk, lf = np.log(c), np.log(self.knots), np.log(self.factors)
+        inside = np.interp(lc, lk, lf)
+        slope = (lf[1] - lf[0]) / (lk[1] - lk[0])  # below the first knot: the first segment's power law
+        return np.exp(np.where(lc < lk[0], lf[0] + slope * (lc - lk[0]), inside))
 
     def info(self) -> JsonDict:
         """For ``meta.json`` and the report: the table of the curve and where it came from."""

@@ -35,6 +35,8 @@ def test_the_curve_is_the_law_that_drew_the_residuals(power: float) -> None:
     top = curve.knots[-1] ** -power
     np.testing.assert_allclose(var_j, np.unique(level) * top, rtol=0.05)
     np.testing.assert_allclose(curve(curve.knots), curve.factors)
+    # below the least confident bin's median the law goes on (not flat at that bin's factor)
+    np.testing.assert_allclose(curve(np.array([0.2])), (0.2 / curve.knots[-1]) ** -power, rtol=0.25)
 
 
 def test_without_confidences_the_rule_stays_the_assumed_one() -> None:
