@@ -18,6 +18,7 @@ tools read. Every file goes into one folder, written atomically.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Callable
 from pathlib import Path
@@ -28,6 +29,7 @@ from gt3dkit.api import load_run
 from gt3dkit.arrays import frame_grid
 from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import write_dir_atomically
+from gt3dkit.io.jointmap import read_joint_map
 from gt3dkit.io.results import Result, read_result
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import F64, I64, JsonDict
@@ -266,13 +268,35 @@ EXPORTERS: dict[str, Callable[[Result, Path], JsonDict]] = {
 FORMATS = tuple(EXPORTERS)
 
 
-def export(out: Path, fmt: str, dest: Path) -> JsonDict:
-    """Export the reconstruct output ``out`` as ``fmt`` into the folder ``dest`` (atomically);
-    returns what was written (also in ``dest/export.json``)."""
+def mapped(res: Result, path: Path) -> tuple[Result, JsonDict]:
+    """``res`` with its joints mapped by the user's joint map in ``path``
+    (:mod:`gt3dkit.io.jointmap`): the output joints as the run's joints and markers, and what
+    ``export.json`` says of the map."""
+    tr = res.tracks
+    frame = res.meta.get("frame") if isinstance(res.meta.get("frame"), dict) else {}
+    skeleton = frame.get("skeleton") if isinstance(frame, dict) else None
+    if not tr.kpt_world.shape[1]:
+        raise InputError("--joint-map", "the run has no keypoints to map")
+    jm = read_joint_map(path, skeleton if isinstance(skeleton, str) else None, res.joints, res.marker_names)
+    X, sd = jm.apply(tr.kpt_world, tr.kpt_sd)
+    meta = {**res.meta, "frame": {**frame, "skeleton": jm.name, "joints": list(jm.names)}}
+    info: JsonDict = {"joint_map": {"file": str(Path(path).resolve()), "sha256": jm.sha256, "name": jm.name,
+                                    "from": skeleton, "joints": list(jm.names),
+                                    "applied_by": "gt3d export --joint-map (the run's keypoints.csv keeps "
+                                                  "the detector's joints)"}}
+    return dataclasses.replace(res, meta=meta, tracks=dataclasses.replace(tr, kpt_world=X, kpt_sd=sd)), info
+
+
+def export(out: Path, fmt: str, dest: Path, joint_map: Path | None = None) -> JsonDict:
+    """Export the reconstruct output ``out`` as ``fmt`` into the folder ``dest`` (atomically),
+    its joints mapped by the user's ``joint_map`` file when given (:func:`mapped`); returns what
+    was written (also in ``dest/export.json``)."""
     if fmt not in FORMATS:
         raise InputError("--format", f"unknown format {fmt!r} (known: {', '.join(FORMATS)})")
     res = read_result(Path(out))
     info: JsonDict = {}
+    if joint_map is not None:
+        res, info = mapped(res, Path(joint_map))
 
     def write(tmp: Path) -> None:
         info.update(EXPORTERS[fmt](res, tmp))

@@ -66,6 +66,7 @@ _BODY25B = _COCO17 + ("neck", "head_top", "l_big_toe", "l_small_toe", "l_heel", 
                       "r_small_toe", "r_heel")
 _HALPE26 = _COCO17 + ("head_top", "neck", "pelvis", "l_big_toe", "r_big_toe", "l_small_toe",
                       "r_small_toe", "l_heel", "r_heel")
+_COCO133_BODY = _COCO17 + ("l_big_toe", "l_small_toe", "l_heel", "r_big_toe", "r_small_toe", "r_heel")
 _BONES_FEET = (("l_ankle", "l_big_toe"), ("l_big_toe", "l_small_toe"), ("l_ankle", "l_heel"),
                ("r_ankle", "r_big_toe"), ("r_big_toe", "r_small_toe"), ("r_ankle", "r_heel"))
 _BONES_OP = _BONES_BODY + _BONES_FACE
@@ -81,6 +82,9 @@ class Skeleton:
     joints: tuple[str, ...]
     bone_names: tuple[tuple[str, str], ...]
     labels: tuple[str, ...] = ()  # the detector's own joint names (marker names on export)
+    #: points per person the detector writes when more than ``joints`` (the first
+    #: ``n_joints`` are read: COCO-WholeBody's body and feet, not its face and hands); 0: as many
+    detector_points: int = 0
 
     @property
     def marker_names(self) -> tuple[str, ...]:
@@ -113,9 +117,14 @@ SKELETONS = {
     "coco18": Skeleton("coco18", _COCO18, _BONES_COCO18, tuple(_OP_NAMES[j] for j in _COCO18)),
     "halpe26": Skeleton("halpe26", _HALPE26, _BONES_HALPE,
                         tuple({"pelvis": "Hip"}.get(j, _OP_NAMES[j]) for j in _HALPE26)),
+    # COCO-WholeBody (RTMPose's, Pose2Sim's COCO_133): 17 body + 6 feet points, then 68 face and
+    # 2 x 21 hand points, 133 in all; the body and the feet are read
+    "coco133": Skeleton("coco133", _COCO133_BODY, _BONES_COCO17 + _BONES_FEET,
+                        tuple(_OP_NAMES[j] for j in _COCO133_BODY), detector_points=133),
 }
 #: 2D detector files (OpenPose JSON) name their skeleton by joint count; 25 is BODY_25 or BODY_25B
-DETECTOR_SKELETONS = {25: ("body25", "body25b"), 26: ("halpe26",), 18: ("coco18",), 17: ("coco17",)}
+DETECTOR_SKELETONS = {25: ("body25", "body25b"), 26: ("halpe26",), 18: ("coco18",), 17: ("coco17",),
+                      133: ("coco133",)}
 
 
 def skeleton_for(n_joints_seen: int) -> Skeleton:

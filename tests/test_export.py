@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import subprocess
 import sys
@@ -151,3 +152,57 @@ def test_box_output_as_c3d_markers_and_errors(tmp_path: Path) -> None:
     assert r.returncode == 2 and "gt3dkit did not write" in r.stderr
     r = _run("export", str(tmp_path / "out"), "--format", "fbx")
     assert r.returncode == 2 and "--format" in r.stderr
+
+
+def test_a_users_joint_map(skel: Path, tmp_path: Path) -> None:
+    """``--joint-map``: the export's joints are the user's affine combinations of the run's
+    (weights summing to 1), their sds ``sqrt(sum w^2 sd^2)``; the run's keypoints.csv keeps the
+    detector's joints; export.json names the map and its sha256. Every mistake in the map is one
+    error line naming its entry, nothing written."""
+    from gt3dkit.io.results import read_result
+
+    res = read_result(skel)
+    joints = res.joints
+    table = {"hip_centre": {"l_hip": 0.5, "r_hip": 0.5}, "head_top": {"nose": 1.5, "neck": -0.5},
+             "l_ankle": {"l_ankle": 1}}
+    good = tmp_path / "map.json"
+    good.write_text(json.dumps({"name": "mine", "from": res.meta["frame"]["skeleton"], "joints": table}))
+    before = (skel / "keypoints.csv").read_bytes()
+    r = _run("export", str(skel), "--format", "json", "--to", str(tmp_path / "m"), "--joint-map",
+             str(good))
+    assert r.returncode == 0, r.stderr
+    assert (skel / "keypoints.csv").read_bytes() == before
+    doc = json.loads((tmp_path / "m" / "tracks.json").read_text())
+    assert doc["header"]["joints"] == list(table) and doc["header"]["skeleton"] == "mine"
+    info = json.loads((tmp_path / "m" / "export.json").read_text())
+    assert info["joint_map"]["sha256"] == hashlib.sha256(good.read_bytes()).hexdigest()
+    tr = res.tracks
+    W = np.zeros((len(table), len(joints)))
+    for k, combo in enumerate(table.values()):
+        for j, w in combo.items():
+            W[k, joints.index(j)] = w
+    checked = 0
+    for fr in doc["frames"]:
+        for o in fr["objects"]:
+            k = int(np.flatnonzero((tr.frame == fr["frame"]) & (tr.track_id == o["id"]))[0])
+            for q, (x, sd) in enumerate(zip(o["keypoints"], o["keypoint_sd"], strict=True)):
+                if x is None:
+                    continue
+                np.testing.assert_allclose(x, W[q] @ tr.kpt_world[k], atol=2e-6)
+                np.testing.assert_allclose(sd, np.sqrt(W[q] ** 2 @ tr.kpt_sd[k] ** 2), atol=2e-6)
+                checked += 1
+    assert checked > 50
+    for bad, needle in (({"hip_centre": {"l_hip": 0.5, "r_hip": 0.4}},
+                         "joints.hip_centre: the weights sum to 0.9"),
+                        ({"x": {"tail": 1}}, "joints.x.tail: the run has no joint 'tail'"),
+                        ({"x": {"nose": "1"}}, "joints.x.nose: the weight must be a finite number")):
+        p = tmp_path / "bad.json"
+        p.write_text(json.dumps({"name": "mine", "from": res.meta["frame"]["skeleton"], "joints": bad}))
+        r = _run("export", str(skel), "--format", "json", "--to", str(tmp_path / "b"), "--joint-map",
+                 str(p))
+        assert r.returncode == 2 and needle in r.stderr and r.stderr.count("\n") == 1, r.stderr
+        assert not (tmp_path / "b").exists()
+    p.write_text(json.dumps({"name": "mine", "from": "body25", "joints": table}))
+    r = _run("export", str(skel), "--format", "json", "--to", str(tmp_path / "b"), "--joint-map",
+             str(p))
+    assert r.returncode == 2 and "from: the map is from 'body25'" in r.stderr

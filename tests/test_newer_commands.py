@@ -201,3 +201,26 @@ def test_project_says_detector_confidences_are_not_carried(trial: Path, tmp_path
     code, _, err = gt3d(capsys, "project", tmp_path / "o", "--format", "coco", "--to", tmp_path / "p")
     assert code == 0
     assert [x for x in err.splitlines() if x.startswith("warning: ") and "per-keypoint confidence" in x]
+
+
+def test_a_whole_body_detectors_files(tmp_path: Path, capsys) -> None:
+    """COCO-WholeBody files (RTMPose's, Pose2Sim's COCO_133): 133 points per detection, the body
+    and feet first, then face and hands. The 23 body and foot joints are read (``coco133``, its
+    joints named as Pose2Sim names them), the face and hands left with one warning, and the
+    joints are where the noise-free views put them."""
+    root = tmp_path / "t"
+    assert main(["simulate", "--kind", "skeleton", "--format", "openpose", "--skeleton", "coco133",
+                 "--seed", "3", "--frames", "4", "--people", "2", "--cameras", "4", "--noise-px", "0",
+                 "--out", str(root)]) == 0
+    page = json.loads(next((root / "pose").glob("*_json/*.json")).read_text())
+    assert len(page["people"][0]["pose_keypoints_2d"]) == 3 * 133
+    scene = load_scene(root)
+    assert scene.skeleton == "coco133" and scene.obs.n_joints == 23
+    said = [w for w in scene.all_warnings if "133 points per detection" in w]
+    assert len(said) == 1 and "the other 110 (face and hands) not" in said[0]
+    code, _, err = gt3d(capsys, "reconstruct", root, "--out", tmp_path / "o", "--quiet")
+    assert code == 0, err
+    e, _ = joint_errors(tmp_path / "o", root)
+    assert e.max() < 1e-3
+    code, _, err = gt3d(capsys, "reconstruct", root, "--out", tmp_path / "o2", "--skeleton", "body25")
+    assert code == 2 and "--skeleton: body25 has 25 joints, the files 133" in err

@@ -233,6 +233,9 @@ def _add_export(sub: argparse._SubParsersAction[Parser], common: argparse.Argume
     ex.add_argument("out", metavar="OUT", help="a gt3d reconstruct output folder")
     ex.add_argument("--format", required=True, choices=EXPORT_FORMATS)
     ex.add_argument("--to", metavar="DIR", help="folder to write (default OUT/export_FORMAT)")
+    ex.add_argument("--joint-map", metavar="MAP.json", help="your mapping from the run's joints to another "
+                    "skeleton's (each output joint a weighted sum of the run's, weights summing to 1; "
+                    "docs/outputs.md): the export's joints are those; keypoints.csv keeps the detector's")
     ex.set_defaults(func=cmd_export)
 
 

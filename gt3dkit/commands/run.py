@@ -232,7 +232,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     if isinstance(root, str) and root:
         check_out_apart(dest, root, "--to")
     check_output(dest, option="--to")
-    info = export(out, args.format, dest)
+    info = export(out, args.format, dest, args.joint_map)
     files = info.get("files") or [info.get("file")]
     for note in info.get("notes", ()):
         print(f"warning: {note}", file=sys.stderr)

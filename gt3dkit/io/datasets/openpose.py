@@ -147,14 +147,23 @@ class _Detections:
         return rb
 
 
+def _points_read(skeleton: str | None, J: int) -> int:
+    """Of detections of ``J`` points, how many are joints of the skeleton (given, or the one
+    ``J`` names): all, or the first ones of a whole-body detector (``Skeleton.detector_points``)."""
+    names = (skeleton,) if skeleton is not None else DETECTOR_SKELETONS.get(J, ())
+    sk = [SKELETONS[n] for n in names if n in SKELETONS]
+    return sk[0].n_joints if sk and sk[0].detector_points == J else J
+
+
 def _skeleton_of(skeleton: str | None, J: int, sample: list[np.ndarray]) -> str:
-    """The detector skeleton of ``J``-joint detections (``sample``: some of them), or the given
+    """The detector skeleton of ``J``-point detections (``sample``: some of them), or the given
     ``skeleton`` checked against ``J``."""
     if skeleton is None:
         opts = DETECTOR_SKELETONS[J]
         return opts[0] if len(opts) == 1 else _which_25(sample)
-    if SKELETONS[skeleton].n_joints != J:
-        raise InputError("--skeleton", f"{skeleton} has {SKELETONS[skeleton].n_joints} joints, the files {J}")
+    sk = SKELETONS[skeleton]
+    if J not in (sk.n_joints, sk.detector_points):
+        raise InputError("--skeleton", f"{skeleton} has {sk.n_joints} joints, the files {J}")
     return skeleton
 
 
@@ -177,7 +186,8 @@ class _Reading:
     one above 1, the files read and those whose people list is empty."""
 
     skeleton: str | None
-    J: int | None = None
+    J: int | None = None  # points per detection in the files
+    kept: int | None = None  # of them read (COCO-WholeBody: its body and feet)
     sample: list[np.ndarray] = dataclasses.field(default_factory=list)
     above: list[float] = dataclasses.field(default_factory=list)
     n_files: int = 0
@@ -199,8 +209,10 @@ class _Reading:
                 if self.skeleton is None and self.J not in DETECTOR_SKELETONS:
                     raise InputError(where, f"{self.J} joints: no known detector skeleton has that many "
                                             f"({', '.join(f'{k}' for k in DETECTOR_SKELETONS)})")
+                self.kept = _points_read(self.skeleton, self.J)
             if len(a) != self.J:
                 raise InputError(where, f"{len(a)} joints, the other detections have {self.J}")
+            a = a[:self.kept]
             if (a[:, 2] > 1).any():  # a heatmap's peak, not a probability: OpenPose writes up to ~1.04
                 self.above.append(float(a[:, 2].max()))
                 a[:, 2] = np.minimum(a[:, 2], 1.0)
@@ -209,8 +221,12 @@ class _Reading:
             chunk.add(f, i, a, p)
 
     def warnings(self) -> list[str]:
-        """The warnings of odd but valid files: confidences above 1, empty people lists."""
+        """The warnings of odd but valid files: confidences above 1, empty people lists, points
+        not read (a whole-body detector's face and hands)."""
         out = []
+        if self.J is not None and self.kept is not None and self.kept < self.J:
+            out.append(f"{self.J} points per detection: the first {self.kept} (body and feet) read, the "
+                       f"other {self.J - self.kept} (face and hands) not")
         if self.above:
             out.append(f"{len(self.above)} detection(s) with a confidence above 1 (up to "
                        f"{max(self.above):.4g}; OpenPose's confidences are heatmap peaks): read as 1")
@@ -246,14 +262,14 @@ def load(
             seen_frames[f] = p
             reading.read(p, f, chunk)
             if chunk.files >= CHUNK_FILES:  # held as arrays, not an object per detection
-                rb = chunk.flush_into(rb, reading.J)
-        rb = chunk.flush_into(rb, reading.J)
+                rb = chunk.flush_into(rb, reading.kept)
+        rb = chunk.flush_into(rb, reading.kept)
         files[f"{folder.name}/"] = f"{len(seen_frames)} files"
-    J = reading.J
-    if rb is None or J is None:
+    J = reading.kept
+    if rb is None or J is None or reading.J is None:
         raise InputError(str(root), "no annotations in any frame (no people in the JSON files)")
     warnings += reading.warnings()
-    skeleton = _skeleton_of(skeleton, J, reading.sample)
+    skeleton = _skeleton_of(skeleton, reading.J, reading.sample)
     obs = rb.build()
     files[f"calibration:{cal.name}"] = sha256(cal) if cal.is_file() else "folder"
     truth = None
@@ -293,6 +309,7 @@ def write(sim: SkeletonScene, tmp: Path, seed: int = 0, folder_names: list[str] 
     toml_fmt.write(rig, tmp / "calibration" / "Calib_scene.toml")
     (tmp / "Config.toml").write_text(f"[project]\nframe_rate = {sim.fps:g}\n")
     J = SKELETONS[sim.skeleton].n_joints
+    pad = [0.0] * 3 * max(SKELETONS[sim.skeleton].detector_points - J, 0)  # face and hands: not detected
     for c, name in enumerate(names):
         d = tmp / "pose" / f"{name}_json"
         d.mkdir(parents=True)
@@ -306,7 +323,7 @@ def write(sim: SkeletonScene, tmp: Path, seed: int = 0, folder_names: list[str] 
                 trip = np.where(np.isfinite(uv).all(axis=1)[:, None],
                                 np.column_stack([uv, cf]), 0.0).ravel()
                 people.append({"person_id": [-1],
-                               "pose_keypoints_2d": [round(float(v), 3) for v in trip],
+                               "pose_keypoints_2d": [round(float(v), 3) for v in trip] + pad,
                                "face_keypoints_2d": [], "hand_left_keypoints_2d": [],
                                "hand_right_keypoints_2d": []})
             doc = {"version": 1.3, "people": people}
