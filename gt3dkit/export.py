@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -258,12 +259,22 @@ def write_rerun(res: Result, path: Path) -> JsonDict:
             "open with": f"rerun {path.name}", "notes": list(run.notes)}
 
 
-#: Every export format: its writer of a result into the export folder (returns what it wrote).
-EXPORTERS: dict[str, Callable[[Result, Path], JsonDict]] = {
-    "c3d": lambda res, tmp: write_c3d(res, tmp / "tracks.c3d"),
-    "trc": write_trc,
-    "json": lambda res, tmp: write_json(res, tmp / "tracks.json"),
-    "rerun": lambda res, tmp: write_rerun(res, tmp / "tracks.rrd"),
+@dataclass(frozen=True)
+class Exporter:
+    """An export format: ``write(result, folder)`` (returns what it wrote), and whether it
+    writes the result's joints as given (so a ``--joint-map`` can change them); the Rerun
+    recording draws the run with its input, the detector's skeleton and its bones."""
+
+    write: Callable[[Result, Path], JsonDict]
+    maps_joints: bool = True
+
+
+#: Every export format, registered once (the command line's choices and :func:`export` read it).
+EXPORTERS: dict[str, Exporter] = {
+    "c3d": Exporter(lambda res, tmp: write_c3d(res, tmp / "tracks.c3d")),
+    "trc": Exporter(write_trc),
+    "json": Exporter(lambda res, tmp: write_json(res, tmp / "tracks.json")),
+    "rerun": Exporter(lambda res, tmp: write_rerun(res, tmp / "tracks.rrd"), maps_joints=False),
 }
 FORMATS = tuple(EXPORTERS)
 
@@ -296,10 +307,14 @@ def export(out: Path, fmt: str, dest: Path, joint_map: Path | None = None) -> Js
     res = read_result(Path(out))
     info: JsonDict = {}
     if joint_map is not None:
+        if not EXPORTERS[fmt].maps_joints:
+            can = ", ".join(k for k, v in EXPORTERS.items() if v.maps_joints)
+            raise InputError("--joint-map", f"{fmt} draws the run with its input and the detector's "
+                                            f"skeleton: a joint map applies to {can}")
         res, info = mapped(res, Path(joint_map))
 
     def write(tmp: Path) -> None:
-        info.update(EXPORTERS[fmt](res, tmp))
+        info.update(EXPORTERS[fmt].write(res, tmp))
         info.update({"format": fmt, "source": str(Path(out).resolve())})
         (tmp / "export.json").write_text(json.dumps(info, indent=1))
 

@@ -202,6 +202,10 @@ def test_a_users_joint_map(skel: Path, tmp_path: Path) -> None:
                  str(p))
         assert r.returncode == 2 and needle in r.stderr and r.stderr.count("\n") == 1, r.stderr
         assert not (tmp_path / "b").exists()
+    r = _run("export", str(skel), "--format", "rerun", "--to", str(tmp_path / "b"), "--joint-map",
+             str(good))
+    assert r.returncode == 2 and "--joint-map: rerun draws the run" in r.stderr
+    assert not (tmp_path / "b").exists()
     p.write_text(json.dumps({"name": "mine", "from": "body25", "joints": table}))
     r = _run("export", str(skel), "--format", "json", "--to", str(tmp_path / "b"), "--joint-map",
              str(p))
