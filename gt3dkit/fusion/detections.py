@@ -114,6 +114,7 @@ def _consistent_pairs(obs: Observations, xy: F64, Pw: F64, f_px: F64, cfg: Detec
     and the pairs compared (``cfg.min_joints`` in common) and beyond ``cfg.max_reproj_px``."""
     frames, start = np.unique(obs.frame, return_index=True)
     end = np.r_[start[1:], len(obs.frame)]
+    seen = np.isfinite(xy[..., 0])  # (N, J) the confident joints
     k = 0
     while k < len(frames):
         k1 = max(int(np.searchsorted(start, start[k] + FRAME_ROWS, side="right")), k + 1)
@@ -121,7 +122,6 @@ def _consistent_pairs(obs: Observations, xy: F64, Pw: F64, f_px: F64, cfg: Detec
         a, b = frame_pairs(obs.frame[lo:hi], obs.cam[lo:hi])
         a, b = a + lo, b + lo
         cost = pair_costs(xy, a, b, obs.cam, Pw, f_px, cfg.min_joints)
-        seen = np.isfinite(xy[..., 0])
         common = (seen[a] & seen[b]).sum(axis=1)
         good = cost <= cfg.max_reproj_px
         against = ~good & (common >= cfg.min_joints)  # compared, and they disagree

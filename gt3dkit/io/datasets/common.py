@@ -306,5 +306,14 @@ def sim_box_labels(sim: SimScene, ids: list[dict[int, int]]) -> Shapes:
     """A simulated box scene's boxes as label shapes: every (person, camera) where it is seen,
     under the camera's id of the person (``ids``, :func:`camera_ids`)."""
     k, c = np.nonzero(np.isfinite(sim.boxes).all(axis=2))
-    track = np.array([ids[int(cc)][int(sim.truth_id[kk])] for kk, cc in zip(k, c, strict=True)], np.int64)
-    return Shapes.labelled(sim.truth_frame[k], c, track, sim.boxes[k, c], np.zeros((len(k), 0, 2)))
+    return Shapes.labelled(sim.truth_frame[k], c, camera_track_ids(ids, c, sim.truth_id[k]), sim.boxes[k, c],
+                           np.zeros((len(k), 0, 2)))
+
+
+def camera_track_ids(ids: list[dict[int, int]], cam: np.ndarray, person: np.ndarray) -> np.ndarray:
+    """(S,) each (camera ``cam``, person ``person``) pair's id in that camera (``ids``,
+    :func:`camera_ids`), looked up as one table."""
+    people = np.array(sorted(ids[0]), dtype=np.int64) if ids else np.zeros(0, np.int64)
+    table = np.array([[d[int(p)] for p in people] for d in ids], dtype=np.int64)
+    table = table.reshape(len(ids), len(people))
+    return table[np.asarray(cam, dtype=np.int64), np.searchsorted(people, person)]

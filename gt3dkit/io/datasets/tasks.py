@@ -41,7 +41,7 @@ import numpy as np
 from gt3dkit.errors import InputError
 from gt3dkit.io import labels
 from gt3dkit.io.datasets.checks import check_pixels
-from gt3dkit.io.datasets.common import RowBuilder, camera_ids, sim_box_labels
+from gt3dkit.io.datasets.common import RowBuilder, camera_ids, camera_track_ids, sim_box_labels
 from gt3dkit.io.datasets.mot import DEFAULT_FPS, calibration_beside, match_cameras, natural_key
 from gt3dkit.io.datasets.native import read_kpt_truth, write_cameras, write_kpt_truth
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
@@ -296,7 +296,6 @@ def write_coco(sim: SkeletonScene, tmp: Path, track_ids: bool = True, seed: int 
     k, c = np.nonzero(np.isfinite(sim.uv).all(axis=3).any(axis=2))
     uv = sim.uv[k, c]
     box = np.c_[np.nanmin(uv, axis=1), np.nanmax(uv, axis=1)]
-    track = np.array([ids[int(cc)][int(sim.truth_id[kk])] for kk, cc in zip(k, c, strict=True)], np.int64)
-    shapes = Shapes.labelled(sim.truth_frame[k], c, track, box, uv)
+    shapes = Shapes.labelled(sim.truth_frame[k], c, camera_track_ids(ids, c, sim.truth_id[k]), box, uv)
     labels.write_coco(shapes, sim.rig, tuple(skel.marker_names), tuple(skel.bones), tmp / "coco", track_ids)
     write_kpt_truth(sim, tmp / "truth_keypoints.csv")
