@@ -6,6 +6,10 @@ own standard, and every threshold is in :class:`QAConfig`. Kinds (``OUT/anomalie
 
 ``shifted_box``      a box whose edges disagree with the estimate's tangent box (the other views)
 ``size_outlier``     a box in the right place but much larger or smaller than the object's own
+``cut_box``          a box whose edges that disagree with the estimate all fall short of it, inside
+                     the box of an object nearer that camera: drawn around the visible part
+                     (a detector's box, an annotator's), it ends where the nearer one begins.
+                     Not an annotation error; listed so that the edges are known
 ``keypoint_outlier`` a keypoint far from the estimate's projection
 ``swapped_joints``   a left/right pair that fits the estimate exchanged in one view
 ``identity_split``   an id whose views place it, from this frame on, where it cannot have got to
@@ -30,7 +34,7 @@ import numpy as np
 
 from gt3dkit.arrays import lookup_rows
 from gt3dkit.geom.camera import project_points
-from gt3dkit.geom.conics import covered_fraction, model_boxes
+from gt3dkit.geom.conics import covered_fraction, cut_edges, model_boxes
 from gt3dkit.qa.view import PreparedView, RowsView
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import F64, Scene, TrackSet
@@ -48,6 +52,7 @@ class QAConfig:
     inside_margin: float = 0.02  # missing_view: the box this fraction of the image inside its edges
     covered_max: float = 0.3  # ... and at most this fraction of it covered by nearer objects
     cover_depth_tol_m: float = 0.5  # ... counting as nearer those less than this much farther
+    cut_depth_tol_m: float = 0.3  # cut_box: an object at least this much nearer cuts a box
     min_box_px: float = 12.0  # ... and at least this tall
     max_offset_frames: int = 3  # time_offset: shifts tried, in frames, each way
     offset_gain: float = 0.6  # flagged when the best shift's median residual is below this
@@ -131,13 +136,26 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QACon
             off = np.hypot((z[..., 0] + z[..., 2] - box[..., 0] - box[..., 2]) / 2,
                            (z[..., 1] + z[..., 3] - box[..., 1] - box[..., 3]) / 2) / size
         bad = (score > cfg.box_sigmas) & usable.any(axis=2)
+        cut, by = _cut_by_nearer(bad, z, box, margin, rows.row_t[idx], cfg)
         for n, c in zip(*np.nonzero(bad), strict=True):
             r = idx[n]
+            detail = (f"IoU {iou[n, c]:.2f} with the estimate's box; area ratio {ratio[n, c]:.2f}; "
+                      f"largest edge residual {score[n, c]:.1f} sigma")
+            off_edges = usable[n, c] & (zs[n, c] > cfg.box_sigmas)
+            inward = np.sign(z[n, c] - box[n, c]) == [1, 1, -1, -1]  # the label smaller on that side
+            if not (off_edges & ~(cut[n, c] & inward)).any():  # every edge off: cut short by a nearer one
+                k = idx[by[n, c]]
+                which = ", ".join(EDGE_NAMES[e] for e in np.flatnonzero(off_edges))
+                out.append((int(frame_of[r]), names[c], int(id_of[r]), "", "cut_box",
+                            round(float(score[n, c]), 2),
+                            f"{detail}; its edge{'s' if off_edges.sum() > 1 else ''} {which} inside the box "
+                            f"of object {int(id_of[k])}, {margin[n, c] - margin[by[n, c], c]:.1f} m nearer "
+                            f"this camera: the drawn box ends where the nearer object begins, not shifted"))
+                continue
             sized = (ratio[n, c] > cfg.size_ratio or ratio[n, c] < 1 / cfg.size_ratio) and off[n, c] < 0.25
             kind = "size_outlier" if sized else "shifted_box"
             out.append((int(frame_of[r]), names[c], int(id_of[r]), "", kind, round(float(score[n, c]), 2),
-                        f"IoU {iou[n, c]:.2f} with the estimate's box; area ratio {ratio[n, c]:.2f}; "
-                        f"largest edge residual {score[n, c]:.1f} sigma"))
+                        detail))
 
     if pre.use_kpt and have.any() and tracks.kpt_world.shape[1]:
         _keypoints(scene, tracks, pre, cfg, r_of, have, frame_of, id_of, out)
@@ -160,6 +178,25 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QACon
                                         "the offset)" if n else ""),))
     out.sort(key=lambda x: (x[0], str(x[2]), x[1], str(x[3]), x[4]))
     return Anomalies(out)
+
+
+EDGE_NAMES = ("xmin", "ymin", "xmax", "ymax")
+
+
+def _cut_by_nearer(bad: np.ndarray, label: F64, box: F64, depth: F64, frame_ix: np.ndarray, cfg: QAConfig
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """For the flagged labels ``bad (n, C)``: which of their edges lie inside a nearer object's
+    estimated box (:func:`gt3dkit.geom.conics.cut_edges`; ``label``, ``box (n, C, 4)``, ``depth
+    (n, C)`` of the estimated object-frames, ``frame_ix (n,)`` their frame), ``(n, C, 4)``, and the
+    index into ``n`` of the object that cuts them, ``(n, C)`` (-1: none). Only the frames with a
+    flag are looked at."""
+    cut = np.zeros(label.shape, bool)
+    by = np.full(bad.shape, -1, dtype=np.int64)
+    for f in np.unique(frame_ix[bad.any(axis=1)]):
+        m = np.flatnonzero(frame_ix == f)
+        c_m, w_m = cut_edges(label[m], box[m], depth[m], cfg.cut_depth_tol_m)
+        cut[m], by[m] = c_m, np.where(w_m >= 0, m[np.maximum(w_m, 0)], -1)
+    return cut, by
 
 
 def _keypoints(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QAConfig, r_of: np.ndarray,
