@@ -112,6 +112,9 @@ def _add_simulate(sub: argparse._SubParsersAction[Parser], common: argparse.Argu
                        ("--glitch", "skeletons: fraction of keypoints at x = 0 with a high confidence"),
                        ("--shifted", "boxes: fraction of boxes moved by 0.3-1 of their size")):
         s.add_argument(flag, type=FRACTION, default=0.0, help=what)
+    s.add_argument("--cut-by-nearer", action="store_true",
+                   help="boxes: drawn around the visible part of each person (a side a nearer "
+                        "person's box covers ends where it begins), as detectors draw them")
     s.add_argument("--gap", help="FIRST:END frame indices with no annotation at all")
     s.add_argument("--single-view", type=FRACTION, default=0.0,
                    help="fraction of people annotated in one camera only")

@@ -43,6 +43,7 @@ def _errors(args: argparse.Namespace) -> Any:
     try:
         return Errors(outliers=args.outliers, swaps=args.swaps, glitch=args.glitch,
                       shifted=args.shifted, gap=gap, single_view=args.single_view,
+                      cut_by_nearer=args.cut_by_nearer,
                       dropped=args.missing if args.kind == "skeleton" else args.dropout)
     except ValueError as e:
         raise InputError("simulate", str(e)) from None
@@ -53,7 +54,7 @@ SIM_MAX_POINTS = 20_000_000
 
 
 #: simulate options that apply to one kind of scene only.
-_SIM_ONLY = {"boxes": ("motion", "dropout", "shifted", "global_ids"),
+_SIM_ONLY = {"boxes": ("motion", "dropout", "shifted", "global_ids", "cut_by_nearer"),
              "skeleton": ("missing", "skeleton", "conf", "outliers", "swaps", "glitch")}
 
 

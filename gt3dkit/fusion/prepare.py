@@ -32,6 +32,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.fusion.boxfit import PERSON_SEMI_AXES_M, BoxFit, fit_boxes
 from gt3dkit.fusion.confidence import INVERSE, ConfidenceCurve, group_variances, learn_curve
 from gt3dkit.fusion.motion import StateLayout
+from gt3dkit.fusion.occlusion import cut_edges_of
 from gt3dkit.fusion.robust import (
     RobustConfig,
     chi2_isf,
@@ -80,6 +81,8 @@ class Prepared:
         heavy-tailed by the model's misfit) to it, >= 1: tests and flags are made at that level;
         sigma_kpt : (J,) keypoint noise per joint (px)
     kpt_var : (R, C, J) each keypoint's variance (px^2) = sigma_kpt[j]^2 / confidence
+    box_cut : (R, C, 4) the edges a nearer object cut that were left out (taken out of
+        ``rows.box_mask`` as the border's; :mod:`gt3dkit.fusion.occlusion`), or None
     """
 
     rows: Rows
@@ -102,6 +105,7 @@ class Prepared:
     robust: RobustConfig
     info: JsonDict = field(default_factory=dict)
     box_tail: float = 1.0
+    box_cut: np.ndarray | None = None  # (R, C, 4) edges a nearer object cut, left out (fusion.occlusion)
     # results computed from this preparation alone, kept for the next estimator that asks (the
     # process noise of the model's likelihood: gt3dkit.fusion.noise.noise_by_likelihood)
     memo: dict[Any, Any] = field(default_factory=dict, repr=False, compare=False)
@@ -194,10 +198,11 @@ def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = Non
     box_keep = np.zeros((len(rows), len(cams.K), 4), bool)
     reliable = np.zeros(len(rows), bool)
     sigma_box = np.ones(4)
+    box_cut = None
     prior = ShapePrior(np.log(PERSON_SEMI_AXES_M), np.full(3, 0.25), "person size (no boxes)")
     if use_box:
-        fit, box_keep, sigma_box, prior, binfo = _robust_box_fits(scene, rows, cams, robust,
-                                                                  sigma_px)
+        fit, box_keep, sigma_box, prior, binfo, box_cut = _robust_box_fits(scene, rows, cams, robust,
+                                                                           sigma_px)
         info["boxes"] = binfo
         views = rows.box_mask.any(axis=2)
         whole = (views & np.all(box_keep | ~rows.box_mask, axis=2)).sum(axis=1)
@@ -224,7 +229,7 @@ def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = Non
     return Prepared(rows, cams, StateLayout(J if use_kpt else 0), use_box, use_kpt, fit, box_keep,
                     reliable, kpt0, kpt0_cov, kpt_keep, kpt_reliable, sigma_box, sigma_kpt,
                     kpt_var, prior, skel, robust, info,
-                    box_tail=float(info["boxes"]["tail_variance_ratio"]) if use_box else 1.0)
+                    box_tail=float(info["boxes"]["tail_variance_ratio"]) if use_box else 1.0, box_cut=box_cut)
 
 
 def disagreement_scale(chi2_sum: F64, dof: F64, tail_p: float = 0.01) -> F64:
@@ -240,10 +245,32 @@ def disagreement_scale(chi2_sum: F64, dof: F64, tail_p: float = 0.01) -> F64:
     return np.where(np.isfinite(out), out, 1.0)
 
 
-def check_in_front(scene: Scene, rows: Rows, fit: BoxFit) -> None:
-    """Raise :class:`InputError` for a box whose object lies behind that camera."""
+def check_in_front(scene: Scene, rows: Rows, fit: BoxFit, cams: Cams) -> None:
+    """Raise :class:`InputError` for a box whose object the other views place behind that
+    camera: a fit that lands behind one of its own cameras is refitted without each of its boxes
+    in turn, and the error names a camera ``v`` whose object the fit without ``v``'s box places in
+    front of every other camera that sees it (two or more: one view's depth is the shape prior's)
+    and behind ``v`` (a camera facing away from the scene), or a camera with at least half of its
+    boxes behind it. Elsewhere (two views, one of them a sliver of a person almost hidden by a
+    nearer one, the other cut by the image border) the views do not place the object at all and
+    the robust steps decide."""
     seen = (rows.obs_row >= 0) & np.all(np.isfinite(rows.box_z), axis=-1)
     bad = seen & fit.ok[:, None] & ~(fit.margin > 0)
+    most = bad.sum(axis=0) >= 0.5 * np.maximum(seen.sum(axis=0), 1)  # (C,) a camera facing away
+    for r in np.flatnonzero(bad.any(axis=1) & ~(bad & most[None, :]).any(axis=1)):
+        views = np.flatnonzero(seen[r])
+        blamed = np.zeros(len(views), bool)
+        for i, v in enumerate(views):
+            mask = rows.box_mask[r:r + 1].copy()
+            mask[0, v] = False
+            if not mask.any():
+                continue
+            again = fit_boxes(rows.box_z[r:r + 1], mask, cams)
+            others = np.delete(views, i)
+            blamed[i] = (len(others) >= 2 and again.ok[0] and np.all(again.margin[0, others] > 0)
+                         and not again.margin[0, v] > 0)
+        bad[r] = False
+        bad[r, views[blamed]] = True
     if bad.any():
         r, c = np.argwhere(bad)[0]
         where = scene.obs.origin[rows.obs_row[r, c]]
@@ -300,12 +327,14 @@ def _edge_sigmas(fit: BoxFit, keep: np.ndarray, robust: RobustConfig) -> tuple[F
 
 def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
                      sigma_px: float | None
-                     ) -> tuple[BoxFit, np.ndarray, F64, ShapePrior, JsonDict]:
+                     ) -> tuple[BoxFit, np.ndarray, F64, ShapePrior, JsonDict, np.ndarray | None]:
     """Per-frame box fits weighted by per-edge noise; edges rejected by their leave-one-out
-    score; shape prior for weakly seen object-frames."""
+    score; edges cut by a nearer object left out where they mislead (``rows.box_mask`` updated;
+    the last value: those edges, ``(R, C, 4)``, or None); shape prior for weakly seen
+    object-frames."""
     keep = rows.box_mask.copy()
     fit = fit_boxes(rows.box_z, keep, cams)
-    check_in_front(scene, rows, fit)
+    check_in_front(scene, rows, fit, cams)
 
     def sigmas(f: BoxFit) -> F64:
         return np.full(4, float(sigma_px)) if sigma_px is not None else _edge_sigmas(f, keep,
@@ -330,6 +359,17 @@ def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
         fit = _merge_fit(fit, sel, fit_boxes(rows.box_z[sel], keep[sel], cams, sig,
                                              p0=params(fit, sel)))
         sig = sigmas(fit)
+    # edges a nearer object cut, where the data say they mislead (gt3dkit.fusion.occlusion): left
+    # out as the border's are
+    cuts = None
+    if robust.enabled:
+        level = _core_sigma(fit, keep)
+        cuts = cut_edges_of(rows, cams, fit, keep, level if np.isfinite(level) else float(sig[0]))
+        if cuts.dropped.any():
+            rows.box_mask[cuts.dropped] = False
+            keep = keep & ~cuts.dropped
+            sel = cuts.dropped.any(axis=(1, 2))
+            fit = _merge_fit(fit, sel, fit_boxes(rows.box_z[sel], keep[sel], cams, sig, p0=params(fit, sel)))
     # shape prior from object-frames several views see
     nv = np.all(np.isfinite(rows.box_z), axis=-1).sum(axis=1)
     good = fit.ok & (nv >= PRIOR_MIN_VIEWS)
@@ -361,10 +401,12 @@ def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
             "robust residual level of the per-frame fits (kept edges, with dof); the filters weight "
             "each edge by sigma_px_core (the median edge's level) and test it against sigma_px",
             "edges_rejected_per_frame": int((rows.box_mask & ~keep).sum()),
+            "cut_edges": cuts.as_json() if cuts is not None else None,
             "edges_usable": int(rows.box_mask.sum()),
             "shape_prior": {"semi_axes_m": np.exp(prior.mean).round(4).tolist(),
                             "log_sd": prior.sd.round(4).tolist(), "source": prior.source}}
-    return fit, keep, np.full(4, core), prior, info
+    return fit, keep, np.full(4, core), prior, info, (cuts.dropped if cuts is not None and cuts.dropped.any()
+                                                      else None)
 
 
 def _robust_keypoints(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,

@@ -20,6 +20,10 @@ own standard, and every threshold is in :class:`QAConfig`. Kinds (``OUT/anomalie
                      inside another camera's image, in front of it and not covered by a nearer
                      object's projection, where that camera has annotations within two frames
                      but none of this object
+``cut_edges``        a camera some of whose box edges lie inside a nearer object's box and were
+                     left out, as edges at the image border are (the boxes are drawn around the
+                     visible part of each person, and such edges vary clearly more than the
+                     others: :mod:`gt3dkit.fusion.occlusion`); one row per camera, with counts
 ``time_offset``      a camera whose annotations fit the estimate clearly better when read a
                      frame or more earlier or later (an unsynchronised camera); one row per
                      camera, with the best whole-frame shift and the residual at every shift
@@ -163,6 +167,7 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QACon
     out += [(first, "", i, "", "undetermined_person", float(n),
              f"its {n} detections (frames {first}-{last}, cameras {cams}) are never seen by two cameras at "
              "once that agree: left out of the estimate") for i, first, last, n, cams in scene.left_out]
+    _cut_edges(scene, pre, out)
     _world_frame(scene, tracks, cfg, out)
     _missing_views(scene, tracks, pre, cfg, out, r_of, box, margin)
     offsets: list = []
@@ -181,6 +186,25 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QACon
 
 
 EDGE_NAMES = ("xmin", "ymin", "xmax", "ymax")
+
+
+def _cut_edges(scene: Scene, pre: PreparedView, out: list) -> None:
+    """One ``cut_edges`` row per camera with edges left out as cut by a nearer object."""
+    cut = pre.box_cut
+    if cut is None:
+        return
+    rows = pre.rows
+    for c in np.flatnonzero(cut.any(axis=(0, 2))):
+        per = cut[:, c]  # (R, 4)
+        boxes = per.any(axis=1)
+        n_boxes = int(np.isfinite(rows.box_z[:, c, 0]).sum())
+        kinds = ", ".join(f"{k} {int(n)}" for k, n in zip(EDGE_NAMES, per.sum(axis=0), strict=True) if n)
+        out.append((int(rows.frames[rows.row_t[np.flatnonzero(boxes)[0]]]), scene.rig.names[c], "", "",
+                    "cut_edges", round(float(boxes.sum() / max(n_boxes, 1)), 3),
+                    f"{int(per.sum())} edges of {int(boxes.sum())} of its {n_boxes} boxes ({kinds}) lie "
+                    "inside the box of a nearer object and vary clearly more than the others: the boxes are "
+                    "drawn around the visible part, so these edges say where the nearer one is; left out, as "
+                    "edges at the image border are (meta.json: preparation, boxes, cut_edges)"))
 
 
 def _cut_by_nearer(bad: np.ndarray, label: F64, box: F64, depth: F64, frame_ix: np.ndarray, cfg: QAConfig

@@ -68,3 +68,6 @@ class PreparedView(Protocol):
 
     @property
     def kpt_var(self) -> F64: ...  # (R, C, J) each keypoint's variance, px^2
+
+    @property
+    def box_cut(self) -> np.ndarray | None: ...  # (R, C, 4) edges a nearer object cut, left out

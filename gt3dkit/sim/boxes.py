@@ -219,6 +219,9 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
         seen, chosen = keep_one_view(seen, truth_id, errors.single_view, err_rng)
         injected += [(-1, "", p, "", "single_view", "annotated in one camera only")
                      for p in chosen]
+    if errors.cut_by_nearer:
+        box, more = _cut_by_nearer(box, seen, center, (truth_frame, truth_id), rig)
+        injected += more
     if errors.shifted:
         box, more = _shifted(errors.shifted, seen, box, cams, (truth_frame, truth_id), rig, err_rng)
         injected += more
@@ -282,6 +285,53 @@ def _hidden(errors: Errors, seen: np.ndarray, box: F64, inside: np.ndarray, cent
             injected.append((int(truth_frame[m]), rig.cameras[c].name, int(truth_id[m]), "",
                              "missing_view", f"{100 * cov[m, c]:.0f}% covered"))
     return injected
+
+
+#: A nearer box cuts a side it covers across this share of the side's length (the bottom across
+#: the box's width, a side across its height), and the box keeps at least this share of its size.
+CUT_COVER, CUT_KEEP = 0.6, 0.3
+
+
+def _cut_by_nearer(box: F64, seen: np.ndarray, center: F64, truth: tuple[I64, I64], rig: Rig,
+                   nearer_m: float = 0.3) -> tuple[F64, list[tuple[int, str, int, str, str, str]]]:
+    """Each seen box ``box (M, C, 4)`` drawn around the visible part of its person: a side a
+    nearer person's box covers (the bottom across :data:`CUT_COVER` of the width, the left or right
+    side across that share of the height) ends where the nearer box begins; a box cut to less
+    than :data:`CUT_KEEP` of its width or height (hidden from both sides) is drawn whole. People
+    hidden by others count whether annotated or not. Returns
+    the boxes and an injected-error row per cut box."""
+    truth_frame, truth_id = truth
+    out = box.copy()
+    injected: list[tuple[int, str, int, str, str, str]] = []
+    centres = np.stack([c.center_world for c in rig.cameras])
+    depth = np.linalg.norm(center[:, None, :] - centres[None], axis=-1)  # (M, C)
+    for f in np.unique(truth_frame):
+        m = np.flatnonzero(truth_frame == f)
+        for i in m:
+            for c in np.flatnonzero(seen[i]):
+                b = box[i, c]
+                w, h = b[2] - b[0], b[3] - b[1]
+                new = b.copy()
+                for k in m:
+                    o = box[k, c]
+                    if k == i or not np.isfinite(o).all() or depth[k, c] > depth[i, c] - nearer_m:
+                        continue
+                    over_x = min(b[2], o[2]) - max(b[0], o[0])
+                    over_y = min(b[3], o[3]) - max(b[1], o[1])
+                    if over_x >= CUT_COVER * w and b[1] + CUT_KEEP * h < o[1] < b[3]:
+                        new[3] = min(new[3], o[1])  # the legs behind the nearer one
+                    if over_y >= CUT_COVER * h:
+                        if o[0] <= b[0] < o[2] < b[2] - CUT_KEEP * w:
+                            new[0] = max(new[0], o[2])  # the left side behind it
+                        if b[0] + CUT_KEEP * w < o[0] < b[2] <= o[2]:
+                            new[2] = min(new[2], o[0])  # the right side behind it
+                if (new != b).any() and new[2] - new[0] >= CUT_KEEP * w and new[3] - new[1] >= CUT_KEEP * h:
+                    out[i, c] = new
+                    sides = ", ".join(n for n, a, z in zip(("xmin", "ymin", "xmax", "ymax"), b, new,
+                                                           strict=True) if a != z)
+                    injected.append((int(truth_frame[i]), rig.cameras[c].name, int(truth_id[i]), "",
+                                     "cut_box", f"{sides} cut by a nearer person"))
+    return out, injected
 
 
 def _shifted(fraction: float, seen: np.ndarray, box: F64, cams: Cams, truth: tuple[I64, I64], rig: Rig,

@@ -56,6 +56,10 @@ class Errors:
         nearest other person within 300 px), confidence 0.4-0.8 (keypoints only)
     over_one : confident keypoints (confidence above 0.9) whose confidence is 1.0-1.04, as
         OpenPose's heatmap peaks (keypoints only)
+    cut_by_nearer : boxes drawn around the visible part of a person, as detectors and annotators
+        draw them: where a nearer person's box (at least 0.3 m nearer the camera) covers the
+        bottom of a box across most of its width, or one side across most of its height, that
+        side ends where the nearer box begins (boxes only)
     noise_by_confidence : the pixel noise of a keypoint grows as its confidence falls, its
         variance ``noise_px^2 (0.92 / conf)^3`` below 0.92 (the law real OpenPose output on
         Shelf follows; keypoints only)
@@ -80,6 +84,7 @@ class Errors:
     wrong_person: float = 0.0
     over_one: float = 0.0
     noise_by_confidence: bool = False
+    cut_by_nearer: bool = False
 
     def __post_init__(self) -> None:
         if self.reused_ids < 0 or self.exchanged_ids < 0:

@@ -1,0 +1,112 @@
+"""Box edges cut by a nearer object.
+
+A box drawn around the visible part of a person (by a detector, or an annotator in CVAT) ends
+where a nearer person begins: that edge says where the occluder is, not where the person ends.
+Like an edge at the image border, it only bounds the person.
+
+:func:`cut_edges_of` finds, after the per-frame fits, the labelled edges that lie within a nearer
+object's extent in that view (its label there, or its fit's box; up to ``CUT_TOL_SIGMAS`` edge
+noise levels outside it, since the cut edge lies on the occluder's own edge), and learns from
+the fits' residuals, per edge kind, how much more such edges vary than the others. A kind whose
+cut edges vary at least :data:`CUT_VARIANCE_RATIO` times as much (a cut edge then says less than
+40 % of what another edge says, and is pulled towards the occluder) has them left out, as the
+border's; where the label set draws people whole (WILDTRACK's and MultiviewX's boxes are an
+annotation tool's solids) the cut edges vary as the others and every edge is kept.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from gt3dkit.fusion.boxfit import BoxFit, state_boxes
+from gt3dkit.fusion.rows import Rows
+from gt3dkit.geom.camera import Cams
+from gt3dkit.geom.conics import cut_edges
+from gt3dkit.types import B8, F64, I64, JsonDict
+
+#: A nearer object's extent reaches this many edge noise levels beyond its box.
+CUT_TOL_SIGMAS = 2.0
+#: An object at least this much nearer the camera (m) can cut a box.
+CUT_DEPTH_TOL_M = 0.3
+#: Cut edges of one kind needed to compare their spread with the others'.
+CUT_MIN_EDGES = 20
+#: Cut edges of a kind are left out when their median squared residual is at least this many
+#: times the other edges' of that kind.
+CUT_VARIANCE_RATIO = 2.5
+EDGE_NAMES = ("xmin", "ymin", "xmax", "ymax")
+
+
+@dataclass(frozen=True)
+class CutEdges:
+    """The kept edges found inside a nearer object's extent ``found (R, C, 4)``, the row of that
+    object ``by_row (R, C)`` (-1: none), each edge kind's variance ratio ``ratio (4,)`` (NaN: too
+    few cut edges to tell) and the edges left out, ``dropped (R, C, 4)``."""
+
+    found: B8
+    by_row: I64
+    ratio: F64
+    dropped: B8
+
+    def as_json(self) -> JsonDict:
+        """For meta.json: counts and ratios per edge kind."""
+        return {"found": dict(zip(EDGE_NAMES, self.found.sum(axis=(0, 1)).tolist(), strict=True)),
+                "variance_ratio": {k: (round(float(v), 3) if np.isfinite(v) else None)
+                                   for k, v in zip(EDGE_NAMES, self.ratio, strict=True)},
+                "left_out": dict(zip(EDGE_NAMES, self.dropped.sum(axis=(0, 1)).tolist(), strict=True)),
+                "rule": f"an edge within a nearer object's box (its label or its fit; {CUT_TOL_SIGMAS:g} "
+                        f"noise levels beyond it, {CUT_DEPTH_TOL_M:g} m nearer) is cut; a kind's cut edges "
+                        f"are left out when their median squared residual is {CUT_VARIANCE_RATIO:g}x the "
+                        f"others' or more ({CUT_MIN_EDGES} cut edges at least)"}
+
+
+def camera_centres(cams: Cams) -> F64:
+    """``(C, 3)`` each camera's centre in the world (``-R^T t``)."""
+    return -np.einsum("cji,cj->ci", cams.R, cams.t)
+
+
+def find_cut(rows: Rows, cams: Cams, fit: BoxFit, keep: B8, tol_px: float) -> tuple[B8, I64]:
+    """The kept edges ``keep (R, C, 4)`` of each frame's labels ``rows.box_z`` that lie inside the
+    extent of an object at least :data:`CUT_DEPTH_TOL_M` nearer that camera (its label there, else
+    its fit's box; widened by ``tol_px``): ``(R, C, 4)`` and the cutting row ``(R, C)``."""
+    R, C = rows.box_z.shape[:2]
+    own = state_boxes(fit.center_world, fit.log_axes, cams)  # (R, C, 4)
+    own = np.where(fit.ok[:, None, None], own, np.nan)
+    label_or_own = np.where(np.isfinite(rows.box_z), rows.box_z, own)
+    depth = np.linalg.norm(fit.center_world[:, None, :] - camera_centres(cams)[None], axis=-1)
+    depth = np.where(fit.ok[:, None], depth, np.nan)
+    cut = np.zeros((R, C, 4), bool)
+    by = np.full((R, C), -1, dtype=np.int64)
+    for t in np.flatnonzero(np.diff(rows.t_start) >= 2):
+        m = np.arange(rows.t_start[t], rows.t_start[t + 1])
+        c1, w1 = cut_edges(rows.box_z[m], own[m], depth[m], CUT_DEPTH_TOL_M, -tol_px)
+        c2, w2 = cut_edges(rows.box_z[m], label_or_own[m], depth[m], CUT_DEPTH_TOL_M, -tol_px)
+        cut[m] = c1 | c2
+        w = np.where(w2 >= 0, w2, w1)
+        by[m] = np.where(w >= 0, m[np.maximum(w, 0)], -1)
+    cut &= keep
+    by[~cut.any(axis=2)] = -1
+    return cut, by
+
+
+def cut_variance_ratio(residual_px: F64, keep: B8, cut: B8) -> F64:
+    """``(4,)`` per edge kind the median squared residual of the kept cut edges over that of the
+    other kept edges (NaN with fewer than :data:`CUT_MIN_EDGES` cut edges)."""
+    out = np.full(4, np.nan)
+    r2 = residual_px**2
+    for e in range(4):
+        a = r2[..., e][keep[..., e] & cut[..., e] & np.isfinite(r2[..., e])]
+        b = r2[..., e][keep[..., e] & ~cut[..., e] & np.isfinite(r2[..., e])]
+        if len(a) >= CUT_MIN_EDGES and len(b) and np.median(b) > 0:
+            out[e] = np.median(a) / np.median(b)
+    return out
+
+
+def cut_edges_of(rows: Rows, cams: Cams, fit: BoxFit, keep: B8, sigma_px: float) -> CutEdges:
+    """The edges cut by nearer objects and those the data say to leave out (module doc);
+    ``sigma_px`` the typical edge's noise (px)."""
+    found, by = find_cut(rows, cams, fit, keep, CUT_TOL_SIGMAS * sigma_px)
+    ratio = cut_variance_ratio(fit.residual_px, keep, found)
+    bad = np.nan_to_num(ratio) >= CUT_VARIANCE_RATIO
+    return CutEdges(found, by, ratio, found & bad[None, None, :])
