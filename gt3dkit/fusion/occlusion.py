@@ -30,8 +30,10 @@ from gt3dkit.types import B8, F64, I64, JsonDict
 CUT_TOL_SIGMAS = 2.0
 #: An object at least this much nearer the camera (m) can cut a box.
 CUT_DEPTH_TOL_M = 0.3
-#: Cut edges of one kind needed to compare their spread with the others'.
-CUT_MIN_EDGES = 20
+#: Cut edges of one kind needed to compare their spread with the others': the median of n
+#: squared normal residuals has a relative sd of about 2.3 / sqrt(n), half its value at 20 (windows
+#: of a run then decided apart from the whole run), a quarter at 100.
+CUT_MIN_EDGES = 100
 #: Cut edges of a kind are left out when their median squared residual is at least this many
 #: times the other edges' of that kind.
 CUT_VARIANCE_RATIO = 2.5
@@ -92,12 +94,19 @@ def find_cut(rows: Rows, cams: Cams, fit: BoxFit, keep: B8, tol_px: float) -> tu
 
 def cut_variance_ratio(residual_px: F64, keep: B8, cut: B8) -> F64:
     """``(4,)`` per edge kind the median squared residual of the kept cut edges over that of the
-    other kept edges (NaN with fewer than :data:`CUT_MIN_EDGES` cut edges)."""
+    other kept edges, each residual first divided by its camera's level for that kind (the median
+    of its uncut edges': a camera whose boxes all fit worse, an unsynchronised one, does not make
+    its cut edges look cut); NaN with fewer than :data:`CUT_MIN_EDGES` cut edges."""
     out = np.full(4, np.nan)
-    r2 = residual_px**2
+    ok = keep & np.isfinite(residual_px)
+    r2 = np.where(ok, residual_px, 0.0) ** 2
+    uncut = ok & ~cut
     for e in range(4):
-        a = r2[..., e][keep[..., e] & cut[..., e] & np.isfinite(r2[..., e])]
-        b = r2[..., e][keep[..., e] & ~cut[..., e] & np.isfinite(r2[..., e])]
+        level = np.array([np.median(r2[:, c, e][uncut[:, c, e]]) if uncut[:, c, e].any() else np.nan
+                          for c in range(r2.shape[1])])  # (C,)
+        n2 = r2[..., e] / np.where(level > 0, level, np.nan)[None, :]
+        a = n2[ok[..., e] & cut[..., e] & np.isfinite(n2)]
+        b = n2[uncut[..., e] & np.isfinite(n2)]
         if len(a) >= CUT_MIN_EDGES and len(b) and np.median(b) > 0:
             out[e] = np.median(a) / np.median(b)
     return out
