@@ -138,31 +138,36 @@ def covered_fraction(box: F64, depth: F64, depth_tol_m: float = 0.0) -> F64:
     return np.minimum(inter.sum(axis=1) / area, 1.0)
 
 
+def cut_by(label: F64, box: F64, depth_label: F64, depth_box: F64, depth_tol_m: float = 0.3,
+           margin_px: float = 2.0) -> np.ndarray:
+    """Which edges of each label a nearer object could have cut, pair by pair (any broadcastable
+    leading shape): the edge lies inside that object's box, more than ``margin_px`` from its sides
+    (a negative margin widens the box), where the two boxes share at least half of the label's
+    extent across the edge (half its height for a side edge, half its width for the top or
+    bottom), and the object is at least ``depth_tol_m`` nearer the camera. ``label (..., C, 4)``
+    labelled boxes (px, NaN none), ``box (..., C, 4)`` the other object's extent in each camera,
+    ``depth_* (..., C)`` their distances to the camera (m). A person drawn as far as they are
+    visible ends where the nearer one begins, so such an edge says where the occluder is, not
+    where the person ends. Returns ``(..., C, 4)`` bool (xmin, ymin, xmax, ymax)."""
+    with np.errstate(invalid="ignore"):
+        over_x = np.minimum(label[..., 2], box[..., 2]) - np.maximum(label[..., 0], box[..., 0])
+        over_y = np.minimum(label[..., 3], box[..., 3]) - np.maximum(label[..., 1], box[..., 1])
+        tall = over_y >= 0.5 * (label[..., 3] - label[..., 1])
+        wide = over_x >= 0.5 * (label[..., 2] - label[..., 0])
+        lo, hi = box[..., :2] + margin_px, box[..., 2:] - margin_px  # (.., 2) x, y
+        inside = [(lo[..., e % 2] < label[..., e]) & (label[..., e] < hi[..., e % 2]) for e in range(4)]
+        nearer = depth_box <= depth_label - depth_tol_m
+    cut = np.stack([inside[0] & tall, inside[1] & wide, inside[2] & tall, inside[3] & wide], -1)
+    return cut & nearer[..., None]
+
+
 def cut_edges(label: F64, box: F64, depth: F64, depth_tol_m: float = 0.3, margin_px: float = 2.0
               ) -> tuple[np.ndarray, np.ndarray]:
-    """Which edges of each label could have been cut by a nearer object: the edge lies inside
-    that object's box, more than ``margin_px`` from its sides, where the two boxes share at least
-    half of the label's extent across the edge (half its height for a side edge, half its width
-    for the top or bottom). ``label (N, C, 4)`` the labelled boxes of the N objects of one frame
-    (px, NaN none), ``box (N, C, 4)`` the objects' own extent in each camera (their estimate's
-    box), ``depth (N, C)`` their distance to the camera (m); an object at least ``depth_tol_m``
-    nearer cuts. A person drawn as far as they are visible ends where the nearer one begins,
-    so such an edge says where the occluder is, not where the person ends.
-
-    Returns ``(N, C, 4)`` bool (xmin, ymin, xmax, ymax) and ``(N, C)`` the nearer object that
-    cuts the most edges of each label (-1: none)."""
-    lab, occ = label[:, None], box[None, :]  # [i, k, c]: label i against object k's box
-    with np.errstate(invalid="ignore"):
-        over_x = np.minimum(lab[..., 2], occ[..., 2]) - np.maximum(lab[..., 0], occ[..., 0])
-        over_y = np.minimum(lab[..., 3], occ[..., 3]) - np.maximum(lab[..., 1], occ[..., 1])
-        tall = over_y >= 0.5 * (lab[..., 3] - lab[..., 1])
-        wide = over_x >= 0.5 * (lab[..., 2] - lab[..., 0])
-        lo, hi = occ[..., :2] + margin_px, occ[..., 2:] - margin_px  # (.., 2) x, y
-        inside = [(lo[..., e % 2] < lab[..., e]) & (lab[..., e] < hi[..., e % 2]) for e in range(4)]
-        nearer = depth[None, :, :] <= depth[:, None, :] - depth_tol_m
-        nearer &= ~np.eye(len(label), dtype=bool)[..., None]
-    cut = np.stack([inside[0] & tall, inside[1] & wide, inside[2] & tall, inside[3] & wide], -1)
-    cut &= nearer[..., None]
+    """:func:`cut_by` among the N objects of one frame, each label against every other object:
+    ``label``, ``box (N, C, 4)``, ``depth (N, C)``. Returns ``(N, C, 4)`` bool and ``(N, C)`` the
+    nearer object that cuts the most edges of each label (-1: none)."""
+    cut = cut_by(label[:, None], box[None, :], depth[:, None], depth[None, :], depth_tol_m, margin_px)
+    cut &= ~np.eye(len(label), dtype=bool)[:, :, None, None]  # [i, k, c, e]: label i, object k
     n = cut.sum(axis=-1)  # (N, N, C) edges of label i inside object k's box
     who = np.where(n.max(axis=1) > 0, np.argmax(n, axis=1), -1)
     return cut.any(axis=1), who

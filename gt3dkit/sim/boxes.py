@@ -298,39 +298,45 @@ def _cut_by_nearer(box: F64, seen: np.ndarray, center: F64, truth: tuple[I64, I6
     nearer person's box covers (the bottom across :data:`CUT_COVER` of the width, the left or right
     side across that share of the height) ends where the nearer box begins; a box cut to less
     than :data:`CUT_KEEP` of its width or height (hidden from both sides) is drawn whole. People
-    hidden by others count whether annotated or not. Returns
-    the boxes and an injected-error row per cut box."""
+    hidden by others count whether annotated or not. Returns the boxes and an injected-error row
+    per cut box."""
     truth_frame, truth_id = truth
     out = box.copy()
     injected: list[tuple[int, str, int, str, str, str]] = []
     centres = np.stack([c.center_world for c in rig.cameras])
     depth = np.linalg.norm(center[:, None, :] - centres[None], axis=-1)  # (M, C)
-    for f in np.unique(truth_frame):
-        m = np.flatnonzero(truth_frame == f)
-        for i in m:
-            for c in np.flatnonzero(seen[i]):
-                b = box[i, c]
-                w, h = b[2] - b[0], b[3] - b[1]
-                new = b.copy()
-                for k in m:
-                    o = box[k, c]
-                    if k == i or not np.isfinite(o).all() or depth[k, c] > depth[i, c] - nearer_m:
-                        continue
-                    over_x = min(b[2], o[2]) - max(b[0], o[0])
-                    over_y = min(b[3], o[3]) - max(b[1], o[1])
-                    if over_x >= CUT_COVER * w and b[1] + CUT_KEEP * h < o[1] < b[3]:
-                        new[3] = min(new[3], o[1])  # the legs behind the nearer one
-                    if over_y >= CUT_COVER * h:
-                        if o[0] <= b[0] < o[2] < b[2] - CUT_KEEP * w:
-                            new[0] = max(new[0], o[2])  # the left side behind it
-                        if b[0] + CUT_KEEP * w < o[0] < b[2] <= o[2]:
-                            new[2] = min(new[2], o[0])  # the right side behind it
-                if (new != b).any() and new[2] - new[0] >= CUT_KEEP * w and new[3] - new[1] >= CUT_KEEP * h:
-                    out[i, c] = new
-                    sides = ", ".join(n for n, a, z in zip(("xmin", "ymin", "xmax", "ymax"), b, new,
-                                                           strict=True) if a != z)
-                    injected.append((int(truth_frame[i]), rig.cameras[c].name, int(truth_id[i]), "",
-                                     "cut_box", f"{sides} cut by a nearer person"))
+    order = np.argsort(truth_frame, kind="stable")
+    bounds = np.flatnonzero(np.r_[True, np.diff(truth_frame[order]) != 0, True])
+    for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+        m = np.sort(order[lo:hi])
+        b, o = box[m][:, None], box[m][None, :]  # [i, k, c, 4]: person i's box, nearer k's
+        w, h = b[..., 2] - b[..., 0], b[..., 3] - b[..., 1]
+        with np.errstate(invalid="ignore"):
+            near = (depth[m][None, :] <= depth[m][:, None] - nearer_m) & np.isfinite(o).all(axis=-1)
+            near &= ~np.eye(len(m), dtype=bool)[..., None]
+            over_x = np.minimum(b[..., 2], o[..., 2]) - np.maximum(b[..., 0], o[..., 0])
+            over_y = np.minimum(b[..., 3], o[..., 3]) - np.maximum(b[..., 1], o[..., 1])
+            legs = near & (over_x >= CUT_COVER * w) & (b[..., 1] + CUT_KEEP * h < o[..., 1]) \
+                & (o[..., 1] < b[..., 3])  # the legs behind the nearer one
+            side = near & (over_y >= CUT_COVER * h)
+            left = side & (o[..., 0] <= b[..., 0]) & (b[..., 0] < o[..., 2]) \
+                & (o[..., 2] < b[..., 2] - CUT_KEEP * w)  # the left side behind it
+            right = side & (b[..., 0] + CUT_KEEP * w < o[..., 0]) & (o[..., 0] < b[..., 2]) \
+                & (b[..., 2] <= o[..., 2])  # the right side behind it
+        new = box[m].copy()  # (n, C, 4)
+        new[..., 3] = np.minimum(new[..., 3], np.where(legs, o[..., 1], np.inf).min(axis=1))
+        new[..., 0] = np.maximum(new[..., 0], np.where(left, o[..., 2], -np.inf).max(axis=1))
+        new[..., 2] = np.minimum(new[..., 2], np.where(right, o[..., 0], np.inf).min(axis=1))
+        bw, bh = box[m][..., 2] - box[m][..., 0], box[m][..., 3] - box[m][..., 1]
+        with np.errstate(invalid="ignore"):
+            ok = (new[..., 2] - new[..., 0] >= CUT_KEEP * bw) & (new[..., 3] - new[..., 1] >= CUT_KEEP * bh)
+        changed = seen[m] & ok & (new != box[m]).any(axis=-1) & np.isfinite(box[m]).all(axis=-1)
+        for i, c in zip(*np.nonzero(changed), strict=True):
+            out[m[i], c] = new[i, c]
+            sides = ", ".join(n for n, a, z in zip(("xmin", "ymin", "xmax", "ymax"), box[m[i], c], new[i, c],
+                                                   strict=True) if a != z)
+            injected.append((int(truth_frame[m[i]]), rig.cameras[c].name, int(truth_id[m[i]]), "",
+                             "cut_box", f"{sides} cut by a nearer person"))
     return out, injected
 
 

@@ -96,3 +96,24 @@ def test_a_sliver_and_a_clipped_box_are_no_calibration_error(tmp_path) -> None:
                          errors=Errors(cut_by_nearer=True)), tmp_path, "native")
     pre = prepare(load_scene(tmp_path))
     assert pre.fit is not None and pre.fit.ok.mean() > 0.95
+
+
+@pytest.mark.parametrize("cut", [True, False])
+def test_a_long_recording_is_judged_on_a_sample_first(tmp_path, cut: bool, monkeypatch) -> None:
+    """Over :data:`CUT_SAMPLE_FRAMES` frames the cut edges are judged on every k-th frame first:
+    boxes drawn whole then search no further (the sample's cut edges only) and keep every edge;
+    boxes drawn as seen are searched whole and lose exactly the edges a search without the sample
+    does."""
+    write_scene(_crowd(0, cut, frames=560, people=14), tmp_path, "native")
+    scene = load_scene(tmp_path)
+    assert len(scene.frames) > occlusion.CUT_SAMPLE_FRAMES
+    sampled = prepare(scene)
+    monkeypatch.setattr(occlusion, "CUT_SAMPLE_FRAMES", 10**9)
+    whole = prepare(scene)
+    found = [sum(p.info["boxes"]["cut_edges"]["found"].values()) for p in (sampled, whole)]
+    if cut:
+        assert sampled.box_cut is not None and np.array_equal(sampled.box_cut, whole.box_cut)
+        assert found[0] == found[1]
+    else:
+        assert sampled.box_cut is None and whole.box_cut is None
+        assert 0 < found[0] < 0.5 * found[1]
