@@ -4,7 +4,8 @@ Every score is in units of the noise level the run estimated from the data (box 
 kind, keypoints per joint and confidence) or in metres, so a noisy label set is judged by its
 own standard, and every threshold is in :class:`QAConfig`. Kinds (``OUT/anomalies.csv``):
 
-``shifted_box``      a box whose edges disagree with the estimate's tangent box (the other views)
+``shifted_box``      a box whose edges disagree with the estimate's tangent box (the other views);
+                     where it fits another object's box in that view, the row names it
 ``size_outlier``     a box in the right place but much larger or smaller than the object's own
 ``cut_box``          a box whose edges that disagree with the estimate all fall short of it, inside
                      the box of an object nearer that camera: drawn around the visible part
@@ -156,6 +157,10 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QACon
                             f"of object {int(id_of[k])}, {margin[n, c] - margin[by[n, c], c]:.1f} m nearer "
                             f"this camera: the drawn box ends where the nearer object begins, not shifted"))
                 continue
+            other = _other_objects_box(n, c, z, box, rows.row_t[idx], iou[n, c])
+            if other is not None:
+                detail += (f"; it fits object {int(id_of[idx[other[0]]])}'s box in this view (IoU "
+                           f"{other[1]:.2f}): that object's box under this id?")
             sized = (ratio[n, c] > cfg.size_ratio or ratio[n, c] < 1 / cfg.size_ratio) and off[n, c] < 0.25
             kind = "size_outlier" if sized else "shifted_box"
             out.append((int(frame_of[r]), names[c], int(id_of[r]), "", kind, round(float(score[n, c]), 2),
@@ -205,6 +210,26 @@ def _cut_edges(scene: Scene, pre: PreparedView, out: list) -> None:
                     "inside the box of a nearer object and vary clearly more than the others: the boxes are "
                     "drawn around the visible part, so these edges say where the nearer one is; left out, as "
                     "edges at the image border are (meta.json: preparation, boxes, cut_edges)"))
+
+
+#: A flagged label that overlaps another object's estimated box at least this much (and more
+#: than its own) is named as that object's box (:func:`_other_objects_box`).
+OTHER_BOX_IOU = 0.5
+
+
+def _other_objects_box(n: int, c: int, label: F64, box: F64, frame_ix: np.ndarray, own_iou: float
+                       ) -> tuple[int, float] | None:
+    """The other object of label ``n``'s frame whose estimated box in camera ``c`` the label fits
+    best, with that IoU, when it is at least :data:`OTHER_BOX_IOU` and above the label's IoU with
+    its own object's box (a detector's box of the nearer of two people given the farther one's
+    id); else None. ``label``, ``box (n, C, 4)``, ``frame_ix (n,)`` as in :func:`find_anomalies`."""
+    m = np.flatnonzero((frame_ix == frame_ix[n]) & (np.arange(len(frame_ix)) != n))
+    if not m.size:
+        return None
+    with np.errstate(invalid="ignore"):
+        v = np.nan_to_num(_iou(box[m, c], label[n, c][None]))
+    k = int(np.argmax(v))
+    return (int(m[k]), float(v[k])) if v[k] >= OTHER_BOX_IOU and v[k] > own_iou else None
 
 
 def _cut_by_nearer(bad: np.ndarray, label: F64, box: F64, depth: F64, frame_ix: np.ndarray, cfg: QAConfig

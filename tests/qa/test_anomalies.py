@@ -191,3 +191,37 @@ def test_a_box_cut_by_a_nearer_person_is_not_a_shifted_box(tmp_path) -> None:
     where = {r: (int(obs.frame[r]), names[int(obs.cam[r])], int(obs.track_id[r])) for r, _ in (behind, alone)}
     assert flags.get(where[behind[0]]) == "cut_box", flags
     assert flags.get(where[alone[0]]) in ("shifted_box", "size_outlier"), flags
+
+
+def test_another_persons_box_under_an_id_is_named(tmp_path) -> None:
+    """A view's label replaced by the box of another person in that view (a detector's box of the
+    nearer of two people given the farther one's id, as CMC1's ids were given by overlap) is a
+    shifted_box that names the person whose box it is."""
+    import dataclasses
+
+    from gt3dkit.api import annotation_qa
+    from gt3dkit.qa.anomalies import _iou
+
+    sim = simulate("wildtrack", seed=2, frames=8, people=14, noise_px=1.0, errors=Errors(dropped=0.0))
+    write_scene(sim, tmp_path / "w", "wildtrack")
+    scene = load_scene(tmp_path / "w")
+    obs = scene.obs
+    pick = None
+    for r in range(len(obs)):
+        view = (obs.frame == obs.frame[r]) & (obs.cam == obs.cam[r])
+        same = np.flatnonzero(view & (obs.track_id != obs.track_id[r]))
+        far = [q for q in same if _iou(obs.box_xyxy_px[q], obs.box_xyxy_px[r]) < 0.05
+               and (obs.box_xyxy_px[q, 3] - obs.box_xyxy_px[q, 1]) > 60]
+        if far and (obs.box_xyxy_px[r, 3] - obs.box_xyxy_px[r, 1]) > 60:
+            pick = (r, far[0])
+            break
+    assert pick is not None
+    r, q = pick
+    xyxy = obs.box_xyxy_px.copy()
+    xyxy[r] = obs.box_xyxy_px[q]
+    swapped = dataclasses.replace(scene, obs=dataclasses.replace(obs, box_xyxy_px=xyxy))
+    rows = annotation_qa(swapped, reconstruct(swapped, "ukf")).rows
+    mine = [a for a in rows if (a[0], a[1], a[2]) == (int(obs.frame[r]), scene.rig.names[int(obs.cam[r])],
+                                                       int(obs.track_id[r]))]
+    assert mine and mine[0][4] == "shifted_box", mine
+    assert f"fits object {int(obs.track_id[q])}'s box" in mine[0][6], mine
