@@ -71,6 +71,8 @@ BOX_MODEL_REGISTRY: dict[str, BoxModelEntry] = {e.name: e for e in (
     BoxModelEntry("pom", 2, "occupancy-map rectangles"),
 )}
 BOX_MODELS = tuple(BOX_MODEL_REGISTRY)
+#: The four edges of a box, in the order of ``Observations.box_xyxy_px``'s columns.
+BOX_EDGES = ("xmin", "ymin", "xmax", "ymax")
 
 
 @dataclass(frozen=True, eq=False)

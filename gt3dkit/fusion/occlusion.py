@@ -24,7 +24,7 @@ from gt3dkit.fusion.boxfit import BoxFit, state_boxes
 from gt3dkit.fusion.rows import Rows
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.conics import cut_by
-from gt3dkit.types import B8, F64, I64, JsonDict
+from gt3dkit.types import B8, BOX_EDGES, F64, I64, JsonDict
 
 #: A nearer object's extent reaches this many edge noise levels beyond its box.
 CUT_TOL_SIGMAS = 2.0
@@ -41,7 +41,6 @@ CUT_VARIANCE_RATIO = 2.5
 CUT_SAMPLE_FRAMES = 400
 #: ... and searched whole where a kind's sampled ratio reaches this share of CUT_VARIANCE_RATIO.
 CUT_SAMPLE_GATE = 0.8
-EDGE_NAMES = ("xmin", "ymin", "xmax", "ymax")
 
 
 @dataclass(frozen=True)
@@ -56,19 +55,14 @@ class CutEdges:
 
     def as_json(self) -> JsonDict:
         """For meta.json: counts and ratios per edge kind."""
-        return {"found": dict(zip(EDGE_NAMES, self.found.sum(axis=(0, 1)).tolist(), strict=True)),
+        return {"found": dict(zip(BOX_EDGES, self.found.sum(axis=(0, 1)).tolist(), strict=True)),
                 "variance_ratio": {k: (round(float(v), 3) if np.isfinite(v) else None)
-                                   for k, v in zip(EDGE_NAMES, self.ratio, strict=True)},
-                "left_out": dict(zip(EDGE_NAMES, self.dropped.sum(axis=(0, 1)).tolist(), strict=True)),
+                                   for k, v in zip(BOX_EDGES, self.ratio, strict=True)},
+                "left_out": dict(zip(BOX_EDGES, self.dropped.sum(axis=(0, 1)).tolist(), strict=True)),
                 "rule": f"an edge within a nearer object's box (its label or its fit; {CUT_TOL_SIGMAS:g} "
                         f"noise levels beyond it, {CUT_DEPTH_TOL_M:g} m nearer) is cut; a kind's cut edges "
                         f"are left out when their median squared residual is {CUT_VARIANCE_RATIO:g}x the "
                         f"others' or more ({CUT_MIN_EDGES} cut edges at least)"}
-
-
-def camera_centres(cams: Cams) -> F64:
-    """``(C, 3)`` each camera's centre in the world (``-R^T t``)."""
-    return -np.einsum("cji,cj->ci", cams.R, cams.t)
 
 
 #: Rows of consecutive frames whose pairs are judged together in :func:`find_cut` (every pair of
@@ -99,7 +93,7 @@ def find_cut(rows: Rows, cams: Cams, fit: BoxFit, keep: B8, tol_px: float, frame
     own = state_boxes(fit.center_world, fit.log_axes, cams)  # (R, C, 4)
     own = np.where(fit.ok[:, None, None], own, np.nan)
     label_or_own = np.where(np.isfinite(rows.box_z), rows.box_z, own)
-    depth = np.linalg.norm(fit.center_world[:, None, :] - camera_centres(cams)[None], axis=-1)
+    depth = np.linalg.norm(fit.center_world[:, None, :] - cams.centres[None], axis=-1)
     depth = np.where(fit.ok[:, None], depth, np.nan)
     cut = np.zeros(rows.box_z.shape, bool)
     sel = np.arange(len(rows.row_t)) if frames is None else np.flatnonzero(np.isin(rows.row_t, frames))

@@ -44,7 +44,7 @@ from gt3dkit.fusion.rows import Rows, build_rows
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.triangulate import normalized_points, robust_triangulate, triangulation_cov
 from gt3dkit.skeletons import SKELETONS, Skeleton, skeleton_for
-from gt3dkit.types import F64, I64, JsonDict, Scene
+from gt3dkit.types import BOX_EDGES, F64, I64, JsonDict, Scene
 
 #: Smallest confidence used as a weight (``sigma^2 / conf``: at most 7x the sd).
 CONF_FLOOR = 0.02
@@ -257,20 +257,20 @@ def check_in_front(scene: Scene, rows: Rows, fit: BoxFit, cams: Cams) -> None:
     seen = (rows.obs_row >= 0) & np.all(np.isfinite(rows.box_z), axis=-1)
     bad = seen & fit.ok[:, None] & ~(fit.margin > 0)
     most = bad.sum(axis=0) >= 0.5 * np.maximum(seen.sum(axis=0), 1)  # (C,) a camera facing away
-    for r in np.flatnonzero(bad.any(axis=1) & ~(bad & most[None, :]).any(axis=1)):
-        views = np.flatnonzero(seen[r])
-        blamed = np.zeros(len(views), bool)
-        for i, v in enumerate(views):
-            mask = rows.box_mask[r:r + 1].copy()
-            mask[0, v] = False
-            if not mask.any():
-                continue
-            again = fit_boxes(rows.box_z[r:r + 1], mask, cams)
-            others = np.delete(views, i)
-            blamed[i] = (len(others) >= 2 and again.ok[0] and np.all(again.margin[0, others] > 0)
-                         and not again.margin[0, v] > 0)
-        bad[r] = False
-        bad[r, views[blamed]] = True
+    doubt = np.flatnonzero(bad.any(axis=1) & ~(bad & most[None, :]).any(axis=1))
+    if doubt.size:  # every (row, view) of those rows refitted without that view, in one batch
+        r, v = np.nonzero(seen[doubt])
+        r = doubt[r]
+        k = np.arange(len(r))
+        mask = rows.box_mask[r].copy()
+        mask[k, v] = False
+        again = fit_boxes(rows.box_z[r], mask, cams)
+        front = (again.margin > 0) | ~seen[r]
+        behind_v = ~front[k, v]
+        front[k, v] = True
+        blamed = (seen[r].sum(axis=1) >= 3) & again.ok & front.all(axis=1) & behind_v
+        bad[doubt] = False
+        bad[r[blamed], v[blamed]] = True
     if bad.any():
         r, c = np.argwhere(bad)[0]
         where = scene.obs.origin[rows.obs_row[r, c]]
@@ -288,9 +288,6 @@ def _merge_fit(fit: BoxFit, sel: np.ndarray, sub: BoxFit) -> BoxFit:
         a[sel] = getattr(sub, k)
         out[k] = a
     return BoxFit(**out)
-
-
-EDGES = ("xmin", "ymin", "xmax", "ymax")
 
 
 def _edge_residuals(fit: BoxFit, keep: np.ndarray) -> tuple[F64, F64, np.ndarray]:
@@ -395,7 +392,7 @@ def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
     tail = (float(sig[0]) / core) ** 2
     info = {"box_model": scene.box_model, "box_model_median_residual_px": scene.box_model_px,
             "sigma_px": float(sig[0]), "sigma_px_core": core, "tail_variance_ratio": tail,
-            "sigma_px_per_edge_kind": dict(zip(EDGES, _edge_sigmas(fit, keep, robust)[1].round(4)
+            "sigma_px_per_edge_kind": dict(zip(BOX_EDGES, _edge_sigmas(fit, keep, robust)[1].round(4)
                                                .tolist(), strict=True)),
             "sigma_source": "given" if sigma_px is not None else
             "robust residual level of the per-frame fits (kept edges, with dof); the filters weight "

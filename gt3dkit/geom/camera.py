@@ -166,6 +166,11 @@ class Cams(NamedTuple):
         return cls(rig.K, rig.dist, rig.R, rig.t, rig.wh, rig.world_from_body(), rig.up,
                    rig.depth_sign, BOX_MODEL_REGISTRY[box_model].index)
 
+    @property
+    def centres(self) -> F64:
+        """(C, 3) each camera's centre in the world (``-R^T t``), metres."""
+        return -np.einsum("cji,cj->ci", self.R, self.t)
+
     def take(self, idx: np.ndarray) -> Cams:
         """The cameras ``idx`` only (same body frame and box model)."""
         return Cams(self.K[idx], self.dist[idx], self.R[idx], self.t[idx], self.wh[idx],

@@ -17,14 +17,13 @@ from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.parse import iter_csv_rows, parse_float, parse_frame, parse_int, parse_metres
 from gt3dkit.rig import Rig
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import JsonDict, JsonValue, RunInfo, Scene, TrackSet
+from gt3dkit.types import BOX_EDGES, JsonDict, JsonValue, RunInfo, Scene, TrackSet
 from gt3dkit.version import __version__
 
 TRACK_COLUMNS = ("frame", "id", "x", "y", "z", "a", "b", "c", "sx", "sy", "sz")
 KPT_COLUMNS = ("frame", "id", "joint", "x", "y", "z", "sd")
 DOWNWEIGHTED_COLUMNS = ("frame", "camera", "id", "joint", "edge", "weight", "residual_px", "score")
 ANOMALY_COLUMNS = ("frame", "camera", "id", "joint", "kind", "score", "detail")
-EDGE_NAMES = ("xmin", "ymin", "xmax", "ymax")
 
 
 class AnomalyRows(Protocol):
@@ -215,7 +214,7 @@ def write_downweighted_csv(path: Path, scene: Scene, tracks: TrackSet) -> None:
         for i in order:
             w.writerow([int(d.frame[i]), names[int(d.cam[i])], int(d.track_id[i]),
                         "" if d.joint[i] < 0 else int(d.joint[i]),
-                        "" if d.edge[i] < 0 else EDGE_NAMES[int(d.edge[i])],
+                        "" if d.edge[i] < 0 else BOX_EDGES[int(d.edge[i])],
                         f"{d.weight[i]:.4f}", f"{d.residual_px[i]:.3f}", f"{d.score[i]:.3f}"])
 
 

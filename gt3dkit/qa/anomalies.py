@@ -42,7 +42,7 @@ from gt3dkit.geom.camera import project_points
 from gt3dkit.geom.conics import covered_fraction, cut_edges, model_boxes
 from gt3dkit.qa.view import PreparedView, RowsView
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import F64, Scene, TrackSet
+from gt3dkit.types import BOX_EDGES, F64, Scene, TrackSet
 
 
 @dataclass(frozen=True)
@@ -150,7 +150,7 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QACon
             inward = np.sign(z[n, c] - box[n, c]) == [1, 1, -1, -1]  # the label smaller on that side
             if not (off_edges & ~(cut[n, c] & inward)).any():  # every edge off: cut short by a nearer one
                 k = idx[by[n, c]]
-                which = ", ".join(EDGE_NAMES[e] for e in np.flatnonzero(off_edges))
+                which = ", ".join(BOX_EDGES[e] for e in np.flatnonzero(off_edges))
                 out.append((int(frame_of[r]), names[c], int(id_of[r]), "", "cut_box",
                             round(float(score[n, c]), 2),
                             f"{detail}; its edge{'s' if off_edges.sum() > 1 else ''} {which} inside the box "
@@ -190,9 +190,6 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QACon
     return Anomalies(out)
 
 
-EDGE_NAMES = ("xmin", "ymin", "xmax", "ymax")
-
-
 def _cut_edges(scene: Scene, pre: PreparedView, out: list) -> None:
     """One ``cut_edges`` row per camera with edges left out as cut by a nearer object."""
     cut = pre.box_cut
@@ -203,7 +200,7 @@ def _cut_edges(scene: Scene, pre: PreparedView, out: list) -> None:
         per = cut[:, c]  # (R, 4)
         boxes = per.any(axis=1)
         n_boxes = int(np.isfinite(rows.box_z[:, c, 0]).sum())
-        kinds = ", ".join(f"{k} {int(n)}" for k, n in zip(EDGE_NAMES, per.sum(axis=0), strict=True) if n)
+        kinds = ", ".join(f"{k} {int(n)}" for k, n in zip(BOX_EDGES, per.sum(axis=0), strict=True) if n)
         out.append((int(rows.frames[rows.row_t[np.flatnonzero(boxes)[0]]]), scene.rig.names[c], "", "",
                     "cut_edges", round(float(boxes.sum() / max(n_boxes, 1)), 3),
                     f"{int(per.sum())} edges of {int(boxes.sum())} of its {n_boxes} boxes ({kinds}) lie "

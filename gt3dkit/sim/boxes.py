@@ -24,7 +24,7 @@ from gt3dkit.sim.common import (
     look_at,
     write_injected,
 )
-from gt3dkit.types import BOX_MODELS, F64, I64, Camera, Rig, SimScene
+from gt3dkit.types import BOX_EDGES, BOX_MODELS, F64, I64, Camera, Rig, SimScene
 
 
 def make_rig(n_cams: int, area_lo: F64, area_hi: F64, names: list[str],
@@ -309,7 +309,8 @@ def _cut_by_nearer(box: F64, seen: np.ndarray, center: F64, truth: tuple[I64, I6
     bounds = np.flatnonzero(np.r_[True, np.diff(truth_frame[order]) != 0, True])
     for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
         m = np.sort(order[lo:hi])
-        b, o = box[m][:, None], box[m][None, :]  # [i, k, c, 4]: person i's box, nearer k's
+        bm = box[m]  # (n, C, 4)
+        b, o = bm[:, None], bm[None, :]  # [i, k, c, 4]: person i's box, nearer k's
         w, h = b[..., 2] - b[..., 0], b[..., 3] - b[..., 1]
         with np.errstate(invalid="ignore"):
             near = (depth[m][None, :] <= depth[m][:, None] - nearer_m) & np.isfinite(o).all(axis=-1)
@@ -323,18 +324,17 @@ def _cut_by_nearer(box: F64, seen: np.ndarray, center: F64, truth: tuple[I64, I6
                 & (o[..., 2] < b[..., 2] - CUT_KEEP * w)  # the left side behind it
             right = side & (b[..., 0] + CUT_KEEP * w < o[..., 0]) & (o[..., 0] < b[..., 2]) \
                 & (b[..., 2] <= o[..., 2])  # the right side behind it
-        new = box[m].copy()  # (n, C, 4)
+        new = bm.copy()
         new[..., 3] = np.minimum(new[..., 3], np.where(legs, o[..., 1], np.inf).min(axis=1))
         new[..., 0] = np.maximum(new[..., 0], np.where(left, o[..., 2], -np.inf).max(axis=1))
         new[..., 2] = np.minimum(new[..., 2], np.where(right, o[..., 0], np.inf).min(axis=1))
-        bw, bh = box[m][..., 2] - box[m][..., 0], box[m][..., 3] - box[m][..., 1]
         with np.errstate(invalid="ignore"):
-            ok = (new[..., 2] - new[..., 0] >= CUT_KEEP * bw) & (new[..., 3] - new[..., 1] >= CUT_KEEP * bh)
-        changed = seen[m] & ok & (new != box[m]).any(axis=-1) & np.isfinite(box[m]).all(axis=-1)
+            ok = (new[..., 2] - new[..., 0] >= CUT_KEEP * (bm[..., 2] - bm[..., 0])) \
+                & (new[..., 3] - new[..., 1] >= CUT_KEEP * (bm[..., 3] - bm[..., 1]))
+        changed = seen[m] & ok & (new != bm).any(axis=-1) & np.isfinite(bm).all(axis=-1)
         for i, c in zip(*np.nonzero(changed), strict=True):
             out[m[i], c] = new[i, c]
-            sides = ", ".join(n for n, a, z in zip(("xmin", "ymin", "xmax", "ymax"), box[m[i], c], new[i, c],
-                                                   strict=True) if a != z)
+            sides = ", ".join(n for n, a, z in zip(BOX_EDGES, bm[i, c], new[i, c], strict=True) if a != z)
             injected.append((int(truth_frame[m[i]]), rig.cameras[c].name, int(truth_id[m[i]]), "",
                              "cut_box", f"{sides} cut by a nearer person"))
     return out, injected
