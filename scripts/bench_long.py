@@ -2,7 +2,8 @@
 long simulated scenes (the whole sequence, ``--window 0``, and in the windows it chooses by itself),
 side by side in the same run with aniposelib (``scripts/peer_aniposelib.py`` in the benchmark's own
 environment, ``make bench-env``), ``gt3d compare`` on the long box scene, and one sequence over a
-Dask ``LocalCluster`` of 1 and 2 workers (``--dask-pairs`` pairs, the order alternating).
+Dask ``LocalCluster`` of 1 and 2 workers (``--dask-pairs`` pairs, the order alternating) beside the
+same run in one process with one thread, against issue 48's targets.
 
     .venv/bin/python scripts/bench_long.py [--frames 1000,10000] [--whole-up-to 3000]
         [--shelf-frames 3000] [--box-frames 4000] [--dask-frames 4000] [--dask-pairs 3]
@@ -26,9 +27,11 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -40,9 +43,9 @@ GT3D = str(Path(sys.executable).with_name("gt3d"))
 PEER = Path(__file__).with_name("peer_aniposelib.py")
 
 
-def timed(cmd: list[str]) -> tuple[float, float, str]:
-    """Wall seconds, peak RSS (GB) and stdout of ``cmd`` as a process."""
-    env = {**os.environ, "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS", "1")}
+def timed(cmd: list[str], env: dict[str, str] | None = None) -> tuple[float, float, str]:
+    """Wall seconds, peak RSS (GB) and stdout of ``cmd`` as a process (``env`` added to this one's)."""
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS", "1"), **(env or {})}
     r = subprocess.run(["/usr/bin/time", "-f", "TIME %e %M", *cmd], capture_output=True, text=True, env=env)
     m = re.search(r"TIME ([\d.]+) (\d+)", r.stderr)
     if r.returncode != 0 or m is None:
@@ -62,8 +65,10 @@ def row(name: str, run: str, sec: float, gb: float, n: int, err: float | None, n
     print(f"{name:<36}{run:<22}{sec:>9.1f}{gb:>9.2f}{per:>12.2f}{e:>10}  {note}", flush=True)
 
 
-def gt3d_run(name: str, src: Path, out: Path, extra: list[str], label: str) -> tuple[float, int]:
-    sec, gb, so = timed([GT3D, "reconstruct", str(src), "--out", str(out), "--quiet", *extra])
+def gt3d_run(name: str, src: Path, out: Path, extra: list[str], label: str, env: dict[str, str] | None = None
+             ) -> tuple[float, int]:
+    shutil.rmtree(out, ignore_errors=True)
+    sec, gb, so = timed([GT3D, "reconstruct", str(src), "--out", str(out), "--quiet", *extra], env)
     n = int(re.search(r"-> (\d+) object-frames", so).group(1))  # type: ignore[union-attr]
     win = re.search(r"in (\d+) windows of (?:about )?(\d+) frames", so)
     kp = out / "keypoints.csv"
@@ -105,23 +110,61 @@ def side_by_side(k: int) -> float:
 def dask_runs(name: str, src: Path, d: Path, pairs: int) -> None:
     """The sequence on a ``LocalCluster`` of 1 and of 2 workers, ``pairs`` times in the order 1, 2,
     then 2, 1, ... (the machine's speed drifts over minutes: alternating the order cancels a
-    steady drift): each pair's ratio, their median, and how far the 2-worker output is from the
-    1-worker one (in the estimate's own sd)."""
-    from distributed import LocalCluster
+    steady drift), and in this process's own way with one thread (``GT3D_THREADS=1``) before each
+    pair: each pair's ratios, their medians against issue 48's targets, and whether every run wrote
+    the same bytes. The client's serial share of a 1-worker run is the part of its wall time in
+    which the worker computed no task (the scheduler's task stream, :func:`busy_seconds`)."""
+    from distributed import Client, LocalCluster
 
-    ratios = []
+    ratios, per_proc, serial = [], [], []
+    hashes: set[bytes] = set()
     for p in range(pairs):
+        one, _ = gt3d_run(name, src, d / "inproc", [], "one process, 1 thread", {"GT3D_THREADS": "1"})
+        hashes.add((d / "inproc" / "tracks.csv").read_bytes())
         sec: dict[int, float] = {}
         for k in (1, 2) if p % 2 == 0 else (2, 1):
-            with LocalCluster(n_workers=k, threads_per_worker=1, processes=True, dashboard_address=None) as c:
+            with (LocalCluster(n_workers=k, threads_per_worker=1, processes=True,
+                               dashboard_address=None) as c, Client(c) as watch):
+                watch.get_task_stream()  # the scheduler records every task from now on
+                t0 = time.time()
                 sec[k], _ = gt3d_run(name, src, d / f"dask{k}", ["--scheduler", c.scheduler_address],
                                      f"dask {k} worker(s)")
+                t1 = time.time()
+                if k == 1:
+                    serial.append(1.0 - busy_seconds(watch.get_task_stream(), t0, t1) / (t1 - t0))
+            hashes.add((d / f"dask{k}" / "tracks.csv").read_bytes())
         ratios.append(sec[1] / sec[2])
-        gap = output_gap(d / "dask1", d / "dask2")
-        print(f"{'':<36}pair {p + 1}: 2 workers against 1: {ratios[-1]:.2f}x; {gap}", flush=True)
-    print(f"{'':<36}dask 2 against 1, median of {pairs} pair(s): {float(np.median(ratios)):.2f}x "
-          f"({', '.join(f'{r:.2f}' for r in ratios)}); the machine now: 2 processes side by side do "
-          f"{side_by_side(2):.2f}x the pure-Python work of one", flush=True)
+        per_proc.append(sec[1] / one)
+        print(f"{'':<36}pair {p + 1}: 1 worker against one process: {per_proc[-1]:.2f}x; 2 workers against "
+              f"1: {ratios[-1]:.2f}x; the client alone {100 * serial[-1]:.1f} % of the 1-worker run; "
+              f"{output_gap(d / 'dask1', d / 'dask2')}",
+              flush=True)
+    line = side_by_side(2)
+    r2, r1, sh = float(np.median(ratios)), float(np.median(per_proc)), float(np.median(serial))
+    print(f"{'':<36}medians of {pairs} pair(s); the machine now: 2 processes side by side do {line:.2f}x the "
+          f"pure-Python work of one", flush=True)
+    print(f"  target the client's serial share <= 10 % of a 1-worker run: {100 * sh:.1f} % "
+          f"{'PASS' if sh <= 0.10 else 'FAIL'}")
+    print(f"  target 1 worker <= 1.1x one process with one thread: {r1:.2f}x "
+          f"{'PASS' if r1 <= 1.1 else 'FAIL'}")
+    print(f"  target 2 workers >= 1.7x 1 worker: {r2:.2f}x (the machine's own line {line:.2f}x) "
+          f"{'PASS' if r2 >= 1.7 else 'FAIL'}")
+    same = "PASS" if len(hashes) == 1 else f"FAIL ({len(hashes)} versions)"
+    print(f"  target the same bytes in every run: {same}")
+
+
+def busy_seconds(stream: list[dict], t0: float, t1: float) -> float:
+    """Seconds of ``[t0, t1]`` in which some worker computed a task: the union of the ``compute``
+    intervals of Dask's task stream (``Client.get_task_stream``: one record a task, each with
+    its ``startstops``)."""
+    spans = sorted((max(ss["start"], t0), min(ss["stop"], t1)) for rec in stream for ss in rec["startstops"]
+                   if ss["action"] == "compute" and ss["stop"] > t0 and ss["start"] < t1)
+    busy, end = 0.0, t0
+    for a, b in spans:
+        if b > end:
+            busy += b - max(a, end)
+            end = b
+    return busy
 
 
 def output_gap(a: Path, b: Path) -> str:

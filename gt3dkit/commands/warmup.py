@@ -1,6 +1,11 @@
-"""Compile every kernel once (``make setup``; the test session's first fixture): ``python -m
-gt3dkit.commands.warmup``. A first real run then loads machine code from numba's cache instead of
-spending about a minute compiling (:mod:`gt3dkit.geom.kernel_cache` drops stale caches)."""
+"""Compile every kernel a first run uses, once (``make setup``; the test session's first fixture):
+``python -m gt3dkit.commands.warmup``. A first real run then loads machine code from numba's
+cache instead of compiling it (:mod:`gt3dkit.geom.kernel_cache` drops stale caches).
+
+The kernels fall in two sets that share little: the boxes' (per-frame box fits, the noise
+search, the box filter) and the joints' (triangulation, the joint filter). numba compiles on one
+core, so the two sets compile side by side, the joints' in a second process
+(:func:`compile_joints`), each saying when it is done."""
 
 from __future__ import annotations
 
@@ -11,42 +16,65 @@ from dataclasses import replace
 
 from gt3dkit.api import tiny_scenes
 from gt3dkit.fusion import ukf_smoother as us
+from gt3dkit.fusion.base import ESTIMATORS, make_estimator
 from gt3dkit.fusion.measurement import Model
-from gt3dkit.types import Scene
 
 
-def _tiny_model() -> tuple[Model, us.Init, us.UKFConfig, float, us.UKFSmoother, Scene]:
-    """A 4-frame, 2-person simulated scene's model, initial states and a config with its noise set."""
-    scene = tiny_scenes()[0]
-    est = us.UKFSmoother()
-    model = Model.of(est.prepare(scene))  # the per-frame fits (gt3dkit.fusion.boxlm)
-    cfg = replace(est.config, accel_sd=0.5, shape_sd=0.01)
-    return model, us.initial_states(model, cfg), cfg, scene.fps, est, scene
-
-
-def compile_side() -> None:
-    """Compile the joints' chains on a tiny skeleton scene."""
-    model, init, cfg, fps, _, _ = _tiny_model()
-    scene = tiny_scenes()[1]
-    model = Model.of(us.UKFSmoother().prepare(scene))
-    cfg = replace(cfg, joint_accel_sd=0.5)
-    us.run_filter(model, us.initial_states(model, cfg), cfg, scene.fps, collect=True)
-
-
-def warm_up() -> float:
-    """Compile (or load from numba's disk cache) every compiled function by reconstructing a tiny
-    simulated scene; returns the seconds it took. ``make setup`` runs it once, so that a first
-    real run does not spend a minute compiling. The joints' chains compile meanwhile in a second
-    process (numba compiles on one core)."""
+def compile_boxes() -> float:
+    """Estimate a 4-frame, 2-person simulated box scene by every estimator (the UKF's per-frame
+    fits, noise search, forward and backward; the GTSAM smoother's factors) and run the UKF's
+    filter with the noise set; returns the seconds it took."""
     t0 = time.perf_counter()
-    side = subprocess.Popen([sys.executable, "-c", "from gt3dkit.commands.warmup import "
-                             "compile_side as f; f()"])
-    model, init, cfg, fps, est, scene = _tiny_model()
-    est.estimate(scene)  # the linearised noise search, forward, backward
-    us.run_filter(model, init, cfg, fps)
-    side.wait()
+    scene = tiny_scenes()[0]
+    for name in ESTIMATORS:
+        make_estimator(name).estimate(scene)
+    est = us.UKFSmoother()
+    model = Model.of(est.prepare(scene))
+    cfg = replace(est.config, accel_sd=0.5, shape_sd=0.01)
+    us.run_filter(model, us.initial_states(model, cfg), cfg, scene.fps)
     return time.perf_counter() - t0
 
 
+def compile_joints() -> float:
+    """Estimate a 3-frame simulated skeleton scene and run its joints' chains with the noise set
+    (the filter's collecting pass); returns the seconds it took."""
+    t0 = time.perf_counter()
+    scene = tiny_scenes()[1]
+    est = us.UKFSmoother()
+    est.estimate(scene)
+    model = Model.of(est.prepare(scene))
+    cfg = replace(est.config, accel_sd=0.5, shape_sd=0.01, joint_accel_sd=0.5)
+    us.run_filter(model, us.initial_states(model, cfg), cfg, scene.fps, collect=True)
+    return time.perf_counter() - t0
+
+
+def warm_up(say: bool = False) -> float:
+    """Compile (or load from numba's disk cache) every compiled function a run uses: the box
+    kernels here, the joint kernels meanwhile in a second process. ``say``: print a line as each
+    set is ready. Returns the seconds it took."""
+    t0 = time.perf_counter()
+    side = subprocess.Popen([sys.executable, "-m", "gt3dkit.commands.warmup", "--joints",  # noqa: S603
+                             *(["--say"] if say else [])])
+    s = compile_boxes()
+    if say:
+        print(f"  box kernels ready ({s:.0f} s)", flush=True)
+    if side.wait() != 0:
+        raise RuntimeError("compiling the joint kernels failed (see above)")
+    return time.perf_counter() - t0
+
+
+def main(argv: list[str]) -> None:
+    """``python -m gt3dkit.commands.warmup [--joints] [--say]``: every kernel (``make setup``), or
+    the joints' alone (:func:`warm_up`'s second process)."""
+    if "--joints" in argv:
+        s = compile_joints()
+        if "--say" in argv:
+            print(f"  joint kernels ready ({s:.0f} s)", flush=True)
+        return
+    print("gt3dkit: compiling the box and the joint kernels side by side (once: numba keeps them next "
+          "to the package)", flush=True)
+    print(f"gt3dkit: compiled kernels ready ({warm_up(say=True):.0f} s)")
+
+
 if __name__ == "__main__":
-    print(f"gt3dkit: compiled kernels ready ({warm_up():.0f} s)")
+    main(sys.argv[1:])

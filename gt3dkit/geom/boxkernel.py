@@ -363,8 +363,14 @@ def _pom_box(p: tuple[float, float, float], e: tuple[float, float, float], q: F6
 # semi-axes ``la`` in camera ``c``), listed in :data:`BOX_KERNELS` under its name in
 # :data:`gt3dkit.types.BOX_MODEL_REGISTRY`; :func:`pair_box` and :func:`pair_box_grad` pick the
 # pair by the rig's ``box_model`` (the entry's index).
+#
+# The values and :func:`pair_box` are called, not inlined (numba's ``inline="always"``) into their
+# callers: inlined, each of the three callers (the LM fit's residuals, the sigma points' boxes and
+# :func:`kernel`) typed and compiled all three models' trees again: 129 s of the 207 s the box
+# kernels took to compile (``make setup``). Called, they compile in 92 s in all, and a box
+# estimate takes 3-6 % longer (the per-edge helpers within stay inlined); the same bytes.
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(cache=True, nogil=True)
 def ellipsoid_value(p: tuple[float, float, float], s: tuple[float, float, float], q: F64, steps: int
                     ) -> tuple[float, float, float, float, float]:
     """The ellipsoid's tangent box (:func:`_quadric_box`)."""
@@ -379,7 +385,7 @@ def ellipsoid_grad(p: tuple[float, float, float], la: tuple[float, float, float]
                              c, rig, box, grad)
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(cache=True, nogil=True)
 def cylinder_value(p: tuple[float, float, float], s: tuple[float, float, float], q: F64, steps: int
                    ) -> tuple[float, float, float, float, float]:
     """The vertical cylinder's box: the union of its two end discs' tangent boxes (the cylinder
@@ -424,7 +430,7 @@ def cylinder_grad(p: tuple[float, float, float], la: tuple[float, float, float],
     return min(mg, mg2)
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(cache=True, nogil=True)
 def pom_value(p: tuple[float, float, float], s: tuple[float, float, float], q: F64, steps: int
               ) -> tuple[float, float, float, float, float]:
     """The occupancy-map rectangle (:func:`_pom_value`) of half-extents ``sqrt(s)``."""
@@ -443,7 +449,7 @@ BOX_KERNELS = {"ellipsoid": (ellipsoid_value, ellipsoid_grad), "cylinder": (cyli
                "pom": (pom_value, pom_grad)}
 
 
-@numba.njit(cache=True, nogil=True, inline="always")  # ~20 % faster than a call
+@numba.njit(cache=True, nogil=True)
 def pair_box(p: tuple[float, float, float], s: tuple[float, float, float], c: int, rig: BoxRig,
              want: bool, out: F64, n: int) -> float:
     """The box ``out[n, c] (4,)`` (``out (N, C, 4)``) of the solid with centre ``p`` and
