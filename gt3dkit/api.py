@@ -175,10 +175,13 @@ def reconstruct(scene: Scene | str | Path, estimator: str | Estimator = "ukf",
 
 
 def estimate_checked(scene: Scene, est: Estimator, every_frame: int | None = None, qa: bool = True,
-                     on_stage: Callable[[str], None] | None = None) -> tuple[TrackSet, Any]:
+                     on_stage: Callable[[str], None] | None = None, pre: Any | None = None
+                     ) -> tuple[TrackSet, Any]:
     """:func:`reconstruct`'s pipeline on a loaded scene without the writing: per-frame fits,
     identity segments, the estimator (``every_frame`` as there), and with ``qa`` the annotation
-    QA (:func:`gt3dkit.qa.anomalies.find_anomalies`; else None)."""
+    QA (:func:`gt3dkit.qa.anomalies.find_anomalies`; else None). ``pre``: the estimator's own
+    preparation of the scene it runs on (after ``every_frame``'s grid), made before (None: made
+    here)."""
     stage = on_stage or (lambda name: None)
     sc = scene
     if every_frame is not None:
@@ -188,7 +191,8 @@ def estimate_checked(scene: Scene, est: Estimator, every_frame: int | None = Non
         sc = dense_frames(sc, every_frame or None)
     stage("per-frame fits")
     own = getattr(est, "prepare", None)
-    pre = own(sc) if callable(own) else prepare(sc)
+    if pre is None:
+        pre = own(sc) if callable(own) else prepare(sc)
     segs = identity_segments(pre, sc.fps, pieces=sc.identity_pieces)
     stage(f"{getattr(est, 'name', 'estimator')}")
     tracks = estimate_scene(sc, est, pre if callable(own) else None, segs, dense=every_frame is not None)
@@ -217,16 +221,17 @@ def process_noise_prepared(scene: Scene, est: Estimator) -> tuple[dict[str, floa
     return found, pre
 
 
-def bone_samples_checked(scene: Scene, est: Estimator) -> tuple[Any | None, I64]:
+def bone_samples_checked(scene: Scene, est: Estimator, pre: Any | None = None) -> tuple[Any | None, I64]:
     """The first pass's bones (:class:`gt3dkit.fusion.bones.BoneSamples`, ``obj``: the input's
     ids) that :func:`estimate_checked` would tie ``scene``'s joints with, by the estimator's own
     ``bone_samples`` without the rest of the estimate (None when it ties no bones), and the ids
     it splits ``(S,)`` (an id's pieces may be different people: the caller leaves them out; the
-    rows of the pieces after an id's first, whose ids are this run's own, are left out here)."""
+    rows of the pieces after an id's first, whose ids are this run's own, are left out here).
+    ``pre``: the estimator's preparation of ``scene``, made before (None: made here)."""
     own = getattr(est, "bone_samples", None)
     if not callable(own):
         return None, np.zeros(0, np.int64)
-    pre = est.prepare(scene)
+    pre = pre if pre is not None else est.prepare(scene)
     segs = identity_segments(pre, scene.fps, pieces=scene.identity_pieces)
     if not segs.splits:
         return own(scene, pre), np.zeros(0, np.int64)

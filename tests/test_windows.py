@@ -346,6 +346,43 @@ def test_skeleton_windows_give_the_one_process_output_in_processes_and_on_dask(t
     assert (tmp_path / "dask" / "keypoints.csv").read_bytes() == outs["one"]
 
 
+def test_the_second_round_takes_each_windows_preparation_from_the_first(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Keypoints with bones in one process: the bones' round keeps each window's preparation (on
+    disk) and the second round takes it, so every window is prepared once, not twice, with the
+    same rows; where it cannot be written (a full disk), each is made again, the same rows."""
+    import errno
+    import pickle
+
+    from gt3dkit.fusion.ukf_smoother import UKFSmoother
+
+    sk = simulate_skeletons("native", seed=5, frames=60, people=2, cameras=4, noise_px=1.0)
+    write_skeleton_scene(sk, tmp_path / "sk", "native")
+    scene = load_scene(tmp_path / "sk")
+    fixed = {"accel_sd": 1.0, "shape_sd": 0.01, "joint_accel_sd": 2.0}
+    made: list[int] = []
+    real = UKFSmoother.prepare
+
+    def counted(self: UKFSmoother, sc: object) -> object:
+        made.append(1)
+        return real(self, sc)
+
+    monkeypatch.setattr(UKFSmoother, "prepare", counted)
+    kept, _ = reconstruct_windowed(scene, "ukf", Plan(20, overlap=10), **fixed)
+    n, once = kept.info.windows["count"], len(made)  # the windows' and the noise sample's
+    assert n == 3
+
+    def full(*args: object, **kw: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    made.clear()
+    monkeypatch.setattr(pickle, "dump", full)
+    again, _ = reconstruct_windowed(scene, "ukf", Plan(20, overlap=10), **fixed)
+    assert len(made) == once + n  # the second round prepared each window again
+    for k in ("frame", "track_id", "kpt_world", "kpt_sd", "center_world", "center_sd"):
+        np.testing.assert_array_equal(getattr(again, k), getattr(kept, k))
+
+
 def test_window_misuse(boxes: object, tmp_path: Path) -> None:
     root = str(boxes.root)  # type: ignore[attr-defined]
     code, so, se = _run("reconstruct", root, "--out", str(tmp_path / "a"), "--jobs", "2", "--window", "0")

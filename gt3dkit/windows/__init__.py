@@ -100,7 +100,15 @@ from gt3dkit.windows.plan import (
     sized_plan,
     window_scene,
 )
-from gt3dkit.windows.stitch import OnPart, WindowJob, pooled_bones, run_window, stitch, window_bones
+from gt3dkit.windows.stitch import (
+    KeptPreparations,
+    OnPart,
+    WindowJob,
+    pooled_bones,
+    run_window,
+    stitch,
+    window_bones,
+)
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -177,11 +185,13 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
             if client is None and n == 1:
                 runner = None
             if ties_bones(scene, estimator, config) and n > 1:  # two rounds: the bones, then the rest
+                # in this process the second round takes each window's preparation from the first
+                kept = stack.enter_context(KeptPreparations()) if runner is None else None
                 samples = _run_windows(scenes, windows, like, runner, lambda k, _: done(k, 2 * n),
-                                       window_bones)
+                                       functools.partial(window_bones, kept=kept))
                 like = dataclasses.replace(like, bones=pooled_bones(samples, config))
                 parts = _run_windows(scenes, windows, like, runner, lambda k, _: done(n + k, 2 * n),
-                                     on_part=on_part)
+                                     functools.partial(run_window, kept=kept), on_part=on_part)
             else:
                 samples = []
                 parts = _run_windows(scenes, windows, like, runner, done, on_part=on_part)
