@@ -175,7 +175,7 @@ def reconstruct(scene: Scene | str | Path, estimator: str | Estimator = "ukf",
 
 
 def estimate_checked(scene: Scene, est: Estimator, every_frame: int | None = None, qa: bool = True,
-                     on_stage: Callable[[str], None] | None = None, pre: Any | None = None
+                     on_stage: Callable[[str], None] | None = None, pre: Prepared | None = None
                      ) -> tuple[TrackSet, Any]:
     """:func:`reconstruct`'s pipeline on a loaded scene without the writing: per-frame fits,
     identity segments, the estimator (``every_frame`` as there), and with ``qa`` the annotation
@@ -221,7 +221,8 @@ def process_noise_prepared(scene: Scene, est: Estimator) -> tuple[dict[str, floa
     return found, pre
 
 
-def bone_samples_checked(scene: Scene, est: Estimator, pre: Any | None = None) -> tuple[Any | None, I64]:
+def bone_samples_checked(scene: Scene, est: Estimator, pre: Prepared | None = None
+                         ) -> tuple[Any | None, I64]:
     """The first pass's bones (:class:`gt3dkit.fusion.bones.BoneSamples`, ``obj``: the input's
     ids) that :func:`estimate_checked` would tie ``scene``'s joints with, by the estimator's own
     ``bone_samples`` without the rest of the estimate (None when it ties no bones), and the ids

@@ -22,6 +22,7 @@ from gt3dkit.api import (
 )
 from gt3dkit.fusion.base import make_estimator
 from gt3dkit.fusion.bones import BoneSamples, PersonBones
+from gt3dkit.fusion.prepare import Prepared
 from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.qa.anomalies import Anomalies
 from gt3dkit.threads import roomy_malloc, small_matrix_blas
@@ -57,7 +58,7 @@ class KeptPreparations:
         self._dir = tempfile.TemporaryDirectory(prefix="gt3dkit-windows-")
         self._paths: dict[Window, Path] = {}
 
-    def put(self, window: Window, pre: Any) -> None:
+    def put(self, window: Window, pre: Prepared) -> None:
         """Keep ``pre``, ``window``'s preparation (a copy, as it is now)."""
         path = Path(self._dir.name) / f"{len(self._paths)}.pickle"
         try:
@@ -68,7 +69,7 @@ class KeptPreparations:
             return
         self._paths[window] = path
 
-    def take(self, window: Window) -> Any | None:
+    def take(self, window: Window) -> Prepared | None:
         """``window``'s kept preparation, given once (None: none kept, or unreadable)."""
         path = self._paths.pop(window, None)
         if path is None:
