@@ -1,9 +1,9 @@
 # make setup: apt packages (open3d's off-screen rendering libraries, python3-venv), a .venv,
 #             and the package with its dev extra. Idempotent: re-runs only when pyproject.toml changes.
-#             Then the numba kernels a first run uses compile, two processes side by side
-#             (gt3dkit.commands.warmup). pip writes the dependencies' bytecode as it installs (16 s
-#             of its 45 s): without it, where PYTHONDONTWRITEBYTECODE is set (this machine, CI),
-#             every process compiled numpy, scipy, ... from source again (make test: 254 s -> 366 s).
+#             Then the numba kernels a first run uses compile, two processes side by side, and the
+#             packages' bytecode is written beside them at the lowest priority (gt3dkit.commands.warmup
+#             --bytecode): pip, installing with --no-compile, no longer writes it file by file for
+#             16-20 s before the kernels start.
 # make demo:  reconstruct the bundled real MultiviewX and Panoptic data, print errors, write reports.
 # make test:  the test suite (benchmarks excluded; see make bench).
 VENV ?= .venv
@@ -23,10 +23,10 @@ $(VENV)/.installed: pyproject.toml
 	  $$SUDO apt-get update -qq && $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing; \
 	fi
 	@test -x $(PY) || python3 -m venv $(VENV)
-	@echo "installing gt3dkit and its dependencies into $(VENV) (pip; about a minute)"
+	@echo "installing gt3dkit and its dependencies into $(VENV) (pip; about half a minute)"
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e ".[dev]"
-	$(PY) -m gt3dkit.commands.warmup
+	$(PY) -m pip install -q --no-compile -e ".[dev]"
+	$(PY) -m gt3dkit.commands.warmup --bytecode
 	@touch $@
 
 demo: setup
