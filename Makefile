@@ -1,9 +1,11 @@
 # make setup: apt packages (open3d's off-screen rendering libraries, python3-venv), a .venv,
 #             and the package with its dev extra. Idempotent: re-runs only when pyproject.toml changes.
-#             Then the numba kernels a first run uses compile, two processes side by side, and the
-#             packages' bytecode is written beside them at the lowest priority (gt3dkit.commands.warmup
-#             --bytecode): pip, installing with --no-compile, no longer writes it file by file for
-#             16-20 s before the kernels start.
+#             Then the numba kernels a first run uses compile, two processes side by side
+#             (gt3dkit.commands.warmup). pip writes no bytecode (--no-compile: 16-20 s of it, file by
+#             file, before the kernels started): Python writes it as modules are first imported, or,
+#             where PYTHONDONTWRITEBYTECODE is set and nothing would, the warm-up writes it beside
+#             the kernels' compilation (--bytecode; without it every process compiled numpy, scipy,
+#             ... from source again: make test 254 s -> 366 s here).
 # make demo:  reconstruct the bundled real MultiviewX and Panoptic data, print errors, write reports.
 # make test:  the test suite (benchmarks excluded; see make bench).
 VENV ?= .venv
@@ -26,7 +28,7 @@ $(VENV)/.installed: pyproject.toml
 	@echo "installing gt3dkit and its dependencies into $(VENV) (pip; about half a minute)"
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q --no-compile -e ".[dev]"
-	$(PY) -m gt3dkit.commands.warmup --bytecode
+	$(PY) -m gt3dkit.commands.warmup $(if $(PYTHONDONTWRITEBYTECODE),--bytecode,)
 	@touch $@
 
 demo: setup
