@@ -342,8 +342,18 @@ def test_skeleton_windows_give_the_one_process_output_in_processes_and_on_dask(t
                                   dashboard_address=None) as cluster:
         code, so, se = _run("reconstruct", *args, "--out", str(tmp_path / "dask"), "--scheduler",
                             cluster.scheduler_address)
+        with distributed.Client(cluster) as client:  # each worker's kept preparations went at the end
+            left = client.run(_kept_runs)
     assert code == 0, se
     assert (tmp_path / "dask" / "keypoints.csv").read_bytes() == outs["one"]
+    assert len(left) == 2 and set(left.values()) == {0}
+
+
+def _kept_runs() -> int:
+    """The runs whose preparations this process keeps (gt3dkit.windows.stitch.Keep)."""
+    from gt3dkit.windows.stitch import _KEPT
+
+    return len(_KEPT)
 
 
 def test_the_second_round_takes_each_windows_preparation_from_the_first(
@@ -370,7 +380,7 @@ def test_the_second_round_takes_each_windows_preparation_from_the_first(
     monkeypatch.setattr(UKFSmoother, "prepare", counted)
     kept, _ = reconstruct_windowed(scene, "ukf", Plan(20, overlap=10), **fixed)
     n, once = kept.info.windows["count"], len(made)  # the windows' and the noise sample's
-    assert n == 3
+    assert n == 3 and _kept_runs() == 0  # dropped at the end of the run
 
     def full(*args: object, **kw: object) -> None:
         raise OSError(errno.ENOSPC, "No space left on device")

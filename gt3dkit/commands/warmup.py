@@ -63,17 +63,13 @@ def warm_up(say: bool = False) -> float:
     return time.perf_counter() - t0
 
 
-#: Packages installed beside gt3dkit's dependencies that gt3dkit never imports (open3d's web
-#: visualiser's, pip's own, IPython's): a third of the installed modules, left to Python.
-NEVER_IMPORTED = ("plotly", "dash", "pip", "setuptools", "pygments", "fontTools", "jedi", "IPython",
-                  "ipywidgets", "nbformat", "werkzeug", "flask")
-#: Writes the bytecode of every other installed package (``make setup`` installs with ``pip
+#: Writes the bytecode of every installed package (``make setup`` installs with ``pip
 #: --no-compile``), on every core, at the lowest priority: beside the kernels' compilation it takes
 #: the core the joints' process leaves idle, and then both. A file that does not compile (a
-#: package's template or test data) is skipped, as pip skips it.
-BYTECODE = ("import compileall, os, re, sysconfig; os.nice(19); "
-            "compileall.compile_dir(sysconfig.get_paths()['purelib'], quiet=2, workers=0, "
-            f"rx=re.compile(r'[\\/]({'|'.join(NEVER_IMPORTED)})[\\/]'))")
+#: package's template or test data) is skipped, as pip skips it. All of them: ``import open3d``
+#: alone imports dash, plotly, IPython and werkzeug (open3d's web visualiser).
+BYTECODE = ("import compileall, os, sysconfig; os.nice(19); "
+            "compileall.compile_dir(sysconfig.get_paths()['purelib'], quiet=2, workers=0)")
 
 
 def main(argv: list[str]) -> None:

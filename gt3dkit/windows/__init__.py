@@ -63,6 +63,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
+import uuid
 from collections.abc import Callable
 from concurrent.futures import Executor
 from pathlib import Path
@@ -101,9 +102,10 @@ from gt3dkit.windows.plan import (
     window_scene,
 )
 from gt3dkit.windows.stitch import (
-    KeptPreparations,
+    Keep,
     OnPart,
     WindowJob,
+    drop_kept,
     pooled_bones,
     run_window,
     stitch,
@@ -185,8 +187,11 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
             if client is None and n == 1:
                 runner = None
             if ties_bones(scene, estimator, config) and n > 1:  # two rounds: the bones, then the rest
-                # in this process the second round takes each window's preparation from the first
-                kept = stack.enter_context(KeptPreparations()) if runner is None else None
+                # the second round takes each window's preparation from the first, in this process
+                # or on the Dask worker holding its scene (a process pool's are any process's)
+                kept = Keep(uuid.uuid4().hex) if runner is None or client is not None else None
+                if kept is not None:
+                    stack.callback(_drop_kept, kept.token, client)
                 samples = _run_windows(scenes, windows, like, runner, lambda k, _: done(k, 2 * n),
                                        functools.partial(window_bones, kept=kept))
                 like = dataclasses.replace(like, bones=pooled_bones(samples, config))
@@ -208,6 +213,15 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
         tracks.info.seconds += first
         tracks.info.windows = {**(tracks.info.windows or {}), "bones_round_seconds": first}
     return tracks, qa
+
+
+def _drop_kept(token: str, client: Client | None) -> None:
+    """The run ``token``'s kept preparations removed here and on every Dask worker
+    (:class:`gt3dkit.windows.stitch.Keep`); a worker gone meanwhile took its own with it."""
+    drop_kept(token)
+    if client is not None:
+        with contextlib.suppress(Exception):
+            client.run(drop_kept, token)
 
 
 def ties_bones(scene: Scene, estimator: str, config: Options) -> bool:

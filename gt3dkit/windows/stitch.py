@@ -52,7 +52,8 @@ class KeptPreparations:
     scene 0.42-0.54 s of a window's run, 1.3 s of a 9.9 s run. Kept on disk, in a temporary
     folder of its own (6.4 MB a window of 391 frames there), so that memory stays bounded by the
     window. A preparation that cannot be written (a full disk) or read back is made again, as
-    before. A context manager: the folder goes when it closes."""
+    before. A context manager: the folder goes when it closes. Reached from the windows' tasks
+    through a :class:`Keep` handle."""
 
     def __init__(self) -> None:
         self._dir = tempfile.TemporaryDirectory(prefix="gt3dkit-windows-")
@@ -93,11 +94,43 @@ class KeptPreparations:
         self.close()
 
 
-def run_window(job: WindowJob, scene: Scene, kept: KeptPreparations | None = None
+#: This process's kept preparations, by run (:class:`Keep`).
+_KEPT: dict[str, KeptPreparations] = {}
+
+
+@dataclass(frozen=True)
+class Keep:
+    """A run's handle to the preparations its windows keep between the two rounds, in whichever
+    process runs them: this one, or each Dask worker (a window's scene is scattered to one
+    worker once and both rounds' tasks go to where it is, so the second round finds the first's
+    preparation there; one that runs elsewhere makes it again). Picklable: the store itself stays
+    in its process (:data:`_KEPT`); :func:`drop_kept` removes it at the end of the run."""
+
+    token: str
+
+    def put(self, window: Window, pre: Prepared) -> None:
+        store = _KEPT.get(self.token)
+        if store is None:
+            store = _KEPT[self.token] = KeptPreparations()
+        store.put(window, pre)
+
+    def take(self, window: Window) -> Prepared | None:
+        store = _KEPT.get(self.token)
+        return store.take(window) if store is not None else None
+
+
+def drop_kept(token: str) -> None:
+    """Remove the run ``token``'s kept preparations in this process (:class:`Keep`)."""
+    store = _KEPT.pop(token, None)
+    if store is not None:
+        store.close()
+
+
+def run_window(job: WindowJob, scene: Scene, kept: Keep | None = None
                ) -> tuple[TrackSet, list[tuple[Any, ...]]]:
     """One window's rows and QA findings in its own frames, from its ``scene`` (the persons' bones
     ``job.bones`` where given: the window's own ids only, its split pieces' ids are its own);
-    ``kept``: the preparations the bones' round kept (:class:`KeptPreparations`)."""
+    ``kept``: the preparations the bones' round kept (:class:`Keep`)."""
     w = job.window
     with small_matrix_blas(), roomy_malloc():
         est = make_estimator(job.estimator, **job.config)
@@ -119,7 +152,7 @@ def finding_order(row: tuple[Any, ...]) -> tuple[Any, ...]:
     return row[0], str(row[1]), row[2]
 
 
-def window_bones(job: WindowJob, scene: Scene, kept: KeptPreparations | None = None
+def window_bones(job: WindowJob, scene: Scene, kept: Keep | None = None
                  ) -> tuple[BoneSamples | None, I64, float]:
     """One window's first-pass bones in its own frames, the ids it splits, from its ``scene``
     (:func:`gt3dkit.api.bone_samples_checked`; None: its estimator ties no bones), and the
