@@ -5,13 +5,14 @@ matplotlib at the pixels where the same pinhole projects them."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import F64, Scene, TrackSet
-from gt3dkit.viz.render3d import Drawing, View, render_all, unit_sphere
+from gt3dkit.viz.render3d import Drawing, Rendering, View, unit_sphere
 
 GRID_COLOUR = (0.80, 0.80, 0.80)
 CAMERA_COLOUR = (0.15, 0.15, 0.15)
@@ -111,15 +112,23 @@ def _content_box(img: np.ndarray, margin: int = 24) -> tuple[int, int, int, int]
             min(int(u.max()) + margin, img.shape[1]), min(int(v.max()) + margin, img.shape[0]))
 
 
-def write_overviews(scene: Scene, tracks: TrackSet, frame: int, pictures: list[tuple[Path, bool]],
-                    tracks_b: TrackSet | None = None, title: str = "") -> None:
+def start_overviews(scene: Scene, tracks: TrackSet, frame: int, pictures: list[tuple[Path, bool]],
+                    tracks_b: TrackSet | None = None, title: str = ""
+                    ) -> tuple[Rendering, Callable[[], None]]:
     """Render the overview at ``frame`` into each PNG path of ``pictures`` (with its
-    ``close_up``), cropped to what it shows, all in one open3d process (:class:`RenderError` if
-    open3d cannot render here)."""
+    ``close_up``), cropped to what it shows, all in one open3d process, started here: it renders
+    while the caller goes on (a report draws its panels meanwhile). The returned function waits
+    for it and writes the pictures (:class:`RenderError` if open3d cannot render here); the
+    :class:`Rendering`, closed first, gives them up."""
     drawn = [overview_drawing(scene, tracks, frame, tracks_b, close_up) for _, close_up in pictures]
-    imgs = render_all([(d, view) for d, view, _ in drawn])
-    for (path, _), (_, view, cams), img in zip(pictures, drawn, imgs, strict=True):
-        _captioned(img, view, cams, scene, tracks, frame, path, tracks_b, title)
+    pending = Rendering([(d, view) for d, view, _ in drawn])
+
+    def finish() -> None:
+        imgs = pending.result()
+        for (path, _), (_, view, cams), img in zip(pictures, drawn, imgs, strict=True):
+            _captioned(img, view, cams, scene, tracks, frame, path, tracks_b, title)
+
+    return pending, finish
 
 
 def _captioned(img: np.ndarray, view: View, cams: F64, scene: Scene, tracks: TrackSet, frame: int,

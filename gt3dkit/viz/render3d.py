@@ -141,10 +141,19 @@ def render(drawing: Drawing, view: View, timeout_s: float = RENDER_TIMEOUT_S) ->
 def render_all(jobs: list[tuple[Drawing, View]], timeout_s: float = RENDER_TIMEOUT_S) -> list[np.ndarray]:
     """:func:`render` of several drawings in one child process (open3d's import and window,
     ~1.5 s, paid once; ``timeout_s`` for each picture); :class:`RenderError` when it fails."""
-    with tempfile.TemporaryDirectory(prefix="gt3d-render-") as tmp:
+    return Rendering(jobs, timeout_s).result()
+
+
+class Rendering:
+    """:func:`render_all` started: the child process renders while the caller goes on (a
+    report draws its matplotlib panels meanwhile); :meth:`result` waits for the pictures
+    (``timeout_s`` for each, from then), :meth:`close` gives them up. A context manager."""
+
+    def __init__(self, jobs: list[tuple[Drawing, View]], timeout_s: float = RENDER_TIMEOUT_S) -> None:
+        self._tmp = tempfile.TemporaryDirectory(prefix="gt3d-render-")
         argv = []
         for n, (drawing, view) in enumerate(jobs):
-            job, png = Path(tmp) / f"job{n}.npz", Path(tmp) / f"out{n}.png"
+            job, png = Path(self._tmp.name) / f"job{n}.npz", Path(self._tmp.name) / f"out{n}.png"
             arrays: dict[str, np.ndarray] = {
                 "intrinsic": view.intrinsic, "extrinsic": view.extrinsic,
                 "size": np.array([view.width, view.height])}
@@ -154,20 +163,54 @@ def render_all(jobs: list[tuple[Drawing, View]], timeout_s: float = RENDER_TIMEO
                     arrays[f"{kind}{i}_c"] = np.asarray(col, dtype=np.float64)
             np.savez(job, **arrays)
             argv += [str(job), str(png)]
+        self._pngs = [Path(f) for f in argv[1::2]]
+        self._timeout_s = timeout_s * len(jobs)
         env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore"}
         try:
-            p = subprocess.run([sys.executable, "-m", "gt3dkit.viz.render3d", *argv],  # noqa: S603
-                               capture_output=True, text=True, timeout=timeout_s * len(jobs), env=env)
-        except subprocess.TimeoutExpired:
-            raise RenderError(f"open3d did not finish within {timeout_s:g} s a picture") from None
-        pngs = [Path(f) for f in argv[1::2]]
-        if p.returncode != 0 or not all(f.is_file() for f in pngs):
-            lines = [ln for ln in (p.stderr + p.stdout).splitlines() if ln.strip() and "INFO" not in ln]
-            why = lines[-1].strip() if lines else f"exit status {p.returncode}"
-            raise RenderError(f"open3d failed ({why})")
-        import matplotlib.image as mpimg
+            self._proc: subprocess.Popen[str] | None = subprocess.Popen(  # noqa: S603
+                [sys.executable, "-m", "gt3dkit.viz.render3d", *argv],
+                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+        except OSError as e:
+            self._tmp.cleanup()
+            raise RenderError(f"open3d's process did not start ({e})") from None
 
-        return [(np.clip(mpimg.imread(f)[..., :3], 0, 1) * 255).round().astype(np.uint8) for f in pngs]
+    def result(self) -> list[np.ndarray]:
+        """The pictures, ``(H, W, 3) uint8`` each; :class:`RenderError` when the child failed."""
+        p = self._proc
+        if p is None:
+            raise RenderError("the render was given up")
+        try:
+            out, err = p.communicate(timeout=self._timeout_s)
+        except subprocess.TimeoutExpired:
+            self.close()
+            raise RenderError(f"open3d did not finish within {self._timeout_s / max(len(self._pngs), 1):g} s "
+                              "a picture") from None
+        try:
+            if p.returncode != 0 or not all(f.is_file() for f in self._pngs):
+                lines = [ln for ln in (err + out).splitlines() if ln.strip() and "INFO" not in ln]
+                why = lines[-1].strip() if lines else f"exit status {p.returncode}"
+                raise RenderError(f"open3d failed ({why})")
+            import matplotlib.image as mpimg
+
+            return [(np.clip(mpimg.imread(f)[..., :3], 0, 1) * 255).round().astype(np.uint8)
+                    for f in self._pngs]
+        finally:
+            self._proc = None
+            self._tmp.cleanup()
+
+    def close(self) -> None:
+        """Stop the child (if it still runs) and remove its files."""
+        p, self._proc = self._proc, None
+        if p is not None and p.poll() is None:
+            p.kill()
+            p.communicate()
+        self._tmp.cleanup()
+
+    def __enter__(self) -> Rendering:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 def _child(job: Path, png: Path) -> None:

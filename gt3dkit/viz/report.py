@@ -15,8 +15,10 @@ changed since the run.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import html
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +34,7 @@ from gt3dkit.io.writers import read_segments_csv
 from gt3dkit.parse import read_csv_rows
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import Scene, TrackSet
-from gt3dkit.viz.overview import colour_of, write_overviews
+from gt3dkit.viz.overview import colour_of, start_overviews
 from gt3dkit.viz.panels import (
     ANNOTATION_NOTE,
     ViewResiduals,
@@ -284,29 +286,42 @@ def run_sections(run: Run, tmp: Path, prefix: str = "", tracks_b: TrackSet | Non
     p = f"{prefix}/" if prefix else ""
     pictures = (("overview.png", False, f"The rig and every track; ellipsoids or skeletons at frame {frame}"),
                 ("closeup.png", True, f"The objects at frame {frame}, closer"))
-    try:
-        write_overviews(sc, tr, frame, [(sub / name, close) for name, close, _ in pictures],
-                        tracks_b=tracks_b, title=title_b)
-        renders = [_figure(p + name, caption, wide=not close) for name, close, caption in pictures]
-    except RenderError as e:
-        renders = []
-        warnings.append(f"3D renders {', '.join(n for n, _, _ in pictures)} not made: {e}")
-    parts = ["<h2>Numbers</h2>", _table([[k, v] for k, v in _numbers(run, res)])]
-    if run.notes:
-        parts.append("".join(f'<p class="warn">{html.escape(n)}</p>' for n in run.notes))
-    parts.append(_keypoint_noise(run))
-    parts += ["<h2>3D (open3d, off-screen)</h2>",
-              "".join(renders) or '<p class="warn">' + html.escape("; ".join(warnings)) + "</p>"]
-    panels = worst_frames(sc, res, sub)
-    parts += ["<h2>Annotations against the estimate: each camera's worst frame</h2>",
-              "".join(_figure(p + n, c) for n, c in panels)]
-    parts += ["<h2>Reprojection residuals per camera</h2>",
-              _figure(p + residual_histograms(sc, res, sub), "box edges and keypoints, pixels", wide=True)]
-    parts += ["<h2>Tracks over time</h2>", _figure(p + track_plots(tr, res, sub), "", wide=True)]
-    section = _anomaly_section(run, res, sub)
-    parts += [f"<h2>Anomalies ({len(run.anomalies)})</h2>",
-              section.replace('src="anomalies/', f'src="{p}anomalies/')]
-    parts += ["<h2>Calibration</h2>", _calibration(run)]
+    with contextlib.ExitStack() as stack:
+        # open3d renders in its own process while the panels below are drawn here (2 s of a
+        # 9 s report on the bundled Panoptic run)
+        shots = [(sub / name, close) for name, close, _ in pictures]
+        finish: Callable[[], None] | None = None
+        try:
+            pending, finish = start_overviews(sc, tr, frame, shots, tracks_b=tracks_b, title=title_b)
+            stack.enter_context(pending)
+        except RenderError as e:
+            warnings.append(f"3D renders {', '.join(n for n, _, _ in pictures)} not made: {e}")
+        parts = ["<h2>Numbers</h2>", _table([[k, v] for k, v in _numbers(run, res)])]
+        if run.notes:
+            parts.append("".join(f'<p class="warn">{html.escape(n)}</p>' for n in run.notes))
+        parts.append(_keypoint_noise(run))
+        renders_at = len(parts) + 1
+        parts += ["<h2>3D (open3d, off-screen)</h2>", ""]
+        panels = worst_frames(sc, res, sub)
+        parts += ["<h2>Annotations against the estimate: each camera's worst frame</h2>",
+                  "".join(_figure(p + n, c) for n, c in panels)]
+        histograms = residual_histograms(sc, res, sub)
+        parts += ["<h2>Reprojection residuals per camera</h2>",
+                  _figure(p + histograms, "box edges and keypoints, pixels", wide=True)]
+        parts += ["<h2>Tracks over time</h2>", _figure(p + track_plots(tr, res, sub), "", wide=True)]
+        section = _anomaly_section(run, res, sub)
+        parts += [f"<h2>Anomalies ({len(run.anomalies)})</h2>",
+                  section.replace('src="anomalies/', f'src="{p}anomalies/')]
+        parts += ["<h2>Calibration</h2>", _calibration(run)]
+        if finish is not None:
+            try:
+                finish()
+                parts[renders_at] = "".join(_figure(p + name, caption, wide=not close)
+                                            for name, close, caption in pictures)
+            except RenderError as e:
+                warnings.append(f"3D renders {', '.join(n for n, _, _ in pictures)} not made: {e}")
+        if not parts[renders_at]:
+            parts[renders_at] = '<p class="warn">' + html.escape("; ".join(warnings)) + "</p>"
     return parts, warnings
 
 

@@ -138,7 +138,7 @@ def test_a_failed_render_is_a_warning_not_a_lost_report(box_run: Path, tmp_path:
     def broken(*a, **k):
         raise RenderError("open3d failed (no EGL display)")
 
-    monkeypatch.setattr(overview, "render_all", broken)
+    monkeypatch.setattr(overview, "Rendering", broken)
     out = tmp_path / "out"
     shutil.copytree(box_run / "out", out)
     index, warnings = report.write_report(out)
