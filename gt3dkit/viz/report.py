@@ -286,6 +286,9 @@ def run_sections(run: Run, tmp: Path, prefix: str = "", tracks_b: TrackSet | Non
     p = f"{prefix}/" if prefix else ""
     pictures = (("overview.png", False, f"The rig and every track; ellipsoids or skeletons at frame {frame}"),
                 ("closeup.png", True, f"The objects at frame {frame}, closer"))
+    def not_made(e: RenderError) -> None:
+        warnings.append(f"3D renders {', '.join(n for n, _, _ in pictures)} not made: {e}")
+
     with contextlib.ExitStack() as stack:
         # open3d renders in its own process while the panels below are drawn here (2 s of a
         # 9 s report on the bundled Panoptic run)
@@ -295,7 +298,7 @@ def run_sections(run: Run, tmp: Path, prefix: str = "", tracks_b: TrackSet | Non
             pending, finish = start_overviews(sc, tr, frame, shots, tracks_b=tracks_b, title=title_b)
             stack.enter_context(pending)
         except RenderError as e:
-            warnings.append(f"3D renders {', '.join(n for n, _, _ in pictures)} not made: {e}")
+            not_made(e)
         parts = ["<h2>Numbers</h2>", _table([[k, v] for k, v in _numbers(run, res)])]
         if run.notes:
             parts.append("".join(f'<p class="warn">{html.escape(n)}</p>' for n in run.notes))
@@ -319,7 +322,7 @@ def run_sections(run: Run, tmp: Path, prefix: str = "", tracks_b: TrackSet | Non
                 parts[renders_at] = "".join(_figure(p + name, caption, wide=not close)
                                             for name, close, caption in pictures)
             except RenderError as e:
-                warnings.append(f"3D renders {', '.join(n for n, _, _ in pictures)} not made: {e}")
+                not_made(e)
         if not parts[renders_at]:
             parts[renders_at] = '<p class="warn">' + html.escape("; ".join(warnings)) + "</p>"
     return parts, warnings

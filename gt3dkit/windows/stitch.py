@@ -52,7 +52,7 @@ class KeptPreparations:
     scene 0.42-0.54 s of a window's run, 1.3 s of a 9.9 s run. Kept on disk, in a temporary
     folder of its own (6.4 MB a window of 391 frames there), so that memory stays bounded by the
     window. A preparation that cannot be written (a full disk) or read back is made again, as
-    before. A context manager: the folder goes when it closes. Reached from the windows' tasks
+    before. The folder goes when it closes (:func:`drop_kept`). Reached from the windows' tasks
     through a :class:`Keep` handle."""
 
     def __init__(self) -> None:
@@ -61,7 +61,7 @@ class KeptPreparations:
 
     def put(self, window: Window, pre: Prepared) -> None:
         """Keep ``pre``, ``window``'s preparation (a copy, as it is now)."""
-        path = Path(self._dir.name) / f"{len(self._paths)}.pickle"
+        path = Path(self._dir.name) / f"{window.lo}-{window.hi}.pickle"
         try:
             with open(path, "wb") as f:
                 pickle.dump(pre, f, protocol=pickle.HIGHEST_PROTOCOL)
@@ -84,14 +84,9 @@ class KeptPreparations:
             path.unlink(missing_ok=True)
 
     def close(self) -> None:
+        """Remove the folder and whatever it still holds."""
         self._paths.clear()
         self._dir.cleanup()
-
-    def __enter__(self) -> KeptPreparations:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 #: This process's kept preparations, by run (:class:`Keep`).
