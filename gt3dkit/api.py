@@ -25,7 +25,7 @@ from gt3dkit.fusion.identity import Segments, identity_segments
 from gt3dkit.fusion.prepare import Prepared, prepare, undetermined_objects
 from gt3dkit.fusion.rows import Rows, build_rows
 from gt3dkit.geom.camera import Cams
-from gt3dkit.io.datasets import ASSOCIATED, checks, read_scene
+from gt3dkit.io.datasets import ASSOCIATED, checks, index_scene, read_scene
 from gt3dkit.io.results import read_result
 from gt3dkit.io.writers import ANOMALY_COLUMNS, read_keypoints_csv, read_segments_csv, write_outputs
 from gt3dkit.parse import read_csv_rows
@@ -95,6 +95,48 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     if segments is not None:
         scene = with_pieces(scene, Path(segments))
     return with_box_model(scene, box_model)
+
+
+def load_head(root: Path | str, layout: str | None = None, fps: float | None = None,
+              calib: Path | str | None = None, box_model: str = "auto") -> Scene | None:
+    """:func:`load_scene` without the rows, for a sequence whose windows read their own frames
+    (:func:`read_frames`; :mod:`gt3dkit.windows`): the cameras, the frames and each frame's
+    objects (:class:`gt3dkit.types.FrameIndex`), where the layout reads a span of frames on its
+    own and nothing about the whole sequence is needed to read one (no cross-camera association);
+    else None. ``box_model`` ``"auto"`` is chosen later, on the frames the process noise is
+    chosen on (:func:`with_sample_box_model`)."""
+    head = index_scene(root, layout, fps, calib)
+    if head is None:
+        return None
+    if box_model in BOX_MODELS:
+        head = dataclasses.replace(head, box_model=box_model)
+    return dataclasses.replace(head, load_options={**head.load_options, "box_model": box_model})
+
+
+def read_frames(head: Scene, lo: int, hi: int, check: bool = True) -> Scene:
+    """The frames ``lo..hi`` of the sequence :func:`load_head` indexed, read and (``check``)
+    checked as :func:`load_scene` reads and checks the whole (a window's: its rows those the
+    whole would have; the warnings of :func:`gt3dkit.io.datasets.checks.check_scene` are the
+    frames' own), with the head's box model."""
+    o = head.load_options
+    calib = o.get("calib")
+    scene = read_scene(head.root, head.layout, fps=o.get("fps"),  # type: ignore[arg-type]
+                       calib=calib if isinstance(calib, str) else None, span=(lo, hi))
+    scene = dataclasses.replace(scene, box_model=head.box_model, box_model_px=head.box_model_px,
+                                load_options=o)
+    return checks.check_scene(scene, whole=False) if check else scene
+
+
+def with_sample_box_model(head: Scene, sample: Scene) -> tuple[Scene, Scene]:
+    """``head`` and its ``sample`` (:func:`read_frames`) with the box model the head was given, or
+    the one the sample's boxes choose (``"auto"``, :func:`with_box_model`)."""
+    if head.load_options.get("box_model", "auto") in BOX_MODELS:
+        return head, sample
+    sample = with_box_model(sample, "auto")
+    opts = {**head.load_options, "box_model": sample.box_model}
+    return (dataclasses.replace(head, box_model=sample.box_model, box_model_px=sample.box_model_px,
+                                load_options=opts),
+            dataclasses.replace(sample, load_options=opts))
 
 
 def without_undetermined(scene: Scene) -> Scene:

@@ -14,6 +14,10 @@ class InputError(ValueError):
         self.problem = problem
         super().__init__(f"{where}: {problem}")
 
+    def __reduce__(self) -> tuple[type, tuple[str, str]]:
+        """Pickled as made (a window's reading raises it in a worker process, :mod:`gt3dkit.windows`)."""
+        return type(self), (self.where, self.problem)
+
 
 class EstimationError(RuntimeError):
     """An estimator could not solve a (valid) input, e.g. a singular factor graph.
@@ -26,3 +30,7 @@ class EstimationError(RuntimeError):
         self.estimator = estimator
         self.problem = problem
         super().__init__(f"{estimator}: {problem}")
+
+    def __reduce__(self) -> tuple[type, tuple[str, str]]:
+        """Pickled as made (raised in a worker process, :mod:`gt3dkit.windows`)."""
+        return type(self), (self.estimator, self.problem)

@@ -258,8 +258,23 @@ class GroundTruth:
 
 
 @dataclass(frozen=True)
+class FrameIndex:
+    """What a long input's frame files say without being read whole (a :class:`Scene` whose
+    windows read their own frames, :mod:`gt3dkit.windows`): ``frames (F,)`` the annotated frame
+    numbers, sorted, and ``objects (F,)`` how many objects each holds; ``rows`` and ``boxes``: the
+    annotation rows and whether one has a box, once the windows have read them (0 before)."""
+
+    frames: I64
+    objects: I64
+    rows: int = 0
+    boxes: bool = False  # whether a row read has a box
+
+
+@dataclass(frozen=True)
 class Scene:
-    """A loaded input: rig, annotations, optional truth, and where they came from."""
+    """A loaded input: rig, annotations, optional truth, and where they came from. A scene with
+    an ``index`` holds no rows (``obs`` is empty): its windows read their own frames
+    (:func:`gt3dkit.api.load_head`, :func:`gt3dkit.api.read_frames`)."""
 
     rig: Rig
     obs: Observations
@@ -283,6 +298,17 @@ class Scene:
     # people the association made that no two views ever agree on, left out of the estimate:
     # (id, first frame, last frame, detections, cameras that saw it) each (gt3dkit.api)
     left_out: tuple[tuple[int, int, int, int, str], ...] = ()
+    index: FrameIndex | None = None
+
+    @property
+    def n_annotations(self) -> int:
+        """The annotation rows: the scene's own, or those its windows read (``index``)."""
+        return len(self.obs) if self.index is None else self.index.rows
+
+    @property
+    def has_boxes(self) -> bool:
+        """Whether an annotation row has a box: the scene's own, or those its windows read."""
+        return bool(self.obs.has_box.any()) if self.index is None else self.index.boxes
 
     @property
     def all_warnings(self) -> tuple[str, ...]:

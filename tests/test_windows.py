@@ -7,12 +7,13 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from gt3dkit.api import load_scene, process_noise_prepared, reconstruct, take_rows
+from gt3dkit.api import load_head, load_scene, process_noise_prepared, reconstruct, take_rows
 from gt3dkit.cli import main
 from gt3dkit.commands.common import Stages, clock
 from gt3dkit.fusion.base import make_estimator
@@ -111,7 +112,7 @@ def test_windowed_boxes_equal_the_whole_sequence(boxes: object) -> None:
     whole = reconstruct(boxes, "ukf")
     p = whole.info.params
     fixed = {k: p[k] for k in ("accel_sd", "position_sd", "shape_sd")}
-    part, qa = reconstruct_windowed(boxes, "ukf", Plan(30, overlap=20), **fixed)
+    part, qa, _ = reconstruct_windowed(boxes, "ukf", Plan(30, overlap=20), **fixed)
     np.testing.assert_array_equal(part.frame, whole.frame)
     np.testing.assert_array_equal(part.track_id, whole.track_id)
     z = np.abs(part.center_world - whole.center_world) / whole.center_sd
@@ -132,7 +133,7 @@ def test_a_gap_longer_than_a_window_runs(boxes: object) -> None:
     holed = dataclasses.replace(scene, obs=scene.obs.select(~gap), truth=None)  # type: ignore[call-overload]
     whole = reconstruct(holed, "ukf")
     p = whole.info.params
-    part, _ = reconstruct_windowed(holed, "ukf", Plan(8, overlap=5),
+    part, _, _ = reconstruct_windowed(holed, "ukf", Plan(8, overlap=5),
                                    **{k: p[k] for k in ("accel_sd", "position_sd", "shape_sd")})
     assert part.info.windows["count"] < len(plan_windows(frames, 8, 5))
     np.testing.assert_array_equal(part.frame, whole.frame)
@@ -180,7 +181,7 @@ def test_dense_rows_across_a_gap_longer_than_a_window(boxes: object, who: str) -
     holed = dataclasses.replace(scene, obs=obs.select(~gap), truth=None)  # type: ignore[call-overload]
     whole = reconstruct(holed, "ukf", every_frame=0)
     p = whole.info.params
-    part, _ = reconstruct_windowed(holed, "ukf", Plan(8, overlap=20), every_frame=0,
+    part, _, _ = reconstruct_windowed(holed, "ukf", Plan(8, overlap=20), every_frame=0,
                                    **{k: p[k] for k in ("accel_sd", "position_sd", "shape_sd")})
     np.testing.assert_array_equal(part.frame, whole.frame)
     np.testing.assert_array_equal(part.track_id, whole.track_id)
@@ -204,7 +205,7 @@ def test_windowed_skeletons_near_the_whole_sequence(tmp_path: Path) -> None:
     whole = reconstruct(scene, "ukf")
     p = whole.info.params
     fixed = {k: p[k] for k in ("accel_sd", "shape_sd", "joint_accel_sd")}
-    part, _ = reconstruct_windowed(scene, "ukf", Plan(30, overlap=30), **fixed)
+    part, _, _ = reconstruct_windowed(scene, "ukf", Plan(30, overlap=30), **fixed)
     np.testing.assert_array_equal(part.frame, whole.frame)
     bones = [b["per_person"] for b in (whole.info.bones, part.info.bones)]
     assert set(bones[1]) == set(bones[0])
@@ -378,7 +379,7 @@ def test_the_second_round_takes_each_windows_preparation_from_the_first(
         return real(self, sc)
 
     monkeypatch.setattr(UKFSmoother, "prepare", counted)
-    kept, _ = reconstruct_windowed(scene, "ukf", Plan(20, overlap=10), **fixed)
+    kept, _, _ = reconstruct_windowed(scene, "ukf", Plan(20, overlap=10), **fixed)
     n, once = kept.info.windows["count"], len(made)  # the windows' and the noise sample's
     assert n == 3 and _kept_runs() == 0  # dropped at the end of the run
 
@@ -387,7 +388,7 @@ def test_the_second_round_takes_each_windows_preparation_from_the_first(
 
     made.clear()
     monkeypatch.setattr(pickle, "dump", full)
-    again, _ = reconstruct_windowed(scene, "ukf", Plan(20, overlap=10), **fixed)
+    again, _, _ = reconstruct_windowed(scene, "ukf", Plan(20, overlap=10), **fixed)
     assert len(made) == once + n  # the second round prepared each window again
     for k in ("frame", "track_id", "kpt_world", "kpt_sd", "center_world", "center_sd"):
         np.testing.assert_array_equal(getattr(again, k), getattr(kept, k))
@@ -501,7 +502,7 @@ def test_rows_written_as_the_windows_finish_equal_the_whole_written_at_the_end(
         write_skeleton_scene(sk, tmp_path / "sk", "native")
         scene = load_scene(tmp_path / "sk")
     plan = Plan(20)
-    tracks, qa = reconstruct_windowed(scene, "ukf", plan)
+    tracks, qa, _ = reconstruct_windowed(scene, "ukf", plan)
     write_outputs(tmp_path / "whole", scene, tracks, anomalies=qa)
     reconstruct_windows(scene, "ukf", plan, str(tmp_path / "streamed"))
     names = sorted(p.name for p in (tmp_path / "whole").iterdir())
@@ -531,3 +532,93 @@ def test_rows_written_as_the_windows_finish_equal_the_whole_written_at_the_end(
     (tmp_path / "gap").mkdir()
     with pytest.raises(RuntimeError, match="without part 0"), StreamedRows(tmp_path / "gap") as rows:
         rows.add(1, parts[1], found[1])
+
+
+@pytest.fixture(scope="module")
+def grid(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A WILDTRACK-layout folder (one JSON a frame): its windows read their own frames."""
+    root = tmp_path_factory.mktemp("grid") / "wildtrack"
+    written_scene(root, "wildtrack", seed=2, frames=60, people=4, noise_px=1.0, motion="walk",
+                  errors=Errors(dropped=0.1))
+    return root
+
+
+def test_windows_that_read_their_own_frames_give_the_whole_read_output(grid: Path, tmp_path: Path) -> None:
+    """An input indexed without its rows (``load_head``: cameras, frames, each frame's objects),
+    each window reading its own frames where it runs, gives the tracks and QA findings of the
+    same windows cut from the whole input read at once, and the scene it returns says what the
+    whole read says: its annotation rows, every file's digest, the truth (the simulator's
+    ``truth.csv``, or without it the positionID grid's, gathered from the windows) and the box
+    model."""
+    whole = load_scene(grid)
+    head = load_head(grid)
+    assert head is not None and head.index is not None and len(head.obs) == 0
+    f, n = np.unique(whole.obs.frame, return_counts=True)
+    assert np.isin(f, head.index.frames).all()
+    for name, root in (("truth.csv", grid), ("positionID", tmp_path / "no_truth")):
+        if root != grid:
+            shutil.copytree(grid, root)
+            (root / "truth.csv").unlink()
+            whole, head = load_scene(root), load_head(root)
+        a, qa_a, read = reconstruct_windowed(head, "ukf", Plan(20, overlap=10))  # type: ignore[arg-type]
+        b, qa_b, _ = reconstruct_windowed(whole, "ukf", Plan(20, overlap=10))
+        for k in ("frame", "track_id", "center_world", "semi_axes", "n_views"):
+            np.testing.assert_array_equal(getattr(a, k), getattr(b, k), err_msg=f"{name}: {k}")
+        assert qa_a.rows == qa_b.rows
+        assert read.n_annotations == len(whole.obs) and read.has_boxes
+        assert read.files == whole.files and read.box_model == whole.box_model
+        assert read.truth is not None and whole.truth is not None and read.truth.source == whole.truth.source
+        for k in ("frame", "track_id", "center_world", "semi_axes"):
+            np.testing.assert_array_equal(getattr(read.truth, k), getattr(whole.truth, k), err_msg=name)
+
+
+def test_jobs_and_dask_read_their_own_frames_to_the_one_process_output(grid: Path, tmp_path: Path) -> None:
+    """``gt3d reconstruct`` of a WILDTRACK-layout folder in windows: the same bytes in one process,
+    two local processes and two Dask workers, each reading its windows' frames, and the same as
+    the library's windows cut from the whole input read at once; ``meta.json`` counts every
+    annotation row and lists every file."""
+    outs = {}
+    for name, extra in (("one", ()), ("two", ("--jobs", "2"))):
+        code, so, se = _run("reconstruct", str(grid), "--out", str(tmp_path / name), "--window", "20",
+                            "--quiet", *extra)
+        assert code == 0, se
+        outs[name] = (tmp_path / name / "tracks.csv").read_bytes()
+    whole = load_scene(grid)
+    reconstruct_windows(whole, "ukf", Plan(20), str(tmp_path / "library"))
+    assert (tmp_path / "library" / "tracks.csv").read_bytes() == outs["one"] == outs["two"]
+    meta = json.loads((tmp_path / "one" / "meta.json").read_text())
+    assert meta["counts"]["annotations"] == len(whole.obs)
+    assert meta["input"]["files_sha256"] == whole.files
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as cluster:
+        code, so, se = _run("reconstruct", str(grid), "--out", str(tmp_path / "dask"), "--window", "20",
+                            "--quiet", "--scheduler", cluster.scheduler_address)
+    assert code == 0, se
+    assert (tmp_path / "dask" / "tracks.csv").read_bytes() == outs["one"]
+
+
+@pytest.mark.parametrize("jobs", [(), ("--jobs", "2")])
+def test_a_bad_frame_a_window_reads_is_one_error_line_and_nothing_written(grid: Path, tmp_path: Path,
+                                                                           jobs: tuple[str, ...]) -> None:
+    """A frame file that only the last window reads (a box with ``xmin > xmax``) is found where
+    that window runs: one ``error:`` line naming the file and the entry, exit 2, nothing written;
+    a box wholly outside its image in another frame is a ``warning:`` naming the frames of the
+    window that read it, and the run goes on."""
+    root = tmp_path / "in"
+    shutil.copytree(grid, root)
+    files = [p for p in sorted((root / "annotations_positions").glob("*.json")) if json.loads(p.read_text())]
+    odd = json.loads(files[0].read_text())
+    odd[0]["views"][0].update(xmin=-500, xmax=-400)
+    files[0].write_text(json.dumps(odd))
+    code, so, se = _run("reconstruct", str(root), "--out", str(tmp_path / "ok"), "--window", "20", *jobs)
+    assert code == 0, se
+    assert se.count("warning: frames ") == se.count("boxes lie entirely outside") == 1, se
+    assert "1 boxes lie entirely outside their camera's image" in se, se
+    bad = json.loads(files[-1].read_text())
+    bad[0]["views"][0].update(xmin=900, xmax=800)
+    files[-1].write_text(json.dumps(bad))
+    code, so, se = _run("reconstruct", str(root), "--out", str(tmp_path / "out"), "--window", "20", "--quiet",
+                        *jobs)
+    assert code == 2 and se.count("\n") == 1 and se.startswith(f"error: {files[-1]}: personID"), se
+    assert not (tmp_path / "out").exists()

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from gt3dkit.api import load_scene, take_rows
+from gt3dkit.api import load_head, load_scene, take_rows
 from gt3dkit.errors import InputError
 from gt3dkit.eval.metrics import box_errors, relabel_to_truth
 from gt3dkit.eval.pose import mpjpe_by_id, score_tracks
@@ -82,7 +82,10 @@ def check_output(out: str | Path, inputs: tuple[str | Path, ...] = (), option: s
     check_out(out, option)
 
 
-def load_input(args: argparse.Namespace) -> Any:
+def load_input(args: argparse.Namespace, by_windows: bool = False) -> Any:
+    """The input of a command's ``args``, read and checked (:func:`gt3dkit.api.load_scene`);
+    ``by_windows``: without its rows where its windows can read their own frames
+    (:func:`gt3dkit.api.load_head`), as a long sequence run in windows does."""
 
     if getattr(args, "out", None) is not None:
         check_output(args.out, (args.input,))
@@ -104,6 +107,11 @@ def load_input(args: argparse.Namespace) -> Any:
     if getattr(args, "segments", None) is not None:
         opts["segments"] = args.segments
     opts["box_model"] = getattr(args, "box_model", "auto")
+    if by_windows and not {"association", "segments"} & opts.keys():
+        head = load_head(Path(args.input), layout, getattr(args, "fps", None), getattr(args, "calib", None),
+                         str(opts["box_model"]))
+        if head is not None:
+            return head
     scene = load_scene(Path(args.input), layout, args.skeleton, getattr(args, "fps", None),
                        calib=getattr(args, "calib", None), **opts)
     if opts["box_model"] != "auto" and not scene.obs.has_box.any():

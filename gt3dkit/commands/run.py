@@ -62,7 +62,8 @@ def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | 
     """``gt3d reconstruct``'s run, on ``cluster`` where given."""
     stages = Stages(5, args.quiet)
     stages("loading")
-    scene = load_input(args)
+    scene = load_input(args, by_windows=args.window != 0 and over_time(args.estimator)
+                       and not args.refine_calib and args.every_frame is None)
     extra = None
     if args.refine_calib:
         res = refine(scene)
@@ -74,10 +75,13 @@ def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | 
               f"({res.report['seconds']:.1f} s; meta.json: calibration_refinement)")
     try:
         plan = window_plan(args, scene)
+        if plan is None and scene.index is not None:  # it runs whole: read whole
+            scene = load_input(args)
         if plan is not None:
             stages("windows")
-            tracks = reconstruct_windows(scene, args.estimator, plan, args.out, extra, args.every_frame,
-                                         lambda k, n: stages.part("windows", k, n), cluster, **config)
+            tracks, scene = reconstruct_windows(scene, args.estimator, plan, args.out, extra,
+                                                args.every_frame, lambda k, n: stages.part("windows", k, n),
+                                                cluster, **config)
         else:
             tracks = reconstruct(scene, args.estimator, out=args.out, extra_meta=extra, on_stage=stages,
                                  every_frame=args.every_frame, **config)
@@ -85,7 +89,7 @@ def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | 
         stages.close()
     print_warnings(scene)
     info = tracks.info
-    kinds = " + ".join(k for k, v in ((f"boxes: {box_model_note(scene)}", scene.obs.has_box.any()),
+    kinds = " + ".join(k for k, v in ((f"boxes: {box_model_note(scene)}", scene.has_boxes),
                                       (f"{scene.skeleton} keypoints", scene.obs.n_joints > 0)) if v)
     fps = f"{scene.fps:g} fps" + (" (assumed)" if scene.fps_assumed else "")
     rob = info.robust or {}
@@ -100,7 +104,7 @@ def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | 
         flagged += (f", in {win['count']} windows of {about}{win['frames']} frames with "
                     f"{win['overlap_frames']} of context"
                     + (f" ({win['why']}; --window FRAMES to choose)" if win.get("why") else ""))
-    print(f"{scene.layout}: {len(scene.obs)} annotation rows ({kinds}), {len(scene.rig.cameras)} "
+    print(f"{scene.layout}: {scene.n_annotations} annotation rows ({kinds}), {len(scene.rig.cameras)} "
           f"cameras, {fps} -> {len(tracks)} object-frames of {len(set(tracks.track_id.tolist()))} "
           f"objects ({args.estimator}, {info.seconds:.2f} s{flagged}) written to "
           f"{args.out}")

@@ -93,7 +93,7 @@ def meta_of(scene: Scene, tracks: TrackSet) -> JsonDict:
             "rows": int(len(tracks)),
             "rows_seen_by_0_views": int(np.sum(tracks.n_views == 0)),
             "rows_seen_by_1_view": int(np.sum(tracks.n_views == 1)),
-            "annotations": int(len(scene.obs)),
+            "annotations": scene.n_annotations,
         },
     }
 

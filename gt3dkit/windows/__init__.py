@@ -65,15 +65,17 @@ import dataclasses
 import functools
 import uuid
 from collections.abc import Callable
-from concurrent.futures import Executor
+from concurrent.futures import Executor, ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from gt3dkit.api import read_frames, with_sample_box_model
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.base import make_estimator, over_time
 from gt3dkit.io.atomic import write_dir_atomically
+from gt3dkit.io.datasets import with_sequence_truth
 from gt3dkit.io.writers import StreamedRows, write_result_files
 from gt3dkit.qa.anomalies import Anomalies
 from gt3dkit.types import JsonDict, Options, OptionValue, Scene, TrackSet
@@ -87,7 +89,8 @@ from gt3dkit.windows.cluster import (
     process_pool,
     warm_workers,
 )
-from gt3dkit.windows.noise import chosen_noise
+from gt3dkit.windows.frames import FramesRead, ReadPart, WindowRead, completed, read_then
+from gt3dkit.windows.noise import chosen_noise, noise_sample
 from gt3dkit.windows.plan import (
     MIN_OVERLAP_FRAMES,
     Bridge,
@@ -122,23 +125,26 @@ __all__ = ["Cluster", "Plan", "Window", "auto_plan", "connect_scheduler", "recon
 def reconstruct_windows(scene: Scene, estimator: str, plan: Plan, out: str | None = None,
                         extra_meta: JsonDict | None = None, every_frame: int | None = None,
                         on_window: Callable[[int, int], None] | None = None, cluster: Cluster | None = None,
-                        **config: OptionValue) -> TrackSet:
+                        **config: OptionValue) -> tuple[TrackSet, Scene]:
     """:func:`gt3dkit.api.reconstruct` of a long sequence by ``plan``; writes ``out`` if given,
     atomically as one run: each window's rows as soon as they are final (the windows before it
     done, :class:`gt3dkit.io.writers.StreamedRows`; on the 4 000-frame box scene, what is left
     for after the last window went from 0.6-1.0 s of writing to its rows and 0.02 s of
     ``meta.json``), into a folder that replaces ``out`` at the end. ``cluster``:
-    ``plan.scheduler``'s, connected early by the caller (who closes it)."""
+    ``plan.scheduler``'s, connected early by the caller (who closes it). The tracks, and the
+    scene as the windows read it (:func:`reconstruct_windowed`)."""
     if out is None:
-        return reconstruct_windowed(scene, estimator, plan, every_frame, on_window, cluster, **config)[0]
-    made: list[TrackSet] = []
+        tracks, _, read = reconstruct_windowed(scene, estimator, plan, every_frame, on_window, cluster,
+                                               **config)
+        return tracks, read
+    made: list[tuple[TrackSet, Scene]] = []
 
     def run(tmp: Path) -> None:
         with StreamedRows(tmp) as rows:
-            tracks, qa = reconstruct_windowed(scene, estimator, plan, every_frame, on_window, cluster,
-                                              rows.add, **config)
-        write_result_files(tmp, scene, tracks, extra_meta, qa, streamed=True)
-        made.append(tracks)
+            tracks, qa, read = reconstruct_windowed(scene, estimator, plan, every_frame, on_window, cluster,
+                                                    rows.add, **config)
+        write_result_files(tmp, read, tracks, extra_meta, qa, streamed=True)
+        made.append((tracks, read))
 
     write_dir_atomically(Path(out), run)
     return made[0]
@@ -146,17 +152,25 @@ def reconstruct_windows(scene: Scene, estimator: str, plan: Plan, out: str | Non
 
 def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: int | None = None,
                          on_window: Callable[[int, int], None] | None = None, cluster: Cluster | None = None,
-                         on_part: OnPart | None = None, **config: OptionValue) -> tuple[TrackSet, Anomalies]:
-    """``scene`` in windows (:mod:`gt3dkit.windows`, ``plan``): the stitched tracks and QA
-    findings; ``on_window(done, total)`` as the windows start (0) and after each one; ``cluster``
-    as :func:`reconstruct_windows`; ``on_part(k, tracks, anomaly_rows)`` with each window's final
-    rows and findings as it finishes (:func:`run_window`)."""
+                         on_part: OnPart | None = None, **config: OptionValue
+                         ) -> tuple[TrackSet, Anomalies, Scene]:
+    """``scene`` in windows (:mod:`gt3dkit.windows`, ``plan``): the stitched tracks, the QA
+    findings, and the scene as the windows read it: ``scene`` itself, or where it is an index
+    whose windows read their own frames (:func:`gt3dkit.api.load_head`), the index with what
+    they read (:func:`gt3dkit.windows.frames.completed`); ``on_window(done, total)`` as the
+    windows start (0) and after each one; ``cluster`` as :func:`reconstruct_windows`;
+    ``on_part(k, tracks, anomaly_rows)`` with each window's final rows and findings as it
+    finishes (:func:`run_window`)."""
     if not over_time(estimator):
         raise InputError("--window", f"the {estimator} fits each frame on its own: it needs no window")
+    if scene.index is not None and every_frame is not None:
+        raise InputError("--every-frame", "needs each object's annotations over the whole sequence: "
+                                          "read it whole (gt3dkit.api.load_scene), not by its windows")
     ov = overlap_frames(scene) if plan.overlap is None else plan.overlap
     own = cluster is None and bool(plan.scheduler)
     if own:
         cluster = Cluster(str(plan.scheduler), estimator, config, loading=False)
+    reads: list[FramesRead] | None = [] if scene.index is not None else None
     try:
         client = cluster.client if cluster is not None else None
         workers = len(client.scheduler_info()["workers"]) if client is not None else plan.jobs
@@ -166,8 +180,14 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
             runner = client
             if client is None and plan.jobs > 1 and len(windows) > 1:
                 runner = stack.enter_context(process_pool(min(plan.jobs, len(windows))))
-            warming = warm_workers(client, scene, estimator, config) if client is not None else []
-            noise_when_done = chosen_noise(scene, windows, estimator, config, runner)
+            cut = _cutter(scene)
+            warming = warm_workers(client, scene, estimator, config, cut) if client is not None else []
+            sample = cut(*noise_sample(scene, windows))
+            truth = None
+            if scene.index is not None:  # the box model chosen on the noise's frames; the truth read aside
+                scene, sample = with_sample_box_model(scene, sample)
+                truth = stack.enter_context(ThreadPoolExecutor(1)).submit(with_sequence_truth, scene)
+            noise_when_done = chosen_noise(scene, sample, estimator, config, runner)
             # meanwhile the windows, cut (and sent to the cluster) for the context the noise leaves
             # as it is (always, for boxes), again if it needs less; each frame's objects and each
             # object's annotated frames (--every-frame) found once for both
@@ -193,13 +213,15 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
                 if kept is not None:
                     stack.callback(_drop_kept, kept.token, client)
                 samples = _run_windows(scenes, windows, like, runner, lambda k, _: done(k, 2 * n),
-                                       functools.partial(window_bones, kept=kept))
+                                       functools.partial(window_bones, kept=kept), reads=reads)
                 like = dataclasses.replace(like, bones=pooled_bones(samples, config))
                 parts = _run_windows(scenes, windows, like, runner, lambda k, _: done(n + k, 2 * n),
-                                     functools.partial(run_window, kept=kept), on_part=on_part)
+                                     functools.partial(run_window, kept=kept), on_part=on_part, reads=reads)
             else:
                 samples = []
-                parts = _run_windows(scenes, windows, like, runner, done, on_part=on_part)
+                parts = _run_windows(scenes, windows, like, runner, done, on_part=on_part, reads=reads)
+            if reads is not None:
+                scene = completed(scene, reads, truth.result() if truth is not None else None)
             del warming
     finally:
         if own and cluster is not None:
@@ -212,7 +234,15 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
         first = float(sum(p[2] for p in samples))
         tracks.info.seconds += first
         tracks.info.windows = {**(tracks.info.windows or {}), "bones_round_seconds": first}
-    return tracks, qa
+    return tracks, qa, scene
+
+
+def _cutter(scene: Scene) -> Callable[[int, int], Scene]:
+    """The scene of the frames ``lo..hi`` of ``scene``: cut from its rows, or read from the input
+    where it is an index (:func:`gt3dkit.api.read_frames`)."""
+    if scene.index is not None:
+        return functools.partial(read_frames, scene)
+    return functools.partial(window_scene, scene)
 
 
 def _drop_kept(token: str, client: Client | None) -> None:
@@ -253,6 +283,8 @@ def _window_scenes(scene: Scene, windows: list[Window], client: Client | None, b
     def cut(w: Window) -> Scene:
         return window_scene(scene, w.lo, w.hi, bridge.rows(w) if bridge is not None else None)
 
+    if scene.index is not None:  # each read where its window runs
+        return lambda k: WindowRead.of(scene, windows[k])
     if client is None:
         return lambda k: cut(windows[k])
     return Scattered(client, [functools.partial(cut, w) for w in windows])
@@ -260,20 +292,32 @@ def _window_scenes(scene: Scene, windows: list[Window], client: Client | None, b
 
 def _run_windows(scenes: Callable[[int], Any], windows: list[Window], like: WindowJob, runner: Runner,
                  done: Callable[[int, int], None], fn: Callable[[WindowJob, Scene], Any] = run_window,
-                 on_part: OnPart | None = None) -> list[Any]:
+                 on_part: OnPart | None = None, reads: list[FramesRead] | None = None) -> list[Any]:
     """Every window's ``fn`` (:func:`run_window`; ``like`` with each window's frames, ``scenes(k)``
     its scene): on the Dask client or the process pool ``runner``, or one after the other in this
     process (None); ``done(k, n)`` as they start (0) and finish, ``on_part(k, *part)`` with window
     ``k``'s part as it comes. On Dask, a window whose worker was lost runs again on the others
-    (:func:`on_dask`)."""
+    (:func:`on_dask`). ``reads``: where ``scenes(k)`` is a :class:`WindowRead`, filled with what
+    each window read (:func:`read_then`), in window order."""
     done(0, len(windows))
     parts: list[Any] = [None] * len(windows)
-    got = on_part or (lambda k, *part: None)
+    said: list[Any] = [None] * len(windows)
+    on = on_part or (lambda k, *part: None)
+
+    def got(k: int, part: Any) -> None:
+        if isinstance(part, ReadPart):
+            part, said[k] = part.part, part.read
+        parts[k] = part
+        on(k, *part)
+
+    if reads is not None:
+        fn = functools.partial(read_then, fn)
     if runner is None:
         for k, w in enumerate(windows):
-            parts[k] = fn(dataclasses.replace(like, window=w), scenes(k))
-            got(k, *parts[k])
+            got(k, fn(dataclasses.replace(like, window=w), scenes(k)))
             done(k + 1, len(windows))
+        if reads is not None:
+            reads[:] = said
         return parts
     if not isinstance(runner, Executor):  # a Dask client
         finished = on_dask(runner, lambda k: (fn, dataclasses.replace(like, window=windows[k]), scenes(k)),
@@ -284,7 +328,8 @@ def _run_windows(scenes: Callable[[int], Any], windows: list[Window], like: Wind
                    for k, w in enumerate(windows)}
         finished = in_pool(futures, windows)
     for n, (k, part) in enumerate(finished, 1):
-        parts[k] = part
-        got(k, *part)
+        got(k, part)
         done(n, len(windows))
+    if reads is not None:
+        reads[:] = said
     return parts

@@ -20,7 +20,7 @@ from gt3dkit.fusion.base import make_estimator
 from gt3dkit.threads import small_matrix_blas
 from gt3dkit.types import Options, Scene
 from gt3dkit.version import __version__
-from gt3dkit.windows.plan import Window, window_scene
+from gt3dkit.windows.plan import Window
 
 if TYPE_CHECKING:
     from concurrent.futures import Executor
@@ -160,16 +160,17 @@ def warm_worker(scene: Scene, estimator: str, config: Options) -> None:
         estimate_checked(scene, make_estimator(estimator, **config))
 
 
-def warm_workers(client: Client, scene: Scene, estimator: str, config: Options) -> list[Any]:
-    """The sequence's first annotated frames estimated and dropped on the Dask ``client``'s
-    workers but the first (:func:`warm_worker`): while the first searches the noise
-    (:func:`chosen_noise`), the others load their imports and compiled kernels (a second or two
-    a process) instead of on their first window. Their futures, to hold until the windows run
-    (a future let go is a task cancelled)."""
-    f = np.unique(scene.obs.frame)[:WARM_FRAMES]  # the first annotated frames
+def warm_workers(client: Client, scene: Scene, estimator: str, config: Options,
+                 cut: Callable[[int, int], Scene]) -> list[Any]:
+    """The sequence's first annotated frames (``cut(lo, hi)``: the scene of frames ``lo..hi``)
+    estimated and dropped on the Dask ``client``'s workers but the first (:func:`warm_worker`):
+    while the first searches the noise (:func:`chosen_noise`), the others load their imports and
+    compiled kernels (a second or two a process) instead of on their first window. Their
+    futures, to hold until the windows run (a future let go is a task cancelled)."""
+    f = (scene.index.frames if scene.index is not None else np.unique(scene.obs.frame))[:WARM_FRAMES]
     if not len(f):
         return []
-    tiny = window_scene(scene, int(f[0]), int(f[-1]))  # small: inside the task
+    tiny = cut(int(f[0]), int(f[-1]))  # small: inside the task
     return [client.submit(warm_worker, tiny, estimator, config, workers=[w], allow_other_workers=False,
                           pure=False) for w in worker_addresses(client)[1:]]
 

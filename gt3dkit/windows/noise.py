@@ -23,7 +23,7 @@ from gt3dkit.fusion.prepare import Prepared
 from gt3dkit.threads import every_core, roomy_malloc, small_matrix_blas
 from gt3dkit.types import Options, Scene
 from gt3dkit.windows.cluster import Runner, on_dask, worker_addresses
-from gt3dkit.windows.plan import Window, objects_per_frame, window_scene
+from gt3dkit.windows.plan import Window, objects_per_frame
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -64,16 +64,16 @@ def noise_sample(scene: Scene, windows: list[Window], limit: int = NOISE_SAMPLE_
     return int(f[a]), int(f[max(b, a)])
 
 
-def chosen_noise(scene: Scene, windows: list[Window], estimator: str, config: Options,
+def chosen_noise(scene: Scene, sample: Scene, estimator: str, config: Options,
                  runner: Runner = None) -> Callable[[], tuple[dict[str, float], int | None]]:
-    """The process noise every window runs with (the settings ``config`` gives, the others the
-    estimator's own choice on :func:`noise_sample`'s frames, :func:`sample_noise`) and the
-    context in frames that noise needs (:func:`joint_context`; None: the default's), when the
-    returned function is called: found in this process, or where the windows run (``runner``:
-    the Dask client or the process pool, whose workers need the estimator's compiled kernels
-    anyway), this process free to go on meanwhile."""
-    lo, hi = noise_sample(scene, windows)
-    sample = searched_objects(window_scene(scene, lo, hi))
+    """The process noise every window of ``scene`` runs with (the settings ``config`` gives, the
+    others the estimator's own choice on ``sample``, the scene of :func:`noise_sample`'s
+    frames, :func:`sample_noise`) and the context in frames that noise needs
+    (:func:`joint_context`; None: the default's), when the returned function is called: found in
+    this process, or where the windows run (``runner``: the Dask client or the process pool,
+    whose workers need the estimator's compiled kernels anyway), this process free to go on
+    meanwhile."""
+    sample = searched_objects(sample)
     f = np.asarray(scene.frames)
     step_s = (float(np.median(np.diff(f))) if len(f) > 1 else 1.0) / scene.fps
     if runner is None:

@@ -110,7 +110,10 @@ def state_bytes(n_joints: int) -> float:
 
 
 def objects_per_frame(scene: Scene) -> tuple[I64, I64]:
-    """``(F,)`` the annotated frames and ``(F,)`` how many objects each holds (object-frames)."""
+    """``(F,)`` the annotated frames and ``(F,)`` how many objects each holds (object-frames): the
+    scene's rows', or its index's (:class:`gt3dkit.types.FrameIndex`)."""
+    if scene.index is not None:
+        return scene.index.frames, scene.index.objects
     keys = unique_rows(np.c_[scene.obs.frame, scene.obs.track_id])
     frames, count = np.unique(keys[:, 0], return_counts=True)
     return frames.astype(np.int64), count.astype(np.int64)
@@ -137,7 +140,7 @@ def occupied(windows: list[Window], scene: Scene, bridge: Bridge | None = None) 
     """The ``windows`` that hold an annotation, with their context, or a ``bridge`` row
     (:meth:`Bridge.rows`): a gap in the annotations longer than a window and its context holds
     nothing to estimate; all when none does."""
-    f = np.unique(scene.obs.frame)
+    f = scene.index.frames if scene.index is not None else np.unique(scene.obs.frame)
     keep = [w for w in windows if np.searchsorted(f, w.hi, side="right") > np.searchsorted(f, w.lo)
             or (bridge is not None and bridge.rows(w).any())]
     return keep or windows

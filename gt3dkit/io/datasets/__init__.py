@@ -15,7 +15,7 @@ from gt3dkit.calib.formats.grid import LAYOUTS as GRID_LAYOUTS
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets import mot, native, openpose, panoptic, tasks, wildtrack
 from gt3dkit.rig import Rig
-from gt3dkit.types import JsonDict, JsonValue, Scene, SimScene, SkeletonScene
+from gt3dkit.types import GroundTruth, JsonDict, JsonValue, Scene, SimScene, SkeletonScene
 
 
 class ReadOptions(NamedTuple):
@@ -25,6 +25,7 @@ class ReadOptions(NamedTuple):
     calib: Path | str | None
     fps: float | None
     panoptic: JsonDict
+    span: tuple[int, int] | None = None  # the frame numbers lo..hi only (Layout.index)
 
 
 @dataclass(frozen=True)
@@ -33,7 +34,11 @@ class Layout:
     writers of a box scene (``write_boxes(sim, folder, id_seed)``) and of a skeleton scene
     (``write_keypoints(sim, folder)``) into a folder (None: not written). ``associated``: its
     ids are per camera or absent (the cross-camera association makes people of them);
-    ``skeletons``: ``--skeleton`` names its joint order."""
+    ``skeletons``: ``--skeleton`` names its joint order; ``index``: the folder without its rows
+    (:class:`gt3dkit.types.FrameIndex`) where its reader reads a span of frames on its own
+    (``ReadOptions.span``: a long sequence's windows read their own frames), and ``truth`` the
+    sequence's truth file, where one holds it (None: the frames' own, read with them; its
+    ``files`` digest added to the dict given)."""
 
     name: str
     found: Callable[[Path], bool]
@@ -42,13 +47,16 @@ class Layout:
     write_keypoints: Callable[[SkeletonScene, Path], None] | None = None
     associated: bool = False
     skeletons: bool = False
+    index: Callable[[Path], Scene] | None = None
+    truth: Callable[[Path, dict[str, str]], GroundTruth | None] | None = None
 
 
 def _grid(name: str) -> Layout:
     g = GRID_LAYOUTS[name]
     return Layout(name, lambda root: (root / "calibrations" / g.intrinsic_dir).is_dir(),
-                  lambda root, o: wildtrack.load(root, g), lambda sim, tmp, seed: wildtrack.write(sim, tmp,
-                                                                                                  g))
+                  lambda root, o: wildtrack.load(root, g, o.span),
+                  lambda sim, tmp, seed: wildtrack.write(sim, tmp, g),
+                  index=lambda root: wildtrack.index(root, g), truth=wildtrack.truth_csv)
 
 
 #: Every input layout, in the order a folder is tested for it (the first found is its layout).
@@ -124,7 +132,8 @@ def _calib_digest(calib: Path | str) -> str:
 
 def read_scene(root: Path | str, layout: str | None = None, skeleton: str | None = None,
                fps: float | None = None, calib: Path | str | None = None,
-               association: Path | str | None = None, **panoptic_options: JsonValue) -> Scene:
+               association: Path | str | None = None, span: tuple[int, int] | None = None,
+               **panoptic_options: JsonValue) -> Scene:
     """Read any supported input folder (layout detected when not given), as its files say: a
     layout with ids per camera or none (:data:`ASSOCIATED`) still has them (the cross-camera
     association is estimation, :func:`gt3dkit.api.load_scene`), and the scene is not checked
@@ -134,8 +143,43 @@ def read_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     data); ``fps`` overrides the input's frame rate. ``panoptic_options`` go to
     :func:`gt3dkit.io.datasets.panoptic.load` (``cameras``, ``noise_px``, ``seed``,
     ``min_conf``). ``calib`` replaces the input's cameras by those of a calibration in any
-    format (:func:`with_calibration`).
+    format (:func:`with_calibration`). ``span``: only the frames ``lo..hi`` (a layout with an
+    ``index``; none of them may hold an annotation).
     """
+    layout = _checked_layout(root, layout, skeleton, association, panoptic_options)
+    scene = LAYOUTS[layout].read(Path(root), ReadOptions(skeleton, calib, fps, panoptic_options, span))
+    if len(scene.obs) == 0 and span is None:
+        raise InputError(str(root), "no annotations in any frame")
+    return _as_asked(scene, root, layout, skeleton, fps, calib, association, panoptic_options)
+
+
+def index_scene(root: Path | str, layout: str | None = None, fps: float | None = None,
+                calib: Path | str | None = None) -> Scene | None:
+    """:func:`read_scene` without the rows, where the layout reads a span of frames on its own
+    (``Layout.index``; else None): the cameras, frames and each frame's objects
+    (:class:`gt3dkit.types.FrameIndex`)."""
+    layout = _checked_layout(root, layout, None, None, {})
+    index = LAYOUTS[layout].index
+    if index is None:
+        return None
+    scene = index(Path(root))
+    if scene.index is None or not len(scene.index.frames):
+        raise InputError(str(root), "no annotations in any frame")
+    return _as_asked(scene, root, layout, None, fps, calib, None, {})
+
+
+def with_sequence_truth(head: Scene) -> Scene:
+    """An :func:`index_scene`'s ``head`` with its sequence's truth file read, where its layout
+    keeps one (``Layout.truth``)."""
+    read = LAYOUTS[head.layout].truth
+    files = dict(head.files)
+    truth = read(Path(head.root), files) if read is not None else None
+    return head if truth is None else dataclasses.replace(head, truth=truth, files=files)
+
+
+def _checked_layout(root: Path | str, layout: str | None, skeleton: str | None,
+                    association: Path | str | None, panoptic_options: JsonDict) -> str:
+    """The input's layout (detected when not given), checked against the options given."""
     layout = layout or detect_layout(Path(root))
     if layout not in LAYOUTS:
         raise InputError(str(root), f"unknown layout {layout!r} (known: {', '.join(LAYOUTS)})")
@@ -147,9 +191,14 @@ def read_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     if association is not None and layout not in ASSOCIATED:
         raise InputError("--association", "applies to inputs with per-camera ids or none "
                                           f"({', '.join(ASSOCIATED)}), not {layout}")
-    scene = LAYOUTS[layout].read(Path(root), ReadOptions(skeleton, calib, fps, panoptic_options))
-    if len(scene.obs) == 0:
-        raise InputError(str(root), "no annotations in any frame")
+    return layout
+
+
+def _as_asked(scene: Scene, root: Path | str, layout: str, skeleton: str | None, fps: float | None,
+              calib: Path | str | None, association: Path | str | None, panoptic_options: JsonDict
+              ) -> Scene:
+    """A layout's ``scene`` with :func:`read_scene`'s options: the calibration, the fps and
+    the options it was read with (``load_options``)."""
     if calib is not None and layout not in ASSOCIATED:  # these read their calibration themselves
         scene = with_calibration(scene, calib)
     if fps is not None:

@@ -95,8 +95,9 @@ def _gaps(scene: Scene, obs: Observations) -> list[str]:
             f"{int(pairs[worst, 1])}): no rows there (--every-frame interpolates them)"]
 
 
-def check_scene(scene: Scene) -> Scene:
-    """``scene`` with off-image annotations dropped and its odd-input warnings added."""
+def check_scene(scene: Scene, whole: bool = True) -> Scene:
+    """``scene`` with off-image annotations dropped and its odd-input warnings added; ``whole``:
+    the scene is the whole input (else some of its frames: none left is no error)."""
     obs = scene.obs
     wh = scene.rig.wh[obs.cam]  # (N, 2)
     warnings = list(scene.warnings)
@@ -133,7 +134,7 @@ def check_scene(scene: Scene) -> Scene:
                             f"{obs.origin[int(np.flatnonzero(koff.any(axis=1))[0])]}): ignored")
         keep = np.all(np.isfinite(box), axis=1) | np.isfinite(kpt[..., 0]).any(axis=1)
         obs = dataclasses.replace(obs, box_xyxy_px=box, kpt_uv_px=kpt, kpt_conf=conf).select(keep)
-        if len(obs) == 0:
+        if len(obs) == 0 and whole:
             raise InputError(scene.root or "input", "no annotation lies inside its camera's image")
 
     n_cams = _cameras_per_object(obs.track_id, obs.cam)
@@ -141,7 +142,7 @@ def check_scene(scene: Scene) -> Scene:
     lone_kpt = np.array([i for i, n in n_cams.items() if n == 1 and i not in boxed], dtype=np.int64)
     if lone_kpt.size:
         obs = obs.select(~np.isin(obs.track_id, lone_kpt))
-        if len(obs) == 0:
+        if len(obs) == 0 and whole:
             seen = sorted({scene.rig.names[int(c)] for c in np.unique(scene.obs.cam)})
             raise InputError(scene.root or "input",
                              f"no object is seen by two cameras (annotations only in camera "

@@ -55,26 +55,24 @@ from gt3dkit.parse import (
     read_hashed,
     sha256,
 )
-from gt3dkit.types import F64, Camera, GroundTruth, Origins, Rig, Scene, SimScene
+from gt3dkit.types import F64, Camera, FrameIndex, GroundTruth, Origins, Rig, Scene, SimScene
 
 #: Frame files read, decoded and checked together (:func:`_checked_views`): the numpy checks'
 #: cost is per call, and a block's Python objects are all a long folder holds at once.
 FILES_PER_BLOCK = 256
 
 
-def load(root: Path, g: GridLayout) -> Scene:
-    """Load a WILDTRACK- or MultiviewX-layout folder into a :class:`Scene`."""
+def load(root: Path, g: GridLayout, span: tuple[int, int] | None = None) -> Scene:
+    """Load a WILDTRACK- or MultiviewX-layout folder into a :class:`Scene`; ``span``: only the
+    frame files of the frame numbers ``lo..hi`` (a window's, :mod:`gt3dkit.windows`: the truth
+    is the positionID grid's of those frames, or None where ``truth.csv`` gives it)."""
     root = Path(root)
     files: dict[str, str] = {}
     cams = [load_camera(root, g, n, files) for n in g.cameras]
-    ann_dir = root / "annotations_positions"
-    paths = sorted(ann_dir.glob("*.json"))
-    if not paths:
-        raise InputError(str(ann_dir), "no annotation files (*.json)")
-    for p in paths:
-        if not p.stem.isdigit():
-            raise InputError(str(p), "file name is not a frame number")
-    frame_of = np.array([parse_frame(str(p), p.stem) for p in paths], dtype=np.int64)
+    paths, frame_of = _frame_files(root)
+    if span is not None:
+        inside = (frame_of >= span[0]) & (frame_of <= span[1])
+        paths, frame_of = [p for p, m in zip(paths, inside, strict=True) if m], frame_of[inside]
     _, first, counts = np.unique(frame_of, return_index=True, return_counts=True)
     shared = np.zeros(len(paths), bool)  # a frame number two files give ("7.json", "007.json")
     shared[np.isin(frame_of, frame_of[first[counts > 1]])] = True
@@ -118,9 +116,45 @@ def load(root: Path, g: GridLayout) -> Scene:
     obs = type(obs)(obs.frame, remap[obs.cam], obs.track_id, obs.box_xyxy_px, obs.kpt_uv_px,
                     obs.origin)
     frames = np.unique(frame_of)
-    truth = _truth_csv(root, files) or _truth_positions(g, truth_rows)
+    if span is not None and (root / "truth.csv").exists():
+        truth = None  # read once for the sequence (gt3dkit.windows)
+    else:
+        truth = truth_csv(root, files) or _truth_positions(g, truth_rows)
     return Scene(rig=rig, obs=obs, layout=g.name, fps=g.fps, frames=frames, truth=truth,
                  files=files, root=str(root))
+
+
+def _frame_files(root: Path) -> tuple[list[Path], np.ndarray]:
+    """The folder's frame files, sorted, and ``(n,)`` the frame number each file name gives."""
+    ann_dir = root / "annotations_positions"
+    paths = sorted(ann_dir.glob("*.json"))
+    if not paths:
+        raise InputError(str(ann_dir), "no annotation files (*.json)")
+    for p in paths:
+        if not p.stem.isdigit():
+            raise InputError(str(p), "file name is not a frame number")
+    return paths, np.array([parse_frame(str(p), p.stem) for p in paths], dtype=np.int64)
+
+
+def index(root: Path, g: GridLayout) -> Scene:
+    """The folder without its boxes (:class:`gt3dkit.types.FrameIndex`): its cameras, frames and
+    each frame's objects, counted by their ``"personID"`` keys (a valid file's count; each
+    window checks its frames as :func:`load` does when it reads them). The frame files are read
+    as bytes, not decoded: 0.2 s for 4 000 files of 40 people, where :func:`load` takes 2.3 s."""
+    root = Path(root)
+    files: dict[str, str] = {}
+    cams = [load_camera(root, g, n, files) for n in g.cameras]
+    paths, frame_of = _frame_files(root)
+    present = [c for c in cams if c is not None]
+    if not present:
+        raise InputError(str(root / "calibrations"), "no camera calibrations found")
+    count = np.array([p.read_bytes().count(b'"personID"') for p in paths], dtype=np.int64)
+    frames, inv = np.unique(frame_of, return_inverse=True)
+    objects = np.bincount(inv.ravel(), weights=count, minlength=len(frames)).astype(np.int64)
+    rig = Rig(tuple(present), up=np.array([0.0, 0.0, 1.0]),
+              frame_name=f"{g.name} world (x, y on the ground, z up)")
+    return Scene(rig=rig, obs=RowBuilder().build(), layout=g.name, fps=g.fps, frames=frames, files=files,
+                 root=str(root), index=FrameIndex(frames[objects > 0], objects[objects > 0]))
 
 
 def _entries(p: Path, frame: int, raw: bytes, cams: list[Camera | None], g: GridLayout, rb: RowBuilder,
@@ -267,7 +301,8 @@ def _truth_positions(g: GridLayout, rows: list[np.ndarray]) -> GroundTruth:
 TRUTH_COLUMNS = ("frame", "id", "x", "y", "z", "a", "b", "c")
 
 
-def _truth_csv(root: Path, files: dict[str, str]) -> GroundTruth | None:
+def truth_csv(root: Path, files: dict[str, str]) -> GroundTruth | None:
+    """``root/truth.csv`` (:func:`read_truth_csv`), its digest added to ``files``; None without one."""
     p = root / "truth.csv"
     if not p.exists():
         return None
