@@ -272,6 +272,39 @@ def test_a_window_whose_dask_worker_dies_runs_again_on_the_others(boxes: object,
             np.testing.assert_array_equal(getattr(parts[k][0], name), getattr(alone[0], name), err_msg=name)
 
 
+def test_a_window_that_reads_its_frames_runs_again_when_its_worker_dies(grid: Path, tmp_path: Path) -> None:
+    """A window reading its own frames (nothing scattered) whose worker dies runs again on the
+    other: its part and what it read are the ones the same window gives in this process."""
+    import os
+
+    distributed = pytest.importorskip("distributed")
+    head = load_head(grid)
+    assert head is not None
+    windows = plan_windows(np.asarray(head.frames, dtype=np.int64), 20, 10)
+    like = WindowJob(windows[0], "ukf", {"accel_sd": 0.5, "shape_sd": 0.01}, None)
+    marker = tmp_path / "died"
+
+    def dies_once(job: WindowJob, s: object) -> object:
+        if not marker.exists():
+            marker.write_text("a worker died here")
+            os._exit(1)
+        return run_window(job, s)
+
+    reads: list[object] = []
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        parts = _run_windows(_window_scenes(head, windows, client), windows, like, client, lambda k, n: None,
+                             dies_once, reads=reads)  # type: ignore[arg-type]
+    assert marker.exists() and len(reads) == len(windows)
+    alone_reads: list[object] = []
+    alone = _run_windows(_window_scenes(head, windows, None), windows, like, None, lambda k, n: None,
+                         reads=alone_reads)  # type: ignore[arg-type]
+    assert [r.rows for r in reads] == [r.rows for r in alone_reads]  # type: ignore[attr-defined]
+    for k in range(len(windows)):
+        for name in ("frame", "track_id", "center_world", "center_sd"):
+            np.testing.assert_array_equal(getattr(parts[k][0], name), getattr(alone[k][0], name), name)
+
+
 def _dies(job: WindowJob, scene: object) -> object:
     """A window whose process dies (as the out-of-memory killer ends it)."""
     import os

@@ -152,17 +152,18 @@ def warm_first(estimator: str, config: Options) -> None:
         warm_worker(scene, estimator, config)
 
 
-def warm_worker(scene: Scene, estimator: str, config: Options) -> None:
-    """Estimate ``scene`` (a few frames) and drop the result: this process's imports and compiled
-    kernels loaded (:func:`warm_workers`, :func:`warm_first`); an error is left to the windows
-    to find."""
+def warm_worker(scene: Scene | Callable[[], Scene], estimator: str, config: Options) -> None:
+    """Estimate ``scene`` (a few frames; read here where it is a reader) and drop the result: this
+    process's imports and compiled kernels loaded (:func:`warm_workers`, :func:`warm_first`); an
+    error is left to the windows to find."""
     with contextlib.suppress(Exception), small_matrix_blas():
-        estimate_checked(scene, make_estimator(estimator, **config))
+        estimate_checked(scene if isinstance(scene, Scene) else scene(), make_estimator(estimator, **config))
 
 
 def warm_workers(client: Client, scene: Scene, estimator: str, config: Options,
-                 cut: Callable[[int, int], Scene]) -> list[Any]:
-    """The sequence's first annotated frames (``cut(lo, hi)``: the scene of frames ``lo..hi``)
+                 cut: Callable[[int, int], Scene | Callable[[], Scene]]) -> list[Any]:
+    """The sequence's first annotated frames (``cut(lo, hi)``: the scene of frames ``lo..hi``, or
+    its reader)
     estimated and dropped on the Dask ``client``'s workers but the first (:func:`warm_worker`):
     while the first searches the noise (:func:`chosen_noise`), the others load their imports and
     compiled kernels (a second or two a process) instead of on their first window. Their

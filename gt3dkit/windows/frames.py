@@ -15,8 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from gt3dkit.api import read_frames
+from gt3dkit.api import read_frames, with_sample_box_model
 from gt3dkit.io.datasets import checks
+from gt3dkit.threads import roomy_malloc
 from gt3dkit.types import FrameIndex, GroundTruth, Scene
 from gt3dkit.windows.plan import Window
 
@@ -44,6 +45,33 @@ class WindowRead:
 
 
 @dataclass(frozen=True)
+class SampleRead:
+    """The frames ``lo..hi`` of the sequence ``head`` (without its index), read when called where
+    they are used (picklable): the process noise's sample, with the box model the head was given
+    or the one its boxes choose (:func:`gt3dkit.api.with_sample_box_model`), and a worker's
+    warm-up frames."""
+
+    head: Scene
+    lo: int
+    hi: int
+
+    @classmethod
+    def of(cls, head: Scene, lo: int, hi: int) -> SampleRead:
+        return cls(dataclasses.replace(head, index=None, truth=None), lo, hi)
+
+    def __call__(self) -> Scene:
+        return with_sample_box_model(self.head, read_frames(self.head, self.lo, self.hi))[1]
+
+
+def with_chosen_box_model(head: Scene, box_model: str, box_model_px: dict[str, float]) -> Scene:
+    """``head`` with the box model its sample chose (:class:`SampleRead`), where it was not given."""
+    if head.load_options.get("box_model", "auto") != "auto":
+        return head
+    return dataclasses.replace(head, box_model=box_model, box_model_px=box_model_px,
+                               load_options={**head.load_options, "box_model": box_model})
+
+
+@dataclass(frozen=True)
 class FramesRead:
     """What a window read of the input, for the run's output: the digests of the files it read
     (``files``), and of its own frames (``first..last``): the annotation rows, whether one has a
@@ -68,7 +96,8 @@ class ReadPart:
 def read_then(fn: Callable[[Any, Scene], Any], job: Any, read: WindowRead) -> ReadPart:
     """``fn(job, scene)`` on the window's scene read by ``read`` (its truth and warnings left out,
     as :func:`gt3dkit.windows.plan.window_scene` leaves them), with what it read."""
-    scene, warnings = read()
+    with roomy_malloc():  # as the window's run (a Dask worker's allocator hands memory back)
+        scene, warnings = read()
     w = read.window
     own = (scene.obs.frame >= w.first) & (scene.obs.frame <= w.last)
     truth = scene.truth

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from concurrent.futures import Executor
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -64,16 +65,31 @@ def noise_sample(scene: Scene, windows: list[Window], limit: int = NOISE_SAMPLE_
     return int(f[a]), int(f[max(b, a)])
 
 
-def chosen_noise(scene: Scene, sample: Scene, estimator: str, config: Options,
-                 runner: Runner = None) -> Callable[[], tuple[dict[str, float], int | None]]:
+#: The scene the process noise is chosen on, or a picklable function that reads it where the
+#: search runs (:class:`gt3dkit.windows.frames.SampleRead`).
+Sample = Scene | Callable[[], Scene]
+
+
+@dataclass(frozen=True)
+class Chosen:
+    """What the search chose on its sample (:func:`sample_noise`): the process ``noise``, the
+    ``context`` in frames it needs (:func:`joint_context`; None: the default's), and the
+    sample's box model and its evidence (``Scene.box_model``, ``box_model_px``)."""
+
+    noise: dict[str, float]
+    context: int | None
+    box_model: str
+    box_model_px: dict[str, float]
+
+
+def chosen_noise(scene: Scene, sample: Sample, estimator: str, config: Options,
+                 runner: Runner = None) -> Callable[[], Chosen]:
     """The process noise every window of ``scene`` runs with (the settings ``config`` gives, the
     others the estimator's own choice on ``sample``, the scene of :func:`noise_sample`'s
-    frames, :func:`sample_noise`) and the context in frames that noise needs
-    (:func:`joint_context`; None: the default's), when the returned function is called: found in
-    this process, or where the windows run (``runner``: the Dask client or the process pool,
-    whose workers need the estimator's compiled kernels anyway), this process free to go on
-    meanwhile."""
-    sample = searched_objects(sample)
+    frames, :func:`sample_noise`) and what else the search chose (:class:`Chosen`), when the
+    returned function is called: found in this process, or where the windows run (``runner``:
+    the Dask client or the process pool, whose workers need the estimator's compiled kernels
+    anyway), this process free to go on meanwhile."""
     f = np.asarray(scene.frames)
     step_s = (float(np.median(np.diff(f))) if len(f) > 1 else 1.0) / scene.fps
     if runner is None:
@@ -84,18 +100,22 @@ def chosen_noise(scene: Scene, sample: Scene, estimator: str, config: Options,
     return runner.submit(sample_noise, sample, estimator, config, step_s).result
 
 
-def _search_on_dask(client: Client, sample: Scene, estimator: str, config: Options, step_s: float
-                    ) -> Callable[[], tuple[dict[str, float], int | None]]:
-    """:func:`searched_on_worker` of ``sample`` (scattered as data, not inside the task graph) on
-    the Dask ``client``'s first worker, warmed as the sequence loaded (:class:`Cluster`); the
-    result when the returned function is called. If that worker is lost, the search runs again on
-    any other (:func:`on_dask`)."""
+def _search_on_dask(client: Client, sample: Sample, estimator: str, config: Options, step_s: float
+                    ) -> Callable[[], Chosen]:
+    """:func:`searched_on_worker` of ``sample`` (a scene scattered as data, not inside the task
+    graph; a reader as it is) on the Dask ``client``'s first worker, warmed as the sequence
+    loaded (:class:`Cluster`); the result when the returned function is called. If that worker
+    is lost, the search runs again on any other (:func:`on_dask`)."""
     first = worker_addresses(client)[:1] or None
-    future = client.submit(searched_on_worker, client.scatter(sample, hash=False, workers=first),
-                           estimator, config, step_s, workers=first, pure=False)
+
+    def sent(workers: list[str] | None) -> Any:
+        return client.scatter(sample, hash=False, workers=workers) if isinstance(sample, Scene) else sample
+
+    future = client.submit(searched_on_worker, sent(first), estimator, config, step_s, workers=first,
+                           pure=False)
 
     def again(_: int) -> tuple[Any, ...]:  # on any worker
-        return searched_on_worker, client.scatter(sample, hash=False), estimator, config, step_s
+        return searched_on_worker, sent(None), estimator, config, step_s
 
     return lambda: next(on_dask(client, again, 1, lambda _: "the process-noise search", {future: 0}))[1]
 
@@ -113,11 +133,14 @@ def searched_objects(sample: Scene, budget: int = SEARCH_OBJECT_FRAMES) -> Scene
     return dataclasses.replace(sample, obs=sample.obs.select(keep))
 
 
-def sample_noise(sample: Scene, estimator: str, config: Options, step_s: float
-                 ) -> tuple[dict[str, float], int | None]:
-    """:func:`chosen_noise` on its ``sample`` of the sequence (frames ``step_s`` seconds apart)."""
+def sample_noise(sample: Sample, estimator: str, config: Options, step_s: float) -> Chosen:
+    """:func:`chosen_noise` on its ``sample`` of the sequence (frames ``step_s`` seconds apart;
+    read here where it is a reader), of which the objects the search draws
+    (:func:`searched_objects`)."""
     given = {k: config[k] for k in PROCESS_NOISE if config.get(k) is not None}
     with small_matrix_blas(), roomy_malloc():
+        whole = sample if isinstance(sample, Scene) else sample()
+        sample = searched_objects(whole)
         est = make_estimator(estimator, **config)
         found, pre = process_noise_prepared(sample, est)  # the search alone, where the estimator has one
         if found is None:
@@ -126,11 +149,10 @@ def sample_noise(sample: Scene, estimator: str, config: Options, step_s: float
     fields = {f.name for f in dataclasses.fields(est.config)} if hasattr(est, "config") else set()
     chosen = {k: float(found[k]) for k in PROCESS_NOISE if k in fields and found.get(k) is not None}
     noise = {**chosen, **given}
-    return noise, joint_context(pre, noise, step_s)
+    return Chosen(noise, joint_context(pre, noise, step_s), whole.box_model, whole.box_model_px)
 
 
-def searched_on_worker(sample: Scene, estimator: str, config: Options, step_s: float
-                       ) -> tuple[dict[str, float], int | None]:
+def searched_on_worker(sample: Sample, estimator: str, config: Options, step_s: float) -> Chosen:
     """:func:`sample_noise` on a Dask worker, on every core of its machine (the compiled loops'
     threads, :func:`gt3dkit.threads.every_core`; a worker's task thread gets one): every worker
     waits for it. On the 4 000-frame box scene's sample, on a warm worker of a 2-core machine:

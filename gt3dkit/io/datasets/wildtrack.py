@@ -127,7 +127,7 @@ def load(root: Path, g: GridLayout, span: tuple[int, int] | None = None) -> Scen
 def _frame_files(root: Path) -> tuple[list[Path], np.ndarray]:
     """The folder's frame files, sorted, and ``(n,)`` the frame number each file name gives."""
     ann_dir = root / "annotations_positions"
-    paths = sorted(ann_dir.glob("*.json"))
+    paths = sorted(ann_dir.glob("*.json"), key=lambda p: p.name)  # one folder: as paths sort, 4x faster
     if not paths:
         raise InputError(str(ann_dir), "no annotation files (*.json)")
     for p in paths:
