@@ -3,9 +3,10 @@
 #             Then the numba kernels a first run uses compile, two processes side by side
 #             (gt3dkit.commands.warmup). pip writes no bytecode (--no-compile: 16-20 s of it, file by
 #             file, before the kernels started): Python writes it as modules are first imported, or,
-#             where PYTHONDONTWRITEBYTECODE is set and nothing would, the warm-up writes it beside
-#             the kernels' compilation (--bytecode; without it every process compiled numpy, scipy,
-#             ... from source again: make test 254 s -> 366 s here).
+#             where PYTHONDONTWRITEBYTECODE is set and nothing would, the warm-up writes that of
+#             what gt3dkit and its tests import beside the kernels' compilation (--bytecode; without
+#             it every process compiled numpy, scipy, ... from source again: make test 254 s ->
+#             366 s here).
 # make demo:  reconstruct the bundled real MultiviewX and Panoptic data, print errors, write reports.
 # make test:  the test suite (benchmarks excluded; see make bench).
 VENV ?= .venv

@@ -9,6 +9,7 @@ core, so the two sets compile side by side, the joints' in a second process
 
 from __future__ import annotations
 
+import contextlib
 import subprocess
 import sys
 import time
@@ -63,22 +64,43 @@ def warm_up(say: bool = False) -> float:
     return time.perf_counter() - t0
 
 
-#: Writes the bytecode of every installed package (``make setup`` installs with ``pip
-#: --no-compile``), on every core, at the lowest priority: beside the kernels' compilation it takes
-#: the core the joints' process leaves idle, and then both. A file that does not compile (a
-#: package's template or test data) is skipped, as pip skips it. All of them: ``import open3d``
-#: alone imports dash, plotly, IPython and werkzeug (open3d's web visualiser).
-BYTECODE = ("import compileall, os, sysconfig; os.nice(19); "
-            "compileall.compile_dir(sysconfig.get_paths()['purelib'], quiet=2, workers=0)")
+#: The installed packages gt3dkit's commands, reports, clusters and tests import, besides every
+#: module of gt3dkit itself (:func:`import_all`). ``import open3d`` alone imports dash, plotly,
+#: IPython and werkzeug (open3d's web visualiser).
+IMPORTED = ("open3d", "matplotlib.pyplot", "distributed", "pytest", "hypothesis", "pandas", "motmetrics",
+            "trackeval", "pycocotools.coco", "c3d", "importlinter")
+
+#: Writes the bytecode of what gt3dkit imports (``make setup`` installs with ``pip --no-compile``):
+#: a process at the lowest priority that imports it with bytecode writing on
+#: (:func:`import_all`). Beside the kernels' compilation it takes the core the joints' process
+#: leaves idle. Only what is imported: every file of every installed package (``compileall``,
+#: 25 s of CPU for 2.4 GB) was still being written 11 s after the kernels were ready, and
+#: ``make demo`` waited for it; 1 700 of those files are imported.
+BYTECODE = ("import os, sys; os.nice(19); sys.dont_write_bytecode = False; "
+            "from gt3dkit.commands.warmup import import_all; import_all()")
+
+
+def import_all() -> None:
+    """Import every module of gt3dkit and the packages of :data:`IMPORTED` (one not installed, or
+    that fails to import, left out): where bytecode writing is on, each one's is written."""
+    import importlib
+    import pkgutil
+
+    import gt3dkit
+
+    names = [m.name for m in pkgutil.walk_packages(gt3dkit.__path__, "gt3dkit.")] + list(IMPORTED)
+    for name in names:
+        with contextlib.suppress(Exception):
+            importlib.import_module(name)
 
 
 def main(argv: list[str]) -> None:
     """``python -m gt3dkit.commands.warmup [--joints] [--say] [--bytecode]``: every kernel
     (``make setup``), or the joints' alone (:func:`warm_up`'s second process). ``--bytecode``:
-    meanwhile the installed packages' bytecode is written (:data:`BYTECODE`): pip wrote it one
-    file after another, 16-20 s before the kernels started; where ``PYTHONDONTWRITEBYTECODE``
-    is set (as on CI), nothing else writes it, and every process compiles numpy, scipy, ...
-    from source again (the test suite: 254 s -> 366 s)."""
+    meanwhile the bytecode of what gt3dkit imports is written (:data:`BYTECODE`): pip wrote
+    every package's one file after another, 16-20 s before the kernels started; where
+    ``PYTHONDONTWRITEBYTECODE`` is set (as on CI), nothing else writes it, and every process
+    compiles numpy, scipy, ... from source again (the test suite: 254 s -> 366 s)."""
     if "--joints" in argv:
         s = compile_joints()
         if "--say" in argv:
@@ -93,7 +115,7 @@ def main(argv: list[str]) -> None:
     print(f"gt3dkit: compiled kernels ready ({warm_up(say=True):.0f} s)", flush=True)
     if side is not None:
         side.wait()  # bytecode only speeds imports up: nothing to stop for
-        print(f"gt3dkit: the packages' bytecode written ({time.perf_counter() - t0:.0f} s)")
+        print(f"gt3dkit: the imported packages' bytecode written ({time.perf_counter() - t0:.0f} s)")
 
 
 if __name__ == "__main__":
