@@ -606,19 +606,18 @@ def test_windows_that_read_their_own_frames_give_the_whole_read_output(grid: Pat
 
 
 def test_jobs_and_dask_read_their_own_frames_to_the_one_process_output(grid: Path, tmp_path: Path) -> None:
-    """``gt3d reconstruct`` of a WILDTRACK-layout folder in windows: the same bytes in one process,
-    two local processes and two Dask workers, each reading its windows' frames, and the same as
-    the library's windows cut from the whole input read at once; ``meta.json`` counts every
-    annotation row and lists every file."""
+    """``gt3d reconstruct`` of a WILDTRACK-layout folder in windows: the same bytes in one process
+    and on two Dask workers, each reading its windows' frames (a local pool's processes read
+    theirs as a worker does: the bad-frame test below), and the same as the library's windows cut
+    from the whole input read at once; ``meta.json`` counts every annotation row and lists every
+    file."""
     outs = {}
-    for name, extra in (("one", ()), ("two", ("--jobs", "2"))):
-        code, so, se = _run("reconstruct", str(grid), "--out", str(tmp_path / name), "--window", "20",
-                            "--quiet", *extra)
-        assert code == 0, se
-        outs[name] = (tmp_path / name / "tracks.csv").read_bytes()
+    code, so, se = _run("reconstruct", str(grid), "--out", str(tmp_path / "one"), "--window", "20", "--quiet")
+    assert code == 0, se
+    outs["one"] = (tmp_path / "one" / "tracks.csv").read_bytes()
     whole = load_scene(grid)
     reconstruct_windows(whole, "ukf", Plan(20), str(tmp_path / "library"))
-    assert (tmp_path / "library" / "tracks.csv").read_bytes() == outs["one"] == outs["two"]
+    assert (tmp_path / "library" / "tracks.csv").read_bytes() == outs["one"]
     meta = json.loads((tmp_path / "one" / "meta.json").read_text())
     assert meta["counts"]["annotations"] == len(whole.obs)
     assert meta["input"]["files_sha256"] == whole.files

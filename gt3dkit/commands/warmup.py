@@ -14,6 +14,7 @@ import subprocess
 import sys
 import time
 from dataclasses import replace
+from pathlib import Path
 
 from gt3dkit.api import tiny_scenes
 from gt3dkit.fusion import ukf_smoother as us
@@ -86,9 +87,8 @@ def import_all() -> None:
     import importlib
     import pkgutil
 
-    import gt3dkit
-
-    names = [m.name for m in pkgutil.walk_packages(gt3dkit.__path__, "gt3dkit.")] + list(IMPORTED)
+    package = str(Path(__file__).resolve().parents[1])  # gt3dkit's folder
+    names = [m.name for m in pkgutil.walk_packages([package], "gt3dkit.")] + list(IMPORTED)
     for name in names:
         with contextlib.suppress(Exception):
             importlib.import_module(name)
