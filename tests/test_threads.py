@@ -144,3 +144,34 @@ print(_glibc() is not None, plain, roomy)
     if glibc != "True":
         pytest.skip("not glibc")
     assert int(roomy) < int(plain) / 4, (plain, roomy)
+
+
+def test_roomy_malloc_keeps_a_runs_memory_between_its_windows() -> None:
+    """Without a trim threshold in the environment (a run in one process), ``roomy_malloc(run=True)``
+    keeps memory freed at a window's end for the next one: windows of many 3.2 MB temporaries,
+    freed together, fault their memory in once, not once a window as glibc's own thresholds let
+    it (it handed the heap's top back after each)."""
+    import os
+    import subprocess
+    import sys
+
+    code = """
+import resource, numpy as np
+from gt3dkit.threads import roomy_malloc, _glibc
+def windows():
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(10):
+        held = [np.ones(400_000) for _ in range(20)]  # a window's temporaries, 64 MB
+        del held
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+plain = windows()
+with roomy_malloc(run=True):
+    roomy = windows()
+print(_glibc() is not None, plain, roomy)
+"""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    glibc, plain, roomy = r.stdout.split()
+    if glibc != "True":
+        pytest.skip("not glibc")
+    assert int(roomy) < int(plain) / 4, (plain, roomy)

@@ -88,6 +88,7 @@ from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.datasets import with_sequence_truth
 from gt3dkit.io.writers import StreamedRows, write_result_files
 from gt3dkit.qa.anomalies import Anomalies
+from gt3dkit.threads import roomy_malloc
 from gt3dkit.types import JsonDict, Options, OptionValue, Scene, TrackSet
 from gt3dkit.windows.cluster import (
     Cluster,
@@ -198,6 +199,8 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
             runner = client
             if client is None and plan.jobs > 1 and len(windows) > 1:
                 runner = stack.enter_context(process_pool(min(plan.jobs, len(windows))))
+            if runner is None:  # the windows one after another here: their memory kept between them
+                stack.enter_context(roomy_malloc(run=True))
             # an index's frames are read where they are used: the noise's sample (and the box
             # model chosen on it) where the search runs, the truth file here meanwhile
             cut = _cutter(scene)
