@@ -16,6 +16,9 @@ from gt3dkit.viz.render3d import Drawing, Rendering, View, unit_sphere
 
 GRID_COLOUR = (0.80, 0.80, 0.80)
 CAMERA_COLOUR = (0.15, 0.15, 0.15)
+#: Pixels a camera's centre keeps from the render's edges: any edge, the right (its name) and the
+#: top (the caption), so that no frustum, name or caption is cut or covered.
+CAMERA_ROOM_PX = (20, 90, 70)
 
 
 def colour_of(i: int) -> tuple[float, float, float]:
@@ -92,11 +95,13 @@ def overview_drawing(scene: Scene, tracks: TrackSet, frame: int, tracks_b: Track
             span = max(float(np.linalg.norm(now.max(axis=0) - now.min(axis=0))), 2.0)
     back = centre - y_ax * (0.9 * span) + up * (0.6 * span)
     view = View(eye=back, centre=centre, up=up)
-    # move back until every camera is in the picture (or the distance has doubled 3 times)
+    # move back until every camera is in the picture with room for its name, and the top band
+    # for the caption (or the distance has doubled 3 times)
     for _ in range(0 if close_up else 4):
         uv = view.project(cams)
-        if np.isfinite(uv).all() and (uv >= 0).all() and (uv[:, 0] < view.width).all() \
-                and (uv[:, 1] < view.height).all():
+        edge, right, top = CAMERA_ROOM_PX
+        if np.isfinite(uv).all() and (uv[:, 0] >= edge).all() and (uv[:, 0] < view.width - right).all() \
+                and (uv[:, 1] >= top).all() and (uv[:, 1] < view.height - edge).all():
             break
         view = View(eye=centre + 1.6 * (view.eye - centre), centre=centre, up=up)
     return d, view, cams
