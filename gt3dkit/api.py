@@ -104,7 +104,7 @@ def load_head(root: Path | str, layout: str | None = None, fps: float | None = N
     objects (:class:`gt3dkit.types.FrameIndex`), where the layout reads a span of frames on its
     own and nothing about the whole sequence is needed to read one (no cross-camera association);
     else None. ``box_model`` ``"auto"`` is chosen later, on the frames the process noise is
-    chosen on (:func:`with_sample_box_model`)."""
+    chosen on (:class:`gt3dkit.windows.frames.SampleRead`)."""
     head = index_scene(root, layout, fps, calib)
     if head is None:
         return None
@@ -125,18 +125,6 @@ def read_frames(head: Scene, lo: int, hi: int, check: bool = True) -> Scene:
     scene = dataclasses.replace(scene, box_model=head.box_model, box_model_px=head.box_model_px,
                                 load_options=o)
     return checks.check_scene(scene, whole=False) if check else scene
-
-
-def with_sample_box_model(head: Scene, sample: Scene) -> tuple[Scene, Scene]:
-    """``head`` and its ``sample`` (:func:`read_frames`) with the box model the head was given, or
-    the one the sample's boxes choose (``"auto"``, :func:`with_box_model`)."""
-    if head.load_options.get("box_model", "auto") in BOX_MODELS:
-        return head, sample
-    sample = with_box_model(sample, "auto")
-    opts = {**head.load_options, "box_model": sample.box_model}
-    return (dataclasses.replace(head, box_model=sample.box_model, box_model_px=sample.box_model_px,
-                                load_options=opts),
-            dataclasses.replace(sample, load_options=opts))
 
 
 def without_undetermined(scene: Scene) -> Scene:

@@ -256,6 +256,17 @@ class GroundTruth:
     kpt_world: F64
     source: str = ""
 
+    def select(self, rows: npt.NDArray[Any]) -> GroundTruth:
+        """The rows ``rows`` (a mask or indices)."""
+        return GroundTruth(self.frame[rows], self.track_id[rows], self.center_world[rows],
+                           self.semi_axes[rows], self.kpt_world[rows], self.source)
+
+    @staticmethod
+    def concat(parts: Sequence[GroundTruth]) -> GroundTruth:
+        """``parts`` (at least one, one source) one after another."""
+        return GroundTruth(*(np.concatenate([getattr(t, k) for t in parts]) for k in (
+            "frame", "track_id", "center_world", "semi_axes", "kpt_world")), parts[0].source)
+
 
 @dataclass(frozen=True)
 class FrameIndex:

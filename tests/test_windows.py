@@ -241,17 +241,21 @@ def test_jobs_and_dask_give_the_one_process_output(boxes: object, tmp_path: Path
     assert (tmp_path / "library" / "tracks.csv").read_bytes() == outs["one"]
 
 
-def test_a_window_whose_dask_worker_dies_runs_again_on_the_others(boxes: object, tmp_path: Path) -> None:
+@pytest.mark.parametrize("read", [False, True], ids=["scattered", "read"])
+def test_a_window_whose_dask_worker_dies_runs_again_on_the_others(read: bool, request: pytest.FixtureRequest,
+                                                                   tmp_path: Path) -> None:
     """The first window to run kills its worker (``os._exit``, as a machine lost or the kernel's
-    out-of-memory killer would): the scenes scattered to it are lost (Dask cannot recompute
-    scattered data) and the windows that needed them were cancelled (the run failed with
-    ``FutureCancelledError``). They are scattered and run again: every window's part is the one
-    the same window gives in this process."""
+    out-of-memory killer would). Scattered: the scenes scattered to it are lost (Dask cannot
+    recompute scattered data) and the windows that needed them were cancelled (the run failed
+    with ``FutureCancelledError``); they are scattered and run again. Read: a window that reads
+    its own frames (nothing scattered) runs again on the other worker. Either way every window's
+    part, and what it read, are the ones the same windows give in this process."""
     import os
 
     distributed = pytest.importorskip("distributed")
-    scene = boxes
-    windows = plan_windows(np.asarray(scene.frames, dtype=np.int64), 30, 20)  # type: ignore[attr-defined]
+    scene = load_head(request.getfixturevalue("grid")) if read else request.getfixturevalue("boxes")
+    assert scene is not None
+    windows = plan_windows(np.asarray(scene.frames, dtype=np.int64), 20 if read else 30, 10 if read else 20)
     like = WindowJob(windows[0], "ukf", {"accel_sd": 0.5, "shape_sd": 0.01}, None)
     marker = tmp_path / "died"
 
@@ -261,45 +265,18 @@ def test_a_window_whose_dask_worker_dies_runs_again_on_the_others(boxes: object,
             os._exit(1)
         return run_window(job, s)
 
+    reads: list[object] | None = [] if read else None
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as client:
         parts = _run_windows(_window_scenes(scene, windows, client), windows, like, client, lambda k, n: None,
-                             dies_once)
-    assert marker.exists()
-    for k, w in enumerate(windows):
-        alone = _run_windows(_window_scenes(scene, [w], None), [w], like, None, lambda k, n: None)[0]
-        for name in ("frame", "track_id", "center_world", "center_sd"):
-            np.testing.assert_array_equal(getattr(parts[k][0], name), getattr(alone[0], name), err_msg=name)
-
-
-def test_a_window_that_reads_its_frames_runs_again_when_its_worker_dies(grid: Path, tmp_path: Path) -> None:
-    """A window reading its own frames (nothing scattered) whose worker dies runs again on the
-    other: its part and what it read are the ones the same window gives in this process."""
-    import os
-
-    distributed = pytest.importorskip("distributed")
-    head = load_head(grid)
-    assert head is not None
-    windows = plan_windows(np.asarray(head.frames, dtype=np.int64), 20, 10)
-    like = WindowJob(windows[0], "ukf", {"accel_sd": 0.5, "shape_sd": 0.01}, None)
-    marker = tmp_path / "died"
-
-    def dies_once(job: WindowJob, s: object) -> object:
-        if not marker.exists():
-            marker.write_text("a worker died here")
-            os._exit(1)
-        return run_window(job, s)
-
-    reads: list[object] = []
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
-        parts = _run_windows(_window_scenes(head, windows, client), windows, like, client, lambda k, n: None,
                              dies_once, reads=reads)  # type: ignore[arg-type]
-    assert marker.exists() and len(reads) == len(windows)
-    alone_reads: list[object] = []
-    alone = _run_windows(_window_scenes(head, windows, None), windows, like, None, lambda k, n: None,
+    assert marker.exists()
+    alone_reads: list[object] | None = [] if read else None
+    alone = _run_windows(_window_scenes(scene, windows, None), windows, like, None, lambda k, n: None,
                          reads=alone_reads)  # type: ignore[arg-type]
-    assert [r.rows for r in reads] == [r.rows for r in alone_reads]  # type: ignore[attr-defined]
+    if read:
+        assert len(reads) == len(windows)  # type: ignore[arg-type]
+        assert [r.rows for r in reads] == [r.rows for r in alone_reads]  # type: ignore[attr-defined, union-attr]
     for k in range(len(windows)):
         for name in ("frame", "track_id", "center_world", "center_sd"):
             np.testing.assert_array_equal(getattr(parts[k][0], name), getattr(alone[k][0], name), name)

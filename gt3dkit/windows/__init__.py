@@ -75,7 +75,7 @@ import contextlib
 import dataclasses
 import functools
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from concurrent.futures import Executor, ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -328,24 +328,13 @@ def _run_windows(scenes: Callable[[int], Any], windows: list[Window], like: Wind
     done(0, len(windows))
     parts: list[Any] = [None] * len(windows)
     said: list[Any] = [None] * len(windows)
-    on = on_part or (lambda k, *part: None)
-
-    def got(k: int, part: Any) -> None:
-        if isinstance(part, ReadPart):
-            part, said[k] = part.part, part.read
-        parts[k] = part
-        on(k, *part)
-
+    got = on_part or (lambda k, *part: None)
     if reads is not None:
         fn = functools.partial(read_then, fn)
-    if runner is None:
-        for k, w in enumerate(windows):
-            got(k, fn(dataclasses.replace(like, window=w), scenes(k)))
-            done(k + 1, len(windows))
-        if reads is not None:
-            reads[:] = said
-        return parts
-    if not isinstance(runner, Executor):  # a Dask client
+    finished: Iterable[tuple[int, Any]]
+    if runner is None:  # in window order, each as the loop asks for it
+        finished = ((k, fn(dataclasses.replace(like, window=w), scenes(k))) for k, w in enumerate(windows))
+    elif not isinstance(runner, Executor):  # a Dask client
         finished = on_dask(runner, lambda k: (fn, dataclasses.replace(like, window=windows[k]), scenes(k)),
                             len(windows), lambda k: f"window {k + 1} (frames {windows[k].first}-"
                                                     f"{windows[k].last})")
@@ -354,7 +343,10 @@ def _run_windows(scenes: Callable[[int], Any], windows: list[Window], like: Wind
                    for k, w in enumerate(windows)}
         finished = in_pool(futures, windows)
     for n, (k, part) in enumerate(finished, 1):
-        got(k, part)
+        if isinstance(part, ReadPart):
+            part, said[k] = part.part, part.read
+        parts[k] = part
+        got(k, *part)
         done(n, len(windows))
     if reads is not None:
         reads[:] = said

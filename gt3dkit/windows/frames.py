@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from gt3dkit.api import read_frames, with_sample_box_model
+from gt3dkit.api import read_frames, with_box_model
 from gt3dkit.io.datasets import checks
 from gt3dkit.threads import roomy_malloc
 from gt3dkit.types import FrameIndex, GroundTruth, Scene
@@ -48,8 +48,8 @@ class WindowRead:
 class SampleRead:
     """The frames ``lo..hi`` of the sequence ``head`` (without its index), read when called where
     they are used (picklable): the process noise's sample, with the box model the head was given
-    or the one its boxes choose (:func:`gt3dkit.api.with_sample_box_model`), and a worker's
-    warm-up frames."""
+    or the one its boxes choose (:func:`gt3dkit.api.with_box_model`), and a worker's warm-up
+    frames."""
 
     head: Scene
     lo: int
@@ -60,7 +60,8 @@ class SampleRead:
         return cls(dataclasses.replace(head, index=None, truth=None), lo, hi)
 
     def __call__(self) -> Scene:
-        return with_sample_box_model(self.head, read_frames(self.head, self.lo, self.hi))[1]
+        return with_box_model(read_frames(self.head, self.lo, self.hi),
+                              str(self.head.load_options.get("box_model", "auto")))
 
 
 def with_chosen_box_model(head: Scene, box_model: str, box_model_px: dict[str, float]) -> Scene:
@@ -102,10 +103,7 @@ def read_then(fn: Callable[[Any, Scene], Any], job: Any, read: WindowRead) -> Re
     own = (scene.obs.frame >= w.first) & (scene.obs.frame <= w.last)
     truth = scene.truth
     if truth is not None:
-        keep = (truth.frame >= w.first) & (truth.frame <= w.last)
-        truth = dataclasses.replace(truth, frame=truth.frame[keep], track_id=truth.track_id[keep],
-                                    center_world=truth.center_world[keep], semi_axes=truth.semi_axes[keep],
-                                    kpt_world=truth.kpt_world[keep])
+        truth = truth.select((truth.frame >= w.first) & (truth.frame <= w.last))
     said = FramesRead(scene.files, int(own.sum()), bool(scene.obs.has_box[own].any()), truth,
                       tuple(f"frames {w.first}-{w.last}: {x}" for x in warnings))
     return ReadPart(fn(job, dataclasses.replace(scene, truth=None, warnings=())), said)
@@ -123,8 +121,7 @@ def completed(head: Scene, reads: list[FramesRead], truth: Scene | None = None) 
         files.update(truth.files)
         seq_truth: GroundTruth | None = truth.truth
     elif got:
-        seq_truth = dataclasses.replace(got[0], **{k: np.concatenate([getattr(t, k) for t in got]) for k in (
-            "frame", "track_id", "center_world", "semi_axes", "kpt_world")})
+        seq_truth = GroundTruth.concat(got)
     else:
         seq_truth = None
     index = head.index or FrameIndex(np.zeros(0, np.int64), np.zeros(0, np.int64))

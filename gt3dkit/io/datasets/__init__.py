@@ -144,7 +144,7 @@ def read_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     :func:`gt3dkit.io.datasets.panoptic.load` (``cameras``, ``noise_px``, ``seed``,
     ``min_conf``). ``calib`` replaces the input's cameras by those of a calibration in any
     format (:func:`with_calibration`). ``span``: only the frames ``lo..hi`` (a layout with an
-    ``index``; none of them may hold an annotation).
+    ``index``; a span without an annotation is no error).
     """
     layout = _checked_layout(root, layout, skeleton, association, panoptic_options)
     scene = LAYOUTS[layout].read(Path(root), ReadOptions(skeleton, calib, fps, panoptic_options, span))

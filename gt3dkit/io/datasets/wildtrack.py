@@ -105,13 +105,7 @@ def load(root: Path, g: GridLayout, span: tuple[int, int] | None = None) -> Scen
             truth.append(np.c_[np.full(len(rows), j), rows])
         t = np.concatenate(truth)
         truth_rows.append(t[np.argsort(t[:, 0], kind="stable"), 1:])
-    present = [i for i, c in enumerate(cams) if c is not None]
-    if not present:
-        raise InputError(str(root / "calibrations"), "no camera calibrations found")
-    remap = np.full(len(cams), -1)
-    remap[present] = np.arange(len(present))
-    rig = Rig(tuple(cams[i] for i in present), up=np.array([0.0, 0.0, 1.0]),
-              frame_name=f"{g.name} world (x, y on the ground, z up)")
+    rig, remap = _rig(root, cams, g)
     obs = rb.build()
     obs = type(obs)(obs.frame, remap[obs.cam], obs.track_id, obs.box_xyxy_px, obs.kpt_uv_px,
                     obs.origin)
@@ -122,6 +116,18 @@ def load(root: Path, g: GridLayout, span: tuple[int, int] | None = None) -> Scen
         truth = truth_csv(root, files) or _truth_positions(g, truth_rows)
     return Scene(rig=rig, obs=obs, layout=g.name, fps=g.fps, frames=frames, truth=truth,
                  files=files, root=str(root))
+
+
+def _rig(root: Path, cams: list[Camera | None], g: GridLayout) -> tuple[Rig, np.ndarray]:
+    """The rig of the layout's cameras that have a calibration, and ``(C,)`` each layout camera's
+    index in it (-1: none)."""
+    present = [i for i, c in enumerate(cams) if c is not None]
+    if not present:
+        raise InputError(str(root / "calibrations"), "no camera calibrations found")
+    remap = np.full(len(cams), -1)
+    remap[present] = np.arange(len(present))
+    return Rig(tuple(cams[i] for i in present), up=np.array([0.0, 0.0, 1.0]),  # type: ignore[misc]
+               frame_name=f"{g.name} world (x, y on the ground, z up)"), remap
 
 
 def _frame_files(root: Path) -> tuple[list[Path], np.ndarray]:
@@ -145,14 +151,10 @@ def index(root: Path, g: GridLayout) -> Scene:
     files: dict[str, str] = {}
     cams = [load_camera(root, g, n, files) for n in g.cameras]
     paths, frame_of = _frame_files(root)
-    present = [c for c in cams if c is not None]
-    if not present:
-        raise InputError(str(root / "calibrations"), "no camera calibrations found")
+    rig, _ = _rig(root, cams, g)
     count = np.array([p.read_bytes().count(b'"personID"') for p in paths], dtype=np.int64)
     frames, inv = np.unique(frame_of, return_inverse=True)
     objects = np.bincount(inv.ravel(), weights=count, minlength=len(frames)).astype(np.int64)
-    rig = Rig(tuple(present), up=np.array([0.0, 0.0, 1.0]),
-              frame_name=f"{g.name} world (x, y on the ground, z up)")
     return Scene(rig=rig, obs=RowBuilder().build(), layout=g.name, fps=g.fps, frames=frames, files=files,
                  root=str(root), index=FrameIndex(frames[objects > 0], objects[objects > 0]))
 
