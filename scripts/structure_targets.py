@@ -89,6 +89,7 @@ class _Imports(ast.NodeVisitor):
         self.depth = 0
         self.edges: set[str] = set()
         self.inner: list[tuple[int, str]] = []
+        self.late: list[tuple[int, str]] = []
 
     def _func(self, node: ast.AST) -> None:
         self.depth += 1
@@ -105,8 +106,28 @@ class _Imports(ast.NodeVisitor):
 
     visit_Import = visit_ImportFrom = _imp
 
+    def visit_Call(self, node: ast.Call) -> None:
+        """``importlib.import_module("gt3dkit...")`` (a name given as a literal): an edge like an
+        import statement, and a late import wherever it stands (:data:`LATE_IMPORTERS`)."""
+        f = node.func
+        if (isinstance(f, ast.Attribute) and f.attr == "import_module" and node.args
+                and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)
+                and node.args[0].value in self.known and node.args[0].value != self.mod):
+            self.edges.add(node.args[0].value)
+            self.late.append((node.lineno, node.args[0].value))
+        self.generic_visit(node)
+
+
+#: The modules that import a gt3dkit module late, by name (``importlib.import_module``), and why:
+#: the package's names from ``gt3dkit.api`` on first use (PEP 562), and ``gt3d``'s entry point,
+#: which connects to a Dask scheduler before it loads the commands.
+LATE_IMPORTERS = {"gt3dkit": "the package's lazy names", "gt3dkit.cli": "the entry point, light"}
+
 
 def import_graph(mods: dict[str, Path]) -> tuple[dict[str, set[str]], list[tuple[str, int, str]]]:
+    """Each module's imports of the package's modules (``importlib.import_module`` of a literal
+    name included), and the internal imports inside functions: statements, and late imports by
+    name outside :data:`LATE_IMPORTERS`."""
     known = set(mods)
     graph: dict[str, set[str]] = {}
     inner: list[tuple[str, int, str]] = []
@@ -115,6 +136,7 @@ def import_graph(mods: dict[str, Path]) -> tuple[dict[str, set[str]], list[tuple
         v.visit(ast.parse(p.read_text(), str(p)))
         graph[m] = v.edges
         inner += [(m, ln, t) for ln, t in v.inner]
+        inner += [(m, ln, t) for ln, t in v.late if m not in LATE_IMPORTERS]
     return graph, inner
 
 

@@ -74,3 +74,18 @@ def test_the_unlayered_finder_reads_the_contract() -> None:
     mods = dict(st.modules())
     mods["gt3dkit.brand_new"] = ROOT / "gt3dkit" / "cli.py"
     assert st.unlayered(mods) == ["gt3dkit.brand_new"]
+
+
+def test_a_late_import_by_name_counts_outside_the_entry_point(tmp_path: Path) -> None:
+    """``importlib.import_module("gt3dkit...")`` is an import: an edge of the graph, and inside a
+    function an internal import inside a function, except in the modules allowed to load late
+    (the package's lazy names, the light entry point)."""
+    st = _structure()
+    body = "import importlib\n\n\ndef f():\n    return importlib.import_module('gt3dkit.api')\n"
+    (tmp_path / "gt3dkit").mkdir()
+    for name in ("cli", "other", "api"):
+        (tmp_path / "gt3dkit" / f"{name}.py").write_text(body)
+    mods = {f"gt3dkit.{p.stem}": p for p in sorted((tmp_path / "gt3dkit").glob("*.py"))}
+    graph, inner = st.import_graph(mods)
+    assert graph["gt3dkit.other"] == {"gt3dkit.api"} and graph["gt3dkit.cli"] == {"gt3dkit.api"}
+    assert [(m, t) for m, _, t in inner] == [("gt3dkit.other", "gt3dkit.api")]

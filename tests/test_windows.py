@@ -13,9 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gt3dkit import cli
 from gt3dkit.api import load_head, load_scene, process_noise_prepared, reconstruct, take_rows
 from gt3dkit.cli import main
 from gt3dkit.commands.common import Stages, clock
+from gt3dkit.early import Early
+from gt3dkit.errors import InputError
 from gt3dkit.fusion.base import make_estimator
 from gt3dkit.sim import Errors, simulate_skeletons, write_skeleton_scene
 from gt3dkit.windows import (
@@ -27,7 +30,7 @@ from gt3dkit.windows import (
     reconstruct_windowed,
     reconstruct_windows,
 )
-from gt3dkit.windows.cluster import process_pool
+from gt3dkit.windows.cluster import connect_scheduler, process_pool
 from gt3dkit.windows.noise import noise_sample
 from gt3dkit.windows.plan import balanced_size, plan_windows
 from gt3dkit.windows.stitch import WindowJob, run_window
@@ -330,6 +333,54 @@ def test_a_cluster_warms_the_first_worker_while_the_caller_goes_on() -> None:
         with Cluster(cluster.scheduler_address, "ukf", {}, loading=False) as c:
             time.sleep(1.0)
             assert c.client.run(_tiny_scenes_made)[other] == 0
+
+
+def test_gt3d_connects_and_warms_the_first_worker_before_its_own_imports() -> None:
+    """``gt3d reconstruct --scheduler`` connects before it loads the commands: the entry point
+    imports nothing heavy, the early connection warms the first worker only, and the run's
+    ``Cluster`` takes that client and warm-up over instead of connecting and warming again."""
+    import subprocess
+    import sys
+    import time
+
+    probe = ("import sys, gt3dkit.cli; print(sorted(m for m in ('numba', 'scipy', 'gt3dkit.api', "
+             "'gt3dkit.commands.main', 'distributed') if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert r.stdout.strip() == "[]", r.stdout
+    assert cli.early_start(["simulate", "--scheduler", "tcp://127.0.0.1:9"]) is None
+    assert cli.early_start(["reconstruct", "in", "--out", "o"]) is None
+    assert cli._value(["reconstruct", "--scheduler=a", "--scheduler", "b", "--", "--scheduler", "c"],
+                      "--scheduler") == "b"
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as cluster:
+        early = cli.early_start(["reconstruct", "in", f"--scheduler={cluster.scheduler_address}"])
+        assert early is not None and early.error is None
+        try:
+            first, other = sorted(early.client.scheduler_info()["workers"])
+            assert list(early.warming) == [first]
+            with Cluster(cluster.scheduler_address, "ukf", {}, early=early) as c:
+                assert c.client is early.client and c.warmed == {first}
+                for _ in range(600):  # until the warm-up is done (seconds)
+                    made = c.client.run(_tiny_scenes_made)
+                    if made[first]:
+                        break
+                    time.sleep(0.1)
+                assert made == {first: 1, other: 0}, made
+                assert [t["key"].split("-")[0] for t in c.client.get_task_stream()] in ([], ["warm_named"])
+        finally:
+            early.close()  # after the run closed it: nothing left to do, no error
+
+
+def test_an_early_connection_error_is_said_where_the_run_connects() -> None:
+    """What went wrong connecting early is raised as the run's own connection says it, with no
+    second attempt (which would wait Dask's connect timeout again)."""
+    early = Early("tcp://127.0.0.1:9", error=OSError("Timed out trying to connect"))
+    with pytest.raises(InputError, match=r"^--scheduler: cannot reach the Dask scheduler at "
+                                         r"tcp://127\.0\.0\.1:9 \(Timed out trying to connect\)$"):
+        connect_scheduler("tcp://127.0.0.1:9", early)
+    with pytest.raises(InputError, match="is not a Dask scheduler address"):
+        connect_scheduler("not-an-address", Early("not-an-address", error=ValueError("never raised")))
 
 
 def test_skeleton_windows_give_the_one_process_output_in_processes_and_on_dask(tmp_path: Path) -> None:

@@ -279,7 +279,7 @@ def number_type(kind: type, lo: float, hi: float, *, lo_open: bool = False,
 def scheduler_address(text: str) -> str:
     """argparse type of ``--scheduler``: a non-empty address (an unset shell variable gives an
     empty one, which would otherwise run locally without a word); Dask's own check of it runs
-    when the client connects (:func:`gt3dkit.windows.check_scheduler_address`)."""
+    when the client connects (:func:`gt3dkit.early.check_scheduler_address`)."""
     if not text.strip():
         raise argparse.ArgumentTypeError("an empty address (an unset variable?): give tcp://HOST:PORT, "
                                          "or leave --scheduler out to run here")

@@ -30,6 +30,7 @@ from gt3dkit.commands.run import (
     cmd_report,
 )
 from gt3dkit.commands.simulate import cmd_simulate
+from gt3dkit.early import DEFAULT_ESTIMATOR
 from gt3dkit.export import FORMATS as EXPORT_FORMATS
 from gt3dkit.io.datasets import LAYOUTS
 from gt3dkit.io.labels import LABEL_FORMATS
@@ -72,7 +73,7 @@ def _add_reconstruct(sub: argparse._SubParsersAction[Parser], common: argparse.A
                        help="2D boxes or keypoints from calibrated cameras -> 3D tracks")
     r.add_argument("input", help="input folder (any layout)")
     r.add_argument("--out", required=True, help="output folder (tracks.csv, meta.json)")
-    r.add_argument("--estimator", choices=ESTIMATORS, default="ukf")
+    r.add_argument("--estimator", choices=ESTIMATORS, default=DEFAULT_ESTIMATOR)
     r.add_argument("--sigma-px", type=SIGMA_PX, help="box-edge noise (default: from the data)")
     r.add_argument("--accel-sd", type=ACCEL,
                    help="acceleration noise, m/s^2/sqrt(Hz) (default: max likelihood)")
@@ -90,7 +91,7 @@ def _add_reconstruct(sub: argparse._SubParsersAction[Parser], common: argparse.A
     r.add_argument("--quiet", action="store_true", help="no progress display")
     r.add_argument("--no-bones", action="store_true", help="do not tie bone lengths")
     _scene_options(r)
-    r.set_defaults(func=cmd_reconstruct)
+    r.set_defaults(func=cmd_reconstruct, early=None)
 
 
 def _add_simulate(sub: argparse._SubParsersAction[Parser], common: argparse.ArgumentParser) -> None:
@@ -199,7 +200,7 @@ def _add_reconstruct_many(sub: argparse._SubParsersAction[Parser], common: argpa
                        help="many input folders in parallel (local processes or a Dask cluster)")
     m.add_argument("manifest", help="a text file: one input folder (or a glob) per line")
     m.add_argument("--out", required=True, help="output folder: OUT/<input folder name>/ per sequence")
-    m.add_argument("--estimator", choices=ESTIMATORS, default="ukf")
+    m.add_argument("--estimator", choices=ESTIMATORS, default=DEFAULT_ESTIMATOR)
     m.add_argument("--jobs", type=number_type(int, 1, 4096), help="local worker processes (default: cores)")
     m.add_argument("--scheduler", metavar="ADDRESS", type=scheduler_address,
                    help="a running Dask distributed scheduler (tcp://host:8786) instead of local processes")

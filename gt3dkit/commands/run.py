@@ -52,10 +52,11 @@ def early_cluster(args: argparse.Namespace, config: Options) -> Any:
     """``--scheduler``'s Dask cluster, connected before the input loads and its first worker
     warmed while it loads (:class:`gt3dkit.windows.Cluster`); a null context where the run uses
     none (``--window 0`` and the triangulation are refused after the input loads, by
-    :func:`window_plan`)."""
+    :func:`window_plan`); ``args.early``: the connection :mod:`gt3dkit.cli` made to it before
+    its imports, taken over (:func:`gt3dkit.early.connect_early`)."""
     if not args.scheduler or args.window == 0 or not over_time(args.estimator):
         return contextlib.nullcontext()
-    return Cluster(args.scheduler, args.estimator, config)
+    return Cluster(args.scheduler, args.estimator, config, early=args.early)
 
 
 def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | None) -> int:

@@ -204,7 +204,8 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
             # an index's frames are read where they are used: the noise's sample (and the box
             # model chosen on it) where the search runs, the truth file here meanwhile
             cut = _cutter(scene)
-            warming = warm_workers(client, scene, estimator, config, cut) if client is not None else []
+            warming = (warm_workers(client, scene, estimator, config, cut, cluster.warmed)
+                       if client is not None and cluster is not None else [])
             sample = cut(*noise_sample(scene, windows))
             noise_when_done = chosen_noise(scene, sample, estimator, config, runner)
             truth = (stack.enter_context(ThreadPoolExecutor(1)).submit(with_sequence_truth, scene)

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator
 from typing import TYPE_CHECKING, Any, TypeAlias
 
 import numpy as np
@@ -15,11 +15,12 @@ from gt3dkit.api import (
     estimate_checked,
     tiny_scenes,
 )
+from gt3dkit.early import Early, check_scheduler_address
 from gt3dkit.errors import EstimationError, InputError
 from gt3dkit.fusion.base import make_estimator
 from gt3dkit.threads import small_matrix_blas
 from gt3dkit.types import Options, Scene
-from gt3dkit.version import __version__
+from gt3dkit.version import __version__, installed
 from gt3dkit.windows.plan import Window
 
 if TYPE_CHECKING:
@@ -40,7 +41,7 @@ WARM_FRAMES = 3
 WINDOW_TRIES = 3
 
 
-def connect_scheduler(address: str) -> Any:
+def connect_scheduler(address: str, early: Early | None = None) -> Any:
     """A Dask client of the scheduler at ``address`` (``--scheduler``, here and in
     ``reconstruct-many``) with at least one worker, or InputError naming ``--scheduler``. It waits
     for the connection, and then for a first worker, as long as Dask's own
@@ -48,7 +49,9 @@ def connect_scheduler(address: str) -> Any:
     ``DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT`` says otherwise): a scheduler no worker joins
     made ``reconstruct-many`` wait for ever and ``reconstruct`` fail inside Dask. Every worker
     there must have this gt3dkit (its version; a worker without it, or with another, failed
-    inside the first task or wrote another output)."""
+    inside the first task or wrote another output). ``early``: the connection ``gt3d`` made to
+    ``address`` before its imports (:func:`gt3dkit.early.connect_early`), taken as this one: its
+    client, or its error said here."""
     import dask
     from dask.utils import parse_timedelta
     from distributed import Client
@@ -56,14 +59,17 @@ def connect_scheduler(address: str) -> Any:
     wait = parse_timedelta(dask.config.get("distributed.comm.timeouts.connect"), default="s")
     check_scheduler_address(address)
     try:
-        client = Client(address)
+        if early is not None and early.address == address and early.error is not None:
+            raise early.error
+        client = early.client if early is not None and early.address == address else None
+        client = client if client is not None else Client(address)
     except (OSError, TimeoutError) as e:
         raise InputError("--scheduler", f"cannot reach the Dask scheduler at {address} ({e})") from None
     try:
         client.wait_for_workers(1, timeout=wait)
         # a worker's error: no gt3dkit there to load the function with
         others = {w: v if isinstance(v, str) else "none" for w, v in
-                  sorted(client.run(_gt3dkit_here, on_error="return").items()) if v != __version__}
+                  sorted(client.run(installed, on_error="return").items()) if v != __version__}
     except TimeoutError:
         client.close()
         raise InputError("--scheduler", f"the Dask scheduler at {address} has no worker (none joined "
@@ -77,32 +83,6 @@ def connect_scheduler(address: str) -> Any:
     return client
 
 
-def check_scheduler_address(address: str) -> None:
-    """InputError naming ``--scheduler`` unless ``address`` is one Dask can connect to: a known
-    scheme (``tcp://`` when none is given) and, for the network schemes, a host and a port
-    (Dask's own parsers; they raised inside the client as an internal error)."""
-    from distributed.comm.addressing import parse_address, parse_host_port
-    from distributed.comm.registry import backends
-
-    try:
-        scheme, loc = parse_address(address)
-        if scheme not in backends:
-            raise ValueError(f"unknown address scheme {scheme!r} (known: {', '.join(sorted(backends))})")
-        if scheme in ("tcp", "tls", "ws", "wss"):
-            host, _ = parse_host_port(loc)
-            if not host:
-                raise ValueError("no host")
-    except ValueError as e:
-        raise InputError("--scheduler", f"{address!r} is not a Dask scheduler address ({e}): give "
-                                        "tcp://HOST:PORT") from None
-
-
-def _gt3dkit_here() -> str:
-    """The version of gt3dkit the process running this has (on each Dask worker, by
-    :func:`connect_scheduler`; a worker without gt3dkit fails to load this function)."""
-    return __version__
-
-
 class Cluster:
     """The Dask scheduler at ``address`` (``--scheduler``): a client, connected at once (an
     unreachable scheduler is an :class:`InputError` naming ``--scheduler``). With ``loading``
@@ -112,21 +92,31 @@ class Cluster:
     search. The others do it during the search, on the sequence's own first frames
     (:func:`warm_workers`): on 2 cores, warming them all during the loading slowed it (4.3 s
     against 3.4 s, means of 4 runs), and so did connecting in a thread beside it with the second
-    worker warming (4.5 s against 3.9 s; connecting first took 0.3-0.45 s). A context manager."""
+    worker warming (4.5 s against 3.9 s; connecting first took 0.3-0.45 s). ``early``: the
+    connection ``gt3d`` made before its own imports, with the first worker's warm-up already sent
+    (:func:`gt3dkit.early.connect_early`), taken over. A context manager."""
 
-    def __init__(self, address: str, estimator: str, config: Options, loading: bool = True) -> None:
-        self.client = connect_scheduler(address)
+    def __init__(self, address: str, estimator: str, config: Options, loading: bool = True,
+                 early: Early | None = None) -> None:
+        self.client = connect_scheduler(address, early)
         try:
-            first = worker_addresses(self.client)[:1] if loading else []
             # held until closed: a future let go is a task cancelled
-            self._warming = [self.client.submit(warm_first, estimator, config, workers=first,
-                                                allow_other_workers=False, pure=False)] if first else []
+            self._warming = early.warming if early is not None and early.client is self.client else {}
+            first = worker_addresses(self.client)[:1] if loading and not self._warming else []
+            self._warming.update({w: self.client.submit(warm_first, estimator, config, workers=[w],
+                                                        allow_other_workers=False, pure=False)
+                                  for w in first})
         except BaseException:
             self.client.close()
             raise
 
+    @property
+    def warmed(self) -> set[str]:
+        """The workers sent a warm-up from the start (:func:`warm_workers` leaves them out)."""
+        return set(self._warming)
+
     def close(self) -> None:
-        self._warming = []
+        self._warming = {}
         self.client.close()
 
     def __enter__(self) -> Cluster:
@@ -161,19 +151,22 @@ def warm_worker(scene: Scene | Callable[[], Scene], estimator: str, config: Opti
 
 
 def warm_workers(client: Client, scene: Scene, estimator: str, config: Options,
-                 cut: Callable[[int, int], Scene | Callable[[], Scene]]) -> list[Any]:
+                 cut: Callable[[int, int], Scene | Callable[[], Scene]], warmed: Collection[str] = ()
+                 ) -> list[Any]:
     """The sequence's first annotated frames (``cut(lo, hi)``: the scene of frames ``lo..hi``, or
     its reader)
     estimated and dropped on the Dask ``client``'s workers but the first (:func:`warm_worker`):
     while the first searches the noise (:func:`chosen_noise`), the others load their imports and
-    compiled kernels (a second or two a process) instead of on their first window. Their
-    futures, to hold until the windows run (a future let go is a task cancelled)."""
+    compiled kernels (a second or two a process) instead of on their first window; not those
+    ``warmed`` already (:class:`Cluster`). Their futures, to hold until the windows run (a future
+    let go is a task cancelled)."""
     f = (scene.index.frames if scene.index is not None else np.unique(scene.obs.frame))[:WARM_FRAMES]
-    if not len(f):
+    others = [w for w in worker_addresses(client)[1:] if w not in warmed]
+    if not len(f) or not others:
         return []
     tiny = cut(int(f[0]), int(f[-1]))  # small: inside the task
     return [client.submit(warm_worker, tiny, estimator, config, workers=[w], allow_other_workers=False,
-                          pure=False) for w in worker_addresses(client)[1:]]
+                          pure=False) for w in others]
 
 
 def worker_addresses(client: Client) -> list[str]:

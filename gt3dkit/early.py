@@ -1,0 +1,77 @@
+"""The Dask connection ``gt3d reconstruct --scheduler`` makes first, before this process loads
+gt3dkit's own imports (:mod:`gt3dkit.cli`): the scheduler's first worker loads its imports and
+compiled kernels (about 2 s on a fresh worker) while this process loads its own (about 1 s),
+instead of after them. This module imports only the standard library and, when asked to
+connect, Dask; so do the modules it imports (:mod:`gt3dkit.errors`)."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from gt3dkit.errors import InputError
+
+#: ``--estimator``'s default (``gt3d reconstruct``, ``reconstruct-many``): the one the early
+#: connection warms when none is given.
+DEFAULT_ESTIMATOR = "ukf"
+
+
+def check_scheduler_address(address: str) -> None:
+    """InputError naming ``--scheduler`` unless ``address`` is one Dask can connect to: a known
+    scheme (``tcp://`` when none is given) and, for the network schemes, a host and a port
+    (Dask's own parsers; they raised inside the client as an internal error)."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+    from distributed.comm.registry import backends
+
+    try:
+        scheme, loc = parse_address(address)
+        if scheme not in backends:
+            raise ValueError(f"unknown address scheme {scheme!r} (known: {', '.join(sorted(backends))})")
+        if scheme in ("tcp", "tls", "ws", "wss"):
+            host, _ = parse_host_port(loc)
+            if not host:
+                raise ValueError("no host")
+    except ValueError as e:
+        raise InputError("--scheduler", f"{address!r} is not a Dask scheduler address ({e}): give "
+                                        "tcp://HOST:PORT") from None
+
+
+@dataclass
+class Early:
+    """A connection to the Dask scheduler at ``address`` made before the command line was read
+    whole (:func:`connect_early`): its ``client``, or the ``error`` connecting raised (said where
+    the run connects, as if it had connected then: :func:`gt3dkit.windows.cluster.connect_scheduler`),
+    and the futures of the warm-ups sent to its workers by address (none: no worker had joined
+    yet). Who takes the client closes it; :meth:`close` closes it if nobody did."""
+
+    address: str
+    client: Any = None
+    error: BaseException | None = None
+    warming: dict[str, Any] = field(default_factory=dict)
+
+    def close(self) -> None:
+        self.warming = {}
+        if self.client is not None:
+            with contextlib.suppress(Exception):
+                self.client.close()
+
+
+def connect_early(address: str, warm: Callable[..., Any], *args: Any) -> Early:
+    """Connect to the Dask scheduler at ``address`` and send ``warm(*args)`` to its first worker
+    (sorted by address: the one the noise search runs on), not waiting for it. The other workers
+    warm during the search, as before (:func:`gt3dkit.windows.cluster.warm_workers`): on 2 cores,
+    warming them all now made the client's own imports wait, and the windows start 0.4-0.7 s
+    later than warming the first alone (3 runs each). Connecting as the run would, with Dask's own
+    timeout; whatever goes wrong is kept, not raised (the run says it where it connects)."""
+    from distributed import Client
+
+    try:
+        check_scheduler_address(address)
+        client = Client(address)
+    except Exception as e:  # noqa: BLE001 - said later, as the run's own connection says it
+        return Early(address, error=e)
+    first = sorted(client.scheduler_info()["workers"])[:1]
+    return Early(address, client=client, warming={
+        w: client.submit(warm, *args, workers=[w], allow_other_workers=False, pure=False) for w in first})
