@@ -9,7 +9,10 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from distributed import Client, Future
 
 from gt3dkit.errors import InputError
 
@@ -47,9 +50,9 @@ class Early:
     yet). Who takes the client closes it; :meth:`close` closes it if nobody did."""
 
     address: str
-    client: Any = None
+    client: Client | None = None
     error: BaseException | None = None
-    warming: dict[str, Any] = field(default_factory=dict)
+    warming: dict[str, Future] = field(default_factory=dict)
 
     def close(self) -> None:
         self.warming = {}
@@ -58,8 +61,8 @@ class Early:
                 self.client.close()
 
 
-def connect_early(address: str, warm: Callable[..., Any], *args: Any) -> Early:
-    """Connect to the Dask scheduler at ``address`` and send ``warm(*args)`` to its first worker
+def connect_early(address: str, warm: Callable[[str], None], estimator: str) -> Early:
+    """Connect to the Dask scheduler at ``address`` and send ``warm(estimator)`` to its first worker
     (sorted by address: the one the noise search runs on), not waiting for it. The other workers
     warm during the search, as before (:func:`gt3dkit.windows.cluster.warm_workers`): on 2 cores,
     warming them all now made the client's own imports wait, and the windows start 0.4-0.7 s
@@ -74,4 +77,4 @@ def connect_early(address: str, warm: Callable[..., Any], *args: Any) -> Early:
         return Early(address, error=e)
     first = sorted(client.scheduler_info()["workers"])[:1]
     return Early(address, client=client, warming={
-        w: client.submit(warm, *args, workers=[w], allow_other_workers=False, pure=False) for w in first})
+        w: client.submit(warm, estimator, workers=[w], allow_other_workers=False, pure=False) for w in first})
