@@ -245,6 +245,30 @@ def test_jobs_and_dask_give_the_one_process_output(boxes: object, tmp_path: Path
 
 
 @pytest.mark.parametrize("read", [False, True], ids=["scattered", "read"])
+def test_the_search_runs_where_its_first_worker_is_gone(boxes: object, monkeypatch: pytest.MonkeyPatch,
+                                                        read: bool) -> None:
+    """The noise search prefers the first worker (warmed for it) but does not wait for one that
+    is gone: given the address of a worker that left the cluster, it runs on the others, its
+    sample scattered to them or read there (it waited for ever, or failed scattering)."""
+    import threading
+
+    from gt3dkit.windows import noise
+
+    distributed = pytest.importorskip("distributed")
+    scene = load_scene(Path(boxes.root))  # type: ignore[attr-defined]
+    with (distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                   dashboard_address=None) as cluster,
+          distributed.Client(cluster) as client):
+        monkeypatch.setattr(noise, "worker_addresses", lambda c: ["tcp://127.0.0.1:9"])
+        found: list[object] = []
+        searching = threading.Thread(target=lambda: found.append(
+            noise.chosen_noise(scene, (lambda: scene) if read else scene, "ukf", {}, client)()), daemon=True)
+        searching.start()
+        searching.join(120)
+        assert found and isinstance(found[0], noise.Chosen), "the search waited for a worker that is gone"
+
+
+@pytest.mark.parametrize("read", [False, True], ids=["scattered", "read"])
 def test_a_window_whose_dask_worker_dies_runs_again_on_the_others(read: bool, request: pytest.FixtureRequest,
                                                                    tmp_path: Path) -> None:
     """The first window to run kills its worker (``os._exit``, as a machine lost or the kernel's

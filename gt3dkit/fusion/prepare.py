@@ -322,6 +322,21 @@ def _edge_sigmas(fit: BoxFit, keep: np.ndarray, robust: RobustConfig) -> tuple[F
     return np.full(4, np.sqrt(max(g, 0.1**2))), np.sqrt(np.maximum(out, 0.1**2))
 
 
+def _shape_prior(fit: BoxFit, views: np.ndarray) -> ShapePrior:
+    """The shape prior of weakly seen object-frames: the median and robust spread of the log
+    semi-axes of the fits of object-frames at least :data:`PRIOR_MIN_VIEWS` cameras see
+    (``views (R,)``), or a person's size where fewer than 5 are."""
+    good = fit.ok & (views >= PRIOR_MIN_VIEWS)
+    if good.sum() >= 5:
+        la = fit.log_axes[good]
+        med = np.median(la, axis=0)
+        sd = np.clip(1.4826 * np.median(np.abs(la - med), axis=0), 0.05, 1.0)
+        return ShapePrior(med, sd, f"median and spread of {int(good.sum())} object-frames "
+                                   f"seen by >= {PRIOR_MIN_VIEWS} cameras")
+    return ShapePrior(np.log(PERSON_SEMI_AXES_M), np.full(3, 0.25),
+                      "person size (too few object-frames seen by 3+ cameras)")
+
+
 def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
                      sigma_px: float | None
                      ) -> tuple[BoxFit, np.ndarray, F64, ShapePrior, JsonDict, np.ndarray | None]:
@@ -367,18 +382,8 @@ def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
             keep = keep & ~cuts.dropped
             sel = cuts.dropped.any(axis=(1, 2))
             fit = _merge_fit(fit, sel, fit_boxes(rows.box_z[sel], keep[sel], cams, sig, p0=params(fit, sel)))
-    # shape prior from object-frames several views see
     nv = np.all(np.isfinite(rows.box_z), axis=-1).sum(axis=1)
-    good = fit.ok & (nv >= PRIOR_MIN_VIEWS)
-    if good.sum() >= 5:
-        la = fit.log_axes[good]
-        med = np.median(la, axis=0)
-        sd = np.clip(1.4826 * np.median(np.abs(la - med), axis=0), 0.05, 1.0)
-        prior = ShapePrior(med, sd, f"median and spread of {int(good.sum())} object-frames "
-                                    f"seen by >= {PRIOR_MIN_VIEWS} cameras")
-    else:
-        prior = ShapePrior(np.log(PERSON_SEMI_AXES_M), np.full(3, 0.25),
-                           "person size (too few object-frames seen by 3+ cameras)")
+    prior = _shape_prior(fit, nv)
     weak = fit.ok & (nv < PRIOR_MIN_VIEWS)
     if weak.any():
         fit = _merge_fit(fit, weak, fit_boxes(rows.box_z[weak], keep[weak], cams, sig,

@@ -107,6 +107,27 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QACon
     frame_of = rows.frames[rows.row_t]
     id_of = rows.obj_ids[rows.row_o]
 
+    _identity_rows(splits, exchanges, out)
+    if pre.use_box and have.any():
+        _box_rows(pre, cfg, names, idx, box, margin, frame_of, id_of, out)
+
+    if pre.use_kpt and have.any() and tracks.kpt_world.shape[1]:
+        _keypoints(scene, tracks, pre, cfg, r_of, have, frame_of, id_of, out)
+
+    out += [(first, "", i, "", "undetermined_person", float(n),
+             f"its {n} detections (frames {first}-{last}, cameras {cams}) are never seen by two cameras at "
+             "once that agree: left out of the estimate") for i, first, last, n, cams in scene.left_out]
+    _cut_edges(scene, pre, out)
+    _world_frame(scene, tracks, cfg, out)
+    _missing_views(scene, tracks, pre, cfg, out, r_of, box, margin)
+    out = _with_time_offsets(scene, tracks, pre, cfg, out)
+    out.sort(key=lambda x: (x[0], str(x[2]), x[1], str(x[3]), x[4]))
+    return Anomalies(out)
+
+
+def _identity_rows(splits: tuple[Any, ...], exchanges: tuple[Any, ...], out: list) -> None:
+    """The rows of each place an id was split and each pair of ids whose labels were exchanged
+    (:func:`find_anomalies`)."""
     for s in splits:
         if s.given:
             out.append((s.frame_after, "", s.track_id, "", "identity_split", s.distance_m,
@@ -127,54 +148,55 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QACon
                         f"{other} was, and id {other} where it was; both ids are split here "
                         "(identity_split)"))
 
-    if pre.use_box and have.any():
-        z = rows.box_z[idx]
-        usable = rows.box_mask[idx] & np.isfinite(z)
-        sd = np.asarray(pre.sigma_box) * np.sqrt(pre.box_tail)  # the whole level (misfit tails in)
-        zs = np.where(usable, np.abs(box - z) / sd[None, None, :], 0.0)
-        score = zs.max(axis=2)  # (n, C)
-        iou = _iou(box, z)
-        area = lambda x: (x[..., 2] - x[..., 0]) * (x[..., 3] - x[..., 1])  # noqa: E731
-        with np.errstate(invalid="ignore", divide="ignore"):
-            ratio = area(z) / area(box)
-            size = np.sqrt(np.maximum(area(box), 1e-9))
-            off = np.hypot((z[..., 0] + z[..., 2] - box[..., 0] - box[..., 2]) / 2,
-                           (z[..., 1] + z[..., 3] - box[..., 1] - box[..., 3]) / 2) / size
-        bad = (score > cfg.box_sigmas) & usable.any(axis=2)
-        cut, by = _cut_by_nearer(bad, z, box, margin, rows.row_t[idx], cfg)
-        for n, c in zip(*np.nonzero(bad), strict=True):
-            r = idx[n]
-            detail = (f"IoU {iou[n, c]:.2f} with the estimate's box; area ratio {ratio[n, c]:.2f}; "
-                      f"largest edge residual {score[n, c]:.1f} sigma")
-            off_edges = usable[n, c] & (zs[n, c] > cfg.box_sigmas)
-            inward = np.sign(z[n, c] - box[n, c]) == [1, 1, -1, -1]  # the label smaller on that side
-            if not (off_edges & ~(cut[n, c] & inward)).any():  # every edge off: cut short by a nearer one
-                k = idx[by[n, c]]
-                which = ", ".join(BOX_EDGES[e] for e in np.flatnonzero(off_edges))
-                out.append((int(frame_of[r]), names[c], int(id_of[r]), "", "cut_box",
-                            round(float(score[n, c]), 2),
-                            f"{detail}; its edge{'s' if off_edges.sum() > 1 else ''} {which} inside the box "
-                            f"of object {int(id_of[k])}, {margin[n, c] - margin[by[n, c], c]:.1f} m nearer "
-                            f"this camera: the drawn box ends where the nearer object begins, not shifted"))
-                continue
-            other = _other_objects_box(n, c, z, box, rows.row_t[idx], iou[n, c])
-            if other is not None:
-                detail += (f"; it fits object {int(id_of[idx[other[0]]])}'s box in this view (IoU "
-                           f"{other[1]:.2f}): that object's box under this id?")
-            sized = (ratio[n, c] > cfg.size_ratio or ratio[n, c] < 1 / cfg.size_ratio) and off[n, c] < 0.25
-            kind = "size_outlier" if sized else "shifted_box"
-            out.append((int(frame_of[r]), names[c], int(id_of[r]), "", kind, round(float(score[n, c]), 2),
-                        detail))
 
-    if pre.use_kpt and have.any() and tracks.kpt_world.shape[1]:
-        _keypoints(scene, tracks, pre, cfg, r_of, have, frame_of, id_of, out)
+def _box_rows(pre: PreparedView, cfg: QAConfig, names: list[str], idx: np.ndarray, box: F64, margin: F64,
+              frame_of: np.ndarray, id_of: np.ndarray, out: list) -> None:
+    """The flagged boxes (``cut_box``, ``size_outlier``, ``shifted_box``) of the rows ``idx`` that
+    have an estimate, against its tangent boxes ``box (n, C, 4)`` at depth ``margin (n, C)``
+    (:func:`find_anomalies`)."""
+    rows = pre.rows
+    z = rows.box_z[idx]
+    usable = rows.box_mask[idx] & np.isfinite(z)
+    sd = np.asarray(pre.sigma_box) * np.sqrt(pre.box_tail)  # the whole level (misfit tails in)
+    zs = np.where(usable, np.abs(box - z) / sd[None, None, :], 0.0)
+    score = zs.max(axis=2)  # (n, C)
+    iou = _iou(box, z)
+    area = lambda x: (x[..., 2] - x[..., 0]) * (x[..., 3] - x[..., 1])  # noqa: E731
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = area(z) / area(box)
+        size = np.sqrt(np.maximum(area(box), 1e-9))
+        off = np.hypot((z[..., 0] + z[..., 2] - box[..., 0] - box[..., 2]) / 2,
+                       (z[..., 1] + z[..., 3] - box[..., 1] - box[..., 3]) / 2) / size
+    bad = (score > cfg.box_sigmas) & usable.any(axis=2)
+    cut, by = _cut_by_nearer(bad, z, box, margin, rows.row_t[idx], cfg)
+    for n, c in zip(*np.nonzero(bad), strict=True):
+        r = idx[n]
+        detail = (f"IoU {iou[n, c]:.2f} with the estimate's box; area ratio {ratio[n, c]:.2f}; "
+                  f"largest edge residual {score[n, c]:.1f} sigma")
+        off_edges = usable[n, c] & (zs[n, c] > cfg.box_sigmas)
+        inward = np.sign(z[n, c] - box[n, c]) == [1, 1, -1, -1]  # the label smaller on that side
+        if not (off_edges & ~(cut[n, c] & inward)).any():  # every edge off: cut short by a nearer one
+            k = idx[by[n, c]]
+            which = ", ".join(BOX_EDGES[e] for e in np.flatnonzero(off_edges))
+            out.append((int(frame_of[r]), names[c], int(id_of[r]), "", "cut_box",
+                        round(float(score[n, c]), 2),
+                        f"{detail}; its edge{'s' if off_edges.sum() > 1 else ''} {which} inside the box "
+                        f"of object {int(id_of[k])}, {margin[n, c] - margin[by[n, c], c]:.1f} m nearer "
+                        f"this camera: the drawn box ends where the nearer object begins, not shifted"))
+            continue
+        other = _other_objects_box(n, c, z, box, rows.row_t[idx], iou[n, c])
+        if other is not None:
+            detail += (f"; it fits object {int(id_of[idx[other[0]]])}'s box in this view (IoU "
+                       f"{other[1]:.2f}): that object's box under this id?")
+        sized = (ratio[n, c] > cfg.size_ratio or ratio[n, c] < 1 / cfg.size_ratio) and off[n, c] < 0.25
+        kind = "size_outlier" if sized else "shifted_box"
+        out.append((int(frame_of[r]), names[c], int(id_of[r]), "", kind, round(float(score[n, c]), 2),
+                    detail))
 
-    out += [(first, "", i, "", "undetermined_person", float(n),
-             f"its {n} detections (frames {first}-{last}, cameras {cams}) are never seen by two cameras at "
-             "once that agree: left out of the estimate") for i, first, last, n, cams in scene.left_out]
-    _cut_edges(scene, pre, out)
-    _world_frame(scene, tracks, cfg, out)
-    _missing_views(scene, tracks, pre, cfg, out, r_of, box, margin)
+
+def _with_time_offsets(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QAConfig, out: list) -> list:
+    """``out`` with each unsynchronised camera's row (:func:`_time_offsets`) in place of its
+    per-view flags, which follow from the offset (:func:`find_anomalies`)."""
     offsets: list = []
     _time_offsets(scene, tracks, pre, cfg, offsets)
     if offsets:  # an unsynchronised camera's views all look wrong: one row says why
@@ -186,8 +208,7 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QACon
             n = sum(1 for d in dropped if d[1] == r[1])
             out.append(r[:6] + (r[6] + (f"; {n} per-view flags of this camera left out (they follow from "
                                         "the offset)" if n else ""),))
-    out.sort(key=lambda x: (x[0], str(x[2]), x[1], str(x[3]), x[4]))
-    return Anomalies(out)
+    return out
 
 
 def _cut_edges(scene: Scene, pre: PreparedView, out: list) -> None:

@@ -168,22 +168,9 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
     ``cameras`` and ``fps`` set the native layout's camera count (default 6) and frame rate
     (default 10); the WILDTRACK and MultiviewX layouts have their own.
     """
-    if layout not in SIM_LAYOUTS:
-        raise ValueError(f"unknown layout {layout!r} (known: {', '.join(SIM_LAYOUTS)})")
+    _check_arguments(layout, frames, people, noise_px, motion, cameras, fps, labels)
     errors = errors or Errors()
     dropout = DROPPED_VIEWS if errors.dropped is None else errors.dropped
-    if frames < 2 or people < 1 or not noise_px >= 0:
-        raise ValueError("need frames >= 2, people >= 1, noise_px >= 0")
-    if motion not in ("smooth", "walk", "stop-and-turn"):
-        raise ValueError(f"motion must be smooth, walk or stop-and-turn, got {motion!r}")
-    if labels not in BOX_MODELS:
-        raise ValueError(f"labels must be one of {', '.join(BOX_MODELS)}, got {labels!r}")
-    if layout not in ("native", "mot") and (cameras is not None or fps is not None):
-        raise ValueError("cameras and fps apply to the native layout (the others have theirs)")
-    if cameras is not None and not 1 <= cameras <= 64:
-        raise ValueError(f"cameras must be 1..64, got {cameras}")
-    if fps is not None and not (np.isfinite(fps) and fps > 0):
-        raise ValueError(f"fps must be positive, got {fps}")
     rng = np.random.default_rng(seed)
     err_rng = np.random.default_rng([seed, 1])
     lo, hi, names, step, fps = _layout_area(layout, cameras, fps)
@@ -234,6 +221,25 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
     return SimScene(rig=rig, frames=frame_numbers, fps=fps, truth_frame=truth_frame,
                     truth_id=truth_id, center_world=center, semi_axes=semi, boxes=box,
                     injected=tuple(injected))
+
+
+def _check_arguments(layout: str, frames: int, people: int, noise_px: float, motion: str,
+                     cameras: int | None, fps: float | None, labels: str) -> None:
+    """ValueError naming the first of :func:`simulate`'s arguments out of its range."""
+    if layout not in SIM_LAYOUTS:
+        raise ValueError(f"unknown layout {layout!r} (known: {', '.join(SIM_LAYOUTS)})")
+    if frames < 2 or people < 1 or not noise_px >= 0:
+        raise ValueError("need frames >= 2, people >= 1, noise_px >= 0")
+    if motion not in ("smooth", "walk", "stop-and-turn"):
+        raise ValueError(f"motion must be smooth, walk or stop-and-turn, got {motion!r}")
+    if labels not in BOX_MODELS:
+        raise ValueError(f"labels must be one of {', '.join(BOX_MODELS)}, got {labels!r}")
+    if layout not in ("native", "mot") and (cameras is not None or fps is not None):
+        raise ValueError("cameras and fps apply to the native layout (the others have theirs)")
+    if cameras is not None and not 1 <= cameras <= 64:
+        raise ValueError(f"cameras must be 1..64, got {cameras}")
+    if fps is not None and not (np.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps must be positive, got {fps}")
 
 
 def _time_offset(offset: tuple[int, int], box: F64, seen: np.ndarray, inside: np.ndarray,

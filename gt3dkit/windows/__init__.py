@@ -173,13 +173,12 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
                          on_window: Callable[[int, int], None] | None = None, cluster: Cluster | None = None,
                          on_part: OnPart | None = None, **config: OptionValue
                          ) -> tuple[TrackSet, Anomalies, Scene]:
-    """``scene`` in windows (:mod:`gt3dkit.windows`, ``plan``): the stitched tracks, the QA
-    findings, and the scene as the windows read it: ``scene`` itself, or where it is an index
-    whose windows read their own frames (:func:`gt3dkit.api.load_head`), the index with what
-    they read (:func:`gt3dkit.windows.frames.completed`); ``on_window(done, total)`` as the
-    windows start (0) and after each one; ``cluster`` as :func:`reconstruct_windows`;
-    ``on_part(k, tracks, anomaly_rows)`` with each window's final rows and findings as it
-    finishes (:func:`run_window`)."""
+    """``scene`` in windows (:mod:`gt3dkit.windows`, ``plan``): the stitched tracks, the QA findings,
+    and the scene as the windows read it: ``scene`` itself, or where it is an index whose windows
+    read their own frames (:func:`gt3dkit.api.load_head`), the index with what they read
+    (:func:`gt3dkit.windows.frames.completed`); ``on_window(done, total)`` as the windows start (0)
+    and after each one; ``cluster`` as :func:`reconstruct_windows`; ``on_part(k, tracks,
+    anomaly_rows)`` with each window's final rows and findings as it finishes (:func:`run_window`)."""
     if not over_time(estimator):
         raise InputError("--window", f"the {estimator} fits each frame on its own: it needs no window")
     if scene.index is not None and every_frame is not None:
@@ -229,24 +228,11 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
                                                        client, index, work)
             plan = sized_plan(plan, ov, len(frames), workers)
             like = WindowJob(windows[0], estimator, {**config, **noise}, every_frame)
-            done = on_window or (lambda k, n: None)
-            n = len(windows)
-            if client is None and n == 1:
-                runner = None
-            if ties_bones(scene, estimator, config) and n > 1:  # two rounds: the bones, then the rest
-                # the second round takes each window's preparation from the first, in this process
-                # or on the Dask worker holding its scene (a process pool's are any process's)
-                kept = Keep(uuid.uuid4().hex) if runner is None or client is not None else None
-                if kept is not None:
-                    stack.callback(_drop_kept, kept.token, client)
-                samples = _run_windows(scenes, windows, like, runner, lambda k, _: done(k, 2 * n),
-                                       functools.partial(window_bones, kept=kept), reads=reads)
-                like = dataclasses.replace(like, bones=pooled_bones(samples, config))
-                parts = _run_windows(scenes, windows, like, runner, lambda k, _: done(n + k, 2 * n),
-                                     functools.partial(run_window, kept=kept), on_part=on_part, reads=reads)
-            else:
-                samples = []
-                parts = _run_windows(scenes, windows, like, runner, done, on_part=on_part, reads=reads)
+            done, n = on_window or (lambda k, n: None), len(windows)
+            runner = None if client is None and n == 1 else runner
+            parts, samples, like = _run_rounds(
+                scenes, windows, like, runner, client, done, on_part, reads,
+                config if ties_bones(scene, estimator, config) and n > 1 else None)
             if reads is not None:
                 scene = completed(scene, reads, truth.result() if truth is not None else None)
             del warming
@@ -262,6 +248,32 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
         tracks.info.seconds += first
         tracks.info.windows = {**(tracks.info.windows or {}), "bones_round_seconds": first}
     return tracks, qa, scene
+
+
+def _run_rounds(scenes: Callable[[int], Any], windows: list[Window], like: WindowJob, runner: Runner,
+                client: Client | None, done: Callable[[int, int], None], on_part: OnPart | None,
+                reads: list[FramesRead] | None, pooled: Options | None
+                ) -> tuple[list[Any], list[Any], WindowJob]:
+    """The windows run (:func:`_run_windows`) in one round, or in two where ``pooled`` gives the
+    bones' settings: each window's bone samples first (:func:`window_bones`), pooled by person
+    (:func:`pooled_bones`), then the windows with them. The second round takes each window's
+    preparation from the first, in this process or on the Dask worker holding its scene (a
+    process pool's are any process's), dropped after it. The parts, the first round's samples
+    (none in one round) and the job the windows ran (with the pooled bones)."""
+    n = len(windows)
+    if pooled is None:
+        return _run_windows(scenes, windows, like, runner, done, on_part=on_part, reads=reads), [], like
+    kept = Keep(uuid.uuid4().hex) if runner is None or client is not None else None
+    try:
+        samples = _run_windows(scenes, windows, like, runner, lambda k, _: done(k, 2 * n),
+                               functools.partial(window_bones, kept=kept), reads=reads)
+        like = dataclasses.replace(like, bones=pooled_bones(samples, pooled))
+        parts = _run_windows(scenes, windows, like, runner, lambda k, _: done(n + k, 2 * n),
+                             functools.partial(run_window, kept=kept), on_part=on_part, reads=reads)
+    finally:
+        if kept is not None:
+            _drop_kept(kept.token, client)
+    return parts, samples, like
 
 
 def _cutter(scene: Scene) -> Callable[[int, int], Scene | SampleRead]:

@@ -104,15 +104,23 @@ def _search_on_dask(client: Client, sample: Sample, estimator: str, config: Opti
                     ) -> Callable[[], Chosen]:
     """:func:`searched_on_worker` of ``sample`` (a scene scattered as data, not inside the task
     graph; a reader as it is) on the Dask ``client``'s first worker, warmed as the sequence
-    loaded (:class:`Cluster`); the result when the returned function is called. If that worker
-    is lost, the search runs again on any other (:func:`on_dask`)."""
+    loaded (:class:`Cluster`), or another where that one is gone; the result when the returned
+    function is called. If the worker running it is lost, the search runs again on any other
+    (:func:`on_dask`)."""
     first = worker_addresses(client)[:1] or None
 
     def sent(workers: list[str] | None) -> Any:
-        return client.scatter(sample, hash=False, workers=workers) if isinstance(sample, Scene) else sample
+        if not isinstance(sample, Scene):
+            return sample
+        try:
+            return client.scatter(sample, hash=False, workers=workers)
+        except KeyError:  # that worker gone meanwhile: the scheduler no longer knows it
+            return client.scatter(sample, hash=False)
 
+    # the first worker preferred, not required: one lost before the search starts left it
+    # waiting for a worker that would never come back (the test suite hung there once)
     future = client.submit(searched_on_worker, sent(first), estimator, config, step_s, workers=first,
-                           pure=False)
+                           allow_other_workers=True, pure=False)
 
     def again(_: int) -> tuple[Any, ...]:  # on any worker
         return searched_on_worker, sent(None), estimator, config, step_s
