@@ -212,7 +212,8 @@ def _with_time_offsets(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: Q
 
 
 def _cut_edges(scene: Scene, pre: PreparedView, out: list) -> None:
-    """One ``cut_edges`` row per camera with edges left out as cut by a nearer object."""
+    """One ``cut_edges`` row per camera with edges left out as cut by a nearer object, saying
+    which: each object's frames and edge kinds (:func:`which_cut`)."""
     cut = pre.box_cut
     if cut is None:
         return
@@ -227,7 +228,28 @@ def _cut_edges(scene: Scene, pre: PreparedView, out: list) -> None:
                     f"{int(per.sum())} edges of {int(boxes.sum())} of its {n_boxes} boxes ({kinds}) lie "
                     "inside the box of a nearer object and vary clearly more than the others: the boxes are "
                     "drawn around the visible part, so these edges say where the nearer one is; left out, as "
-                    "edges at the image border are (meta.json: preparation, boxes, cut_edges)"))
+                    "edges at the image border are (meta.json: preparation, boxes, cut_edges). Which: "
+                    + which_cut(rows.obj_ids[rows.row_o], rows.frames[rows.row_t], per)))
+
+
+def which_cut(obj_id: np.ndarray, frame: np.ndarray, cut: np.ndarray) -> str:
+    """The boxes with an edge in ``cut (R, 4)`` (of the rows of objects ``obj_id (R,)`` in frames
+    ``frame (R,)``), by object: its frames as runs of consecutive frames and the kinds of its cut
+    edges, e.g. ``id 2 frames 50-57, 60 (ymax); id 3 frames 12 (xmin, ymax)``. Consecutive:
+    one frame step apart, the step the most common gap between an object's frames."""
+    rows = np.flatnonzero(cut.any(axis=1))
+    steps = np.diff(np.unique(frame))
+    step = int(np.bincount(steps).argmax()) if len(steps) else 1
+    said = []
+    for i in np.unique(obj_id[rows]):
+        mine = rows[obj_id[rows] == i]
+        f = np.sort(frame[mine])
+        starts = np.flatnonzero(np.r_[True, np.diff(f) > step])
+        ends = np.r_[starts[1:], len(f)] - 1
+        runs = ", ".join(str(f[a]) if a == b else f"{f[a]}-{f[b]}" for a, b in zip(starts, ends, strict=True))
+        kinds = ", ".join(k for k, on in zip(BOX_EDGES, cut[mine].any(axis=0), strict=True) if on)
+        said.append(f"id {int(i)} frames {runs} ({kinds})")
+    return "; ".join(said)
 
 
 #: A flagged label that overlaps another object's estimated box at least this much (and more
