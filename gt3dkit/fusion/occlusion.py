@@ -46,12 +46,14 @@ CUT_SAMPLE_GATE = 0.8
 @dataclass(frozen=True)
 class CutEdges:
     """The kept edges found inside a nearer object's extent ``found (R, C, 4)``, each edge kind's
-    variance ratio ``ratio (4,)`` (NaN: too few cut edges to tell) and the edges left out,
-    ``dropped (R, C, 4)``."""
+    variance ratio ``ratio (4,)`` (NaN: too few cut edges to tell), the edges left out,
+    ``dropped (R, C, 4)``, and for each found edge the row of a nearer object it lies in,
+    ``by (R, C, 4)`` (-1 elsewhere)."""
 
     found: B8
     ratio: F64
     dropped: B8
+    by: I64
 
     def as_json(self) -> JsonDict:
         """For meta.json: counts and ratios per edge kind."""
@@ -84,18 +86,21 @@ def same_frame_pairs(row_t: I64) -> tuple[I64, I64]:
     return np.concatenate(out_a), np.concatenate(out_b)
 
 
-def find_cut(rows: Rows, cams: Cams, fit: BoxFit, keep: B8, tol_px: float, frames: I64 | None = None) -> B8:
+def find_cut(rows: Rows, cams: Cams, fit: BoxFit, keep: B8, tol_px: float, frames: I64 | None = None
+             ) -> tuple[B8, I64]:
     """The kept edges ``keep (R, C, 4)`` of the labels ``rows.box_z`` that lie inside the extent
     of another object of their frame at least :data:`CUT_DEPTH_TOL_M` nearer that camera (its
     label there, or its fit's box; widened by ``tol_px``): ``(R, C, 4)``, in the frames (indices
     into ``rows.frames``) ``frames`` only (None: all), by blocks of about :data:`CUT_BLOCK_ROWS`
-    rows of whole frames."""
+    rows of whole frames; and for each such edge the row of a nearer object it lies in
+    ``(R, C, 4)`` (-1 elsewhere)."""
     own = state_boxes(fit.center_world, fit.log_axes, cams)  # (R, C, 4)
     own = np.where(fit.ok[:, None, None], own, np.nan)
     label_or_own = np.where(np.isfinite(rows.box_z), rows.box_z, own)
     depth = np.linalg.norm(fit.center_world[:, None, :] - cams.centres[None], axis=-1)
     depth = np.where(fit.ok[:, None], depth, np.nan)
     cut = np.zeros(rows.box_z.shape, bool)
+    by = np.full(rows.box_z.shape, -1, np.int64)
     sel = np.arange(len(rows.row_t)) if frames is None else np.flatnonzero(np.isin(rows.row_t, frames))
     t = rows.row_t[sel]
     starts = np.flatnonzero(np.r_[True, t[1:] != t[:-1]]) if len(t) else np.zeros(0, np.int64)
@@ -111,8 +116,10 @@ def find_cut(rows: Rows, cams: Cams, fit: BoxFit, keep: B8, tol_px: float, frame
             c |= cut_by(rows.box_z[i], label_or_own[j], depth[i], depth[j], CUT_DEPTH_TOL_M, -tol_px)
             p, cam, e = np.nonzero(c)
             cut[i[p], cam, e] = True
+            by[i[p], cam, e] = j[p]
         k = k1
-    return cut & keep
+    cut &= keep
+    return cut, np.where(cut, by, -1)
 
 
 def cut_variance_ratio(residual_px: F64, keep: B8, cut: B8) -> F64:
@@ -146,11 +153,11 @@ def cut_edges_of(rows: Rows, cams: Cams, fit: BoxFit, keep: B8, sigma_px: float)
     step = -(-n_frames // CUT_SAMPLE_FRAMES)
     if step > 1:
         sample = np.arange(0, n_frames, step)
-        found = find_cut(rows, cams, fit, keep, tol, sample)
+        found, by = find_cut(rows, cams, fit, keep, tol, sample)
         ratio = cut_variance_ratio(fit.residual_px, keep & np.isin(rows.row_t, sample)[:, None, None], found)
         if not (np.nan_to_num(ratio) >= CUT_SAMPLE_GATE * CUT_VARIANCE_RATIO).any():
-            return CutEdges(found, ratio, np.zeros_like(found))
-    found = find_cut(rows, cams, fit, keep, tol)
+            return CutEdges(found, ratio, np.zeros_like(found), by)
+    found, by = find_cut(rows, cams, fit, keep, tol)
     ratio = cut_variance_ratio(fit.residual_px, keep, found)
     bad = np.nan_to_num(ratio) >= CUT_VARIANCE_RATIO
-    return CutEdges(found, ratio, found & bad[None, None, :])
+    return CutEdges(found, ratio, found & bad[None, None, :], by)

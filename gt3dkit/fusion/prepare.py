@@ -32,7 +32,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.fusion.boxfit import PERSON_SEMI_AXES_M, BoxFit, fit_boxes
 from gt3dkit.fusion.confidence import INVERSE, ConfidenceCurve, group_variances, learn_curve
 from gt3dkit.fusion.motion import StateLayout
-from gt3dkit.fusion.occlusion import cut_edges_of
+from gt3dkit.fusion.occlusion import CutEdges, cut_edges_of
 from gt3dkit.fusion.robust import (
     RobustConfig,
     chi2_isf,
@@ -82,7 +82,9 @@ class Prepared:
         sigma_kpt : (J,) keypoint noise per joint (px)
     kpt_var : (R, C, J) each keypoint's variance (px^2) = sigma_kpt[j]^2 / confidence
     box_cut : (R, C, 4) the edges a nearer object cut that were left out (taken out of
-        ``rows.box_mask`` as the border's; :mod:`gt3dkit.fusion.occlusion`), or None
+        ``rows.box_mask`` as the border's; :mod:`gt3dkit.fusion.occlusion`), or None;
+        box_cut_by : (R, C, 4) for each of those, the row of a nearer object it lies in (-1
+        elsewhere)
     """
 
     rows: Rows
@@ -106,6 +108,7 @@ class Prepared:
     info: JsonDict = field(default_factory=dict)
     box_tail: float = 1.0
     box_cut: np.ndarray | None = None  # (R, C, 4) edges a nearer object cut, left out (fusion.occlusion)
+    box_cut_by: np.ndarray | None = None  # (R, C, 4) the row of a nearer object each lies in, else -1
     # results computed from this preparation alone, kept for the next estimator that asks (the
     # process noise of the model's likelihood: gt3dkit.fusion.noise.noise_by_likelihood)
     memo: dict[Any, Any] = field(default_factory=dict, repr=False, compare=False)
@@ -198,11 +201,10 @@ def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = Non
     box_keep = np.zeros((len(rows), len(cams.K), 4), bool)
     reliable = np.zeros(len(rows), bool)
     sigma_box = np.ones(4)
-    box_cut = None
+    cuts = None
     prior = ShapePrior(np.log(PERSON_SEMI_AXES_M), np.full(3, 0.25), "person size (no boxes)")
     if use_box:
-        fit, box_keep, sigma_box, prior, binfo, box_cut = _robust_box_fits(scene, rows, cams, robust,
-                                                                           sigma_px)
+        fit, box_keep, sigma_box, prior, binfo, cuts = _robust_box_fits(scene, rows, cams, robust, sigma_px)
         info["boxes"] = binfo
         views = rows.box_mask.any(axis=2)
         whole = (views & np.all(box_keep | ~rows.box_mask, axis=2)).sum(axis=1)
@@ -229,7 +231,9 @@ def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = Non
     return Prepared(rows, cams, StateLayout(J if use_kpt else 0), use_box, use_kpt, fit, box_keep,
                     reliable, kpt0, kpt0_cov, kpt_keep, kpt_reliable, sigma_box, sigma_kpt,
                     kpt_var, prior, skel, robust, info,
-                    box_tail=float(info["boxes"]["tail_variance_ratio"]) if use_box else 1.0, box_cut=box_cut)
+                    box_tail=float(info["boxes"]["tail_variance_ratio"]) if use_box else 1.0,
+                    box_cut=cuts.dropped if cuts is not None else None,
+                    box_cut_by=np.where(cuts.dropped, cuts.by, -1) if cuts is not None else None)
 
 
 def disagreement_scale(chi2_sum: F64, dof: F64, tail_p: float = 0.01) -> F64:
@@ -339,11 +343,11 @@ def _shape_prior(fit: BoxFit, views: np.ndarray) -> ShapePrior:
 
 def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
                      sigma_px: float | None
-                     ) -> tuple[BoxFit, np.ndarray, F64, ShapePrior, JsonDict, np.ndarray | None]:
+                     ) -> tuple[BoxFit, np.ndarray, F64, ShapePrior, JsonDict, CutEdges | None]:
     """Per-frame box fits weighted by per-edge noise; edges rejected by their leave-one-out
     score; edges cut by a nearer object left out where they mislead (``rows.box_mask`` updated;
-    the last value: those edges, ``(R, C, 4)``, or None); shape prior for weakly seen
-    object-frames."""
+    the last value: the cut edges where some were left out, or None); shape prior for weakly
+    seen object-frames."""
     keep = rows.box_mask.copy()
     fit = fit_boxes(rows.box_z, keep, cams)
     check_in_front(scene, rows, fit, cams)
@@ -407,8 +411,8 @@ def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
             "edges_usable": int(rows.box_mask.sum()),
             "shape_prior": {"semi_axes_m": np.exp(prior.mean).round(4).tolist(),
                             "log_sd": prior.sd.round(4).tolist(), "source": prior.source}}
-    return fit, keep, np.full(4, core), prior, info, (cuts.dropped if cuts is not None and cuts.dropped.any()
-                                                      else None)
+    left_out = cuts if cuts is not None and cuts.dropped.any() else None
+    return fit, keep, np.full(4, core), prior, info, left_out
 
 
 def _robust_keypoints(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,

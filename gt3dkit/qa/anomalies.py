@@ -229,14 +229,26 @@ def _cut_edges(scene: Scene, pre: PreparedView, out: list) -> None:
                     "inside the box of a nearer object and vary clearly more than the others: the boxes are "
                     "drawn around the visible part, so these edges say where the nearer one is; left out, as "
                     "edges at the image border are (meta.json: preparation, boxes, cut_edges). Which: "
-                    + which_cut(rows.obj_ids[rows.row_o], rows.frames[rows.row_t], per)))
+                    + which_cut(rows.obj_ids[rows.row_o], rows.frames[rows.row_t], per, _cutters(pre, c))))
 
 
-def which_cut(obj_id: np.ndarray, frame: np.ndarray, cut: np.ndarray) -> str:
+def _cutters(pre: PreparedView, c: int) -> np.ndarray | None:
+    """``(R, 4)`` in camera ``c`` the id of a nearer object each left-out edge lies in (-1
+    elsewhere), or None where the preparation does not say."""
+    by = pre.box_cut_by
+    if by is None:
+        return None
+    rows = pre.rows
+    return np.where(by[:, c] >= 0, rows.obj_ids[rows.row_o[np.maximum(by[:, c], 0)]], -1)
+
+
+def which_cut(obj_id: np.ndarray, frame: np.ndarray, cut: np.ndarray, by: np.ndarray | None = None) -> str:
     """The boxes with an edge in ``cut (R, 4)`` (of the rows of objects ``obj_id (R,)`` in frames
-    ``frame (R,)``), by object: its frames as runs of consecutive frames and the kinds of its cut
-    edges, e.g. ``id 2 frames 50-57, 60 (ymax); id 3 frames 12 (xmin, ymax)``. Consecutive:
-    one frame step apart, the step the most common gap between an object's frames."""
+    ``frame (R,)``), by object: its frames as runs of consecutive frames, the kinds of its cut
+    edges and, given ``by (R, 4)`` (the id of a nearer object each cut edge lies in, -1 none), the
+    objects they lie in: e.g. ``id 2 frames 50-57, 60 (ymax; inside id 3); id 3 frames 12 (xmin,
+    ymax; inside ids 1, 4)``. Consecutive: one frame step apart, the step the most common gap
+    between the frames."""
     rows = np.flatnonzero(cut.any(axis=1))
     steps = np.diff(np.unique(frame))
     step = int(np.bincount(steps).argmax()) if len(steps) else 1
@@ -248,7 +260,10 @@ def which_cut(obj_id: np.ndarray, frame: np.ndarray, cut: np.ndarray) -> str:
         ends = np.r_[starts[1:], len(f)] - 1
         runs = ", ".join(str(f[a]) if a == b else f"{f[a]}-{f[b]}" for a, b in zip(starts, ends, strict=True))
         kinds = ", ".join(k for k, on in zip(BOX_EDGES, cut[mine].any(axis=0), strict=True) if on)
-        said.append(f"id {int(i)} frames {runs} ({kinds})")
+        near = np.unique(by[mine][cut[mine] & (by[mine] >= 0)]) if by is not None else np.zeros(0)
+        inside = (f"; inside id{'s' if len(near) > 1 else ''} {', '.join(str(int(n)) for n in near)}"
+                  if len(near) else "")
+        said.append(f"id {int(i)} frames {runs} ({kinds}{inside})")
     return "; ".join(said)
 
 

@@ -71,3 +71,6 @@ class PreparedView(Protocol):
 
     @property
     def box_cut(self) -> np.ndarray | None: ...  # (R, C, 4) edges a nearer object cut, left out
+
+    @property
+    def box_cut_by(self) -> np.ndarray | None: ...  # (R, C, 4) the row of a nearer object each lies in

@@ -106,6 +106,13 @@ def test_the_cut_edges_rows_say_which_boxes(crowd_runs) -> None:
                                                                               & (frames <= int(b or a))]}
     assert counted > 50 and len(said) == counted
     assert said == left_out
+    by = pre.box_cut_by  # each left-out edge lies in a nearer object's box of its frame
+    r, c, e = np.nonzero(pre.box_cut)
+    assert (by[r, c, e] >= 0).all() and (rows.row_t[by[r, c, e]] == rows.row_t[r]).all()
+    assert (by[r, c, e] != r).all()
+    # nearer that camera (by the final fits: those the cut was judged by moved since, a little)
+    depth = np.linalg.norm(pre.fit.center_world[:, None, :] - pre.cams.centres[None], axis=-1)  # (R, C) m
+    assert (depth[by[r, c, e], c] < depth[r, c]).all()
     assert len(said & cut) > 0.5 * len(said), (len(said & cut), len(said))
 
 
@@ -119,6 +126,10 @@ def test_which_cut_by_hand() -> None:
     cut[3, 0] = True
     cut[5, 0] = True
     assert which_cut(ids, frames, cut) == "id 2 frames 10-20, 30 (xmin, ymax); id 3 frames 20 (xmin)"
+    by = np.where(cut, 7, -1)
+    by[0, 3] = 5
+    assert which_cut(ids, frames, cut, by) == ("id 2 frames 10-20, 30 (xmin, ymax; inside ids 5, 7); "
+                                               "id 3 frames 20 (xmin; inside id 7)")
 
 
 def test_whole_boxes_keep_every_edge(crowd_runs) -> None:
