@@ -11,10 +11,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+from gt3dkit.errors import InputError
+
 if TYPE_CHECKING:
     from distributed import Client, Future
-
-from gt3dkit.errors import InputError
 
 #: ``--estimator``'s default (``gt3d reconstruct``, ``reconstruct-many``): the one the early
 #: connection warms when none is given.
@@ -63,11 +63,11 @@ class Early:
 
 def connect_early(address: str, warm: Callable[[str], None], estimator: str) -> Early:
     """Connect to the Dask scheduler at ``address`` and send ``warm(estimator)`` to its first worker
-    (sorted by address: the one the noise search runs on), not waiting for it. The other workers
-    warm during the search, as before (:func:`gt3dkit.windows.cluster.warm_workers`): on 2 cores,
-    warming them all now made the client's own imports wait, and the windows start 0.4-0.7 s
-    later than warming the first alone (3 runs each). Connecting as the run would, with Dask's own
-    timeout; whatever goes wrong is kept, not raised (the run says it where it connects)."""
+    (sorted by address: the one the noise search runs on), not waiting for it. The others are
+    sent theirs when the run takes this connection over (:class:`gt3dkit.windows.cluster.Cluster`):
+    on 2 cores, warming them all now made the client's own imports wait, and the windows started
+    0.4-0.7 s later than with the first alone (3 runs each). Connecting as the run would, with
+    Dask's own timeout; whatever goes wrong is kept, not raised (the run says it where it connects)."""
     from distributed import Client
 
     try:

@@ -8,6 +8,10 @@ import contextlib
 import io
 import json
 import shutil
+import subprocess
+import sys
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +31,7 @@ from gt3dkit.windows import (
     Window,
     _run_windows,
     _window_scenes,
+    noise,
     reconstruct_windowed,
     reconstruct_windows,
 )
@@ -249,10 +254,6 @@ def test_the_search_runs_where_its_first_worker_is_gone(boxes: object,
     """The noise search prefers the first worker (warmed for it) but does not wait for one that
     is gone: given the address of a worker that left the cluster, it runs on the others, its
     sample scattered to them or read there (it waited for ever, or failed scattering)."""
-    import threading
-
-    from gt3dkit.windows import noise
-
     distributed = pytest.importorskip("distributed")
     scene = load_scene(Path(boxes.root))  # type: ignore[attr-defined]
     with (distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
@@ -329,8 +330,6 @@ def test_a_dead_pool_process_is_an_error_naming_the_window(boxes: object) -> Non
 
 
 def _tiny_scenes_made() -> int:
-    import sys
-
     api = sys.modules.get("gt3dkit.api")
     return 0 if api is None else api.tiny_scenes.cache_info().currsize
 
@@ -340,8 +339,6 @@ def test_a_cluster_warms_the_first_worker_while_the_caller_goes_on() -> None:
     the first worker, the one the noise search runs on, estimate the tiny scenes; the others are
     left alone (they warm during the search, on the sequence's frames), and so is every worker
     without ``loading``."""
-    import time
-
     distributed = pytest.importorskip("distributed")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
                                   dashboard_address=None) as cluster:
@@ -364,10 +361,6 @@ def test_gt3d_connects_and_warms_the_first_worker_before_its_own_imports() -> No
     imports nothing heavy, and the early connection warms the first worker only; the run's
     ``Cluster`` takes that client and warm-up over (no second connection, no second warm-up of
     the first worker) and warms the others at once."""
-    import subprocess
-    import sys
-    import time
-
     probe = ("import sys, gt3dkit.cli; print(sorted(m for m in ('numba', 'scipy', 'gt3dkit.api', "
              "'gt3dkit.commands.main', 'distributed') if m in sys.modules))")
     r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)

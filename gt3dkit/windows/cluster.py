@@ -59,10 +59,10 @@ def connect_scheduler(address: str, early: Early | None = None) -> Any:
     wait = parse_timedelta(dask.config.get("distributed.comm.timeouts.connect"), default="s")
     check_scheduler_address(address)
     try:
-        if early is not None and early.address == address and early.error is not None:
-            raise early.error
-        client = early.client if early is not None and early.address == address else None
-        client = client if client is not None else Client(address)
+        mine = early if early is not None and early.address == address else None
+        if mine is not None and mine.error is not None:
+            raise mine.error
+        client = mine.client if mine is not None and mine.client is not None else Client(address)
     except (OSError, TimeoutError) as e:
         raise InputError("--scheduler", f"cannot reach the Dask scheduler at {address} ({e})") from None
     try:
@@ -104,7 +104,7 @@ class Cluster:
         self.client = connect_scheduler(address, early)
         try:
             # held until closed: a future let go is a task cancelled
-            self._warming = early.warming if early is not None and early.client is self.client else {}
+            self._warming = dict(early.warming) if early is not None and early.client is self.client else {}
             # the first worker at once; where it was sent its warm-up before this process's
             # imports, the others now too, while this process loads the input, not during the search
             now = worker_addresses(self.client)[:1 if not self._warming else None] if loading else []
