@@ -3,14 +3,46 @@ scheduler (``--scheduler``), it connects first and sends the scheduler's first w
 gt3dkit's imports and compiled kernels (:func:`gt3dkit.early.connect_early`), and only then loads
 the commands (:mod:`gt3dkit.commands.main`, by name: the one place gt3dkit imports a module of its
 own late, to keep this one light). On the 4 000-frame box scene with 2 workers on 2 cores, the
-worker's warm-up had waited for the 1.2 s of this process's imports."""
+worker's warm-up had waited for the 1.2 s of this process's imports.
+
+As a program (:func:`entry`), ``gt3d`` ends its process once its work and Python's own exit steps
+are done, without the interpreter's teardown (:func:`finish`)."""
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import importlib
+import os
 import sys
+import threading
+from typing import NoReturn
 
 from gt3dkit.early import DEFAULT_ESTIMATOR, Early, connect_early
+
+
+def entry() -> NoReturn:
+    """The ``gt3d`` program (the console script, ``python -m gt3dkit.cli``): :func:`main` on the
+    process's command line, then :func:`finish` with its exit status."""
+    finish(main())
+
+
+def finish(code: int) -> NoReturn:
+    """End this process with exit status ``code`` after what a Python process does as it exits,
+    except the interpreter's teardown: the non-daemon threads are joined (and the thread pools'
+    exit hooks run, ``threading._shutdown``, as the interpreter calls it first), the ``atexit``
+    handlers run (Dask's clients closed, temporary folders removed, logging flushed), stdout and
+    stderr are flushed, then ``os._exit``. The teardown frees every module and object one by one:
+    0.30-0.41 s after a 4 000-frame box run (its outputs already written and closed), 0.02 s
+    with this. Only for the program: :func:`main` called from Python returns as usual."""
+    shutdown = getattr(threading, "_shutdown", None)
+    if shutdown is not None:
+        shutdown()
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):  # a closed pipe: nothing left to tell
+            stream.flush()
+    os._exit(code)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -62,4 +94,4 @@ def warm_named(estimator: str) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

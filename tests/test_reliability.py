@@ -244,6 +244,43 @@ def test_closed_pipe_is_quiet(scenes, tmp_path) -> None:
     assert (tmp_path / "o" / MARKER).exists()
 
 
+# the program's own end (gt3dkit.cli.finish) after a command that left work behind it: a thread
+# pool's task still running, an atexit handler, stdout buffered in a pipe
+LEFT_BEHIND = """
+import atexit, sys, time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from gt3dkit import cli
+out = Path(sys.argv[1])
+ThreadPoolExecutor(1).submit(lambda: (time.sleep(0.3), (out / "pool").write_text("done")))
+atexit.register(lambda: (out / "atexit").write_text("ran"))
+print("x" * 100_000, end="")  # more than a pipe's buffer holds
+cli.finish(3)
+"""
+
+
+def test_the_programs_own_end_leaves_nothing_undone(tmp_path) -> None:
+    """``gt3d`` ends its process without the interpreter's teardown (:func:`gt3dkit.cli.finish`):
+    a pool thread's work still finishes, atexit handlers still run, what is buffered for stdout
+    still arrives, and the exit status is kept."""
+    p = subprocess.run([sys.executable, "-c", LEFT_BEHIND, str(tmp_path)], capture_output=True, text=True,
+                       timeout=60)
+    assert p.returncode == 3, p.stderr
+    assert p.stdout == "x" * 100_000 and p.stderr == ""
+    assert (tmp_path / "pool").read_text() == "done" and (tmp_path / "atexit").read_text() == "ran"
+
+
+def test_the_program_gives_mains_status(tmp_path) -> None:
+    """``python -m gt3dkit.cli`` (as the ``gt3d`` script): the error line and status 2 of bad input,
+    0 and the whole help text through a pipe."""
+    p = subprocess.run([*GT3D, "reconstruct", str(tmp_path / "absent"), "--out", str(tmp_path / "o")],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and p.stderr.startswith("error: ") and p.stderr.count("\n") == 1, p.stderr
+    assert not (tmp_path / "o").exists()
+    h = subprocess.run([*GT3D, "reconstruct", "--help"], capture_output=True, text=True, timeout=120)
+    assert h.returncode == 0 and h.stdout.startswith("usage: gt3d reconstruct") and h.stdout.endswith("\n")
+
+
 def test_off_image_boxes_are_ignored_with_a_warning(tmp_path, capsys) -> None:
     """Boxes entirely outside the image (negative coordinates) must not pull the estimate away."""
     root = tmp_path / "in"
