@@ -1,9 +1,10 @@
 """``gt3d``'s entry point. It imports nothing heavy itself: where ``gt3d reconstruct`` names a Dask
 scheduler (``--scheduler``), it connects first and sends the scheduler's first worker to load
 gt3dkit's imports and compiled kernels (:func:`gt3dkit.early.connect_early`), and only then loads
-the commands (:mod:`gt3dkit.commands.main`, by name: the one place gt3dkit imports a module of its
-own late, to keep this one light). On the 4 000-frame box scene with 2 workers on 2 cores, the
-worker's warm-up had waited for the 1.2 s of this process's imports.
+the commands (:mod:`gt3dkit.commands.main`, by name, to keep this module light: with the
+package's lazy names, one of the two places gt3dkit imports a module of its own late). On the
+4 000-frame box scene with 2 workers on 2 cores, the worker's warm-up had waited for the 1.2 s of
+this process's imports.
 
 As a program (:func:`entry`), ``gt3d`` ends its process once its work and Python's own exit steps
 are done, without the interpreter's teardown (:func:`finish`)."""
