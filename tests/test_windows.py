@@ -702,3 +702,30 @@ def test_a_bad_frame_a_window_reads_is_one_error_line_and_nothing_written(grid: 
                         *jobs)
     assert code == 2 and se.count("\n") == 1 and se.startswith(f"error: {files[-1]}: personID"), se
     assert not (tmp_path / "out").exists()
+
+
+def test_the_truth_report_counted_as_the_windows_finish_is_the_whole_ones(
+        grid: Path, boxes: object, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The truth report of a windowed run, counted window by window as the rows are written
+    (``TruthTally``), prints what the report computed on the whole tracks prints: a folder whose
+    windows read their own frames (its truth file read meanwhile) and one read whole. ``gt3d
+    reconstruct`` uses it: with the whole computation made to fail, the report still comes."""
+    from gt3dkit.commands import common
+    from gt3dkit.commands.common import TruthTally, report_truth
+
+    def printed(scene: object, tracks: object, tally: TruthTally | None) -> str:
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out):
+            report_truth(scene, tracks, "ukf", tally=tally)  # type: ignore[arg-type]
+        return out.getvalue()
+
+    for name, scene in (("index", load_head(grid)), ("whole", load_scene(Path(boxes.root)))):  # type: ignore[attr-defined]
+        tally = TruthTally(scene.rig.up)  # type: ignore[union-attr]
+        tracks, read = reconstruct_windows(scene, "ukf", Plan(20), str(tmp_path / name), tally=tally)  # type: ignore[arg-type]
+        assert tally.counted(read, tracks) is not None, name
+        whole = printed(read, tracks, None)
+        assert "MOTA" in whole and printed(read, tracks, tally) == whole, name
+    monkeypatch.setattr(common, "tracking_scores", lambda *a, **k: pytest.fail("computed whole"))
+    code, so, se = _run("reconstruct", str(grid), "--out", str(tmp_path / "cli"), "--window", "20", "--quiet")
+    assert code == 0, se
+    assert "MOTA" in so

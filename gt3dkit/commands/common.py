@@ -24,11 +24,11 @@ from gt3dkit.api import load_head, load_scene, take_rows
 from gt3dkit.errors import InputError
 from gt3dkit.eval.metrics import box_errors, relabel_to_truth
 from gt3dkit.eval.pose import mpjpe_by_id, score_tracks
-from gt3dkit.eval.tracking import tracking_scores
+from gt3dkit.eval.tracking import TrackingTally, tracking_scores
 from gt3dkit.fusion.base import REGISTRY
 from gt3dkit.io.atomic import check_out
 from gt3dkit.io.datasets import detect_layout
-from gt3dkit.types import BOX_MODEL_REGISTRY, JsonDict, Options, Scene, TrackSet
+from gt3dkit.types import BOX_MODEL_REGISTRY, GroundTruth, JsonDict, Options, Scene, TrackSet
 
 #: Published numbers of Ma et al. for the datasets we can compare on.
 PAPER = {"multiviewx": {"MOTA": 96.5, "OSPA2_m": 0.17}, "wildtrack": {"MOTA": 98.7, "OSPA2_m": 0.10},
@@ -171,12 +171,60 @@ def pose_table(rows: list[tuple[str, Any, float]]) -> str:
     return "\n".join(lines)
 
 
-def report_truth(scene: Scene, tracks: TrackSet, name: str, max_dist_m: float = 1.0) -> None:
+class TruthTally:
+    """The truth report's tracking scores and box errors (:func:`report_truth`) counted as a
+    windowed run's rows become final, window by window
+    (:class:`gt3dkit.eval.tracking.TrackingTally`; :class:`gt3dkit.windows.stitch.RowsTally`):
+    of the rows in frames the truth has a row in, against the truth where it gives positions and
+    the ids are the input's (gt3dkit's own ids are matched to the truth's over the whole run
+    first: then nothing is counted here). ``up``: the rig's."""
+
+    def __init__(self, up: np.ndarray, max_dist_m: float = 1.0) -> None:
+        self.up, self.max_dist_m = up, max_dist_m
+        self._get: Callable[[], GroundTruth | None] | None = None
+        self.tally: TrackingTally | None = None
+        self.truth: GroundTruth | None = None
+        self.unscored = 0
+        self._frames = np.zeros(0, np.int64)
+        self._off = False
+
+    def truth_from(self, get: Callable[[], GroundTruth | None]) -> None:
+        self._get = get
+
+    def add(self, tracks: TrackSet) -> None:
+        if self._off or self._get is None:
+            self._off = True
+            return
+        if self.tally is None:
+            self.truth = self._get()
+            if self.truth is None or not np.isfinite(self.truth.center_world).any():
+                self._off = True
+                return
+            self.tally = TrackingTally(self.truth, self.up, self.max_dist_m)
+            self._frames = np.unique(self.truth.frame)
+        on = np.isin(tracks.frame, self._frames)
+        self.unscored += int((~on).sum())
+        self.tally.add(tracks if on.all() else take_rows(tracks, on))
+
+    def counted(self, scene: Scene, tracks: TrackSet) -> TrackingTally | None:
+        """The tally, where it counted every row of ``tracks`` (those in frames ``scene``'s truth
+        has) against that truth, with the input's ids; None: :func:`report_truth` computes it."""
+        t = self.tally
+        ok = (t is not None and not self._off and scene.association is None and self.truth is scene.truth
+              and t.rows + self.unscored == len(tracks))
+        return t if ok else None
+
+
+def report_truth(scene: Scene, tracks: TrackSet, name: str, max_dist_m: float = 1.0,
+                 tally: TruthTally | None = None) -> None:
     """Print errors against the input's truth: boxes/positions and/or keypoints; tracking scores
-    count an estimate within ``max_dist_m`` (ground plane) of a true object as a match."""
+    count an estimate within ``max_dist_m`` (ground plane) of a true object as a match. ``tally``:
+    the same scores counted as the run's windows finished (:class:`TruthTally`), used where it
+    counted these rows."""
     if scene.truth is None:
         return
     print(f"against {scene.truth.source}:")
+    counted = tally.counted(scene, tracks) if tally is not None and tally.max_dist_m == max_dist_m else None
     on = np.isin(tracks.frame, scene.truth.frame)
     if not on.all():  # a dense run's rows between the frames the truth has: nothing to score them by
         print(f"({int((~on).sum())} rows in frames the truth has no row in are not scored)")
@@ -185,8 +233,12 @@ def report_truth(scene: Scene, tracks: TrackSet, name: str, max_dist_m: float = 
         tracks = relabel_to_truth(tracks, scene.truth, scene.rig.up, max_dist_m)
         print("(ids are gt3dkit's cross-view association: each matched to its truth id for the errors)")
     if np.isfinite(scene.truth.center_world).any():
-        t = tracking_scores(tracks, scene.truth, scene.rig.up, max_dist_m)
-        print(error_table([(name, box_errors(tracks, scene.truth, scene.rig.up, max_dist_m, mot=t))]))
+        if counted is not None:
+            t, errors = counted.scores(), counted.errors()
+        else:
+            t = tracking_scores(tracks, scene.truth, scene.rig.up, max_dist_m)
+            errors = box_errors(tracks, scene.truth, scene.rig.up, max_dist_m, mot=t)
+        print(error_table([(name, errors)]))
         print(f"ground plane, {max_dist_m:g} m: MOTA {100 * t['mota']:.1f}  IDF1 {100 * t['idf1']:.1f}  "
               f"FP {t['fp']}  FN {t['fn']}  IDs {t['ids']}  HOTA {100 * t['hota']:.1f}  "
               f"OSPA(2) {t['ospa2_m']:.4f} m")

@@ -17,6 +17,7 @@ from gt3dkit.api import load_scene, reconstruct
 from gt3dkit.calib.formats.native import cameras_doc
 from gt3dkit.commands.common import (
     Stages,
+    TruthTally,
     box_model_note,
     check_out_apart,
     check_output,
@@ -78,11 +79,13 @@ def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | 
         plan = window_plan(args, scene)
         if plan is None and scene.index is not None:  # it runs whole: read whole
             scene = load_input(args)
+        tally = None
         if plan is not None:
             stages("windows")
+            tally = TruthTally(scene.rig.up)
             tracks, scene = reconstruct_windows(scene, args.estimator, plan, args.out, extra,
                                                 args.every_frame, lambda k, n: stages.part("windows", k, n),
-                                                cluster, **config)
+                                                cluster, tally, **config)
         else:
             tracks = reconstruct(scene, args.estimator, out=args.out, extra_meta=extra, on_stage=stages,
                                  every_frame=args.every_frame, **config)
@@ -109,7 +112,7 @@ def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | 
           f"cameras, {fps} -> {len(tracks)} object-frames of {len(set(tracks.track_id.tolist()))} "
           f"objects ({args.estimator}, {info.seconds:.2f} s{flagged}) written to "
           f"{args.out}")
-    report_truth(scene, tracks, args.estimator)
+    report_truth(scene, tracks, args.estimator, tally=tally)
     return 0
 
 

@@ -45,12 +45,22 @@ class NearPairs(NamedTuple):
     b: np.ndarray
     d: F64
 
+    @staticmethod
+    def concat(parts: list[NearPairs]) -> NearPairs:
+        """``parts`` one after another (none: no pair)."""
+        if not parts:
+            return NearPairs(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+        return NearPairs(*(np.concatenate(x) for x in zip(*parts, strict=True)))
+
 
 def near_pairs(frame_a: np.ndarray, xy_a: F64, frame_b: np.ndarray, xy_b: F64, cutoff: float) -> NearPairs:
     """Every pair of a row of table ``a`` and a row of table ``b`` in the same frame whose
     positions (``(N, D)``, metres) are at most ``cutoff`` apart, with their distance (the norm
     of ``xy_a[a] - xy_b[b]``): grouped by frame in frame order, ``a``'s rows in table order
-    within a frame. Rows with a non-finite position pair with none.
+    within a frame and each one's ``b`` rows in table order. So the pairs of tables cut into
+    parts of consecutive frames, each part's found on its own, are the whole tables' pairs in
+    the same order (:class:`gt3dkit.eval.tracking.TrackingTally`). Rows with a non-finite
+    position pair with none.
 
     A sweep, not every pair of a frame: ``b``'s rows are sorted by frame and by the coordinate
     that spreads most, and each ``a`` row meets only the ``b`` rows of its frame within
@@ -87,7 +97,8 @@ def near_pairs(frame_a: np.ndarray, xy_a: F64, frame_b: np.ndarray, xy_b: F64, c
         for c in range(1, xy_a.shape[1]):
             sq += (xy_a[ra, c] - xy_b[rb, c]) ** 2
         d = np.sqrt(sq)
-        keep = (d <= cutoff) & (frame_a[ra] == frame_b[rb])
+        keep = np.flatnonzero((d <= cutoff) & (frame_a[ra] == frame_b[rb]))
+        keep = keep[np.lexsort((rb[keep], ia[keep]))]  # each a row's b rows in table order
         out.append((ra[keep], rb[keep], d[keep]))
         k = k1
     return NearPairs(*(np.concatenate(x) for x in zip(*out, strict=True)))
@@ -105,14 +116,14 @@ def frame_blocks(frame: np.ndarray, frames: np.ndarray
     return order, np.searchsorted(f, frames), np.searchsorted(f, frames, side="right"), pos
 
 
-def _pair_counts(tracks: TrackSet, truth: GroundTruth, g_e: F64, g_t: F64, max_dist_m: float,
-                 pairs: NearPairs | None = None) -> tuple[F64, np.ndarray, np.ndarray]:
+def pair_counts(est_id: np.ndarray, truth_id: np.ndarray, pairs: NearPairs, max_dist_m: float
+                ) -> tuple[F64, np.ndarray, np.ndarray]:
     """``count (n_track_ids, n_truth_ids)``: the frames in which a track and a truth identity are
-    within ``max_dist_m`` of each other (ground positions ``g_e, g_t``; ``pairs``: the truth's
-    and the tracks' :func:`near_pairs` within at least that, when known); and the two id lists."""
-    ids, ti = np.unique(tracks.track_id, return_inverse=True)
-    tids, gi = np.unique(truth.track_id, return_inverse=True)
-    b, a, d = pairs if pairs is not None else near_pairs(truth.frame, g_t, tracks.frame, g_e, max_dist_m)
+    within ``max_dist_m`` of each other (``pairs``: the truth's rows ``a`` and the tracks' ``b``
+    within at least that, :func:`near_pairs`); and the two id lists."""
+    ids, ti = np.unique(est_id, return_inverse=True)
+    tids, gi = np.unique(truth_id, return_inverse=True)
+    b, a, d = pairs
     near = d <= max_dist_m
     count = np.bincount(ti.ravel()[a[near]] * len(tids) + gi.ravel()[b[near]], minlength=len(ids) * len(tids))
     return count.reshape(len(ids), len(tids)), ids, tids
@@ -129,8 +140,9 @@ def ids_to_truth(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: floa
         with np.errstate(all="ignore"), warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             centre = np.nanmean(truth.kpt_world, axis=1)
-    count, ids, tids = _pair_counts(tracks, truth, ground_coords(tracks.center_world, up),
-                                    ground_coords(centre, up), max_dist_m)
+    g_t = ground_coords(centre, up)
+    pairs = near_pairs(truth.frame, g_t, tracks.frame, ground_coords(tracks.center_world, up), max_dist_m)
+    count, ids, tids = pair_counts(tracks.track_id, truth.track_id, pairs, max_dist_m)
     r, c = linear_sum_assignment(-count)
     return {int(ids[i]): int(tids[j]) for i, j in zip(r, c, strict=True) if count[i, j] > 0}
 
@@ -177,28 +189,58 @@ def _nanmean(x: F64) -> float:
     return float(x.mean()) if x.size else float("nan")
 
 
-def box_errors(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float = 1.0,
-               mot: JsonDict | None = None) -> BoxErrors:
-    """Errors of matched rows and :func:`clear_mot` (``mot``: its result when already computed,
-    e.g. by :func:`gt3dkit.eval.tracking.tracking_scores` with the same arguments)."""
+@dataclass(frozen=True)
+class RowErrors:
+    """The errors of the track rows that have a truth row of the same frame and id
+    (:func:`row_errors`): each one's truth row ``truth_row (K,)``, and its ground, centre,
+    height and radius errors ``(K,)``, metres, in the tracks' row order."""
+
+    truth_row: np.ndarray
+    ground: F64
+    centre: F64
+    height: F64
+    radius: F64
+
+    @staticmethod
+    def concat(parts: list[RowErrors]) -> RowErrors:
+        """``parts`` one after another (none: no row)."""
+        if not parts:
+            return RowErrors(np.zeros(0, np.int64), *(np.zeros(0) for _ in range(4)))
+        return RowErrors(*(np.concatenate([getattr(p, f) for p in parts]) for f in
+                           ("truth_row", "ground", "centre", "height", "radius")))
+
+
+def row_errors(tracks: TrackSet, truth: GroundTruth, up: F64) -> RowErrors:
+    """The errors of each row of ``tracks`` that ``truth`` has a row of (the same frame and id)."""
     it, ig = match_rows(tracks, truth)
     c_est, c_tru = tracks.center_world[it], truth.center_world[ig]
     g_est = ground_coords(c_est, up)
     g_tru = ground_coords(np.nan_to_num(c_tru), up)
-    ground = np.linalg.norm(g_est - g_tru, axis=1)
-    centre = np.linalg.norm(c_est - c_tru, axis=1)
     s_est, s_tru = tracks.semi_axes[it], truth.semi_axes[ig]
-    height = np.abs(2 * s_est[:, 2] - 2 * s_tru[:, 2])
-    radius = np.abs(s_est[:, :2].mean(1) - s_tru[:, :2].mean(1))
-    keys = ("mota", "idf1", "fp", "fn", "ids")
-    mot = {k: mot[k] for k in keys} if mot is not None else clear_mot(tracks, truth, up, max_dist_m)
+    return RowErrors(ig, np.linalg.norm(g_est - g_tru, axis=1), np.linalg.norm(c_est - c_tru, axis=1),
+                     np.abs(2 * s_est[:, 2] - 2 * s_tru[:, 2]),
+                     np.abs(s_est[:, :2].mean(1) - s_tru[:, :2].mean(1)))
+
+
+def box_errors(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float = 1.0,
+               mot: JsonDict | None = None) -> BoxErrors:
+    """Errors of matched rows and :func:`clear_mot` (``mot``: its result when already computed,
+    e.g. by :func:`gt3dkit.eval.tracking.tracking_scores` with the same arguments)."""
+    mot = mot if mot is not None else clear_mot(tracks, truth, up, max_dist_m)
+    return errors_of(row_errors(tracks, truth, up), len(truth.frame), mot)
+
+
+def errors_of(e: RowErrors, n_truth: int, mot: JsonDict) -> BoxErrors:
+    """:class:`BoxErrors` of the matched rows' errors ``e`` against a truth of ``n_truth`` rows,
+    with :func:`clear_mot`'s scores ``mot``."""
+    ground = e.ground
     return BoxErrors(
-        rows_truth=len(truth.frame), rows_matched=len(ig),
-        coverage=len(np.unique(ig)) / max(len(truth.frame), 1),
+        rows_truth=n_truth, rows_matched=len(e.truth_row),
+        coverage=len(np.unique(e.truth_row)) / max(n_truth, 1),
         ground_mean_m=_nanmean(ground),
         ground_median_m=float(np.median(ground)) if ground.size else float("nan"),
-        centre_mean_m=_nanmean(centre), height_mean_m=_nanmean(height),
-        radius_mean_m=_nanmean(radius), **mot)
+        centre_mean_m=_nanmean(e.centre), height_mean_m=_nanmean(e.height),
+        radius_mean_m=_nanmean(e.radius), **{k: mot[k] for k in ("mota", "idf1", "fp", "fn", "ids")})
 
 
 def _match_frame(d2: F64, o: I64, h: I64, last: I64, col: I64, om: np.ndarray, hm: np.ndarray) -> int:
@@ -258,44 +300,75 @@ def clear_mot(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float =
     reconstruction's evaluation); ``tests/eval/test_metrics.py`` holds this to motmetrics itself on
     random scenes with misses, false positives and identity swaps.
     """
-    from scipy.optimize import linear_sum_assignment
-
     g_t = ground_coords(np.nan_to_num(truth.center_world), up)
     g_e = ground_coords(tracks.center_world, up)
-    frames = np.union1d(truth.frame, tracks.frame)
-    ot, lo_t, hi_t, pos_t = frame_blocks(truth.frame, frames)
-    oe, lo_e, hi_e, pos_e = frame_blocks(tracks.frame, frames)
-    # the pairs within reach: a hair beyond it found, then motmetrics' own test on the squared
-    # distance of the two ground positions, as its distance matrix has it
+    # the pairs within reach: a hair beyond it found, then motmetrics' own test (MotCounts.block)
     if pairs is None:
         pairs = near_pairs(truth.frame, g_t, tracks.frame, g_e, max_dist_m * (1.0 + 1e-9))
-    pt, pe = pairs.a, pairs.b
-    d2p = np.sum((g_t[pt] - g_e[pe]) ** 2, axis=-1)
-    near = d2p <= max_dist_m**2
-    pt, pe, d2p = pt[near], pe[near], d2p[near]
-    p_lo = np.searchsorted(np.searchsorted(frames, truth.frame[pt]), np.arange(len(frames) + 1))
-    t_ids, t_idx = np.unique(truth.track_id, return_inverse=True)
-    e_ids, e_idx = np.unique(tracks.track_id, return_inverse=True)
-    t_idx, e_idx = t_idx.ravel(), e_idx.ravel()
-    last = np.full(len(t_ids), -1)  # truth id -> the track (index in e_ids) it was last matched to
-    col = np.full(len(e_ids), -1)  # a frame's track -> its column (-1: not in the frame)
-    fp = fn = ids = 0
-    for f in range(len(frames)):
-        gi, hi = ot[lo_t[f]:hi_t[f]], oe[lo_e[f]:hi_e[f]]
-        om, hm = np.zeros(len(gi), bool), np.zeros(len(hi), bool)
-        k0, k1 = p_lo[f], p_lo[f + 1]
-        if k1 > k0:
-            d2 = np.full((len(gi), len(hi)), np.nan)
-            d2[pos_t[pt[k0:k1]], pos_e[pe[k0:k1]]] = d2p[k0:k1]
-            ids += _match_frame(d2, t_idx[gi], e_idx[hi], last, col, om, hm)
-        fn += int((~om).sum())
-        fp += int((~hm).sum())
-    n_truth, n_est = len(truth.frame), len(tracks.frame)
-    count, _, _ = _pair_counts(tracks, truth, g_e, g_t, max_dist_m, pairs)
-    idtp = 0.0
-    if count.size:
-        r, c = linear_sum_assignment(-count)
-        idtp = float(count[r, c].sum())
-    return {"mota": 1.0 - (fn + fp + ids) / n_truth if n_truth else float("nan"),
-            "idf1": 2 * idtp / (n_truth + n_est) if n_truth + n_est else float("nan"),
-            "fp": fp, "fn": fn, "ids": ids}
+    _, t_idx = np.unique(truth.track_id, return_inverse=True)
+    _, e_idx = np.unique(tracks.track_id, return_inverse=True)
+    counts = MotCounts(int(t_idx.max(initial=-1)) + 1)
+    counts.block(truth.frame, t_idx.ravel(), g_t, tracks.frame, e_idx.ravel(), g_e, pairs, max_dist_m)
+    return counts.scores(len(truth.frame), len(tracks.frame),
+                         idtp(pair_counts(tracks.track_id, truth.track_id, pairs, max_dist_m)[0]))
+
+
+def idtp(count: F64) -> float:
+    """IDF1's true positives: the frames of the one-to-one pairing of track and truth identities
+    (``count (tracks, truths)``: the frames each pair is within reach) that share the most."""
+    from scipy.optimize import linear_sum_assignment
+
+    if not count.size:
+        return 0.0
+    r, c = linear_sum_assignment(-count)
+    return float(count[r, c].sum())
+
+
+class MotCounts:
+    """CLEAR-MOT's counts over frames that come in blocks in frame order (:func:`clear_mot`: one
+    block; :class:`gt3dkit.eval.tracking.TrackingTally`: a long sequence's windows as they
+    finish): the misses, false positives and identity switches so far, and each truth
+    identity's last track (``last``, by the tracks' identity codes), from which the next block
+    goes on: the same counts however the frames are cut."""
+
+    def __init__(self, n_truth_ids: int) -> None:
+        self.last = np.full(n_truth_ids, -1)  # truth id -> the track (its code) it was last matched to
+        self.col = np.zeros(0, np.int64)  # a frame's track -> its column (-1: not in the frame)
+        self.fp = self.fn = self.ids = 0
+
+    def block(self, t_frame: np.ndarray, t_idx: np.ndarray, g_t: F64, e_frame: np.ndarray, e_idx: np.ndarray,
+              g_e: F64, pairs: NearPairs, max_dist_m: float) -> None:
+        """The frames of the truth rows ``(frame, identity index, ground position)`` and track rows
+        ``(frame, identity code, ground position)`` given, all after the previous blocks' frames,
+        with their :func:`near_pairs` (``a`` the truth rows, ``b`` the tracks', within at least
+        ``max_dist_m``)."""
+        if len(e_idx) and e_idx.max() >= len(self.col):  # codes never seen: their columns
+            self.col = np.r_[self.col, np.full(int(e_idx.max()) + 1 - len(self.col), -1)]
+        frames = np.union1d(t_frame, e_frame)
+        ot, lo_t, hi_t, pos_t = frame_blocks(t_frame, frames)
+        oe, lo_e, hi_e, pos_e = frame_blocks(e_frame, frames)
+        # motmetrics' own test on the squared distance of the two ground positions, as its
+        # distance matrix has it
+        pt, pe = pairs.a, pairs.b
+        d2p = np.sum((g_t[pt] - g_e[pe]) ** 2, axis=-1)
+        near = d2p <= max_dist_m**2
+        pt, pe, d2p = pt[near], pe[near], d2p[near]
+        p_lo = np.searchsorted(np.searchsorted(frames, t_frame[pt]), np.arange(len(frames) + 1))
+        for f in range(len(frames)):
+            gi, hi = ot[lo_t[f]:hi_t[f]], oe[lo_e[f]:hi_e[f]]
+            om, hm = np.zeros(len(gi), bool), np.zeros(len(hi), bool)
+            k0, k1 = p_lo[f], p_lo[f + 1]
+            if k1 > k0:
+                d2 = np.full((len(gi), len(hi)), np.nan)
+                d2[pos_t[pt[k0:k1]], pos_e[pe[k0:k1]]] = d2p[k0:k1]
+                self.ids += _match_frame(d2, t_idx[gi], e_idx[hi], self.last, self.col, om, hm)
+            self.fn += int((~om).sum())
+            self.fp += int((~hm).sum())
+
+    def scores(self, n_truth: int, n_est: int, idtp: float) -> dict[str, float | int]:
+        """MOTA, IDF1, FP, FN, IDs of the blocks so far: ``n_truth`` and ``n_est`` rows, IDF1's
+        true positives ``idtp`` (:func:`idtp`)."""
+        fn, fp, ids = self.fn, self.fp, self.ids
+        return {"mota": 1.0 - (fn + fp + ids) / n_truth if n_truth else float("nan"),
+                "idf1": 2 * idtp / (n_truth + n_est) if n_truth + n_est else float("nan"),
+                "fp": fp, "fn": fn, "ids": ids}

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import datetime as _dt
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol, TextIO
 
@@ -152,11 +153,14 @@ class StreamedRows:
     and its QA findings (sorted as :func:`write_anomalies_csv` writes them), the windows in frame
     order. Part ``k``'s rows go out as soon as parts ``0..k`` are all in (they are final, and
     the files then read as the whole run's), so that little is left to write when the last one
-    comes; each part is checked as :func:`check_tracks` checks a whole run. A context manager;
-    :func:`write_result_files` with ``streamed`` writes the rest."""
+    comes; each part is checked as :func:`check_tracks` checks a whole run. ``also``: given each
+    part's tracks too, in order, once written (the truth report's counts as the run goes,
+    :class:`gt3dkit.commands.common.TruthTally`). A context manager; :func:`write_result_files`
+    with ``streamed`` writes the rest."""
 
-    def __init__(self, d: Path) -> None:
+    def __init__(self, d: Path, also: Callable[[TrackSet], None] | None = None) -> None:
         self.d = Path(d)
+        self._also = also
         self._next = 0
         self._waiting: dict[int, tuple[TrackSet, list[tuple[Any, ...]]]] = {}
         self._files: dict[str, tuple[TextIO, Any]] = {}  # (file, its csv.writer)
@@ -169,6 +173,8 @@ class StreamedRows:
             t, rows = self._waiting.pop(self._next)
             self._write(t, rows)
             self._next += 1
+            if self._also is not None:
+                self._also(t)
 
     def _writer(self, name: str, header: tuple[str, ...]) -> Any:
         if name not in self._files:

@@ -10,7 +10,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -26,12 +26,22 @@ from gt3dkit.fusion.prepare import Prepared
 from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.qa.anomalies import Anomalies
 from gt3dkit.threads import roomy_malloc, small_matrix_blas
-from gt3dkit.types import I64, Downweighted, Options, Scene, TrackSet
+from gt3dkit.types import I64, Downweighted, GroundTruth, Options, Scene, TrackSet
 from gt3dkit.windows.plan import Plan, Window
 
 #: What a window's rows and findings go to as it finishes (:func:`reconstruct_windowed`): its index,
 #: its tracks and its QA rows.
 OnPart = Callable[[int, TrackSet, list[tuple[Any, ...]]], None]
+
+
+class RowsTally(Protocol):
+    """What counts a run's rows as they become final, window by window in frame order (the
+    truth report's counts, :class:`gt3dkit.commands.common.TruthTally`): told first where the
+    sequence's truth comes from (read meanwhile, where the windows read their own frames)."""
+
+    def truth_from(self, get: Callable[[], GroundTruth | None]) -> None: ...
+
+    def add(self, tracks: TrackSet) -> None: ...
 
 
 @dataclass(frozen=True)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
@@ -259,3 +260,42 @@ def test_tracking_scores_share_one_set_of_pairs() -> None:
     s = tracking_scores(far, TRUTH, UP)
     assert (s["hota"], s["idf1"], s["ospa2_m"]) == (0.0, 0.0, 1.0)
     assert (s["fp"], s["fn"]) == (len(EST.frame), len(TRUTH.frame))
+
+
+def test_tally_in_parts_gives_the_whole_scores() -> None:
+    """``TrackingTally`` fed the tracks in parts of consecutive frames (a long sequence's windows
+    as they finish), parts with no row, truth-only frames between parts and after the last
+    among them, gives exactly the whole tracks' scores and errors; the identity switches are
+    the whole run's across the cuts too (the state goes on from part to part)."""
+    from gt3dkit.api import take_rows
+    from gt3dkit.eval.tracking import TrackingTally
+
+    rng = np.random.default_rng(7)
+    switches = cut_at_switch = matched = 0
+    for _ in range(120):
+        est, truth = _random_tracking(rng)
+        order = np.lexsort((est.track_id, est.frame))  # as the windows' rows come
+        est = take_rows(est, order)
+        if rng.random() < 0.5:  # the truth's ids (the box errors pair rows by frame and id)
+            est = dataclasses.replace(est, track_id=est.track_id - 100)
+        for reach in (1.0, 0.4):
+            frames = np.union1d(truth.frame, est.frame)
+            cuts = np.sort(rng.choice(frames, size=min(len(frames), int(rng.integers(1, 6))), replace=False))
+            tally = TrackingTally(truth, UP, reach)
+            lo = -1
+            for hi in [*cuts.tolist(), int(frames.max())]:
+                part = (est.frame > lo) & (est.frame <= hi)
+                tally.add(take_rows(est, part))
+                lo = hi
+            assert tally.rows == len(est.frame)
+            whole = tracking_scores(est, truth, UP, reach)
+            assert tally.scores() == whole
+            got, want = tally.errors().as_dict(), box_errors(est, truth, UP, reach, mot=whole).as_dict()
+            np.testing.assert_equal(got, want)  # (NaN where no row pairs)
+            matched += got["rows_matched"]
+            switches += int(whole["ids"])
+            cut_at_switch += int(whole["ids"] > 0 and len(cuts) > 1)
+    assert switches > 50 and cut_at_switch > 20 and matched > 1000  # switches, in runs that were cut
+    tally = TrackingTally(TRUTH, UP).add(take_rows(EST, EST.frame == 2))
+    with pytest.raises(ValueError, match="must come after"):
+        tally.add(take_rows(EST, EST.frame == 1))
