@@ -227,16 +227,17 @@ def box_errors(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float 
     """Errors of matched rows and :func:`clear_mot` (``mot``: its result when already computed,
     e.g. by :func:`gt3dkit.eval.tracking.tracking_scores` with the same arguments)."""
     mot = mot if mot is not None else clear_mot(tracks, truth, up, max_dist_m)
-    return errors_of(row_errors(tracks, truth, up), len(truth.frame), mot)
+    e = row_errors(tracks, truth, up)
+    return errors_of(e, len(np.unique(e.truth_row)), len(truth.frame), mot)
 
 
-def errors_of(e: RowErrors, n_truth: int, mot: JsonDict) -> BoxErrors:
-    """:class:`BoxErrors` of the matched rows' errors ``e`` against a truth of ``n_truth`` rows,
-    with :func:`clear_mot`'s scores ``mot``."""
+def errors_of(e: RowErrors, covered: int, n_truth: int, mot: JsonDict) -> BoxErrors:
+    """:class:`BoxErrors` of the matched rows' errors ``e``, ``covered`` of the truth's
+    ``n_truth`` rows with an estimate, with :func:`clear_mot`'s scores ``mot``."""
     ground = e.ground
     return BoxErrors(
         rows_truth=n_truth, rows_matched=len(e.truth_row),
-        coverage=len(np.unique(e.truth_row)) / max(n_truth, 1),
+        coverage=covered / max(n_truth, 1),
         ground_mean_m=_nanmean(ground),
         ground_median_m=float(np.median(ground)) if ground.size else float("nan"),
         centre_mean_m=_nanmean(e.centre), height_mean_m=_nanmean(e.height),

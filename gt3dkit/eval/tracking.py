@@ -52,36 +52,82 @@ def ospa2(truth_frame: np.ndarray, truth_id: np.ndarray, truth_xy: F64, est_fram
     the frames both are in), is ``(c U - sum (c - d_t)) / U``: the frames where both are within
     ``c`` of each other (:func:`gt3dkit.eval.metrics.near_pairs`; ``pairs``: the two tables'
     within at least ``c``, when known) bring it below ``c``."""
-    tx, ti = np.unique(truth_id, return_inverse=True)
-    ey, ei = np.unique(est_id, return_inverse=True)
-    if not len(tx) and not len(ey):
-        return 0.0
-    if not len(tx) or not len(ey):
-        return float(cutoff)
-    frames = np.union1d(truth_frame, est_frame)
-    t_rows = _present(ti.ravel(), np.searchsorted(frames, truth_frame), truth_xy)
-    e_rows = _present(ei.ravel(), np.searchsorted(frames, est_frame), est_xy)
-    n_x = np.bincount(ti.ravel()[t_rows], minlength=len(tx)).astype(float)
-    n_y = np.bincount(ei.ravel()[e_rows], minlength=len(ey)).astype(float)
-    both = _frames_shared(ti.ravel()[t_rows], np.searchsorted(frames, truth_frame[t_rows]), len(tx),
-                          ei.ravel()[e_rows], np.searchsorted(frames, est_frame[e_rows]), len(ey),
-                          len(frames))
-    union = n_x[:, None] + n_y[None] - both
-    a, b, d = pairs if pairs is not None else near_pairs(truth_frame, truth_xy, est_frame, est_xy, cutoff)
-    on = np.zeros(len(truth_frame), bool)
-    on[t_rows] = True
-    on_e = np.zeros(len(est_frame), bool)
-    on_e[e_rows] = True
-    k = on[a] & on_e[b] & (d < cutoff)
-    closer = np.bincount(ti.ravel()[a[k]] * len(ey) + ei.ravel()[b[k]], weights=cutoff - d[k],
-                         minlength=len(tx) * len(ey)).reshape(len(tx), len(ey))
-    D = (cutoff * union - closer) / np.maximum(union, 1)
-    n = max(len(tx), len(ey))
-    m = min(len(tx), len(ey))
-    C = D if len(tx) <= len(ey) else D.T
-    r, c = linear_sum_assignment(C**order)
-    cost = float(np.sum(C[r, c] ** order)) + cutoff**order * (n - m)
-    return float((cost / n) ** (1.0 / order))
+    ids, code = np.unique(est_id, return_inverse=True)
+    if pairs is None:
+        pairs = near_pairs(truth_frame, truth_xy, est_frame, est_xy, cutoff)
+    parts = Ospa2Parts(truth_frame, truth_id, truth_xy, cutoff, order)
+    parts.part(np.arange(len(truth_frame)), est_frame, code.ravel(), est_xy)
+    return parts.result(pairs, ids, code.ravel())
+
+
+class Ospa2Parts:
+    """:func:`ospa2` of tracks that come in parts, each part's frames after the parts' before it
+    (:class:`TrackingTally`): each part's track rows (their identities as codes, any numbering
+    the parts share) add the frames each track is in and the frames each pair of identities
+    shares as they come; the pairs' distances and the assignment come at the end
+    (:meth:`result`), exactly the whole tracks' number."""
+
+    def __init__(self, truth_frame: np.ndarray, truth_id: np.ndarray, truth_xy: F64, cutoff: float = 1.0,
+                 order: float = 1.0) -> None:
+        self.cutoff, self.order = float(cutoff), float(order)
+        self.truth_frame = np.asarray(truth_frame)
+        self.tx, ti = np.unique(truth_id, return_inverse=True)
+        self.ti = ti.ravel()
+        f = self.truth_frame
+        t_rows = _present(self.ti, f - f.min(initial=0), truth_xy)
+        self.n_x = np.bincount(self.ti[t_rows], minlength=len(self.tx)).astype(float)
+        self.on = np.zeros(len(f), bool)
+        self.on[t_rows] = True
+        self.n_y = np.zeros(0)  # each code's frames
+        self.both = np.zeros((len(self.tx), 0))  # each truth id's and code's shared frames
+        self._on_e: list[np.ndarray] = []
+
+    def part(self, t_rows: np.ndarray, e_frame: np.ndarray, e_code: np.ndarray, e_xy: F64) -> None:
+        """The next part: the truth rows of its frames (``t_rows``, the truth's row numbers), its
+        track rows' frames, identity codes and positions."""
+        n = max(int(e_code.max(initial=-1)) + 1, len(self.n_y))
+        self.n_y = np.r_[self.n_y, np.zeros(n - len(self.n_y))]
+        self.both = np.c_[self.both, np.zeros((len(self.tx), n - self.both.shape[1]))]
+        e_rows = _present(e_code, e_frame - e_frame.min(initial=0), e_xy)
+        on_e = np.zeros(len(e_frame), bool)
+        on_e[e_rows] = True
+        self._on_e.append(on_e)
+        self.n_y += np.bincount(e_code[e_rows], minlength=n)
+        t_on = t_rows[self.on[t_rows]]
+        frames = np.union1d(self.truth_frame[t_on], e_frame[e_rows])
+        if len(frames):
+            at_t = np.searchsorted(frames, self.truth_frame[t_on])
+            at_e = np.searchsorted(frames, e_frame[e_rows])
+            self.both += _frames_shared(self.ti[t_on], at_t, len(self.tx), e_code[e_rows], at_e, n,
+                                        len(frames))
+
+    def result(self, pairs: NearPairs, ids: np.ndarray, e_code: np.ndarray) -> float:
+        """OSPA(2) of every part: ``pairs`` the truth's and every track row's
+        (:func:`gt3dkit.eval.metrics.near_pairs`, in frame order), ``ids`` each code's id,
+        ``e_code`` every track row's code."""
+        c, order, tx = self.cutoff, self.order, self.tx
+        if not len(tx) and not len(ids):
+            return 0.0
+        if not len(tx) or not len(ids):
+            return c
+        by_id = np.argsort(ids, kind="stable")  # the codes in the ids' order
+        rank = np.empty(len(ids), np.int64)
+        rank[by_id] = np.arange(len(ids))
+        ei, n_ey = rank[e_code], len(ids)
+        n_y = np.r_[self.n_y, np.zeros(n_ey - len(self.n_y))][by_id]
+        both = np.c_[self.both, np.zeros((len(tx), n_ey - self.both.shape[1]))][:, by_id]
+        union = self.n_x[:, None] + n_y[None] - both
+        a, b, d = pairs
+        on_e = np.concatenate(self._on_e) if self._on_e else np.zeros(len(e_code), bool)
+        k = self.on[a] & on_e[b] & (d < c)
+        closer = np.bincount(self.ti[a[k]] * n_ey + ei[b[k]], weights=c - d[k],
+                             minlength=len(tx) * n_ey).reshape(len(tx), n_ey)
+        D = (c * union - closer) / np.maximum(union, 1)
+        n, m = max(len(tx), n_ey), min(len(tx), n_ey)
+        C = D if len(tx) <= n_ey else D.T
+        r, cc = linear_sum_assignment(C**order)
+        cost = float(np.sum(C[r, cc] ** order)) + c**order * (n - m)
+        return float((cost / n) ** (1.0 / order))
 
 
 def _present(ident: np.ndarray, frame_at: np.ndarray, xy: F64) -> np.ndarray:
@@ -127,54 +173,95 @@ def hota(truth_frame: np.ndarray, truth_id: np.ndarray, truth_xy: F64, est_frame
     itself on random scenes with misses, false positives and identity swaps. Only the pairs of
     a frame with a similarity above 0 are looked at (:func:`gt3dkit.eval.metrics.near_pairs`;
     ``pairs``: the two tables' within at least ``cutoff``, when known)."""
-    n_a = len(HOTA_ALPHAS)
-    if not len(est_id) or not len(truth_id):  # TrackEval's early return: every score 0
-        return {"hota": 0.0, "deta": 0.0, "assa": 0.0}
-    _, g_inv = np.unique(truth_id, return_inverse=True)
-    e_ids, e_inv = np.unique(est_id, return_inverse=True)
-    g_inv, e_inv = g_inv.ravel(), e_inv.ravel()
-    n_g, n_e = int(g_inv.max()) + 1, len(e_ids)
-    g_count = np.bincount(g_inv, minlength=n_g).astype(float)
-    e_count = np.bincount(e_inv, minlength=n_e).astype(float)
-    both = g_count.repeat(n_e) + np.tile(e_count, n_g)  # (n_g * n_e,) the two identities' rows
-    # farther pairs add nothing to (1) and (2): a similarity of 0
-    a, b, d = pairs if pairs is not None else near_pairs(truth_frame, truth_xy, est_frame, est_xy, cutoff)
-    k = d < cutoff
-    a, b, d = a[k], b[k], d[k]
-    sim = 1.0 - d / cutoff
-    cell = g_inv[a] * n_e + e_inv[b]
-    rows = np.bincount(a, weights=sim, minlength=len(truth_frame))  # a truth row's pairs: one frame's
-    cols = np.bincount(b, weights=sim, minlength=len(est_frame))
-    denom = rows[a] + cols[b] - sim
-    iou = np.where(denom > np.finfo(float).eps, sim / np.where(denom > 0, denom, 1.0), 0.0)
-    potential = np.bincount(cell, weights=iou, minlength=n_g * n_e)  # (1)
-    align = potential / (both - potential)
-    score = align[cell] * sim
-    frames = np.union1d(truth_frame, est_frame)
-    _, lo_t, hi_t, pos_t = frame_blocks(truth_frame, frames)
-    _, lo_e, hi_e, pos_e = frame_blocks(est_frame, frames)
-    at = np.searchsorted(frames, truth_frame[a])
-    starts = np.flatnonzero(np.r_[True, at[1:] != at[:-1]]).tolist() if len(a) else []
-    picked = []
-    for k0, k1 in zip(starts, [*starts[1:], len(a)][:len(starts)], strict=True):  # (2)
-        f = at[k0]
-        block = np.zeros((hi_t[f] - lo_t[f], hi_e[f] - lo_e[f]))  # the frame's truth x tracks
-        i, j = pos_t[a[k0:k1]], pos_e[b[k0:k1]]
-        block[i, j] = score[k0:k1]
-        pair = np.full(block.shape, -1)
-        pair[i, j] = np.arange(k0, k1)
-        r, c = linear_sum_assignment(-block)
-        picked.append(pair[r, c])
-    m = np.concatenate(picked) if picked else np.zeros(0, np.int64)
-    m = m[m >= 0]  # a pair without similarity counts at no threshold
-    ok = sim[m][None] >= HOTA_ALPHAS[:, None] - np.finfo(float).eps  # (A, M)
-    tp = ok.sum(axis=1).astype(float)
-    matches = np.stack([np.bincount(cell[m[ok[k]]], minlength=n_g * n_e) for k in range(n_a)]).astype(float)
-    fn, fp = len(truth_id) - tp, len(est_id) - tp
-    ass = (matches * (matches / np.maximum(1.0, both - matches))).sum(axis=1) / np.maximum(1.0, tp)
-    det = tp / np.maximum(1.0, tp + fn + fp)
-    return {"hota": float(np.mean(np.sqrt(det * ass))), "deta": float(np.mean(det)),
-            "assa": float(np.mean(ass))}
+    ids, code = np.unique(est_id, return_inverse=True)
+    if pairs is None:
+        pairs = near_pairs(truth_frame, truth_xy, est_frame, est_xy, cutoff)
+    parts = HotaParts(truth_frame, truth_id, cutoff)
+    parts.part(np.arange(len(truth_frame)), est_frame, pairs)
+    return parts.result(len(ids), code.ravel())
+
+
+class HotaParts:
+    """:func:`hota` of tracks that come in parts, each part's frames after the parts' before it
+    (:class:`TrackingTally`): what each pair of rows brings to (1) (its similarity over the
+    union of its two rows') and to (2) (its place in its frame's truth x tracks block) found as
+    its part comes; the global alignment, the per-frame assignments and the scores at the end
+    (:meth:`result`), exactly the whole tracks' numbers."""
+
+    def __init__(self, truth_frame: np.ndarray, truth_id: np.ndarray, cutoff: float = 1.0) -> None:
+        self.cutoff, self.truth_frame = float(cutoff), np.asarray(truth_frame)
+        _, g_inv = np.unique(truth_id, return_inverse=True)
+        self.g_inv = g_inv.ravel()
+        self.n_g = int(self.g_inv.max(initial=-1)) + 1
+        self.g_count = np.bincount(self.g_inv, minlength=self.n_g).astype(float)
+        self._n_est = 0
+        # each pair within reach: its truth row, track row, similarity, share of (1), place in its
+        # frame's block; each frame's first pair and block shape
+        self._pairs: list[tuple[np.ndarray, ...]] = []
+        self._frames: list[tuple[np.ndarray, ...]] = []
+        self._n_pairs = 0
+
+    def part(self, t_rows: np.ndarray, e_frame: np.ndarray, pairs: NearPairs) -> None:
+        """The next part: the truth rows of its frames (``t_rows``, the truth's row numbers), its
+        track rows' frames, and their pairs (``a`` into ``t_rows``, ``b`` into the part's rows,
+        in frame order: :func:`gt3dkit.eval.metrics.near_pairs`)."""
+        c = self.cutoff
+        t_frame = self.truth_frame[t_rows]
+        k = pairs.d < c  # farther pairs add nothing to (1) and (2): a similarity of 0
+        a, b, d = pairs.a[k], pairs.b[k], pairs.d[k]
+        sim = 1.0 - d / c
+        rows = np.bincount(a, weights=sim, minlength=len(t_rows))  # a truth row's pairs: one frame's
+        cols = np.bincount(b, weights=sim, minlength=len(e_frame))
+        denom = rows[a] + cols[b] - sim
+        iou = np.where(denom > np.finfo(float).eps, sim / np.where(denom > 0, denom, 1.0), 0.0)
+        frames = np.union1d(t_frame, e_frame)
+        _, lo_t, hi_t, pos_t = frame_blocks(t_frame, frames)
+        _, lo_e, hi_e, pos_e = frame_blocks(e_frame, frames)
+        at = np.searchsorted(frames, t_frame[a])
+        starts = np.flatnonzero(np.r_[True, at[1:] != at[:-1]]) if len(a) else np.zeros(0, np.int64)
+        f = at[starts]
+        self._pairs.append((t_rows[a], b + self._n_est, sim, iou, pos_t[a], pos_e[b]))
+        self._frames.append((starts + self._n_pairs, hi_t[f] - lo_t[f], hi_e[f] - lo_e[f]))
+        self._n_est += len(e_frame)
+        self._n_pairs += len(a)
+
+    def result(self, n_e: int, e_inv: np.ndarray) -> dict[str, float]:
+        """HOTA, DetA, AssA of every part: ``n_e`` track identities, ``e_inv`` every track row's
+        (numbered in the ids' order)."""
+        n_a, n_g = len(HOTA_ALPHAS), self.n_g
+        if not len(e_inv) or not len(self.g_inv):  # TrackEval's early return: every score 0
+            return {"hota": 0.0, "deta": 0.0, "assa": 0.0}
+        e_count = np.bincount(e_inv, minlength=n_e).astype(float)
+        both = self.g_count.repeat(n_e) + np.tile(e_count, n_g)  # (n_g * n_e,) the two identities' rows
+        none = np.zeros(0, np.int64)
+        a, b, sim, iou, i_all, j_all = (np.concatenate(x) for x in zip(
+            *self._pairs, strict=True)) if self._pairs else (none, none, np.zeros(0), np.zeros(0), none, none)
+        starts, n_t, n_h = (np.concatenate(x).tolist() for x in zip(*self._frames, strict=True)
+                            ) if self._frames else ([], [], [])
+        cell = self.g_inv[a] * n_e + e_inv[b]
+        potential = np.bincount(cell, weights=iou, minlength=n_g * n_e)  # (1)
+        align = potential / (both - potential)
+        score = align[cell] * sim
+        picked = []
+        for k0, k1, nt, nh in zip(starts, [*starts[1:], len(a)][:len(starts)], n_t, n_h, strict=True):  # (2)
+            block = np.zeros((nt, nh))  # the frame's truth x tracks
+            i, j = i_all[k0:k1], j_all[k0:k1]
+            block[i, j] = score[k0:k1]
+            pair = np.full(block.shape, -1)
+            pair[i, j] = np.arange(k0, k1)
+            r, c = linear_sum_assignment(-block)
+            picked.append(pair[r, c])
+        m = np.concatenate(picked) if picked else np.zeros(0, np.int64)
+        m = m[m >= 0]  # a pair without similarity counts at no threshold
+        ok = sim[m][None] >= HOTA_ALPHAS[:, None] - np.finfo(float).eps  # (A, M)
+        tp = ok.sum(axis=1).astype(float)
+        matches = np.stack([np.bincount(cell[m[ok[k]]], minlength=n_g * n_e)
+                            for k in range(n_a)]).astype(float)
+        fn, fp = len(self.g_inv) - tp, len(e_inv) - tp
+        ass = (matches * (matches / np.maximum(1.0, both - matches))).sum(axis=1) / np.maximum(1.0, tp)
+        det = tp / np.maximum(1.0, tp + fn + fp)
+        return {"hota": float(np.mean(np.sqrt(det * ass))), "deta": float(np.mean(det)),
+                "assa": float(np.mean(ass))}
 
 
 def tracking_scores(tracks: TrackSet, truth: GroundTruth, up: F64, cutoff_m: float = 1.0
@@ -209,11 +296,14 @@ class TrackingTally:
         self._done = 0  # the truth rows (in frame order) whose frames are done
         self._through: int | None = None  # the last frame done
         self._mot = MotCounts(int(self._t_idx.max(initial=-1)) + 1)
+        self._hota = HotaParts(truth.frame, truth.track_id, self.cutoff)
+        self._ospa = Ospa2Parts(truth.frame, truth.track_id, self._g_t, self.cutoff)
         self._ids, self._codes = np.zeros(0, np.int64), np.zeros(0, np.int64)  # the tracks' ids seen
-        self._rows: list[tuple[np.ndarray, np.ndarray, F64]] = []  # each part's frame, id, ground position
+        self._code: list[np.ndarray] = []  # each part's rows' identity codes
         self._pairs: list[NearPairs] = []
         self._errors: list[RowErrors] = []
         self._n = 0  # track rows so far
+        self._covered = 0  # truth rows with an estimate so far
         self._result: tuple[dict[str, float | int], BoxErrors] | None = None
 
     def add(self, tracks: TrackSet) -> TrackingTally:
@@ -244,12 +334,15 @@ class TrackingTally:
         g_e = ground_coords(tracks.center_world, self.up)
         # a hair beyond the cut-off: each metric makes its own test
         pairs = near_pairs(truth.frame, g_t, tracks.frame, g_e, self.cutoff * (1.0 + 1e-9))
-        self._mot.block(truth.frame, self._t_idx[rows], g_t, tracks.frame, self._coded(tracks.track_id), g_e,
-                        pairs, self.cutoff)
+        code = self._coded(tracks.track_id)
+        self._mot.block(truth.frame, self._t_idx[rows], g_t, tracks.frame, code, g_e, pairs, self.cutoff)
+        self._hota.part(rows, tracks.frame, pairs)
+        self._ospa.part(rows, tracks.frame, code, g_e)
         self._pairs.append(NearPairs(rows[pairs.a], pairs.b + self._n, pairs.d))
         e = row_errors(tracks, truth, self.up)
         self._errors.append(dataclasses.replace(e, truth_row=rows[e.truth_row]))
-        self._rows.append((np.asarray(tracks.frame), np.asarray(tracks.track_id), g_e))
+        self._covered += len(np.unique(e.truth_row))  # (a part's truth rows are its own)
+        self._code.append(code)
         self._n += len(tracks)
 
     def _coded(self, ids: np.ndarray) -> np.ndarray:
@@ -267,16 +360,19 @@ class TrackingTally:
     def _finished(self) -> tuple[dict[str, float | int], BoxErrors]:
         if self._result is None:
             self._block(None, None)
-            t, g_t, c = self.truth, self._g_t, self.cutoff
-            rows = self._rows or [(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)))]
-            frame, tid, g_e = (np.concatenate([r[k] for r in rows]) for k in range(3))
+            t, c = self.truth, self.cutoff
+            code = np.concatenate(self._code) if self._code else np.zeros(0, np.int64)
+            by_id = np.argsort(self._ids[np.argsort(self._codes)], kind="stable")  # codes in the ids' order
+            rank = np.empty(len(by_id), np.int64)
+            rank[by_id] = np.arange(len(by_id))
+            ids = self._ids[np.argsort(self._codes)]  # each code's id
             pairs = NearPairs.concat(self._pairs)
             out: dict[str, float | int] = dict(self._mot.scores(
-                len(t.frame), len(frame), idtp(pair_counts(tid, t.track_id, pairs, c)[0])))
-            out.update(hota(t.frame, t.track_id, g_t, frame, tid, g_e, c, pairs))
-            out["ospa2_m"] = ospa2(t.frame, t.track_id, g_t, frame, tid, g_e, c, 1.0, pairs)
-            self._result = out, errors_of(RowErrors.concat(self._errors), len(t.frame), out)
-            self._rows, self._pairs, self._errors = [], [], []
+                len(t.frame), len(code), idtp(pair_counts(ids[code], t.track_id, pairs, c)[0])))
+            out.update(self._hota.result(len(ids), rank[code]))
+            out["ospa2_m"] = self._ospa.result(pairs, ids, code)
+            self._result = out, errors_of(RowErrors.concat(self._errors), self._covered, len(t.frame), out)
+            self._code, self._pairs, self._errors = [], [], []
         return self._result
 
     def scores(self) -> dict[str, float | int]:
