@@ -76,7 +76,7 @@ import dataclasses
 import functools
 import uuid
 from collections.abc import Callable, Iterable
-from concurrent.futures import Executor, ThreadPoolExecutor
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -214,11 +214,7 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
                        if client is not None and cluster is not None else [])
             sample = cut(*noise_sample(scene, windows))
             noise_when_done = chosen_noise(scene, sample, estimator, config, runner)
-            truth = (stack.enter_context(ThreadPoolExecutor(1)).submit(with_sequence_truth, scene)
-                     if scene.index is not None else None)
-            if tally is not None:
-                given = scene.truth
-                tally.truth_from(lambda: truth.result().truth if truth is not None else given)
+            truth = _truth_meanwhile(scene, stack, tally)
             # meanwhile the windows, cut (and sent to the cluster) for the context the noise leaves
             # as it is (always, for boxes), again if it needs less; each frame's objects and each
             # object's annotated frames (--every-frame) found once for both
@@ -284,6 +280,20 @@ def _run_rounds(scenes: Callable[[int], Any], windows: list[Window], like: Windo
         if kept is not None:
             _drop_kept(kept.token, client)
     return parts, samples, like
+
+
+def _truth_meanwhile(scene: Scene, stack: contextlib.ExitStack, tally: RowsTally | None
+                     ) -> Future[Scene] | None:
+    """Where ``scene`` is an index whose windows read their own frames, its sequence's truth file
+    read in a thread of ``stack`` meanwhile (:func:`gt3dkit.io.datasets.with_sequence_truth`: the
+    future of the scene with it); ``tally`` told where the truth comes from (that future's, or
+    ``scene``'s own)."""
+    truth = (stack.enter_context(ThreadPoolExecutor(1)).submit(with_sequence_truth, scene)
+             if scene.index is not None else None)
+    if tally is not None:
+        given = scene.truth
+        tally.truth_from(lambda: truth.result().truth if truth is not None else given)
+    return truth
 
 
 def _cutter(scene: Scene) -> Callable[[int, int], Scene | SampleRead]:
