@@ -189,9 +189,11 @@ class TruthTally:
         self._off = False
 
     def truth_from(self, get: Callable[[], GroundTruth | None]) -> None:
+        """The truth is ``get()``, called when the first rows come (None: no truth to count)."""
         self._get = get
 
     def add(self, tracks: TrackSet) -> None:
+        """The next window's final rows (frames after every earlier window's)."""
         if self._off or self._get is None:
             self._off = True
             return

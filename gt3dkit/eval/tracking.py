@@ -283,8 +283,8 @@ class TrackingTally:
     cut (:func:`tracking_scores` is the one-part case; ``tests/eval/test_metrics.py``).
 
     On the 8 000-frame, 60-person box scene the whole computation took 1.3 s after the last
-    window; of it, the pairs, CLEAR-MOT's loop and the errors (0.85 s) now run while the
-    windows do."""
+    window; cut in 30 parts, the parts take 0.7-0.9 s in all, while the windows run, and the end
+    0.23 s (HOTA's per-frame assignments, 0.18 s of it, need the alignment of every frame)."""
 
     def __init__(self, truth: GroundTruth, up: F64, cutoff_m: float = 1.0) -> None:
         self.truth, self.up, self.cutoff = truth, np.asarray(up, float), float(cutoff_m)
