@@ -265,8 +265,9 @@ def test_tracking_scores_share_one_set_of_pairs() -> None:
 def test_tally_in_parts_gives_the_whole_scores() -> None:
     """``TrackingTally`` fed the tracks in parts of consecutive frames (a long sequence's windows
     as they finish), parts with no row, truth-only frames between parts and after the last
-    among them, gives exactly the whole tracks' scores and errors; the identity switches are
-    the whole run's across the cuts too (the state goes on from part to part)."""
+    among them, truth rows given twice and positions not given, gives exactly the whole tracks'
+    scores and errors; the identity switches are the whole run's across the cuts too (the state
+    goes on from part to part)."""
     from gt3dkit.api import take_rows
     from gt3dkit.eval.tracking import TrackingTally
 
@@ -278,6 +279,13 @@ def test_tally_in_parts_gives_the_whole_scores() -> None:
         est = take_rows(est, order)
         if rng.random() < 0.5:  # the truth's ids (the box errors pair rows by frame and id)
             est = dataclasses.replace(est, track_id=est.track_id - 100)
+        if rng.random() < 0.3:  # truth rows twice, positions not given (NaN), in both tables
+            again = rng.random(len(truth.frame)) < 0.05
+            truth = GroundTruth.concat([truth, truth.select(again)])
+            off = rng.random(len(truth.frame))[:, None] < 0.05
+            truth = dataclasses.replace(truth, center_world=np.where(off, np.nan, truth.center_world))
+            off = rng.random(len(est.frame))[:, None] < 0.05
+            est = dataclasses.replace(est, center_world=np.where(off, np.nan, est.center_world))
         for reach in (1.0, 0.4):
             frames = np.union1d(truth.frame, est.frame)
             cuts = np.sort(rng.choice(frames, size=min(len(frames), int(rng.integers(1, 6))), replace=False))
