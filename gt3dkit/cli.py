@@ -17,7 +17,7 @@ import importlib
 import os
 import sys
 import threading
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from gt3dkit.early import DEFAULT_ESTIMATOR, Early, connect_early
 
@@ -63,7 +63,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def early_start(argv: list[str]) -> Early | None:
     """The early connection of ``gt3d reconstruct ... --scheduler ADDRESS`` (:mod:`gt3dkit.early`),
-    with :func:`warm_named` of its ``--estimator`` sent to the first worker; None for any other
+    with the warm-up of its ``--estimator`` (:func:`gt3dkit.windows.cluster.warm_first`, sent by
+    name: :class:`Named`) sent to the first worker; None for any other
     command line. The options are read as given (``--opt value`` or ``--opt=value``); the command
     line is parsed whole, and checked, afterwards."""
     if not argv or argv[0] != "reconstruct" or "-h" in argv or "--help" in argv:
@@ -71,7 +72,8 @@ def early_start(argv: list[str]) -> Early | None:
     address = (_value(argv, "--scheduler") or "").strip()
     if not address:
         return None
-    return connect_early(address, warm_named, _value(argv, "--estimator") or DEFAULT_ESTIMATOR)
+    return connect_early(address, Named("gt3dkit.windows.cluster", "warm_first"),
+                         _value(argv, "--estimator") or DEFAULT_ESTIMATOR, {})
 
 
 def _value(argv: list[str], option: str) -> str | None:
@@ -87,11 +89,28 @@ def _value(argv: list[str], option: str) -> str | None:
     return found
 
 
-def warm_named(estimator: str) -> None:
-    """On a Dask worker: gt3dkit's imports and ``estimator``'s compiled kernels loaded
-    (:func:`gt3dkit.windows.cluster.warm_first`), the module imported by name so that the client
-    sending this need not import it first."""
-    importlib.import_module("gt3dkit.windows.cluster").warm_first(estimator, {})
+def by_name(module: str, name: str) -> Any:
+    """``module``'s ``name``, ``module`` imported here if it is not yet (:class:`Named`)."""
+    return getattr(importlib.import_module(module), name)
+
+
+class Named:
+    """The function ``module.name``, sent to a Dask worker without this process importing
+    ``module``: it pickles as the call that imports it (:func:`by_name`). So the worker imports
+    ``module`` as it reads the task, in the one thread that reads every message, before the task
+    runs. Imported inside the task instead (the task thread), it raced the messages read
+    meanwhile: two threads importing one package at once can deadlock in Python's import locks,
+    and a worker died of it (``KeyError: 'gt3dkit.windows'`` reading the next task; once in the
+    test suite, 2 workers on 2 cores beside other tests)."""
+
+    def __init__(self, module: str, name: str) -> None:
+        self.module, self.__name__ = module, name  # Dask names the task after the function
+
+    def __call__(self, *args: object, **kwargs: object) -> Any:
+        return by_name(self.module, self.__name__)(*args, **kwargs)
+
+    def __reduce__(self) -> tuple[Any, tuple[str, str]]:
+        return by_name, (self.module, self.__name__)
 
 
 if __name__ == "__main__":

@@ -61,8 +61,8 @@ class Early:
                 self.client.close()
 
 
-def connect_early(address: str, warm: Callable[[str], None], estimator: str) -> Early:
-    """Connect to the Dask scheduler at ``address`` and send ``warm(estimator)`` to its first worker
+def connect_early(address: str, warm: Callable[..., None], *args: object) -> Early:
+    """Connect to the Dask scheduler at ``address`` and send ``warm(*args)`` to its first worker
     (sorted by address: the one the noise search runs on), not waiting for it. The others are
     sent theirs when the run takes this connection over (:class:`gt3dkit.windows.cluster.Cluster`):
     on 2 cores, warming them all now made the client's own imports wait, and the windows started
@@ -77,4 +77,4 @@ def connect_early(address: str, warm: Callable[[str], None], estimator: str) -> 
         return Early(address, error=e)
     first = sorted(client.scheduler_info()["workers"])[:1]
     return Early(address, client=client, warming={
-        w: client.submit(warm, estimator, workers=[w], allow_other_workers=False, pure=False) for w in first})
+        w: client.submit(warm, *args, workers=[w], allow_other_workers=False, pure=False) for w in first})

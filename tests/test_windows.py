@@ -392,6 +392,20 @@ def test_gt3d_connects_and_warms_the_first_worker_before_its_own_imports() -> No
             early.close()  # after the run closed it: nothing left to do, no error
 
 
+def test_the_early_warm_up_is_imported_as_the_worker_reads_it() -> None:
+    """The early warm-up is sent by name (``cli.Named``): pickling it imports nothing of
+    gt3dkit's windows here, and reading it back imports the function, there, before any task
+    runs (a worker whose task thread imported the package while its other thread read the next
+    task died in Python's import locks)."""
+    probe = ("import pickle, sys; from gt3dkit.cli import Named; "
+             "b = pickle.dumps(Named('gt3dkit.windows.cluster', 'warm_first')); "
+             "print('gt3dkit.windows' in sys.modules); f = pickle.loads(b); "
+             "print(f.__module__, f.__name__, 'gt3dkit.windows' in sys.modules)")
+    r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert r.stdout.split("\n")[:2] == ["False", "gt3dkit.windows.cluster warm_first True"], r.stdout
+    assert cli.Named("gt3dkit.windows.plan", "balanced_size")(100, 10, 2) == balanced_size(100, 10, 2)
+
+
 def test_an_early_connection_error_is_said_where_the_run_connects() -> None:
     """What went wrong connecting early is raised as the run's own connection says it, with no
     second attempt (which would wait Dask's connect timeout again)."""
