@@ -37,19 +37,28 @@ from gt3dkit.types import BOX_MODELS, I64, JsonDict, JsonValue, OptionValue, Sce
 __all__ = ["ESTIMATORS", "annotation_qa", "load_run", "load_scene", "make_estimator", "reconstruct"]
 
 
-@functools.cache
 def tiny_scenes() -> tuple[Scene, Scene]:
-    """Two small simulated scenes, written and read back as any input is: 4 frames of 2 people
-    boxed by the WILDTRACK rig's 7 cameras (1 px of noise), and 3 frames of one COCO-19 skeleton
-    seen by 3 cameras. Estimating both compiles, or loads from numba's cache, the kernels a run
-    uses (:mod:`gt3dkit.commands.warmup`; :func:`gt3dkit.windows.warm_worker`, a Dask worker's
-    while the sequence loads)."""
+    """The two small scenes of :func:`tiny_scene`: boxes, then joints."""
+    return tiny_scene("boxes"), tiny_scene("joints")
+
+
+@functools.cache
+def tiny_scene(kind: str) -> Scene:
+    """A small simulated scene, written and read back as any input is: ``"boxes"``, 4 frames of 2
+    people boxed by the WILDTRACK rig's 7 cameras (1 px of noise), or ``"joints"``, 3 frames of
+    one COCO-19 skeleton seen by 3 cameras. Estimating it compiles, or loads from numba's cache,
+    the kernels a run of that kind uses (:mod:`gt3dkit.commands.warmup`, where each kind's
+    process makes only its own: simulating the boxes compiles the box models' kernels, 13 s the
+    joints' process spent again; :func:`gt3dkit.windows.warm_worker`, a Dask worker's while the
+    sequence loads)."""
     with tempfile.TemporaryDirectory() as tmp:
-        write_scene(simulate("wildtrack", seed=0, frames=4, people=2, noise_px=1.0), Path(tmp) / "boxes",
-                    "wildtrack")
-        write_skeleton_scene(simulate_skeletons("native", seed=0, frames=3, people=1, cameras=3),
-                             Path(tmp) / "joints", "native")
-        return load_scene(Path(tmp) / "boxes"), load_scene(Path(tmp) / "joints")
+        if kind == "boxes":
+            write_scene(simulate("wildtrack", seed=0, frames=4, people=2, noise_px=1.0), Path(tmp) / kind,
+                        "wildtrack")
+        else:
+            write_skeleton_scene(simulate_skeletons("native", seed=0, frames=3, people=1, cameras=3),
+                                 Path(tmp) / kind, "native")
+        return load_scene(Path(tmp) / kind)
 
 
 def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None = None,
