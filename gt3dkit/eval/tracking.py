@@ -55,9 +55,14 @@ def ospa2(truth_frame: np.ndarray, truth_id: np.ndarray, truth_xy: F64, est_fram
     ids, code = np.unique(est_id, return_inverse=True)
     if pairs is None:
         pairs = near_pairs(truth_frame, truth_xy, est_frame, est_xy, cutoff)
-    parts = Ospa2Parts(truth_frame, truth_id, truth_xy, cutoff, order)
+    parts = Ospa2Parts(truth_frame, id_index(truth_id), truth_xy, cutoff, order)
     parts.part(np.arange(len(truth_frame)), est_frame, code.ravel(), est_xy)
-    return parts.result(pairs, ids, code.ravel())
+    return parts.result(pairs, np.arange(len(ids)), code.ravel())
+
+
+def id_index(ids: np.ndarray) -> np.ndarray:
+    """Each row's identity as its place among the sorted distinct ids ``(N,)``."""
+    return np.unique(ids, return_inverse=True)[1].ravel()
 
 
 class Ospa2Parts:
@@ -67,19 +72,19 @@ class Ospa2Parts:
     shares as they come; the pairs' distances and the assignment come at the end
     (:meth:`result`), exactly the whole tracks' number."""
 
-    def __init__(self, truth_frame: np.ndarray, truth_id: np.ndarray, truth_xy: F64, cutoff: float = 1.0,
+    def __init__(self, truth_frame: np.ndarray, truth_idx: np.ndarray, truth_xy: F64, cutoff: float = 1.0,
                  order: float = 1.0) -> None:
+        """``truth_idx (M,)``: each truth row's identity (:func:`id_index`)."""
         self.cutoff, self.order = float(cutoff), float(order)
-        self.truth_frame = np.asarray(truth_frame)
-        self.tx, ti = np.unique(truth_id, return_inverse=True)
-        self.ti = ti.ravel()
+        self.truth_frame, self.ti = np.asarray(truth_frame), truth_idx
+        self.n_tx = int(truth_idx.max(initial=-1)) + 1  # truth identities
         f = self.truth_frame
         t_rows = _present(self.ti, f - f.min(initial=0), truth_xy)
-        self.n_x = np.bincount(self.ti[t_rows], minlength=len(self.tx)).astype(float)
+        self.n_x = np.bincount(self.ti[t_rows], minlength=self.n_tx).astype(float)
         self.on = np.zeros(len(f), bool)
         self.on[t_rows] = True
         self.n_y = np.zeros(0)  # each code's frames
-        self.both = np.zeros((len(self.tx), 0))  # each truth id's and code's shared frames
+        self.both = np.zeros((self.n_tx, 0))  # each truth id's and code's shared frames
         self._on_e: list[np.ndarray] = []
 
     def part(self, t_rows: np.ndarray, e_frame: np.ndarray, e_code: np.ndarray, e_xy: F64) -> None:
@@ -87,7 +92,7 @@ class Ospa2Parts:
         track rows' frames, identity codes and positions."""
         n = max(int(e_code.max(initial=-1)) + 1, len(self.n_y))
         self.n_y = np.r_[self.n_y, np.zeros(n - len(self.n_y))]
-        self.both = np.c_[self.both, np.zeros((len(self.tx), n - self.both.shape[1]))]
+        self.both = np.c_[self.both, np.zeros((self.n_tx, n - self.both.shape[1]))]
         e_rows = _present(e_code, e_frame - e_frame.min(initial=0), e_xy)
         on_e = np.zeros(len(e_frame), bool)
         on_e[e_rows] = True
@@ -98,33 +103,29 @@ class Ospa2Parts:
         if len(frames):
             at_t = np.searchsorted(frames, self.truth_frame[t_on])
             at_e = np.searchsorted(frames, e_frame[e_rows])
-            self.both += _frames_shared(self.ti[t_on], at_t, len(self.tx), e_code[e_rows], at_e, n,
+            self.both += _frames_shared(self.ti[t_on], at_t, self.n_tx, e_code[e_rows], at_e, n,
                                         len(frames))
 
-    def result(self, pairs: NearPairs, ids: np.ndarray, e_code: np.ndarray) -> float:
+    def result(self, pairs: NearPairs, by_id: np.ndarray, ei: np.ndarray) -> float:
         """OSPA(2) of every part: ``pairs`` the truth's and every track row's
-        (:func:`gt3dkit.eval.metrics.near_pairs`, in frame order), ``ids`` each code's id,
-        ``e_code`` every track row's code."""
-        c, order, tx = self.cutoff, self.order, self.tx
-        if not len(tx) and not len(ids):
+        (:func:`gt3dkit.eval.metrics.near_pairs`, in frame order), ``by_id`` the codes in their
+        ids' order, ``ei`` every track row's identity (:func:`id_index`)."""
+        c, order, n_tx, n_ey = self.cutoff, self.order, self.n_tx, len(by_id)
+        if not n_tx and not n_ey:
             return 0.0
-        if not len(tx) or not len(ids):
+        if not n_tx or not n_ey:
             return c
-        by_id = np.argsort(ids, kind="stable")  # the codes in the ids' order
-        rank = np.empty(len(ids), np.int64)
-        rank[by_id] = np.arange(len(ids))
-        ei, n_ey = rank[e_code], len(ids)
         n_y = np.r_[self.n_y, np.zeros(n_ey - len(self.n_y))][by_id]
-        both = np.c_[self.both, np.zeros((len(tx), n_ey - self.both.shape[1]))][:, by_id]
+        both = np.c_[self.both, np.zeros((n_tx, n_ey - self.both.shape[1]))][:, by_id]
         union = self.n_x[:, None] + n_y[None] - both
         a, b, d = pairs
-        on_e = np.concatenate(self._on_e) if self._on_e else np.zeros(len(e_code), bool)
+        on_e = np.concatenate(self._on_e) if self._on_e else np.zeros(len(ei), bool)
         k = self.on[a] & on_e[b] & (d < c)
         closer = np.bincount(self.ti[a[k]] * n_ey + ei[b[k]], weights=c - d[k],
-                             minlength=len(tx) * n_ey).reshape(len(tx), n_ey)
+                             minlength=n_tx * n_ey).reshape(n_tx, n_ey)
         D = (c * union - closer) / np.maximum(union, 1)
-        n, m = max(len(tx), n_ey), min(len(tx), n_ey)
-        C = D if len(tx) <= n_ey else D.T
+        n, m = max(n_tx, n_ey), min(n_tx, n_ey)
+        C = D if n_tx <= n_ey else D.T
         r, cc = linear_sum_assignment(C**order)
         cost = float(np.sum(C[r, cc] ** order)) + c**order * (n - m)
         return float((cost / n) ** (1.0 / order))
@@ -176,7 +177,7 @@ def hota(truth_frame: np.ndarray, truth_id: np.ndarray, truth_xy: F64, est_frame
     ids, code = np.unique(est_id, return_inverse=True)
     if pairs is None:
         pairs = near_pairs(truth_frame, truth_xy, est_frame, est_xy, cutoff)
-    parts = HotaParts(truth_frame, truth_id, cutoff)
+    parts = HotaParts(truth_frame, id_index(truth_id), cutoff)
     parts.part(np.arange(len(truth_frame)), est_frame, pairs)
     return parts.result(len(ids), code.ravel())
 
@@ -188,10 +189,9 @@ class HotaParts:
     its part comes; the global alignment, the per-frame assignments and the scores at the end
     (:meth:`result`), exactly the whole tracks' numbers."""
 
-    def __init__(self, truth_frame: np.ndarray, truth_id: np.ndarray, cutoff: float = 1.0) -> None:
-        self.cutoff, self.truth_frame = float(cutoff), np.asarray(truth_frame)
-        _, g_inv = np.unique(truth_id, return_inverse=True)
-        self.g_inv = g_inv.ravel()
+    def __init__(self, truth_frame: np.ndarray, truth_idx: np.ndarray, cutoff: float = 1.0) -> None:
+        """``truth_idx (M,)``: each truth row's identity (:func:`id_index`)."""
+        self.cutoff, self.truth_frame, self.g_inv = float(cutoff), np.asarray(truth_frame), truth_idx
         self.n_g = int(self.g_inv.max(initial=-1)) + 1
         self.g_count = np.bincount(self.g_inv, minlength=self.n_g).astype(float)
         self._n_est = 0
@@ -289,15 +289,14 @@ class TrackingTally:
     def __init__(self, truth: GroundTruth, up: F64, cutoff_m: float = 1.0) -> None:
         self.truth, self.up, self.cutoff = truth, np.asarray(up, float), float(cutoff_m)
         self._g_t = ground_coords(np.nan_to_num(truth.center_world), self.up)
-        _, t_idx = np.unique(truth.track_id, return_inverse=True)
-        self._t_idx = t_idx.ravel()
+        self._t_idx = id_index(truth.track_id)
         self._by_frame = np.argsort(truth.frame, kind="stable")
         self._t_frames = np.asarray(truth.frame)[self._by_frame]
         self._done = 0  # the truth rows (in frame order) whose frames are done
         self._through: int | None = None  # the last frame done
         self._mot = MotCounts(int(self._t_idx.max(initial=-1)) + 1)
-        self._hota = HotaParts(truth.frame, truth.track_id, self.cutoff)
-        self._ospa = Ospa2Parts(truth.frame, truth.track_id, self._g_t, self.cutoff)
+        self._hota = HotaParts(truth.frame, self._t_idx, self.cutoff)
+        self._ospa = Ospa2Parts(truth.frame, self._t_idx, self._g_t, self.cutoff)
         self._ids, self._codes = np.zeros(0, np.int64), np.zeros(0, np.int64)  # the tracks' ids seen
         self._code: list[np.ndarray] = []  # each part's rows' identity codes
         self._pairs: list[NearPairs] = []
@@ -362,15 +361,14 @@ class TrackingTally:
             self._block(None, None)
             t, c = self.truth, self.cutoff
             code = np.concatenate(self._code) if self._code else np.zeros(0, np.int64)
-            by_id = np.argsort(self._ids[np.argsort(self._codes)], kind="stable")  # codes in the ids' order
-            rank = np.empty(len(by_id), np.int64)
-            rank[by_id] = np.arange(len(by_id))
-            ids = self._ids[np.argsort(self._codes)]  # each code's id
+            rank = np.empty(len(self._codes), np.int64)  # each code's place among the ids (sorted)
+            rank[self._codes] = np.arange(len(self._codes))
+            ei = rank[code]
             pairs = NearPairs.concat(self._pairs)
             out: dict[str, float | int] = dict(self._mot.scores(
-                len(t.frame), len(code), idtp(pair_counts(ids[code], t.track_id, pairs, c)[0])))
-            out.update(self._hota.result(len(ids), rank[code]))
-            out["ospa2_m"] = self._ospa.result(pairs, ids, code)
+                len(t.frame), len(code), idtp(pair_counts(self._ids[ei], t.track_id, pairs, c)[0])))
+            out.update(self._hota.result(len(self._ids), ei))
+            out["ospa2_m"] = self._ospa.result(pairs, self._codes, ei)
             self._result = out, errors_of(RowErrors.concat(self._errors), self._covered, len(t.frame), out)
             self._code, self._pairs, self._errors = [], [], []
         return self._result
