@@ -32,7 +32,7 @@ compiled function with everything it calls and optimises and compiles the whole 
 level between a kind's ``forward`` and its steps' code cost that code's compilation once more.
 Without those levels the box kernels compile in 96 s instead of 118 s and the joint kernels in
 66 s instead of 84 s (``make setup``'s two processes side by side, empty caches, this 2-core
-machine); the machine code, and every output, is the same.
+machine); every output file is the same (``scripts/same_outputs.py``).
 """
 
 from __future__ import annotations
