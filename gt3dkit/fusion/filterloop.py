@@ -26,13 +26,15 @@ index; the boxes need none) and the rows:
 A kind registers its steps for its bundle's class (:func:`register`); the loop's compiled code
 is specialised per bundle (numba's overloads), so each kind runs as fast as its own loop did.
 
-The step calls and the two chain loops are inlined where they are called (numba's
-``inline="always"``), so that they are no compiled functions of their own. numba links each
-compiled function with everything it calls and optimises and compiles the whole again: each
-level between a kind's ``forward`` and its steps' code cost that code's compilation once more.
-Without those levels the box kernels compile in 96 s instead of 118 s and the joint kernels in
-66 s instead of 84 s (``make setup``'s two processes side by side, empty caches, this 2-core
-machine); every output file is the same (``scripts/same_outputs.py``).
+In compiled code a step call is the kind's step compiled in place, from its Python source (the
+overload's implementation is the step's ``py_func``), and the two chain loops are inlined into
+each kind's ``forward`` and ``backward`` (numba's ``inline="always"``). numba links each
+compiled function with everything it calls and optimises and compiles the whole again, so each
+level between a kind's ``forward`` and its steps' code cost that code's compilation once more:
+a wrapper that called the step's own compiled function, and the chain loops as functions of
+their own, were two such levels. Without them the box kernels compile in 77 s instead of 118 s
+and the joint kernels in 52 s instead of 84 s (``make setup``'s two processes side by side,
+empty caches, this 2-core machine); every output file is the same (``scripts/same_outputs.py``).
 """
 
 from __future__ import annotations
@@ -93,25 +95,20 @@ start, predict, fades, fade, faded, measured, keep, update, smooth = (_step(n) f
 
 
 def _resolved(name: str) -> Callable[..., object]:
-    """numba's typing of step ``name``: a call of the kind's compiled step for the bundle's
-    class, inlined into the caller (numba inlines no ``*args``: one form per count of arguments,
-    which are 2 to 4 after ``ctx``)."""
+    """numba's typing of step ``name``: the kind's step for the bundle's class, compiled from its
+    Python source where it is called (its own compiled function would be one more level for
+    numba to compile again: the module doc)."""
     def typer(ctx, *args):  # noqa: ANN001, ANN002, ANN202
         impl = _STEPS.get((name, ctx.instance_class)) if isinstance(ctx, types.BaseNamedTuple) else None
         if impl is None:
             return None
-        n = len(args)
-        if n == 2:
-            return lambda ctx, a, b: impl(ctx, a, b)
-        if n == 3:
-            return lambda ctx, a, b, c: impl(ctx, a, b, c)
-        return lambda ctx, a, b, c, d: impl(ctx, a, b, c, d)
+        return getattr(impl, "py_func", impl)
     return typer
 
 
 for _name, _fn in zip(STEP_NAMES, (start, predict, fades, fade, faded, measured, keep, update, smooth),
                       strict=True):
-    overload(_fn, inline="always", strict=False)(_resolved(_name))
+    overload(_fn, strict=False)(_resolved(_name))
 
 
 @numba.njit(cache=True, nogil=True)
