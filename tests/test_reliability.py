@@ -46,7 +46,7 @@ def scenes(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
                 "native")
     write_skeleton_scene(simulate_skeletons("native", seed=2, frames=4, people=2, cameras=4),
                          root / "kpts", "native")
-    write_scene(simulate("native", seed=4, frames=80, people=10, noise_px=1.0), root / "long", "native")
+    write_scene(simulate("native", seed=4, frames=240, people=10, noise_px=1.0), root / "long", "native")
     return {p.name: p for p in root.iterdir()}
 
 
