@@ -108,6 +108,7 @@ def _resolved(name: str) -> Callable[..., object]:
 
 for _name, _fn in zip(STEP_NAMES, (start, predict, fades, fade, faded, measured, keep, update, smooth),
                       strict=True):
+    # strict=False: the step's own arguments are named (ctx, e, row, ...), the typing's are *args
     overload(_fn, strict=False)(_resolved(_name))
 
 
