@@ -63,7 +63,8 @@ class Chains(NamedTuple):
     t_s: F64
 
 
-#: (step name, bundle class) -> the kind's compiled step.
+#: (step name, bundle class) -> the kind's step, its Python source (``py_func``): what compiled
+#: code compiles in place (:func:`_resolved`) and what a call from Python runs (:func:`_step`).
 _STEPS: dict[tuple[str, type], Callable[..., object]] = {}
 STEP_NAMES = ("start", "predict", "fades", "fade", "faded", "measured", "keep", "update", "smooth")
 
@@ -74,7 +75,7 @@ def register(bundle: type, **steps: Callable[..., object]) -> None:
     if set(steps) != set(STEP_NAMES):
         raise ValueError(f"steps must be exactly {', '.join(STEP_NAMES)}")
     for name, fn in steps.items():
-        _STEPS[(name, bundle)] = fn
+        _STEPS[(name, bundle)] = getattr(fn, "py_func", fn)
 
 
 def _step(name: str) -> Callable[..., object]:
@@ -86,7 +87,7 @@ def _step(name: str) -> Callable[..., object]:
         impl = _STEPS.get((name, type(ctx)))
         if impl is None:
             raise TypeError(f"no kind registered for {type(ctx).__name__} (filterloop.register)")
-        return getattr(impl, "py_func", impl)(ctx, *args)
+        return impl(ctx, *args)
     step.__name__ = step.__qualname__ = name
     return step
 
@@ -99,10 +100,7 @@ def _resolved(name: str) -> Callable[..., object]:
     Python source where it is called (its own compiled function would be one more level for
     numba to compile again: the module doc)."""
     def typer(ctx, *args):  # noqa: ANN001, ANN002, ANN202
-        impl = _STEPS.get((name, ctx.instance_class)) if isinstance(ctx, types.BaseNamedTuple) else None
-        if impl is None:
-            return None
-        return getattr(impl, "py_func", impl)
+        return _STEPS.get((name, ctx.instance_class)) if isinstance(ctx, types.BaseNamedTuple) else None
     return typer
 
 
