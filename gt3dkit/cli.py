@@ -96,12 +96,12 @@ def by_name(module: str, name: str) -> Any:
 
 class Named:
     """The function ``module.name``, sent to a Dask worker without this process importing
-    ``module``: it pickles as the call that imports it (:func:`by_name`). So the worker imports
-    ``module`` as it reads the task, in the one thread that reads every message, before the task
-    runs. Imported inside the task instead (the task thread), it raced the messages read
-    meanwhile: two threads importing one package at once can deadlock in Python's import locks,
-    and a worker died of it (``KeyError: 'gt3dkit.windows'`` reading the next task; once in the
-    test suite, 2 workers on 2 cores beside other tests)."""
+    ``module``: it pickles as the call that imports it (:func:`by_name`). Sent sealed
+    (:func:`gt3dkit.sealed.submit`, as every task of a run is), it is unpickled, and ``module``
+    imported, where the task runs, under the lock a worker opens every sealed value with: no
+    other thread of the worker imports gt3dkit meanwhile (two threads importing one package at
+    once can deadlock in Python's import locks, and a worker died of it: ``KeyError:
+    'gt3dkit.windows'`` reading the next task, once in the test suite)."""
 
     def __init__(self, module: str, name: str) -> None:
         self.module, self.__name__ = module, name  # Dask names the task after the function

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from gt3dkit.errors import InputError
+from gt3dkit.sealed import submit
 
 if TYPE_CHECKING:
     from distributed import Client, Future
@@ -77,4 +78,4 @@ def connect_early(address: str, warm: Callable[..., None], *args: object) -> Ear
         return Early(address, error=e)
     first = sorted(client.scheduler_info()["workers"])[:1]
     return Early(address, client=client, warming={
-        w: client.submit(warm, *args, workers=[w], allow_other_workers=False, pure=False) for w in first})
+        w: submit(client, warm, *args, workers=[w], allow_other_workers=False) for w in first})

@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 from gt3dkit.api import load_scene, reconstruct
 from gt3dkit.errors import EstimationError, InputError
 from gt3dkit.io.atomic import MARKER
+from gt3dkit.sealed import submit
 from gt3dkit.threads import small_matrix_blas
 from gt3dkit.types import JsonDict, JsonValue, Scene
 from gt3dkit.version import __version__
@@ -177,7 +178,7 @@ def _ran(todo: list[Job], client: Client | None, jobs: int | None, progress: boo
         from distributed import as_completed
         from distributed.scheduler import KilledWorker
 
-        futures = dict(zip(client.map(fn, todo, pure=False), todo, strict=True))
+        futures = {submit(client, fn, j): j for j in todo}
         for f in as_completed(futures):
             try:
                 rows.append(f.result())

@@ -45,7 +45,7 @@ def _summary(out: Path) -> dict[str, dict[str, str]]:
 def test_dask_local_cluster(manifest: Path, tmp_path: Path) -> None:
     distributed = pytest.importorskip("distributed")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                  dashboard_address=None) as cluster:
+                                  dashboard_address=":0") as cluster:
         code, so, se = _run("reconstruct-many", str(manifest), "--out", str(tmp_path / "o"), "--scheduler",
                             cluster.scheduler_address, "--quiet", "--estimator", "triangulation")
         assert code == 1 and "1 sequence failed: s4" in se, se
@@ -116,7 +116,7 @@ def test_a_scheduler_without_workers_is_one_error_line_and_nothing_written(comma
     """A scheduler no worker joins within Dask's connect timeout: one ``error:`` line, exit 2, no
     output (``reconstruct-many`` waited for ever, ``reconstruct`` failed inside Dask's scatter)."""
     distributed = pytest.importorskip("distributed")
-    with distributed.LocalCluster(n_workers=0, processes=True, host="127.0.0.1", dashboard_address=None) as c:
+    with distributed.LocalCluster(n_workers=0, processes=True, host="127.0.0.1", dashboard_address=":0") as c:
         r, out = _gt3d_on_scheduler(command, c.scheduler_address, tmp_path)
     assert r.returncode == 2, r.stderr
     assert r.stderr == (f"error: --scheduler: the Dask scheduler at {c.scheduler_address} has no worker "
@@ -142,7 +142,7 @@ def test_a_sequence_whose_process_dies_is_a_failed_row(manifest: Path, where: st
     if where == "dask":
         distributed = pytest.importorskip("distributed")
         with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                      dashboard_address=None) as cluster:
+                                      dashboard_address=":0") as cluster:
             with distributed.Client(cluster) as client:
                 rows = {Path(r["input"]).name: r for r in _ran(todo, client, None, False, _dies_on_s2)}
         # a sequence done on a worker that then died is done again, and found up to date
@@ -164,7 +164,7 @@ def test_a_worker_with_another_gt3dkit_is_one_error_line(monkeypatch: pytest.Mon
     from gt3dkit.errors import InputError
 
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                  dashboard_address=None) as cluster:
+                                  dashboard_address=":0") as cluster:
         windows.connect_scheduler(cluster.scheduler_address).close()  # the same gt3dkit: connected
         monkeypatch.setattr(windows, "__version__", "0.0.0-other")
         said = (r"^--scheduler: the Dask worker tcp://127\.0\.0\.1:\d+ has gt3dkit \S+, this process "

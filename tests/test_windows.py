@@ -238,7 +238,7 @@ def test_jobs_and_dask_give_the_one_process_output(boxes: object, tmp_path: Path
     assert code == 0 and "in 2 windows of about 56 frames with 20 of context (one per worker" in so, so
     distributed = pytest.importorskip("distributed")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                  dashboard_address=None) as cluster:
+                                  dashboard_address=":0") as cluster:
         code, so, se = _run("reconstruct", str(root), "--out", str(tmp_path / "dask"), "--window", "40",
                             "--quiet", "--scheduler", cluster.scheduler_address)
         # the library's own connection (no Cluster given: made in the run, the first worker unwarmed)
@@ -257,7 +257,7 @@ def test_the_search_runs_where_its_first_worker_is_gone(boxes: object,
     distributed = pytest.importorskip("distributed")
     scene = load_scene(Path(boxes.root))  # type: ignore[attr-defined]
     with (distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                   dashboard_address=None) as cluster,
+                                   dashboard_address=":0") as cluster,
           distributed.Client(cluster) as client):
         monkeypatch.setattr(noise, "worker_addresses", lambda c: ["tcp://127.0.0.1:9"])
         for sample in (scene, lambda: scene):  # scattered, read where it runs
@@ -295,7 +295,7 @@ def test_a_window_whose_dask_worker_dies_runs_again_on_the_others(read: bool, re
 
     reads: list[object] | None = [] if read else None
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+                                  dashboard_address=":0") as cluster, distributed.Client(cluster) as client:
         parts = _run_windows(_window_scenes(scene, windows, client), windows, like, client, lambda k, n: None,
                              dies_once, reads=reads)  # type: ignore[arg-type]
     assert marker.exists()
@@ -342,7 +342,7 @@ def test_a_cluster_warms_the_first_worker_while_the_caller_goes_on() -> None:
     without ``loading``."""
     distributed = pytest.importorskip("distributed")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                  dashboard_address=None) as cluster:
+                                  dashboard_address=":0") as cluster:
         with Cluster(cluster.scheduler_address, "ukf", {}) as c:
             client = c.client
             first, other = sorted(client.scheduler_info()["workers"])
@@ -372,7 +372,7 @@ def test_gt3d_connects_and_warms_the_first_worker_before_its_own_imports() -> No
                       "--scheduler") == "b"
     distributed = pytest.importorskip("distributed")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                  dashboard_address=None) as cluster:
+                                  dashboard_address=":0") as cluster:
         early = cli.early_start(["reconstruct", "in", f"--scheduler={cluster.scheduler_address}"])
         assert early is not None and early.error is None
         try:
@@ -393,18 +393,70 @@ def test_gt3d_connects_and_warms_the_first_worker_before_its_own_imports() -> No
             early.close()  # after the run closed it: nothing left to do, no error
 
 
-def test_the_early_warm_up_is_imported_as_the_worker_reads_it() -> None:
-    """The early warm-up is sent by name (``cli.Named``): pickling it imports nothing of
-    gt3dkit's windows here, and reading it back imports the function, there, before any task
-    runs (a worker whose task thread imported the package while its other thread read the next
-    task died in Python's import locks)."""
-    probe = ("import pickle, sys; from gt3dkit.cli import Named; "
-             "b = pickle.dumps(Named('gt3dkit.windows.cluster', 'warm_first')); "
-             "print('gt3dkit.windows' in sys.modules); f = pickle.loads(b); "
+def test_the_early_warm_up_is_sealed_and_opened_where_it_runs() -> None:
+    """The early warm-up is sent by name (``cli.Named``) and sealed (:mod:`gt3dkit.sealed`):
+    sealing it imports nothing of gt3dkit's windows here; unpickling the sealed call, as the
+    scheduler and the worker's message reader do, imports none either; opening it, where the
+    task runs, imports the function."""
+    probe = ("import pickle, sys; from gt3dkit.cli import Named; from gt3dkit.sealed import Sealed; "
+             "b = pickle.dumps(Sealed.of(Named('gt3dkit.windows.cluster', 'warm_first'))); "
+             "print('gt3dkit.windows' in sys.modules); s = pickle.loads(b); "
+             "print('gt3dkit.windows' in sys.modules); f = s.opened(); "
              "print(f.__module__, f.__name__, 'gt3dkit.windows' in sys.modules)")
     r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
-    assert r.stdout.split("\n")[:2] == ["False", "gt3dkit.windows.cluster warm_first True"], r.stdout
+    assert r.stdout.split("\n")[:3] == ["False", "False", "gt3dkit.windows.cluster warm_first True"], r.stdout
     assert cli.Named("gt3dkit.windows.plan", "balanced_size")(100, 10, 2) == balanced_size(100, 10, 2)
+
+
+#: A Dask scheduler in a process of its own: it prints its address, and when its input closes,
+#: which of gt3dkit's heavy modules it imported.
+_SCHEDULER = """
+import asyncio, sys
+from distributed import Scheduler
+async def main():
+    async with Scheduler(host="127.0.0.1", port=0, dashboard_address=":0") as s:
+        print(s.address, flush=True)
+        await asyncio.get_running_loop().run_in_executor(None, sys.stdin.read)
+        print(sorted(m for m in ("gt3dkit.api", "gt3dkit.windows", "numba", "scipy") if m in sys.modules))
+asyncio.run(main())
+"""
+
+
+def test_the_scheduler_imports_nothing_of_gt3dkit(boxes: object, tmp_path: Path) -> None:
+    """Every task and scattered scene a run sends is sealed: the scheduler, which unpickles each
+    task, imports none of gt3dkit's estimators, numba or SciPy (0.9 s of its CPU at the start
+    of a run, taken from the workers on a small machine), for the warm-ups, the noise search, the
+    windows, scattered or read where they run, and the bones' two rounds; the output is the one
+    process's."""
+    pytest.importorskip("distributed")
+    sched = subprocess.Popen([sys.executable, "-c", _SCHEDULER], stdin=subprocess.PIPE,
+                             stdout=subprocess.PIPE, text=True)
+    worker = None
+    try:
+        address = sched.stdout.readline().strip()  # type: ignore[union-attr]
+        worker = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address,
+                                   "--nthreads", "1", "--no-dashboard"],
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        root = str(boxes.root)  # type: ignore[attr-defined]
+        for name, extra in (("one", ()), ("read", ("--scheduler", address)),
+                            ("scattered", ("--scheduler", address, "--every-frame", "1"))):
+            code, _, se = _run("reconstruct", root, "--out", str(tmp_path / name), "--window", "40",
+                               "--quiet", *extra)
+            assert code == 0, se
+        skel = tmp_path / "skel"
+        write_skeleton_scene(simulate_skeletons("native", seed=2, frames=60, people=1, cameras=3), skel,
+                             "native")
+        code, _, se = _run("reconstruct", str(skel), "--out", str(tmp_path / "bones"), "--window", "30",
+                           "--quiet", "--scheduler", address)
+        assert code == 0, se
+        out, _ = sched.communicate("", timeout=60)
+    finally:
+        for p in (worker, sched):
+            if p is not None and p.poll() is None:
+                p.kill()
+                p.wait()
+    assert out.split("\n")[0] == "[]", out
+    assert (tmp_path / "read" / "tracks.csv").read_bytes() == (tmp_path / "one" / "tracks.csv").read_bytes()
 
 
 def test_an_early_connection_error_is_said_where_the_run_connects() -> None:
@@ -436,7 +488,7 @@ def test_skeleton_windows_give_the_one_process_output_in_processes_and_on_dask(t
     assert 0 < meta["windows"]["bones_round_seconds"] < meta["seconds"]
     distributed = pytest.importorskip("distributed")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                  dashboard_address=None) as cluster:
+                                  dashboard_address=":0") as cluster:
         code, so, se = _run("reconstruct", *args, "--out", str(tmp_path / "dask"), "--scheduler",
                             cluster.scheduler_address)
         with distributed.Client(cluster) as client:  # each worker's kept preparations went at the end
@@ -686,7 +738,7 @@ def test_jobs_and_dask_read_their_own_frames_to_the_one_process_output(grid: Pat
     assert meta["input"]["files_sha256"] == whole.files
     distributed = pytest.importorskip("distributed")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                  dashboard_address=None) as cluster:
+                                  dashboard_address=":0") as cluster:
         code, so, se = _run("reconstruct", str(grid), "--out", str(tmp_path / "dask"), "--window", "20",
                             "--quiet", "--scheduler", cluster.scheduler_address)
     assert code == 0, se

@@ -88,6 +88,7 @@ from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.datasets import with_sequence_truth
 from gt3dkit.io.writers import StreamedRows, write_result_files
 from gt3dkit.qa.anomalies import Anomalies
+from gt3dkit.sealed import Sealed, opened_call
 from gt3dkit.threads import roomy_malloc
 from gt3dkit.types import JsonDict, Options, OptionValue, Scene, TrackSet
 from gt3dkit.windows.cluster import (
@@ -306,11 +307,13 @@ def _cutter(scene: Scene) -> Callable[[int, int], Scene | SampleRead]:
 
 def _drop_kept(token: str, client: Client | None) -> None:
     """The run ``token``'s kept preparations removed here and on every Dask worker
-    (:class:`gt3dkit.windows.stitch.Keep`); a worker gone meanwhile took its own with it."""
+    (:class:`gt3dkit.windows.stitch.Keep`); a worker gone meanwhile took its own with it. Sent
+    sealed (:mod:`gt3dkit.sealed`): opened where ``client.run`` runs it, in the worker's thread
+    that reads its messages, under the lock its task threads open theirs with."""
     drop_kept(token)
     if client is not None:
         with contextlib.suppress(Exception):
-            client.run(drop_kept, token)
+            client.run(opened_call, Sealed.of(drop_kept), token)
 
 
 def ties_bones(scene: Scene, estimator: str, config: Options) -> bool:

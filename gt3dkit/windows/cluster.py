@@ -18,6 +18,7 @@ from gt3dkit.api import (
 from gt3dkit.early import Early, check_scheduler_address
 from gt3dkit.errors import EstimationError, InputError
 from gt3dkit.fusion.base import make_estimator
+from gt3dkit.sealed import scatter, submit
 from gt3dkit.threads import small_matrix_blas
 from gt3dkit.types import Options, Scene
 from gt3dkit.version import __version__, installed
@@ -108,8 +109,8 @@ class Cluster:
             # the first worker at once; where it was sent its warm-up before this process's
             # imports, the others now too, while this process loads the input, not during the search
             now = worker_addresses(self.client)[:1 if not self._warming else None] if loading else []
-            self._warming.update({w: self.client.submit(warm_first, estimator, config, workers=[w],
-                                                        allow_other_workers=False, pure=False)
+            self._warming.update({w: submit(self.client, warm_first, estimator, config, workers=[w],
+                                            allow_other_workers=False)
                                   for w in now if w not in self._warming})
         except BaseException:
             self.client.close()
@@ -170,8 +171,8 @@ def warm_workers(client: Client, scene: Scene, estimator: str, config: Options,
     if not len(f) or not others:
         return []
     tiny = cut(int(f[0]), int(f[-1]))  # small: inside the task
-    return [client.submit(warm_worker, tiny, estimator, config, workers=[w], allow_other_workers=False,
-                          pure=False) for w in others]
+    return [submit(client, warm_worker, tiny, estimator, config, workers=[w], allow_other_workers=False)
+            for w in others]
 
 
 def worker_addresses(client: Client) -> list[str]:
@@ -198,7 +199,7 @@ class Scattered:
         (the scheduler drops it meanwhile), up to :data:`WINDOW_TRIES` times."""
         for attempt in range(1, WINDOW_TRIES + 1):
             try:
-                return self.client.scatter(self.cuts[k](), hash=False)
+                return scatter(self.client, self.cuts[k]())
             except OSError as e:  # distributed's CommClosedError
                 if attempt == WINDOW_TRIES:
                     raise EstimationError("--scheduler", f"could not send a window's frames to the Dask "
@@ -236,11 +237,11 @@ def on_dask(client: Client, task: Callable[[int], tuple[Any, ...]], n: int, what
     from distributed.client import FutureCancelledError
     from distributed.scheduler import KilledWorker
 
-    def submit(k: int) -> Any:
+    def send(k: int) -> Any:
         fn, *args = task(k)
-        return client.submit(fn, *args, pure=False)
+        return submit(client, fn, *args)
 
-    futures = submitted if submitted is not None else {submit(k): k for k in range(n)}
+    futures = submitted if submitted is not None else {send(k): k for k in range(n)}
     tries = [1] * n
     pending = as_completed(futures)
     for f in pending:
@@ -252,7 +253,7 @@ def on_dask(client: Client, task: Callable[[int], tuple[Any, ...]], n: int, what
                 raise EstimationError("--scheduler", f"{what(k)} lost its Dask worker {tries[k]} times: is "
                                                      "the cluster stable?") from None
             tries[k] += 1
-            again = submit(k)
+            again = send(k)
             futures[again] = k
             pending.add(again)
             continue

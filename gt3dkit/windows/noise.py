@@ -21,6 +21,7 @@ from gt3dkit.fusion.base import make_estimator
 from gt3dkit.fusion.motion import position_step
 from gt3dkit.fusion.noise import SEARCH_OBJECT_FRAMES, drawn_objects
 from gt3dkit.fusion.prepare import Prepared
+from gt3dkit.sealed import scatter, submit
 from gt3dkit.threads import every_core, roomy_malloc, small_matrix_blas
 from gt3dkit.types import Options, Scene
 from gt3dkit.windows.cluster import Runner, on_dask, worker_addresses
@@ -113,14 +114,14 @@ def _search_on_dask(client: Client, sample: Sample, estimator: str, config: Opti
         if not isinstance(sample, Scene):
             return sample
         try:
-            return client.scatter(sample, hash=False, workers=workers)
+            return scatter(client, sample, workers=workers)
         except KeyError:  # that worker gone meanwhile: the scheduler no longer knows it
-            return client.scatter(sample, hash=False)
+            return scatter(client, sample)
 
     # the first worker preferred, not required: one lost before the search starts left it
     # waiting for a worker that would never come back (the test suite hung there once)
-    future = client.submit(searched_on_worker, sent(first), estimator, config, step_s, workers=first,
-                           allow_other_workers=True, pure=False)
+    future = submit(client, searched_on_worker, sent(first), estimator, config, step_s, workers=first,
+                    allow_other_workers=True)
 
     def again(_: int) -> tuple[Any, ...]:  # on any worker
         return searched_on_worker, sent(None), estimator, config, step_s
