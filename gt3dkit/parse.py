@@ -6,9 +6,10 @@ from __future__ import annotations
 
 import csv
 import hashlib
+import io
 import json
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from operator import itemgetter
 from pathlib import Path
 from typing import Any, TypeAlias, TypeVar
@@ -130,22 +131,190 @@ def read_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | No
     return list(iter_csv_rows(path, columns, warnings, header))
 
 
+#: Bytes of whole lines :func:`iter_csv_blocks` reads and parses at once.
+CSV_CHUNK_BYTES = 1 << 22
+
+
+class CsvBlock:
+    """Rows of a CSV file (:func:`iter_csv_blocks`): their line numbers (``lines``) and their
+    fields, as numbers where the block was parsed at once (:meth:`ints`, :meth:`floats`) and as
+    text (:meth:`texts`; :meth:`rows` for the row-by-row checks of a block that fails the
+    caller's)."""
+
+    def __init__(self, lines: np.ndarray | list[int], rows: list[list[str]] | None = None, text: str = "",
+                 columns: list[np.ndarray] | None = None, kinds: str = "") -> None:
+        self.lines = np.asarray(lines, np.int64)
+        self._rows, self._text = rows, text
+        self._columns, self._kinds = columns, kinds
+        self._texts: list[tuple[str, ...]] | None = None
+
+    def __len__(self) -> int:
+        return len(self.lines)
+
+    def rows(self) -> list[list[str]]:
+        """Each row's fields as text (unstripped)."""
+        if self._rows is None:  # a block parsed at once: a row a line
+            self._rows = list(csv.reader(io.StringIO(self._text)))
+        return self._rows
+
+    def _parsed(self, k: int, kind: str) -> np.ndarray | None:
+        return self._columns[k] if self._columns is not None and self._kinds[k:k + 1] == kind else None
+
+    def _column_text(self, k: int) -> tuple[str, ...]:
+        if self._texts is None:
+            self._texts = block_columns(self.rows())
+        return self._texts[k]
+
+    def ints(self, k: int) -> np.ndarray:
+        """``(P,)`` int64 of column ``k``, as :func:`int_column` parses it (ValueError or
+        OverflowError where a field is not an int64)."""
+        got = self._parsed(k, "i")
+        return got if got is not None else int_column(self._column_text(k))
+
+    def floats(self, k: int) -> np.ndarray:
+        """``(P,)`` float64 of column ``k``, as :func:`float_column` parses it (ValueError where
+        a field is not a number)."""
+        got = self._parsed(k, "f")
+        return got if got is not None else float_column(self._column_text(k))
+
+    def texts(self, k: int) -> Sequence[str]:
+        """Column ``k``'s fields as text (unstripped)."""
+        got = self._parsed(k, "s")
+        return got if got is not None else self._column_text(k)
+
+
 def iter_csv_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | None = None,
-                    size: int = 65536) -> Iterator[tuple[list[int], list[list[str]]]]:
-    """:func:`iter_csv_rows` (a header) in blocks of up to ``size`` rows: ``(line numbers, rows)``,
-    each row its fields as text (those of ``columns`` first, unstripped), for readers that check a
+                    size: int = 65536, kinds: str = "") -> Iterator[CsvBlock]:
+    """:func:`iter_csv_rows` (a header) in blocks (:class:`CsvBlock`), for readers that check a
     block at once with numpy and fall back to the row-by-row checks only for a block that fails
-    them. The same checks of the header and of every row's field count, in one loop per block
-    (not a generator per row: a 3.6-million-row file read in 4 s, not 8)."""
-    return _read_csv(path, lambda reader: _record_blocks(path, columns, warnings, reader, size))
+    them. The same checks of the header and of every row's field count. ``kinds``: the leading
+    columns' types, one letter each (``i`` int64, ``f`` float64, ``s`` text).
+
+    Where a stretch of the file is plain (UTF-8 without quotes, NUL bytes, lone carriage returns
+    or blank lines: the text ``csv.reader`` splits at every comma and line end), its
+    :data:`CSV_CHUNK_BYTES` at a time are parsed by ``numpy.loadtxt``, which reads those numbers
+    as ``int`` and ``float`` do and refuses what they refuse, with a field count as the header's
+    in every row; a chunk it refuses is read as text. The rest of a file, from its first stretch
+    that is not plain, is read by ``csv.reader`` in blocks of up to ``size`` rows, one loop per
+    block (not a generator per row: a 3.6-million-row file read in 4 s, not 8). A 712 798-row
+    ``keypoints.csv`` parsed in 0.4 s against 2.6 s as text."""
+    if not kinds:
+        return _text_blocks(path, columns, warnings, size)
+    return _chunked_blocks(path, columns, warnings, size, kinds)
+
+
+def _text_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | None, size: int,
+                 width: int = 0, line: int = 1, offset: int = 0) -> Iterator[CsvBlock]:
+    """:func:`iter_csv_blocks` read by ``csv.reader``; from byte ``offset`` on (line ``line``,
+    rows of ``width`` fields) where it is not 0."""
+    blocks = _read_csv(path, lambda reader: _record_blocks(path, columns, warnings, reader, size, width,
+                                                           line - 1), offset, line - 1)
+    return (CsvBlock(lines, rows) for lines, rows in blocks)
+
+
+def _chunked_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | None, size: int,
+                    kinds: str) -> Iterator[CsvBlock]:
+    """:func:`iter_csv_blocks` with ``kinds``: chunks of plain lines parsed at once, the rest read
+    as text from the first that is not plain."""
+    try:
+        f = open(path, "rb")  # noqa: SIM115 (closed below)
+    except OSError as e:
+        raise InputError(str(path), f"cannot read ({e.strerror})") from None
+    with f:
+        offset, line, width, dtype = 0, 1, 0, None
+        try:
+            for chunk in _line_chunks(f):
+                text = _plain_text(chunk, first=offset == 0)
+                if text is None:
+                    break
+                if offset == 0:  # the header
+                    head, _, text = text.partition("\n")
+                    width = _checked_header(path, columns, warnings, csv.reader([head]))
+                    dtype = np.dtype([(f"f{k}", {"i": "i8", "f": "f8"}.get(kinds[k:k + 1], "O"))
+                                      for k in range(width)])
+                    line = 2
+                offset += len(chunk)
+                block = _chunk_block(path, text, line, width, kinds, dtype) if text else None
+                if block is not None:
+                    yield block
+                line += text.count("\n") + (not text.endswith("\n")) if text else 0
+            else:
+                if offset:  # read whole (an empty file: no header, said by the text reading)
+                    return
+        except OSError as e:
+            raise InputError(str(path), f"cannot read ({e.strerror})") from None
+    # the rest as text, from the first chunk that is not plain (the header's: the whole file)
+    yield from _text_blocks(path, columns, warnings, size, width, line, offset)
+
+
+def _line_chunks(f: Any) -> Iterator[bytes]:
+    """The bytes of the binary file ``f`` about :data:`CSV_CHUNK_BYTES` at a time, each ending
+    at a line end (the last as the file ends)."""
+    rest = b""
+    while True:
+        got = f.read(CSV_CHUNK_BYTES)
+        if not got:
+            if rest:
+                yield rest
+            return
+        got = rest + got
+        cut = got.rfind(b"\n") + 1
+        if cut == 0:
+            rest = got
+            continue
+        yield got[:cut]
+        rest = got[cut:]
+
+
+def _plain_text(chunk: bytes, first: bool) -> str | None:
+    """``chunk`` as text with ``\\n`` line ends, where ``csv.reader`` would split it at every
+    comma and line end alone and read every line as a row: UTF-8 (a byte-order mark first),
+    without quotes, NUL bytes, carriage returns but before a line feed, or empty lines; else
+    None."""
+    if b'"' in chunk or b"\0" in chunk or chunk.count(b"\r") != chunk.count(b"\r\n"):
+        return None
+    try:
+        text = chunk.decode("utf-8-sig" if first else "utf-8").replace("\r\n", "\n")
+    except UnicodeDecodeError:
+        return None
+    if text.startswith("\n") or "\n\n" in text:
+        return None
+    return text
+
+
+def _chunk_block(path: Path, text: str, line: int, width: int, kinds: str, dtype: np.dtype
+                 ) -> CsvBlock | None:
+    """The rows of the plain ``text`` (lines from ``line`` on, rows of ``width`` fields):
+    parsed by ``numpy.loadtxt`` (the columns as ``kinds`` says), or read as text where it
+    refuses them (a field ``int`` or ``float`` refuses too, a row of another width: the text
+    reading says which, and a field longer than ``csv.reader`` reads); None: no rows (lines of
+    spaces alone)."""
+    n = text.count("\n") + (not text.endswith("\n"))
+    try:
+        a = np.loadtxt(io.StringIO(text), dtype=dtype, delimiter=",", comments=None, ndmin=1)
+    except ValueError:
+        a = None
+    limit = csv.field_size_limit()
+    if a is None or len(a) != n or any(max(map(len, a[name]), default=0) > limit
+                                       for name in a.dtype.names if a.dtype[name].kind == "O"):
+        reader = csv.reader(io.StringIO(text))
+        try:
+            rows = list(_record_blocks(path, (), None, reader, n + 1, width, line - 1))
+        except csv.Error as e:  # as _read_csv says it
+            raise InputError(f"{path}: line {reader.line_num + line - 1}", f"malformed CSV ({e})") from None
+        return CsvBlock(*rows[0]) if rows else None
+    return CsvBlock(np.arange(line, line + n), text=text, columns=[a[f"f{k}"] for k in range(width)],
+                    kinds=kinds)
 
 
 def _record_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | None, reader: CsvRows,
-                   size: int) -> Iterator[tuple[list[int], list[list[str]]]]:
+                   size: int, width: int = 0, skipped: int = 0
+                   ) -> Iterator[tuple[list[int], list[list[str]]]]:
     """The rows after a header starting with ``columns`` (checked by :func:`_checked_header`), in
     blocks of up to ``size`` rows ``(line numbers, rows)``: blank lines skipped, every row as wide as
-    the header (:func:`iter_csv_blocks`; one row a block for :func:`iter_csv_rows`)."""
-    width = _checked_header(path, columns, warnings, reader)
+    the header (:func:`iter_csv_blocks`; one row a block for :func:`iter_csv_rows`). ``width``:
+    the rows' width, the header read already (``reader`` then starts after ``skipped`` lines)."""
+    width = width or _checked_header(path, columns, warnings, reader)
     lines: list[int] = []
     rows: list[list[str]] = []
     for row in reader:
@@ -153,9 +322,9 @@ def _record_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | N
             if not row or all(not x.strip() for x in row):
                 continue
             if len(row) != width:
-                raise InputError(f"{path}: line {reader.line_num}", f"expected {width} fields (as the "
-                                                                     f"header), got {len(row)}")
-        lines.append(reader.line_num)
+                raise InputError(f"{path}: line {reader.line_num + skipped}", f"expected {width} fields (as "
+                                                                               f"the header), got {len(row)}")
+        lines.append(reader.line_num + skipped)
         rows.append(row)
         if len(rows) >= size:
             yield lines, rows
@@ -201,18 +370,23 @@ def iter_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | No
         yield line, dict(zip(columns, (x.strip() for x in row), strict=False))
 
 
-def _read_csv(path: Path, rows: Callable[[CsvRows], Iterator[T]]) -> Iterator[T]:
-    """``rows(reader)`` of a ``csv.reader`` on ``path`` (UTF-8, a byte-order mark allowed), with
-    what goes wrong reading it as :class:`InputError` naming the file (and line)."""
+def _read_csv(path: Path, rows: Callable[[CsvRows], Iterator[T]], offset: int = 0, skipped: int = 0
+              ) -> Iterator[T]:
+    """``rows(reader)`` of a ``csv.reader`` on ``path`` (UTF-8, a byte-order mark allowed), from
+    byte ``offset`` on (the start of the line after the first ``skipped``), with what goes wrong
+    reading it as :class:`InputError` naming the file (and line)."""
     reader = None
     try:
-        with open(path, newline="", encoding="utf-8-sig") as f:
-            reader = csv.reader(f)
-            yield from rows(reader)
+        with open(path, "rb") as raw:
+            raw.seek(offset)
+            with io.TextIOWrapper(raw, encoding="utf-8" if offset else "utf-8-sig", newline="") as f:
+                reader = csv.reader(f)
+                yield from rows(reader)
     except UnicodeDecodeError as e:
-        raise InputError(str(path), f"not a UTF-8 text CSV file ({e.reason} at byte {e.start})") from None
+        raise InputError(str(path), f"not a UTF-8 text CSV file ({e.reason} at byte {e.start + offset})"
+                         ) from None
     except csv.Error as e:
-        line = f": line {reader.line_num}" if reader is not None else ""
+        line = f": line {reader.line_num + skipped}" if reader is not None else ""
         raise InputError(f"{path}{line}", f"malformed CSV ({e})") from None
     except OSError as e:
         raise InputError(str(path), f"cannot read ({e.strerror})") from None

@@ -26,6 +26,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -40,9 +41,7 @@ from gt3dkit.parse import (
     FRAME_MAX,
     ID_MAX,
     MAX_WORLD_M,
-    block_columns,
-    float_column,
-    int_column,
+    CsvBlock,
     iter_csv_blocks,
     iter_csv_rows,
     parse_frame,
@@ -107,26 +106,26 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
     if box_path.exists():
         files["boxes.csv"] = sha256(box_path)
         unseen = 0
-        for lines, block in iter_csv_blocks(box_path, BOX_COLUMNS, warnings, KEYPOINT_BLOCK_ROWS):  # streamed
-            checked = _checked_boxes(box_path, rig, lines, block)
+        for block in iter_csv_blocks(box_path, BOX_COLUMNS, warnings, KEYPOINT_BLOCK_ROWS, "isiffff"):
+            checked = _checked_boxes(box_path, rig, block)  # streamed
             if checked is not None and rb.add_box_block(checked[0]):
                 unseen += checked[1]
                 continue
-            for line, row in zip(lines, block, strict=True):  # the block failed a check: say where
+            for line, row in zip(block.lines.tolist(), block.rows(), strict=True):  # say where it failed
                 r = dict(zip(BOX_COLUMNS, (x.strip() for x in row), strict=False))
                 unseen += _add_box(rb, rig, f"{box_path}: line {line}", r)
         if unseen:
             warnings.append(f"{box_path}: {unseen} boxes of -1s read as not seen")
     undetected = 0
     above: list[float] = []
-    blocks = iter_csv_blocks(kpt_path, kpt_cols, warnings, KEYPOINT_BLOCK_ROWS) if has_kpts else ()
-    for lines, block in blocks:  # streamed
-        checked = _checked_keypoints(kpt_path, rig, n_joints, lines, block, "conf" in kpt_cols, above)
+    blocks = iter_csv_blocks(kpt_path, kpt_cols, warnings, KEYPOINT_BLOCK_ROWS, "isiifff") if has_kpts else ()
+    for block in blocks:  # streamed
+        checked = _checked_keypoints(kpt_path, rig, n_joints, block, "conf" in kpt_cols, above)
         if checked is not None:
             rb.add_joint_block(checked[0])
             undetected += checked[1]
             continue
-        for line, row in zip(lines, block, strict=True):  # the block failed a check: say where
+        for line, row in zip(block.lines.tolist(), block.rows(), strict=True):  # say where it failed
             r = dict(zip(kpt_cols, (x.strip() for x in row), strict=False))
             undetected += _add_keypoint(rb, rig, f"{kpt_path}: line {line}", r, above)
     if above:
@@ -163,25 +162,23 @@ def _add_box(rb: RowBuilder, rig: Rig, where: str, r: dict[str, str]) -> int:
     return 0
 
 
-def _camera_column(rig: Rig, names: tuple[str, ...]) -> np.ndarray:
+def _camera_column(rig: Rig, names: Sequence[str]) -> np.ndarray:
     """``(P,)`` the camera index of each name (stripped), -1 for an unknown one."""
     known = {n: k for k, n in enumerate(rig.names)}
     index = {n: known.get(n.strip(), -1) for n in set(names)}
     return np.fromiter(map(index.__getitem__, names), np.int64, len(names))
 
 
-def _checked_boxes(path: Path, rig: Rig, lines: list[int], rows: list[list[str]]
-                   ) -> tuple[BoxBlock, int] | None:
+def _checked_boxes(path: Path, rig: Rig, block: CsvBlock) -> tuple[BoxBlock, int] | None:
     """A block of ``boxes.csv`` rows parsed and checked at once, as :func:`_add_box` checks each
     row, and the count of boxes of -1s (not seen) it drops; None when any row fails a check (the
     caller then goes row by row to say which and why)."""
-    cols = block_columns(rows)
     try:
-        frame, tid = (int_column(cols[k]) for k in (0, 2))
-        box = np.stack([float_column(cols[k]) for k in range(3, 7)], 1)
+        frame, tid = (block.ints(k) for k in (0, 2))
+        box = np.stack([block.floats(k) for k in range(3, 7)], 1)
     except (ValueError, OverflowError):
         return None
-    cam = _camera_column(rig, cols[1])
+    cam = _camera_column(rig, block.texts(1))
     unseen = np.all(box == -1, axis=1)
     wh = np.array([[c.width, c.height] for c in rig.cameras], dtype=np.float64)
     size = np.tile(wh[np.maximum(cam, 0)], 2)
@@ -191,7 +188,7 @@ def _checked_boxes(path: Path, rig: Rig, lines: list[int], rows: list[list[str]]
     if not ok.all():
         return None
     k = ~unseen
-    where = Origins.formatted(Origins.literal(str(path)) + ": line {0}", np.asarray(lines, dtype=np.int64)[k])
+    where = Origins.formatted(Origins.literal(str(path)) + ": line {0}", block.lines[k])
     return BoxBlock(frame[k], cam[k], tid[k], box[k], where), int(unseen.sum())
 
 
@@ -218,21 +215,20 @@ def _add_keypoint(rb: RowBuilder, rig: Rig, where: str, r: dict[str, str], above
     return 0
 
 
-def _checked_keypoints(path: Path, rig: Rig, n_joints: int, lines: list[int], rows: list[list[str]],
-                       with_conf: bool, above: list[float]) -> tuple[JointBlock, int] | None:
+def _checked_keypoints(path: Path, rig: Rig, n_joints: int, block: CsvBlock, with_conf: bool,
+                       above: list[float]) -> tuple[JointBlock, int] | None:
     """A block of ``keypoints.csv`` rows parsed and checked at once, as :func:`_add_keypoint` checks
     each row, and the count of undetected points (confidence 0) it drops; None when any row fails
     a check (the caller then goes row by row to say which and why). A 4-million-point file reads in
     seconds and is held as arrays."""
-    cols = block_columns(rows)
     try:
-        ints = [int_column(cols[k]) for k in (0, 2, 3)]  # frame, id, joint
-        uv = np.stack([float_column(cols[4]), float_column(cols[5])], 1)
-        conf = float_column(cols[6]) if with_conf else None
+        ints = [block.ints(k) for k in (0, 2, 3)]  # frame, id, joint
+        uv = np.stack([block.floats(4), block.floats(5)], 1)
+        conf = block.floats(6) if with_conf else None
     except (ValueError, OverflowError):
         return None
     frame, tid, joint = ints
-    cam = _camera_column(rig, cols[1])
+    cam = _camera_column(rig, block.texts(1))
     size = np.array([[c.width, c.height] for c in rig.cameras], dtype=np.float64)[np.maximum(cam, 0)]
     ok = ((frame >= 0) & (frame <= FRAME_MAX) & (np.abs(tid) <= ID_MAX) & (joint >= 0) & (joint < n_joints)
           & (cam >= 0) & np.all(np.isfinite(uv), axis=1)
@@ -248,7 +244,7 @@ def _checked_keypoints(path: Path, rig: Rig, n_joints: int, lines: list[int], ro
         above.extend(conf[conf > 1].tolist())
         conf = np.minimum(conf, 1.0)
     keep = seen if conf is not None else slice(None)
-    line = np.asarray(lines, dtype=np.int64)[keep]
+    line = block.lines[keep]
     block = JointBlock(frame[keep], cam[keep], tid[keep], joint[keep], uv[keep],
                        None if conf is None else conf[keep], line, str(path))
     return block, undetected
@@ -278,8 +274,8 @@ def read_kpt_truth(path: Path, n_joints: int) -> GroundTruth:
     """``truth_keypoints.csv`` = ``frame,id,joint,x,y,z`` (metres), as ``gt3d simulate`` writes:
     read in numpy-checked blocks (:func:`_checked_kpt_truth`), row by row where a block fails a
     check or a joint is given twice (to say where)."""
-    blocks = [_checked_kpt_truth(rows, n_joints) for _, rows in
-              iter_csv_blocks(path, KPT_TRUTH_COLUMNS, None, KEYPOINT_BLOCK_ROWS)]
+    blocks = [_checked_kpt_truth(block, n_joints) for block in
+              iter_csv_blocks(path, KPT_TRUTH_COLUMNS, None, KEYPOINT_BLOCK_ROWS, "iiifff")]
     a = np.concatenate([np.zeros((0, 6))] + [b for b in blocks if b is not None])
     ijk = a[:, :3].astype(np.int64)
     if all(b is not None for b in blocks) and len(unique_rows(ijk)) == len(a):
@@ -304,16 +300,15 @@ def read_kpt_truth(path: Path, n_joints: int) -> GroundTruth:
                          np.array([poses[q] for q in keys]).reshape(len(keys), n_joints, 3))
 
 
-def _checked_kpt_truth(rows: list[list[str]], n_joints: int) -> F64 | None:
+def _checked_kpt_truth(block: CsvBlock, n_joints: int) -> F64 | None:
     """``(P, 6)`` a block of ``truth_keypoints.csv`` rows (frame, id, joint, x, y, z) parsed and
     checked as :func:`read_kpt_truth` checks each row (but for a joint given twice), or None
     when any fails."""
     if not n_joints:
         return None
-    cols = block_columns(rows)
     try:
-        key = np.stack([int_column(cols[k]) for k in (0, 1, 2)], 1)
-        xyz = np.stack([float_column(cols[k]) for k in (3, 4, 5)], 1)
+        key = np.stack([block.ints(k) for k in (0, 1, 2)], 1)
+        xyz = np.stack([block.floats(k) for k in (3, 4, 5)], 1)
     except (ValueError, OverflowError):
         return None
     ok = ((key[:, 0] >= 0) & (key[:, 0] <= FRAME_MAX) & (np.abs(key[:, 1]) <= ID_MAX) & (key[:, 2] >= 0)

@@ -43,9 +43,7 @@ from gt3dkit.parse import (
     FRAME_MAX,
     ID_MAX,
     MAX_WORLD_M,
-    block_columns,
-    float_column,
-    int_column,
+    CsvBlock,
     iter_csv_blocks,
     iter_csv_rows,
     json_of,
@@ -315,7 +313,7 @@ def read_truth_csv(p: Path, files: dict[str, str], root: Path) -> GroundTruth:
     """``truth.csv`` = ``frame,id,x,y,z,a,b,c`` (metres), as written by ``gt3d simulate``: read in
     numpy-checked blocks (:func:`_checked_truth`), row by row where a block fails a check (to
     say where)."""
-    blocks = [_checked_truth(rows) for _, rows in iter_csv_blocks(p, TRUTH_COLUMNS, None, 65536)]
+    blocks = [_checked_truth(block) for block in iter_csv_blocks(p, TRUTH_COLUMNS, None, 65536, "iiffffff")]
     a = np.concatenate([np.zeros((0, 8))] + [b for b in blocks if b is not None])
     if all(b is not None for b in blocks) and len(unique_rows(a[:, :2].astype(np.int64))) == len(a):
         files[str(p.relative_to(root))] = sha256(p)
@@ -336,13 +334,12 @@ def read_truth_csv(p: Path, files: dict[str, str], root: Path) -> GroundTruth:
     return _truth_of(np.array(rows, dtype=np.float64).reshape(-1, 8))
 
 
-def _checked_truth(rows: list[list[str]]) -> F64 | None:
+def _checked_truth(block: CsvBlock) -> F64 | None:
     """``(P, 8)`` a block of ``truth.csv`` rows parsed and checked as :func:`read_truth_csv`
     checks each row (but for a row given twice), or None when any fails."""
-    cols = block_columns(rows)
     try:
-        key = np.stack([int_column(cols[k]) for k in (0, 1)], 1)
-        val = np.stack([float_column(cols[k]) for k in range(2, 8)], 1)
+        key = np.stack([block.ints(k) for k in (0, 1)], 1)
+        val = np.stack([block.floats(k) for k in range(2, 8)], 1)
     except (ValueError, OverflowError):
         return None
     ok = ((key[:, 0] >= 0) & (key[:, 0] <= FRAME_MAX) & (np.abs(key[:, 1]) <= ID_MAX)
