@@ -20,20 +20,25 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from gt3dkit.api import tiny_scene
 from gt3dkit.fusion import ukf_smoother as us
 from gt3dkit.fusion.base import ESTIMATORS, make_estimator
 from gt3dkit.fusion.measurement import Model
+from gt3dkit.io.numtext import format_rows
 
 
 def compile_boxes() -> float:
     """Estimate a 4-frame, 2-person simulated box scene by every estimator (the UKF's per-frame
-    fits, noise search, forward and backward; the GTSAM smoother's factors) and run the UKF's
-    filter with the noise set; returns the seconds it took."""
+    fits, noise search, forward and backward; the GTSAM smoother's factors), run the UKF's
+    filter with the noise set, and format a row of numbers as the output files' rows are
+    (:func:`gt3dkit.io.numtext.format_rows`); returns the seconds it took."""
     t0 = time.perf_counter()
     scene = tiny_scene("boxes")
     for name in ESTIMATORS:
         make_estimator(name).estimate(scene)
+    format_rows(np.zeros((1, 2)), np.array([False, True]))
     est = us.UKFSmoother()
     model = Model.of(est.prepare(scene))
     cfg = replace(est.config, accel_sd=0.5, shape_sd=0.01)
