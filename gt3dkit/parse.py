@@ -300,8 +300,8 @@ def _chunk_block(path: Path, text: str, line: int, width: int, kinds: str, dtype
         reader = csv.reader(io.StringIO(text))
         try:
             rows = list(_record_blocks(path, (), None, reader, n + 1, width, line - 1))
-        except csv.Error as e:  # as _read_csv says it
-            raise InputError(f"{path}: line {reader.line_num + line - 1}", f"malformed CSV ({e})") from None
+        except csv.Error as e:
+            raise _malformed(path, reader, line - 1, e) from None
         return CsvBlock(*rows[0]) if rows else None
     return CsvBlock(np.arange(line, line + n), text=text, columns=[a[f"f{k}"] for k in range(width)],
                     kinds=kinds)
@@ -386,10 +386,16 @@ def _read_csv(path: Path, rows: Callable[[CsvRows], Iterator[T]], offset: int = 
         raise InputError(str(path), f"not a UTF-8 text CSV file ({e.reason} at byte {e.start + offset})"
                          ) from None
     except csv.Error as e:
-        line = f": line {reader.line_num + skipped}" if reader is not None else ""
-        raise InputError(f"{path}{line}", f"malformed CSV ({e})") from None
+        raise _malformed(path, reader, skipped, e) from None
     except OSError as e:
         raise InputError(str(path), f"cannot read ({e.strerror})") from None
+
+
+def _malformed(path: Path, reader: Any, skipped: int, e: csv.Error) -> InputError:
+    """The error of a ``csv.reader`` (None: before it read) that found ``e`` after the first
+    ``skipped`` lines of ``path``."""
+    line = f": line {reader.line_num + skipped}" if reader is not None else ""
+    return InputError(f"{path}{line}", f"malformed CSV ({e})")
 
 
 def _headerless(path: Path, columns: tuple[str, ...], reader: CsvRows) -> Iterator[tuple[int, list[str]]]:

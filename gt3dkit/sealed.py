@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import pickle
 import threading
+import uuid
 from typing import Any
 
 #: Held while a sealed value is opened (its modules imported): one thread of a process at a time.
@@ -61,8 +62,6 @@ def submit(client: Any, fn: Any, *args: object, **options: Any) -> Any:
     """``client.submit(fn, *args, pure=False, **options)`` with ``fn`` and the arguments sealed
     (the futures among them as they are: Dask waits for them and gives their values), named
     after ``fn`` as Dask names a task (its dashboard, its task stream): its future."""
-    import uuid
-
     from dask.utils import funcname
     from distributed import Future
 

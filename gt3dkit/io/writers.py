@@ -123,7 +123,7 @@ def _tracks_rows(f: TextIO, tracks: TrackSet) -> None:
     cols = [tracks.frame, tracks.track_id, tracks.center_world, tracks.semi_axes, tracks.center_sd,
             *([tracks.n_views] if dense else [])]
     fixed = np.r_[False, False, np.ones(9, bool), np.zeros(int(dense), bool)]
-    f.write(format_rows(np.column_stack(cols).astype(np.float64), fixed))  # as csv.writer writes them
+    f.write(format_rows(np.column_stack(cols), fixed))  # as csv.writer writes them
 
 
 def write_keypoints_csv(path: Path, tracks: TrackSet) -> None:
@@ -140,7 +140,7 @@ def _keypoint_rows(f: TextIO, tracks: TrackSet) -> None:
     ``%``-template per row)."""
     r, j = np.nonzero(np.isfinite(tracks.kpt_world).all(axis=-1))
     v = np.column_stack([tracks.frame[r], tracks.track_id[r], j, tracks.kpt_world[r, j], tracks.kpt_sd[r, j]])
-    f.write(format_rows(v.astype(np.float64), np.r_[False, False, False, np.ones(4, bool)]))
+    f.write(format_rows(v, np.r_[False, False, False, np.ones(4, bool)]))
 
 
 class StreamedRows:
