@@ -61,6 +61,12 @@ def tiny_scene(kind: str) -> Scene:
         return load_scene(Path(tmp) / kind)
 
 
+def scene_kind(scene: Scene) -> str:
+    """The kind of :func:`tiny_scene` whose kernels a run of ``scene`` uses: ``"joints"`` where it
+    has keypoints, else ``"boxes"``."""
+    return "joints" if scene.obs.n_joints > 0 else "boxes"
+
+
 def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None = None,
                fps: float | None = None, calib: Path | str | None = None,
                association: Path | str | None = None, segments: Path | str | None = None,

@@ -21,6 +21,12 @@ if TYPE_CHECKING:
 #: connection warms when none is given.
 DEFAULT_ESTIMATOR = "ukf"
 
+#: The kinds of tiny scene a worker is warmed on (:func:`gt3dkit.api.tiny_scene`), one task each,
+#: in this order: the run lets go of the kind its input does not use as soon as it has loaded
+#: (:meth:`gt3dkit.windows.cluster.Cluster.warm_only`), and Dask cancels that one where it has
+#: not started.
+WARM_KINDS = ("boxes", "joints")
+
 
 def check_scheduler_address(address: str) -> None:
     """InputError naming ``--scheduler`` unless ``address`` is one Dask can connect to: a known
@@ -48,12 +54,13 @@ class Early:
     whole (:func:`connect_early`): its ``client``, or the ``error`` connecting raised (said where
     the run connects, as if it had connected then: :func:`gt3dkit.windows.cluster.connect_scheduler`),
     and the futures of the warm-ups sent to its workers by address (none: no worker had joined
-    yet). Who takes the client closes it; :meth:`close` closes it if nobody did."""
+    yet), by worker and kind (:data:`WARM_KINDS`). Who takes the client closes it; :meth:`close`
+    closes it if nobody did."""
 
     address: str
     client: Client | None = None
     error: BaseException | None = None
-    warming: dict[str, Future] = field(default_factory=dict)
+    warming: dict[tuple[str, str], Future] = field(default_factory=dict)
 
     def close(self) -> None:
         self.warming = {}
@@ -63,12 +70,13 @@ class Early:
 
 
 def connect_early(address: str, warm: Callable[..., None], *args: object) -> Early:
-    """Connect to the Dask scheduler at ``address`` and send ``warm(*args)`` to its first worker
-    (sorted by address: the one the noise search runs on), not waiting for it. The others are
-    sent theirs when the run takes this connection over (:class:`gt3dkit.windows.cluster.Cluster`):
-    on 2 cores, warming them all now made the client's own imports wait, and the windows started
-    0.4-0.7 s later than with the first alone (3 runs each). Connecting as the run would, with
-    Dask's own timeout; whatever goes wrong is kept, not raised (the run says it where it connects)."""
+    """Connect to the Dask scheduler at ``address`` and send ``warm(*args, kind)`` for each of
+    :data:`WARM_KINDS` to its first worker (sorted by address: the one the noise search runs on),
+    not waiting for them. The others are sent theirs when the run takes this connection over
+    (:class:`gt3dkit.windows.cluster.Cluster`): on 2 cores, warming them all now made the
+    client's own imports wait, and the windows started 0.4-0.7 s later than with the first alone
+    (3 runs each). Connecting as the run would, with Dask's own timeout; whatever goes wrong is
+    kept, not raised (the run says it where it connects)."""
     from distributed import Client
 
     try:
@@ -78,4 +86,5 @@ def connect_early(address: str, warm: Callable[..., None], *args: object) -> Ear
         return Early(address, error=e)
     first = sorted(client.scheduler_info()["workers"])[:1]
     return Early(address, client=client, warming={
-        w: submit(client, warm, *args, workers=[w], allow_other_workers=False) for w in first})
+        (w, kind): submit(client, warm, *args, kind, workers=[w], allow_other_workers=False)
+        for w in first for kind in WARM_KINDS})

@@ -55,3 +55,40 @@ def test_the_warm_up_compiles_what_the_demo_runs_use() -> None:
     assert {s.split(".")[2] for s in used} >= {"boxlm", "boxupdate", "jointupdate", "trikernel", "boxkernel",
                                                "numtext"}
     assert used <= warmed, f"compiled on first use, not by the warm-up: {sorted(used - warmed)}"
+
+
+#: Run with bytecode written under the folder ``sys.argv[1]`` (Python's ``pycache_prefix``): what
+#: ``make setup``'s warm-up writes where ``PYTHONDONTWRITEBYTECODE`` is set.
+WRITES_BYTECODE = """
+import sys
+sys.pycache_prefix, sys.dont_write_bytecode = sys.argv[1], False
+from gt3dkit.commands.warmup import numba_registries
+numba_registries()
+"""
+
+#: Prints, as JSON, the source files of the modules a fresh process imports at its first call of a
+#: compiled function (``format_rows``, loaded from numba's cache) whose bytecode is not under
+#: ``sys.argv[1]``: those it compiles from source, where nothing writes bytecode.
+FIRST_CALL_COMPILES = """
+import json, sys
+from importlib.util import cache_from_source
+from pathlib import Path
+sys.pycache_prefix, sys.dont_write_bytecode = sys.argv[1], True
+import numpy as np
+from gt3dkit.io.numtext import format_rows
+before = set(sys.modules)
+format_rows(np.zeros((1, 2)), np.array([False, True]))
+new = [sys.modules[m] for m in set(sys.modules) - before]
+files = [m.__file__ for m in new if str(getattr(m, "__file__", None) or "").endswith(".py")]
+compiled = [f for f in files if not Path(cache_from_source(f)).exists()]
+print(json.dumps({"imported": len(files), "from_source": compiled}))
+"""
+
+
+def test_the_warm_up_writes_the_bytecode_of_what_a_first_kernel_call_imports(tmp_path) -> None:
+    subprocess.run([sys.executable, "-c", WRITES_BYTECODE, str(tmp_path)], check=True)
+    r = subprocess.run([sys.executable, "-c", FIRST_CALL_COMPILES, str(tmp_path)], capture_output=True,
+                       text=True, check=True)
+    got = json.loads(r.stdout.strip().splitlines()[-1])
+    assert got["imported"] > 50  # numba's registries: numba.np.arraymath, arrayobj, linalg, ...
+    assert got["from_source"] == []

@@ -5,6 +5,7 @@ loopback, and misuse."""
 from __future__ import annotations
 
 import contextlib
+import gc
 import io
 import json
 import shutil
@@ -18,10 +19,18 @@ import numpy as np
 import pytest
 
 from gt3dkit import cli
-from gt3dkit.api import load_head, load_scene, process_noise_prepared, reconstruct, take_rows
+from gt3dkit.api import (
+    load_head,
+    load_scene,
+    process_noise_prepared,
+    reconstruct,
+    scene_kind,
+    take_rows,
+    tiny_scene,
+)
 from gt3dkit.cli import main
 from gt3dkit.commands.common import Stages, clock
-from gt3dkit.early import Early
+from gt3dkit.early import WARM_KINDS, Early
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.base import make_estimator
 from gt3dkit.sim import Errors, simulate_skeletons, write_skeleton_scene
@@ -377,12 +386,13 @@ def test_gt3d_connects_and_warms_the_first_worker_before_its_own_imports() -> No
         assert early is not None and early.error is None
         try:
             first, other = sorted(early.client.scheduler_info()["workers"])
-            assert list(early.warming) == [first]
-            sent = early.warming[first]
+            assert list(early.warming) == [(first, "boxes"), (first, "joints")]
+            sent = dict(early.warming)
             with Cluster(cluster.scheduler_address, "ukf", {}, early=early) as c:
                 assert c.client is early.client and c.warmed == {first, other}
-                assert c._warming[first] is sent
-                assert c._warming[other].key.startswith("warm_first")
+                assert early.warming == {}  # taken over: the run alone holds them
+                assert all(c._warming[k] is f for k, f in sent.items())
+                assert c._warming[(other, "boxes")].key.startswith("warm_first")
                 for _ in range(600):  # until the warm-ups are done (seconds)
                     made = c.client.run(_tiny_scenes_made)
                     if made[first] and made[other]:
@@ -391,6 +401,25 @@ def test_gt3d_connects_and_warms_the_first_worker_before_its_own_imports() -> No
                 assert made == {first: 1, other: 1}, made
         finally:
             early.close()  # after the run closed it: nothing left to do, no error
+
+
+def test_the_run_lets_go_of_the_warm_ups_its_input_does_not_use() -> None:
+    """The first worker is sent a warm-up for each kind of tiny scene; once the input is loaded
+    the run keeps those of its kind only (``Cluster.warm_only``, :func:`gt3dkit.api.scene_kind`),
+    and the others' futures are let go (Dask cancels a task no client wants): the noise search,
+    sent next to that worker, does not wait for the joints' warm-up of a box sequence."""
+    distributed = pytest.importorskip("distributed")
+    assert [scene_kind(tiny_scene(kind)) for kind in WARM_KINDS] == list(WARM_KINDS)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=":0") as cluster:
+        with Cluster(cluster.scheduler_address, "ukf", {}) as c:
+            (w,) = c.warmed
+            keys = {kind: f.key for (_, kind), f in c._warming.items()}
+            assert set(keys) == {"boxes", "joints"}
+            c.warm_only("boxes")
+            assert list(c._warming) == [(w, "boxes")] and c.warmed == {w}
+            gc.collect()
+            assert keys["joints"] not in c.client.futures and keys["boxes"] in c.client.futures
 
 
 def test_the_early_warm_up_is_sealed_and_opened_where_it_runs() -> None:

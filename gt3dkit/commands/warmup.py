@@ -76,9 +76,10 @@ def warm_up(say: bool = False) -> float:
 
 #: The installed packages gt3dkit's commands, reports, clusters and tests import, besides every
 #: module of gt3dkit itself (:func:`import_all`). ``import open3d`` alone imports dash, plotly,
-#: IPython and werkzeug (open3d's web visualiser).
+#: IPython and werkzeug (open3d's web visualiser). msgspec: imported where a WILDTRACK frame file is
+#: first read (:mod:`gt3dkit.io.datasets.wildtrack`), by no module's import.
 IMPORTED = ("open3d", "matplotlib.pyplot", "distributed", "pytest", "hypothesis", "pandas", "motmetrics",
-            "trackeval", "pycocotools.coco", "c3d", "importlinter")
+            "trackeval", "pycocotools.coco", "c3d", "importlinter", "msgspec.json", "msgspec.structs")
 
 #: Writes the bytecode of what gt3dkit imports (``make setup`` installs with ``pip --no-compile``):
 #: a process at the lowest priority that imports it with bytecode writing on
@@ -92,7 +93,9 @@ BYTECODE = ("import os, sys; os.nice(19); sys.dont_write_bytecode = False; "
 
 def import_all() -> None:
     """Import every module of gt3dkit and the packages of :data:`IMPORTED` (one not installed, or
-    that fails to import, left out): where bytecode writing is on, each one's is written."""
+    that fails to import, left out), and the modules numba imports only when a process first
+    calls a compiled function (:func:`numba_registries`): where bytecode writing is on, each
+    one's is written."""
     import importlib
     import pkgutil
 
@@ -101,6 +104,20 @@ def import_all() -> None:
     for name in names:
         with contextlib.suppress(Exception):
             importlib.import_module(name)
+    with contextlib.suppress(Exception):
+        numba_registries()
+
+
+def numba_registries() -> None:
+    """Load numba's typing and lowering registries, as the first call of a compiled function in a
+    process does (``BaseContext.refresh``: 94 modules, ``numba.np.arraymath``, ``arrayobj``,
+    ``linalg``, ...), which ``import numba`` does not. Without their bytecode every process
+    compiled them from source at its first kernel call: 0.27 s of each ``gt3d reconstruct``
+    where ``PYTHONDONTWRITEBYTECODE`` is set (Python's compile calls, timed)."""
+    from numba.core.registry import cpu_target
+
+    cpu_target.typing_context.refresh()
+    cpu_target.target_context.refresh()
 
 
 def main(argv: list[str]) -> None:

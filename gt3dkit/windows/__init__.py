@@ -82,6 +82,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from gt3dkit.api import scene_kind
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.base import make_estimator, over_time
 from gt3dkit.io.atomic import write_dir_atomically
@@ -196,6 +197,8 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
     own = cluster is None and bool(plan.scheduler)
     if own:
         cluster = Cluster(str(plan.scheduler), estimator, config, loading=False)
+    if cluster is not None:  # before the search: it would wait for the other kind's warm-up
+        cluster.warm_only(scene_kind(scene))
     reads: list[FramesRead] | None = [] if scene.index is not None else None
     try:
         client = cluster.client if cluster is not None else None

@@ -13,9 +13,9 @@ import numpy as np
 
 from gt3dkit.api import (
     estimate_checked,
-    tiny_scenes,
+    tiny_scene,
 )
-from gt3dkit.early import Early, check_scheduler_address
+from gt3dkit.early import WARM_KINDS, Early, check_scheduler_address
 from gt3dkit.errors import EstimationError, InputError
 from gt3dkit.fusion.base import make_estimator
 from gt3dkit.sealed import scatter, submit
@@ -89,29 +89,33 @@ class Cluster:
     unreachable scheduler is an :class:`InputError` naming ``--scheduler``). With ``loading``
     (``gt3d reconstruct`` makes it before it loads the sequence) its first worker, the one the
     noise search runs on (:func:`chosen_noise`), loads gt3dkit's imports and compiled kernels
-    while the sequence loads (:func:`warm_first`); without, it would only do that before the
-    search. The others do it during the search, on the sequence's own first frames
-    (:func:`warm_workers`): on 2 cores, warming them all during the loading slowed it (4.3 s
-    against 3.4 s, means of 4 runs), and so did connecting in a thread beside it with the second
-    worker warming (4.5 s against 3.9 s; connecting first took 0.3-0.45 s). ``early``: the
-    connection ``gt3d`` made before its own imports, with the first worker's warm-up already sent
+    while the sequence loads (:func:`warm_first`, a task for each kind of tiny scene,
+    :data:`gt3dkit.early.WARM_KINDS`); without, it would only do that before the search. The
+    others do it during the search, on the sequence's own first frames (:func:`warm_workers`):
+    on 2 cores, warming them all during the loading slowed it (4.3 s against 3.4 s, means of 4
+    runs), and so did connecting in a thread beside it with the second worker warming (4.5 s
+    against 3.9 s; connecting first took 0.3-0.45 s). ``early``: the connection ``gt3d`` made
+    before its own imports, with the first worker's warm-ups already sent
     (:func:`gt3dkit.early.connect_early`), taken over; the other workers are then sent theirs at
     once: on the 4 000-frame box scene with 2 workers, warming the second during the search
     (where :func:`warm_workers` does) slowed the search from 0.9 s to 1.2-1.6 s, and the
-    whole run took 19.1-20.1 s against 19.8-20.7 s (3 runs each). A context manager."""
+    whole run took 19.1-20.1 s against 19.8-20.7 s (3 runs each). The run lets go of the
+    warm-ups of the kind its input does not use (:meth:`warm_only`). A context manager."""
 
     def __init__(self, address: str, estimator: str, config: Options, loading: bool = True,
                  early: Early | None = None) -> None:
         self.client = connect_scheduler(address, early)
         try:
-            # held until closed: a future let go is a task cancelled
-            self._warming = dict(early.warming) if early is not None and early.client is self.client else {}
-            # the first worker at once; where it was sent its warm-up before this process's
+            # held until closed or let go (warm_only): a future let go is a task cancelled
+            self._warming: dict[tuple[str, str], Any] = {}
+            if early is not None and early.client is self.client:
+                self._warming, early.warming = early.warming, {}
+            # the first worker at once; where it was sent its warm-ups before this process's
             # imports, the others now too, while this process loads the input, not during the search
             now = worker_addresses(self.client)[:1 if not self._warming else None] if loading else []
-            self._warming.update({w: submit(self.client, warm_first, estimator, config, workers=[w],
-                                            allow_other_workers=False)
-                                  for w in now if w not in self._warming})
+            self._warming.update({(w, kind): submit(self.client, warm_first, estimator, config, kind,
+                                                    workers=[w], allow_other_workers=False)
+                                  for w in now if w not in self.warmed for kind in WARM_KINDS})
         except BaseException:
             self.client.close()
             raise
@@ -119,7 +123,13 @@ class Cluster:
     @property
     def warmed(self) -> set[str]:
         """The workers sent a warm-up from the start (:func:`warm_workers` leaves them out)."""
-        return set(self._warming)
+        return {w for w, _ in self._warming}
+
+    def warm_only(self, kind: str) -> None:
+        """Let go of the warm-ups of the kinds other than ``kind`` (:data:`WARM_KINDS`; that of the
+        loaded input, :func:`gt3dkit.api.scene_kind`): Dask cancels those that have not
+        started, which the noise search, sent next to the first worker, would wait for."""
+        self._warming = {k: f for k, f in self._warming.items() if k[1] == kind}
 
     def close(self) -> None:
         self._warming = {}
@@ -140,12 +150,11 @@ def process_pool(workers: int) -> Any:
     return ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
 
 
-def warm_first(estimator: str, config: Options) -> None:
-    """:func:`warm_worker` on two tiny simulated scenes, boxes and joints
-    (:func:`gt3dkit.api.tiny_scenes`): the first Dask worker's, while the sequence loads
+def warm_first(estimator: str, config: Options, kind: str) -> None:
+    """:func:`warm_worker` on the tiny simulated scene of ``kind``, boxes or joints
+    (:func:`gt3dkit.api.tiny_scene`): the first Dask worker's, while the sequence loads
     (:class:`Cluster`)."""
-    for scene in tiny_scenes():
-        warm_worker(scene, estimator, config)
+    warm_worker(tiny_scene(kind), estimator, config)
 
 
 def warm_worker(scene: Scene | Callable[[], Scene], estimator: str, config: Options) -> None:
