@@ -669,8 +669,9 @@ def test_rows_written_as_the_windows_finish_equal_the_whole_written_at_the_end(
     """``reconstruct_windows`` writes each window's rows as it finishes (``StreamedRows``): the
     folder holds the files ``write_outputs`` writes of the stitched result, byte for byte but for
     the clock readings in ``meta.json``; parts that come out of order wait for the earlier ones,
-    and a part that never comes is an error, not a file with a hole."""
-    from gt3dkit.io.writers import StreamedRows, write_outputs
+    and a part that never comes is an error, not a file with a hole. The windows make their rows'
+    text where they run (``PartText``); a part given none has it made by the writer: the same."""
+    from gt3dkit.io.writers import PartText, StreamedRows, write_outputs
 
     if kind == "boxes":
         scene = load_scene(Path(boxes.root))  # type: ignore[attr-defined]
@@ -701,9 +702,9 @@ def test_rows_written_as_the_windows_finish_equal_the_whole_written_at_the_end(
     parts = [take_rows(tracks, (tracks.frame >= a) & (tracks.frame < b)) for a, b in spans]
     found = [[r for r in qa.rows if a <= r[0] < b] for a, b in spans]
     (tmp_path / "reversed").mkdir()
-    with StreamedRows(tmp_path / "reversed") as rows:
+    with StreamedRows(tmp_path / "reversed") as rows:  # the text made with the part, or by the writer
         for k in (2, 1, 0):
-            rows.add(k, parts[k], found[k])
+            rows.add(k, parts[k], found[k], PartText.of(parts[k], found[k]) if k != 1 else None)
     for name in ("tracks.csv", "anomalies.csv"):
         assert (tmp_path / "reversed" / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
     (tmp_path / "gap").mkdir()

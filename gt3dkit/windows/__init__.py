@@ -130,6 +130,7 @@ from gt3dkit.windows.stitch import (
     OnPart,
     RowsTally,
     WindowJob,
+    WindowPart,
     drop_kept,
     pooled_bones,
     run_window,
@@ -185,7 +186,8 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
     read their own frames (:func:`gt3dkit.api.load_head`), the index with what they read
     (:func:`gt3dkit.windows.frames.completed`); ``on_window(done, total)`` as the windows start (0)
     and after each one; ``cluster`` as :func:`reconstruct_windows`; ``on_part(k, tracks,
-    anomaly_rows)`` with each window's final rows and findings as it finishes (:func:`run_window`);
+    anomaly_rows, text)`` with each window's final rows, findings and their text (made on the
+    worker, :class:`gt3dkit.io.writers.PartText`) as it finishes (:func:`run_window`);
     ``tally``: told where the truth comes from (:class:`RowsTally`; its rows come through
     ``on_part``)."""
     if not over_time(estimator):
@@ -237,7 +239,8 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
                 windows, bridge, scenes = _cut_windows(scene, sized_plan(plan, ov, len(frames), workers), ov,
                                                        client, index, work)
             plan = sized_plan(plan, ov, len(frames), workers)
-            like = WindowJob(windows[0], estimator, {**config, **noise}, every_frame)
+            like = WindowJob(windows[0], estimator, {**config, **noise}, every_frame,
+                             text=on_part is not None)
             done, n = on_window or (lambda k, n: None), len(windows)
             runner = None if client is None and n == 1 else runner
             parts, samples, like = _run_rounds(
@@ -384,8 +387,8 @@ def _run_windows(scenes: Callable[[int], Any], windows: list[Window], like: Wind
     for n, (k, part) in enumerate(finished, 1):
         if isinstance(part, ReadPart):
             part, said[k] = part.part, part.read
-        parts[k] = part
         got(k, *part)
+        parts[k] = part._replace(text=None) if isinstance(part, WindowPart) else part  # written, not kept
         done(n, len(windows))
     if reads is not None:
         reads[:] = said

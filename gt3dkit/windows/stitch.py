@@ -10,7 +10,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
@@ -24,14 +24,25 @@ from gt3dkit.fusion.base import make_estimator
 from gt3dkit.fusion.bones import BoneSamples, PersonBones
 from gt3dkit.fusion.prepare import Prepared
 from gt3dkit.fusion.ukf_config import UKFConfig
+from gt3dkit.io.writers import PartText
 from gt3dkit.qa.anomalies import Anomalies
 from gt3dkit.threads import roomy_malloc, small_matrix_blas
 from gt3dkit.types import I64, Downweighted, GroundTruth, Options, Scene, TrackSet
 from gt3dkit.windows.plan import Plan, Window
 
 #: What a window's rows and findings go to as it finishes (:func:`reconstruct_windowed`): its index,
-#: its tracks and its QA rows.
-OnPart = Callable[[int, TrackSet, list[tuple[Any, ...]]], None]
+#: its tracks, its QA rows and their text (:class:`WindowPart`).
+OnPart = Callable[[int, TrackSet, list[tuple[Any, ...]], PartText | None], None]
+
+
+class WindowPart(NamedTuple):
+    """A window's result (:func:`run_window`): its own frames' ``tracks`` and QA ``findings``, and
+    where the run writes them (``WindowJob.text``) their ``text`` as the output files hold it,
+    made where the window ran (:class:`gt3dkit.io.writers.PartText`)."""
+
+    tracks: TrackSet
+    findings: list[tuple[Any, ...]]
+    text: PartText | None = None
 
 
 class RowsTally(Protocol):
@@ -53,6 +64,7 @@ class WindowJob:
     config: Options
     every_frame: int | None
     bones: PersonBones | None = None  # every person's bones, pooled over the windows
+    text: bool = False  # the rows' text made too (the run writes them: WindowPart.text)
 
 
 class KeptPreparations:
@@ -131,11 +143,11 @@ def drop_kept(token: str) -> None:
         store.close()
 
 
-def run_window(job: WindowJob, scene: Scene, kept: Keep | None = None
-               ) -> tuple[TrackSet, list[tuple[Any, ...]]]:
+def run_window(job: WindowJob, scene: Scene, kept: Keep | None = None) -> WindowPart:
     """One window's rows and QA findings in its own frames, from its ``scene`` (the persons' bones
-    ``job.bones`` where given: the window's own ids only, its split pieces' ids are its own);
-    ``kept``: the preparations the bones' round kept (:class:`Keep`)."""
+    ``job.bones`` where given: the window's own ids only, its split pieces' ids are its own),
+    with their text where ``job.text`` (:class:`WindowPart`); ``kept``: the preparations the
+    bones' round kept (:class:`Keep`)."""
     w = job.window
     with small_matrix_blas(), roomy_malloc():
         est = make_estimator(job.estimator, **job.config)
@@ -148,7 +160,8 @@ def run_window(job: WindowJob, scene: Scene, kept: Keep | None = None
     if d is not None:
         d = _downweighted_rows(d, (d.frame >= w.first) & (d.frame <= w.last))
     out = take_rows(dataclasses.replace(tracks, downweighted=d), keep)
-    return out, sorted((r for r in qa.rows if w.first <= r[0] <= w.last), key=finding_order)
+    findings = sorted((r for r in qa.rows if w.first <= r[0] <= w.last), key=finding_order)
+    return WindowPart(out, findings, PartText.of(out, findings) if job.text else None)
 
 
 def finding_order(row: tuple[Any, ...]) -> tuple[Any, ...]:
@@ -197,7 +210,7 @@ def _downweighted_rows(d: Downweighted, keep: np.ndarray) -> Downweighted:
     return Downweighted(**{f.name: getattr(d, f.name)[keep] for f in dataclasses.fields(d)})
 
 
-def stitch(parts: list[tuple[TrackSet, list[tuple[Any, ...]]]], windows: list[Window], plan: Plan,
+def stitch(parts: list[WindowPart], windows: list[Window], plan: Plan,
            overlap: int, noise: dict[str, float]) -> tuple[TrackSet, Anomalies]:
     """The windows' rows and findings as one run's (rows by frame, then id)."""
     ts = [p[0] for p in parts]
