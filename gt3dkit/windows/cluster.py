@@ -27,7 +27,7 @@ from gt3dkit.windows.plan import Window
 if TYPE_CHECKING:
     from concurrent.futures import Executor
 
-    from distributed import Client
+    from distributed import Client, Future
 
 #: Where windows run: a Dask cluster's client, a local process pool, or this process (None).
 Runner: TypeAlias = "Client | Executor | None"
@@ -107,7 +107,7 @@ class Cluster:
         self.client = connect_scheduler(address, early)
         try:
             # held until closed or let go (warm_only): a future let go is a task cancelled
-            self._warming: dict[tuple[str, str], Any] = {}
+            self._warming: dict[tuple[str, str], Future] = {}
             if early is not None and early.client is self.client:
                 self._warming, early.warming = early.warming, {}
             # the first worker at once; where it was sent its warm-ups before this process's
