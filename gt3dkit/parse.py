@@ -234,10 +234,11 @@ def _chunked_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | 
                                       for k in range(width)])
                     line = 2
                 offset += len(chunk)
-                block = _chunk_block(path, text, line, width, kinds, dtype) if text else None
+                n = text.count("\n") + (not text.endswith("\n")) if text else 0  # its lines
+                block = _chunk_block(path, text, line, n, width, kinds, dtype) if text else None
                 if block is not None:
                     yield block
-                line += text.count("\n") + (not text.endswith("\n")) if text else 0
+                line += n
             else:
                 if offset:  # read whole (an empty file: no header, said by the text reading)
                     return
@@ -282,14 +283,13 @@ def _plain_text(chunk: bytes, first: bool) -> str | None:
     return text
 
 
-def _chunk_block(path: Path, text: str, line: int, width: int, kinds: str, dtype: np.dtype
+def _chunk_block(path: Path, text: str, line: int, n: int, width: int, kinds: str, dtype: np.dtype
                  ) -> CsvBlock | None:
-    """The rows of the plain ``text`` (lines from ``line`` on, rows of ``width`` fields):
+    """The rows of the plain ``text`` (its ``n`` lines from ``line`` on, rows of ``width`` fields):
     parsed by ``numpy.loadtxt`` (the columns as ``kinds`` says), or read as text where it
     refuses them (a field ``int`` or ``float`` refuses too, a row of another width: the text
     reading says which, and a field longer than ``csv.reader`` reads); None: no rows (lines of
     spaces alone)."""
-    n = text.count("\n") + (not text.endswith("\n"))
     try:
         a = np.loadtxt(io.StringIO(text), dtype=dtype, delimiter=",", comments=None, ndmin=1)
     except ValueError:

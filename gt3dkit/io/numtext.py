@@ -95,7 +95,8 @@ def format_rows(values: np.ndarray, fixed: np.ndarray) -> str:
     integers of magnitude up to 2**53), as ``csv.writer`` would write them."""
     values = np.ascontiguousarray(values, dtype=np.float64)
     fixed = np.ascontiguousarray(fixed, dtype=np.bool_)
-    template = ",".join("%.6f" if f else "%d" for f in fixed.tolist()) + "\r\n"
+    flags = fixed.tolist()
+    template = ",".join("%.6f" if f else "%d" for f in flags) + "\r\n"
     out: list[str] = []
     for a in range(0, len(values), ROWS_AT_ONCE):
         part = values[a:a + ROWS_AT_ONCE]
@@ -109,7 +110,7 @@ def format_rows(values: np.ndarray, fixed: np.ndarray) -> str:
             continue
         last = 0
         for i in np.flatnonzero(python).tolist():
-            row = tuple(v if f else int(v) for v, f in zip(part[i].tolist(), fixed.tolist(), strict=True))
+            row = tuple(v if f else int(v) for v, f in zip(part[i].tolist(), flags, strict=True))
             out += [text[last:ends[i]], template % row]
             last = int(ends[i])
         out.append(text[last:])
