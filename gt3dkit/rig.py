@@ -84,6 +84,55 @@ def distortion_fold(K: F64, dist: F64, width: int, height: int) -> float | None:
     return float(r[0, k] / r[0, first_out[ray]])
 
 
+def distortion_valid_radius(K: F64, dist: F64, width: int, height: int) -> float | None:
+    """The distance (px) from the principal point, in the image, within which OpenCV's distortion
+    (k1 k2 p1 p2 k3) is one-to-one; None where it is so over the whole image.
+
+    Along 360 rays from the principal point in the undistorted plane, the first radius where the
+    map stops being orientation-preserving (Jacobian determinant <= 0) is mapped into the image;
+    the nearest such point bounds the valid disc. Beyond it a pixel has two undistorted points,
+    so observations there cannot be used.
+    """
+    k1, k2, p1, p2, k3 = (float(v) for v in dist)
+    if k1 == k2 == p1 == p2 == k3 == 0:
+        return None
+    c = np.array([[0, 0], [width - 1, 0], [0, height - 1], [width - 1, height - 1]], dtype=np.float64)
+    corner_px = float(np.max(np.hypot(c[:, 0] - K[0, 2], c[:, 1] - K[1, 2])))
+    corner = corner_px / min(K[0, 0], K[1, 1])
+    th = np.linspace(0, 2 * np.pi, 360, endpoint=False)[:, None]
+    r = np.linspace(0, 10 * corner, 4001)[1:][None, :]
+    x, y = r * np.cos(th), r * np.sin(th)
+    with np.errstate(over="ignore", invalid="ignore"):
+        r2 = x * x + y * y
+        rad = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
+        dr = k1 + 2 * k2 * r2 + 3 * k3 * r2**2
+        xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        a = rad + 2 * x * x * dr + 2 * p1 * y + 6 * p2 * x
+        b = 2 * x * y * dr + 2 * p1 * x + 2 * p2 * y
+        d = rad + 2 * y * y * dr + 6 * p1 * y + 2 * p2 * x
+        det = a * d - b * b
+        u = K[0, 0] * xd + K[0, 1] * yd
+        v = K[1, 1] * yd
+        dist_px = np.hypot(u, v)
+    bad = ~(det > 0)
+    if not bad.any():
+        return None
+    first = np.where(bad.any(axis=1), np.argmax(bad, axis=1), -1)
+    # the image radius reached before each ray's fold (the map may already turn back in radius)
+    reach = np.array([np.nanmax(dist_px[i, :k]) if k > 0 else 0.0 for i, k in enumerate(first) if k >= 0])
+    radius = float(reach.min()) if reach.size else corner_px
+    return None if radius >= corner_px else radius
+
+
+#: A lens model that turns back (folds) within the image is read, with its observations beyond
+#: the fold left out, when it is one-to-one over at least this fraction of the half of the
+#: image's shorter side around the principal point (anipose's k1-only fits of strong lenses turn
+#: back near the image's corners, 1.08 x the half height on the shared mouse rig); nearer the
+#: centre it is a typo or a calibration of another image size, and refused.
+MIN_VALID_RADIUS = 0.9
+
+
 @dataclass(frozen=True)
 class Camera:
     """One calibrated pinhole camera with OpenCV lens distortion.
@@ -111,6 +160,10 @@ class Camera:
         calibration solved in a left-handed world (MultiviewX's Unity export): OpenCV's
         projection ``K (R X + t) / Z`` still holds, but seen points have ``Z_cam < 0``.
         Only "in front of the camera" tests and ray directions use it.
+    valid_radius_px : float or None
+        Where the lens model turns back before the image's corners: the distance (px) from the
+        principal point within which it is one-to-one (computed; observations beyond it are
+        left out). None: one-to-one over the whole image.
     """
 
     name: str
@@ -122,6 +175,7 @@ class Camera:
     t: F64
     depth_sign: float = 1.0
     r_deviation: float = 0.0
+    valid_radius_px: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "K", as_array(self.K, (3, 3), f"camera {self.name}: K"))
@@ -167,9 +221,15 @@ class Camera:
             raise ValueError(f"camera {self.name}: a dist coefficient beyond {MAX_DIST_COEF:g}")
         fold = distortion_fold(self.K, self.dist, int(self.width), int(self.height))
         if fold is not None:
-            raise ValueError(f"camera {self.name}: dist {np.round(self.dist, 6).tolist()} folds the "
-                             f"image (the radial distortion turns back at {fold:.0%} of the way to the "
-                             "farthest corner): not a calibration of this image size")
+            radius = distortion_valid_radius(self.K, self.dist, int(self.width), int(self.height))
+            half = 0.5 * min(self.width, self.height)
+            if fold == 0.0 or radius is None or radius < MIN_VALID_RADIUS * half:
+                raise ValueError(f"camera {self.name}: dist {np.round(self.dist, 6).tolist()} folds the "
+                                 f"image (the radial distortion turns back at {fold:.0%} of the way to the "
+                                 "farthest corner"
+                                 + (f", {radius:.0f} px from the principal point" if radius else "")
+                                 + "): not a calibration of this image size")
+            object.__setattr__(self, "valid_radius_px", radius)
 
     @property
     def center_world(self) -> F64:

@@ -57,7 +57,29 @@ def rig_warnings(rig: Rig) -> list[str]:
         if not (cx_ok and 0.25 * c.height <= c.K[1, 2] <= 0.75 * c.height):
             w.append(f"camera {c.name}: principal point ({c.K[0, 2]:.0f}, {c.K[1, 2]:.0f}) is outside the "
                      f"middle half of its {c.width}x{c.height} image: a wrong image size?")
+        if c.valid_radius_px is not None:
+            w.append(f"camera {c.name}: its lens model (dist {np.round(c.dist, 4).tolist()}) turns back "
+                     f"{c.valid_radius_px:.0f} px from the principal point, before the image's corners: "
+                     "observations beyond that radius are left out")
         if c.r_deviation > 1e-6:
             w.append(f"camera {c.name}: R was not orthonormal (max |R R^T - I| = {c.r_deviation:.2g}); "
                      "re-orthonormalised")
+    w += copied_cameras(rig)
     return w
+
+
+def copied_cameras(rig: Rig) -> list[str]:
+    """Cameras at the same place looking the same way (within 1 mm and 0.01 degree): one was
+    copied over the other, since two cameras cannot share a lens."""
+    out = []
+    for i, a in enumerate(rig.cameras):
+        for b in rig.cameras[i + 1:]:
+            dc = float(np.linalg.norm(a.center_world - b.center_world))
+            ang = float(np.degrees(np.arccos(np.clip((np.trace(a.R.T @ b.R) - 1) / 2, -1, 1))))
+            if dc < 1e-3 and ang < 0.01:
+                same_k = bool(np.allclose(a.K, b.K) and np.allclose(a.dist, b.dist))
+                out.append(f"cameras {a.name} and {b.name} have the same pose{' and lens' if same_k else ''} "
+                           f"({dc * 1e3:.2g} mm, {ang:.2g} degrees apart): one is a copy of the other; "
+                           "check the calibration against the annotations (gt3d calib show INPUT) or "
+                           "calibrate again (gt3d calib board)")
+    return out

@@ -6,6 +6,8 @@ Odd but valid input is kept or dropped as said here, with one ``warning:`` line 
 
 * a box entirely outside its camera's image cannot have been drawn on it: dropped;
 * a keypoint further than :data:`KPT_OFF_IMAGE` image sizes outside the image: dropped;
+* a keypoint, or a box with an edge, beyond where its camera's lens model turns back
+  (:attr:`~gt3dkit.rig.Camera.valid_radius_px`): dropped, counted per camera;
 * objects only ever seen by one camera: kept (their distance comes from the size prior
   alone, so expect errors of metres; their standard deviations say so);
 * a rig of one camera: every object is such an object;
@@ -95,6 +97,42 @@ def _gaps(scene: Scene, obs: Observations) -> list[str]:
             f"{int(pairs[worst, 1])}): no rows there (--every-frame interpolates them)"]
 
 
+def _beyond_lens_model(scene: Scene, obs: Observations) -> tuple[Observations, list[str]]:
+    """Keypoints, and boxes with an edge's middle, further from the principal point than the
+    camera's lens model is one-to-one (:attr:`Camera.valid_radius_px`): left out and counted."""
+    radius = np.array([np.inf if c.valid_radius_px is None else c.valid_radius_px
+                       for c in scene.rig.cameras])
+    if not np.isfinite(radius).any() or len(obs) == 0:
+        return obs, []
+    pp = scene.rig.K[obs.cam][:, :2, 2]  # (N, 2)
+    lim = radius[obs.cam]
+    kpt = obs.kpt_uv_px
+    kbad = np.isfinite(kpt[..., 0]) & (np.hypot(kpt[..., 0] - pp[:, None, 0], kpt[..., 1] - pp[:, None, 1])
+                                       > lim[:, None])
+    box = obs.box_xyxy_px
+    mid = np.stack([np.stack([box[:, 0], (box[:, 1] + box[:, 3]) / 2], -1),
+                    np.stack([box[:, 2], (box[:, 1] + box[:, 3]) / 2], -1),
+                    np.stack([(box[:, 0] + box[:, 2]) / 2, box[:, 1]], -1),
+                    np.stack([(box[:, 0] + box[:, 2]) / 2, box[:, 3]], -1)], axis=1)  # (N, 4, 2)
+    with np.errstate(invalid="ignore"):
+        bbad = obs.has_box & np.any(np.hypot(mid[..., 0] - pp[:, None, 0], mid[..., 1] - pp[:, None, 1])
+                                    > lim[:, None], axis=1)
+    if not kbad.any() and not bbad.any():
+        return obs, []
+    out = []
+    for c, cam in enumerate(scene.rig.cameras):
+        n_k, n_b = int(kbad[obs.cam == c].sum()), int(bbad[obs.cam == c].sum())
+        if n_k or n_b:
+            what = " and ".join(x for x in (f"{n_k} keypoints" if n_k else "", f"{n_b} boxes" if n_b else "") if x)
+            out.append(f"camera {cam.name}: {what} lie beyond {cam.valid_radius_px:.0f} px from its principal "
+                       "point, where its lens model turns back: left out")
+    box = np.where(bbad[:, None], np.nan, box)
+    kpt = np.where(kbad[..., None], np.nan, kpt)
+    conf = None if obs.kpt_conf is None else np.where(kbad, np.nan, obs.kpt_conf)
+    keep = np.all(np.isfinite(box), axis=1) | np.isfinite(kpt[..., 0]).any(axis=1)
+    return dataclasses.replace(obs, box_xyxy_px=box, kpt_uv_px=kpt, kpt_conf=conf).select(keep), out
+
+
 def check_scene(scene: Scene, whole: bool = True) -> Scene:
     """``scene`` with off-image annotations dropped and its odd-input warnings added; ``whole``:
     the scene is the whole input (else some of its frames: none left is no error)."""
@@ -136,6 +174,11 @@ def check_scene(scene: Scene, whole: bool = True) -> Scene:
         obs = dataclasses.replace(obs, box_xyxy_px=box, kpt_uv_px=kpt, kpt_conf=conf).select(keep)
         if len(obs) == 0 and whole:
             raise InputError(scene.root or "input", "no annotation lies inside its camera's image")
+
+    obs, w = _beyond_lens_model(scene, obs)
+    warnings += w
+    if len(obs) == 0 and whole:
+        raise InputError(scene.root or "input", "no annotation lies where its camera's lens model is valid")
 
     n_cams = _cameras_per_object(obs.track_id, obs.cam)
     boxed = set(obs.track_id[obs.has_box].tolist())
