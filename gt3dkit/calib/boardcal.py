@@ -701,3 +701,10 @@ def _world(cfg: BoardConfig, names: Sequence[str], rig_T: F64, fposes: dict[int,
     if np.median(z) < 0:  # cameras below: they saw the board from its back
         world_from_ref = np.diag([1.0, -1.0, -1.0, 1.0]) @ world_from_ref
     return world_from_ref, np.array([0.0, 0.0, 1.0]), f"the board of frame {f} as the floor (metres, z up)"
+
+
+def identity_poses(rig: Rig) -> Rig:
+    """``rig``'s cameras with no pose (intrinsics only): each at the origin, looking along +z."""
+    cams = tuple(Camera(c.name, c.width, c.height, c.K, c.dist, np.eye(3), np.zeros(3)) for c in rig.cameras)
+    return Rig(cams, up=np.array([0.0, -1.0, 0.0]), frame_name="intrinsics only: every camera at the origin "
+                                                              "(poses not calibrated)")

@@ -223,3 +223,45 @@ def read_views(sources: Sequence[CameraSource], board: Board, step: int = 1,
     with ThreadPoolExecutor(max(1, n)) as pool:
         futs = [pool.submit(read_camera, i, s, board, step) for i, s in enumerate(sources)]
         return [f.result() for f in futs]
+
+
+@dataclass(frozen=True)
+class BoardViews:
+    """Every camera's board views, the cameras named once (a Pose2Sim camera's intrinsics and
+    extrinsics folders are one camera)."""
+
+    names: tuple[str, ...]
+    sizes: tuple[tuple[int, int], ...]
+    views: tuple[View, ...]
+    frames_read: tuple[int, ...]
+    frames_empty: tuple[int, ...]
+    sources: tuple[CameraSource, ...]
+
+
+def board_views(sources: Sequence[CameraSource], board: Board, step: int = 1) -> BoardViews:
+    """Read and detect every source (:func:`read_views`); a camera in which the board is never
+    found, or whose folders disagree on the image size, is an :class:`InputError`."""
+    names = list(dict.fromkeys(s.name for s in sources))
+    got = read_views(sources, board, step)
+    sizes: dict[str, tuple[int, int]] = {}
+    read: dict[str, int] = dict.fromkeys(names, 0)
+    empty: dict[str, int] = dict.fromkeys(names, 0)
+    views: list[View] = []
+    for s, cf in zip(sources, got, strict=True):
+        if s.name in sizes and sizes[s.name] != cf.size:
+            raise InputError(str(s.path), f"image size {cf.size[0]}x{cf.size[1]} differs from camera {s.name}'s "
+                                          f"other board frames ({sizes[s.name][0]}x{sizes[s.name][1]})")
+        sizes[s.name] = cf.size
+        read[s.name] += cf.n_read
+        empty[s.name] += cf.n_empty
+        c = names.index(s.name)
+        views += [View(c, v.frame, v.label, v.synced, v.det) for v in cf.views]
+    none = [n for n in names if read[n] == empty[n]]
+    if none:
+        where = ", ".join(str(s.path) for s in sources if s.name in none)
+        raise InputError(where, f"the board ({board.describe()}) was found in none of the frames of camera "
+                                f"{', '.join(none)}: check its description (the ArUco dictionary, the number "
+                                "of squares along each side, the marker and square lengths; anipose's "
+                                "board.toml gives marker_bits and dict_size) and that the frames show the board")
+    return BoardViews(tuple(names), tuple(sizes[n] for n in names), tuple(views),
+                      tuple(read[n] for n in names), tuple(empty[n] for n in names), tuple(sources))

@@ -3,13 +3,20 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 
 from gt3dkit.api import load_scene
-from gt3dkit.calib.formats import detect_format, read_calibration
+from gt3dkit.calib.board import read_board
+from gt3dkit.calib.boardcal import BoardConfig, calibrate_board, identity_poses
+from gt3dkit.calib.boardinput import board_views, find_cameras
+from gt3dkit.calib.formats import detect_format, read_calibration, write_calibration
+from gt3dkit.calib.formats.native import write as write_native
 from gt3dkit.calib.show import camera_table, rig_warnings
 from gt3dkit.commands.common import (
     fmt_num,
@@ -17,8 +24,11 @@ from gt3dkit.commands.common import (
     print_warnings,
 )
 from gt3dkit.errors import InputError
+from gt3dkit.io.atomic import check_out, write_dir_atomically
 from gt3dkit.io.writers import write_refined_calibration
 from gt3dkit.refine import RefineConfig, refine, scene_warnings
+from gt3dkit.version import __version__
+from gt3dkit.viz.boardreport import write_board_report
 
 
 def cmd_calib_show(args: argparse.Namespace) -> int:
@@ -70,4 +80,61 @@ def cmd_calib_refine(args: argparse.Namespace) -> int:
         print(f"{name:<12}{'yes' if c['refined'] else 'no':>8}{100 * c['centre_moved_m']:>10.2f}"
               f"{c['rotation_moved_deg']:>9.3f}{fmt_num(c['median_px_before'], 11, 3)}"
               f"{fmt_num(c['median_px_after'], 10, 3)}  {c['why']}")
+    return 0
+
+
+def cmd_calib_board(args: argparse.Namespace) -> int:
+    """``gt3d calib board``: a rig from board views (see :mod:`gt3dkit.calib.boardcal`)."""
+    t0 = time.perf_counter()
+    out = Path(args.out)
+    inputs = [Path(p).resolve() for p in args.input]
+    if any(out.resolve() == p or p in out.resolve().parents for p in inputs if p.is_dir()):
+        raise InputError("--out", f"{out} lies inside the input {args.input[0]}: never write into an input folder")
+    check_out(out)
+    board = read_board(args.board, args.board_units)
+    sources = find_cameras(args.input, args.cam_regex, args.intrinsics_only)
+    fixed = {}
+    if args.intrinsics:
+        given = read_calibration(Path(args.intrinsics))
+        fixed = {c.name: c for c in given.cameras}
+        unknown = sorted({s.name for s in sources} - set(fixed))
+        if unknown:
+            raise InputError(args.intrinsics, f"has no camera {', '.join(unknown)} (it has "
+                                              f"{', '.join(given.names)})")
+    bv = board_views(sources, board, args.step)
+    cfg = BoardConfig(origin=args.origin, floor_frame=args.floor_frame, holdout_every=args.holdout,
+                      fixed=fixed)
+    cal = calibrate_board(list(bv.views), board, bv.names, bv.sizes, cfg)
+    if args.intrinsics_only:
+        cal = dataclasses.replace(cal, rig=identity_poses(cal.rig))
+    seconds = time.perf_counter() - t0
+    command = "gt3d calib board " + " ".join(sys.argv[3:]) if len(sys.argv) > 3 else "gt3d calib board"
+
+    def write(tmp: Path) -> None:
+        write_native(cal.rig, tmp / "cameras.json")
+        if args.format and args.format != "native":
+            write_calibration(cal.rig, tmp / "calibration", args.format)
+        doc = {"gt3dkit_version": __version__, "input": [str(p) for p in args.input],
+               "cameras_read": {n: {"source": [str(s.path) for s in bv.sources if s.name == n],
+                                    "frames_read": bv.frames_read[i], "frames_without_board": bv.frames_empty[i]}
+                                for i, n in enumerate(bv.names)},
+               "seconds": seconds, **cal.report()}
+        (tmp / "board_report.json").write_text(json.dumps(doc, indent=2, allow_nan=True))
+        write_board_report(cal, tmp / "report", command)
+
+    write_dir_atomically(out, write)
+    for w in cal.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    print(f"{board.describe()}: {len(bv.names)} cameras, {len(bv.views)} board views in "
+          f"{sum(bv.frames_read)} frames, {seconds:.1f} s; {cal.rig.frame_name}; written to {out}")
+    print(f"{'camera':<12}{'views':>6}{'RMS px':>8}{'p95 px':>8}{'held px':>9}{'fx':>9}{'fy':>9}{'cx':>8}{'cy':>8}"
+          f"{'f sd':>6}{'ctr sd mm':>10}{'rot sd °':>9}{'left out':>9}")
+    for rep, cam in zip(cal.cameras, cal.rig.cameras, strict=True):
+        print(f"{rep.name:<12}{rep.views_used:>6}{rep.rms_px:>8.3f}{rep.p95_px:>8.3f}"
+              f"{fmt_num(rep.holdout_rms_px, 9, 3)}{cam.K[0, 0]:>9.1f}{cam.K[1, 1]:>9.1f}{cam.K[0, 2]:>8.1f}"
+              f"{cam.K[1, 2]:>8.1f}{rep.focal_sd_px:>6.2f}{rep.centre_sd_mm:>10.2f}{rep.rotation_sd_deg:>9.3f}"
+              f"{len(rep.dropped):>9}")
+    for rep in cal.cameras:
+        for v, why in rep.dropped:
+            print(f"left out: {rep.name} {v}: {why}")
     return 0

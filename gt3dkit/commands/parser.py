@@ -6,7 +6,8 @@ import argparse
 
 from gt3dkit.api import ESTIMATORS
 from gt3dkit.calib.formats import WRITABLE
-from gt3dkit.commands.calib import cmd_calib_refine, cmd_calib_show
+from gt3dkit.calib.board import UNITS_M
+from gt3dkit.commands.calib import cmd_calib_board, cmd_calib_refine, cmd_calib_show
 from gt3dkit.commands.common import (
     ACCEL,
     FPS,
@@ -192,6 +193,35 @@ def _add_calib(sub: argparse._SubParsersAction[Parser], common: argparse.Argumen
     kr.add_argument("--fps", type=FPS)
     _panoptic_options(kr)
     kr.set_defaults(func=cmd_calib_refine)
+    kb = ksub.add_parser("board", parents=[common],
+                         help="calibrate a rig from views of a ChArUco board or a checkerboard (videos or images)")
+    kb.add_argument("input", nargs="+",
+                    help="one video or image folder per camera; or one folder of those; or Pose2Sim's "
+                         "calibration folder (intrinsics/int_<cam>_img, extrinsics/ext_<cam>_img)")
+    kb.add_argument("--board", required=True,
+                    help="anipose's board.toml or config.toml, Pose2Sim's Config.toml, or a spec "
+                         "charuco:8x11:24:18.75:DICT_4X4_1000 / checkerboard:9x6:25 (squares, lengths)")
+    kb.add_argument("--board-units", choices=tuple(UNITS_M), default="mm",
+                    help="the unit of the board's lengths (default mm)")
+    kb.add_argument("--out", required=True, help="output folder (cameras.json, board_report.json, report/)")
+    kb.add_argument("--format", choices=WRITABLE, default=None,
+                    help="also write the rig in this format (into OUT/calibration/)")
+    kb.add_argument("--step", type=number_type(int, 1, 1_000_000), default=1,
+                    help="read every STEP-th frame of a video or image folder (default 1)")
+    kb.add_argument("--cam-regex", help="camera name: the first group of this regular expression in each "
+                                        "path (default: the names without what they all share)")
+    kb.add_argument("--intrinsics", help="a calibration (any format) whose intrinsics are kept: only the "
+                                         "poses are found")
+    kb.add_argument("--intrinsics-only", action="store_true",
+                    help="each camera saw the board on its own: intrinsics only, no poses")
+    kb.add_argument("--origin", choices=("camera", "floor"), default="camera",
+                    help="world frame: the first camera's, or the board as the floor (z up) (default camera)")
+    kb.add_argument("--floor-frame", type=number_type(int, 0, 10**9),
+                    help="with --origin floor: the frame whose board is the floor (default: the one most "
+                         "cameras saw)")
+    kb.add_argument("--holdout", type=number_type(int, 0, 10**6), default=0,
+                    help="leave every K-th frame out of the fit and report its reprojection error (default 0: none)")
+    kb.set_defaults(func=cmd_calib_board)
 
 
 def _add_reconstruct_many(sub: argparse._SubParsersAction[Parser], common: argparse.ArgumentParser) -> None:
