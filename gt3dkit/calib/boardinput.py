@@ -98,6 +98,10 @@ def _strip_shared(names: list[str]) -> list[str]:
         return names
     pre = os.path.commonprefix(names)
     suf = os.path.commonprefix([n[::-1] for n in names])[::-1]
+    # only whole words: up to the last separator of the prefix, from the first of the suffix
+    pre = pre[:max((pre.rfind(c) for c in "-_ ."), default=-1) + 1]
+    cuts = [suf.find(c) for c in "-_ ." if c in suf]
+    suf = suf[min(cuts):] if cuts else ""
     cut = [n[len(pre):len(n) - len(suf)] for n in names]
     cut = [c.strip("-_ .") for c in cut]
     if all(cut) and len(set(cut)) == len(cut):
@@ -157,6 +161,7 @@ def find_cameras(inputs: Sequence[str | Path], cam_regex: str | None = None,
 
 def _frames(src: CameraSource, step: int) -> Iterator[tuple[int, str, np.ndarray]]:
     """(index, label, grey image) of every ``step``-th frame."""
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # FFmpeg's own lines: the error says it once
     import cv2
     if src.path.is_dir():
         for i, p in enumerate(_images(src.path)):
