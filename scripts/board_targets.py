@@ -62,8 +62,11 @@ print("ANIPOSE_ERROR", err, time.perf_counter() - t)
 
 
 def rig_in_metres(rig: Rig, scale: float) -> Rig:
-    return Rig(tuple(Camera(c.name, c.width, c.height, c.K, c.dist, c.R, c.t * scale) for c in rig.cameras),
-               up=rig.up, frame_name=rig.frame_name)
+    return Rig(
+        tuple(Camera(c.name, c.width, c.height, c.K, c.dist, c.R, c.t * scale) for c in rig.cameras),
+        up=rig.up,
+        frame_name=rig.frame_name,
+    )
 
 
 def same_corners(rig: Rig, bv: object, board: object) -> dict[str, object]:
@@ -103,12 +106,17 @@ def same_corners(rig: Rig, bv: object, board: object) -> dict[str, object]:
         P = X[ok] - X[ok].mean(0)
         n = np.linalg.svd(P)[2][-1]
         flat.append(float(np.sqrt(np.mean((P @ n) ** 2))) * 1e3)
-    return {"rms": rms, "square_mm": float(np.median(squares)), "square_err_pct":
-            float(100 * (np.median(squares) / SQUARE_MM - 1)), "flat_mm": float(np.sqrt(np.mean(np.square(flat))))}
+    return {
+        "rms": rms,
+        "square_mm": float(np.median(squares)),
+        "square_err_pct": float(100 * (np.median(squares) / SQUARE_MM - 1)),
+        "flat_mm": float(np.sqrt(np.mean(np.square(flat)))),
+    }
 
 
 def mouse_reprojection(rig: Rig) -> dict[str, float]:
     import h5py
+
     uv = []
     for c in CAMS:
         with h5py.File(DATA / c / f"minimal_{c}_proofread.analysis.h5") as f:
@@ -133,8 +141,18 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "cal"
         t0 = time.perf_counter()
-        cmd = [str(ROOT / ".venv" / "bin" / "gt3d"), "calib", "board", *map(str, VIDEOS), "--board",
-               str(DATA / "board.toml"), "--out", str(out), "--holdout", "5"]
+        cmd = [
+            str(ROOT / ".venv" / "bin" / "gt3d"),
+            "calib",
+            "board",
+            *map(str, VIDEOS),
+            "--board",
+            str(DATA / "board.toml"),
+            "--out",
+            str(out),
+            "--holdout",
+            "5",
+        ]
         p = subprocess.run(cmd, capture_output=True, text=True)
         ours_s = time.perf_counter() - t0
         if p.returncode:
@@ -143,8 +161,10 @@ def main() -> int:
         print("$ gt3d calib board <4 .MOV> --board board.toml --out OUT --holdout 5")
         print(p.stdout.rstrip())
         rep = json.loads((out / "board_report.json").read_text())
-        print(f"\n1. gt3dkit, whole process {ours_s:.1f} s (OPENBLAS_NUM_THREADS="
-              f"{__import__('os').environ.get('OPENBLAS_NUM_THREADS', 'unset')})")
+        print(
+            f"\n1. gt3dkit, whole process {ours_s:.1f} s (OPENBLAS_NUM_THREADS="
+            f"{__import__('os').environ.get('OPENBLAS_NUM_THREADS', 'unset')})"
+        )
         print(f"{'camera':<8}{'fit RMS px':>11}{'held-out RMS px':>17}  target <= {TARGET_RMS}")
         for n, c in rep["cameras"].items():
             good = c["rms_px"] <= TARGET_RMS and (c["holdout_rms_px"] or 0) <= TARGET_RMS
@@ -160,8 +180,11 @@ def main() -> int:
         if bench.exists():
             code = ANIPOSE.replace("VIDEOS", repr([str(v) for v in VIDEOS]))
             t0 = time.perf_counter()
-            q = subprocess.run([str(bench), "-c", code, str(Path(tmp) / "anipose.toml"), *CAMS],
-                               capture_output=True, text=True)
+            q = subprocess.run(
+                [str(bench), "-c", code, str(Path(tmp) / "anipose.toml"), *CAMS],
+                capture_output=True,
+                text=True,
+            )
             anip_s = time.perf_counter() - t0
             if q.returncode == 0:
                 rigs["aniposelib"] = rig_in_metres(read_calibration(Path(tmp) / "anipose.toml"), 1e-3)
@@ -173,15 +196,22 @@ def main() -> int:
         rigs["anipose's calibration.toml"] = anipose_file
         board = read_board(str(DATA / "board.toml"))
         bv = board_views(find_cameras(list(map(str, VIDEOS))), board)
-        print("\n2./3. the same corners (gt3dkit's detections, every frame), board posed per frame with "
-              "each rig held")
-        print(f"{'rig':<28}" + "".join(f"{c:>8}" for c in CAMS) + f"{'square mm':>11}{'err %':>8}{'flat mm':>9}")
+        print(
+            "\n2./3. the same corners (gt3dkit's detections, every frame), board posed per frame with "
+            "each rig held"
+        )
+        print(
+            f"{'rig':<28}" + "".join(f"{c:>8}" for c in CAMS) + f"{'square mm':>11}{'err %':>8}{'flat mm':>9}"
+        )
         figs = {}
         for name, rig in rigs.items():
             m = same_corners(rig, bv, board)
             figs[name] = m
-            print(f"{name:<28}" + "".join(f"{m['rms'][c]:>8.3f}" for c in CAMS)
-                  + f"{m['square_mm']:>11.3f}{m['square_err_pct']:>8.3f}{m['flat_mm']:>9.3f}")
+            print(
+                f"{name:<28}"
+                + "".join(f"{m['rms'][c]:>8.3f}" for c in CAMS)
+                + f"{m['square_mm']:>11.3f}{m['square_err_pct']:>8.3f}{m['flat_mm']:>9.3f}"
+            )
         g = figs["gt3dkit"]
         sq_ok = abs(g["square_err_pct"]) <= 0.1 and g["flat_mm"] <= 0.15
         ok &= sq_ok
@@ -192,9 +222,14 @@ def main() -> int:
             t_ok = ours_s <= 0.5 * anip_s
             ok &= rms_ok and t_ok
             print(f"reprojection at most aniposelib's on every camera: {'ok' if rms_ok else 'MISSED'}")
-            print(f"time: gt3dkit {ours_s:.1f} s, aniposelib {anip_s:.1f} s, ratio {ours_s / anip_s:.2f} "
-                  f"(target <= 0.5): {'ok' if t_ok else 'MISSED'}")
-        print("\n4. the mouse's proofread labels, triangulated per frame through each rig: median reprojection px")
+            print(
+                f"time: gt3dkit {ours_s:.1f} s, aniposelib {anip_s:.1f} s, ratio {ours_s / anip_s:.2f} "
+                f"(target <= 0.5): {'ok' if t_ok else 'MISSED'}"
+            )
+        print(
+            "\n4. the mouse's proofread labels, triangulated per frame through each rig: "
+            "median reprojection px"
+        )
         for name, rig in rigs.items():
             try:
                 med = mouse_reprojection(rig)
@@ -204,8 +239,11 @@ def main() -> int:
             good = all(v <= 8 for v in med.values())
             if name == "gt3dkit":
                 ok &= good
-            print(f"{name:<28}" + "".join(f"{c}={v:6.2f}  " for c, v in med.items())
-                  + ("(target <= 8: " + ("ok)" if good else "MISSED)") if name == "gt3dkit" else ""))
+            print(
+                f"{name:<28}"
+                + "".join(f"{c}={v:6.2f}  " for c, v in med.items())
+                + ("(target <= 8: " + ("ok)" if good else "MISSED)") if name == "gt3dkit" else "")
+            )
     print("\nall targets met" if ok else "\nsome targets MISSED")
     return 0 if ok else 1
 

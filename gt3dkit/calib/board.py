@@ -84,8 +84,10 @@ class Board:
             raise ValueError(f"square side must be in (0, 10) m, got {self.square_m:g} m")
         if self.kind == "charuco":
             if not 0 < self.marker_m < self.square_m:
-                raise ValueError(f"a ChArUco marker ({self.marker_m * 1e3:g} mm) must be smaller than its "
-                                 f"square ({self.square_m * 1e3:g} mm)")
+                raise ValueError(
+                    f"a ChArUco marker ({self.marker_m * 1e3:g} mm) must be smaller than its "
+                    f"square ({self.square_m * 1e3:g} mm)"
+                )
             if self.dictionary not in aruco_dictionaries():
                 raise ValueError(f"unknown ArUco dictionary {self.dictionary!r}")
 
@@ -102,8 +104,9 @@ class Board:
         """(N, 3) inner corners in the board frame, metres, in id order."""
         nx, ny = self.inner
         i = np.arange(nx * ny)
-        return np.stack([(i % nx + 1) * self.square_m, (i // nx + 1) * self.square_m,
-                         np.zeros(nx * ny)], axis=1)
+        return np.stack(
+            [(i % nx + 1) * self.square_m, (i // nx + 1) * self.square_m, np.zeros(nx * ny)], axis=1
+        )
 
     def describe(self) -> str:
         s = f"{self.kind} {self.squares_x}x{self.squares_y} squares of {self.square_m * 1e3:g} mm"
@@ -120,6 +123,7 @@ class Board:
         detection takes 9 ms a frame instead of 65 ms, and finds the same corners.
         """
         import cv2
+
         full = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
         n = (self.squares_x * self.squares_y) // 2
         d = cv2.aruco.Dictionary(full.bytesList[:n].copy(), full.markerSize, full.maxCorrectionBits)
@@ -131,6 +135,7 @@ class Board:
 def aruco_dictionaries() -> tuple[str, ...]:
     """OpenCV's predefined ArUco dictionary names."""
     import cv2
+
     return tuple(n for n in dir(cv2.aruco) if n.startswith("DICT_") and n.upper() == n)
 
 
@@ -141,19 +146,31 @@ def _dict_name(bits: int, size: int) -> str:
 def board_from_spec(spec: str, units: str = "mm") -> Board:
     """A board from ``charuco:SXxSY:SQUARE:MARKER[:DICT]`` or ``checkerboard:SXxSY:SQUARE``."""
     scale = UNITS_M[units]
-    m = re.fullmatch(r"(charuco|checkerboard|checker):(\d+)x(\d+):([0-9.eE+-]+)(?::([0-9.eE+-]+))?"
-                     r"(?::(DICT_\w+))?", spec.strip())
+    m = re.fullmatch(
+        r"(charuco|checkerboard|checker):(\d+)x(\d+):([0-9.eE+-]+)(?::([0-9.eE+-]+))?"
+        r"(?::(DICT_\w+))?",
+        spec.strip(),
+    )
     if m is None:
-        raise InputError("--board", f"{spec!r} is neither a file nor a board spec (charuco:8x11:24:18.75:"
-                                    "DICT_4X4_1000 or checkerboard:9x6:25, lengths in --board-units)")
+        raise InputError(
+            "--board",
+            f"{spec!r} is neither a file nor a board spec (charuco:8x11:24:18.75:"
+            "DICT_4X4_1000 or checkerboard:9x6:25, lengths in --board-units)",
+        )
     kind = "checkerboard" if m.group(1).startswith("checker") else "charuco"
     try:
         square = float(m.group(4)) * scale
         marker = float(m.group(5)) * scale if m.group(5) else 0.0
         if kind == "charuco" and not m.group(5):
             raise ValueError("a ChArUco spec needs the marker length")
-        return Board(kind, int(m.group(2)), int(m.group(3)), square, marker,  # type: ignore[arg-type]
-                     m.group(6) or "DICT_4X4_50")
+        return Board(
+            kind,
+            int(m.group(2)),
+            int(m.group(3)),
+            square,
+            marker,  # type: ignore[arg-type]
+            m.group(6) or "DICT_4X4_50",
+        )
     except ValueError as e:
         raise InputError("--board", str(e)) from None
 
@@ -176,34 +193,53 @@ def read_board(path_or_spec: str, units: str = "mm") -> Board:
     except (KeyError, TypeError, ValueError) as e:
         raise InputError(str(path), f"not a board description ({e})") from None
     if board is None:
-        raise InputError(str(path), "no board found (expected board_x/board_y/square_length as anipose's "
-                                    "board.toml, a [calibration] section with board_size (anipose), or "
-                                    "[calibration.calculate.intrinsics] intrinsics_corners_nb (Pose2Sim))")
+        raise InputError(
+            str(path),
+            "no board found (expected board_x/board_y/square_length as anipose's "
+            "board.toml, a [calibration] section with board_size (anipose), or "
+            "[calibration.calculate.intrinsics] intrinsics_corners_nb (Pose2Sim))",
+        )
     return board
 
 
 def _board_of_doc(doc: dict[str, Any], scale: float) -> Board | None:
     if "board_x" in doc:  # sleap-anipose's board.toml
         kind: BoardKind = "charuco" if doc.get("marker_length") else "checkerboard"
-        return Board(kind, int(doc["board_x"]), int(doc["board_y"]), float(doc["square_length"]) * scale,
-                     float(doc.get("marker_length", 0.0)) * scale,
-                     _dict_name(int(doc.get("marker_bits", 4)), int(doc.get("dict_size", 50))))
+        return Board(
+            kind,
+            int(doc["board_x"]),
+            int(doc["board_y"]),
+            float(doc["square_length"]) * scale,
+            float(doc.get("marker_length", 0.0)) * scale,
+            _dict_name(int(doc.get("marker_bits", 4)), int(doc.get("dict_size", 50))),
+        )
     cal = doc.get("calibration")
     if isinstance(cal, dict) and "board_size" in cal:  # anipose's config.toml
         kind = "checkerboard" if str(cal.get("board_type", "charuco")).startswith("checker") else "charuco"
         if cal.get("board_type", "charuco") not in ("charuco", "checkerboard", "checker"):
             raise ValueError(f"board_type {cal['board_type']!r} (charuco or checkerboard)")
         sx, sy = (int(v) for v in cal["board_size"])
-        return Board(kind, sx, sy, float(cal["board_square_side_length"]) * scale,
-                     float(cal.get("board_marker_length", 0.0)) * scale if kind == "charuco" else 0.0,
-                     _dict_name(int(cal.get("board_marker_bits", 4)), int(cal.get("board_marker_dict_number", 50))))
+        return Board(
+            kind,
+            sx,
+            sy,
+            float(cal["board_square_side_length"]) * scale,
+            float(cal.get("board_marker_length", 0.0)) * scale if kind == "charuco" else 0.0,
+            _dict_name(int(cal.get("board_marker_bits", 4)), int(cal.get("board_marker_dict_number", 50))),
+        )
     intr = (cal or {}).get("calculate", {}).get("intrinsics") if isinstance(cal, dict) else None
     if isinstance(intr, dict) and "intrinsics_corners_nb" in intr:  # Pose2Sim's Config.toml
         a, b = (int(v) for v in intr["intrinsics_corners_nb"])  # inner corners
         marker = intr.get("intrinsics_marker_size")
         kind = "charuco" if marker else "checkerboard"
-        return Board(kind, a + 1, b + 1, float(intr["intrinsics_square_size"]) * scale,
-                     float(marker) * scale if marker else 0.0, str(intr.get("intrinsics_aruco_dict", "DICT_6X6_250")))
+        return Board(
+            kind,
+            a + 1,
+            b + 1,
+            float(intr["intrinsics_square_size"]) * scale,
+            float(marker) * scale if marker else 0.0,
+            str(intr.get("intrinsics_aruco_dict", "DICT_6X6_250")),
+        )
     return None
 
 
@@ -229,11 +265,14 @@ class BoardDetector:
 
     def __init__(self, board: Board) -> None:
         import cv2
+
         self.board = board
         self._cv2 = cv2
         if board.kind == "charuco":
-            self._detectors = [cv2.aruco.CharucoDetector(board.opencv_board(legacy))
-                               for legacy in (board.legacy, not board.legacy)]
+            self._detectors = [
+                cv2.aruco.CharucoDetector(board.opencv_board(legacy))
+                for legacy in (board.legacy, not board.legacy)
+            ]
             self._which = 0
 
     def detect(self, grey: np.ndarray) -> Detection | None:
@@ -241,8 +280,9 @@ class BoardDetector:
         pose a board)."""
         cv2 = self._cv2
         if self.board.kind == "checkerboard":
-            ok, corners = cv2.findChessboardCornersSB(grey, self.board.inner,
-                                                      flags=cv2.CALIB_CB_NORMALIZE_IMAGE)
+            ok, corners = cv2.findChessboardCornersSB(
+                grey, self.board.inner, flags=cv2.CALIB_CB_NORMALIZE_IMAGE
+            )
             if not ok or corners is None:
                 return None
             return Detection(np.arange(self.board.n_corners), corners.reshape(-1, 2).astype(np.float64))

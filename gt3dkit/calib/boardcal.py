@@ -34,6 +34,7 @@ from __future__ import annotations
 from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -100,16 +101,27 @@ class BoardCalibration:
     holdout_frames: tuple[int, ...]
 
     def report(self) -> JsonDict:
-        return {"board": self.board.describe(), "world_frame": self.rig.frame_name,
-                "up": self.rig.up.tolist(), "holdout_frames": list(self.holdout_frames),
-                "warnings": list(self.warnings),
-                "cameras": {c.name: {"views_used": c.views_used, "rms_px": c.rms_px, "p95_px": c.p95_px,
-                                     "holdout_rms_px": c.holdout_rms_px,
-                                     "worst_views": [{"view": v, "rms_px": e} for v, e in c.worst],
-                                     "dropped_views": [{"view": v, "why": w} for v, w in c.dropped],
-                                     "focal_sd_px": c.focal_sd_px, "centre_sd_mm": c.centre_sd_mm,
-                                     "rotation_sd_deg": c.rotation_sd_deg}
-                            for c in self.cameras}}
+        return {
+            "board": self.board.describe(),
+            "world_frame": self.rig.frame_name,
+            "up": self.rig.up.tolist(),
+            "holdout_frames": list(self.holdout_frames),
+            "warnings": list(self.warnings),
+            "cameras": {
+                c.name: {
+                    "views_used": c.views_used,
+                    "rms_px": c.rms_px,
+                    "p95_px": c.p95_px,
+                    "holdout_rms_px": c.holdout_rms_px,
+                    "worst_views": [{"view": v, "rms_px": e} for v, e in c.worst],
+                    "dropped_views": [{"view": v, "why": w} for v, w in c.dropped],
+                    "focal_sd_px": c.focal_sd_px,
+                    "centre_sd_mm": c.centre_sd_mm,
+                    "rotation_sd_deg": c.rotation_sd_deg,
+                }
+                for c in self.cameras
+            },
+        }
 
 
 # ----------------------------------------------------------------------------- geometry
@@ -118,7 +130,9 @@ class BoardCalibration:
 def rt_matrix(rvec: F64, t: F64) -> F64:
     """(..., 4, 4) rigid transforms from (..., 3) rotation vectors and translations."""
     T = np.zeros(np.shape(rvec)[:-1] + (4, 4))
-    T[..., :3, :3] = Rotation.from_rotvec(np.reshape(rvec, (-1, 3))).as_matrix().reshape(T.shape[:-2] + (3, 3))
+    T[..., :3, :3] = (
+        Rotation.from_rotvec(np.reshape(rvec, (-1, 3))).as_matrix().reshape(T.shape[:-2] + (3, 3))
+    )
     T[..., :3, 3] = t
     T[..., 3, 3] = 1.0
     return T
@@ -145,7 +159,13 @@ def project(X_cam: F64, intr: F64) -> F64:
     with np.errstate(divide="ignore", invalid="ignore"):
         xy = X_cam[:, :2] / X_cam[:, 2:3]
     K = np.zeros((len(intr), 3, 3))
-    K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = intr[:, 0], intr[:, 1], intr[:, 2], intr[:, 3], 1
+    K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = (
+        intr[:, 0],
+        intr[:, 1],
+        intr[:, 2],
+        intr[:, 3],
+        1,
+    )
     return apply_K(distort(xy, intr[:, 4:9]), K)
 
 
@@ -158,6 +178,7 @@ def _intr_of(cam: Camera) -> F64:
 
 def _views_rms(obj: list[F64], img: list[F64], rv: Sequence[F64], tv: Sequence[F64], K: F64, d: F64) -> F64:
     import cv2
+
     out = []
     for o, i, r, t in zip(obj, img, rv, tv, strict=True):
         p, _ = cv2.projectPoints(o, r, t, K, d)
@@ -165,10 +186,12 @@ def _views_rms(obj: list[F64], img: list[F64], rv: Sequence[F64], tv: Sequence[F
     return np.array(out)
 
 
-def fit_intrinsics(views: list[View], board: Board, size: tuple[int, int], outlier_px: float
-                   ) -> tuple[F64, F64, float, list[int], list[tuple[int, str]]]:
+def fit_intrinsics(
+    views: list[View], board: Board, size: tuple[int, int], outlier_px: float
+) -> tuple[F64, F64, float, list[int], list[tuple[int, str]]]:
     """One camera's K (3, 3), dist (5,), focal sd (px), the views kept and those dropped (why)."""
     import cv2
+
     corners = board.corners_board().astype(np.float32)
     obj = [corners[v.det.ids] for v in views]
     img = [v.det.uv_px.astype(np.float32) for v in views]
@@ -182,14 +205,21 @@ def fit_intrinsics(views: list[View], board: Board, size: tuple[int, int], outli
         o = [obj[k] for k in keep]
         i = [img[k] for k in keep]
         _, K, d, rv, tv, sd, _, _ = cv2.calibrateCameraExtended(
-            o, i, size, K0.copy(), np.zeros(5), flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS)
+            o, i, size, K0.copy(), np.zeros(5), flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS
+        )
         rms = _views_rms([x.astype(np.float64) for x in o], [x.astype(np.float64) for x in i], rv, tv, K, d)
         lim = max(outlier_px, 4 * float(np.median(rms)))
         bad = [keep[j] for j in np.flatnonzero(rms > lim)]
         if not bad or len(keep) - len(bad) < 3:
             break
-        dropped += [(k, f"reprojects {rms[keep.index(k)]:.1f} px with this camera's intrinsics (its views' "
-                        f"median {np.median(rms):.2f} px): the board was found wrongly") for k in bad]
+        dropped += [
+            (
+                k,
+                f"reprojects {rms[keep.index(k)]:.1f} px with this camera's intrinsics (its views' "
+                f"median {np.median(rms):.2f} px): the board was found wrongly",
+            )
+            for k in bad
+        ]
         keep = [k for k in keep if k not in bad]
     sd_f = float(np.hypot(sd[0, 0], sd[1, 0]) / np.sqrt(2)) if np.all(np.isfinite(sd[:2])) else float("nan")
     return K, np.asarray(d, dtype=np.float64).reshape(-1)[:5], sd_f, keep, dropped
@@ -198,6 +228,7 @@ def fit_intrinsics(views: list[View], board: Board, size: tuple[int, int], outli
 def board_pose(view: View, board: Board, K: F64, d: F64) -> F64:
     """(4, 4) cam_from_board of one view (IPPE, then LM)."""
     import cv2
+
     X = board.corners_board()[view.det.ids]
     ok, rv, tv = cv2.solvePnP(X, view.det.uv_px, K, d, flags=cv2.SOLVEPNP_IPPE)
     if not ok:
@@ -227,8 +258,7 @@ def _medoid(cands: F64, scale_m: float) -> F64:
     return cands[int(np.argmin(np.median(D, axis=1) if n > 2 else D.sum(1)))]
 
 
-def chain_cameras(poses: dict[tuple[int, int], F64], n_cams: int, names: Sequence[str], board: Board
-                  ) -> F64:
+def chain_cameras(poses: dict[tuple[int, int], F64], n_cams: int, names: Sequence[str], board: Board) -> F64:
     """(C, 4, 4) cam_from_ref of every camera from per-view cam_from_board poses keyed (cam, frame)."""
     by_frame: dict[int, dict[int, F64]] = defaultdict(dict)
     for (c, f), T in poses.items():
@@ -238,7 +268,7 @@ def chain_cameras(poses: dict[tuple[int, int], F64], n_cams: int, names: Sequenc
     for seen in by_frame.values():
         cs = sorted(seen)
         for i, a in enumerate(cs):
-            for b in cs[i + 1:]:
+            for b in cs[i + 1 :]:
                 for F in flips:  # b_from_a, each reading of b's board
                     pair[(a, b)].append(seen[b] @ F @ _inv(seen[a]))
     scale = board.square_m * max(board.inner)
@@ -263,9 +293,12 @@ def chain_cameras(poses: dict[tuple[int, int], F64], n_cams: int, names: Sequenc
             done.add(a)
     missing = [names[c] for c in range(n_cams) if c not in done]
     if missing:
-        raise InputError(", ".join(missing), f"never sees the board in the same frame as {names[0]} or a camera "
-                                             "linked to it: its extrinsics cannot be found (film the board "
-                                             "where it and another camera both see it)")
+        raise InputError(
+            ", ".join(missing),
+            f"never sees the board in the same frame as {names[0]} or a camera "
+            "linked to it: its extrinsics cannot be found (film the board "
+            "where it and another camera both see it)",
+        )
     return out
 
 
@@ -293,13 +326,13 @@ class _Problem:
         C, P = self.n_cams, self.n_poses
         nfi = int(self.free_intr.sum())
         intr = intr0.copy()
-        intr[self.free_intr] = x[:nfi * N_INTR].reshape(nfi, N_INTR)
+        intr[self.free_intr] = x[: nfi * N_INTR].reshape(nfi, N_INTR)
         o = nfi * N_INTR
         ext = np.zeros((C, 6))
         others = [c for c in range(C) if c != self.ref]
-        ext[others] = x[o:o + 6 * (C - 1)].reshape(C - 1, 6)
+        ext[others] = x[o : o + 6 * (C - 1)].reshape(C - 1, 6)
         o += 6 * (C - 1)
-        poses = x[o:o + 6 * P].reshape(P, 6)
+        poses = x[o : o + 6 * P].reshape(P, 6)
         return intr, ext, poses
 
     def residuals(self, x: F64, intr0: F64) -> F64:
@@ -318,8 +351,11 @@ class _Problem:
         pose), so one perturbed evaluation gives the Jacobian's columns of a whole group."""
         C = self.n_cams
         nfi = int(self.free_intr.sum())
-        g = [np.tile(np.arange(N_INTR), nfi), N_INTR + np.tile(np.arange(6), C - 1),
-             N_INTR + 6 + np.tile(np.arange(6), self.n_poses)]
+        g = [
+            np.tile(np.arange(N_INTR), nfi),
+            N_INTR + np.tile(np.arange(6), C - 1),
+            N_INTR + 6 + np.tile(np.arange(6), self.n_poses),
+        ]
         return np.concatenate(g)
 
     def jacobian(self, x: F64, intr0: F64) -> F64:
@@ -335,7 +371,7 @@ class _Problem:
             dx[cols] = h[cols]
             df = self.residuals(x + dx, intr0) - f0
             for j in cols:
-                rows = A.indices[A.indptr[j]:A.indptr[j + 1]]
+                rows = A.indices[A.indptr[j] : A.indptr[j + 1]]
                 J[rows, j] = df[rows] / h[j]
         return J
 
@@ -374,8 +410,9 @@ class LMResult:
     nfev: int
 
 
-def robust_lm(fun: object, jac: object, x0: F64, f_scale: float = 1.0, max_iter: int = 50,
-              tol: float = 1e-10) -> LMResult:
+def robust_lm(
+    fun: object, jac: object, x0: F64, f_scale: float = 1.0, max_iter: int = 50, tol: float = 1e-10
+) -> LMResult:
     r"""Levenberg-Marquardt with soft-L1 weights (iteratively reweighted least squares).
 
     Minimises :math:`\sum_i \rho(r_i^2)` with :math:`\rho(z) = 2 s^2 (\sqrt{1 + z/s^2} - 1)`
@@ -446,13 +483,15 @@ def _covariance_sd(res: object, prob: _Problem, x: F64, intr0: F64) -> tuple[F64
     others = [c for c in range(C) if c != prob.ref]
     for k, c in enumerate(others):
         o = nfi * N_INTR + 6 * k
-        S = cov[o:o + 6, o:o + 6]
+        S = cov[o : o + 6, o : o + 6]
         r_sd[c] = np.sqrt(np.trace(S[:3, :3]) / 3)
         # centre = -R^T t: its covariance by finite differences of the map
         p0 = ext[c].copy()
+
         def centre(p: F64) -> F64:
             R = Rotation.from_rotvec(p[:3]).as_matrix()
             return -R.T @ p[3:]
+
         Jc = np.zeros((3, 6))
         for j in range(6):
             dp = np.zeros(6)
@@ -470,8 +509,9 @@ def _view_rms(r: F64, view: np.ndarray, n_views: int) -> F64:
         return np.sqrt(s / n)
 
 
-def _fit_frame_poses(rig_T: F64, intr: F64, views: list[View], board: Board, start: dict[int, F64]
-                     ) -> tuple[dict[int, F64], dict[int, F64]]:
+def _fit_frame_poses(
+    rig_T: F64, intr: F64, views: list[View], board: Board, start: dict[int, F64]
+) -> tuple[dict[int, F64], dict[int, F64]]:
     """Board poses of frames with the cameras held (the held-out check); per view residuals."""
     frames = sorted({v.frame for v in views})
     poses: dict[int, F64] = {}
@@ -484,11 +524,13 @@ def _fit_frame_poses(rig_T: F64, intr: F64, views: list[View], board: Board, sta
         X = np.concatenate([corners[v.det.ids] for _, v in vs])
         cam = np.concatenate([np.full(len(v.det.ids), v.cam) for _, v in vs])
         uv = np.concatenate([v.det.uv_px for _, v in vs])
-        def fun(p: F64) -> F64:
+
+        def fun(p: F64, X: F64 = X, cam: np.ndarray = cam, uv: F64 = uv) -> F64:
             T = rt_matrix(p[:3], p[3:])
             Xw = X @ T[:3, :3].T + T[:3, 3]
             Xc = np.einsum("mij,mj->mi", rig_T[cam, :3, :3], Xw) + rig_T[cam, :3, 3]
             return np.nan_to_num(project(Xc, intr[cam]) - uv, nan=1e4).reshape(-1)
+
         T0 = start[f]
         p0 = np.concatenate([Rotation.from_matrix(T0[:3, :3]).as_rotvec(), T0[:3, 3]])
         sol = least_squares(fun, p0, loss="soft_l1", f_scale=1.0)
@@ -497,13 +539,14 @@ def _fit_frame_poses(rig_T: F64, intr: F64, views: list[View], board: Board, sta
         o = 0
         for k, v in vs:
             n = len(v.det.ids)
-            resid[k] = r[o:o + n]
+            resid[k] = r[o : o + n]
             o += n
     return poses, resid
 
 
-def calibrate_board(views: list[View], board: Board, names: Sequence[str], sizes: Sequence[tuple[int, int]],
-                    cfg: BoardConfig) -> BoardCalibration:
+def calibrate_board(
+    views: list[View], board: Board, names: Sequence[str], sizes: Sequence[tuple[int, int]], cfg: BoardConfig
+) -> BoardCalibration:
     """The rig of ``names`` from their board ``views`` (see the module docstring)."""
     C = len(names)
     warnings: list[str] = []
@@ -524,18 +567,26 @@ def calibrate_board(views: list[View], board: Board, names: Sequence[str], sizes
         if name in cfg.fixed:
             K[c], D[c] = cfg.fixed[name].K, cfg.fixed[name].dist
             if (cfg.fixed[name].width, cfg.fixed[name].height) != tuple(sizes[c]):
-                raise InputError(name, f"the given intrinsics are for {cfg.fixed[name].width}x"
-                                       f"{cfg.fixed[name].height} images, its board views are "
-                                       f"{sizes[c][0]}x{sizes[c][1]}")
+                raise InputError(
+                    name,
+                    f"the given intrinsics are for {cfg.fixed[name].width}x"
+                    f"{cfg.fixed[name].height} images, its board views are "
+                    f"{sizes[c][0]}x{sizes[c][1]}",
+                )
             keep_views += vs
             continue
         if not vs:
-            raise InputError(name, "the board was found in none of its frames: check the board's "
-                                   "description (dictionary, square count, marker size; for anipose's "
-                                   "board.toml marker_bits and dict_size) and that the frames show it")
+            raise InputError(
+                name,
+                "the board was found in none of its frames: check the board's "
+                "description (dictionary, square count, marker size; for anipose's "
+                "board.toml marker_bits and dict_size) and that the frames show it",
+            )
         if len(vs) < cfg.min_views:
-            warnings.append(f"camera {name}: {len(vs)} board views (fewer than {cfg.min_views}): its "
-                            "intrinsics are uncertain (see its focal sd)")
+            warnings.append(
+                f"camera {name}: {len(vs)} board views (fewer than {cfg.min_views}): its "
+                "intrinsics are uncertain (see its focal sd)"
+            )
         K[c], D[c], f_sd_intr[c], keep, drop = fit_intrinsics(vs, board, sizes[c], cfg.outlier_px)
         keep_views += [vs[k] for k in keep]
         dropped[c] += [(vs[k].label, why) for k, why in drop]
@@ -544,8 +595,10 @@ def calibrate_board(views: list[View], board: Board, names: Sequence[str], sizes
     synced_cams = sorted({v.cam for v in keep_views if v.synced})
     if synced_cams and len(synced_cams) < C:
         missing = [names[c] for c in range(C) if c not in synced_cams]
-        raise InputError(", ".join(missing), "has no board view taken together with the other cameras: its "
-                                             "extrinsics cannot be found")
+        raise InputError(
+            ", ".join(missing),
+            "has no board view taken together with the other cameras: its extrinsics cannot be found",
+        )
     single = len(synced_cams) == 0
     rig_T = np.tile(np.eye(4), (C, 1, 1)) if single else chain_cameras(vpose, C, names, board)
     # 3. starting board poses (world = camera 0's frame), each view's reading of a checkerboard
@@ -553,8 +606,12 @@ def calibrate_board(views: list[View], board: Board, names: Sequence[str], sizes
     frame_pose: dict[int, F64] = {}
     for f in sorted({v.frame for v in keep_views if v.synced}):
         seen = {v.cam: vpose[(v.cam, v.frame)] for v in keep_views if v.synced and v.frame == f}
-        best = max(seen, key=lambda c: len(next(v for v in keep_views if v.synced and v.cam == c
-                                                and v.frame == f).det.ids))
+        best = max(
+            seen,
+            key=lambda c: len(
+                next(v for v in keep_views if v.synced and v.cam == c and v.frame == f).det.ids
+            ),
+        )
         frame_pose[f] = _inv(rig_T[best]) @ seen[best]
     corners = board.corners_board()
     obs_views: list[View] = []
@@ -582,25 +639,46 @@ def calibrate_board(views: list[View], board: Board, names: Sequence[str], sizes
                 pose_keys.append(key)
         p0 = np.zeros((len(pose_keys), 6))
         for (kind, i), j in pidx.items():
-            T = frame_pose[i] if kind == "f" else board_pose(obs_views[i], board, K[obs_views[i].cam],
-                                                              D[obs_views[i].cam])
+            T = (
+                frame_pose[i]
+                if kind == "f"
+                else board_pose(obs_views[i], board, K[obs_views[i].cam], D[obs_views[i].cam])
+            )
             p0[j] = np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]])
         n_obs = [len(v.det.ids) for v in obs_views]
-        prob = _Problem(cam=np.repeat([v.cam for v in obs_views], n_obs),
-                        pose=np.repeat([pidx[("f", v.frame) if v.synced else ("v", k)]
-                                        for k, v in enumerate(obs_views)], n_obs),
-                        local=np.repeat([not v.synced for v in obs_views], n_obs).astype(bool),
-                        X=np.concatenate(obs_X), uv=np.concatenate([v.det.uv_px for v in obs_views]),
-                        view=np.repeat(np.arange(len(obs_views)), n_obs), n_cams=C,
-                        n_poses=len(pose_keys), free_intr=free)
-        ext0 = np.array([np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]]) for T in rig_T])
-        x0 = np.concatenate([intr0[free].reshape(-1), ext0[[c for c in range(C) if c != 0]].reshape(-1),
-                             p0.reshape(-1)])
+        prob = _Problem(
+            cam=np.repeat([v.cam for v in obs_views], n_obs),
+            pose=np.repeat(
+                [pidx[("f", v.frame) if v.synced else ("v", k)] for k, v in enumerate(obs_views)], n_obs
+            ),
+            local=np.repeat([not v.synced for v in obs_views], n_obs).astype(bool),
+            X=np.concatenate(obs_X),
+            uv=np.concatenate([v.det.uv_px for v in obs_views]),
+            view=np.repeat(np.arange(len(obs_views)), n_obs),
+            n_cams=C,
+            n_poses=len(pose_keys),
+            free_intr=free,
+        )
+        ext0 = np.array(
+            [np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]]) for T in rig_T]
+        )
+        x0 = np.concatenate(
+            [intr0[free].reshape(-1), ext0[[c for c in range(C) if c != 0]].reshape(-1), p0.reshape(-1)]
+        )
         if len(x0) <= DENSE_MAX_PARAMS:  # few parameters: Levenberg-Marquardt on the normal equations
-            res = robust_lm(lambda x: prob.residuals(x, intr0), lambda x: prob.jacobian(x, intr0), x0)
+            res = robust_lm(partial(prob.residuals, intr0=intr0), partial(prob.jacobian, intr0=intr0), x0)
         else:
-            res = least_squares(prob.residuals, x0, jac_sparsity=prob.sparsity(), method="trf", x_scale="jac",
-                                loss="soft_l1", f_scale=1.0, args=(intr0,), max_nfev=300)
+            res = least_squares(
+                prob.residuals,
+                x0,
+                jac_sparsity=prob.sparsity(),
+                method="trf",
+                x_scale="jac",
+                loss="soft_l1",
+                f_scale=1.0,
+                args=(intr0,),
+                max_nfev=300,
+            )
         vr = _view_rms(res.fun, prob.view, len(obs_views))
         bad = []
         for c in range(C):
@@ -614,8 +692,13 @@ def calibrate_board(views: list[View], board: Board, names: Sequence[str], sizes
             break
         for k in bad:
             v = obs_views[k]
-            dropped[v.cam].append((v.label, f"reprojects {vr[k]:.1f} px in the joint fit: the board was found "
-                                            "wrongly, or the frame is not simultaneous with the others"))
+            dropped[v.cam].append(
+                (
+                    v.label,
+                    f"reprojects {vr[k]:.1f} px in the joint fit: the board was found "
+                    "wrongly, or the frame is not simultaneous with the others",
+                )
+            )
         keep = [k for k in range(len(obs_views)) if k not in set(bad)]
         obs_views = [obs_views[k] for k in keep]
         obs_X = [obs_X[k] for k in keep]
@@ -635,15 +718,18 @@ def calibrate_board(views: list[View], board: Board, names: Sequence[str], sizes
         T = rig_T[c] @ ref_from_world
         Kc = np.array([[intr_fit[c, 0], 0, intr_fit[c, 2]], [0, intr_fit[c, 1], intr_fit[c, 3]], [0, 0, 1]])
         try:
-            cams.append(Camera(name, int(sizes[c][0]), int(sizes[c][1]), Kc, intr_fit[c, 4:9], T[:3, :3],
-                               T[:3, 3]))
+            cams.append(
+                Camera(name, int(sizes[c][0]), int(sizes[c][1]), Kc, intr_fit[c, 4:9], T[:3, :3], T[:3, 3])
+            )
         except ValueError as e:
-            raise InputError(name, f"the calibration failed ({e}): too few or too similar board views") from None
+            raise InputError(
+                name, f"the calibration failed ({e}): too few or too similar board views"
+            ) from None
     rig = Rig(tuple(cams), up=up, frame_name=frame_name)
     fposes_w = {f: world_from_ref @ T for f, T in fposes.items()}
     # 6. per camera figures; the held-out frames posed with the rig held
     r = res.fun.reshape(-1, 2)
-    e = np.sqrt((r ** 2).sum(1))
+    e = np.sqrt((r**2).sum(1))
     vr = _view_rms(res.fun, prob.view, len(obs_views))
     hold_r: dict[int, F64] = {}
     if held_views:
@@ -651,7 +737,9 @@ def calibrate_board(views: list[View], board: Board, names: Sequence[str], sizes
         for f in sorted({v.frame for v in held_views}):
             vs = [v for v in held_views if v.frame == f]
             v = max(vs, key=lambda v: len(v.det.ids))
-            start[f] = _inv(rig_T[v.cam]) @ board_pose(v, board, intr_K(intr_fit[v.cam]), intr_fit[v.cam, 4:9])
+            start[f] = _inv(rig_T[v.cam]) @ board_pose(
+                v, board, intr_K(intr_fit[v.cam]), intr_fit[v.cam, 4:9]
+            )
         _, hold_r = _fit_frame_poses(rig_T, intr_fit, held_views, board, start)
     reports = []
     for c, name in enumerate(names):
@@ -661,13 +749,26 @@ def calibrate_board(views: list[View], board: Board, names: Sequence[str], sizes
         hr = [hold_r[k] for k, v in enumerate(held_views) if v.cam == c and k in hold_r]
         hold_rms = float(np.sqrt(np.mean(np.sum(np.concatenate(hr) ** 2, axis=1)))) if hr else None
         fs = float(f_sd[c]) if np.isfinite(f_sd[c]) else float(f_sd_intr[c])
-        reports.append(CameraReport(name, len(ks), float(np.sqrt(np.mean(e[m] ** 2))) if m.any() else float("nan"),
-                                    float(np.percentile(e[m], 95)) if m.any() else float("nan"), hold_rms,
-                                    tuple(worst), tuple(dropped[c]), fs, float(c_sd[c]) * 1e3,
-                                    float(np.degrees(r_sd[c])), prob.uv[m]))
+        reports.append(
+            CameraReport(
+                name,
+                len(ks),
+                float(np.sqrt(np.mean(e[m] ** 2))) if m.any() else float("nan"),
+                float(np.percentile(e[m], 95)) if m.any() else float("nan"),
+                hold_rms,
+                tuple(worst),
+                tuple(dropped[c]),
+                fs,
+                float(c_sd[c]) * 1e3,
+                float(np.degrees(r_sd[c])),
+                prob.uv[m],
+            )
+        )
         if np.isfinite(fs) and fs > 0.01 * Kc[0, 0]:
-            warnings.append(f"camera {name}: focal length uncertain by {fs:.1f} px (more than 1 %): "
-                            "film the board closer, tilted, and over the whole image")
+            warnings.append(
+                f"camera {name}: focal length uncertain by {fs:.1f} px (more than 1 %): "
+                "film the board closer, tilted, and over the whole image"
+            )
     return BoardCalibration(rig, tuple(reports), board, fposes_w, tuple(warnings), tuple(sorted(hold)))
 
 
@@ -675,18 +776,26 @@ def intr_K(intr: F64) -> F64:
     return np.array([[intr[0], 0, intr[2]], [0, intr[1], intr[3]], [0, 0, 1]])
 
 
-def _world(cfg: BoardConfig, names: Sequence[str], rig_T: F64, fposes: dict[int, F64], views: list[View]
-           ) -> tuple[F64, F64, str]:
+def _world(
+    cfg: BoardConfig, names: Sequence[str], rig_T: F64, fposes: dict[int, F64], views: list[View]
+) -> tuple[F64, F64, str]:
     """world_from_ref (4, 4), up (3,), the frame's name."""
     if cfg.origin == "camera" or not fposes:
         # up: minus the reference camera's image y
-        return np.eye(4), np.array([0.0, -1.0, 0.0]), f"camera {names[0]}'s frame (metres; up = its image's up)"
+        return (
+            np.eye(4),
+            np.array([0.0, -1.0, 0.0]),
+            f"camera {names[0]}'s frame (metres; up = its image's up)",
+        )
     if cfg.origin != "floor":
         raise InputError("--origin", f"must be camera or floor, got {cfg.origin!r}")
     if cfg.floor_frame is not None:
         if cfg.floor_frame not in fposes:
-            raise InputError("--floor-frame", f"frame {cfg.floor_frame} has no board pose (posed frames: "
-                                              f"{', '.join(map(str, sorted(fposes)[:10]))}...)")
+            raise InputError(
+                "--floor-frame",
+                f"frame {cfg.floor_frame} has no board pose (posed frames: "
+                f"{', '.join(map(str, sorted(fposes)[:10]))}...)",
+            )
         f = cfg.floor_frame
     else:
         count: dict[int, int] = defaultdict(int)
@@ -706,5 +815,8 @@ def _world(cfg: BoardConfig, names: Sequence[str], rig_T: F64, fposes: dict[int,
 def identity_poses(rig: Rig) -> Rig:
     """``rig``'s cameras with no pose (intrinsics only): each at the origin, looking along +z."""
     cams = tuple(Camera(c.name, c.width, c.height, c.K, c.dist, np.eye(3), np.zeros(3)) for c in rig.cameras)
-    return Rig(cams, up=np.array([0.0, -1.0, 0.0]), frame_name="intrinsics only: every camera at the origin "
-                                                              "(poses not calibrated)")
+    return Rig(
+        cams,
+        up=np.array([0.0, -1.0, 0.0]),
+        frame_name="intrinsics only: every camera at the origin (poses not calibrated)",
+    )

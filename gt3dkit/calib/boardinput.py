@@ -99,10 +99,10 @@ def _strip_shared(names: list[str]) -> list[str]:
     pre = os.path.commonprefix(names)
     suf = os.path.commonprefix([n[::-1] for n in names])[::-1]
     # only whole words: up to the last separator of the prefix, from the first of the suffix
-    pre = pre[:max((pre.rfind(c) for c in "-_ ."), default=-1) + 1]
+    pre = pre[: max((pre.rfind(c) for c in "-_ ."), default=-1) + 1]
     cuts = [suf.find(c) for c in "-_ ." if c in suf]
-    suf = suf[min(cuts):] if cuts else ""
-    cut = [n[len(pre):len(n) - len(suf)] for n in names]
+    suf = suf[min(cuts) :] if cuts else ""
+    cut = [n[len(pre) : len(n) - len(suf)] for n in names]
     cut = [c.strip("-_ .") for c in cut]
     if all(cut) and len(set(cut)) == len(cut):
         return cut
@@ -120,13 +120,15 @@ def camera_names(paths: Sequence[Path], cam_regex: str | None) -> list[str]:
     else:
         out = _strip_shared([p.stem if p.is_file() else p.name for p in paths])
     if len(set(out)) != len(out):
-        raise InputError(str(paths[0].parent), f"two inputs have the same camera name ({', '.join(out)}): "
-                                               "give --cam-regex")
+        raise InputError(
+            str(paths[0].parent), f"two inputs have the same camera name ({', '.join(out)}): give --cam-regex"
+        )
     return out
 
 
-def find_cameras(inputs: Sequence[str | Path], cam_regex: str | None = None,
-                 intrinsics_only: bool = False) -> list[CameraSource]:
+def find_cameras(
+    inputs: Sequence[str | Path], cam_regex: str | None = None, intrinsics_only: bool = False
+) -> list[CameraSource]:
     """The cameras of the input paths (see the module docstring)."""
     paths = [Path(p) for p in inputs]
     for p in paths:
@@ -144,7 +146,9 @@ def find_cameras(inputs: Sequence[str | Path], cam_regex: str | None = None,
                 names = camera_names(subs, cam_regex)
                 out += [CameraSource(n, _source_of(q) or q, synced) for n, q in zip(names, subs, strict=True)]
             if not out:
-                raise InputError(str(root), "intrinsics/ and extrinsics/ hold no camera folders of images or videos")
+                raise InputError(
+                    str(root), "intrinsics/ and extrinsics/ hold no camera folders of images or videos"
+                )
             return out
         paths = sorted((q for q in root.iterdir() if _source_of(q) is not None), key=_natural)
         if not paths:
@@ -163,6 +167,7 @@ def _frames(src: CameraSource, step: int) -> Iterator[tuple[int, str, np.ndarray
     """(index, label, grey image) of every ``step``-th frame."""
     os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # FFmpeg's own lines: the error says it once
     import cv2
+
     if src.path.is_dir():
         for i, p in enumerate(_images(src.path)):
             if i % step:
@@ -175,8 +180,9 @@ def _frames(src: CameraSource, step: int) -> Iterator[tuple[int, str, np.ndarray
     cap = cv2.VideoCapture(str(src.path))
     try:
         if not cap.isOpened():
-            raise InputError(str(src.path), "cannot be opened as a video (not a video, or a codec OpenCV's "
-                                            "FFmpeg lacks)")
+            raise InputError(
+                str(src.path), "cannot be opened as a video (not a video, or a codec OpenCV's FFmpeg lacks)"
+            )
         i = 0
         while True:
             if i % step:
@@ -205,8 +211,11 @@ def read_camera(cam: int, src: CameraSource, board: Board, step: int) -> CameraF
         if size is None:
             size, first = wh, label
         elif wh != size:
-            raise InputError(str(src.path), f"{label}: image size {wh[0]}x{wh[1]} differs from {first}'s "
-                                            f"{size[0]}x{size[1]}: one camera, one image size")
+            raise InputError(
+                str(src.path),
+                f"{label}: image size {wh[0]}x{wh[1]} differs from {first}'s "
+                f"{size[0]}x{size[1]}: one camera, one image size",
+            )
         n += 1
         d = det.detect(grey)
         if d is None:
@@ -218,8 +227,9 @@ def read_camera(cam: int, src: CameraSource, board: Board, step: int) -> CameraF
     return CameraFrames(size, tuple(views), n, empty)
 
 
-def read_views(sources: Sequence[CameraSource], board: Board, step: int = 1,
-               threads: int | None = None) -> list[CameraFrames]:
+def read_views(
+    sources: Sequence[CameraSource], board: Board, step: int = 1, threads: int | None = None
+) -> list[CameraFrames]:
     """:func:`read_camera` for every camera, cameras side by side in threads (OpenCV's decoding
     and detection let go of the GIL)."""
     if step < 1:
@@ -254,8 +264,11 @@ def board_views(sources: Sequence[CameraSource], board: Board, step: int = 1) ->
     views: list[View] = []
     for s, cf in zip(sources, got, strict=True):
         if s.name in sizes and sizes[s.name] != cf.size:
-            raise InputError(str(s.path), f"image size {cf.size[0]}x{cf.size[1]} differs from camera {s.name}'s "
-                                          f"other board frames ({sizes[s.name][0]}x{sizes[s.name][1]})")
+            raise InputError(
+                str(s.path),
+                f"image size {cf.size[0]}x{cf.size[1]} differs from camera {s.name}'s "
+                f"other board frames ({sizes[s.name][0]}x{sizes[s.name][1]})",
+            )
         sizes[s.name] = cf.size
         read[s.name] += cf.n_read
         empty[s.name] += cf.n_empty
@@ -264,9 +277,18 @@ def board_views(sources: Sequence[CameraSource], board: Board, step: int = 1) ->
     none = [n for n in names if read[n] == empty[n]]
     if none:
         where = ", ".join(str(s.path) for s in sources if s.name in none)
-        raise InputError(where, f"the board ({board.describe()}) was found in none of the frames of camera "
-                                f"{', '.join(none)}: check its description (the ArUco dictionary, the number "
-                                "of squares along each side, the marker and square lengths; anipose's "
-                                "board.toml gives marker_bits and dict_size) and that the frames show the board")
-    return BoardViews(tuple(names), tuple(sizes[n] for n in names), tuple(views),
-                      tuple(read[n] for n in names), tuple(empty[n] for n in names), tuple(sources))
+        raise InputError(
+            where,
+            f"the board ({board.describe()}) was found in none of the frames of camera "
+            f"{', '.join(none)}: check its description (the ArUco dictionary, the number "
+            "of squares along each side, the marker and square lengths; anipose's "
+            "board.toml gives marker_bits and dict_size) and that the frames show the board",
+        )
+    return BoardViews(
+        tuple(names),
+        tuple(sizes[n] for n in names),
+        tuple(views),
+        tuple(read[n] for n in names),
+        tuple(empty[n] for n in names),
+        tuple(sources),
+    )

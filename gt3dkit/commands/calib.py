@@ -89,7 +89,8 @@ def cmd_calib_board(args: argparse.Namespace) -> int:
     out = Path(args.out)
     inputs = [Path(p).resolve() for p in args.input]
     if any(out.resolve() == p or p in out.resolve().parents for p in inputs if p.is_dir()):
-        raise InputError("--out", f"{out} lies inside the input {args.input[0]}: never write into an input folder")
+        raise InputError("--out", f"{out} lies inside the input {args.input[0]}: never write into an "
+                                  "input folder")
     check_out(out)
     board = read_board(args.board, args.board_units)
     sources = find_cameras(args.input, args.cam_regex, args.intrinsics_only)
@@ -116,7 +117,8 @@ def cmd_calib_board(args: argparse.Namespace) -> int:
             write_calibration(cal.rig, tmp / "calibration", args.format)
         doc = {"gt3dkit_version": __version__, "input": [str(p) for p in args.input],
                "cameras_read": {n: {"source": [str(s.path) for s in bv.sources if s.name == n],
-                                    "frames_read": bv.frames_read[i], "frames_without_board": bv.frames_empty[i]}
+                                    "frames_read": bv.frames_read[i],
+                                    "frames_without_board": bv.frames_empty[i]}
                                 for i, n in enumerate(bv.names)},
                "seconds": seconds, **cal.report()}
         (tmp / "board_report.json").write_text(json.dumps(doc, indent=2, allow_nan=True))
@@ -127,12 +129,14 @@ def cmd_calib_board(args: argparse.Namespace) -> int:
         print(f"warning: {w}", file=sys.stderr)
     print(f"{board.describe()}: {len(bv.names)} cameras, {len(bv.views)} board views in "
           f"{sum(bv.frames_read)} frames, {seconds:.1f} s; {cal.rig.frame_name}; written to {out}")
-    print(f"{'camera':<12}{'views':>6}{'RMS px':>8}{'p95 px':>8}{'held px':>9}{'fx':>9}{'fy':>9}{'cx':>8}{'cy':>8}"
+    print(f"{'camera':<12}{'views':>6}{'RMS px':>8}{'p95 px':>8}{'held px':>9}{'fx':>9}{'fy':>9}"
+          f"{'cx':>8}{'cy':>8}"
           f"{'f sd':>6}{'ctr sd mm':>10}{'rot sd °':>9}{'left out':>9}")
     for rep, cam in zip(cal.cameras, cal.rig.cameras, strict=True):
         print(f"{rep.name:<12}{rep.views_used:>6}{rep.rms_px:>8.3f}{rep.p95_px:>8.3f}"
               f"{fmt_num(rep.holdout_rms_px, 9, 3)}{cam.K[0, 0]:>9.1f}{cam.K[1, 1]:>9.1f}{cam.K[0, 2]:>8.1f}"
-              f"{cam.K[1, 2]:>8.1f}{rep.focal_sd_px:>6.2f}{rep.centre_sd_mm:>10.2f}{rep.rotation_sd_deg:>9.3f}"
+              f"{cam.K[1, 2]:>8.1f}{rep.focal_sd_px:>6.2f}{rep.centre_sd_mm:>10.2f}"
+              f"{rep.rotation_sd_deg:>9.3f}"
               f"{len(rep.dropped):>9}")
     for rep in cal.cameras:
         for v, why in rep.dropped:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 
 from gt3dkit.api import ESTIMATORS
-from gt3dkit.calib.formats import WRITABLE
 from gt3dkit.calib.board import UNITS_M
+from gt3dkit.calib.formats import WRITABLE
 from gt3dkit.commands.calib import cmd_calib_board, cmd_calib_refine, cmd_calib_show
 from gt3dkit.commands.common import (
     ACCEL,
@@ -194,7 +194,8 @@ def _add_calib(sub: argparse._SubParsersAction[Parser], common: argparse.Argumen
     _panoptic_options(kr)
     kr.set_defaults(func=cmd_calib_refine)
     kb = ksub.add_parser("board", parents=[common],
-                         help="calibrate a rig from views of a ChArUco board or a checkerboard (videos or images)")
+                         help="calibrate a rig from views of a ChArUco board or a checkerboard "
+                              "(videos or images)")
     kb.add_argument("input", nargs="+",
                     help="one video or image folder per camera; or one folder of those; or Pose2Sim's "
                          "calibration folder (intrinsics/int_<cam>_img, extrinsics/ext_<cam>_img)")
@@ -220,7 +221,8 @@ def _add_calib(sub: argparse._SubParsersAction[Parser], common: argparse.Argumen
                     help="with --origin floor: the frame whose board is the floor (default: the one most "
                          "cameras saw)")
     kb.add_argument("--holdout", type=number_type(int, 0, 10**6), default=0,
-                    help="leave every K-th frame out of the fit and report its reprojection error (default 0: none)")
+                    help="leave every K-th frame out of the fit and report its reprojection error "
+                         "(default 0: none)")
     kb.set_defaults(func=cmd_calib_board)
 
 

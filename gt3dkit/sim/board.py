@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gt3dkit.calib.board import Board
-from gt3dkit.geom.camera import undistort, unapply_K
+from gt3dkit.geom.camera import unapply_K, undistort
 from gt3dkit.rig import Camera, Rig
 from gt3dkit.types import F64
 
@@ -31,7 +31,6 @@ class BoardScene:
 
 def board_image(board: Board) -> np.ndarray:
     """(H, W) uint8 print of the board, ``PX_PER_SQUARE`` pixels a square, no margin."""
-    import cv2
     w, h = board.squares_x * PX_PER_SQUARE, board.squares_y * PX_PER_SQUARE
     if board.kind == "charuco":
         return board.opencv_board().generateImage((w, h), marginSize=0, borderBits=1)
@@ -39,10 +38,18 @@ def board_image(board: Board) -> np.ndarray:
     return np.where((i + j) % 2 == 0, 0, 255).astype(np.uint8)
 
 
-def render_view(cam: Camera, cam_from_board: F64, board: Board, printed: np.ndarray, rng: np.random.Generator,
-                noise: float = 2.0, blur: float = 0.6) -> np.ndarray:
+def render_view(
+    cam: Camera,
+    cam_from_board: F64,
+    board: Board,
+    printed: np.ndarray,
+    rng: np.random.Generator,
+    noise: float = 2.0,
+    blur: float = 0.6,
+) -> np.ndarray:
     """(H, W) uint8 image of the board through ``cam``."""
     import cv2
+
     u, v = np.meshgrid(np.arange(cam.width, dtype=np.float64), np.arange(cam.height, dtype=np.float64))
     uv = np.stack([u, v], -1)[:, :, None, :]  # (H, W, 1, 2)
     xy = undistort(unapply_K(uv, cam.K[None]), cam.dist[None], iters=30)[:, :, 0]  # (H, W, 2)
@@ -58,15 +65,21 @@ def render_view(cam: Camera, cam_from_board: F64, board: Board, printed: np.ndar
     scale = PX_PER_SQUARE / board.square_m
     mx = np.where(ok, X[..., 0] * scale - 0.5, -10).astype(np.float32)
     my = np.where(ok, X[..., 1] * scale - 0.5, -10).astype(np.float32)
-    img = cv2.remap(printed, mx, my, cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_CONSTANT, borderValue=128)
+    img = cv2.remap(printed, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=128)
     img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), blur) if blur > 0 else img.astype(np.float32)
     img = img + rng.normal(0, noise, img.shape)
     return np.clip(np.round(img), 0, 255).astype(np.uint8)
 
 
-def board_scene(board: Board, n_frames: int = 14, seed: int = 0, width: int = 640, height: int = 480,
-                n_cams: int = 3, fisheye_like: bool = False) -> BoardScene:
+def board_scene(
+    board: Board,
+    n_frames: int = 14,
+    seed: int = 0,
+    width: int = 640,
+    height: int = 480,
+    n_cams: int = 3,
+    fisheye_like: bool = False,
+) -> BoardScene:
     """``n_cams`` cameras on an arc 0.8 m from a board moved and tilted in front of them."""
     rng = np.random.default_rng(seed)
     printed = board_image(board)
@@ -82,8 +95,13 @@ def board_scene(board: Board, n_frames: int = 14, seed: int = 0, width: int = 64
         y = np.cross(z, x)
         R = np.stack([x, y, z])  # cam_from_world rows
         f = rng.uniform(0.9, 1.1) * width
-        K = np.array([[f, 0, width / 2 + rng.uniform(-10, 10)], [0, f * rng.uniform(0.995, 1.005),
-                                                                   height / 2 + rng.uniform(-10, 10)], [0, 0, 1]])
+        K = np.array(
+            [
+                [f, 0, width / 2 + rng.uniform(-10, 10)],
+                [0, f * rng.uniform(0.995, 1.005), height / 2 + rng.uniform(-10, 10)],
+                [0, 0, 1],
+            ]
+        )
         k1 = -0.25 if fisheye_like else rng.uniform(-0.15, 0.05)
         dist = np.array([k1, 0.05 if fisheye_like else 0.02, 0.0005, -0.0005, 0.0])
         cams.append(Camera(f"cam{c}", width, height, K, dist, R, -R @ pos))

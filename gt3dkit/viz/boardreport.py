@@ -16,8 +16,10 @@ from gt3dkit.calib.boardcal import BoardCalibration
 
 def _plt() -> Any:
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     return plt
 
 
@@ -32,12 +34,18 @@ def coverage_picture(cal: BoardCalibration, path: Path) -> None:
         uv = rep.uv_used_px
         h, _, _ = np.histogram2d(uv[:, 0], uv[:, 1], bins=(8, 8), range=((0, cam.width), (0, cam.height)))
         covered = float((h > 0).mean())
-        ax.imshow((h.T > 0), extent=(0, cam.width, cam.height, 0), cmap="Greens", alpha=0.35, vmin=0, vmax=1.5)
+        ax.imshow(
+            (h.T > 0), extent=(0, cam.width, cam.height, 0), cmap="Greens", alpha=0.35, vmin=0, vmax=1.5
+        )
         ax.scatter(uv[:, 0], uv[:, 1], s=1, c="tab:blue")
         if cam.valid_radius_px is not None:
             t = np.linspace(0, 2 * np.pi, 200)
-            ax.plot(cam.K[0, 2] + cam.valid_radius_px * np.cos(t), cam.K[1, 2] + cam.valid_radius_px * np.sin(t),
-                    "r--", lw=1)
+            ax.plot(
+                cam.K[0, 2] + cam.valid_radius_px * np.cos(t),
+                cam.K[1, 2] + cam.valid_radius_px * np.sin(t),
+                "r--",
+                lw=1,
+            )
         ax.set_xlim(0, cam.width)
         ax.set_ylim(cam.height, 0)
         ax.set_aspect("equal")
@@ -91,11 +99,13 @@ def write_board_report(cal: BoardCalibration, folder: Path, command: str) -> Non
     for rep, cam in zip(cal.cameras, cal.rig.cameras, strict=True):
         worst = ", ".join(f"{e(v)} ({r:.2f} px)" for v, r in rep.worst)
         held = "" if rep.holdout_rms_px is None else f"{rep.holdout_rms_px:.3f}"
-        rows.append(f"<tr><td>{e(rep.name)}</td><td>{rep.views_used}</td><td>{rep.rms_px:.3f}</td>"
-                    f"<td>{rep.p95_px:.3f}</td><td>{held}</td><td>{cam.K[0, 0]:.1f} &plusmn; {rep.focal_sd_px:.2f}"
-                    f"</td><td>{cam.K[1, 1]:.1f}</td><td>{cam.K[0, 2]:.1f}, {cam.K[1, 2]:.1f}</td>"
-                    f"<td>{e(str(np.round(cam.dist, 4).tolist()))}</td><td>{rep.centre_sd_mm:.2f}</td>"
-                    f"<td>{rep.rotation_sd_deg:.3f}</td><td>{worst}</td></tr>")
+        rows.append(
+            f"<tr><td>{e(rep.name)}</td><td>{rep.views_used}</td><td>{rep.rms_px:.3f}</td>"
+            f"<td>{rep.p95_px:.3f}</td><td>{held}</td><td>{cam.K[0, 0]:.1f} &plusmn; {rep.focal_sd_px:.2f}"
+            f"</td><td>{cam.K[1, 1]:.1f}</td><td>{cam.K[0, 2]:.1f}, {cam.K[1, 2]:.1f}</td>"
+            f"<td>{e(str(np.round(cam.dist, 4).tolist()))}</td><td>{rep.centre_sd_mm:.2f}</td>"
+            f"<td>{rep.rotation_sd_deg:.3f}</td><td>{worst}</td></tr>"
+        )
     dropped = [f"<li>{e(rep.name)}, {e(v)}: {e(w)}</li>" for rep in cal.cameras for v, w in rep.dropped]
     warn = [f"<li>{e(w)}</li>" for w in cal.warnings]
     page = f"""<!doctype html><html><head><meta charset="utf-8"><title>gt3dkit board calibration</title>
@@ -108,11 +118,11 @@ td,th{{border:1px solid #ccc;padding:3px 6px;font-size:13px}}</style></head><bod
 <table><tr><th>camera</th><th>views</th><th>RMS px</th><th>p95 px</th><th>held-out RMS px</th>
 <th>fx px (&plusmn; sd)</th><th>fy px</th><th>principal point px</th><th>k1 k2 p1 p2 k3</th>
 <th>centre sd mm</th><th>rotation sd &deg;</th><th>worst views</th></tr>
-{''.join(rows)}</table>
+{"".join(rows)}</table>
 <p>Held-out frames (left out of every fit, their board poses found with the rig held):
-{', '.join(map(str, cal.holdout_frames)) or 'none'}.</p>
-<h2>Views left out</h2><ul>{''.join(dropped) or '<li>none</li>'}</ul>
-<h2>Warnings</h2><ul>{''.join(warn) or '<li>none</li>'}</ul>
+{", ".join(map(str, cal.holdout_frames)) or "none"}.</p>
+<h2>Views left out</h2><ul>{"".join(dropped) or "<li>none</li>"}</ul>
+<h2>Warnings</h2><ul>{"".join(warn) or "<li>none</li>"}</ul>
 <h2>Where the corners covered the images</h2>
 <p>The calibration is trusted where corners were seen (green cells); the red circle, where shown, is where
 the lens model turns back.</p><img src="coverage.png" alt="coverage">

@@ -39,8 +39,10 @@ def _errors(true, est):  # type: ignore[no-untyped-def]
     R0, t0 = true.cameras[0].R, true.cameras[0].t
     ct = np.array([R0 @ c.center_world + t0 for c in true.cameras])
     ce = np.array([c.center_world for c in est.cameras])
-    rot = [np.degrees(np.arccos(np.clip((np.trace((a.R @ R0.T).T @ e.R) - 1) / 2, -1, 1)))
-           for a, e in zip(true.cameras, est.cameras, strict=True)]
+    rot = [
+        np.degrees(np.arccos(np.clip((np.trace((a.R @ R0.T).T @ e.R) - 1) / 2, -1, 1)))
+        for a, e in zip(true.cameras, est.cameras, strict=True)
+    ]
     return np.linalg.norm(ct - ce, axis=1), np.array(rot), float(np.ptp(ct, axis=0).max())
 
 
@@ -90,8 +92,19 @@ def _gt3d(*args: str) -> subprocess.CompletedProcess[str]:
 def test_cli_writes_a_calibration_and_report(scene_dir: tuple[Path, object], tmp_path: Path) -> None:
     root, _ = scene_dir
     out = tmp_path / "cal"
-    p = _gt3d("calib", "board", str(root), "--board", "charuco:7x9:40:30:DICT_4X4_50", "--out", str(out),
-              "--format", "toml", "--holdout", "4")
+    p = _gt3d(
+        "calib",
+        "board",
+        str(root),
+        "--board",
+        "charuco:7x9:40:30:DICT_4X4_50",
+        "--out",
+        str(out),
+        "--format",
+        "toml",
+        "--holdout",
+        "4",
+    )
     assert p.returncode == 0, p.stderr
     rig = read_calibration(out / "calibration" / "calibration.toml")
     assert rig.names == ["cam0", "cam1", "cam2"]
@@ -136,15 +149,19 @@ def test_a_camera_that_never_shares_a_frame_is_named(scene_dir: tuple[Path, obje
 
 
 def test_board_descriptions(tmp_path: Path) -> None:
-    (tmp_path / "board.toml").write_text("board_x = 8\nboard_y = 11\nsquare_length = 24.0\n"
-                                         "marker_length = 18.75\nmarker_bits = 4\ndict_size = 1000\n")
+    (tmp_path / "board.toml").write_text(
+        "board_x = 8\nboard_y = 11\nsquare_length = 24.0\n"
+        "marker_length = 18.75\nmarker_bits = 4\ndict_size = 1000\n"
+    )
     b = read_board(str(tmp_path / "board.toml"))
     assert (b.kind, b.squares_x, b.dictionary, round(b.square_m, 6)) == ("charuco", 8, "DICT_4X4_1000", 0.024)
-    (tmp_path / "config.toml").write_text("[calibration]\nboard_type = 'checkerboard'\nboard_size = [9, 6]\n"
-                                          "board_square_side_length = 25\n")
+    (tmp_path / "config.toml").write_text(
+        "[calibration]\nboard_type = 'checkerboard'\nboard_size = [9, 6]\nboard_square_side_length = 25\n"
+    )
     assert read_board(str(tmp_path / "config.toml")).kind == "checkerboard"
-    (tmp_path / "Config.toml").write_text("[calibration.calculate.intrinsics]\nintrinsics_corners_nb = [4, 7]\n"
-                                          "intrinsics_square_size = 60\n")
+    (tmp_path / "Config.toml").write_text(
+        "[calibration.calculate.intrinsics]\nintrinsics_corners_nb = [4, 7]\nintrinsics_square_size = 60\n"
+    )
     b = read_board(str(tmp_path / "Config.toml"))
     assert (b.squares_x, b.squares_y, b.square_m) == (5, 8, 0.06)
     # the corners are where OpenCV's ChArUco board puts them
@@ -167,6 +184,7 @@ def test_lens_model_that_turns_back_is_read_with_its_valid_radius() -> None:
 def test_copied_camera_is_named() -> None:
     K = np.array([[800.0, 0, 320], [0, 800, 240], [0, 0, 1]])
     from gt3dkit.rig import Rig
+
     a = Camera("side", 640, 480, K, np.zeros(5), np.eye(3), np.array([0, 0, 1.0]))
     b = dataclasses.replace(a, name="top")
     c = Camera("back", 640, 480, K, np.zeros(5), np.eye(3), np.array([0.5, 0, 1.0]))

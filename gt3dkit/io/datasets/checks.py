@@ -123,8 +123,10 @@ def _beyond_lens_model(scene: Scene, obs: Observations) -> tuple[Observations, l
     for c, cam in enumerate(scene.rig.cameras):
         n_k, n_b = int(kbad[obs.cam == c].sum()), int(bbad[obs.cam == c].sum())
         if n_k or n_b:
-            what = " and ".join(x for x in (f"{n_k} keypoints" if n_k else "", f"{n_b} boxes" if n_b else "") if x)
-            out.append(f"camera {cam.name}: {what} lie beyond {cam.valid_radius_px:.0f} px from its principal "
+            parts = (f"{n_k} keypoints" if n_k else "", f"{n_b} boxes" if n_b else "")
+            what = " and ".join(x for x in parts if x)
+            out.append(f"camera {cam.name}: {what} lie beyond {cam.valid_radius_px:.0f} px from its "
+                       "principal "
                        "point, where its lens model turns back: left out")
     box = np.where(bbad[:, None], np.nan, box)
     kpt = np.where(kbad[..., None], np.nan, kpt)
