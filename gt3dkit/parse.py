@@ -9,6 +9,7 @@ import hashlib
 import io
 import json
 import math
+import tomllib
 from collections.abc import Callable, Iterator, Sequence
 from operator import itemgetter
 from pathlib import Path
@@ -48,6 +49,17 @@ def load_json(path: Path) -> Any:
     """The document in a JSON file, or :class:`InputError` naming the file: unreadable,
     malformed, truncated or absurdly nested. A UTF-8 byte-order mark is allowed."""
     return _json_doc(path, _read_bytes(path))
+
+
+def load_toml(path: Path) -> dict[str, Any]:
+    """The document in a TOML file, or :class:`InputError` naming the file: unreadable or
+    malformed. A UTF-8 byte-order mark is allowed."""
+    try:
+        return tomllib.loads(Path(path).read_text(encoding="utf-8-sig"))
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(str(path), f"malformed TOML ({e})") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(str(path), f"cannot read ({e})") from None
 
 
 def read_hashed(path: Path) -> tuple[bytes, str]:

@@ -40,6 +40,38 @@ MAX_PIXELS = 1e7
 MAX_DIST_COEF = 1e4
 
 
+def _along_rays(K: F64, dist: F64, r: F64, th: F64) -> tuple[F64, F64, F64]:
+    """OpenCV's distortion (k1 k2 p1 p2 k3) along rays of the undistorted (normalised) plane.
+
+    Parameters
+    ----------
+    r : (1, N) radii, normalised; th : (T, 1) ray angles, rad.
+
+    Returns
+    -------
+    u, v : (T, N) distorted pixels relative to the principal point
+    det : (T, N) the map's Jacobian determinant (> 0 where it preserves orientation)
+    """
+    k1, k2, p1, p2, k3 = (float(v) for v in dist)
+    x, y = r * np.cos(th), r * np.sin(th)
+    with np.errstate(over="ignore", invalid="ignore"):
+        r2 = x * x + y * y
+        rad = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
+        dr = k1 + 2 * k2 * r2 + 3 * k3 * r2**2  # d rad / d r2
+        xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        a = rad + 2 * x * x * dr + 2 * p1 * y + 6 * p2 * x
+        b = 2 * x * y * dr + 2 * p1 * x + 2 * p2 * y  # both off-diagonal entries
+        d = rad + 2 * y * y * dr + 6 * p1 * y + 2 * p2 * x
+        return K[0, 0] * xd + K[0, 1] * yd, K[1, 1] * yd, a * d - b * b
+
+
+def _corner_px(K: F64, width: int, height: int) -> F64:
+    """(4, 2) the image's corners relative to the principal point, px."""
+    c = np.array([[0, 0], [width - 1, 0], [0, height - 1], [width - 1, height - 1]], dtype=np.float64)
+    return c - K[:2, 2]
+
+
 def distortion_fold(K: F64, dist: F64, width: int, height: int) -> float | None:
     """Where OpenCV's distortion (k1 k2 p1 p2 k3) folds over before it covers the image.
 
@@ -49,30 +81,17 @@ def distortion_fold(K: F64, dist: F64, width: int, height: int) -> float | None:
     Returns None if it does, else the fraction of the way to the image border at the first
     fold (0 also when a ray never reaches the border: the lens squeezes the image).
     """
-    k1, k2, p1, p2, k3 = (float(v) for v in dist)
-    if k1 == k2 == p1 == p2 == k3 == 0:
+    if not np.any(dist):
         return None
-    c = np.array([[0, 0], [width - 1, 0], [0, height - 1], [width - 1, height - 1]], dtype=np.float64)
-    corner = float(np.max(np.hypot((c[:, 0] - K[0, 2]) / K[0, 0], (c[:, 1] - K[1, 2]) / K[1, 1])))
+    c = _corner_px(K, width, height)
+    corner = float(np.max(np.hypot(c[:, 0] / K[0, 0], c[:, 1] / K[1, 1])))
     th = np.linspace(0, 2 * np.pi, 96, endpoint=False)[:, None]
     r = np.concatenate([np.linspace(0, 2 * corner, 301)[1:], np.linspace(2 * corner, 10 * corner, 101)[1:]])
     r = r[None, :]
-    x, y = r * np.cos(th), r * np.sin(th)
-    with np.errstate(over="ignore", invalid="ignore"):
-        r2 = x * x + y * y
-        rad = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
-        dr = k1 + 2 * k2 * r2 + 3 * k3 * r2**2  # d rad / d r2
-        xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        a = rad + 2 * x * x * dr + 2 * p1 * y + 6 * p2 * x
-        b = 2 * x * y * dr + 2 * p1 * x + 2 * p2 * y
-        cc = 2 * x * y * dr + 2 * p1 * x + 2 * p2 * y
-        d = rad + 2 * y * y * dr + 6 * p1 * y + 2 * p2 * x
-        det = a * d - b * cc
-        u = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
-        v = K[1, 1] * yd + K[1, 2]
-        inside = (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1)
-    out = ~inside
+    u, v, det = _along_rays(K, dist, r, th)
+    with np.errstate(invalid="ignore"):
+        u, v = u + K[0, 2], v + K[1, 2]
+        out = ~((u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1))
     if not out.any(axis=1).all():
         return 0.0  # some ray stays inside: the distortion squeezes the image
     first_out = np.argmax(out, axis=1)  # (rays,)
@@ -88,40 +107,25 @@ def distortion_valid_radius(K: F64, dist: F64, width: int, height: int) -> float
     """The distance (px) from the principal point, in the image, within which OpenCV's distortion
     (k1 k2 p1 p2 k3) is one-to-one; None where it is so over the whole image.
 
-    Along 360 rays from the principal point in the undistorted plane, the first radius where the
-    map stops being orientation-preserving (Jacobian determinant <= 0) is mapped into the image;
-    the nearest such point bounds the valid disc. Beyond it a pixel has two undistorted points,
+    Along 360 rays from the principal point in the undistorted plane, the image radius each ray
+    reaches before the map stops being orientation-preserving (Jacobian determinant <= 0); the
+    nearest such point bounds the valid disc. Beyond it a pixel has two undistorted points,
     so observations there cannot be used.
     """
-    k1, k2, p1, p2, k3 = (float(v) for v in dist)
-    if k1 == k2 == p1 == p2 == k3 == 0:
+    if not np.any(dist):
         return None
-    c = np.array([[0, 0], [width - 1, 0], [0, height - 1], [width - 1, height - 1]], dtype=np.float64)
-    corner_px = float(np.max(np.hypot(c[:, 0] - K[0, 2], c[:, 1] - K[1, 2])))
-    corner = corner_px / min(K[0, 0], K[1, 1])
+    corner_px = float(np.max(np.hypot(*_corner_px(K, width, height).T)))
     th = np.linspace(0, 2 * np.pi, 360, endpoint=False)[:, None]
-    r = np.linspace(0, 10 * corner, 4001)[1:][None, :]
-    x, y = r * np.cos(th), r * np.sin(th)
-    with np.errstate(over="ignore", invalid="ignore"):
-        r2 = x * x + y * y
-        rad = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
-        dr = k1 + 2 * k2 * r2 + 3 * k3 * r2**2
-        xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        a = rad + 2 * x * x * dr + 2 * p1 * y + 6 * p2 * x
-        b = 2 * x * y * dr + 2 * p1 * x + 2 * p2 * y
-        d = rad + 2 * y * y * dr + 6 * p1 * y + 2 * p2 * x
-        det = a * d - b * b
-        u = K[0, 0] * xd + K[0, 1] * yd
-        v = K[1, 1] * yd
-        dist_px = np.hypot(u, v)
+    r = np.linspace(0, 10 * corner_px / min(K[0, 0], K[1, 1]), 4001)[1:][None, :]
+    u, v, det = _along_rays(K, dist, r, th)
     bad = ~(det > 0)
-    if not bad.any():
+    folds = bad.any(axis=1)
+    if not folds.any():
         return None
-    first = np.where(bad.any(axis=1), np.argmax(bad, axis=1), -1)
-    # the image radius reached before each ray's fold (the map may already turn back in radius)
-    reach = np.array([np.nanmax(dist_px[i, :k]) if k > 0 else 0.0 for i, k in enumerate(first) if k >= 0])
-    radius = float(reach.min()) if reach.size else corner_px
+    before = np.arange(r.shape[1])[None, :] < np.argmax(bad, axis=1)[:, None]
+    with np.errstate(invalid="ignore"):
+        reach = np.where(before, np.hypot(u, v), 0.0).max(axis=1)  # (rays,) px reached before each fold
+    radius = float(reach[folds].min())
     return None if radius >= corner_px else radius
 
 

@@ -32,9 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
-from gt3dkit.calib.board import read_board
-from gt3dkit.calib.boardcal import _fit_frame_poses, board_pose
-from gt3dkit.calib.boardinput import board_views, find_cameras
+from gt3dkit.calib.board import Board, read_board
+from gt3dkit.calib.boardcal import pose_boards
+from gt3dkit.calib.boardinput import BoardViews, board_views, find_cameras
 from gt3dkit.calib.formats import read_calibration
 from gt3dkit.geom.camera import project_points
 from gt3dkit.geom.triangulate import normalized_points, triangulate_dlt
@@ -69,27 +69,19 @@ def rig_in_metres(rig: Rig, scale: float) -> Rig:
     )
 
 
-def same_corners(rig: Rig, bv: object, board: object) -> dict[str, object]:
+def same_corners(rig: Rig, bv: BoardViews, board: Board) -> dict[str, object]:
     """RMS per camera of the board posed per frame with ``rig`` held; square side and flatness of the
     corners triangulated per frame."""
-    names = list(bv.names)  # type: ignore[attr-defined]
-    order = [rig.index(n) for n in names]
-    K, D, R, t = rig.K[order], rig.dist[order], rig.R[order], rig.t[order]
-    T = np.tile(np.eye(4), (len(names), 1, 1))
-    T[:, :3, :3], T[:, :3, 3] = R, t
-    intr = np.concatenate([K[:, 0, 0:1], K[:, 1, 1:2], K[:, 0, 2:3], K[:, 1, 2:3], D], axis=1)
-    views = list(bv.views)  # type: ignore[attr-defined]
-    start = {}
-    for f in sorted({v.frame for v in views}):
-        v = max((v for v in views if v.frame == f), key=lambda v: len(v.det.ids))
-        Tcb = board_pose(v, board, K[v.cam], D[v.cam])  # type: ignore[arg-type]
-        start[f] = np.linalg.inv(T[v.cam]) @ Tcb
-    _, resid = _fit_frame_poses(T, intr, views, board, start)  # type: ignore[arg-type]
+    names = list(bv.names)
+    views = list(bv.views)
+    _, resid = pose_boards(rig, names, views, board)
     rms = {}
     for c, n in enumerate(names):
-        r = np.concatenate([resid[k] for k, v in enumerate(views) if v.cam == c and k in resid])
+        r = np.concatenate([r for v, r in zip(views, resid, strict=True) if v.cam == c])
         rms[n] = float(np.sqrt(np.mean(np.sum(r**2, axis=1))))
-    corners = board.corners_board()  # type: ignore[attr-defined]
+    order = [rig.index(n) for n in names]
+    K, D, R, t = rig.K[order], rig.dist[order], rig.R[order], rig.t[order]
+    corners = board.corners_board()
     squares, flat = [], []
     for f in sorted({v.frame for v in views}):
         uv = np.full((len(names), len(corners), 2), np.nan)
@@ -102,7 +94,7 @@ def same_corners(rig: Rig, bv: object, board: object) -> dict[str, object]:
         if ok.sum() < 10:
             continue
         s, _, _ = umeyama(corners[ok], X[ok])
-        squares.append(s * board.square_m * 1e3)  # type: ignore[attr-defined]
+        squares.append(s * board.square_m * 1e3)
         P = X[ok] - X[ok].mean(0)
         n = np.linalg.svd(P)[2][-1]
         flat.append(float(np.sqrt(np.mean((P @ n) ** 2))) * 1e3)

@@ -28,7 +28,6 @@ lengths in the board units, ``--board-units``, millimetres unless told).
 from __future__ import annotations
 
 import re
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -36,6 +35,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from gt3dkit.errors import InputError
+from gt3dkit.parse import load_toml
 from gt3dkit.types import F64
 
 if TYPE_CHECKING:
@@ -157,7 +157,7 @@ def board_from_spec(spec: str, units: str = "mm") -> Board:
             f"{spec!r} is neither a file nor a board spec (charuco:8x11:24:18.75:"
             "DICT_4X4_1000 or checkerboard:9x6:25, lengths in --board-units)",
         )
-    kind = "checkerboard" if m.group(1).startswith("checker") else "charuco"
+    kind: BoardKind = "checkerboard" if m.group(1).startswith("checker") else "charuco"
     try:
         square = float(m.group(4)) * scale
         marker = float(m.group(5)) * scale if m.group(5) else 0.0
@@ -168,7 +168,7 @@ def board_from_spec(spec: str, units: str = "mm") -> Board:
             int(m.group(2)),
             int(m.group(3)),
             square,
-            marker,  # type: ignore[arg-type]
+            marker,
             m.group(6) or "DICT_4X4_50",
         )
     except ValueError as e:
@@ -182,12 +182,7 @@ def read_board(path_or_spec: str, units: str = "mm") -> Board:
         if path.suffix == ".toml" or path.exists():
             raise InputError(str(path), "no such board file")
         return board_from_spec(path_or_spec, units)
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8-sig"))
-    except tomllib.TOMLDecodeError as e:
-        raise InputError(str(path), f"malformed TOML ({e})") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError(str(path), f"cannot read ({e})") from None
+    doc = load_toml(path)
     try:
         board = _board_of_doc(doc, UNITS_M[units])
     except (KeyError, TypeError, ValueError) as e:
@@ -215,9 +210,9 @@ def _board_of_doc(doc: dict[str, Any], scale: float) -> Board | None:
         )
     cal = doc.get("calibration")
     if isinstance(cal, dict) and "board_size" in cal:  # anipose's config.toml
-        kind = "checkerboard" if str(cal.get("board_type", "charuco")).startswith("checker") else "charuco"
         if cal.get("board_type", "charuco") not in ("charuco", "checkerboard", "checker"):
             raise ValueError(f"board_type {cal['board_type']!r} (charuco or checkerboard)")
+        kind = "checkerboard" if str(cal.get("board_type", "charuco")).startswith("checker") else "charuco"
         sx, sy = (int(v) for v in cal["board_size"])
         return Board(
             kind,

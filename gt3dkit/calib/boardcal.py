@@ -4,26 +4,31 @@ Steps (:func:`calibrate_board`):
 
 1. **Intrinsics** per camera, from all its views (``cv2.calibrateCameraExtended``: Zhang's
    planar method, then Levenberg-Marquardt on OpenCV's ``k1 k2 p1 p2 k3`` pinhole model).
-   A view that reprojects far worse than the camera's others (board found wrongly: a marker
-   misread, motion blur, a flipped checkerboard) is left out and the fit repeated.
+   A view that reprojects far worse than the camera's others (OpenCV's per-view errors: board
+   found wrongly, a marker misread, motion blur) is left out and the fit repeated.
 2. **Board poses** per view (``cv2.solvePnP``, IPPE for a plane, then LM refinement).
 3. **Extrinsics**: for every pair of cameras, the relative pose each frame both saw implies;
    the medoid of those (the candidate nearest the others) is the pair's pose. A maximum
    spanning tree over the pairs (weighted by shared frames) chains every camera to the first.
-   A camera no chain reaches is named: its extrinsics cannot be found.
-4. **Bundle adjustment** over every camera's intrinsics and pose and every board pose:
-   ``scipy.optimize.least_squares`` (trust region, sparse finite-difference Jacobian,
-   soft-L1 loss of scale 1 px), the board's corners held at their printed positions, which
-   fixes the metric scale. Then views that reproject far worse than the rest are dropped
-   and it runs again.
+   A camera no chain reaches is named: its extrinsics cannot be found. A checkerboard, which
+   looks the same turned by 180 degrees, is read the way that agrees with the other cameras.
+4. **Bundle adjustment** over every camera's intrinsics and pose and every board pose
+   (:class:`BoardProblem`, :func:`robust_lm`: soft-L1 loss of scale 1 px), the board's corners
+   held at their printed positions, which fixes the metric scale. Then views that reproject far
+   worse than their camera's others are dropped and it runs again.
 
-Why scipy's solver and not pycolmap's or GTSAM's bundle adjuster: COLMAP's OPENCV model has
-no ``k3`` (strong lenses such as the shared mouse rig need it: its fit with ``k3 = 0`` rises
-above 0.6 px) and its adjuster takes a moving board only as COLMAP rig frames with constant
-3D points; GTSAM has no factor for a point on a moving board seen through a camera with
-Brown-Conrady distortion and unknown intrinsics except as a Python ``CustomFactor``, called once
-per corner per iteration. A sparse trust-region solve of a few hundred parameters takes
-well under a second here.
+The same problem with the cameras held poses the board in frames left out of the fit
+(:func:`pose_boards`: the held-out check, and any rig's reprojection on given corners).
+
+Why not pycolmap's or GTSAM's bundle adjuster: COLMAP's OPENCV model has no ``k3`` (the shared
+mouse rig's lenses need it) and its adjuster takes a moving board only as COLMAP rig frames
+with constant 3D points; GTSAM has no factor for a point on a moving board seen through a
+camera with Brown-Conrady distortion and unknown intrinsics except as a Python
+``CustomFactor``, called once per corner per iteration. Why not scipy's ``least_squares``
+for small problems: its exact trust region takes an SVD of the whole (residuals x parameters)
+Jacobian at every step (2.9 s against 1.1 s for the shared rig, the same minimum to 1e-7 px),
+and its iterative one needs 170 steps. Beyond :data:`DENSE_MAX_PARAMS` parameters scipy's
+sparse trust region is used.
 
 Uncertainty: the parameters' covariance is ``s^2 (J^T J)^{-1}`` at the solution (``s^2`` the
 residuals' variance), from which each camera's focal, centre and rotation sd follow.
@@ -32,27 +37,28 @@ residuals' variance), from which each camera's focal, centre and rotation sd fol
 from __future__ import annotations
 
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from functools import partial
+from typing import Any
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
+from scipy.sparse import csc_matrix
 from scipy.spatial.transform import Rotation
 
 from gt3dkit.calib.board import Board
 from gt3dkit.calib.boardinput import View
 from gt3dkit.errors import InputError
-from gt3dkit.geom.camera import apply_K, distort
+from gt3dkit.geom.camera import distort
 from gt3dkit.rig import Camera, Rig
 from gt3dkit.types import F64, JsonDict
 
-#: 180 degrees about the board's z through its centre: the other reading of a checkerboard.
-N_INTR = 9  # fx fy cx cy k1 k2 p1 p2 k3
-#: Up to this many parameters (about 300 board frames) the solver takes exact steps on a dense
-#: Jacobian; beyond, iterative ones on a sparse Jacobian.
+N_INTR = 9  # a camera's intrinsics in the solver: fx fy cx cy k1 k2 p1 p2 k3
+#: Up to this many parameters (about 300 board frames) the solver takes Levenberg-Marquardt steps
+#: on a dense Jacobian; beyond, scipy's iterative trust-region steps on a sparse one.
 DENSE_MAX_PARAMS = 2000
+#: Rounds of the joint fit (each after the first without the views the last showed wrong).
+ROUNDS = 3
 
 
 @dataclass(frozen=True)
@@ -64,13 +70,14 @@ class BoardConfig:
     board, z up towards the cameras, origin at its first inner corner).
     ``holdout_every``: every k-th synchronised frame (k-1, 2k-1, ...) is left out of the fits and
     reported on its own; 0 keeps every frame.
+    ``fixed``: cameras whose intrinsics are given (matched by name): only their poses are found.
     """
 
     origin: str = "camera"
     floor_frame: int | None = None
     holdout_every: int = 0
     outlier_px: float = 1.5  # a view is wrong when its RMS exceeds this and 4x the camera's median
-    fixed: dict[str, Camera] = field(default_factory=dict)  # given intrinsics, by camera name
+    fixed: tuple[Camera, ...] = ()
     min_views: int = 6  # fewer views than this: a warning, and the focal's sd says how uncertain
 
 
@@ -130,15 +137,21 @@ class BoardCalibration:
 def rt_matrix(rvec: F64, t: F64) -> F64:
     """(..., 4, 4) rigid transforms from (..., 3) rotation vectors and translations."""
     T = np.zeros(np.shape(rvec)[:-1] + (4, 4))
-    T[..., :3, :3] = (
-        Rotation.from_rotvec(np.reshape(rvec, (-1, 3))).as_matrix().reshape(T.shape[:-2] + (3, 3))
-    )
+    R = Rotation.from_rotvec(np.reshape(rvec, (-1, 3))).as_matrix()
+    T[..., :3, :3] = R.reshape(T.shape[:-2] + (3, 3))
     T[..., :3, 3] = t
     T[..., 3, 3] = 1.0
     return T
 
 
-def _inv(T: F64) -> F64:
+def rt_vector(T: F64) -> F64:
+    """(..., 6) rotation vector and translation of (..., 4, 4) rigid transforms."""
+    rv = Rotation.from_matrix(np.reshape(T[..., :3, :3], (-1, 3, 3))).as_rotvec()
+    return np.concatenate([rv.reshape(T.shape[:-2] + (3,)), T[..., :3, 3]], axis=-1)
+
+
+def rigid_inverse(T: F64) -> F64:
+    """(..., 4, 4) inverses of rigid transforms."""
     out = np.zeros_like(T)
     R = np.swapaxes(T[..., :3, :3], -1, -2)
     out[..., :3, :3] = R
@@ -148,7 +161,7 @@ def _inv(T: F64) -> F64:
 
 
 def _pose_distance(a: F64, b: F64, scale_m: float) -> F64:
-    """Rotation angle (rad) plus translation distance in ``scale_m`` units, (N,) of (N, 4, 4) pairs."""
+    """Rotation angle (rad) plus translation distance in ``scale_m`` units of broadcast (..., 4, 4) pairs."""
     dR = np.einsum("...ji,...jk->...ik", a[..., :3, :3], b[..., :3, :3])
     ang = np.arccos(np.clip((np.trace(dR, axis1=-2, axis2=-1) - 1) / 2, -1, 1))
     return ang + np.linalg.norm(a[..., :3, 3] - b[..., :3, 3], axis=-1) / scale_m
@@ -157,37 +170,30 @@ def _pose_distance(a: F64, b: F64, scale_m: float) -> F64:
 def project(X_cam: F64, intr: F64) -> F64:
     """(M, 2) distorted pixels of (M, 3) camera-frame points with per-point intrinsics (M, 9)."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        xy = X_cam[:, :2] / X_cam[:, 2:3]
-    K = np.zeros((len(intr), 3, 3))
-    K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = (
-        intr[:, 0],
-        intr[:, 1],
-        intr[:, 2],
-        intr[:, 3],
-        1,
-    )
-    return apply_K(distort(xy, intr[:, 4:9]), K)
+        xy = distort(X_cam[:, :2] / X_cam[:, 2:3], intr[:, 4:9])
+    return xy * intr[:, 0:2] + intr[:, 2:4]
 
 
-def _intr_of(cam: Camera) -> F64:
-    return np.array([cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2], *cam.dist])
+def rig_arrays(rig: Rig, names: Sequence[str]) -> tuple[F64, F64]:
+    """``names``' intrinsics (C, 9) and cam_from_world poses (C, 4, 4) in ``rig``."""
+    cams = [rig.cameras[rig.index(n)] for n in names]
+    intr = np.array([[c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2], *c.dist] for c in cams])
+    T = np.tile(np.eye(4), (len(cams), 1, 1))
+    T[:, :3, :3] = [c.R for c in cams]
+    T[:, :3, 3] = [c.t for c in cams]
+    return intr, T
+
+
+def intr_K(intr: F64) -> F64:
+    """(3, 3) K of one camera's (9,) intrinsics."""
+    return np.array([[intr[0], 0, intr[2]], [0, intr[1], intr[3]], [0, 0, 1]])
 
 
 # ----------------------------------------------------------------------------- intrinsics
 
 
-def _views_rms(obj: list[F64], img: list[F64], rv: Sequence[F64], tv: Sequence[F64], K: F64, d: F64) -> F64:
-    import cv2
-
-    out = []
-    for o, i, r, t in zip(obj, img, rv, tv, strict=True):
-        p, _ = cv2.projectPoints(o, r, t, K, d)
-        out.append(float(np.sqrt(np.mean(np.sum((p.reshape(-1, 2) - i) ** 2, axis=1)))))
-    return np.array(out)
-
-
 def fit_intrinsics(
-    views: list[View], board: Board, size: tuple[int, int], outlier_px: float
+    views: Sequence[View], board: Board, size: tuple[int, int], outlier_px: float
 ) -> tuple[F64, F64, float, list[int], list[tuple[int, str]]]:
     """One camera's K (3, 3), dist (5,), focal sd (px), the views kept and those dropped (why)."""
     import cv2
@@ -197,30 +203,28 @@ def fit_intrinsics(
     img = [v.det.uv_px.astype(np.float32) for v in views]
     keep = list(range(len(views)))
     dropped: list[tuple[int, str]] = []
-    flags = 0
+    flags = cv2.CALIB_USE_INTRINSIC_GUESS
     if len(views) < 4:  # too few views for the full model: principal point at the centre, no k3
-        flags = cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
+        flags |= cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
     K0 = np.array([[max(size), 0, (size[0] - 1) / 2], [0, max(size), (size[1] - 1) / 2], [0, 0, 1]])
     for _ in range(4):
-        o = [obj[k] for k in keep]
-        i = [img[k] for k in keep]
-        _, K, d, rv, tv, sd, _, _ = cv2.calibrateCameraExtended(
-            o, i, size, K0.copy(), np.zeros(5), flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS
+        _, K, d, _, _, sd, _, per_view = cv2.calibrateCameraExtended(
+            [obj[k] for k in keep], [img[k] for k in keep], size, K0.copy(), np.zeros(5), flags=flags
         )
-        rms = _views_rms([x.astype(np.float64) for x in o], [x.astype(np.float64) for x in i], rv, tv, K, d)
-        lim = max(outlier_px, 4 * float(np.median(rms)))
-        bad = [keep[j] for j in np.flatnonzero(rms > lim)]
-        if not bad or len(keep) - len(bad) < 3:
+        rms = per_view.reshape(-1)
+        median = float(np.median(rms))
+        bad = np.flatnonzero(rms > max(outlier_px, 4 * median))
+        if not bad.size or len(keep) - bad.size < 3:
             break
         dropped += [
             (
-                k,
-                f"reprojects {rms[keep.index(k)]:.1f} px with this camera's intrinsics (its views' "
-                f"median {np.median(rms):.2f} px): the board was found wrongly",
+                keep[j],
+                f"reprojects {rms[j]:.1f} px with this camera's intrinsics (its views' "
+                f"median {median:.2f} px): the board was found wrongly",
             )
-            for k in bad
+            for j in bad
         ]
-        keep = [k for k in keep if k not in bad]
+        keep = [k for j, k in enumerate(keep) if j not in set(bad.tolist())]
     sd_f = float(np.hypot(sd[0, 0], sd[1, 0]) / np.sqrt(2)) if np.all(np.isfinite(sd[:2])) else float("nan")
     return K, np.asarray(d, dtype=np.float64).reshape(-1)[:5], sd_f, keep, dropped
 
@@ -240,22 +244,25 @@ def board_pose(view: View, board: Board, K: F64, d: F64) -> F64:
 # ----------------------------------------------------------------------------- extrinsics
 
 
-def _flips(board: Board) -> list[F64]:
-    """Board-frame transforms between the readings a detection may have: the identity, and for a
-    checkerboard its 180 degree turn about the board's centre (its corners read backwards)."""
+def _flips(board: Board) -> F64:
+    """(R, 4, 4) board-frame transforms between the readings a detection may have: the identity,
+    and for a checkerboard its 180 degree turn about the board's centre (corners read backwards)."""
     if board.kind == "charuco":
-        return [np.eye(4)]
+        return np.eye(4)[None]
     nx, ny = board.inner
-    c = np.array([(nx + 1) / 2, (ny + 1) / 2, 0]) * board.square_m
     F = np.diag([-1.0, -1.0, 1.0, 1.0])
-    F[:3, 3] = 2 * c
-    return [np.eye(4), F]
+    F[:2, 3] = np.array([nx + 1, ny + 1]) * board.square_m
+    return np.stack([np.eye(4), F])
+
+
+def _scale_m(board: Board) -> float:
+    """The length a pose distance counts a radian as: the board's longer inner side."""
+    return board.square_m * max(board.inner)
 
 
 def _medoid(cands: F64, scale_m: float) -> F64:
-    n = len(cands)
     D = _pose_distance(cands[:, None], cands[None, :], scale_m)
-    return cands[int(np.argmin(np.median(D, axis=1) if n > 2 else D.sum(1)))]
+    return cands[int(np.argmin(np.median(D, axis=1) if len(cands) > 2 else D.sum(1)))]
 
 
 def chain_cameras(poses: dict[tuple[int, int], F64], n_cams: int, names: Sequence[str], board: Board) -> F64:
@@ -268,28 +275,23 @@ def chain_cameras(poses: dict[tuple[int, int], F64], n_cams: int, names: Sequenc
     for seen in by_frame.values():
         cs = sorted(seen)
         for i, a in enumerate(cs):
-            for b in cs[i + 1 :]:
-                for F in flips:  # b_from_a, each reading of b's board
-                    pair[(a, b)].append(seen[b] @ F @ _inv(seen[a]))
-    scale = board.square_m * max(board.inner)
+            for b in cs[i + 1 :]:  # b_from_a, each reading of b's board
+                pair[(a, b)] += list(seen[b] @ flips @ rigid_inverse(seen[a]))
     weight = {k: len(v) // len(flips) for k, v in pair.items()}
-    rel = {k: _medoid(np.array(v), scale) for k, v in pair.items()}
+    rel = {k: _medoid(np.array(v), _scale_m(board)) for k, v in pair.items()}
     out = np.full((n_cams, 4, 4), np.nan)
     out[0] = np.eye(4)
     done = {0}
     while True:  # Prim's maximum spanning tree from camera 0
-        best = None
-        for (a, b), w in weight.items():
-            if (a in done) != (b in done) and (best is None or w > best[2]):
-                best = (a, b, w)
-        if best is None:
+        edges = [(w, a, b) for (a, b), w in weight.items() if (a in done) != (b in done)]
+        if not edges:
             break
-        a, b, _ = best
+        _, a, b = max(edges)
         if a in done:
             out[b] = rel[(a, b)] @ out[a]
             done.add(b)
         else:
-            out[a] = _inv(rel[(a, b)]) @ out[b]
+            out[a] = rigid_inverse(rel[(a, b)]) @ out[b]
             done.add(a)
     missing = [names[c] for c in range(n_cams) if c not in done]
     if missing:
@@ -302,246 +304,343 @@ def chain_cameras(poses: dict[tuple[int, int], F64], n_cams: int, names: Sequenc
     return out
 
 
-# ----------------------------------------------------------------------------- bundle adjustment
+def _frame_starts(views: Sequence[View], cam_from_board: Sequence[F64], cam_from_ref: F64) -> dict[int, F64]:
+    """Each synchronised frame's ref_from_board, from the view of it that saw the most corners."""
+    best: dict[int, int] = {}
+    for k, v in enumerate(views):
+        if v.synced and (v.frame not in best or len(v.det.ids) > len(views[best[v.frame]].det.ids)):
+            best[v.frame] = k
+    return {f: rigid_inverse(cam_from_ref[views[k].cam]) @ cam_from_board[k] for f, k in best.items()}
 
 
-@dataclass
-class _Problem:
-    """Observations flattened for the solver: ``cam``, ``pose`` (board pose index), ``local``
-    (the pose is in the camera's own frame: a view of no synchronised frame), ``X`` (M, 3)
-    board-frame corners, ``uv`` (M, 2)."""
+def _read_corners(
+    views: Sequence[View],
+    cam_from_board: Sequence[F64],
+    cam_from_ref: F64,
+    frame_pose: dict[int, F64],
+    board: Board,
+) -> list[F64]:
+    """Each view's corners in the board frame (N, 3), in the reading (of a checkerboard's two) that
+    agrees with its frame's pose."""
+    flips = _flips(board)
+    corners = board.corners_board()
+    out = []
+    for v, T in zip(views, cam_from_board, strict=True):
+        X = corners[v.det.ids]
+        if v.synced and len(flips) > 1:
+            want = cam_from_ref[v.cam] @ frame_pose[v.frame]
+            F = flips[int(np.argmin(_pose_distance(T @ flips, want, _scale_m(board))))]
+            X = X @ F[:3, :3].T + F[:3, 3]
+        out.append(X)
+    return out
+
+
+# ----------------------------------------------------------------------------- the problem
+
+
+@dataclass(frozen=True)
+class BoardProblem:
+    """Every corner observation of a board calibration, flattened for the solver.
+
+    The parameters ``x`` are, in order, the free cameras' intrinsics (``N_INTR`` each), the free
+    cameras' cam_from_ref poses (6 each: rotation vector, translation) and every board pose (6
+    each). A board pose is ref_from_board for a synchronised frame, or cam_from_board for a view of
+    no synchronised frame (``local``). What is not free is taken from ``intr0`` and ``ext0``.
+
+    Arrays, one entry per corner observation ``M``: ``cam``, ``pose`` (board pose index),
+    ``local`` (bool), ``view`` (index into the views), ``X`` (M, 3) board-frame corner, metres,
+    ``uv`` (M, 2) its detected pixel.
+    """
 
     cam: np.ndarray
     pose: np.ndarray
     local: np.ndarray
+    view: np.ndarray
     X: F64
     uv: F64
-    view: np.ndarray  # (M,) index into the view list
-    n_cams: int
+    intr0: F64  # (C, 9)
+    ext0: F64  # (C, 6)
     n_poses: int
     free_intr: np.ndarray  # (C,) bool
-    ref: int = 0
+    free_ext: np.ndarray  # (C,) bool
+    sparsity: csc_matrix = field(init=False, repr=False)
+    groups: np.ndarray = field(init=False, repr=False)
 
-    def split(self, x: F64, intr0: F64) -> tuple[F64, F64, F64]:
-        C, P = self.n_cams, self.n_poses
-        nfi = int(self.free_intr.sum())
-        intr = intr0.copy()
-        intr[self.free_intr] = x[: nfi * N_INTR].reshape(nfi, N_INTR)
-        o = nfi * N_INTR
-        ext = np.zeros((C, 6))
-        others = [c for c in range(C) if c != self.ref]
-        ext[others] = x[o : o + 6 * (C - 1)].reshape(C - 1, 6)
-        o += 6 * (C - 1)
-        poses = x[o : o + 6 * P].reshape(P, 6)
-        return intr, ext, poses
+    def __post_init__(self) -> None:
+        C = len(self.intr0)
+        col_intr = np.where(self.free_intr, N_INTR * (np.cumsum(self.free_intr) - 1), -1)
+        n_intr = N_INTR * int(self.free_intr.sum())
+        col_ext = np.where(self.free_ext, n_intr + 6 * (np.cumsum(self.free_ext) - 1), -1)
+        col_pose = n_intr + 6 * int(self.free_ext.sum())
+        M = len(self.cam)
+        rows, cols = [], []
+        blocks = (
+            (col_pose + 6 * self.pose, 6, np.ones(M, bool)),
+            (col_intr[self.cam], N_INTR, col_intr[self.cam] >= 0),
+            (col_ext[self.cam], 6, (col_ext[self.cam] >= 0) & ~self.local),
+        )
+        for start, n, on in blocks:
+            m = np.flatnonzero(on)
+            for k in range(2):  # a corner's x and y residuals
+                rows.append(np.repeat(2 * m + k, n))
+                cols.append((start[m, None] + np.arange(n)).reshape(-1))
+        r, c = np.concatenate(rows), np.concatenate(cols)
+        n_params = col_pose + 6 * self.n_poses
+        object.__setattr__(
+            self, "sparsity", csc_matrix((np.ones(len(r), np.int8), (r, c)), shape=(2 * M, n_params))
+        )
+        # columns that touch disjoint residuals share a group: the same entry of every free camera's
+        # intrinsics, of every free camera's pose, of every board pose
+        groups = np.concatenate(
+            [
+                np.tile(np.arange(N_INTR), int(self.free_intr.sum())),
+                N_INTR + np.tile(np.arange(6), int(self.free_ext.sum())),
+                N_INTR + 6 + np.tile(np.arange(6), self.n_poses),
+            ]
+        )
+        object.__setattr__(self, "groups", groups)
+        if C != len(self.ext0):
+            raise ValueError(f"intr0 has {C} cameras, ext0 {len(self.ext0)}")
 
-    def residuals(self, x: F64, intr0: F64) -> F64:
-        intr, ext, poses = self.split(x, intr0)
-        Tp = rt_matrix(poses[:, :3], poses[:, 3:])
-        Tc = rt_matrix(ext[:, :3], ext[:, 3:])
-        Xw = np.einsum("mij,mj->mi", Tp[self.pose, :3, :3], self.X) + Tp[self.pose, :3, 3]
-        Xc = np.einsum("mij,mj->mi", Tc[self.cam, :3, :3], Xw) + Tc[self.cam, :3, 3]
-        Xc = np.where(self.local[:, None], Xw, Xc)
-        r = project(Xc, intr[self.cam]) - self.uv
-        return np.nan_to_num(r, nan=1e4).reshape(-1)
+    @property
+    def n_params(self) -> int:
+        return int(self.sparsity.shape[1])
 
-    def column_groups(self) -> np.ndarray:
-        """(n_params,) group of each parameter: parameters of one group touch disjoint residuals
-        (the same entry of every camera's intrinsics, of every camera's pose, of every board
-        pose), so one perturbed evaluation gives the Jacobian's columns of a whole group."""
-        C = self.n_cams
-        nfi = int(self.free_intr.sum())
-        g = [
-            np.tile(np.arange(N_INTR), nfi),
-            N_INTR + np.tile(np.arange(6), C - 1),
-            N_INTR + 6 + np.tile(np.arange(6), self.n_poses),
-        ]
-        return np.concatenate(g)
+    def split(self, x: F64) -> tuple[F64, F64, F64]:
+        """Intrinsics (C, 9), cam_from_ref poses (C, 6) and board poses (P, 6) of ``x``."""
+        n_i, n_e = N_INTR * int(self.free_intr.sum()), 6 * int(self.free_ext.sum())
+        intr, ext = self.intr0.copy(), self.ext0.copy()
+        intr[self.free_intr] = x[:n_i].reshape(-1, N_INTR)
+        ext[self.free_ext] = x[n_i : n_i + n_e].reshape(-1, 6)
+        return intr, ext, x[n_i + n_e :].reshape(-1, 6)
 
-    def jacobian(self, x: F64, intr0: F64) -> F64:
-        """Dense forward-difference Jacobian, a residual evaluation per column group."""
-        f0 = self.residuals(x, intr0)
-        groups = self.column_groups()
-        A = self.sparsity().tocsc()
+    def pack(self, intr: F64, ext: F64, poses: F64) -> F64:
+        return np.concatenate(
+            [intr[self.free_intr].reshape(-1), ext[self.free_ext].reshape(-1), poses.reshape(-1)]
+        )
+
+    def residuals(self, x: F64) -> F64:
+        """(2 M,) reprojection residuals, px (a corner behind its camera: 1e4)."""
+        intr, ext, poses = self.split(x)
+        Tp = rt_matrix(poses[:, :3], poses[:, 3:])[self.pose]
+        Tc = rt_matrix(ext[:, :3], ext[:, 3:])[self.cam]
+        Xb = np.einsum("mij,mj->mi", Tp[:, :3, :3], self.X) + Tp[:, :3, 3]
+        Xc = np.einsum("mij,mj->mi", Tc[:, :3, :3], Xb) + Tc[:, :3, 3]
+        Xc = np.where(self.local[:, None], Xb, Xc)
+        return np.nan_to_num(project(Xc, intr[self.cam]) - self.uv, nan=1e4).reshape(-1)
+
+    def jacobian(self, x: F64) -> F64:
+        """Dense forward-difference Jacobian (2 M, n), one residual evaluation per column group."""
+        f0 = self.residuals(x)
         J = np.zeros((len(f0), len(x)))
         h = 1e-7 * np.maximum(1.0, np.abs(x))
-        for g in np.unique(groups):
-            cols = np.flatnonzero(groups == g)
+        for g in np.unique(self.groups):
+            cols = np.flatnonzero(self.groups == g)
             dx = np.zeros_like(x)
             dx[cols] = h[cols]
-            df = self.residuals(x + dx, intr0) - f0
-            for j in cols:
-                rows = A.indices[A.indptr[j] : A.indptr[j + 1]]
-                J[rows, j] = df[rows] / h[j]
+            df = self.residuals(x + dx) - f0
+            rows, which = self.sparsity[:, cols].nonzero()
+            J[rows, cols[which]] = df[rows] / h[cols[which]]
         return J
 
-    def sparsity(self) -> lil_matrix:
-        C = self.n_cams
-        nfi = int(self.free_intr.sum())
-        col_intr = np.full(C, -1)
-        col_intr[self.free_intr] = np.arange(nfi) * N_INTR
-        col_ext = np.full(C, -1)
-        others = [c for c in range(C) if c != self.ref]
-        col_ext[others] = nfi * N_INTR + 6 * np.arange(C - 1)
-        o = nfi * N_INTR + 6 * (C - 1)
-        M = len(self.cam)
-        A = lil_matrix((2 * M, o + 6 * self.n_poses), dtype=np.int8)
-        rows = np.arange(M)
-        for k in range(2):
-            rr = 2 * rows + k
-            for j in range(6):
-                A[rr, o + 6 * self.pose + j] = 1
-            m = col_intr[self.cam] >= 0
-            for j in range(N_INTR):
-                A[rr[m], col_intr[self.cam[m]] + j] = 1
-            m = (col_ext[self.cam] >= 0) & ~self.local
-            for j in range(6):
-                A[rr[m], col_ext[self.cam[m]] + j] = 1
-        return A
+    def view_rms(self, r: F64, n_views: int) -> F64:
+        """(V,) RMS reprojection (px) of each view, of residuals ``r`` (2 M,)."""
+        e2 = (r.reshape(-1, 2) ** 2).sum(1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.sqrt(np.bincount(self.view, e2, n_views) / np.bincount(self.view, minlength=n_views))
+
+
+PoseKey = tuple[int, int]  # (-1, frame) for a synchronised frame; (camera, frame) for a view alone
+
+
+def _pose_key(v: View) -> PoseKey:
+    return (-1, v.frame) if v.synced else (v.cam, v.frame)
+
+
+def board_problem(
+    views: Sequence[View],
+    X: Sequence[F64],
+    intr0: F64,
+    ext0: F64,
+    free_intr: np.ndarray,
+    free_ext: np.ndarray,
+) -> tuple[BoardProblem, list[PoseKey]]:
+    """The problem of ``views`` (their corners ``X`` in the board frame) and its board poses' keys
+    (:data:`PoseKey`)."""
+    keys: list[PoseKey] = []
+    index: dict[PoseKey, int] = {}
+    pose = []
+    for v in views:
+        key = _pose_key(v)
+        if key not in index:
+            index[key] = len(keys)
+            keys.append(key)
+        pose.append(index[key])
+    n = [len(x) for x in X]
+    prob = BoardProblem(
+        cam=np.repeat([v.cam for v in views], n),
+        pose=np.repeat(pose, n),
+        local=np.repeat([not v.synced for v in views], n).astype(bool),
+        view=np.repeat(np.arange(len(views)), n),
+        X=np.concatenate(X),
+        uv=np.concatenate([v.det.uv_px for v in views]),
+        intr0=intr0,
+        ext0=ext0,
+        n_poses=len(keys),
+        free_intr=free_intr,
+        free_ext=free_ext,
+    )
+    return prob, keys
 
 
 @dataclass(frozen=True)
 class LMResult:
-    """What :func:`robust_lm` returns (the fields of scipy's ``OptimizeResult`` that are used)."""
+    """A solve's parameters ``x``, residuals ``fun`` and Jacobian ``jac`` there (dense, or sparse
+    from scipy's solver), and how many residual evaluations it took."""
 
     x: F64
     fun: F64
-    jac: F64
+    jac: Any
     nfev: int
 
 
 def robust_lm(
-    fun: object, jac: object, x0: F64, f_scale: float = 1.0, max_iter: int = 50, tol: float = 1e-10
+    fun: Callable[[F64], F64],
+    jac: Callable[[F64], F64],
+    x0: F64,
+    f_scale: float = 1.0,
+    max_iter: int = 50,
+    tol: float = 1e-10,
 ) -> LMResult:
     r"""Levenberg-Marquardt with soft-L1 weights (iteratively reweighted least squares).
 
     Minimises :math:`\sum_i \rho(r_i^2)` with :math:`\rho(z) = 2 s^2 (\sqrt{1 + z/s^2} - 1)`
     (scipy's ``soft_l1``) by Gauss-Newton steps on :math:`w_i r_i` with :math:`w_i =
     \rho'(r_i^2)^{1/2}` (Triggs et al., "Bundle adjustment: a modern synthesis", 2000, sec. 3.3),
-    damped by Marquardt's diagonal scaling. Written here, not scipy's exact trust region, because
-    that takes an SVD of the whole (residuals x parameters) Jacobian at every step, 60 % of the
-    shared rig's calibration time; here each step solves the (parameters x parameters) normal
+    damped by Marquardt's diagonal scaling; each step solves the (parameters x parameters) normal
     equations. ``fun(x) -> (M,)``, ``jac(x) -> (M, n)``.
     """
     x = np.asarray(x0, dtype=np.float64).copy()
-    f, nfev = fun(x), 1  # type: ignore[operator]
+    f, nfev = fun(x), 1
 
     def cost(r: F64) -> float:
         return float(np.sum(2 * f_scale**2 * (np.sqrt(1 + (r / f_scale) ** 2) - 1)))
 
-    c = cost(f)
-    lam = 1e-3
-    J = jac(x)  # type: ignore[operator]
+    c, lam, J = cost(f), 1e-3, jac(x)
     for _ in range(max_iter):
         w = (1 + (f / f_scale) ** 2) ** -0.25  # sqrt of rho'
         Jw = J * w[:, None]
-        A = Jw.T @ Jw
-        g = Jw.T @ (w * f)
+        A, g = Jw.T @ Jw, Jw.T @ (w * f)
         d = np.diag(A).copy()
         d[d == 0] = 1.0
-        improved = False
+        step = None
         for _try in range(10):
             try:
-                step = -np.linalg.solve(A + lam * np.diag(d), g)
+                trial = -np.linalg.solve(A + lam * np.diag(d), g)
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
-            fn = fun(x + step)  # type: ignore[operator]
+            fn = fun(x + trial)
             nfev += 1
-            cn = cost(fn)
-            if cn < c:
-                improved = True
-                x, f, lam = x + step, fn, max(lam / 10, 1e-9)
-                done = c - cn < tol * max(c, 1e-12) or np.linalg.norm(step) < tol * (1 + np.linalg.norm(x))
-                c = cn
+            if cost(fn) < c:
+                step = trial
                 break
             lam *= 10
-        if not improved or done:
+        if step is None:
             break
-        J = jac(x)  # type: ignore[operator]
-    return LMResult(x, f, jac(x), nfev)  # type: ignore[operator]
+        cn = cost(fn)
+        x, f, lam = x + step, fn, max(lam / 10, 1e-9)
+        converged = c - cn < tol * max(c, 1e-12) or np.linalg.norm(step) < tol * (1 + np.linalg.norm(x))
+        c = cn
+        if converged:
+            break
+        J = jac(x)
+    return LMResult(x, f, jac(x), nfev)
 
 
-def _covariance_sd(res: object, prob: _Problem, x: F64, intr0: F64) -> tuple[F64, F64, F64]:
-    """Per camera: focal sd (px), centre sd (m), rotation sd (rad), from ``s^2 (J^T J)^{-1}``."""
-    J = res.jac  # type: ignore[attr-defined]
-    J = J.toarray() if hasattr(J, "toarray") else np.asarray(J)
-    r = res.fun  # type: ignore[attr-defined]
-    dof = max(1, len(r) - len(x))
-    s2 = float(np.sum(r * r) / dof)
-    C = prob.n_cams
-    nan = np.full(C, np.nan)
-    if J.shape[1] > 4000:
-        return nan, nan, nan
+def solve(prob: BoardProblem, x0: F64) -> LMResult:
+    """:func:`robust_lm` on a dense Jacobian up to :data:`DENSE_MAX_PARAMS` parameters, else scipy's
+    sparse trust region (the same soft-L1 loss)."""
+    if prob.n_params <= DENSE_MAX_PARAMS:
+        return robust_lm(prob.residuals, prob.jacobian, x0)
+    res = least_squares(
+        prob.residuals,
+        x0,
+        jac_sparsity=prob.sparsity,
+        method="trf",
+        x_scale="jac",
+        loss="soft_l1",
+        f_scale=1.0,
+        max_nfev=300,
+    )
+    return LMResult(res.x, res.fun, res.jac, int(res.nfev))
+
+
+def _covariance_sd(res: LMResult, prob: BoardProblem) -> tuple[F64, F64, F64]:
+    """Per camera: focal sd (px), centre sd (m), rotation sd (rad), from ``s^2 (J^T J)^{-1}``
+    (NaN for what is held, and for problems beyond :data:`DENSE_MAX_PARAMS` parameters)."""
+    C = len(prob.intr0)
+    f_sd, c_sd, r_sd = np.full(C, np.nan), np.zeros(C), np.zeros(C)
+    if prob.n_params > DENSE_MAX_PARAMS:
+        return f_sd, c_sd * np.nan, r_sd * np.nan
+    J = res.jac.toarray() if hasattr(res.jac, "toarray") else np.asarray(res.jac)
+    s2 = float(np.sum(res.fun**2) / max(1, len(res.fun) - len(res.x)))
     cov = np.linalg.pinv(J.T @ J) * s2
-    nfi = int(prob.free_intr.sum())
-    f_sd, c_sd, r_sd = nan.copy(), np.zeros(C), np.zeros(C)
-    fi = np.flatnonzero(prob.free_intr)
-    for k, c in enumerate(fi):
-        f_sd[c] = np.sqrt(0.5 * (cov[k * N_INTR, k * N_INTR] + cov[k * N_INTR + 1, k * N_INTR + 1]))
-    _, ext, _ = prob.split(x, intr0)
-    others = [c for c in range(C) if c != prob.ref]
-    for k, c in enumerate(others):
-        o = nfi * N_INTR + 6 * k
-        S = cov[o : o + 6, o : o + 6]
+    free = np.flatnonzero(prob.free_intr)
+    fx = N_INTR * np.arange(len(free))  # each free camera's fx column; fy follows
+    f_sd[free] = np.sqrt(0.5 * (cov[fx, fx] + cov[fx + 1, fx + 1]))
+    _, ext, _ = prob.split(res.x)
+    start = N_INTR * len(free)
+    for k, c in enumerate(np.flatnonzero(prob.free_ext)):
+        S = cov[start + 6 * k : start + 6 * k + 6, start + 6 * k : start + 6 * k + 6]
         r_sd[c] = np.sqrt(np.trace(S[:3, :3]) / 3)
-        # centre = -R^T t: its covariance by finite differences of the map
-        p0 = ext[c].copy()
-
-        def centre(p: F64) -> F64:
-            R = Rotation.from_rotvec(p[:3]).as_matrix()
-            return -R.T @ p[3:]
-
+        # the centre -R^T t: its covariance through the map's Jacobian (central differences)
         Jc = np.zeros((3, 6))
         for j in range(6):
             dp = np.zeros(6)
             dp[j] = 1e-6
-            Jc[:, j] = (centre(p0 + dp) - centre(p0 - dp)) / 2e-6
+            hi, lo = (
+                rt_matrix((ext[c] + dp)[:3], (ext[c] + dp)[3:]),
+                rt_matrix((ext[c] - dp)[:3], (ext[c] - dp)[3:]),
+            )
+            Jc[:, j] = (rigid_inverse(hi)[:3, 3] - rigid_inverse(lo)[:3, 3]) / 2e-6
         c_sd[c] = np.sqrt(np.trace(Jc @ S @ Jc.T) / 3)
     return f_sd, c_sd, r_sd
 
 
-def _view_rms(r: F64, view: np.ndarray, n_views: int) -> F64:
-    e2 = (r.reshape(-1, 2) ** 2).sum(1)
-    s = np.bincount(view, e2, minlength=n_views)
-    n = np.bincount(view, minlength=n_views)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.sqrt(s / n)
+# ----------------------------------------------------------------------------- poses with the rig held
 
 
-def _fit_frame_poses(
-    rig_T: F64, intr: F64, views: list[View], board: Board, start: dict[int, F64]
-) -> tuple[dict[int, F64], dict[int, F64]]:
-    """Board poses of frames with the cameras held (the held-out check); per view residuals."""
-    frames = sorted({v.frame for v in views})
-    poses: dict[int, F64] = {}
-    resid: dict[int, F64] = {}
-    corners = board.corners_board()
-    for f in frames:
-        vs = [(k, v) for k, v in enumerate(views) if v.frame == f]
-        if f not in start:
-            continue
-        X = np.concatenate([corners[v.det.ids] for _, v in vs])
-        cam = np.concatenate([np.full(len(v.det.ids), v.cam) for _, v in vs])
-        uv = np.concatenate([v.det.uv_px for _, v in vs])
+def pose_boards(
+    rig: Rig, names: Sequence[str], views: Sequence[View], board: Board
+) -> tuple[dict[int, F64], list[F64]]:
+    """The board's pose in each synchronised frame of ``views`` with ``rig``'s cameras held (a
+    checkerboard read the way that agrees with the frame), and each view's residuals (N, 2) px.
 
-        def fun(p: F64, X: F64 = X, cam: np.ndarray = cam, uv: F64 = uv) -> F64:
-            T = rt_matrix(p[:3], p[3:])
-            Xw = X @ T[:3, :3].T + T[:3, 3]
-            Xc = np.einsum("mij,mj->mi", rig_T[cam, :3, :3], Xw) + rig_T[cam, :3, 3]
-            return np.nan_to_num(project(Xc, intr[cam]) - uv, nan=1e4).reshape(-1)
+    ``views[k].cam`` indexes ``names``. Returns world_from_board (4, 4) per frame.
+    """
+    intr, T = rig_arrays(rig, names)
+    vpose = [board_pose(v, board, intr_K(intr[v.cam]), intr[v.cam, 4:]) for v in views]
+    starts = _frame_starts(views, vpose, T)
+    X = _read_corners(views, vpose, T, starts, board)
+    held = np.zeros(len(names), bool)
+    prob, keys = board_problem(views, X, intr, rt_vector(T), held, held)
+    res = solve(prob, prob.pack(intr, rt_vector(T), rt_vector(np.array([starts[f] for _, f in keys]))))
+    _, _, poses = prob.split(res.x)
+    r = res.fun.reshape(-1, 2)
+    return (
+        {f: rt_matrix(p[:3], p[3:]) for (_, f), p in zip(keys, poses, strict=True)},
+        [r[prob.view == k] for k in range(len(views))],
+    )
 
-        T0 = start[f]
-        p0 = np.concatenate([Rotation.from_matrix(T0[:3, :3]).as_rotvec(), T0[:3, 3]])
-        sol = least_squares(fun, p0, loss="soft_l1", f_scale=1.0)
-        poses[f] = rt_matrix(sol.x[:3], sol.x[3:])
-        r = fun(sol.x).reshape(-1, 2)
-        o = 0
-        for k, v in vs:
-            n = len(v.det.ids)
-            resid[k] = r[o : o + n]
-            o += n
-    return poses, resid
+
+# ----------------------------------------------------------------------------- the calibration
+
+
+def _wrong_views(vr: F64, cams: np.ndarray, outlier_px: float) -> np.ndarray:
+    """Views whose RMS exceeds ``outlier_px`` and 4x their camera's median."""
+    med = np.array([np.median(vr[cams == c]) if (cams == c).any() else 0.0 for c in range(cams.max() + 1)])
+    return np.flatnonzero(vr > np.maximum(outlier_px, 4 * med[cams]))
 
 
 def calibrate_board(
@@ -550,266 +649,167 @@ def calibrate_board(
     """The rig of ``names`` from their board ``views`` (see the module docstring)."""
     C = len(names)
     warnings: list[str] = []
-    synced_frames = sorted({v.frame for v in views if v.synced})
-    hold = set()
-    if cfg.holdout_every > 0:
-        hold = {f for f in synced_frames if f % cfg.holdout_every == cfg.holdout_every - 1}
-    fit_views = [v for v in views if not (v.synced and v.frame in hold)]
+    synced = sorted({v.frame for v in views if v.synced})
+    k_out = cfg.holdout_every
+    hold = {f for f in synced if k_out > 0 and f % k_out == k_out - 1}
     held_views = [v for v in views if v.synced and v.frame in hold]
     dropped: dict[int, list[tuple[str, str]]] = defaultdict(list)
     # 1. intrinsics
-    K = np.zeros((C, 3, 3))
-    D = np.zeros((C, 5))
-    f_sd_intr = np.full(C, np.nan)
-    keep_views: list[View] = []
+    fixed = {c.name: c for c in cfg.fixed}
+    K, D, f_sd0 = np.zeros((C, 3, 3)), np.zeros((C, 5)), np.full(C, np.nan)
+    fit: list[View] = []
     for c, name in enumerate(names):
-        vs = [v for v in fit_views if v.cam == c]
-        if name in cfg.fixed:
-            K[c], D[c] = cfg.fixed[name].K, cfg.fixed[name].dist
-            if (cfg.fixed[name].width, cfg.fixed[name].height) != tuple(sizes[c]):
+        vs = [v for v in views if v.cam == c and not (v.synced and v.frame in hold)]
+        if name in fixed:
+            given = fixed[name]
+            if (given.width, given.height) != tuple(sizes[c]):
                 raise InputError(
                     name,
-                    f"the given intrinsics are for {cfg.fixed[name].width}x"
-                    f"{cfg.fixed[name].height} images, its board views are "
-                    f"{sizes[c][0]}x{sizes[c][1]}",
+                    f"the given intrinsics are for {given.width}x{given.height} images, its "
+                    f"board views are {sizes[c][0]}x{sizes[c][1]}",
                 )
-            keep_views += vs
+            K[c], D[c] = given.K, given.dist
+            fit += vs
             continue
         if not vs:
             raise InputError(
                 name,
-                "the board was found in none of its frames: check the board's "
-                "description (dictionary, square count, marker size; for anipose's "
-                "board.toml marker_bits and dict_size) and that the frames show it",
+                "the board was found in none of its frames: check the board's description "
+                "(dictionary, square count, marker size; for anipose's board.toml marker_bits "
+                "and dict_size) and that the frames show it",
             )
         if len(vs) < cfg.min_views:
             warnings.append(
-                f"camera {name}: {len(vs)} board views (fewer than {cfg.min_views}): its "
-                "intrinsics are uncertain (see its focal sd)"
+                f"camera {name}: {len(vs)} board views (fewer than {cfg.min_views}): its intrinsics "
+                "are uncertain (see its focal sd)"
             )
-        K[c], D[c], f_sd_intr[c], keep, drop = fit_intrinsics(vs, board, sizes[c], cfg.outlier_px)
-        keep_views += [vs[k] for k in keep]
+        K[c], D[c], f_sd0[c], keep, drop = fit_intrinsics(vs, board, sizes[c], cfg.outlier_px)
+        fit += [vs[k] for k in keep]
         dropped[c] += [(vs[k].label, why) for k, why in drop]
-    # 2. poses of the synchronised views
-    vpose = {(v.cam, v.frame): board_pose(v, board, K[v.cam], D[v.cam]) for v in keep_views if v.synced}
-    synced_cams = sorted({v.cam for v in keep_views if v.synced})
-    if synced_cams and len(synced_cams) < C:
-        missing = [names[c] for c in range(C) if c not in synced_cams]
+    # 2. poses of every view, 3. extrinsics
+    vpose = [board_pose(v, board, K[v.cam], D[v.cam]) for v in fit]
+    seen = {v.cam for v in fit if v.synced}
+    if seen and len(seen) < C:
         raise InputError(
-            ", ".join(missing),
+            ", ".join(n for c, n in enumerate(names) if c not in seen),
             "has no board view taken together with the other cameras: its extrinsics cannot be found",
         )
-    single = len(synced_cams) == 0
-    rig_T = np.tile(np.eye(4), (C, 1, 1)) if single else chain_cameras(vpose, C, names, board)
-    # 3. starting board poses (world = camera 0's frame), each view's reading of a checkerboard
-    flips = _flips(board)
-    frame_pose: dict[int, F64] = {}
-    for f in sorted({v.frame for v in keep_views if v.synced}):
-        seen = {v.cam: vpose[(v.cam, v.frame)] for v in keep_views if v.synced and v.frame == f}
-        best = max(
-            seen,
-            key=lambda c: len(
-                next(v for v in keep_views if v.synced and v.cam == c and v.frame == f).det.ids
-            ),
+    if seen:
+        rig_T = chain_cameras(
+            {(v.cam, v.frame): T for v, T in zip(fit, vpose, strict=True) if v.synced}, C, names, board
         )
-        frame_pose[f] = _inv(rig_T[best]) @ seen[best]
-    corners = board.corners_board()
-    obs_views: list[View] = []
-    obs_X: list[F64] = []
-    for v in keep_views:
-        X = corners[v.det.ids]
-        if v.synced and len(flips) > 1:  # the reading that agrees with the frame's pose
-            T = vpose[(v.cam, v.frame)]
-            want = rig_T[v.cam] @ frame_pose[v.frame]
-            d = [float(_pose_distance(T @ F, want, board.square_m * max(board.inner))) for F in flips]
-            if int(np.argmin(d)) == 1:
-                X = (flips[1][:3, :3] @ X.T).T + flips[1][:3, 3]
-        obs_views.append(v)
-        obs_X.append(X)
-    # 4. bundle adjustment, then without the views it shows to be wrong
-    intr0 = np.concatenate([K[:, 0, 0:1], K[:, 1, 1:2], K[:, 0, 2:3], K[:, 1, 2:3], D], axis=1)
-    free = np.array([n not in cfg.fixed for n in names])
-    for _round in range(3):
-        pose_keys: list[tuple[str, int]] = []
-        pidx = {}
-        for k, v in enumerate(obs_views):
-            key = ("f", v.frame) if v.synced else ("v", k)
-            if key not in pidx:
-                pidx[key] = len(pose_keys)
-                pose_keys.append(key)
-        p0 = np.zeros((len(pose_keys), 6))
-        for (kind, i), j in pidx.items():
-            T = (
-                frame_pose[i]
-                if kind == "f"
-                else board_pose(obs_views[i], board, K[obs_views[i].cam], D[obs_views[i].cam])
-            )
-            p0[j] = np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]])
-        n_obs = [len(v.det.ids) for v in obs_views]
-        prob = _Problem(
-            cam=np.repeat([v.cam for v in obs_views], n_obs),
-            pose=np.repeat(
-                [pidx[("f", v.frame) if v.synced else ("v", k)] for k, v in enumerate(obs_views)], n_obs
-            ),
-            local=np.repeat([not v.synced for v in obs_views], n_obs).astype(bool),
-            X=np.concatenate(obs_X),
-            uv=np.concatenate([v.det.uv_px for v in obs_views]),
-            view=np.repeat(np.arange(len(obs_views)), n_obs),
-            n_cams=C,
-            n_poses=len(pose_keys),
-            free_intr=free,
-        )
-        ext0 = np.array(
-            [np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]]) for T in rig_T]
-        )
-        x0 = np.concatenate(
-            [intr0[free].reshape(-1), ext0[[c for c in range(C) if c != 0]].reshape(-1), p0.reshape(-1)]
-        )
-        if len(x0) <= DENSE_MAX_PARAMS:  # few parameters: Levenberg-Marquardt on the normal equations
-            res = robust_lm(partial(prob.residuals, intr0=intr0), partial(prob.jacobian, intr0=intr0), x0)
-        else:
-            res = least_squares(
-                prob.residuals,
-                x0,
-                jac_sparsity=prob.sparsity(),
-                method="trf",
-                x_scale="jac",
-                loss="soft_l1",
-                f_scale=1.0,
-                args=(intr0,),
-                max_nfev=300,
-            )
-        vr = _view_rms(res.fun, prob.view, len(obs_views))
-        bad = []
-        for c in range(C):
-            ks = [k for k, v in enumerate(obs_views) if v.cam == c]
-            if not ks:
-                continue
-            lim = max(cfg.outlier_px, 4 * float(np.median(vr[ks])))
-            bad += [k for k in ks if vr[k] > lim]
-        intr_fit, ext, poses = prob.split(res.x, intr0)
-        if not bad or _round == 2:
+    else:
+        rig_T = np.tile(np.eye(4), (C, 1, 1))
+    starts = _frame_starts(fit, vpose, rig_T)
+    X = _read_corners(fit, vpose, rig_T, starts, board)
+    # 4. the joint fit, then again without the views it shows to be wrong
+    intr = np.concatenate([K[:, 0, 0:1], K[:, 1, 1:2], K[:, 0, 2:3], K[:, 1, 2:3], D], axis=1)
+    ext = rt_vector(rig_T)
+    pose6 = {(-1, f): rt_vector(T) for f, T in starts.items()}
+    pose6 |= {_pose_key(v): rt_vector(T) for v, T in zip(fit, vpose, strict=True) if not v.synced}
+    free_intr = np.array([n not in fixed for n in names])
+    free_ext = np.arange(C) != 0
+    for round_ in range(ROUNDS):
+        prob, keys = board_problem(fit, X, intr, ext, free_intr, free_ext)
+        res = solve(prob, prob.pack(intr, ext, np.array([pose6[k] for k in keys])))
+        intr, ext, poses = prob.split(res.x)
+        pose6 = dict(zip(keys, poses, strict=True))
+        vr = prob.view_rms(res.fun, len(fit))
+        bad = _wrong_views(vr, np.array([v.cam for v in fit]), cfg.outlier_px)
+        if not bad.size or round_ == ROUNDS - 1:
             break
         for k in bad:
-            v = obs_views[k]
-            dropped[v.cam].append(
+            dropped[fit[k].cam].append(
                 (
-                    v.label,
-                    f"reprojects {vr[k]:.1f} px in the joint fit: the board was found "
-                    "wrongly, or the frame is not simultaneous with the others",
+                    fit[k].label,
+                    f"reprojects {vr[k]:.1f} px in the joint fit: the board was "
+                    "found wrongly, or the frame is not simultaneous with the others",
                 )
             )
-        keep = [k for k in range(len(obs_views)) if k not in set(bad)]
-        obs_views = [obs_views[k] for k in keep]
-        obs_X = [obs_X[k] for k in keep]
-        intr0 = intr_fit
-        rig_T = rt_matrix(ext[:, :3], ext[:, 3:])
-        for (kind, i), j in pidx.items():
-            if kind == "f":
-                frame_pose[i] = rt_matrix(poses[j, :3], poses[j, 3:])
-    f_sd, c_sd, r_sd = _covariance_sd(res, prob, res.x, intr0)
+        keep = np.setdiff1d(np.arange(len(fit)), bad)
+        fit, X = [fit[k] for k in keep], [X[k] for k in keep]
+    f_sd, c_sd, r_sd = _covariance_sd(res, prob)
+    f_sd = np.where(np.isfinite(f_sd), f_sd, f_sd0)
+    # 5. the world frame and the rig
     rig_T = rt_matrix(ext[:, :3], ext[:, 3:])
-    fposes = {i: rt_matrix(poses[j, :3], poses[j, 3:]) for (kind, i), j in pidx.items() if kind == "f"}
-    # 5. the world frame
-    world_from_ref, up, frame_name = _world(cfg, names, rig_T, fposes, keep_views)
-    ref_from_world = _inv(world_from_ref)
-    cams = []
-    for c, name in enumerate(names):
-        T = rig_T[c] @ ref_from_world
-        Kc = np.array([[intr_fit[c, 0], 0, intr_fit[c, 2]], [0, intr_fit[c, 1], intr_fit[c, 3]], [0, 0, 1]])
-        try:
-            cams.append(
-                Camera(name, int(sizes[c][0]), int(sizes[c][1]), Kc, intr_fit[c, 4:9], T[:3, :3], T[:3, 3])
+    fposes = {f: rt_matrix(p[:3], p[3:]) for (cam, f), p in pose6.items() if cam < 0}
+    world_from_ref, up, frame_name = _world(cfg, rig_T, fposes, fit, names)
+    rig = _rig(names, sizes, intr, rig_T @ rigid_inverse(world_from_ref), up, frame_name)
+    for cam in rig.cameras:
+        if cam.valid_radius_px is not None:
+            reach = float(np.max(np.hypot(*(prob.uv[prob.cam == rig.index(cam.name)] - cam.K[:2, 2]).T)))
+            warnings.append(
+                f"camera {cam.name}: the fitted lens model turns back {cam.valid_radius_px:.0f} px "
+                f"from the principal point (the board's corners reached {reach:.0f} px): film the "
+                "board nearer the image's corners to calibrate the lens there"
             )
-        except ValueError as e:
-            raise InputError(
-                name, f"the calibration failed ({e}): too few or too similar board views"
-            ) from None
-    rig = Rig(tuple(cams), up=up, frame_name=frame_name)
-    fposes_w = {f: world_from_ref @ T for f, T in fposes.items()}
     # 6. per camera figures; the held-out frames posed with the rig held
-    r = res.fun.reshape(-1, 2)
-    e = np.sqrt((r**2).sum(1))
-    vr = _view_rms(res.fun, prob.view, len(obs_views))
-    hold_r: dict[int, F64] = {}
-    if held_views:
-        start = {}
-        for f in sorted({v.frame for v in held_views}):
-            vs = [v for v in held_views if v.frame == f]
-            v = max(vs, key=lambda v: len(v.det.ids))
-            start[f] = _inv(rig_T[v.cam]) @ board_pose(
-                v, board, intr_K(intr_fit[v.cam]), intr_fit[v.cam, 4:9]
-            )
-        _, hold_r = _fit_frame_poses(rig_T, intr_fit, held_views, board, start)
+    held_r = pose_boards(rig, names, held_views, board)[1] if held_views else []
+    e = np.sqrt((res.fun.reshape(-1, 2) ** 2).sum(1))
     reports = []
     for c, name in enumerate(names):
         m = prob.cam == c
-        ks = [k for k, v in enumerate(obs_views) if v.cam == c]
-        worst = sorted(((obs_views[k].label, float(vr[k])) for k in ks), key=lambda t: -t[1])[:3]
-        hr = [hold_r[k] for k, v in enumerate(held_views) if v.cam == c and k in hold_r]
+        ks = [k for k, v in enumerate(fit) if v.cam == c]
+        worst = sorted(((fit[k].label, float(vr[k])) for k in ks), key=lambda t: -t[1])[:3]
+        hr = [r for v, r in zip(held_views, held_r, strict=True) if v.cam == c]
         hold_rms = float(np.sqrt(np.mean(np.sum(np.concatenate(hr) ** 2, axis=1)))) if hr else None
-        fs = float(f_sd[c]) if np.isfinite(f_sd[c]) else float(f_sd_intr[c])
         reports.append(
             CameraReport(
                 name,
                 len(ks),
-                float(np.sqrt(np.mean(e[m] ** 2))) if m.any() else float("nan"),
-                float(np.percentile(e[m], 95)) if m.any() else float("nan"),
+                float(np.sqrt(np.mean(e[m] ** 2))),
+                float(np.percentile(e[m], 95)),
                 hold_rms,
                 tuple(worst),
                 tuple(dropped[c]),
-                fs,
+                float(f_sd[c]),
                 float(c_sd[c]) * 1e3,
                 float(np.degrees(r_sd[c])),
                 prob.uv[m],
             )
         )
-        if np.isfinite(fs) and fs > 0.01 * Kc[0, 0]:
+        if np.isfinite(f_sd[c]) and f_sd[c] > 0.01 * intr[c, 0]:
             warnings.append(
-                f"camera {name}: focal length uncertain by {fs:.1f} px (more than 1 %): "
-                "film the board closer, tilted, and over the whole image"
+                f"camera {name}: focal length uncertain by {f_sd[c]:.1f} px (more than 1 %): film the "
+                "board closer, tilted, and over the whole image"
             )
-    return BoardCalibration(rig, tuple(reports), board, fposes_w, tuple(warnings), tuple(sorted(hold)))
+    return BoardCalibration(
+        rig,
+        tuple(reports),
+        board,
+        {f: world_from_ref @ T for f, T in fposes.items()},
+        tuple(warnings),
+        tuple(sorted(hold)),
+    )
 
 
-def intr_K(intr: F64) -> F64:
-    return np.array([[intr[0], 0, intr[2]], [0, intr[1], intr[3]], [0, 0, 1]])
-
-
-def _world(
-    cfg: BoardConfig, names: Sequence[str], rig_T: F64, fposes: dict[int, F64], views: list[View]
-) -> tuple[F64, F64, str]:
-    """world_from_ref (4, 4), up (3,), the frame's name."""
-    if cfg.origin == "camera" or not fposes:
-        # up: minus the reference camera's image y
-        return (
-            np.eye(4),
-            np.array([0.0, -1.0, 0.0]),
-            f"camera {names[0]}'s frame (metres; up = its image's up)",
-        )
-    if cfg.origin != "floor":
-        raise InputError("--origin", f"must be camera or floor, got {cfg.origin!r}")
-    if cfg.floor_frame is not None:
-        if cfg.floor_frame not in fposes:
+def _rig(
+    names: Sequence[str],
+    sizes: Sequence[tuple[int, int]],
+    intr: F64,
+    cam_from_world: F64,
+    up: F64,
+    frame_name: str,
+) -> Rig:
+    cams = []
+    for c, name in enumerate(names):
+        try:
+            cams.append(
+                Camera(
+                    name,
+                    int(sizes[c][0]),
+                    int(sizes[c][1]),
+                    intr_K(intr[c]),
+                    intr[c, 4:9],
+                    cam_from_world[c, :3, :3],
+                    cam_from_world[c, :3, 3],
+                )
+            )
+        except ValueError as e:
             raise InputError(
-                "--floor-frame",
-                f"frame {cfg.floor_frame} has no board pose (posed frames: "
-                f"{', '.join(map(str, sorted(fposes)[:10]))}...)",
-            )
-        f = cfg.floor_frame
-    else:
-        count: dict[int, int] = defaultdict(int)
-        for v in views:
-            if v.synced and v.frame in fposes:
-                count[v.frame] += 1
-        f = max(sorted(count), key=lambda k: count[k])
-    flip = np.diag([1.0, -1.0, -1.0, 1.0])  # board z points away from the cameras: turn it up
-    world_from_ref = flip @ _inv(fposes[f])
-    centres = np.array([(_inv(T) @ np.array([0, 0, 0, 1.0]))[:3] for T in rig_T])
-    z = (world_from_ref[:3, :3] @ centres.T).T[:, 2] + world_from_ref[2, 3]
-    if np.median(z) < 0:  # cameras below: they saw the board from its back
-        world_from_ref = np.diag([1.0, -1.0, -1.0, 1.0]) @ world_from_ref
-    return world_from_ref, np.array([0.0, 0.0, 1.0]), f"the board of frame {f} as the floor (metres, z up)"
+                name, f"the calibration failed ({e}): too few or too similar board views"
+            ) from None
+    return Rig(tuple(cams), up=up, frame_name=frame_name)
 
 
 def identity_poses(rig: Rig) -> Rig:
@@ -820,3 +820,34 @@ def identity_poses(rig: Rig) -> Rig:
         up=np.array([0.0, -1.0, 0.0]),
         frame_name="intrinsics only: every camera at the origin (poses not calibrated)",
     )
+
+
+def _world(
+    cfg: BoardConfig, rig_T: F64, fposes: dict[int, F64], views: Sequence[View], names: Sequence[str]
+) -> tuple[F64, F64, str]:
+    """world_from_ref (4, 4), up (3,), the frame's name."""
+    if cfg.origin not in ("camera", "floor"):
+        raise InputError("--origin", f"must be camera or floor, got {cfg.origin!r}")
+    if cfg.origin == "camera" or not fposes:  # up: the reference camera's image's up (its -y)
+        return (
+            np.eye(4),
+            np.array([0.0, -1.0, 0.0]),
+            f"camera {names[0]}'s frame (metres; up = its image's up)",
+        )
+    if cfg.floor_frame is not None:
+        if cfg.floor_frame not in fposes:
+            raise InputError(
+                "--floor-frame",
+                f"frame {cfg.floor_frame} has no board pose (posed frames: "
+                f"{', '.join(map(str, sorted(fposes)[:10]))}...)",
+            )
+        f = cfg.floor_frame
+    else:  # the frame the most cameras saw (the earliest of those)
+        count = np.bincount([v.frame for v in views if v.synced and v.frame in fposes])
+        f = int(np.argmax(count))
+    # the board's z points away from the cameras that saw it: turn it up
+    world_from_ref = np.diag([1.0, -1.0, -1.0, 1.0]) @ rigid_inverse(fposes[f])
+    centres = (world_from_ref @ rigid_inverse(rig_T))[:, :3, 3]
+    if np.median(centres[:, 2]) < 0:  # cameras below: they saw the board from its back
+        world_from_ref = np.diag([1.0, -1.0, -1.0, 1.0]) @ world_from_ref
+    return world_from_ref, np.array([0.0, 0.0, 1.0]), f"the board of frame {f} as the floor (metres, z up)"

@@ -27,6 +27,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import check_out, write_dir_atomically
 from gt3dkit.io.writers import write_refined_calibration
 from gt3dkit.refine import RefineConfig, refine, scene_warnings
+from gt3dkit.rig import Camera
 from gt3dkit.version import __version__
 from gt3dkit.viz.boardreport import write_board_report
 
@@ -94,11 +95,11 @@ def cmd_calib_board(args: argparse.Namespace) -> int:
     check_out(out)
     board = read_board(args.board, args.board_units)
     sources = find_cameras(args.input, args.cam_regex, args.intrinsics_only)
-    fixed = {}
+    fixed: tuple[Camera, ...] = ()
     if args.intrinsics:
         given = read_calibration(Path(args.intrinsics))
-        fixed = {c.name: c for c in given.cameras}
-        unknown = sorted({s.name for s in sources} - set(fixed))
+        fixed = given.cameras
+        unknown = sorted({s.name for s in sources} - set(given.names))
         if unknown:
             raise InputError(args.intrinsics, f"has no camera {', '.join(unknown)} (it has "
                                               f"{', '.join(given.names)})")

@@ -78,7 +78,7 @@ def board_scene(
     width: int = 640,
     height: int = 480,
     n_cams: int = 3,
-    fisheye_like: bool = False,
+    strong_lens: bool = False,
 ) -> BoardScene:
     """``n_cams`` cameras on an arc 0.8 m from a board moved and tilted in front of them."""
     rng = np.random.default_rng(seed)
@@ -102,12 +102,12 @@ def board_scene(
                 [0, 0, 1],
             ]
         )
-        k1 = -0.25 if fisheye_like else rng.uniform(-0.15, 0.05)
-        dist = np.array([k1, 0.05 if fisheye_like else 0.02, 0.0005, -0.0005, 0.0])
+        k1 = -0.25 if strong_lens else rng.uniform(-0.15, 0.05)
+        dist = np.array([k1, 0.05 if strong_lens else 0.02, 0.0005, -0.0005, 0.0])
         cams.append(Camera(f"cam{c}", width, height, K, dist, R, -R @ pos))
     rig = Rig(tuple(cams), up=np.array([0.0, -1.0, 0.0]), frame_name="board scene")
     poses = []
-    while len(poses) < n_frames:
+    for _ in range(n_frames):
         rv = rng.normal(0, 0.35, 3)
         Rb = Rotation.from_rotvec(rv).as_matrix()
         tb = centre + rng.normal(0, [0.08, 0.06, 0.1]) - Rb @ centre

@@ -58,32 +58,44 @@ def coverage_picture(cal: BoardCalibration, path: Path) -> None:
 
 
 def rig_picture(cal: BoardCalibration, path: Path) -> None:
-    """The cameras (centre, optical axis) and the board's corners at every pose, in the world."""
+    """The cameras (as frusta of their images) and the board's outline at every pose, drawn with the
+    rig's up vertical (``Rig.world_from_body``: in a camera's frame, up is its image's up)."""
     plt = _plt()
-    fig = plt.figure(figsize=(7, 6))
+    fig = plt.figure(figsize=(7.5, 6.5))
     ax = fig.add_subplot(projection="3d")
-    X = cal.board.corners_board()
-    pts = []
+    view = cal.rig.world_from_body()  # (3, 3): display = X_world @ view, z along up
+
+    def show(X_world: np.ndarray) -> np.ndarray:
+        return X_world @ view
+
+    nx, ny = cal.board.inner
+    outline = cal.board.corners_board()[[0, nx - 1, nx * ny - 1, nx * (ny - 1), 0]]
+    pts = [show(np.array([c.center_world for c in cal.rig.cameras]))]
     for T in cal.frame_poses.values():
-        Y = X @ T[:3, :3].T + T[:3, 3]
+        Y = show(outline @ T[:3, :3].T + T[:3, 3])
         pts.append(Y)
-        ax.plot(Y[:, 0], Y[:, 1], Y[:, 2], ".", ms=1, color="0.6")
-    cs = np.array([c.center_world for c in cal.rig.cameras])
-    size = float(np.ptp(np.concatenate([cs] + pts), axis=0).max()) if pts else 1.0
-    for c, o in zip(cal.rig.cameras, cs, strict=True):
-        a = o + c.R[2] * 0.15 * size
-        ax.plot([o[0], a[0]], [o[1], a[1]], [o[2], a[2]], "-", color="tab:red")
-        ax.text(o[0], o[1], o[2], c.name, fontsize=8)
-    ax.scatter(cs[:, 0], cs[:, 1], cs[:, 2], color="tab:red")
-    ax.set_xlabel("x m")
-    ax.set_ylabel("y m")
-    ax.set_zlabel("z m")
-    allp = np.concatenate([cs] + pts)
+        ax.plot(Y[:, 0], Y[:, 1], Y[:, 2], "-", lw=0.8, color="0.55")
+    allp = np.concatenate(pts)
+    depth = 0.12 * float(np.ptp(allp, axis=0).max())
+    for c in cal.rig.cameras:
+        wh = np.array([[0, 0], [c.width, 0], [c.width, c.height], [0, c.height]], dtype=np.float64)
+        ray = np.c_[(wh - c.K[:2, 2]) / np.diag(c.K)[:2], np.ones(4)] * depth  # image corners, camera frame
+        corners = show((ray - c.t) @ c.R)  # X_world = R^T (X_cam - t)
+        o = show(c.center_world)
+        for q in corners:
+            ax.plot([o[0], q[0]], [o[1], q[1]], [o[2], q[2]], "-", lw=0.8, color="tab:red")
+        loop = corners[[0, 1, 2, 3, 0]]
+        ax.plot(loop[:, 0], loop[:, 1], loop[:, 2], "-", lw=1.2, color="tab:red")
+        ax.text(o[0], o[1], o[2], f" {c.name}", fontsize=9)
+    ax.set_xlabel("m")
+    ax.set_ylabel("m")
+    ax.set_zlabel("m (up)")
     mid, half = allp.mean(0), 0.55 * np.ptp(allp, axis=0).max()
     ax.set_xlim(mid[0] - half, mid[0] + half)
     ax.set_ylim(mid[1] - half, mid[1] + half)
     ax.set_zlim(mid[2] - half, mid[2] + half)
-    ax.set_title(cal.rig.frame_name, fontsize=9)
+    ax.set_title(f"{len(cal.rig.cameras)} cameras (red) and {len(cal.frame_poses)} board poses (grey)\n"
+                 f"{cal.rig.frame_name}", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)

@@ -20,12 +20,12 @@ our camera model and are named in the error.
 from __future__ import annotations
 
 import math
-import tomllib
 from pathlib import Path
 
 import numpy as np
 
 from gt3dkit.errors import InputError
+from gt3dkit.parse import load_toml
 from gt3dkit.rig import Camera, Rig
 
 # cv2 is imported in the functions that use it: 26 MB and 30 ms that a run whose calibration is
@@ -37,12 +37,7 @@ _KEYS = ("size", "matrix", "distortions", "rotation", "translation")
 def read(path: Path) -> Rig:
     import cv2
     path = Path(path)
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8-sig"))
-    except tomllib.TOMLDecodeError as e:
-        raise InputError(str(path), f"malformed TOML ({e})") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError(str(path), f"cannot read ({e})") from None
+    doc = load_toml(path)
     cams = []
     for key, c in doc.items():
         if key == "metadata" or not isinstance(c, dict):
