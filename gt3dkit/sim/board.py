@@ -20,6 +20,7 @@ from gt3dkit.rig import Camera, Rig
 from gt3dkit.types import F64
 
 PX_PER_SQUARE = 60  # the printed board's resolution
+SUBPIXELS = 2  # points a pixel's side averaged (its area integrated)
 
 
 @dataclass(frozen=True)
@@ -38,22 +39,34 @@ def board_image(board: Board) -> np.ndarray:
     return np.where((i + j) % 2 == 0, 0, 255).astype(np.uint8)
 
 
+def pixel_directions(cam: Camera, sub: int = SUBPIXELS) -> F64:
+    """(H sub, W sub, 3) the rays of ``sub`` x ``sub`` points spread over each pixel, in the
+    camera frame (``z = 1``): undistorted (the inverse of the camera's distortion, by fixed-point
+    iteration as ``cv2.undistortPoints``). A pixel integrates the light over its area, so a
+    rendered pixel is the mean of its points (:func:`render_view`)."""
+    off = (np.arange(sub) + 0.5) / sub - 0.5
+    u = (np.arange(cam.width)[:, None] + off).reshape(-1).astype(np.float64)
+    v = (np.arange(cam.height)[:, None] + off).reshape(-1).astype(np.float64)
+    u, v = np.meshgrid(u, v)
+    uv = np.stack([u, v], -1)[:, :, None, :]  # (H, W, 1, 2)
+    xy = undistort(unapply_K(uv, cam.K[None]), cam.dist[None], iters=30)[:, :, 0]  # (H, W, 2)
+    return np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], -1)
+
+
 def render_view(
-    cam: Camera,
+    d_cam: F64,
     cam_from_board: F64,
     board: Board,
     printed: np.ndarray,
     rng: np.random.Generator,
     noise: float = 2.0,
     blur: float = 0.6,
+    sub: int = SUBPIXELS,
 ) -> np.ndarray:
-    """(H, W) uint8 image of the board through ``cam``."""
+    """(H, W) uint8 image of the board through a camera whose pixels' rays are ``d_cam``
+    (:func:`pixel_directions` with the same ``sub``)."""
     import cv2
 
-    u, v = np.meshgrid(np.arange(cam.width, dtype=np.float64), np.arange(cam.height, dtype=np.float64))
-    uv = np.stack([u, v], -1)[:, :, None, :]  # (H, W, 1, 2)
-    xy = undistort(unapply_K(uv, cam.K[None]), cam.dist[None], iters=30)[:, :, 0]  # (H, W, 2)
-    d_cam = np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], -1)
     R, t = cam_from_board[:3, :3], cam_from_board[:3, 3]
     # board point X (z = 0): R X + t = s d  ->  in the board frame, o + s e with o = -R^T t, e = R^T d
     o = -R.T @ t
@@ -66,7 +79,9 @@ def render_view(
     mx = np.where(ok, X[..., 0] * scale - 0.5, -10).astype(np.float32)
     my = np.where(ok, X[..., 1] * scale - 0.5, -10).astype(np.float32)
     img = cv2.remap(printed, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=128)
-    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), blur) if blur > 0 else img.astype(np.float32)
+    h, w = img.shape[0] // sub, img.shape[1] // sub
+    img = img.reshape(h, sub, w, sub).mean(axis=(1, 3), dtype=np.float32)  # each pixel's area
+    img = cv2.GaussianBlur(img, (0, 0), blur) if blur > 0 else img
     img = img + rng.normal(0, noise, img.shape)
     return np.clip(np.round(img), 0, 255).astype(np.uint8)
 
@@ -110,7 +125,7 @@ def board_scene(
     for _ in range(n_frames):
         rv = rng.normal(0, 0.35, 3)
         Rb = Rotation.from_rotvec(rv).as_matrix()
-        tb = centre + rng.normal(0, [0.08, 0.06, 0.1]) - Rb @ centre
+        tb = centre + rng.uniform([-0.2, -0.15, -0.35], [0.2, 0.15, 0.05]) - Rb @ centre  # across the view, 0.45-0.85 m away
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = Rb, tb
         poses.append(T)
@@ -118,5 +133,6 @@ def board_scene(
     for cam in cams:
         Tc = np.eye(4)
         Tc[:3, :3], Tc[:3, 3] = cam.R, cam.t
-        images.append([render_view(cam, Tc @ T, board, printed, rng) for T in poses])
+        d_cam = pixel_directions(cam, SUBPIXELS)
+        images.append([render_view(d_cam, Tc @ T, board, printed, rng) for T in poses])
     return BoardScene(rig, np.array(poses), images)
