@@ -82,7 +82,8 @@ def test_pose2sim_layout(scene_dir: tuple[Path, object], tmp_path: Path) -> None
     """intrinsics/int_<cam>_img (each camera on its own: frames 0-9) and extrinsics/ext_<cam>_img
     (the cameras at once: frames 10-13)."""
     _, sc = scene_dir
-    _write(sc, tmp_path, lambda cam, f: f"intrinsics/int_{cam}_img" if f < 10 else f"extrinsics/ext_{cam}_img")
+    _write(sc, tmp_path,
+           lambda cam, f: f"intrinsics/int_{cam}_img" if f < 10 else f"extrinsics/ext_{cam}_img")
     src = find_cameras([tmp_path])
     assert [(s.name, s.synced) for s in src] == [(f"cam{c}", c2 > 0) for c2 in (0, 1) for c in range(3)]
     bv = board_views(src, BOARD)
@@ -101,7 +102,8 @@ def test_synthetic_checkerboard_rig(tmp_path: Path) -> None:
     views = list(bv.views)
     # a checkerboard looks the same turned by 180 degrees: two views read with their corners backwards
     for k in (3, len(views) // 2):
-        views[k] = dataclasses.replace(views[k], det=dataclasses.replace(views[k].det, ids=views[k].det.ids[::-1]))
+        backwards = dataclasses.replace(views[k].det, ids=views[k].det.ids[::-1])
+        views[k] = dataclasses.replace(views[k], det=backwards)
     res = calibrate_board(views, board, bv.names, bv.sizes, BoardConfig())
     assert all(r.rms_px < 0.15 and not r.dropped for r in res.cameras)  # measured 0.07-0.13 px
     centre_m, rot_deg, size_m = _errors(sc.rig, res.rig)
