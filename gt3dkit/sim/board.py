@@ -125,7 +125,8 @@ def board_scene(
     for _ in range(n_frames):
         rv = rng.normal(0, 0.35, 3)
         Rb = Rotation.from_rotvec(rv).as_matrix()
-        tb = centre + rng.uniform([-0.2, -0.15, -0.35], [0.2, 0.15, 0.05]) - Rb @ centre  # across the view, 0.45-0.85 m away
+        # across the view, 0.45-0.85 m from the cameras
+        tb = centre + rng.uniform([-0.2, -0.15, -0.35], [0.2, 0.15, 0.05]) - Rb @ centre
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = Rb, tb
         poses.append(T)
