@@ -21,8 +21,9 @@ The same problem with the cameras held poses the board in frames left out of the
 (:func:`pose_boards`: the held-out check, and any rig's reprojection on given corners).
 
 Why not pycolmap's or GTSAM's bundle adjuster: COLMAP's OPENCV model has no ``k3`` (the shared
-mouse rig's lenses need it) and its adjuster takes a moving board only as COLMAP rig frames
-with constant 3D points; GTSAM has no factor for a point on a moving board seen through a
+mouse rig's lenses need it) and its FULL_OPENCV model refines ``k3`` only with the rational
+``k4 k5 k6``, which our camera model does not hold; its adjuster takes a moving board only as
+COLMAP rig frames with constant 3D points; GTSAM has no factor for a point on a moving board seen through a
 camera with Brown-Conrady distortion and unknown intrinsics except as a Python
 ``CustomFactor``, called once per corner per iteration. Why not scipy's ``least_squares``
 for small problems: its exact trust region takes an SVD of the whole (residuals x parameters)
