@@ -275,6 +275,9 @@ def main() -> int:
             anip_s = time.perf_counter() - t0
             if q.returncode == 0:
                 rigs["aniposelib"] = rig_in_metres(read_calibration(Path(tmp) / "anipose.toml"), 1e-3)
+                said = [ln.split()[1] for ln in q.stdout.splitlines() if ln.startswith("ANIPOSE_ERROR")]
+                dists = [np.round(c.dist, 3).tolist() for c in rigs["aniposelib"].cameras]
+                print(f"aniposelib's own reported error: {said[0] if said else '?'}; its distortions {dists}")
             else:
                 print("aniposelib failed:", q.stderr.strip().splitlines()[-1:])
         else:
