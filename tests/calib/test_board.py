@@ -239,3 +239,15 @@ def test_copied_camera_is_named() -> None:
     c = Camera("back", 640, 480, K, np.zeros(5), np.eye(3), np.array([0.5, 0, 1.0]))
     w = [x for x in rig_warnings(Rig((a, b, c))) if "copy" in x]
     assert len(w) == 1 and "side and top" in w[0]
+
+
+def test_too_few_views_warn_and_say_how_uncertain(scene_dir: tuple[Path, object]) -> None:
+    root, _ = scene_dir
+    bv = board_views(find_cameras([root]), BOARD)
+    full = calibrate_board(list(bv.views), BOARD, bv.names, bv.sizes, BoardConfig())
+    views = [v for v in bv.views if v.cam != 2 or v.frame < 3]
+    few = calibrate_board(views, BOARD, bv.names, bv.sizes, BoardConfig())
+    assert [w for w in few.warnings if w.startswith("camera cam2: 3 board views")]
+    assert not [w for w in full.warnings if "board views" in w]
+    assert few.cameras[2].focal_sd_px > 5 * full.cameras[2].focal_sd_px  # measured 2.05 px against 0.17
+    assert few.cameras[2].views_used == 3
