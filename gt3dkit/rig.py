@@ -1,5 +1,6 @@
-"""The camera model and the rig: one calibrated pinhole camera with OpenCV lens distortion,
-and the cameras of a recording with their world frame.
+"""The camera model and the rig: one calibrated camera with one of OpenCV's lens models (pinhole
+with radial-tangential distortion, or fisheye), and the cameras of a recording with their world
+frame.
 
 Conventions: ``cam_from_world`` (``X_cam = R @ X_world + t``, OpenCV), metres, pixels of the
 distorted image with pixel centres at integers. Every calibration format
@@ -38,6 +39,11 @@ R_STORAGE_TOL = 1e-4
 MAX_WORLD_M = 1e6
 MAX_PIXELS = 1e7
 MAX_DIST_COEF = 1e4
+
+#: The lens models a camera may have (OpenCV's), and their codes in a stacked lens array
+#: (:func:`gt3dkit.geom.camera.distort`: column 5).
+LENSES = ("pinhole", "fisheye")
+LENS_CODES = {"pinhole": 0.0, "fisheye": 1.0}
 
 
 def _along_rays(K: F64, dist: F64, r: F64, th: F64) -> tuple[F64, F64, F64]:
@@ -129,6 +135,29 @@ def distortion_valid_radius(K: F64, dist: F64, width: int, height: int) -> float
     return None if radius >= corner_px else radius
 
 
+def fisheye_valid_radius(K: F64, dist: F64, width: int, height: int) -> float | None:
+    """The distance (px) from the principal point within which OpenCV's fisheye model (``k1 k2 k3
+    k4``) is one-to-one; None where it is so over the whole image (or up to 90 degrees off the
+    axis, beyond which no ray of ``X/Z`` reaches).
+
+    ``θ_d(θ)`` must increase over the rays the image holds; where it turns back first, the radius
+    it reached there bounds the valid disc.
+    """
+    k1, k2, k3, k4 = (float(v) for v in dist[:4])
+    f = min(K[0, 0], K[1, 1])
+    corner = float(np.max(np.hypot(*_corner_px(K, width, height).T))) / f  # θ_d the image reaches
+    th = np.linspace(0, np.pi / 2, 4001)[1:]
+    t2 = th * th
+    theta_d = th * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+    slope = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+    inside = np.concatenate([[True], theta_d[:-1] < corner])  # rays up to the first beyond the corner
+    bad = (slope <= 0) & inside
+    if not bad.any():
+        return None
+    reach = float(np.max(theta_d[: int(np.argmax(bad))], initial=0.0))
+    return reach * f
+
+
 #: A lens model that turns back (folds) within the image is read, with its observations beyond
 #: the fold left out, when it is one-to-one over at least this fraction of the half of the
 #: image's shorter side around the principal point (anipose's k1-only fits of strong lenses turn
@@ -139,7 +168,7 @@ MIN_VALID_RADIUS = 0.9
 
 @dataclass(frozen=True)
 class Camera:
-    """One calibrated pinhole camera with OpenCV lens distortion.
+    """One calibrated camera: OpenCV's pinhole model with its lens distortion, or its fisheye model.
 
     Attributes
     ----------
@@ -150,7 +179,9 @@ class Camera:
     K : (3, 3) float64
         Intrinsic matrix (pixels).
     dist : (5,) float64
-        OpenCV ``k1 k2 p1 p2 k3``.
+        OpenCV ``k1 k2 p1 p2 k3`` for the pinhole model; ``k1 k2 k3 k4 0`` for the fisheye model
+        (``cv::fisheye``: ``θ_d = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ + k4 θ⁸)``, ``θ`` the ray's angle off
+        the axis).
     R : (3, 3) float64
         Rotation ``cam_from_world``.
     t : (3,) float64
@@ -168,6 +199,8 @@ class Camera:
         Where the lens model turns back before the image's corners: the distance (px) from the
         principal point within which it is one-to-one (computed; observations beyond it are
         left out). None: one-to-one over the whole image.
+    lens : str
+        ``"pinhole"`` or ``"fisheye"`` (:data:`LENSES`).
     """
 
     name: str
@@ -180,11 +213,19 @@ class Camera:
     depth_sign: float = 1.0
     r_deviation: float = 0.0
     valid_radius_px: float | None = None
+    lens: str = "pinhole"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "K", as_array(self.K, (3, 3), f"camera {self.name}: K"))
+        if self.lens not in LENSES:
+            raise ValueError(f"camera {self.name}: lens {self.lens!r} is not one of {', '.join(LENSES)}")
         d = np.asarray(self.dist, dtype=np.float64).reshape(-1)
-        if d.size not in (0, 4, 5, 8, 12, 14):  # OpenCV's distortion vector lengths
+        if self.lens == "fisheye":
+            if d.size not in (4, 5) or (d.size == 5 and d[4] != 0):
+                raise ValueError(f"camera {self.name}: a fisheye lens has OpenCV's 4 coefficients "
+                                 f"k1 k2 k3 k4, got {d.size}")
+            d = np.concatenate([d[:4], [0.0]])
+        elif d.size not in (0, 4, 5, 8, 12, 14):  # OpenCV's distortion vector lengths
             raise ValueError(f"camera {self.name}: dist has {d.size} coefficients; OpenCV's "
                              "k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]] has 4, 5, 8, 12 or 14")
         if d.size > 5 and np.any(d[5:] != 0):
@@ -223,6 +264,9 @@ class Camera:
                              f"{MAX_WORLD_M:g} m")
         if np.abs(self.dist).max() > MAX_DIST_COEF:
             raise ValueError(f"camera {self.name}: a dist coefficient beyond {MAX_DIST_COEF:g}")
+        if self.lens == "fisheye":
+            self._check_fisheye()
+            return
         fold = distortion_fold(self.K, self.dist, int(self.width), int(self.height))
         if fold is not None:
             radius = distortion_valid_radius(self.K, self.dist, int(self.width), int(self.height))
@@ -235,10 +279,27 @@ class Camera:
                                  + "): not a calibration of this image size")
             object.__setattr__(self, "valid_radius_px", radius)
 
+    def _check_fisheye(self) -> None:
+        radius = fisheye_valid_radius(self.K, self.dist, int(self.width), int(self.height))
+        if radius is None:
+            return
+        if radius < MIN_VALID_RADIUS * 0.5 * min(self.width, self.height):
+            k = np.round(self.dist[:4], 6).tolist()
+            raise ValueError(f"camera {self.name}: fisheye coefficients {k} "
+                             f"turn back {radius:.0f} px from the principal point: not a calibration of "
+                             "this image size")
+        object.__setattr__(self, "valid_radius_px", radius)
+
     @property
     def center_world(self) -> F64:
         """(3,) camera centre in the world frame, metres."""
         return -self.R.T @ self.t
+
+    @property
+    def lens_row(self) -> F64:
+        """(6,) the lens as the batched geometry takes it: ``dist`` and the model's code
+        (:func:`gt3dkit.geom.camera.distort`)."""
+        return np.append(self.dist, LENS_CODES[self.lens])
 
 
 @dataclass(frozen=True)
@@ -281,7 +342,8 @@ class Rig:
 
     @property
     def dist(self) -> F64:
-        return np.stack([c.dist for c in self.cameras])
+        """(C, 6) each camera's lens: its coefficients and its model's code (:attr:`Camera.lens_row`)."""
+        return np.stack([c.lens_row for c in self.cameras])
 
     @property
     def R(self) -> F64:

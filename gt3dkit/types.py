@@ -21,6 +21,8 @@ import numpy as np
 import numpy.typing as npt
 
 from gt3dkit.rig import (  # noqa: F401 - the camera model lives in gt3dkit.rig
+    LENS_CODES,
+    LENSES,
     MAX_DIST_COEF,
     MAX_PIXELS,
     MAX_WORLD_M,

@@ -39,7 +39,7 @@ from __future__ import annotations
 
 from collections import defaultdict
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -815,7 +815,7 @@ def _rig(
 
 def identity_poses(rig: Rig) -> Rig:
     """``rig``'s cameras with no pose (intrinsics only): each at the origin, looking along +z."""
-    cams = tuple(Camera(c.name, c.width, c.height, c.K, c.dist, np.eye(3), np.zeros(3)) for c in rig.cameras)
+    cams = tuple(replace(c, R=np.eye(3), t=np.zeros(3)) for c in rig.cameras)
     return Rig(
         cams,
         up=np.array([0.0, -1.0, 0.0]),

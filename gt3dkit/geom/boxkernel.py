@@ -51,6 +51,9 @@ from gt3dkit.geom.boxrig import (
     ROW_K as _K,
 )
 from gt3dkit.geom.boxrig import (
+    ROW_LENS as _LENS,
+)
+from gt3dkit.geom.boxrig import (
     ROW_R as _R,
 )
 from gt3dkit.geom.boxrig import (
@@ -64,6 +67,7 @@ from gt3dkit.geom.boxrig import (
     BoxRig,
     box_rig,
 )
+from gt3dkit.geom.camera import FISHEYE
 from gt3dkit.geom.kernel_cache import drop_stale
 from gt3dkit.types import BOX_MODEL_REGISTRY, F64
 
@@ -71,8 +75,68 @@ drop_stale()  # before any compiled function below is called (and its cache read
 
 #: Edges of a box: left, top, right, bottom.
 EDGES = 4
+#: The most Newton steps along the outline through a fisheye lens (:func:`_edge_angle`).
+FISHEYE_STEPS = 8
+#: Angles around the outline a fisheye edge's Newton steps may start from (:func:`_edge_angle`).
+FISHEYE_STARTS = 32
 #: Indices of the box models of :data:`gt3dkit.types.BOX_MODELS` (module docstring).
 ELLIPSOID, CYLINDER, POM = (BOX_MODEL_REGISTRY[m].index for m in ("ellipsoid", "cylinder", "pom"))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _fisheye_h(rho: float, q: F64) -> tuple[float, float, float]:
+    r"""OpenCV's fisheye map as :math:`(x', y') = h(\rho) (x, y)`, :math:`\rho = x^2 + y^2`:
+    ``h = θ_d / r`` (``θ = atan r``, ``θ_d = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ + k4 θ⁸)``) and its first
+    and second derivatives by ``ρ``. Near the axis (``r < 1e-3``) the derivatives are the series
+    ``h = 1 + (k1 - 1/3) ρ + (k2 - k1 + 1/5) ρ² + O(ρ³)``."""
+    k1, k2, k3, k4 = q[_DIST], q[_DIST + 1], q[_DIST + 2], q[_DIST + 3]
+    r = math.sqrt(rho)
+    th = math.atan(r)
+    t2 = th * th
+    td = th * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+    h = td / r if r > 1e-8 else 1.0
+    if r < 1e-3:
+        a, b = k1 - 1.0 / 3.0, k2 - k1 + 0.2
+        return h, a + 2.0 * b * rho, 2.0 * b
+    s = 1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)))  # dθ_d/dθ
+    u = th * (6.0 * k1 + t2 * (20.0 * k2 + t2 * (42.0 * k3 + t2 * 72.0 * k4)))  # d²θ_d/dθ²
+    w = 1.0 / (1.0 + rho)  # dθ/dr
+    d1 = s * w  # dθ_d/dr
+    d2 = (u - 2.0 * r * s) * w * w  # d²θ_d/dr²
+    f1 = (d1 * r - td) / rho  # d(θ_d/r)/dr
+    f2 = d2 / r - 2.0 * d1 / rho + 2.0 * td / (rho * r)
+    return h, f1 / (2.0 * r), (f2 * r - f1) / (4.0 * rho * r)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _lens_xy(x: float, y: float, q: F64) -> tuple[float, float]:
+    """The lens model of camera row ``q`` at the undistorted normalised point ``(x, y)``."""
+    r2 = x * x + y * y
+    if q[_LENS] == FISHEYE:
+        h = _fisheye_h(r2, q)[0]
+        return h * x, h * y
+    radial = 1.0 + r2 * (q[_DIST] + r2 * (q[_DIST + 1] + r2 * q[_DIST + 4]))
+    xd = x * radial + 2.0 * q[_DIST + 2] * x * y + q[_DIST + 3] * (r2 + 2.0 * x * x)
+    yd = y * radial + q[_DIST + 2] * (r2 + 2.0 * y * y) + 2.0 * q[_DIST + 3] * x * y
+    return xd, yd
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _lens_jac(x: float, y: float, q: F64) -> tuple[float, float, float, float, float]:
+    """The lens model of camera row ``q`` at ``(x, y)`` and its Jacobian: ``(xd, yd, dxd/dx,
+    dxd/dy = dyd/dx, dyd/dy)`` (both models' Jacobians are symmetric)."""
+    r2 = x * x + y * y
+    if q[_LENS] == FISHEYE:
+        h, h1, _ = _fisheye_h(r2, q)
+        return h * x, h * y, h + 2.0 * h1 * x * x, 2.0 * h1 * x * y, h + 2.0 * h1 * y * y
+    radial = 1.0 + r2 * (q[_DIST] + r2 * (q[_DIST + 1] + r2 * q[_DIST + 4]))
+    xd = x * radial + 2.0 * q[_DIST + 2] * x * y + q[_DIST + 3] * (r2 + 2.0 * x * x)
+    yd = y * radial + q[_DIST + 2] * (r2 + 2.0 * y * y) + 2.0 * q[_DIST + 3] * x * y
+    g = q[_DIST] + r2 * (2.0 * q[_DIST + 1] + 3.0 * r2 * q[_DIST + 4])
+    dxx = radial + 2.0 * x * x * g + 2.0 * q[_DIST + 2] * y + 6.0 * q[_DIST + 3] * x
+    dxy = 2.0 * x * y * g + 2.0 * q[_DIST + 2] * x + 2.0 * q[_DIST + 3] * y
+    dyy = radial + 2.0 * y * y * g + 6.0 * q[_DIST + 2] * y + 2.0 * q[_DIST + 3] * x
+    return xd, yd, dxx, dxy, dyy
 
 
 @numba.njit(cache=True, nogil=True)
@@ -82,10 +146,7 @@ def edge_value(e: int, ct: float, st: float, m0: float, m1: float, l00: float, l
     of row ``q`` (:class:`BoxRig`)."""
     x = m0 + l00 * ct
     y = m1 + l10 * ct + l11 * st
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (q[_DIST] + r2 * (q[_DIST + 1] + r2 * q[_DIST + 4]))
-    xd = x * radial + 2.0 * q[_DIST + 2] * x * y + q[_DIST + 3] * (r2 + 2.0 * x * x)
-    yd = y * radial + q[_DIST + 2] * (r2 + 2.0 * y * y) + 2.0 * q[_DIST + 3] * x * y
+    xd, yd = _lens_xy(x, y, q)
     if e == 0:
         return -(q[_K] * xd + q[_K + 1] * yd + q[_K + 2])
     if e == 1:
@@ -104,6 +165,9 @@ def edge_slope(e: int, ct: float, st: float, m0: float, m1: float, l00: float, l
     y1 = -l10 * st + l11 * ct
     x2 = m0 - x  # d²/dθ²
     y2 = m1 - y
+    if q[_LENS] == FISHEYE:
+        xd1, yd1, xd2, yd2 = _fisheye_along(x, y, x1, y1, x2, y2, q)
+        return _edge_pick(e, xd1, yd1, xd2, yd2, q)
     r2 = x * x + y * y
     r2d = 2.0 * (x * x1 + y * y1)
     r2dd = 2.0 * (x1 * x1 + x * x2 + y1 * y1 + y * y2)
@@ -119,6 +183,27 @@ def edge_slope(e: int, ct: float, st: float, m0: float, m1: float, l00: float, l
            + q[_DIST + 3] * (r2dd + 4.0 * (x1 * x1 + x * x2)))
     yd2 = (y2 * radial + 2.0 * y1 * rd + y * rdd + q[_DIST + 2] * (r2dd + 4.0 * (y1 * y1 + y * y2))
            + 2.0 * q[_DIST + 3] * xydd)
+    return _edge_pick(e, xd1, yd1, xd2, yd2, q)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _fisheye_along(x: float, y: float, x1: float, y1: float, x2: float, y2: float, q: F64
+                   ) -> tuple[float, float, float, float]:
+    """First and second derivatives along a curve ``p(θ) = (x, y)`` (``p' = (x1, y1)``, ``p'' =
+    (x2, y2)``) of the fisheye map ``D(p) = h(ρ) p``:
+    ``D' = h p' + 2 h_ρ (p·p') p`` and
+    ``D'' = h p'' + 4 h_ρ (p·p') p' + (4 h_ρρ (p·p')² + 2 h_ρ (p'·p' + p·p'')) p``."""
+    h, h1, h2 = _fisheye_h(x * x + y * y, q)
+    pp1 = x * x1 + y * y1
+    c = 4.0 * h2 * pp1 * pp1 + 2.0 * h1 * (x1 * x1 + y1 * y1 + x * x2 + y * y2)
+    return (h * x1 + 2.0 * h1 * pp1 * x, h * y1 + 2.0 * h1 * pp1 * y,
+            h * x2 + 4.0 * h1 * pp1 * x1 + c * x, h * y2 + 4.0 * h1 * pp1 * y1 + c * y)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _edge_pick(e: int, xd1: float, yd1: float, xd2: float, yd2: float, q: F64) -> tuple[float, float]:
+    """Edge ``e``'s first and second derivatives from the distorted point's (signed as
+    :func:`edge_value`)."""
     if e == 0:
         return -(q[_K] * xd1 + q[_K + 1] * yd1), -(q[_K] * xd2 + q[_K + 1] * yd2)
     if e == 1:
@@ -156,15 +241,35 @@ def _edge_angle(e: int, m: tuple[float, float], el: tuple[float, float, float], 
                 ) -> tuple[float, float]:
     """The outline angle ``(cos θ, sin θ)`` where edge ``e`` of camera row ``q`` touches the outline
     with centre ``m`` and Cholesky factor ``el = (l00, l10, l11)``: the closed form (no
-    trigonometry), then with distortion Newton steps on the exact derivatives."""
+    trigonometry), then with distortion Newton steps on the exact derivatives.
+
+    A fisheye lens bends the outline strongly, and an object that reaches far off the axis has an
+    outline with several local extremes: its start is the best of the closed form through the
+    lens's Jacobian at the outline's centre (the edge direction ``g`` pulled back as ``J^T g``) and
+    :data:`FISHEYE_STARTS` angles around the outline, and it takes up to :data:`FISHEYE_STEPS`
+    steps (each stops once within 1e-6 px, as the others)."""
     m0, m1 = m
     l00, l10, l11 = el
-    a = l00 * q[_GX + e] + l10 * q[_GY + e]
-    b = l11 * q[_GY + e]
+    gx, gy = q[_GX + e], q[_GY + e]
+    n = steps
+    if q[_LENS] == FISHEYE:
+        _, _, jxx, jxy, jyy = _lens_jac(m0, m1, q)
+        gx, gy = jxx * gx + jxy * gy, jxy * gx + jyy * gy
+        n = max(steps, FISHEYE_STEPS)
+    a = l00 * gx + l10 * gy
+    b = l11 * gy
     nrm = math.sqrt(a * a + b * b)
     ct, st = (a / nrm, b / nrm) if nrm > 0 else (1.0, 0.0)
+    if q[_LENS] == FISHEYE:
+        best = edge_value(e, ct, st, m0, m1, l00, l10, l11, q)
+        for k in range(FISHEYE_STARTS):
+            ang = 2.0 * math.pi * k / FISHEYE_STARTS
+            ck, sk = math.cos(ang), math.sin(ang)
+            v = edge_value(e, ck, sk, m0, m1, l00, l10, l11, q)
+            if v > best:
+                best, ct, st = v, ck, sk
     if q[_HASD] != 0.0:
-        for _ in range(steps):
+        for _ in range(n):
             d1, d2 = edge_slope(e, ct, st, m0, m1, l00, l10, l11, q)
             step = -d1 / d2 if d2 < 0 else 0.0
             step = min(max(step, -0.5), 0.5)
@@ -232,14 +337,7 @@ def _point_px(X0: float, X1: float, X2: float, q: F64
     """The pixel ``(u, v)`` of the camera-frame point ``X`` in camera row ``q`` (lens distortion
     included) and its derivatives ``du/dX (3)``, ``dv/dX (3)``."""
     x, y = X0 / X2, X1 / X2
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (q[_DIST] + r2 * (q[_DIST + 1] + r2 * q[_DIST + 4]))
-    xd = x * radial + 2.0 * q[_DIST + 2] * x * y + q[_DIST + 3] * (r2 + 2.0 * x * x)
-    yd = y * radial + q[_DIST + 2] * (r2 + 2.0 * y * y) + 2.0 * q[_DIST + 3] * x * y
-    g = q[_DIST] + r2 * (2.0 * q[_DIST + 1] + 3.0 * r2 * q[_DIST + 4])
-    dxx = radial + 2.0 * x * x * g + 2.0 * q[_DIST + 2] * y + 6.0 * q[_DIST + 3] * x
-    dxy = 2.0 * x * y * g + 2.0 * q[_DIST + 2] * x + 2.0 * q[_DIST + 3] * y
-    dyy = radial + 2.0 * y * y * g + 6.0 * q[_DIST + 2] * y + 2.0 * q[_DIST + 3] * x
+    xd, yd, dxx, dxy, dyy = _lens_jac(x, y, q)
     u = q[_K] * xd + q[_K + 1] * yd + q[_K + 2]
     v = q[_K + 4] * yd + q[_K + 5]
     ux, uy = q[_K] * dxx + q[_K + 1] * dxy, q[_K] * dxy + q[_K + 1] * dyy  # du/dx, du/dy
@@ -253,10 +351,7 @@ def _pixel(X0: float, X1: float, X2: float, q: F64) -> tuple[float, float]:
     """The pixel ``(u, v)`` of the camera-frame point ``X`` in camera row ``q`` (:func:`_point_px`
     without the derivatives)."""
     x, y = X0 / X2, X1 / X2
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (q[_DIST] + r2 * (q[_DIST + 1] + r2 * q[_DIST + 4]))
-    xd = x * radial + 2.0 * q[_DIST + 2] * x * y + q[_DIST + 3] * (r2 + 2.0 * x * x)
-    yd = y * radial + q[_DIST + 2] * (r2 + 2.0 * y * y) + 2.0 * q[_DIST + 3] * x * y
+    xd, yd = _lens_xy(x, y, q)
     return q[_K] * xd + q[_K + 1] * yd + q[_K + 2], q[_K + 4] * yd + q[_K + 5]
 
 
@@ -518,15 +613,8 @@ def _quadric_box_grad(p: tuple[float, float, float], sq: tuple[float, float, flo
         v = edge_value(e, ct, st, m0, m1, l00, l10, l11, q)
         box[e] = -v if e < 2 else v
         # the distorted point's derivative by the undistorted one, at θ*
-        x = m0 + l00 * ct
-        y = m1 + l10 * ct + l11 * st
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (q[_DIST] + r2 * (q[_DIST + 1] + r2 * q[_DIST + 4]))
-        g = q[_DIST] + r2 * (2.0 * q[_DIST + 1] + 3.0 * r2 * q[_DIST + 4])
-        dxx = radial + 2.0 * x * x * g + 2.0 * q[_DIST + 2] * y + 6.0 * q[_DIST + 3] * x
-        dxy = 2.0 * x * y * g + 2.0 * q[_DIST + 2] * x + 2.0 * q[_DIST + 3] * y
+        _, _, dxx, dxy, dyy = _lens_jac(m0 + l00 * ct, m1 + l10 * ct + l11 * st, q)
         dyx = dxy
-        dyy = radial + 2.0 * y * y * g + 6.0 * q[_DIST + 2] * y + 2.0 * q[_DIST + 3] * x
         for j in range(6):
             if j < 3:  # centre: X moves along R's column, M stays
                 dX0, dX1, dX2 = q[_R + j], q[_R + 3 + j], q[_R + 6 + j]

@@ -10,7 +10,7 @@ import numba
 import numpy as np
 
 from gt3dkit.arrays import compiled_arg
-from gt3dkit.geom.camera import Cams
+from gt3dkit.geom.camera import FISHEYE, LENS_COL, Cams
 from gt3dkit.geom.kernel_cache import drop_stale
 from gt3dkit.types import F64, Rig
 
@@ -19,7 +19,8 @@ drop_stale()  # before any compiled function below is called (and its cache read
 
 class BoxCameras(NamedTuple):
     """The camera arrays the compiled tangent box needs (contiguous float64): ``world_from_body
-    (3, 3)``, ``K (C, 3, 3)``, ``dist (C, 5)``, ``R (C, 3, 3)``, ``t (C, 3)``, ``depth_sign (C,)``."""
+    (3, 3)``, ``K (C, 3, 3)``, ``dist (C, 6)`` (the lens, :func:`gt3dkit.geom.camera.distort`),
+    ``R (C, 3, 3)``, ``t (C, 3)``, ``depth_sign (C,)``."""
 
     world_from_body: F64
     K: F64
@@ -37,11 +38,13 @@ class BoxCameras(NamedTuple):
 
 
 #: Offsets in a row of :attr:`BoxRig.cam` (one camera): ``R`` (9, row-major), ``t`` (3), ``Rc = R Rb``
-#: (9), ``K``'s ``K00, K01, K02, K10, K11, K12``, the distortion ``k1, k2, p1, p2, k3``, the four edge
-#: directions ``A^T dir`` as ``gx`` (4) and ``gy`` (4) (``A = K[:2, :2]``), the depth sign, whether
-#: the lens distorts (1.0 / 0.0).
-ROW_R, ROW_T, ROW_RC, ROW_K, ROW_DIST, ROW_GX, ROW_GY, ROW_DS, ROW_HASD = 0, 9, 12, 21, 27, 32, 36, 40, 41
-CAM_WIDTH = 42
+#: (9), ``K``'s ``K00, K01, K02, K10, K11, K12``, the distortion ``k1, k2, p1, p2, k3`` (a fisheye's
+#: ``k1, k2, k3, k4, 0``), the four edge directions ``A^T dir`` as ``gx`` (4) and ``gy`` (4) (``A =
+#: K[:2, :2]``), the depth sign, whether the lens distorts (1.0 / 0.0), the lens model's code
+#: (:data:`gt3dkit.geom.camera.FISHEYE` or pinhole).
+ROW_R, ROW_T, ROW_RC, ROW_K, ROW_DIST, ROW_GX, ROW_GY, ROW_DS, ROW_HASD, ROW_LENS = (
+    0, 9, 12, 21, 27, 32, 36, 40, 41, 42)
+CAM_WIDTH = 43
 
 
 class BoxRig(NamedTuple):
@@ -73,6 +76,9 @@ def box_rig(cams: BoxCameras, steps: int) -> BoxRig:
         for i in range(5):
             q[ROW_DIST + i] = dist[c, i]
             has = has or dist[c, i] != 0
+        if dist.shape[1] > LENS_COL:
+            q[ROW_LENS] = dist[c, LENS_COL]
+            has = has or dist[c, LENS_COL] == FISHEYE  # an equidistant lens bends every ray
         q[ROW_GX], q[ROW_GY] = -K[c, 0, 0], -K[c, 0, 1]
         q[ROW_GX + 1], q[ROW_GY + 1] = -K[c, 1, 0], -K[c, 1, 1]
         q[ROW_GX + 2], q[ROW_GY + 2] = K[c, 0, 0], K[c, 0, 1]

@@ -13,6 +13,7 @@ Validated like the keypoint refinement (held-out time blocks, :mod:`gt3dkit.refi
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -32,7 +33,7 @@ from gt3dkit.refine.common import (
     transform_rig,
     umeyama,
 )
-from gt3dkit.rig import Camera, Rig
+from gt3dkit.rig import Rig
 from gt3dkit.types import F64, JsonDict, Scene
 
 PRIOR_ROT_RAD = np.radians(2.0)
@@ -107,8 +108,7 @@ def fit_boxes(rig: Rig, cams: Cams, z: F64, keep: np.ndarray, sigma: F64, start:
     sol = least_squares(resid, q0, jac_sparsity=J.tocsr(), loss="soft_l1", f_scale=2.0,
                         x_scale="jac", max_nfev=max_nfev, method="trf")
     R, t = _cams(rig, variable, sol.x[:a0])
-    cams = tuple(Camera(c.name, c.width, c.height, c.K, c.dist, R[i], t[i], c.depth_sign)
-                 for i, c in enumerate(rig.cameras))
+    cams = tuple(replace(c, R=R[i], t=t[i]) for i, c in enumerate(rig.cameras))
     X, L = unpack(sol.x)
     return Rig(cams, up=rig.up, frame_name=rig.frame_name), X, L
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -60,8 +60,7 @@ def transform_rig(rig: Rig, s: float, Rw: F64, tw: F64) -> Rig:
     cams = []
     for c in rig.cameras:
         R2 = c.R @ Rw.T
-        cams.append(Camera(c.name, c.width, c.height, c.K, c.dist, R2, s * c.t - R2 @ tw,
-                           c.depth_sign))
+        cams.append(replace(c, R=R2, t=s * c.t - R2 @ tw))
     return Rig(tuple(cams), up=rig.up, frame_name=rig.frame_name)
 
 

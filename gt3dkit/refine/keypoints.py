@@ -21,7 +21,7 @@ two cameras stay fixed).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -32,7 +32,7 @@ from gt3dkit.geom.camera import project_points
 from gt3dkit.geom.triangulate import normalized_points, triangulate_weighted
 from gt3dkit.refine.boxes import refine_boxes
 from gt3dkit.refine.common import RefineConfig, RefineResult, align_to, check_enough, pose_change, time_blocks
-from gt3dkit.rig import Camera, Rig
+from gt3dkit.rig import Rig
 from gt3dkit.types import F64, JsonDict, Scene
 
 
@@ -107,10 +107,10 @@ def ba_keypoints(rig: Rig, tr: Tracks, variable: np.ndarray, cfg: RefineConfig, 
     cams = []
     for c, cam in enumerate(rig.cameras):
         m = rec.image(c + 1).cam_from_world().matrix()
-        K, d = intrinsics_of(rec.camera(c + 1).model_name, np.asarray(rec.camera(c + 1).params))
+        K, d, _ = intrinsics_of(rec.camera(c + 1).model_name, np.asarray(rec.camera(c + 1).params))
         if not cfg.refine_intrinsics:
             K, d = cam.K, cam.dist
-        cams.append(Camera(cam.name, cam.width, cam.height, K, d, m[:, :3], m[:, 3], cam.depth_sign))
+        cams.append(replace(cam, K=K, dist=d, R=m[:, :3], t=m[:, 3]))
     out = Rig(tuple(cams), up=rig.up, frame_name=rig.frame_name)
     return out if (~variable).sum() >= 2 else align_to(out, rig)[0]
 

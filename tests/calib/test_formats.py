@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -14,6 +15,7 @@ from gt3dkit.calib.formats import detect_format, read_calibration, write_calibra
 from gt3dkit.commands.common import bundled
 from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import project_points
+from gt3dkit.geom.triangulate import normalized_points
 from gt3dkit.rig import Camera, Rig
 from gt3dkit.sim import simulate
 
@@ -26,10 +28,19 @@ def _rig() -> Rig:
     return Rig(tuple(cams), up=rig.up)
 
 
+def _fisheye_rig() -> Rig:
+    """The simulator's six cameras, every other one with a wide fisheye lens (focal 600 px)."""
+    rig = _rig()
+    cams = [replace(c, K=np.array([[600.0, 0, 955.5], [0, 601.0, 541.0], [0, 0, 1]]),
+                    dist=np.array([0.04, -0.012, 0.003, -0.0004]), lens="fisheye") if i % 2 else c
+            for i, c in enumerate(rig.cameras)]
+    return Rig(tuple(cams), up=rig.up)
+
+
 def _same(a: Rig, b: Rig, tol: float = 1e-9) -> None:
     assert a.names == b.names
     for p, q in zip(a.cameras, b.cameras, strict=True):
-        assert (p.width, p.height) == (q.width, q.height)
+        assert (p.width, p.height, p.lens) == (q.width, q.height, q.lens)
         for k in ("K", "dist", "R", "t"):
             np.testing.assert_allclose(getattr(p, k), getattr(q, k), atol=tol, rtol=0, err_msg=k)
 
@@ -43,6 +54,50 @@ def test_round_trip_through_every_writable_format(tmp_path) -> None:
         assert detect_format(where) == ("native" if fmt == "native" else fmt)
         current = read_calibration(where)
         _same(rig, current)
+
+
+def test_fisheye_round_trip_through_every_format_that_holds_it(tmp_path) -> None:
+    rig = _fisheye_rig()
+    current = rig
+    for i, fmt in enumerate(["native", "colmap", "toml", "opencv", "native"]):
+        current = read_calibration(write_calibration(current, tmp_path / f"{i}_{fmt}", fmt))
+        _same(rig, current)
+    with pytest.raises(InputError, match="pinhole lens only.*cam"):
+        write_calibration(rig, tmp_path / "grid", "grid")
+
+
+@pytest.mark.parametrize("fmt", ["native", "colmap", "toml", "opencv"])
+def test_fisheye_projection_agrees_with_opencv(tmp_path, fmt) -> None:
+    """Points 10-80 degrees off the axis, through each format, as ``cv2.fisheye.projectPoints``;
+    and back through ``cv2.fisheye.undistortPoints``'s inverse."""
+    rig = read_calibration(write_calibration(_fisheye_rig(), tmp_path, fmt))
+    rng = np.random.default_rng(1)
+    for c, cam in enumerate(rig.cameras):
+        if cam.lens != "fisheye":
+            continue
+        ang, az = np.radians(rng.uniform(10, 80, 200)), rng.uniform(0, 2 * np.pi, 200)
+        d_cam = np.stack([np.sin(ang) * np.cos(az), np.sin(ang) * np.sin(az), np.cos(ang)], -1)
+        X = (d_cam * rng.uniform(0.5, 5, (200, 1)) - cam.t) @ cam.R  # world points
+        uv, _ = project_points(X, rig.K[c : c + 1], rig.dist[c : c + 1], rig.R[c : c + 1], rig.t[c : c + 1])
+        ref, _ = cv2.fisheye.projectPoints(X[None], cv2.Rodrigues(cam.R)[0], cam.t, cam.K, cam.dist[:4])
+        np.testing.assert_allclose(uv[:, 0], ref[0], atol=1e-6)
+        xy = normalized_points(uv, rig.K[c : c + 1], rig.dist[c : c + 1])[:, 0]
+        np.testing.assert_allclose(xy, d_cam[:, :2] / d_cam[:, 2:], rtol=1e-9, atol=1e-9)
+
+
+def test_aniposelib_fisheye_calibration_reads(tmp_path) -> None:
+    """aniposelib's FisheyeCamera writes ``fisheye = true`` and four distortions."""
+    (tmp_path / "calibration.toml").write_text(
+        '[cam_0]\nname = "A"\nsize = [ 1280, 1024,]\nmatrix = [ [ 500.0, 0.0, 640.0,], [ 0.0, 500.0, 512.0,], '
+        '[ 0.0, 0.0, 1.0,],]\ndistortions = [ 0.05, -0.01, 0.002, 0.0,]\nrotation = [ 0.0, 0.0, 0.0,]\n'
+        'translation = [ 0.0, 0.0, 0.0,]\nfisheye = true\n\n[metadata]\nadjusted = true\n')
+    cam = read_calibration(tmp_path / "calibration.toml").cameras[0]
+    assert cam.lens == "fisheye"
+    np.testing.assert_array_equal(cam.dist, [0.05, -0.01, 0.002, 0.0, 0.0])
+    (tmp_path / "calibration.toml").write_text(
+        (tmp_path / "calibration.toml").read_text().replace("fisheye = true", 'fisheye = "yes"'))
+    with pytest.raises(InputError, match=r"\[cam_0\].*fisheye must be true or false"):
+        read_calibration(tmp_path / "calibration.toml")
 
 
 @pytest.mark.parametrize("fmt", ["native", "colmap", "toml", "opencv"])

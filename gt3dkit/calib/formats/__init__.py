@@ -115,6 +115,11 @@ def read_calibration(path: str | Path, fmt: str | None = None) -> Rig:
     return REGISTRY[fmt].read(path)
 
 
+#: Writable formats that have no fisheye lens (the WILDTRACK / MultiviewX layout's readers assume
+#: OpenCV's pinhole model).
+PINHOLE_ONLY = ("grid",)
+
+
 def write_calibration(rig: Rig, path: str | Path, fmt: str = "native") -> Path:
     """Write ``rig`` in ``fmt`` into the folder ``path``; returns the file or folder written.
 
@@ -128,4 +133,8 @@ def write_calibration(rig: Rig, path: str | Path, fmt: str = "native") -> Path:
     path.mkdir(parents=True, exist_ok=True)
     if fmt not in ("native", "grid") and any(c.depth_sign < 0 for c in rig.cameras):
         raise InputError("--format", f"a left-handed rig (depth_sign -1) cannot be written as {fmt}")
+    fisheye = [c.name for c in rig.cameras if c.lens == "fisheye"]
+    if fmt in PINHOLE_ONLY and fisheye:
+        raise InputError("--format", f"{fmt} holds OpenCV's pinhole lens only; {', '.join(fisheye)} "
+                                     "have a fisheye lens (write native, opencv, toml or colmap)")
     return writer(rig, path)

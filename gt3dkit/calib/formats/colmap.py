@@ -5,7 +5,10 @@ One COLMAP image per camera of the rig, named ``<camera>.<ext>`` (the camera is 
 name's stem); its ``cam_from_world`` is our ``R``, ``t`` (COLMAP's world units are taken as
 metres; its principal point is OpenCV's + 0.5 px: COLMAP puts pixel centres at +0.5).
 Camera models: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV and
-FULL_OPENCV (with k4 = k5 = k6 = 0) map to ours; any other is named in the error.
+FULL_OPENCV (with k4 = k5 = k6 = 0) map to our pinhole lens; OPENCV_FISHEYE,
+SIMPLE_RADIAL_FISHEYE and RADIAL_FISHEYE (COLMAP's equidistant models, ``θ_d = θ (1 + k1 θ² +
+...)``) to OpenCV's fisheye; any other is named in the error. A fisheye camera is written as
+OPENCV_FISHEYE.
 """
 
 from __future__ import annotations
@@ -18,7 +21,8 @@ import numpy as np
 from gt3dkit.errors import InputError
 from gt3dkit.rig import Camera, Rig
 
-SUPPORTED = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+SUPPORTED = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV",
+             "OPENCV_FISHEYE", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE")
 
 
 def model_folder(path: Path) -> Path | None:
@@ -32,10 +36,23 @@ def model_folder(path: Path) -> Path | None:
     return None
 
 
-def intrinsics_of(model: str, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(K, dist k1 k2 p1 p2 k3) of a COLMAP camera's model name and params."""
+def intrinsics_of(model: str, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+    """(K, dist, lens) of a COLMAP camera's model name and params: ``dist`` is ``k1 k2 p1 p2 k3``
+    for a pinhole lens, ``k1 k2 k3 k4`` for a fisheye (:class:`gt3dkit.rig.Camera`)."""
     z = 0.0
-    if model == "SIMPLE_PINHOLE":
+    lens = "pinhole"
+    if model == "SIMPLE_RADIAL_FISHEYE":
+        f, cx, cy, k = p
+        fx = fy = f
+        d, lens = [k, z, z, z], "fisheye"
+    elif model == "RADIAL_FISHEYE":
+        f, cx, cy, k1, k2 = p
+        fx = fy = f
+        d, lens = [k1, k2, z, z], "fisheye"
+    elif model == "OPENCV_FISHEYE":
+        fx, fy, cx, cy, k1, k2, k3, k4 = p
+        d, lens = [k1, k2, k3, k4], "fisheye"
+    elif model == "SIMPLE_PINHOLE":
         (f, cx, cy), d = p, [z] * 5
         fx = fy = f
     elif model == "PINHOLE":
@@ -60,7 +77,7 @@ def intrinsics_of(model: str, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"camera model {model} is not supported (supported: {', '.join(SUPPORTED)})")
     # COLMAP's pixel centres are at +0.5 (the image's corner is 0), OpenCV's at integers
     K = np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])
-    return K, np.asarray(d, dtype=np.float64)
+    return K, np.asarray(d, dtype=np.float64), lens
 
 
 def read(path: Path) -> Rig:
@@ -85,10 +102,10 @@ def read(path: Path) -> Rig:
             raise InputError(where, "not registered (no pose)")
         c = rec.camera(im.camera_id)
         try:
-            K, d = intrinsics_of(c.model_name, np.asarray(c.params, dtype=np.float64))
+            K, d, lens = intrinsics_of(c.model_name, np.asarray(c.params, dtype=np.float64))
             m = im.cam_from_world().matrix()
             cams.append(Camera(name=name, width=int(c.width), height=int(c.height), K=K, dist=d,
-                               R=m[:, :3], t=m[:, 3]))
+                               R=m[:, :3], t=m[:, 3], lens=lens))
         except ValueError as e:
             raise InputError(f"{where}, camera {im.camera_id}", str(e)) from None
     try:
@@ -107,7 +124,9 @@ def to_reconstruction(rig: Rig, image_ext: str = ".png",
     for i, c in enumerate(rig.cameras, start=1):
         k1, k2, p1, p2, k3 = c.dist
         fx, fy, cx, cy = c.K[0, 0], c.K[1, 1], c.K[0, 2] + 0.5, c.K[1, 2] + 0.5  # COLMAP pixels
-        if k3 == 0:
+        if c.lens == "fisheye":
+            model, params = "OPENCV_FISHEYE", [fx, fy, cx, cy, *c.dist[:4]]
+        elif k3 == 0:
             model, params = "OPENCV", [fx, fy, cx, cy, k1, k2, p1, p2]
         else:
             model, params = "FULL_OPENCV", [fx, fy, cx, cy, k1, k2, p1, p2, k3, 0.0, 0.0, 0.0]

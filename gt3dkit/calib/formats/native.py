@@ -69,7 +69,9 @@ def cameras_doc(rig: Rig, fps: float | None, **extra: JsonValue) -> JsonDict:
     """The ``cameras.json`` document of a rig (what :func:`load_cameras` reads back)."""
     return {"up": rig.up.tolist(), "fps": fps, **extra,
             "cameras": [{"name": c.name, "width": c.width, "height": c.height, "K": c.K.tolist(),
-                         "dist": c.dist.tolist(), "R": c.R.tolist(), "t": c.t.tolist(),
+                         "dist": (c.dist[:4] if c.lens == "fisheye" else c.dist).tolist(),
+                         "R": c.R.tolist(), "t": c.t.tolist(),
+                         **({"lens": c.lens} if c.lens != "pinhole" else {}),
                          **({"depth_sign": -1} if c.depth_sign < 0 else {})}
                         for c in rig.cameras]}
 
@@ -80,7 +82,7 @@ def _camera(c: JsonDict) -> Camera:
                   K=np.asarray(c["K"], dtype=np.float64),
                   dist=np.asarray(c.get("dist", [0, 0, 0, 0, 0]), dtype=np.float64),
                   R=np.asarray(c["R"], dtype=np.float64), t=np.asarray(c["t"], dtype=np.float64),
-                  depth_sign=float(c.get("depth_sign", 1.0)))
+                  depth_sign=float(c.get("depth_sign", 1.0)), lens=str(c.get("lens", "pinhole")))
 
 
 def read(path: Path) -> Rig:

@@ -4,7 +4,9 @@ A file holds the intrinsics ``camera_matrix`` (or ``K``), ``distortion_coefficie
 ``dist``, ``D``) and the pose ``R`` (3x3) or ``rvec`` (Rodrigues), and ``tvec`` (or ``t``,
 ``T``), ``cam_from_world`` in metres, and optionally ``image_width``/``image_height`` (else
 ``--`` the size must come from elsewhere: the annotations' layout). The camera is named by
-the file's stem (``cam0.yml`` -> ``cam0``; ``intr_``/``extr_`` prefixes dropped).
+the file's stem (``cam0.yml`` -> ``cam0``; ``intr_``/``extr_`` prefixes dropped). A fisheye
+camera (OpenCV's ``cv::fisheye``) says so in ``distortion_model`` (``fisheye`` or ROS's
+``equidistant``) with four coefficients; without it the lens is OpenCV's pinhole.
 WILDTRACK/MultiviewX keep intrinsics and extrinsics in two files
 (:mod:`gt3dkit.io.datasets.wildtrack` reads those with :func:`read_storage`).
 """
@@ -28,6 +30,9 @@ SUFFIXES = (".yml", ".yaml", ".xml")
 _K = ("camera_matrix", "K")
 _D = ("distortion_coefficients", "dist", "D")
 _T = ("tvec", "t", "T")
+#: ``distortion_model`` values (lower case) of each lens: ours and ROS's ``camera_info`` names.
+FISHEYE_MODELS = ("fisheye", "equidistant")
+PINHOLE_MODELS = ("", "pinhole", "plumb_bob", "radtan", "radial-tangential")
 
 
 def read_storage(path: Path, keys: tuple[str, ...]) -> list[np.ndarray]:
@@ -102,6 +107,8 @@ def read_camera(path: Path, width: int | None = None, height: int | None = None,
         rvec = None if R is not None else _first(path, fs, ("rvec",))
         t = _first(path, fs, _T)
         w, h = _size(fs, "image_width") or width, _size(fs, "image_height") or height
+        model = fs.getNode("distortion_model")
+        model_name = "" if model.empty() or not model.isString() else model.string().strip().lower()
     finally:
         fs.release()
     if w is None or h is None:
@@ -111,10 +118,15 @@ def read_camera(path: Path, width: int | None = None, height: int | None = None,
             raise InputError(str(path), "rvec must have 3 values")
         R, _ = cv2.Rodrigues(rvec.reshape(3, 1).astype(np.float64))
     cam = name or path.stem.removeprefix("intr_").removeprefix("extr_")
+    if model_name not in FISHEYE_MODELS + PINHOLE_MODELS:
+        raise InputError(str(path), f"distortion_model {model_name!r} is not one of OpenCV's "
+                                    f"(pinhole: {', '.join(PINHOLE_MODELS[1:])}; fisheye: "
+                                    f"{', '.join(FISHEYE_MODELS)})")
     try:
         return Camera(name=cam, width=w, height=h, K=np.asarray(K, float).reshape(3, 3),
                       dist=np.zeros(5) if D is None else np.asarray(D, float).reshape(-1),
-                      R=np.asarray(R, float).reshape(3, 3), t=np.asarray(t, float).reshape(-1))
+                      R=np.asarray(R, float).reshape(3, 3), t=np.asarray(t, float).reshape(-1),
+                      lens="fisheye" if model_name in FISHEYE_MODELS else "pinhole")
     except ValueError as e:
         raise InputError(str(path), str(e)) from None
 
@@ -140,7 +152,11 @@ def write_camera(cam: Camera, path: Path) -> None:
         fs.write("image_width", int(cam.width))
         fs.write("image_height", int(cam.height))
         fs.write("camera_matrix", cam.K)
-        fs.write("distortion_coefficients", cam.dist.reshape(1, -1))
+        if cam.lens == "fisheye":
+            fs.write("distortion_model", "fisheye")
+            fs.write("distortion_coefficients", cam.dist[:4].reshape(1, -1))
+        else:
+            fs.write("distortion_coefficients", cam.dist.reshape(1, -1))
         fs.write("R", cam.R)
         fs.write("rvec", cv2.Rodrigues(cam.R)[0])
         fs.write("tvec", cam.t.reshape(3, 1))

@@ -4,17 +4,17 @@
     name = "cam0"
     size = [1920, 1080]
     matrix = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]
-    distortions = [k1, k2, p1, p2, k3]   # 4 or 5 (OpenCV order)
+    distortions = [k1, k2, p1, p2, k3]   # 4 or 5 (OpenCV order); a fisheye's k1 k2 k3 k4
     rotation = [rx, ry, rz]              # Rodrigues vector, cam_from_world
     translation = [tx, ty, tz]           # cam_from_world, metres (Pose2Sim; Anipose: board units)
-    fisheye = false
+    fisheye = false                      # true: OpenCV's fisheye model (aniposelib's FisheyeCamera)
 
     [metadata]
     ...
 
 Read with the standard library's ``tomllib``; written by hand (the format is a handful of
-arrays; a TOML writer would be a dependency for that). Fisheye cameras are not supported by
-our camera model and are named in the error.
+arrays; a TOML writer would be a dependency for that). A fisheye camera (``fisheye = true``) is
+read and written as aniposelib's ``FisheyeCamera`` is: four ``distortions``.
 """
 
 from __future__ import annotations
@@ -46,9 +46,9 @@ def read(path: Path) -> Rig:
         missing = [k for k in _KEYS if k not in c]
         if missing:
             raise InputError(where, f"missing {', '.join(missing)}")
-        if c.get("fisheye", False):
-            raise InputError(where, "fisheye cameras are not supported (OpenCV pinhole + "
-                                    "k1 k2 p1 p2 k3 only)")
+        fisheye = c.get("fisheye", False)
+        if not isinstance(fisheye, bool):
+            raise InputError(where, f"fisheye must be true or false, not {fisheye!r}")
         try:
             w, h = (int(v) for v in c["size"])
             rvec = np.asarray(c["rotation"], dtype=np.float64).reshape(3, 1)
@@ -58,7 +58,8 @@ def read(path: Path) -> Rig:
             cams.append(Camera(name=str(c.get("name", key)), width=w, height=h,
                                K=np.asarray(c["matrix"], dtype=np.float64),
                                dist=np.asarray(c["distortions"], dtype=np.float64).reshape(-1), R=R,
-                               t=np.asarray(c["translation"], dtype=np.float64).reshape(-1)))
+                               t=np.asarray(c["translation"], dtype=np.float64).reshape(-1),
+                               lens="fisheye" if fisheye else "pinhole"))
         except (TypeError, ValueError, OverflowError) as e:
             raise InputError(where, f"malformed camera ({e})") from None
     if not cams:
@@ -88,8 +89,10 @@ def write(rig: Rig, path: Path) -> None:
     lines = []
     for i, c in enumerate(rig.cameras):
         rvec = cv2.Rodrigues(c.R)[0].reshape(3)
+        fisheye = c.lens == "fisheye"
         lines += [f"[cam_{i}]", f'name = "{c.name}"', f"size = [ {c.width}, {c.height},]",
-                  f"matrix = {_arr(c.K)}", f"distortions = {_arr(c.dist)}",
-                  f"rotation = {_arr(rvec)}", f"translation = {_arr(c.t)}", "fisheye = false", ""]
+                  f"matrix = {_arr(c.K)}", f"distortions = {_arr(c.dist[:4] if fisheye else c.dist)}",
+                  f"rotation = {_arr(rvec)}", f"translation = {_arr(c.t)}",
+                  f"fisheye = {'true' if fisheye else 'false'}", ""]
     lines += ["[metadata]", "adjusted = false", "error = 0.0", 'units = "m"', 'written_by = "gt3dkit"', ""]
     Path(path).write_text("\n".join(lines))
