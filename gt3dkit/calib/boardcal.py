@@ -51,10 +51,18 @@ from gt3dkit.calib.board import Board
 from gt3dkit.calib.boardinput import View
 from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import distort
-from gt3dkit.rig import Camera, Rig
+from gt3dkit.geom.triangulate import normalized_points
+from gt3dkit.rig import LENS_CODES, LENSES, Camera, Rig
 from gt3dkit.types import F64, JsonDict
 
-N_INTR = 9  # a camera's intrinsics in the solver: fx fy cx cy k1 k2 p1 p2 k3
+#: A camera's intrinsics in the solver: ``fx fy cx cy`` and its lens's five coefficients (``k1 k2 p1
+#: p2 k3``, or a fisheye's ``k1 k2 k3 k4 0``, whose fifth is never moved); an intrinsics row
+#: (``INTR_WIDTH``) adds the lens model's code (:func:`gt3dkit.geom.camera.distort`).
+N_INTR = 9
+INTR_WIDTH = 10
+#: A camera's lens is chosen by the data (``lens="auto"``) as OpenCV's fisheye model when that
+#: model's corner RMS is below this fraction of the pinhole model's on the views both kept.
+FISHEYE_GAIN = 0.8
 #: Up to this many parameters (about 300 board frames) the solver takes Levenberg-Marquardt steps
 #: on a dense Jacobian; beyond, scipy's iterative trust-region steps on a sparse one.
 DENSE_MAX_PARAMS = 2000
@@ -80,6 +88,18 @@ class BoardConfig:
     outlier_px: float = 1.5  # a view is wrong when its RMS exceeds this and 4x the camera's median
     fixed: tuple[Camera, ...] = ()
     min_views: int = 6  # fewer views than this: a warning, and the focal's sd says how uncertain
+    lens: str = "auto"  # "pinhole", "fisheye" or "auto" (each camera's by the data: FISHEYE_GAIN)
+    lens_of: tuple[tuple[str, str], ...] = ()  # (camera, lens) pairs that override ``lens``
+
+    def __post_init__(self) -> None:
+        for who, lens in (("", self.lens), *self.lens_of):
+            if lens not in (*LENSES, "auto"):
+                raise ValueError(f"{who + ': ' if who else ''}lens {lens!r} is not one of "
+                                 f"{', '.join((*LENSES, 'auto'))}")
+
+    def lens_for(self, name: str) -> str:
+        """The lens asked of camera ``name``: its own, else the rig's."""
+        return dict(self.lens_of).get(name, self.lens)
 
 
 @dataclass(frozen=True)
@@ -169,16 +189,27 @@ def _pose_distance(a: F64, b: F64, scale_m: float) -> F64:
 
 
 def project(X_cam: F64, intr: F64) -> F64:
-    """(M, 2) distorted pixels of (M, 3) camera-frame points with per-point intrinsics (M, 9)."""
+    """(M, 2) distorted pixels of (M, 3) camera-frame points with per-point intrinsics rows
+    (M, ``INTR_WIDTH``)."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        xy = distort(X_cam[:, :2] / X_cam[:, 2:3], intr[:, 4:9])
+        xy = distort(X_cam[:, :2] / X_cam[:, 2:3], intr[:, 4:INTR_WIDTH])
     return xy * intr[:, 0:2] + intr[:, 2:4]
 
 
+def intr_row(K: F64, lens_row: F64) -> F64:
+    """(``INTR_WIDTH``,) a camera's intrinsics row of its K (3, 3) and lens (6,)."""
+    return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *lens_row])
+
+
+def intr_lens(intr: F64) -> str:
+    """The lens model's name of an intrinsics row."""
+    return next(n for n, code in LENS_CODES.items() if code == intr[N_INTR])
+
+
 def rig_arrays(rig: Rig, names: Sequence[str]) -> tuple[F64, F64]:
-    """``names``' intrinsics (C, 9) and cam_from_world poses (C, 4, 4) in ``rig``."""
+    """``names``' intrinsics rows (C, ``INTR_WIDTH``) and cam_from_world poses (C, 4, 4) in ``rig``."""
     cams = [rig.cameras[rig.index(n)] for n in names]
-    intr = np.array([[c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2], *c.dist] for c in cams])
+    intr = np.array([intr_row(c.K, c.lens_row) for c in cams])
     T = np.tile(np.eye(4), (len(cams), 1, 1))
     T[:, :3, :3] = [c.R for c in cams]
     T[:, :3, 3] = [c.t for c in cams]
@@ -186,17 +217,92 @@ def rig_arrays(rig: Rig, names: Sequence[str]) -> tuple[F64, F64]:
 
 
 def intr_K(intr: F64) -> F64:
-    """(3, 3) K of one camera's (9,) intrinsics."""
+    """(3, 3) K of one camera's intrinsics row."""
     return np.array([[intr[0], 0, intr[2]], [0, intr[1], intr[3]], [0, 0, 1]])
 
 
 # ----------------------------------------------------------------------------- intrinsics
 
 
+@dataclass(frozen=True)
+class IntrinsicsFit:
+    """One camera's intrinsics from its own board views: its intrinsics row (``INTR_WIDTH``,), the
+    focal's sd (px; NaN where the model's fit gives none), the views kept (indices) with their RMS
+    (px), and those dropped (index, why)."""
+
+    intr: F64
+    focal_sd_px: float
+    keep: list[int]
+    keep_rms_px: F64
+    dropped: list[tuple[int, str]]
+
+    @property
+    def lens(self) -> str:
+        return intr_lens(self.intr)
+
+
+def _wrong_view(rms: float, median: float, model: str) -> str:
+    return (f"reprojects {rms:.1f} px with this camera's {model} intrinsics (its views' median "
+            f"{median:.2f} px): the board was found wrongly")
+
+
 def fit_intrinsics(
+    views: Sequence[View], board: Board, size: tuple[int, int], outlier_px: float, lens: str = "pinhole"
+) -> IntrinsicsFit:
+    """One camera's intrinsics from its views with OpenCV's ``lens`` model; ``"auto"``: both
+    models, and the fisheye where its corner RMS on the views both kept is below
+    :data:`FISHEYE_GAIN` times the pinhole's."""
+    pin = _fit_pinhole(views, board, size, outlier_px)
+    if lens == "pinhole":
+        return pin
+    fish = _fit_fisheye(views, board, pin, outlier_px)
+    if lens == "fisheye":
+        return fish
+    both = sorted(set(pin.keep) & set(fish.keep))
+    rms_p = np.sqrt(np.mean(pin.keep_rms_px[[pin.keep.index(k) for k in both]] ** 2))
+    rms_f = np.sqrt(np.mean(fish.keep_rms_px[[fish.keep.index(k) for k in both]] ** 2))
+    return fish if rms_f < FISHEYE_GAIN * rms_p else pin
+
+
+def _fit_fisheye(views: Sequence[View], board: Board, pin: IntrinsicsFit, outlier_px: float) -> IntrinsicsFit:
+    """OpenCV's fisheye model fitted to one camera's views by the joint fit's own solver
+    (:class:`BoardProblem`: its intrinsics and each view's board pose), from the pinhole fit's K and
+    an equidistant lens, dropping views that reproject badly as :func:`_fit_pinhole` does.
+
+    Not ``cv2.fisheye.calibrate``: its start (``InitExtrinsics``) fails its own assertion on views
+    whose corners reach far off the axis, the views a wide lens needs (16 of 38 single views of the
+    simulator's 1280 x 1024 fisheye cameras)."""
+    intr = pin.intr.copy()
+    intr[4:N_INTR] = 0.0
+    intr[N_INTR] = LENS_CODES["fisheye"]
+    one = [replace(v, cam=0, synced=False) for v in views]
+    corners = board.corners_board()
+    keep = list(range(len(one)))
+    dropped: list[tuple[int, str]] = []
+    sd = float("nan")
+    for round_ in range(ROUNDS + 1):
+        use = [one[k] for k in keep]
+        poses = np.array([rt_vector(board_pose(v, board, intr)) for v in use])
+        prob, _ = board_problem(use, [corners[v.det.ids] for v in use], intr[None], np.zeros((1, 6)),
+                                np.ones(1, bool), np.zeros(1, bool))
+        res = solve(prob, prob.pack(intr[None], np.zeros((1, 6)), poses))
+        intr = prob.split(res.x)[0][0]
+        rms = prob.view_rms(res.fun, len(use))
+        sd = float(_covariance_sd(res, prob)[0][0])
+        median = float(np.median(rms))
+        bad = np.flatnonzero(rms > max(outlier_px, 4 * median))
+        if not bad.size or len(keep) - bad.size < 3 or round_ == ROUNDS:
+            break
+        dropped += [(keep[j], _wrong_view(rms[j], median, "fisheye")) for j in bad]
+        keep = [k for j, k in enumerate(keep) if j not in set(bad.tolist())]
+    return IntrinsicsFit(intr, sd, keep, rms, dropped)
+
+
+def _fit_pinhole(
     views: Sequence[View], board: Board, size: tuple[int, int], outlier_px: float
-) -> tuple[F64, F64, float, list[int], list[tuple[int, str]]]:
-    """One camera's K (3, 3), dist (5,), focal sd (px), the views kept and those dropped (why)."""
+) -> IntrinsicsFit:
+    """``cv2.calibrateCameraExtended`` (pinhole, ``k1 k2 p1 p2 k3``), dropping views that OpenCV's
+    own per-view errors mark as wrong."""
     import cv2
 
     corners = board.corners_board().astype(np.float32)
@@ -217,28 +323,32 @@ def fit_intrinsics(
         bad = np.flatnonzero(rms > max(outlier_px, 4 * median))
         if not bad.size or len(keep) - bad.size < 3:
             break
-        dropped += [
-            (
-                keep[j],
-                f"reprojects {rms[j]:.1f} px with this camera's intrinsics (its views' "
-                f"median {median:.2f} px): the board was found wrongly",
-            )
-            for j in bad
-        ]
+        dropped += [(keep[j], _wrong_view(rms[j], median, "pinhole")) for j in bad]
         keep = [k for j, k in enumerate(keep) if j not in set(bad.tolist())]
+        kept_rms = np.delete(rms, bad)  # (the last round's drops are not refitted)
+    else:
+        rms = kept_rms
     sd_f = float(np.hypot(sd[0, 0], sd[1, 0]) / np.sqrt(2)) if np.all(np.isfinite(sd[:2])) else float("nan")
-    return K, np.asarray(d, dtype=np.float64).reshape(-1)[:5], sd_f, keep, dropped
+    lens_row = np.r_[np.asarray(d, dtype=np.float64).reshape(-1)[:5], LENS_CODES["pinhole"]]
+    return IntrinsicsFit(intr_row(K, lens_row), sd_f, keep, rms, dropped)
 
 
-def board_pose(view: View, board: Board, K: F64, d: F64) -> F64:
-    """(4, 4) cam_from_board of one view (IPPE, then LM)."""
+def board_pose(view: View, board: Board, intr: F64) -> F64:
+    """(4, 4) cam_from_board of one view (IPPE, then LM) with a camera's intrinsics row; through a
+    fisheye lens, on the corners' undistorted normalised coordinates (OpenCV's PnP knows only the
+    pinhole model)."""
     import cv2
 
     X = board.corners_board()[view.det.ids]
-    ok, rv, tv = cv2.solvePnP(X, view.det.uv_px, K, d, flags=cv2.SOLVEPNP_IPPE)
+    K, d, uv = intr_K(intr), intr[4 : 4 + 5], view.det.uv_px
+    if intr_lens(intr) == "fisheye":
+        uv = normalized_points(uv[:, None], K[None], intr[None, 4:INTR_WIDTH])[:, 0]
+        ok = np.isfinite(uv).all(1)  # (a corner beyond 90 degrees off the axis has no such point)
+        X, uv, K, d = X[ok], uv[ok], np.eye(3), np.zeros(5)
+    ok, rv, tv = cv2.solvePnP(X, uv, K, d, flags=cv2.SOLVEPNP_IPPE)
     if not ok:
-        ok, rv, tv = cv2.solvePnP(X, view.det.uv_px, K, d, flags=cv2.SOLVEPNP_ITERATIVE)
-    rv, tv = cv2.solvePnPRefineLM(X, view.det.uv_px, K, d, rv, tv)
+        ok, rv, tv = cv2.solvePnP(X, uv, K, d, flags=cv2.SOLVEPNP_ITERATIVE)
+    rv, tv = cv2.solvePnPRefineLM(X, uv, K, d, rv, tv)
     return rt_matrix(rv.reshape(3), tv.reshape(3))
 
 
@@ -359,7 +469,7 @@ class BoardProblem:
     view: np.ndarray
     X: F64
     uv: F64
-    intr0: F64  # (C, 9)
+    intr0: F64  # (C, INTR_WIDTH) intrinsics rows
     ext0: F64  # (C, 6)
     n_poses: int
     free_intr: np.ndarray  # (C,) bool
@@ -408,16 +518,16 @@ class BoardProblem:
         return int(self.sparsity.shape[1])
 
     def split(self, x: F64) -> tuple[F64, F64, F64]:
-        """Intrinsics (C, 9), cam_from_ref poses (C, 6) and board poses (P, 6) of ``x``."""
+        """Intrinsics rows (C, INTR_WIDTH), cam_from_ref poses (C, 6) and board poses (P, 6) of ``x``."""
         n_i, n_e = N_INTR * int(self.free_intr.sum()), 6 * int(self.free_ext.sum())
         intr, ext = self.intr0.copy(), self.ext0.copy()
-        intr[self.free_intr] = x[:n_i].reshape(-1, N_INTR)
+        intr[self.free_intr, :N_INTR] = x[:n_i].reshape(-1, N_INTR)
         ext[self.free_ext] = x[n_i : n_i + n_e].reshape(-1, 6)
         return intr, ext, x[n_i + n_e :].reshape(-1, 6)
 
     def pack(self, intr: F64, ext: F64, poses: F64) -> F64:
         return np.concatenate(
-            [intr[self.free_intr].reshape(-1), ext[self.free_ext].reshape(-1), poses.reshape(-1)]
+            [intr[self.free_intr, :N_INTR].reshape(-1), ext[self.free_ext].reshape(-1), poses.reshape(-1)]
         )
 
     def residuals(self, x: F64) -> F64:
@@ -621,7 +731,7 @@ def pose_boards(
     ``views[k].cam`` indexes ``names``. Returns world_from_board (4, 4) per frame.
     """
     intr, T = rig_arrays(rig, names)
-    vpose = [board_pose(v, board, intr_K(intr[v.cam]), intr[v.cam, 4:]) for v in views]
+    vpose = [board_pose(v, board, intr[v.cam]) for v in views]
     starts = _frame_starts(views, vpose, T)
     X = _read_corners(views, vpose, T, starts, board)
     held = np.zeros(len(names), bool)
@@ -657,7 +767,7 @@ def calibrate_board(
     dropped: dict[int, list[tuple[str, str]]] = defaultdict(list)
     # 1. intrinsics
     fixed = {c.name: c for c in cfg.fixed}
-    K, D, f_sd0 = np.zeros((C, 3, 3)), np.zeros((C, 5)), np.full(C, np.nan)
+    intr, f_sd0 = np.zeros((C, INTR_WIDTH)), np.full(C, np.nan)
     fit: list[View] = []
     for c, name in enumerate(names):
         vs = [v for v in views if v.cam == c and not (v.synced and v.frame in hold)]
@@ -669,7 +779,7 @@ def calibrate_board(
                     f"the given intrinsics are for {given.width}x{given.height} images, its "
                     f"board views are {sizes[c][0]}x{sizes[c][1]}",
                 )
-            K[c], D[c] = given.K, given.dist
+            intr[c] = intr_row(given.K, given.lens_row)
             fit += vs
             continue
         if not vs:
@@ -684,11 +794,12 @@ def calibrate_board(
                 f"camera {name}: {len(vs)} board views (fewer than {cfg.min_views}): its intrinsics "
                 "are uncertain (see its focal sd)"
             )
-        K[c], D[c], f_sd0[c], keep, drop = fit_intrinsics(vs, board, sizes[c], cfg.outlier_px)
-        fit += [vs[k] for k in keep]
-        dropped[c] += [(vs[k].label, why) for k, why in drop]
+        got = fit_intrinsics(vs, board, sizes[c], cfg.outlier_px, cfg.lens_for(name))
+        intr[c], f_sd0[c] = got.intr, got.focal_sd_px
+        fit += [vs[k] for k in got.keep]
+        dropped[c] += [(vs[k].label, why) for k, why in got.dropped]
     # 2. poses of every view, 3. extrinsics
-    vpose = [board_pose(v, board, K[v.cam], D[v.cam]) for v in fit]
+    vpose = [board_pose(v, board, intr[v.cam]) for v in fit]
     seen = {v.cam for v in fit if v.synced}
     if seen and len(seen) < C:
         raise InputError(
@@ -704,7 +815,6 @@ def calibrate_board(
     starts = _frame_starts(fit, vpose, rig_T)
     X = _read_corners(fit, vpose, rig_T, starts, board)
     # 4. the joint fit, then again without the views it shows to be wrong
-    intr = np.concatenate([K[:, 0, 0:1], K[:, 1, 1:2], K[:, 0, 2:3], K[:, 1, 2:3], D], axis=1)
     ext = rt_vector(rig_T)
     pose6 = {(-1, f): rt_vector(T) for f, T in starts.items()}
     pose6 |= {_pose_key(v): rt_vector(T) for v, T in zip(fit, vpose, strict=True) if not v.synced}
@@ -801,9 +911,10 @@ def _rig(
                     int(sizes[c][0]),
                     int(sizes[c][1]),
                     intr_K(intr[c]),
-                    intr[c, 4:9],
+                    intr[c, 4:N_INTR] if intr_lens(intr[c]) == "pinhole" else intr[c, 4:8],
                     cam_from_world[c, :3, :3],
                     cam_from_world[c, :3, 3],
+                    lens=intr_lens(intr[c]),
                 )
             )
         except ValueError as e:

@@ -1,5 +1,5 @@
 """Synthetic board views: a ChArUco board or a checkerboard drawn by OpenCV, seen through known
-cameras with lens distortion, blurred and with pixel noise.
+cameras with lens distortion (OpenCV's pinhole or fisheye model), blurred and with pixel noise.
 
 Each output pixel is traced back: undistorted (the inverse of the camera's distortion, as
 ``cv2.undistortPoints``), cast as a ray, cut with the board's plane, and the board's printed image
@@ -49,7 +49,7 @@ def pixel_directions(cam: Camera, sub: int = SUBPIXELS) -> F64:
     v = (np.arange(cam.height)[:, None] + off).reshape(-1).astype(np.float64)
     u, v = np.meshgrid(u, v)
     uv = np.stack([u, v], -1)[:, :, None, :]  # (H, W, 1, 2)
-    xy = undistort(unapply_K(uv, cam.K[None]), cam.dist[None], iters=30)[:, :, 0]  # (H, W, 2)
+    xy = undistort(unapply_K(uv, cam.K[None]), cam.lens_row[None], iters=30)[:, :, 0]  # (H, W, 2)
     return np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], -1)
 
 
@@ -94,22 +94,29 @@ def board_scene(
     height: int = 480,
     n_cams: int = 3,
     strong_lens: bool = False,
+    lens: str = "pinhole",
 ) -> BoardScene:
-    """``n_cams`` cameras on an arc 0.8 m from a board moved and tilted in front of them."""
+    """``n_cams`` cameras on an arc 0.8 m from a board moved and tilted in front of them.
+
+    ``lens="fisheye"``: wide lenses (OpenCV's fisheye model, focal about 0.35 x the width: some 80
+    degrees either side of the axis across the image) on an arc 0.45 m from the board, which moves
+    0.2-0.5 m from them and further across their views, so its corners reach the lenses' edges."""
     rng = np.random.default_rng(seed)
     printed = board_image(board)
     cams = []
     centre = np.array([board.squares_x, board.squares_y, 0]) * board.square_m / 2
+    wide = lens == "fisheye"
+    arc_m = 0.45 if wide else 0.8
     for c in range(n_cams):
         ang = np.radians(-25 + 50 * c / max(1, n_cams - 1))
-        pos = centre + np.array([0.8 * np.sin(ang), 0.05 * c, -0.8 * np.cos(ang)])
+        pos = centre + np.array([arc_m * np.sin(ang), 0.05 * c, -arc_m * np.cos(ang)])
         z = centre - pos
         z /= np.linalg.norm(z)
         x = np.cross([0, 1.0, 0], z)
         x /= np.linalg.norm(x)
         y = np.cross(z, x)
         R = np.stack([x, y, z])  # cam_from_world rows
-        f = rng.uniform(0.9, 1.1) * width
+        f = rng.uniform(0.9, 1.1) * width * (0.35 if wide else 1.0)
         K = np.array(
             [
                 [f, 0, width / 2 + rng.uniform(-10, 10)],
@@ -119,14 +126,19 @@ def board_scene(
         )
         k1 = -0.25 if strong_lens else rng.uniform(-0.15, 0.05)
         dist = np.array([k1, 0.05 if strong_lens else 0.02, 0.0005, -0.0005, 0.0])
-        cams.append(Camera(f"cam{c}", width, height, K, dist, R, -R @ pos))
+        if wide:
+            dist = np.array([rng.uniform(0.0, 0.06), rng.uniform(-0.03, 0.0), 0.005, -0.001])
+        cams.append(Camera(f"cam{c}", width, height, K, dist, R, -R @ pos, lens=lens))
     rig = Rig(tuple(cams), up=np.array([0.0, -1.0, 0.0]), frame_name="board scene")
     poses = []
     for _ in range(n_frames):
         rv = rng.normal(0, 0.35, 3)
         Rb = Rotation.from_rotvec(rv).as_matrix()
-        # across the view, 0.45-0.85 m from the cameras
-        tb = centre + rng.uniform([-0.2, -0.15, -0.35], [0.2, 0.15, 0.05]) - Rb @ centre
+        # across the view, 0.45-0.85 m from the cameras (wide lenses: 0.2-0.5 m, further across)
+        lo, hi = (-0.3, -0.25, -0.25), (0.3, 0.25, 0.05)
+        if not wide:
+            lo, hi = (-0.2, -0.15, -0.35), (0.2, 0.15, 0.05)
+        tb = centre + rng.uniform(lo, hi) - Rb @ centre
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = Rb, tb
         poses.append(T)
