@@ -296,6 +296,11 @@ class Camera:
         return -self.R.T @ self.t
 
     @property
+    def coefficients(self) -> F64:
+        """The lens model's own coefficients: ``k1 k2 p1 p2 k3`` (5,), or a fisheye's ``k1 k2 k3 k4`` (4,)."""
+        return self.dist[:4] if self.lens == "fisheye" else self.dist
+
+    @property
     def lens_row(self) -> F64:
         """(6,) the lens as the batched geometry takes it: ``dist`` and the model's code
         (:func:`gt3dkit.geom.camera.distort`)."""

@@ -137,6 +137,7 @@ class BoardCalibration:
             "warnings": list(self.warnings),
             "cameras": {
                 c.name: {
+                    "lens": self.rig.cameras[self.rig.index(c.name)].lens,
                     "views_used": c.views_used,
                     "rms_px": c.rms_px,
                     "p95_px": c.p95_px,

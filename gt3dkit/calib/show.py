@@ -27,7 +27,7 @@ def camera_table(rig: Rig) -> list[JsonDict]:
                     "tilt_deg": float(np.degrees(np.arcsin(np.clip(look @ rig.up, -1, 1)))),
                     "fx_px": float(c.K[0, 0]), "fy_px": float(c.K[1, 1]),
                     "cx_px": float(c.K[0, 2]), "cy_px": float(c.K[1, 2]),
-                    "dist": c.dist.round(6).tolist(), "size": [c.width, c.height],
+                    "lens": c.lens, "dist": c.coefficients.round(6).tolist(), "size": [c.width, c.height],
                     "r_deviation": c.r_deviation})
     return out
 
@@ -58,7 +58,8 @@ def rig_warnings(rig: Rig) -> list[str]:
             w.append(f"camera {c.name}: principal point ({c.K[0, 2]:.0f}, {c.K[1, 2]:.0f}) is outside the "
                      f"middle half of its {c.width}x{c.height} image: a wrong image size?")
         if c.valid_radius_px is not None:
-            w.append(f"camera {c.name}: its lens model (dist {np.round(c.dist, 4).tolist()}) turns back "
+            k = np.round(c.coefficients, 4).tolist()
+            w.append(f"camera {c.name}: its {c.lens} lens model (dist {k}) turns back "
                      f"{c.valid_radius_px:.0f} px from the principal point, before the image's corners: "
                      "observations beyond that radius are left out")
         if c.r_deviation > 1e-6:

@@ -27,7 +27,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import check_out, write_dir_atomically
 from gt3dkit.io.writers import write_refined_calibration
 from gt3dkit.refine import RefineConfig, refine, scene_warnings
-from gt3dkit.rig import Camera
+from gt3dkit.rig import LENSES, Camera
 from gt3dkit.version import __version__
 from gt3dkit.viz.boardreport import write_board_report
 
@@ -84,6 +84,23 @@ def cmd_calib_refine(args: argparse.Namespace) -> int:
     return 0
 
 
+def parse_lens(text: str, names: list[str]) -> tuple[str, tuple[tuple[str, str], ...]]:
+    """``--lens``: the rig's lens model and per-camera ones (``auto``, ``fisheye,top=pinhole``)."""
+    models = (*LENSES, "auto")
+    lens, pairs = "auto", []
+    for item in (x.strip() for x in text.split(",") if x.strip()):
+        name, _, model = item.rpartition("=")
+        if model not in models:
+            raise InputError("--lens", f"{item!r}: the model must be one of {', '.join(models)}")
+        if not name:
+            lens = model
+        elif name not in names:
+            raise InputError("--lens", f"{item!r}: no camera {name} (the cameras: {', '.join(names)})")
+        else:
+            pairs.append((name, model))
+    return lens, tuple(pairs)
+
+
 def cmd_calib_board(args: argparse.Namespace) -> int:
     """``gt3d calib board``: a rig from board views (see :mod:`gt3dkit.calib.boardcal`)."""
     t0 = time.perf_counter()
@@ -103,9 +120,10 @@ def cmd_calib_board(args: argparse.Namespace) -> int:
         if unknown:
             raise InputError(args.intrinsics, f"has no camera {', '.join(unknown)} (it has "
                                               f"{', '.join(given.names)})")
+    lens, lens_of = parse_lens(args.lens, sorted({s.name for s in sources}))
     bv = board_views(sources, board, args.step)
     cfg = BoardConfig(origin=args.origin, floor_frame=args.floor_frame, holdout_every=args.holdout,
-                      fixed=fixed)
+                      fixed=fixed, lens=lens, lens_of=lens_of)
     cal = calibrate_board(list(bv.views), board, bv.names, bv.sizes, cfg)
     if args.intrinsics_only:
         cal = dataclasses.replace(cal, rig=identity_poses(cal.rig))
@@ -130,11 +148,11 @@ def cmd_calib_board(args: argparse.Namespace) -> int:
         print(f"warning: {w}", file=sys.stderr)
     print(f"{board.describe()}: {len(bv.names)} cameras, {len(bv.views)} board views in "
           f"{sum(bv.frames_read)} frames, {seconds:.1f} s; {cal.rig.frame_name}; written to {out}")
-    print(f"{'camera':<12}{'views':>6}{'RMS px':>8}{'p95 px':>8}{'held px':>9}{'fx':>9}{'fy':>9}"
+    print(f"{'camera':<12}{'lens':>8}{'views':>6}{'RMS px':>8}{'p95 px':>8}{'held px':>9}{'fx':>9}{'fy':>9}"
           f"{'cx':>8}{'cy':>8}"
           f"{'f sd':>6}{'ctr sd mm':>10}{'rot sd °':>9}{'left out':>9}")
     for rep, cam in zip(cal.cameras, cal.rig.cameras, strict=True):
-        print(f"{rep.name:<12}{rep.views_used:>6}{rep.rms_px:>8.3f}{rep.p95_px:>8.3f}"
+        print(f"{rep.name:<12}{cam.lens:>8}{rep.views_used:>6}{rep.rms_px:>8.3f}{rep.p95_px:>8.3f}"
               f"{fmt_num(rep.holdout_rms_px, 9, 3)}{cam.K[0, 0]:>9.1f}{cam.K[1, 1]:>9.1f}{cam.K[0, 2]:>8.1f}"
               f"{cam.K[1, 2]:>8.1f}{rep.focal_sd_px:>6.2f}{rep.centre_sd_mm:>10.2f}"
               f"{rep.rotation_sd_deg:>9.3f}"

@@ -223,6 +223,10 @@ def _add_calib(sub: argparse._SubParsersAction[Parser], common: argparse.Argumen
     kb.add_argument("--holdout", type=number_type(int, 0, 10**6), default=0,
                     help="leave every K-th frame out of the fit and report its reprojection error "
                          "(default 0: none)")
+    kb.add_argument("--lens", default="auto",
+                    help="each camera's lens model: pinhole (OpenCV's k1 k2 p1 p2 k3), fisheye (OpenCV's "
+                         "fisheye k1..k4) or auto (by the data: fisheye where it fits clearly better); "
+                         "one for all, and/or CAM=MODEL pairs, comma-separated (default auto)")
     kb.set_defaults(func=cmd_calib_board)
 
 

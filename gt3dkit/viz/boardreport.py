@@ -115,7 +115,8 @@ def write_board_report(cal: BoardCalibration, folder: Path, command: str) -> Non
             f"<tr><td>{e(rep.name)}</td><td>{rep.views_used}</td><td>{rep.rms_px:.3f}</td>"
             f"<td>{rep.p95_px:.3f}</td><td>{held}</td><td>{cam.K[0, 0]:.1f} &plusmn; {rep.focal_sd_px:.2f}"
             f"</td><td>{cam.K[1, 1]:.1f}</td><td>{cam.K[0, 2]:.1f}, {cam.K[1, 2]:.1f}</td>"
-            f"<td>{e(str(np.round(cam.dist, 4).tolist()))}</td><td>{rep.centre_sd_mm:.2f}</td>"
+            f"<td>{e(cam.lens)} {e(str(np.round(cam.coefficients, 4).tolist()))}"
+            f"</td><td>{rep.centre_sd_mm:.2f}</td>"
             f"<td>{rep.rotation_sd_deg:.3f}</td><td>{worst}</td></tr>"
         )
     dropped = [f"<li>{e(rep.name)}, {e(v)}: {e(w)}</li>" for rep in cal.cameras for v, w in rep.dropped]
@@ -128,7 +129,8 @@ td,th{{border:1px solid #ccc;padding:3px 6px;font-size:13px}}</style></head><bod
 <p><code>{e(command)}</code></p>
 <h2>Cameras</h2>
 <table><tr><th>camera</th><th>views</th><th>RMS px</th><th>p95 px</th><th>held-out RMS px</th>
-<th>fx px (&plusmn; sd)</th><th>fy px</th><th>principal point px</th><th>k1 k2 p1 p2 k3</th>
+<th>fx px (&plusmn; sd)</th><th>fy px</th><th>principal point px</th><th>lens: pinhole k1 k2 p1 p2 k3,
+fisheye k1 k2 k3 k4</th>
 <th>centre sd mm</th><th>rotation sd &deg;</th><th>worst views</th></tr>
 {"".join(rows)}</table>
 <p>Held-out frames (left out of every fit, their board poses found with the rig held):

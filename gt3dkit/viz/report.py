@@ -148,7 +148,8 @@ def _numbers(run: Run, res: ViewResiduals) -> list[list[Any]]:
 def _calibration(run: Run) -> str:
     cams = run.scene.rig.cameras
     rows = [[c.name, f"{c.width} x {c.height}", f"{c.K[0, 0]:.1f}, {c.K[1, 1]:.1f}",
-             f"{c.K[0, 2]:.1f}, {c.K[1, 2]:.1f}", ", ".join(f"{v:.3g}" for v in c.dist) or "none",
+             f"{c.K[0, 2]:.1f}, {c.K[1, 2]:.1f}",
+             ("fisheye: " if c.lens == "fisheye" else "") + ", ".join(f"{v:.3g}" for v in c.coefficients),
              ", ".join(f"{v:.3f}" for v in c.center_world)] for c in cams]
     out = _table(rows, ["camera", "image (px)", "focal fx, fy (px)", "principal point (px)", "distortion",
                         "centre in the world (m)"])

@@ -5,6 +5,7 @@ image, drawn by OpenCV), wrong detections, bad input, and lens models that turn 
 from __future__ import annotations
 
 import dataclasses
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -251,3 +252,47 @@ def test_too_few_views_warn_and_say_how_uncertain(scene_dir: tuple[Path, object]
     assert not [w for w in full.warnings if "board views" in w]
     assert few.cameras[2].focal_sd_px > 5 * full.cameras[2].focal_sd_px  # measured 2.05 px against 0.17
     assert few.cameras[2].views_used == 3
+
+
+def test_fisheye_rig_chosen_by_the_data_and_written(tmp_path: Path) -> None:
+    """Wide lenses (OpenCV's fisheye model, about 80 degrees either side of the axis) through the
+    CLI: ``--lens auto`` picks the fisheye model for each camera, recovers the cameras, and the
+    written calibration carries the model; held to pinhole: worse, and the fold is warned of."""
+    sc = board_scene(BOARD, n_frames=14, seed=1, lens="fisheye")
+    root = tmp_path / "fish"
+    _write(sc, root)
+    out = tmp_path / "cal"
+    p = _gt3d("calib", "board", str(root), "--board", "charuco:7x9:40:30:DICT_4X4_50", "--out", str(out),
+              "--format", "toml")
+    assert p.returncode == 0, p.stderr
+    rig = read_calibration(out / "calibration" / "calibration.toml")
+    assert [c.lens for c in rig.cameras] == ["fisheye"] * 3
+    rep = json.loads((out / "board_report.json").read_text())["cameras"]
+    for a, e in zip(sc.rig.cameras, rig.cameras, strict=True):
+        assert abs(e.K[0, 0] / a.K[0, 0] - 1) < 0.003  # measured 0.12-0.16 %
+        assert np.abs(e.K[:2, 2] - a.K[:2, 2]).max() < 1.0  # measured <= 0.28 px
+        assert rep[e.name]["lens"] == "fisheye" and rep[e.name]["rms_px"] < 0.3  # measured 0.20-0.24
+        assert 0 < rep[e.name]["focal_sd_px"] < 1
+    centre_m, rot_deg, size_m = _errors(sc.rig, rig)
+    assert centre_m.max() < 0.003 * size_m  # measured 1.9 mm per metre
+    assert rot_deg.max() < 0.2  # measured 0.11 degrees
+    bv = board_views(find_cameras([root]), BOARD)
+    pin = calibrate_board(list(bv.views), BOARD, bv.names, bv.sizes, BoardConfig(lens="pinhole"))
+    assert [c.lens for c in pin.rig.cameras] == ["pinhole"] * 3
+    assert min(r.rms_px for r in pin.cameras) > max(r["rms_px"] for r in rep.values())
+    assert any("turns back" in w for w in pin.warnings)
+
+
+def test_cli_lens_option(scene_dir: tuple[Path, object], tmp_path: Path) -> None:
+    root, _ = scene_dir
+    out = tmp_path / "cal"
+    args = ("calib", "board", str(root), "--board", "charuco:7x9:40:30:DICT_4X4_50", "--out", str(out))
+    p = _gt3d(*args, "--lens", "auto,cam9=fisheye")
+    assert p.returncode == 2
+    assert p.stderr == "error: --lens: 'cam9=fisheye': no camera cam9 (the cameras: cam0, cam1, cam2)\n"
+    p = _gt3d(*args, "--lens", "wide")
+    assert p.returncode == 2 and "must be one of pinhole, fisheye, auto" in p.stderr and not out.exists()
+    p = _gt3d(*args, "--lens", "pinhole,cam1=fisheye")
+    assert p.returncode == 0, p.stderr
+    rig = read_calibration(out / "cameras.json")
+    assert [c.lens for c in rig.cameras] == ["pinhole", "fisheye", "pinhole"]

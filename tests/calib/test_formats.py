@@ -88,8 +88,9 @@ def test_fisheye_projection_agrees_with_opencv(tmp_path, fmt) -> None:
 def test_aniposelib_fisheye_calibration_reads(tmp_path) -> None:
     """aniposelib's FisheyeCamera writes ``fisheye = true`` and four distortions."""
     (tmp_path / "calibration.toml").write_text(
-        '[cam_0]\nname = "A"\nsize = [ 1280, 1024,]\nmatrix = [ [ 500.0, 0.0, 640.0,], [ 0.0, 500.0, 512.0,], '
-        '[ 0.0, 0.0, 1.0,],]\ndistortions = [ 0.05, -0.01, 0.002, 0.0,]\nrotation = [ 0.0, 0.0, 0.0,]\n'
+        '[cam_0]\nname = "A"\nsize = [ 1280, 1024,]\n'
+        'matrix = [ [ 500.0, 0.0, 640.0,], [ 0.0, 500.0, 512.0,], [ 0.0, 0.0, 1.0,],]\n'
+        'distortions = [ 0.05, -0.01, 0.002, 0.0,]\nrotation = [ 0.0, 0.0, 0.0,]\n'
         'translation = [ 0.0, 0.0, 0.0,]\nfisheye = true\n\n[metadata]\nadjusted = true\n')
     cam = read_calibration(tmp_path / "calibration.toml").cameras[0]
     assert cam.lens == "fisheye"

@@ -69,7 +69,7 @@ def cameras_doc(rig: Rig, fps: float | None, **extra: JsonValue) -> JsonDict:
     """The ``cameras.json`` document of a rig (what :func:`load_cameras` reads back)."""
     return {"up": rig.up.tolist(), "fps": fps, **extra,
             "cameras": [{"name": c.name, "width": c.width, "height": c.height, "K": c.K.tolist(),
-                         "dist": (c.dist[:4] if c.lens == "fisheye" else c.dist).tolist(),
+                         "dist": c.coefficients.tolist(),
                          "R": c.R.tolist(), "t": c.t.tolist(),
                          **({"lens": c.lens} if c.lens != "pinhole" else {}),
                          **({"depth_sign": -1} if c.depth_sign < 0 else {})}

@@ -154,7 +154,7 @@ def write_camera(cam: Camera, path: Path) -> None:
         fs.write("camera_matrix", cam.K)
         if cam.lens == "fisheye":
             fs.write("distortion_model", "fisheye")
-            fs.write("distortion_coefficients", cam.dist[:4].reshape(1, -1))
+            fs.write("distortion_coefficients", cam.coefficients.reshape(1, -1))
         else:
             fs.write("distortion_coefficients", cam.dist.reshape(1, -1))
         fs.write("R", cam.R)

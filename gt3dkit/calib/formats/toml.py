@@ -91,7 +91,7 @@ def write(rig: Rig, path: Path) -> None:
         rvec = cv2.Rodrigues(c.R)[0].reshape(3)
         fisheye = c.lens == "fisheye"
         lines += [f"[cam_{i}]", f'name = "{c.name}"', f"size = [ {c.width}, {c.height},]",
-                  f"matrix = {_arr(c.K)}", f"distortions = {_arr(c.dist[:4] if fisheye else c.dist)}",
+                  f"matrix = {_arr(c.K)}", f"distortions = {_arr(c.coefficients)}",
                   f"rotation = {_arr(rvec)}", f"translation = {_arr(c.t)}",
                   f"fisheye = {'true' if fisheye else 'false'}", ""]
     lines += ["[metadata]", "adjusted = false", "error = 0.0", 'units = "m"', 'written_by = "gt3dkit"', ""]
