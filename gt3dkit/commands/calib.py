@@ -49,13 +49,13 @@ def cmd_calib_show(args: argparse.Namespace) -> int:
             what += " (the format has no up vector: +z assumed)"
     print(f"{what}: {len(rig.cameras)} cameras, up {np.round(rig.up, 4).tolist()}")
     head = (f"{'camera':<12}{'centre x':>9}{'y':>8}{'z':>8}{'height':>8}{'tilt°':>7}"
-            f"{'fx':>8}{'fy':>8}{'cx':>7}{'cy':>7}{'k1':>8}{'k2':>8}{'size':>11}")
+            f"{'fx':>8}{'fy':>8}{'cx':>7}{'cy':>7}{'lens':>8}{'k1':>8}{'k2':>8}{'size':>11}")
     print(head)
     print("-" * len(head))
     for t in camera_table(rig):
         x, y, z = t["centre_m"]
         print(f"{t['camera']:<12}{x:>9.3f}{y:>8.3f}{z:>8.3f}{t['height_m']:>8.3f}{t['tilt_deg']:>7.1f}"
-              f"{t['fx_px']:>8.1f}{t['fy_px']:>8.1f}{t['cx_px']:>7.1f}{t['cy_px']:>7.1f}"
+              f"{t['fx_px']:>8.1f}{t['fy_px']:>8.1f}{t['cx_px']:>7.1f}{t['cy_px']:>7.1f}{t['lens']:>8}"
               f"{t['dist'][0]:>8.4f}{t['dist'][1]:>8.4f}{t['size'][0]:>6}x{t['size'][1]:<4}")
     warns = rig_warnings(rig) + (scene_warnings(scene) if scene is not None else [])
     if scene is not None:

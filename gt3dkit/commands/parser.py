@@ -37,7 +37,7 @@ from gt3dkit.io.datasets import LAYOUTS
 from gt3dkit.io.labels import LABEL_FORMATS
 from gt3dkit.sim import SIM_LAYOUTS
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import BOX_MODEL_REGISTRY, BOX_MODELS
+from gt3dkit.types import BOX_MODEL_REGISTRY, BOX_MODELS, LENSES
 
 #: What ``gt3d --help`` says first.
 DESCRIPTION = ("gt3d: 3D ground truth from 2D annotations and detections in calibrated cameras: "
@@ -125,6 +125,9 @@ def _add_simulate(sub: argparse._SubParsersAction[Parser], common: argparse.Argu
     s.add_argument("--missing", type=number_type(float, 0, 1, hi_open=True),
                    help="skeleton scenes: fraction of 2D points dropped at random (default 0.05)")
     s.add_argument("--skeleton", choices=sorted(SKELETONS), help="skeleton scenes (default coco19)")
+    s.add_argument("--lens", choices=LENSES, default="pinhole",
+                   help="the cameras' lenses: pinhole, or fisheye (wide, OpenCV's fisheye model; native "
+                        "layout)")
     s.add_argument("--out", required=True)
     s.add_argument("--seed", type=SEED, default=0)
     s.add_argument("--frames", type=number_type(int, 1, 10**7), default=40)

@@ -88,13 +88,16 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                          + f" = {size:.3g} annotations, more than the {SIM_MAX_POINTS:.0e} "
                            "gt3d simulate writes")
     n_err = ""
+    if args.lens != "pinhole" and args.layout != "native":
+        raise InputError("--lens", f"the {args.layout} layout's calibration holds OpenCV's pinhole lens "
+                                   "only: a fisheye scene is written in the native layout")
     if args.kind == "skeleton":
         try:
             sk = simulate_skeletons(args.layout, seed=args.seed, frames=args.frames,
                                     people=args.people, noise_px=args.noise_px,
                                     cameras=args.cameras or 10,
                                     skeleton=args.skeleton, errors=errors,
-                                    confidences=args.conf, fps=args.fps or 30.0)
+                                    confidences=args.conf, fps=args.fps or 30.0, lens=args.lens)
         except ValueError as e:
             raise InputError("simulate", str(e)) from None
         if args.format == "openpose":
@@ -118,7 +121,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     try:
         sim = simulate(args.layout, seed=args.seed, frames=args.frames, people=args.people,
                        noise_px=args.noise_px, errors=errors,
-                       motion=args.motion, cameras=args.cameras, fps=args.fps, labels=args.labels)
+                       motion=args.motion, cameras=args.cameras, fps=args.fps, labels=args.labels,
+                       lens=args.lens)
     except ValueError as e:
         raise InputError("simulate", str(e)) from None
     if args.format in ("mot", "cvat"):

@@ -22,6 +22,7 @@ from gt3dkit.sim.common import (
     gap_mask,
     keep_one_view,
     look_at,
+    with_lens,
     write_injected,
 )
 from gt3dkit.types import BOX_EDGES, BOX_MODELS, F64, I64, Camera, Rig, SimScene
@@ -153,7 +154,8 @@ def _paths(rng: np.random.Generator, seed: int, people: int, t_s: F64, frame_num
 
 def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: int = 10,
              noise_px: float = 0.0, errors: Errors | None = None, motion: str = "smooth",
-             cameras: int | None = None, fps: float | None = None, labels: str = "ellipsoid") -> SimScene:
+             cameras: int | None = None, fps: float | None = None, labels: str = "ellipsoid",
+             lens: str = "pinhole") -> SimScene:
     """Generate a seeded scene. See the module docstring.
 
     ``motion``: ``smooth`` paths, ``walk`` (speed and turn rate wander) or ``stop-and-turn``
@@ -166,7 +168,8 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
 
 
     ``cameras`` and ``fps`` set the native layout's camera count (default 6) and frame rate
-    (default 10); the WILDTRACK and MultiviewX layouts have their own.
+    (default 10); the WILDTRACK and MultiviewX layouts have their own. ``lens="fisheye"``: wide
+    lenses on the same cameras (:func:`gt3dkit.sim.common.with_lens`).
     """
     _check_arguments(layout, frames, people, noise_px, motion, cameras, fps, labels)
     errors = errors or Errors()
@@ -174,7 +177,7 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
     rng = np.random.default_rng(seed)
     err_rng = np.random.default_rng([seed, 1])
     lo, hi, names, step, fps = _layout_area(layout, cameras, fps)
-    rig = make_rig(len(names), lo, hi, names, rng)
+    rig = with_lens(make_rig(len(names), lo, hi, names, rng), lens, seed)
     frame_numbers = np.arange(frames, dtype=np.int64) * step + (1 if layout == "multiviewx" else 0)
     truth_frame, truth_id, center, semi = _paths(rng, seed, people, frame_numbers / fps, frame_numbers,
                                                  (lo, hi), motion)

@@ -12,7 +12,7 @@ import numpy as np
 from gt3dkit.geom.camera import project_points
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.datasets import LAYOUTS, openpose, tasks
-from gt3dkit.sim.common import DROPPED_KEYPOINTS, Errors, gap_mask, keep_one_view, write_injected
+from gt3dkit.sim.common import DROPPED_KEYPOINTS, Errors, gap_mask, keep_one_view, with_lens, write_injected
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import F64, I64, Camera, Rig, SkeletonScene
 
@@ -91,13 +91,14 @@ def skeleton_motion(skel_name: str, t_s: F64, rng: np.random.Generator) -> F64:
 def simulate_skeletons(layout: str = "native", seed: int = 0, frames: int = 30, people: int = 3,
                        noise_px: float = 0.0, cameras: int = 10,
                        skeleton: str = "coco19", fps: float = 30.0, errors: Errors | None = None,
-                       confidences: bool = False) -> SkeletonScene:
+                       confidences: bool = False, lens: str = "pinhole") -> SkeletonScene:
     """People as moving skeletons seen by a dome of HD cameras, in a y-down world.
 
     2D points are exact projections (with distortion) plus ``noise_px`` Gaussian noise;
     points behind a camera or outside its image are dropped, and a fraction
     ``Errors.dropped`` of the rest at random. ``errors`` (native layout) adds detector errors;
     ``confidences`` writes a detector-like confidence per point (lower for worse points).
+    ``lens="fisheye"``: wide lenses on the same cameras (:func:`gt3dkit.sim.common.with_lens`).
     """
     if layout not in ("native", "panoptic"):
         raise ValueError(f"skeleton scenes are written as native or panoptic, not {layout!r}")
@@ -111,7 +112,7 @@ def simulate_skeletons(layout: str = "native", seed: int = 0, frames: int = 30, 
     rng = np.random.default_rng(seed)
     up = np.array([0.0, -1.0, 0.0])
     names = [f"00_{i:02d}" for i in range(cameras)]
-    rig = make_dome(cameras, rng, up, names)
+    rig = with_lens(make_dome(cameras, rng, up, names), lens, seed)
     t_s = np.arange(frames) / fps
     frame_numbers = np.arange(frames, dtype=np.int64) + 100
     wfb = rig.world_from_body()
