@@ -223,6 +223,44 @@ def synthetic(seeds: int) -> bool:
     return ok
 
 
+ANIPOSE_FISHEYE = """
+import sys
+import numpy as np
+from aniposelib.cameras import CameraGroup, FisheyeCamera
+rng = np.random.default_rng(0)
+cams = [FisheyeCamera(name=f"c{i}", size=(1280, 1024),
+                      matrix=np.array([[400.0 + 20 * i, 0, 640], [0, 402.0, 510], [0, 0, 1]]),
+                      dist=rng.normal(0, [0.04, 0.02, 0.005, 0.001]), rvec=rng.normal(0, 0.2, 3),
+                      tvec=np.r_[rng.normal(0, 0.2, 2), 1.5]) for i in range(3)]
+group = CameraGroup(cams)
+group.dump(sys.argv[1])
+X = rng.uniform([-1, -1, -0.5], [1, 1, 1.0], (200, 3))
+np.save(sys.argv[2], X)
+np.save(sys.argv[3], group.project(X))
+"""
+
+
+def anipose_fisheye() -> bool:
+    """A fisheye calibration written by aniposelib (its FisheyeCamera) read by gt3dkit: the same
+    pixels as aniposelib's own projection."""
+    bench = ROOT / ".venv-bench" / "bin" / "python"
+    print("\n6. aniposelib's fisheye calibration (CameraGroup of FisheyeCamera, dumped) read by gt3dkit")
+    if not bench.exists():
+        print("no .venv-bench (make bench-env): not run")
+        return True
+    with tempfile.TemporaryDirectory() as tmp:
+        f, xs, uvs = (str(Path(tmp) / n) for n in ("fish.toml", "X.npy", "uv.npy"))
+        subprocess.run([str(bench), "-c", ANIPOSE_FISHEYE, f, xs, uvs], check=True, capture_output=True)
+        rig = read_calibration(f)
+        X, uv_a = np.load(xs), np.load(uvs)  # (N, 3), (C, N, 2)
+    uv, _ = project_points(X, rig.K, rig.dist, rig.R, rig.t)  # (N, C, 2)
+    diff = float(np.nanmax(np.abs(np.swapaxes(uv, 0, 1) - uv_a)))
+    good = all(c.lens == "fisheye" for c in rig.cameras) and diff < 1e-6
+    print(f"lenses {[c.lens for c in rig.cameras]}, largest difference from aniposelib's projection "
+          f"{diff:.2g} px over {len(X)} points: {'ok' if good else 'MISSED'}")
+    return good
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seeds", type=int, default=3, help="synthetic charuco seeds (default 3)")
@@ -348,6 +386,7 @@ def main() -> int:
                 + ("(target <= 8: " + ("ok)" if good else "MISSED)") if name == "gt3dkit" else "")
             )
     ok &= synthetic(args.seeds)
+    ok &= anipose_fisheye()
     print("\nall targets met" if ok else "\nsome targets MISSED")
     return 0 if ok else 1
 
