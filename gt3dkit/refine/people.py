@@ -1,0 +1,501 @@
+"""A rig from the people in the scene: the cameras' poses from the keypoints of people moving
+through it, with no calibration to start from and no identities (issue 63).
+
+The intrinsics are given (the input's calibration or ``--intrinsics``); the poses are not used.
+
+1. **Person pairs per camera pair.** In each frame every detection of camera ``a`` may be any
+   detection of camera ``b`` (or the same person with left and right swapped, as detectors seen
+   from behind often have them). Hypotheses of the pair's essential matrix come from the joints
+   of two such candidate pairs of two frames (OpenCV's five-point RANSAC on their ~40 joints); a
+   hypothesis scores the candidate pairs whose joints' median Sampson distance is below
+   ``pair_px``. The best one is refitted on its pairs (USAC MAGSAC) and decomposed
+   (``cv2.recoverPose``). A wrong pairing is an outlier group, not a hundred outlier points.
+2. **People across cameras.** The matching pairs link detections; per frame the linked
+   detections form one person (a breadth-first walk that keeps one detection per camera and the
+   left/right reading that agrees with the first).
+3. **Cameras one by one.** The pair with the most matched people starts the rig (camera ``a`` at
+   the origin, the baseline one unit); its people are triangulated; the camera with the most
+   joints on those people is posed by PnP (RANSAC), the people triangulated again, and so on.
+4. **One bundle adjustment** (:func:`gt3dkit.refine.keypoints.ba_keypoints`, pycolmap, Cauchy loss)
+   over every camera and every person's joints.
+5. **The world** from the people: up from how they stand (ankles to neck), the floor from their
+   ankles, the scale from typical human bone lengths (:meth:`gt3dkit.skeletons.Skeleton.canonical`:
+   adults' bones vary by some 5-7 %, and so does this scale) or from their median height when the
+   user gives it, the origin at their mean position on the floor, x towards the first camera.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from gt3dkit.errors import InputError
+from gt3dkit.geom.triangulate import normalized_points, triangulate_weighted
+from gt3dkit.refine.common import RefineConfig, transform_rig
+from gt3dkit.refine.keypoints import Tracks, ba_keypoints, keypoint_residuals
+from gt3dkit.rig import Rig
+from gt3dkit.skeletons import SKELETONS
+from gt3dkit.types import F64, I64, JsonDict, Scene
+
+#: Bundle adjustments, each followed by matching the people again through the adjusted rig.
+RELINK_ROUNDS = 3
+#: The standing height (top of the head) of the skeletons' canonical body, metres.
+_CANON_HEIGHT_M = 1.74
+
+
+@dataclass(frozen=True)
+class PeopleConfig:
+    """Settings of :func:`calibrate_people`."""
+
+    min_conf: float = 0.2  # joints below this confidence are not used
+    pair_px: float = 3.0  # a candidate person pair matches below this median Sampson distance, px
+    hypotheses: int = 150  # essential-matrix hypotheses per camera pair
+    min_pairs: int = 10  # matched person pairs a camera pair needs to count
+    min_joints: int = 30  # 2D-3D joints a camera needs to be posed
+    height_m: float | None = None  # the people's median standing height, if known
+    #: Joints left out of the geometry: a 2D detector places the hips and shoulders (and the
+    #: pelvis between the hips) inside the body's outline from each view's silhouette, so each view
+    #: sees a different 3D point. On Shelf's OpenPose output leaving them out brings the camera
+    #: centres from 1.1-5.4 cm to 1.2-2.9 cm of Shelf's calibration (rotations 0.36-1.2 to 0.29-0.69 deg).
+    skip_joints: tuple[str, ...] = ("l_hip", "r_hip", "pelvis", "l_shoulder", "r_shoulder")
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class PersonViews:
+    """Every detection's joints, ``N`` detections of ``J`` joints: ``xy (N, J, 2)`` undistorted
+    normalised coordinates, ``ok (N, J)`` used, ``cam``, ``frame`` (N,), ``uv (N, J, 2)`` px,
+    ``mirror (J,)`` the joint index with left and right swapped, ``f_px (C,)`` focal lengths."""
+
+    xy: F64
+    ok: np.ndarray
+    cam: I64
+    frame: I64
+    uv: F64
+    mirror: I64
+    f_px: F64
+
+
+def mirror_index(joints: tuple[str, ...]) -> I64:
+    """(J,) for each joint the index of its left/right counterpart (``l_x`` <-> ``r_x``; itself
+    where it has none)."""
+    ix = {j: i for i, j in enumerate(joints)}
+    swap = {"l_": "r_", "r_": "l_"}
+    return np.array([ix.get(swap[j[:2]] + j[2:], i) if j[:2] in swap else i for i, j in enumerate(joints)])
+
+
+def person_views(scene: Scene, cfg: PeopleConfig) -> PersonViews:
+    o, rig = scene.obs, scene.rig
+    if o.kpt_uv_px is None or scene.skeleton is None:
+        raise InputError(scene.root or "input", "no keypoints: a rig is made from people's joints")
+    xy = normalized_points(o.kpt_uv_px, rig.K[o.cam][:, None], rig.dist[o.cam][:, None])
+    ok = np.isfinite(xy[..., 0])
+    if o.kpt_conf is not None:
+        ok &= np.nan_to_num(o.kpt_conf) >= cfg.min_conf
+    js = SKELETONS[scene.skeleton].joints
+    ok[:, [k for k, n in enumerate(js) if n in cfg.skip_joints]] = False
+    return PersonViews(np.where(ok[..., None], xy, np.nan), ok, o.cam.astype(np.int64),
+                       o.frame.astype(np.int64), o.kpt_uv_px,
+                       mirror_index(SKELETONS[scene.skeleton].joints), rig.K[:, 0, 0].copy())
+
+
+# ----------------------------------------------------------------------------- camera pairs
+
+
+def sampson_px(E: F64, x1: F64, x2: F64, f_px: float) -> F64:
+    """Sampson distances (px, through focal ``f_px``) of normalised pairs ``x1, x2 (..., 2)``
+    under the essential matrix ``E (3, 3)`` (``x2^T E x1 = 0``)."""
+    h1 = np.concatenate([x1, np.ones(x1.shape[:-1] + (1,))], -1)
+    h2 = np.concatenate([x2, np.ones(x2.shape[:-1] + (1,))], -1)
+    Ex1, Etx2 = h1 @ E.T, h2 @ E
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = np.abs(np.sum(h2 * Ex1, -1)) / np.sqrt(Ex1[..., 0] ** 2 + Ex1[..., 1] ** 2
+                                                   + Etx2[..., 0] ** 2 + Etx2[..., 1] ** 2)
+    return d * f_px
+
+
+@dataclass(frozen=True)
+class PairFit:
+    """Camera ``b``'s pose relative to ``a`` (``X_b = R X_a + t``, ``|t| = 1``) and the matched
+    person pairs ``links (L, 3)``: detection in ``a``, detection in ``b``, 1 where ``b``'s joints
+    read with left and right swapped."""
+
+    a: int
+    b: int
+    R: F64
+    t: F64
+    links: I64
+    candidates: int
+
+
+def _candidates(pv: PersonViews, a: int, b: int) -> I64:
+    """(P, 2) detection pairs of cameras ``a`` and ``b`` in one frame sharing 8 or more joints."""
+    ia, ib = np.flatnonzero(pv.cam == a), np.flatnonzero(pv.cam == b)
+    fa, fb = pv.frame[ia], pv.frame[ib]
+    order = np.argsort(fb, kind="stable")
+    lo, hi = np.searchsorted(fb[order], fa, "left"), np.searchsorted(fb[order], fa, "right")
+    rows = [(i, ib[order[k]]) for i, s, e in zip(ia, lo, hi, strict=True) for k in range(s, e)]
+    if not rows:
+        return np.zeros((0, 2), np.int64)
+    P = np.array(rows, dtype=np.int64)
+    shared = np.maximum((pv.ok[P[:, 0]] & pv.ok[P[:, 1]]).sum(1),
+                        (pv.ok[P[:, 0]] & pv.ok[P[:, 1]][:, pv.mirror]).sum(1))
+    return P[shared >= 8]
+
+
+def _pair_errors(pv: PersonViews, E: F64, P: I64, f_px: float) -> tuple[F64, np.ndarray]:
+    """Per candidate pair the median Sampson distance (px) in its better reading, and whether
+    that reading swaps ``b``'s left and right."""
+    x1, x2 = pv.xy[P[:, 0]], pv.xy[P[:, 1]]
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            e = np.nanmedian(sampson_px(E, x1, x2, f_px), axis=1)
+            em = np.nanmedian(sampson_px(E, x1, x2[:, pv.mirror], f_px), axis=1)
+    e, em = np.nan_to_num(e, nan=np.inf), np.nan_to_num(em, nan=np.inf)
+    return np.minimum(e, em), em < e
+
+
+def fit_pair(pv: PersonViews, a: int, b: int, cfg: PeopleConfig, rng: np.random.Generator) -> PairFit | None:
+    """Camera ``b`` relative to ``a`` from their person pairs (module docstring, step 1); None
+    where fewer than ``min_pairs`` pairs match."""
+    import cv2
+
+    P = _candidates(pv, a, b)
+    if len(P) < cfg.min_pairs:
+        return None
+    f_px = float(np.sqrt(pv.f_px[a] * pv.f_px[b]))
+    frames = pv.frame[P[:, 0]]
+    score_on = P if len(P) <= 400 else P[rng.choice(len(P), 400, replace=False)]
+    best, best_E = -1, None
+    for _ in range(cfg.hypotheses):
+        k = rng.choice(len(P), 2, replace=False)
+        if frames[k[0]] == frames[k[1]]:
+            continue
+        flip = rng.uniform(size=2) < 0.5
+        p1, p2 = [], []
+        for q, fl in zip(k, flip, strict=True):
+            x2 = pv.xy[P[q, 1]][pv.mirror] if fl else pv.xy[P[q, 1]]
+            m = pv.ok[P[q, 0]] & np.isfinite(x2[:, 0])
+            p1.append(pv.xy[P[q, 0]][m])
+            p2.append(x2[m])
+        p1a, p2a = np.concatenate(p1), np.concatenate(p2)
+        if len(p1a) < 10:
+            continue
+        E, _ = cv2.findEssentialMat(p1a, p2a, np.eye(3), method=cv2.RANSAC, prob=0.99,
+                                    threshold=cfg.pair_px / f_px, maxIters=200)
+        if E is None:
+            continue
+        for Eh in E.reshape(-1, 3, 3):
+            score = int((_pair_errors(pv, Eh, score_on, f_px)[0] < cfg.pair_px).sum())
+            if score > best:
+                best, best_E = score, Eh
+    if best_E is None:
+        return None
+    err, flip = _pair_errors(pv, best_E, P, f_px)
+    good = err < cfg.pair_px
+    if good.sum() < cfg.min_pairs:
+        return None
+    p1, p2 = _joint_pairs(pv, P[good], flip[good])
+    E, inl = cv2.findEssentialMat(p1, p2, np.eye(3), method=cv2.USAC_MAGSAC, prob=0.9999,
+                                  threshold=cfg.pair_px / f_px)
+    if E is None:
+        return None
+    E = E[:3]
+    _, R, t, _ = cv2.recoverPose(E, p1, p2, np.eye(3), mask=inl.copy())
+    err, flip = _pair_errors(pv, E, P, f_px)
+    good = err < cfg.pair_px
+    links = np.column_stack([P[good], flip[good].astype(np.int64)])
+    return PairFit(a, b, R, t.reshape(3), _one_per_detection(links, err[good]), len(P))
+
+
+def _joint_pairs(pv: PersonViews, P: I64, flip: np.ndarray) -> tuple[F64, F64]:
+    x1 = pv.xy[P[:, 0]]
+    x2 = np.where(flip[:, None, None], pv.xy[P[:, 1]][:, pv.mirror], pv.xy[P[:, 1]])
+    m = np.isfinite(x1[..., 0]) & np.isfinite(x2[..., 0])
+    return x1[m], x2[m]
+
+
+def _one_per_detection(links: I64, err: F64) -> I64:
+    """The links with each detection in at most one (the best first)."""
+    used_a: set[int] = set()
+    used_b: set[int] = set()
+    keep = []
+    for k in np.argsort(err, kind="stable"):
+        i, j = int(links[k, 0]), int(links[k, 1])
+        if i not in used_a and j not in used_b:
+            used_a.add(i)
+            used_b.add(j)
+            keep.append(k)
+    return links[np.sort(np.array(keep, dtype=np.int64))]
+
+
+def rig_links(pv: PersonViews, rig: Rig, cfg: PeopleConfig) -> list[PairFit]:
+    """Every camera pair's person pairs through ``rig``'s relative poses (its essential matrices)."""
+    out = []
+    C = len(rig.cameras)
+    for a in range(C):
+        for b in range(a + 1, C):
+            P = _candidates(pv, a, b)
+            if not len(P):
+                continue
+            R = rig.R[b] @ rig.R[a].T
+            t = rig.t[b] - R @ rig.t[a]
+            E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ R
+            err, flip = _pair_errors(pv, E, P, float(np.sqrt(pv.f_px[a] * pv.f_px[b])))
+            good = err < cfg.pair_px
+            links = np.column_stack([P[good], flip[good].astype(np.int64)])
+            out.append(PairFit(a, b, R, t, _one_per_detection(links, err[good]), len(P)))
+    return out
+
+
+# ----------------------------------------------------------------------------- people
+
+
+def people_of(pv: PersonViews, fits: list[PairFit]) -> tuple[I64, np.ndarray]:
+    """Each detection's person (-1: none; module docstring, step 2) and whether it reads with left
+    and right swapped relative to its person."""
+    N = len(pv.cam)
+    adj: list[list[tuple[int, int]]] = [[] for _ in range(N)]
+    for fit in fits:
+        for i, j, fl in fit.links:
+            adj[int(i)].append((int(j), int(fl)))
+            adj[int(j)].append((int(i), int(fl)))
+    person, flip = np.full(N, -1, np.int64), np.zeros(N, bool)
+    order = np.argsort([-len(x) for x in adj], kind="stable")
+    n = 0
+    for s in order:
+        if person[s] >= 0 or not adj[s]:
+            continue
+        cams = {int(pv.cam[s])}
+        person[s], flip[s] = n, False
+        queue = deque([int(s)])
+        while queue:
+            i = queue.popleft()
+            for j, fl in adj[i]:
+                if person[j] >= 0 or int(pv.cam[j]) in cams:
+                    continue
+                person[j], flip[j] = n, bool(flip[i]) ^ bool(fl)
+                cams.add(int(pv.cam[j]))
+                queue.append(j)
+        n += 1
+    return person, flip
+
+
+def _oriented(pv: PersonViews, flip: np.ndarray) -> F64:
+    """(N, J, 2) every detection's joints in its person's left/right reading."""
+    return np.where(flip[:, None, None], pv.xy[:, pv.mirror], pv.xy)
+
+
+def triangulate_people(pv: PersonViews, person: I64, flip: np.ndarray, R: F64, t: F64,
+                       placed: np.ndarray) -> F64:
+    """(n_people, J, 3) each person's joints from the placed cameras (NaN: fewer than 2 views)."""
+    n, C, J = int(person.max()) + 1, len(placed), pv.xy.shape[1]
+    xy = np.full((n, J, C, 2), np.nan)
+    m = (person >= 0) & placed[pv.cam]
+    xy[person[m], :, pv.cam[m]] = _oriented(pv, flip)[m]
+    w = np.isfinite(xy[..., 0]).astype(np.float64)
+    X = triangulate_weighted(np.nan_to_num(xy).reshape(n * J, C, 2), R, t, w.reshape(n * J, C))
+    return X.reshape(n, J, 3)
+
+
+def _pose_camera(pv: PersonViews, person: I64, flip: np.ndarray, X: F64, c: int, cfg: PeopleConfig
+                 ) -> tuple[F64, F64, int] | None:
+    """Camera ``c``'s cam_from_world (R, t) by PnP RANSAC on its people's triangulated joints, and
+    the joints it used; None with fewer than ``min_joints``."""
+    import cv2
+
+    m = (pv.cam == c) & (person >= 0)
+    if not m.any():
+        return None
+    X3 = X[person[m]]  # (n, J, 3)
+    x2 = _oriented(pv, flip)[m]
+    ok = np.isfinite(X3[..., 0]) & np.isfinite(x2[..., 0])
+    if ok.sum() < cfg.min_joints:
+        return None
+    got, rv, tv, inl = cv2.solvePnPRansac(X3[ok], x2[ok], np.eye(3), None, iterationsCount=500,
+                                          reprojectionError=2 * cfg.pair_px / pv.f_px[c],
+                                          flags=cv2.SOLVEPNP_EPNP)
+    if not got or inl is None or len(inl) < cfg.min_joints:
+        return None
+    i = inl.reshape(-1)
+    rv, tv = cv2.solvePnPRefineLM(X3[ok][i], x2[ok][i], np.eye(3), None, rv, tv)
+    return cv2.Rodrigues(rv)[0], tv.reshape(3), int(len(i))
+
+
+# ----------------------------------------------------------------------------- the calibration
+
+
+@dataclass(frozen=True)
+class PeopleCalibration:
+    rig: Rig  # placed cameras only, in the people's world
+    unplaced: dict[str, str]  # camera -> why it could not be placed
+    report: JsonDict
+    tracks: Tracks  # the people's joints the last adjustment used (camera indices into ``rig``)
+
+
+def calibrate_people(scene: Scene, cfg: PeopleConfig | None = None) -> PeopleCalibration:
+    """The poses of ``scene``'s cameras from its people (module docstring)."""
+    cfg = cfg or PeopleConfig()
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(cfg.seed)
+    pv = person_views(scene, cfg)
+    rig = scene.rig
+    C = len(rig.cameras)
+    fits = [f for a in range(C) for b in range(a + 1, C) if (f := fit_pair(pv, a, b, cfg, rng)) is not None]
+    if not fits:
+        raise InputError(scene.root or "input", "no two cameras share enough people to be placed "
+                         f"(each camera pair needs {cfg.min_pairs} person pairs whose joints agree)")
+    person, flip = people_of(pv, fits)
+    first = max(fits, key=lambda f: len(f.links))
+    R, t = np.tile(np.eye(3), (C, 1, 1)), np.zeros((C, 3))
+    R[first.b], t[first.b] = first.R, first.t
+    placed = np.zeros(C, bool)
+    placed[[first.a, first.b]] = True
+    joints_used = {first.a: 0, first.b: 0}
+    while not placed.all():
+        X = triangulate_people(pv, person, flip, R, t, placed)
+        tries = {c: _pose_camera(pv, person, flip, X, c, cfg) for c in np.flatnonzero(~placed)}
+        tries = {c: r for c, r in tries.items() if r is not None}
+        if not tries:
+            break
+        c = max(tries, key=lambda k: tries[k][2])
+        R[c], t[c], joints_used[int(c)] = tries[c]
+        placed[c] = True
+    why = {}
+    for c in np.flatnonzero(~placed):
+        n = int(((pv.cam == c) & (person >= 0)).sum())
+        why[rig.cameras[c].name] = (f"shares too few people with the placed cameras ({n} detections "
+                                    f"matched to another camera's; {cfg.min_joints} joints needed)")
+    keep = np.flatnonzero(placed)
+    cams = tuple(replace(rig.cameras[c], R=R[c], t=t[c]) for c in keep)
+    start = Rig(cams, up=rig.up, frame_name="people")
+    # 4. bundle adjustments over the placed cameras and every person's joints; after each, the
+    # people matched again through the adjusted rig (every pair's geometry now known)
+    on = placed[pv.cam]
+    pv_on = PersonViews(pv.xy[on], pv.ok[on], np.searchsorted(keep, pv.cam[on]), pv.frame[on], pv.uv[on],
+                        pv.mirror, pv.f_px[keep])
+    person_on, flip_on = person[on], flip[on]
+    rig_ba = start
+    for _ in range(RELINK_ROUNDS):
+        X = triangulate_people(pv_on, person_on, flip_on, rig_ba.R, rig_ba.t, np.ones(len(keep), bool))
+        tracks = _tracks(pv_on, person_on, flip_on, X, rig_ba, cfg)
+        sigma = float(np.median(keypoint_residuals(rig_ba, tracks)))
+        rig_ba = ba_keypoints(rig_ba, tracks, np.ones(len(keep), bool), RefineConfig(), max(sigma, 0.5))
+        person_on, flip_on = people_of(pv_on, rig_links(pv_on, rig_ba, cfg))
+    X = triangulate_people(pv_on, person_on, flip_on, rig_ba.R, rig_ba.t, np.ones(len(keep), bool))
+    tracks = _tracks(pv_on, person_on, flip_on, X, rig_ba, cfg)
+    person = person_on
+    # 5. the world
+    s, Rw, tw, world = people_world(X, scene.skeleton or "", rig_ba, cfg)
+    out = transform_rig(rig_ba, s, Rw, tw)
+    out = Rig(out.cameras, up=np.array([0.0, 0.0, 1.0]), frame_name=world["frame"])
+    res = keypoint_residuals(rig_ba, tracks)
+    report: JsonDict = {
+        "seconds": time.perf_counter() - t0,
+        "camera_pairs": [{"cameras": [rig.cameras[f.a].name, rig.cameras[f.b].name],
+                          "person_pairs": int(len(f.links)), "candidates": f.candidates} for f in fits],
+        "people": int(person.max()) + 1,
+        "tracks": int(len(tracks.X0)),
+        "reprojection_median_px": float(np.median(res)),
+        "start_pair": [rig.cameras[first.a].name, rig.cameras[first.b].name],
+        "world": world,
+        "cameras": {rig.cameras[c].name: {
+            "joints_posed_on": joints_used.get(int(c), 0),
+            "median_px": float(np.median(res[tracks.cam == k])) if (tracks.cam == k).any() else None}
+            for k, c in enumerate(keep)},
+        "unplaced": why,
+    }
+    return PeopleCalibration(out, why, report, tracks)
+
+
+def _tracks(pv: PersonViews, person: I64, flip: np.ndarray, X: F64, rig: Rig, cfg: PeopleConfig) -> Tracks:
+    """Every person's joint seen by two or more cameras as a track, observations more than
+    ``4 pair_px`` off their joint left out."""
+    from gt3dkit.geom.camera import project_points
+
+    m = person >= 0
+    idx = np.flatnonzero(m)
+    uv = np.where(flip[idx, None, None], pv.uv[idx][:, pv.mirror], pv.uv[idx])  # (n, J, 2) px
+    ok = np.where(flip[idx, None], pv.ok[idx][:, pv.mirror], pv.ok[idx])
+    Xd = X[person[idx]]  # (n, J, 3)
+    proj, _ = project_points(Xd, rig.K, rig.dist, rig.R, rig.t, rig.depth_sign)  # (n, J, C, 2)
+    cams = pv.cam[idx]
+    pj = proj[np.arange(len(idx)), :, cams]  # (n, J, 2)
+    err = np.linalg.norm(pj - uv, axis=-1)
+    use = ok & np.isfinite(Xd[..., 0]) & (err < 4 * cfg.pair_px)
+    n, j = np.nonzero(use)
+    key = person[idx][n] * X.shape[1] + j
+    pts, point = np.unique(key, return_inverse=True)
+    count = np.bincount(point)
+    keep_pt = count >= 2
+    sel = keep_pt[point]
+    new = np.cumsum(keep_pt) - 1
+    X0 = X.reshape(-1, 3)[pts[keep_pt]]
+    times = np.zeros(len(X0), np.int64)
+    return Tracks(X0, times, new[point[sel]], cams[n[sel]], uv[n[sel], j[sel]])
+
+
+def people_world(X: F64, skeleton: str, rig: Rig, cfg: PeopleConfig) -> tuple[float, F64, F64, JsonDict]:
+    """The similarity ``X' = s Rw X + tw`` into the people's world (module docstring, step 5) of
+    their joints ``X (n, J, 3)``, and what it rests on."""
+    sk = SKELETONS[skeleton]
+    ix = {j: i for i, j in enumerate(sk.joints)}
+
+    def mid(*names: str) -> F64:
+        pts = [X[:, ix[n]] for n in names if n in ix]
+        return np.nanmean(np.stack(pts), axis=0) if pts else np.full((len(X), 3), np.nan)
+
+    top_name = next((n for n in ("neck", "nose", "head_top") if n in ix and n not in cfg.skip_joints),
+                    None)
+    if top_name is None or "l_ankle" not in ix:
+        raise InputError("--skeleton", f"{skeleton} has no neck, nose or head top and ankles: a rig from "
+                                       "people needs them to find up and the floor")
+    top = mid(top_name)
+    feet = mid("l_ankle", "r_ankle")
+    v = top - feet
+    v = v[np.all(np.isfinite(v), axis=1)]
+    if len(v) < 10:
+        raise InputError("people", f"{len(v)} people with both {top_name} and ankles seen: too few to "
+                                   "find up")
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    up = np.median(v, axis=0)
+    up /= np.linalg.norm(up)
+    canon = sk.canonical()
+    bones = sk.bones
+    meas = np.linalg.norm(X[:, bones[:, 0]] - X[:, bones[:, 1]], axis=-1)  # (n, K)
+    ref = np.linalg.norm(canon[bones[:, 0]] - canon[bones[:, 1]], axis=-1)  # (K,)
+    if cfg.height_m is not None:
+        # the canonical body's neck-to-ankle height over its standing height, times theirs
+        stand = (canon[ix[top_name], 2] - canon[ix["l_ankle"], 2]) / _CANON_HEIGHT_M
+        scale = float(cfg.height_m * stand / np.nanmedian((top - feet) @ up))
+        how = f"the people's median height, {cfg.height_m} m (--height)"
+    else:
+        ratio = ref[None, :] / meas
+        use = (ref > 0.15) & np.isfinite(ratio).any(0)
+        scale = float(np.nanmedian(ratio[:, use]))
+        how = ("typical adult bone lengths (the skeleton's canonical body): median over "
+               f"{int(np.isfinite(ratio[:, use]).sum())} bones seen")
+    # floor: the ankles' height in the canonical body below their median height
+    heights = np.concatenate([X[:, ix[n]] @ up for n in ("l_ankle", "r_ankle") if n in ix])
+    ankle_h = float(canon[ix["l_ankle"], 2]) if "l_ankle" in ix else 0.0
+    floor = float(np.nanmedian(heights)) - ankle_h / scale
+    centre = np.nanmean(feet, axis=0)
+    centre = centre - (centre @ up - floor) * up
+    cam0 = rig.cameras[0].center_world - centre
+    x = cam0 - (cam0 @ up) * up
+    x /= np.linalg.norm(x)
+    y = np.cross(up, x)
+    Rw = np.stack([x, y, up])  # world_from_people rows
+    tw = -scale * Rw @ centre
+    return scale, Rw, tw, {
+        "frame": "the people's world: z up (from how they stand), z = 0 the floor (their ankles), "
+                 "origin their mean position on it, x towards the first camera; metres from " + how,
+        "scale_from": how, "people_frames": int(len(v)),
+    }
+
