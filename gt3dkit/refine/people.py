@@ -40,6 +40,11 @@ from gt3dkit.rig import Rig
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import F64, I64, JsonDict, Scene
 
+#: Camera pairs fitted on their own (those with the most candidate person pairs); the other cameras
+#: are posed on the people already in 3D (:func:`pose_by_people`).
+MAX_PAIR_FITS = 10
+#: RANSAC iterations of OpenCV's five-point solver within one hypothesis's two person pairs.
+HYPOTHESIS_ITERS = 40
 #: Bundle adjustments, each followed by matching the people again through the adjusted rig.
 RELINK_ROUNDS = 3
 #: The standing height (top of the head) of the skeletons' canonical body, metres.
@@ -188,10 +193,10 @@ def fit_pair(pv: PersonViews, a: int, b: int, cfg: PeopleConfig, rng: np.random.
         if len(p1a) < 10:
             continue
         E, _ = cv2.findEssentialMat(p1a, p2a, np.eye(3), method=cv2.RANSAC, prob=0.99,
-                                    threshold=cfg.pair_px / f_px, maxIters=200)
+                                    threshold=cfg.pair_px / f_px, maxIters=HYPOTHESIS_ITERS)
         if E is None:
             continue
-        for Eh in E.reshape(-1, 3, 3):
+        for Eh in E.reshape(-1, 3, 3)[:1]:
             score = int((_pair_errors(pv, Eh, score_on, f_px)[0] < cfg.pair_px).sum())
             if score > best:
                 best, best_E = score, Eh
@@ -328,6 +333,110 @@ def _pose_camera(pv: PersonViews, person: I64, flip: np.ndarray, X: F64, c: int,
     return cv2.Rodrigues(rv)[0], tv.reshape(3), int(len(i))
 
 
+def _reprojection_px(X: F64, xy: F64, R: F64, t: F64, f_px: float) -> F64:
+    """Per candidate the median distance (px) between its joints ``xy (P, J, 2)`` (normalised) and
+    the points ``X (P, J, 3)`` seen through ``R, t``; inf where none is seen."""
+    Xc = X @ R.T + t
+    with np.errstate(all="ignore"):
+        d = np.linalg.norm(Xc[..., :2] / Xc[..., 2:3] - xy, axis=-1) * f_px
+        d = np.where(Xc[..., 2] > 0, d, np.nan)
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(d, axis=1)
+    return np.nan_to_num(med, nan=np.inf)
+
+
+@dataclass(frozen=True)
+class CameraByPeople:
+    """A camera posed on the people already in 3D: cam_from_world ``R, t``, the joints used, and
+    which of its detections are which person (``det``, ``person``, ``flip``)."""
+
+    R: F64
+    t: F64
+    joints: int
+    det: I64
+    person: I64
+    flip: np.ndarray
+
+
+def pose_by_people(pv: PersonViews, person: I64, X: F64, c: int, cfg: PeopleConfig,
+                   rng: np.random.Generator) -> CameraByPeople | None:
+    """Camera ``c`` posed on the people in 3D ``X (n, J, 3)`` without knowing which of its
+    detections is whom: hypotheses from two (detection, person) candidates of two frames (PnP on
+    their joints), scored by the candidates that reproject within ``2 pair_px``; the best refitted
+    on one candidate per detection and per person (PnP RANSAC, then Levenberg-Marquardt)."""
+    import cv2
+
+    people = np.flatnonzero(np.isfinite(X[..., 0]).sum(1) >= 6)
+    if not len(people):
+        return None
+    frame_of = np.full(len(X), -1, np.int64)
+    has = person >= 0
+    frame_of[person[has]] = pv.frame[has]
+    dets = np.flatnonzero(pv.cam == c)
+    pf = frame_of[people]
+    order = np.argsort(pf, kind="stable")
+    lo = np.searchsorted(pf[order], pv.frame[dets], "left")
+    hi = np.searchsorted(pf[order], pv.frame[dets], "right")
+    pairs = [(d, people[order[k]]) for d, a, b in zip(dets, lo, hi, strict=True) for k in range(a, b)]
+    cand = np.array(pairs, dtype=np.int64).reshape(-1, 2)
+    if len(cand) < 2:
+        return None
+    f_px, thr = float(pv.f_px[c]), 2 * cfg.pair_px
+    xy, xym = pv.xy[cand[:, 0]], pv.xy[cand[:, 0]][:, pv.mirror]
+    X3 = X[cand[:, 1]]
+    score_on = np.arange(len(cand)) if len(cand) <= 400 else rng.choice(len(cand), 400, replace=False)
+    best, best_rt = -1, None
+    for _ in range(cfg.hypotheses):
+        k = rng.choice(len(cand), 2, replace=False)
+        if pv.frame[cand[k[0], 0]] == pv.frame[cand[k[1], 0]]:
+            continue
+        obj, img = [], []
+        for q in k:
+            x2 = xym[q] if rng.uniform() < 0.5 else xy[q]
+            m = np.isfinite(X3[q][:, 0]) & np.isfinite(x2[:, 0])
+            obj.append(X3[q][m])
+            img.append(x2[m])
+        o3, i2 = np.concatenate(obj), np.concatenate(img)
+        if len(o3) < 8:
+            continue
+        got, rv, tv, _ = cv2.solvePnPRansac(o3, i2, np.eye(3), None, iterationsCount=HYPOTHESIS_ITERS,
+                                            reprojectionError=thr / f_px, flags=cv2.SOLVEPNP_EPNP)
+        if not got:
+            continue
+        Rh = cv2.Rodrigues(rv)[0]
+        th = tv.reshape(3)
+        e = np.minimum(_reprojection_px(X3[score_on], xy[score_on], Rh, th, f_px),
+                       _reprojection_px(X3[score_on], xym[score_on], Rh, th, f_px))
+        score = int((e < thr).sum())
+        if score > best:
+            best, best_rt = score, (Rh, th)
+    if best_rt is None:
+        return None
+    e0 = _reprojection_px(X3, xy, *best_rt, f_px)
+    e1 = _reprojection_px(X3, xym, *best_rt, f_px)
+    err, fl = np.minimum(e0, e1), e1 < e0
+    good = np.flatnonzero(err < thr)
+    links = _one_per_detection(np.column_stack([cand[good], fl[good].astype(np.int64)]), err[good])
+    if not len(links):
+        return None
+    x2 = np.where(links[:, 2, None, None].astype(bool), pv.xy[links[:, 0]][:, pv.mirror], pv.xy[links[:, 0]])
+    o3 = X[links[:, 1]]
+    ok = np.isfinite(o3[..., 0]) & np.isfinite(x2[..., 0])
+    if ok.sum() < cfg.min_joints:
+        return None
+    got, rv, tv, inl = cv2.solvePnPRansac(o3[ok], x2[ok], np.eye(3), None, iterationsCount=500,
+                                          reprojectionError=thr / f_px, flags=cv2.SOLVEPNP_EPNP)
+    if not got or inl is None or len(inl) < cfg.min_joints:
+        return None
+    i = inl.reshape(-1)
+    rv, tv = cv2.solvePnPRefineLM(o3[ok][i], x2[ok][i], np.eye(3), None, rv, tv)
+    return CameraByPeople(cv2.Rodrigues(rv)[0], tv.reshape(3), int(len(i)), links[:, 0], links[:, 1],
+                          links[:, 2].astype(bool))
+
+
 # ----------------------------------------------------------------------------- the calibration
 
 
@@ -347,7 +456,9 @@ def calibrate_people(scene: Scene, cfg: PeopleConfig | None = None) -> PeopleCal
     pv = person_views(scene, cfg)
     rig = scene.rig
     C = len(rig.cameras)
-    fits = [f for a in range(C) for b in range(a + 1, C) if (f := fit_pair(pv, a, b, cfg, rng)) is not None]
+    by_count = sorted(((len(_candidates(pv, a, b)), a, b) for a in range(C) for b in range(a + 1, C)),
+                      reverse=True)
+    fits = [f for _, a, b in by_count[:MAX_PAIR_FITS] if (f := fit_pair(pv, a, b, cfg, rng)) is not None]
     if not fits:
         raise InputError(scene.root or "input", "no two cameras share enough people to be placed "
                          f"(each camera pair needs {cfg.min_pairs} person pairs whose joints agree)")
@@ -360,12 +471,19 @@ def calibrate_people(scene: Scene, cfg: PeopleConfig | None = None) -> PeopleCal
     joints_used = {first.a: 0, first.b: 0}
     while not placed.all():
         X = triangulate_people(pv, person, flip, R, t, placed)
-        tries = {c: _pose_camera(pv, person, flip, X, c, cfg) for c in np.flatnonzero(~placed)}
-        tries = {c: r for c, r in tries.items() if r is not None}
+        tries: dict[int, CameraByPeople] = {}
+        for c in np.flatnonzero(~placed):
+            linked = _pose_camera(pv, person, flip, X, int(c), cfg)
+            if linked is not None:
+                tries[int(c)] = CameraByPeople(*linked, np.zeros(0, np.int64), np.zeros(0, np.int64),
+                                               np.zeros(0, bool))
+            elif (got := pose_by_people(pv, person, X, int(c), cfg, rng)) is not None:
+                tries[int(c)] = got
         if not tries:
             break
-        c = max(tries, key=lambda k: tries[k][2])
-        R[c], t[c], joints_used[int(c)] = tries[c]
+        c = max(tries, key=lambda k: tries[k].joints)
+        R[c], t[c], joints_used[c] = tries[c].R, tries[c].t, tries[c].joints
+        person[tries[c].det], flip[tries[c].det] = tries[c].person, tries[c].flip
         placed[c] = True
     why = {}
     for c in np.flatnonzero(~placed):
