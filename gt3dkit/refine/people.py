@@ -481,10 +481,12 @@ def calibrate_people(scene: Scene, cfg: PeopleConfig | None = None) -> PeopleCal
                 tries[int(c)] = got
         if not tries:
             break
-        c = max(tries, key=lambda k: tries[k].joints)
-        R[c], t[c], joints_used[c] = tries[c].R, tries[c].t, tries[c].joints
-        person[tries[c].det], flip[tries[c].det] = tries[c].person, tries[c].flip
-        placed[c] = True
+        most = max(r.joints for r in tries.values())
+        for c, r in tries.items():  # every camera posed on at least half the joints of the best
+            if r.joints >= 0.5 * most:
+                R[c], t[c], joints_used[c] = r.R, r.t, r.joints
+                person[r.det], flip[r.det] = r.person, r.flip
+                placed[c] = True
     why = {}
     for c in np.flatnonzero(~placed):
         n = int(((pv.cam == c) & (person >= 0)).sum())
