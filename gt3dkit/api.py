@@ -112,6 +112,14 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     return with_box_model(scene, box_model)
 
 
+def load_detections(root: Path | str, layout: str | None = None, skeleton: str | None = None,
+                    fps: float | None = None, calib: Path | str | None = None,
+                    **panoptic_options: JsonValue) -> Scene:
+    """Each camera's detections as read and checked, with no identities made across cameras (the
+    association needs the rig's poses, which :mod:`gt3dkit.refine.people` is to find)."""
+    return checks.check_scene(read_scene(root, layout, skeleton, fps, calib, None, **panoptic_options))
+
+
 def load_head(root: Path | str, layout: str | None = None, fps: float | None = None,
               calib: Path | str | None = None, box_model: str = "auto") -> Scene | None:
     """:func:`load_scene` without the rows, for a sequence whose windows read their own frames

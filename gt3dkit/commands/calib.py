@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gt3dkit.api import load_scene
+from gt3dkit.api import load_detections, load_scene
 from gt3dkit.calib.board import read_board
 from gt3dkit.calib.boardcal import BoardConfig, calibrate_board, identity_poses
 from gt3dkit.calib.boardinput import board_views, find_cameras
@@ -19,15 +19,19 @@ from gt3dkit.calib.formats import detect_format, read_calibration, write_calibra
 from gt3dkit.calib.formats.native import write as write_native
 from gt3dkit.calib.show import camera_table, rig_warnings
 from gt3dkit.commands.common import (
+    check_output,
     fmt_num,
     load_input,
     print_warnings,
 )
 from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import check_out, write_dir_atomically
+from gt3dkit.io.datasets import detect_layout
 from gt3dkit.io.writers import write_refined_calibration
 from gt3dkit.refine import RefineConfig, refine, scene_warnings
+from gt3dkit.refine.people import PeopleConfig, calibrate_people
 from gt3dkit.rig import LENSES, Camera
+from gt3dkit.types import JsonDict
 from gt3dkit.version import __version__
 from gt3dkit.viz.boardreport import write_board_report
 
@@ -81,6 +85,33 @@ def cmd_calib_refine(args: argparse.Namespace) -> int:
         print(f"{name:<12}{'yes' if c['refined'] else 'no':>8}{100 * c['centre_moved_m']:>10.2f}"
               f"{c['rotation_moved_deg']:>9.3f}{fmt_num(c['median_px_before'], 11, 3)}"
               f"{fmt_num(c['median_px_after'], 10, 3)}  {c['why']}")
+    return 0
+
+
+def cmd_calib_people(args: argparse.Namespace) -> int:
+    """``gt3d calib people``: the cameras' poses from the people in the scene
+    (:mod:`gt3dkit.refine.people`)."""
+    check_output(args.out, (args.input,))
+    opts: JsonDict = {}
+    if args.layout == "panoptic" or (args.layout is None and detect_layout(Path(args.input)) == "panoptic"):
+        opts = {"noise_px": args.noise_px, "seed": args.seed or 0}
+        if args.cameras is not None:
+            opts["cameras"] = [c.strip() for c in args.cameras.split(",") if c.strip()]
+    scene = load_detections(Path(args.input), args.layout, args.skeleton, args.fps, args.intrinsics, **opts)
+    res = calibrate_people(scene, PeopleConfig(height_m=args.height))
+    write_refined_calibration(Path(args.out), scene, res, args.format)
+    print_warnings(scene)
+    rep = res.report
+    print(f"{scene.layout}: {len(res.rig.cameras)} cameras placed from {rep['people']} people-frames "
+          f"({rep['tracks']} joints in the last adjustment, median {rep['reprojection_median_px']:.2f} px) "
+          f"in {rep['seconds']:.1f} s; written to {args.out}")
+    print(f"world: {rep['world']['frame']}")
+    print(f"{'camera':<12}{'centre x':>9}{'y':>8}{'z':>8}{'joints posed on':>16}{'median px':>10}")
+    for cam in res.rig.cameras:
+        c = rep["cameras"][cam.name]
+        x, y, z = cam.center_world
+        print(f"{cam.name:<12}{x:>9.3f}{y:>8.3f}{z:>8.3f}{c['joints_posed_on']:>16}"
+              f"{fmt_num(c['median_px'], 10, 2)}")
     return 0
 
 

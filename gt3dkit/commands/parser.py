@@ -7,7 +7,7 @@ import argparse
 from gt3dkit.api import ESTIMATORS
 from gt3dkit.calib.board import UNITS_M
 from gt3dkit.calib.formats import WRITABLE
-from gt3dkit.commands.calib import cmd_calib_board, cmd_calib_refine, cmd_calib_show
+from gt3dkit.commands.calib import cmd_calib_board, cmd_calib_people, cmd_calib_refine, cmd_calib_show
 from gt3dkit.commands.common import (
     ACCEL,
     FPS,
@@ -196,6 +196,24 @@ def _add_calib(sub: argparse._SubParsersAction[Parser], common: argparse.Argumen
     kr.add_argument("--fps", type=FPS)
     _panoptic_options(kr)
     kr.set_defaults(func=cmd_calib_refine)
+    kp = ksub.add_parser("people", parents=[common],
+                         help="the cameras' poses from the people in the scene's keypoints (no board, "
+                              "no identities; intrinsics given)")
+    kp.add_argument("input", help="input folder with keypoints (any layout); its calibration's intrinsics "
+                                  "are used, its poses are not")
+    kp.add_argument("--out", required=True, help="output folder (cameras.json, calib_report.json)")
+    kp.add_argument("--intrinsics", help="a calibration (any format) whose intrinsics are used instead of "
+                                         "the input's")
+    kp.add_argument("--height", type=number_type(float, 0.5, 2.5),
+                    help="the people's median standing height, m (default: the scale from typical adult "
+                         "bone lengths, about 5 %% uncertain)")
+    kp.add_argument("--format", choices=WRITABLE, default=None,
+                    help="also write the rig in this format (into OUT/calibration/)")
+    kp.add_argument("--layout", choices=tuple(LAYOUTS))
+    kp.add_argument("--skeleton", choices=sorted(SKELETONS))
+    kp.add_argument("--fps", type=FPS)
+    _panoptic_options(kp)
+    kp.set_defaults(func=cmd_calib_people)
     kb = ksub.add_parser("board", parents=[common],
                          help="calibrate a rig from views of a ChArUco board or a checkerboard "
                               "(videos or images)")

@@ -487,11 +487,15 @@ def calibrate_people(scene: Scene, cfg: PeopleConfig | None = None) -> PeopleCal
                 R[c], t[c], joints_used[c] = r.R, r.t, r.joints
                 person[r.det], flip[r.det] = r.person, r.flip
                 placed[c] = True
-    why = {}
-    for c in np.flatnonzero(~placed):
-        n = int(((pv.cam == c) & (person >= 0)).sum())
-        why[rig.cameras[c].name] = (f"shares too few people with the placed cameras ({n} detections "
-                                    f"matched to another camera's; {cfg.min_joints} joints needed)")
+    if not placed.all():
+        c = int(np.flatnonzero(~placed)[0])
+        n = int((pv.cam == c).sum())
+        linked = int(((pv.cam == c) & (person >= 0)).sum())
+        raise InputError(f"{scene.root or 'input'}: camera {rig.cameras[c].name}",
+                         f"cannot be placed: {n} detections, {linked} of them matched to a person the "
+                         f"placed cameras saw, fewer than {cfg.min_joints} joints agreeing with them "
+                         "(too few people or frames shared with the other cameras)")
+    why: dict[str, str] = {}
     keep = np.flatnonzero(placed)
     cams = tuple(replace(rig.cameras[c], R=R[c], t=t[c]) for c in keep)
     start = Rig(cams, up=rig.up, frame_name="people")
