@@ -110,6 +110,19 @@ def person_views(scene: Scene, cfg: PeopleConfig) -> PersonViews:
 # ----------------------------------------------------------------------------- camera pairs
 
 
+#: How often a hypothesis reads a candidate's joints with left and right swapped (detectors swap
+#: them in a minority of views: seen from behind, or sideways).
+SWAPPED_SHARE = 0.15
+
+
+def hypotheses_needed(inliers: float, confidence: float = 0.999) -> int:
+    """RANSAC's adaptive count (Fischler & Bolles 1981; Hartley & Zisserman 4.7.1) for samples of
+    two candidates, each in its right reading, with ``inliers`` the share of candidates that
+    match: ``log(1 - confidence) / log(1 - ((1 - SWAPPED_SHARE) w)^2)``, at least 20."""
+    w = (1 - SWAPPED_SHARE) * min(max(inliers, 1e-6), 1.0)
+    return max(20, int(np.ceil(np.log(1 - confidence) / np.log(max(1 - w * w, 1e-12)))))
+
+
 def sampson_px(E: F64, x1: F64, x2: F64, f_px: float) -> F64:
     """Sampson distances (px, through focal ``f_px``) of normalised pairs ``x1, x2 (..., 2)``
     under the essential matrix ``E (3, 3)`` (``x2^T E x1 = 0``)."""
@@ -178,11 +191,14 @@ def fit_pair(pv: PersonViews, a: int, b: int, cfg: PeopleConfig, rng: np.random.
     frames = pv.frame[P[:, 0]]
     score_on = P if len(P) <= 400 else P[rng.choice(len(P), 400, replace=False)]
     best, best_E = -1, None
-    for _ in range(cfg.hypotheses):
+    needed = cfg.hypotheses
+    tried = 0
+    while tried < needed:
+        tried += 1
         k = rng.choice(len(P), 2, replace=False)
         if frames[k[0]] == frames[k[1]]:
             continue
-        flip = rng.uniform(size=2) < 0.5
+        flip = rng.uniform(size=2) < SWAPPED_SHARE
         p1, p2 = [], []
         for q, fl in zip(k, flip, strict=True):
             x2 = pv.xy[P[q, 1]][pv.mirror] if fl else pv.xy[P[q, 1]]
@@ -196,10 +212,10 @@ def fit_pair(pv: PersonViews, a: int, b: int, cfg: PeopleConfig, rng: np.random.
                                     threshold=cfg.pair_px / f_px, maxIters=HYPOTHESIS_ITERS)
         if E is None:
             continue
-        for Eh in E.reshape(-1, 3, 3)[:1]:
-            score = int((_pair_errors(pv, Eh, score_on, f_px)[0] < cfg.pair_px).sum())
-            if score > best:
-                best, best_E = score, Eh
+        score = int((_pair_errors(pv, E[:3], score_on, f_px)[0] < cfg.pair_px).sum())
+        if score > best:
+            best, best_E = score, E[:3]
+            needed = min(cfg.hypotheses, hypotheses_needed(score / len(score_on)))
     if best_E is None:
         return None
     err, flip = _pair_errors(pv, best_E, P, f_px)
@@ -389,13 +405,16 @@ def pose_by_people(pv: PersonViews, person: I64, X: F64, c: int, cfg: PeopleConf
     X3 = X[cand[:, 1]]
     score_on = np.arange(len(cand)) if len(cand) <= 400 else rng.choice(len(cand), 400, replace=False)
     best, best_rt = -1, None
-    for _ in range(cfg.hypotheses):
+    needed = cfg.hypotheses
+    tried = 0
+    while tried < needed:
+        tried += 1
         k = rng.choice(len(cand), 2, replace=False)
         if pv.frame[cand[k[0], 0]] == pv.frame[cand[k[1], 0]]:
             continue
         obj, img = [], []
         for q in k:
-            x2 = xym[q] if rng.uniform() < 0.5 else xy[q]
+            x2 = xym[q] if rng.uniform() < SWAPPED_SHARE else xy[q]
             m = np.isfinite(X3[q][:, 0]) & np.isfinite(x2[:, 0])
             obj.append(X3[q][m])
             img.append(x2[m])
@@ -413,6 +432,7 @@ def pose_by_people(pv: PersonViews, person: I64, X: F64, c: int, cfg: PeopleConf
         score = int((e < thr).sum())
         if score > best:
             best, best_rt = score, (Rh, th)
+            needed = min(cfg.hypotheses, hypotheses_needed(score / len(score_on)))
     if best_rt is None:
         return None
     e0 = _reprojection_px(X3, xy, *best_rt, f_px)

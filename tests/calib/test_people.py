@@ -1,0 +1,108 @@
+"""gt3dkit.refine.people (``gt3d calib people``): the cameras' poses from the people in a scene with
+no calibration of its poses and no identities, held to the simulator's cameras; its bad input."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gt3dkit.api import load_detections
+from gt3dkit.calib.formats import read_calibration
+from gt3dkit.errors import InputError
+from gt3dkit.refine.common import umeyama
+from gt3dkit.refine.people import PeopleConfig, calibrate_people, mirror_index
+from gt3dkit.rig import Rig
+from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
+
+
+def _gt3d(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "gt3dkit.cli", *args], capture_output=True, text=True)
+
+
+@pytest.fixture(scope="module")
+def people_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Three people walking before six cameras, 40 frames, 1.5 px noise, written with ids that the
+    calibration does not use."""
+    root = tmp_path_factory.mktemp("people")
+    write_skeleton_scene(simulate_skeletons("native", seed=2, frames=40, people=3, noise_px=1.5, cameras=6),
+                         root, "native")
+    return root
+
+
+def _errors(ours: Rig, truth: Rig) -> tuple[np.ndarray, np.ndarray, float]:
+    """Centre (m) and rotation (deg) errors after the similarity that maps the centres, and its scale."""
+    E = np.array([c.center_world for c in ours.cameras])
+    T = np.array([truth.cameras[truth.index(n)].center_world for n in ours.names])
+    s, R, t = umeyama(E, T)
+    centre = np.linalg.norm((s * (R @ E.T)).T + t - T, axis=1)
+    ref = [truth.cameras[truth.index(c.name)].R for c in ours.cameras]
+    rot = [np.degrees(np.arccos(np.clip((np.trace((c.R @ R.T).T @ Rt) - 1) / 2, -1, 1)))
+           for c, Rt in zip(ours.cameras, ref, strict=True)]
+    return centre, np.array(rot), s
+
+
+def test_mirror_index() -> None:
+    np.testing.assert_array_equal(mirror_index(("nose", "l_eye", "r_eye", "l_hip", "r_hip")), [0, 2, 1, 4, 3])
+
+
+def test_rig_from_people_recovers_the_cameras(people_dir: Path) -> None:
+    scene = load_detections(people_dir)
+    res = calibrate_people(scene)
+    assert res.rig.names == scene.rig.names
+    centre, rot, s = _errors(res.rig, scene.rig)
+    assert centre.max() < 0.01, centre  # measured 0.6-1.5 mm over a 5 m rig
+    assert rot.max() < 0.1, rot  # measured 0.015-0.044 degrees
+    assert abs(s - 1) < 0.08  # typical bone lengths: measured 4.9 % (the simulator's people are small)
+    np.testing.assert_allclose(res.rig.up, [0, 0, 1])
+    rep = res.report
+    assert rep["reprojection_median_px"] < 2.5 and rep["people"] >= 100
+
+
+def test_height_sets_the_scale(people_dir: Path) -> None:
+    scene = load_detections(people_dir)
+    a = calibrate_people(scene, PeopleConfig(height_m=1.60))
+    b = calibrate_people(scene, PeopleConfig(height_m=1.80))
+    span = [np.ptp([c.center_world for c in r.rig.cameras], axis=0).max() for r in (a, b)]
+    assert span[1] / span[0] == pytest.approx(1.80 / 1.60, rel=1e-3)
+    assert "--height" in a.report["world"]["scale_from"]
+
+
+def test_cli_writes_the_rig_and_refuses_a_camera_with_no_people(people_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "cal"
+    p = _gt3d("calib", "people", str(people_dir), "--out", str(out), "--format", "toml")
+    assert p.returncode == 0, p.stderr
+    assert len(read_calibration(out / "calibration" / "calibration.toml").cameras) == 6
+    assert json.loads((out / "calib_report.json").read_text())["world"]["scale_from"].startswith("typical")
+    assert "median" in p.stdout and "joints posed on" in p.stdout
+    # one camera's detections moved to frames no other camera has: it shares no one
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    for f in people_dir.iterdir():
+        (bad / f.name).write_bytes(f.read_bytes())
+    with (bad / "keypoints.csv").open(newline="") as fh:
+        rows = list(csv.reader(fh))
+    head, body = rows[0], rows[1:]
+    ci, fi = head.index("camera"), head.index("frame")
+    for r in body:
+        if r[ci] == "00_03":
+            r[fi] = str(int(r[fi]) + 100000)
+    with (bad / "keypoints.csv").open("w", newline="") as fh:
+        csv.writer(fh).writerows([head, *body])
+    out2 = tmp_path / "cal2"
+    p = _gt3d("calib", "people", str(bad), "--out", str(out2))
+    assert p.returncode == 2, p.stderr
+    assert p.stderr.startswith("error: ") and p.stderr.count("\n") == 1
+    assert "camera 00_03" in p.stderr and "cannot be placed" in p.stderr
+    assert not out2.exists()
+
+
+def test_boxes_only_input_is_refused(tmp_path: Path) -> None:
+    write_scene(simulate("native", seed=1, frames=4, people=2), tmp_path, "native")
+    with pytest.raises(InputError, match="no keypoints"):
+        calibrate_people(load_detections(tmp_path))
