@@ -98,7 +98,7 @@ def cmd_calib_people(args: argparse.Namespace) -> int:
         if args.cameras is not None:
             opts["cameras"] = [c.strip() for c in args.cameras.split(",") if c.strip()]
     scene = load_detections(Path(args.input), args.layout, args.skeleton, args.fps, args.intrinsics, **opts)
-    res = calibrate_people(scene, PeopleConfig(height_m=args.height))
+    res = calibrate_people(scene, PeopleConfig(height_m=args.height, focal_known=not args.focal_unknown))
     write_refined_calibration(Path(args.out), scene, res, args.format)
     print_warnings(scene)
     rep = res.report
@@ -106,12 +106,15 @@ def cmd_calib_people(args: argparse.Namespace) -> int:
           f"({rep['tracks']} joints in the last adjustment, median {rep['reprojection_median_px']:.2f} px) "
           f"in {rep['seconds']:.1f} s; written to {args.out}")
     print(f"world: {rep['world']['frame']}")
-    print(f"{'camera':<12}{'centre x':>9}{'y':>8}{'z':>8}{'joints posed on':>16}{'median px':>10}")
+    print(f"{'camera':<12}{'centre x':>9}{'y':>8}{'z':>8}{'fx':>8}{'ctr sd cm':>10}{'rot sd °':>9}"
+          f"{'median px':>10}")
     for cam in res.rig.cameras:
         c = rep["cameras"][cam.name]
         x, y, z = cam.center_world
-        print(f"{cam.name:<12}{x:>9.3f}{y:>8.3f}{z:>8.3f}{c['joints_posed_on']:>16}"
-              f"{fmt_num(c['median_px'], 10, 2)}")
+        print(f"{cam.name:<12}{x:>9.3f}{y:>8.3f}{z:>8.3f}{cam.K[0, 0]:>8.1f}{100 * c['centre_sd_m']:>10.2f}"
+              f"{c['rotation_sd_deg']:>9.3f}{fmt_num(c['median_px'], 10, 2)}")
+    for w in res.warnings:
+        print(f"warning: {w}", file=sys.stderr)
     return 0
 
 

@@ -204,6 +204,9 @@ def _add_calib(sub: argparse._SubParsersAction[Parser], common: argparse.Argumen
     kp.add_argument("--out", required=True, help="output folder (cameras.json, calib_report.json)")
     kp.add_argument("--intrinsics", help="a calibration (any format) whose intrinsics are used instead of "
                                          "the input's")
+    kp.add_argument("--focal-unknown", action="store_true",
+                    help="the intrinsics are not known either: each camera's focal length is found too, "
+                         "from 1.2 x its image's longer side, its principal point at the image's centre")
     kp.add_argument("--height", type=number_type(float, 0.5, 2.5),
                     help="the people's median standing height, m (default: the scale from typical adult "
                          "bone lengths, about 5 %% uncertain)")

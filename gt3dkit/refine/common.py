@@ -18,6 +18,7 @@ from gt3dkit.types import F64, JsonDict
 @dataclass(frozen=True)
 class RefineConfig:
     refine_intrinsics: bool = False  # focal length and distortion too (principal point never)
+    refine_distortion: bool = True  # with refine_intrinsics: the distortion too (False: the focal only)
     folds: int = 2  # time blocks for the held-out check
     # Held-out reprojection must drop by this fraction in every fold. A refit always lowers it
     # somewhat by fitting the detector's or the box model's own biases, consistently over

@@ -88,7 +88,7 @@ def ba_keypoints(rig: Rig, tr: Tracks, variable: np.ndarray, cfg: RefineConfig, 
         rec.add_point3D(tr.X0[p].astype(np.float64), track)
     opts = pycolmap.BundleAdjustmentOptions()
     opts.refine_focal_length = cfg.refine_intrinsics
-    opts.refine_extra_params = cfg.refine_intrinsics
+    opts.refine_extra_params = cfg.refine_intrinsics and cfg.refine_distortion
     opts.refine_principal_point = False
     opts.print_summary = False
     opts.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY

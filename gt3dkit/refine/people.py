@@ -45,6 +45,9 @@ from gt3dkit.types import F64, I64, JsonDict, Scene
 MAX_PAIR_FITS = 10
 #: RANSAC iterations of OpenCV's five-point solver within one hypothesis's two person pairs.
 HYPOTHESIS_ITERS = 40
+#: The focal length a camera of unknown intrinsics starts from, in its image's longer side (COLMAP's
+#: default prior, 1.2).
+FOCAL_START = 1.2
 #: Bundle adjustments, each followed by matching the people again through the adjusted rig.
 RELINK_ROUNDS = 3
 #: The standing height (top of the head) of the skeletons' canonical body, metres.
@@ -66,6 +69,10 @@ class PeopleConfig:
     #: sees a different 3D point. On Shelf's OpenPose output leaving them out brings the camera
     #: centres from 1.1-5.4 cm to 1.2-2.9 cm of Shelf's calibration (rotations 0.36-1.2 to 0.29-0.69 deg).
     skip_joints: tuple[str, ...] = ("l_hip", "r_hip", "pelvis", "l_shoulder", "r_shoulder")
+    #: False: the intrinsics are not known; each camera starts from :func:`focal_from_image` and its
+    #: focal length is adjusted with its pose (its distortion stays none: people's joints, a few
+    #: pixels apart from view to view, do not hold a lens's distortion).
+    focal_known: bool = True
     seed: int = 0
 
 
@@ -92,8 +99,25 @@ def mirror_index(joints: tuple[str, ...]) -> I64:
     return np.array([ix.get(swap[j[:2]] + j[2:], i) if j[:2] in swap else i for i, j in enumerate(joints)])
 
 
+def _normalised(pv: PersonViews, rig: Rig) -> F64:
+    """(N, J, 2) the detections' joints through ``rig``'s intrinsics (NaN where not used)."""
+    xy = normalized_points(pv.uv, rig.K[pv.cam][:, None], rig.dist[pv.cam][:, None])
+    return np.where(pv.ok[..., None], xy, np.nan)
+
+
+def focal_from_image(rig: Rig) -> Rig:
+    """``rig`` with no intrinsics known: the focal length :data:`FOCAL_START` times the image's longer
+    side, the principal point at the image's centre, no distortion (the start COLMAP takes)."""
+    cams = []
+    for c in rig.cameras:
+        f = FOCAL_START * max(c.width, c.height)
+        K = np.array([[f, 0.0, (c.width - 1) / 2], [0.0, f, (c.height - 1) / 2], [0.0, 0.0, 1.0]])
+        cams.append(replace(c, K=K, dist=np.zeros(5), lens="pinhole"))
+    return replace(rig, cameras=tuple(cams))
+
+
 def person_views(scene: Scene, cfg: PeopleConfig) -> PersonViews:
-    o, rig = scene.obs, scene.rig
+    o, rig = scene.obs, (scene.rig if cfg.focal_known else focal_from_image(scene.rig))
     if o.kpt_uv_px is None or scene.skeleton is None:
         raise InputError(scene.root or "input", "no keypoints: a rig is made from people's joints")
     xy = normalized_points(o.kpt_uv_px, rig.K[o.cam][:, None], rig.dist[o.cam][:, None])
@@ -466,6 +490,7 @@ class PeopleCalibration:
     unplaced: dict[str, str]  # camera -> why it could not be placed
     report: JsonDict
     tracks: Tracks  # the people's joints the last adjustment used (camera indices into ``rig``)
+    warnings: tuple[str, ...] = ()  # cameras placed poorly, by their sd
 
 
 def calibrate_people(scene: Scene, cfg: PeopleConfig | None = None) -> PeopleCalibration:
@@ -474,7 +499,7 @@ def calibrate_people(scene: Scene, cfg: PeopleConfig | None = None) -> PeopleCal
     t0 = time.perf_counter()
     rng = np.random.default_rng(cfg.seed)
     pv = person_views(scene, cfg)
-    rig = scene.rig
+    rig = scene.rig if cfg.focal_known else focal_from_image(scene.rig)
     C = len(rig.cameras)
     by_count = sorted(((len(_candidates(pv, a, b)), a, b) for a in range(C) for b in range(a + 1, C)),
                       reverse=True)
@@ -526,20 +551,25 @@ def calibrate_people(scene: Scene, cfg: PeopleConfig | None = None) -> PeopleCal
                         pv.mirror, pv.f_px[keep])
     person_on, flip_on = person[on], flip[on]
     rig_ba = start
-    for _ in range(RELINK_ROUNDS):
+    ba_cfg = RefineConfig(refine_intrinsics=not cfg.focal_known, refine_distortion=False)
+    for _ in range(RELINK_ROUNDS if cfg.focal_known else 2 * RELINK_ROUNDS):
         X = triangulate_people(pv_on, person_on, flip_on, rig_ba.R, rig_ba.t, np.ones(len(keep), bool))
-        tracks = _tracks(pv_on, person_on, flip_on, X, rig_ba, cfg)
+        tracks, _ = _tracks(pv_on, person_on, flip_on, X, rig_ba, cfg)
         sigma = float(np.median(keypoint_residuals(rig_ba, tracks)))
-        rig_ba = ba_keypoints(rig_ba, tracks, np.ones(len(keep), bool), RefineConfig(), max(sigma, 0.5))
+        rig_ba = ba_keypoints(rig_ba, tracks, np.ones(len(keep), bool), ba_cfg, max(sigma, 0.5))
+        if not cfg.focal_known:  # the joints' rays through the adjusted intrinsics
+            pv_on = replace(pv_on, xy=_normalised(pv_on, rig_ba), f_px=rig_ba.K[:, 0, 0].copy())
         person_on, flip_on = people_of(pv_on, rig_links(pv_on, rig_ba, cfg))
     X = triangulate_people(pv_on, person_on, flip_on, rig_ba.R, rig_ba.t, np.ones(len(keep), bool))
-    tracks = _tracks(pv_on, person_on, flip_on, X, rig_ba, cfg)
+    tracks, joint_of = _tracks(pv_on, person_on, flip_on, X, rig_ba, cfg)
     person = person_on
     # 5. the world
     s, Rw, tw, world = people_world(X, scene.skeleton or "", rig_ba, cfg)
     out = transform_rig(rig_ba, s, Rw, tw)
     out = Rig(out.cameras, up=np.array([0.0, 0.0, 1.0]), frame_name=world["frame"])
     res = keypoint_residuals(rig_ba, tracks)
+    c_sd, r_sd = pose_sd(rig_ba, tracks, joint_of)
+    c_sd *= s  # into metres
     report: JsonDict = {
         "seconds": time.perf_counter() - t0,
         "camera_pairs": [{"cameras": [rig.cameras[f.a].name, rig.cameras[f.b].name],
@@ -551,16 +581,31 @@ def calibrate_people(scene: Scene, cfg: PeopleConfig | None = None) -> PeopleCal
         "world": world,
         "cameras": {rig.cameras[c].name: {
             "joints_posed_on": joints_used.get(int(c), 0),
+            "centre_sd_m": float(c_sd[k]), "rotation_sd_deg": float(r_sd[k]),
             "median_px": float(np.median(res[tracks.cam == k])) if (tracks.cam == k).any() else None}
             for k, c in enumerate(keep)},
         "unplaced": why,
     }
-    return PeopleCalibration(out, why, report, tracks)
+    return PeopleCalibration(out, why, report, tracks, poorly_placed(out, c_sd, r_sd))
 
 
-def _tracks(pv: PersonViews, person: I64, flip: np.ndarray, X: F64, rig: Rig, cfg: PeopleConfig) -> Tracks:
+def poorly_placed(rig: Rig, centre_sd_m: F64, rotation_sd_deg: F64) -> tuple[str, ...]:
+    """Warnings for cameras whose centre or rotation sd is 3 times the rig's median and beyond 1 cm
+    or 0.1 degree (fewer people, or people only at one side of its view)."""
+    out = []
+    mc, mr = float(np.nanmedian(centre_sd_m)), float(np.nanmedian(rotation_sd_deg))
+    for cam, c, r in zip(rig.cameras, centre_sd_m, rotation_sd_deg, strict=True):
+        if (c > 3 * mc and c > 0.01) or (r > 3 * mr and r > 0.1) or not (np.isfinite(c) and np.isfinite(r)):
+            out.append(f"camera {cam.name}: placed poorly (centre sd {100 * c:.1f} cm, rotation sd "
+                       f"{r:.2f} deg; the rig's median {100 * mc:.1f} cm, {mr:.2f} deg): few people in its "
+                       "view, or all at one side of it")
+    return tuple(out)
+
+
+def _tracks(pv: PersonViews, person: I64, flip: np.ndarray, X: F64, rig: Rig, cfg: PeopleConfig
+            ) -> tuple[Tracks, I64]:
     """Every person's joint seen by two or more cameras as a track, observations more than
-    ``4 pair_px`` off their joint left out."""
+    ``4 pair_px`` off their joint left out; and each observation's joint."""
     from gt3dkit.geom.camera import project_points
 
     m = person >= 0
@@ -582,7 +627,49 @@ def _tracks(pv: PersonViews, person: I64, flip: np.ndarray, X: F64, rig: Rig, cf
     new = np.cumsum(keep_pt) - 1
     X0 = X.reshape(-1, 3)[pts[keep_pt]]
     times = np.zeros(len(X0), np.int64)
-    return Tracks(X0, times, new[point[sel]], cams[n[sel]], uv[n[sel], j[sel]])
+    return Tracks(X0, times, new[point[sel]], cams[n[sel]], uv[n[sel], j[sel]]), j[sel]
+
+
+def pose_sd(rig: Rig, tracks: Tracks, joint: I64) -> tuple[F64, F64]:
+    """Per camera the sd of its centre (rig units) and of its rotation (deg), the people's joints
+    held where they were triangulated: a jackknife over the joint types (its pose fitted again
+    without each in turn; Efron & Stein 1981). A detector places each joint type with a bias of
+    its own in each view (an elbow on the sleeve's edge, an ankle on the shoe), the same in every
+    frame: thousands of observations of ~15 joint types are ~15 independent errors, which a
+    per-observation ``s^2 (J^T J)^-1`` would count as thousands (on Shelf it gives 0.1 cm where the
+    camera is 1-3 cm from Shelf's calibration). NaN with fewer than 5 joint types seen."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    from gt3dkit.geom.camera import project_points
+
+    C = len(rig.cameras)
+    c_sd, r_sd = np.full(C, np.nan), np.full(C, np.nan)
+    for c, cam in enumerate(rig.cameras):
+        m = tracks.cam == c
+        kinds = np.unique(joint[m])
+        if len(kinds) < 5:
+            continue
+        X, uv, jt = tracks.X0[tracks.point[m]], tracks.uv[m], joint[m]
+
+        def resid(p: F64, X: F64, uv: F64, c: int = c) -> F64:
+            R = Rotation.from_rotvec(p[:3]).as_matrix()
+            px, _ = project_points(X, rig.K[c : c + 1], rig.dist[c : c + 1], R[None], p[None, 3:])
+            return np.nan_to_num((px[:, 0] - uv).reshape(-1), nan=0.0)
+
+        p0 = np.r_[Rotation.from_matrix(cam.R).as_rotvec(), cam.t]
+        fits = []
+        for k in kinds:
+            use = jt != k
+            fits.append(least_squares(resid, p0, args=(X[use], uv[use]), loss="soft_l1", f_scale=3.0).x)
+        P = np.array(fits)  # (K, 6)
+        n = len(P)
+        rot = Rotation.from_rotvec(P[:, :3]) * Rotation.from_rotvec(p0[:3]).inv()
+        dr = rot.as_rotvec()  # (K, 3) small turns from the full fit
+        ctr = np.array([-Rotation.from_rotvec(p[:3]).as_matrix().T @ p[3:] for p in P])
+        r_sd[c] = float(np.degrees(np.sqrt((n - 1) / n * np.sum((dr - dr.mean(0)) ** 2) / 3)))
+        c_sd[c] = float(np.sqrt((n - 1) / n * np.sum((ctr - ctr.mean(0)) ** 2) / 3))
+    return c_sd, r_sd
 
 
 def people_world(X: F64, skeleton: str, rig: Rig, cfg: PeopleConfig) -> tuple[float, F64, F64, JsonDict]:
