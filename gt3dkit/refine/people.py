@@ -27,12 +27,16 @@ The intrinsics are given (the input's calibration or ``--intrinsics``); the pose
 from __future__ import annotations
 
 import time
+import warnings
 from collections import deque
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from gt3dkit.errors import InputError
+from gt3dkit.geom.camera import project_points
 from gt3dkit.geom.triangulate import normalized_points, triangulate_weighted
 from gt3dkit.refine.common import RefineConfig, transform_rig
 from gt3dkit.refine.keypoints import Tracks, ba_keypoints, keypoint_residuals
@@ -193,8 +197,6 @@ def _pair_errors(pv: PersonViews, E: F64, P: I64, f_px: float) -> tuple[F64, np.
     that reading swaps ``b``'s left and right."""
     x1, x2 = pv.xy[P[:, 0]], pv.xy[P[:, 1]]
     with np.errstate(all="ignore"):
-        import warnings
-
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             e = np.nanmedian(sampson_px(E, x1, x2, f_px), axis=1)
@@ -380,8 +382,6 @@ def _reprojection_px(X: F64, xy: F64, R: F64, t: F64, f_px: float) -> F64:
     with np.errstate(all="ignore"):
         d = np.linalg.norm(Xc[..., :2] / Xc[..., 2:3] - xy, axis=-1) * f_px
         d = np.where(Xc[..., 2] > 0, d, np.nan)
-        import warnings
-
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             med = np.nanmedian(d, axis=1)
@@ -606,8 +606,6 @@ def _tracks(pv: PersonViews, person: I64, flip: np.ndarray, X: F64, rig: Rig, cf
             ) -> tuple[Tracks, I64]:
     """Every person's joint seen by two or more cameras as a track, observations more than
     ``4 pair_px`` off their joint left out; and each observation's joint."""
-    from gt3dkit.geom.camera import project_points
-
     m = person >= 0
     idx = np.flatnonzero(m)
     uv = np.where(flip[idx, None, None], pv.uv[idx][:, pv.mirror], pv.uv[idx])  # (n, J, 2) px
@@ -638,11 +636,6 @@ def pose_sd(rig: Rig, tracks: Tracks, joint: I64) -> tuple[F64, F64]:
     frame: thousands of observations of ~15 joint types are ~15 independent errors, which a
     per-observation ``s^2 (J^T J)^-1`` would count as thousands (on Shelf it gives 0.1 cm where the
     camera is 1-3 cm from Shelf's calibration). NaN with fewer than 5 joint types seen."""
-    from scipy.optimize import least_squares
-    from scipy.spatial.transform import Rotation
-
-    from gt3dkit.geom.camera import project_points
-
     C = len(rig.cameras)
     c_sd, r_sd = np.full(C, np.nan), np.full(C, np.nan)
     for c, cam in enumerate(rig.cameras):

@@ -79,7 +79,7 @@ def test_cli_writes_the_rig_and_refuses_a_camera_with_no_people(people_dir: Path
     assert p.returncode == 0, p.stderr
     assert len(read_calibration(out / "calibration" / "calibration.toml").cameras) == 6
     assert json.loads((out / "calib_report.json").read_text())["world"]["scale_from"].startswith("typical")
-    assert "median" in p.stdout and "joints posed on" in p.stdout
+    assert "median" in p.stdout and "ctr sd cm" in p.stdout
     # one camera's detections moved to frames no other camera has: it shares no one
     bad = tmp_path / "bad"
     bad.mkdir()
