@@ -29,7 +29,8 @@ from __future__ import annotations
 import time
 import warnings
 from collections import deque
-from dataclasses import dataclass, replace
+from collections.abc import Iterator
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -163,6 +164,33 @@ def sampson_px(E: F64, x1: F64, x2: F64, f_px: float) -> F64:
     return d * f_px
 
 
+@dataclass
+class TwoFrameSamples:
+    """Samples of two candidates (indices into ``frames``, each candidate's frame) from two
+    frames, as many as RANSAC's adaptive count asks once a hypothesis is :meth:`found` (at most
+    ``limit``)."""
+
+    frames: I64
+    limit: int
+    rng: np.random.Generator
+    needed: int = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.needed = self.limit
+
+    def __iter__(self) -> Iterator[I64]:
+        tried = 0
+        while tried < self.needed:
+            tried += 1
+            k = self.rng.choice(len(self.frames), 2, replace=False)
+            if self.frames[k[0]] != self.frames[k[1]]:
+                yield k
+
+    def found(self, share: float) -> None:
+        """The best hypothesis so far matches ``share`` of the candidates."""
+        self.needed = min(self.limit, hypotheses_needed(share))
+
+
 @dataclass(frozen=True)
 class PairFit:
     """Camera ``b``'s pose relative to ``a`` (``X_b = R X_a + t``, ``|t| = 1``) and the matched
@@ -217,13 +245,8 @@ def fit_pair(pv: PersonViews, a: int, b: int, cfg: PeopleConfig, rng: np.random.
     frames = pv.frame[P[:, 0]]
     score_on = P if len(P) <= 400 else P[rng.choice(len(P), 400, replace=False)]
     best, best_E = -1, None
-    needed = cfg.hypotheses
-    tried = 0
-    while tried < needed:
-        tried += 1
-        k = rng.choice(len(P), 2, replace=False)
-        if frames[k[0]] == frames[k[1]]:
-            continue
+    samples = TwoFrameSamples(frames, cfg.hypotheses, rng)
+    for k in samples:
         flip = rng.uniform(size=2) < SWAPPED_SHARE
         p1, p2 = [], []
         for q, fl in zip(k, flip, strict=True):
@@ -241,7 +264,7 @@ def fit_pair(pv: PersonViews, a: int, b: int, cfg: PeopleConfig, rng: np.random.
         score = int((_pair_errors(pv, E[:3], score_on, f_px)[0] < cfg.pair_px).sum())
         if score > best:
             best, best_E = score, E[:3]
-            needed = min(cfg.hypotheses, hypotheses_needed(score / len(score_on)))
+            samples.found(score / len(score_on))
     if best_E is None:
         return None
     err, flip = _pair_errors(pv, best_E, P, f_px)
@@ -429,13 +452,8 @@ def pose_by_people(pv: PersonViews, person: I64, X: F64, c: int, cfg: PeopleConf
     X3 = X[cand[:, 1]]
     score_on = np.arange(len(cand)) if len(cand) <= 400 else rng.choice(len(cand), 400, replace=False)
     best, best_rt = -1, None
-    needed = cfg.hypotheses
-    tried = 0
-    while tried < needed:
-        tried += 1
-        k = rng.choice(len(cand), 2, replace=False)
-        if pv.frame[cand[k[0], 0]] == pv.frame[cand[k[1], 0]]:
-            continue
+    samples = TwoFrameSamples(pv.frame[cand[:, 0]], cfg.hypotheses, rng)
+    for k in samples:
         obj, img = [], []
         for q in k:
             x2 = xym[q] if rng.uniform() < SWAPPED_SHARE else xy[q]
@@ -456,7 +474,7 @@ def pose_by_people(pv: PersonViews, person: I64, X: F64, c: int, cfg: PeopleConf
         score = int((e < thr).sum())
         if score > best:
             best, best_rt = score, (Rh, th)
-            needed = min(cfg.hypotheses, hypotheses_needed(score / len(score_on)))
+            samples.found(score / len(score_on))
     if best_rt is None:
         return None
     e0 = _reprojection_px(X3, xy, *best_rt, f_px)
