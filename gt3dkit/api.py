@@ -117,7 +117,8 @@ def load_detections(root: Path | str, layout: str | None = None, skeleton: str |
                     **panoptic_options: JsonValue) -> Scene:
     """Each camera's detections as read and checked, with no identities made across cameras (the
     association needs the rig's poses, which :mod:`gt3dkit.refine.people` is to find)."""
-    return checks.check_scene(read_scene(root, layout, skeleton, fps, calib, None, **panoptic_options))
+    return checks.check_scene(read_scene(root, layout, skeleton, fps, calib, None, **panoptic_options),
+                              identities=False)
 
 
 def load_head(root: Path | str, layout: str | None = None, fps: float | None = None,

@@ -135,9 +135,11 @@ def _beyond_lens_model(scene: Scene, obs: Observations) -> tuple[Observations, l
     return dataclasses.replace(obs, box_xyxy_px=box, kpt_uv_px=kpt, kpt_conf=conf).select(keep), out
 
 
-def check_scene(scene: Scene, whole: bool = True) -> Scene:
+def check_scene(scene: Scene, whole: bool = True, identities: bool = True) -> Scene:
     """``scene`` with off-image annotations dropped and its odd-input warnings added; ``whole``:
-    the scene is the whole input (else some of its frames: none left is no error)."""
+    the scene is the whole input (else some of its frames: none left is no error);
+    ``identities``: its ids name objects across cameras and frames (False: they do not yet, so
+    nothing is dropped or warned of by them: objects seen by one camera, gaps, redundancy)."""
     obs = scene.obs
     wh = scene.rig.wh[obs.cam]  # (N, 2)
     warnings = list(scene.warnings)
@@ -181,6 +183,8 @@ def check_scene(scene: Scene, whole: bool = True) -> Scene:
     warnings += w
     if len(obs) == 0 and whole:
         raise InputError(scene.root or "input", "no annotation lies where its camera's lens model is valid")
+    if not identities:
+        return dataclasses.replace(scene, obs=obs, warnings=tuple(warnings))
 
     n_cams = _cameras_per_object(obs.track_id, obs.cam)
     boxed = set(obs.track_id[obs.has_box].tolist())
