@@ -455,6 +455,10 @@ def _load_scene(out: Path, meta: JsonDict, why: str) -> tuple[Scene, list[str]]:
         notes.append(f"input files changed since the run: {', '.join(changed[:5])}"
                      + (" ..." if len(changed) > 5 else "") + " (today's annotations beside the run's "
                      "estimate: run gt3d reconstruct again to bring them together)")
+    people = (meta.get("calibration_from_people") or {}).get("rig")
+    if people:
+        scene = dataclasses.replace(scene, rig=rig_of_doc(people, f"{where}: calibration_from_people"))
+        notes.append("cameras: the rig found from the people (meta.json calibration_from_people)")
     refined = (meta.get("calibration_refinement") or {}).get("refined_rig")
     if refined:
         scene = dataclasses.replace(scene, rig=rig_of_doc(refined, f"{where}: calibration_refinement"))

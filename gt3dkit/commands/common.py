@@ -9,6 +9,7 @@ import dataclasses
 import os
 import signal
 import sys
+import tempfile
 import threading
 import time
 import traceback
@@ -20,7 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from gt3dkit.api import load_head, load_scene, take_rows
+from gt3dkit.api import load_detections, load_head, load_scene, take_rows
+from gt3dkit.calib.formats.native import cameras_doc
+from gt3dkit.calib.formats.native import write as write_native
 from gt3dkit.errors import InputError
 from gt3dkit.eval.metrics import box_errors, relabel_to_truth
 from gt3dkit.eval.pose import mpjpe_by_id, score_tracks
@@ -28,6 +31,7 @@ from gt3dkit.eval.tracking import TrackingTally, tracking_scores
 from gt3dkit.fusion.base import REGISTRY
 from gt3dkit.io.atomic import check_out
 from gt3dkit.io.datasets import detect_layout
+from gt3dkit.refine.people import calibrate_people
 from gt3dkit.types import BOX_MODEL_REGISTRY, GroundTruth, JsonDict, Options, Scene, TrackSet
 
 #: Published numbers of Ma et al. for the datasets we can compare on.
@@ -89,6 +93,9 @@ def load_input(args: argparse.Namespace, by_windows: bool = False) -> Any:
 
     if getattr(args, "out", None) is not None:
         check_output(args.out, (args.input,))
+    if getattr(args, "calib", None) == "people":
+        raise InputError("--calib", "people applies to gt3d reconstruct; gt3d calib people writes the rig "
+                                    "for the other commands")
     layout = args.layout or detect_layout(Path(args.input))
     opts: JsonDict = {}
     if layout == "panoptic":
@@ -119,6 +126,33 @@ def load_input(args: argparse.Namespace, by_windows: bool = False) -> Any:
         # on a native input): refused, not ignored
         raise InputError("--box-model", f"applies to inputs with boxes: {args.input} has keypoints only")
     return scene
+
+
+def scene_from_people(args: argparse.Namespace) -> tuple[Scene, JsonDict]:
+    """``--calib people``: the input with the rig :func:`gt3dkit.refine.people.calibrate_people`
+    finds from its people (its own calibration's intrinsics), and what to record of it in
+    meta.json (the rig and the report)."""
+    layout = args.layout or detect_layout(Path(args.input))
+    opts: JsonDict = {}
+    if layout == "panoptic":
+        opts = {"noise_px": args.noise_px, "seed": args.seed or 0}
+        if args.cameras is not None:
+            opts["cameras"] = [c.strip() for c in args.cameras.split(",") if c.strip()]
+    det = load_detections(Path(args.input), layout, args.skeleton, getattr(args, "fps", None), None, **opts)
+    res = calibrate_people(det)
+    for w in res.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    with tempfile.TemporaryDirectory() as tmp:
+        write_native(res.rig, Path(tmp) / "cameras.json", fps=None if det.fps_assumed else det.fps)
+        args_calib, args.calib = args.calib, str(Path(tmp) / "cameras.json")
+        try:
+            scene = load_input(args)
+        finally:
+            args.calib = args_calib
+    scene = dataclasses.replace(scene, load_options={**scene.load_options, "calib": None})
+    print(f"cameras placed from the people: {len(res.rig.cameras)} ({res.report['seconds']:.1f} s, median "
+          f"{res.report['reprojection_median_px']:.2f} px; meta.json: calibration_from_people)")
+    return scene, {"calibration_from_people": {**res.report, "rig": cameras_doc(res.rig, None)}}
 
 
 def box_model_note(scene: Scene) -> str:

@@ -58,7 +58,8 @@ def _scene_options(p: argparse.ArgumentParser) -> None:
     _panoptic_options(p)
     p.add_argument("--fps", type=FPS, help="frame-number rate (default: the layout's)")
     p.add_argument("--calib", help="calibration file or folder in any format (cameras.json, WILDTRACK/"
-                   "MultiviewX calibrations/, OpenCV .yml/.xml, Anipose .toml, COLMAP) for the input's own")
+                   "MultiviewX calibrations/, OpenCV .yml/.xml, Anipose .toml, COLMAP) for the input's own; "
+                   "reconstruct: 'people' finds the poses from the people first (see gt3d calib people)")
     p.add_argument("--association", metavar="FILE", help="per-camera ids (mot): an edited association.csv "
                    "whose rows override the automatic cross-view association")
     p.add_argument("--segments", metavar="FILE", help="an edited segments.csv: its pieces replace the "

@@ -26,6 +26,7 @@ from gt3dkit.commands.common import (
     load_input,
     print_warnings,
     report_truth,
+    scene_from_people,
 )
 from gt3dkit.compare import compare
 from gt3dkit.errors import InputError
@@ -37,7 +38,7 @@ from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv
 from gt3dkit.many import read_manifest, run_many
 from gt3dkit.project import project
 from gt3dkit.refine import refine, rig_digest
-from gt3dkit.types import Options, Scene
+from gt3dkit.types import JsonDict, Options, Scene
 from gt3dkit.viz.report import write_report
 from gt3dkit.windows import Cluster, Plan, auto_plan, reconstruct_windows
 
@@ -64,12 +65,15 @@ def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | 
     """``gt3d reconstruct``'s run, on ``cluster`` where given."""
     stages = Stages(5, args.quiet)
     stages("loading")
-    scene = load_input(args, by_windows=args.window != 0 and over_time(args.estimator)
-                       and not args.refine_calib and args.every_frame is None)
-    extra = None
+    extra: JsonDict | None = None
+    if args.calib == "people":
+        scene, extra = scene_from_people(args)
+    else:
+        scene = load_input(args, by_windows=args.window != 0 and over_time(args.estimator)
+                           and not args.refine_calib and args.every_frame is None)
     if args.refine_calib:
         res = refine(scene)
-        extra = {"calibration_refinement": {**res.report, "rig_sha256": {
+        extra = {**(extra or {}), "calibration_refinement": {**res.report, "rig_sha256": {
             "input": rig_digest(scene.rig), "refined": rig_digest(res.rig)},
             "refined_rig": json.loads(json.dumps(cameras_doc(res.rig, None)))}}
         scene = dataclasses.replace(scene, rig=res.rig)

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gt3dkit.api import load_detections
+from gt3dkit.api import load_detections, load_run
 from gt3dkit.calib.formats import read_calibration
 from gt3dkit.errors import InputError
 from gt3dkit.refine.common import umeyama
@@ -106,3 +106,21 @@ def test_boxes_only_input_is_refused(tmp_path: Path) -> None:
     write_scene(simulate("native", seed=1, frames=4, people=2), tmp_path, "native")
     with pytest.raises(InputError, match="no keypoints"):
         calibrate_people(load_detections(tmp_path))
+
+
+def test_reconstruct_with_the_rig_from_the_people(people_dir: Path, tmp_path: Path) -> None:
+    """``gt3d reconstruct --calib people``: the poses found first, the run in the people's world, the
+    rig in meta.json (where the report's re-reading takes it from); other commands refuse it."""
+    out = tmp_path / "run"
+    p = _gt3d("reconstruct", str(people_dir), "--calib", "people", "--out", str(out))
+    assert p.returncode == 0, p.stderr
+    assert "cameras placed from the people: 6" in p.stdout
+    meta = json.loads((out / "meta.json").read_text())
+    people = meta["calibration_from_people"]
+    assert len(people["rig"]["cameras"]) == 6 and people["reprojection_median_px"] < 2.5
+    assert meta["input"]["load"]["calib"] is None
+    run = load_run(out, "the test reads it back")
+    assert any("from the people" in n for n in run.notes)
+    np.testing.assert_allclose(run.scene.rig.t, [c["t"] for c in people["rig"]["cameras"]])
+    p = _gt3d("compare", str(people_dir), "--calib", "people", "--out", str(tmp_path / "cmp"))
+    assert p.returncode == 2 and "people applies to gt3d reconstruct" in p.stderr
