@@ -1,0 +1,287 @@
+"""Each camera's clock from the people in the scene: how late its frames are against the first
+camera's, to a fraction of a frame (issue 63).
+
+Given a rig (the input's, or :func:`gt3dkit.refine.people.calibrate_people`'s):
+
+1. **Each camera's people over time**: a detection is followed to the next frame's detection of the
+   same camera whose joints lie nearest (mutually nearest, within :data:`FOLLOW_GATE`): tracks.
+2. **Each camera pair's whole-frame offset**: for each shift ``k`` within ``max_frames``, every
+   detection of camera ``a`` at frame ``f`` against every one of camera ``b`` at ``f + k`` (the
+   median Sampson distance of their joints under the rig's essential matrix), gathered per pair of
+   tracks (the median over the frames they share); each of ``a``'s tracks takes its best track of
+   ``b``. A person's whole path, not one frame's pose, must agree: where people move, the wrong
+   ``k`` does not fit.
+3. **The fraction**: the matched tracks' joints at ``f`` against ``b``'s track read at ``f + s``
+   (joints interpolated between its frames) for ``s`` within a frame of ``k``, in ``step`` steps:
+   the mean of the squared Sampson distances (each capped at :data:`CAP_PX`) over one fixed set of
+   joints, smallest at the offset; a parabola through the smallest three.
+4. **One offset per camera**: ``late_b - late_a = s_ab`` over every pair, the first camera at 0,
+   least squares reweighted (Cauchy at half a frame: a wrong pair is down-weighted, and cannot cut
+   a camera off). Each camera's sd from the residuals of the pairs within half a frame.
+
+A camera ``late`` by ``d`` frames shows at its frame ``f`` what the first camera shows at ``f - d``.
+The frame rates are taken as equal. Where the people hardly move, the offset is not observable:
+the pair's curve is flat and its sd says so.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from gt3dkit.errors import InputError
+from gt3dkit.refine.people import PersonViews, _candidates, _pair_errors
+from gt3dkit.rig import Rig
+from gt3dkit.types import F64, I64, JsonDict
+
+#: A detection is followed to the next frame's nearest within this mean joint distance (normalised
+#: image coordinates: 0.05 is ~50 px at a focal length of 1000 px).
+FOLLOW_GATE = 0.05
+#: Gauss-Newton steps of the fraction (module docstring, step 3).
+GN_STEPS = 6
+#: Sampson distances above this (px) count as this much in the fine search (a detector's misplaced
+#: joint must not decide it).
+CAP_PX = 10.0
+
+
+@dataclass(frozen=True)
+class ClockConfig:
+    max_frames: int = 10  # the largest offset searched, frames
+    step: float = 0.05  # the fine search's step, frames
+    min_frames: int = 10  # frames a pair of tracks must share to count
+    match_px: float = 6.0  # a pair of tracks matches below this median Sampson distance
+
+
+@dataclass(frozen=True)
+class Clocks:
+    """``late_frames (C,)``: camera ``c``'s frame ``f`` shows what the first camera shows at
+    ``f - late_frames[c]``; ``sd_frames (C,)``; per camera pair what it measured."""
+
+    names: tuple[str, ...]
+    late_frames: F64
+    sd_frames: F64
+    pairs: tuple[JsonDict, ...]
+
+    def report(self) -> JsonDict:
+        return {"late_frames": dict(zip(self.names, self.late_frames.round(4).tolist(), strict=True)),
+                "sd_frames": dict(zip(self.names, self.sd_frames.round(4).tolist(), strict=True)),
+                "pairs": list(self.pairs)}
+
+
+def follow(pv: PersonViews) -> tuple[I64, I64]:
+    """(N,) each detection's successor and predecessor: the same camera's detection in the next
+    (previous) frame whose joints lie nearest, both ways, within :data:`FOLLOW_GATE` (-1: none)."""
+    N = len(pv.cam)
+    succ = np.full(N, -1, np.int64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        centre = np.nanmean(pv.xy, axis=1)  # (N, 2)
+    key = pv.cam * (int(pv.frame.max()) + 2) + pv.frame
+    order = np.argsort(key, kind="stable")
+    uniq, starts = np.unique(key[order], return_index=True)
+    ends = np.r_[starts[1:], N]
+    groups = {int(k): order[s:e] for k, s, e in zip(uniq, starts, ends, strict=True)}
+    for k, here in groups.items():
+        there = groups.get(k + 1)
+        if there is None:
+            continue
+        d = np.linalg.norm(centre[here][:, None] - centre[there][None], axis=-1)
+        d = np.where(np.isfinite(d), d, np.inf)
+        i_best, j_best = np.argmin(d, axis=1), np.argmin(d, axis=0)
+        for i, j in enumerate(i_best):
+            if j_best[j] == i and d[i, j] < FOLLOW_GATE:
+                succ[here[i]] = there[j]
+    pred = np.full(N, -1, np.int64)
+    has = succ >= 0
+    pred[succ[has]] = np.flatnonzero(has)
+    return succ, pred
+
+
+def tracks_of(succ: I64, pred: I64) -> I64:
+    """(N,) each detection's track (the chain of successors it belongs to)."""
+    track = np.full(len(succ), -1, np.int64)
+    n = 0
+    for s in np.flatnonzero(pred < 0):
+        i = int(s)
+        while i >= 0:
+            track[i] = n
+            i = int(succ[i])
+        n += 1
+    return track
+
+
+def signed_px(E: F64, x1: F64, x2: F64, f_px: float) -> F64:
+    """The signed Sampson distance (px) of normalised pairs ``x1, x2 (..., 2)`` (:func:`sampson_px`
+    with the sign of ``x2^T E x1``)."""
+    h1 = np.concatenate([x1, np.ones(x1.shape[:-1] + (1,))], -1)
+    h2 = np.concatenate([x2, np.ones(x2.shape[:-1] + (1,))], -1)
+    Ex1, Etx2 = h1 @ E.T, h2 @ E
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.sum(h2 * Ex1, -1) / np.sqrt(Ex1[..., 0] ** 2 + Ex1[..., 1] ** 2 + Etx2[..., 0] ** 2
+                                              + Etx2[..., 1] ** 2) * f_px
+
+
+def _essential(rig: Rig, a: int, b: int) -> F64:
+    R = rig.R[b] @ rig.R[a].T
+    t = rig.t[b] - R @ rig.t[a]
+    return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ R
+
+
+def _walk(succ: I64, pred: I64, start: I64, steps: int) -> I64:
+    """(n,) the detection ``steps`` frames along each one's track from ``start`` (-1: none)."""
+    out = start.copy()
+    link = succ if steps > 0 else pred
+    for _ in range(abs(steps)):
+        ok = out >= 0
+        out[ok] = link[out[ok]]
+    return out
+
+
+def _drift(pv: PersonViews, E: F64, P: I64, group: I64, f_px: float) -> float:
+    """How much the signed Sampson distances (px) of the detection pairs ``P`` drift over time
+    within each pair of tracks and joint (``group``: the pair of tracks of each row): their
+    within-group RMS, each capped at :data:`CAP_PX`, in the better reading of each pair. A
+    person's constant misplacement does not count; the wrong shift makes the moving joints slide."""
+    x1 = pv.xy[P[:, 0]]
+    d = signed_px(E, x1, pv.xy[P[:, 1]], f_px)
+    dm = signed_px(E, x1, pv.xy[P[:, 1]][:, pv.mirror], f_px)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        use_m = np.nanmedian(np.abs(dm), 1) < np.nanmedian(np.abs(d), 1)
+    d = np.clip(np.where(use_m[:, None], dm, d), -CAP_PX, CAP_PX)  # (n, J)
+    gid = (group[:, None] * d.shape[1] + np.arange(d.shape[1])[None]).reshape(-1)
+    dv = d.reshape(-1)
+    ok = np.isfinite(dv)
+    gid, dv = np.unique(gid[ok], return_inverse=True)[1], dv[ok]
+    n = np.bincount(gid).astype(float)
+    mean = np.bincount(gid, dv) / n
+    dev = (dv - mean[gid]) ** 2
+    many = n[gid] >= 3
+    if not many.any():
+        return np.inf
+    return float(np.sqrt(np.sum(dev[many]) / np.sum(many * (1 - 1 / n[gid]))))
+
+
+def pair_offset(pv: PersonViews, succ: I64, pred: I64, track: I64, rig: Rig, a: int, b: int,
+                cfg: ClockConfig) -> tuple[float, float, int, float] | None:
+    """``late_b - late_a`` (frames), the fine cost there (mean squared px), the joints it rests on
+    and how much the cost rises a frame away (px^2: how observable the offset is); None where the
+    pair shares no matched tracks."""
+    E = _essential(rig, a, b)
+    f_px = float(np.sqrt(pv.f_px[a] * pv.f_px[b]))
+    # (cost, k, the matched (M, 2) detection pairs, their pair of tracks)
+    best: tuple[float, int, I64, I64] | None = None
+    for k in range(-cfg.max_frames, cfg.max_frames + 1):
+        moved = PersonViews(pv.xy, pv.ok, pv.cam, np.where(pv.cam == b, pv.frame - k, pv.frame), pv.uv,
+                            pv.mirror, pv.f_px)
+        P = _candidates(moved, a, b)
+        if not len(P):
+            continue
+        err, _ = _pair_errors(moved, E, P, f_px)
+        key = track[P[:, 0]] * (int(track.max()) + 1) + track[P[:, 1]]
+        uk, inv = np.unique(key, return_inverse=True)
+        n = np.bincount(inv)
+        med = np.array([np.median(err[inv == u]) for u in range(len(uk))])
+        ta = uk // (int(track.max()) + 1)
+        good = (n >= cfg.min_frames) & (med < cfg.match_px)
+        if not good.any():
+            continue
+        chosen: dict[int, int] = {}  # each track of a: its best track pair
+        for u in np.flatnonzero(good):
+            if int(ta[u]) not in chosen or med[u] < med[chosen[int(ta[u])]]:
+                chosen[int(ta[u])] = int(u)
+        sel = np.isin(inv, list(chosen.values()))
+        score = _drift(moved, E, P[sel], inv[sel], f_px)
+        if best is None or score < best[0]:
+            best = (score, k, P[sel], inv[sel])
+    if best is None:
+        return None
+    _, k0, M, pair_of = best
+    # the fraction: b's joints' signed distances at k0 regressed on their rates of change
+    # (Savitzky-Golay over b's track, frames -2..2), a constant per pair of tracks and joint
+    # removed. The distances themselves are never interpolated: an average of two noisy frames is
+    # less noisy than one, which would pull the fit towards half frames.
+    ib = M[:, 1]
+    steps = {d: _walk(succ, pred, ib, d) for d in (-2, -1, 1, 2)}
+    keep = np.all([v >= 0 for v in steps.values()], axis=0)
+    if keep.sum() < cfg.min_frames:
+        return None
+    ia, ib, pair_of = M[keep, 0], ib[keep], pair_of[keep]
+    x1 = pv.xy[ia]
+    xb = pv.xy[ib]
+    rate = (-2 * pv.xy[steps[-2][keep]] - pv.xy[steps[-1][keep]] + pv.xy[steps[1][keep]]
+            + 2 * pv.xy[steps[2][keep]]) / 10.0  # (n, J, 2) per frame
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mirror = (np.nanmedian(np.abs(signed_px(E, x1, xb[:, pv.mirror], f_px)), 1)
+                  < np.nanmedian(np.abs(signed_px(E, x1, xb, f_px)), 1))
+    xb = np.where(mirror[:, None, None], xb[:, pv.mirror], xb)
+    rate = np.where(mirror[:, None, None], rate[:, pv.mirror], rate)
+    d0 = signed_px(E, x1, xb, f_px)
+    g = (signed_px(E, x1, xb + 0.5 * rate, f_px) - signed_px(E, x1, xb - 0.5 * rate, f_px))  # px/frame
+    J = d0.shape[1]
+    group = pair_of[:, None] * J + np.arange(J)[None]
+    ok = np.isfinite(d0) & np.isfinite(g) & (np.abs(d0) < CAP_PX)
+    if ok.sum() < 3 * cfg.min_frames:
+        return None
+    gid = np.unique(group[ok], return_inverse=True)[1]
+    dv, gv = d0[ok], g[ok]
+    n = np.bincount(gid).astype(float)
+    dc = dv - (np.bincount(gid, dv) / n)[gid]
+    gc = gv - (np.bincount(gid, gv) / n)[gid]
+    inl = np.abs(dc) < 3 * (1.4826 * np.median(np.abs(dc)) + 1e-9)  # a joint misplaced in one frame
+    # the rates carry noise too (Savitzky-Golay's: a tenth of a frame's variance): taken out of the
+    # denominator, or the fraction shrinks towards 0
+    resid = dc[inl] + gc[inl] * float(-np.sum(dc[inl] * gc[inl]) / max(np.sum(gc[inl] ** 2), 1e-12))
+    noise = 0.5 * float(np.mean(resid ** 2)) / 10.0
+    den = float(np.sum(gc[inl] ** 2)) - noise * int(inl.sum())
+    if den <= 0:
+        return None
+    frac = float(np.clip(-np.sum(dc[inl] * gc[inl]) / den, -1.0, 1.0))
+    return k0 + frac, float(np.mean(dc[inl] ** 2)), int(inl.sum()), den / max(int(inl.sum()), 1)
+
+
+def estimate_clocks(pv: PersonViews, rig: Rig, cfg: ClockConfig | None = None) -> Clocks:
+    """Every camera's offset (module docstring) from the detections ``pv`` (camera indices into
+    ``rig``)."""
+    cfg = cfg or ClockConfig()
+    C = len(rig.cameras)
+    succ, pred = follow(pv)
+    track = tracks_of(succ, pred)
+    rows, pairs = [], []
+    for a in range(C):
+        for b in range(a + 1, C):
+            got = pair_offset(pv, succ, pred, track, rig, a, b, cfg)
+            if got is None:
+                continue
+            rows.append((a, b, got[0]))
+            pairs.append({"cameras": [rig.cameras[a].name, rig.cameras[b].name], "late_frames": got[0],
+                          "mean_sq_px": got[1], "joints": got[2], "rise_sq_px": got[3]})
+    if not rows:
+        raise InputError("cameras", "no two cameras share a followed person: no clock can be found")
+    A = np.zeros((len(rows) + 1, C))
+    y = np.zeros(len(rows) + 1)
+    for r, (a, b, s) in enumerate(rows):
+        A[r, b], A[r, a], y[r] = 1.0, -1.0, s
+    A[-1, 0] = 1.0  # the first camera's clock is the reference
+    if np.linalg.matrix_rank(A) < C:
+        seen = {c for a, b, _ in rows for c in (a, b)}
+        missing = [rig.cameras[c].name for c in range(C) if c not in seen] or [rig.cameras[C - 1].name]
+        raise InputError(", ".join(missing), "shares no followed person with the cameras linked to the "
+                                             "first: its clock cannot be found")
+    w = np.ones(len(y))
+    for _ in range(8):  # iteratively reweighted (Cauchy, half a frame): a wrong pair cannot cut the graph
+        late = np.linalg.lstsq(A * np.sqrt(w)[:, None], y * np.sqrt(w), rcond=None)[0]
+        res = A @ late - y
+        w = 1.0 / (1.0 + (res / 0.5) ** 2)
+        w[-1] = 1.0
+    use = np.abs(res[:-1]) <= 0.5
+    n_used = int(use.sum())
+    s_res = max(float(np.sqrt(np.sum(res[:-1][use] ** 2) / max(n_used - (C - 1), 1))), cfg.step / np.sqrt(12))
+    sd = np.sqrt(np.clip(np.diag(np.linalg.pinv((A * w[:, None]).T @ A)), 0, None)) * s_res
+    sd[0] = 0.0
+    for p, u in zip(pairs, use, strict=True):
+        p["used"] = bool(u)
+    return Clocks(tuple(rig.names), late, sd, tuple(pairs))
