@@ -98,8 +98,13 @@ def cmd_calib_people(args: argparse.Namespace) -> int:
         if args.cameras is not None:
             opts["cameras"] = [c.strip() for c in args.cameras.split(",") if c.strip()]
     scene = load_detections(Path(args.input), args.layout, args.skeleton, args.fps, args.intrinsics, **opts)
-    res = calibrate_people(scene, PeopleConfig(height_m=args.height, focal_known=not args.focal_unknown))
-    write_refined_calibration(Path(args.out), scene, res, args.format)
+    res = calibrate_people(scene, PeopleConfig(height_m=args.height, focal_known=not args.focal_unknown,
+                                               clocks=args.clocks))
+    clocks = res.clocks
+    extra = {} if clocks is None else {"time_offsets.csv": "camera,late_frames,sd_frames\n" + "".join(
+        f"{n},{d:.4f},{s:.4f}\n" for n, d, s in zip(clocks.names, clocks.late_frames, clocks.sd_frames,
+                                                    strict=True))}
+    write_refined_calibration(Path(args.out), scene, res, args.format, extra)
     print_warnings(scene)
     rep = res.report
     print(f"{scene.layout}: {len(res.rig.cameras)} cameras placed from {rep['people']} people-frames "
@@ -113,6 +118,10 @@ def cmd_calib_people(args: argparse.Namespace) -> int:
         x, y, z = cam.center_world
         print(f"{cam.name:<12}{x:>9.3f}{y:>8.3f}{z:>8.3f}{cam.K[0, 0]:>8.1f}{100 * c['centre_sd_m']:>10.2f}"
               f"{c['rotation_sd_deg']:>9.3f}{fmt_num(c['median_px'], 10, 2)}")
+    if clocks is not None:
+        print("clocks (frames late against camera " + clocks.names[0] + ", sd; OUT/time_offsets.csv): "
+              + ", ".join(f"{n} {d:+.2f} ({s:.2f})" for n, d, s in zip(clocks.names, clocks.late_frames,
+                                                                         clocks.sd_frames, strict=True)))
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)
     return 0

@@ -208,6 +208,9 @@ def _add_calib(sub: argparse._SubParsersAction[Parser], common: argparse.Argumen
     kp.add_argument("--focal-unknown", action="store_true",
                     help="the intrinsics are not known either: each camera's focal length is found too, "
                          "from 1.2 x its image's longer side, its principal point at the image's centre")
+    kp.add_argument("--clocks", action="store_true",
+                    help="find each camera's clock too (how many frames late, to a fraction; "
+                         "OUT/time_offsets.csv), and the rig on the people moved onto one clock")
     kp.add_argument("--height", type=number_type(float, 0.5, 2.5),
                     help="the people's median standing height, m (default: the scale from typical adult "
                          "bone lengths, about 5 %% uncertain)")

@@ -411,10 +411,14 @@ def read_keypoints_csv(path: Path, tracks: TrackSet, n_joints: int) -> TrackSet:
     return dataclasses.replace(tracks, kpt_world=kpt, kpt_sd=sd)
 
 
-def write_refined_calibration(out: Path, scene: Scene, result: RefinedRig, fmt: str | None = None) -> None:
-    """``OUT/cameras.json`` (the refined rig, with the scene's fps), ``OUT/calib_report.json`` and,
-    with ``fmt``, ``OUT/calibration/`` in that format (all or nothing)."""
+def write_refined_calibration(out: Path, scene: Scene, result: RefinedRig, fmt: str | None = None,
+                              extra: dict[str, str] | None = None) -> None:
+    """``OUT/cameras.json`` (the refined rig, with the scene's fps), ``OUT/calib_report.json``,
+    with ``fmt`` ``OUT/calibration/`` in that format, and ``extra`` files (name -> text), all or
+    nothing."""
     def write(tmp: Path) -> None:
+        for name, text in (extra or {}).items():
+            (tmp / name).write_text(text)
         write_native(result.rig, tmp / "cameras.json", fps=scene.fps)
         if fmt is not None and fmt != "native":
             write_calibration(result.rig, tmp / "calibration", fmt)

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gt3dkit.errors import InputError
-from gt3dkit.refine.people import PersonViews, _candidates, _pair_errors
+from gt3dkit.refine.persons import PersonViews, candidates, pair_errors, signed_px
 from gt3dkit.rig import Rig
 from gt3dkit.types import F64, I64, JsonDict
 
@@ -112,17 +112,6 @@ def tracks_of(succ: I64, pred: I64) -> I64:
     return track
 
 
-def signed_px(E: F64, x1: F64, x2: F64, f_px: float) -> F64:
-    """The signed Sampson distance (px) of normalised pairs ``x1, x2 (..., 2)`` (:func:`sampson_px`
-    with the sign of ``x2^T E x1``)."""
-    h1 = np.concatenate([x1, np.ones(x1.shape[:-1] + (1,))], -1)
-    h2 = np.concatenate([x2, np.ones(x2.shape[:-1] + (1,))], -1)
-    Ex1, Etx2 = h1 @ E.T, h2 @ E
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.sum(h2 * Ex1, -1) / np.sqrt(Ex1[..., 0] ** 2 + Ex1[..., 1] ** 2 + Etx2[..., 0] ** 2
-                                              + Etx2[..., 1] ** 2) * f_px
-
-
 def _essential(rig: Rig, a: int, b: int) -> F64:
     R = rig.R[b] @ rig.R[a].T
     t = rig.t[b] - R @ rig.t[a]
@@ -172,14 +161,14 @@ def pair_offset(pv: PersonViews, succ: I64, pred: I64, track: I64, rig: Rig, a: 
     E = _essential(rig, a, b)
     f_px = float(np.sqrt(pv.f_px[a] * pv.f_px[b]))
     # (cost, k, the matched (M, 2) detection pairs, their pair of tracks)
-    best: tuple[float, int, I64, I64] | None = None
+    tried: dict[int, tuple[float, int, I64, I64]] = {}  # k -> (drift, matched frames, pairs, tracks)
     for k in range(-cfg.max_frames, cfg.max_frames + 1):
         moved = PersonViews(pv.xy, pv.ok, pv.cam, np.where(pv.cam == b, pv.frame - k, pv.frame), pv.uv,
                             pv.mirror, pv.f_px)
-        P = _candidates(moved, a, b)
+        P = candidates(moved, a, b)
         if not len(P):
             continue
-        err, _ = _pair_errors(moved, E, P, f_px)
+        err, _ = pair_errors(moved, E, P, f_px)
         key = track[P[:, 0]] * (int(track.max()) + 1) + track[P[:, 1]]
         uk, inv = np.unique(key, return_inverse=True)
         n = np.bincount(inv)
@@ -193,12 +182,14 @@ def pair_offset(pv: PersonViews, succ: I64, pred: I64, track: I64, rig: Rig, a: 
             if int(ta[u]) not in chosen or med[u] < med[chosen[int(ta[u])]]:
                 chosen[int(ta[u])] = int(u)
         sel = np.isin(inv, list(chosen.values()))
-        score = _drift(moved, E, P[sel], inv[sel], f_px)
-        if best is None or score < best[0]:
-            best = (score, k, P[sel], inv[sel])
-    if best is None:
+        tried[k] = (_drift(moved, E, P[sel], inv[sel], f_px), int(sel.sum()), P[sel], inv[sel])
+    if not tried:
         return None
-    _, k0, M, pair_of = best
+    # the least drift among the shifts that match at least half the frames the best-matched one
+    # does (a shift that matches a few frames can drift little by chance)
+    most = max(v[1] for v in tried.values())
+    k0 = min((k for k, v in tried.items() if v[1] >= 0.5 * most), key=lambda k: tried[k][0])
+    _, _, M, pair_of = tried[k0]
     # the fraction: b's joints' signed distances at k0 regressed on their rates of change
     # (Savitzky-Golay over b's track, frames -2..2), a constant per pair of tracks and joint
     # removed. The distances themselves are never interpolated: an average of two noisy frames is
@@ -243,6 +234,33 @@ def pair_offset(pv: PersonViews, succ: I64, pred: I64, track: I64, rig: Rig, a: 
     return k0 + frac, float(np.mean(dc[inl] ** 2)), int(inl.sum()), den / max(int(inl.sum()), 1)
 
 
+def _tree_start(rows: list[tuple[int, int, float]], quality: F64, C: int) -> F64:
+    """Offsets from camera 0 along the pairs of a maximum spanning tree by quality (each pair's
+    rise times its joints): a start that no single wrong pair averages into the others."""
+    late = np.full(C, np.nan)
+    late[0] = 0.0
+    for r in np.argsort(-quality, kind="stable").tolist() * C:  # passes until the tree spans
+        a, b, s = rows[r]
+        if np.isnan(late[b]) and not np.isnan(late[a]):
+            late[b] = late[a] + s
+        elif np.isnan(late[a]) and not np.isnan(late[b]):
+            late[a] = late[b] - s
+    return np.nan_to_num(late)
+
+
+def _reweighted(A: F64, y: F64, start: F64) -> tuple[F64, F64]:
+    """Least squares of ``A x = y`` reweighted from ``start`` (Cauchy at half a frame; the last row,
+    the reference, always whole)."""
+    late = start
+    w = np.ones(len(y))
+    for _ in range(10):
+        res = A @ late - y
+        w = 1.0 / (1.0 + (res / 0.5) ** 2)
+        w[-1] = 1.0
+        late = np.linalg.lstsq(A * np.sqrt(w)[:, None], y * np.sqrt(w), rcond=None)[0]
+    return late, w
+
+
 def estimate_clocks(pv: PersonViews, rig: Rig, cfg: ClockConfig | None = None) -> Clocks:
     """Every camera's offset (module docstring) from the detections ``pv`` (camera indices into
     ``rig``)."""
@@ -271,12 +289,14 @@ def estimate_clocks(pv: PersonViews, rig: Rig, cfg: ClockConfig | None = None) -
         missing = [rig.cameras[c].name for c in range(C) if c not in seen] or [rig.cameras[C - 1].name]
         raise InputError(", ".join(missing), "shares no followed person with the cameras linked to the "
                                              "first: its clock cannot be found")
-    w = np.ones(len(y))
-    for _ in range(8):  # iteratively reweighted (Cauchy, half a frame): a wrong pair cannot cut the graph
-        late = np.linalg.lstsq(A * np.sqrt(w)[:, None], y * np.sqrt(w), rcond=None)[0]
-        res = A @ late - y
-        w = 1.0 / (1.0 + (res / 0.5) ** 2)
-        w[-1] = 1.0
+    quality = np.array([p["rise_sq_px"] * p["joints"] for p in pairs])
+    best_cost = np.inf
+    for start in (np.linalg.lstsq(A, y, rcond=None)[0], _tree_start(rows, quality, C)):
+        sol, wts = _reweighted(A, y, start)
+        r = A @ sol - y
+        cost = float(np.sum(np.log1p((r[:-1] / 0.5) ** 2)))
+        if cost < best_cost:
+            best_cost, late, w, res = cost, sol, wts, r
     use = np.abs(res[:-1]) <= 0.5
     n_used = int(use.sum())
     s_res = max(float(np.sqrt(np.sum(res[:-1][use] ** 2) / max(n_used - (C - 1), 1))), cfg.step / np.sqrt(12))
@@ -285,3 +305,25 @@ def estimate_clocks(pv: PersonViews, rig: Rig, cfg: ClockConfig | None = None) -
     for p, u in zip(pairs, use, strict=True):
         p["used"] = bool(u)
     return Clocks(tuple(rig.names), late, sd, tuple(pairs))
+
+
+def synchronised(pv: PersonViews, succ: I64, late_frames: F64) -> PersonViews:
+    """``pv`` with every camera's detections moved to the first camera's clock: camera ``c``'s
+    detection at its frame ``g`` is read ``frac`` of a frame on along its track and numbered
+    ``g - floor(late)``, ``frac = late - floor(late)`` (NaN where its track ends there)."""
+    xy, uv, ok, frame = pv.xy.copy(), pv.uv.copy(), pv.ok.copy(), pv.frame.copy()
+    for c, d in enumerate(late_frames):
+        idx = np.flatnonzero(pv.cam == c)
+        whole = int(np.floor(d))
+        frac = float(d - whole)
+        frame[idx] = pv.frame[idx] - whole
+        if frac < 1e-9:
+            continue
+        nxt = succ[idx]
+        has = nxt >= 0
+        for arr, src in ((xy, pv.xy), (uv, pv.uv)):
+            moved = np.full((len(idx),) + src.shape[1:], np.nan)
+            moved[has] = (1 - frac) * src[idx[has]] + frac * src[nxt[has]]
+            arr[idx] = moved
+        ok[idx] = np.isfinite(xy[idx][..., 0]) & pv.ok[idx]
+    return PersonViews(np.where(ok[..., None], xy, np.nan), ok, pv.cam, frame, uv, pv.mirror, pv.f_px)

@@ -39,8 +39,16 @@ from scipy.spatial.transform import Rotation
 from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import project_points
 from gt3dkit.geom.triangulate import normalized_points, triangulate_weighted
+from gt3dkit.refine.clocks import Clocks, estimate_clocks, follow, synchronised
 from gt3dkit.refine.common import RefineConfig, transform_rig
 from gt3dkit.refine.keypoints import Tracks, ba_keypoints, keypoint_residuals
+from gt3dkit.refine.persons import (
+    PersonViews,
+    candidates,
+    mirror_index,
+    normalised,
+    pair_errors,
+)
 from gt3dkit.rig import Rig
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import F64, I64, JsonDict, Scene
@@ -74,40 +82,14 @@ class PeopleConfig:
     #: sees a different 3D point. On Shelf's OpenPose output leaving them out brings the camera
     #: centres from 1.1-5.4 cm to 1.2-2.9 cm of Shelf's calibration (rotations 0.36-1.2 to 0.29-0.69 deg).
     skip_joints: tuple[str, ...] = ("l_hip", "r_hip", "pelvis", "l_shoulder", "r_shoulder")
+    #: True: each camera's clock found too (:mod:`gt3dkit.refine.clocks`), the rig adjusted on the
+    #: detections moved onto the first camera's clock.
+    clocks: bool = False
     #: False: the intrinsics are not known; each camera starts from :func:`focal_from_image` and its
     #: focal length is adjusted with its pose (its distortion stays none: people's joints, a few
     #: pixels apart from view to view, do not hold a lens's distortion).
     focal_known: bool = True
     seed: int = 0
-
-
-@dataclass(frozen=True)
-class PersonViews:
-    """Every detection's joints, ``N`` detections of ``J`` joints: ``xy (N, J, 2)`` undistorted
-    normalised coordinates, ``ok (N, J)`` used, ``cam``, ``frame`` (N,), ``uv (N, J, 2)`` px,
-    ``mirror (J,)`` the joint index with left and right swapped, ``f_px (C,)`` focal lengths."""
-
-    xy: F64
-    ok: np.ndarray
-    cam: I64
-    frame: I64
-    uv: F64
-    mirror: I64
-    f_px: F64
-
-
-def mirror_index(joints: tuple[str, ...]) -> I64:
-    """(J,) for each joint the index of its left/right counterpart (``l_x`` <-> ``r_x``; itself
-    where it has none)."""
-    ix = {j: i for i, j in enumerate(joints)}
-    swap = {"l_": "r_", "r_": "l_"}
-    return np.array([ix.get(swap[j[:2]] + j[2:], i) if j[:2] in swap else i for i, j in enumerate(joints)])
-
-
-def _normalised(pv: PersonViews, rig: Rig) -> F64:
-    """(N, J, 2) the detections' joints through ``rig``'s intrinsics (NaN where not used)."""
-    xy = normalized_points(pv.uv, rig.K[pv.cam][:, None], rig.dist[pv.cam][:, None])
-    return np.where(pv.ok[..., None], xy, np.nan)
 
 
 def focal_from_image(rig: Rig) -> Rig:
@@ -153,18 +135,6 @@ def hypotheses_needed(inliers: float, confidence: float = 0.999) -> int:
     return max(20, int(np.ceil(np.log(1 - confidence) / np.log(max(1 - w * w, 1e-12)))))
 
 
-def sampson_px(E: F64, x1: F64, x2: F64, f_px: float) -> F64:
-    """Sampson distances (px, through focal ``f_px``) of normalised pairs ``x1, x2 (..., 2)``
-    under the essential matrix ``E (3, 3)`` (``x2^T E x1 = 0``)."""
-    h1 = np.concatenate([x1, np.ones(x1.shape[:-1] + (1,))], -1)
-    h2 = np.concatenate([x2, np.ones(x2.shape[:-1] + (1,))], -1)
-    Ex1, Etx2 = h1 @ E.T, h2 @ E
-    with np.errstate(invalid="ignore", divide="ignore"):
-        d = np.abs(np.sum(h2 * Ex1, -1)) / np.sqrt(Ex1[..., 0] ** 2 + Ex1[..., 1] ** 2
-                                                   + Etx2[..., 0] ** 2 + Etx2[..., 1] ** 2)
-    return d * f_px
-
-
 @dataclass
 class TwoFrameSamples:
     """Samples of two candidates (indices into ``frames``, each candidate's frame) from two
@@ -206,40 +176,12 @@ class PairFit:
     candidates: int
 
 
-def _candidates(pv: PersonViews, a: int, b: int) -> I64:
-    """(P, 2) detection pairs of cameras ``a`` and ``b`` in one frame sharing 8 or more joints."""
-    ia, ib = np.flatnonzero(pv.cam == a), np.flatnonzero(pv.cam == b)
-    fa, fb = pv.frame[ia], pv.frame[ib]
-    order = np.argsort(fb, kind="stable")
-    lo, hi = np.searchsorted(fb[order], fa, "left"), np.searchsorted(fb[order], fa, "right")
-    rows = [(i, ib[order[k]]) for i, s, e in zip(ia, lo, hi, strict=True) for k in range(s, e)]
-    if not rows:
-        return np.zeros((0, 2), np.int64)
-    P = np.array(rows, dtype=np.int64)
-    shared = np.maximum((pv.ok[P[:, 0]] & pv.ok[P[:, 1]]).sum(1),
-                        (pv.ok[P[:, 0]] & pv.ok[P[:, 1]][:, pv.mirror]).sum(1))
-    return P[shared >= 8]
-
-
-def _pair_errors(pv: PersonViews, E: F64, P: I64, f_px: float) -> tuple[F64, np.ndarray]:
-    """Per candidate pair the median Sampson distance (px) in its better reading, and whether
-    that reading swaps ``b``'s left and right."""
-    x1, x2 = pv.xy[P[:, 0]], pv.xy[P[:, 1]]
-    with np.errstate(all="ignore"):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            e = np.nanmedian(sampson_px(E, x1, x2, f_px), axis=1)
-            em = np.nanmedian(sampson_px(E, x1, x2[:, pv.mirror], f_px), axis=1)
-    e, em = np.nan_to_num(e, nan=np.inf), np.nan_to_num(em, nan=np.inf)
-    return np.minimum(e, em), em < e
-
-
 def fit_pair(pv: PersonViews, a: int, b: int, cfg: PeopleConfig, rng: np.random.Generator) -> PairFit | None:
     """Camera ``b`` relative to ``a`` from their person pairs (module docstring, step 1); None
     where fewer than ``min_pairs`` pairs match."""
     import cv2
 
-    P = _candidates(pv, a, b)
+    P = candidates(pv, a, b)
     if len(P) < cfg.min_pairs:
         return None
     f_px = float(np.sqrt(pv.f_px[a] * pv.f_px[b]))
@@ -262,13 +204,13 @@ def fit_pair(pv: PersonViews, a: int, b: int, cfg: PeopleConfig, rng: np.random.
                                     threshold=cfg.pair_px / f_px, maxIters=HYPOTHESIS_ITERS)
         if E is None:
             continue
-        score = int((_pair_errors(pv, E[:3], score_on, f_px)[0] < cfg.pair_px).sum())
+        score = int((pair_errors(pv, E[:3], score_on, f_px)[0] < cfg.pair_px).sum())
         if score > best:
             best, best_E = score, E[:3]
             samples.found(score / len(score_on))
     if best_E is None:
         return None
-    err, flip = _pair_errors(pv, best_E, P, f_px)
+    err, flip = pair_errors(pv, best_E, P, f_px)
     good = err < cfg.pair_px
     if good.sum() < cfg.min_pairs:
         return None
@@ -279,7 +221,7 @@ def fit_pair(pv: PersonViews, a: int, b: int, cfg: PeopleConfig, rng: np.random.
         return None
     E = E[:3]
     _, R, t, _ = cv2.recoverPose(E, p1, p2, np.eye(3), mask=inl.copy())
-    err, flip = _pair_errors(pv, E, P, f_px)
+    err, flip = pair_errors(pv, E, P, f_px)
     good = err < cfg.pair_px
     links = np.column_stack([P[good], flip[good].astype(np.int64)])
     return PairFit(a, b, R, t.reshape(3), _one_per_detection(links, err[good]), len(P))
@@ -312,13 +254,13 @@ def rig_links(pv: PersonViews, rig: Rig, cfg: PeopleConfig) -> list[PairFit]:
     C = len(rig.cameras)
     for a in range(C):
         for b in range(a + 1, C):
-            P = _candidates(pv, a, b)
+            P = candidates(pv, a, b)
             if not len(P):
                 continue
             R = rig.R[b] @ rig.R[a].T
             t = rig.t[b] - R @ rig.t[a]
             E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ R
-            err, flip = _pair_errors(pv, E, P, float(np.sqrt(pv.f_px[a] * pv.f_px[b])))
+            err, flip = pair_errors(pv, E, P, float(np.sqrt(pv.f_px[a] * pv.f_px[b])))
             good = err < cfg.pair_px
             links = np.column_stack([P[good], flip[good].astype(np.int64)])
             out.append(PairFit(a, b, R, t, _one_per_detection(links, err[good]), len(P)))
@@ -510,6 +452,7 @@ class PeopleCalibration:
     report: JsonDict
     tracks: Tracks  # the people's joints the last adjustment used (camera indices into ``rig``)
     warnings: tuple[str, ...] = ()  # cameras placed poorly, by their sd
+    clocks: Clocks | None = None  # each camera's clock (PeopleConfig.clocks)
 
 
 def calibrate_people(scene: Scene, cfg: PeopleConfig | None = None) -> PeopleCalibration:
@@ -520,7 +463,7 @@ def calibrate_people(scene: Scene, cfg: PeopleConfig | None = None) -> PeopleCal
     pv = person_views(scene, cfg)
     rig = scene.rig if cfg.focal_known else focal_from_image(scene.rig)
     C = len(rig.cameras)
-    by_count = sorted(((len(_candidates(pv, a, b)), a, b) for a in range(C) for b in range(a + 1, C)),
+    by_count = sorted(((len(candidates(pv, a, b)), a, b) for a in range(C) for b in range(a + 1, C)),
                       reverse=True)
     fits = [f for _, a, b in by_count[:MAX_PAIR_FITS] if (f := fit_pair(pv, a, b, cfg, rng)) is not None]
     if not fits:
@@ -568,17 +511,19 @@ def calibrate_people(scene: Scene, cfg: PeopleConfig | None = None) -> PeopleCal
     on = placed[pv.cam]
     pv_on = PersonViews(pv.xy[on], pv.ok[on], np.searchsorted(keep, pv.cam[on]), pv.frame[on], pv.uv[on],
                         pv.mirror, pv.f_px[keep])
-    person_on, flip_on = person[on], flip[on]
-    rig_ba = start
-    ba_cfg = RefineConfig(refine_intrinsics=not cfg.focal_known, refine_distortion=False)
-    for _ in range(RELINK_ROUNDS if cfg.focal_known else 2 * RELINK_ROUNDS):
-        X = triangulate_people(pv_on, person_on, flip_on, rig_ba.R, rig_ba.t, np.ones(len(keep), bool))
-        tracks, _ = _tracks(pv_on, person_on, flip_on, X, rig_ba, cfg)
-        sigma = float(np.median(keypoint_residuals(rig_ba, tracks)))
-        rig_ba = ba_keypoints(rig_ba, tracks, np.ones(len(keep), bool), ba_cfg, max(sigma, 0.5))
-        if not cfg.focal_known:  # the joints' rays through the adjusted intrinsics
-            pv_on = replace(pv_on, xy=_normalised(pv_on, rig_ba), f_px=rig_ba.K[:, 0, 0].copy())
-        person_on, flip_on = people_of(pv_on, rig_links(pv_on, rig_ba, cfg))
+    rounds = RELINK_ROUNDS if cfg.focal_known else 2 * RELINK_ROUNDS
+    rig_ba, pv_on, person_on, flip_on = adjust(pv_on, person[on], flip[on], start, cfg, rounds)
+    clocks: Clocks | None = None
+    if cfg.clocks:
+        # the clocks through this rig, the detections moved onto the first camera's clock and the
+        # rig adjusted again on them; the clocks again through the adjusted rig
+        succ, _ = follow(pv_on)
+        sync = synchronised(pv_on, succ, estimate_clocks(pv_on, rig_ba).late_frames)
+        p_s, f_s = people_of(sync, rig_links(sync, rig_ba, cfg))
+        rig_ba, sync, person_on, flip_on = adjust(sync, p_s, f_s, rig_ba, cfg, RELINK_ROUNDS)
+        clocks = estimate_clocks(replace(pv_on, xy=normalised(pv_on, rig_ba), f_px=rig_ba.K[:, 0, 0].copy()),
+                                 rig_ba)
+        pv_on = sync
     X = triangulate_people(pv_on, person_on, flip_on, rig_ba.R, rig_ba.t, np.ones(len(keep), bool))
     tracks, joint_of = _tracks(pv_on, person_on, flip_on, X, rig_ba, cfg)
     person = person_on
@@ -605,7 +550,27 @@ def calibrate_people(scene: Scene, cfg: PeopleConfig | None = None) -> PeopleCal
             for k, c in enumerate(keep)},
         "unplaced": why,
     }
-    return PeopleCalibration(out, why, report, tracks, poorly_placed(out, c_sd, r_sd))
+    if clocks is not None:
+        report["clocks"] = clocks.report()
+    return PeopleCalibration(out, why, report, tracks, poorly_placed(out, c_sd, r_sd), clocks)
+
+
+def adjust(pv: PersonViews, person: I64, flip: np.ndarray, rig: Rig, cfg: PeopleConfig, rounds: int
+           ) -> tuple[Rig, PersonViews, I64, np.ndarray]:
+    """``rounds`` bundle adjustments of ``rig`` on its people's joints (module docstring, step 4),
+    the people matched again after each through the adjusted rig; with the focal length unknown,
+    the joints' rays through the adjusted intrinsics. Returns the rig, the views, the people."""
+    ba_cfg = RefineConfig(refine_intrinsics=not cfg.focal_known, refine_distortion=False)
+    every = np.ones(len(rig.cameras), bool)
+    for _ in range(rounds):
+        X = triangulate_people(pv, person, flip, rig.R, rig.t, every)
+        tracks, _ = _tracks(pv, person, flip, X, rig, cfg)
+        sigma = float(np.median(keypoint_residuals(rig, tracks)))
+        rig = ba_keypoints(rig, tracks, every, ba_cfg, max(sigma, 0.5))
+        if not cfg.focal_known:
+            pv = replace(pv, xy=normalised(pv, rig), f_px=rig.K[:, 0, 0].copy())
+        person, flip = people_of(pv, rig_links(pv, rig, cfg))
+    return rig, pv, person, flip
 
 
 def poorly_placed(rig: Rig, centre_sd_m: F64, rotation_sd_deg: F64) -> tuple[str, ...]:
