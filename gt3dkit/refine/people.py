@@ -657,7 +657,11 @@ def people_world(X: F64, skeleton: str, rig: Rig, cfg: PeopleConfig) -> tuple[fl
 
     def mid(*names: str) -> F64:
         pts = [X[:, ix[n]] for n in names if n in ix]
-        return np.nanmean(np.stack(pts), axis=0) if pts else np.full((len(X), 3), np.nan)
+        if not pts:
+            return np.full((len(X), 3), np.nan)
+        with warnings.catch_warnings():  # a person with none of them seen: NaN
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return np.nanmean(np.stack(pts), axis=0)
 
     top_name = next((n for n in ("neck", "nose", "head_top") if n in ix and n not in cfg.skip_joints),
                     None)
