@@ -111,13 +111,20 @@ def cmd_calib_people(args: argparse.Namespace) -> int:
           f"({rep['tracks']} joints in the last adjustment, median {rep['reprojection_median_px']:.2f} px) "
           f"in {rep['seconds']:.1f} s; written to {args.out}")
     print(f"world: {rep['world']['frame']}")
+    given = rep.get("against_input_calibration")
+    vs = f"{'vs input cm':>12}{'vs input °':>11}" if given else ""
     print(f"{'camera':<12}{'centre x':>9}{'y':>8}{'z':>8}{'fx':>8}{'ctr sd cm':>10}{'rot sd °':>9}"
-          f"{'median px':>10}")
+          f"{'median px':>10}{vs}")
     for cam in res.rig.cameras:
         c = rep["cameras"][cam.name]
         x, y, z = cam.center_world
+        g = (f"{100 * given['cameras'][cam.name]['centre_m']:>12.2f}"
+             f"{given['cameras'][cam.name]['rotation_deg']:>11.3f}") if given else ""
         print(f"{cam.name:<12}{x:>9.3f}{y:>8.3f}{z:>8.3f}{cam.K[0, 0]:>8.1f}{100 * c['centre_sd_m']:>10.2f}"
-              f"{c['rotation_sd_deg']:>9.3f}{fmt_num(c['median_px'], 10, 2)}")
+              f"{c['rotation_sd_deg']:>9.3f}{fmt_num(c['median_px'], 10, 2)}{g}")
+    if given:
+        print("vs input: the input's own calibration, after the similarity that best maps the camera centres "
+              f"(its scale over ours {given['scale_given_over_found']:.4f})")
     if clocks is not None:
         print("clocks (frames late against camera " + clocks.names[0] + ", sd; OUT/time_offsets.csv): "
               + ", ".join(f"{n} {d:+.2f} ({s:.2f})" for n, d, s in zip(clocks.names, clocks.late_frames,

@@ -40,7 +40,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import project_points
 from gt3dkit.geom.triangulate import normalized_points, triangulate_weighted
 from gt3dkit.refine.clocks import Clocks, estimate_clocks, follow, synchronised
-from gt3dkit.refine.common import RefineConfig, transform_rig
+from gt3dkit.refine.common import RefineConfig, transform_rig, umeyama
 from gt3dkit.refine.keypoints import Tracks, ba_keypoints, keypoint_residuals
 from gt3dkit.refine.persons import (
     PersonViews,
@@ -552,6 +552,9 @@ def calibrate_people(scene: Scene, cfg: PeopleConfig | None = None) -> PeopleCal
     }
     if clocks is not None:
         report["clocks"] = clocks.report()
+    given = against_given(out, scene.rig)
+    if given is not None:
+        report["against_input_calibration"] = given
     return PeopleCalibration(out, why, report, tracks, poorly_placed(out, c_sd, r_sd), clocks)
 
 
@@ -571,6 +574,25 @@ def adjust(pv: PersonViews, person: I64, flip: np.ndarray, rig: Rig, cfg: People
             pv = replace(pv, xy=normalised(pv, rig), f_px=rig.K[:, 0, 0].copy())
         person, flip = people_of(pv, rig_links(pv, rig, cfg))
     return rig, pv, person, flip
+
+
+def against_given(rig: Rig, given: Rig) -> JsonDict | None:
+    """``rig`` beside the ``given`` one (the input's calibration): after the similarity that best
+    maps the camera centres (Umeyama), each camera's centre distance (m) and rotation (deg), and
+    the similarity's scale; None where the given rig has no poses to compare (its centres within
+    1 cm of each other: intrinsics only)."""
+    E = np.array([c.center_world for c in rig.cameras])
+    T = np.array([given.cameras[given.index(c.name)].center_world for c in rig.cameras])
+    if np.ptp(T, axis=0).max() < 0.01 or len(E) < 3:
+        return None
+    s, R, t = umeyama(E, T)
+    centre = np.linalg.norm((s * (R @ E.T)).T + t - T, axis=1)
+    out: JsonDict = {"scale_given_over_found": float(s), "cameras": {}}
+    for c, d in zip(rig.cameras, centre, strict=True):
+        Rg = given.cameras[given.index(c.name)].R
+        ang = float(np.degrees(np.arccos(np.clip((np.trace((c.R @ R.T).T @ Rg) - 1) / 2, -1, 1))))
+        out["cameras"][c.name] = {"centre_m": float(d), "rotation_deg": ang}
+    return out
 
 
 def poorly_placed(rig: Rig, centre_sd_m: F64, rotation_sd_deg: F64) -> tuple[str, ...]:

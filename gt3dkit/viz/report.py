@@ -33,7 +33,7 @@ from gt3dkit.io.labels import piece_of, piece_track_ids
 from gt3dkit.io.writers import read_segments_csv
 from gt3dkit.parse import read_csv_rows
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import Scene, TrackSet
+from gt3dkit.types import JsonDict, Scene, TrackSet
 from gt3dkit.viz.overview import colour_of, start_overviews
 from gt3dkit.viz.panels import (
     ANNOTATION_NOTE,
@@ -153,6 +153,9 @@ def _calibration(run: Run) -> str:
              ", ".join(f"{v:.3f}" for v in c.center_world)] for c in cams]
     out = _table(rows, ["camera", "image (px)", "focal fx, fy (px)", "principal point (px)", "distortion",
                         "centre in the world (m)"])
+    people = run.meta.get("calibration_from_people")
+    if isinstance(people, dict):
+        out += _people_rig(people)
     ref = run.meta.get("calibration_refinement")
     if isinstance(ref, dict):
         keep = {k: v for k, v in ref.items() if k not in ("refined_rig", "rig_sha256") and
@@ -164,6 +167,32 @@ def _calibration(run: Run) -> str:
             body = [[n] + [_fmt(v.get(k)) for k in head] for n, v in per.items() if isinstance(v, dict)]
             out += _table(body, ["camera", *head])
     return out
+
+
+def _people_rig(people: JsonDict) -> str:
+    """The rig found from the people (``meta.json`` ``calibration_from_people``): per camera its sd,
+    its median reprojection, and how far it lies from the input's own calibration."""
+    per = people.get("cameras")
+    if not isinstance(per, dict):
+        return ""
+    given = people.get("against_input_calibration")
+    vs = given.get("cameras") if isinstance(given, dict) else None
+    rows = []
+    for name, c in per.items():
+        if not isinstance(c, dict):
+            continue
+        g = vs.get(name) if isinstance(vs, dict) else None
+        beside = [_fmt(100 * float(g["centre_m"])), _fmt(g["rotation_deg"])] if isinstance(g, dict) else []
+        rows.append([name, _fmt(100 * float(c.get("centre_sd_m") or float("nan"))),
+                     _fmt(c.get("rotation_sd_deg")), _fmt(c.get("median_px")), *beside])
+    head = ["camera", "centre sd (cm)", "rotation sd (deg)", "median reprojection (px)"]
+    if isinstance(vs, dict):
+        head += ["from the input's calibration (cm)", "(deg)"]
+    world = people.get("world")
+    note = f"<p>{_fmt(world.get('frame'))}</p>" if isinstance(world, dict) else ""
+    return ("<h3>The rig found from the people</h3>" + note + _table(rows, head)
+            + ("<p>Beside the input's own calibration after the similarity that best maps the camera "
+               "centres.</p>" if isinstance(vs, dict) else ""))
 
 
 def _anomaly_section(run: Run, res: ViewResiduals, folder: Path) -> str:

@@ -124,3 +124,24 @@ def test_reconstruct_with_the_rig_from_the_people(people_dir: Path, tmp_path: Pa
     np.testing.assert_allclose(run.scene.rig.t, [c["t"] for c in people["rig"]["cameras"]])
     p = _gt3d("compare", str(people_dir), "--calib", "people", "--out", str(tmp_path / "cmp"))
     assert p.returncode == 2 and "people applies to gt3d reconstruct" in p.stderr
+
+
+def test_rig_beside_the_given_one(people_dir: Path) -> None:
+    """The found rig beside the input's: a copy of the input moved by a similarity is 0 cm and 0
+    degrees from it; the report's section lists the cameras; intrinsics-only rigs are not compared."""
+    from gt3dkit.refine.common import transform_rig
+    from gt3dkit.refine.people import against_given
+    from gt3dkit.viz.report import _people_rig
+
+    given = load_detections(people_dir).rig
+    R = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    moved = transform_rig(given, 0.5, R, np.array([1.0, 2, 3]))
+    got = against_given(moved, given)
+    assert got is not None and got["scale_given_over_found"] == pytest.approx(2.0)
+    assert max(c["centre_m"] for c in got["cameras"].values()) < 1e-9
+    assert max(c["rotation_deg"] for c in got["cameras"].values()) < 1e-5
+    flat = transform_rig(given, 1e-6, np.eye(3), np.zeros(3))
+    assert against_given(moved, flat) is None
+    html = _people_rig({"cameras": {n: {"centre_sd_m": 0.01, "rotation_sd_deg": 0.1, "median_px": 2.0}
+                                    for n in given.names}, "against_input_calibration": got})
+    assert html.count("<tr>") == 1 + len(given.names) and "input&#x27;s calibration" in html
