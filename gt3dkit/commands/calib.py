@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gt3dkit.api import load_detections, load_scene
+from gt3dkit.api import load_scene
 from gt3dkit.calib.board import read_board
 from gt3dkit.calib.boardcal import BoardConfig, calibrate_board, identity_poses
 from gt3dkit.calib.boardinput import board_views, find_cameras
@@ -20,18 +20,17 @@ from gt3dkit.calib.formats.native import write as write_native
 from gt3dkit.calib.show import camera_table, rig_warnings
 from gt3dkit.commands.common import (
     check_output,
+    detections_input,
     fmt_num,
     load_input,
     print_warnings,
 )
 from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import check_out, write_dir_atomically
-from gt3dkit.io.datasets import detect_layout
 from gt3dkit.io.writers import write_refined_calibration
 from gt3dkit.refine import RefineConfig, refine, scene_warnings
 from gt3dkit.refine.people import PeopleConfig, calibrate_people
 from gt3dkit.rig import LENSES, Camera
-from gt3dkit.types import JsonDict
 from gt3dkit.version import __version__
 from gt3dkit.viz.boardreport import write_board_report
 
@@ -92,12 +91,7 @@ def cmd_calib_people(args: argparse.Namespace) -> int:
     """``gt3d calib people``: the cameras' poses from the people in the scene
     (:mod:`gt3dkit.refine.people`)."""
     check_output(args.out, (args.input,))
-    opts: JsonDict = {}
-    if args.layout == "panoptic" or (args.layout is None and detect_layout(Path(args.input)) == "panoptic"):
-        opts = {"noise_px": args.noise_px, "seed": args.seed or 0}
-        if args.cameras is not None:
-            opts["cameras"] = [c.strip() for c in args.cameras.split(",") if c.strip()]
-    scene = load_detections(Path(args.input), args.layout, args.skeleton, args.fps, args.intrinsics, **opts)
+    scene = detections_input(args, args.intrinsics)
     res = calibrate_people(scene, PeopleConfig(height_m=args.height, focal_known=not args.focal_unknown,
                                                clocks=args.clocks))
     clocks = res.clocks

@@ -86,17 +86,9 @@ def check_output(out: str | Path, inputs: tuple[str | Path, ...] = (), option: s
     check_out(out, option)
 
 
-def load_input(args: argparse.Namespace, by_windows: bool = False) -> Any:
-    """The input of a command's ``args``, read and checked (:func:`gt3dkit.api.load_scene`);
-    ``by_windows``: without its rows where its windows can read their own frames
-    (:func:`gt3dkit.api.load_head`), as a long sequence run in windows does."""
-
-    if getattr(args, "out", None) is not None:
-        check_output(args.out, (args.input,))
-    if getattr(args, "calib", None) == "people":
-        raise InputError("--calib", "people applies to gt3d reconstruct; gt3d calib people writes the rig "
-                                    "for the other commands")
-    layout = args.layout or detect_layout(Path(args.input))
+def panoptic_options(args: argparse.Namespace, layout: str) -> JsonDict:
+    """The CMU Panoptic reader's options of ``args`` (``--cameras``, ``--noise-px``, ``--seed``),
+    refused for any other layout."""
     opts: JsonDict = {}
     if layout == "panoptic":
         if args.cameras is not None:
@@ -109,18 +101,34 @@ def load_input(args: argparse.Namespace, by_windows: bool = False) -> Any:
                           ("--seed", args.seed)):
             if v is not None:
                 raise InputError(option, f"applies to CMU Panoptic inputs only, not {layout}")
+    return opts
+
+
+def load_input(args: argparse.Namespace, by_windows: bool = False, calib: str | None = None) -> Any:
+    """The input of a command's ``args``, read and checked (:func:`gt3dkit.api.load_scene`);
+    ``by_windows``: without its rows where its windows can read their own frames
+    (:func:`gt3dkit.api.load_head`), as a long sequence run in windows does; ``calib``: this
+    calibration in place of ``args.calib``."""
+
+    if getattr(args, "out", None) is not None:
+        check_output(args.out, (args.input,))
+    calib = calib or getattr(args, "calib", None)
+    if calib == "people":
+        raise InputError("--calib", "people applies to gt3d reconstruct; gt3d calib people writes the rig "
+                                    "for the other commands")
+    layout = args.layout or detect_layout(Path(args.input))
+    opts = panoptic_options(args, layout)
     if getattr(args, "association", None) is not None:
         opts["association"] = args.association
     if getattr(args, "segments", None) is not None:
         opts["segments"] = args.segments
     opts["box_model"] = getattr(args, "box_model", "auto")
     if by_windows and not {"association", "segments"} & opts.keys():
-        head = load_head(Path(args.input), layout, getattr(args, "fps", None), getattr(args, "calib", None),
-                         str(opts["box_model"]))
+        head = load_head(Path(args.input), layout, getattr(args, "fps", None), calib, str(opts["box_model"]))
         if head is not None:
             return head
-    scene = load_scene(Path(args.input), layout, args.skeleton, getattr(args, "fps", None),
-                       calib=getattr(args, "calib", None), **opts)
+    scene = load_scene(Path(args.input), layout, args.skeleton, getattr(args, "fps", None), calib=calib,
+                       **opts)
     if opts["box_model"] != "auto" and not scene.obs.has_box.any():
         # one rule for an option the input has nothing for (as --skeleton on boxes, --association
         # on a native input): refused, not ignored
@@ -128,27 +136,26 @@ def load_input(args: argparse.Namespace, by_windows: bool = False) -> Any:
     return scene
 
 
+def detections_input(args: argparse.Namespace, calib: str | None = None) -> Scene:
+    """The input of ``args`` as each camera's detections, with no identities across cameras
+    (:func:`gt3dkit.api.load_detections`); ``calib``: this calibration's intrinsics in place of the
+    input's."""
+    layout = args.layout or detect_layout(Path(args.input))
+    return load_detections(Path(args.input), layout, args.skeleton, getattr(args, "fps", None), calib,
+                           **panoptic_options(args, layout))
+
+
 def scene_from_people(args: argparse.Namespace) -> tuple[Scene, JsonDict]:
     """``--calib people``: the input with the rig :func:`gt3dkit.refine.people.calibrate_people`
     finds from its people (its own calibration's intrinsics), and what to record of it in
     meta.json (the rig and the report)."""
-    layout = args.layout or detect_layout(Path(args.input))
-    opts: JsonDict = {}
-    if layout == "panoptic":
-        opts = {"noise_px": args.noise_px, "seed": args.seed or 0}
-        if args.cameras is not None:
-            opts["cameras"] = [c.strip() for c in args.cameras.split(",") if c.strip()]
-    det = load_detections(Path(args.input), layout, args.skeleton, getattr(args, "fps", None), None, **opts)
+    det = detections_input(args)
     res = calibrate_people(det)
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)
     with tempfile.TemporaryDirectory() as tmp:
         write_native(res.rig, Path(tmp) / "cameras.json", fps=None if det.fps_assumed else det.fps)
-        args_calib, args.calib = args.calib, str(Path(tmp) / "cameras.json")
-        try:
-            scene = load_input(args)
-        finally:
-            args.calib = args_calib
+        scene = load_input(args, calib=str(Path(tmp) / "cameras.json"))
     scene = dataclasses.replace(scene, load_options={**scene.load_options, "calib": None})
     print(f"cameras placed from the people: {len(res.rig.cameras)} ({res.report['seconds']:.1f} s, median "
           f"{res.report['reprojection_median_px']:.2f} px; meta.json: calibration_from_people)")

@@ -174,6 +174,16 @@ def _add_evaluate(sub: argparse._SubParsersAction[Parser], common: argparse.Argu
     e.set_defaults(func=cmd_evaluate)
 
 
+def _rig_output_options(p: argparse.ArgumentParser) -> None:
+    """How a rig found from the annotations is written (``--format``) and its input read."""
+    p.add_argument("--format", choices=WRITABLE, default=None,
+                   help="also write the rig in this format (into OUT/calibration/)")
+    p.add_argument("--layout", choices=tuple(LAYOUTS))
+    p.add_argument("--skeleton", choices=sorted(SKELETONS))
+    p.add_argument("--fps", type=FPS)
+    _panoptic_options(p)
+
+
 def _add_calib(sub: argparse._SubParsersAction[Parser], common: argparse.ArgumentParser) -> None:
     """``gt3d calib``'s options."""
     k = sub.add_parser("calib", parents=[common], help="show, check and refine calibrations")
@@ -190,12 +200,7 @@ def _add_calib(sub: argparse._SubParsersAction[Parser], common: argparse.Argumen
     kr.add_argument("--calib", help="start from this calibration instead of the input's own")
     kr.add_argument("--refine-intrinsics", action="store_true",
                     help="refine focal length and distortion too (keypoints only)")
-    kr.add_argument("--format", choices=WRITABLE, default=None,
-                    help="also write the refined rig in this format (into OUT/calibration/)")
-    kr.add_argument("--layout", choices=tuple(LAYOUTS))
-    kr.add_argument("--skeleton", choices=sorted(SKELETONS))
-    kr.add_argument("--fps", type=FPS)
-    _panoptic_options(kr)
+    _rig_output_options(kr)
     kr.set_defaults(func=cmd_calib_refine)
     kp = ksub.add_parser("people", parents=[common],
                          help="the cameras' poses from the people in the scene's keypoints (no board, "
@@ -214,12 +219,7 @@ def _add_calib(sub: argparse._SubParsersAction[Parser], common: argparse.Argumen
     kp.add_argument("--height", type=number_type(float, 0.5, 2.5),
                     help="the people's median standing height, m (default: the scale from typical adult "
                          "bone lengths, about 5 %% uncertain)")
-    kp.add_argument("--format", choices=WRITABLE, default=None,
-                    help="also write the rig in this format (into OUT/calibration/)")
-    kp.add_argument("--layout", choices=tuple(LAYOUTS))
-    kp.add_argument("--skeleton", choices=sorted(SKELETONS))
-    kp.add_argument("--fps", type=FPS)
-    _panoptic_options(kp)
+    _rig_output_options(kp)
     kp.set_defaults(func=cmd_calib_people)
     kb = ksub.add_parser("board", parents=[common],
                          help="calibrate a rig from views of a ChArUco board or a checkerboard "

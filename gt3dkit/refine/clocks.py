@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gt3dkit.errors import InputError
-from gt3dkit.refine.persons import PersonViews, candidates, pair_errors, signed_px
+from gt3dkit.refine.persons import PersonViews, candidates, essential, pair_errors, signed_px
 from gt3dkit.rig import Rig
 from gt3dkit.types import F64, I64, JsonDict
 
@@ -112,12 +112,6 @@ def tracks_of(succ: I64, pred: I64) -> I64:
     return track
 
 
-def _essential(rig: Rig, a: int, b: int) -> F64:
-    R = rig.R[b] @ rig.R[a].T
-    t = rig.t[b] - R @ rig.t[a]
-    return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ R
-
-
 def _walk(succ: I64, pred: I64, start: I64, steps: int) -> I64:
     """(n,) the detection ``steps`` frames along each one's track from ``start`` (-1: none)."""
     out = start.copy()
@@ -158,7 +152,7 @@ def pair_offset(pv: PersonViews, succ: I64, pred: I64, track: I64, rig: Rig, a: 
     """``late_b - late_a`` (frames), the fine cost there (mean squared px), the joints it rests on
     and how much the cost rises a frame away (px^2: how observable the offset is); None where the
     pair shares no matched tracks."""
-    E = _essential(rig, a, b)
+    E = essential(rig, a, b)
     f_px = float(np.sqrt(pv.f_px[a] * pv.f_px[b]))
     # (cost, k, the matched (M, 2) detection pairs, their pair of tracks)
     tried: dict[int, tuple[float, int, I64, I64]] = {}  # k -> (drift, matched frames, pairs, tracks)

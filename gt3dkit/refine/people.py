@@ -38,13 +38,14 @@ from scipy.spatial.transform import Rotation
 
 from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import project_points
-from gt3dkit.geom.triangulate import normalized_points, triangulate_weighted
+from gt3dkit.geom.triangulate import normalized_points, reprojection_sq_px, triangulate_weighted
 from gt3dkit.refine.clocks import Clocks, estimate_clocks, follow, synchronised
 from gt3dkit.refine.common import RefineConfig, transform_rig, umeyama
 from gt3dkit.refine.keypoints import Tracks, ba_keypoints, keypoint_residuals
 from gt3dkit.refine.persons import (
     PersonViews,
     candidates,
+    essential,
     mirror_index,
     normalised,
     pair_errors,
@@ -257,9 +258,9 @@ def rig_links(pv: PersonViews, rig: Rig, cfg: PeopleConfig) -> list[PairFit]:
             P = candidates(pv, a, b)
             if not len(P):
                 continue
+            E = essential(rig, a, b)
             R = rig.R[b] @ rig.R[a].T
             t = rig.t[b] - R @ rig.t[a]
-            E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ R
             err, flip = pair_errors(pv, E, P, float(np.sqrt(pv.f_px[a] * pv.f_px[b])))
             good = err < cfg.pair_px
             links = np.column_stack([P[good], flip[good].astype(np.int64)])
@@ -344,10 +345,9 @@ def _pose_camera(pv: PersonViews, person: I64, flip: np.ndarray, X: F64, c: int,
 def _reprojection_px(X: F64, xy: F64, R: F64, t: F64, f_px: float) -> F64:
     """Per candidate the median distance (px) between its joints ``xy (P, J, 2)`` (normalised) and
     the points ``X (P, J, 3)`` seen through ``R, t``; inf where none is seen."""
-    Xc = X @ R.T + t
+    e2 = reprojection_sq_px(X, xy[..., None, :], R[None], t[None], np.array([f_px]))[..., 0]
+    d = np.where(np.isfinite(e2), np.sqrt(e2), np.nan)  # a joint behind the camera: not seen
     with np.errstate(all="ignore"):
-        d = np.linalg.norm(Xc[..., :2] / Xc[..., 2:3] - xy, axis=-1) * f_px
-        d = np.where(Xc[..., 2] > 0, d, np.nan)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             med = np.nanmedian(d, axis=1)
@@ -447,8 +447,7 @@ def pose_by_people(pv: PersonViews, person: I64, X: F64, c: int, cfg: PeopleConf
 
 @dataclass(frozen=True)
 class PeopleCalibration:
-    rig: Rig  # placed cameras only, in the people's world
-    unplaced: dict[str, str]  # camera -> why it could not be placed
+    rig: Rig  # every camera, in the people's world
     report: JsonDict
     tracks: Tracks  # the people's joints the last adjustment used (camera indices into ``rig``)
     warnings: tuple[str, ...] = ()  # cameras placed poorly, by their sd
@@ -502,7 +501,6 @@ def calibrate_people(scene: Scene, cfg: PeopleConfig | None = None) -> PeopleCal
                          f"cannot be placed: {n} detections, {linked} of them matched to a person the "
                          f"placed cameras saw, fewer than {cfg.min_joints} joints agreeing with them "
                          "(too few people or frames shared with the other cameras)")
-    why: dict[str, str] = {}
     keep = np.flatnonzero(placed)
     cams = tuple(replace(rig.cameras[c], R=R[c], t=t[c]) for c in keep)
     start = Rig(cams, up=rig.up, frame_name="people")
@@ -548,14 +546,13 @@ def calibrate_people(scene: Scene, cfg: PeopleConfig | None = None) -> PeopleCal
             "centre_sd_m": float(c_sd[k]), "rotation_sd_deg": float(r_sd[k]),
             "median_px": float(np.median(res[tracks.cam == k])) if (tracks.cam == k).any() else None}
             for k, c in enumerate(keep)},
-        "unplaced": why,
     }
     if clocks is not None:
         report["clocks"] = clocks.report()
     given = against_given(out, scene.rig)
     if given is not None:
         report["against_input_calibration"] = given
-    return PeopleCalibration(out, why, report, tracks, poorly_placed(out, c_sd, r_sd), clocks)
+    return PeopleCalibration(out, report, tracks, poorly_placed(out, c_sd, r_sd), clocks)
 
 
 def adjust(pv: PersonViews, person: I64, flip: np.ndarray, rig: Rig, cfg: PeopleConfig, rounds: int

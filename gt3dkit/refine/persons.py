@@ -95,3 +95,11 @@ def signed_px(E: F64, x1: F64, x2: F64, f_px: float) -> F64:
                                               + Etx2[..., 1] ** 2) * f_px
 
 
+
+
+def essential(rig: Rig, a: int, b: int) -> F64:
+    """(3, 3) the essential matrix of cameras ``a`` and ``b`` of ``rig`` (``x_b^T E x_a = 0`` for
+    their normalised coordinates): ``[t]_x R`` of ``b``'s pose relative to ``a``'s."""
+    R = rig.R[b] @ rig.R[a].T
+    t = rig.t[b] - R @ rig.t[a]
+    return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ R
