@@ -39,11 +39,12 @@ sys.path.insert(0, str(REPO / "scripts"))
 from shelf_targets import COCO_NAMES, read_truth, score, to_shelf  # noqa: E402
 
 from gt3dkit.api import load_detections, load_scene, reconstruct  # noqa: E402
-from gt3dkit.calib.formats import read_calibration  # noqa: E402
+from gt3dkit.calib.formats import read_calibration, write_calibration  # noqa: E402
 from gt3dkit.calib.formats.native import write as write_native  # noqa: E402
 from gt3dkit.commands.common import bundled  # noqa: E402
 from gt3dkit.refine.clocks import estimate_clocks, follow  # noqa: E402
 from gt3dkit.refine.common import transform_rig, umeyama  # noqa: E402
+from gt3dkit.refine.keypoints import keypoint_residuals  # noqa: E402
 from gt3dkit.refine.people import PeopleConfig, calibrate_people, person_views  # noqa: E402
 from gt3dkit.rig import Rig  # noqa: E402
 from gt3dkit.skeletons import SKELETONS  # noqa: E402
@@ -150,6 +151,60 @@ def clock_errors(found: np.ndarray, names: list[str], late: dict[str, float]) ->
     return np.abs(found - np.array([late.get(n, 0.0) for n in names]))
 
 
+ANIPOSE_BA = """
+import sys, time
+import numpy as np
+from aniposelib.cameras import CameraGroup
+p2d = np.load(sys.argv[2])
+cg = CameraGroup.load(sys.argv[1])
+t = time.perf_counter()
+err = cg.bundle_adjust_iter(p2d, n_iters=6, start_mu=15, end_mu=1, max_nfev=200, ftol=1e-4, n_samp_iter=200,
+                            n_samp_full=1000, error_threshold=0.3, verbose=False)
+print("ANIPOSE", time.perf_counter() - t, err)
+cg.dump(sys.argv[3])
+"""
+
+
+def beside_aniposelib(root: Path, tmp: Path) -> None:
+    """Section 1c: the same joints (gt3dkit's people, matched and followed by its rig) through three
+    rigs: Shelf's own, gt3dkit's from the people, and aniposelib's bundle adjustment
+    (``bundle_adjust_iter``, its defaults but for fewer samples) started from Shelf's own (aniposelib
+    has no calibration from unlabelled people: it is given Shelf's as a start and gt3dkit's matches)."""
+    bench = REPO / ".venv-bench" / "bin" / "python"
+    print("\n1c. the same joints through Shelf's rig, gt3dkit's, and aniposelib's bundle adjustment from "
+          "Shelf's (median reprojection px per camera; re-triangulated per rig)")
+    if not bench.exists():
+        print("   no .venv-bench (make bench-env): not run")
+        return
+    sc = load_detections(root)
+    res = calibrate_people(sc)
+    tr = res.tracks
+    p2d = np.full((len(res.rig.cameras), len(tr.X0), 2), np.nan)
+    p2d[tr.cam, tr.point] = tr.uv
+    np.save(tmp / "p2d.npy", p2d)
+    write_calibration(sc.rig, tmp / "shelf", "toml")
+    q = subprocess.run([str(bench), "-c", ANIPOSE_BA, str(tmp / "shelf" / "calibration.toml"),
+                        str(tmp / "p2d.npy"), str(tmp / "anipose.toml")], capture_output=True, text=True)
+    if q.returncode != 0:
+        print("   aniposelib failed:", q.stderr.strip().splitlines()[-1:])
+        return
+    took = float(next(ln.split()[1] for ln in q.stdout.splitlines() if ln.startswith("ANIPOSE")))
+    rigs = {"Shelf's calibration": sc.rig, "gt3dkit, from the people": res.rig,
+            "aniposelib BA from Shelf's": read_calibration(tmp / "anipose.toml")}
+    print(f"   {'rig':<28}" + "".join(f"{n:>7}" for n in sc.rig.names)
+          + "   from Shelf's: centres cm / rot deg")
+    for name, rig in rigs.items():
+        r = keypoint_residuals(rig, tr)
+        line = f"   {name:<28}" + "".join(f"{np.median(r[tr.cam == c]):>7.2f}"
+                                           for c in range(len(rig.cameras)))
+        if rig is not sc.rig:
+            m = compare(rig, sc.rig)
+            line += ("   " + " ".join(f"{100 * v:.1f}" for v in m["centre"])  # type: ignore[union-attr]
+                     + " / " + " ".join(f"{v:.2f}" for v in m["rot"]))  # type: ignore[union-attr]
+        print(line)
+    print(f"   (aniposelib's adjustment {took:.1f} s; gt3dkit's whole search {res.report['seconds']:.1f} s)")
+
+
 def shelf_score(root: Path, rig_dir: Path | None) -> dict[str, object]:
     scene = load_scene(root, calib=rig_dir)
     tracks = reconstruct(scene, "ukf")
@@ -249,6 +304,7 @@ def main() -> int:
             ok &= good
             print(f"   PCP {d_pcp:+.1f} lower, MPJPE {100 * d_mm:+.1f} %: {'ok' if good else 'MISSED'} "
                   "(targets 0.5, 5 %)")
+            beside_aniposelib(root, Path(tmp))
             out_f = Path(tmp) / "cal_f"
             p = subprocess.run([*GT3D, "calib", "people", str(root), "--focal-unknown", "--out", str(out_f)],
                                capture_output=True, text=True)
