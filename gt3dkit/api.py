@@ -25,6 +25,7 @@ from gt3dkit.fusion.identity import Segments, identity_segments
 from gt3dkit.fusion.prepare import Prepared, prepare, undetermined_objects
 from gt3dkit.fusion.rows import Rows, build_rows
 from gt3dkit.geom.camera import Cams
+from gt3dkit.io.clocks import CameraClocks, on_one_clock
 from gt3dkit.io.datasets import ASSOCIATED, checks, index_scene, read_scene
 from gt3dkit.io.results import read_result
 from gt3dkit.io.writers import ANOMALY_COLUMNS, read_keypoints_csv, read_segments_csv, write_outputs
@@ -70,7 +71,8 @@ def scene_kind(scene: Scene) -> str:
 def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None = None,
                fps: float | None = None, calib: Path | str | None = None,
                association: Path | str | None = None, segments: Path | str | None = None,
-               box_model: str = "auto", **panoptic_options: JsonValue) -> Scene:
+               box_model: str = "auto", clocks: CameraClocks | JsonDict | None = None,
+               **panoptic_options: JsonValue) -> Scene:
     """Load any supported input folder (layout detected when not given): read it
     (:func:`gt3dkit.io.datasets.read_scene`, whose arguments these are), give ids per camera or
     none global identities (:mod:`gt3dkit.fusion.associate`, with the overrides of the file
@@ -78,8 +80,14 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     ``segments``: an edited ``segments.csv`` whose pieces replace the automatic identity splits
     of the ids it lists (:func:`gt3dkit.fusion.identity.identity_segments`). ``box_model``: how
     the boxes are drawn (:data:`gt3dkit.types.BOX_MODELS`), or ``"auto"``: chosen from them
-    (:func:`with_box_model`)."""
+    (:func:`with_box_model`). ``clocks``: each camera's clock (:mod:`gt3dkit.io.clocks`, or its
+    ``doc()``): every view moved onto one clock before the association."""
     scene = read_scene(root, layout, skeleton, fps, calib, association, **panoptic_options)
+    if clocks is not None:
+        if not isinstance(clocks, CameraClocks):
+            clocks = CameraClocks.from_doc(clocks, "clocks")
+        scene = on_one_clock(scene, clocks, "time offsets")
+        scene = dataclasses.replace(scene, load_options={**scene.load_options, "clocks": clocks.doc()})
     if scene.layout in ASSOCIATED:  # ids per camera or none -> global identities, before the checks
         over = read_overrides(Path(association), scene.rig.names) if association is not None else None
         if over:  # a row whose camera has no such id (a track deleted, a drawn shape left out): unused
@@ -446,7 +454,7 @@ def _load_scene(out: Path, meta: JsonDict, why: str) -> tuple[Scene, list[str]]:
     if load.get("calib") and not Path(load["calib"]).exists():
         raise InputError(where, f"input: the calibration {load['calib']} is not there any more")
     known = {"layout", "skeleton", "fps", "calib", "cameras", "noise_px", "seed", "min_conf", "association",
-             "segments", "box_model"}
+             "segments", "box_model", "clocks"}
     scene = load_scene(Path(root), **{k: v for k, v in load.items() if k in known})
     notes = []
     old = inp.get("files_sha256") or {}

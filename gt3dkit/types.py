@@ -178,6 +178,10 @@ class Observations:
     kpt_conf : (N, J) float64 or None
         Detector confidence of each keypoint in ``(0, 1]`` (NaN where not seen); ``None``
         = no confidences given (every point counts fully).
+    frame_offset : (N,) float64 or None
+        When each row was seen, in frames after ``frame`` on the scene's clock (a camera whose
+        clock runs late or at its own rate: :func:`gt3dkit.io.clocks.on_one_clock`); ``None`` = every
+        row at its frame.
     """
 
     frame: I64
@@ -187,6 +191,7 @@ class Observations:
     kpt_uv_px: F64
     origin: Origins
     kpt_conf: F64 | None = None
+    frame_offset: F64 | None = None
 
     def __post_init__(self) -> None:
         n = len(self.frame)
@@ -209,6 +214,8 @@ class Observations:
             if np.any(seen & ~((c > 0) & (c <= 1))):
                 raise ValueError("kpt_conf must be in (0, 1] for every seen keypoint")
             object.__setattr__(self, "kpt_conf", c)
+        if self.frame_offset is not None:
+            object.__setattr__(self, "frame_offset", as_array(self.frame_offset, (n,), "frame_offset"))
         if not isinstance(self.origin, Origins):
             object.__setattr__(self, "origin", Origins.of(self.origin))
         if len(self.origin) != n:
@@ -232,7 +239,8 @@ class Observations:
         return Observations(self.frame[idx], self.cam[idx], self.track_id[idx],
                             self.box_xyxy_px[idx], self.kpt_uv_px[idx],
                             self.origin.take(idx),
-                            None if self.kpt_conf is None else self.kpt_conf[idx])
+                            None if self.kpt_conf is None else self.kpt_conf[idx],
+                            None if self.frame_offset is None else self.frame_offset[idx])
 
 
 @dataclass(frozen=True)

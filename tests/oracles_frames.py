@@ -172,7 +172,7 @@ def split_joints(model: Model, x0: F64, P0: F64) -> tuple[Model, F64, F64, Joint
                     box_z=np.where(box0, rows.box_z[src], np.nan),
                     box_mask=np.where(box0, rows.box_mask[src], False),
                     kpt_z=rows.kpt_z[src, :, jj][:, :, None], kpt_conf=rows.kpt_conf[src, :, jj][:, :, None],
-                    obs_row=rows.obs_row[src])
+                    obs_row=rows.obs_row[src], seen_at=rows.seen_at[src])
     var_frame = model.var_frame[rs, dims]
     var_frame[part == 0, E:] = np.inf  # part 0 has no joint of its own
     kcov = None

@@ -23,10 +23,12 @@ from gt3dkit.commands.common import (
     detections_input,
     fmt_num,
     load_input,
+    print_clocks,
     print_warnings,
 )
 from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import check_out, write_dir_atomically
+from gt3dkit.io.clocks import CameraClocks
 from gt3dkit.io.writers import write_refined_calibration
 from gt3dkit.refine import RefineConfig, refine, scene_warnings
 from gt3dkit.refine.people import PeopleConfig, calibrate_people
@@ -95,9 +97,8 @@ def cmd_calib_people(args: argparse.Namespace) -> int:
     res = calibrate_people(scene, PeopleConfig(height_m=args.height, focal_known=not args.focal_unknown,
                                                clocks=args.clocks))
     clocks = res.clocks
-    extra = {} if clocks is None else {"time_offsets.csv": "camera,late_frames,sd_frames\n" + "".join(
-        f"{n},{d:.4f},{s:.4f}\n" for n, d, s in zip(clocks.names, clocks.late_frames, clocks.sd_frames,
-                                                    strict=True))}
+    extra = {} if clocks is None else {
+        "time_offsets.csv": CameraClocks.of(clocks.names, clocks.late_frames, clocks.sd_frames).text()}
     write_refined_calibration(Path(args.out), scene, res, args.format, extra)
     print_warnings(scene)
     rep = res.report
@@ -120,9 +121,7 @@ def cmd_calib_people(args: argparse.Namespace) -> int:
         print("vs input: the input's own calibration, after the similarity that best maps the camera centres "
               f"(its scale over ours {given['scale_given_over_found']:.4f})")
     if clocks is not None:
-        print("clocks (frames late against camera " + clocks.names[0] + ", sd; OUT/time_offsets.csv): "
-              + ", ".join(f"{n} {d:+.2f} ({s:.2f})" for n, d, s in zip(clocks.names, clocks.late_frames,
-                                                                         clocks.sd_frames, strict=True)))
+        print_clocks(clocks.names, clocks.late_frames, clocks.sd_frames, "OUT/time_offsets.csv")
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)
     return 0

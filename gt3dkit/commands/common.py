@@ -30,8 +30,10 @@ from gt3dkit.eval.pose import mpjpe_by_id, score_tracks
 from gt3dkit.eval.tracking import TrackingTally, tracking_scores
 from gt3dkit.fusion.base import REGISTRY
 from gt3dkit.io.atomic import check_out
+from gt3dkit.io.clocks import CameraClocks, read_time_offsets
 from gt3dkit.io.datasets import detect_layout
-from gt3dkit.refine.people import calibrate_people
+from gt3dkit.refine.clocks import estimate_clocks
+from gt3dkit.refine.people import PeopleConfig, calibrate_people, person_views
 from gt3dkit.types import BOX_MODEL_REGISTRY, GroundTruth, JsonDict, Options, Scene, TrackSet
 
 #: Published numbers of Ma et al. for the datasets we can compare on.
@@ -104,11 +106,12 @@ def panoptic_options(args: argparse.Namespace, layout: str) -> JsonDict:
     return opts
 
 
-def load_input(args: argparse.Namespace, by_windows: bool = False, calib: str | None = None) -> Any:
+def load_input(args: argparse.Namespace, by_windows: bool = False, calib: str | None = None,
+               clocks: CameraClocks | None = None) -> Any:
     """The input of a command's ``args``, read and checked (:func:`gt3dkit.api.load_scene`);
     ``by_windows``: without its rows where its windows can read their own frames
     (:func:`gt3dkit.api.load_head`), as a long sequence run in windows does; ``calib``: this
-    calibration in place of ``args.calib``."""
+    calibration in place of ``args.calib``; ``clocks``: these in place of ``--time-offsets``'."""
 
     if getattr(args, "out", None) is not None:
         check_output(args.out, (args.input,))
@@ -123,17 +126,57 @@ def load_input(args: argparse.Namespace, by_windows: bool = False, calib: str | 
     if getattr(args, "segments", None) is not None:
         opts["segments"] = args.segments
     opts["box_model"] = getattr(args, "box_model", "auto")
-    if by_windows and not {"association", "segments"} & opts.keys():
+    clocks = clocks or time_offsets(args, calib)
+    if by_windows and clocks is None and not {"association", "segments"} & opts.keys():
         head = load_head(Path(args.input), layout, getattr(args, "fps", None), calib, str(opts["box_model"]))
         if head is not None:
             return head
     scene = load_scene(Path(args.input), layout, args.skeleton, getattr(args, "fps", None), calib=calib,
-                       **opts)
+                       clocks=clocks, **opts)
     if opts["box_model"] != "auto" and not scene.obs.has_box.any():
         # one rule for an option the input has nothing for (as --skeleton on boxes, --association
         # on a native input): refused, not ignored
         raise InputError("--box-model", f"applies to inputs with boxes: {args.input} has keypoints only")
     return scene
+
+
+def time_offsets(args: argparse.Namespace, calib: str | None) -> CameraClocks | None:
+    """``--time-offsets``: the file's clocks, or with ``auto`` each camera's clock found from the
+    people in the input through its calibration (``calib`` in place of ``args.calib``;
+    :func:`gt3dkit.refine.clocks.estimate_clocks`); None without the option."""
+    given = getattr(args, "time_offsets", None)
+    if given is None:
+        return None
+    if given != "auto":
+        return read_time_offsets(Path(given))
+    det = detections_input(args, calib)
+    found = estimate_clocks(person_views(det, PeopleConfig()), det.rig)
+    print_clocks(found.names, found.late_frames, found.sd_frames)
+    return CameraClocks.of(found.names, found.late_frames, found.sd_frames)
+
+
+def print_clocks(names: tuple[str, ...], late: np.ndarray, sd: np.ndarray, where: str = "meta.json input"
+                 ) -> None:
+    """One line: each camera's clock found from the people."""
+    print(f"clocks from the people (frames late against camera {names[0]}, sd; {where}): "
+          + ", ".join(f"{n} {d:+.2f} ({s:.2f})" for n, d, s in zip(names, late, sd, strict=True)))
+
+
+def with_clock_note(scene: Scene, estimator: str) -> Scene:
+    """``scene`` with a ``warning:`` where views filed off their frames (``--time-offsets``) are
+    taken at the frame they are filed under: by an estimator other than the UKF, or as boxes."""
+    off = scene.obs.frame_offset
+    if off is None or not np.any(off != 0):
+        return scene
+    if estimator != "ukf":
+        why = (f"--time-offsets: the {estimator} takes each view at the whole frame nearest its own time "
+               "(the UKF alone predicts each joint to it)")
+    elif scene.has_boxes:
+        why = ("--time-offsets: boxes are taken at the whole frame nearest their own time (keypoints are "
+               "predicted to it)")
+    else:
+        return scene
+    return dataclasses.replace(scene, warnings=(*scene.warnings, why))
 
 
 def detections_input(args: argparse.Namespace, calib: str | None = None) -> Scene:
@@ -150,12 +193,17 @@ def scene_from_people(args: argparse.Namespace) -> tuple[Scene, JsonDict]:
     finds from its people (its own calibration's intrinsics), and what to record of it in
     meta.json (the rig and the report)."""
     det = detections_input(args)
-    res = calibrate_people(det)
+    auto = getattr(args, "time_offsets", None) == "auto"
+    res = calibrate_people(det, PeopleConfig(clocks=auto))
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)
+    clocks = None
+    if res.clocks is not None:  # the clocks the rig was adjusted on
+        print_clocks(res.clocks.names, res.clocks.late_frames, res.clocks.sd_frames)
+        clocks = CameraClocks.of(res.clocks.names, res.clocks.late_frames, res.clocks.sd_frames)
     with tempfile.TemporaryDirectory() as tmp:
         write_native(res.rig, Path(tmp) / "cameras.json", fps=None if det.fps_assumed else det.fps)
-        scene = load_input(args, calib=str(Path(tmp) / "cameras.json"))
+        scene = load_input(args, calib=str(Path(tmp) / "cameras.json"), clocks=clocks)
     scene = dataclasses.replace(scene, load_options={**scene.load_options, "calib": None})
     print(f"cameras placed from the people: {len(res.rig.cameras)} ({res.report['seconds']:.1f} s, median "
           f"{res.report['reprojection_median_px']:.2f} px; meta.json: calibration_from_people)")

@@ -60,6 +60,10 @@ def _scene_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--calib", help="calibration file or folder in any format (cameras.json, WILDTRACK/"
                    "MultiviewX calibrations/, OpenCV .yml/.xml, Anipose .toml, COLMAP) for the input's own; "
                    "reconstruct: 'people' finds the poses from the people first (see gt3d calib people)")
+    p.add_argument("--time-offsets", metavar="auto|FILE", help="cameras whose clocks disagree: each "
+                   "camera's frames late (and frame rate) from a time_offsets.csv (as gt3d calib people "
+                   "--clocks writes), or auto: found from the people; the UKF takes each view at its "
+                   "own time")
     p.add_argument("--association", metavar="FILE", help="per-camera ids (mot): an edited association.csv "
                    "whose rows override the automatic cross-view association")
     p.add_argument("--segments", metavar="FILE", help="an edited segments.csv: its pieces replace the "

@@ -27,6 +27,7 @@ from gt3dkit.commands.common import (
     print_warnings,
     report_truth,
     scene_from_people,
+    with_clock_note,
 )
 from gt3dkit.compare import compare
 from gt3dkit.errors import InputError
@@ -71,6 +72,7 @@ def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | 
     else:
         scene = load_input(args, by_windows=args.window != 0 and over_time(args.estimator)
                            and not args.refine_calib and args.every_frame is None)
+    scene = with_clock_note(scene, args.estimator)
     if args.refine_calib:
         res = refine(scene)
         extra = {**(extra or {}), "calibration_refinement": {**res.report, "rig_sha256": {

@@ -368,7 +368,8 @@ def apply_association(scene: Scene, assoc: Association) -> Scene:
     o2 = Observations(frame=obs.frame[order], cam=obs.cam[order], track_id=new[order],
                       box_xyxy_px=obs.box_xyxy_px[order], kpt_uv_px=obs.kpt_uv_px[order],
                       origin=obs.origin.take(order),
-                      kpt_conf=None if obs.kpt_conf is None else obs.kpt_conf[order])
+                      kpt_conf=None if obs.kpt_conf is None else obs.kpt_conf[order],
+                      frame_offset=None if obs.frame_offset is None else obs.frame_offset[order])
     return dataclasses.replace(scene, obs=o2)
 
 

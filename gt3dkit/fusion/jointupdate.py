@@ -64,7 +64,8 @@ N = 2 * SPACE
 
 
 class PointSigma(NamedTuple):
-    """The sigma-point rule of a joint's position (3 entries): weights ``Wm, Wc`` (without the
+    """The sigma-point rule of a joint's position (3 entries), or of its position and velocity (6:
+    views taken off their rows' frames, :func:`point_regression`): weights ``Wm, Wc`` (without the
     centre point where the rule gives it no weight) and the points' ``scale``."""
 
     Wm: F64
@@ -92,7 +93,9 @@ class JointData(NamedTuple):
     variances ``var`` and start weights ``w0`` (the same shape); the per-frame joint ``x_frame (R,
     J, 3)`` with its variances ``var_frame (R, J, 3)`` (inf: unreliable) and covariance ``cov_frame
     (R, J, 3, 3)`` (inf: may not fade a prediction); the bones' information ``info (R, J, 3, 3)``,
-    ``eta (R, J, 3)`` (``(0, ...)``: none); each row's joint acceleration noise ``q (R,)``."""
+    ``eta (R, J, 3)`` (``(0, ...)``: none); each row's joint acceleration noise ``q (R,)``; when
+    each view was taken ``seen_s (R, C)``, seconds after its row's time (``(0, C)``: every view
+    at its row's time)."""
 
     z: F64
     mask: np.ndarray
@@ -104,6 +107,7 @@ class JointData(NamedTuple):
     info: F64
     eta: F64
     q: F64
+    seen_s: F64
 
 
 class JointStart(NamedTuple):
@@ -134,27 +138,42 @@ class JointOut(NamedTuple):
 
 
 @numba.njit(cache=True, nogil=True)
-def point_regression(xj: F64, Pj: F64, meas: Measured, sig: PointSigma, rig: BoxRig, lin: Regression) -> int:
-    """Statistical linear regression of a joint's views (``meas``: ``(2 C,)``, camera by camera
-    ``u, v``) on the sigma points of its position's marginal of ``N(xj (6,), Pj (6, 6))``, into
-    ``lin``: as the reference ``block_regression`` (``tests/oracles_frames.py``) of the joint's
-    block (a view is used
-    where present and every sigma point is in front of its camera). Returns 1 if the marginal's
-    factor needed a repair."""
+def point_regression(xj: F64, Pj: F64, meas: Measured, sig: PointSigma, rig: BoxRig, seen_s: F64,
+                     lin: Regression) -> int:
+    r"""Statistical linear regression of a joint's views (``meas``: ``(2 C,)``, camera by camera
+    ``u, v``) on the sigma points of ``N(xj (6,), Pj (6, 6))``, into ``lin``: as the reference
+    ``block_regression`` (``tests/oracles_frames.py``) of the joint's block (a view is used where
+    present and every sigma point is in front of its camera). The points span the position's
+    marginal, or, where ``lin`` has six columns, the position and velocity: camera ``c``'s view
+    was taken ``seen_s[c]`` seconds after the row's time and sees the joint where the motion model
+    moves it by then,
+
+    .. math::
+        z_c = h_c(p + \delta_c v) + e,
+
+    the constant-velocity prediction to the view's own time (the process noise over
+    ``|\delta_c|`` of at most half a frame, ``q^2 \delta^3 / 3`` per axis, is left out: a
+    thousandth of a pixel at 30 fps). Returns 1 if the marginal's factor needed a repair."""
     C = rig.cam.shape[0]
     m = 2 * C
     S = sig.Wm.shape[0]
-    Pb = np.empty((SPACE, SPACE))
-    X = np.empty((S, SPACE))
+    d = lin.At.shape[1]
+    Pb = np.empty((d, d))
+    X = np.empty((S, d))
     Z = np.empty((S, m))
-    dims = np.arange(SPACE)
+    dims = np.arange(d)
     repaired = sigma_points(xj, Pj, dims, sig.scale, Pb, X)
     for c in range(C):
         if not (meas.mask[2 * c] or meas.mask[2 * c + 1]):
             continue
         q = rig.cam[c]
+        dt = seen_s[c] if d > SPACE else 0.0
         for s in range(S):
-            Z[s, 2 * c], Z[s, 2 * c + 1] = world_pixel(X[s, 0], X[s, 1], X[s, 2], q)
+            if dt != 0.0:
+                Z[s, 2 * c], Z[s, 2 * c + 1] = world_pixel(X[s, 0] + dt * X[s, 3], X[s, 1] + dt * X[s, 4],
+                                                           X[s, 2] + dt * X[s, 5], q)
+            else:
+                Z[s, 2 * c], Z[s, 2 * c + 1] = world_pixel(X[s, 0], X[s, 1], X[s, 2], q)
     regress(X, Z, xj, dims, sig.Wm, sig.Wc, Pb, meas, 0, lin)
     return repaired
 
@@ -237,19 +256,21 @@ def update_joint(r: int, j: int, xl: F64, Pl: F64, data: JointData, jm: JointMod
     the bones' information; into ``out``."""
     C = data.z.shape[2]
     m = 2 * C
+    d = jm.cols.dims.shape[1]
+    seen = data.seen_s[r] if data.seen_s.shape[0] else np.zeros(C)
     LP, Pinv = np.empty((N, N)), np.empty((N, N))
     prior_factor(out.P_p[r, j], LP, Pinv)
     prior = Prior(out.x_p[r, j], Pinv, LP)
     meas = Measured(data.z[r, j].reshape(m), data.mask[r, j].reshape(m), data.var[r, j].reshape(m))
     cur = Current(xl.copy(), Pl.copy(), data.w0[r, j].reshape(m).copy(), np.empty(m))
-    lin = Regression(np.zeros(m, np.bool_), np.zeros((m, SPACE)), np.zeros(m), np.ones(m))
+    lin = Regression(np.zeros(m, np.bool_), np.zeros((m, d)), np.zeros(m), np.ones(m))
     post = Posterior(np.empty(N), np.empty((N, N)), np.empty((N, N)), np.empty((N, N)), np.empty(N),
                      np.zeros(m), np.zeros(m))
     scores = Scores(np.zeros(m), np.zeros(m))
     repaired = 0
     it = 0
     for it in range(jm.iterations):
-        repaired += point_regression(cur.xj, cur.Pj, meas, jm.sigma, jm.rig, lin)
+        repaired += point_regression(cur.xj, cur.Pj, meas, jm.sigma, jm.rig, seen, lin)
         done, rep = pass_row(it, it == jm.iterations - 1, jm.robust, prior, lin, jm.cols, cur, post, scores)
         repaired += rep
         if done:
@@ -423,20 +444,21 @@ def covariance_entries(n_joints: int) -> int:
     return (n_joints + 1) * StateLayout(1).n ** 2
 
 
-def point_sigma(alpha: float, beta: float, kappa: float) -> PointSigma:
-    """The :class:`PointSigma` of a joint's position under the scaled unscented rule."""
-    sw = SigmaWeights(SPACE, alpha, beta, kappa)
+def point_sigma(alpha: float, beta: float, kappa: float, d: int = SPACE) -> PointSigma:
+    """The :class:`PointSigma` of a joint's position (``d = 3``), or position and velocity (6),
+    under the scaled unscented rule."""
+    sw = SigmaWeights(d, alpha, beta, kappa)
     Wm, Wc = sw.Wm, sw.Wc
     if Wm[0] == 0.0 and Wc[0] == 0.0:  # the cubature rule gives the centre no weight
         Wm, Wc = Wm[1:], Wc[1:]
     return PointSigma(contiguous(Wm), contiguous(Wc), float(np.sqrt(sw.n + sw.lam)))
 
 
-def joint_columns(C: int, robust: RobustConfig | None) -> Columns:
-    """The :class:`gt3dkit.fusion.update.Columns` of one joint's ``2 C`` views (its three
-    coordinates; points of two entries judged by ``robust``, a
-    :class:`gt3dkit.fusion.robust.RobustConfig`, or never reweighted: None)."""
-    blk = Block(np.arange(SPACE)[None], np.arange(2 * C)[None], None)
+def joint_columns(C: int, robust: RobustConfig | None, d: int = SPACE) -> Columns:
+    """The :class:`gt3dkit.fusion.update.Columns` of one joint's ``2 C`` views (on its three
+    coordinates, or ``d = 6``: its position and velocity; points of two entries judged by
+    ``robust``, a :class:`gt3dkit.fusion.robust.RobustConfig`, or never reweighted: None)."""
+    blk = Block(np.arange(d)[None], np.arange(2 * C)[None], None)
     rule = Robust(robust, ((slice(0, 2 * C), 2),)) if robust is not None else None
     return block_columns([blk], 2 * C, rule)
 
@@ -474,6 +496,7 @@ def run_joints(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, collect
     per = noise_rows or {}
     q = per.get("joint_accel_sd", cfg.joint_accel_sd if cfg.joint_accel_sd is not None else cfg.accel_sd)
     at = model.n_box_columns
+    timed = bool(np.any(rows.seen_at != 0.0))
     info = model.joint_info
     kcov = model.kpt_cov_frame
     data = JointData(
@@ -483,10 +506,12 @@ def run_joints(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, collect
         contiguous(np.full((1, 1, 1, 1), np.inf) if kcov is None else kcov),
         contiguous(np.zeros((0, J, SPACE, SPACE)) if info is None else info.info),
         contiguous(np.zeros((0, J, SPACE)) if info is None else info.eta),
-        contiguous(np.broadcast_to(np.asarray(q, dtype=np.float64), (R,))))
+        contiguous(np.broadcast_to(np.asarray(q, dtype=np.float64), (R,))),
+        contiguous(rows.seen_at / fps if timed else np.zeros((0, C))))
     robust = cfg.robust_config if cfg.robust and model.robust_blocks else None
-    cols = joint_columns(C, robust)
-    jm = JointModel(point_sigma(cfg.alpha, cfg.beta, cfg.kappa), model.box_rig, cols, int(cfg.iterations),
+    d = N if timed else SPACE  # views off their rows' frames: regressed on the velocity too
+    cols = joint_columns(C, robust, d)
+    jm = JointModel(point_sigma(cfg.alpha, cfg.beta, cfg.kappa, d), model.box_rig, cols, int(cfg.iterations),
                     bool(np.any(cols.size > 0)), bool(fade) and kcov is not None,
                     float(chi2_isf(1e-3, SPACE)))
     objs = np.flatnonzero(first >= 0)

@@ -49,6 +49,8 @@ class Rows:
     kpt_z : (R, C, J, 2) keypoints (NaN missing)
     kpt_conf : (R, C, J) detector confidence in (0, 1] (1 where the input gives none)
     obs_row : (R, C) row of ``scene.obs`` or -1
+    seen_at : (R, C) when each view was taken, in frames after its row's frame (a camera on its
+        own clock, :attr:`gt3dkit.types.Observations.frame_offset`; 0 where none or no view)
     """
 
     frames: I64
@@ -63,6 +65,7 @@ class Rows:
     kpt_z: F64
     kpt_conf: F64
     obs_row: I64
+    seen_at: F64
 
     @functools.cached_property
     def n_views(self) -> I64:
@@ -104,10 +107,13 @@ def build_rows(scene: Scene, clip_tol_px: float = 1.0) -> Rows:
     if obs.kpt_conf is not None:
         kpt_conf[r_of, obs.cam] = np.where(np.isfinite(obs.kpt_conf), obs.kpt_conf, 1.0)
     obs_row[r_of, obs.cam] = np.arange(len(obs))
+    seen_at = np.zeros((R, C))
+    if obs.frame_offset is not None:
+        seen_at[r_of, obs.cam] = obs.frame_offset
     box_mask = usable_edges(box_z, scene.rig.wh, clip_tol_px)
     return Rows(frames=frames, obj_ids=obj_ids, row_t=row_t, row_o=row_o, prev_row=prev_row,
                 next_row=next_row, t_start=t_start, box_z=box_z, box_mask=box_mask,
-                kpt_z=kpt_z, kpt_conf=kpt_conf, obs_row=obs_row)
+                kpt_z=kpt_z, kpt_conf=kpt_conf, obs_row=obs_row, seen_at=seen_at)
 
 
 def replicate_rows(rows: Rows, sel: np.ndarray, copies: int) -> tuple[Rows, I64, I64]:
@@ -137,5 +143,5 @@ def replicate_rows(rows: Rows, sel: np.ndarray, copies: int) -> tuple[Rows, I64,
                row_o=oo[order], prev_row=link(rows.prev_row), next_row=link(rows.next_row),
                t_start=np.searchsorted(tt[order], np.arange(len(rows.frames) + 1)),
                box_z=rows.box_z[src], box_mask=rows.box_mask[src], kpt_z=rows.kpt_z[src],
-               kpt_conf=rows.kpt_conf[src], obs_row=rows.obs_row[src])
+               kpt_conf=rows.kpt_conf[src], obs_row=rows.obs_row[src], seen_at=rows.seen_at[src])
     return new, src, kk[order]

@@ -91,7 +91,8 @@ def skeleton_motion(skel_name: str, t_s: F64, rng: np.random.Generator) -> F64:
 def simulate_skeletons(layout: str = "native", seed: int = 0, frames: int = 30, people: int = 3,
                        noise_px: float = 0.0, cameras: int = 10,
                        skeleton: str = "coco19", fps: float = 30.0, errors: Errors | None = None,
-                       confidences: bool = False, lens: str = "pinhole") -> SkeletonScene:
+                       confidences: bool = False, lens: str = "pinhole", late_frames: F64 | None = None,
+                       camera_fps: F64 | None = None) -> SkeletonScene:
     """People as moving skeletons seen by a dome of HD cameras, in a y-down world.
 
     2D points are exact projections (with distortion) plus ``noise_px`` Gaussian noise;
@@ -99,6 +100,10 @@ def simulate_skeletons(layout: str = "native", seed: int = 0, frames: int = 30, 
     ``Errors.dropped`` of the rest at random. ``errors`` (native layout) adds detector errors;
     ``confidences`` writes a detector-like confidence per point (lower for worse points).
     ``lens="fisheye"``: wide lenses on the same cameras (:func:`gt3dkit.sim.common.with_lens`).
+    Unsynchronised cameras (:mod:`gt3dkit.io.clocks`): camera ``c`` late by ``late_frames[c]``
+    frames and recording at ``camera_fps[c]`` frames per second (a rate a little off ``fps`` is a
+    clock's drift) shows at its frame ``g`` the people at the scene's frame ``g fps / fps_c -
+    late_c`` (their exact motion then, not an interpolation); the truth is on the scene's clock.
     """
     if layout not in ("native", "panoptic"):
         raise ValueError(f"skeleton scenes are written as native or panoptic, not {layout!r}")
@@ -113,19 +118,29 @@ def simulate_skeletons(layout: str = "native", seed: int = 0, frames: int = 30, 
     up = np.array([0.0, -1.0, 0.0])
     names = [f"00_{i:02d}" for i in range(cameras)]
     rig = with_lens(make_dome(cameras, rng, up, names), lens, seed)
-    t_s = np.arange(frames) / fps
     frame_numbers = np.arange(frames, dtype=np.int64) + 100
+    late = np.zeros(cameras) if late_frames is None else np.asarray(late_frames, dtype=np.float64)
+    rate = np.full(cameras, fps) if camera_fps is None else np.asarray(camera_fps, dtype=np.float64)
+    if late.shape != (cameras,) or rate.shape != (cameras,) or not np.all(rate > 0):
+        raise ValueError(f"late_frames and camera_fps need one value per camera ({cameras}), fps > 0")
+    # the scene's clock, then each camera's: seconds since the first frame
+    t_s = np.concatenate([np.arange(frames) / fps] + [
+        (frame_numbers * (fps / r) - frame_numbers[0] - late[c]) / fps for c, r in enumerate(rate)])
     wfb = rig.world_from_body()
     kpts, fr, ids = [], [], []
     for pid in range(people):
         body = skeleton_motion(skeleton, t_s, rng)
         body[..., :2] += np.array([1.2 * np.cos(2 * np.pi * pid / people),
                                    1.2 * np.sin(2 * np.pi * pid / people)]) * (people > 1)
-        kpts.append(np.einsum("ij,tkj->tki", wfb, body))
+        kpts.append(np.einsum("ij,tkj->tki", wfb, body).reshape(cameras + 1, frames, -1, 3))
         fr.append(frame_numbers)
         ids.append(np.full(frames, pid))
-    X = np.concatenate(kpts)
-    uv, depth = project_points(X, rig.K, rig.dist, rig.R, rig.t)  # (M,J,C,2)
+    both = np.concatenate(kpts, axis=1)  # (1 + C, M, J, 3): the truth, then as each camera sees it
+    X = both[0]
+    seen = [project_points(both[1 + c], rig.K[c:c + 1], rig.dist[c:c + 1], rig.R[c:c + 1], rig.t[c:c + 1])
+            for c in range(cameras)]
+    uv = np.concatenate([u for u, _ in seen], axis=2)  # (M, J, C, 2)
+    depth = np.concatenate([d for _, d in seen], axis=2)
     if noise_px > 0:
         uv = uv + rng.normal(scale=noise_px, size=uv.shape)
     ok = (depth > 0) & np.all((uv >= 0) & (uv <= rig.wh - 1), axis=-1)

@@ -156,6 +156,10 @@ def _calibration(run: Run) -> str:
     people = run.meta.get("calibration_from_people")
     if isinstance(people, dict):
         out += _people_rig(people)
+    load = (run.meta.get("input") or {}).get("load")
+    clocks = load.get("clocks") if isinstance(load, dict) else None
+    if isinstance(clocks, dict):
+        out += _clocks(clocks)
     ref = run.meta.get("calibration_refinement")
     if isinstance(ref, dict):
         keep = {k: v for k, v in ref.items() if k not in ("refined_rig", "rig_sha256") and
@@ -193,6 +197,16 @@ def _people_rig(people: JsonDict) -> str:
     return ("<h3>The rig found from the people</h3>" + note + _table(rows, head)
             + ("<p>Beside the input's own calibration after the similarity that best maps the camera "
                "centres.</p>" if isinstance(vs, dict) else ""))
+
+
+def _clocks(clocks: JsonDict) -> str:
+    """Each camera's clock the run took its views on (``meta.json`` ``input.load.clocks``,
+    :mod:`gt3dkit.io.clocks`)."""
+    rows = [[name, _fmt(c.get("late_frames")), _fmt(c.get("sd_frames")), _fmt(c.get("fps") or "the scene's")]
+            for name, c in clocks.items() if isinstance(c, dict)]
+    return ("<h3>Clocks</h3><p>Each camera's frame <i>g</i> was taken at the scene's frame <i>g</i> f / "
+            "f<sub>camera</sub> minus its frames late; the UKF predicts each joint to its view's own "
+            "time.</p>" + _table(rows, ["camera", "frames late", "sd (frames)", "frame rate"]))
 
 
 def _anomaly_section(run: Run, res: ViewResiduals, folder: Path) -> str:
