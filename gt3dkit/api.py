@@ -85,8 +85,8 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     scene = read_scene(root, layout, skeleton, fps, calib, association, **panoptic_options)
     if clocks is not None:
         if not isinstance(clocks, CameraClocks):
-            clocks = CameraClocks.from_doc(clocks, "clocks")
-        scene = on_one_clock(scene, clocks, "time offsets")
+            clocks = CameraClocks.from_doc(clocks, "time offsets")
+        scene = on_one_clock(scene, clocks)
         scene = dataclasses.replace(scene, load_options={**scene.load_options, "clocks": clocks.doc()})
     if scene.layout in ASSOCIATED:  # ids per camera or none -> global identities, before the checks
         over = read_overrides(Path(association), scene.rig.names) if association is not None else None

@@ -152,14 +152,15 @@ def time_offsets(args: argparse.Namespace, calib: str | None) -> CameraClocks | 
     det = detections_input(args, calib)
     found = estimate_clocks(person_views(det, PeopleConfig()), det.rig)
     print_clocks(found.names, found.late_frames, found.sd_frames)
-    return CameraClocks.of(found.names, found.late_frames, found.sd_frames)
+    return CameraClocks.of(found.names, found.late_frames, found.sd_frames, "--time-offsets auto")
 
 
 def print_clocks(names: tuple[str, ...], late: np.ndarray, sd: np.ndarray, where: str = "meta.json input"
                  ) -> None:
     """One line: each camera's clock found from the people."""
     print(f"clocks from the people (frames late against camera {names[0]}, sd; {where}): "
-          + ", ".join(f"{n} {d:+.2f} ({s:.2f})" for n, d, s in zip(names, late, sd, strict=True)))
+          + ", ".join(f"{n} {round(d, 2) + 0.0:+.2f} ({s:.2f})"
+                      for n, d, s in zip(names, late, sd, strict=True)))
 
 
 def with_clock_note(scene: Scene, estimator: str) -> Scene:

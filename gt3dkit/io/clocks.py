@@ -45,12 +45,14 @@ ON_FRAME = 1e-9
 @dataclass(frozen=True)
 class CameraClocks:
     """Per camera ``names (C,)``: ``late_frames (C,)`` (module docstring), ``sd_frames (C,)``
-    (NaN: unknown) and ``fps (C,)`` (NaN: the scene's rate)."""
+    (NaN: unknown) and ``fps (C,)`` (NaN: the scene's rate); ``source``: where they come from (a
+    file's path, for messages)."""
 
     names: tuple[str, ...]
     late_frames: F64
     sd_frames: F64
     fps: F64
+    source: str = "time offsets"
 
     def __post_init__(self) -> None:
         C = len(self.names)
@@ -63,11 +65,12 @@ class CameraClocks:
             raise ValueError("late_frames must be finite")
 
     @staticmethod
-    def of(names: tuple[str, ...], late_frames: F64, sd_frames: F64 | None = None) -> CameraClocks:
+    def of(names: tuple[str, ...], late_frames: F64, sd_frames: F64 | None = None,
+           source: str = "time offsets") -> CameraClocks:
         """Offsets at the scene's rate."""
         C = len(names)
         return CameraClocks(names, late_frames, np.full(C, np.nan) if sd_frames is None else sd_frames,
-                            np.full(C, np.nan))
+                            np.full(C, np.nan), source)
 
     def text(self) -> str:
         """The file's text (module docstring)."""
@@ -94,7 +97,7 @@ class CameraClocks:
 
         try:
             names = tuple(doc)
-            return CameraClocks(names, *(np.array([col(k, n) for n in names]) for k in HEADER[1:]))
+            return CameraClocks(names, *(np.array([col(k, n) for n in names]) for k in HEADER[1:]), where)
         except (TypeError, KeyError, ValueError, AttributeError) as e:
             raise InputError(where, f"time offsets: {e}") from None
 
@@ -146,15 +149,16 @@ def read_time_offsets(path: Path) -> CameraClocks:
     if not names:
         raise InputError(where, "no camera lines")
     a = np.array(vals)
-    return CameraClocks(tuple(names), a[:, 0], a[:, 1], a[:, 2])
+    return CameraClocks(tuple(names), a[:, 0], a[:, 1], a[:, 2], where)
 
 
-def on_one_clock(scene: Scene, clocks: CameraClocks, where: str) -> Scene:
+def on_one_clock(scene: Scene, clocks: CameraClocks) -> Scene:
     """``scene`` with every view numbered by the scene's frame it was seen nearest and the rest
     kept as its ``frame_offset`` (module docstring); the frame grid made anew. Where a camera
     faster than the scene puts two of its frames on one of the scene's, the nearer is kept (a
-    ``warning:``). ``where`` names the clocks' source in messages."""
+    ``warning:``)."""
     rig = scene.rig
+    where = clocks.source
     unknown = [n for n in clocks.names if n not in rig.names]
     if unknown:
         raise InputError(where, f"camera {unknown[0]}: not in the calibration (cameras: "

@@ -1,15 +1,15 @@
 """gt3dkit.refine.clocks: each camera's clock from the people, held to the simulator's people with
-cameras made late by whole and fractional frames (their detections read along their tracks)."""
+cameras late by whole and fractional frames."""
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from gt3dkit.api import load_detections
+from gt3dkit.io.clocks import read_time_offsets
 from gt3dkit.refine.clocks import estimate_clocks, follow, synchronised, tracks_of
 from gt3dkit.refine.people import PeopleConfig, calibrate_people, person_views
 from gt3dkit.sim import simulate_skeletons, write_skeleton_scene
@@ -18,31 +18,21 @@ from gt3dkit.types import Scene
 LATE = np.array([0.0, 2.0, -1.5, 0.3, 0.0, 0.7])  # frames, per camera
 
 
-def late_scene(scene: Scene, late: np.ndarray) -> Scene:
-    """``scene`` with camera ``c`` late by ``late[c]`` frames: its frame ``g`` shows what it showed at
-    ``g - late[c]`` (joints read between two of its frames along the person's track)."""
-    pv = person_views(scene, PeopleConfig(skip_joints=()))
-    succ, _ = follow(pv)
-    o = scene.obs
-    uv, frame = o.kpt_uv_px.copy(), o.frame.copy()
-    for c, d in enumerate(late):
-        base = int(np.floor(-d))
-        frac = -d - base
-        idx = np.flatnonzero(o.cam == c)
-        if frac > 1e-9:
-            nxt = succ[idx]
-            moved = np.full((len(idx),) + uv.shape[1:], np.nan)
-            moved[nxt >= 0] = (1 - frac) * o.kpt_uv_px[idx[nxt >= 0]] + frac * o.kpt_uv_px[nxt[nxt >= 0]]
-            uv[idx] = moved
-        frame[idx] = o.frame[idx] - base
-    return dataclasses.replace(scene, obs=dataclasses.replace(o, frame=frame, kpt_uv_px=uv))
-
-
 @pytest.fixture(scope="module")
 def people(tmp_path_factory: pytest.TempPathFactory) -> Scene:
     root = tmp_path_factory.mktemp("clocks")
     write_skeleton_scene(simulate_skeletons("native", seed=2, frames=40, people=3, noise_px=1.5, cameras=6),
                          root, "native")
+    return load_detections(root)
+
+
+@pytest.fixture(scope="module")
+def late_people(tmp_path_factory: pytest.TempPathFactory) -> Scene:
+    """The same people seen by cameras late by :data:`LATE` (the simulator's exact motion at each
+    camera's own time)."""
+    root = tmp_path_factory.mktemp("late")
+    write_skeleton_scene(simulate_skeletons("native", seed=2, frames=40, people=3, noise_px=1.5, cameras=6,
+                                            late_frames=LATE), root, "native")
     return load_detections(root)
 
 
@@ -57,11 +47,11 @@ def test_tracks_follow_each_person(people: Scene) -> None:
     assert np.mean(same) > 0.95
 
 
-def test_clocks_through_the_true_rig(people: Scene) -> None:
+def test_clocks_through_the_true_rig(people: Scene, late_people: Scene) -> None:
     pv = person_views(people, PeopleConfig())
     sync = estimate_clocks(pv, people.rig)
     assert np.abs(sync.late_frames).max() < 0.1  # measured 0.045
-    late = estimate_clocks(person_views(late_scene(people, LATE), PeopleConfig()), people.rig)
+    late = estimate_clocks(person_views(late_people, PeopleConfig()), people.rig)
     err = np.abs(late.late_frames - LATE)
     assert err.max() < 0.1, late.late_frames  # measured 0.037
     assert np.all(err[1:] < 3 * late.sd_frames[1:] + 0.02)  # the sd covers the error
@@ -69,22 +59,24 @@ def test_clocks_through_the_true_rig(people: Scene) -> None:
     assert np.array_equal(moved.frame[pv.cam == 1], pv.frame[pv.cam == 1] - 1)
 
 
-def test_rig_and_clocks_from_late_cameras(people: Scene) -> None:
-    res = calibrate_people(late_scene(people, LATE), PeopleConfig(clocks=True))
+def test_rig_and_clocks_from_late_cameras(people: Scene, late_people: Scene) -> None:
+    res = calibrate_people(late_people, PeopleConfig(clocks=True))
     assert res.clocks is not None
     assert np.abs(res.clocks.late_frames - LATE).max() < 0.15  # measured 0.04-0.07
     assert res.report["clocks"]["late_frames"][people.rig.names[1]] == pytest.approx(LATE[1], abs=0.15)
 
 
-def test_cli_writes_the_clocks(people: Scene, tmp_path: Path) -> None:
+def test_cli_writes_the_clocks(late_people: Scene, tmp_path: Path) -> None:
     import subprocess
     import sys
 
     out = tmp_path / "cal"
-    p = subprocess.run([sys.executable, "-m", "gt3dkit.cli", "calib", "people", str(people.root), "--clocks",
+    p = subprocess.run([sys.executable, "-m", "gt3dkit.cli", "calib", "people", str(late_people.root),
+                        "--clocks",
                         "--out", str(out)], capture_output=True, text=True)
     assert p.returncode == 0, p.stderr
     rows = (out / "time_offsets.csv").read_text().splitlines()
-    assert rows[0] == "camera,late_frames,sd_frames" and len(rows) == 7
-    assert max(abs(float(r.split(",")[1])) for r in rows[1:]) < 0.15
-    assert "clocks (frames late" in p.stdout
+    assert rows[0] == "camera,late_frames,sd_frames,fps" and len(rows) == 7
+    clocks = read_time_offsets(out / "time_offsets.csv")
+    assert np.abs(clocks.late_frames - LATE).max() < 0.15
+    assert "clocks from the people (frames late" in p.stdout
