@@ -32,8 +32,9 @@ from gt3dkit.fusion.base import REGISTRY
 from gt3dkit.io.atomic import check_out
 from gt3dkit.io.clocks import CameraClocks, read_time_offsets
 from gt3dkit.io.datasets import detect_layout
-from gt3dkit.refine.clocks import estimate_clocks
-from gt3dkit.refine.people import PeopleConfig, calibrate_people, person_views
+from gt3dkit.refine.clocks import Clocks
+from gt3dkit.refine.people import PeopleConfig, calibrate_people
+from gt3dkit.synchronise import find_clocks
 from gt3dkit.types import BOX_MODEL_REGISTRY, GroundTruth, JsonDict, Options, Scene, TrackSet
 
 #: Published numbers of Ma et al. for the datasets we can compare on.
@@ -126,13 +127,17 @@ def load_input(args: argparse.Namespace, by_windows: bool = False, calib: str | 
     if getattr(args, "segments", None) is not None:
         opts["segments"] = args.segments
     opts["box_model"] = getattr(args, "box_model", "auto")
-    clocks = clocks or time_offsets(args, calib)
+
+    def read(on: CameraClocks | None) -> Scene:
+        return load_scene(Path(args.input), layout, args.skeleton, getattr(args, "fps", None), calib=calib,
+                          clocks=on, **opts)
+
+    clocks = clocks or time_offsets(args, calib, read)
     if by_windows and clocks is None and not {"association", "segments"} & opts.keys():
         head = load_head(Path(args.input), layout, getattr(args, "fps", None), calib, str(opts["box_model"]))
         if head is not None:
             return head
-    scene = load_scene(Path(args.input), layout, args.skeleton, getattr(args, "fps", None), calib=calib,
-                       clocks=clocks, **opts)
+    scene = read(clocks)
     if opts["box_model"] != "auto" and not scene.obs.has_box.any():
         # one rule for an option the input has nothing for (as --skeleton on boxes, --association
         # on a native input): refused, not ignored
@@ -140,19 +145,22 @@ def load_input(args: argparse.Namespace, by_windows: bool = False, calib: str | 
     return scene
 
 
-def time_offsets(args: argparse.Namespace, calib: str | None) -> CameraClocks | None:
+def time_offsets(args: argparse.Namespace, calib: str | None, read: Callable[[CameraClocks], Scene],
+                 start: Clocks | None = None) -> CameraClocks | None:
     """``--time-offsets``: the file's clocks, or with ``auto`` each camera's clock found from the
-    people in the input through its calibration (``calib`` in place of ``args.calib``;
-    :func:`gt3dkit.refine.clocks.estimate_clocks`); None without the option."""
+    people in the input through its calibration (``calib`` in place of ``args.calib``; ``read``
+    loads the input onto given clocks; ``start``: pairwise clocks already found;
+    :func:`gt3dkit.synchronise.find_clocks`); None without the option."""
     given = getattr(args, "time_offsets", None)
     if given is None:
         return None
     if given != "auto":
         return read_time_offsets(Path(given))
-    det = detections_input(args, calib)
-    found = estimate_clocks(person_views(det, PeopleConfig()), det.rig)
-    print_clocks(found.names, found.late_frames, found.sd_frames)
-    return CameraClocks.of(found.names, found.late_frames, found.sd_frames, "--time-offsets auto")
+    found, rep = find_clocks(detections_input(args, calib), read, start)
+    print_clocks(found.names, found.late_frames, found.sd_frames,
+                 f"{len(rep['rounds'])} rounds against the reconstruction, {rep['seconds']:.1f} s; "
+                 "meta.json input")
+    return found
 
 
 def print_clocks(names: tuple[str, ...], late: np.ndarray, sd: np.ndarray, where: str = "meta.json input"
@@ -198,13 +206,13 @@ def scene_from_people(args: argparse.Namespace) -> tuple[Scene, JsonDict]:
     res = calibrate_people(det, PeopleConfig(clocks=auto))
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)
-    clocks = None
-    if res.clocks is not None:  # the clocks the rig was adjusted on
-        print_clocks(res.clocks.names, res.clocks.late_frames, res.clocks.sd_frames)
-        clocks = CameraClocks.of(res.clocks.names, res.clocks.late_frames, res.clocks.sd_frames)
     with tempfile.TemporaryDirectory() as tmp:
         write_native(res.rig, Path(tmp) / "cameras.json", fps=None if det.fps_assumed else det.fps)
-        scene = load_input(args, calib=str(Path(tmp) / "cameras.json"), clocks=clocks)
+        cal = str(Path(tmp) / "cameras.json")
+        clocks = None
+        if res.clocks is not None:  # the clocks the rig was adjusted on, held to the reconstruction
+            clocks = time_offsets(args, cal, lambda on: load_input(args, calib=cal, clocks=on), res.clocks)
+        scene = load_input(args, calib=cal, clocks=clocks)
     scene = dataclasses.replace(scene, load_options={**scene.load_options, "calib": None})
     print(f"cameras placed from the people: {len(res.rig.cameras)} ({res.report['seconds']:.1f} s, median "
           f"{res.report['reprojection_median_px']:.2f} px; meta.json: calibration_from_people)")

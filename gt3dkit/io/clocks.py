@@ -189,5 +189,8 @@ def on_one_clock(scene: Scene, clocks: CameraClocks) -> Scene:
         warnings.append(f"{where}: {int((~keep).sum())} views of cameras faster than the scene's "
                         f"{scene.fps:g} frames per second left out (another frame of theirs is nearer "
                         "the same frame of the scene)")
-    moved = dataclasses.replace(obs, frame=frame, frame_offset=off).select(keep)
+    moved = dataclasses.replace(obs, frame=frame, frame_offset=off)
+    order = np.flatnonzero(keep)
+    # in the order the readers give: by frame, then camera
+    moved = moved.select(order[np.lexsort((order, moved.cam[order], moved.frame[order]))])
     return dataclasses.replace(scene, obs=moved, frames=np.unique(moved.frame), warnings=tuple(warnings))

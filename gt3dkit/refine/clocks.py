@@ -32,9 +32,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from gt3dkit.errors import InputError
+from gt3dkit.geom.camera import project_points
 from gt3dkit.refine.persons import PersonViews, candidates, essential, pair_errors, signed_px
 from gt3dkit.rig import Rig
-from gt3dkit.types import F64, I64, JsonDict
+from gt3dkit.types import F64, I64, JsonDict, Scene, TrackSet
 
 #: A detection is followed to the next frame's nearest within this mean joint distance (normalised
 #: image coordinates: 0.05 is ~50 px at a focal length of 1000 px).
@@ -321,3 +322,63 @@ def synchronised(pv: PersonViews, succ: I64, late_frames: F64) -> PersonViews:
             arr[idx] = moved
         ok[idx] = np.isfinite(xy[idx][..., 0]) & pv.ok[idx]
     return PersonViews(np.where(ok[..., None], xy, np.nan), ok, pv.cam, frame, uv, pv.mirror, pv.f_px)
+
+
+def offset_steps(scene: Scene, tracks: TrackSet, cams: I64, max_px: float = CAP_PX) -> tuple[F64, F64, I64]:
+    r"""How much later than its clock says each camera ``cams (K,)`` took its views, against a
+    reconstruction ``tracks`` made without them (frames), each step's sd and the joints it rests on
+    ``(K,)`` each: one Gauss-Newton step of
+
+    .. math::
+        \min_{\delta_c} \sum \lVert z - \pi_c(p(t) + (o + \delta_c) v(t)) \rVert^2
+
+    over camera ``c``'s views ``z`` of the reconstructed joints ``p`` (velocities ``v`` by central
+    differences along each track, per frame), ``o`` the view's ``frame_offset``. The sd is the
+    jackknife's over the people (a person's errors are correlated over its frames: the step's own
+    formula would take them as independent). Views off by more than ``max_px`` are left out (a
+    detector's misplaced joint; the wrong person). A camera with fewer than ten joints: NaN."""
+    obs, rig = scene.obs, scene.rig
+    key_t = tracks.track_id.astype(np.int64) * (1 << 32) + tracks.frame
+    order = np.argsort(key_t)
+    ks = key_t[order]
+
+    def row_of(track: I64, frame: I64) -> I64:
+        if not len(ks):
+            return np.full(len(track), -1, np.int64)
+        k = track * (1 << 32) + frame
+        i = np.clip(np.searchsorted(ks, k), 0, len(ks) - 1)
+        return np.where(ks[i] == k, order[i], -1)
+
+    step, sd, n_used = (np.full(len(cams), np.nan), np.full(len(cams), np.nan), np.zeros(len(cams), np.int64))
+    for k, c in enumerate(cams):
+        i = np.flatnonzero(obs.cam == c)
+        r0 = row_of(obs.track_id[i], obs.frame[i])
+        rp, rn = row_of(obs.track_id[i], obs.frame[i] - 1), row_of(obs.track_id[i], obs.frame[i] + 1)
+        use = (r0 >= 0) & (rp >= 0) & (rn >= 0)
+        i, r0, rp, rn = i[use], r0[use], rp[use], rn[use]
+        V = 0.5 * (tracks.kpt_world[rn] - tracks.kpt_world[rp])  # (n, J, 3) per frame
+        off = obs.frame_offset[i] if obs.frame_offset is not None else np.zeros(len(i))
+        X = tracks.kpt_world[r0] + off[:, None, None] * V
+        args = (rig.K[c:c + 1], rig.dist[c:c + 1], rig.R[c:c + 1], rig.t[c:c + 1])
+        h = 0.25  # of the frame's motion: the projection's derivative along it
+        at = project_points(X, *args)[0][:, :, 0]
+        g = (project_points(X + h * V, *args)[0] - project_points(X - h * V, *args)[0])[:, :, 0] / (2 * h)
+        res = obs.kpt_uv_px[i] - at  # (n, J, 2) px; g px per frame
+        ok = np.isfinite(res).all(-1) & np.isfinite(g).all(-1) & (np.linalg.norm(res, axis=-1) < max_px)
+        if ok.sum() < 10:
+            continue
+        who = np.broadcast_to(obs.track_id[i][:, None], ok.shape)[ok]
+        gr = np.einsum("nd,nd->n", g[ok], res[ok])
+        gg = np.einsum("nd,nd->n", g[ok], g[ok])
+        ids, inv = np.unique(who, return_inverse=True)
+        num_p, den_p = np.bincount(inv, gr), np.bincount(inv, gg)
+        if den_p.sum() <= 0:
+            continue
+        step[k] = num_p.sum() / den_p.sum()
+        n_used[k] = int(ok.sum())
+        if len(ids) >= 3:  # the jackknife over the people
+            loo = (num_p.sum() - num_p) / np.maximum(den_p.sum() - den_p, 1e-12)
+            sd[k] = float(np.sqrt((len(ids) - 1) / len(ids) * np.sum((loo - loo.mean()) ** 2)))
+        else:
+            sd[k] = float(np.sqrt(np.mean((res[ok] - g[ok] * step[k]) ** 2) / den_p.sum()))
+    return step, sd, n_used
