@@ -15,7 +15,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 APT_PKGS := python3-venv libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libegl1 libgl1 libgomp1 libegl-mesa0 libgl1-mesa-dri
 
-.PHONY: setup demo test bench bench-env labels-env bench-long lint clean
+.PHONY: setup demo test bench bench-env labels-env pose2sim-env bench-long lint clean
 
 setup: $(VENV)/.installed
 	@$(PY) -m compileall -q gt3dkit >/dev/null  # bytecode kept, also where PYTHONDONTWRITEBYTECODE is set
@@ -50,6 +50,20 @@ bench-env: setup .venv-bench/.installed
 	@test -x .venv-bench/bin/python || python3 -m venv .venv-bench
 	.venv-bench/bin/python -m pip install -q --upgrade pip
 	.venv-bench/bin/python -m pip install -q $$($(PY) -c "import tomllib; print(' '.join(tomllib.load(open('pyproject.toml', 'rb'))['project']['optional-dependencies']['bench']))")
+	@touch $@
+
+# Pose2Sim's synchronization step (scripts/people_targets.py section 4b) in an environment of its own:
+# pose2sim itself without its dependencies (OpenSim, the pose estimators, Qt: other steps'), and what
+# its synchronization and common modules import
+POSE2SIM = pose2sim==0.10.49
+POSE2SIM_DEPS = numpy pandas scipy matplotlib opencv-python-headless anytree rtoml c3d
+pose2sim-env: .venv-pose2sim/.installed
+
+.venv-pose2sim/.installed: Makefile
+	@test -x .venv-pose2sim/bin/python || python3 -m venv .venv-pose2sim
+	.venv-pose2sim/bin/python -m pip install -q --upgrade pip
+	.venv-pose2sim/bin/python -m pip install -q $(POSE2SIM_DEPS)
+	.venv-pose2sim/bin/python -m pip install -q --no-deps $(POSE2SIM)
 	@touch $@
 
 # datumaro (pyproject's labels-check extra: CVAT's own reader, for the tests of gt3d project's

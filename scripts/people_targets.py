@@ -136,10 +136,13 @@ def write_openpose(scene: Scene, src: Path, dst: Path) -> None:
         if (src / name).exists():
             shutil.copy(src / name, dst / name)
     o = scene.obs
+    n_files = len(list((src / "pose" / f"{scene.rig.names[0]}_json").glob("*.json")))
     for c, name in enumerate(scene.rig.names):
         folder = dst / "pose" / f"{name}_json"
         folder.mkdir(parents=True)
-        for f in np.unique(o.frame[(o.cam == c) & (o.frame >= 0)]):  # (a camera made early starts later)
+        # every camera records the same frame numbers: a late camera's first frames show what came
+        # before the recording (unknown here: written empty), its last frames' are lost
+        for f in range(n_files):
             rows = np.flatnonzero((o.cam == c) & (o.frame == f))
             people = []
             for r in rows:
@@ -152,6 +155,52 @@ def write_openpose(scene: Scene, src: Path, dst: Path) -> None:
 
 def clock_errors(found: np.ndarray, names: list[str], late: dict[str, float]) -> np.ndarray:
     return np.abs(found - np.array([late.get(n, 0.0) for n in names]))
+
+
+POSE2SIM_SYNC = """
+import json, logging, re, sys, time
+logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
+from Pose2Sim.synchronization import synchronize_cams_all
+config = {"project": {"project_dir": sys.argv[1], "frame_rate": float(sys.argv[2]), "frame_range": "all"},
+          "pose": {"pose_model": "BODY_25"},
+          "synchronization": {"display_sync_plots": False, "save_sync_plots": False,
+                              "keypoints_to_consider": "all", "approx_time_maxspeed": "auto",
+                              "time_range_around_maxspeed": 2.0, "likelihood_threshold_synchronization": 0.4,
+                              "filter_cutoff": 6, "filter_order": 4, "synchronization_gui": False}}
+seen = []
+class Grab(logging.Handler):
+    def emit(self, record):
+        m = re.search(r"--> Camera (\\S+) and (\\S+): (-?\\d+) frames offset", record.getMessage())
+        if m:
+            seen.append((m.group(1), m.group(2), int(m.group(3))))
+logging.getLogger().addHandler(Grab())
+t = time.perf_counter()
+synchronize_cams_all(config)
+print("POSE2SIM", time.perf_counter() - t, json.dumps(seen))
+"""
+
+
+def beside_pose2sim(shifted: Path, fps: float, names: tuple[str, ...], tmp: Path) -> dict[str, float] | None:
+    """Section 4b: Pose2Sim's own ``synchronize_cams_all`` (``make pose2sim-env``) on the same late
+    files, its defaults but for no plots and no GUI (it picks the largest person in each camera
+    and correlates the vertical speeds; whole frames): each camera's frames late against the first."""
+    py = REPO / ".venv-pose2sim" / "bin" / "python"
+    if not py.exists():
+        print("   no .venv-pose2sim (make pose2sim-env): Pose2Sim not run")
+        return None
+    project = tmp / "pose2sim"
+    shutil.copytree(shifted / "pose", project / "pose")
+    q = subprocess.run([str(py), "-c", POSE2SIM_SYNC, str(project), str(fps)], capture_output=True, text=True)
+    if q.returncode != 0:
+        print("   Pose2Sim failed:", q.stderr.strip().splitlines()[-3:])
+        return None
+    line = next(ln for ln in q.stdout.splitlines() if ln.startswith("POSE2SIM"))
+    took, pairs = float(line.split()[1]), json.loads(line.split(" ", 2)[2])
+    late = {ref: 0.0 for ref, _, _ in pairs[:1]}
+    late.update({cam: float(off) for _, cam, off in pairs})
+    base = late.get(names[0], 0.0)
+    print(f"   Pose2Sim's synchronization ({took:.1f} s): {pairs}")
+    return {n: late.get(n, 0.0) - base for n in names}
 
 
 ANIPOSE_BA = """
@@ -245,6 +294,14 @@ def clocks(data: Path) -> bool:
                   f"     found {named}, "
                   f"sd {np.round(found.sd_frames, 3).tolist()} ({len(rep['rounds'])} rounds)\n"
                   f"     worst error {e_abs.max():.3f} frame: {'ok' if good else 'MISSED'} (target 0.25)")
+            p2s = beside_pose2sim(shifted, sc.fps, sc.rig.names, Path(tmp))
+            if p2s is not None:
+                e_p = np.abs(np.array([p2s[n] for n in sc.rig.names]) - true)
+                print(f"   4b. side by side on the same files: Pose2Sim found {p2s}: worst error "
+                      f"{e_p.max():.3f} "
+                      f"frame, mean {e_p[1:].mean():.3f}; gt3dkit worst {e_abs.max():.3f}, mean "
+                      f"{e_abs[1:].mean():.3f}: gt3dkit {'more' if e_abs.max() < e_p.max() else 'NOT more'} "
+                      "accurate")
             print(f"   the original files' own clocks, found the same way ({t1 - t0:.1f} s): "
                   f"{dict(zip(own.names, np.round(own.late_frames, 3).tolist(), strict=True))}, sd "
                   f"{np.round(own.sd_frames, 3).tolist()}; the shifts found beyond them: worst error "

@@ -40,6 +40,8 @@ from gt3dkit.types import F64, I64, JsonDict, Scene, TrackSet
 #: A detection is followed to the next frame's nearest within this mean joint distance (normalised
 #: image coordinates: 0.05 is ~50 px at a focal length of 1000 px).
 FOLLOW_GATE = 0.05
+#: The jackknife of :func:`offset_steps` leaves out a person's stretch of this many frames at a time.
+JACKKNIFE_FRAMES = 10
 #: Gauss-Newton steps of the fraction (module docstring, step 3).
 GN_STEPS = 6
 #: Sampson distances above this (px) count as this much in the fine search (a detector's misplaced
@@ -334,9 +336,10 @@ def offset_steps(scene: Scene, tracks: TrackSet, cams: I64, max_px: float = CAP_
 
     over camera ``c``'s views ``z`` of the reconstructed joints ``p`` (velocities ``v`` by central
     differences along each track, per frame), ``o`` the view's ``frame_offset``. The sd is the
-    jackknife's over the people (a person's errors are correlated over its frames: the step's own
-    formula would take them as independent). Views off by more than ``max_px`` are left out (a
-    detector's misplaced joint; the wrong person). A camera with fewer than ten joints: NaN."""
+    jackknife's over stretches of :data:`JACKKNIFE_FRAMES` frames of each person (a person's errors
+    are correlated over its frames: the step's own formula would take them as independent). Views
+    off by more than ``max_px`` are left out (a detector's misplaced joint; the wrong person). A
+    camera with fewer than ten joints: NaN."""
     obs, rig = scene.obs, scene.rig
     key_t = tracks.track_id.astype(np.int64) * (1 << 32) + tracks.frame
     order = np.argsort(key_t)
@@ -367,7 +370,8 @@ def offset_steps(scene: Scene, tracks: TrackSet, cams: I64, max_px: float = CAP_
         ok = np.isfinite(res).all(-1) & np.isfinite(g).all(-1) & (np.linalg.norm(res, axis=-1) < max_px)
         if ok.sum() < 10:
             continue
-        who = np.broadcast_to(obs.track_id[i][:, None], ok.shape)[ok]
+        block = obs.track_id[i] * (1 << 32) + obs.frame[i] // JACKKNIFE_FRAMES  # a person's stretch of frames
+        who = np.broadcast_to(block[:, None], ok.shape)[ok]
         gr = np.einsum("nd,nd->n", g[ok], res[ok])
         gg = np.einsum("nd,nd->n", g[ok], g[ok])
         ids, inv = np.unique(who, return_inverse=True)
@@ -376,7 +380,7 @@ def offset_steps(scene: Scene, tracks: TrackSet, cams: I64, max_px: float = CAP_
             continue
         step[k] = num_p.sum() / den_p.sum()
         n_used[k] = int(ok.sum())
-        if len(ids) >= 3:  # the jackknife over the people
+        if len(ids) >= 3:  # the jackknife over the people's stretches
             loo = (num_p.sum() - num_p) / np.maximum(den_p.sum() - den_p, 1e-12)
             sd[k] = float(np.sqrt((len(ids) - 1) / len(ids) * np.sum((loo - loo.mean()) ** 2)))
         else:
