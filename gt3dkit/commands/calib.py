@@ -6,6 +6,7 @@ import argparse
 import dataclasses
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -28,11 +29,11 @@ from gt3dkit.commands.common import (
 )
 from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import check_out, write_dir_atomically
-from gt3dkit.io.clocks import CameraClocks
 from gt3dkit.io.writers import write_refined_calibration
 from gt3dkit.refine import RefineConfig, refine, scene_warnings
 from gt3dkit.refine.people import PeopleConfig, calibrate_people
 from gt3dkit.rig import LENSES, Camera
+from gt3dkit.synchronise import find_clocks
 from gt3dkit.version import __version__
 from gt3dkit.viz.boardreport import write_board_report
 
@@ -96,9 +97,15 @@ def cmd_calib_people(args: argparse.Namespace) -> int:
     scene = detections_input(args, args.intrinsics)
     res = calibrate_people(scene, PeopleConfig(height_m=args.height, focal_known=not args.focal_unknown,
                                                clocks=args.clocks))
-    clocks = res.clocks
-    extra = {} if clocks is None else {
-        "time_offsets.csv": CameraClocks.of(clocks.names, clocks.late_frames, clocks.sd_frames).text()}
+    clocks = None
+    if res.clocks is not None:  # the pairwise clocks, held to the people reconstructed through this rig
+        with tempfile.TemporaryDirectory() as tmp:
+            cal = str(Path(tmp) / "cameras.json")
+            write_native(res.rig, Path(tmp) / "cameras.json", fps=None if scene.fps_assumed else scene.fps)
+            clocks, sync = find_clocks(scene, lambda on: load_input(args, calib=cal, clocks=on), res.clocks)
+        res.report["clocks"] = {"cameras": clocks.doc(), "pairwise": res.clocks.report(),
+                                "rounds": sync["rounds"], "seconds": sync["seconds"]}
+    extra = {} if clocks is None else {"time_offsets.csv": clocks.text()}
     write_refined_calibration(Path(args.out), scene, res, args.format, extra)
     print_warnings(scene)
     rep = res.report
