@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -326,20 +327,34 @@ def synchronised(pv: PersonViews, succ: I64, late_frames: F64) -> PersonViews:
     return PersonViews(np.where(ok[..., None], xy, np.nan), ok, pv.cam, frame, uv, pv.mirror, pv.f_px)
 
 
-def offset_steps(scene: Scene, tracks: TrackSet, cams: I64, max_px: float = CAP_PX) -> tuple[F64, F64, I64]:
+class Steps(NamedTuple):
+    """Per camera ``(K,)``: how much later than its clock says it took its views ``step`` (frames,
+    at the scene's frame ``at_frame``) and how much more so each frame on ``drift`` (frames per
+    frame: its clock runs slow by that share), their jackknife sds ``step_sd, drift_sd`` and the
+    joints they rest on ``joints`` (NaN, 0 where fewer than ten)."""
+
+    step: F64
+    step_sd: F64
+    drift: F64
+    drift_sd: F64
+    at_frame: F64
+    joints: I64
+
+
+def offset_steps(scene: Scene, tracks: TrackSet, cams: I64, max_px: float = CAP_PX) -> Steps:
     r"""How much later than its clock says each camera ``cams (K,)`` took its views, against a
-    reconstruction ``tracks`` made without them (frames), each step's sd and the joints it rests on
-    ``(K,)`` each: one Gauss-Newton step of
+    reconstruction ``tracks`` made without them: one Gauss-Newton step of
 
     .. math::
-        \min_{\delta_c} \sum \lVert z - \pi_c(p(t) + (o + \delta_c) v(t)) \rVert^2
+        \min_{\delta_c, \beta_c} \sum \lVert z - \pi_c\big(p(t) + (o + \delta_c + \beta_c (t + o -
+        \bar t_c)) v(t)\big) \rVert^2
 
-    over camera ``c``'s views ``z`` of the reconstructed joints ``p`` (velocities ``v`` by central
-    differences along each track, per frame), ``o`` the view's ``frame_offset``. The sd is the
-    jackknife's over stretches of :data:`JACKKNIFE_FRAMES` frames of each person (a person's errors
-    are correlated over its frames: the step's own formula would take them as independent). Views
-    off by more than ``max_px`` are left out (a detector's misplaced joint; the wrong person). A
-    camera with fewer than ten joints: NaN."""
+    over camera ``c``'s views ``z`` at frames ``t`` of the reconstructed joints ``p`` (velocities
+    ``v`` by central differences along each track, per frame), ``o`` the view's ``frame_offset``,
+    ``\bar t_c`` the mean frame of its views. The sds are the jackknife's over stretches of
+    :data:`JACKKNIFE_FRAMES` frames of each person (a person's errors are correlated over its
+    frames: the step's own formula would take them as independent). Views off by more than
+    ``max_px`` are left out (a detector's misplaced joint; the wrong person)."""
     obs, rig = scene.obs, scene.rig
     key_t = tracks.track_id.astype(np.int64) * (1 << 32) + tracks.frame
     order = np.argsort(key_t)
@@ -352,7 +367,8 @@ def offset_steps(scene: Scene, tracks: TrackSet, cams: I64, max_px: float = CAP_
         i = np.clip(np.searchsorted(ks, k), 0, len(ks) - 1)
         return np.where(ks[i] == k, order[i], -1)
 
-    step, sd, n_used = (np.full(len(cams), np.nan), np.full(len(cams), np.nan), np.zeros(len(cams), np.int64))
+    K = len(cams)
+    out = Steps(*(np.full(K, np.nan) for _ in range(5)), np.zeros(K, np.int64))
     for k, c in enumerate(cams):
         i = np.flatnonzero(obs.cam == c)
         r0 = row_of(obs.track_id[i], obs.frame[i])
@@ -372,17 +388,28 @@ def offset_steps(scene: Scene, tracks: TrackSet, cams: I64, max_px: float = CAP_
             continue
         block = obs.track_id[i] * (1 << 32) + obs.frame[i] // JACKKNIFE_FRAMES  # a person's stretch of frames
         who = np.broadcast_to(block[:, None], ok.shape)[ok]
+        t = np.broadcast_to((obs.frame[i] + off)[:, None], ok.shape)[ok]
         gr = np.einsum("nd,nd->n", g[ok], res[ok])
         gg = np.einsum("nd,nd->n", g[ok], g[ok])
+        t_mean = float(np.sum(gg * t) / max(np.sum(gg), 1e-12))
+        t = t - t_mean
         ids, inv = np.unique(who, return_inverse=True)
-        num_p, den_p = np.bincount(inv, gr), np.bincount(inv, gg)
-        if den_p.sum() <= 0:
+        # each stretch's normal equations of (step, drift)
+        parts = np.stack([np.bincount(inv, w) for w in (gg, gg * t, gg * t * t, gr, gr * t)], 1)  # (B, 5)
+
+        def solve(p: F64) -> F64:
+            A = np.array([[p[0], p[1]], [p[1], p[2]]])
+            if p[2] * p[0] - p[1] ** 2 <= 1e-12 * max(p[0] * p[2], 1e-300):  # no spread in time: no drift
+                return np.array([p[3] / p[0] if p[0] > 0 else np.nan, 0.0])
+            return np.linalg.solve(A, p[3:5])
+
+        whole = parts.sum(0)
+        if whole[0] <= 0:
             continue
-        step[k] = num_p.sum() / den_p.sum()
-        n_used[k] = int(ok.sum())
+        out.step[k], out.drift[k] = solve(whole)
+        out.at_frame[k], out.joints[k] = t_mean, int(ok.sum())
         if len(ids) >= 3:  # the jackknife over the people's stretches
-            loo = (num_p.sum() - num_p) / np.maximum(den_p.sum() - den_p, 1e-12)
-            sd[k] = float(np.sqrt((len(ids) - 1) / len(ids) * np.sum((loo - loo.mean()) ** 2)))
-        else:
-            sd[k] = float(np.sqrt(np.mean((res[ok] - g[ok] * step[k]) ** 2) / den_p.sum()))
-    return step, sd, n_used
+            loo = np.array([solve(whole - p) for p in parts])
+            spread = np.sqrt((len(ids) - 1) / len(ids) * np.sum((loo - loo.mean(0)) ** 2, axis=0))
+            out.step_sd[k], out.drift_sd[k] = spread
+    return out
