@@ -12,7 +12,8 @@
    reconstruction towards its own clock, and a step against it would fall short by its share of
    the views. Each step is fitted with a drift (the camera's clock running at its own rate), which
    is taken where it is ``drift_sds`` from none and moves the clock by ``drift_frames`` over a
-   recording of ``drift_min_frames`` at least. Rounds repeat until no camera moves by more than ``tol_frames``.
+   recording of ``drift_min_frames`` at least. Rounds repeat until no camera moves by more than
+   ``tol_frames``.
 
 Measured (``scripts/people_targets.py`` section 4): on the simulator's late cameras the rounds
 take the start's worst error from 0.08 to 0.02 frame (1.5 px noise) and from 0.15 to 0.06 (4 px).

@@ -24,6 +24,7 @@ from gt3dkit.commands.common import (
     detections_input,
     fmt_num,
     load_input,
+    people_rig,
     print_clocks,
     print_warnings,
 )
@@ -31,7 +32,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import check_out, write_dir_atomically
 from gt3dkit.io.writers import write_refined_calibration
 from gt3dkit.refine import RefineConfig, refine, scene_warnings
-from gt3dkit.refine.people import PeopleConfig, calibrate_people
+from gt3dkit.refine.people import PeopleConfig
 from gt3dkit.rig import LENSES, Camera
 from gt3dkit.synchronise import find_clocks
 from gt3dkit.version import __version__
@@ -95,7 +96,7 @@ def cmd_calib_people(args: argparse.Namespace) -> int:
     (:mod:`gt3dkit.refine.people`)."""
     check_output(args.out, (args.input,))
     scene = detections_input(args, args.intrinsics)
-    res = calibrate_people(scene, PeopleConfig(height_m=args.height, focal_known=not args.focal_unknown,
+    res = people_rig(scene, PeopleConfig(height_m=args.height, focal_known=not args.focal_unknown,
                                                clocks=args.clocks))
     clocks = None
     if res.clocks is not None:  # the pairwise clocks, held to the people reconstructed through this rig

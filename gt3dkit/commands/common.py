@@ -31,9 +31,10 @@ from gt3dkit.eval.tracking import TrackingTally, tracking_scores
 from gt3dkit.fusion.base import REGISTRY
 from gt3dkit.io.atomic import check_out
 from gt3dkit.io.clocks import CameraClocks, read_time_offsets
-from gt3dkit.io.datasets import detect_layout
+from gt3dkit.io.datasets import ASSOCIATED, detect_layout
+from gt3dkit.refine.boxpeople import BoxPeopleConfig, calibrate_boxes
 from gt3dkit.refine.clocks import Clocks
-from gt3dkit.refine.people import PeopleConfig, calibrate_people
+from gt3dkit.refine.people import PeopleCalibration, PeopleConfig, calibrate_people
 from gt3dkit.synchronise import find_clocks
 from gt3dkit.types import BOX_MODEL_REGISTRY, GroundTruth, JsonDict, Options, Scene, TrackSet
 
@@ -197,13 +198,32 @@ def detections_input(args: argparse.Namespace, calib: str | None = None) -> Scen
                            **panoptic_options(args, layout))
 
 
+def people_rig(scene: Scene, cfg: PeopleConfig) -> PeopleCalibration:
+    """The rig from the people of ``scene``'s detections: from their keypoints
+    (:func:`gt3dkit.refine.people.calibrate_people`), or where it has boxes only, from their boxes
+    (:func:`gt3dkit.refine.boxpeople.calibrate_boxes`: the ids must name a person in every camera)."""
+    if scene.obs.n_joints > 0:
+        return calibrate_people(scene, cfg)
+    where = scene.root or "input"
+    if scene.layout in ASSOCIATED:
+        raise InputError(where, "a rig from boxes needs each person's id the same in every camera; "
+                                f"{scene.layout}'s ids are each camera's own")
+    for on, option in ((cfg.clocks, "--clocks / --time-offsets auto"),
+                       (not cfg.focal_known, "--focal-unknown")):
+        if on:
+            raise InputError(option, "applies to keypoints (a rig from boxes takes the intrinsics given and "
+                                     "one clock)")
+    height = {} if cfg.height_m is None else {"height_m": cfg.height_m}
+    return calibrate_boxes(scene, BoxPeopleConfig(**height))
+
+
 def scene_from_people(args: argparse.Namespace) -> tuple[Scene, JsonDict]:
     """``--calib people``: the input with the rig :func:`gt3dkit.refine.people.calibrate_people`
     finds from its people (its own calibration's intrinsics), and what to record of it in
     meta.json (the rig and the report)."""
     det = detections_input(args)
     auto = getattr(args, "time_offsets", None) == "auto"
-    res = calibrate_people(det, PeopleConfig(clocks=auto))
+    res = people_rig(det, PeopleConfig(clocks=auto))
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)
     with tempfile.TemporaryDirectory() as tmp:

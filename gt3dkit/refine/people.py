@@ -631,20 +631,20 @@ def _tracks(pv: PersonViews, person: I64, flip: np.ndarray, X: F64, rig: Rig, cf
     return Tracks(X0, times, new[point[sel]], cams[n[sel]], uv[n[sel], j[sel]]), j[sel]
 
 
-def pose_sd(rig: Rig, tracks: Tracks, joint: I64) -> tuple[F64, F64]:
+def pose_sd(rig: Rig, tracks: Tracks, joint: I64, min_kinds: int = 5) -> tuple[F64, F64]:
     """Per camera the sd of its centre (rig units) and of its rotation (deg), the people's joints
     held where they were triangulated: a jackknife over the joint types (its pose fitted again
     without each in turn; Efron & Stein 1981). A detector places each joint type with a bias of
     its own in each view (an elbow on the sleeve's edge, an ankle on the shoe), the same in every
     frame: thousands of observations of ~15 joint types are ~15 independent errors, which a
     per-observation ``s^2 (J^T J)^-1`` would count as thousands (on Shelf it gives 0.1 cm where the
-    camera is 1-3 cm from Shelf's calibration). NaN with fewer than 5 joint types seen."""
+    camera is 1-3 cm from Shelf's calibration). NaN with fewer than ``min_kinds`` joint types seen."""
     C = len(rig.cameras)
     c_sd, r_sd = np.full(C, np.nan), np.full(C, np.nan)
     for c, cam in enumerate(rig.cameras):
         m = tracks.cam == c
         kinds = np.unique(joint[m])
-        if len(kinds) < 5:
+        if len(kinds) < min_kinds:
             continue
         X, uv, jt = tracks.X0[tracks.point[m]], tracks.uv[m], joint[m]
 
