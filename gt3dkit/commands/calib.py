@@ -111,7 +111,8 @@ def cmd_calib_people(args: argparse.Namespace) -> int:
     print_warnings(scene)
     rep = res.report
     print(f"{scene.layout}: {len(res.rig.cameras)} cameras placed from {rep['people']} people-frames "
-          f"({rep['tracks']} joints in the last adjustment, median {rep['reprojection_median_px']:.2f} px) "
+          f"({rep['tracks']} {'box points (feet, heads)' if rep.get('from') == 'boxes' else 'joints'} in the "
+          f"last adjustment, median {rep['reprojection_median_px']:.2f} px) "
           f"in {rep['seconds']:.1f} s; written to {args.out}")
     print(f"world: {rep['world']['frame']}")
     given = rep.get("against_input_calibration")
