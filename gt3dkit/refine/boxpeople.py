@@ -45,6 +45,9 @@ BORDER_PX = 2.0
 #: The people's feet span a floor (its plane is up) where their spread across it is this much
 #: smaller than along it.
 FLAT = 0.2
+#: The people's feet and heads in one plane (all walking along one line) within this share of their
+#: spread along it: the rig is not determined (a plane's points leave the essential matrix ambiguous).
+ON_A_PLANE = 0.03
 #: The camera sds' jackknife leaves out one of this many groups of the people at a time.
 SD_GROUPS = 10
 
@@ -176,6 +179,13 @@ def calibrate_boxes(scene: Scene, cfg: BoxPeopleConfig | None = None) -> PeopleC
         R[c], t[c] = Rc, tc
         posed[c] = True
         order.append(int(c))
+    _, X = _triangulate(p, R, t, posed)
+    pts = X.reshape(-1, 3)[np.isfinite(X.reshape(-1, 3)).all(1)]
+    sv = np.linalg.svd(pts - np.median(pts, axis=0), compute_uv=False)
+    if sv[2] < ON_A_PLANE * sv[1]:
+        raise InputError("people", f"everyone's feet and heads lie in one plane (on one line across the floor; "
+                                   f"spread {sv[2] / sv[1]:.3f} of their spread along it): the cameras' poses are "
+                                   "not determined by them")
     start = replace(rig, cameras=tuple(replace(cam, R=R[k], t=t[k]) for k, cam in enumerate(rig.cameras)))
     out = start
     every = np.ones(C, bool)

@@ -107,8 +107,8 @@ def focal_from_image(rig: Rig) -> Rig:
 def person_views(scene: Scene, cfg: PeopleConfig) -> PersonViews:
     o, rig = scene.obs, (scene.rig if cfg.focal_known else focal_from_image(scene.rig))
     if o.kpt_uv_px is None or scene.skeleton is None:
-        raise InputError(scene.root or "input", "no keypoints: a rig is made from people's joints "
-                                                "(from boxes alone it is not built yet)")
+        raise InputError(scene.root or "input", "no keypoints: this makes a rig from people's joints "
+                                                "(from boxes: gt3dkit.refine.boxpeople)")
     xy = normalized_points(o.kpt_uv_px, rig.K[o.cam][:, None], rig.dist[o.cam][:, None])
     ok = np.isfinite(xy[..., 0])
     if o.kpt_conf is not None:

@@ -13,10 +13,12 @@ import pytest
 from gt3dkit.api import load_detections
 from gt3dkit.cli import main
 from gt3dkit.errors import InputError
+from gt3dkit.geom.camera import Cams
+from gt3dkit.geom.conics import model_boxes
 from gt3dkit.refine.boxpeople import calibrate_boxes
 from gt3dkit.refine.common import umeyama
 from gt3dkit.sim import simulate, write_scene
-from gt3dkit.types import Scene
+from gt3dkit.types import Observations, Scene
 
 
 @pytest.fixture(scope="module")
@@ -71,3 +73,22 @@ def test_ids_of_each_camera_are_refused(tmp_path: Path, capsys: pytest.CaptureFi
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and "needs each person's id the same in every camera" in err
     assert len(err.splitlines()) == 1 and not (tmp_path / "cal").exists()
+
+
+def test_everyone_on_one_line_is_refused(boxes: Scene) -> None:
+    """People walking along one line across the floor: their feet and heads lie in one plane, which
+    leaves the essential matrix ambiguous."""
+    rig = boxes.rig
+    n = 60
+    s = np.linspace(-4, 4, n)
+    X = np.stack([s, 0.3 * s, np.full(n, 0.85)], 1)  # along the line y = 0.3 x, the body's centre
+    axes = np.tile([0.25, 0.25, 0.85], (n, 1))
+    box, _ = model_boxes(X, axes, Cams.of(rig))  # (n, C, 4)
+    C = len(rig.cameras)
+    ok = np.isfinite(box).all(-1)
+    f, c = np.nonzero(ok)
+    obs = Observations(f, c, np.zeros(len(f), np.int64), box[f, c], np.zeros((len(f), 0, 2)),
+                       [f"line: {k}" for k in range(len(f))])
+    assert len(np.unique(c)) == C
+    with pytest.raises(InputError, match="one plane .* not determined"):
+        calibrate_boxes(dataclasses.replace(boxes, obs=obs, frames=np.arange(n)))
