@@ -184,8 +184,8 @@ def calibrate_boxes(scene: Scene, cfg: BoxPeopleConfig | None = None) -> PeopleC
     sv = np.linalg.svd(pts - np.median(pts, axis=0), compute_uv=False)
     if sv[2] < ON_A_PLANE * sv[1]:
         raise InputError("people", "everyone's feet and heads lie in one plane (on one line across the "
-                                   f"floor; spread {sv[2] / sv[1]:.3f} of their spread along it): the cameras' "
-                                   "poses are not determined by them")
+                                   f"floor; spread {sv[2] / sv[1]:.3f} of their spread along it): the "
+                                   "cameras' poses are not determined by them")
     start = replace(rig, cameras=tuple(replace(cam, R=R[k], t=t[k]) for k, cam in enumerate(rig.cameras)))
     out = start
     every = np.ones(C, bool)
