@@ -174,18 +174,14 @@ def print_clocks(names: tuple[str, ...], late: np.ndarray, sd: np.ndarray, where
 
 def with_clock_note(scene: Scene, estimator: str) -> Scene:
     """``scene`` with a ``warning:`` where views filed off their frames (``--time-offsets``) are
-    taken at the frame they are filed under: by an estimator other than the UKF, or as boxes."""
+    taken at the frame they are filed under: by an estimator other than the UKF."""
     off = scene.obs.frame_offset
     if off is None or not np.any(off != 0):
         return scene
-    if estimator != "ukf":
-        why = (f"--time-offsets: the {estimator} takes each view at the whole frame nearest its own time "
-               "(the UKF alone predicts each joint to it)")
-    elif scene.has_boxes:
-        why = ("--time-offsets: boxes are taken at the whole frame nearest their own time (keypoints are "
-               "predicted to it)")
-    else:
+    if estimator == "ukf":
         return scene
+    why = (f"--time-offsets: the {estimator} takes each view at the whole frame nearest its own time "
+           "(the UKF alone predicts each joint and box to it)")
     return dataclasses.replace(scene, warnings=(*scene.warnings, why))
 
 

@@ -71,14 +71,16 @@ class RowsOut(NamedTuple):
 
 
 @numba.njit(cache=True, nogil=True)
-def box_regression(xj: F64, Pj: F64, meas: Measured, sig: BoxSigma, rig: BoxRig, at: int,
+def box_regression(xj: F64, Pj: F64, meas: Measured, sig: BoxSigma, rig: BoxRig, seen_s: F64, at: int,
                    lin: Regression) -> int:
     """Statistical linear regression of a row's boxes (``meas``: that row's ``(m,)``) on the
-    ellipsoid marginal of ``N(xj,
-                              Pj)`` (sigma rule ``sig``) into the box columns ``at + k`` of ``lin``: ``z ~ A
-    x + b + e``, ``e ~ N(0, D)`` (``D`` = the noise + the linearisation error). An edge is used
-    where annotated and every sigma point's box is finite. Returns 1 if the marginal's factor
-    needed a repair."""
+    ellipsoid marginal of ``N(xj, Pj)`` (sigma rule ``sig``) into the box columns ``at + k`` of
+    ``lin``: ``z ~ A x + b + e``, ``e ~ N(0, D)`` (``D`` = the noise + the linearisation error).
+    An edge is used where annotated and every sigma point's box is finite. With the velocity among
+    ``sig.dims`` (nine entries), camera ``c``'s box was taken ``seen_s[c]`` seconds after the row's
+    time and outlines the ellipsoid whose centre the motion model moves by then (``c + δ v``;
+    :func:`gt3dkit.fusion.jointupdate.point_regression` for joints). Returns 1 if the marginal's
+    factor needed a repair."""
     dims = sig.dims
     C = rig.cam.shape[0]
     m = EDGES * C
@@ -89,14 +91,19 @@ def box_regression(xj: F64, Pj: F64, meas: Measured, sig: BoxSigma, rig: BoxRig,
     Z = np.empty((S, C, EDGES))
     want = np.empty(C, dtype=np.bool_)
     repaired = sigma_points(xj, Pj, dims, sig.scale, Pb, X)
+    la = d - SPACE  # the log semi-axes: the last three of the marginal
+    timed = d > 2 * SPACE
     for c in range(C):
         want[c] = False
         for e in range(EDGES):
             want[c] = want[c] or meas.mask[at + EDGES * c + e]
     for s in range(S):
-        sq = (math.exp(2.0 * X[s, SPACE]), math.exp(2.0 * X[s, SPACE + 1]), math.exp(2.0 * X[s, SPACE + 2]))
+        sq = (math.exp(2.0 * X[s, la]), math.exp(2.0 * X[s, la + 1]), math.exp(2.0 * X[s, la + 2]))
         for c in range(C):
-            pair_box((X[s, 0], X[s, 1], X[s, 2]), sq, c, rig, want[c], Z, s)
+            dt = seen_s[c] if timed else 0.0
+            at_view = (X[s, 0] + dt * X[s, SPACE], X[s, 1] + dt * X[s, SPACE + 1],
+                       X[s, 2] + dt * X[s, SPACE + 2])
+            pair_box(at_view, sq, c, rig, want[c], Z, s)
     regress(X, Z.reshape(S, m), xj, dims, sig.Wm, sig.Wc, Pb, meas, at, lin)
     return repaired
 
@@ -183,7 +190,7 @@ def box_regressions(rows: I64, x: F64, P: F64, meas: Measured, sig: BoxSigma, ri
     (``(R, ...)`` arrays), its repairs added to ``repaired[r]``."""
     for r in rows:
         repaired[r] += box_regression(x[r], P[r], Measured(meas.z[r], meas.mask[r], meas.var[r]), sig, rig,
-                                      at,
+                                      np.zeros(rig.cam.shape[0]), at,
                                       Regression(lin.used[r], lin.At[r], lin.c[r], lin.D[r]))
 
 
@@ -205,10 +212,11 @@ def update_row(b: int, x: F64, P: F64, xl: F64, Pl: F64, data: Measured, w0: F64
                      np.zeros(m), np.zeros(m))
     scores = Scores(np.zeros(m), np.zeros(m))
     meas = Measured(data.z[b], data.mask[b], data.var[b])
+    seen = box.seen_s[b] if box.seen_s.shape[0] else np.zeros(box.rig.cam.shape[0])
     repaired = 0
     it = 0
     for it in range(box.iterations):
-        repaired += box_regression(cur.xj, cur.Pj, meas, box.sigma, box.rig, box.at, lin)
+        repaired += box_regression(cur.xj, cur.Pj, meas, box.sigma, box.rig, seen, box.at, lin)
         done, rep = pass_row(it, it == box.iterations - 1, box.robust, prior, lin, box.cols, cur, post,
                              scores)
         repaired += rep
@@ -501,7 +509,9 @@ def run_boxes(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, collect:
     R, n = len(rows), layout.n
     m = model.z.shape[1]
     robust = cfg.robust_config if cfg.robust else None
-    box = model.box_measurement(cfg.alpha, cfg.beta, cfg.kappa, robust)._replace(
+    timed = bool(np.any(rows.seen_at != 0.0))  # views off their rows' times: the boxes on the velocity too
+    seen = rows.seen_at / fps if timed else None
+    box = model.box_measurement(cfg.alpha, cfg.beta, cfg.kappa, robust, seen)._replace(
         iterations=int(cfg.iterations), robust=robust is not None and bool(model.robust_blocks))
     chains, first, last = object_chains(model, fps, on)
     motion = motion_of(model, cfg, noise_rows)

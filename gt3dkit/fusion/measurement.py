@@ -13,6 +13,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from gt3dkit.arrays import contiguous
 from gt3dkit.fusion.bones import JointInfo
 from gt3dkit.fusion.boxfit import state_boxes
 from gt3dkit.fusion.boxupdate import box_regressions, box_sigma
@@ -123,18 +124,21 @@ class Model:
         return box_rig(self.box_cameras, OUTLINE_STEPS)
 
     def box_measurement(self, alpha: float, beta: float, kappa: float,
-                        robust: RobustConfig | None) -> BoxModel:
+                        robust: RobustConfig | None, seen_s: F64 | None = None) -> BoxModel:
         """The box update's :class:`gt3dkit.fusion.boxupdate.BoxModel` under the sigma rule
         ``alpha, beta, kappa``, the measurement points judged by ``robust`` (None: none); one
-        pass, not reweighting."""
-        return BoxModel(box_sigma(self.layout.ellipsoid_dims, alpha, beta, kappa), self.box_rig,
-                        self.columns(robust), 0, 1, False)
+        pass, not reweighting; ``seen_s (R, C)``: each view's time after its row's (seconds; the
+        boxes then regressed on the velocity too), None: every view at its row's time."""
+        timed = seen_s is not None
+        dims = self.layout.timed_ellipsoid_dims if timed else self.layout.ellipsoid_dims
+        return BoxModel(box_sigma(dims, alpha, beta, kappa), self.box_rig, self.columns(robust, timed), 0, 1,
+                        False, contiguous(seen_s if timed else np.zeros((0, len(self.cams.K)))))
 
-    def columns(self, robust: RobustConfig | None) -> Columns:
+    def columns(self, robust: RobustConfig | None, timed: bool = False) -> Columns:
         """The measurement vector's :class:`gt3dkit.fusion.update.Columns`
-        (:func:`gt3dkit.fusion.ukf.block_columns`)."""
+        (:func:`gt3dkit.fusion.ukf.block_columns`; ``timed``: the boxes on the velocity too)."""
         rule = Robust(robust, self.robust_blocks) if robust is not None and self.robust_blocks else None
-        cols = block_columns(self.blocks(), self.z.shape[1], rule)
+        cols = block_columns(self.blocks(timed), self.z.shape[1], rule)
         if not (self.use_box and self.box_tail != 1.0):
             return cols
         scale = np.ones(self.z.shape[1])
@@ -153,9 +157,9 @@ class Model:
         out[:self.n_box_columns] = self.box_tail
         return out
 
-    def blocks(self) -> list[Block]:
+    def blocks(self, timed: bool = False) -> list[Block]:
         """The measurement vector as :class:`gt3dkit.fusion.ukf.Block` groups: the box edges of
-        all cameras (centre and log semi-axes; regressed by
+        all cameras (centre and log semi-axes, ``timed``: and the velocity; regressed by
         :func:`gt3dkit.fusion.boxupdate.box_regression`), each joint's projections into all
         cameras (its three coordinates)."""
         C, J = len(self.cams.K), self.layout.n_joints
@@ -163,7 +167,7 @@ class Model:
         out: list[Block] = []
         at = 0
         if self.use_box:
-            ell = lay.ellipsoid_dims
+            ell = lay.timed_ellipsoid_dims if timed else lay.ellipsoid_dims
 
             def regress(active: np.ndarray, xj: F64, Pj: F64, meas: Measured, w: SigmaWeights,
                         lin: Regression, repaired: np.ndarray) -> None:

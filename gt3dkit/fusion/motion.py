@@ -145,6 +145,12 @@ class StateLayout:
         return np.r_[np.arange(self.center.start, self.center.stop),
                      np.arange(self.log_axes.start, self.log_axes.stop)].astype(np.int64)
 
+    @property
+    def timed_ellipsoid_dims(self) -> I64:
+        """(9,) the entries the boxes of views taken off their row's time depend on: centre,
+        velocity (the centre moved to the view's time), log semi-axes."""
+        return np.arange(self.center.start, self.log_axes.stop, dtype=np.int64)
+
     def joint_dims(self, joints: I64) -> I64:
         """(..., 3) the entries of joints ``joints (...)``."""
         return self.joints.start + SPACE * np.asarray(joints)[..., None] + np.arange(SPACE)

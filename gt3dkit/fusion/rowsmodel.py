@@ -23,8 +23,9 @@ OUTLINE_STEPS = 2
 
 class BoxSigma(NamedTuple):
     """The sigma-point rule of the ellipsoid's marginal: its state entries ``dims (6,)`` (centre,
-    log semi-axes), the weights ``Wm, Wc`` (without the centre point where the rule gives it no
-    weight) and the points' ``scale``."""
+    log semi-axes; ``(9,)`` with the velocity between, for views off their rows' times), the
+    weights ``Wm, Wc`` (without the centre point where the rule gives it no weight) and the
+    points' ``scale``."""
 
     dims: I64
     Wm: F64
@@ -35,7 +36,8 @@ class BoxSigma(NamedTuple):
 class BoxModel(NamedTuple):
     """Everything the box update needs besides the rows: the sigma rule, the cameras prepared,
     the measurement vector's :class:`gt3dkit.fusion.update.Columns`, the box's first column, the
-    iterated update's passes (at most) and whether it reweights."""
+    iterated update's passes (at most), whether it reweights, and when each row's views were taken
+    ``seen_s (R, C)``, seconds after the row's time (``(0, C)``: at it)."""
 
     sigma: BoxSigma
     rig: BoxRig
@@ -43,6 +45,7 @@ class BoxModel(NamedTuple):
     at: int
     iterations: int
     robust: bool
+    seen_s: F64
 
 
 class RowsModel(Protocol):
@@ -76,4 +79,4 @@ class RowsModel(Protocol):
     def n_box_columns(self) -> int: ...
 
     def box_measurement(self, alpha: float, beta: float, kappa: float,
-                        robust: RobustConfig | None) -> BoxModel: ...
+                        robust: RobustConfig | None, seen_s: F64 | None = None) -> BoxModel: ...
