@@ -157,7 +157,11 @@ def time_offsets(args: argparse.Namespace, calib: str | None, read: Callable[[Ca
         return None
     if given != "auto":
         return read_time_offsets(Path(given))
-    found, rep = find_clocks(detections_input(args, calib), read, start)
+    det = detections_input(args, calib)
+    if det.obs.n_joints == 0:
+        raise InputError("--time-offsets", "auto finds the clocks from the people's keypoints; this input "
+                                           "has boxes only: give each camera's clock as a file")
+    found, rep = find_clocks(det, read, start)
     print_clocks(found.names, found.late_frames, found.sd_frames,
                  f"{len(rep['rounds'])} rounds against the reconstruction, {rep['seconds']:.1f} s; "
                  "meta.json input")

@@ -15,6 +15,7 @@ import pytest
 
 from gt3dkit.api import load_detections, load_scene, reconstruct
 from gt3dkit.cli import main
+from gt3dkit.commands.common import bundled
 from gt3dkit.errors import InputError
 from gt3dkit.eval.metrics import box_errors
 from gt3dkit.eval.pose import mpjpe_by_id
@@ -211,3 +212,12 @@ def test_boxes_at_their_own_time(tmp_path: Path) -> None:
     ignored = centre_mm(shifted)
     # measured: 2.5 mm in step, 3.0 at each view's own time, 17.0 at the nearest whole frames, 96 ignored
     assert own < 1.5 * in_step and whole > 3 * own and ignored > 10 * own, (in_step, own, whole, ignored)
+
+
+def test_auto_clocks_need_keypoints(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["reconstruct", str(bundled("multiviewx")), "--out", str(tmp_path / "o"),
+                 "--time-offsets", "auto"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["error: --time-offsets: auto finds the clocks from the people's keypoints; this input has "
+                   "boxes only: give each camera's clock as a file"]
+    assert not (tmp_path / "o").exists()
