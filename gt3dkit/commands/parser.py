@@ -133,6 +133,11 @@ def _add_simulate(sub: argparse._SubParsersAction[Parser], common: argparse.Argu
     s.add_argument("--lens", choices=LENSES, default="pinhole",
                    help="the cameras' lenses: pinhole, or fisheye (wide, OpenCV's fisheye model; native "
                         "layout)")
+    s.add_argument("--late-frames", metavar="D1,D2,...", help="skeleton scenes: each camera late by this "
+                   "many frames (fractions too; its people's motion at its own time; written to "
+                   "true_time_offsets.csv)")
+    s.add_argument("--camera-fps", metavar="F1,F2,...", help="skeleton scenes: each camera's frame rate "
+                   "(a little off --fps: a clock that drifts)")
     s.add_argument("--out", required=True)
     s.add_argument("--seed", type=SEED, default=0)
     s.add_argument("--frames", type=number_type(int, 1, 10**7), default=40)

@@ -12,6 +12,7 @@ from gt3dkit.commands.common import (
     check_output,
 )
 from gt3dkit.errors import InputError
+from gt3dkit.io.clocks import CameraClocks
 from gt3dkit.sim import (
     Errors,
     simulate,
@@ -55,7 +56,21 @@ SIM_MAX_POINTS = 20_000_000
 
 #: simulate options that apply to one kind of scene only.
 _SIM_ONLY = {"boxes": ("motion", "dropout", "shifted", "global_ids", "cut_by_nearer"),
-             "skeleton": ("missing", "skeleton", "conf", "outliers", "swaps", "glitch")}
+             "skeleton": ("missing", "skeleton", "conf", "outliers", "swaps", "glitch", "late_frames",
+                          "camera_fps")}
+
+
+def per_camera(text: str | None, option: str, cameras: int) -> np.ndarray | None:
+    """A comma-separated number per camera (``--late-frames``, ``--camera-fps``), or None."""
+    if text is None:
+        return None
+    try:
+        v = np.array([float(x) for x in text.split(",")])
+    except ValueError:
+        raise InputError(option, f"{text!r}: expected numbers separated by commas") from None
+    if len(v) != cameras or not np.all(np.isfinite(v)):
+        raise InputError(option, f"needs one finite number per camera ({cameras}), got {len(v)}")
+    return v
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -64,7 +79,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     for kind, names in _SIM_ONLY.items():
         for n in names:
             if args.kind != kind and getattr(args, n) not in (None, False, 0.0):
-                raise InputError(f"--{n}", f"applies to --kind {kind} scenes")
+                raise InputError("--" + n.replace("_", "-"), f"applies to --kind {kind} scenes")
     kinds = {"mot": "boxes", "cvat": "boxes", "coco": "skeleton", "openpose": "skeleton"}
     if args.format and kinds[args.format] != args.kind:
         raise InputError("--format", f"{args.format} is written for --kind {kinds[args.format]} scenes")
@@ -92,12 +107,15 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise InputError("--lens", f"the {args.layout} layout's calibration holds OpenCV's pinhole lens "
                                    "only: a fisheye scene is written in the native layout")
     if args.kind == "skeleton":
+        late, rates = (per_camera(v, option, cams) for v, option in ((args.late_frames, "--late-frames"),
+                                                                       (args.camera_fps, "--camera-fps")))
         try:
             sk = simulate_skeletons(args.layout, seed=args.seed, frames=args.frames,
                                     people=args.people, noise_px=args.noise_px,
                                     cameras=args.cameras or 10,
                                     skeleton=args.skeleton, errors=errors,
-                                    confidences=args.conf, fps=args.fps or 30.0, lens=args.lens)
+                                    confidences=args.conf, fps=args.fps or 30.0, lens=args.lens,
+                                    late_frames=late, camera_fps=rates)
         except ValueError as e:
             raise InputError("simulate", str(e)) from None
         if args.format == "openpose":
@@ -111,6 +129,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             write_skeleton_scene(sk, Path(args.out), args.layout)
         if sk.injected:
             n_err = f", {len(sk.injected)} injected errors (injected.csv)"
+        if late is not None or rates is not None:
+            C = len(sk.rig.cameras)
+            clocks = CameraClocks(sk.rig.names, np.zeros(C) if late is None else late, np.zeros(C),
+                                  np.full(C, np.nan) if rates is None else rates)
+            (Path(args.out) / "true_time_offsets.csv").write_text(clocks.text(), encoding="utf-8")
+            n_err += ", cameras on their own clocks (true_time_offsets.csv)"
         print(f"wrote {args.format or args.layout} skeleton scene to {args.out}: {args.cameras or 10} "
               "cameras, "
               f"{args.frames} frames, {args.people} people ({args.skeleton}), "

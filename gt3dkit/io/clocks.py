@@ -84,7 +84,7 @@ class CameraClocks:
 
     def doc(self) -> JsonDict:
         """For ``meta.json`` (read back by :meth:`from_doc`)."""
-        return {n: {"late_frames": round(float(d), 6),
+        return {n: {"late_frames": round(float(d), 6) + 0.0,
                     "sd_frames": None if not np.isfinite(s) else round(float(s), 6),
                     "fps": None if not np.isfinite(f) else float(f)}
                 for n, d, s, f in zip(self.names, self.late_frames, self.sd_frames, self.fps, strict=True)}

@@ -205,7 +205,7 @@ def _clocks(clocks: JsonDict) -> str:
     rows = [[name, _fmt(c.get("late_frames")), _fmt(c.get("sd_frames")), _fmt(c.get("fps") or "the scene's")]
             for name, c in clocks.items() if isinstance(c, dict)]
     return ("<h3>Clocks</h3><p>Each camera's frame <i>g</i> was taken at the scene's frame <i>g</i> f / "
-            "f<sub>camera</sub> minus its frames late; the UKF predicts each joint to its view's own "
+            "f<sub>camera</sub> minus its frames late; the UKF predicts each joint and box to its view's own "
             "time.</p>" + _table(rows, ["camera", "frames late", "sd (frames)", "frame rate"]))
 
 

@@ -221,3 +221,21 @@ def test_auto_clocks_need_keypoints(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert err == ["error: --time-offsets: auto finds the clocks from the people's keypoints; this input has "
                    "boxes only: give each camera's clock as a file"]
     assert not (tmp_path / "o").exists()
+
+
+def test_cli_simulates_late_cameras(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "sim"
+    assert main(["simulate", "--kind", "skeleton", "--frames", "30", "--people", "2", "--cameras", "4",
+                 "--late-frames", "0,1.5,-0.5,0.25", "--out", str(out)]) == 0
+    clocks = read_time_offsets(out / "true_time_offsets.csv")
+    assert clocks.names == tuple(load_scene(out).rig.names)
+    assert np.allclose(clocks.late_frames, [0, 1.5, -0.5, 0.25])
+    assert main(["reconstruct", str(out), "--out", str(tmp_path / "run"), "--time-offsets",
+                 str(out / "true_time_offsets.csv"), "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["simulate", "--kind", "skeleton", "--cameras", "4", "--late-frames", "0,1",
+                 "--out", str(tmp_path / "bad")]) == 2
+    said = capsys.readouterr().err.strip()
+    assert said == "error: --late-frames: needs one finite number per camera (4), got 2"
+    assert main(["simulate", "--kind", "boxes", "--camera-fps", "10,10", "--out", str(tmp_path / "bad")]) == 2
+    assert capsys.readouterr().err.strip() == "error: --camera-fps: applies to --kind skeleton scenes"
