@@ -79,7 +79,7 @@ class CameraClocks:
             return "" if not np.isfinite(v) else f"{v:.4f}"
 
         return ",".join(HEADER) + "\n" + "".join(
-            f"{n},{d:.4f},{num(s)},{'' if not np.isfinite(f) else f'{f:g}'}\n"
+            f"{n},{d + 0.0:.4f},{num(s)},{'' if not np.isfinite(f) else f'{f:g}'}\n"
             for n, d, s, f in zip(self.names, self.late_frames, self.sd_frames, self.fps, strict=True))
 
     def doc(self) -> JsonDict:
