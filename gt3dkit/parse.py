@@ -154,8 +154,9 @@ class CsvBlock:
     caller's)."""
 
     def __init__(self, lines: np.ndarray | list[int], rows: list[list[str]] | None = None, text: str = "",
-                 columns: list[np.ndarray] | None = None, kinds: str = "") -> None:
+                 columns: list[np.ndarray] | None = None, kinds: str = "", path: Path | None = None) -> None:
         self.lines = np.asarray(lines, np.int64)
+        self.path = path
         self._rows, self._text = rows, text
         self._columns, self._kinds = columns, kinds
         self._texts: list[tuple[str, ...]] | None = None
@@ -166,7 +167,11 @@ class CsvBlock:
     def rows(self) -> list[list[str]]:
         """Each row's fields as text (unstripped)."""
         if self._rows is None:  # a block parsed at once: a row a line
-            self._rows = list(csv.reader(io.StringIO(self._text)))
+            reader = csv.reader(io.StringIO(self._text))
+            try:
+                self._rows = list(reader)
+            except csv.Error as e:  # a field longer than csv.reader reads, that numpy read as a number
+                raise _malformed(self.path or Path("input"), reader, int(self.lines[0]) - 1, e) from None
         return self._rows
 
     def _parsed(self, k: int, kind: str) -> np.ndarray | None:
@@ -316,7 +321,7 @@ def _chunk_block(path: Path, text: str, line: int, n: int, width: int, kinds: st
             raise _malformed(path, reader, line - 1, e) from None
         return CsvBlock(*rows[0]) if rows else None
     return CsvBlock(np.arange(line, line + n), text=text, columns=[a[f"f{k}"] for k in range(width)],
-                    kinds=kinds)
+                    kinds=kinds, path=path)
 
 
 def _record_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | None, reader: CsvRows,

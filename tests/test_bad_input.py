@@ -69,6 +69,13 @@ def test_malformed_csv_value(tmp_path, native, capsys) -> None:
     _check(*_run(tmp_path, native, capsys), "boxes.csv", f"line {line}", "malformed")
 
 
+def test_field_longer_than_csv_reads(tmp_path, native, capsys) -> None:
+    """A number of 200 000 digits: numpy reads it, Python's csv reader (row by row, for the
+    checks) refuses it; one line naming the file and line (a regression: it was an internal error)."""
+    line = _append_box_row(native, "0,cam0,9,10,20,30," + "4" * 200_000)
+    _check(*_run(tmp_path, native, capsys), "boxes.csv", f"line {line}", "field larger than field limit")
+
+
 def test_wrong_csv_header(tmp_path, native, capsys) -> None:
     p = native / "boxes.csv"
     p.write_text("frame,cam,id\n" + "\n".join(p.read_text().splitlines()[1:]))
