@@ -252,12 +252,11 @@ def estimate_checked(scene: Scene, est: Estimator, every_frame: int | None = Non
                                               "it has no estimate between annotations (use ukf or gtsam)")
         sc = dense_frames(sc, every_frame or None)
     stage("per-frame fits")
-    own = getattr(est, "prepare", None)
     if pre is None:
-        pre = own(sc) if callable(own) else prepare(sc)
+        pre = est.prepare(sc)
     segs = identity_segments(pre, sc.fps, pieces=sc.identity_pieces)
-    stage(f"{getattr(est, 'name', 'estimator')}")
-    tracks = estimate_scene(sc, est, pre if callable(own) else None, segs, dense=every_frame is not None)
+    stage(est.name)
+    tracks = estimate_scene(sc, est, pre, segs, dense=every_frame is not None)
     if not qa:
         return tracks, None
     stage("annotation QA, writing")
@@ -271,15 +270,14 @@ def process_noise_prepared(scene: Scene, est: Estimator) -> tuple[dict[str, floa
     (on the pieces of split ids), by the estimator's own ``process_noise`` without the rest of the
     estimate, and the preparation (per-frame fits) it was found on (None, None
     when the estimator has no ``process_noise``)."""
-    own = getattr(est, "process_noise", None)
-    if not callable(own):
+    if not est.capabilities.process_noise:
         return None, None
     pre = est.prepare(scene)
     segs = identity_segments(pre, scene.fps, pieces=scene.identity_pieces)
     if segs.splits:
         scene, _ = split_ids(scene, pre.rows, segs)
         pre = est.prepare(scene)
-    found: dict[str, float] = own(scene, pre)
+    found = est.process_noise(scene, pre)
     return found, pre
 
 
@@ -291,16 +289,15 @@ def bone_samples_checked(scene: Scene, est: Estimator, pre: Prepared | None = No
     it splits ``(S,)`` (an id's pieces may be different people: the caller leaves them out; the
     rows of the pieces after an id's first, whose ids are this run's own, are left out here).
     ``pre``: the estimator's preparation of ``scene``, made before (None: made here)."""
-    own = getattr(est, "bone_samples", None)
-    if not callable(own):
+    if not est.capabilities.bone_samples:
         return None, np.zeros(0, np.int64)
     pre = pre if pre is not None else est.prepare(scene)
     segs = identity_segments(pre, scene.fps, pieces=scene.identity_pieces)
     if not segs.splits:
-        return own(scene, pre), np.zeros(0, np.int64)
+        return est.bone_samples(scene, pre), np.zeros(0, np.int64)
     split = np.unique(pre.rows.obj_ids[pre.rows.row_o[segs.segment > 0]]).astype(np.int64)
     pieces, back = split_ids(scene, pre.rows, segs)
-    s = own(pieces)
+    s = est.bone_samples(pieces)
     if s is None:
         return None, split
     return s.take(~np.isin(s.obj, np.fromiter(back, np.int64))), split

@@ -10,26 +10,49 @@ from typing import TYPE_CHECKING, Protocol
 from gt3dkit.types import OptionValue, Scene, TrackSet
 
 if TYPE_CHECKING:
+    from gt3dkit.fusion.bones import BoneSamples
     from gt3dkit.fusion.prepare import Prepared
+
+
+@dataclass(frozen=True)
+class Capabilities:
+    """What an estimator can do besides :meth:`Estimator.estimate`, declared (never probed):
+    ``process_noise`` -- it tunes its process noise and says the values it would choose
+    (:meth:`Estimator.process_noise`: a long sequence's windows fix them once); ``bone_samples``
+    -- it ties each person's joints by their bones and can give the first pass's bones
+    (:meth:`Estimator.bone_samples`: the windows pool them)."""
+
+    process_noise: bool = False
+    bone_samples: bool = False
 
 
 class Estimator(Protocol):
     """Anything that turns a loaded scene into tracks.
 
     ``name`` goes into ``meta.json``; the settings used (after any automatic tuning) go
-    into ``TrackSet.info``. ``pre`` lets several estimators share one preparation. An estimator
-    that tunes its process noise may also offer ``process_noise(scene, pre) -> dict`` (the
-    values :meth:`estimate` would choose, without the estimate: :mod:`gt3dkit.windows` fixes
-    them once for a long sequence's windows).
+    into ``TrackSet.info``. ``pre`` lets several estimators share one preparation.
+    ``capabilities`` declares which of the optional steps do anything; an estimator without one
+    still has the method, returning None.
     """
 
     name: str
+    capabilities: Capabilities
 
     def prepare(self, scene: Scene) -> Prepared:
         """The preparation :meth:`estimate` would make itself (with this estimator's settings)."""
         ...
 
     def estimate(self, scene: Scene, pre: Prepared | None = None) -> TrackSet: ...
+
+    def process_noise(self, scene: Scene, pre: Prepared | None = None) -> dict[str, float] | None:
+        """The process noise :meth:`estimate` would choose, without the estimate (None: it
+        tunes none)."""
+        ...
+
+    def bone_samples(self, scene: Scene, pre: Prepared | None = None) -> BoneSamples | None:
+        """The first pass's bones of every row that :meth:`estimate` would tie the joints with,
+        without the rest of the estimate (None: it ties none)."""
+        ...
 
 
 @dataclass(frozen=True)

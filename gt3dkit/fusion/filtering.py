@@ -64,7 +64,7 @@ def rerun_objects(model: Model, init: Init, cfg: UKFConfig, fps: float, run: Fil
     """``run`` with the rows ``on (R,)`` (whole objects) run again: by the frames' filter their
     covariances are written into ``run``'s own (no second array of every row's)."""
     if backend_for(model) == "joints":
-        return run.merged(run_joints(model, init, cfg, fps, True, True, on, None, into=run.P), on)
+        return run.merged(run_joints(model, init, cfg, fps, collect=True, on=on, into=run.P), on)
     return run.merged(run_filter(model, init, cfg, fps, collect=True, on=on), on)
 
 

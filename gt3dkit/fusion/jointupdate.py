@@ -25,7 +25,7 @@ stacked state's).
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -490,7 +490,7 @@ def run_joints(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, collect
     rows, lay = model.rows, model.layout
     R, J, C = len(rows), lay.n_joints, len(model.cams.K)
     if not J:
-        return run_boxes(model, init, cfg, fps, collect, fade, on, noise_rows)
+        return run_boxes(model, init, cfg, fps, collect=collect, fade=fade, on=on, noise_rows=noise_rows)
     jd = np.concatenate([lay.joint_dims(np.arange(J)), lay.joint_dims(np.arange(J)) + SPACE * J], axis=1)
     chains, first, last = object_chains(model, fps, on)
     per = noise_rows or {}
@@ -544,15 +544,26 @@ def run_joints(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, collect
                 backward(p, ends, joint_chain(start, chains, data, jm, out))
 
         run_split(bwd, len(parts))
-    return _assembled(model, init, cfg, fps, (collect, fade, on, noise_rows), chains, out, jd,
-                      covariances, into)
+    run = RunChoice(collect, fade, on, noise_rows, covariances, into)
+    return _assembled(model, init, cfg, fps, run, chains, out, jd)
 
 
-def _assembled(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, args: tuple[Any, ...],
-               chains: Chains, out: JointOut, jd: I64, covariances: bool, into: BlockCov | None) -> FilterRun:
+class RunChoice(NamedTuple):
+    """How :func:`run_joints` was asked to run (its keyword arguments, handed on whole)."""
+
+    collect: bool
+    fade: bool
+    on: np.ndarray | None
+    noise_rows: dict[str, F64] | None
+    covariances: bool
+    into: BlockCov | None
+
+
+def _assembled(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, run: RunChoice, chains: Chains,
+               out: JointOut, jd: I64) -> FilterRun:
     """The run of ``model``'s rows from the joints' chains ``out`` and the ellipsoid's run (the
     boxes', or the rows' initial state without boxes)."""
-    collect, fade, on, noise_rows = args
+    collect, fade, on, noise_rows, covariances, into = run
     rows, lay = model.rows, model.layout
     R, J, C = len(rows), lay.n_joints, len(model.cams.K)
     E = StateLayout(0).n
@@ -561,8 +572,8 @@ def _assembled(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, args: t
     box = None
     if model.use_box:
         ell = boxes_part(model)
-        box = run_boxes(ell, replace(init, x0=init.x0[:, :E], P0=_leading(init.P0, E)), cfg, fps, collect,
-                        fade, on, noise_rows)
+        box = run_boxes(ell, replace(init, x0=init.x0[:, :E], P0=_leading(init.P0, E)), cfg, fps,
+                        collect=collect, fade=fade, on=on, noise_rows=noise_rows)
     x = np.zeros((R, lay.n))
     x[:, :E] = box.x if box is not None else init.x0[:, :E]
     x[:, jd.reshape(-1)] = out.x.reshape(R, J * N)

@@ -49,6 +49,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from gt3dkit.errors import EstimationError
+from gt3dkit.fusion.base import Capabilities
 from gt3dkit.fusion.gtsam_chain import GTSAMConfig, ObjectSolution, singular, solve_boxes
 from gt3dkit.fusion.gtsam_factors import (
     box_error,
@@ -128,12 +129,22 @@ class GTSAMSmoother:
 
     name = "gtsam"
 
+    capabilities = Capabilities()
+
     def __init__(self, config: GTSAMConfig | None = None) -> None:
         self.config = config or GTSAMConfig()
 
     def prepare(self, scene: Scene) -> Prepared:
         cfg = self.config
         return prepare(scene, cfg.clip_tol_px, cfg.sigma_px, cfg.kpt_sigma_px)
+
+    def process_noise(self, scene: Scene, pre: Prepared | None = None) -> None:
+        """None: its noise is the config's (or the UKF's likelihood maximum, found by the caller)."""
+        return None
+
+    def bone_samples(self, scene: Scene, pre: Prepared | None = None) -> None:
+        """None: it ties no bones."""
+        return None
 
     def estimate(self, scene: Scene, pre: Prepared | None = None) -> TrackSet:
         gtsam = _gtsam()

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gt3dkit.fusion.base import Capabilities
 from gt3dkit.fusion.prepare import Prepared, axis_sd, ellipsoid_around, largest_sd, prepare
 from gt3dkit.types import JsonDict, RunInfo, Scene, TrackSet
 
@@ -34,8 +35,18 @@ class Triangulation:
 
     name = "triangulation"
 
+    capabilities = Capabilities()
+
     def __init__(self, config: TriangulationConfig | None = None) -> None:
         self.config = config or TriangulationConfig()
+
+    def process_noise(self, scene: Scene, pre: Prepared | None = None) -> None:
+        """None: each frame on its own, no process noise."""
+        return None
+
+    def bone_samples(self, scene: Scene, pre: Prepared | None = None) -> None:
+        """None: it ties no bones."""
+        return None
 
     def prepare(self, scene: Scene) -> Prepared:
         return prepare(scene, self.config.clip_tol_px, self.config.sigma_px)

@@ -44,6 +44,7 @@ from dataclasses import asdict, replace
 
 import numpy as np
 
+from gt3dkit.fusion.base import Capabilities
 from gt3dkit.fusion.bones import (
     BoneLengths,
     BoneSamples,
@@ -88,6 +89,7 @@ class UKFSmoother:
     def __init__(self, config: UKFConfig | None = None, bones: PersonBones | None = None) -> None:
         self.config = config or UKFConfig()
         self.bones = bones  # persons' bone lengths found outside the run (gt3dkit.windows)
+        self.capabilities = Capabilities(process_noise=True, bone_samples=bool(self.config.bones))
 
     def prepare(self, scene: Scene) -> Prepared:
         cfg = self.config

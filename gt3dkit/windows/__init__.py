@@ -325,9 +325,7 @@ def _drop_kept(token: str, client: Client | None) -> None:
 def ties_bones(scene: Scene, estimator: str, config: Options) -> bool:
     """Whether ``estimator`` ties the joints of ``scene`` by its persons' bones (then the windows
     pool theirs first: :func:`window_bones`, :func:`pooled_bones`)."""
-    est = make_estimator(estimator, **config)
-    return (callable(getattr(est, "bone_samples", None)) and scene.obs.n_joints > 0
-            and bool(getattr(est.config, "bones", False)))
+    return make_estimator(estimator, **config).capabilities.bone_samples and scene.obs.n_joints > 0
 
 
 def _cut_windows(scene: Scene, plan: Plan, overlap: int, client: Client | None, index: Bridge | None,

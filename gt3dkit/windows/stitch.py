@@ -182,7 +182,7 @@ def window_bones(job: WindowJob, scene: Scene, kept: Keep | None = None
     with small_matrix_blas(), roomy_malloc():
         est = make_estimator(job.estimator, **job.config)
         pre = None
-        if kept is not None and callable(getattr(est, "prepare", None)):
+        if kept is not None:
             pre = est.prepare(scene)
             kept.put(w, pre)  # before the first pass adds to it
         s, split = bone_samples_checked(scene, est, pre)
