@@ -14,10 +14,11 @@ import threading
 import time
 import traceback
 from collections.abc import Callable
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from types import FrameType
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -34,7 +35,9 @@ from gt3dkit.io.clocks import CameraClocks, read_time_offsets
 from gt3dkit.io.datasets import ASSOCIATED, detect_layout
 from gt3dkit.refine.boxpeople import BoxPeopleConfig, calibrate_boxes
 from gt3dkit.refine.clocks import Clocks
+from gt3dkit.refine.common import umeyama
 from gt3dkit.refine.people import PeopleCalibration, PeopleConfig, calibrate_people
+from gt3dkit.rig import Rig
 from gt3dkit.synchronise import find_clocks
 from gt3dkit.types import BOX_MODEL_REGISTRY, GroundTruth, JsonDict, Options, Scene, TrackSet
 
@@ -217,7 +220,47 @@ def people_rig(scene: Scene, cfg: PeopleConfig) -> PeopleCalibration:
     return calibrate_boxes(scene, BoxPeopleConfig(**height))
 
 
-def scene_from_people(args: argparse.Namespace) -> tuple[Scene, JsonDict]:
+@dataclass(frozen=True)
+class IntoGiven:
+    """The similarity ``X_given = scale R X + t`` from the people's world into the input's own
+    calibration's (the one that best maps the found cameras' centres onto its own), and that rig:
+    where the input's truth is."""
+
+    scale: float
+    R: np.ndarray
+    t: np.ndarray
+    rig: Rig
+
+    def tracks(self, tracks: TrackSet) -> TrackSet:
+        """``tracks`` moved by the similarity (positions, sizes and sds)."""
+        s, R, t = self.scale, self.R, self.t
+        return dataclasses.replace(tracks, center_world=s * tracks.center_world @ R.T + t,
+                                   semi_axes=s * tracks.semi_axes, center_sd=s * tracks.center_sd,
+                                   kpt_world=s * tracks.kpt_world @ R.T + t, kpt_sd=s * tracks.kpt_sd)
+
+
+def into_given(found: Rig, given: Rig) -> IntoGiven | None:
+    """:class:`IntoGiven` of ``found`` (cameras by name) onto ``given``; None where they share fewer
+    than three cameras."""
+    names = [n for n in found.names if n in given.names]
+    if len(names) < 3:
+        return None
+    src = np.array([found.cameras[found.index(n)].center_world for n in names])
+    dst = np.array([given.cameras[given.index(n)].center_world for n in names])
+    s, R, t = umeyama(src, dst)
+    return IntoGiven(float(s), R, t, given)
+
+
+class PeopleScene(NamedTuple):
+    """``--calib people``'s input (:func:`scene_from_people`): the scene on the found rig, what
+    meta.json records of it, and the way into the input's own calibration's frame (None: none)."""
+
+    scene: Scene
+    meta: JsonDict
+    into_given: IntoGiven | None
+
+
+def scene_from_people(args: argparse.Namespace) -> PeopleScene:
     """``--calib people``: the input with the rig :func:`gt3dkit.refine.people.calibrate_people`
     finds from its people (its own calibration's intrinsics), and what to record of it in
     meta.json (the rig and the report)."""
@@ -236,7 +279,8 @@ def scene_from_people(args: argparse.Namespace) -> tuple[Scene, JsonDict]:
     scene = dataclasses.replace(scene, load_options={**scene.load_options, "calib": None})
     print(f"cameras placed from the people: {len(res.rig.cameras)} ({res.report['seconds']:.1f} s, median "
           f"{res.report['reprojection_median_px']:.2f} px; meta.json: calibration_from_people)")
-    return scene, {"calibration_from_people": {**res.report, "rig": cameras_doc(res.rig, None)}}
+    return PeopleScene(scene, {"calibration_from_people": {**res.report, "rig": cameras_doc(res.rig, None)}},
+                       into_given(res.rig, det.rig))
 
 
 def box_model_note(scene: Scene) -> str:

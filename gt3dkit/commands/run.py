@@ -67,8 +67,9 @@ def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | 
     stages = Stages(5, args.quiet)
     stages("loading")
     extra: JsonDict | None = None
+    into = None
     if args.calib == "people":
-        scene, extra = scene_from_people(args)
+        scene, extra, into = scene_from_people(args)
     else:
         scene = load_input(args, by_windows=args.window != 0 and over_time(args.estimator)
                            and not args.refine_calib and args.every_frame is None)
@@ -118,7 +119,13 @@ def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | 
           f"cameras, {fps} -> {len(tracks)} object-frames of {len(set(tracks.track_id.tolist()))} "
           f"objects ({args.estimator}, {info.seconds:.2f} s{flagged}) written to "
           f"{args.out}")
-    report_truth(scene, tracks, args.estimator, tally=tally)
+    if into is not None and scene.truth is not None:
+        print("(scored in the input calibration's frame: the tracks moved by the similarity that best maps "
+              f"the found cameras' centres onto its own, scale {into.scale:.4f}; the written files stay in "
+              "the people's world)")
+        report_truth(dataclasses.replace(scene, rig=into.rig), into.tracks(tracks), args.estimator)
+    else:
+        report_truth(scene, tracks, args.estimator, tally=tally)
     return 0
 
 
