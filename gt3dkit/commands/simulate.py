@@ -73,6 +73,45 @@ def per_camera(text: str | None, option: str, cameras: int) -> np.ndarray | None
     return v
 
 
+def _write_skeletons(args: argparse.Namespace, errors: Errors, cams: int) -> int:
+    """``gt3d simulate --kind skeleton``: the scene simulated and written (native, Panoptic, OpenPose or
+    COCO), with the cameras' clocks where they are given."""
+    n_err = ""
+    late, rates = (per_camera(v, option, cams) for v, option in ((args.late_frames, "--late-frames"),
+                                                                   (args.camera_fps, "--camera-fps")))
+    try:
+        sk = simulate_skeletons(args.layout, seed=args.seed, frames=args.frames,
+                                people=args.people, noise_px=args.noise_px,
+                                cameras=args.cameras or 10,
+                                skeleton=args.skeleton, errors=errors,
+                                confidences=args.conf, fps=args.fps or 30.0, lens=args.lens,
+                                late_frames=late, camera_fps=rates)
+    except ValueError as e:
+        raise InputError("simulate", str(e)) from None
+    if args.format == "openpose":
+        if args.skeleton not in {n for v in DETECTOR_SKELETONS.values() for n in v}:
+            raise InputError("--skeleton", "OpenPose files hold a detector skeleton (body25, body25b, "
+                                           f"halpe26, coco18, coco17), not {args.skeleton}")
+        write_openpose(to_z_up(sk), Path(args.out), seed=args.seed)
+    elif args.format == "coco":
+        write_coco(sk, Path(args.out), track_ids=not args.no_track_ids, seed=args.seed)
+    else:
+        write_skeleton_scene(sk, Path(args.out), args.layout)
+    if sk.injected:
+        n_err = f", {len(sk.injected)} injected errors (injected.csv)"
+    if late is not None or rates is not None:
+        C = len(sk.rig.cameras)
+        clocks = CameraClocks(sk.rig.names, np.zeros(C) if late is None else late, np.zeros(C),
+                              np.full(C, np.nan) if rates is None else rates)
+        (Path(args.out) / "true_time_offsets.csv").write_text(clocks.text(), encoding="utf-8")
+        n_err += ", cameras on their own clocks (true_time_offsets.csv)"
+    print(f"wrote {args.format or args.layout} skeleton scene to {args.out}: {args.cameras or 10} "
+          "cameras, "
+          f"{args.frames} frames, {args.people} people ({args.skeleton}), "
+          f"{'z-up' if args.format == 'openpose' else 'y-down'} world{n_err}")
+    return 0
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
 
     check_output(args.out)
@@ -107,39 +146,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise InputError("--lens", f"the {args.layout} layout's calibration holds OpenCV's pinhole lens "
                                    "only: a fisheye scene is written in the native layout")
     if args.kind == "skeleton":
-        late, rates = (per_camera(v, option, cams) for v, option in ((args.late_frames, "--late-frames"),
-                                                                       (args.camera_fps, "--camera-fps")))
-        try:
-            sk = simulate_skeletons(args.layout, seed=args.seed, frames=args.frames,
-                                    people=args.people, noise_px=args.noise_px,
-                                    cameras=args.cameras or 10,
-                                    skeleton=args.skeleton, errors=errors,
-                                    confidences=args.conf, fps=args.fps or 30.0, lens=args.lens,
-                                    late_frames=late, camera_fps=rates)
-        except ValueError as e:
-            raise InputError("simulate", str(e)) from None
-        if args.format == "openpose":
-            if args.skeleton not in {n for v in DETECTOR_SKELETONS.values() for n in v}:
-                raise InputError("--skeleton", "OpenPose files hold a detector skeleton (body25, body25b, "
-                                               f"halpe26, coco18, coco17), not {args.skeleton}")
-            write_openpose(to_z_up(sk), Path(args.out), seed=args.seed)
-        elif args.format == "coco":
-            write_coco(sk, Path(args.out), track_ids=not args.no_track_ids, seed=args.seed)
-        else:
-            write_skeleton_scene(sk, Path(args.out), args.layout)
-        if sk.injected:
-            n_err = f", {len(sk.injected)} injected errors (injected.csv)"
-        if late is not None or rates is not None:
-            C = len(sk.rig.cameras)
-            clocks = CameraClocks(sk.rig.names, np.zeros(C) if late is None else late, np.zeros(C),
-                                  np.full(C, np.nan) if rates is None else rates)
-            (Path(args.out) / "true_time_offsets.csv").write_text(clocks.text(), encoding="utf-8")
-            n_err += ", cameras on their own clocks (true_time_offsets.csv)"
-        print(f"wrote {args.format or args.layout} skeleton scene to {args.out}: {args.cameras or 10} "
-              "cameras, "
-              f"{args.frames} frames, {args.people} people ({args.skeleton}), "
-              f"{'z-up' if args.format == 'openpose' else 'y-down'} world{n_err}")
-        return 0
+        return _write_skeletons(args, errors, cams)
     if args.layout == "panoptic":
         raise InputError("simulate", "box scenes are native, wildtrack or multiviewx")
     try:

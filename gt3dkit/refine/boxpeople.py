@@ -145,23 +145,29 @@ def _pnp(p: BoxPoints, keys: I64, X: F64, c: int, f_px: float, cfg: BoxPeopleCon
     return int(len(inl)), cv2.Rodrigues(rvec)[0], tvec.reshape(3)
 
 
-def calibrate_boxes(scene: Scene, cfg: BoxPeopleConfig | None = None) -> PeopleCalibration:
-    """The rig of ``scene``'s cameras from its people's boxes (module docstring); its intrinsics
-    are the scene's, its poses are not used."""
-    cfg = cfg or BoxPeopleConfig()
-    t0 = time.perf_counter()
-    rig = scene.rig
+@dataclass(frozen=True)
+class Placed:
+    """The cameras placed one by one (module docstring, steps 2-3): their poses ``R (C, 3, 3)``, ``t
+    (C, 3)`` (the first at the origin, the start pair's baseline one unit), the order they were placed
+    in, and each camera pair's inliers."""
+
+    R: F64
+    t: F64
+    order: list[int]
+    pair_inliers: dict[tuple[int, int], int]
+
+
+def place_cameras(p: BoxPoints, rig: Rig, cfg: BoxPeopleConfig, where: str) -> Placed:
+    """Steps 2-3 of the module docstring, or :class:`InputError` naming a camera that cannot be
+    placed, or everyone's points in one plane."""
     C = len(rig.cameras)
-    p = box_points(scene)
     f = rig.K[:, 0, 0]
-    fits = {}
-    for a in range(C):
-        for b in range(a + 1, C):
-            fits[(a, b)] = _pair_pose(p, a, b, float(np.sqrt(f[a] * f[b])), cfg)
+    fits = {(a, b): _pair_pose(p, a, b, float(np.sqrt(f[a] * f[b])), cfg)
+            for a in range(C) for b in range(a + 1, C)}
     (a, b), (n, Rab, tab) = max(fits.items(), key=lambda kv: kv[1][0])
     if n < cfg.min_people:
-        raise InputError(scene.root or "input", f"no two cameras share {cfg.min_people} whole boxes of the "
-                                                "same people: no rig can be started")
+        raise InputError(where, f"no two cameras share {cfg.min_people} whole boxes of the same people: "
+                                "no rig can be started")
     R, t = np.tile(np.eye(3), (C, 1, 1)), np.zeros((C, 3))
     R[b], t[b] = Rab, tab
     posed = np.zeros(C, bool)
@@ -169,9 +175,8 @@ def calibrate_boxes(scene: Scene, cfg: BoxPeopleConfig | None = None) -> PeopleC
     order = [a, b]
     while not posed.all():
         keys, X = _triangulate(p, R, t, posed)
-        best = max(((c, _pnp(p, keys, X, c, float(f[c]), cfg)) for c in np.flatnonzero(~posed)),
-                   key=lambda kv: kv[1][0])
-        c, (n, Rc, tc) = best
+        c, (n, Rc, tc) = max(((c, _pnp(p, keys, X, c, float(f[c]), cfg)) for c in np.flatnonzero(~posed)),
+                             key=lambda kv: kv[1][0])
         if n < cfg.min_people:
             missing = [rig.cameras[k].name for k in np.flatnonzero(~posed)]
             raise InputError(", ".join(missing), f"shares at most {n} whole boxes of people with the posed "
@@ -186,9 +191,14 @@ def calibrate_boxes(scene: Scene, cfg: BoxPeopleConfig | None = None) -> PeopleC
         raise InputError("people", "everyone's feet and heads lie in one plane (on one line across the "
                                    f"floor; spread {sv[2] / sv[1]:.3f} of their spread along it): the "
                                    "cameras' poses are not determined by them")
-    start = replace(rig, cameras=tuple(replace(cam, R=R[k], t=t[k]) for k, cam in enumerate(rig.cameras)))
+    return Placed(R, t, order, {k: int(v[0]) for k, v in fits.items()})
+
+
+def adjusted(p: BoxPoints, start: Rig, cfg: BoxPeopleConfig) -> Rig:
+    """Step 4 of the module docstring: ``cfg.ba_rounds`` pycolmap adjustments of every camera and
+    point, each dropping the points off by more than four times the median."""
     out = start
-    every = np.ones(C, bool)
+    every = np.ones(len(start.cameras), bool)
     ba_cfg = RefineConfig(refine_intrinsics=False, refine_distortion=False)
     for _ in range(cfg.ba_rounds):
         keys, X = _triangulate(p, out.R, out.t, every)
@@ -196,11 +206,24 @@ def calibrate_boxes(scene: Scene, cfg: BoxPeopleConfig | None = None) -> PeopleC
         r = keypoint_residuals(out, tracks)
         sigma = float(np.median(r))
         keep = np.ones(len(tracks.X0), bool)
-        bad = np.unique(tracks.point[r > 4 * sigma])
-        keep[bad] = False
-        tracks = tracks.subset(keep)
-        out = ba_keypoints(out, tracks, every, ba_cfg, max(sigma, 0.5))
-    keys, X = _triangulate(p, out.R, out.t, every)
+        keep[np.unique(tracks.point[r > 4 * sigma])] = False
+        out = ba_keypoints(out, tracks.subset(keep), every, ba_cfg, max(sigma, 0.5))
+    return out
+
+
+def calibrate_boxes(scene: Scene, cfg: BoxPeopleConfig | None = None) -> PeopleCalibration:
+    """The rig of ``scene``'s cameras from its people's boxes (module docstring); its intrinsics
+    are the scene's, its poses are not used."""
+    cfg = cfg or BoxPeopleConfig()
+    t0 = time.perf_counter()
+    rig = scene.rig
+    C = len(rig.cameras)
+    p = box_points(scene)
+    placed = place_cameras(p, rig, cfg, scene.root or "input")
+    start = replace(rig, cameras=tuple(replace(cam, R=placed.R[k], t=placed.t[k])
+                                       for k, cam in enumerate(rig.cameras)))
+    out = adjusted(p, start, cfg)
+    keys, X = _triangulate(p, out.R, out.t, np.ones(C, bool))
     tracks = _tracks(p, keys, X, out)
     res = keypoint_residuals(out, tracks)
     # the sds: a jackknife over ten groups of the people (a person's boxes share their body's outline),
@@ -211,15 +234,15 @@ def calibrate_boxes(scene: Scene, cfg: BoxPeopleConfig | None = None) -> PeopleC
     c_sd, r_sd = np.fmax(c_sd, c_sd2), np.fmax(r_sd, r_sd2)
     s, Rw, tw, world = box_world(X, out, cfg)
     c_sd *= s
-    final = transform_rig(out, s, Rw, tw)
-    final = replace(final, up=np.array([0.0, 0.0, 1.0]), frame_name=world["frame"])
+    final = replace(transform_rig(out, s, Rw, tw), up=np.array([0.0, 0.0, 1.0]), frame_name=world["frame"])
+    a, b = placed.order[:2]
     report: JsonDict = {
         "seconds": time.perf_counter() - t0, "from": "boxes",
-        "camera_pairs": [{"cameras": [rig.names[i], rig.names[j]], "person_pairs": int(v[0])}
-                         for (i, j), v in fits.items()],
+        "camera_pairs": [{"cameras": [rig.names[i], rig.names[j]], "person_pairs": v}
+                         for (i, j), v in placed.pair_inliers.items()],
         "people": int(len(keys)), "tracks": int(len(tracks.X0)),
         "reprojection_median_px": float(np.median(res)), "start_pair": [rig.names[a], rig.names[b]],
-        "order": [rig.names[k] for k in order], "world": world,
+        "order": [rig.names[k] for k in placed.order], "world": world,
         "cameras": {rig.names[c]: {"centre_sd_m": float(c_sd[c]), "rotation_sd_deg": float(r_sd[c]),
                                    "median_px": float(np.median(res[tracks.cam == c]))
                                    if (tracks.cam == c).any() else None} for c in range(C)}}
