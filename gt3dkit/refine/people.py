@@ -454,19 +454,32 @@ class PeopleCalibration:
     clocks: Clocks | None = None  # each camera's clock (PeopleConfig.clocks)
 
 
-def calibrate_people(scene: Scene, cfg: PeopleConfig | None = None) -> PeopleCalibration:
-    """The poses of ``scene``'s cameras from its people (module docstring)."""
-    cfg = cfg or PeopleConfig()
-    t0 = time.perf_counter()
-    rng = np.random.default_rng(cfg.seed)
-    pv = person_views(scene, cfg)
-    rig = scene.rig if cfg.focal_known else focal_from_image(scene.rig)
+@dataclass
+class Placement:
+    """Steps 1-3 of the module docstring: each camera's pose ``R (C, 3, 3)``, ``t (C, 3)`` and
+    whether it was ``placed (C,)``, the joints each was posed on, every detection's ``person`` and
+    ``flip``, the camera pairs fitted and the first (the rig's start)."""
+
+    R: F64
+    t: F64
+    placed: np.ndarray
+    joints_used: dict[int, int]
+    person: I64
+    flip: np.ndarray
+    fits: list[PairFit]
+    first: PairFit
+
+
+def place_cameras(pv: PersonViews, rig: Rig, cfg: PeopleConfig, rng: np.random.Generator, where: str
+                  ) -> Placement:
+    """Camera pairs fitted, people linked across cameras, cameras posed one by one (module
+    docstring, steps 1-3); :class:`InputError` naming a camera that cannot be placed."""
     C = len(rig.cameras)
     by_count = sorted(((len(candidates(pv, a, b)), a, b) for a in range(C) for b in range(a + 1, C)),
                       reverse=True)
     fits = [f for _, a, b in by_count[:MAX_PAIR_FITS] if (f := fit_pair(pv, a, b, cfg, rng)) is not None]
     if not fits:
-        raise InputError(scene.root or "input", "no two cameras share enough people to be placed "
+        raise InputError(where, "no two cameras share enough people to be placed "
                          f"(each camera pair needs {cfg.min_pairs} person pairs whose joints agree)")
     person, flip = people_of(pv, fits)
     first = max(fits, key=lambda f: len(f.links))
@@ -497,10 +510,23 @@ def calibrate_people(scene: Scene, cfg: PeopleConfig | None = None) -> PeopleCal
         c = int(np.flatnonzero(~placed)[0])
         n = int((pv.cam == c).sum())
         linked = int(((pv.cam == c) & (person >= 0)).sum())
-        raise InputError(f"{scene.root or 'input'}: camera {rig.cameras[c].name}",
+        raise InputError(f"{where}: camera {rig.cameras[c].name}",
                          f"cannot be placed: {n} detections, {linked} of them matched to a person the "
                          f"placed cameras saw, fewer than {cfg.min_joints} joints agreeing with them "
                          "(too few people or frames shared with the other cameras)")
+    return Placement(R, t, placed, joints_used, person, flip, fits, first)
+
+
+def calibrate_people(scene: Scene, cfg: PeopleConfig | None = None) -> PeopleCalibration:
+    """The poses of ``scene``'s cameras from its people (module docstring)."""
+    cfg = cfg or PeopleConfig()
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(cfg.seed)
+    pv = person_views(scene, cfg)
+    rig = scene.rig if cfg.focal_known else focal_from_image(scene.rig)
+    pl = place_cameras(pv, rig, cfg, rng, scene.root or "input")
+    R, t, placed, joints_used, person, flip = pl.R, pl.t, pl.placed, pl.joints_used, pl.person, pl.flip
+    fits, first = pl.fits, pl.first
     keep = np.flatnonzero(placed)
     cams = tuple(replace(rig.cameras[c], R=R[c], t=t[c]) for c in keep)
     start = Rig(cams, up=rig.up, frame_name="people")
