@@ -261,8 +261,7 @@ def estimate_checked(scene: Scene, est: Estimator, every_frame: int | None = Non
         return tracks, None
     stage("annotation QA, writing")
     found = find_anomalies(sc, tracks, pre, splits=segs.splits, exchanges=segs.exchanges)
-    tracks.info.qa = {"anomalies": found.counts(), "file": "anomalies.csv"}
-    return tracks, found
+    return tracks.with_info(qa={"anomalies": found.counts(), "file": "anomalies.csv"}), found
 
 
 def process_noise_prepared(scene: Scene, est: Estimator) -> tuple[dict[str, float] | None, Any]:
@@ -332,11 +331,11 @@ def estimate_scene(scene: Scene, est: Estimator, pre: Any | None, segs: Segments
     result, shared by several estimators (``gt3d compare``)."""
     tracks = _estimate_pieces(scene, est, pre, segs, split)
     if dense:
-        tracks.info.every_frame = {
+        tracks = tracks.with_info(every_frame={
             "frames": int(len(scene.frames)), "rows_interpolated": int(np.sum(tracks.n_views == 0)),
             "note": "a row for every frame of the grid from each object's first to its last annotation; "
                     "n_views 0 = no camera saw it there (interpolated by the motion model, its sd grows "
-                    "with the distance to the nearest view)"}
+                    "with the distance to the nearest view)"})
     elif np.any(tracks.n_views == 0):
         tracks = take_rows(tracks, tracks.n_views > 0)  # info and downweighted carried over
     return tracks
@@ -359,14 +358,13 @@ def _estimate_pieces(scene: Scene, est: Estimator, pre: Any | None, segs: Segmen
             pieces, back = split_ids(scene, (pre if pre is not None else prepare(scene)).rows, segs)
             shared = (pieces, None, back)
         tracks = restored_ids(est.estimate(shared[0], shared[1]), shared[2])
-    tracks.info.identity = {
+    return tracks.with_info(identity={
         "splits": len(segs.splits), "exchanges": len(segs.exchanges),
         "speed_limit_mps": round(segs.speed_limit_mps, 3),
         "rule": "an id is split between two consecutive frames its views place farther apart than "
                 "the scene's objects move (2x the 95th percentile of the ids' median speeds, at least "
                 "3 m/s, plus 4 sd); "
-                "each piece is estimated on its own (segments.csv, identity_split in anomalies.csv)"}
-    return tracks
+                "each piece is estimated on its own (segments.csv, identity_split in anomalies.csv)"})
 
 
 def split_ids(scene: Scene, rows: Rows, segs: Segments) -> tuple[Scene, dict[int, tuple[int, int]]]:
@@ -411,10 +409,9 @@ def restored_ids(tracks: TrackSet, back: dict[int, tuple[int, int]]) -> TrackSet
     np.minimum.at(first, inv, tracks.frame)
     np.maximum.at(last, inv, tracks.frame)
     count = np.bincount(inv, minlength=len(pieces))
-    out.info.segments = [
+    return out.with_info(segments=[
         {"id": int(i), "segment": int(s), "first_frame": int(a), "last_frame": int(b), "rows": int(n)}
-        for (i, s), a, b, n in zip(pieces, first, last, count, strict=True)]
-    return out
+        for (i, s), a, b, n in zip(pieces, first, last, count, strict=True)])
 
 
 def annotation_qa(scene: Scene, tracks: TrackSet) -> Any:

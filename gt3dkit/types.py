@@ -14,7 +14,7 @@ Conventions
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, TypeAlias, overload
 
 import numpy as np
@@ -354,7 +354,7 @@ class Scene:
                 for c in self.rig.cameras if c.r_deviation > 0}
 
 
-@dataclass
+@dataclass(frozen=True)
 class RunInfo:
     """What a run used and found (``meta.json``'s ``estimator`` object, :meth:`as_json`): the
     fields other modules read, typed; each estimator's own diagnostics in ``details``.
@@ -431,6 +431,11 @@ class TrackSet:
 
     def __len__(self) -> int:
         return len(self.frame)
+
+    def with_info(self, **changes: Any) -> TrackSet:
+        """These tracks with their :class:`RunInfo`'s fields ``changes`` replaced (it is never
+        edited in place)."""
+        return replace(self, info=replace(self.info, **changes))
 
 
 @dataclass(frozen=True)

@@ -254,12 +254,12 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
             cluster.close()
     tracks, qa = stitch(parts, windows, plan, ov, noise)
     if like.bones is not None:  # every person's, not the first window's
-        tracks.info.bones = {**like.bones.lengths.info(like.bones.ids),
-                                "pooled": "over every window's own frames (gt3dkit.windows)"}
+        tracks = tracks.with_info(bones={**like.bones.lengths.info(like.bones.ids),
+                                         "pooled": "over every window's own frames (gt3dkit.windows)"})
     if samples:  # the bones' round is the estimator's time too
         first = float(sum(p[2] for p in samples))
-        tracks.info.seconds += first
-        tracks.info.windows = {**(tracks.info.windows or {}), "bones_round_seconds": first}
+        tracks = tracks.with_info(seconds=tracks.info.seconds + first,
+                                  windows={**(tracks.info.windows or {}), "bones_round_seconds": first})
     return tracks, qa, scene
 
 
