@@ -190,11 +190,7 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
     worker, :class:`gt3dkit.io.writers.PartText`) as it finishes (:func:`run_window`);
     ``tally``: told where the truth comes from (:class:`RowsTally`; its rows come through
     ``on_part``)."""
-    if not over_time(estimator):
-        raise InputError("--window", f"the {estimator} fits each frame on its own: it needs no window")
-    if scene.index is not None and every_frame is not None:
-        raise InputError("--every-frame", "needs each object's annotations over the whole sequence: "
-                                          "read it whole (gt3dkit.api.load_scene), not by its windows")
+    _refuse_unwindowed(scene, estimator, every_frame)
     ov = overlap_frames(scene) if plan.overlap is None else plan.overlap
     own = cluster is None and bool(plan.scheduler)
     if own:
@@ -253,14 +249,31 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
         if own and cluster is not None:
             cluster.close()
     tracks, qa = stitch(parts, windows, plan, ov, noise)
-    if like.bones is not None:  # every person's, not the first window's
+    return _with_pooled_bones(tracks, like, samples), qa, scene
+
+
+def _refuse_unwindowed(scene: Scene, estimator: str, every_frame: int | None) -> None:
+    """:class:`InputError` where ``scene`` cannot be run in windows by ``estimator``: one that fits
+    each frame on its own, or a dense grid over an index (its objects' annotations are not read
+    whole)."""
+    if not over_time(estimator):
+        raise InputError("--window", f"the {estimator} fits each frame on its own: it needs no window")
+    if scene.index is not None and every_frame is not None:
+        raise InputError("--every-frame", "needs each object's annotations over the whole sequence: "
+                                          "read it whole (gt3dkit.api.load_scene), not by its windows")
+
+
+def _with_pooled_bones(tracks: TrackSet, like: WindowJob, samples: list[Any]) -> TrackSet:
+    """The stitched ``tracks`` with every person's pooled bones (not the first window's) and the
+    bones' round's time (the estimator's time too) in their :class:`RunInfo`."""
+    if like.bones is not None:
         tracks = tracks.with_info(bones={**like.bones.lengths.info(like.bones.ids),
                                          "pooled": "over every window's own frames (gt3dkit.windows)"})
-    if samples:  # the bones' round is the estimator's time too
+    if samples:
         first = float(sum(p[2] for p in samples))
         tracks = tracks.with_info(seconds=tracks.info.seconds + first,
                                   windows={**(tracks.info.windows or {}), "bones_round_seconds": first})
-    return tracks, qa, scene
+    return tracks
 
 
 def _run_rounds(scenes: Callable[[int], Any], windows: list[Window], like: WindowJob, runner: Runner,
