@@ -40,7 +40,7 @@ from __future__ import annotations
 from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -755,18 +755,14 @@ def _wrong_views(vr: F64, cams: np.ndarray, outlier_px: float) -> np.ndarray:
     return np.flatnonzero(vr > np.maximum(outlier_px, 4 * med[cams]))
 
 
-def calibrate_board(
-    views: list[View], board: Board, names: Sequence[str], sizes: Sequence[tuple[int, int]], cfg: BoardConfig
-) -> BoardCalibration:
-    """The rig of ``names`` from their board ``views`` (see the module docstring)."""
+def _intrinsics(views: list[View], board: Board, names: Sequence[str], sizes: Sequence[tuple[int, int]],
+                cfg: BoardConfig, hold: set[int], dropped: dict[int, list[tuple[str, str]]],
+                warnings: list[str]) -> tuple[F64, F64, list[View]]:
+    """Step 1 of the module docstring: each camera's intrinsics rows ``(C, INTR_WIDTH)`` (given, or
+    fitted on its own views but the held-out frames'), their focal sds ``(C,)`` (NaN: given) and
+    the views the joint fit starts from; the views left out added to ``dropped``, warnings to
+    ``warnings``."""
     C = len(names)
-    warnings: list[str] = []
-    synced = sorted({v.frame for v in views if v.synced})
-    k_out = cfg.holdout_every
-    hold = {f for f in synced if k_out > 0 and f % k_out == k_out - 1}
-    held_views = [v for v in views if v.synced and v.frame in hold]
-    dropped: dict[int, list[tuple[str, str]]] = defaultdict(list)
-    # 1. intrinsics
     fixed = {c.name: c for c in cfg.fixed}
     intr, f_sd0 = np.zeros((C, INTR_WIDTH)), np.full(C, np.nan)
     fit: list[View] = []
@@ -799,6 +795,75 @@ def calibrate_board(
         intr[c], f_sd0[c] = got.intr, got.focal_sd_px
         fit += [vs[k] for k in got.keep]
         dropped[c] += [(vs[k].label, why) for k, why in got.dropped]
+    return intr, f_sd0, fit
+
+
+class JointFit(NamedTuple):
+    """The joint fit's end (module docstring, step 4): its views ``fit``, problem, residuals
+    ``fun``, each view's rms ``vr``, the sds of each camera's focal (px), centre (m) and rotation
+    (rad), and the intrinsics rows."""
+
+    fit: list[View]
+    prob: BoardProblem
+    fun: F64
+    vr: F64
+    f_sd: F64
+    c_sd: F64
+    r_sd: F64
+    intr: F64
+
+
+def _reports(rig: Rig, names: Sequence[str], board: Board, held_views: list[View], joint: JointFit,
+             dropped: dict[int, list[tuple[str, str]]], warnings: list[str]) -> list[CameraReport]:
+    """Step 6 of the module docstring: each camera's figures from the ``joint`` fit, the held-out
+    frames posed with the rig held; a warning where a focal length is uncertain by more than 1 %."""
+    fit, prob, fun, vr, f_sd, c_sd, r_sd, intr = joint
+    held_r = pose_boards(rig, names, held_views, board)[1] if held_views else []
+    e = np.sqrt((fun.reshape(-1, 2) ** 2).sum(1))
+    reports = []
+    for c, name in enumerate(names):
+        m = prob.cam == c
+        ks = [k for k, v in enumerate(fit) if v.cam == c]
+        worst = sorted(((fit[k].label, float(vr[k])) for k in ks), key=lambda t: -t[1])[:3]
+        hr = [r for v, r in zip(held_views, held_r, strict=True) if v.cam == c]
+        hold_rms = float(np.sqrt(np.mean(np.sum(np.concatenate(hr) ** 2, axis=1)))) if hr else None
+        reports.append(
+            CameraReport(
+                name,
+                len(ks),
+                float(np.sqrt(np.mean(e[m] ** 2))),
+                float(np.percentile(e[m], 95)),
+                hold_rms,
+                tuple(worst),
+                tuple(dropped[c]),
+                float(f_sd[c]),
+                float(c_sd[c]) * 1e3,
+                float(np.degrees(r_sd[c])),
+                prob.uv[m],
+            )
+        )
+        if np.isfinite(f_sd[c]) and f_sd[c] > 0.01 * intr[c, 0]:
+            warnings.append(
+                f"camera {name}: focal length uncertain by {f_sd[c]:.1f} px (more than 1 %): film the "
+                "board closer, tilted, and over the whole image"
+            )
+    return reports
+
+
+def calibrate_board(
+    views: list[View], board: Board, names: Sequence[str], sizes: Sequence[tuple[int, int]], cfg: BoardConfig
+) -> BoardCalibration:
+    """The rig of ``names`` from their board ``views`` (see the module docstring)."""
+    C = len(names)
+    warnings: list[str] = []
+    synced = sorted({v.frame for v in views if v.synced})
+    k_out = cfg.holdout_every
+    hold = {f for f in synced if k_out > 0 and f % k_out == k_out - 1}
+    held_views = [v for v in views if v.synced and v.frame in hold]
+    dropped: dict[int, list[tuple[str, str]]] = defaultdict(list)
+    # 1. intrinsics
+    fixed = {c.name: c for c in cfg.fixed}
+    intr, f_sd0, fit = _intrinsics(views, board, names, sizes, cfg, hold, dropped, warnings)
     # 2. poses of every view, 3. extrinsics
     vpose = [board_pose(v, board, intr[v.cam]) for v in fit]
     seen = {v.cam for v in fit if v.synced}
@@ -856,35 +921,8 @@ def calibrate_board(
                 "board nearer the image's corners to calibrate the lens there"
             )
     # 6. per camera figures; the held-out frames posed with the rig held
-    held_r = pose_boards(rig, names, held_views, board)[1] if held_views else []
-    e = np.sqrt((res.fun.reshape(-1, 2) ** 2).sum(1))
-    reports = []
-    for c, name in enumerate(names):
-        m = prob.cam == c
-        ks = [k for k, v in enumerate(fit) if v.cam == c]
-        worst = sorted(((fit[k].label, float(vr[k])) for k in ks), key=lambda t: -t[1])[:3]
-        hr = [r for v, r in zip(held_views, held_r, strict=True) if v.cam == c]
-        hold_rms = float(np.sqrt(np.mean(np.sum(np.concatenate(hr) ** 2, axis=1)))) if hr else None
-        reports.append(
-            CameraReport(
-                name,
-                len(ks),
-                float(np.sqrt(np.mean(e[m] ** 2))),
-                float(np.percentile(e[m], 95)),
-                hold_rms,
-                tuple(worst),
-                tuple(dropped[c]),
-                float(f_sd[c]),
-                float(c_sd[c]) * 1e3,
-                float(np.degrees(r_sd[c])),
-                prob.uv[m],
-            )
-        )
-        if np.isfinite(f_sd[c]) and f_sd[c] > 0.01 * intr[c, 0]:
-            warnings.append(
-                f"camera {name}: focal length uncertain by {f_sd[c]:.1f} px (more than 1 %): film the "
-                "board closer, tilted, and over the whole image"
-            )
+    joint = JointFit(fit, prob, res.fun, vr, f_sd, c_sd, r_sd, intr)
+    reports = _reports(rig, names, board, held_views, joint, dropped, warnings)
     return BoardCalibration(
         rig,
         tuple(reports),
