@@ -813,6 +813,21 @@ class JointFit(NamedTuple):
     intr: F64
 
 
+def _lens_warnings(rig: Rig, prob: BoardProblem) -> list[str]:
+    """A warning per camera whose fitted lens model turns back within the image (how far the
+    board's corners reached)."""
+    out = []
+    for cam in rig.cameras:
+        if cam.valid_radius_px is not None:
+            reach = float(np.max(np.hypot(*(prob.uv[prob.cam == rig.index(cam.name)] - cam.K[:2, 2]).T)))
+            out.append(
+                f"camera {cam.name}: the fitted lens model turns back {cam.valid_radius_px:.0f} px "
+                f"from the principal point (the board's corners reached {reach:.0f} px): film the "
+                "board nearer the image's corners to calibrate the lens there"
+            )
+    return out
+
+
 def _reports(rig: Rig, names: Sequence[str], board: Board, held_views: list[View], joint: JointFit,
              dropped: dict[int, list[tuple[str, str]]], warnings: list[str]) -> list[CameraReport]:
     """Step 6 of the module docstring: each camera's figures from the ``joint`` fit, the held-out
@@ -912,14 +927,7 @@ def calibrate_board(
     fposes = {f: rt_matrix(p[:3], p[3:]) for (cam, f), p in pose6.items() if cam < 0}
     world_from_ref, up, frame_name = _world(cfg, rig_T, fposes, fit, names)
     rig = _rig(names, sizes, intr, rig_T @ rigid_inverse(world_from_ref), up, frame_name)
-    for cam in rig.cameras:
-        if cam.valid_radius_px is not None:
-            reach = float(np.max(np.hypot(*(prob.uv[prob.cam == rig.index(cam.name)] - cam.K[:2, 2]).T)))
-            warnings.append(
-                f"camera {cam.name}: the fitted lens model turns back {cam.valid_radius_px:.0f} px "
-                f"from the principal point (the board's corners reached {reach:.0f} px): film the "
-                "board nearer the image's corners to calibrate the lens there"
-            )
+    warnings += _lens_warnings(rig, prob)
     # 6. per camera figures; the held-out frames posed with the rig held
     joint = JointFit(fit, prob, res.fun, vr, f_sd, c_sd, r_sd, intr)
     reports = _reports(rig, names, board, held_views, joint, dropped, warnings)
