@@ -355,6 +355,47 @@ class Scene:
 
 
 @dataclass(frozen=True)
+class RobustSummary:
+    """What the robust update did: whether it ran, the measurements it down-weighted and rejected,
+    and its rule (``meta.json``'s ``robust``)."""
+
+    enabled: bool
+    downweighted: int
+    rejected: int
+    rule: str
+
+    def as_json(self) -> JsonDict:
+        return {"enabled": self.enabled, "downweighted": self.downweighted, "rejected": self.rejected,
+                "rule": self.rule}
+
+
+@dataclass(frozen=True)
+class WindowsSummary:
+    """How a long sequence ran in windows (``meta.json``'s ``windows``): their count, frames each,
+    the context around them, why they were sized so (None: given), how they were cut, each
+    window's span, the process noise chosen once, a note, and the bones' first round's time (None:
+    no such round)."""
+
+    count: int
+    frames: int
+    overlap_frames: int
+    why: str | None
+    cut: str
+    windows: list[JsonDict]
+    process_noise: dict[str, float]
+    note: str
+    bones_round_seconds: float | None = None
+
+    def as_json(self) -> JsonDict:
+        out: JsonDict = {"count": self.count, "frames": self.frames, "overlap_frames": self.overlap_frames,
+                         "why": self.why, "cut": self.cut, "windows": self.windows,
+                         "process_noise": self.process_noise, "note": self.note}
+        if self.bones_round_seconds is not None:
+            out["bones_round_seconds"] = self.bones_round_seconds
+        return out
+
+
+@dataclass(frozen=True)
 class RunInfo:
     """What a run used and found (``meta.json``'s ``estimator`` object, :meth:`as_json`): the
     fields other modules read, typed; each estimator's own diagnostics in ``details``.
@@ -375,13 +416,13 @@ class RunInfo:
     seconds: float = 0.0
     object_frames: int | None = None
     skipped_lt2_views: int | None = None
-    robust: JsonDict | None = None
+    robust: RobustSummary | None = None
     bones: JsonDict | None = None
     every_frame: JsonDict | None = None
     identity: JsonDict | None = None
     segments: list[JsonDict] = field(default_factory=list)
     qa: JsonDict | None = None
-    windows: JsonDict | None = None
+    windows: WindowsSummary | None = None
     details: JsonDict = field(default_factory=dict)
 
     def as_json(self) -> JsonDict:
@@ -389,8 +430,9 @@ class RunInfo:
         out: JsonDict = {"estimator": self.estimator, "params": self.params, **self.details}
         for key in ("robust", "bones", "every_frame", "identity", "qa", "windows", "object_frames",
                     "skipped_lt2_views"):
-            if getattr(self, key) is not None:
-                out[key] = getattr(self, key)
+            v = getattr(self, key)
+            if v is not None:
+                out[key] = v.as_json() if isinstance(v, RobustSummary | WindowsSummary) else v
         if self.segments:
             out["segments"] = self.segments
         out["seconds"] = self.seconds

@@ -134,8 +134,8 @@ def test_windowed_boxes_equal_the_whole_sequence(boxes: object) -> None:
     np.testing.assert_array_equal(part.track_id, whole.track_id)
     z = np.abs(part.center_world - whole.center_world) / whole.center_sd
     assert z.max() < 0.1, z.max()
-    assert part.info.windows["count"] == 4
-    assert part.info.windows["process_noise"]["accel_sd"] == pytest.approx(p["accel_sd"])
+    assert part.info.windows is not None and part.info.windows.count == 4
+    assert part.info.windows.process_noise["accel_sd"] == pytest.approx(p["accel_sd"])
 
 
 def test_a_gap_longer_than_a_window_runs(boxes: object) -> None:
@@ -152,7 +152,7 @@ def test_a_gap_longer_than_a_window_runs(boxes: object) -> None:
     p = whole.info.params
     part, _, _ = reconstruct_windowed(holed, "ukf", Plan(8, overlap=5),
                                    **{k: p[k] for k in ("accel_sd", "position_sd", "shape_sd")})
-    assert part.info.windows["count"] < len(plan_windows(frames, 8, 5))
+    assert part.info.windows is not None and part.info.windows.count < len(plan_windows(frames, 8, 5))
     np.testing.assert_array_equal(part.frame, whole.frame)
     np.testing.assert_array_equal(part.track_id, whole.track_id)
 
@@ -557,7 +557,8 @@ def test_the_second_round_takes_each_windows_preparation_from_the_first(
 
     monkeypatch.setattr(UKFSmoother, "prepare", counted)
     kept, _, _ = reconstruct_windowed(scene, "ukf", Plan(20, overlap=10), **fixed)
-    n, once = kept.info.windows["count"], len(made)  # the windows' and the noise sample's
+    assert kept.info.windows is not None
+    n, once = kept.info.windows.count, len(made)  # the windows' and the noise sample's
     assert n == 3 and _kept_runs() == 0  # dropped at the end of the run
 
     def full(*args: object, **kw: object) -> None:

@@ -103,18 +103,17 @@ def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | 
     kinds = " + ".join(k for k, v in ((f"boxes: {box_model_note(scene)}", scene.has_boxes),
                                       (f"{scene.skeleton} keypoints", scene.obs.n_joints > 0)) if v)
     fps = f"{scene.fps:g} fps" + (" (assumed)" if scene.fps_assumed else "")
-    rob = info.robust or {}
-    flagged = (f", {rob['rejected']} measurements rejected and {rob['downweighted']} "
-               f"down-weighted (downweighted.csv)" if rob.get("enabled") else "")
+    rob = info.robust
+    flagged = (f", {rob.rejected} measurements rejected and {rob.downweighted} "
+               f"down-weighted (downweighted.csv)" if rob is not None and rob.enabled else "")
     qa = (info.qa or {}).get("anomalies", {})
     flagged += (", anomalies: " + ", ".join(f"{v} {k}" for k, v in qa.items()) + " (anomalies.csv)"
                 if qa else ", no anomalies")
     win = info.windows
-    if win:
-        about = "about " if win.get("cut") == "equal object-frames" else ""
-        flagged += (f", in {win['count']} windows of {about}{win['frames']} frames with "
-                    f"{win['overlap_frames']} of context"
-                    + (f" ({win['why']}; --window FRAMES to choose)" if win.get("why") else ""))
+    if win is not None:
+        about = "about " if win.cut == "equal object-frames" else ""
+        flagged += (f", in {win.count} windows of {about}{win.frames} frames with {win.overlap_frames} of "
+                    "context" + (f" ({win.why}; --window FRAMES to choose)" if win.why else ""))
     print(f"{scene.layout}: {scene.n_annotations} annotation rows ({kinds}), {len(scene.rig.cameras)} "
           f"cameras, {fps} -> {len(tracks)} object-frames of {len(set(tracks.track_id.tolist()))} "
           f"objects ({args.estimator}, {info.seconds:.2f} s{flagged}) written to "

@@ -78,7 +78,7 @@ from gt3dkit.fusion.prepare import (
 from gt3dkit.fusion.rows import Rows
 from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.skeletons import Skeleton
-from gt3dkit.types import F64, Downweighted, JsonDict, RunInfo, Scene, TrackSet
+from gt3dkit.types import F64, Downweighted, JsonDict, RobustSummary, RunInfo, Scene, TrackSet
 
 
 class UKFSmoother:
@@ -177,11 +177,9 @@ class UKFSmoother:
             if not pre.use_box:
                 centre, semi, sd = ellipsoid_around(kpt, kpt_sd, cams.world_from_body)
         down = downweighted_of(model, run)
-        robust = {"enabled": cfg.robust, "downweighted": int(np.sum(down.weight > 0)),
-                  "rejected": int(np.sum(down.weight == 0)),
-                  "rule": "leave-one-out score against prior + other views; weight 1 "
-                          f"below the chi-square tail probability {cfg.huber_p:g}, 0 "
-                          f"beyond {cfg.reject_p:g}"}
+        robust = RobustSummary(bool(cfg.robust), int(np.sum(down.weight > 0)), int(np.sum(down.weight == 0)),
+                               "leave-one-out score against prior + other views; weight 1 below the "
+                               f"chi-square tail probability {cfg.huber_p:g}, 0 beyond {cfg.reject_p:g}")
         params: JsonDict = {**asdict(cfg), "sigma_px": pre.info["boxes"]["sigma_px"] if pre.use_box else None,
                             "sigma_px_core": pre.info["boxes"]["sigma_px_core"] if pre.use_box else None,
                             "kpt_sigma_px": pre.info.get("keypoints", {}).get("sigma_px"),

@@ -271,8 +271,9 @@ def _with_pooled_bones(tracks: TrackSet, like: WindowJob, samples: list[Any]) ->
                                          "pooled": "over every window's own frames (gt3dkit.windows)"})
     if samples:
         first = float(sum(p[2] for p in samples))
-        tracks = tracks.with_info(seconds=tracks.info.seconds + first,
-                                  windows={**(tracks.info.windows or {}), "bones_round_seconds": first})
+        win = tracks.info.windows
+        win = None if win is None else dataclasses.replace(win, bones_round_seconds=first)
+        tracks = tracks.with_info(seconds=tracks.info.seconds + first, windows=win)
     return tracks
 
 

@@ -27,7 +27,7 @@ from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.io.writers import PartText
 from gt3dkit.qa.anomalies import Anomalies
 from gt3dkit.threads import roomy_malloc, small_matrix_blas
-from gt3dkit.types import I64, Downweighted, GroundTruth, Options, Scene, TrackSet
+from gt3dkit.types import I64, Downweighted, GroundTruth, Options, Scene, TrackSet, WindowsSummary
 from gt3dkit.windows.plan import Plan, Window
 
 #: What a window's rows and findings go to as it finishes (:func:`reconstruct_windowed`): its index,
@@ -223,18 +223,18 @@ def stitch(parts: list[WindowPart], windows: list[Window], plan: Plan,
     first = ts[0].info
     robust = first.robust
     if robust is not None and down is not None:
-        robust = {**robust, "downweighted": int(np.sum(down.weight > 0)),
-                  "rejected": int(np.sum(down.weight == 0))}
+        robust = dataclasses.replace(robust, downweighted=int(np.sum(down.weight > 0)),
+                                     rejected=int(np.sum(down.weight == 0)))
     rows = [r for p in parts for r in p[1]]  # each window's sorted, the windows in frame order
     qa = Anomalies(rows)
     info = dataclasses.replace(
         first, seconds=float(sum(t.info.seconds for t in ts)), object_frames=int(len(order)),
         robust=robust, segments=[s for t in ts for s in t.info.segments],
         qa={"anomalies": qa.counts(), "file": "anomalies.csv"},
-        windows={"count": len(windows), "frames": plan.size, "overlap_frames": overlap, "why": plan.why,
-                 "cut": "equal object-frames" if plan.why else "equal frames",
-                 "windows": [dataclasses.asdict(w) for w in windows], "process_noise": noise,
-                 "note": "each window run on its frames plus context, its own frames kept; the process "
-                         "noise chosen once (gt3dkit.windows)"})
+        windows=WindowsSummary(len(windows), plan.size, overlap, plan.why,
+                               "equal object-frames" if plan.why else "equal frames",
+                               [dataclasses.asdict(w) for w in windows], noise,
+                               "each window run on its frames plus context, its own frames kept; the process "
+                               "noise chosen once (gt3dkit.windows)"))
     tracks = TrackSet(**{k: v[order] for k, v in cat.items()}, info=info, downweighted=down)
     return tracks, qa

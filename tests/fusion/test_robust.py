@@ -214,7 +214,7 @@ def test_every_far_off_point_is_reported(clean_and_bad) -> None:
     far = [(int(r["frame"]), r["camera"], int(r["id"]), int(r["joint"])) for r in inj
            if r["kind"] in ("keypoint_outlier", "glitch")]
     assert far and all(k in low for k in far)
-    assert tb.info.robust["rejected"] >= len(far)
+    assert tb.info.robust is not None and tb.info.robust.rejected >= len(far)
 
 
 def test_downweighted_csv_is_written(tmp_path, clean_and_bad) -> None:
