@@ -31,6 +31,7 @@ import numpy as np
 
 from gt3dkit.api import reconstruct
 from gt3dkit.errors import InputError
+from gt3dkit.fusion.noise import NOISE_FIELDS
 from gt3dkit.io.clocks import CameraClocks
 from gt3dkit.refine.clocks import Clocks, Steps, estimate_clocks, offset_steps
 from gt3dkit.refine.people import PeopleConfig, person_views
@@ -71,15 +72,18 @@ def find_clocks(detections: Scene, load: Callable[[CameraClocks], Scene], start:
     def clocks_now() -> CameraClocks:
         return CameraClocks(names, late, sd, np.where(rate != 1.0, fps / rate, np.nan), "--time-offsets auto")
 
+    noise: dict[str, float] = {}  # the process noise the first reconstruction chose, kept for the others
     for _ in range(cfg.rounds):
         scene = load(clocks_now())
         st = Steps(*(np.full(C, np.nan) for _ in range(5)), np.zeros(C, np.int64))
         for grp in groups:
             rest = dataclasses.replace(scene, obs=scene.obs.select(~np.isin(scene.obs.cam, grp)))
             try:
-                tracks = reconstruct(rest, "ukf")
+                tracks = reconstruct(rest, "ukf", **noise)
             except InputError:  # the others see too little of anyone: the start stays
                 continue
+            if not noise:
+                noise = {k: float(v) for k in NOISE_FIELDS if (v := tracks.info.params.get(k)) is not None}
             got = offset_steps(scene, tracks, grp)
             for a, b in zip(st, got, strict=True):
                 a[grp] = b
