@@ -212,10 +212,10 @@ def _add_calib(sub: argparse._SubParsersAction[Parser], common: argparse.Argumen
     _rig_output_options(kr)
     kr.set_defaults(func=cmd_calib_refine)
     kp = ksub.add_parser("people", parents=[common],
-                         help="the cameras' poses from the people in the scene's keypoints (no board, "
-                              "no identities; intrinsics given)")
-    kp.add_argument("input", help="input folder with keypoints (any layout); its calibration's intrinsics "
-                                  "are used, its poses are not")
+                         help="the cameras' poses from the people in the scene: their keypoints (no board, "
+                              "no identities), or their boxes (ids across cameras); intrinsics given")
+    kp.add_argument("input", help="input folder with keypoints or boxes (any layout); its calibration's "
+                                  "intrinsics are used, its poses are not")
     kp.add_argument("--out", required=True, help="output folder (cameras.json, calib_report.json)")
     kp.add_argument("--intrinsics", help="a calibration (any format) whose intrinsics are used instead of "
                                          "the input's")
@@ -227,7 +227,7 @@ def _add_calib(sub: argparse._SubParsersAction[Parser], common: argparse.Argumen
                          "OUT/time_offsets.csv), and the rig on the people moved onto one clock")
     kp.add_argument("--height", type=number_type(float, 0.5, 2.5),
                     help="the people's median standing height, m (default: the scale from typical adult "
-                         "bone lengths, about 5 %% uncertain)")
+                         "bone lengths, about 5 %% uncertain; from boxes, 1.7 m)")
     _rig_output_options(kp)
     kp.set_defaults(func=cmd_calib_people)
     kb = ksub.add_parser("board", parents=[common],
