@@ -12,7 +12,7 @@ import pytest
 
 from gt3dkit.api import load_scene, reconstruct
 from gt3dkit.eval.metrics import match_rows
-from gt3dkit.sim import simulate_skeletons, write_skeleton_scene
+from gt3dkit.sim import simulate, simulate_skeletons, write_skeleton_scene
 from gt3dkit.sim.common import with_lens
 from tests.scenes import written_scene
 
@@ -56,8 +56,6 @@ def test_fisheye_scene_reconstructs_as_well_as_its_angles_allow(tmp_path: Path, 
 
 
 def test_with_lens_keeps_the_cameras() -> None:
-    from gt3dkit.sim import simulate
-
     pin = simulate("native", seed=4, frames=2, people=1).rig
     fish = with_lens(pin, "fisheye", seed=4)
     for a, b in zip(pin.cameras, fish.cameras, strict=True):

@@ -35,7 +35,7 @@ from gt3dkit.io.clocks import CameraClocks, read_time_offsets
 from gt3dkit.io.datasets import ASSOCIATED, detect_layout
 from gt3dkit.refine.boxpeople import BoxPeopleConfig, calibrate_boxes
 from gt3dkit.refine.clocks import Clocks
-from gt3dkit.refine.common import umeyama
+from gt3dkit.refine.common import centre_similarity
 from gt3dkit.refine.people import PeopleCalibration, PeopleConfig, calibrate_people
 from gt3dkit.rig import Rig
 from gt3dkit.synchronise import find_clocks
@@ -240,15 +240,10 @@ class IntoGiven:
 
 
 def into_given(found: Rig, given: Rig) -> IntoGiven | None:
-    """:class:`IntoGiven` of ``found`` (cameras by name) onto ``given``; None where they share fewer
-    than three cameras."""
-    names = [n for n in found.names if n in given.names]
-    if len(names) < 3:
-        return None
-    src = np.array([found.cameras[found.index(n)].center_world for n in names])
-    dst = np.array([given.cameras[given.index(n)].center_world for n in names])
-    s, R, t = umeyama(src, dst)
-    return IntoGiven(float(s), R, t, given)
+    """:class:`IntoGiven` of ``found`` onto ``given`` (:func:`gt3dkit.refine.common.centre_similarity`;
+    None where it has none)."""
+    sim = centre_similarity(found, given)
+    return None if sim is None else IntoGiven(float(sim[0]), sim[1], sim[2], given)
 
 
 class PeopleScene(NamedTuple):

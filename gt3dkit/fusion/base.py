@@ -7,10 +7,10 @@ from dataclasses import dataclass
 from importlib import import_module
 from typing import TYPE_CHECKING, Protocol
 
+from gt3dkit.fusion.bones import BoneSamples
 from gt3dkit.types import OptionValue, Scene, TrackSet
 
 if TYPE_CHECKING:
-    from gt3dkit.fusion.bones import BoneSamples
     from gt3dkit.fusion.prepare import Prepared
 
 

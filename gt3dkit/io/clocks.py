@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from gt3dkit.errors import InputError
+from gt3dkit.rig import as_array
 from gt3dkit.types import F64, JsonDict, Scene
 
 HEADER = ("camera", "late_frames", "sd_frames", "fps")
@@ -56,13 +57,9 @@ class CameraClocks:
 
     def __post_init__(self) -> None:
         C = len(self.names)
-        for name in ("late_frames", "sd_frames", "fps"):
-            a = np.asarray(getattr(self, name), dtype=np.float64).reshape(-1)
-            if a.shape != (C,):
-                raise ValueError(f"expected {name} of shape ({C},), got {a.shape}")
+        for name in ("late_frames", "sd_frames", "fps"):  # NaN: unknown (late_frames: never)
+            a = as_array(getattr(self, name), (C,), name, finite=name == "late_frames")
             object.__setattr__(self, name, a)
-        if not np.all(np.isfinite(self.late_frames)):
-            raise ValueError("late_frames must be finite")
 
     @staticmethod
     def of(names: tuple[str, ...], late_frames: F64, sd_frames: F64 | None = None,

@@ -149,7 +149,7 @@ def _pnp(p: BoxPoints, keys: I64, X: F64, c: int, f_px: float, cfg: BoxPeopleCon
 class Placed:
     """The cameras placed one by one (module docstring, steps 2-3): their poses ``R (C, 3, 3)``, ``t
     (C, 3)`` (the first at the origin, the start pair's baseline one unit), the order they were placed
-    in, and each camera pair's inliers."""
+    in, and each camera pair's inlier points (a whole box gives two)."""
 
     R: F64
     t: F64
@@ -238,7 +238,7 @@ def calibrate_boxes(scene: Scene, cfg: BoxPeopleConfig | None = None) -> PeopleC
     a, b = placed.order[:2]
     report: JsonDict = {
         "seconds": time.perf_counter() - t0, "from": "boxes",
-        "camera_pairs": [{"cameras": [rig.names[i], rig.names[j]], "person_pairs": v}
+        "camera_pairs": [{"cameras": [rig.names[i], rig.names[j]], "inlier_points": v}
                          for (i, j), v in placed.pair_inliers.items()],
         "people": int(len(keys)), "tracks": int(len(tracks.X0)),
         "reprojection_median_px": float(np.median(res)), "start_pair": [rig.names[a], rig.names[b]],

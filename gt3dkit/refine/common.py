@@ -65,6 +65,19 @@ def transform_rig(rig: Rig, s: float, Rw: F64, tw: F64) -> Rig:
     return Rig(tuple(cams), up=rig.up, frame_name=rig.frame_name)
 
 
+def centre_similarity(rig: Rig, given: Rig) -> tuple[float, F64, F64] | None:
+    """The similarity ``X_given = s R X + t`` that best maps ``rig``'s camera centres onto those of
+    the cameras of the same names in ``given`` (:func:`umeyama`); None where they share fewer than
+    three cameras or ``given`` has no poses to map onto (its centres within 1 cm of each other:
+    intrinsics only)."""
+    names = [n for n in rig.names if n in given.names]
+    src = np.array([rig.cameras[rig.index(n)].center_world for n in names]).reshape(-1, 3)
+    dst = np.array([given.cameras[given.index(n)].center_world for n in names]).reshape(-1, 3)
+    if len(names) < 3 or np.ptp(dst, axis=0).max() < 0.01:
+        return None
+    return umeyama(src, dst)
+
+
 def align_to(rig: Rig, ref: Rig) -> tuple[Rig, dict[str, float]]:
     """``rig`` moved onto ``ref`` by the similarity that best maps its camera centres."""
     src = np.array([c.center_world for c in rig.cameras])

@@ -40,7 +40,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import project_points
 from gt3dkit.geom.triangulate import normalized_points, reprojection_sq_px, triangulate_weighted
 from gt3dkit.refine.clocks import Clocks, estimate_clocks, follow, synchronised
-from gt3dkit.refine.common import RefineConfig, transform_rig, umeyama
+from gt3dkit.refine.common import RefineConfig, centre_similarity, transform_rig
 from gt3dkit.refine.keypoints import Tracks, ba_keypoints, keypoint_residuals
 from gt3dkit.refine.persons import (
     PersonViews,
@@ -604,11 +604,12 @@ def against_given(rig: Rig, given: Rig) -> JsonDict | None:
     maps the camera centres (Umeyama), each camera's centre distance (m) and rotation (deg), and
     the similarity's scale; None where the given rig has no poses to compare (its centres within
     1 cm of each other: intrinsics only)."""
+    found = centre_similarity(rig, given)
+    if found is None:
+        return None
+    s, R, t = found
     E = np.array([c.center_world for c in rig.cameras])
     T = np.array([given.cameras[given.index(c.name)].center_world for c in rig.cameras])
-    if np.ptp(T, axis=0).max() < 0.01 or len(E) < 3:
-        return None
-    s, R, t = umeyama(E, T)
     centre = np.linalg.norm((s * (R @ E.T)).T + t - T, axis=1)
     out: JsonDict = {"scale_given_over_found": float(s), "cameras": {}}
     for c, d in zip(rig.cameras, centre, strict=True):

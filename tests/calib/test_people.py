@@ -15,10 +15,11 @@ import pytest
 from gt3dkit.api import load_detections, load_run
 from gt3dkit.calib.formats import read_calibration
 from gt3dkit.errors import InputError
-from gt3dkit.refine.common import umeyama
-from gt3dkit.refine.people import PeopleConfig, calibrate_people, mirror_index
+from gt3dkit.refine.common import transform_rig, umeyama
+from gt3dkit.refine.people import PeopleConfig, against_given, calibrate_people, mirror_index
 from gt3dkit.rig import Rig
 from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
+from gt3dkit.viz.report import _people_rig
 
 
 def _gt3d(*args: str) -> subprocess.CompletedProcess[str]:
@@ -133,10 +134,6 @@ def test_reconstruct_with_the_rig_from_the_people(people_dir: Path, tmp_path: Pa
 def test_rig_beside_the_given_one(people_dir: Path) -> None:
     """The found rig beside the input's: a copy of the input moved by a similarity is 0 cm and 0
     degrees from it; the report's section lists the cameras; intrinsics-only rigs are not compared."""
-    from gt3dkit.refine.common import transform_rig
-    from gt3dkit.refine.people import against_given
-    from gt3dkit.viz.report import _people_rig
-
     given = load_detections(people_dir).rig
     R = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
     moved = transform_rig(given, 0.5, R, np.array([1.0, 2, 3]))
