@@ -33,7 +33,7 @@ from gt3dkit.parse import read_csv_rows
 from gt3dkit.qa.anomalies import find_anomalies
 from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
 from gt3dkit.threads import small_matrix_blas
-from gt3dkit.types import BOX_MODELS, I64, JsonDict, JsonValue, OptionValue, Scene, TrackSet
+from gt3dkit.types import BOX_MODELS, I64, JsonDict, JsonValue, OptionValue, ReadAhead, Scene, TrackSet
 
 __all__ = ["ESTIMATORS", "annotation_qa", "load_run", "load_scene", "make_estimator", "reconstruct"]
 
@@ -72,7 +72,7 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
                fps: float | None = None, calib: Path | str | None = None,
                association: Path | str | None = None, segments: Path | str | None = None,
                box_model: str = "auto", clocks: CameraClocks | JsonDict | None = None,
-               **panoptic_options: JsonValue) -> Scene:
+               ahead: ReadAhead | None = None, **panoptic_options: JsonValue) -> Scene:
     """Load any supported input folder (layout detected when not given): read it
     (:func:`gt3dkit.io.datasets.read_scene`, whose arguments these are), give ids per camera or
     none global identities (:mod:`gt3dkit.fusion.associate`, with the overrides of the file
@@ -81,8 +81,9 @@ def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     of the ids it lists (:func:`gt3dkit.fusion.identity.identity_segments`). ``box_model``: how
     the boxes are drawn (:data:`gt3dkit.types.BOX_MODELS`), or ``"auto"``: chosen from them
     (:func:`with_box_model`). ``clocks``: each camera's clock (:mod:`gt3dkit.io.clocks`, or its
-    ``doc()``): every view moved onto one clock before the association."""
-    scene = read_scene(root, layout, skeleton, fps, calib, association, **panoptic_options)
+    ``doc()``): every view moved onto one clock before the association. ``ahead``: what
+    :func:`load_head` read of the folder (``FrameIndex.ahead``), not read again."""
+    scene = read_scene(root, layout, skeleton, fps, calib, association, ahead=ahead, **panoptic_options)
     if clocks is not None:
         if not isinstance(clocks, CameraClocks):
             clocks = CameraClocks.from_doc(clocks, "time offsets")

@@ -96,7 +96,12 @@ def _json_doc(path: Path, raw: bytes) -> Any:
 def read_json_field(path: Path, key: str, what: str) -> Any:
     """``json.load(path)[key]``, or :class:`InputError` naming the file (malformed, truncated
     or without ``key``)."""
-    doc = load_json(path)
+    return json_field(path, _read_bytes(path), key, what)
+
+
+def json_field(path: Path, raw: bytes, key: str, what: str) -> Any:
+    """:func:`read_json_field` of ``raw``, the bytes of ``path`` already read."""
+    doc = _json_doc(path, raw)
     if not isinstance(doc, dict) or key not in doc:
         raise InputError(str(path), f"expected {{'{key}': {what}}}")
     return doc[key]

@@ -289,6 +289,20 @@ class FrameIndex:
     objects: I64
     rows: int = 0
     boxes: bool = False  # whether a row read has a box
+    ahead: ReadAhead | None = field(default=None, repr=False, compare=False)
+
+
+@dataclass(frozen=True)
+class ReadAhead:
+    """What indexing a folder read that its whole reading needs again, so that each file is
+    opened once a run: ``frame_bytes`` each frame file's bytes by its path (``str``), and the
+    layout's ``cameras`` (None: a camera without a calibration) with ``files`` their files'
+    digests. Kept only while a run may still read the folder whole (:func:`gt3dkit.api.load_head`);
+    a run in windows drops it (each window reads its own frames)."""
+
+    frame_bytes: dict[str, bytes]
+    cameras: tuple[Camera | None, ...]
+    files: dict[str, str]
 
 
 @dataclass(frozen=True)

@@ -84,8 +84,10 @@ def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | 
               f"({res.report['seconds']:.1f} s; meta.json: calibration_refinement)")
     try:
         plan = window_plan(args, scene)
-        if plan is None and scene.index is not None:  # it runs whole: read whole
-            scene = load_input(args)
+        if scene.index is not None and plan is None:  # it runs whole: read whole, from what was read
+            scene = load_input(args, ahead=scene.index.ahead)
+        elif scene.index is not None:  # each window reads its own frames
+            scene = dataclasses.replace(scene, index=dataclasses.replace(scene.index, ahead=None))
         tally = None
         if plan is not None:
             stages("windows")

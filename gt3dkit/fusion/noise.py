@@ -9,7 +9,7 @@ r"""The process noise, found from the data: where a change to how the noise is c
   price each value as a linear filter with the boxes' regression fixed per row
   (:class:`LinearisedSearch`); on at most :data:`SEARCH_OBJECT_FRAMES` object-frames
   (:func:`search_rows`);
-* :func:`noise_by_likelihood`: the same for a preparation, memoised on it (what the GTSAM
+* :func:`noise_by_likelihood`: the same for a preparation (what the GTSAM
   smoother's graph is tuned by too).
 """
 
@@ -18,7 +18,6 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from functools import partial
-from typing import Any
 
 import numpy as np
 
@@ -390,18 +389,11 @@ def noise_by_likelihood(pre: Prepared, fps: float, cfg: UKFConfig) -> tuple[UKFC
     """:func:`select_noise` of a preparation: the process noise (the values ``cfg`` leaves
     ``None``) that maximises the marginal likelihood of the state-space model, by the Kalman
     filter's prediction-error decomposition; what the GTSAM smoother's graph is tuned by too
-    (the same model, solved another way)."""
-    key = noise_key(cfg, fps)
-    if key not in pre.memo:  # the UKF of this preparation may have found it already
-        model = Model.of(pre)
-        pre.memo[key] = select_noise(model, initial_states(model, cfg), cfg, pre, fps)
-    found, curves = pre.memo[key]
+    (the same model, solved another way). Computed each time it is asked: nothing is kept on the
+    preparation, so that what an estimator is given never depends on what ran before it."""
+    model = Model.of(pre)
+    found, curves = select_noise(model, initial_states(model, cfg), cfg, pre, fps)
     return replace(found, **{k: v for k, v in asdict(cfg).items() if k not in NOISE_FIELDS}), curves
-
-
-def noise_key(cfg: UKFConfig, fps: float) -> tuple[Any, ...]:
-    """Where :func:`noise_by_likelihood` keeps its result in ``Prepared.memo``."""
-    return ("noise_by_likelihood", cfg, fps)
 
 
 def search_rows(rows: Rows, budget: int, seed: int = 0) -> np.ndarray | None:

@@ -8,7 +8,7 @@ Like an edge at the image border, it only bounds the person.
 object's extent in that view (its label there, or its fit's box; up to ``CUT_TOL_SIGMAS`` edge
 noise levels outside it, since the cut edge lies on the occluder's own edge), and learns from
 the fits' residuals, per edge kind, how much more such edges vary than the others. A kind whose
-cut edges vary at least :data:`CUT_VARIANCE_RATIO` times as much (a cut edge then says less than
+cut edges vary at least ``RobustConfig.cut_variance_ratio`` times as much (a cut edge then says less than
 40 % of what another edge says, and is pulled towards the occluder) has them left out, as the
 border's; where the label set draws people whole (WILDTRACK's and MultiviewX's boxes are an
 annotation tool's solids) the cut edges vary as the others and every edge is kept.
@@ -34,12 +34,9 @@ CUT_DEPTH_TOL_M = 0.3
 #: squared normal residuals has a relative sd of about 2.3 / sqrt(n), half its value at 20 (windows
 #: of a run then decided apart from the whole run), a quarter at 100.
 CUT_MIN_EDGES = 100
-#: Cut edges of a kind are left out when their median squared residual is at least this many
-#: times the other edges' of that kind.
-CUT_VARIANCE_RATIO = 2.5
 #: A recording longer than this many frames is judged on a sample of its frames first.
 CUT_SAMPLE_FRAMES = 400
-#: ... and searched whole where a kind's sampled ratio reaches this share of CUT_VARIANCE_RATIO.
+#: ... and searched whole where a kind's sampled ratio reaches this share of the ratio needed.
 CUT_SAMPLE_GATE = 0.8
 
 
@@ -48,12 +45,14 @@ class CutEdges:
     """The kept edges found inside a nearer object's extent ``found (R, C, 4)``, each edge kind's
     variance ratio ``ratio (4,)`` (NaN: too few cut edges to tell), the edges left out,
     ``dropped (R, C, 4)``, and for each found edge the row of a nearer object it lies in,
-    ``by (R, C, 4)`` (-1 elsewhere)."""
+    ``by (R, C, 4)`` (-1 elsewhere); ``needed``: the ratio that leaves a kind's cut edges out
+    (``RobustConfig.cut_variance_ratio``)."""
 
     found: B8
     ratio: F64
     dropped: B8
     by: I64
+    needed: float
 
     def as_json(self) -> JsonDict:
         """For meta.json: counts and ratios per edge kind."""
@@ -63,7 +62,7 @@ class CutEdges:
                 "left_out": dict(zip(BOX_EDGES, self.dropped.sum(axis=(0, 1)).tolist(), strict=True)),
                 "rule": f"an edge within a nearer object's box (its label or its fit; {CUT_TOL_SIGMAS:g} "
                         f"noise levels beyond it, {CUT_DEPTH_TOL_M:g} m nearer) is cut; a kind's cut edges "
-                        f"are left out when their median squared residual is {CUT_VARIANCE_RATIO:g}x the "
+                        f"are left out when their median squared residual is {self.needed:g}x the "
                         f"others' or more ({CUT_MIN_EDGES} cut edges at least)"}
 
 
@@ -142,9 +141,11 @@ def cut_variance_ratio(residual_px: F64, keep: B8, cut: B8) -> F64:
     return out
 
 
-def cut_edges_of(rows: Rows, cams: Cams, fit: BoxFit, keep: B8, sigma_px: float) -> CutEdges:
+def cut_edges_of(rows: Rows, cams: Cams, fit: BoxFit, keep: B8, sigma_px: float, needed: float
+                 ) -> CutEdges:
     """The edges cut by nearer objects and those the data say to leave out (module doc);
-    ``sigma_px`` the typical edge's noise (px). A long recording is first judged on every k-th
+    ``sigma_px`` the typical edge's noise (px); ``needed`` the variance ratio that leaves a kind's
+    cut edges out (``RobustConfig.cut_variance_ratio``). A long recording is first judged on every k-th
     frame (:data:`CUT_SAMPLE_FRAMES` of them): the whole is searched only where the sample comes
     near the ratio that leaves edges out (a 4 000-frame crowd of whole boxes took 3.6 s to search,
     a third of its preparation); ``found`` then holds the sample's."""
@@ -155,9 +156,9 @@ def cut_edges_of(rows: Rows, cams: Cams, fit: BoxFit, keep: B8, sigma_px: float)
         sample = np.arange(0, n_frames, step)
         found, by = find_cut(rows, cams, fit, keep, tol, sample)
         ratio = cut_variance_ratio(fit.residual_px, keep & np.isin(rows.row_t, sample)[:, None, None], found)
-        if not (np.nan_to_num(ratio) >= CUT_SAMPLE_GATE * CUT_VARIANCE_RATIO).any():
-            return CutEdges(found, ratio, np.zeros_like(found), by)
+        if not (np.nan_to_num(ratio) >= CUT_SAMPLE_GATE * needed).any():
+            return CutEdges(found, ratio, np.zeros_like(found), by, needed)
     found, by = find_cut(rows, cams, fit, keep, tol)
     ratio = cut_variance_ratio(fit.residual_px, keep, found)
-    bad = np.nan_to_num(ratio) >= CUT_VARIANCE_RATIO
-    return CutEdges(found, ratio, found & bad[None, None, :], by)
+    bad = np.nan_to_num(ratio) >= needed
+    return CutEdges(found, ratio, found & bad[None, None, :], by, needed)

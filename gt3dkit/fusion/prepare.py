@@ -24,7 +24,6 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import Any
 
 import numpy as np
 
@@ -109,9 +108,6 @@ class Prepared:
     box_tail: float = 1.0
     box_cut: np.ndarray | None = None  # (R, C, 4) edges a nearer object cut, left out (fusion.occlusion)
     box_cut_by: np.ndarray | None = None  # (R, C, 4) the row of a nearer object each lies in, else -1
-    # results computed from this preparation alone, kept for the next estimator that asks (the
-    # process noise of the model's likelihood: gt3dkit.fusion.noise.noise_by_likelihood)
-    memo: dict[Any, Any] = field(default_factory=dict, repr=False, compare=False)
 
     def frame_state(self) -> tuple[F64, F64, F64]:
         """Every row's own (per-frame) state, for initialisation and linearisation (computed
@@ -380,7 +376,8 @@ def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
     cuts = None
     if robust.enabled:
         level = _core_sigma(fit, keep)
-        cuts = cut_edges_of(rows, cams, fit, keep, level if np.isfinite(level) else float(sig[0]))
+        cuts = cut_edges_of(rows, cams, fit, keep, level if np.isfinite(level) else float(sig[0]),
+                            robust.cut_variance_ratio)
         if cuts.dropped.any():
             rows.box_mask[cuts.dropped] = False
             keep = keep & ~cuts.dropped

@@ -49,15 +49,21 @@ class RobustConfig:
     huber_p : above its ``1 - huber_p`` quantile a point is down-weighted
     reject_p : above its ``1 - reject_p`` quantile a point is rejected (weight 0)
     enabled : False = every weight 1 (plain least squares / plain UKF)
+    cut_variance_ratio : a kind of box edge cut by nearer objects is left out when its median
+        squared residual is at least this many times the kind's other edges'
+        (:mod:`gt3dkit.fusion.occlusion`)
     """
 
     huber_p: float = 1e-4
     reject_p: float = 1e-7
     enabled: bool = True
+    cut_variance_ratio: float = 2.5
 
     def __post_init__(self) -> None:
         if not 0 < self.reject_p < self.huber_p < 1:
             raise ValueError("need 0 < reject_p < huber_p < 1")
+        if not self.cut_variance_ratio > 1:
+            raise ValueError("need cut_variance_ratio > 1")
 
     def thresholds(self, dof: int) -> tuple[float, float]:
         """``(c, g)``: the down-weighting and rejection thresholds on ``e`` (not ``e^2``)."""

@@ -29,6 +29,8 @@ class UKFConfig:
         within ``joint_accel_bounds``
     robust : down-weight / reject measurements the other views disagree with
     huber_p, reject_p : tail probabilities where down-weighting starts / rejection is total
+    cut_variance_ratio : boxes: a kind of edge cut by nearer objects is left out when it varies
+        this many times as much as the kind's other edges (:mod:`gt3dkit.fusion.occlusion`)
     bones : tie each person's bone lengths together (messages from the first pass's joints to
         the final pass, :mod:`gt3dkit.fusion.bones`)
     bone_sd_m : sd of a bone's length about its fitted value; ``None`` = the spread of that
@@ -61,6 +63,7 @@ class UKFConfig:
     robust: bool = True
     huber_p: float = 1e-4
     reject_p: float = 1e-7
+    cut_variance_ratio: float = 2.5
     bones: bool = True
     bone_sd_m: float | None = None
     bone_sd_floor_m: float = 0.001
@@ -90,8 +93,9 @@ class UKFConfig:
                 raise ValueError(f"UKFConfig.{k} must be 0 < lo < hi, got {(lo, hi)}")
         if self.iterations < 1:
             raise ValueError("UKFConfig.iterations must be >= 1")
-        RobustConfig(self.huber_p, self.reject_p)
+        RobustConfig(self.huber_p, self.reject_p, cut_variance_ratio=self.cut_variance_ratio)
 
     @property
     def robust_config(self) -> RobustConfig:
-        return RobustConfig(self.huber_p, self.reject_p, enabled=self.robust)
+        return RobustConfig(self.huber_p, self.reject_p, enabled=self.robust,
+                            cut_variance_ratio=self.cut_variance_ratio)

@@ -65,7 +65,7 @@ from gt3dkit.fusion.filterrun import FilterRun
 from gt3dkit.fusion.initial import Init
 from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.motion import StateLayout
-from gt3dkit.fusion.noise import NOISE_FIELDS, noise_by_likelihood, noise_key, select_noise
+from gt3dkit.fusion.noise import NOISE_FIELDS, noise_by_likelihood, select_noise
 from gt3dkit.fusion.prepare import (
     Prepared,
     axis_sd,
@@ -120,7 +120,6 @@ class UKFSmoother:
         model = Model.of(pre)
         init = initial_states(model, self.config)
         cfg, search = select_noise(model, init, self.config, pre, scene.fps)
-        pre.memo[noise_key(self.config, scene.fps)] = (cfg, search)  # for GTSAM on this preparation
         run = run_filter(model, init, cfg, scene.fps, collect=True)
         if cfg.robust and model.robust_blocks:
             # second pass: the weights start from every point's verdict against the smoothed

@@ -15,6 +15,7 @@ from gt3dkit.api import load_scene, reconstruct
 from gt3dkit.eval.metrics import box_errors
 from gt3dkit.fusion import occlusion
 from gt3dkit.fusion.prepare import prepare
+from gt3dkit.fusion.ukf_config import UKFConfig
 from gt3dkit.qa.anomalies import which_cut
 from gt3dkit.sim import Errors, simulate, write_scene
 
@@ -58,12 +59,7 @@ def crowd_runs(tmp_path_factory):
         tracks = reconstruct(scene, "ukf", out=root / "out")
         out[name] = (scene, tracks, root / "out")
     scene = out["drawn"][0]
-    keep = occlusion.CUT_VARIANCE_RATIO
-    occlusion.CUT_VARIANCE_RATIO = np.inf
-    try:
-        out["drawn, read as whole"] = (scene, reconstruct(scene, "ukf"), None)
-    finally:
-        occlusion.CUT_VARIANCE_RATIO = keep
+    out["drawn, read as whole"] = (scene, reconstruct(scene, "ukf", cut_variance_ratio=1e12), None)
     return out
 
 
@@ -75,7 +71,7 @@ def test_cut_edges_are_left_out_and_the_estimate_holds(crowd_runs) -> None:
     cut = meta["estimator"]["preparation"]["boxes"]["cut_edges"]
     assert sum(cut["left_out"].values()) > 100
     ratio = cut["variance_ratio"]
-    assert all(ratio[k] >= occlusion.CUT_VARIANCE_RATIO for k, n in cut["left_out"].items() if n)
+    assert all(ratio[k] >= UKFConfig().cut_variance_ratio for k, n in cut["left_out"].items() if n)
     flags = (crowd_runs["drawn"][2] / "anomalies.csv").read_text()
     assert flags.count(",cut_edges,") == len(crowd_runs["drawn"][0].rig.cameras)  # a row per camera
 

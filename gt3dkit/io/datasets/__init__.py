@@ -15,7 +15,7 @@ from gt3dkit.calib.formats.grid import LAYOUTS as GRID_LAYOUTS
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets import mot, native, openpose, panoptic, tasks, wildtrack
 from gt3dkit.rig import Rig
-from gt3dkit.types import GroundTruth, JsonDict, JsonValue, Scene, SimScene, SkeletonScene
+from gt3dkit.types import GroundTruth, JsonDict, JsonValue, ReadAhead, Scene, SimScene, SkeletonScene
 
 
 class ReadOptions(NamedTuple):
@@ -26,6 +26,7 @@ class ReadOptions(NamedTuple):
     fps: float | None
     panoptic: JsonDict
     span: tuple[int, int] | None = None  # the frame numbers lo..hi only (Layout.index)
+    ahead: ReadAhead | None = None  # what Layout.index read (FrameIndex.ahead): not read again
 
 
 @dataclass(frozen=True)
@@ -54,7 +55,7 @@ class Layout:
 def _grid(name: str) -> Layout:
     g = GRID_LAYOUTS[name]
     return Layout(name, lambda root: (root / "calibrations" / g.intrinsic_dir).is_dir(),
-                  lambda root, o: wildtrack.load(root, g, o.span),
+                  lambda root, o: wildtrack.load(root, g, o.span, o.ahead),
                   lambda sim, tmp, seed: wildtrack.write(sim, tmp, g),
                   index=lambda root: wildtrack.index(root, g), truth=wildtrack.truth_csv)
 
@@ -133,7 +134,7 @@ def _calib_digest(calib: Path | str) -> str:
 def read_scene(root: Path | str, layout: str | None = None, skeleton: str | None = None,
                fps: float | None = None, calib: Path | str | None = None,
                association: Path | str | None = None, span: tuple[int, int] | None = None,
-               **panoptic_options: JsonValue) -> Scene:
+               ahead: ReadAhead | None = None, **panoptic_options: JsonValue) -> Scene:
     """Read any supported input folder (layout detected when not given), as its files say: a
     layout with ids per camera or none (:data:`ASSOCIATED`) still has them (the cross-camera
     association is estimation, :func:`gt3dkit.api.load_scene`), and the scene is not checked
@@ -144,10 +145,11 @@ def read_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     :func:`gt3dkit.io.datasets.panoptic.load` (``cameras``, ``noise_px``, ``seed``,
     ``min_conf``). ``calib`` replaces the input's cameras by those of a calibration in any
     format (:func:`with_calibration`). ``span``: only the frames ``lo..hi`` (a layout with an
-    ``index``; a span without an annotation is no error).
+    ``index``; a span without an annotation is no error). ``ahead``: what :func:`index_scene`
+    read of the folder (``FrameIndex.ahead``), not read again.
     """
     layout = _checked_layout(root, layout, skeleton, association, panoptic_options)
-    scene = LAYOUTS[layout].read(Path(root), ReadOptions(skeleton, calib, fps, panoptic_options, span))
+    scene = LAYOUTS[layout].read(Path(root), ReadOptions(skeleton, calib, fps, panoptic_options, span, ahead))
     if len(scene.obs) == 0 and span is None:
         raise InputError(str(root), "no annotations in any frame")
     return _as_asked(scene, root, layout, skeleton, fps, calib, association, panoptic_options)

@@ -21,7 +21,7 @@ from gt3dkit.arrays import unique_rows
 from gt3dkit.calib.formats.panoptic import find_calibration, load_rig
 from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import project_points
-from gt3dkit.parse import parse_frame, parse_int, read_json_field, sha256
+from gt3dkit.parse import json_field, parse_frame, parse_int, read_hashed, sha256
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import MAX_WORLD_M, GroundTruth, Observations, Rig, Scene, SkeletonScene
 
@@ -62,11 +62,12 @@ def load(root: Path, cameras: list[str] | None = None, noise_px: float = 0.0, se
         m = re.fullmatch(r"body3DScene_(\d+)\.json", p.name)
         if m is None:
             raise InputError(str(p), "file name is not body3DScene_<frame>.json")
-        bodies = read_json_field(p, "bodies", "[...]")
+        raw, digest = read_hashed(p)  # the file opened once: its bytes parsed and hashed
+        bodies = json_field(p, raw, "bodies", "[...]")
         if not isinstance(bodies, list):
             raise InputError(f"{p}: bodies", "expected a list of bodies")
         frame = parse_frame(str(p), m.group(1))
-        files[f"{POSE_DIR}/{p.name}"] = sha256(p)
+        files[f"{POSE_DIR}/{p.name}"] = digest
         for i, b in enumerate(bodies):
             if not (isinstance(b, dict) and "id" in b and "joints19" in b):
                 raise InputError(f"{p}: bodies[{i}]", "expected {id, joints19}")

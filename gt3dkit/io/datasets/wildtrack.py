@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import csv
 import functools
+import hashlib
 import itertools
 import json
 import math
@@ -53,20 +54,26 @@ from gt3dkit.parse import (
     read_hashed,
     sha256,
 )
-from gt3dkit.types import F64, Camera, FrameIndex, GroundTruth, Origins, Rig, Scene, SimScene
+from gt3dkit.types import F64, Camera, FrameIndex, GroundTruth, Origins, ReadAhead, Rig, Scene, SimScene
 
 #: Frame files read, decoded and checked together (:func:`_checked_views`): the numpy checks'
 #: cost is per call, and a block's Python objects are all a long folder holds at once.
 FILES_PER_BLOCK = 256
 
 
-def load(root: Path, g: GridLayout, span: tuple[int, int] | None = None) -> Scene:
+def load(root: Path, g: GridLayout, span: tuple[int, int] | None = None, ahead: ReadAhead | None = None
+         ) -> Scene:
     """Load a WILDTRACK- or MultiviewX-layout folder into a :class:`Scene`; ``span``: only the
     frame files of the frame numbers ``lo..hi`` (a window's, :mod:`gt3dkit.windows`: the truth
-    is the positionID grid's of those frames, or None where ``truth.csv`` gives it)."""
+    is the positionID grid's of those frames, or None where ``truth.csv`` gives it); ``ahead``:
+    the cameras and frame files :func:`index` read (not read again)."""
     root = Path(root)
     files: dict[str, str] = {}
-    cams = [load_camera(root, g, n, files) for n in g.cameras]
+    if ahead is not None:
+        cams, frame_bytes = list(ahead.cameras), ahead.frame_bytes
+        files.update(ahead.files)
+    else:
+        cams, frame_bytes = [load_camera(root, g, n, files) for n in g.cameras], {}
     paths, frame_of = _frame_files(root)
     if span is not None:
         inside = (frame_of >= span[0]) & (frame_of <= span[1])
@@ -81,7 +88,9 @@ def load(root: Path, g: GridLayout, span: tuple[int, int] | None = None) -> Scen
         block = list(range(at, min(at + FILES_PER_BLOCK, len(paths))))
         raws = []
         for i in block:
-            raw, files[str(paths[i].relative_to(root))] = read_hashed(paths[i])
+            kept = frame_bytes.get(str(paths[i]))
+            raw, files[str(paths[i].relative_to(root))] = (
+                read_hashed(paths[i]) if kept is None else (kept, hashlib.sha256(kept).hexdigest()))
             raws.append(raw)
         bad, persons, views = _checked_views(raws, cams, g)
         bad |= shared[block]
@@ -140,21 +149,42 @@ def _frame_files(root: Path) -> tuple[list[Path], np.ndarray]:
     return paths, np.array([parse_frame(str(p), p.stem) for p in paths], dtype=np.int64)
 
 
-def index(root: Path, g: GridLayout) -> Scene:
+#: The frame files' bytes :func:`index` keeps for a whole reading (:class:`ReadAhead`), at most:
+#: a sequence that runs whole holds at most ~15 000 object-frames of boxes
+#: (:data:`gt3dkit.windows.plan.MEMORY_BUDGET_BYTES` over 13 kB each), ~11 MB of these files at
+#: WILDTRACK's ~700 bytes an object with its 7 views; past this the run goes in windows, each
+#: reading its own frames, and the bytes are dropped as the index reads on.
+READ_AHEAD_BYTES = 32 << 20
+
+
+def index(root: Path, g: GridLayout, keep_bytes: int = READ_AHEAD_BYTES) -> Scene:
     """The folder without its boxes (:class:`gt3dkit.types.FrameIndex`): its cameras, frames and
     each frame's objects, counted by their ``"personID"`` keys (a valid file's count; each
     window checks its frames as :func:`load` does when it reads them). The frame files are read
-    as bytes, not decoded: 0.2 s for 4 000 files of 40 people, where :func:`load` takes 2.3 s."""
+    as bytes, not decoded: 0.2 s for 4 000 files of 40 people, where :func:`load` takes 2.3 s.
+    Their bytes and the cameras are kept (``FrameIndex.ahead``) while they come to at most
+    ``keep_bytes`` (:data:`READ_AHEAD_BYTES`), for :func:`load` to read the folder whole without
+    opening them again."""
     root = Path(root)
     files: dict[str, str] = {}
     cams = [load_camera(root, g, n, files) for n in g.cameras]
     paths, frame_of = _frame_files(root)
     rig, _ = _rig(root, cams, g)
-    count = np.array([p.read_bytes().count(b'"personID"') for p in paths], dtype=np.int64)
+    kept: dict[str, bytes] | None = {}
+    total, count = 0, np.zeros(len(paths), np.int64)
+    for i, p in enumerate(paths):
+        raw = p.read_bytes()
+        count[i] = raw.count(b'"personID"')
+        total += len(raw)
+        if kept is not None and total <= keep_bytes:
+            kept[str(p)] = raw
+        else:
+            kept = None
     frames, inv = np.unique(frame_of, return_inverse=True)
     objects = np.bincount(inv.ravel(), weights=count, minlength=len(frames)).astype(np.int64)
+    ahead = None if kept is None else ReadAhead(kept, tuple(cams), dict(files))
     return Scene(rig=rig, obs=RowBuilder().build(), layout=g.name, fps=g.fps, frames=frames, files=files,
-                 root=str(root), index=FrameIndex(frames[objects > 0], objects[objects > 0]))
+                 root=str(root), index=FrameIndex(frames[objects > 0], objects[objects > 0], ahead=ahead))
 
 
 def _entries(p: Path, frame: int, raw: bytes, cams: list[Camera | None], g: GridLayout, rb: RowBuilder,
