@@ -17,13 +17,13 @@ import numpy as np
 from gt3dkit.arrays import frame_grid, lookup_rows, unique_rows
 from gt3dkit.calib.formats.native import rig_of_doc
 from gt3dkit.errors import InputError
-from gt3dkit.fusion.associate import apply_association, associate, read_overrides
 from gt3dkit.fusion.base import ESTIMATORS, Estimator, make_estimator, over_time
-from gt3dkit.fusion.boxfit import choose_box_model
-from gt3dkit.fusion.detections import SECOND_DETECTION, associate_detections
-from gt3dkit.fusion.identity import Segments, identity_segments
-from gt3dkit.fusion.prepare import Prepared, prepare, undetermined_objects
-from gt3dkit.fusion.rows import Rows, build_rows
+from gt3dkit.fusion.preparation.associate import apply_association, associate, read_overrides
+from gt3dkit.fusion.preparation.boxfit import choose_box_model
+from gt3dkit.fusion.preparation.detections import SECOND_DETECTION, associate_detections
+from gt3dkit.fusion.preparation.identity import Segments, identity_segments
+from gt3dkit.fusion.preparation.prepare import Prepared, prepare, undetermined_objects
+from gt3dkit.fusion.preparation.rows import Rows, build_rows
 from gt3dkit.geom.camera import Cams
 from gt3dkit.io.clocks import CameraClocks, on_one_clock
 from gt3dkit.io.datasets import ASSOCIATED, checks, index_scene, read_scene
@@ -33,7 +33,7 @@ from gt3dkit.parse import read_csv_rows
 from gt3dkit.qa.anomalies import find_anomalies
 from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
 from gt3dkit.threads import small_matrix_blas
-from gt3dkit.types import BOX_MODELS, I64, JsonDict, JsonValue, OptionValue, ReadAhead, Scene, TrackSet
+from gt3dkit.types import BOX_MODELS, I64, JsonDict, JsonValue, OptionValue, Scene, TrackSet
 
 __all__ = ["ESTIMATORS", "annotation_qa", "load_run", "load_scene", "make_estimator", "reconstruct"]
 
@@ -68,21 +68,25 @@ def scene_kind(scene: Scene) -> str:
     return "joints" if scene.obs.n_joints > 0 else "boxes"
 
 
-def load_scene(root: Path | str, layout: str | None = None, skeleton: str | None = None,
+def load_scene(root: Path | str | Scene, layout: str | None = None, skeleton: str | None = None,
                fps: float | None = None, calib: Path | str | None = None,
                association: Path | str | None = None, segments: Path | str | None = None,
                box_model: str = "auto", clocks: CameraClocks | JsonDict | None = None,
-               ahead: ReadAhead | None = None, **panoptic_options: JsonValue) -> Scene:
+               **panoptic_options: JsonValue) -> Scene:
     """Load any supported input folder (layout detected when not given): read it
     (:func:`gt3dkit.io.datasets.read_scene`, whose arguments these are), give ids per camera or
-    none global identities (:mod:`gt3dkit.fusion.associate`, with the overrides of the file
+    none global identities (:mod:`gt3dkit.fusion.preparation.associate`, with the overrides of the file
     ``association``), then check it (:func:`gt3dkit.io.datasets.checks.check_scene`).
     ``segments``: an edited ``segments.csv`` whose pieces replace the automatic identity splits
-    of the ids it lists (:func:`gt3dkit.fusion.identity.identity_segments`). ``box_model``: how
+    of the ids it lists (:func:`gt3dkit.fusion.preparation.identity.identity_segments`). ``box_model``: how
     the boxes are drawn (:data:`gt3dkit.types.BOX_MODELS`), or ``"auto"``: chosen from them
     (:func:`with_box_model`). ``clocks``: each camera's clock (:mod:`gt3dkit.io.clocks`, or its
-    ``doc()``): every view moved onto one clock before the association. ``ahead``: what
-    :func:`load_head` read of the folder (``FrameIndex.ahead``), not read again."""
+    ``doc()``): every view moved onto one clock before the association. ``root`` may be the
+    :func:`load_head` of the folder: what it read (``FrameIndex.ahead``) is not read again."""
+    ahead = None
+    if isinstance(root, Scene):
+        ahead = root.index.ahead if root.index is not None else None
+        root = root.root
     scene = read_scene(root, layout, skeleton, fps, calib, association, ahead=ahead, **panoptic_options)
     if clocks is not None:
         if not isinstance(clocks, CameraClocks):
@@ -162,7 +166,7 @@ def read_frames(head: Scene, lo: int, hi: int, check: bool = True) -> Scene:
 
 def without_undetermined(scene: Scene) -> Scene:
     """A keypoints-only scene whose people the association made: those that no two views ever
-    agree on (:func:`gt3dkit.fusion.prepare.undetermined_objects`) left out, with a warning, and
+    agree on (:func:`gt3dkit.fusion.preparation.prepare.undetermined_objects`) left out, with a warning, and
     listed in ``Scene.left_out`` (the anomalies name them): one such person must not cost the
     others their estimate."""
     ids = undetermined_objects(scene)
@@ -188,7 +192,7 @@ def without_undetermined(scene: Scene) -> Scene:
 def with_box_model(scene: Scene, box_model: str = "auto") -> Scene:
     """``scene`` with the box model that draws its boxes: ``box_model`` when one of
     :data:`gt3dkit.types.BOX_MODELS`, else the one its boxes' per-frame fits choose
-    (:func:`gt3dkit.fusion.boxfit.choose_box_model`). The choice is kept in ``load_options``, so a
+    (:func:`gt3dkit.fusion.preparation.boxfit.choose_box_model`). The choice is kept in ``load_options``, so a
     report's reload draws the same boxes without choosing again."""
     px: dict[str, float] = {}
     if box_model not in BOX_MODELS:
@@ -283,7 +287,7 @@ def process_noise_prepared(scene: Scene, est: Estimator) -> tuple[dict[str, floa
 
 def bone_samples_checked(scene: Scene, est: Estimator, pre: Prepared | None = None
                          ) -> tuple[Any | None, I64]:
-    """The first pass's bones (:class:`gt3dkit.fusion.bones.BoneSamples`, ``obj``: the input's
+    """The first pass's bones (:class:`gt3dkit.fusion.ukf.bones.BoneSamples`, ``obj``: the input's
     ids) that :func:`estimate_checked` would tie ``scene``'s joints with, by the estimator's own
     ``bone_samples`` without the rest of the estimate (None when it ties no bones), and the ids
     it splits ``(S,)`` (an id's pieces may be different people: the caller leaves them out; the
@@ -324,7 +328,7 @@ def take_rows(tracks: TrackSet, keep: np.ndarray) -> TrackSet:
 def estimate_scene(scene: Scene, est: Estimator, pre: Any | None, segs: Segments,
                    dense: bool = False, split: tuple[Scene, Any, dict[int, tuple[int, int]]] | None = None
                    ) -> TrackSet:
-    """``est``'s tracks of ``scene``, each piece of a split id (:mod:`gt3dkit.fusion.identity`)
+    """``est``'s tracks of ``scene``, each piece of a split id (:mod:`gt3dkit.fusion.preparation.identity`)
     estimated as an object of its own; the tracks carry the input's ids, ``info.identity``
     the pieces. ``pre``: the estimator's own preparation of ``scene`` (None: it prepares).
     A row for each annotated object-frame; ``dense``: also the rows of frames no camera saw
@@ -417,7 +421,7 @@ def restored_ids(tracks: TrackSet, back: dict[int, tuple[int, int]]) -> TrackSet
 
 def annotation_qa(scene: Scene, tracks: TrackSet) -> Any:
     """Every input annotation scored against ``tracks``, and every split id
-    (:mod:`gt3dkit.fusion.identity`): :class:`gt3dkit.qa.anomalies.Anomalies`."""
+    (:mod:`gt3dkit.fusion.preparation.identity`): :class:`gt3dkit.qa.anomalies.Anomalies`."""
     pre = prepare(scene)
     segs = identity_segments(pre, scene.fps, pieces=scene.identity_pieces)
     return find_anomalies(scene, tracks, pre, splits=segs.splits, exchanges=segs.exchanges)

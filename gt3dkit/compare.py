@@ -13,9 +13,9 @@ from gt3dkit.errors import EstimationError
 from gt3dkit.eval.metrics import box_errors, match_rows, relabel_to_truth
 from gt3dkit.eval.pose import mpjpe_by_id
 from gt3dkit.fusion.base import ESTIMATORS as COMPARE_ESTIMATORS
-from gt3dkit.fusion.identity import identity_segments
-from gt3dkit.fusion.prepare import prepare
-from gt3dkit.fusion.rows import Rows, build_rows
+from gt3dkit.fusion.preparation.identity import identity_segments
+from gt3dkit.fusion.preparation.prepare import prepare
+from gt3dkit.fusion.preparation.rows import Rows, build_rows
 from gt3dkit.geom.camera import Cams, project_points
 from gt3dkit.geom.conics import model_boxes
 from gt3dkit.io.atomic import write_dir_atomically

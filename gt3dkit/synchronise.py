@@ -31,7 +31,7 @@ import numpy as np
 
 from gt3dkit.api import reconstruct
 from gt3dkit.errors import InputError
-from gt3dkit.fusion.noise import NOISE_FIELDS
+from gt3dkit.fusion.ukf.noise import NOISE_FIELDS
 from gt3dkit.io.clocks import CameraClocks
 from gt3dkit.refine.clocks import Clocks, Steps, estimate_clocks, offset_steps
 from gt3dkit.refine.people import PeopleConfig, person_views

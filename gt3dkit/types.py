@@ -53,7 +53,8 @@ Options: TypeAlias = dict[str, OptionValue]
 #: How a state (centre, semi-axes along the body axes) draws a person's box in a camera
 #: (:mod:`gt3dkit.geom.boxkernel`): the ellipsoid's tangent box (the paper's), the vertical
 #: cylinder's box, or the rectangle of the probabilistic-occupancy-map generator (WILDTRACK's and
-#: MultiviewX's labels). A scene's is chosen from its boxes (:func:`gt3dkit.fusion.boxfit.choose_box_model`).
+#: MultiviewX's labels). A scene's is chosen from its boxes
+#: (:func:`gt3dkit.fusion.preparation.boxfit.choose_box_model`).
 @dataclass(frozen=True)
 class BoxModelEntry:
     """One way boxes are drawn: its ``name`` (the option value), what it draws (``summary``, how
@@ -66,7 +67,8 @@ class BoxModelEntry:
 
 
 #: Every box model, registered once: the command line's choices and help, the summary line, the
-#: chooser (:func:`gt3dkit.fusion.boxfit.choose_box_model`), the simulator and the kernels read it.
+#: chooser (:func:`gt3dkit.fusion.preparation.boxfit.choose_box_model`), the simulator and the
+#: kernels read it.
 BOX_MODEL_REGISTRY: dict[str, BoxModelEntry] = {e.name: e for e in (
     BoxModelEntry("ellipsoid", 0, "ellipsoid tangent boxes"),
     BoxModelEntry("cylinder", 1, "cylinder boxes"),
@@ -323,8 +325,8 @@ class Scene:
     warnings: tuple[str, ...] = ()  # odd but valid input: printed as ``warning:`` lines
     fps_assumed: str = ""  # why ``fps`` is a default, not the input's ("" = the input gives it)
     load_options: JsonDict = field(default_factory=dict)  # load_scene's arguments (JSON-able)
-    association: Any = None  # fusion.associate.Association when ids were per camera
-    # (id, segment, first frame, last frame) pieces an edited segments.csv gives (fusion.identity)
+    association: Any = None  # fusion.preparation.associate.Association when ids were per camera
+    # (id, segment, first frame, last frame) pieces an edited segments.csv gives (fusion.preparation.identity)
     identity_pieces: tuple[tuple[int, int, int, int], ...] = ()
     # how the boxes are drawn (BOX_MODELS) and the evidence that chose it (median edge residual,
     # px, of per-frame fits under each model; empty when given, not chosen)
@@ -505,7 +507,7 @@ class Downweighted:
     residual_px : (K,) float64, distance between the annotation and the estimate's
         projection (keypoint) or the edge's offset (box), pixels
     score : (K,) float64, the residual in standard deviations, judged against the other
-        views (leave-one-out, see :mod:`gt3dkit.fusion.robust`)
+        views (leave-one-out, see :mod:`gt3dkit.fusion.preparation.robust`)
     """
 
     frame: I64

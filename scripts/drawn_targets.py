@@ -19,7 +19,7 @@ tracker, per frame each truth person is matched to the nearest estimate on the f
   cameras (3 seeds): the smoother against the per-frame fit where the truth walks;
 * a simulated crowd (WILDTRACK rig, 30 walkers, 2 px) with its boxes drawn around the visible
   body (``Errors(cut_by_nearer=True)``, 3 seeds): the UKF with the cut edges handled
-  (:mod:`gt3dkit.fusion.occlusion`), reading them as the person's edges, and on whole boxes.
+  (:mod:`gt3dkit.fusion.preparation.occlusion`), reading them as the person's edges, and on whole boxes.
 
 Prints each target with PASS or FAIL; exit status 1 when one fails.
 """
@@ -42,8 +42,8 @@ sys.path.insert(0, str(REPO))
 from gt3dkit.api import annotation_qa, load_scene, reconstruct, with_box_model  # noqa: E402
 from gt3dkit.eval.metrics import box_errors  # noqa: E402
 from gt3dkit.eval.tracking import tracking_scores  # noqa: E402
-from gt3dkit.fusion import occlusion  # noqa: E402
-from gt3dkit.fusion.boxfit import state_boxes  # noqa: E402
+from gt3dkit.fusion.preparation import occlusion  # noqa: E402
+from gt3dkit.fusion.preparation.boxfit import state_boxes  # noqa: E402
 from gt3dkit.geom.camera import Cams  # noqa: E402
 from gt3dkit.sim import Errors, simulate, write_scene  # noqa: E402
 from gt3dkit.types import GroundTruth, Observations, Scene, TrackSet  # noqa: E402

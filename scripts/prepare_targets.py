@@ -110,7 +110,7 @@ def module_state() -> list[str]:
 
 
 def prepared_dicts() -> list[str]:
-    """The fields of ``fusion.prepare.Prepared`` annotated as a ``dict``."""
+    """The fields of ``fusion.preparation.prepare.Prepared`` annotated as a ``dict``."""
     tree = ast.parse((REPO / "gt3dkit" / "fusion" / "prepare.py").read_text())
     cls = next(n for n in ast.walk(tree) if isinstance(n, ast.ClassDef) and n.name == "Prepared")
     return [f"{n.target.id}: {ast.unparse(n.annotation)}" for n in cls.body  # type: ignore[union-attr]

@@ -33,8 +33,8 @@ from scipy.optimize import least_squares
 from gt3dkit import load_scene, reconstruct
 from gt3dkit.commands.common import bundled
 from gt3dkit.eval.metrics import match_rows
-from gt3dkit.fusion.boxfit import ground_init, state_boxes
-from gt3dkit.fusion.rows import build_rows
+from gt3dkit.fusion.preparation.boxfit import ground_init, state_boxes
+from gt3dkit.fusion.preparation.rows import build_rows
 from gt3dkit.geom.camera import Cams
 from gt3dkit.sim import (
     Errors,

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gt3dkit.fusion.ukf import MeasureFn, SigmaWeights, safe_cholesky
+from gt3dkit.fusion.ukf.sigma import MeasureFn, SigmaWeights, safe_cholesky
 from gt3dkit.geom.camera import apply_K, distort
 from gt3dkit.geom.conics import outline_ellipse
 from gt3dkit.geom.triangulate import _dlt_rows, _pairs, reprojection_sq_px, triangulate_weighted

@@ -1,12 +1,12 @@
 r"""The reference filter over the frame grid and what only it uses, held here as an oracle: the
-package's filters (``gt3dkit.fusion.boxupdate.run_boxes`` for boxes, ``gt3dkit.fusion.jointupdate.
+package's filters (``gt3dkit.fusion.ukf.boxupdate.run_boxes`` for boxes, ``gt3dkit.fusion.ukf.jointupdate.
 run_joints`` for joints) are held to it by the tests; it is run by nothing else.
 
 * :func:`run_frames`: per frame the prediction, fading and linearisation point of its rows as
   one batch, their update (:func:`ukf_update_information`: the sigma-point regression of every
   block, :func:`block_regression`, then the package's compiled update), then RTS backwards;
 * :func:`prior_conflict`, :func:`linearisation_point`: the batched fading rule and linearisation
-  point of a :class:`gt3dkit.fusion.measurement.Model`;
+  point of a :class:`gt3dkit.fusion.ukf.measurement.Model`;
 * :func:`add_joint_info`: the bones' information added to a batch of rows;
 * :func:`predict_linear`, :func:`rts_step`: the batched prediction and RTS step;
 * the split into per-joint filters (:func:`split_joints`, :class:`JointSplit`), whose module
@@ -21,12 +21,12 @@ covariance then stays block-diagonal, one (position, velocity) block per joint a
 for the ellipsoid (centre, velocity, log semi-axes), and the filter over the stacked
 ``9 + 6J`` state is ``J + 1`` independent filters (exactly, but for when the iterated update
 stops: each part on its own, within the update's convergence tolerance). :func:`split_joints` turns a
-:class:`gt3dkit.fusion.measurement.Model` into ``(J + 1) R`` rows of a 15-entry state (the
+:class:`gt3dkit.fusion.ukf.measurement.Model` into ``(J + 1) R`` rows of a 15-entry state (the
 ellipsoid and one joint: ``StateLayout(1)``), part 0 measured by the boxes, part ``j + 1`` by
 joint ``j``'s keypoints; :meth:`JointSplit.merge` puts the results back. Per frame that is
 ``(J + 1) B`` rows of ``15 x 15`` algebra instead of ``B`` rows of ``(9 + 6J)^2``: for 19
 joints, 123-state matrices (one inverse is 1.9 Mflop) become 20 of 15 states (3.4 kflop each).
-Bones reach each part as information added after the views (:mod:`gt3dkit.fusion.bones`), so
+Bones reach each part as information added after the views (:mod:`gt3dkit.fusion.ukf.bones`), so
 the bone pass runs split too.
 """
 
@@ -39,25 +39,25 @@ from typing import Any
 import numpy as np
 
 from gt3dkit.arrays import contiguous
-from gt3dkit.fusion.blockcov import BlockCov
-from gt3dkit.fusion.bones import JointInfo
-from gt3dkit.fusion.boxupdate import run_boxes
-from gt3dkit.fusion.filterrun import FilterRun
-from gt3dkit.fusion.initial import Init, InitialCov
-from gt3dkit.fusion.jointupdate import run_joints
-from gt3dkit.fusion.kalman import (
+from gt3dkit.fusion.motion import SPACE, StateLayout
+from gt3dkit.fusion.preparation.robust import chi2_isf
+from gt3dkit.fusion.preparation.rows import Rows
+from gt3dkit.fusion.ukf.blockcov import BlockCov
+from gt3dkit.fusion.ukf.bones import JointInfo
+from gt3dkit.fusion.ukf.boxupdate import run_boxes
+from gt3dkit.fusion.ukf.config import UKFConfig
+from gt3dkit.fusion.ukf.filterrun import FilterRun
+from gt3dkit.fusion.ukf.initial import Init, InitialCov
+from gt3dkit.fusion.ukf.jointupdate import run_joints
+from gt3dkit.fusion.ukf.kalman import (
     ellipsoid_linearisations,
     fade_factors_of,
     predict_rows,
     rts_rows,
 )
-from gt3dkit.fusion.measurement import Model
-from gt3dkit.fusion.motion import SPACE, StateLayout
-from gt3dkit.fusion.robust import chi2_isf
-from gt3dkit.fusion.rows import Rows
-from gt3dkit.fusion.ukf import Block, MeasureFn, Robust, SigmaWeights, block_columns, safe_cholesky
-from gt3dkit.fusion.ukf_config import UKFConfig
-from gt3dkit.fusion.update import Columns, Measured, Regression, pass_rows, row_state, statistics_rows
+from gt3dkit.fusion.ukf.measurement import Model
+from gt3dkit.fusion.ukf.sigma import Block, MeasureFn, Robust, SigmaWeights, block_columns, safe_cholesky
+from gt3dkit.fusion.ukf.update import Columns, Measured, Regression, pass_rows, row_state, statistics_rows
 from gt3dkit.types import F64, I64
 
 #: The state of one part: the ellipsoid entries and one joint with its velocity.
@@ -88,7 +88,7 @@ class JointSplit:
     def merge(self, run: FilterRun, covariances: bool = True, on: np.ndarray | None = None,
               into: BlockCov | None = None) -> FilterRun:
         """The run of the original rows (states ``(R, n)``, block-diagonal covariances as their
-        blocks, :class:`gt3dkit.fusion.blockcov.BlockCov`: 6 kB a row with 19 joints, the whole
+        blocks, :class:`gt3dkit.fusion.ukf.blockcov.BlockCov`: 6 kB a row with 19 joints, the whole
         ``(R, n, n)`` would be 121 kB; per-row statistics summed over the parts, per-entry arrays
         in the original columns) from a run of the split model. ``covariances=False``: ``P`` is
         ``(R, 0, 0)`` (a caller that reads only the statistics, as the noise search). ``on
@@ -130,7 +130,7 @@ class JointSplit:
 
 def split_joints(model: Model, x0: F64, P0: F64) -> tuple[Model, F64, F64, JointSplit]:
     """The model, initial states ``(R, n)`` and covariances ``(R, n, n)`` as ``J + 1`` parts
-    per row (see the module doc). The model's :class:`gt3dkit.fusion.bones.JointInfo` goes with
+    per row (see the module doc). The model's :class:`gt3dkit.fusion.ukf.bones.JointInfo` goes with
     each joint's part."""
     rows, lay = model.rows, model.layout
     R, J, C = len(rows), lay.n_joints, len(model.cams.K)
@@ -207,7 +207,7 @@ def block_regression(blk: Block, rows: np.ndarray, xj: F64, Pj: F64, meas: Measu
     """Statistical linear regression of one block's columns for the batch rows ``rows`` about
     ``N(xj[rows], Pj[rows])`` (``(B, n)``, ``(B, n, n)``; ``meas``: the batch's ``z, mask, var
     (B, m)``) on each group's marginal's sigma points, into ``lin``'s rows (``(B, ...)``
-    arrays, :class:`gt3dkit.fusion.update.Regression`); each row's factor repairs added to
+    arrays, :class:`gt3dkit.fusion.ukf.update.Regression`); each row's factor repairs added to
     ``repaired (B,)``."""
     if blk.regress is not None:
         blk.regress(rows, xj, Pj, meas, w, lin, repaired)
@@ -267,7 +267,7 @@ def ukf_update_information(
 ) -> tuple[F64, F64, dict[str, Any]]:
     r"""The iterated, optionally robust unscented update of a batch of rows in information form:
     the regression of every block (:func:`block_regression`), then the update of
-    :mod:`gt3dkit.fusion.update` per row (:func:`gt3dkit.fusion.update.pass_rows`), until every
+    :mod:`gt3dkit.fusion.ukf.update` per row (:func:`gt3dkit.fusion.ukf.update.pass_rows`), until every
     row is done.
 
     Each pass linearises ``h`` by statistical linear regression at ``(x_j, P_j)`` (``A, b`` and
@@ -292,8 +292,8 @@ def ukf_update_information(
     lin_point : ``(x_lin, P_lin)`` where the first pass linearises (default: the prior)
     weight0 : (B, m) the weights the first pass uses (default 1; 0 removes an entry exactly)
     robust : after every pass but the last, the points of ``robust.blocks`` are reweighted by
-        their leave-one-out scores against the new posterior (:mod:`gt3dkit.fusion.robust`)
-    columns : the blocks' :class:`gt3dkit.fusion.update.Columns` (default: made here from
+        their leave-one-out scores against the new posterior (:mod:`gt3dkit.fusion.preparation.robust`)
+    columns : the blocks' :class:`gt3dkit.fusion.ukf.update.Columns` (default: made here from
         ``h`` and ``robust``)
 
     A row stops once a pass's posterior is where it linearised and no weight changes
@@ -379,7 +379,7 @@ def prior_conflict(model: Model, r: np.ndarray, x: F64, P: F64, tail_p: float = 
 
     Beyond the ``1 - tail_p`` quantile of chi-square(3) the motion model has failed for
     that block (a turn at 4 fps, a process noise set far too small): the block's position
-    and velocity are scaled by :func:`gt3dkit.fusion.kalman.fade_factor` (``sqrt(1 + (d^2 -
+    and velocity are scaled by :func:`gt3dkit.fusion.ukf.kalman.fade_factor` (``sqrt(1 + (d^2 -
     limit) / 3)``) in ``P^- <- S P^- S`` (a fading-memory
     filter, per block), so that its views are not rejected as outliers against a
     confident but wrong prediction. Other joints are left alone.
@@ -501,7 +501,7 @@ def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
                covariances: bool = True) -> FilterRun:
     """The filter over the frame grid (arguments and outputs of :func:`run_filter`): per frame
     the prediction, fading and linearisation point of its rows as one batch, their update
-    (:func:`gt3dkit.fusion.ukf.ukf_update_information`), then RTS backwards. ``split``: run
+    (:func:`gt3dkit.fusion.ukf.sigma.ukf_update_information`), then RTS backwards. ``split``: run
     the joints as separate filters (:mod:`gt3dkit.fusion.split`; the same result,
     faster); False runs the whole state (the reference the tests hold it to). ``covariances=False``:
     a split run's ``P`` is not put back together (``(R, 0, 0)``: for callers that read the
@@ -575,7 +575,7 @@ def run_frames(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
         """Where row ``row``'s prediction, contradicted by the frame's own views (the fading
         scales ``scale (n,)``), follows rows without measurements: the process noise of every
         step since the last measured row as ``S Q S`` and those rows predicted again (as
-        :func:`gt3dkit.fusion.filterloop.spread_over_gap`); returns the row's new prediction
+        :func:`gt3dkit.fusion.ukf.filterloop.spread_over_gap`); returns the row's new prediction
         covariance ``(n, n)``. None where no measured row precedes the gap."""
         gap = []
         k = int(rows.prev_row[row])

@@ -31,8 +31,8 @@ def test_gtsam_box_chain_is_gtsams_own_graph(tmp_path: Path, monkeypatch, fixed_
     the same solution, iterations and marginal sds on a scene whose shifted boxes, gaps and
     one-camera objects make the Huber losses and the rows without views matter; with the
     process noise fixed, through the discrepancy principle's restarts as well."""
-    from gt3dkit.fusion import smoother_gtsam as sg
-    from gt3dkit.fusion.prepare import prepare
+    from gt3dkit.fusion.graph import smoother as sg
+    from gt3dkit.fusion.preparation.prepare import prepare
     from gt3dkit.sim import Errors, simulate, write_scene
 
     sim = simulate("native", seed=4, frames=30, people=4, noise_px=1.0,

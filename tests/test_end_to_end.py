@@ -13,7 +13,7 @@ from gt3dkit import load_scene, make_estimator, reconstruct
 from gt3dkit.cli import main
 from gt3dkit.commands.common import bundled
 from gt3dkit.eval.metrics import box_errors
-from gt3dkit.fusion.rows import usable_edges
+from gt3dkit.fusion.preparation.rows import usable_edges
 from gt3dkit.io.writers import TRACK_COLUMNS, read_tracks_csv
 from gt3dkit.sim import Errors
 

@@ -107,7 +107,7 @@ def test_a_person_no_two_views_agree_on_is_left_out(tmp_path: Path) -> None:
     """A person the association made whose two cameras' keypoints never agree (one camera's
     shifted 150 px) is left out of a keypoints-only scene with one warning, listed for the
     ``undetermined_person`` anomaly; the others are reconstructed. (With the user's own ids the
-    same person is an error naming the id: tests of :mod:`gt3dkit.fusion.prepare`.)"""
+    same person is an error naming the id: tests of :mod:`gt3dkit.fusion.preparation.prepare`.)"""
     from gt3dkit.api import estimate_checked, without_undetermined
     from gt3dkit.fusion.base import make_estimator
 

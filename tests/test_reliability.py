@@ -127,7 +127,7 @@ def test_output_checks_come_before_the_work(scenes, tmp_path, capsys, monkeypatc
     def never(*a, **k):
         raise AssertionError("the estimation ran")
 
-    monkeypatch.setattr("gt3dkit.fusion.prepare.prepare", never)
+    monkeypatch.setattr("gt3dkit.fusion.preparation.prepare.prepare", never)
     f = tmp_path / "file"
     f.write_text("x")
     for cmd in ("reconstruct", "compare"):

@@ -542,7 +542,7 @@ def test_the_second_round_takes_each_windows_preparation_from_the_first(
     import errno
     import pickle
 
-    from gt3dkit.fusion.ukf_smoother import UKFSmoother
+    from gt3dkit.fusion.ukf.smoother import UKFSmoother
 
     sk = simulate_skeletons("native", seed=5, frames=60, people=2, cameras=4, noise_px=1.0)
     write_skeleton_scene(sk, tmp_path / "sk", "native")
@@ -630,7 +630,7 @@ def test_context_steps_bound_the_smoothers_weight(accel_sd: float, sd_m: float, 
 def test_pooled_bones_leave_out_ids_a_window_splits() -> None:
     """An id one window splits into pieces (which may be different people) gets no pooled bones:
     every window keeps its own pieces' lengths; the other ids pool all their windows' rows."""
-    from gt3dkit.fusion.bones import BoneSamples
+    from gt3dkit.fusion.ukf.bones import BoneSamples
     from gt3dkit.skeletons import SKELETONS
     from gt3dkit.windows.stitch import pooled_bones
 

@@ -39,7 +39,7 @@ from gt3dkit.refine.common import centre_similarity
 from gt3dkit.refine.people import PeopleCalibration, PeopleConfig, calibrate_people
 from gt3dkit.rig import Rig
 from gt3dkit.synchronise import find_clocks
-from gt3dkit.types import BOX_MODEL_REGISTRY, GroundTruth, JsonDict, Options, ReadAhead, Scene, TrackSet
+from gt3dkit.types import BOX_MODEL_REGISTRY, GroundTruth, JsonDict, Options, Scene, TrackSet
 
 #: Published numbers of Ma et al. for the datasets we can compare on.
 PAPER = {"multiviewx": {"MOTA": 96.5, "OSPA2_m": 0.17}, "wildtrack": {"MOTA": 98.7, "OSPA2_m": 0.10},
@@ -112,12 +112,12 @@ def panoptic_options(args: argparse.Namespace, layout: str) -> JsonDict:
 
 
 def load_input(args: argparse.Namespace, by_windows: bool = False, calib: str | None = None,
-               clocks: CameraClocks | None = None, ahead: ReadAhead | None = None) -> Any:
+               clocks: CameraClocks | None = None, head: Scene | None = None) -> Any:
     """The input of a command's ``args``, read and checked (:func:`gt3dkit.api.load_scene`);
     ``by_windows``: without its rows where its windows can read their own frames
     (:func:`gt3dkit.api.load_head`), as a long sequence run in windows does; ``calib``: this
     calibration in place of ``args.calib``; ``clocks``: these in place of ``--time-offsets``';
-    ``ahead``: what reading it ``by_windows`` read of it (``FrameIndex.ahead``), not read again."""
+    ``head``: the input as read ``by_windows`` (what that read is not read again)."""
 
     if getattr(args, "out", None) is not None:
         check_output(args.out, (args.input,))
@@ -134,8 +134,9 @@ def load_input(args: argparse.Namespace, by_windows: bool = False, calib: str | 
     opts["box_model"] = getattr(args, "box_model", "auto")
 
     def read(on: CameraClocks | None) -> Scene:
-        return load_scene(Path(args.input), layout, args.skeleton, getattr(args, "fps", None), calib=calib,
-                          clocks=on, ahead=ahead, **opts)
+        source = Path(args.input) if head is None else head
+        return load_scene(source, layout, args.skeleton, getattr(args, "fps", None), calib=calib, clocks=on,
+                          **opts)
 
     clocks = clocks or time_offsets(args, calib, read)
     if by_windows and clocks is None and not {"association", "segments"} & opts.keys():

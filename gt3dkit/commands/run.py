@@ -85,7 +85,7 @@ def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | 
     try:
         plan = window_plan(args, scene)
         if scene.index is not None and plan is None:  # it runs whole: read whole, from what was read
-            scene = load_input(args, ahead=scene.index.ahead)
+            scene = load_input(args, head=scene)
         elif scene.index is not None:  # each window reads its own frames
             scene = dataclasses.replace(scene, index=dataclasses.replace(scene.index, ahead=None))
         tally = None

@@ -23,9 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from gt3dkit.api import tiny_scene
-from gt3dkit.fusion import ukf_smoother as us
 from gt3dkit.fusion.base import ESTIMATORS, make_estimator
-from gt3dkit.fusion.measurement import Model
+from gt3dkit.fusion.ukf import smoother as us
+from gt3dkit.fusion.ukf.measurement import Model
 from gt3dkit.io.numtext import format_rows
 
 

@@ -7,11 +7,11 @@ from dataclasses import dataclass
 from importlib import import_module
 from typing import TYPE_CHECKING, Protocol
 
-from gt3dkit.fusion.bones import BoneSamples
+from gt3dkit.fusion.ukf.bones import BoneSamples
 from gt3dkit.types import OptionValue, Scene, TrackSet
 
 if TYPE_CHECKING:
-    from gt3dkit.fusion.prepare import Prepared
+    from gt3dkit.fusion.preparation.prepare import Prepared
 
 
 @dataclass(frozen=True)
@@ -70,9 +70,9 @@ class Entry:
 
 
 REGISTRY: dict[str, Entry] = {
-    "ukf": Entry("gt3dkit.fusion.ukf_smoother", "UKFSmoother", "UKFConfig",
+    "ukf": Entry("gt3dkit.fusion.ukf.smoother", "UKFSmoother", "UKFConfig",
                  "robust UKF + RTS smoother (the primary estimator)"),
-    "gtsam": Entry("gt3dkit.fusion.smoother_gtsam", "GTSAMSmoother", "GTSAMConfig",
+    "gtsam": Entry("gt3dkit.fusion.graph.smoother", "GTSAMSmoother", "GTSAMConfig",
                    "GTSAM factor-graph smoother (independent cross-check)"),
     "triangulation": Entry("gt3dkit.fusion.triangulate", "Triangulation", "TriangulationConfig",
                            "robust per-frame fits, no temporal model (baseline)", over_time=False),

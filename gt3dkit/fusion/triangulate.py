@@ -1,5 +1,5 @@
 """The no-temporal-model baseline, per object-frame: the robust per-frame fits of
-:func:`gt3dkit.fusion.prepare.prepare`, reported as they are.
+:func:`gt3dkit.fusion.preparation.prepare.prepare`, reported as they are.
 
 * Boxes: one least-squares ellipsoid per object-frame (Levenberg-Marquardt on the tangent-box
   edges, edges the other views disagree with left out).
@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gt3dkit.fusion.base import Capabilities
-from gt3dkit.fusion.prepare import Prepared, axis_sd, ellipsoid_around, largest_sd, prepare
+from gt3dkit.fusion.preparation.prepare import Prepared, axis_sd, ellipsoid_around, largest_sd, prepare
 from gt3dkit.types import JsonDict, RunInfo, Scene, TrackSet
 
 

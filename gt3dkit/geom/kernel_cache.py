@@ -17,9 +17,9 @@ from pathlib import Path
 PACKAGE = Path(__file__).resolve().parents[1]
 #: Every file holding compiled functions (numba ``cache=True``), relative to the package.
 KERNEL_FILES = ("geom/boxrig.py", "geom/boxkernel.py", "geom/smallmat.py", "geom/trikernel.py",
-                "fusion/motion.py", "fusion/kalman.py", "fusion/robust.py", "fusion/update.py",
-                "fusion/filterloop.py", "fusion/boxupdate.py", "fusion/boxlm.py", "fusion/jointupdate.py",
-                "io/numtext.py")
+                "fusion/motion.py", "fusion/ukf/kalman.py", "fusion/preparation/robust.py",
+                "fusion/ukf/update.py", "fusion/ukf/filterloop.py", "fusion/ukf/boxupdate.py",
+                "fusion/preparation/boxlm.py", "fusion/ukf/jointupdate.py", "io/numtext.py")
 STAMP = PACKAGE / "__pycache__" / "numba-kernels.sha256"
 _checked = False
 

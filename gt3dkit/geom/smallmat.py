@@ -176,7 +176,7 @@ def symmetrised(A: F64) -> F64:
 
 @numba.njit(cache=True, nogil=True)
 def safe_chol(A: F64, L: F64) -> int:
-    """:func:`gt3dkit.fusion.ukf.safe_cholesky` of one matrix: ``L`` of ``(A + A^T) / 2``,
+    """:func:`gt3dkit.fusion.ukf.sigma.safe_cholesky` of one matrix: ``L`` of ``(A + A^T) / 2``,
     eigenvalue-clipped if that is not PD. Returns 1 if a repair was needed, else 0."""
     n = A.shape[0]
     S = symmetrised(A)

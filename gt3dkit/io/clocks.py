@@ -12,7 +12,7 @@ frame
 ``f`` the scene's frame rate. :func:`on_one_clock` numbers each view by the nearest whole frame
 ``floor(t + 1/2)`` and keeps the rest (within half a frame), as
 :attr:`gt3dkit.types.Observations.frame_offset`: the UKF predicts each joint to the moment its
-view was taken (:mod:`gt3dkit.fusion.jointupdate`), not to the frame it is filed under.
+view was taken (:mod:`gt3dkit.fusion.ukf.jointupdate`), not to the frame it is filed under.
 
 ``time_offsets.csv``: a header, then one line per camera::
 

@@ -227,7 +227,7 @@ def _cvat_shape(track: ET.Element, shapes: Shapes, k: int, joints: tuple[str, ..
 
 
 def write_association(shapes: Shapes, rig: Rig, path: Path) -> None:
-    """``association.csv`` (:func:`gt3dkit.fusion.associate.read_overrides`' columns): every
+    """``association.csv`` (:func:`gt3dkit.fusion.preparation.associate.read_overrides`' columns): every
     camera's track id is the run's (piece) id, so that reading the files back with
     ``--association`` keeps the run's identities instead of associating the views again."""
     tid = piece_ids(shapes)

@@ -300,7 +300,7 @@ SEGMENT_COLUMNS = ("id", "segment", "first_frame", "last_frame", "rows")
 
 
 def write_segments_csv(path: Path, segments: list[dict[str, int]]) -> None:
-    """``segments.csv``: the pieces an id was split into (:mod:`gt3dkit.fusion.identity`), each
+    """``segments.csv``: the pieces an id was split into (:mod:`gt3dkit.fusion.preparation.identity`), each
     estimated on its own: which frames of the input's id each piece holds."""
     with open(path, "w", newline="") as f:
         w = csv.writer(f)

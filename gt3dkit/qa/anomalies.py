@@ -15,7 +15,7 @@ own standard, and every threshold is in :class:`QAConfig`. Kinds (``OUT/anomalie
 ``swapped_joints``   a left/right pair that fits the estimate exchanged in one view
 ``identity_split``   an id whose views place it, from this frame on, where it cannot have got to
                      since its last multi-view frame: the id is split into pieces, each estimated
-                     on its own (:mod:`gt3dkit.fusion.identity`)
+                     on its own (:mod:`gt3dkit.fusion.preparation.identity`)
 ``world_frame``      an object standing below the floor or floating above it
 ``missing_view``     an object-frame seen by two or more views whose estimate projects well
                      inside another camera's image, in front of it and not covered by a nearer
@@ -24,7 +24,7 @@ own standard, and every threshold is in :class:`QAConfig`. Kinds (``OUT/anomalie
 ``cut_edges``        a camera some of whose box edges lie inside a nearer object's box and were
                      left out, as edges at the image border are (the boxes are drawn around the
                      visible part of each person, and such edges vary clearly more than the
-                     others: :mod:`gt3dkit.fusion.occlusion`); one row per camera, with counts
+                     others: :mod:`gt3dkit.fusion.preparation.occlusion`); one row per camera, with counts
 ``time_offset``      a camera whose annotations fit the estimate clearly better when read a
                      frame or more earlier or later (an unsynchronised camera); one row per
                      camera, with the best whole-frame shift and the residual at every shift
@@ -93,7 +93,7 @@ def _iou(a: F64, b: F64) -> F64:
 def find_anomalies(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QAConfig | None = None,
                    splits: tuple[Any, ...] = (), exchanges: tuple[Any, ...] = ()) -> Anomalies:
     """Every flagged annotation of ``scene`` against ``tracks`` (see the module docstring), and
-    each place an id was split (``splits``, :func:`gt3dkit.fusion.identity.identity_segments`)
+    each place an id was split (``splits``, :func:`gt3dkit.fusion.preparation.identity.identity_segments`)
     and each pair of ids whose labels were exchanged (``exchanges``: one row per id)."""
     cfg = cfg or QAConfig()
     rows, cams = pre.rows, pre.cams

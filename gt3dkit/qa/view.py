@@ -1,6 +1,6 @@
 """What the annotation QA reads of a prepared scene: a small typed view, so that QA depends on
-these names and types, not on the estimators' internals (``gt3dkit.fusion.prepare.Prepared`` and
-``gt3dkit.fusion.rows.Rows`` are one, structurally; the layers keep QA independent of fusion)."""
+these names and types, not on the estimators' internals (``gt3dkit.fusion.preparation.prepare.Prepared`` and
+``gt3dkit.fusion.preparation.rows.Rows`` are one, structurally; the layers keep QA independent of fusion)."""
 
 from __future__ import annotations
 

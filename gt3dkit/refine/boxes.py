@@ -20,7 +20,7 @@ from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.spatial.transform import Rotation
 
-from gt3dkit.fusion.prepare import Prepared
+from gt3dkit.fusion.preparation.prepare import Prepared
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.conics import model_boxes
 from gt3dkit.refine.common import (

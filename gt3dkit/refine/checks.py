@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gt3dkit.fusion.prepare import prepare
+from gt3dkit.fusion.preparation.prepare import prepare
 from gt3dkit.types import Scene
 
 

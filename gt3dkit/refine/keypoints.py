@@ -27,7 +27,7 @@ import numpy as np
 
 from gt3dkit.calib.formats.colmap import intrinsics_of, to_reconstruction
 from gt3dkit.errors import InputError
-from gt3dkit.fusion.prepare import Prepared, prepare
+from gt3dkit.fusion.preparation.prepare import Prepared, prepare
 from gt3dkit.geom.camera import project_points
 from gt3dkit.geom.triangulate import normalized_points, triangulate_weighted
 from gt3dkit.refine.boxes import refine_boxes

@@ -27,7 +27,7 @@ import numpy as np
 from gt3dkit.api import Run, load_run
 from gt3dkit.errors import InputError
 from gt3dkit.eval.metrics import match_rows
-from gt3dkit.fusion.prepare import prepare
+from gt3dkit.fusion.preparation.prepare import prepare
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.labels import piece_of, piece_track_ids
 from gt3dkit.io.writers import read_segments_csv
@@ -79,7 +79,7 @@ def _fmt(v: object) -> str:
 
 
 def _keypoint_noise(run: Run) -> str:
-    """The keypoint noise the run learnt from the data (:mod:`gt3dkit.fusion.confidence`): each
+    """The keypoint noise the run learnt from the data (:mod:`gt3dkit.fusion.preparation.confidence`): each
     joint's pixel sd at full confidence, and how the detector's confidence scales it; '' when
     the run has no keypoints."""
     est = run.meta.get("estimator", {}) if isinstance(run.meta.get("estimator"), dict) else {}

@@ -51,7 +51,7 @@ processes, or ``--scheduler ADDRESS``: the Dask cluster ``reconstruct-many`` use
 * A person's bone lengths (keypoints with bones) are found once for the whole sequence, as the
   whole run finds them: a first round over the windows runs each one's first pass and returns
   its own frames' bone samples (:func:`window_bones`: 17 bytes a bone and person-frame), pooled
-  by person (:func:`pooled_bones`, :class:`gt3dkit.fusion.bones.PersonBones`); the second round
+  by person (:func:`pooled_bones`, :class:`gt3dkit.fusion.ukf.bones.PersonBones`); the second round
   runs the windows with them. On 1 000 frames of 3 people the windows' joints sat up to 0.46 of
   their sd from the whole run's with each window's own lengths, 0.18 with them pooled.
 * The measurement noise levels (robust residual levels of the per-frame fits) are each window's

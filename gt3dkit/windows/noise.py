@@ -19,8 +19,8 @@ from gt3dkit.api import (
 from gt3dkit.arrays import unique_rows
 from gt3dkit.fusion.base import make_estimator
 from gt3dkit.fusion.motion import position_step
-from gt3dkit.fusion.noise import SEARCH_OBJECT_FRAMES, drawn_objects
-from gt3dkit.fusion.prepare import Prepared
+from gt3dkit.fusion.preparation.prepare import Prepared
+from gt3dkit.fusion.ukf.noise import SEARCH_OBJECT_FRAMES, drawn_objects
 from gt3dkit.sealed import scatter, submit
 from gt3dkit.threads import every_core, roomy_malloc, small_matrix_blas
 from gt3dkit.types import Options, Scene
@@ -131,7 +131,7 @@ def _search_on_dask(client: Client, sample: Sample, estimator: str, config: Opti
 
 def searched_objects(sample: Scene, budget: int = SEARCH_OBJECT_FRAMES) -> Scene:
     """``sample`` cut to the objects the noise search runs on, drawn before their per-frame fits
-    (:func:`gt3dkit.fusion.noise.drawn_objects`, whole objects up to ``budget``
+    (:func:`gt3dkit.fusion.ukf.noise.drawn_objects`, whole objects up to ``budget``
     object-frames): the other objects' fits would only feed the search's provisional values.
     On 4 000 frames of 40 people that halved the search (2.4 s to 1.2 s), the same noise chosen."""
     keys = unique_rows(np.c_[sample.obs.frame, sample.obs.track_id])

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gt3dkit.arrays import unique_rows
-from gt3dkit.fusion.jointupdate import covariance_entries
+from gt3dkit.fusion.ukf.jointupdate import covariance_entries
 from gt3dkit.types import I64, Scene
 
 #: Default context on each side of a window, seconds (at least :data:`MIN_OVERLAP_FRAMES`).
@@ -99,7 +99,7 @@ def state_bytes(n_joints: int) -> float:
     """Bytes a window is budgeted per object-frame. With joints: measured 77 kB with 19 joints and
     8 cameras (peak RSS of runs of 1 000 frames of 3 people in windows of 50 to 1 000 frames:
     about 2.2 times the per-joint filters' covariance entries,
-    :func:`gt3dkit.fusion.jointupdate.covariance_entries`;
+    :func:`gt3dkit.fusion.ukf.jointupdate.covariance_entries`;
     the joints' chains' states and the measurements' arrays, the bones' pass a fixed batch); the
     measurements' arrays grow with the cameras (~3.5 kB a camera with 19 joints by their
     shapes: 31 cameras add ~80 kB), so twice the 8-camera figure is budgeted. A box's 9-entry

@@ -21,9 +21,9 @@ from gt3dkit.api import (
     take_rows,
 )
 from gt3dkit.fusion.base import make_estimator
-from gt3dkit.fusion.bones import BoneSamples, PersonBones
-from gt3dkit.fusion.prepare import Prepared
-from gt3dkit.fusion.ukf_config import UKFConfig
+from gt3dkit.fusion.preparation.prepare import Prepared
+from gt3dkit.fusion.ukf.bones import BoneSamples, PersonBones
+from gt3dkit.fusion.ukf.config import UKFConfig
 from gt3dkit.io.writers import PartText
 from gt3dkit.qa.anomalies import Anomalies
 from gt3dkit.threads import roomy_malloc, small_matrix_blas

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 
 from gt3dkit.api import load_scene
-from gt3dkit.fusion import ukf_smoother as us
-from gt3dkit.fusion.measurement import Model
+from gt3dkit.fusion.ukf import smoother as us
+from gt3dkit.fusion.ukf.measurement import Model
 from gt3dkit.sim import simulate_skeletons, write_skeleton_scene
 
 

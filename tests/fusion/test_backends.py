@@ -13,17 +13,17 @@ import numpy as np
 import pytest
 
 from gt3dkit.api import dense_frames, load_scene
-from gt3dkit.fusion import ukf_smoother as us
-from gt3dkit.fusion.boxfit import state_boxes as box_function
-from gt3dkit.fusion.filtering import backend_for
-from gt3dkit.fusion.initial import InitialCov, rows_of
-from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.motion import accel_shape
-from gt3dkit.fusion.noise import LinearisedSearch, search_rows
-from gt3dkit.fusion.robust import RobustConfig
-from gt3dkit.fusion.rows import replicate_rows
-from gt3dkit.fusion.ukf import Block, Robust, SigmaWeights
-from gt3dkit.fusion.update import Measured
+from gt3dkit.fusion.preparation.boxfit import state_boxes as box_function
+from gt3dkit.fusion.preparation.robust import RobustConfig
+from gt3dkit.fusion.preparation.rows import replicate_rows
+from gt3dkit.fusion.ukf import smoother as us
+from gt3dkit.fusion.ukf.filtering import backend_for
+from gt3dkit.fusion.ukf.initial import InitialCov, rows_of
+from gt3dkit.fusion.ukf.measurement import Model
+from gt3dkit.fusion.ukf.noise import LinearisedSearch, search_rows
+from gt3dkit.fusion.ukf.sigma import Block, Robust, SigmaWeights
+from gt3dkit.fusion.ukf.update import Measured
 from gt3dkit.sim import Errors, simulate, write_scene
 from tests.oracles_frames import BACKENDS, run_frames, ukf_update_information
 
@@ -54,7 +54,7 @@ def backend(request: pytest.FixtureRequest):
 
 @pytest.mark.parametrize("sigma", ["cubature", "scaled"])
 def test_compiled_box_regression_equals_the_sigma_points_of_the_tangent_box(box_scene, sigma: str) -> None:
-    """The box block's compiled regression (gt3dkit.fusion.boxupdate.box_regression) against the
+    """The box block's compiled regression (gt3dkit.fusion.ukf.boxupdate.box_regression) against the
     generic regression of the same block through the numpy-called tangent box, inside the whole
     iterated, robust update: priors off the truth by up to half a metre, an outlier edge, edges
     masked, robust weights moving, a linearisation point of its own."""

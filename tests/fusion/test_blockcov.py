@@ -1,4 +1,4 @@
-"""fusion/blockcov.py against the dense arrays it stands for (brute force): every way the
+"""fusion/ukf/blockcov.py against the dense arrays it stands for (brute force): every way the
 estimator reads or writes it gives what numpy gives on the whole ``(R, n, n)``."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gt3dkit.fusion.blockcov import BlockCov
+from gt3dkit.fusion.ukf.blockcov import BlockCov
 
 
 def _random(rng: np.random.Generator, R: int = 5) -> tuple[BlockCov, np.ndarray]:

@@ -1,4 +1,4 @@
-"""Bones as messages to each joint (gt3dkit.fusion.bones) against computations written out plainly:
+"""Bones as messages to each joint (gt3dkit.fusion.ukf.bones) against computations written out plainly:
 the iterated update against the MAP of the same Gaussian problem found by scipy, the messages'
 information added to a state against the information form inverted by numpy, and the split
 filter with the messages against the whole-state filter with them."""
@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from gt3dkit.fusion import ukf_smoother as us
-from gt3dkit.fusion.bones import JointInfo, bone_messages
-from gt3dkit.fusion.robust import RobustConfig
+from gt3dkit.fusion.preparation.robust import RobustConfig
+from gt3dkit.fusion.ukf import smoother as us
+from gt3dkit.fusion.ukf.bones import JointInfo, bone_messages
 from tests.oracles_frames import add_joint_info, run_frames
 
 BONES = np.array([[0, 1], [1, 2], [1, 3]])
@@ -134,7 +134,7 @@ def test_pooled_bones_are_each_persons_over_all_its_rows() -> None:
     """Bones pooled from parts (the windows of a sequence, rows of several persons in any order)
     are each person's as found from all its rows at once; a run given them takes them for the
     persons they hold and keeps its own for the others."""
-    from gt3dkit.fusion.bones import BoneSamples, PersonBones, bone_samples, lengths_of
+    from gt3dkit.fusion.ukf.bones import BoneSamples, PersonBones, bone_samples, lengths_of
     from gt3dkit.skeletons import SKELETONS
 
     skel = SKELETONS["coco17"]

@@ -1,4 +1,4 @@
-"""The per-frame box fit (gt3dkit.fusion.boxfit.fit_boxes, compiled Levenberg-Marquardt) against
+"""The per-frame box fit (gt3dkit.fusion.preparation.boxfit.fit_boxes, compiled Levenberg-Marquardt) against
 scipy's least_squares on the same residuals."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from gt3dkit.fusion.boxfit import PERSON_SEMI_AXES_M, fit_boxes, inverse_rows, state_boxes
+from gt3dkit.fusion.preparation.boxfit import PERSON_SEMI_AXES_M, fit_boxes, inverse_rows, state_boxes
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.conics import ellipsoid_boxes
 from gt3dkit.sim import simulate

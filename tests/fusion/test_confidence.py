@@ -1,4 +1,4 @@
-"""fusion.confidence: the keypoint noise as a function of the detector's confidence, learnt
+"""fusion.preparation.confidence: the keypoint noise as a function of the detector's confidence, learnt
 from residuals, against residuals drawn with a known law."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gt3dkit.fusion.confidence import INVERSE, learn_curve
+from gt3dkit.fusion.preparation.confidence import INVERSE, learn_curve
 
 
 def _residuals(rng: np.random.Generator, law, n: int = 40_000, J: int = 5):

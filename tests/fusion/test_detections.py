@@ -1,4 +1,4 @@
-"""fusion/detections.py: people from detections without identities. A person OpenPose finds as two
+"""fusion/preparation/detections.py: people from detections without identities. A person OpenPose finds as two
 skeletons in one view (the upper body and the legs, as it does on real Shelf) is one person, not
 two; two whole people are never merged."""
 

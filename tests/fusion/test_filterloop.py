@@ -1,4 +1,4 @@
-"""The one filter loop (gt3dkit.fusion.filterloop) held to filterpy: a kind whose steps are a
+"""The one filter loop (gt3dkit.fusion.ukf.filterloop) held to filterpy: a kind whose steps are a
 plain linear Kalman filter (constant velocity in 1D, position measured, rows without a
 measurement) gives filterpy's filtered and RTS-smoothed states; a faded row whose gap is spread
 re-predicts the gap's rows with the scaled noise, as written out here."""
@@ -11,7 +11,7 @@ import numba
 import numpy as np
 import pytest
 
-from gt3dkit.fusion.filterloop import Chains, backward_chain, forward_chain, register
+from gt3dkit.fusion.ukf.filterloop import Chains, backward_chain, forward_chain, register
 
 
 class Toy(NamedTuple):
@@ -174,7 +174,7 @@ def test_a_kind_registers_every_step() -> None:
 def test_the_steps_called_from_python_are_the_kinds() -> None:
     """Outside compiled code a step calls the kind's own (the same state written); a bundle of no
     registered kind is refused by name."""
-    from gt3dkit.fusion import filterloop
+    from gt3dkit.fusion.ukf import filterloop
 
     ctx = _toy(np.array([0.5, np.nan]), np.array([0.0, 0.1]))
     filterloop.start(ctx, 0, 0)

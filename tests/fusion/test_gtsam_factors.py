@@ -1,4 +1,4 @@
-"""fusion/gtsam_factors.py against GTSAM's own robust model, the closed-form white-acceleration
+"""fusion/graph/factors.py against GTSAM's own robust model, the closed-form white-acceleration
 noise and scipy's least squares."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from gt3dkit.fusion.gtsam_factors import cv_whitening, gauss_newton, huber_loss, huber_sqrt_weight
+from gt3dkit.fusion.graph.factors import cv_whitening, gauss_newton, huber_loss, huber_sqrt_weight
 
 
 def test_huber_loss_and_weight_are_gtsams() -> None:

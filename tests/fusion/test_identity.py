@@ -1,4 +1,4 @@
-"""Identity integrity (gt3dkit.fusion.identity): an id reused for another person is split into
+"""Identity integrity (gt3dkit.fusion.preparation.identity): an id reused for another person is split into
 pieces, each estimated on its own; no object-frame is left out; every command runs the same
 pieces."""
 
@@ -14,8 +14,8 @@ from gt3dkit.api import estimate_scene, reconstruct
 from gt3dkit.compare import compare
 from gt3dkit.eval.metrics import match_rows
 from gt3dkit.fusion.base import make_estimator
-from gt3dkit.fusion.identity import identity_segments
-from gt3dkit.fusion.prepare import prepare
+from gt3dkit.fusion.preparation.identity import identity_segments
+from gt3dkit.fusion.preparation.prepare import prepare
 from gt3dkit.sim import Errors
 from gt3dkit.types import GroundTruth, Scene
 from tests.scenes import written_scene

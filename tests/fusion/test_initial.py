@@ -1,11 +1,11 @@
-"""fusion/initial.py's lazy initial covariances against the dense ones they stand for (brute
+"""fusion/ukf/initial.py's lazy initial covariances against the dense ones they stand for (brute
 force): ``diag(var)`` with each fit's 6x6 covariance on its entries where the fit is good."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from gt3dkit.fusion.initial import InitialCov, rows_of
+from gt3dkit.fusion.ukf.initial import InitialCov, rows_of
 
 
 def _random(rng: np.random.Generator, R: int = 6, n: int = 21) -> tuple[InitialCov, np.ndarray]:

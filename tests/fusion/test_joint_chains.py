@@ -1,4 +1,4 @@
-"""The joints' compiled chains (gt3dkit.fusion.jointupdate.run_joints: every joint of every person
+"""The joints' compiled chains (gt3dkit.fusion.ukf.jointupdate.run_joints: every joint of every person
 its own six-entry filter, the ellipsoid by the boxes' chains) against the filter over frames
 (run_frames, joints split): the same steps in another loop order, so with one update pass the
 same numbers to rounding, and with several within the iterated update's convergence tolerance
@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 
 from gt3dkit.api import dense_frames, load_scene
-from gt3dkit.fusion import ukf_smoother as us
-from gt3dkit.fusion.bones import JointInfo
-from gt3dkit.fusion.jointupdate import add_info, run_joints
-from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.motion import StateLayout, joint_step
+from gt3dkit.fusion.ukf import smoother as us
+from gt3dkit.fusion.ukf.bones import JointInfo
+from gt3dkit.fusion.ukf.jointupdate import add_info, run_joints
+from gt3dkit.fusion.ukf.measurement import Model
 from gt3dkit.sim import Errors, simulate_skeletons, write_skeleton_scene
 from tests.oracles_frames import add_joint_info, run_frames
 

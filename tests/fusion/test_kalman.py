@@ -1,4 +1,4 @@
-"""fusion/kalman.py: the prediction and RTS step against numpy's dense algebra (bit for bit where
+"""fusion/ukf/kalman.py: the prediction and RTS step against numpy's dense algebra (bit for bit where
 the sparse products skip only zeros), the fading factor against ``e^T S^-1 e`` written out.
 (The filter and smoother as a whole are held to filterpy in test_ukf.py and test_filterloop.py.)"""
 
@@ -46,7 +46,7 @@ def test_fading_is_continuous_in_the_prediction_s_distance() -> None:
     """The fading factor is 1 up to the chi-square limit and grows continuously beyond it (the
     excess per degree of freedom), approaching ``sqrt(d^2 / 3)`` far beyond; written out against
     ``e^T S^-1 e`` by numpy."""
-    from gt3dkit.fusion.kalman import fade_factors_of
+    from gt3dkit.fusion.ukf.kalman import fade_factors_of
 
     rng = np.random.default_rng(4)
     A = rng.normal(size=(3, 3))

@@ -250,7 +250,7 @@ def test_objects_that_two_views_never_see_together(tmp_path, skel_native, capsys
 
 
 def test_ellipsoid_around_ignores_joints_known_to_a_metre_only() -> None:
-    from gt3dkit.fusion.prepare import ellipsoid_around
+    from gt3dkit.fusion.preparation.prepare import ellipsoid_around
 
     kpt = np.zeros((2, 4, 3))
     kpt[:, :, 2] = [0.0, 0.5, 1.0, 1.7]  # a standing person, z up

@@ -1,4 +1,4 @@
-"""fusion.measurement: the stacked measurement function of a row against OpenCV's projection,
+"""fusion.ukf.measurement: the stacked measurement function of a row against OpenCV's projection,
 and its block decomposition (what the filter's regression uses) against the whole function."""
 
 from __future__ import annotations

@@ -1,11 +1,11 @@
-"""The process-noise search's maximiser (gt3dkit.fusion.ukf_smoother.maximise_log)."""
+"""The process-noise search's maximiser (gt3dkit.fusion.ukf.smoother.maximise_log)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from gt3dkit.fusion.noise import maximise_log
+from gt3dkit.fusion.ukf.noise import maximise_log
 
 
 def test_the_search_finds_the_top_of_a_curve() -> None:

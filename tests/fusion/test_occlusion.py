@@ -1,4 +1,4 @@
-"""Boxes drawn around the visible part of a person (gt3dkit.fusion.occlusion and the simulator's
+"""Boxes drawn around the visible part of a person (gt3dkit.fusion.preparation.occlusion and the simulator's
 ``Errors.cut_by_nearer``): the cut edges are found, left out where the data say they mislead,
 reported, and kept where a label set draws people whole."""
 
@@ -13,9 +13,9 @@ import pytest
 
 from gt3dkit.api import load_scene, reconstruct
 from gt3dkit.eval.metrics import box_errors
-from gt3dkit.fusion import occlusion
-from gt3dkit.fusion.prepare import prepare
-from gt3dkit.fusion.ukf_config import UKFConfig
+from gt3dkit.fusion.preparation import occlusion
+from gt3dkit.fusion.preparation.prepare import prepare
+from gt3dkit.fusion.ukf.config import UKFConfig
 from gt3dkit.qa.anomalies import which_cut
 from gt3dkit.sim import Errors, simulate, write_scene
 

@@ -15,7 +15,13 @@ from scipy.stats import chi2
 from gt3dkit import load_scene, reconstruct
 from gt3dkit.cli import main
 from gt3dkit.eval.metrics import match_rows
-from gt3dkit.fusion.robust import RobustConfig, deleted_score2, point_weight, point_weights, robust_variance
+from gt3dkit.fusion.preparation.robust import (
+    RobustConfig,
+    deleted_score2,
+    point_weight,
+    point_weights,
+    robust_variance,
+)
 from gt3dkit.geom.triangulate import normalized_points, robust_triangulate
 from gt3dkit.sim import Errors, simulate, simulate_skeletons, write_scene, write_skeleton_scene
 
@@ -59,7 +65,7 @@ def test_point_weights_follow_the_chi_square_thresholds() -> None:
 def test_point_weights_are_the_one_rule_on_any_shape() -> None:
     """The arrays' weights are the per-point rule the compiled update calls (one definition), the
     shape kept; against the rule written out here: Huber's c/e times the squared taper."""
-    from gt3dkit.fusion import update
+    from gt3dkit.fusion.ukf import update
 
     assert update.point_weight is point_weight
     cfg = RobustConfig(huber_p=1e-3, reject_p=1e-6)

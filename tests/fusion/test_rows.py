@@ -1,4 +1,4 @@
-"""fusion.rows: the object-frame table every estimator works on, against a brute-force build of
+"""fusion.preparation.rows: the object-frame table every estimator works on, against a brute-force build of
 the same table from the observations, one Python dict entry at a time."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import dataclasses
 
 import numpy as np
 
-from gt3dkit.fusion.rows import build_rows, usable_edges
+from gt3dkit.fusion.preparation.rows import build_rows, usable_edges
 from gt3dkit.sim import Errors
 from tests.scenes import written_scene
 

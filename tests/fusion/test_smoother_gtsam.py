@@ -1,4 +1,4 @@
-"""The GTSAM smoother's own Gauss-Newton loop (gt3dkit.fusion.smoother_gtsam) against GTSAM's
+"""The GTSAM smoother's own Gauss-Newton loop (gt3dkit.fusion.graph.smoother) against GTSAM's
 Levenberg-Marquardt optimizer."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 def test_gauss_newton_reaches_gtsam_levenberg_marquardt() -> None:
     import gtsam
 
-    from gt3dkit.fusion.gtsam_factors import gtsam_gauss_newton
+    from gt3dkit.fusion.graph.factors import gtsam_gauss_newton
 
     rng = np.random.default_rng(7)
     g = gtsam.NonlinearFactorGraph()

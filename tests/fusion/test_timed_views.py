@@ -1,6 +1,6 @@
 """Cameras on their own clocks (issue 63): ``time_offsets.csv`` (:mod:`gt3dkit.io.clocks`), every
 view moved onto one clock, and the UKF taking each view at its own time
-(:func:`gt3dkit.fusion.jointupdate.point_regression` on position and velocity), held to the
+(:func:`gt3dkit.fusion.ukf.jointupdate.point_regression` on position and velocity), held to the
 simulator's late and off-rate cameras (their people's exact motion at each camera's time), to a
 finite-difference Jacobian through OpenCV's projection, and to the synchronised run."""
 
@@ -19,8 +19,8 @@ from gt3dkit.commands.common import bundled
 from gt3dkit.errors import InputError
 from gt3dkit.eval.metrics import box_errors
 from gt3dkit.eval.pose import mpjpe_by_id
-from gt3dkit.fusion.jointupdate import point_regression, point_sigma
-from gt3dkit.fusion.update import Measured, Regression
+from gt3dkit.fusion.ukf.jointupdate import point_regression, point_sigma
+from gt3dkit.fusion.ukf.update import Measured, Regression
 from gt3dkit.geom.boxrig import box_cameras, box_rig
 from gt3dkit.io.clocks import CameraClocks, on_one_clock, read_time_offsets
 from gt3dkit.io.results import read_result
@@ -182,7 +182,7 @@ def test_clocks_held_to_the_reconstruction(tmp_path: Path) -> None:
 def test_boxes_at_their_own_time(tmp_path: Path) -> None:
     """Boxes of late cameras: people simulated at 100 fps, each camera keeping every tenth frame
     from its own start (late by tenths of a frame at 10 fps); the UKF's box update regressed on the
-    centre's velocity too (:func:`gt3dkit.fusion.boxupdate.box_regression`)."""
+    centre's velocity too (:func:`gt3dkit.fusion.ukf.boxupdate.box_regression`)."""
     write_scene(simulate("native", seed=0, frames=300, people=6, noise_px=1.0, fps=100.0), tmp_path, "native")
     fine = load_scene(tmp_path)
     step = 10

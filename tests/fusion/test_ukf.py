@@ -12,8 +12,8 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from gt3dkit.fusion.motion import StateLayout
-from gt3dkit.fusion.ukf import SigmaWeights
-from gt3dkit.fusion.update import Measured
+from gt3dkit.fusion.ukf.sigma import SigmaWeights
+from gt3dkit.fusion.ukf.update import Measured
 from tests.oracles import sigma_points, ukf_update, unscented_transform
 from tests.oracles_frames import predict_linear, rts_step, ukf_update_information
 

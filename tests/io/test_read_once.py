@@ -43,7 +43,7 @@ def test_a_folder_indexed_then_read_whole_opens_each_frame_file_once(folder: Pat
     count = _counted(monkeypatch)
     head = load_head(folder)
     assert head is not None and head.index is not None and head.index.ahead is not None
-    scene = load_scene(folder, ahead=head.index.ahead)
+    scene = load_scene(head)
     frames = sorted((folder / "annotations_positions").glob("*.json"))
     assert frames and all(count[str(p)] == 1 for p in frames), count
     monkeypatch.undo()

@@ -284,7 +284,7 @@ def test_pair_costs_are_opencvs_two_view_triangulation() -> None:
     in row order. The detections are of different people: many pairs cannot be one."""
     import cv2
 
-    from gt3dkit.fusion.detections import frame_pairs, pair_costs
+    from gt3dkit.fusion.preparation.detections import frame_pairs, pair_costs
 
     rng = np.random.default_rng(4)
     C, J, N = 3, 9, 12

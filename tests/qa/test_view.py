@@ -8,7 +8,7 @@ import typing
 import numpy as np
 
 from gt3dkit.api import tiny_scenes
-from gt3dkit.fusion.prepare import prepare
+from gt3dkit.fusion.preparation.prepare import prepare
 from gt3dkit.qa.view import PreparedView, RowsView
 
 

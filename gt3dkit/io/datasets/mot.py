@@ -3,7 +3,7 @@
 Each ``mot/<camera>.txt`` is MOTChallenge's comma-separated text without a header:
 ``frame,id,left,top,width,height,conf,x,y,z`` (frames as written, usually 1-based; pixels of
 the distorted image; ``x,y,z`` ignored). The ids are the camera's own (every annotation task
-numbers its people): :mod:`gt3dkit.fusion.associate` turns them into global identities.
+numbers its people): :mod:`gt3dkit.fusion.preparation.associate` turns them into global identities.
 Rows with ``conf`` 0 are MOTChallenge's "ignore" boxes and are skipped (with a warning); an id
 of -1 (a detection without a track) is an error, as the tracklets are what is associated. In a
 folder ``gt3d project`` wrote (it holds its ``projection.json``), rows with ``conf`` below 1

@@ -15,8 +15,8 @@ assumed and the run says so (a warning and the summary line).
 confidence in [0, 1], in every row or none; a heatmap peak up to 2 is read as 1 with a
 warning); pixels of the distorted image; a missing row means not seen, and so does a
 confidence of 0 (OpenPose writes undetected joints as ``0,0,0``). A confidence scales the
-point's variance by a factor learnt from the data (:mod:`gt3dkit.fusion.confidence`). Its joint order
-is ``--skeleton`` (or ``"skeleton"`` in ``cameras.json``), else the smallest known skeleton
+point's variance by a factor learnt from the data (:mod:`gt3dkit.fusion.preparation.confidence`).
+Its joint order is ``--skeleton`` (or ``"skeleton"`` in ``cameras.json``), else the smallest known skeleton
 holding the largest joint index.
 Boxes and keypoints of the same (frame, camera, id) update the same object.
 """

@@ -8,7 +8,7 @@ between the shoulders, or the left eye), HALPE_26 (26), COCO-18 (18), COCO-17 (1
 joint kept with the detector's own names on export; ``--skeleton`` overrides. A confidence of 0
 is "not detected"; the others are passed on (a point's variance is sigma^2 / confidence).
 
-Detections carry no identity: :func:`gt3dkit.fusion.detections.associate_detections` groups them
+Detections carry no identity: :func:`gt3dkit.fusion.preparation.detections.associate_detections` groups them
 across views per frame and links the groups over time into people. Calibration as for
 :mod:`gt3dkit.io.datasets.mot` (plus Pose2Sim's ``Calib*.toml``); the frame rate from the
 calibration, ``--fps``, or a Pose2Sim ``Config.toml`` (``frame_rate``), else 30 assumed.

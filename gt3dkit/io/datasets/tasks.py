@@ -24,8 +24,8 @@ in the tool) are numbered after the largest, with a warning.
 
 Joint names in any usual spelling are matched to the smallest known skeleton holding them all
 (:func:`gt3dkit.skeletons.skeleton_for_names`). With track ids, the per-camera tracks are
-associated across cameras (:func:`gt3dkit.fusion.associate.associate`); without, each frame's
-detections are (:func:`~gt3dkit.fusion.detections.associate_detections`). Calibration, camera
+associated across cameras (:func:`gt3dkit.fusion.preparation.associate.associate`); without, each frame's
+detections are (:func:`~gt3dkit.fusion.preparation.detections.associate_detections`). Calibration, camera
 matching and frame rate as for :mod:`gt3dkit.io.datasets.mot`.
 """
 

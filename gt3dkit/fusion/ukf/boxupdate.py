@@ -5,15 +5,15 @@ With boxes only, a row's measurement is the tangent boxes of all cameras, a func
 centre and the log semi-axes (a 6-dimensional marginal of the state, 12 sigma points, at most
 ``4 C`` edges). :func:`box_regression` regresses them on that marginal (the tangent box of
 :mod:`gt3dkit.geom.boxkernel` inlined); it is the box block's regression for every filter
-(:meth:`gt3dkit.fusion.measurement.Model.blocks`).
+(:meth:`gt3dkit.fusion.ukf.measurement.Model.blocks`).
 
 :func:`forward` and :func:`backward` run the filter of a boxes-only model as chains of rows per
 object: each object's filter is independent of the others', so objects run in parallel on
 :func:`gt3dkit.threads.compiled_threads` threads and the frames of one object in order. Every
 step is the one implementation of the package: the prediction and RTS step of
-:mod:`gt3dkit.fusion.kalman`, ``F, Q`` of :mod:`gt3dkit.fusion.motion`, the update of
-:mod:`gt3dkit.fusion.update`; only the order of the loops differs from the filter over frames
-(:class:`gt3dkit.fusion.ukf_smoother.FrameLoop`), and the tests hold the two to each other.
+:mod:`gt3dkit.fusion.ukf.kalman`, ``F, Q`` of :mod:`gt3dkit.fusion.motion`, the update of
+:mod:`gt3dkit.fusion.ukf.update`; only the order of the loops differs from the filter over frames
+(:class:`gt3dkit.fusion.ukf.smoother.FrameLoop`), and the tests hold the two to each other.
 
 :class:`LinearisedSearch` prices a process-noise value as a linear Kalman filter, the boxes'
 regression fixed per row.
@@ -28,16 +28,16 @@ import numba
 import numpy as np
 
 from gt3dkit.arrays import contiguous
-from gt3dkit.fusion.filterloop import Chains, backward_chain, forward_chain, register
-from gt3dkit.fusion.filterrun import FilterRun
-from gt3dkit.fusion.initial import Init
-from gt3dkit.fusion.kalman import ellipsoid_linearisation, fade_centre, fade_factor, predict_row, rts_row
 from gt3dkit.fusion.motion import SPACE, Noise, StateIndex, accel_shape, transition
-from gt3dkit.fusion.robust import chi2_isf
-from gt3dkit.fusion.rowsmodel import BoxModel, BoxSigma, RowsModel
-from gt3dkit.fusion.ukf import SigmaWeights
-from gt3dkit.fusion.ukf_config import UKFConfig
-from gt3dkit.fusion.update import (
+from gt3dkit.fusion.preparation.robust import chi2_isf
+from gt3dkit.fusion.ukf.config import UKFConfig
+from gt3dkit.fusion.ukf.filterloop import Chains, backward_chain, forward_chain, register
+from gt3dkit.fusion.ukf.filterrun import FilterRun
+from gt3dkit.fusion.ukf.initial import Init
+from gt3dkit.fusion.ukf.kalman import ellipsoid_linearisation, fade_centre, fade_factor, predict_row, rts_row
+from gt3dkit.fusion.ukf.rowsmodel import BoxModel, BoxSigma, RowsModel
+from gt3dkit.fusion.ukf.sigma import SigmaWeights
+from gt3dkit.fusion.ukf.update import (
     Columns,
     Current,
     Measured,
@@ -79,7 +79,7 @@ def box_regression(xj: F64, Pj: F64, meas: Measured, sig: BoxSigma, rig: BoxRig,
     An edge is used where annotated and every sigma point's box is finite. With the velocity among
     ``sig.dims`` (nine entries), camera ``c``'s box was taken ``seen_s[c]`` seconds after the row's
     time and outlines the ellipsoid whose centre the motion model moves by then (``c + δ v``;
-    :func:`gt3dkit.fusion.jointupdate.point_regression` for joints). Returns 1 if the marginal's
+    :func:`gt3dkit.fusion.ukf.jointupdate.point_regression` for joints). Returns 1 if the marginal's
     factor needed a repair."""
     dims = sig.dims
     C = rig.cam.shape[0]
@@ -197,7 +197,7 @@ def box_regressions(rows: I64, x: F64, P: F64, meas: Measured, sig: BoxSigma, ri
 @numba.njit(cache=True, nogil=True)
 def update_row(b: int, x: F64, P: F64, xl: F64, Pl: F64, data: Measured, w0: F64, box: BoxModel,
                out: RowsOut) -> None:
-    """The iterated, robust update (:func:`gt3dkit.fusion.update.pass_row`) of row ``b`` with
+    """The iterated, robust update (:func:`gt3dkit.fusion.ukf.update.pass_row`) of row ``b`` with
     prior ``x (n,), P (n, n)`` by its boxes (``data``, start weights ``w0``: ``(R, m)``), the
     first pass linearised at ``xl, Pl``; into ``out``'s row ``b``."""
     n = x.shape[0]
@@ -286,7 +286,7 @@ class Track(NamedTuple):
 
 
 class BoxChain(NamedTuple):
-    """The box kind's bundle for :mod:`gt3dkit.fusion.filterloop`: the chains, the initial
+    """The box kind's bundle for :mod:`gt3dkit.fusion.ukf.filterloop`: the chains, the initial
     states, the motion, fading, the measurements and first weights, the box model, the rows'
     outputs and predictions, and work arrays ``F, Q (n, n)``, the linearisation point ``x_l (n,),
     P_l (n, n)`` and the fading test's ``e (3,), S (3, 3)``."""
@@ -333,7 +333,7 @@ def _fades(ctx: BoxChain, e: int, row: int) -> bool:
 
 @numba.njit(cache=True, nogil=True)
 def _centre_fade(ctx: BoxChain, e: int, row: int) -> float:
-    """:func:`gt3dkit.fusion.kalman.fade_factor` of row ``row``'s prediction against the frame's
+    """:func:`gt3dkit.fusion.ukf.kalman.fade_factor` of row ``row``'s prediction against the frame's
     own fit."""
     fading, track, c0 = ctx.fading, ctx.track, ctx.motion.ix.centre
     for i in range(SPACE):
@@ -397,7 +397,7 @@ def box_chain(chains: Chains, start: Start, motion: Motion, fading: Fading, data
 
 @numba.njit(cache=True, nogil=True)
 def forward(first: I64, ctx: BoxChain) -> None:
-    """Forward filter (:func:`gt3dkit.fusion.filterloop.forward_chain`) of every object whose
+    """Forward filter (:func:`gt3dkit.fusion.ukf.filterloop.forward_chain`) of every object whose
     first row is in ``first``: the filtered rows into ``ctx.out``, the predictions into
     ``ctx.track``."""
     for row0 in first:
@@ -406,7 +406,7 @@ def forward(first: I64, ctx: BoxChain) -> None:
 
 @numba.njit(cache=True, nogil=True)
 def backward(last: I64, ctx: BoxChain) -> None:
-    """RTS smoother (:func:`gt3dkit.fusion.filterloop.backward_chain`) of every object from its
+    """RTS smoother (:func:`gt3dkit.fusion.ukf.filterloop.backward_chain`) of every object from its
     last row in ``last``: ``ctx.out`` holds the filtered values on entry and the smoothed ones on
     exit."""
     for nxt0 in last:
@@ -452,7 +452,7 @@ def linear_forward(first: I64, chains: Chains, start: Start, motion: Motion, lin
 
 def box_sigma(dims: I64, alpha: float, beta: float, kappa: float) -> BoxSigma:
     """The :class:`BoxSigma` of the ellipsoid entries ``dims (6,)`` under the scaled unscented
-    rule ``alpha, beta, kappa`` (:class:`gt3dkit.fusion.ukf.SigmaWeights`)."""
+    rule ``alpha, beta, kappa`` (:class:`gt3dkit.fusion.ukf.sigma.SigmaWeights`)."""
     sw = SigmaWeights(len(dims), alpha, beta, kappa)
     Wm, Wc = sw.Wm, sw.Wc
     if Wm[0] == 0.0 and Wc[0] == 0.0:  # the cubature rule gives the centre no weight
@@ -504,7 +504,7 @@ def run_boxes(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, collect:
               on: np.ndarray | None, noise_rows: dict[str, F64] | None) -> FilterRun:
     """The filter (and RTS) of a boxes-only model (:func:`applies_to_model`) as chains of rows,
     objects in parallel: the arguments and outputs of
-    :func:`gt3dkit.fusion.filtering.run_filter`."""
+    :func:`gt3dkit.fusion.ukf.filtering.run_filter`."""
     rows, layout = model.rows, model.layout
     R, n = len(rows), layout.n
     m = model.z.shape[1]

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gt3dkit.fusion.boxlm import fit_compiled
+from gt3dkit.fusion.preparation.boxlm import fit_compiled
 from gt3dkit.geom.boxrig import BoxCameras
 from gt3dkit.geom.camera import Cams, pixel_rays
 from gt3dkit.geom.conics import model_boxes, outline_ellipse
@@ -145,7 +145,7 @@ def fit_boxes(box_z: F64, box_mask: B8, cams: Cams, sigma_px: F64 | float = 1.0,
     prior_sd : its standard deviation (log units, scalar or (3,)); keeps one-view fits defined
     p0 : (N, 6) start (centre, log axes); default the ground-plane initialisation
 
-    The LM loop is compiled (:mod:`gt3dkit.fusion.boxlm`), one object-frame at a time.
+    The LM loop is compiled (:mod:`gt3dkit.fusion.preparation.boxlm`), one object-frame at a time.
     """
     N = box_z.shape[0]
     prior = np.log(PERSON_SEMI_AXES_M) if prior_log_axes is None else prior_log_axes

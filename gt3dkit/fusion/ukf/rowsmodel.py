@@ -1,6 +1,6 @@
-"""What the compiled filters (:mod:`gt3dkit.fusion.boxupdate`, :mod:`gt3dkit.fusion.jointupdate`)
+"""What the compiled filters (:mod:`gt3dkit.fusion.ukf.boxupdate`, :mod:`gt3dkit.fusion.ukf.jointupdate`)
 read of a model of the rows, and the box update's own bundle of it: the contract between the
-model (:class:`gt3dkit.fusion.measurement.Model`, which builds on the filters) and them."""
+model (:class:`gt3dkit.fusion.ukf.measurement.Model`, which builds on the filters) and them."""
 
 from __future__ import annotations
 
@@ -8,11 +8,11 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 
-from gt3dkit.fusion.bones import JointInfo
 from gt3dkit.fusion.motion import StateLayout
-from gt3dkit.fusion.robust import RobustConfig
-from gt3dkit.fusion.rows import Rows
-from gt3dkit.fusion.update import Columns
+from gt3dkit.fusion.preparation.robust import RobustConfig
+from gt3dkit.fusion.preparation.rows import Rows
+from gt3dkit.fusion.ukf.bones import JointInfo
+from gt3dkit.fusion.ukf.update import Columns
 from gt3dkit.geom.boxrig import BoxRig
 from gt3dkit.geom.camera import Cams
 from gt3dkit.types import F64, I64
@@ -35,7 +35,7 @@ class BoxSigma(NamedTuple):
 
 class BoxModel(NamedTuple):
     """Everything the box update needs besides the rows: the sigma rule, the cameras prepared,
-    the measurement vector's :class:`gt3dkit.fusion.update.Columns`, the box's first column, the
+    the measurement vector's :class:`gt3dkit.fusion.ukf.update.Columns`, the box's first column, the
     iterated update's passes (at most), whether it reweights, and when each row's views were taken
     ``seen_s (R, C)``, seconds after the row's time (``(0, C)``: at it)."""
 
@@ -50,8 +50,8 @@ class BoxModel(NamedTuple):
 
 class RowsModel(Protocol):
     """What the compiled filters read of a model of the rows: the fields and methods of
-    :class:`gt3dkit.fusion.measurement.Model` (which builds on this module, so is named here by
-    its shape), and of the boxes-only part of one (:func:`gt3dkit.fusion.jointupdate.boxes_part`)."""
+    :class:`gt3dkit.fusion.ukf.measurement.Model` (which builds on this module, so is named here by
+    its shape), and of the boxes-only part of one (:func:`gt3dkit.fusion.ukf.jointupdate.boxes_part`)."""
 
     rows: Rows
     cams: Cams

@@ -1,6 +1,6 @@
 """Block-diagonal covariances of many rows held as their blocks.
 
-A run of the per-joint filters (:mod:`gt3dkit.fusion.jointupdate`) estimates a person's state as
+A run of the per-joint filters (:mod:`gt3dkit.fusion.ukf.jointupdate`) estimates a person's state as
 independent parts: the ellipsoid (9 entries) and each joint's position and velocity (6). Their
 covariance is block-diagonal; written out as the whole ``(R, n, n)`` it is 121 kB a row with 19
 joints, of which 6 kB are not zero. :class:`BlockCov` keeps the blocks and answers what the

@@ -7,10 +7,10 @@ whole ``9 + 6J`` state they would make every row's covariance dense (123 x 123 w
 UAI 2001) with a fully factorised approximation (one Gaussian factor per joint and row):
 
 1. each frame's bones update the first pass's smoothed joints ``N(m_j, C_j)`` (independent
-   joints: the first pass runs per joint, :mod:`gt3dkit.fusion.jointupdate`) by an iterated Kalman update
+   joints: the first pass runs per joint, :mod:`gt3dkit.fusion.ukf.jointupdate`) by an iterated Kalman update
    of the stacked positions (Gauss-Newton about the new estimate), each bone down-weighted or
    rejected by its standardised innovation as a view's point is
-   (:func:`gt3dkit.fusion.robust.point_weights`): a bone the views contradict gives way;
+   (:func:`gt3dkit.fusion.preparation.robust.point_weights`): a bone the views contradict gives way;
 2. the bones' message to joint ``j`` is its posterior marginal ``N(m_j^+, C_j^+)`` divided by
    its prior, in information form ``\Lambda_j = C_j^{+-1} - C_j^{-1}``, ``\eta_j = C_j^{+-1}
    m_j^+ - C_j^{-1} m_j`` (a 3-vector and 3 x 3 per joint and row, :class:`JointInfo`);
@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gt3dkit.fusion.robust import RobustConfig, point_weights
+from gt3dkit.fusion.preparation.robust import RobustConfig, point_weights
 from gt3dkit.skeletons import Skeleton
 from gt3dkit.types import F64, I64, JsonDict
 
@@ -146,7 +146,7 @@ def lengths_of(s: BoneSamples, objs: np.ndarray, sd_floor_m: float, sd_m: float 
 @dataclass(frozen=True)
 class PersonBones:
     """Bone lengths found outside a run, by person id: ``ids (O,)`` sorted, ``lengths`` theirs. A
-    run given them (:class:`gt3dkit.fusion.ukf_smoother.UKFSmoother`) ties those persons' joints
+    run given them (:class:`gt3dkit.fusion.ukf.smoother.UKFSmoother`) ties those persons' joints
     to these lengths instead of its own frames' (the windows of one sequence, to its whole)."""
 
     ids: I64

@@ -1,4 +1,4 @@
-"""One object's solution in the GTSAM smoother (:mod:`gt3dkit.fusion.smoother_gtsam`), and the
+"""One object's solution in the GTSAM smoother (:mod:`gt3dkit.fusion.graph.smoother`), and the
 graph of a box object as arrays (:func:`solve_boxes`): every factor's whitened residual and
 Jacobian for all its rows at once, one ``JacobianFactor`` per row for GTSAM to eliminate."""
 
@@ -11,10 +11,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from gt3dkit.errors import EstimationError
-from gt3dkit.fusion.gtsam_factors import cv_whitening, gauss_newton, huber_loss, huber_sqrt_weight
+from gt3dkit.fusion.graph.factors import cv_whitening, gauss_newton, huber_loss, huber_sqrt_weight
 from gt3dkit.fusion.motion import walk_sd
-from gt3dkit.fusion.noise import ProcessNoise
-from gt3dkit.fusion.prepare import Prepared, axis_sd
+from gt3dkit.fusion.preparation.prepare import Prepared, axis_sd
+from gt3dkit.fusion.ukf.noise import ProcessNoise
 from gt3dkit.geom.boxkernel import box_jacobian, kernel
 from gt3dkit.geom.boxrig import EVERY_CAMERA, BoxCameras, box_rig
 from gt3dkit.types import F64
@@ -88,7 +88,7 @@ class _BoxChain:
         self.inv_sd = np.tile(1.0 / np.asarray(pre.sigma_box, float), C)  # (4C,)
         self.k_box = cfg.huber_k * np.sqrt(pre.box_tail)
         self.k_motion = cfg.huber_k if cfg.robust_motion else np.inf
-        # time in units of the typical step (see gt3dkit.fusion.smoother_gtsam.GTSAMSmoother._solve_object)
+        # time in units of the typical step (see gt3dkit.fusion.graph.smoother.GTSAMSmoother._solve_object)
         dts = np.diff(rows.frames[rows.row_t[mine]] / fps)
         tau = float(np.median(dts)) if dts.size else 1.0
         self.dts = dts / tau
@@ -185,7 +185,7 @@ def solve_boxes(gtsam: ModuleType, cfg: GTSAMConfig, pre: Prepared, mine: np.nda
                  start_values: tuple[F64, np.ndarray, float], tuned: ProcessNoise, fps: float,
                  start: gtsam.Values | F64 | None = None) -> ObjectSolution:
     """One box object's graph (the factors of
-    :meth:`gt3dkit.fusion.smoother_gtsam.GTSAMSmoother._solve_object`: a box factor per row,
+    :meth:`gt3dkit.fusion.graph.smoother.GTSAMSmoother._solve_object`: a box factor per row,
     constant velocity and a log-axes random walk between rows, the weak priors; the same Huber
     losses) solved by the same Gauss-Newton with a line search, linearised in
     batches (:class:`_BoxChain`): GTSAM eliminates each linear step and gives the marginal

@@ -3,7 +3,7 @@
 The UKF smoother, the GTSAM smoother and the triangulation baseline all call
 :func:`prepare` and nothing of each other. It
 
-* builds the object-frame rows (:mod:`gt3dkit.fusion.rows`);
+* builds the object-frame rows (:mod:`gt3dkit.fusion.preparation.rows`);
 * fits every object-frame on its own, robustly: boxes by Levenberg-Marquardt with edges
   that disagree with the other views rejected (leave-one-out scores), keypoints by MSAC
   triangulation (:func:`gt3dkit.geom.triangulate.robust_triangulate`);
@@ -28,18 +28,18 @@ from functools import cached_property
 import numpy as np
 
 from gt3dkit.errors import InputError
-from gt3dkit.fusion.boxfit import PERSON_SEMI_AXES_M, BoxFit, fit_boxes
-from gt3dkit.fusion.confidence import INVERSE, ConfidenceCurve, group_variances, learn_curve
 from gt3dkit.fusion.motion import StateLayout
-from gt3dkit.fusion.occlusion import CutEdges, cut_edges_of
-from gt3dkit.fusion.robust import (
+from gt3dkit.fusion.preparation.boxfit import PERSON_SEMI_AXES_M, BoxFit, fit_boxes
+from gt3dkit.fusion.preparation.confidence import INVERSE, ConfidenceCurve, group_variances, learn_curve
+from gt3dkit.fusion.preparation.occlusion import CutEdges, cut_edges_of
+from gt3dkit.fusion.preparation.robust import (
     RobustConfig,
     chi2_isf,
     deleted_score2,
     median_variance,
     point_weights,
 )
-from gt3dkit.fusion.rows import Rows, build_rows
+from gt3dkit.fusion.preparation.rows import Rows, build_rows
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.triangulate import normalized_points, robust_triangulate, triangulation_cov
 from gt3dkit.skeletons import SKELETONS, Skeleton, skeleton_for
@@ -81,7 +81,7 @@ class Prepared:
         sigma_kpt : (J,) keypoint noise per joint (px)
     kpt_var : (R, C, J) each keypoint's variance (px^2) = sigma_kpt[j]^2 / confidence
     box_cut : (R, C, 4) the edges a nearer object cut that were left out (taken out of
-        ``rows.box_mask`` as the border's; :mod:`gt3dkit.fusion.occlusion`), or None;
+        ``rows.box_mask`` as the border's; :mod:`gt3dkit.fusion.preparation.occlusion`), or None;
         box_cut_by : (R, C, 4) for each of those, the row of a nearer object it lies in (-1
         elsewhere)
     """
@@ -106,7 +106,7 @@ class Prepared:
     robust: RobustConfig
     info: JsonDict = field(default_factory=dict)
     box_tail: float = 1.0
-    box_cut: np.ndarray | None = None  # (R, C, 4) edges a nearer object cut, left out (fusion.occlusion)
+    box_cut: np.ndarray | None = None  # (R, C, 4) edges a nearer object cut, left out (.occlusion)
     box_cut_by: np.ndarray | None = None  # (R, C, 4) the row of a nearer object each lies in, else -1
 
     def frame_state(self) -> tuple[F64, F64, F64]:
@@ -301,8 +301,8 @@ def _edge_residuals(fit: BoxFit, keep: np.ndarray) -> tuple[F64, F64, np.ndarray
 
 
 def _core_sigma(fit: BoxFit, keep: np.ndarray) -> float:
-    """The box-edge noise sd (px) of the typical edge (:func:`gt3dkit.fusion.robust.median_variance`
-    of the kept edges' residuals)."""
+    """The box-edge noise sd (px) of the typical edge
+    (:func:`gt3dkit.fusion.preparation.robust.median_variance` of the kept edges' residuals)."""
     r2, dof, use = _edge_residuals(fit, keep)
     v = median_variance(r2[use], dof[use])
     return float(np.sqrt(max(v, 0.1**2))) if np.isfinite(v) else float("nan")
@@ -371,7 +371,7 @@ def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
         fit = _merge_fit(fit, sel, fit_boxes(rows.box_z[sel], keep[sel], cams, sig,
                                              p0=params(fit, sel)))
         sig = sigmas(fit)
-    # edges a nearer object cut, where the data say they mislead (gt3dkit.fusion.occlusion): left
+    # edges a nearer object cut, where the data say they mislead (gt3dkit.fusion.preparation.occlusion): left
     # out as the border's are
     cuts = None
     if robust.enabled:

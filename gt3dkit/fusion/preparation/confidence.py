@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gt3dkit.fusion.robust import robust_variance
+from gt3dkit.fusion.preparation.robust import robust_variance
 from gt3dkit.types import F64, JsonDict
 
 #: Confidence bins of the learnt curve (equal counts of kept points).
@@ -94,7 +94,7 @@ def learn_curve(r2: F64, dof: F64, use: np.ndarray, conf: F64, joint: np.ndarray
 
 def group_variances(r2: F64, dof: F64, use: np.ndarray, group: np.ndarray, n_groups: int,
                     reject_p: float, group_dof: int, min_points: int = 30) -> tuple[float, F64]:
-    """:func:`gt3dkit.fusion.robust.robust_variance` of all used points and of each group
+    """:func:`gt3dkit.fusion.preparation.robust.robust_variance` of all used points and of each group
     (``group`` broadcasts against ``use``) with at least ``min_points``; a group with fewer, or
     with no finite positive estimate, gets the overall one."""
     group = np.broadcast_to(group, use.shape)

@@ -1,4 +1,4 @@
-r"""The per-frame Levenberg-Marquardt box fit of :func:`gt3dkit.fusion.boxfit.fit_boxes`,
+r"""The per-frame Levenberg-Marquardt box fit of :func:`gt3dkit.fusion.preparation.boxfit.fit_boxes`,
 compiled (numba): one object-frame at a time, start to convergence, in one loop.
 
 Each object-frame's residuals are a few hundred flops per camera

@@ -1,21 +1,21 @@
 """The UKF's filter loop: the initial states, the filter (forward, fading, the update, then the
 RTS pass) by the model's backend (boxes alone: per-object compiled chains,
-:func:`gt3dkit.fusion.boxupdate.run_boxes`; with joints: per-joint compiled chains,
-:func:`gt3dkit.fusion.jointupdate.run_joints`), a run of some objects again, and the weights a
+:func:`gt3dkit.fusion.ukf.boxupdate.run_boxes`; with joints: per-joint compiled chains,
+:func:`gt3dkit.fusion.ukf.jointupdate.run_joints`), a run of some objects again, and the weights a
 smoothed estimate gives every measurement."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from gt3dkit.fusion.boxupdate import run_boxes
-from gt3dkit.fusion.filterrun import FilterRun
-from gt3dkit.fusion.initial import Init, InitialCov
-from gt3dkit.fusion.jointupdate import run_joints
-from gt3dkit.fusion.measurement import Model
-from gt3dkit.fusion.robust import point_weights
-from gt3dkit.fusion.rows import Rows
-from gt3dkit.fusion.ukf_config import UKFConfig
+from gt3dkit.fusion.preparation.robust import point_weights
+from gt3dkit.fusion.preparation.rows import Rows
+from gt3dkit.fusion.ukf.boxupdate import run_boxes
+from gt3dkit.fusion.ukf.config import UKFConfig
+from gt3dkit.fusion.ukf.filterrun import FilterRun
+from gt3dkit.fusion.ukf.initial import Init, InitialCov
+from gt3dkit.fusion.ukf.jointupdate import run_joints
+from gt3dkit.fusion.ukf.measurement import Model
 from gt3dkit.types import F64
 
 
@@ -45,7 +45,7 @@ def objects_rows(rows: Rows, hit: np.ndarray) -> np.ndarray:
 
 def smoothed_weights(model: Model, x_s: F64, cfg: UKFConfig) -> F64:
     """(R, m) weights of every measurement judged by its residual at the smoothed estimate
-    ``x_s (R, n)`` in units of its noise (:func:`gt3dkit.fusion.robust.point_weights`), 1
+    ``x_s (R, n)`` in units of its noise (:func:`gt3dkit.fusion.preparation.robust.point_weights`), 1
     outside the robust blocks. The smoothed state rests on many frames, so its own spread
     is left out of the score (a slightly stricter test)."""
     w = np.ones_like(model.z)
@@ -72,9 +72,9 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
                fade: bool = True, on: np.ndarray | None = None,
                noise_rows: dict[str, F64] | None = None) -> FilterRun:
     """Forward UKF, then (optionally) RTS, by the backend that serves the model
-    (:func:`backend_for`): a :class:`gt3dkit.fusion.filterrun.FilterRun`; with ``collect`` it
+    (:func:`backend_for`): a :class:`gt3dkit.fusion.ukf.filterrun.FilterRun`; with ``collect`` it
     holds the final weights, scores and residuals ``(R, m)``. ``fade`` lets the frame's own
-    views weaken a contradicted prediction (the fading rule of :mod:`gt3dkit.fusion.kalman`); the
+    views weaken a contradicted prediction (the fading rule of :mod:`gt3dkit.fusion.ukf.kalman`); the
     noise search runs without it, so that its likelihood judges the motion model as it is.
     ``on (R,)`` runs the rows of some objects only (whole objects: each object's filter is
     independent of the others); the other rows' outputs are zero and their statistics absent
@@ -88,9 +88,9 @@ def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bo
 
 def backend_for(model: Model) -> str:
     """The filter that runs ``model``: ``"objects"`` (a boxes-only model: every object's rows as
-    one compiled chain, objects in parallel, :func:`gt3dkit.fusion.boxupdate.run_boxes`) or
+    one compiled chain, objects in parallel, :func:`gt3dkit.fusion.ukf.boxupdate.run_boxes`) or
     ``"joints"`` (a model with joints: every joint of every person as a compiled chain, the
-    ellipsoid by the boxes' chains, :func:`gt3dkit.fusion.jointupdate.run_joints`). The tests hold
+    ellipsoid by the boxes' chains, :func:`gt3dkit.fusion.ukf.jointupdate.run_joints`). The tests hold
     both to a filter over the frame grid (``tests/oracles_frames.py``), which calls the same
     steps."""
     return "joints" if model.layout.n_joints else "objects"

@@ -2,8 +2,8 @@
 
 Measurement vector of a row: ``[box edges (C*4) | keypoints (C*J*2)]``, each block present
 only when the scene has it. Box edges are the exact tangent box of the projected ellipsoid
-(:func:`gt3dkit.fusion.boxfit.state_boxes`), keypoints the projection with distortion. Bones
-reach the joints as information added after the views (:mod:`gt3dkit.fusion.bones`).
+(:func:`gt3dkit.fusion.preparation.boxfit.state_boxes`), keypoints the projection with distortion. Bones
+reach the joints as information added after the views (:mod:`gt3dkit.fusion.ukf.bones`).
 """
 
 from __future__ import annotations
@@ -14,16 +14,16 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from gt3dkit.arrays import contiguous
-from gt3dkit.fusion.bones import JointInfo
-from gt3dkit.fusion.boxfit import state_boxes
-from gt3dkit.fusion.boxupdate import box_regressions, box_sigma
 from gt3dkit.fusion.motion import SPACE, StateLayout
-from gt3dkit.fusion.prepare import Prepared
-from gt3dkit.fusion.robust import RobustConfig
-from gt3dkit.fusion.rows import Rows
-from gt3dkit.fusion.rowsmodel import OUTLINE_STEPS, BoxModel
-from gt3dkit.fusion.ukf import Block, Robust, SigmaWeights, block_columns
-from gt3dkit.fusion.update import Columns, Measured, Regression
+from gt3dkit.fusion.preparation.boxfit import state_boxes
+from gt3dkit.fusion.preparation.prepare import Prepared
+from gt3dkit.fusion.preparation.robust import RobustConfig
+from gt3dkit.fusion.preparation.rows import Rows
+from gt3dkit.fusion.ukf.bones import JointInfo
+from gt3dkit.fusion.ukf.boxupdate import box_regressions, box_sigma
+from gt3dkit.fusion.ukf.rowsmodel import OUTLINE_STEPS, BoxModel
+from gt3dkit.fusion.ukf.sigma import Block, Robust, SigmaWeights, block_columns
+from gt3dkit.fusion.ukf.update import Columns, Measured, Regression
 from gt3dkit.geom.boxkernel import EDGES
 from gt3dkit.geom.boxrig import BoxCameras, BoxRig, box_rig
 from gt3dkit.geom.camera import Cams, project_points
@@ -40,7 +40,7 @@ class Model:
     fades the prediction nor sets the linearisation point); robust_blocks : the ``(slice,
     entries per point)`` blocks whose points the update may down-weight;
     x_frame, var_frame, cov6_frame : each row's own per-frame state (see
-    :meth:`gt3dkit.fusion.prepare.Prepared.frame_state`).
+    :meth:`gt3dkit.fusion.preparation.prepare.Prepared.frame_state`).
     """
 
     rows: Rows
@@ -97,7 +97,7 @@ class Model:
 
     def take(self, rows: Rows, src: np.ndarray) -> Model:
         """This model for ``rows`` whose row ``i`` is this model's row ``src[i]``
-        (:func:`gt3dkit.fusion.rows.replicate_rows`)."""
+        (:func:`gt3dkit.fusion.preparation.rows.replicate_rows`)."""
         return replace(self, rows=rows, z=self.z[src], mask=self.mask[src], var=self.var[src],
                        weight0=self.weight0[src], x_frame=self.x_frame[src],
                        var_frame=self.var_frame[src], cov6_frame=self.cov6_frame[src],
@@ -125,7 +125,7 @@ class Model:
 
     def box_measurement(self, alpha: float, beta: float, kappa: float,
                         robust: RobustConfig | None, seen_s: F64 | None = None) -> BoxModel:
-        """The box update's :class:`gt3dkit.fusion.boxupdate.BoxModel` under the sigma rule
+        """The box update's :class:`gt3dkit.fusion.ukf.boxupdate.BoxModel` under the sigma rule
         ``alpha, beta, kappa``, the measurement points judged by ``robust`` (None: none); one
         pass, not reweighting; ``seen_s (R, C)``: each view's time after its row's (seconds; the
         boxes then regressed on the velocity too), None: every view at its row's time."""
@@ -135,8 +135,8 @@ class Model:
                         False, contiguous(seen_s if timed else np.zeros((0, len(self.cams.K)))))
 
     def columns(self, robust: RobustConfig | None, timed: bool = False) -> Columns:
-        """The measurement vector's :class:`gt3dkit.fusion.update.Columns`
-        (:func:`gt3dkit.fusion.ukf.block_columns`; ``timed``: the boxes on the velocity too)."""
+        """The measurement vector's :class:`gt3dkit.fusion.ukf.update.Columns`
+        (:func:`gt3dkit.fusion.ukf.sigma.block_columns`; ``timed``: the boxes on the velocity too)."""
         rule = Robust(robust, self.robust_blocks) if robust is not None and self.robust_blocks else None
         cols = block_columns(self.blocks(timed), self.z.shape[1], rule)
         if not (self.use_box and self.box_tail != 1.0):
@@ -158,9 +158,9 @@ class Model:
         return out
 
     def blocks(self, timed: bool = False) -> list[Block]:
-        """The measurement vector as :class:`gt3dkit.fusion.ukf.Block` groups: the box edges of
+        """The measurement vector as :class:`gt3dkit.fusion.ukf.sigma.Block` groups: the box edges of
         all cameras (centre and log semi-axes, ``timed``: and the velocity; regressed by
-        :func:`gt3dkit.fusion.boxupdate.box_regression`), each joint's projections into all
+        :func:`gt3dkit.fusion.ukf.boxupdate.box_regression`), each joint's projections into all
         cameras (its three coordinates)."""
         C, J = len(self.cams.K), self.layout.n_joints
         lay, cams = self.layout, self.cams

@@ -1,9 +1,9 @@
 r"""The primary estimator: the paper's per-object UKF, batched, robust, plus an RTS pass.
 
 This module is the driver only; preparation (rows, robust per-frame fits, noise levels,
-input checks) is :mod:`gt3dkit.fusion.prepare`, the measurement model
-:mod:`gt3dkit.fusion.measurement`, the motion model :mod:`gt3dkit.fusion.motion` and the
-filter steps :mod:`gt3dkit.fusion.ukf`.
+input checks) is :mod:`gt3dkit.fusion.preparation.prepare`, the measurement model
+:mod:`gt3dkit.fusion.ukf.measurement`, the motion model :mod:`gt3dkit.fusion.motion` and the
+filter steps :mod:`gt3dkit.fusion.ukf.sigma`.
 
 What differs from the paper's obvious implementation (and why):
 
@@ -11,7 +11,7 @@ What differs from the paper's obvious implementation (and why):
   one measurement vector (masked where missing or clipped); all objects of a frame are one
   batch. Information form, iterated (posterior linearisation), cubature weights.
 * **Robust.** The update reweights every keypoint and box edge by its leave-one-out score
-  against the prior and the *other* views (:mod:`gt3dkit.fusion.robust`), starting from
+  against the prior and the *other* views (:mod:`gt3dkit.fusion.preparation.robust`), starting from
   the robust per-frame fits' verdicts, so one bad view cannot drag the state first. A
   rejected point has weight 0: it moves neither its frame nor, through the RTS pass, its
   neighbours. Every down-weighted point is reported (``TrackSet.downweighted``).
@@ -33,7 +33,7 @@ Keypoints join the same state and update: each joint and its velocity (constant 
 measured by the projection with distortion. A person's bone lengths tie its joints together:
 the lengths (and spread) come from a first pass, and a robust Gauss-Newton fit of the first
 pass's smoothed joints to them gives each joint a Gaussian message (expectation propagation,
-:mod:`gt3dkit.fusion.bones`) that the final pass adds to that joint's own filter, so the joints
+:mod:`gt3dkit.fusion.ukf.bones`) that the final pass adds to that joint's own filter, so the joints
 still run as separate small filters.
 """
 
@@ -45,28 +45,8 @@ from dataclasses import asdict, replace
 import numpy as np
 
 from gt3dkit.fusion.base import Capabilities
-from gt3dkit.fusion.bones import (
-    BoneLengths,
-    BoneSamples,
-    JointInfo,
-    PersonBones,
-    bone_messages,
-    bone_samples,
-    lengths_of,
-)
-from gt3dkit.fusion.filtering import (
-    initial_states,
-    objects_rows,
-    rerun_objects,
-    run_filter,
-    smoothed_weights,
-)
-from gt3dkit.fusion.filterrun import FilterRun
-from gt3dkit.fusion.initial import Init
-from gt3dkit.fusion.measurement import Model
 from gt3dkit.fusion.motion import StateLayout
-from gt3dkit.fusion.noise import NOISE_FIELDS, noise_by_likelihood, select_noise
-from gt3dkit.fusion.prepare import (
+from gt3dkit.fusion.preparation.prepare import (
     Prepared,
     axis_sd,
     ellipsoid_around,
@@ -75,8 +55,28 @@ from gt3dkit.fusion.prepare import (
     never_determined,
     prepare,
 )
-from gt3dkit.fusion.rows import Rows
-from gt3dkit.fusion.ukf_config import UKFConfig
+from gt3dkit.fusion.preparation.rows import Rows
+from gt3dkit.fusion.ukf.bones import (
+    BoneLengths,
+    BoneSamples,
+    JointInfo,
+    PersonBones,
+    bone_messages,
+    bone_samples,
+    lengths_of,
+)
+from gt3dkit.fusion.ukf.config import UKFConfig
+from gt3dkit.fusion.ukf.filtering import (
+    initial_states,
+    objects_rows,
+    rerun_objects,
+    run_filter,
+    smoothed_weights,
+)
+from gt3dkit.fusion.ukf.filterrun import FilterRun
+from gt3dkit.fusion.ukf.initial import Init
+from gt3dkit.fusion.ukf.measurement import Model
+from gt3dkit.fusion.ukf.noise import NOISE_FIELDS, noise_by_likelihood, select_noise
 from gt3dkit.skeletons import Skeleton
 from gt3dkit.types import F64, Downweighted, JsonDict, RobustSummary, RunInfo, Scene, TrackSet
 
@@ -309,7 +309,7 @@ def first_joints(model: Model, run: FilterRun) -> tuple[F64, F64, np.ndarray]:
 
 
 def bone_samples_of(model: Model, first: tuple[F64, F64, np.ndarray], skel: Skeleton) -> BoneSamples:
-    """:func:`gt3dkit.fusion.bones.bone_samples` of a first pass's :func:`first_joints`
+    """:func:`gt3dkit.fusion.ukf.bones.bone_samples` of a first pass's :func:`first_joints`
     ``first``; ``obj``: each row's person index."""
     joints, cov, seen = first
     rows = model.rows
@@ -318,7 +318,7 @@ def bone_samples_of(model: Model, first: tuple[F64, F64, np.ndarray], skel: Skel
 
 def bone_messages_of(model: Model, cfg: UKFConfig, run: FilterRun, skel: Skeleton,
                      fixed: PersonBones | None = None) -> tuple[JointInfo, BoneLengths]:
-    """The bones' messages to every joint of every row (:mod:`gt3dkit.fusion.bones`) and each
+    """The bones' messages to every joint of every row (:mod:`gt3dkit.fusion.ukf.bones`) and each
     person's bone lengths, from a first pass ``run`` (split: independent joints); the persons
     ``fixed`` holds take its lengths."""
     rows = model.rows

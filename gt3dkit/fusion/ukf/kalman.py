@@ -1,8 +1,8 @@
 r"""The linear steps of the filter, each written once and compiled: prediction, the RTS step,
 fading a prediction the frame's own views contradict, and moving the linearisation point of
-the ellipsoid to the frame's own fit. The compiled filter (:mod:`gt3dkit.fusion.boxupdate`)
-calls the row functions; the filter over frames (:mod:`gt3dkit.fusion.ukf_smoother`) and
-:class:`gt3dkit.fusion.measurement.Model` call their batched forms.
+the ellipsoid to the frame's own fit. The compiled filter (:mod:`gt3dkit.fusion.ukf.boxupdate`)
+calls the row functions; the filter over frames (:mod:`gt3dkit.fusion.ukf.smoother`) and
+:class:`gt3dkit.fusion.ukf.measurement.Model` call their batched forms.
 
 References: Rauch, Tung & Striebel, AIAA J. 3 (1965) (the smoother); Särkkä, "Unscented
 Rauch-Tung-Striebel smoother", IEEE TAC 2008 (with a linear motion model the unscented RTS gain

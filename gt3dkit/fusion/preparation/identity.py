@@ -27,8 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gt3dkit.fusion.prepare import Prepared
-from gt3dkit.fusion.rows import Rows
+from gt3dkit.fusion.preparation.prepare import Prepared
+from gt3dkit.fusion.preparation.rows import Rows
 from gt3dkit.types import I64
 
 
@@ -85,7 +85,7 @@ class Segments:
 
 def identity_segments(pre: Prepared, fps: float, cfg: IdentityConfig | None = None,
                       pieces: tuple[tuple[int, int, int, int], ...] = ()) -> Segments:
-    """The pieces of every id of ``pre.rows`` (a :class:`gt3dkit.fusion.prepare.Prepared`) at
+    """The pieces of every id of ``pre.rows`` (a :class:`gt3dkit.fusion.preparation.prepare.Prepared`) at
     frame rate ``fps`` (see the module doc). ``pieces``: ``(id, segment, first frame, last
     frame)`` of an edited ``segments.csv``: the ids it lists are cut where it says instead
     (splits marked ``given``; their exchanges are not looked for)."""

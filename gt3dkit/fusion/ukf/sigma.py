@@ -1,6 +1,6 @@
 r"""The unscented measurement update of a batch of rows: sigma-point weights, the statistical
 linear regression of each measurement block, and the driver of the iterated, robust,
-information-form update (:mod:`gt3dkit.fusion.update` holds the update itself, one row at a
+information-form update (:mod:`gt3dkit.fusion.ukf.update` holds the update itself, one row at a
 time, compiled).
 
 Arrays carry a leading batch axis ``B`` (one row per object): means ``(B, n)``, covariances
@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gt3dkit.fusion.robust import RobustConfig
-from gt3dkit.fusion.update import Columns
+from gt3dkit.fusion.preparation.robust import RobustConfig
+from gt3dkit.fusion.ukf.update import Columns
 from gt3dkit.types import F64
 
 MeasureFn = Callable[[F64], F64]
@@ -91,7 +91,7 @@ class Block:
     (``2d`` points, not ``2n``), and its information is a ``d x d`` block.
     ``masked``: ``h`` also takes the usable columns ``(B, G, k)``
     and may leave the others out (NaN). ``regress``: the block's own regression (the box block's
-    is compiled, :func:`gt3dkit.fusion.boxupdate.box_regressions`), called as
+    is compiled, :func:`gt3dkit.fusion.ukf.boxupdate.box_regressions`), called as
     ``regress(rows, xj, Pj, meas, w, lin, repaired)`` ; None: the
     sigma points of ``h`` (the reference ``block_regression`` of ``tests/oracles_frames.py``).
     """
@@ -113,7 +113,7 @@ class Robust:
 
 
 def block_columns(blocks: Sequence[Block], m: int, robust: Robust | None) -> Columns:
-    """The :class:`gt3dkit.fusion.update.Columns` of ``m`` measurement columns made of ``blocks``:
+    """The :class:`gt3dkit.fusion.ukf.update.Columns` of ``m`` measurement columns made of ``blocks``:
     the state entries of each column's group and, with ``robust``, the points of its blocks with
     their thresholds (infinite when its config is disabled)."""
     d = max(b.dims.shape[1] for b in blocks)

@@ -10,7 +10,7 @@ updates the prior ``N(x, P)`` in state space:
 
 ``W`` a weight per entry. Robust (iteratively reweighted): after every pass but the last, each
 measurement point's leave-one-out score against the new posterior gives its weight
-(:func:`gt3dkit.fusion.robust.point_weight`, the one rule every estimator's weights follow).
+(:func:`gt3dkit.fusion.preparation.robust.point_weight`, the one rule every estimator's weights follow).
 A row stops iterating once a pass's posterior is where it linearised and no weight changes.
 The statistics (normalised innovation square, its degrees of freedom, log-likelihood) are of the
 last pass with its weights, by the matrix determinant lemma (no ``m x m`` matrix).
@@ -18,7 +18,7 @@ last pass with its weights, by the matrix determinant lemma (no ``m x m`` matrix
 Which state entries each group of measurement columns depends on is a :class:`Columns` (a box:
 the centre and log semi-axes; a joint's projections: the joint; a bone: its two joints), so one
 implementation serves every measurement model; the regression itself is the measurement model's
-(:mod:`gt3dkit.fusion.boxupdate` for boxes, the reference ``block_regression``
+(:mod:`gt3dkit.fusion.ukf.boxupdate` for boxes, the reference ``block_regression``
 (``tests/oracles_frames.py``) for the
 others). The compiled filter calls :func:`pass_row` per row, the filter over frames
 :func:`pass_rows` per batch.
@@ -33,7 +33,7 @@ import numba
 import numpy as np
 
 from gt3dkit.arrays import contiguous
-from gt3dkit.fusion.robust import point_weight
+from gt3dkit.fusion.preparation.robust import point_weight
 from gt3dkit.geom.kernel_cache import drop_stale
 from gt3dkit.geom.smallmat import chol, chol_solve, lower_inverse, safe_chol, solve_sym, symmetrised
 from gt3dkit.types import F64, I64

@@ -22,7 +22,11 @@ from functools import partial
 import numpy as np
 
 from gt3dkit.arrays import contiguous
-from gt3dkit.fusion.boxupdate import (
+from gt3dkit.fusion.motion import lag_two_excess_var, second_difference_var, walk_var
+from gt3dkit.fusion.preparation.prepare import Prepared
+from gt3dkit.fusion.preparation.robust import chi2_median
+from gt3dkit.fusion.preparation.rows import Rows, replicate_rows
+from gt3dkit.fusion.ukf.boxupdate import (
     Start,
     applies_to_model,
     box_regressions,
@@ -32,15 +36,11 @@ from gt3dkit.fusion.boxupdate import (
     object_chains,
     regression_rows,
 )
-from gt3dkit.fusion.filtering import backend_for, initial_states, run_filter, smoothed_weights
-from gt3dkit.fusion.initial import Init, rows_of
-from gt3dkit.fusion.jointupdate import run_joints
-from gt3dkit.fusion.measurement import Model
-from gt3dkit.fusion.motion import lag_two_excess_var, second_difference_var, walk_var
-from gt3dkit.fusion.prepare import Prepared
-from gt3dkit.fusion.robust import chi2_median
-from gt3dkit.fusion.rows import Rows, replicate_rows
-from gt3dkit.fusion.ukf_config import UKFConfig
+from gt3dkit.fusion.ukf.config import UKFConfig
+from gt3dkit.fusion.ukf.filtering import backend_for, initial_states, run_filter, smoothed_weights
+from gt3dkit.fusion.ukf.initial import Init, rows_of
+from gt3dkit.fusion.ukf.jointupdate import run_joints
+from gt3dkit.fusion.ukf.measurement import Model
 from gt3dkit.threads import run_split
 from gt3dkit.types import F64, I64, JsonDict
 
@@ -323,7 +323,7 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
 
     The likelihood must not be bent by outliers, and a single pass cannot reweight: so a
     first robust pass (forward and RTS), at provisional values (the moment estimates from the
-    per-frame fits, :func:`gt3dkit.fusion.noise.moment_process_noise`), fixes every
+    per-frame fits, :func:`gt3dkit.fusion.ukf.noise.moment_process_noise`), fixes every
     measurement's weight by its residual at that smoothed estimate, and the search's single
     passes use those weights. The search runs on at most ``SEARCH_OBJECT_FRAMES`` object-frames
     (:func:`search_rows`). Values set in

@@ -11,24 +11,24 @@ Factors
     * one ``TriangulationFactorCal3_S2`` per 2D keypoint: GTSAM's projection factor with the
       calibrated camera; the keypoint is undistorted first (GTSAM's ``Cal3DS2`` has no ``k3``);
     * one ``CustomFactor`` per box whose error is the tangent-box residual of its usable
-      edges (:func:`gt3dkit.fusion.boxfit.state_boxes`), Jacobian by central differences;
+      edges (:func:`gt3dkit.fusion.preparation.boxfit.state_boxes`), Jacobian by central differences;
     * Huber-robust noise models on every measurement; weak priors (1 m, 10 m/s, 1.0 in log
       axes) at the per-frame initial values so that nothing is left undetermined.
 Solved by Gauss-Newton with a line search
-(:func:`gt3dkit.fusion.gtsam_factors.gtsam_gauss_newton`, GTSAM's linearisation and
+(:func:`gt3dkit.fusion.graph.factors.gtsam_gauss_newton`, GTSAM's linearisation and
 elimination); each output's standard deviation from GTSAM's marginal covariances. Objects with
 boxes only (no keypoints) are linearised in batches instead
-(:func:`gt3dkit.fusion.gtsam_chain.solve_boxes`: the same factors, losses and steps as arrays,
+(:func:`gt3dkit.fusion.graph.chain.solve_boxes`: the same factors, losses and steps as arrays,
 one ``JacobianFactor`` per row for GTSAM to eliminate; the tests hold it to the ``CustomFactor``
 graph): Python called per factor was 3/4 of the time.
 
 Conventions are converted here and only here: GTSAM's camera pose is ``world_from_cam``
 (``Pose3(Rot3(R^T), C)``), our cameras are ``cam_from_world``.
 
-Noise levels: measurement noise from :func:`gt3dkit.fusion.prepare.prepare` (the robust
+Noise levels: measurement noise from :func:`gt3dkit.fusion.preparation.prepare.prepare` (the robust
 per-frame residual levels every estimator shares; points the per-frame fits rejected get no
 factor, the rest a Huber loss). Process noise of box scenes: the maximum of the model's
-marginal likelihood (:func:`gt3dkit.fusion.noise.noise_by_likelihood`, the Kalman
+marginal likelihood (:func:`gt3dkit.fusion.ukf.noise.noise_by_likelihood`, the Kalman
 filter's prediction-error decomposition of the same state-space model; the graph then solves it
 another way, as one batch). The moment estimates from the per-frame fits it used before
 (:func:`moment_process_noise`, raised by Morozov's discrepancy principle) fit neither real set:
@@ -50,23 +50,23 @@ import numpy as np
 
 from gt3dkit.errors import EstimationError
 from gt3dkit.fusion.base import Capabilities
-from gt3dkit.fusion.gtsam_chain import GTSAMConfig, ObjectSolution, singular, solve_boxes
-from gt3dkit.fusion.gtsam_factors import (
+from gt3dkit.fusion.graph.chain import GTSAMConfig, ObjectSolution, singular, solve_boxes
+from gt3dkit.fusion.graph.factors import (
     box_error,
     cv_factor,
     cv_whitening,
     gtsam_gauss_newton,
 )
 from gt3dkit.fusion.motion import walk_sd
-from gt3dkit.fusion.noise import ProcessNoise, moment_process_noise, noise_by_likelihood
-from gt3dkit.fusion.prepare import (
+from gt3dkit.fusion.preparation.prepare import (
     Prepared,
     axis_sd,
     ellipsoid_around,
     never_determined,
     prepare,
 )
-from gt3dkit.fusion.ukf_config import UKFConfig
+from gt3dkit.fusion.ukf.config import UKFConfig
+from gt3dkit.fusion.ukf.noise import ProcessNoise, moment_process_noise, noise_by_likelihood
 from gt3dkit.geom.boxrig import BoxCameras
 from gt3dkit.geom.camera import apply_K
 from gt3dkit.geom.triangulate import normalized_points
@@ -228,7 +228,7 @@ class GTSAMSmoother:
                kpt: tuple[F64 | None, list[gtsam.PinholeCameraCal3_S2]],
                tuned: ProcessNoise, fps: float, start: gtsam.Values | F64 | None = None) -> ObjectSolution:
         """One object's graph: batched for box objects
-        (:func:`gt3dkit.fusion.gtsam_chain.solve_boxes`), GTSAM's nonlinear factors for keypoints,
+        (:func:`gt3dkit.fusion.graph.chain.solve_boxes`), GTSAM's nonlinear factors for keypoints,
         and for a box object whose batched graph GTSAM finds singular (its elimination of the
         stacked rows can be stricter than of the separate
         factors, as for an object only one camera ever sees)."""

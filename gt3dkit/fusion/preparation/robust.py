@@ -51,7 +51,7 @@ class RobustConfig:
     enabled : False = every weight 1 (plain least squares / plain UKF)
     cut_variance_ratio : a kind of box edge cut by nearer objects is left out when its median
         squared residual is at least this many times the kind's other edges'
-        (:mod:`gt3dkit.fusion.occlusion`)
+        (:mod:`gt3dkit.fusion.preparation.occlusion`)
     """
 
     huber_p: float = 1e-4
@@ -89,7 +89,7 @@ def point_weight(e2: float, c_thr: float, g_thr: float) -> float:
     """The weight in [0, 1] of a point whose squared leave-one-out score is ``e2``: 1 up to the
     threshold ``c_thr`` (in units of the score), Huber's ``c / e`` times a taper that reaches 0 at
     ``g_thr`` beyond it, 0 from there (NaN: 1). The one rule: the compiled update
-    (:mod:`gt3dkit.fusion.update`) calls it per point, :func:`point_weights` per array."""
+    (:mod:`gt3dkit.fusion.ukf.update`) calls it per point, :func:`point_weights` per array."""
     e = math.sqrt(max(0.0 if np.isnan(e2) else e2, 0.0))
     if e >= g_thr:
         return 0.0

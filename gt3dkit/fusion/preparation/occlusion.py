@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gt3dkit.fusion.boxfit import BoxFit, state_boxes
-from gt3dkit.fusion.rows import Rows
+from gt3dkit.fusion.preparation.boxfit import BoxFit, state_boxes
+from gt3dkit.fusion.preparation.rows import Rows
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.conics import cut_by
 from gt3dkit.types import B8, BOX_EDGES, F64, I64, JsonDict

@@ -1,6 +1,6 @@
 """The settings of the UKF (:class:`UKFConfig`): one frozen value, validated at construction,
-read by the filter (:mod:`gt3dkit.fusion.filtering`), the noise search (:mod:`gt3dkit.fusion.noise`)
-and the estimator (:mod:`gt3dkit.fusion.ukf_smoother`)."""
+read by the filter (:mod:`gt3dkit.fusion.ukf.filtering`), the noise search (:mod:`gt3dkit.fusion.ukf.noise`)
+and the estimator (:mod:`gt3dkit.fusion.ukf.smoother`)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from gt3dkit.fusion.robust import RobustConfig
+from gt3dkit.fusion.preparation.robust import RobustConfig
 
 
 @dataclass(frozen=True)
@@ -30,9 +30,9 @@ class UKFConfig:
     robust : down-weight / reject measurements the other views disagree with
     huber_p, reject_p : tail probabilities where down-weighting starts / rejection is total
     cut_variance_ratio : boxes: a kind of edge cut by nearer objects is left out when it varies
-        this many times as much as the kind's other edges (:mod:`gt3dkit.fusion.occlusion`)
+        this many times as much as the kind's other edges (:mod:`gt3dkit.fusion.preparation.occlusion`)
     bones : tie each person's bone lengths together (messages from the first pass's joints to
-        the final pass, :mod:`gt3dkit.fusion.bones`)
+        the final pass, :mod:`gt3dkit.fusion.ukf.bones`)
     bone_sd_m : sd of a bone's length about its fitted value; ``None`` = the spread of that
         bone's length over the first pass, at least ``bone_sd_floor_m``
     init_vel_sd_mps : initial velocity sd; init_canon_sd_m : initial sd of a joint placed
@@ -45,7 +45,7 @@ class UKFConfig:
     inflate : inflate covariances by the NIS per degree of freedom when above 1
     smooth : run the backward RTS pass
     search_linearised : boxes only: the noise search's passes use the boxes' regression about the
-        provisional smoothed estimate, fixed per row (:class:`gt3dkit.fusion.noise.LinearisedSearch`,
+        provisional smoothed estimate, fixed per row (:class:`gt3dkit.fusion.ukf.noise.LinearisedSearch`,
         a linear filter per value); ``False``: each pass re-linearises at every prediction
     """
 

@@ -1,4 +1,4 @@
-"""What one run of the UKF's filter returns (:func:`gt3dkit.fusion.filtering.run_filter`):
+"""What one run of the UKF's filter returns (:func:`gt3dkit.fusion.ukf.filtering.run_filter`):
 a typed result instead of a dictionary of arrays."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from gt3dkit.fusion.blockcov import BlockCov
+from gt3dkit.fusion.ukf.blockcov import BlockCov
 from gt3dkit.types import F64, JsonDict
 
 #: The fields that hold arrays (per row or entry), not counters or descriptions.
@@ -17,7 +17,7 @@ ARRAYS = ("x", "P", "nis", "dof", "loglik_rows", "weights", "score2", "residual"
 @dataclass(frozen=True)
 class FilterRun:
     """The rows' states ``x (R, n)`` and covariances ``P (R, n, n)`` (an array, or its blocks
-    where the run was split: :class:`gt3dkit.fusion.blockcov.BlockCov`; smoothed when the run
+    where the run was split: :class:`gt3dkit.fusion.ukf.blockcov.BlockCov`; smoothed when the run
     smoothed), per row the final update's normalised innovation square ``nis``, its degrees of
     freedom ``dof`` and log-likelihood ``loglik_rows`` ``(R,)`` (0 for rows not run), and, when
     the run collected them, per measurement entry the weights the final update used, each

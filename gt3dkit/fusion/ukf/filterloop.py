@@ -1,6 +1,6 @@
 r"""The filter loop, written once: forward along a chain of rows with fading and the gap's
-spread, then the RTS pass back, for the boxes' ellipsoid (:mod:`gt3dkit.fusion.boxupdate`, a
-chain per object) and for each joint (:mod:`gt3dkit.fusion.jointupdate`, a chain per person and
+spread, then the RTS pass back, for the boxes' ellipsoid (:mod:`gt3dkit.fusion.ukf.boxupdate`, a
+chain per object) and for each joint (:mod:`gt3dkit.fusion.ukf.jointupdate`, a chain per person and
 joint) alike.
 
 The loop reads and writes a chain's states only through its *steps*, each a compiled function of
@@ -13,13 +13,13 @@ index; the boxes need none) and the rows:
 ``predict(ctx, e, row, prev, f)`` row's prediction from ``prev``'s filtered state, the motion's
                            noise on position and velocity scaled by ``f`` (1: as it is)
 ``fades(ctx, e, row)``     whether the prediction is tested against the frame's own fit
-``fade(ctx, e, row)``      the fading factor (:func:`gt3dkit.fusion.kalman.fade_factor`)
+``fade(ctx, e, row)``      the fading factor (:func:`gt3dkit.fusion.ukf.kalman.fade_factor`)
 ``faded(ctx, e, row, f)``  the prediction's covariance widened by ``f`` (``f`` != 1) and
                            the row marked faded
 ``measured(ctx, e, row)``  whether the row has a measurement of this chain
 ``keep(ctx, e, row)``      the filtered state := the prediction (a row without measurements)
 ``update(ctx, e, row)``    the measurement update (its linearisation point, the iterated
-                           robust update of :mod:`gt3dkit.fusion.update`)
+                           robust update of :mod:`gt3dkit.fusion.ukf.update`)
 ``smooth(ctx, e, row, nxt)`` the RTS step of ``row`` from the smoothed ``nxt``
 ========================== =============================================================
 

@@ -7,14 +7,14 @@ small filter per joint (its position and velocity, 6 entries) and one for the el
 (but for when the iterated update stops: each part on its own, within the update's convergence
 tolerance); for 19 joints, 123-entry matrices (one inverse is 1.9 Mflop) become 20 small ones.
 :func:`run_joints` runs the ellipsoid's by the boxes' compiled chains
-(:func:`gt3dkit.fusion.boxupdate.run_boxes`; with
+(:func:`gt3dkit.fusion.ukf.boxupdate.run_boxes`; with
 keypoints alone nothing measures it and it stays the rows' initial state) and every joint's as a
 compiled chain along the person's rows, the joints of all persons dealt over
 :func:`gt3dkit.threads.compiled_threads` threads. The steps are the package's own: the prediction
-and RTS step of :mod:`gt3dkit.fusion.kalman`, the iterated robust update of
-:mod:`gt3dkit.fusion.update`; what is new here is the joint's sigma-point regression
+and RTS step of :mod:`gt3dkit.fusion.ukf.kalman`, the iterated robust update of
+:mod:`gt3dkit.fusion.ukf.update`; what is new here is the joint's sigma-point regression
 (:func:`point_regression`, the projection with distortion of :mod:`gt3dkit.geom.boxkernel`), the
-joint's steps in the one filter loop (:class:`JointChain`, :mod:`gt3dkit.fusion.filterloop`), its
+joint's steps in the one filter loop (:class:`JointChain`, :mod:`gt3dkit.fusion.ukf.filterloop`), its
 fading and linearisation point (:func:`_fade`, :func:`_linearisation`) and the bones'
 information (:func:`add_info`). The filter over the frame grid in ``tests/oracles_frames.py``
 (split or whole) is the reference the tests hold it to: the same result within the iterated
@@ -31,18 +31,18 @@ import numba
 import numpy as np
 
 from gt3dkit.arrays import contiguous
-from gt3dkit.fusion.blockcov import BlockCov
-from gt3dkit.fusion.boxupdate import object_chains, regress, run_boxes, sigma_points
-from gt3dkit.fusion.filterloop import Chains, backward_chain, forward_chain, register
-from gt3dkit.fusion.filterrun import FilterRun
-from gt3dkit.fusion.initial import Init, InitialCov
-from gt3dkit.fusion.kalman import fade_factor, predict_row, rts_row
 from gt3dkit.fusion.motion import SPACE, StateLayout, joint_step
-from gt3dkit.fusion.robust import RobustConfig, chi2_isf
-from gt3dkit.fusion.rowsmodel import RowsModel
-from gt3dkit.fusion.ukf import Block, Robust, SigmaWeights, block_columns
-from gt3dkit.fusion.ukf_config import UKFConfig
-from gt3dkit.fusion.update import (
+from gt3dkit.fusion.preparation.robust import RobustConfig, chi2_isf
+from gt3dkit.fusion.ukf.blockcov import BlockCov
+from gt3dkit.fusion.ukf.boxupdate import object_chains, regress, run_boxes, sigma_points
+from gt3dkit.fusion.ukf.config import UKFConfig
+from gt3dkit.fusion.ukf.filterloop import Chains, backward_chain, forward_chain, register
+from gt3dkit.fusion.ukf.filterrun import FilterRun
+from gt3dkit.fusion.ukf.initial import Init, InitialCov
+from gt3dkit.fusion.ukf.kalman import fade_factor, predict_row, rts_row
+from gt3dkit.fusion.ukf.rowsmodel import RowsModel
+from gt3dkit.fusion.ukf.sigma import Block, Robust, SigmaWeights, block_columns
+from gt3dkit.fusion.ukf.update import (
     Columns,
     Current,
     Measured,
@@ -75,7 +75,7 @@ class PointSigma(NamedTuple):
 
 class JointModel(NamedTuple):
     """What every joint's update shares: the sigma rule, the cameras (:class:`BoxRig` rows), the
-    ``2 C`` columns of a joint's views (:class:`gt3dkit.fusion.update.Columns`), the iterated
+    ``2 C`` columns of a joint's views (:class:`gt3dkit.fusion.ukf.update.Columns`), the iterated
     update's passes at most, whether it reweights, whether predictions fade and at which
     chi-square(3) ``limit``."""
 
@@ -251,7 +251,7 @@ def _solve3(A: F64, B: F64, X: F64) -> None:
 
 @numba.njit(cache=True, nogil=True)
 def update_joint(r: int, j: int, xl: F64, Pl: F64, data: JointData, jm: JointModel, out: JointOut) -> None:
-    """The iterated, robust update (:func:`gt3dkit.fusion.update.pass_row`) of joint ``j`` of row
+    """The iterated, robust update (:func:`gt3dkit.fusion.ukf.update.pass_row`) of joint ``j`` of row
     ``r`` from its prediction ``out.x_p, out.P_p``, the first pass linearised at ``xl, Pl``; then
     the bones' information; into ``out``."""
     C = data.z.shape[2]
@@ -292,7 +292,7 @@ def update_joint(r: int, j: int, xl: F64, Pl: F64, data: JointData, jm: JointMod
 
 
 class JointChain(NamedTuple):
-    """The joint kind's bundle for :mod:`gt3dkit.fusion.filterloop` (the element ``e`` of a step:
+    """The joint kind's bundle for :mod:`gt3dkit.fusion.ukf.filterloop` (the element ``e`` of a step:
     the chain's index into ``start``): the chains, the chains' starts, the joints' data and
     model, the outputs, and work arrays ``F, Q (6, 6)`` and the linearisation point ``xl (6,),
     Pl (6, 6)``."""
@@ -335,7 +335,7 @@ def _fades(ctx: JointChain, e: int, r: int) -> bool:
 
 @numba.njit(cache=True, nogil=True)
 def _fade(ctx: JointChain, e: int, r: int) -> float:
-    """:func:`gt3dkit.fusion.kalman.fade_factor` of the joint's prediction in row ``r`` against
+    """:func:`gt3dkit.fusion.ukf.kalman.fade_factor` of the joint's prediction in row ``r`` against
     the frame's own joint."""
     j, data, out = ctx.start.joint[e], ctx.data, ctx.out
     d = np.empty(SPACE)
@@ -422,7 +422,7 @@ def joint_chain(start: JointStart, chains: Chains, data: JointData, jm: JointMod
 
 @numba.njit(cache=True, nogil=True)
 def forward(chain: I64, ctx: JointChain) -> None:
-    """Forward filter (:func:`gt3dkit.fusion.filterloop.forward_chain`) of the chains ``chain``
+    """Forward filter (:func:`gt3dkit.fusion.ukf.filterloop.forward_chain`) of the chains ``chain``
     (indices into ``ctx.start``): each joint along its person's rows."""
     for k in chain:
         forward_chain(ctx, k, ctx.start.row[k])
@@ -430,7 +430,7 @@ def forward(chain: I64, ctx: JointChain) -> None:
 
 @numba.njit(cache=True, nogil=True)
 def backward(chain: I64, last: I64, ctx: JointChain) -> None:
-    """RTS smoother (:func:`gt3dkit.fusion.filterloop.backward_chain`) of the chains ``chain``
+    """RTS smoother (:func:`gt3dkit.fusion.ukf.filterloop.backward_chain`) of the chains ``chain``
     (indices into ``ctx.start``) from their persons' last rows ``last (K,)`` back:
     ``ctx.out.x, ctx.out.P`` filtered on entry, smoothed on exit."""
     for k in chain:
@@ -455,9 +455,9 @@ def point_sigma(alpha: float, beta: float, kappa: float, d: int = SPACE) -> Poin
 
 
 def joint_columns(C: int, robust: RobustConfig | None, d: int = SPACE) -> Columns:
-    """The :class:`gt3dkit.fusion.update.Columns` of one joint's ``2 C`` views (on its three
+    """The :class:`gt3dkit.fusion.ukf.update.Columns` of one joint's ``2 C`` views (on its three
     coordinates, or ``d = 6``: its position and velocity; points of two entries judged by
-    ``robust``, a :class:`gt3dkit.fusion.robust.RobustConfig`, or never reweighted: None)."""
+    ``robust``, a :class:`gt3dkit.fusion.preparation.robust.RobustConfig`, or never reweighted: None)."""
     blk = Block(np.arange(d)[None], np.arange(2 * C)[None], None)
     rule = Robust(robust, ((slice(0, 2 * C), 2),)) if robust is not None else None
     return block_columns([blk], 2 * C, rule)
@@ -470,7 +470,7 @@ def _per_joint(a: F64, R: int, C: int, J: int, at: int) -> F64:
 
 def boxes_part(model: RowsModel) -> RowsModel:
     """The boxes-only model of ``model``'s ellipsoid (its box columns, the state's first 9
-    entries): what :func:`gt3dkit.fusion.boxupdate.run_boxes` runs."""
+    entries): what :func:`gt3dkit.fusion.ukf.boxupdate.run_boxes` runs."""
     E = StateLayout(0).n
     mb = model.n_box_columns
     blocks = tuple(b for b in model.robust_blocks if b[0].stop <= mb)
@@ -484,7 +484,7 @@ def run_joints(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, collect
                fade: bool = True, on: np.ndarray | None = None, noise_rows: dict[str, F64] | None = None,
                covariances: bool = True, into: BlockCov | None = None) -> FilterRun:
     """The filter (and RTS) of a model with joints as compiled chains (the module doc): the
-    arguments and outputs of :func:`gt3dkit.fusion.filtering.run_filter`; ``covariances=False``
+    arguments and outputs of :func:`gt3dkit.fusion.ukf.filtering.run_filter`; ``covariances=False``
     leaves ``P`` out (``(R, 0, 0)``), ``into`` takes the covariances of the rows ``on`` (the others
     left as they are) and is the run's ``P``."""
     rows, lay = model.rows, model.layout

@@ -1,7 +1,7 @@
 """People from per-frame keypoint detections without identities (OpenPose, a COCO detector):
 :func:`associate_detections` groups each frame's detections across cameras by how well they
 triangulate, and links the groups over time; the result is an
-:class:`gt3dkit.fusion.associate.Association` like the tracklets' (``association.csv``)."""
+:class:`gt3dkit.fusion.preparation.associate.Association` like the tracklets' (``association.csv``)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gt3dkit.fusion.associate import Association, finish_association
+from gt3dkit.fusion.preparation.associate import Association, finish_association
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.triangulate import normalized_points, triangulate_dlt
 from gt3dkit.types import F64, I64, Observations, Scene
