@@ -10,7 +10,6 @@ import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -24,16 +23,28 @@ from gt3dkit.fusion.preparation.detections import SECOND_DETECTION, associate_de
 from gt3dkit.fusion.preparation.identity import Segments, identity_segments
 from gt3dkit.fusion.preparation.prepare import Prepared, prepare, undetermined_objects
 from gt3dkit.fusion.preparation.rows import Rows, build_rows
+from gt3dkit.fusion.ukf.bones import BoneSamples
 from gt3dkit.geom.camera import Cams
 from gt3dkit.io.clocks import CameraClocks, on_one_clock
 from gt3dkit.io.datasets import ASSOCIATED, checks, index_scene, read_scene
 from gt3dkit.io.results import read_result
 from gt3dkit.io.writers import ANOMALY_COLUMNS, read_keypoints_csv, read_segments_csv, write_outputs
 from gt3dkit.parse import read_csv_rows
-from gt3dkit.qa.anomalies import find_anomalies
+from gt3dkit.qa.anomalies import Anomalies, find_anomalies
 from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
 from gt3dkit.threads import small_matrix_blas
-from gt3dkit.types import BOX_MODELS, I64, JsonDict, JsonValue, OptionValue, Scene, TrackSet
+from gt3dkit.types import (
+    BOX_MODELS,
+    I64,
+    DenseSummary,
+    IdentitySummary,
+    JsonDict,
+    JsonValue,
+    OptionValue,
+    QASummary,
+    Scene,
+    TrackSet,
+)
 
 __all__ = ["ESTIMATORS", "annotation_qa", "load_run", "load_scene", "make_estimator", "reconstruct"]
 
@@ -243,7 +254,7 @@ def reconstruct(scene: Scene | str | Path, estimator: str | Estimator = "ukf",
 
 def estimate_checked(scene: Scene, est: Estimator, every_frame: int | None = None, qa: bool = True,
                      on_stage: Callable[[str], None] | None = None, pre: Prepared | None = None
-                     ) -> tuple[TrackSet, Any]:
+                     ) -> tuple[TrackSet, Anomalies | None]:
     """:func:`reconstruct`'s pipeline on a loaded scene without the writing: per-frame fits,
     identity segments, the estimator (``every_frame`` as there), and with ``qa`` the annotation
     QA (:func:`gt3dkit.qa.anomalies.find_anomalies`; else None). ``pre``: the estimator's own
@@ -266,10 +277,10 @@ def estimate_checked(scene: Scene, est: Estimator, every_frame: int | None = Non
         return tracks, None
     stage("annotation QA, writing")
     found = find_anomalies(sc, tracks, pre, splits=segs.splits, exchanges=segs.exchanges)
-    return tracks.with_info(qa={"anomalies": found.counts(), "file": "anomalies.csv"}), found
+    return tracks.with_info(qa=QASummary(found.counts())), found
 
 
-def process_noise_prepared(scene: Scene, est: Estimator) -> tuple[dict[str, float] | None, Any]:
+def process_noise_prepared(scene: Scene, est: Estimator) -> tuple[dict[str, float] | None, Prepared | None]:
     """The process noise ``est`` would choose for ``scene`` as :func:`estimate_checked` runs it
     (on the pieces of split ids), by the estimator's own ``process_noise`` without the rest of the
     estimate, and the preparation (per-frame fits) it was found on (None, None
@@ -286,7 +297,7 @@ def process_noise_prepared(scene: Scene, est: Estimator) -> tuple[dict[str, floa
 
 
 def bone_samples_checked(scene: Scene, est: Estimator, pre: Prepared | None = None
-                         ) -> tuple[Any | None, I64]:
+                         ) -> tuple[BoneSamples | None, I64]:
     """The first pass's bones (:class:`gt3dkit.fusion.ukf.bones.BoneSamples`, ``obj``: the input's
     ids) that :func:`estimate_checked` would tie ``scene``'s joints with, by the estimator's own
     ``bone_samples`` without the rest of the estimate (None when it ties no bones), and the ids
@@ -325,8 +336,8 @@ def take_rows(tracks: TrackSet, keep: np.ndarray) -> TrackSet:
         kpt_world=tracks.kpt_world[keep], kpt_sd=tracks.kpt_sd[keep])
 
 
-def estimate_scene(scene: Scene, est: Estimator, pre: Any | None, segs: Segments,
-                   dense: bool = False, split: tuple[Scene, Any, dict[int, tuple[int, int]]] | None = None
+def estimate_scene(scene: Scene, est: Estimator, pre: Prepared | None, segs: Segments,
+                   dense: bool = False, split: SplitScene | None = None
                    ) -> TrackSet:
     """``est``'s tracks of ``scene``, each piece of a split id (:mod:`gt3dkit.fusion.preparation.identity`)
     estimated as an object of its own; the tracks carry the input's ids, ``info.identity``
@@ -336,25 +347,30 @@ def estimate_scene(scene: Scene, est: Estimator, pre: Any | None, segs: Segments
     result, shared by several estimators (``gt3d compare``)."""
     tracks = _estimate_pieces(scene, est, pre, segs, split)
     if dense:
-        tracks = tracks.with_info(every_frame={
-            "frames": int(len(scene.frames)), "rows_interpolated": int(np.sum(tracks.n_views == 0)),
-            "note": "a row for every frame of the grid from each object's first to its last annotation; "
-                    "n_views 0 = no camera saw it there (interpolated by the motion model, its sd grows "
-                    "with the distance to the nearest view)"})
+        tracks = tracks.with_info(every_frame=DenseSummary(
+            int(len(scene.frames)), int(np.sum(tracks.n_views == 0)),
+            "a row for every frame of the grid from each object's first to its last annotation; "
+            "n_views 0 = no camera saw it there (interpolated by the motion model, its sd grows "
+            "with the distance to the nearest view)"))
     elif np.any(tracks.n_views == 0):
         tracks = take_rows(tracks, tracks.n_views > 0)  # info and downweighted carried over
     return tracks
 
 
-def split_scene(scene: Scene, pre: Prepared, segs: Segments) -> tuple[Scene, Any, dict[int, tuple[int, int]]]:
+#: The scene of an input's split ids' pieces, its preparation (None: the estimator makes its own) and
+#: each piece's id and segment by its own id (:func:`split_scene`).
+SplitScene = tuple[Scene, Prepared | None, dict[int, tuple[int, int]]]
+
+
+def split_scene(scene: Scene, pre: Prepared, segs: Segments) -> SplitScene:
     """The scene of the pieces (:func:`split_ids`), its preparation (:func:`prepare`'s defaults,
     as ``gt3d compare`` shares one) and the map back to the input's ids."""
     pieces, back = split_ids(scene, pre.rows, segs)
     return pieces, prepare(pieces), back
 
 
-def _estimate_pieces(scene: Scene, est: Estimator, pre: Any | None, segs: Segments,
-                     shared: tuple[Scene, Any, dict[int, tuple[int, int]]] | None) -> TrackSet:
+def _estimate_pieces(scene: Scene, est: Estimator, pre: Prepared | None, segs: Segments,
+                     shared: SplitScene | None) -> TrackSet:
     """:func:`estimate_scene` with every row the estimator gives."""
     if not segs.splits:
         tracks = est.estimate(scene, pre)
@@ -363,13 +379,12 @@ def _estimate_pieces(scene: Scene, est: Estimator, pre: Any | None, segs: Segmen
             pieces, back = split_ids(scene, (pre if pre is not None else prepare(scene)).rows, segs)
             shared = (pieces, None, back)
         tracks = restored_ids(est.estimate(shared[0], shared[1]), shared[2])
-    return tracks.with_info(identity={
-        "splits": len(segs.splits), "exchanges": len(segs.exchanges),
-        "speed_limit_mps": round(segs.speed_limit_mps, 3),
-        "rule": "an id is split between two consecutive frames its views place farther apart than "
-                "the scene's objects move (2x the 95th percentile of the ids' median speeds, at least "
-                "3 m/s, plus 4 sd); "
-                "each piece is estimated on its own (segments.csv, identity_split in anomalies.csv)"})
+    return tracks.with_info(identity=IdentitySummary(
+        len(segs.splits), len(segs.exchanges), round(segs.speed_limit_mps, 3),
+        "an id is split between two consecutive frames its views place farther apart than "
+        "the scene's objects move (2x the 95th percentile of the ids' median speeds, at least "
+        "3 m/s, plus 4 sd); "
+        "each piece is estimated on its own (segments.csv, identity_split in anomalies.csv)"))
 
 
 def split_ids(scene: Scene, rows: Rows, segs: Segments) -> tuple[Scene, dict[int, tuple[int, int]]]:
@@ -419,7 +434,7 @@ def restored_ids(tracks: TrackSet, back: dict[int, tuple[int, int]]) -> TrackSet
         for (i, s), a, b, n in zip(pieces, first, last, count, strict=True)])
 
 
-def annotation_qa(scene: Scene, tracks: TrackSet) -> Any:
+def annotation_qa(scene: Scene, tracks: TrackSet) -> Anomalies:
     """Every input annotation scored against ``tracks``, and every split id
     (:mod:`gt3dkit.fusion.preparation.identity`): :class:`gt3dkit.qa.anomalies.Anomalies`."""
     pre = prepare(scene)

@@ -118,7 +118,7 @@ def run_job(job: Job) -> JsonDict:
                 row["status"] = "done"
                 row["objects"] = len(set(tracks.track_id.tolist()))
                 row["object_frames"] = len(tracks)
-                qa = (tracks.info.qa or {}).get("anomalies", {})
+                qa = tracks.info.qa.anomalies if tracks.info.qa is not None else {}
                 row["anomalies"] = sum(qa.values())
             if job.report and (row["status"] == "done" or not (out / "report" / "index.html").is_file()):
                 write_report(out)

@@ -386,6 +386,46 @@ class RobustSummary:
 
 
 @dataclass(frozen=True)
+class QASummary:
+    """The annotation QA's findings (``meta.json``'s ``qa``): each kind's count, by kind's name, and
+    the file that lists them."""
+
+    anomalies: dict[str, int]
+    file: str = "anomalies.csv"
+
+    def as_json(self) -> JsonDict:
+        return {"anomalies": dict(self.anomalies), "file": self.file}
+
+
+@dataclass(frozen=True)
+class IdentitySummary:
+    """The identity check (``meta.json``'s ``identity``): the ids split and exchanged, the speed
+    past which a jump splits an id (m/s), and the rule."""
+
+    splits: int
+    exchanges: int
+    speed_limit_mps: float
+    rule: str
+
+    def as_json(self) -> JsonDict:
+        return {"splits": self.splits, "exchanges": self.exchanges, "speed_limit_mps": self.speed_limit_mps,
+                "rule": self.rule}
+
+
+@dataclass(frozen=True)
+class DenseSummary:
+    """A run with a row for every frame (``meta.json``'s ``every_frame``): the frame grid's frames,
+    the rows no camera saw (interpolated), and what that means."""
+
+    frames: int
+    rows_interpolated: int
+    note: str
+
+    def as_json(self) -> JsonDict:
+        return {"frames": self.frames, "rows_interpolated": self.rows_interpolated, "note": self.note}
+
+
+@dataclass(frozen=True)
 class WindowsSummary:
     """How a long sequence ran in windows (``meta.json``'s ``windows``): their count, frames each,
     the context around them, why they were sized so (None: given), how they were cut, each
@@ -411,6 +451,10 @@ class WindowsSummary:
         return out
 
 
+#: What a run reports besides its estimator's own diagnostics, each a frozen summary (RunInfo).
+SUMMARIES = (RobustSummary, QASummary, IdentitySummary, DenseSummary, WindowsSummary)
+
+
 @dataclass(frozen=True)
 class RunInfo:
     """What a run used and found (``meta.json``'s ``estimator`` object, :meth:`as_json`): the
@@ -434,10 +478,10 @@ class RunInfo:
     skipped_lt2_views: int | None = None
     robust: RobustSummary | None = None
     bones: JsonDict | None = None
-    every_frame: JsonDict | None = None
-    identity: JsonDict | None = None
+    every_frame: DenseSummary | None = None
+    identity: IdentitySummary | None = None
     segments: list[JsonDict] = field(default_factory=list)
-    qa: JsonDict | None = None
+    qa: QASummary | None = None
     windows: WindowsSummary | None = None
     details: JsonDict = field(default_factory=dict)
 
@@ -448,7 +492,7 @@ class RunInfo:
                     "skipped_lt2_views"):
             v = getattr(self, key)
             if v is not None:
-                out[key] = v.as_json() if isinstance(v, RobustSummary | WindowsSummary) else v
+                out[key] = v.as_json() if isinstance(v, SUMMARIES) else v
         if self.segments:
             out["segments"] = self.segments
         out["seconds"] = self.seconds

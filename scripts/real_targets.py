@@ -84,9 +84,9 @@ def run(path: Path, label: str) -> dict[str, dict[str, float]]:
         res[name] = evaluate(name, scene, tracks)
         res[name]["seconds"] = time.perf_counter() - t0
         if name == "ukf":
-            ident = (tracks.info.identity or {})
-            print(f"{'':14s} identity: {ident.get('splits', 0)} splits, speed limit "
-                  f"{ident.get('speed_limit_mps', float('nan'))} m/s")
+            ident = tracks.info.identity
+            print(f"{'':14s} identity: {ident.splits if ident else 0} splits, speed limit "
+                  f"{ident.speed_limit_mps if ident else float('nan')} m/s")
     return res
 
 

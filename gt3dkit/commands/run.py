@@ -108,7 +108,7 @@ def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | 
     rob = info.robust
     flagged = (f", {rob.rejected} measurements rejected and {rob.downweighted} "
                f"down-weighted (downweighted.csv)" if rob is not None and rob.enabled else "")
-    qa = (info.qa or {}).get("anomalies", {})
+    qa = info.qa.anomalies if info.qa is not None else {}
     flagged += (", anomalies: " + ", ".join(f"{v} {k}" for k, v in qa.items()) + " (anomalies.csv)"
                 if qa else ", no anomalies")
     win = info.windows

@@ -111,7 +111,7 @@ def write_tracks_csv(path: Path, tracks: TrackSet) -> None:
 
 
 def _dense(tracks: TrackSet) -> bool:
-    return bool(tracks.info.every_frame)
+    return tracks.info.every_frame is not None
 
 
 def _tracks_header(tracks: TrackSet) -> tuple[str, ...]:

@@ -27,7 +27,7 @@ from gt3dkit.fusion.ukf.config import UKFConfig
 from gt3dkit.io.writers import PartText
 from gt3dkit.qa.anomalies import Anomalies
 from gt3dkit.threads import roomy_malloc, small_matrix_blas
-from gt3dkit.types import I64, Downweighted, GroundTruth, Options, Scene, TrackSet, WindowsSummary
+from gt3dkit.types import I64, Downweighted, GroundTruth, Options, QASummary, Scene, TrackSet, WindowsSummary
 from gt3dkit.windows.plan import Plan, Window
 
 #: What a window's rows and findings go to as it finishes (:func:`reconstruct_windowed`): its index,
@@ -230,7 +230,7 @@ def stitch(parts: list[WindowPart], windows: list[Window], plan: Plan,
     info = dataclasses.replace(
         first, seconds=float(sum(t.info.seconds for t in ts)), object_frames=int(len(order)),
         robust=robust, segments=[s for t in ts for s in t.info.segments],
-        qa={"anomalies": qa.counts(), "file": "anomalies.csv"},
+        qa=QASummary(qa.counts()),
         windows=WindowsSummary(len(windows), plan.size, overlap, plan.why,
                                "equal object-frames" if plan.why else "equal frames",
                                [dataclasses.asdict(w) for w in windows], noise,

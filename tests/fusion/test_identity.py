@@ -56,7 +56,7 @@ def test_a_reused_id_is_split_and_every_row_follows_its_views(scene: Scene, esti
     assert len(ig) == len(scene.truth.frame)  # no object-frame left out
     err = np.linalg.norm(tracks.center_world[it, :2] - scene.truth.center_world[ig, :2], axis=1)
     assert err.max() < 0.1, err.max()
-    assert tracks.info.identity["splits"] == 1
+    assert tracks.info.identity.splits == 1
     assert [(s["id"], s["segment"],
              s["first_frame"]) for s in tracks.info.segments if s["id"] == a][1] == \
         (a, 1, at)
@@ -82,7 +82,7 @@ def test_compare_runs_the_pieces_reconstruct_runs(scene: Scene, tmp_path: Path) 
         alone = reconstruct(scene, name, out=tmp_path / name)
         mine = (tmp_path / name / "tracks.csv").read_text()
         assert (tmp_path / "cmp" / name / "tracks.csv").read_text() == mine, name
-        assert alone.info.identity["splits"] == 1
+        assert alone.info.identity.splits == 1
 
 
 @pytest.mark.parametrize("seed", [11, 12])

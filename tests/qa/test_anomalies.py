@@ -61,7 +61,7 @@ def test_shifted_box_and_a_mis_keyed_frame(tmp_path) -> None:
     after = [int(r["frame"]) for r in flags if r["kind"] == "identity_split" and int(r["id"]) == jid]
     assert len(after) == 2 and min(after) == jf  # ... and out of it
     assert len(flags) <= 5
-    assert tracks.info.identity["splits"] == 2
+    assert tracks.info.identity.splits == 2
     mine = tracks.track_id == jid
     r = np.flatnonzero(mine & (tracks.frame == jf))[0]
     assert np.linalg.norm(tracks.center_world[r, :2] - elsewhere[:2]) < 0.1  # where its views are
