@@ -14,7 +14,7 @@ Conventions
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, is_dataclass, replace
 from typing import Any, TypeAlias, overload
 
 import numpy as np
@@ -380,10 +380,6 @@ class RobustSummary:
     rejected: int
     rule: str
 
-    def as_json(self) -> JsonDict:
-        return {"enabled": self.enabled, "downweighted": self.downweighted, "rejected": self.rejected,
-                "rule": self.rule}
-
 
 @dataclass(frozen=True)
 class QASummary:
@@ -392,9 +388,6 @@ class QASummary:
 
     anomalies: dict[str, int]
     file: str = "anomalies.csv"
-
-    def as_json(self) -> JsonDict:
-        return {"anomalies": dict(self.anomalies), "file": self.file}
 
 
 @dataclass(frozen=True)
@@ -407,10 +400,6 @@ class IdentitySummary:
     speed_limit_mps: float
     rule: str
 
-    def as_json(self) -> JsonDict:
-        return {"splits": self.splits, "exchanges": self.exchanges, "speed_limit_mps": self.speed_limit_mps,
-                "rule": self.rule}
-
 
 @dataclass(frozen=True)
 class DenseSummary:
@@ -420,9 +409,6 @@ class DenseSummary:
     frames: int
     rows_interpolated: int
     note: str
-
-    def as_json(self) -> JsonDict:
-        return {"frames": self.frames, "rows_interpolated": self.rows_interpolated, "note": self.note}
 
 
 @dataclass(frozen=True)
@@ -449,10 +435,6 @@ class WindowsSummary:
         if self.bones_round_seconds is not None:
             out["bones_round_seconds"] = self.bones_round_seconds
         return out
-
-
-#: What a run reports besides its estimator's own diagnostics, each a frozen summary (RunInfo).
-SUMMARIES = (RobustSummary, QASummary, IdentitySummary, DenseSummary, WindowsSummary)
 
 
 @dataclass(frozen=True)
@@ -492,7 +474,9 @@ class RunInfo:
                     "skipped_lt2_views"):
             v = getattr(self, key)
             if v is not None:
-                out[key] = v.as_json() if isinstance(v, SUMMARIES) else v
+                # the flat summaries as their fields (meta.json's keys are the fields' names)
+                flat = is_dataclass(v) and not isinstance(v, WindowsSummary)
+                out[key] = v.as_json() if isinstance(v, WindowsSummary) else asdict(v) if flat else v
         if self.segments:
             out["segments"] = self.segments
         out["seconds"] = self.seconds

@@ -169,9 +169,10 @@ def point_regression(xj: F64, Pj: F64, meas: Measured, sig: PointSigma, rig: Box
         q = rig.cam[c]
         dt = seen_s[c] if d > SPACE else 0.0
         for s in range(S):
-            if dt != 0.0:
-                Z[s, 2 * c], Z[s, 2 * c + 1] = world_pixel(X[s, 0] + dt * X[s, 3], X[s, 1] + dt * X[s, 4],
-                                                           X[s, 2] + dt * X[s, 5], q)
+            if dt != 0.0:  # a joint's state: its position, then its velocity (SPACE entries each)
+                v = SPACE
+                Z[s, 2 * c], Z[s, 2 * c + 1] = world_pixel(X[s, 0] + dt * X[s, v], X[s, 1] + dt * X[s, v + 1],
+                                                           X[s, 2] + dt * X[s, v + 2], q)
             else:
                 Z[s, 2 * c], Z[s, 2 * c + 1] = world_pixel(X[s, 0], X[s, 1], X[s, 2], q)
     regress(X, Z, xj, dims, sig.Wm, sig.Wc, Pb, meas, 0, lin)
