@@ -69,7 +69,7 @@ class Triangulation:
             keep |= ok
             centre[ok], semi[ok] = fit.center_world[ok], np.exp(fit.log_axes[ok])
             sd[ok] = axis_sd(fit.cov[ok][:, :3, :3])
-            details["sigma_px"] = pre.info["boxes"]["sigma_px"]
+            details["sigma_px"] = pre.info.boxes.sigma_px if pre.info.boxes is not None else None
         if pre.kpt0 is not None and pre.kpt0_cov is not None:
             kpt = pre.kpt0
             kpt_sd = largest_sd(pre.kpt0_cov)
@@ -79,8 +79,8 @@ class Triangulation:
             c2, s2, d2 = ellipsoid_around(kpt, kpt_sd, cams.world_from_body)
             centre[nobox], semi[nobox], sd[nobox] = c2[nobox], s2[nobox], d2[nobox]
             keep |= has
-            details["kpt_sigma_px"] = pre.info["keypoints"]["sigma_px"]
-        details["preparation"] = pre.info
+            details["kpt_sigma_px"] = pre.info.keypoints.sigma_px if pre.info.keypoints is not None else None
+        details["preparation"] = pre.info.as_json()
         k = np.flatnonzero(keep)
         info = RunInfo(self.name, dict(self.config.__dict__), time.perf_counter() - t0,
                        object_frames=int(k.size), skipped_lt2_views=int(R - k.size), details=details)

@@ -161,7 +161,7 @@ def test_a_long_recording_is_judged_on_a_sample_first(tmp_path, cut: bool, monke
     sampled = prepare(scene)
     monkeypatch.setattr(occlusion, "CUT_SAMPLE_FRAMES", 10**9)
     whole = prepare(scene)
-    found = [sum(p.info["boxes"]["cut_edges"]["found"].values()) for p in (sampled, whole)]
+    found = [sum(p.info.boxes.cut_edges["found"].values()) for p in (sampled, whole)]  # type: ignore[union-attr,index]
     if cut:
         assert sampled.box_cut is not None and np.array_equal(sampled.box_cut, whole.box_cut)
         assert found[0] == found[1]

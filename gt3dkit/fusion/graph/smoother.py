@@ -157,14 +157,14 @@ class GTSAMSmoother:
                                                  _keypoint_cameras(gtsam, pre), noise, scene.fps)
         centre, semi, c_sd, kpt, kpt_sd = _assembled(pre, x0, results)
         cfg = self.config
-        use_box = pre.use_box
+        boxes, kpts = pre.info.boxes if pre.use_box else None, pre.info.keypoints
         stats = {"iterations": sum(r.iterations for r in results),
                  "final_error": sum((r.final_error for r in results), 0.0),
                  "factors": sum(r.factors for r in results)}
         params: JsonDict = {**asdict(cfg),
-                            "sigma_px": pre.info["boxes"]["sigma_px"] if use_box else None,
-                            "sigma_px_core": pre.info["boxes"]["sigma_px_core"] if use_box else None,
-                            "kpt_sigma_px": pre.info.get("keypoints", {}).get("sigma_px"),
+                            "sigma_px": boxes.sigma_px if boxes is not None else None,
+                            "sigma_px_core": boxes.sigma_px_core if boxes is not None else None,
+                            "kpt_sigma_px": kpts.sigma_px if kpts is not None else None,
                             **tuned.as_dict(), "fps": scene.fps}
         details: JsonDict = {
             "process_noise_source": tuned.source,
@@ -172,7 +172,7 @@ class GTSAMSmoother:
             "motion_loss": f"Huber k={cfg.huber_k}" if cfg.robust_motion else "Gaussian",
             "process_noise_moment_estimate": noise.tuned.as_dict(),
             "process_noise_discrepancy": checks,
-            "preparation": pre.info,
+            "preparation": pre.info.as_json(),
             "optimizer": "Gauss-Newton, line search (GTSAM), one graph per object", **stats}
         info = RunInfo(self.name, params, time.perf_counter() - t0, object_frames=len(pre.rows),
                        details=details)

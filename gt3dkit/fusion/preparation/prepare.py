@@ -31,6 +31,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.fusion.motion import StateLayout
 from gt3dkit.fusion.preparation.boxfit import PERSON_SEMI_AXES_M, BoxFit, fit_boxes
 from gt3dkit.fusion.preparation.confidence import INVERSE, ConfidenceCurve, group_variances, learn_curve
+from gt3dkit.fusion.preparation.levels import BoxLevels, KeypointLevels, PreparationSummary
 from gt3dkit.fusion.preparation.occlusion import CutEdges, cut_edges_of
 from gt3dkit.fusion.preparation.robust import (
     RobustConfig,
@@ -43,7 +44,7 @@ from gt3dkit.fusion.preparation.rows import Rows, build_rows
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.triangulate import normalized_points, robust_triangulate, triangulation_cov
 from gt3dkit.skeletons import SKELETONS, Skeleton, skeleton_for
-from gt3dkit.types import BOX_EDGES, F64, I64, JsonDict, Scene
+from gt3dkit.types import BOX_EDGES, F64, I64, Scene
 
 #: Smallest confidence used as a weight (``sigma^2 / conf``: at most 7x the sd).
 CONF_FLOOR = 0.02
@@ -76,7 +77,7 @@ class Prepared:
         views kept, or two views and nothing rejected): with two views left after a
         rejection, a wrong point along the other's epipolar line looks consistent
     sigma_box : (4,) box-edge noise per edge kind (px): the typical edge's, what the filters
-        weight an edge by; box_tail : the variance ratio of all edges (``info["boxes"]["sigma_px"]``,
+        weight an edge by; box_tail : the variance ratio of all edges (``info.boxes.sigma_px``,
         heavy-tailed by the model's misfit) to it, >= 1: tests and flags are made at that level;
         sigma_kpt : (J,) keypoint noise per joint (px)
     kpt_var : (R, C, J) each keypoint's variance (px^2) = sigma_kpt[j]^2 / confidence
@@ -104,7 +105,7 @@ class Prepared:
     shape_prior: ShapePrior
     skeleton: Skeleton | None
     robust: RobustConfig
-    info: JsonDict = field(default_factory=dict)
+    info: PreparationSummary = field(default_factory=PreparationSummary)
     box_tail: float = 1.0
     box_cut: np.ndarray | None = None  # (R, C, 4) edges a nearer object cut, left out (.occlusion)
     box_cut_by: np.ndarray | None = None  # (R, C, 4) the row of a nearer object each lies in, else -1
@@ -189,7 +190,8 @@ def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = Non
     J = scene.obs.n_joints
     use_box = bool(np.isfinite(rows.box_z).any())
     use_kpt = J > 0 and bool(np.isfinite(rows.kpt_z).any())
-    info: JsonDict = {}
+    boxes_found: BoxLevels | None = None
+    kpts_found: KeypointLevels | None = None
     skel = None
     if J:
         skel = SKELETONS[scene.skeleton] if scene.skeleton else skeleton_for(J)
@@ -200,8 +202,8 @@ def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = Non
     cuts = None
     prior = ShapePrior(np.log(PERSON_SEMI_AXES_M), np.full(3, 0.25), "person size (no boxes)")
     if use_box:
-        fit, box_keep, sigma_box, prior, binfo, cuts = _robust_box_fits(scene, rows, cams, robust, sigma_px)
-        info["boxes"] = binfo
+        fit, box_keep, sigma_box, prior, boxes_found, cuts = _robust_box_fits(scene, rows, cams, robust,
+                                                                              sigma_px)
         views = rows.box_mask.any(axis=2)
         whole = (views & np.all(box_keep | ~rows.box_mask, axis=2)).sum(axis=1)
         none_rejected = ~np.any(rows.box_mask & ~box_keep, axis=(1, 2))
@@ -212,22 +214,21 @@ def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = Non
     sigma_kpt = np.ones(J)
     kpt_var = np.ones((len(rows), len(cams.K), J))
     if use_kpt:
-        kpt0, kpt0_cov, kpt_keep, sigma_kpt, curve, kinfo = _robust_keypoints(scene, rows, cams, robust,
-                                                                              kpt_sigma_px)
+        kpt0, kpt0_cov, kpt_keep, sigma_kpt, curve, kpts_found = _robust_keypoints(scene, rows, cams, robust,
+                                                                                   kpt_sigma_px)
         n_in = kpt_keep.sum(axis=1)
         n_seen = np.isfinite(rows.kpt_z[..., 0]).sum(axis=1)
         kpt_reliable = np.isfinite(kpt0[..., 0]) & ((n_in >= 3) | ((n_in == 2) & (n_seen == 2)))
         conf = np.maximum(rows.kpt_conf, CONF_FLOOR)
         kpt_var = sigma_kpt[None, None, :] ** 2 * curve(conf)
-        info["keypoints"] = kinfo
         if not use_box:
             prior = ShapePrior(np.log(PERSON_SEMI_AXES_M), np.full(3, 0.25),
                                "person size around the joints")
             _check_determined(scene, rows, kpt0)
     return Prepared(rows, cams, StateLayout(J if use_kpt else 0), use_box, use_kpt, fit, box_keep,
                     reliable, kpt0, kpt0_cov, kpt_keep, kpt_reliable, sigma_box, sigma_kpt,
-                    kpt_var, prior, skel, robust, info,
-                    box_tail=float(info["boxes"]["tail_variance_ratio"]) if use_box else 1.0,
+                    kpt_var, prior, skel, robust, PreparationSummary(boxes_found, kpts_found),
+                    box_tail=float(boxes_found.tail_variance_ratio) if boxes_found is not None else 1.0,
                     box_cut=cuts.dropped if cuts is not None else None,
                     box_cut_by=np.where(cuts.dropped, cuts.by, -1) if cuts is not None else None)
 
@@ -339,7 +340,7 @@ def _shape_prior(fit: BoxFit, views: np.ndarray) -> ShapePrior:
 
 def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
                      sigma_px: float | None
-                     ) -> tuple[BoxFit, np.ndarray, F64, ShapePrior, JsonDict, CutEdges | None]:
+                     ) -> tuple[BoxFit, np.ndarray, F64, ShapePrior, BoxLevels, CutEdges | None]:
     """Per-frame box fits weighted by per-edge noise; edges rejected by their leave-one-out
     score; edges cut by a nearer object left out where they mislead (``rows.box_mask`` updated;
     the last value: the cut edges where some were left out, or None); shape prior for weakly
@@ -396,25 +397,23 @@ def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
     core = float(sig[0]) if sigma_px is not None else _core_sigma(fit, keep)
     core = min(core, float(sig[0])) if np.isfinite(core) else float(sig[0])
     tail = (float(sig[0]) / core) ** 2
-    info = {"box_model": scene.box_model, "box_model_median_residual_px": scene.box_model_px,
-            "sigma_px": float(sig[0]), "sigma_px_core": core, "tail_variance_ratio": tail,
-            "sigma_px_per_edge_kind": dict(zip(BOX_EDGES, _edge_sigmas(fit, keep, robust)[1].round(4)
-                                               .tolist(), strict=True)),
-            "sigma_source": "given" if sigma_px is not None else
-            "robust residual level of the per-frame fits (kept edges, with dof); the filters weight "
-            "each edge by sigma_px_core (the median edge's level) and test it against sigma_px",
-            "edges_rejected_per_frame": int((rows.box_mask & ~keep).sum()),
-            "cut_edges": cuts.as_json() if cuts is not None else None,
-            "edges_usable": int(rows.box_mask.sum()),
-            "shape_prior": {"semi_axes_m": np.exp(prior.mean).round(4).tolist(),
-                            "log_sd": prior.sd.round(4).tolist(), "source": prior.source}}
+    info = BoxLevels(
+        scene.box_model, scene.box_model_px, float(sig[0]), core, tail,
+        dict(zip(BOX_EDGES, _edge_sigmas(fit, keep, robust)[1].round(4).tolist(), strict=True)),
+        "given" if sigma_px is not None else
+        "robust residual level of the per-frame fits (kept edges, with dof); the filters weight "
+        "each edge by sigma_px_core (the median edge's level) and test it against sigma_px",
+        int((rows.box_mask & ~keep).sum()), cuts.as_json() if cuts is not None else None,
+        int(rows.box_mask.sum()),
+        {"semi_axes_m": np.exp(prior.mean).round(4).tolist(), "log_sd": prior.sd.round(4).tolist(),
+         "source": prior.source})
     left_out = cuts if cuts is not None and cuts.dropped.any() else None
     return fit, keep, np.full(4, core), prior, info, left_out
 
 
 def _robust_keypoints(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
                       kpt_sigma_px: float | None
-                      ) -> tuple[F64, F64, np.ndarray, F64, ConfidenceCurve, JsonDict]:
+                      ) -> tuple[F64, F64, np.ndarray, F64, ConfidenceCurve, KeypointLevels]:
     """Per-frame robust triangulation of every joint, per-joint noise, input checks."""
     R, C, J = rows.kpt_z.shape[:3]
     obs = np.swapaxes(rows.kpt_z, 1, 2).reshape(R * J, C, 2)
@@ -463,11 +462,12 @@ def _robust_keypoints(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig
     cov = cov * disagreement_scale(chi, 2 * n_in - 3)[:, None, None]
     cov[~np.all(np.isfinite(X), axis=1)] = np.inf
     kept = np.swapaxes(keep.reshape(R, J, C), 1, 2)
-    info = {"sigma_px": sig, "sigma_px_per_joint": sig_j.round(4).tolist(),
-            "sigma_source": "given" if kpt_sigma_px is not None else
-            "robust reprojection level of the per-frame triangulation (kept points, with dof)",
-            "points": int(seen.sum()), "points_rejected_per_frame": int((seen & ~keep).sum()),
-            "confidence": curve.info() if scene.obs.kpt_conf is not None else "none given"}
+    info = KeypointLevels(
+        sig, sig_j.round(4).tolist(),
+        "given" if kpt_sigma_px is not None else
+        "robust reprojection level of the per-frame triangulation (kept points, with dof)",
+        int(seen.sum()), int((seen & ~keep).sum()),
+        curve.info() if scene.obs.kpt_conf is not None else "none given")
     return (X.reshape(R, J, 3), cov.reshape(R, J, 3, 3), kept, sig_j, curve, info)
 
 

@@ -179,9 +179,10 @@ class UKFSmoother:
         robust = RobustSummary(bool(cfg.robust), int(np.sum(down.weight > 0)), int(np.sum(down.weight == 0)),
                                "leave-one-out score against prior + other views; weight 1 below the "
                                f"chi-square tail probability {cfg.huber_p:g}, 0 beyond {cfg.reject_p:g}")
-        params: JsonDict = {**asdict(cfg), "sigma_px": pre.info["boxes"]["sigma_px"] if pre.use_box else None,
-                            "sigma_px_core": pre.info["boxes"]["sigma_px_core"] if pre.use_box else None,
-                            "kpt_sigma_px": pre.info.get("keypoints", {}).get("sigma_px"),
+        boxes, kpts = pre.info.boxes if pre.use_box else None, pre.info.keypoints
+        params: JsonDict = {**asdict(cfg), "sigma_px": boxes.sigma_px if boxes is not None else None,
+                            "sigma_px_core": boxes.sigma_px_core if boxes is not None else None,
+                            "kpt_sigma_px": kpts.sigma_px if kpts is not None else None,
                             "fps": scene.fps}
         details: JsonDict = {
             **run.summary(),
@@ -195,8 +196,8 @@ class UKFSmoother:
                         "accelerates)"},
             "noise_search": search,
             "noise_source": {
-                "sigma_px": pre.info.get("boxes", {}).get("sigma_source"),
-                "kpt_sigma_px": pre.info.get("keypoints", {}).get("sigma_source"),
+                "sigma_px": pre.info.boxes.sigma_source if pre.info.boxes is not None else None,
+                "kpt_sigma_px": kpts.sigma_source if kpts is not None else None,
                 "process": ("given" if self.config.accel_sd and (self.config.joint_accel_sd
                                                                   or not pre.use_kpt)
                             else "max likelihood of the forward pass: log-spaced scan, then "
@@ -204,7 +205,7 @@ class UKFSmoother:
             "measurements": {"boxes": pre.use_box, "keypoints": pre.use_kpt,
                              "skeleton": pre.skeleton.name if pre.use_kpt and pre.skeleton
                              else None},
-            "preparation": pre.info,
+            "preparation": pre.info.as_json(),
         }
         info = RunInfo(self.name, params, time.perf_counter() - t0, robust=robust,
                        bones=bone_info or None, details=details)
