@@ -21,6 +21,7 @@ from gt3dkit.fusion.preparation.associate import apply_association, associate, r
 from gt3dkit.fusion.preparation.boxfit import choose_box_model
 from gt3dkit.fusion.preparation.detections import SECOND_DETECTION, associate_detections
 from gt3dkit.fusion.preparation.identity import Segments, identity_segments
+from gt3dkit.fusion.preparation.pieces import pieces_prepared
 from gt3dkit.fusion.preparation.prepare import Prepared, prepare, undetermined_objects
 from gt3dkit.fusion.preparation.rows import Rows, build_rows
 from gt3dkit.fusion.ukf.bones import BoneSamples
@@ -366,7 +367,7 @@ def split_scene(scene: Scene, pre: Prepared, segs: Segments) -> SplitScene:
     """The scene of the pieces (:func:`split_ids`), its preparation (:func:`prepare`'s defaults,
     as ``gt3d compare`` shares one) and the map back to the input's ids."""
     pieces, back = split_ids(scene, pre.rows, segs)
-    return pieces, prepare(pieces), back
+    return pieces, pieces_prepared(pre, pieces, back), back
 
 
 def _estimate_pieces(scene: Scene, est: Estimator, pre: Prepared | None, segs: Segments,
@@ -375,9 +376,10 @@ def _estimate_pieces(scene: Scene, est: Estimator, pre: Prepared | None, segs: S
     if not segs.splits:
         tracks = est.estimate(scene, pre)
     else:
-        if shared is None:  # the estimator prepares the pieces itself
-            pieces, back = split_ids(scene, (pre if pre is not None else prepare(scene)).rows, segs)
-            shared = (pieces, None, back)
+        if shared is None:  # the pieces' preparation is the whole's (one preparation a run)
+            whole = pre if pre is not None else est.prepare(scene)
+            pieces, back = split_ids(scene, whole.rows, segs)
+            shared = (pieces, pieces_prepared(whole, pieces, back), back)
         tracks = restored_ids(est.estimate(shared[0], shared[1]), shared[2])
     return tracks.with_info(identity=IdentitySummary(
         len(segs.splits), len(segs.exchanges), round(segs.speed_limit_mps, 3),

@@ -430,7 +430,8 @@ def write_scene(sim: SimScene, out: Path, layout: str, id_seed: int | None = 0) 
     if layout not in WRITE_LAYOUTS:
         raise ValueError(f"unknown layout {layout!r}")
     writer = LAYOUTS[layout].write_boxes
-    assert writer is not None
+    if writer is None:
+        raise ValueError(f"the {layout} layout has no writer of box scenes")
 
     def write(tmp: Path) -> None:
         write_truth_csv(sim, tmp / "truth.csv")

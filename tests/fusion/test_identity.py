@@ -10,11 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gt3dkit.api import estimate_scene, reconstruct
+from gt3dkit.api import estimate_scene, reconstruct, split_ids
 from gt3dkit.compare import compare
 from gt3dkit.eval.metrics import match_rows
 from gt3dkit.fusion.base import make_estimator
 from gt3dkit.fusion.preparation.identity import identity_segments
+from gt3dkit.fusion.preparation.pieces import pieces_prepared, row_sources
 from gt3dkit.fusion.preparation.prepare import prepare
 from gt3dkit.sim import Errors
 from gt3dkit.types import GroundTruth, Scene
@@ -195,3 +196,27 @@ def test_an_edited_segments_file_overrides_the_splits(tmp_path: Path,
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"error: {edited}: line 3: id {a}: frames 10-30 overlap"), err
     assert not (tmp_path / "bad").exists()
+
+
+def test_the_pieces_preparation_is_the_whole_ones_at_their_rows(scene: Scene) -> None:
+    """The pieces' preparation taken from the whole scene's (one preparation a run) agrees with the
+    pieces prepared anew (brute force): the same object-frames, fits, kept edges, noise levels and
+    per-frame states, to the fits' convergence."""
+    whole = prepare(scene)
+    segs = identity_segments(whole, scene.fps)
+    pieces, back = split_ids(scene, whole.rows, segs)
+    taken, anew = pieces_prepared(whole, pieces, back), prepare(pieces)
+    assert len(taken.rows) == len(anew.rows) <= len(whole.rows)  # a gap between the pieces has no row
+    np.testing.assert_array_equal(taken.rows.obs_row, anew.rows.obs_row)
+    np.testing.assert_array_equal(taken.rows.box_mask, anew.rows.box_mask)
+    np.testing.assert_array_equal(taken.box_keep, anew.box_keep)
+    np.testing.assert_allclose(taken.sigma_box, anew.sigma_box, rtol=1e-12)
+    assert taken.fit is not None and anew.fit is not None
+    np.testing.assert_allclose(taken.fit.center_world, anew.fit.center_world, atol=1e-6)
+    for a, b in zip(taken.frame_state(), anew.frame_state(), strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-6, rtol=1e-6)
+    input_id = np.array([back.get(int(i), (int(i), 0))[0] for i in taken.rows.obj_ids])
+    src = row_sources(whole.rows, taken.rows, input_id)
+    assert (src >= 0).all()
+    np.testing.assert_array_equal(whole.rows.frames[whole.rows.row_t[src]],
+                                  taken.rows.frames[taken.rows.row_t])

@@ -278,7 +278,8 @@ def downweighted_of(model: Model, run: FilterRun) -> Downweighted:
     rows = model.rows
     J = model.layout.n_joints
     W, S2, RES = run.weights, run.score2, run.residual
-    assert W is not None and S2 is not None and RES is not None
+    if W is None or S2 is None or RES is None:
+        raise ValueError("downweighted_of needs a run that collected its weights (collect=True)")
     parts: list[tuple[np.ndarray, ...]] = []
     for sl, d in model.robust_blocks:
         w = W[:, sl][:, ::d]

@@ -1,0 +1,57 @@
+"""The preparation of a scene whose split ids' pieces were given ids of their own
+(:func:`gt3dkit.api.split_ids`), taken from the whole scene's instead of made again: the pieces
+hold the same object-frames with the same views, so their per-frame fits, kept edges and points,
+noise levels and shape prior are the whole's (one preparation a run). Only the rows are laid out
+anew (a piece's rows are its own span; the frames between two pieces of an id, where no camera
+saw it, have no row), and what is made from each object's own frames (the per-frame states of
+:meth:`Prepared.frame_state`) is made again from the pieces' rows.
+"""
+
+from __future__ import annotations
+
+from dataclasses import fields, replace
+
+import numpy as np
+
+from gt3dkit.arrays import lookup_rows
+from gt3dkit.fusion.preparation.boxfit import BoxFit
+from gt3dkit.fusion.preparation.prepare import Prepared
+from gt3dkit.fusion.preparation.rows import Rows, build_rows
+from gt3dkit.types import I64, Scene
+
+
+def row_sources(whole: Rows, pieces: Rows, input_id: I64) -> I64:
+    """``(R_pieces,)`` the whole scene's row of each of the pieces' rows (the same frame and the
+    input's id: ``input_id (O_pieces,)`` each piece's input id), -1 where there is none."""
+    return lookup_rows(np.c_[whole.row_t, whole.obj_ids[whole.row_o]],
+                       np.c_[pieces.row_t, input_id[pieces.row_o]])
+
+
+def pieces_prepared(pre: Prepared, pieces: Scene, back: dict[int, tuple[int, int]]) -> Prepared:
+    """``pre``, the whole scene's preparation, for ``pieces`` (:func:`gt3dkit.api.split_ids`'s
+    scene, ``back`` its map from a piece's id to the input's id and the piece): every per-row
+    array taken at the pieces' rows (the rows' usable edges as the whole's preparation left them:
+    the border's and the cut ones out), the rest as it is."""
+    rows = build_rows(pieces)
+    input_id = np.array([back.get(int(i), (int(i), 0))[0] for i in rows.obj_ids], dtype=np.int64)
+    src = row_sources(pre.rows, rows, input_id)
+    if (src < 0).any():  # a piece's row the whole has not: not a split of this scene
+        raise ValueError("pieces_prepared: the pieces hold an object-frame the whole scene has not")
+    rows = replace(rows, box_mask=pre.rows.box_mask[src])
+    new_of = np.full(len(pre.rows), -1, np.int64)
+    new_of[src] = np.arange(len(src))
+
+    def take(a: np.ndarray | None) -> np.ndarray | None:
+        return None if a is None else a[src]
+
+    fit = pre.fit
+    if fit is not None:
+        fit = BoxFit(**{f.name: getattr(fit, f.name)[src] for f in fields(BoxFit)})
+    cut_by = None
+    if pre.box_cut_by is not None:
+        by = pre.box_cut_by[src]
+        cut_by = np.where(by >= 0, new_of[np.maximum(by, 0)], -1)
+    return replace(pre, rows=rows, fit=fit, box_keep=pre.box_keep[src], fit_reliable=pre.fit_reliable[src],
+                   kpt0=take(pre.kpt0), kpt0_cov=take(pre.kpt0_cov), kpt_keep=pre.kpt_keep[src],
+                   kpt_reliable=pre.kpt_reliable[src], kpt_var=pre.kpt_var[src], box_cut=take(pre.box_cut),
+                   box_cut_by=cut_by)
