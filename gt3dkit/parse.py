@@ -4,6 +4,7 @@ naming the file and the entry. Used by every reader (annotations, calibrations, 
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import hashlib
 import io
@@ -60,6 +61,74 @@ def load_toml(path: Path) -> dict[str, Any]:
         raise InputError(str(path), f"malformed TOML ({e})") from None
     except (OSError, UnicodeDecodeError) as e:
         raise InputError(str(path), f"cannot read ({e})") from None
+
+
+class _HashingRaw(io.RawIOBase):
+    """A raw binary file whose bytes are hashed as they are first read (a byte read again after a
+    seek back is not hashed twice)."""
+
+    def __init__(self, raw: io.FileIO) -> None:
+        self.raw, self.h, self.upto = raw, hashlib.sha256(), 0
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        return self.raw.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self.raw.tell()
+
+    def readinto(self, b: bytearray | memoryview) -> int:  # type: ignore[override]
+        at = self.raw.tell()
+        n = self.raw.readinto(b) or 0
+        if at <= self.upto < at + n:
+            self.h.update(memoryview(b)[self.upto - at:n])
+            self.upto = at + n
+        return n
+
+    def close(self) -> None:
+        self.raw.close()
+        super().close()
+
+
+class HashedFile:
+    """A file opened once for a reader that streams it, its SHA-256 taken from the reads that parse
+    it (:meth:`hexdigest` reads what they left). A context manager; the CSV readers take it as
+    ``shared`` (:func:`iter_csv_blocks`, :func:`iter_csv_rows`) in place of opening ``path``."""
+
+    def __init__(self, path: Path) -> None:
+        try:
+            raw = open(path, "rb", buffering=0)  # noqa: SIM115 (closed by close())
+        except OSError as e:
+            raise InputError(str(path), f"cannot read ({e.strerror})") from None
+        self.path = Path(path)
+        self._raw = _HashingRaw(raw)
+        self.file = io.BufferedReader(self._raw)
+
+    def at(self, offset: int) -> io.BufferedReader:
+        """The open file, at byte ``offset``."""
+        self.file.seek(offset)
+        return self.file
+
+    def hexdigest(self) -> str:
+        """The file's SHA-256: what the reads hashed and the rest, read now."""
+        self.file.seek(self._raw.upto)
+        try:
+            while self.file.read(1 << 20):
+                pass
+        except OSError as e:
+            raise InputError(str(self.path), f"cannot read ({e.strerror})") from None
+        return self._raw.h.hexdigest()
+
+    def __enter__(self) -> HashedFile:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.file.close()
 
 
 def read_hashed(path: Path) -> tuple[bytes, str]:
@@ -206,7 +275,8 @@ class CsvBlock:
 
 
 def iter_csv_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | None = None,
-                    size: int = 65536, kinds: str = "") -> Iterator[CsvBlock]:
+                    size: int = 65536, kinds: str = "", shared: HashedFile | None = None
+                    ) -> Iterator[CsvBlock]:
     """:func:`iter_csv_rows` (a header) in blocks (:class:`CsvBlock`), for readers that check a
     block at once with numpy and fall back to the row-by-row checks only for a block that fails
     them. The same checks of the header and of every row's field count. ``kinds``: the leading
@@ -219,30 +289,35 @@ def iter_csv_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | 
     in every row; a chunk it refuses is read as text. The rest of a file, from its first stretch
     that is not plain, is read by ``csv.reader`` in blocks of up to ``size`` rows, one loop per
     block (not a generator per row: a 3.6-million-row file read in 4 s, not 8). A 712 798-row
-    ``keypoints.csv`` parsed in 0.4 s against 2.6 s as text."""
+    ``keypoints.csv`` parsed in 0.4 s against 2.6 s as text. ``shared``: the file already open
+    (:class:`HashedFile`: read through it, not opened again)."""
     if not kinds:
-        return _text_blocks(path, columns, warnings, size)
-    return _chunked_blocks(path, columns, warnings, size, kinds)
+        return _text_blocks(path, columns, warnings, size, shared=shared)
+    return _chunked_blocks(path, columns, warnings, size, kinds, shared)
 
 
 def _text_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | None, size: int,
-                 width: int = 0, line: int = 1, offset: int = 0) -> Iterator[CsvBlock]:
+                 width: int = 0, line: int = 1, offset: int = 0, shared: HashedFile | None = None
+                 ) -> Iterator[CsvBlock]:
     """:func:`iter_csv_blocks` read by ``csv.reader``; from byte ``offset`` on (line ``line``,
     rows of ``width`` fields) where it is not 0."""
     blocks = _read_csv(path, lambda reader: _record_blocks(path, columns, warnings, reader, size, width,
-                                                           line - 1), offset, line - 1)
+                                                           line - 1), offset, line - 1, shared)
     return (CsvBlock(lines, rows) for lines, rows in blocks)
 
 
 def _chunked_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | None, size: int,
-                    kinds: str) -> Iterator[CsvBlock]:
+                    kinds: str, shared: HashedFile | None = None) -> Iterator[CsvBlock]:
     """:func:`iter_csv_blocks` with ``kinds``: chunks of plain lines parsed at once, the rest read
     as text from the first that is not plain."""
-    try:
-        f = open(path, "rb")  # noqa: SIM115 (closed below)
-    except OSError as e:
-        raise InputError(str(path), f"cannot read ({e.strerror})") from None
-    with f:
+    if shared is not None:
+        f: Any = contextlib.nullcontext(shared.at(0))  # the caller's, left open
+    else:
+        try:
+            f = open(path, "rb")  # noqa: SIM115 (closed below)
+        except OSError as e:
+            raise InputError(str(path), f"cannot read ({e.strerror})") from None
+    with f as f:
         offset, line, width, dtype = 0, 1, 0, None
         try:
             for chunk in _line_chunks(f):
@@ -267,7 +342,7 @@ def _chunked_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | 
         except OSError as e:
             raise InputError(str(path), f"cannot read ({e.strerror})") from None
     # the rest as text, from the first chunk that is not plain (the header's: the whole file)
-    yield from _text_blocks(path, columns, warnings, size, width, line, offset)
+    yield from _text_blocks(path, columns, warnings, size, width, line, offset, shared)
 
 
 def _line_chunks(f: Any) -> Iterator[bytes]:
@@ -375,7 +450,8 @@ def float_column(texts: tuple[str, ...]) -> np.ndarray:
 
 
 def iter_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | None = None,
-                  header: bool = True) -> Iterator[tuple[int, dict[str, str]]]:
+                  header: bool = True, shared: HashedFile | None = None
+                  ) -> Iterator[tuple[int, dict[str, str]]]:
     """Rows of a CSV whose header starts with ``columns``; (line number, row), one at a time
     (a bad line 2 is reported before line 2 million is read, and the file is never held whole).
 
@@ -388,20 +464,30 @@ def iter_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | No
     def rows(reader: CsvRows) -> Iterator[tuple[int, list[str]]]:
         return _csv_records(path, columns, warnings, reader) if header else _headerless(path, columns, reader)
 
-    for line, row in _read_csv(path, rows):
+    for line, row in _read_csv(path, rows, shared=shared):
         yield line, dict(zip(columns, (x.strip() for x in row), strict=False))
 
 
-def _read_csv(path: Path, rows: Callable[[CsvRows], Iterator[T]], offset: int = 0, skipped: int = 0
-              ) -> Iterator[T]:
+def _read_csv(path: Path, rows: Callable[[CsvRows], Iterator[T]], offset: int = 0, skipped: int = 0,
+              shared: HashedFile | None = None) -> Iterator[T]:
     """``rows(reader)`` of a ``csv.reader`` on ``path`` (UTF-8, a byte-order mark allowed), from
     byte ``offset`` on (the start of the line after the first ``skipped``), with what goes wrong
-    reading it as :class:`InputError` naming the file (and line)."""
+    reading it as :class:`InputError` naming the file (and line); through ``shared`` where given
+    (:class:`HashedFile`, left open)."""
     reader = None
+    encoding = "utf-8" if offset else "utf-8-sig"
     try:
+        if shared is not None:
+            text = io.TextIOWrapper(shared.at(offset), encoding=encoding, newline="")
+            try:
+                reader = csv.reader(text)
+                yield from rows(reader)
+            finally:
+                text.detach()  # the shared file stays open
+            return
         with open(path, "rb") as raw:
             raw.seek(offset)
-            with io.TextIOWrapper(raw, encoding="utf-8" if offset else "utf-8-sig", newline="") as f:
+            with io.TextIOWrapper(raw, encoding=encoding, newline="") as f:
                 reader = csv.reader(f)
                 yield from rows(reader)
     except UnicodeDecodeError as e:

@@ -269,12 +269,12 @@ def test_cvat_skeleton_tracks_parse(tmp_path: Path) -> None:
     <box frame="9" outside="0" occluded="0" xtl="1" ytl="2" xbr="30" ybr="80" z_order="0"/>
   </track>
 </annotations>""")
-    items = _read_cvat(p, [])
+    items = _read_cvat(p, p.read_bytes(), [])
     assert [(f, t, box, pts, drawn) for f, t, _, box, pts, _, drawn in items] == [
         (7, 4, None, {"left_ankle": (100.5, 200.25, 1.0)}, False), (9, 4, [1.0, 2.0, 30.0, 80.0], {}, False)]
     p.write_text(p.read_text().replace('points="100.5,200.25"', 'points="100.5"'))
     with pytest.raises(InputError, match="track '4' frame '7' joint 'left_ankle'"):
-        _read_cvat(p, [])
+        _read_cvat(p, p.read_bytes(), [])
 
 
 def test_pair_costs_are_opencvs_two_view_triangulation() -> None:

@@ -35,7 +35,7 @@ from gt3dkit.io.datasets.checks import check_pixels
 from gt3dkit.io.datasets.common import RowBuilder, camera_ids, sim_box_labels
 from gt3dkit.io.datasets.native import write_cameras
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
-from gt3dkit.parse import iter_csv_rows, parse_frame, parse_int, sha256
+from gt3dkit.parse import HashedFile, iter_csv_rows, parse_frame, parse_int, sha256
 from gt3dkit.types import Rig, Scene, SimScene
 
 MOT_COLUMNS = ("frame", "id", "left", "top", "width", "height", "conf")
@@ -97,7 +97,7 @@ def load(root: Path, calib: Path | str | None = None, fps: float | None = None) 
         raise InputError(str(folder), "no <camera>.txt files")
     rig, fps_doc, cal = calibration_beside(root, calib)
     warnings: list[str] = []
-    files = {f"mot/{p.name}": sha256(p) for p in txts}
+    files = {f"mot/{p.name}": "" for p in txts}  # each file's digest as it is read
     cam_of = match_cameras([p.stem for p in txts], rig, str(folder), warnings)
     rb = RowBuilder()
     ignored = 0
@@ -105,32 +105,35 @@ def load(root: Path, calib: Path | str | None = None, fps: float | None = None) 
     drawn = 0
     for p in txts:
         cam = cam_of[p.stem]
-        for line, r in iter_csv_rows(p, MOT_COLUMNS, warnings, header=False):
-            where = f"{p}: line {line}"
-            frame, tid = parse_frame(where, r["frame"]), parse_int(where, r["id"], "id")
-            vals = []
-            for k in ("left", "top", "width", "height", "conf"):
-                try:
-                    vals.append(float(r[k]))
-                except ValueError:
-                    raise InputError(where, f"malformed value: {k} must be a number, got {r[k]!r}") from None
-            x, y, w, h, conf = vals
-            if conf == 0:
-                ignored += 1
-                continue
-            if projected and conf < 1:
-                drawn += 1
-                continue
-            if tid < 0:
-                raise InputError(where, f"id {tid}: a detection without a track id (gt3dkit associates "
-                                        "per-camera tracks; run a tracker per camera first)")
-            if not all(math.isfinite(v) for v in vals):
-                raise InputError(where, f"box has a non-finite value {vals[:4]}")
-            if w <= 0 or h <= 0:
-                raise InputError(where, f"degenerate box: width {w:g}, height {h:g}")
-            box = [x, y, x + w, y + h]
-            check_pixels(where, rig.cameras[cam], box, "box")
-            rb.add_box(frame, cam, tid, box, where)
+        with HashedFile(p) as hashed:  # opened once: read and hashed as it is read
+            for line, r in iter_csv_rows(p, MOT_COLUMNS, warnings, header=False, shared=hashed):
+                where = f"{p}: line {line}"
+                frame, tid = parse_frame(where, r["frame"]), parse_int(where, r["id"], "id")
+                vals = []
+                for k in ("left", "top", "width", "height", "conf"):
+                    try:
+                        vals.append(float(r[k]))
+                    except ValueError:
+                        raise InputError(where, f"malformed value: {k} must be a number, "
+                                                f"got {r[k]!r}") from None
+                x, y, w, h, conf = vals
+                if conf == 0:
+                    ignored += 1
+                    continue
+                if projected and conf < 1:
+                    drawn += 1
+                    continue
+                if tid < 0:
+                    raise InputError(where, f"id {tid}: a detection without a track id (gt3dkit associates "
+                                            "per-camera tracks; run a tracker per camera first)")
+                if not all(math.isfinite(v) for v in vals):
+                    raise InputError(where, f"box has a non-finite value {vals[:4]}")
+                if w <= 0 or h <= 0:
+                    raise InputError(where, f"degenerate box: width {w:g}, height {h:g}")
+                box = [x, y, x + w, y + h]
+                check_pixels(where, rig.cameras[cam], box, "box")
+                rb.add_box(frame, cam, tid, box, where)
+            files[f"mot/{p.name}"] = hashed.hexdigest()
     if ignored:
         warnings.append(f"{folder}: {ignored} boxes with conf 0 (MOTChallenge's ignore flag) skipped")
     if drawn:

@@ -42,6 +42,7 @@ from gt3dkit.parse import (
     ID_MAX,
     MAX_WORLD_M,
     CsvBlock,
+    HashedFile,
     iter_csv_blocks,
     iter_csv_rows,
     parse_frame,
@@ -104,16 +105,19 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
     rb = RowBuilder(n_joints=n_joints)
     box_path = root / "boxes.csv"
     if box_path.exists():
-        files["boxes.csv"] = sha256(box_path)
         unseen = 0
-        for block in iter_csv_blocks(box_path, BOX_COLUMNS, warnings, KEYPOINT_BLOCK_ROWS, "isiffff"):
-            checked = _checked_boxes(box_path, rig, block)  # streamed
-            if checked is not None and rb.add_box_block(checked[0]):
-                unseen += checked[1]
-                continue
-            for line, row in zip(block.lines.tolist(), block.rows(), strict=True):  # say where it failed
-                r = dict(zip(BOX_COLUMNS, (x.strip() for x in row), strict=False))
-                unseen += _add_box(rb, rig, f"{box_path}: line {line}", r)
+        with HashedFile(box_path) as hashed:  # opened once: read and hashed as it is read
+            files["boxes.csv"] = ""
+            for block in iter_csv_blocks(box_path, BOX_COLUMNS, warnings, KEYPOINT_BLOCK_ROWS, "isiffff",
+                                         hashed):
+                checked = _checked_boxes(box_path, rig, block)  # streamed
+                if checked is not None and rb.add_box_block(checked[0]):
+                    unseen += checked[1]
+                    continue
+                for line, row in zip(block.lines.tolist(), block.rows(), strict=True):  # say where it failed
+                    r = dict(zip(BOX_COLUMNS, (x.strip() for x in row), strict=False))
+                    unseen += _add_box(rb, rig, f"{box_path}: line {line}", r)
+            files["boxes.csv"] = hashed.hexdigest()
         if unseen:
             warnings.append(f"{box_path}: {unseen} boxes of -1s read as not seen")
     undetected = 0

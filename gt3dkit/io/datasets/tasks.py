@@ -31,6 +31,7 @@ matching and frame rate as for :mod:`gt3dkit.io.datasets.mot`.
 
 from __future__ import annotations
 
+import io
 import math
 from pathlib import Path
 from typing import Any
@@ -46,7 +47,7 @@ from gt3dkit.io.datasets.mot import DEFAULT_FPS, calibration_beside, match_camer
 from gt3dkit.io.datasets.native import read_kpt_truth, write_cameras, write_kpt_truth
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
 from gt3dkit.io.labels import Shapes, shape_digest
-from gt3dkit.parse import load_json, parse_frame, parse_int, sha256
+from gt3dkit.parse import json_of, parse_frame, parse_int, read_hashed, sha256
 from gt3dkit.skeletons import SKELETONS, _norm_joint, skeleton_for_names
 from gt3dkit.types import Scene, SimScene, SkeletonScene
 
@@ -100,15 +101,16 @@ def _cvat_track_ids(path: Path, root: Element, warnings: list[str]) -> dict[int,
     return out or {t: t for t in new}
 
 
-def _read_cvat(path: Path, warnings: list[str]) -> list[Item]:
-    """(frame, track id, -1, box or None, {joint: (x, y, 1)}, where, untouched) per shape."""
+def _read_cvat(path: Path, raw: bytes, warnings: list[str]) -> list[Item]:
+    """(frame, track id, -1, box or None, {joint: (x, y, 1)}, where, untouched) per shape, from
+    ``raw``, the bytes of ``path``."""
     import xml.etree.ElementTree as ET
 
     import defusedxml.ElementTree as DET
     from defusedxml import DefusedXmlException
 
     try:
-        root = DET.parse(path).getroot()
+        root = DET.parse(io.BytesIO(raw)).getroot()
     except ET.ParseError as e:
         raise InputError(f"{path}: line {e.position[0]}", f"malformed XML ({e})") from None
     except DefusedXmlException as e:
@@ -147,8 +149,8 @@ def _read_cvat(path: Path, warnings: list[str]) -> list[Item]:
     return out
 
 
-def _read_coco(path: Path) -> list[Item]:
-    doc = load_json(path)
+def _read_coco(path: Path, raw: bytes) -> list[Item]:
+    doc = json_of(path, raw)
     if not isinstance(doc, dict) or not isinstance(doc.get("annotations"), list):
         raise InputError(str(path), 'expected {"images": [...], "annotations": [...], "categories": [...]}')
     names: list[str] = []
@@ -220,7 +222,9 @@ def load(root: Path, kind: str, skeleton: str | None = None, calib: Path | str |
     rig, fps_doc, cal = calibration_beside(root, calib)
     warnings: list[str] = []
     cam_of = match_cameras([p.stem for p in paths], rig, str(root / kind), warnings)
-    items = {p: (_read_cvat(p, warnings) if kind == "cvat" else _read_coco(p)) for p in paths}
+    read = {p: read_hashed(p) for p in paths}  # each file opened once: parsed and hashed from its bytes
+    items = {p: (_read_cvat(p, raw, warnings) if kind == "cvat" else _read_coco(p, raw))
+             for p, (raw, _) in read.items()}
     names = sorted({n for its in items.values() for it in its for n in it[4]})
     skel = None
     index: dict[str, int] = {}
@@ -261,7 +265,7 @@ def load(root: Path, kind: str, skeleton: str | None = None, calib: Path | str |
     if not with_ids and not obs.n_joints:
         raise InputError(str(root / kind), "boxes without track ids: nothing to tell people apart by "
                                            "(give track ids, or keypoints)")
-    files = {f"{kind}/{p.name}": sha256(p) for p in paths}
+    files = {f"{kind}/{p.name}": digest for p, (_, digest) in read.items()}
     files[f"calibration:{cal.name}"] = sha256(cal) if cal.is_file() else "folder"
     truth = None
     if (root / "truth.csv").exists():

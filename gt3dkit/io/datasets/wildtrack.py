@@ -45,6 +45,7 @@ from gt3dkit.parse import (
     ID_MAX,
     MAX_WORLD_M,
     CsvBlock,
+    HashedFile,
     iter_csv_blocks,
     iter_csv_rows,
     json_of,
@@ -343,10 +344,13 @@ def read_truth_csv(p: Path, files: dict[str, str], root: Path) -> GroundTruth:
     """``truth.csv`` = ``frame,id,x,y,z,a,b,c`` (metres), as written by ``gt3d simulate``: read in
     numpy-checked blocks (:func:`_checked_truth`), row by row where a block fails a check (to
     say where)."""
-    blocks = [_checked_truth(block) for block in iter_csv_blocks(p, TRUTH_COLUMNS, None, 65536, "iiffffff")]
+    with HashedFile(p) as hashed:  # opened once where every block passes: hashed as it is read
+        read = iter_csv_blocks(p, TRUTH_COLUMNS, None, 65536, "iiffffff", hashed)
+        blocks = [_checked_truth(block) for block in read]
+        digest = hashed.hexdigest()
     a = np.concatenate([np.zeros((0, 8))] + [b for b in blocks if b is not None])
     if all(b is not None for b in blocks) and len(unique_rows(a[:, :2].astype(np.int64))) == len(a):
-        files[str(p.relative_to(root))] = sha256(p)
+        files[str(p.relative_to(root))] = digest
         return _truth_of(a)
     rows = []
     keys: set[tuple[int, int]] = set()
