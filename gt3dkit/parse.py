@@ -483,7 +483,8 @@ def _read_csv(path: Path, rows: Callable[[CsvRows], Iterator[T]], offset: int = 
                 reader = csv.reader(text)
                 yield from rows(reader)
             finally:
-                text.detach()  # the shared file stays open
+                if not shared.file.closed:  # (a reader closed after its file)
+                    text.detach()  # the shared file stays open
             return
         with open(path, "rb") as raw:
             raw.seek(offset)

@@ -23,7 +23,9 @@ Boxes and keypoints of the same (frame, camera, id) update the same object.
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import io
 import json
 import math
 from collections.abc import Sequence
@@ -71,7 +73,13 @@ def camera_index(rig: Rig, name: str, where: str) -> int:
 
 
 def load(root: Path, skeleton: str | None = None) -> Scene:
-    root = Path(root)
+    """Read a native folder (the module doc); ``keypoints.csv`` opened once (its passes read
+    through one open file, hashed as it is read)."""
+    with contextlib.ExitStack() as stack:
+        return _load(Path(root), skeleton, stack)
+
+
+def _load(root: Path, skeleton: str | None, stack: contextlib.ExitStack) -> Scene:
     files: dict[str, str] = {}
     cam_path = root / "cameras.json"
     rig, fps_doc, skel_doc = load_cameras(cam_path)
@@ -84,21 +92,11 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
     if skel_name is not None and skel_name not in SKELETONS:
         raise InputError("--skeleton", f"unknown skeleton {skel_name!r} (known: {', '.join(SKELETONS)})")
     kpt_cols = KPT_COLUMNS
+    kpts: HashedFile | None = None
     if kpt_path.exists():
-        files["keypoints.csv"] = sha256(kpt_path)
-        if _header(kpt_path)[len(KPT_COLUMNS):len(KPT_COLUMNS) + 1] == ["conf"]:
-            kpt_cols = (*KPT_COLUMNS, "conf")
-        top = -1
-        for line, r in iter_csv_rows(kpt_path, kpt_cols, []):  # a first streamed pass: any rows? joints?
-            has_kpts = True
-            if skel_name is not None:
-                break
-            top = max(top, parse_int(f"{kpt_path}: line {line}", r["joint"], "joint", 0, 10_000))
-        if skel_name is None and has_kpts:
-            try:
-                skel_name = skeleton_for(top + 1).name
-            except ValueError as e:
-                raise InputError(str(kpt_path), f"joint index {top}: {e}") from None
+        kpts = stack.enter_context(HashedFile(kpt_path))
+        files["keypoints.csv"] = ""  # its digest once read
+        kpt_cols, has_kpts, skel_name = _keypoints_kind(kpt_path, kpts, skel_name)
     if skeleton is not None and not has_kpts:
         raise InputError("--skeleton", f"{root} has no keypoints (keypoints.csv missing or empty)")
     n_joints = SKELETONS[skel_name].n_joints if skel_name and has_kpts else 0
@@ -122,7 +120,8 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
             warnings.append(f"{box_path}: {unseen} boxes of -1s read as not seen")
     undetected = 0
     above: list[float] = []
-    blocks = iter_csv_blocks(kpt_path, kpt_cols, warnings, KEYPOINT_BLOCK_ROWS, "isiifff") if has_kpts else ()
+    blocks = (iter_csv_blocks(kpt_path, kpt_cols, warnings, KEYPOINT_BLOCK_ROWS, "isiifff", kpts) if has_kpts
+              else ())
     for block in blocks:  # streamed
         checked = _checked_keypoints(kpt_path, rig, n_joints, block, "conf" in kpt_cols, above)
         if checked is not None:
@@ -132,6 +131,8 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
         for line, row in zip(block.lines.tolist(), block.rows(), strict=True):  # say where it failed
             r = dict(zip(kpt_cols, (x.strip() for x in row), strict=False))
             undetected += _add_keypoint(rb, rig, f"{kpt_path}: line {line}", r, above)
+    if kpts is not None:
+        files["keypoints.csv"] = kpts.hexdigest()
     if above:
         warnings.append(f"{kpt_path}: {len(above)} keypoint(s) with a confidence above 1 (up to "
                         f"{max(above):.4g}; a detector's heatmap peak): read as 1")
@@ -262,13 +263,37 @@ def _number(where: str, text: str, name: str) -> float:
         raise InputError(where, f"malformed value: {name} must be a number, got {text!r}") from None
 
 
-def _header(path: Path) -> list[str]:
+def _keypoints_kind(path: Path, kpts: HashedFile, skel_name: str | None
+                    ) -> tuple[tuple[str, ...], bool, str | None]:
+    """``keypoints.csv``'s columns (a ``conf`` column or not), whether it has a row, and its
+    skeleton: ``skel_name`` where given, else the smallest known with its largest joint index (a
+    first streamed pass through ``kpts``)."""
+    cols = (*KPT_COLUMNS, "conf") if _header(kpts)[len(KPT_COLUMNS):len(KPT_COLUMNS) + 1] == ["conf"] \
+        else KPT_COLUMNS
+    top, has_kpts = -1, False
+    with contextlib.closing(iter_csv_rows(path, cols, [], shared=kpts)) as rows:  # closed where it stops
+        for line, r in rows:
+            has_kpts = True
+            if skel_name is not None:
+                break
+            top = max(top, parse_int(f"{path}: line {line}", r["joint"], "joint", 0, 10_000))
+    if skel_name is None and has_kpts:
+        try:
+            skel_name = skeleton_for(top + 1).name
+        except ValueError as e:
+            raise InputError(str(path), f"joint index {top}: {e}") from None
+    return cols, has_kpts, skel_name
+
+
+def _header(f: HashedFile) -> list[str]:
     """The stripped header fields of a CSV (empty if unreadable; the reader reports why)."""
+    text = io.TextIOWrapper(f.at(0), newline="", encoding="utf-8-sig")
     try:
-        with open(path, newline="", encoding="utf-8-sig") as f:
-            return [h.strip() for h in next(csv.reader(f), [])]
+        return [h.strip() for h in next(csv.reader(text), [])]
     except (OSError, UnicodeDecodeError, csv.Error):
         return []
+    finally:
+        text.detach()  # the file stays open for the reading
 
 
 KPT_TRUTH_COLUMNS = ("frame", "id", "joint", "x", "y", "z")
