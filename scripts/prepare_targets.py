@@ -5,7 +5,8 @@
 1. **Files opened per run**: ``gt3d reconstruct`` of each input under ``strace -f -e trace=openat``
    (every process it starts), each file of the input folder counted by the successful opens of
    its path: the simulated 400-frame, 40-person WILDTRACK-rig scene (``gt3d simulate --layout
-   wildtrack --frames 400 --people 40 --noise-px 1``) and every real dataset in ``--data``. An
+   wildtrack --frames 400 --people 40 --noise-px 1``), a simulated native skeleton scene and every
+   real dataset in ``--data``. An
    annotation file is the input's frame files, ``keypoints.csv``, ``boxes.csv`` or OpenPose's JSON
    (target: each opened once); the calibration and truth files are listed beside them.
 2. **Whole-process time** of ``gt3d reconstruct`` on that 400-frame scene: the minimum and median
@@ -137,8 +138,12 @@ def main() -> int:
         scene = tmp / "wildtrack400"
         subprocess.run([GT3D, "simulate", "--layout", "wildtrack", "--frames", "400", "--people", "40",
                         "--noise-px", "1", "--out", str(scene)], check=True, capture_output=True)
+        skel = tmp / "skeleton"
+        subprocess.run([GT3D, "simulate", "--kind", "skeleton", "--seed", "1", "--frames", "60", "--out",
+                        str(skel)], check=True, capture_output=True)
         print("1. files opened by one gt3d reconstruct (strace -f -e trace=openat)")
-        inputs = [("simulated WILDTRACK rig, 400 frames", scene, [])]
+        inputs = [("simulated WILDTRACK rig, 400 frames", scene, []),
+                  ("simulated skeletons (native keypoints)", skel, [])]
         for name, sub, extra in (("wildtrack_first_half", "", []), ("multiviewx", "", []),
                                  ("panoptic_160906_band1", "", ["--noise-px", "2"]),
                                  ("cmc1_detector_boxes", "", []), ("cmc3_detector_boxes", "", []),
