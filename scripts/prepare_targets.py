@@ -42,7 +42,7 @@ from structure_targets import any_parameters, long_functions, modules  # noqa: E
 
 GT3D = str(Path(sys.executable).with_name("gt3d"))
 OPEN_RE = re.compile(r'openat\([^,]+, "([^"]+)", ([^)]*)\) = (-?\d+)')
-ANNOTATION = re.compile(r"(annotations_positions/.*\.json|_json/.*\.json|(?:^|/)keypoints\.csv|(?:^|/)boxes\.csv|"
+ANNOTATION = re.compile(r"(annotations_positions/.*\.json|_json/.*\.json|(?:^|/)(?:keypoints|boxes)\.csv|"
                         r"mot/.*\.txt|hdPose3d_stage1_coco19/.*\.json|coco/.*\.json|cvat/.*\.xml)$")
 #: Why each module-level container that remains cannot change a result (printed beside it).
 WHY_KEPT = {
