@@ -201,7 +201,7 @@ def joint_context(pre: Prepared, noise: dict[str, float], step_s: float) -> int 
     meanwhile); frames ``step_s`` seconds apart. None (the default context) for boxes, or when
     the preparation tells nothing."""
     q = noise.get("joint_accel_sd")
-    if pre is None or q is None or getattr(pre, "use_box", True) or getattr(pre, "kpt0_cov", None) is None:
+    if pre is None or q is None or pre.use_box or pre.kpt0_cov is None:
         return None
     var = np.diagonal(pre.kpt0_cov, axis1=-2, axis2=-1).max(axis=-1)  # (R, J) m^2
     seen = np.isfinite(pre.kpt0).all(axis=-1) & np.isfinite(var)

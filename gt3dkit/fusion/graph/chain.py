@@ -142,7 +142,7 @@ class _BoxChain:
     def errors(self, z: F64) -> tuple[float, float]:
         """The graph's error at ``z (n, 9)`` (as GTSAM's: half the Gaussian factors' squared
         whitened norms, the Huber loss of the robust ones) and that of the box factors alone."""
-        e_box, _ = self.box_residuals(z, False)
+        e_box, _ = self.box_residuals(z, jacobian=False)
         e_cv, e_s = self.motion_residuals(z)
         box = float(huber_loss(np.linalg.norm(e_box, axis=1), self.k_box).sum())
         prior = 0.5 * float((((z - self.prior_at) * self.prior_w) ** 2).sum())
@@ -154,7 +154,7 @@ class _BoxChain:
         stacking its box edges, its priors, and its steps to the next row (unit noise: rows
         whitened and robustly weighted here, ``b = -`` the residual)."""
         n, m = self.n, 4 * self.C
-        e_box, J_box = self.box_residuals(z, True)
+        e_box, J_box = self.box_residuals(z, jacobian=True)
         e_cv, e_s = self.motion_residuals(z)
         w_box = huber_sqrt_weight(np.linalg.norm(e_box, axis=1), self.k_box)[:, None]
         w_cv = huber_sqrt_weight(np.linalg.norm(e_cv, axis=1), self.k_motion)[:, None]

@@ -190,14 +190,14 @@ class GTSAMSmoother:
         by_likelihood = cfg.likelihood_noise and pre.use_box and not pre.use_kpt and (
             cfg.accel_sd is None or cfg.shape_sd is None)
         if not by_likelihood:
-            return _Noise(tuned, 0.0, None, False)
+            return _Noise(tuned, 0.0, None, by_likelihood=False)
         ml, curves = noise_by_likelihood(pre, fps, UKFConfig(
             sigma_px=cfg.sigma_px, accel_sd=cfg.accel_sd, shape_sd=cfg.shape_sd,
             vertical_ratio=cfg.vertical_ratio, clip_tol_px=cfg.clip_tol_px))
         tuned = ProcessNoise(float(ml.accel_sd), float(ml.shape_sd), tuned.joint_accel_sd,
                              "maximum of the model's marginal likelihood (the Kalman filter's "
                              "prediction-error decomposition: the UKF's noise search)")
-        return _Noise(tuned, float(ml.position_sd or 0.0), curves, True)
+        return _Noise(tuned, float(ml.position_sd or 0.0), curves, by_likelihood=True)
 
     def _solve_all(self, gtsam: ModuleType, pre: Prepared, start_values: tuple[F64, np.ndarray, float],
                    kpt: tuple[F64 | None, list[gtsam.PinholeCameraCal3_S2]], noise: _Noise, fps: float

@@ -145,7 +145,7 @@ def identity_segments(pre: Prepared, fps: float, cfg: IdentityConfig | None = No
             d = float(np.linalg.norm(centre[rb] - centre[ra]))
             dt_k = max(float(t_s[rb] - t_s[ra]), 1e-9)
             splits += (Split(int(i), k, int(frame_of[ra]), int(frame_of[rb]), round(d, 3), round(d / dt_k, 2),
-                             int(rows.n_views[ra]), int(rows.n_views[rb]), float("nan"), True),)
+                             int(rows.n_views[ra]), int(rows.n_views[rb]), float("nan"), given=True),)
     return Segments(seg, splits, v_lim, _exchanges(np.asarray(auto, np.int64), a, b, centre, limit, rows))
 
 

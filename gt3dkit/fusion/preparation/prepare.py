@@ -225,9 +225,11 @@ def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = Non
             prior = ShapePrior(np.log(PERSON_SEMI_AXES_M), np.full(3, 0.25),
                                "person size around the joints")
             _check_determined(scene, rows, kpt0)
-    return Prepared(rows, cams, StateLayout(J if use_kpt else 0), use_box, use_kpt, fit, box_keep,
-                    reliable, kpt0, kpt0_cov, kpt_keep, kpt_reliable, sigma_box, sigma_kpt,
-                    kpt_var, prior, skel, robust, PreparationSummary(boxes_found, kpts_found),
+    return Prepared(rows=rows, cams=cams, layout=StateLayout(J if use_kpt else 0), use_box=use_box,
+                    use_kpt=use_kpt, fit=fit, box_keep=box_keep, fit_reliable=reliable, kpt0=kpt0,
+                    kpt0_cov=kpt0_cov, kpt_keep=kpt_keep, kpt_reliable=kpt_reliable, sigma_box=sigma_box,
+                    sigma_kpt=sigma_kpt, kpt_var=kpt_var, shape_prior=prior, skeleton=skel, robust=robust,
+                    info=PreparationSummary(boxes_found, kpts_found),
                     box_tail=float(boxes_found.tail_variance_ratio) if boxes_found is not None else 1.0,
                     box_cut=cuts.dropped if cuts is not None else None,
                     box_cut_by=np.where(cuts.dropped, cuts.by, -1) if cuts is not None else None)
