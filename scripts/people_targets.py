@@ -60,7 +60,6 @@ from gt3dkit.calib.formats import read_calibration, write_calibration  # noqa: E
 from gt3dkit.calib.formats.native import write as write_native  # noqa: E402
 from gt3dkit.commands.common import bundled  # noqa: E402
 from gt3dkit.geom.camera import project_points  # noqa: E402
-from gt3dkit.geom.triangulate import normalized_points, triangulate_weighted  # noqa: E402
 from gt3dkit.io.clocks import CameraClocks, on_one_clock, read_time_offsets  # noqa: E402
 from gt3dkit.io.datasets.checks import check_scene  # noqa: E402
 from gt3dkit.refine.clocks import follow  # noqa: E402
@@ -69,7 +68,7 @@ from gt3dkit.refine.common import (  # noqa: E402
     transform_rig,
     umeyama,
 )
-from gt3dkit.refine.keypoints import Tracks, ba_keypoints, keypoint_residuals  # noqa: E402
+from gt3dkit.refine.keypoints import Tracks, ba_keypoints, keypoint_residuals, retriangulated  # noqa: E402
 from gt3dkit.refine.people import PeopleConfig, calibrate_people, person_views  # noqa: E402
 from gt3dkit.rig import Rig  # noqa: E402
 from gt3dkit.skeletons import SKELETONS  # noqa: E402
@@ -244,14 +243,9 @@ def from_given(given: Rig, tr: Tracks, focal_free: bool = False) -> Rig:
     """gt3dkit's own bundle adjustment (every camera's pose and the joints; intrinsics as given)
     started from ``given`` instead of from nothing: where the people's joints pull Shelf's own
     calibration when nothing else is changed. The tracks' points are re-triangulated in ``given``."""
-    P, C = len(tr.X0), len(given.cameras)
-    uv = np.full((P, C, 2), np.nan)
-    uv[tr.point, tr.cam] = tr.uv
-    xy = normalized_points(uv, given.K, given.dist)
-    w = np.isfinite(xy[..., 0]).astype(np.float64)
-    X = triangulate_weighted(np.nan_to_num(xy), given.R, given.t, w)
+    X, _ = retriangulated(given, tr)
     cfg = RefineConfig(refine_intrinsics=focal_free, refine_distortion=False)
-    return ba_keypoints(given, dataclasses.replace(tr, X0=X), np.ones(C, bool), cfg, 2.0)
+    return ba_keypoints(given, dataclasses.replace(tr, X0=X), np.ones(len(given.cameras), bool), cfg, 2.0)
 
 
 def beside_aniposelib(root: Path, tmp: Path) -> None:

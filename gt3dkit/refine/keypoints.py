@@ -115,15 +115,21 @@ def ba_keypoints(rig: Rig, tr: Tracks, variable: np.ndarray, cfg: RefineConfig, 
     return out if (~variable).sum() >= 2 else align_to(out, rig)[0]
 
 
-def keypoint_residuals(rig: Rig, tr: Tracks) -> F64:
-    """(M,) reprojection distance (px) of every observation, its point re-triangulated (robust
-    DLT over all its views) with ``rig``."""
+def retriangulated(rig: Rig, tr: Tracks) -> tuple[F64, F64]:
+    """``(P, 3)`` every track's point triangulated again with ``rig`` (DLT over all its views), and
+    ``(P, C, 2)`` its observations (px, NaN where a camera has none)."""
     P, C = len(tr.X0), len(rig.cameras)
     uv = np.full((P, C, 2), np.nan)
     uv[tr.point, tr.cam] = tr.uv
     xy = normalized_points(uv, rig.K, rig.dist)
     w = np.isfinite(xy[..., 0]).astype(np.float64)
-    X = triangulate_weighted(np.nan_to_num(xy), rig.R, rig.t, w)
+    return triangulate_weighted(np.nan_to_num(xy), rig.R, rig.t, w), uv
+
+
+def keypoint_residuals(rig: Rig, tr: Tracks) -> F64:
+    """(M,) reprojection distance (px) of every observation, its point re-triangulated (robust
+    DLT over all its views) with ``rig``."""
+    X, uv = retriangulated(rig, tr)
     proj, _ = project_points(X[:, None], rig.K, rig.dist, rig.R, rig.t, rig.depth_sign)
     d = np.linalg.norm(proj[:, 0] - uv, axis=-1)  # (P, C)
     return d[tr.point, tr.cam]
