@@ -14,7 +14,7 @@ import tomllib
 from collections.abc import Callable, Iterator, Sequence
 from operator import itemgetter
 from pathlib import Path
-from typing import Any, TypeAlias, TypeVar
+from typing import Any, BinaryIO, Protocol, TypeAlias, TypeVar
 
 import numpy as np
 
@@ -22,6 +22,12 @@ from gt3dkit.errors import InputError
 from gt3dkit.rig import MAX_WORLD_M
 
 T = TypeVar("T")
+
+class LineCounted(Protocol):
+    """A ``csv.reader``: the line it has read to."""
+
+    line_num: int
+
 
 #: A CSV file's rows as :func:`csv.reader` gives them.
 CsvRows: TypeAlias = Iterator[list[str]]
@@ -345,7 +351,7 @@ def _chunked_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | 
     yield from _text_blocks(path, columns, warnings, size, width, line, offset, shared)
 
 
-def _line_chunks(f: Any) -> Iterator[bytes]:
+def _line_chunks(f: BinaryIO) -> Iterator[bytes]:
     """The bytes of the binary file ``f`` about :data:`CSV_CHUNK_BYTES` at a time, each ending
     at a line end (the last as the file ends)."""
     rest = b""
@@ -500,7 +506,7 @@ def _read_csv(path: Path, rows: Callable[[CsvRows], Iterator[T]], offset: int = 
         raise InputError(str(path), f"cannot read ({e.strerror})") from None
 
 
-def _malformed(path: Path, reader: Any, skipped: int, e: csv.Error) -> InputError:
+def _malformed(path: Path, reader: LineCounted | None, skipped: int, e: csv.Error) -> InputError:
     """The error of a ``csv.reader`` (None: before it read) that found ``e`` after the first
     ``skipped`` lines of ``path``."""
     line = f": line {reader.line_num + skipped}" if reader is not None else ""

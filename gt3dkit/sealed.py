@@ -21,7 +21,11 @@ from __future__ import annotations
 import pickle
 import threading
 import uuid
-from typing import Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from distributed import Client, Future
 
 #: Held while a sealed value is opened (its modules imported): one thread of a process at a time.
 _OPENING = threading.Lock()
@@ -58,7 +62,7 @@ def opened_call(fn: Sealed, *args: object) -> Any:
     return fn.opened()(*(a.opened() if isinstance(a, Sealed) else a for a in args))
 
 
-def submit(client: Any, fn: Any, *args: object, **options: Any) -> Any:
+def submit(client: Client, fn: Callable[..., object], *args: object, **options: object) -> Future:
     """``client.submit(fn, *args, pure=False, **options)`` with ``fn`` and the arguments sealed
     (the futures among them as they are: Dask waits for them and gives their values), named
     after ``fn`` as Dask names a task (its dashboard, its task stream): its future."""
@@ -70,7 +74,7 @@ def submit(client: Any, fn: Any, *args: object, **options: Any) -> Any:
                          key=f"{funcname(fn)}-{uuid.uuid4().hex}", pure=False, **options)
 
 
-def scatter(client: Any, value: object, **options: Any) -> Any:
+def scatter(client: Client, value: object, **options: object) -> Future:
     """``client.scatter(value, hash=False, **options)``, sealed (a task's argument,
     :func:`submit`): its future."""
     return client.scatter(Sealed.of(value), hash=False, **options)

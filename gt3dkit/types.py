@@ -518,7 +518,7 @@ class TrackSet:
     def __len__(self) -> int:
         return len(self.frame)
 
-    def with_info(self, **changes: Any) -> TrackSet:
+    def with_info(self, **changes: object) -> TrackSet:
         """These tracks with their :class:`RunInfo`'s fields ``changes`` replaced (it is never
         edited in place)."""
         return replace(self, info=replace(self.info, **changes))

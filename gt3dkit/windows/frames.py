@@ -11,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -20,6 +20,9 @@ from gt3dkit.io.datasets import checks
 from gt3dkit.threads import roomy_malloc
 from gt3dkit.types import FrameIndex, GroundTruth, Scene
 from gt3dkit.windows.plan import Window
+
+#: A window's job, whatever the function run on the window takes (:func:`read_then`).
+Job = TypeVar("Job")
 
 
 @dataclass(frozen=True)
@@ -94,7 +97,7 @@ class ReadPart:
     read: FramesRead
 
 
-def read_then(fn: Callable[[Any, Scene], Any], job: Any, read: WindowRead) -> ReadPart:
+def read_then(fn: Callable[[Job, Scene], object], job: Job, read: WindowRead) -> ReadPart:
     """``fn(job, scene)`` on the window's scene read by ``read`` (its truth and warnings left out,
     as :func:`gt3dkit.windows.plan.window_scene` leaves them), with what it read."""
     with roomy_malloc():  # as the window's run (a Dask worker's allocator hands memory back)
