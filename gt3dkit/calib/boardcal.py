@@ -43,9 +43,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.sparse import csc_matrix
-from scipy.spatial.transform import Rotation
 
 from gt3dkit.calib.board import Board
 from gt3dkit.calib.boardinput import View
@@ -158,6 +156,8 @@ class BoardCalibration:
 
 def rt_matrix(rvec: F64, t: F64) -> F64:
     """(..., 4, 4) rigid transforms from (..., 3) rotation vectors and translations."""
+    from scipy.spatial.transform import Rotation  # heavy to import (scipy): only where it runs
+
     T = np.zeros(np.shape(rvec)[:-1] + (4, 4))
     R = Rotation.from_rotvec(np.reshape(rvec, (-1, 3))).as_matrix()
     T[..., :3, :3] = R.reshape(T.shape[:-2] + (3, 3))
@@ -168,6 +168,8 @@ def rt_matrix(rvec: F64, t: F64) -> F64:
 
 def rt_vector(T: F64) -> F64:
     """(..., 6) rotation vector and translation of (..., 4, 4) rigid transforms."""
+    from scipy.spatial.transform import Rotation  # heavy to import (scipy): only where it runs
+
     rv = Rotation.from_matrix(np.reshape(T[..., :3, :3], (-1, 3, 3))).as_rotvec()
     return np.concatenate([rv.reshape(T.shape[:-2] + (3,)), T[..., :3, 3]], axis=-1)
 
@@ -673,6 +675,8 @@ def robust_lm(
 def solve(prob: BoardProblem, x0: F64) -> LMResult:
     """:func:`robust_lm` on a dense Jacobian up to :data:`DENSE_MAX_PARAMS` parameters, else scipy's
     sparse trust region (the same soft-L1 loss)."""
+    from scipy.optimize import least_squares  # heavy to import (scipy): only where it runs
+
     if prob.n_params <= DENSE_MAX_PARAMS:
         return robust_lm(prob.residuals, prob.jacobian, x0)
     res = least_squares(

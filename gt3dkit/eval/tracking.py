@@ -24,7 +24,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 from gt3dkit.eval.metrics import (
     BoxErrors,
@@ -110,6 +109,8 @@ class Ospa2Parts:
         """OSPA(2) of every part: ``pairs`` the truth's and every track row's
         (:func:`gt3dkit.eval.metrics.near_pairs`, in frame order), ``by_id`` the codes in their
         ids' order, ``ei`` every track row's identity (:func:`id_index`)."""
+        from scipy.optimize import linear_sum_assignment  # heavy to import (scipy): only where it runs
+
         c, order, n_tx, n_ey = self.cutoff, self.order, self.n_tx, len(by_id)
         if not n_tx and not n_ey:
             return 0.0
@@ -228,6 +229,8 @@ class HotaParts:
     def result(self, n_e: int, e_inv: np.ndarray) -> dict[str, float]:
         """HOTA, DetA, AssA of every part: ``n_e`` track identities, ``e_inv`` every track row's
         (numbered in the ids' order)."""
+        from scipy.optimize import linear_sum_assignment  # heavy to import (scipy): only where it runs
+
         n_a, n_g = len(HOTA_ALPHAS), self.n_g
         if not len(e_inv) or not len(self.g_inv):  # TrackEval's early return: every score 0
             return {"hota": 0.0, "deta": 0.0, "assa": 0.0}

@@ -16,9 +16,7 @@ import time
 from dataclasses import replace
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
-from scipy.spatial.transform import Rotation
 
 from gt3dkit.fusion.preparation.prepare import Prepared
 from gt3dkit.geom.camera import Cams
@@ -45,6 +43,8 @@ FLOOR_TOL_M = 0.2
 
 def _cams(rig: Rig, variable: np.ndarray, p: F64) -> tuple[F64, F64]:
     """(R (C,3,3), t (C,3)) of the rig with the variable cameras moved by ``p`` (6 per camera)."""
+    from scipy.spatial.transform import Rotation  # heavy to import (scipy): only where it runs
+
     R, t = rig.R.copy(), rig.t.copy()
     for k, c in enumerate(np.flatnonzero(variable)):
         w, d = p[6 * k: 6 * k + 3], p[6 * k + 3: 6 * k + 6]
@@ -64,6 +64,8 @@ def fit_boxes(rig: Rig, cams: Cams, z: F64, keep: np.ndarray, sigma: F64, start:
     cams: the input's cameras, for the body frame and the box model (the pose is ``rig``'s).
     Returns (rig, centres (N, 3), log axes (N, 3)).
     """
+    from scipy.optimize import least_squares  # heavy to import (scipy): only where it runs
+
     X0, L0 = start
     N, C = len(X0), len(rig.cameras)
     O = int(obj.max()) + 1 if N else 0
@@ -147,6 +149,8 @@ def back_to(new: Rig, ref: Rig, variable: np.ndarray, on_floor: bool) -> Rig:
     else the similarity that best maps the camera centres onto the input's, restricted to the
     floor's plane (a turn about up, a horizontal shift, a scale about the floor's origin)
     where the floor anchored the height and tilt."""
+    from scipy.spatial.transform import Rotation  # heavy to import (scipy): only where it runs
+
     if (~variable).sum() >= 2:
         return new
     if not on_floor:

@@ -33,8 +33,6 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import project_points
@@ -666,6 +664,9 @@ def pose_sd(rig: Rig, tracks: Tracks, joint: I64, min_kinds: int = 5) -> tuple[F
     frame: thousands of observations of ~15 joint types are ~15 independent errors, which a
     per-observation ``s^2 (J^T J)^-1`` would count as thousands (on Shelf it gives 0.1 cm where the
     camera is 1-3 cm from Shelf's calibration). NaN with fewer than ``min_kinds`` joint types seen."""
+    from scipy.optimize import least_squares  # heavy to import (scipy): only where it runs
+    from scipy.spatial.transform import Rotation
+
     C = len(rig.cameras)
     c_sd, r_sd = np.full(C, np.nan), np.full(C, np.nan)
     for c, cam in enumerate(rig.cameras):

@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from gt3dkit.calib.board import Board
 from gt3dkit.geom.camera import unapply_K, undistort
@@ -101,6 +100,8 @@ def board_scene(
     ``lens="fisheye"``: wide lenses (OpenCV's fisheye model, focal about 0.35 x the width: some 80
     degrees either side of the axis across the image) on an arc 0.45 m from the board, which moves
     0.2-0.5 m from them and further across their views, so its corners reach the lenses' edges."""
+    from scipy.spatial.transform import Rotation  # heavy to import (scipy): only where it runs
+
     rng = np.random.default_rng(seed)
     printed = board_image(board)
     cams = []
