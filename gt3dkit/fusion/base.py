@@ -5,13 +5,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from importlib import import_module
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
+from gt3dkit.fusion.preparation.prepare import Prepared
 from gt3dkit.fusion.ukf.bones import BoneSamples
 from gt3dkit.types import OptionValue, Scene, TrackSet
-
-if TYPE_CHECKING:
-    from gt3dkit.fusion.preparation.prepare import Prepared
 
 
 @dataclass(frozen=True)

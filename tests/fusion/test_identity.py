@@ -15,7 +15,7 @@ from gt3dkit.compare import compare
 from gt3dkit.eval.metrics import match_rows
 from gt3dkit.fusion.base import make_estimator
 from gt3dkit.fusion.preparation.identity import identity_segments
-from gt3dkit.fusion.preparation.pieces import pieces_prepared, row_sources
+from gt3dkit.fusion.preparation.pieces import input_ids, pieces_prepared, row_sources
 from gt3dkit.fusion.preparation.prepare import prepare
 from gt3dkit.sim import Errors
 from gt3dkit.types import GroundTruth, Scene
@@ -215,8 +215,7 @@ def test_the_pieces_preparation_is_the_whole_ones_at_their_rows(scene: Scene) ->
     np.testing.assert_allclose(taken.fit.center_world, anew.fit.center_world, atol=1e-6)
     for a, b in zip(taken.frame_state(), anew.frame_state(), strict=True):
         np.testing.assert_allclose(a, b, atol=1e-6, rtol=1e-6)
-    input_id = np.array([back.get(int(i), (int(i), 0))[0] for i in taken.rows.obj_ids])
-    src = row_sources(whole.rows, taken.rows, input_id)
+    src = row_sources(whole.rows, taken.rows, input_ids(taken.rows.obj_ids, back))
     assert (src >= 0).all()
     np.testing.assert_array_equal(whole.rows.frames[whole.rows.row_t[src]],
                                   taken.rows.frames[taken.rows.row_t])

@@ -20,6 +20,12 @@ from gt3dkit.fusion.preparation.rows import Rows, build_rows
 from gt3dkit.types import I64, Scene
 
 
+def input_ids(obj_ids: I64, back: dict[int, tuple[int, int]]) -> I64:
+    """``(O,)`` the input's id of each of the pieces' objects ``obj_ids`` (``back``: a piece's id ->
+    the input's id and the piece; an id not in it is the input's own)."""
+    return np.array([back.get(int(i), (int(i), 0))[0] for i in obj_ids], dtype=np.int64)
+
+
 def row_sources(whole: Rows, pieces: Rows, input_id: I64) -> I64:
     """``(R_pieces,)`` the whole scene's row of each of the pieces' rows (the same frame and the
     input's id: ``input_id (O_pieces,)`` each piece's input id), -1 where there is none."""
@@ -33,8 +39,7 @@ def pieces_prepared(pre: Prepared, pieces: Scene, back: dict[int, tuple[int, int
     array taken at the pieces' rows (the rows' usable edges as the whole's preparation left them:
     the border's and the cut ones out), the rest as it is."""
     rows = build_rows(pieces)
-    input_id = np.array([back.get(int(i), (int(i), 0))[0] for i in rows.obj_ids], dtype=np.int64)
-    src = row_sources(pre.rows, rows, input_id)
+    src = row_sources(pre.rows, rows, input_ids(rows.obj_ids, back))
     if (src < 0).any():  # a piece's row the whole has not: not a split of this scene
         raise ValueError("pieces_prepared: the pieces hold an object-frame the whole scene has not")
     rows = replace(rows, box_mask=pre.rows.box_mask[src])
