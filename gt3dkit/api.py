@@ -8,7 +8,7 @@ import dataclasses
 import functools
 import tempfile
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -278,7 +278,7 @@ def estimate_checked(scene: Scene, est: Estimator, every_frame: int | None = Non
         return tracks, None
     stage("annotation QA, writing")
     found = find_anomalies(sc, tracks, pre, splits=segs.splits, exchanges=segs.exchanges)
-    return tracks.with_info(qa=QASummary(found.counts())), found
+    return tracks.with_info(replace(tracks.info, qa=QASummary(found.counts()))), found
 
 
 def process_noise_prepared(scene: Scene, est: Estimator) -> tuple[dict[str, float] | None, Prepared | None]:
@@ -348,11 +348,11 @@ def estimate_scene(scene: Scene, est: Estimator, pre: Prepared | None, segs: Seg
     result, shared by several estimators (``gt3d compare``)."""
     tracks = _estimate_pieces(scene, est, pre, segs, split)
     if dense:
-        tracks = tracks.with_info(every_frame=DenseSummary(
+        tracks = tracks.with_info(replace(tracks.info, every_frame=DenseSummary(
             int(len(scene.frames)), int(np.sum(tracks.n_views == 0)),
             "a row for every frame of the grid from each object's first to its last annotation; "
             "n_views 0 = no camera saw it there (interpolated by the motion model, its sd grows "
-            "with the distance to the nearest view)"))
+            "with the distance to the nearest view)")))
     elif np.any(tracks.n_views == 0):
         tracks = take_rows(tracks, tracks.n_views > 0)  # info and downweighted carried over
     return tracks
@@ -381,12 +381,12 @@ def _estimate_pieces(scene: Scene, est: Estimator, pre: Prepared | None, segs: S
             pieces, back = split_ids(scene, whole.rows, segs)
             shared = (pieces, pieces_prepared(whole, pieces, back), back)
         tracks = restored_ids(est.estimate(shared[0], shared[1]), shared[2])
-    return tracks.with_info(identity=IdentitySummary(
+    return tracks.with_info(replace(tracks.info, identity=IdentitySummary(
         len(segs.splits), len(segs.exchanges), round(segs.speed_limit_mps, 3),
         "an id is split between two consecutive frames its views place farther apart than "
         "the scene's objects move (2x the 95th percentile of the ids' median speeds, at least "
         "3 m/s, plus 4 sd); "
-        "each piece is estimated on its own (segments.csv, identity_split in anomalies.csv)"))
+        "each piece is estimated on its own (segments.csv, identity_split in anomalies.csv)")))
 
 
 def split_ids(scene: Scene, rows: Rows, segs: Segments) -> tuple[Scene, dict[int, tuple[int, int]]]:
@@ -431,9 +431,9 @@ def restored_ids(tracks: TrackSet, back: dict[int, tuple[int, int]]) -> TrackSet
     np.minimum.at(first, inv, tracks.frame)
     np.maximum.at(last, inv, tracks.frame)
     count = np.bincount(inv, minlength=len(pieces))
-    return out.with_info(segments=[
+    return out.with_info(replace(out.info, segments=[
         {"id": int(i), "segment": int(s), "first_frame": int(a), "last_frame": int(b), "rows": int(n)}
-        for (i, s), a, b, n in zip(pieces, first, last, count, strict=True)])
+        for (i, s), a, b, n in zip(pieces, first, last, count, strict=True)]))
 
 
 def annotation_qa(scene: Scene, tracks: TrackSet) -> Anomalies:

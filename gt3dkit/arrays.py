@@ -33,7 +33,9 @@ def unique_rows(a: np.ndarray, return_index: bool = False, return_inverse: bool 
     if packed is None:
         return _numpy_rows(a, return_index, return_inverse, return_counts)
     (key,) = packed
-    res = np.unique(key, return_index=True, return_inverse=return_inverse, return_counts=return_counts)
+    # which arrays np.unique returns depends on the flags' runtime values: its overloads need literals
+    unique: Any = np.unique
+    res = unique(key, return_index=True, return_inverse=return_inverse, return_counts=return_counts)
     first = res[1]
     out: list[Any] = [a[first]]
     if return_index:
@@ -46,7 +48,8 @@ def unique_rows(a: np.ndarray, return_index: bool = False, return_inverse: bool 
 
 
 def _numpy_rows(a: np.ndarray, return_index: bool, return_inverse: bool, return_counts: bool) -> Any:
-    out = np.unique(a, axis=0, return_index=return_index, return_inverse=return_inverse,
+    unique: Any = np.unique
+    out = unique(a, axis=0, return_index=return_index, return_inverse=return_inverse,
                     return_counts=return_counts)
     if return_inverse and isinstance(out, tuple):
         k = 1 + int(return_index)

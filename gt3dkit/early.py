@@ -60,7 +60,7 @@ class Early:
     address: str
     client: Client | None = None
     error: BaseException | None = None
-    warming: dict[tuple[str, str], Future] = field(default_factory=dict)
+    warming: dict[tuple[str, str], Future[object]] = field(default_factory=dict)
 
     def close(self) -> None:
         self.warming = {}

@@ -187,8 +187,7 @@ def _ran(todo: list[Job], client: Client | None, jobs: int | None, progress: boo
             bar.update()
     else:
         import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor
-        from concurrent.futures import as_completed as done
+        from concurrent.futures import ProcessPoolExecutor, as_completed as done
         from concurrent.futures.process import BrokenProcessPool
 
         n = max(1, min(jobs or os.cpu_count() or 1, len(todo)))

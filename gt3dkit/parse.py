@@ -11,10 +11,10 @@ import io
 import json
 import math
 import tomllib
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from operator import itemgetter
 from pathlib import Path
-from typing import Any, BinaryIO, Protocol, TypeAlias, TypeVar
+from typing import Any, BinaryIO, Protocol, SupportsFloat, SupportsIndex, SupportsInt, TypeVar
 
 import numpy as np
 
@@ -30,7 +30,15 @@ class LineCounted(Protocol):
 
 
 #: A CSV file's rows as :func:`csv.reader` gives them.
-CsvRows: TypeAlias = Iterator[list[str]]
+class CsvRows(Protocol):
+    """What the readers use of ``csv.reader``'s rows: them, and the line the last one ended on."""
+
+    @property
+    def line_num(self) -> int: ...
+
+    def __iter__(self) -> Iterator[list[str]]: ...
+
+    def __next__(self) -> list[str]: ...
 
 
 def sha256(path: Path) -> str:
@@ -115,7 +123,7 @@ class HashedFile:
         self._raw = _HashingRaw(raw)
         self.file = io.BufferedReader(self._raw)
 
-    def at(self, offset: int) -> io.BufferedReader:
+    def at(self, offset: int) -> BinaryIO:
         """The open file, at byte ``offset``."""
         self.file.seek(offset)
         return self.file
@@ -187,6 +195,8 @@ def parse_int(where: str, text: object, name: str, lo: int = -ID_MAX, hi: int = 
     if isinstance(text, bool) or isinstance(text, float) and not text.is_integer():
         raise InputError(where, f"{name} must be an integer, got {text!r}")
     try:
+        if not isinstance(text, str | SupportsInt | SupportsIndex):
+            raise TypeError
         v = int(text)
     except (TypeError, ValueError, OverflowError):
         raise InputError(where, f"{name} must be an integer, got {text!r}") from None
@@ -202,6 +212,8 @@ def parse_frame(where: str, text: object) -> int:
 def parse_float(where: str, text: object, name: str, limit: float = math.inf) -> float:
     """A finite number field of magnitude up to ``limit``, or :class:`InputError`."""
     try:
+        if not isinstance(text, str | SupportsFloat | SupportsIndex):
+            raise TypeError
         v = float(text)
     except (TypeError, ValueError, OverflowError):
         raise InputError(where, f"{name} must be a number, got {text!r}") from None
@@ -274,7 +286,7 @@ class CsvBlock:
         got = self._parsed(k, "f")
         return got if got is not None else float_column(self._column_text(k))
 
-    def texts(self, k: int) -> Sequence[str]:
+    def texts(self, k: int) -> np.ndarray | tuple[str, ...]:
         """Column ``k``'s fields as text (unstripped)."""
         got = self._parsed(k, "s")
         return got if got is not None else self._column_text(k)
@@ -338,7 +350,7 @@ def _chunked_blocks(path: Path, columns: tuple[str, ...], warnings: list[str] | 
                     line = 2
                 offset += len(chunk)
                 n = text.count("\n") + (not text.endswith("\n")) if text else 0  # its lines
-                block = _chunk_block(path, text, line, n, width, kinds, dtype) if text else None
+                block = _chunk_block(path, text, line, n, width, kinds, dtype) if text and dtype else None
                 if block is not None:
                     yield block
                 line += n
@@ -399,7 +411,7 @@ def _chunk_block(path: Path, text: str, line: int, n: int, width: int, kinds: st
         a = None
     limit = csv.field_size_limit()
     if a is None or len(a) != n or any(max(map(len, a[name]), default=0) > limit
-                                       for name in a.dtype.names if a.dtype[name].kind == "O"):
+                                       for name in a.dtype.names or () if a.dtype[name].kind == "O"):
         reader = csv.reader(io.StringIO(text))
         try:
             rows = list(_record_blocks(path, (), None, reader, n + 1, width, line - 1))

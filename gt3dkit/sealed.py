@@ -62,7 +62,7 @@ def opened_call(fn: Sealed, *args: object) -> Any:
     return fn.opened()(*(a.opened() if isinstance(a, Sealed) else a for a in args))
 
 
-def submit(client: Client, fn: Callable[..., object], *args: object, **options: object) -> Future:
+def submit(client: Client, fn: Callable[..., object], *args: object, **options: object) -> Future[object]:
     """``client.submit(fn, *args, pure=False, **options)`` with ``fn`` and the arguments sealed
     (the futures among them as they are: Dask waits for them and gives their values), named
     after ``fn`` as Dask names a task (its dashboard, its task stream): its future."""
@@ -74,7 +74,7 @@ def submit(client: Client, fn: Callable[..., object], *args: object, **options: 
                          key=f"{funcname(fn)}-{uuid.uuid4().hex}", pure=False, **options)
 
 
-def scatter(client: Client, value: object, **options: object) -> Future:
+def scatter(client: Client, value: object, **options: object) -> Future[object]:
     """``client.scatter(value, hash=False, **options)``, sealed (a task's argument,
     :func:`submit`): its future."""
     return client.scatter(Sealed.of(value), hash=False, **options)

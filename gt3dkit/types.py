@@ -13,24 +13,24 @@ Conventions
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, is_dataclass, replace
 from typing import Any, TypeAlias, overload
 
 import numpy as np
 import numpy.typing as npt
 
-from gt3dkit.rig import (  # noqa: F401 - the camera model lives in gt3dkit.rig
-    LENS_CODES,
-    LENSES,
-    MAX_DIST_COEF,
-    MAX_PIXELS,
-    MAX_WORLD_M,
-    R_STORAGE_TOL,
-    Camera,
-    Rig,
-    as_array,
-    distortion_fold,
+from gt3dkit.rig import (  # the camera model lives in gt3dkit.rig; re-exported here
+    LENS_CODES as LENS_CODES,
+    LENSES as LENSES,
+    MAX_DIST_COEF as MAX_DIST_COEF,
+    MAX_PIXELS as MAX_PIXELS,
+    MAX_WORLD_M as MAX_WORLD_M,
+    R_STORAGE_TOL as R_STORAGE_TOL,
+    Camera as Camera,
+    Rig as Rig,
+    as_array as as_array,
+    distortion_fold as distortion_fold,
 )
 
 F64 = npt.NDArray[np.float64]
@@ -41,8 +41,10 @@ B8 = npt.NDArray[np.bool_]
 RowIndex: TypeAlias = "int | slice | np.ndarray"
 #: A value a JSON file holds (``meta.json``, a summary, a report's numbers), nested; numpy's
 #: scalars count as the Python numbers they subclass or convert to when written.
-JsonValue: TypeAlias = ("str | int | float | bool | None | list[JsonValue] | tuple[JsonValue, ...]"
-                        " | dict[str, JsonValue]")
+#: Containers as read-only ``Sequence``/``Mapping``: a ``dict[str, float]`` or a ``list`` of
+#: objects is then a value as it is (``list``/``dict`` are invariant in what they hold).
+JsonValue: TypeAlias = ("str | int | float | bool | None | Sequence[JsonValue]"
+                        " | Mapping[str, JsonValue]")
 #: A JSON object by its keys.
 JsonDict: TypeAlias = "dict[str, JsonValue]"
 #: An estimator option: a field of its config set by keyword (a number, a switch, bounds).
@@ -276,8 +278,11 @@ class GroundTruth:
     @staticmethod
     def concat(parts: Sequence[GroundTruth]) -> GroundTruth:
         """``parts`` (at least one, one source) one after another."""
-        return GroundTruth(*(np.concatenate([getattr(t, k) for t in parts]) for k in (
-            "frame", "track_id", "center_world", "semi_axes", "kpt_world")), parts[0].source)
+        def cat(key: str) -> npt.NDArray[Any]:
+            return np.concatenate([getattr(t, key) for t in parts])
+
+        return GroundTruth(cat("frame"), cat("track_id"), cat("center_world"), cat("semi_axes"),
+                           cat("kpt_world"), parts[0].source)
 
 
 @dataclass(frozen=True)
@@ -518,10 +523,10 @@ class TrackSet:
     def __len__(self) -> int:
         return len(self.frame)
 
-    def with_info(self, **changes: object) -> TrackSet:
-        """These tracks with their :class:`RunInfo`'s fields ``changes`` replaced (it is never
-        edited in place)."""
-        return replace(self, info=replace(self.info, **changes))
+    def with_info(self, info: RunInfo) -> TrackSet:
+        """These tracks with ``info`` (a :class:`RunInfo` is replaced, never edited in place:
+        ``tracks.with_info(dataclasses.replace(tracks.info, qa=...))``)."""
+        return replace(self, info=info)
 
 
 @dataclass(frozen=True)

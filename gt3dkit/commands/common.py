@@ -23,8 +23,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from gt3dkit.api import load_detections, load_head, load_scene, take_rows
-from gt3dkit.calib.formats.native import cameras_doc
-from gt3dkit.calib.formats.native import write as write_native
+from gt3dkit.calib.formats.native import cameras_doc, write as write_native
 from gt3dkit.errors import InputError
 from gt3dkit.eval.metrics import box_errors, relabel_to_truth
 from gt3dkit.eval.pose import mpjpe_by_id, score_tracks

@@ -32,7 +32,7 @@ call it per step, :meth:`MotionModel.transition` per batch.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, overload
 
 import numba
 import numpy as np
@@ -258,7 +258,15 @@ def walk_var(dt_s: F64) -> F64:
     return np.asarray(dt_s, dtype=np.float64)
 
 
-def walk_sd(sd: float, dt_s: F64) -> F64:
+@overload
+def walk_sd(sd: float, dt_s: float) -> float: ...
+
+
+@overload
+def walk_sd(sd: float, dt_s: F64) -> F64: ...
+
+
+def walk_sd(sd: float, dt_s: F64 | float) -> F64 | float:
     """The sd of a random walk's step over ``dt_s`` with noise ``sd`` per sqrt(s)."""
     return sd * np.sqrt(dt_s)
 

@@ -34,35 +34,15 @@ import numpy as np
 
 from gt3dkit.geom.boxrig import (
     ROW_DIST as _DIST,
-)
-from gt3dkit.geom.boxrig import (
     ROW_DS as _DS,
-)
-from gt3dkit.geom.boxrig import (
     ROW_GX as _GX,
-)
-from gt3dkit.geom.boxrig import (
     ROW_GY as _GY,
-)
-from gt3dkit.geom.boxrig import (
     ROW_HASD as _HASD,
-)
-from gt3dkit.geom.boxrig import (
     ROW_K as _K,
-)
-from gt3dkit.geom.boxrig import (
     ROW_LENS as _LENS,
-)
-from gt3dkit.geom.boxrig import (
     ROW_R as _R,
-)
-from gt3dkit.geom.boxrig import (
     ROW_RC as _RC,
-)
-from gt3dkit.geom.boxrig import (
     ROW_T as _T,
-)
-from gt3dkit.geom.boxrig import (
     BoxCameras,
     BoxRig,
     box_rig,

@@ -12,7 +12,7 @@ import numpy as np
 from gt3dkit.arrays import compiled_arg
 from gt3dkit.geom.camera import FISHEYE, LENS_COL, Cams
 from gt3dkit.geom.kernel_cache import drop_stale
-from gt3dkit.types import F64, Rig
+from gt3dkit.types import F64
 
 drop_stale()  # before any compiled function below is called (and its cache read)
 
@@ -31,10 +31,10 @@ class BoxCameras(NamedTuple):
     box_model: int = 0  # BoxModelEntry.index (gt3dkit.types.BOX_MODEL_REGISTRY)
 
     @classmethod
-    def of(cls, cams: Cams | Rig) -> BoxCameras:
-        """Of a :class:`gt3dkit.geom.camera.Cams` (its box model) or a rig (the ellipsoid)."""
+    def of(cls, cams: Cams) -> BoxCameras:
+        """Of a :class:`gt3dkit.geom.camera.Cams` (its box model)."""
         return box_cameras(cams.world_from_body, cams.K, cams.dist, cams.R, cams.t, cams.depth_sign,
-                           getattr(cams, "box_model", 0))
+                           cams.box_model)
 
 
 #: Offsets in a row of :attr:`BoxRig.cam` (one camera): ``R`` (9, row-major), ``t`` (3), ``Rc = R Rb``
@@ -95,4 +95,5 @@ def box_cameras(world_from_body: F64, K: F64, dist: F64, R: F64, t: F64, depth_s
                 box_model: int = 0) -> BoxCameras:
     """:class:`BoxCameras` of stacked camera arrays (``depth_sign`` broadcast to ``(C,)``)."""
     ds = compiled_arg(np.broadcast_to(np.asarray(depth_sign, dtype=np.float64), (K.shape[0],)))
-    return BoxCameras(*(compiled_arg(a) for a in (world_from_body, K, dist, R, t)), ds, int(box_model))
+    return BoxCameras(compiled_arg(world_from_body), compiled_arg(K), compiled_arg(dist), compiled_arg(R),
+                      compiled_arg(t), ds, int(box_model))

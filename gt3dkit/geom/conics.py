@@ -170,7 +170,7 @@ def cut_edges(label: F64, box: F64, depth: F64, depth_tol_m: float = 0.3, margin
     cut &= ~np.eye(len(label), dtype=bool)[:, :, None, None]  # [i, k, c, e]: label i, object k
     n = cut.sum(axis=-1)  # (N, N, C) edges of label i inside object k's box
     who = np.where(n.max(axis=1) > 0, np.argmax(n, axis=1), -1)
-    return cut.any(axis=1), who
+    return np.asarray(cut.any(axis=1)), who
 
 
 #: pairs per thread below which a call is not split (a thread hand-off costs ~20 us; a pair

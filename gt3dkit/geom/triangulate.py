@@ -160,7 +160,7 @@ def triangulation_cov(X_world: F64, R: F64, t: F64, f_px: F64, info_weight: F64)
     Jn[..., 0, 2] = -inv * x
     Jn[..., 1, 1] = inv
     Jn[..., 1, 2] = -inv * y
-    used = np.isfinite(Jn).all(axis=(-2, -1))  # a point at depth 0 or unknown: no information
+    used = np.asarray(np.isfinite(Jn).all(axis=(-2, -1)))  # a point at depth 0 or unknown: no information
     Jw = np.where(used[..., None, None], Jn, 0.0) @ R  # (N, C, 2, 3)
     w = np.where(used, info_weight, 0.0)
     Info = np.einsum("nc,ncki,nckj->nij", w, Jw, Jw)

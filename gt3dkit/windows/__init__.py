@@ -267,13 +267,15 @@ def _with_pooled_bones(tracks: TrackSet, like: WindowJob, samples: list[Any]) ->
     """The stitched ``tracks`` with every person's pooled bones (not the first window's) and the
     bones' round's time (the estimator's time too) in their :class:`RunInfo`."""
     if like.bones is not None:
-        tracks = tracks.with_info(bones={**like.bones.lengths.info(like.bones.ids),
-                                         "pooled": "over every window's own frames (gt3dkit.windows)"})
+        pooled = "over every window's own frames (gt3dkit.windows)"
+        tracks = tracks.with_info(dataclasses.replace(tracks.info, bones={
+            **like.bones.lengths.info(like.bones.ids), "pooled": pooled}))
     if samples:
         first = float(sum(p[2] for p in samples))
         win = tracks.info.windows
         win = None if win is None else dataclasses.replace(win, bones_round_seconds=first)
-        tracks = tracks.with_info(seconds=tracks.info.seconds + first, windows=win)
+        tracks = tracks.with_info(dataclasses.replace(tracks.info, seconds=tracks.info.seconds + first,
+                                                      windows=win))
     return tracks
 
 

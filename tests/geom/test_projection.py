@@ -5,8 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from gt3dkit.geom.camera import distort, pixel_rays, project_points, undistort
 from gt3dkit.geom.conics import ellipsoid_boxes, outline_ellipse

@@ -5,8 +5,7 @@ values a hair from a tie, signed zeros, NaN, infinities and the limits."""
 from __future__ import annotations
 
 import numpy as np
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from gt3dkit.io.numtext import LIMIT, format_rows
 

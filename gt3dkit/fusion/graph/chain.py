@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from types import ModuleType
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal, overload
 
 import numpy as np
 
@@ -108,6 +108,12 @@ class _BoxChain:
         from_k[:, :3, 3:] = -self.dts[:, None, None] * I3
         self.A_from = self.W @ from_k
         self.start = self.prior_at.copy()
+
+    @overload
+    def box_residuals(self, z: F64, jacobian: Literal[True]) -> tuple[F64, F64]: ...
+
+    @overload
+    def box_residuals(self, z: F64, jacobian: Literal[False]) -> tuple[F64, None]: ...
 
     def box_residuals(self, z: F64, jacobian: bool) -> tuple[F64, F64 | None]:
         """``(n, 4C)`` whitened box-edge residuals (0 where no edge; 1e6 where the box is

@@ -91,7 +91,7 @@ def cv_whitening(dts: F64, accel_sd: float, up: F64 | None, vertical_ratio: floa
     return W[inverse.reshape(-1)]
 
 
-def cv_factor(gtsam: ModuleType, keys: list[int], dt: float, W: F64,
+def cv_factor(lib: ModuleType, keys: list[int], dt: float, W: F64,
               loss: gtsam.noiseModel.mEstimator.Base | None = None) -> gtsam.CustomFactor:
     """Constant velocity between ``(x_k, v_k)`` and ``(x_{k+1}, v_{k+1})``: the residual
     ``[x_{k+1} - x_k - dt v_k ; v_{k+1} - v_k]`` whitened by ``W (6, 6)`` (:func:`cv_whitening`),
@@ -109,9 +109,9 @@ def cv_factor(gtsam: ModuleType, keys: list[int], dt: float, W: F64,
                 H[i] = blocks[i]
         return e
 
-    unit = gtsam.noiseModel.Unit.Create(6)
-    model = unit if loss is None else gtsam.noiseModel.Robust.Create(loss, unit)
-    return gtsam.CustomFactor(model, keys, error)
+    unit = lib.noiseModel.Unit.Create(6)
+    model = unit if loss is None else lib.noiseModel.Robust.Create(loss, unit)
+    return lib.CustomFactor(model, keys, error)
 
 
 def box_error(bc: BoxCameras, z: F64, m: np.ndarray, C: int

@@ -194,7 +194,7 @@ class GTSAMSmoother:
         ml, curves = noise_by_likelihood(pre, fps, UKFConfig(
             sigma_px=cfg.sigma_px, accel_sd=cfg.accel_sd, shape_sd=cfg.shape_sd,
             vertical_ratio=cfg.vertical_ratio, clip_tol_px=cfg.clip_tol_px))
-        tuned = ProcessNoise(float(ml.accel_sd), float(ml.shape_sd), tuned.joint_accel_sd,
+        tuned = ProcessNoise(ml.chosen("accel_sd"), ml.chosen("shape_sd"), tuned.joint_accel_sd,
                              "maximum of the model's marginal likelihood (the Kalman filter's "
                              "prediction-error decomposition: the UKF's noise search)")
         return _Noise(tuned, float(ml.position_sd or 0.0), curves, by_likelihood=True)
@@ -324,8 +324,7 @@ class GTSAMSmoother:
                 g.add(gtsam.BetweenFactorVector(
                     sym("s", k), sym("s", k + 1), np.zeros(3),
                     gtsam.noiseModel.Isotropic.Sigma(3, walk_sd(tuned.shape_sd, dt * tau))))
-        for j in np.flatnonzero(seen_j):
-            blocks.append(("p", int(j), tuned.joint_accel_sd))
+        blocks += [("p", int(j), tuned.joint_accel_sd) for j in np.flatnonzero(seen_j)]
         blocks = [(ch, j, q * tau**1.5) for ch, j, q in blocks]  # m/s^2/sqrt(Hz) -> per step
         pos_step = walk_sd(position_sd, tau)  # m/sqrt(s) -> per step
         for ch, j, q in blocks:
@@ -423,7 +422,8 @@ def _assembled(pre: Prepared, x0: F64, results: list[ObjectSolution]
     semi = np.exp(log_axes)
     if use_kpt:
         # never placed by two views, or every point of it rejected: no estimate (x0 is only a guess)
-        nv = never_determined(rows, pre.kpt0) | ~np.isfinite(kpt_sd)
+        kpt0 = pre.kpt0 if pre.kpt0 is not None else np.full(kpt.shape, np.nan)
+        nv = never_determined(rows, kpt0) | ~np.isfinite(kpt_sd)
         kpt[nv], kpt_sd[nv] = np.nan, np.nan
         if not pre.use_box:
             centre, semi, c_sd = ellipsoid_around(kpt, kpt_sd, pre.cams.world_from_body)

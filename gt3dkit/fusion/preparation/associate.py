@@ -30,6 +30,7 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeAlias
 
 import numpy as np
 
@@ -54,13 +55,19 @@ class AssocConfig:
     #                          its box-centre rays pass this close to (and twice closer than any other)
 
 
+#: One row of an association (:class:`Association`).
+AssociationRow: TypeAlias = tuple[str, int, int | None, int, float, int, float, str]
+#: The user's global ids by (camera name, local id, frame or None).
+Overrides: TypeAlias = dict[tuple[str, int, int | None], int]
+
+
 @dataclass(frozen=True)
 class Association:
     """rows: (camera name, local id, frame (per-frame detections) or None (a per-camera track),
     global id (-1: left out), confidence in [0, 1] (NaN: single view), frames annotated, median
     ground distance to the rest of its cluster in m (NaN), note)."""
 
-    rows: tuple[tuple[str, int, int | None, int, float, int, float, str], ...]
+    rows: tuple[AssociationRow, ...]
 
     def mapping(self) -> dict[tuple[str, int, int | None], int]:
         return {(r[0], r[1], r[2]): r[3] for r in self.rows}
@@ -240,7 +247,7 @@ def _merge_on_ground(cl: _Clusters, cfg: AssocConfig) -> None:
             alive[b] = False
             member[member == b] = a
             cost[b, :] = cost[:, b] = np.inf
-            cost[a] = costs(a)
+            cost[a] = costs(int(a))
             cost[:, a] = cost[a]
 
 
@@ -260,15 +267,15 @@ def _join_by_axis(cl: _Clusters, axis_d: Callable[[int, F64], F64], cfg: AssocCo
             if k == t or (occ[k] & occ[t]).any():
                 continue
             mean = sums[k] / np.maximum(weight[k], 1e-12)[:, None]
-            d = axis_d(t, mean)
+            d = axis_d(int(t), mean)
             if np.isfinite(d).sum() >= cfg.min_common_frames:
                 cand.append((float(np.nanmedian(d)), int(k)))
         cand.sort()
         if cand and cand[0][0] <= cfg.max_axis_m and (len(cand) == 1 or cand[1][0] > 2 * cand[0][0]):
-            k = cand[0][1]
-            occ[k] |= occ[t]
+            joined = cand[0][1]
+            occ[joined] |= occ[t]
             alive[t] = False
-            member[member == t] = k
+            member[member == t] = joined
 
 
 def _median_to_rest(traj: F64, t: int, others: list[int]) -> float:
@@ -285,7 +292,7 @@ def _median_to_rest(traj: F64, t: int, others: list[int]) -> float:
 
 
 def associate(scene: Scene, cfg: AssocConfig | None = None,
-              overrides: dict[tuple[str, int], int] | None = None) -> Association:
+              overrides: Overrides | None = None) -> Association:
     """Global identities for the per-camera ids of ``scene.obs`` (see the module docstring)."""
     cfg = cfg or AssocConfig()
     obs = scene.obs
@@ -313,21 +320,20 @@ def associate(scene: Scene, cfg: AssocConfig | None = None,
     order = sorted(clusters, key=lambda k: (int(np.flatnonzero(occ[k].any(axis=0))[0])
                                             if occ[k].any() else F, int(k)))
     gid = {int(k): i for i, k in enumerate(order)}
-    rows = []
+    rows: list[AssociationRow] = []
     for t in range(T):
         k = int(member[t])
-        others = [u for u in np.flatnonzero(member == k) if u != t]
+        others = [int(u) for u in np.flatnonzero(member == k) if u != t]
         med = _median_to_rest(traj, t, others)
         conf = float(np.clip(1 - med / cfg.max_ground_m, 0, 1)) if np.isfinite(med) else (
             1.0 if others else np.nan)
         note = "" if others else "seen by this camera only (single view)"
-        rows.append([names[int(keys[t, 0])], int(keys[t, 1]), None, gid[k], conf, int(n_frames[t]), med,
-                     note])
+        rows.append((names[int(keys[t, 0])], int(keys[t, 1]), None, gid[k], conf, int(n_frames[t]), med,
+                     note))
     return finish_association(rows, overrides)
 
 
-def finish_association(rows: list[list], overrides: dict[tuple[str, int, int | None], int] | None
-                       ) -> Association:
+def finish_association(rows: list[AssociationRow], overrides: Overrides | None) -> Association:
     """The association of ``rows`` (:data:`COLUMNS`), the user's ``overrides`` applied, sorted by
     global id (the left-out, -1, last), frame, camera and local id."""
     if overrides:
@@ -336,11 +342,11 @@ def finish_association(rows: list[list], overrides: dict[tuple[str, int, int | N
             if key not in known:
                 raise InputError("--association", f"camera {key[0]} has no local id {key[1]}"
                                  + (f" in frame {key[2]}" if key[2] is not None else ""))
-        for r in rows:
-            if (r[0], r[1], r[2]) in overrides:
-                r[3], r[7] = overrides[(r[0], r[1], r[2])], "set by the association file"
-    rows.sort(key=lambda r: (r[3] < 0, r[3], -1 if r[2] is None else r[2], r[0], r[1]))
-    return Association(tuple(tuple(r) for r in rows))  # type: ignore[misc]
+        note = "set by the association file"
+        rows = [(r[0], r[1], r[2], overrides[(r[0], r[1], r[2])], r[4], r[5], r[6], note)
+                if (r[0], r[1], r[2]) in overrides else r for r in rows]
+    return Association(tuple(sorted(rows, key=lambda r: (r[3] < 0, r[3], -1 if r[2] is None else r[2], r[0],
+                                                         r[1]))))
 
 
 def apply_association(scene: Scene, assoc: Association) -> Scene:

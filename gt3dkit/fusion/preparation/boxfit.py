@@ -119,7 +119,7 @@ def inverse_rows(A: F64) -> F64:
     Jacobian overflowed or vanished) gets NaN, the others their inverse (numpy's batched inverse
     raises for the whole batch on one singular matrix)."""
     try:
-        return np.linalg.inv(A)
+        return np.asarray(np.linalg.inv(A), dtype=np.float64)
     except np.linalg.LinAlgError:
         out = np.full(A.shape, np.nan)
         for i, a in enumerate(A):

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gt3dkit.fusion.preparation.associate import Association, finish_association
+from gt3dkit.fusion.preparation.associate import Association, AssociationRow, finish_association
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.triangulate import normalized_points, triangulate_dlt
 from gt3dkit.types import F64, I64, Observations, Scene
@@ -125,7 +125,7 @@ def _consistent_pairs(obs: Observations, xy: F64, Pw: F64, f_px: F64, cfg: Detec
         common = (seen[a] & seen[b]).sum(axis=1)
         good = cost <= cfg.max_reproj_px
         against = ~good & (common >= cfg.min_joints)  # compared, and they disagree
-        at = np.searchsorted(a, np.r_[start[k:k1], hi])  # each frame's pairs
+        at = np.asarray(np.searchsorted(a, np.r_[start[k:k1], hi]))  # each frame's pairs
         for q in range(k, k1):
             s = np.arange(at[q - k], at[q - k + 1])
             g = s[good[s]]
@@ -230,19 +230,28 @@ def _one_per_person(groups: list[set[int]], cost_of: dict[tuple[int, int], float
     return groups, dropped
 
 
-def _linked(tracks: list[dict], found: list[tuple[list[int], F64, float]], f: int, scene: Scene,
-            cfg: DetectionConfig) -> dict[int, dict]:
+@dataclass
+class _Track:
+    """A person linked over frames: its id, the last frame it was seen in, its centroid there."""
+
+    id: int
+    frame: int
+    X: F64
+
+
+def _linked(tracks: list[_Track], found: list[tuple[list[int], F64, float]], f: int, scene: Scene,
+            cfg: DetectionConfig) -> dict[int, _Track]:
     """The tracks alive at frame ``f`` (seen within ``cfg.max_gap_s``) each group of ``found``
     continues: the assignment of least floor-plane distance between a track's last centroid and
     a group's, gated by a walking speed."""
     from scipy.optimize import linear_sum_assignment
 
-    alive = [t for t in tracks if (f - t["frame"]) / scene.fps <= cfg.max_gap_s]
-    taken: dict[int, dict] = {}
+    alive = [t for t in tracks if (f - t.frame) / scene.fps <= cfg.max_gap_s]
+    taken: dict[int, _Track] = {}
     if alive and found:
         # on the floor plane: the joints a frame sees move a median centroid up and down
-        D = np.array([[_flat(t["X"] - g[1], scene.rig.up) for g in found] for t in alive])
-        gate = np.array([cfg.max_speed_mps * (f - t["frame"]) / scene.fps + cfg.link_margin_m
+        D = np.array([[_flat(t.X - g[1], scene.rig.up) for g in found] for t in alive])
+        gate = np.array([cfg.max_speed_mps * (f - t.frame) / scene.fps + cfg.link_margin_m
                          for t in alive])
         D = np.where(D <= gate[:, None], D, 1e9)
         ri, ci = linear_sum_assignment(D)
@@ -274,7 +283,7 @@ def associate_detections(scene: Scene, cfg: DetectionConfig | None = None,
     gid = np.full(len(obs), -1, dtype=np.int64)
     gconf = np.full(len(obs), np.nan)
     twice = np.zeros(len(obs), bool)  # a camera's second detection of a person
-    tracks: list[dict] = []  # {"id", "frame", "X"}
+    tracks: list[_Track] = []
     next_id = 0
     with np.errstate(all="ignore"):
         Pw = np.concatenate([cams.R, cams.t[:, :, None]], axis=2)  # (C, 3, 4)
@@ -285,15 +294,15 @@ def associate_detections(scene: Scene, cfg: DetectionConfig | None = None,
             for j, (members, centroid, pc) in enumerate(found):
                 t = taken.get(j)
                 if t is None:
-                    t = {"id": next_id, "frame": f, "X": centroid}
+                    t = _Track(next_id, f, centroid)
                     tracks.append(t)
                     next_id += 1
-                t["frame"], t["X"] = f, centroid
-                gid[members] = t["id"]
+                t.frame, t.X = f, centroid
+                gid[members] = t.id
                 gconf[members] = float(np.clip(1 - pc / cfg.max_reproj_px, 0, 1))
-    rows_out = []
+    rows_out: list[AssociationRow] = []
     for r in range(len(obs)):
-        rows_out.append([names[int(obs.cam[r])], int(obs.track_id[r]), int(obs.frame[r]), int(gid[r]),
+        rows_out.append((names[int(obs.cam[r])], int(obs.track_id[r]), int(obs.frame[r]), int(gid[r]),
                          float(gconf[r]), 1, np.nan,
-                         "" if gid[r] >= 0 else SECOND_DETECTION if twice[r] else UNCONFIRMED])
+                         "" if gid[r] >= 0 else SECOND_DETECTION if twice[r] else UNCONFIRMED))
     return finish_association(rows_out, overrides)

@@ -384,7 +384,7 @@ def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
         if cuts.dropped.any():
             rows.box_mask[cuts.dropped] = False
             keep = keep & ~cuts.dropped
-            sel = cuts.dropped.any(axis=(1, 2))
+            sel = np.asarray(cuts.dropped.any(axis=(1, 2)))
             fit = _merge_fit(fit, sel, fit_boxes(rows.box_z[sel], keep[sel], cams, sig, p0=params(fit, sel)))
     nv = np.all(np.isfinite(rows.box_z), axis=-1).sum(axis=1)
     prior = _shape_prior(fit, nv)
@@ -554,7 +554,7 @@ def ellipsoid_around(kpt: F64, kpt_sd: F64, world_from_body: F64, pad_m: float =
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows stay NaN
         limit = np.maximum(known_sd_m, 3 * np.nanmedian(kpt_sd, axis=1))  # (R,)
     known = np.isfinite(kpt_sd) & (kpt_sd <= limit[:, None])
-    use = np.where(known.any(axis=1)[:, None], known, True)
+    use = np.where(np.asarray(known.any(axis=1))[:, None], known, True)
     kpt = np.where(use[..., None], kpt, np.nan)
     kpt_sd = np.where(use, kpt_sd, np.nan)
     body = np.einsum("ji,rkj->rki", world_from_body, kpt)  # body coordinates

@@ -10,6 +10,8 @@ the dense array where one is wanted (``np.asarray``).
 
 from __future__ import annotations
 
+from typing import overload
+
 import numpy as np
 import numpy.typing as npt
 
@@ -59,6 +61,12 @@ class BlockCov:
         for dims, v in self.groups:
             out[:, dims[:, :, None], dims[:, None, :]] = v
         return out if dtype is None else out.astype(dtype)
+
+    @overload
+    def __getitem__(self, key: RowIndex) -> BlockCov: ...
+
+    @overload
+    def __getitem__(self, key: tuple[RowIndex, np.ndarray | slice, np.ndarray | slice]) -> F64: ...
 
     def __getitem__(self, key: RowIndex | tuple[RowIndex, np.ndarray | slice, np.ndarray | slice]
                     ) -> BlockCov | F64:

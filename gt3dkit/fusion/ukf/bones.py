@@ -215,9 +215,9 @@ def _messages(m0: F64, C: F64, bones: I64, length: F64, var: F64, mask: np.ndarr
     B, J, _ = m0.shape
     K = len(bones)
     a, b = bones[:, 0], bones[:, 1]
-    P0 = np.zeros((B, J, 3, J, 3))
-    P0[:, np.arange(J), :, np.arange(J), :] = np.moveaxis(C, 1, 0)  # block-diagonal prior
-    P0 = P0.reshape(B, 3 * J, 3 * J)
+    P0_blocks = np.zeros((B, J, 3, J, 3))
+    P0_blocks[:, np.arange(J), :, np.arange(J), :] = np.moveaxis(C, 1, 0)  # block-diagonal prior
+    P0 = P0_blocks.reshape(B, 3 * J, 3 * J)
     p0 = m0.reshape(B, 3 * J)
     p = p0.copy()
     w = np.ones((B, K))
@@ -226,10 +226,10 @@ def _messages(m0: F64, C: F64, bones: I64, length: F64, var: F64, mask: np.ndarr
         d = q[:, a] - q[:, b]
         ln = np.linalg.norm(d, axis=-1)
         u = d / np.maximum(ln, 1e-12)[..., None]
-        H = np.zeros((B, K, J, 3))
-        H[:, np.arange(K), a] = u
-        H[:, np.arange(K), b] = -u
-        H = H.reshape(B, K, 3 * J)
+        H_joints = np.zeros((B, K, J, 3))
+        H_joints[:, np.arange(K), a] = u
+        H_joints[:, np.arange(K), b] = -u
+        H = H_joints.reshape(B, K, 3 * J)
         PHt = P0 @ np.swapaxes(H, 1, 2)  # (B, 3J, K)
         S = H @ PHt
         r = length - ln + np.einsum("bki,bi->bk", H, p - p0)  # z - h(p) - H (p0 - p)
@@ -249,13 +249,14 @@ def _messages(m0: F64, C: F64, bones: I64, length: F64, var: F64, mask: np.ndarr
     info = Cpi - Ci
     info = 0.5 * (info + np.swapaxes(info, -1, -2))
     eta = np.einsum("bjxy,bjy->bjx", Cpi, p.reshape(B, J, 3)) - np.einsum("bjxy,bjy->bjx", Ci, m0)
-    touched = np.zeros((B, J), bool)  # joints no used bone reaches get no message
-    np.logical_or.at(touched, (slice(None), a), use)
-    np.logical_or.at(touched, (slice(None), b), use)
+    ends = np.zeros((K, J))  # joints no used bone reaches get no message
+    ends[np.arange(K), a] = 1.0
+    ends[np.arange(K), b] = 1.0
+    touched = (use.astype(np.float64) @ ends) > 0
     return np.where(touched[..., None, None], info, 0.0), np.where(touched[..., None], eta, 0.0)
 
 
 def _inverse(C: F64) -> F64:
     """Inverses of symmetric positive definite ``(..., 3, 3)``, symmetrised."""
     Ci = np.linalg.inv(C)
-    return 0.5 * (Ci + np.swapaxes(Ci, -1, -2))
+    return np.asarray(0.5 * (Ci + np.swapaxes(Ci, -1, -2)), dtype=np.float64)

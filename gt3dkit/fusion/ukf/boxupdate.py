@@ -30,7 +30,7 @@ import numpy as np
 from gt3dkit.arrays import contiguous
 from gt3dkit.fusion.motion import SPACE, Noise, StateIndex, accel_shape, transition
 from gt3dkit.fusion.preparation.robust import chi2_isf
-from gt3dkit.fusion.ukf.config import UKFConfig
+from gt3dkit.fusion.ukf.config import NoiseRows, UKFConfig
 from gt3dkit.fusion.ukf.filterloop import Chains, backward_chain, forward_chain, register
 from gt3dkit.fusion.ukf.filterrun import FilterRun
 from gt3dkit.fusion.ukf.initial import Init
@@ -486,12 +486,12 @@ def object_chains(model: RowsModel, fps: float, on: np.ndarray | None) -> tuple[
                   t_s), first, last
 
 
-def motion_of(model: RowsModel, cfg: UKFConfig, noise_rows: dict[str, F64] | None = None) -> Motion:
+def motion_of(model: RowsModel, cfg: UKFConfig, noise_rows: NoiseRows | None = None) -> Motion:
     """The rows' process noise (``cfg``'s, or ``noise_rows``' per row) as :class:`Motion`."""
     R = len(model.rows)
     per = noise_rows or {}
 
-    def col(name: str, default: F64 | None = None) -> F64:
+    def col(name: str, default: F64 | float | None = None) -> F64:
         v = per.get(name, getattr(cfg, name))
         return contiguous(np.broadcast_to(np.asarray(default if v is None else v, dtype=np.float64), (R,)))
 
@@ -501,7 +501,7 @@ def motion_of(model: RowsModel, cfg: UKFConfig, noise_rows: dict[str, F64] | Non
 
 
 def run_boxes(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, collect: bool, fade: bool,
-              on: np.ndarray | None, noise_rows: dict[str, F64] | None) -> FilterRun:
+              on: np.ndarray | None, noise_rows: NoiseRows | None) -> FilterRun:
     """The filter (and RTS) of a boxes-only model (:func:`applies_to_model`) as chains of rows,
     objects in parallel: the arguments and outputs of
     :func:`gt3dkit.fusion.ukf.filtering.run_filter`."""

@@ -4,11 +4,18 @@ and the estimator (:mod:`gt3dkit.fusion.ukf.smoother`)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
+from typing import TypeAlias
 
 import numpy as np
 
 from gt3dkit.fusion.preparation.robust import RobustConfig
+from gt3dkit.types import F64
+
+#: Process noise given per row instead of ``UKFConfig``'s (the noise search's values): by the
+#: config field's name, ``(R,)`` or one value for every row (None: the config's).
+NoiseRows: TypeAlias = Mapping[str, F64 | float | None]
 
 
 @dataclass(frozen=True)
@@ -77,6 +84,15 @@ class UKFConfig:
     inflate: bool = True
     smooth: bool = True
     search_linearised: bool = True
+
+    def chosen(self, name: str) -> float:
+        """The noise level ``name`` (a field), once chosen (the noise search sets every one it
+        searched: :func:`gt3dkit.fusion.ukf.noise.noise_by_likelihood`); ValueError while it
+        is still ``None``."""
+        v = getattr(self, name)
+        if v is None:
+            raise ValueError(f"{name} has not been chosen")
+        return float(v)
 
     def __post_init__(self) -> None:
         for k, v in asdict(self).items():

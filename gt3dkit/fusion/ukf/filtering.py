@@ -11,7 +11,7 @@ import numpy as np
 from gt3dkit.fusion.preparation.robust import point_weights
 from gt3dkit.fusion.preparation.rows import Rows
 from gt3dkit.fusion.ukf.boxupdate import run_boxes
-from gt3dkit.fusion.ukf.config import UKFConfig
+from gt3dkit.fusion.ukf.config import NoiseRows, UKFConfig
 from gt3dkit.fusion.ukf.filterrun import FilterRun
 from gt3dkit.fusion.ukf.initial import Init, InitialCov
 from gt3dkit.fusion.ukf.jointupdate import run_joints
@@ -70,7 +70,7 @@ def rerun_objects(model: Model, init: Init, cfg: UKFConfig, fps: float, run: Fil
 
 def run_filter(model: Model, init: Init, cfg: UKFConfig, fps: float, collect: bool = False,
                fade: bool = True, on: np.ndarray | None = None,
-               noise_rows: dict[str, F64] | None = None) -> FilterRun:
+               noise_rows: NoiseRows | None = None) -> FilterRun:
     """Forward UKF, then (optionally) RTS, by the backend that serves the model
     (:func:`backend_for`): a :class:`gt3dkit.fusion.ukf.filterrun.FilterRun`; with ``collect`` it
     holds the final weights, scores and residuals ``(R, m)``. ``fade`` lets the frame's own

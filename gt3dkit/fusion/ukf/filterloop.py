@@ -40,7 +40,7 @@ empty caches, this 2-core machine); every output file is the same (``scripts/sam
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 import numba
 import numpy as np
@@ -63,6 +63,14 @@ class Chains(NamedTuple):
     t_s: F64
 
 
+class Bundle(Protocol):
+    """What the loop itself reads of a kind's bundle ``ctx`` (a NamedTuple): its chains. The
+    steps read the rest (their kind's own fields)."""
+
+    @property
+    def chains(self) -> Chains: ...
+
+
 #: (step name, bundle class) -> the kind's step, its Python source (``py_func``): what compiled
 #: code compiles in place (:func:`_resolved`) and what a call from Python runs (:func:`_step`).
 _STEPS: dict[tuple[str, type], Callable[..., object]] = {}
@@ -78,12 +86,12 @@ def register(bundle: type, **steps: Callable[..., object]) -> None:
         _STEPS[(name, bundle)] = getattr(fn, "py_func", fn)
 
 
-def _step(name: str) -> Callable[..., object]:
+def _step(name: str) -> Callable[..., Any]:
     """Step ``name`` as the loop calls it (its arguments: the module doc's table): the kind's
     step for the bundle's class. In compiled code numba resolves it (:func:`_resolved`); called
     from Python (a test, a debugger) it runs that step's Python source (``py_func``: nothing
     compiled for the call, and a debugger steps into it)."""
-    def step(ctx: tuple, *args: object) -> object:
+    def step(ctx: tuple[object, ...], *args: object) -> object:
         impl = _STEPS.get((name, type(ctx)))
         if impl is None:
             raise TypeError(f"no kind registered for {type(ctx).__name__} (filterloop.register)")
@@ -99,8 +107,9 @@ def _resolved(name: str) -> Callable[..., object]:
     """numba's typing of step ``name``: the kind's step for the bundle's class, compiled from its
     Python source where it is called (its own compiled function would be one more level for
     numba to compile again: the module doc)."""
-    def typer(ctx, *args):  # noqa: ANN001, ANN002, ANN202
-        return _STEPS.get((name, ctx.instance_class)) if isinstance(ctx, types.BaseNamedTuple) else None
+    def typer(ctx: object, *args: object) -> Callable[..., object] | None:
+        bundle = getattr(ctx, "instance_class", None) if isinstance(ctx, types.BaseNamedTuple) else None
+        return None if bundle is None else _STEPS.get((name, bundle))
     return typer
 
 
@@ -111,7 +120,7 @@ for _name, _fn in zip(STEP_NAMES, (start, predict, fades, fade, faded, measured,
 
 
 @numba.njit(cache=True, nogil=True)
-def spread_over_gap(ctx: NamedTuple, e: int, row: int, f: float) -> bool:
+def spread_over_gap(ctx: Bundle, e: int, row: int, f: float) -> bool:
     """Where row ``row`` (whose prediction the frame's own fit contradicts by the fading factor
     ``f``) follows rows without measurements (a dense run's frames between labels): the process
     noise of every step since the last measured row scaled by ``f`` and those rows predicted
@@ -137,7 +146,7 @@ def spread_over_gap(ctx: NamedTuple, e: int, row: int, f: float) -> bool:
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def forward_chain(ctx: NamedTuple, e: int, row0: int) -> None:
+def forward_chain(ctx: Bundle, e: int, row0: int) -> None:
     """The forward filter of one chain from its first row ``row0`` along ``chains.next_row``
     while ``chains.run``: each row predicted (the first: its initial state), tested against the
     frame's own fit and faded where that contradicts it (the gap before it spread, where it
@@ -162,7 +171,7 @@ def forward_chain(ctx: NamedTuple, e: int, row0: int) -> None:
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def backward_chain(ctx: NamedTuple, e: int, last: int) -> None:
+def backward_chain(ctx: Bundle, e: int, last: int) -> None:
     """The RTS smoother of one chain from its last row ``last`` back along ``chains.prev_row``
     while ``chains.run``: the filtered states on entry, the smoothed ones on exit."""
     chains = ctx.chains

@@ -4,6 +4,7 @@ a typed result instead of a dictionary of arrays."""
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -12,6 +13,16 @@ from gt3dkit.types import F64, JsonDict
 
 #: The fields that hold arrays (per row or entry), not counters or descriptions.
 ARRAYS = ("x", "P", "nis", "dof", "loglik_rows", "weights", "score2", "residual")
+
+
+class RunScalars(NamedTuple):
+    """A run's counters and descriptions (:meth:`FilterRun.scalars`)."""
+
+    pd_repairs: int
+    predictions_faded: int
+    object_frames: int
+    update_form: str
+    update_passes_mean: float
 
 
 @dataclass(frozen=True)
@@ -56,17 +67,20 @@ class FilterRun:
                if f.name not in ARRAYS and getattr(self, f.name) is not None}
         return {**out, "mean_nis_per_dof": self.mean_nis_per_dof, "loglik": self.loglik}
 
-    def scalars(self) -> JsonDict:
+    def scalars(self) -> RunScalars:
         """The counters and descriptions (no arrays): what :meth:`after` needs of a run."""
-        return {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ARRAYS}
+        return RunScalars(self.pd_repairs, self.predictions_faded, self.object_frames, self.update_form,
+                          self.update_passes_mean)
 
-    def after(self, earlier: JsonDict) -> FilterRun:
+    def after(self, earlier: RunScalars) -> FilterRun:
         """This run (of every row) as :meth:`merged` makes it from an earlier run whose
         :meth:`scalars` are ``earlier`` with ``on`` all rows, without that run's arrays (they
         can go before this run's are made): the earlier run's descriptions, the counters
         summed."""
-        return replace(self, **{**earlier, "pd_repairs": earlier["pd_repairs"] + self.pd_repairs,
-                                "predictions_faded": earlier["predictions_faded"] + self.predictions_faded})
+        return replace(self, pd_repairs=earlier.pd_repairs + self.pd_repairs,
+                       predictions_faded=earlier.predictions_faded + self.predictions_faded,
+                       object_frames=earlier.object_frames, update_form=earlier.update_form,
+                       update_passes_mean=earlier.update_passes_mean)
 
     def merged(self, new: FilterRun, on: np.ndarray) -> FilterRun:
         """This run with the rows ``on (R,)`` taken from ``new`` (a run of those rows' objects):
@@ -83,7 +97,14 @@ class FilterRun:
             out[on] = b[on]
             return out
 
-        per_row = {k: take(getattr(self, k), getattr(new, k))
-                   for k in ("nis", "dof", "loglik_rows", "weights", "score2", "residual")}
-        return replace(self, **per_row, pd_repairs=self.pd_repairs + new.pd_repairs,
+        def kept(a: F64, b: F64) -> F64:
+            out = a.copy()
+            out[on] = b[on]
+            return out
+
+        return replace(self, nis=kept(self.nis, new.nis), dof=kept(self.dof, new.dof),
+                       loglik_rows=kept(self.loglik_rows, new.loglik_rows),
+                       weights=take(self.weights, new.weights), score2=take(self.score2, new.score2),
+                       residual=take(self.residual, new.residual),
+                       pd_repairs=self.pd_repairs + new.pd_repairs,
                        predictions_faded=self.predictions_faded + new.predictions_faded)

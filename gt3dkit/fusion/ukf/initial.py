@@ -57,12 +57,12 @@ class InitialCov:
             r = np.arange(len(self.var))[idx]
             i, j = np.arange(n)[:, None], np.arange(n)[None, :]
             return self[r.reshape(r.shape + (1, 1)), i, j]
-        idx = tuple(np.asarray(a) for a in idx)
-        shape = np.broadcast_shapes(*(a.shape for a in idx))
+        parts = tuple(np.asarray(a) for a in idx)
+        shape = np.broadcast_shapes(*(a.shape for a in parts))
         out = np.empty(shape)
         step = max(1, self.CHUNK_ENTRIES // max(int(np.prod(shape[1:])), 1))
         for a in range(0, shape[0], step):  # bounded index temporaries
-            part = tuple(x[a:a + step] if x.ndim == len(shape) and x.shape[0] > 1 else x for x in idx)
+            part = tuple(x[a:a + step] if x.ndim == len(shape) and x.shape[0] > 1 else x for x in parts)
             r, i, j = np.broadcast_arrays(*part)
             o = np.where(i == j, self.var[r, i], 0.0)
             pi, pj = self.pos[r, i], self.pos[r, j]

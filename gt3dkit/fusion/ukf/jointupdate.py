@@ -35,7 +35,7 @@ from gt3dkit.fusion.motion import SPACE, StateLayout, joint_step
 from gt3dkit.fusion.preparation.robust import RobustConfig, chi2_isf
 from gt3dkit.fusion.ukf.blockcov import BlockCov
 from gt3dkit.fusion.ukf.boxupdate import object_chains, regress, run_boxes, sigma_points
-from gt3dkit.fusion.ukf.config import UKFConfig
+from gt3dkit.fusion.ukf.config import NoiseRows, UKFConfig
 from gt3dkit.fusion.ukf.filterloop import Chains, backward_chain, forward_chain, register
 from gt3dkit.fusion.ukf.filterrun import FilterRun
 from gt3dkit.fusion.ukf.initial import Init, InitialCov
@@ -482,8 +482,8 @@ def boxes_part(model: RowsModel) -> RowsModel:
 
 
 def run_joints(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, collect: bool = False,
-               fade: bool = True, on: np.ndarray | None = None, noise_rows: dict[str, F64] | None = None,
-               covariances: bool = True, into: BlockCov | None = None) -> FilterRun:
+               fade: bool = True, on: np.ndarray | None = None, noise_rows: NoiseRows | None = None,
+               covariances: bool = True, into: BlockCov | F64 | None = None) -> FilterRun:
     """The filter (and RTS) of a model with joints as compiled chains (the module doc): the
     arguments and outputs of :func:`gt3dkit.fusion.ukf.filtering.run_filter`; ``covariances=False``
     leaves ``P`` out (``(R, 0, 0)``), ``into`` takes the covariances of the rows ``on`` (the others
@@ -501,7 +501,8 @@ def run_joints(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, collect
     info = model.joint_info
     kcov = model.kpt_cov_frame
     data = JointData(
-        *(_per_joint(a, R, C, J, at) for a in (model.z, model.mask, model.var, model.weight0)),
+        _per_joint(model.z, R, C, J, at), _per_joint(model.mask, R, C, J, at),
+        _per_joint(model.var, R, C, J, at), _per_joint(model.weight0, R, C, J, at),
         contiguous(model.x_frame[:, lay.joints].reshape(R, J, SPACE)),
         contiguous(model.var_frame[:, lay.joints].reshape(R, J, SPACE)),
         contiguous(np.full((1, 1, 1, 1), np.inf) if kcov is None else kcov),
@@ -555,9 +556,9 @@ class RunChoice(NamedTuple):
     collect: bool
     fade: bool
     on: np.ndarray | None
-    noise_rows: dict[str, F64] | None
+    noise_rows: NoiseRows | None
     covariances: bool
-    into: BlockCov | None
+    into: BlockCov | F64 | None
 
 
 def _assembled(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, run: RunChoice, chains: Chains,
@@ -581,7 +582,7 @@ def _assembled(model: RowsModel, init: Init, cfg: UKFConfig, fps: float, run: Ru
     x[~ran] = 0.0
     P: BlockCov | F64 = np.zeros((R, 0, 0))
     if covariances:
-        ell_cov = box.P if box is not None else np.asarray(_leading(init.P0, E)[np.arange(R)])
+        ell_cov = np.asarray(box.P) if box is not None else np.asarray(_leading(init.P0, E)[np.arange(R)])
         P = BlockCov(lay.n, [(np.arange(E)[None], ell_cov[:, None]), (jd, out.P)]).rows_that_ran(ran, into)
     st = np.where(jran[:, :, None], out.stats, 0.0)
 

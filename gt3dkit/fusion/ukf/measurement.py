@@ -133,7 +133,7 @@ class Model:
         dims = self.layout.timed_ellipsoid_dims if timed else self.layout.ellipsoid_dims
         return BoxModel(box_sigma(dims, alpha, beta, kappa), self.box_rig, self.columns(robust, timed), at=0,
                         iterations=1, robust=False,
-                        seen_s=contiguous(seen_s if timed else np.zeros((0, len(self.cams.K)))))
+                        seen_s=contiguous(seen_s if seen_s is not None else np.zeros((0, len(self.cams.K)))))
 
     def columns(self, robust: RobustConfig | None, timed: bool = False) -> Columns:
         """The measurement vector's :class:`gt3dkit.fusion.ukf.update.Columns`

@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from functools import partial
+from typing import Any
 
 import numpy as np
 
@@ -219,7 +220,7 @@ class LinearisedSearch:
         self.w0 = contiguous(np.broadcast_to(weights, (R, m)))
         self.model, self.cfg, self.cols = model, cfg, box.cols
 
-    def logliks(self, settings: list[dict[str, float]]) -> list[float]:
+    def logliks(self, settings: list[dict[str, float | None]]) -> list[float]:
         """The forward pass's log-likelihood at each setting (process-noise values by name, the
         others ``cfg``'s; the settings split over threads)."""
         out = [0.0] * len(settings)
@@ -313,7 +314,8 @@ def _provisional(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
                                  "use": ("a robust pass at these values, smoothed, fixes the weights"
                                          if cfg.robust else "a pass at these values, smoothed")
                                  + (" and the boxes' linearisation" if linear else "")}
-    lin = LinearisedSearch(model, init, start, fps, x_prov, P_prov, weights, on) if linear else None
+    P_dense = np.asarray(P_prov)  # a boxes-only run's own array
+    lin = LinearisedSearch(model, init, start, fps, x_prov, P_dense, weights, on) if linear else None
     return start, weights, on, lin
 
 
@@ -362,7 +364,8 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
 
         best, seen = maximise_log(logliks, *bounds, n_scan)
         curves[name] = [{"value": v, "loglik": ll} for v, ll in sorted(seen.items())]
-        return replace(c, **{name: best})
+        chosen: dict[str, Any] = {name: best}  # the field searched, by name
+        return replace(c, **chosen)
 
     given = cfg
     cfg = start
@@ -374,7 +377,9 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
             # the two trade off (a jittery label set is explained by either): coordinate ascent
             was = (cfg.accel_sd, cfg.position_sd)
             cfg = search("position_sd", search("accel_sd", cfg, cfg.accel_bounds, 5), cfg.position_bounds, 4)
-            if np.allclose(np.log([cfg.accel_sd, cfg.position_sd]), np.log(was), atol=0.05):
+            now = (cfg.accel_sd, cfg.position_sd)
+            if None not in now + was and np.allclose(np.log(np.array(now, dtype=float)),
+                                                     np.log(np.array(was, dtype=float)), atol=0.05):
                 break
     if use_box and given.shape_sd is None:
         cfg = search("shape_sd", cfg, cfg.shape_bounds, 4)

@@ -4,7 +4,8 @@ model (:class:`gt3dkit.fusion.ukf.measurement.Model`, which builds on the filter
 
 from __future__ import annotations
 
-from typing import NamedTuple, Protocol
+from dataclasses import Field
+from typing import Any, ClassVar, NamedTuple, Protocol
 
 import numpy as np
 
@@ -53,6 +54,7 @@ class RowsModel(Protocol):
     :class:`gt3dkit.fusion.ukf.measurement.Model` (which builds on this module, so is named here by
     its shape), and of the boxes-only part of one (:func:`gt3dkit.fusion.ukf.jointupdate.boxes_part`)."""
 
+    __dataclass_fields__: ClassVar[dict[str, Field[Any]]]  # a dataclass: dataclasses.replace works on it
     rows: Rows
     cams: Cams
     layout: StateLayout

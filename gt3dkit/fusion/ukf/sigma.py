@@ -68,7 +68,7 @@ def safe_cholesky(P: F64) -> tuple[F64, int]:
     """
     P = 0.5 * (P + np.swapaxes(P, -1, -2))
     try:
-        return np.linalg.cholesky(P), 0
+        return np.asarray(np.linalg.cholesky(P), dtype=np.float64), 0
     except np.linalg.LinAlgError:
         pass
     w, V = np.linalg.eigh(P)
@@ -130,6 +130,6 @@ def block_columns(blocks: Sequence[Block], m: int, robust: Robust | None) -> Col
         k = np.arange(*sl.indices(m))
         first[k] = k[0] + (k - k[0]) // e * e
         size[k] = e
-        if robust.config.enabled:
+        if robust is not None and robust.config.enabled:
             c_thr[k], g_thr[k] = robust.config.thresholds(e)
     return Columns(dims, first, size, c_thr, g_thr, order, start, width)

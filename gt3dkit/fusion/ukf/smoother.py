@@ -56,6 +56,7 @@ from gt3dkit.fusion.preparation.prepare import (
     prepare,
 )
 from gt3dkit.fusion.preparation.rows import Rows
+from gt3dkit.fusion.ukf.blockcov import BlockCov
 from gt3dkit.fusion.ukf.bones import (
     BoneLengths,
     BoneSamples,
@@ -131,7 +132,7 @@ class UKFSmoother:
             model = replace(model, weight0=w0)
             if changed.all():  # the first pass's states go before the second's are made
                 first = run.scalars()
-                run = None
+                del run
                 run = run_filter(model, init, cfg, scene.fps, collect=True).after(first)
             elif changed.any():
                 run = rerun_objects(model, init, cfg, scene.fps, run, changed)
@@ -148,14 +149,19 @@ class UKFSmoother:
             # the bones' messages from the first pass's smoothed joints, added to each joint's
             # own filter run again (the views reweighted as before)
             msgs, lengths = bone_messages_of(model, cfg, run, pre.skeleton, self.bones)
-            run = None  # the first pass's covariances go before the second's are made
+            del run  # the first pass's covariances go before the second's are made
             run = run_filter(replace(model, joint_info=msgs), init, cfg, scene.fps, collect=True)
             bone_info = lengths.info(rows.obj_ids)
-        x_s, P_s = run.x, run.P
+        x_s = run.x
+        P_s: F64 | BlockCov = run.P
         nis = run.mean_nis_per_dof
         inflation = max(nis, 1.0) if cfg.inflate and np.isfinite(nis) else 1.0
         if inflation != 1.0:
-            P_s *= inflation  # in place: P_s is this run's own array
+            # in place: P_s is this run's own array (or its blocks)
+            if isinstance(P_s, BlockCov):
+                P_s *= inflation
+            else:
+                P_s *= inflation
         centre = x_s[:, layout.center]
         semi = np.exp(x_s[:, layout.log_axes])
         P_c, widened = widen_weak_rows(P_s[:, layout.center, layout.center], pre, scene.fps)
@@ -172,7 +178,8 @@ class UKFSmoother:
         kpt = np.zeros((R, 0, 3))
         kpt_sd = np.zeros((R, 0))
         if pre.use_kpt:
-            kpt, kpt_sd = joints_of(x_s, P_s, layout, rows, pre.kpt0)
+            kpt0 = pre.kpt0 if pre.kpt0 is not None else np.full((R, layout.n_joints, 3), np.nan)
+            kpt, kpt_sd = joints_of(x_s, P_s, layout, rows, kpt0)
             if not pre.use_box:
                 centre, semi, sd = ellipsoid_around(kpt, kpt_sd, cams.world_from_body)
         down = downweighted_of(model, run)
@@ -259,7 +266,7 @@ def single_view_rows(pre: Prepared) -> np.ndarray:
     return ~multi[rows.row_o] & (nv >= 1) & pre.fit.ok
 
 
-def joints_of(x_s: F64, P_s: F64, layout: StateLayout, rows: Rows, kpt0: F64) -> tuple[F64, F64]:
+def joints_of(x_s: F64, P_s: F64 | BlockCov, layout: StateLayout, rows: Rows, kpt0: F64) -> tuple[F64, F64]:
     """Joints ``(R, J, 3)`` and their largest-axis sd ``(R, J)``; NaN for joints an object's
     views never placed (``kpt0 (R, J, 3)``: the per-frame triangulation; :func:`never_determined`)."""
     R, J = len(rows), layout.n_joints
@@ -334,7 +341,7 @@ def bone_messages_of(model: Model, cfg: UKFConfig, run: FilterRun, skel: Skeleto
     zb = lengths.length[rows.row_o]
     # a bone ties a joint to a measured one: where neither end has a view in a frame it would
     # only couple two extrapolations (and bend both along a sphere far from any evidence)
-    seen1 = seen.any(axis=1)
+    seen1 = np.asarray(seen.any(axis=1))
     mb = np.isfinite(zb) & (seen1[:, bones[:, 0]] | seen1[:, bones[:, 1]])
     msgs = bone_messages(joints, cov, bones, np.nan_to_num(zb), lengths.sd[rows.row_o] ** 2, mb,
                          cfg.robust_config if cfg.robust else None)

@@ -35,8 +35,7 @@ from typing import Any
 import numpy as np
 
 from gt3dkit.arrays import unique_rows
-from gt3dkit.calib.formats.grid import GridLayout, load_camera
-from gt3dkit.calib.formats.grid import write as write_grid
+from gt3dkit.calib.formats.grid import GridLayout, load_camera, write as write_grid
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import FAR_IMAGES, check_pixels
 from gt3dkit.io.datasets.common import BoxBlock, RowBuilder
