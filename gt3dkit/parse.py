@@ -11,7 +11,7 @@ import io
 import json
 import math
 import tomllib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator, Iterator
 from operator import itemgetter
 from pathlib import Path
 from typing import Any, BinaryIO, Protocol, SupportsFloat, SupportsIndex, SupportsInt, TypeVar
@@ -469,7 +469,7 @@ def float_column(texts: tuple[str, ...]) -> np.ndarray:
 
 def iter_csv_rows(path: Path, columns: tuple[str, ...], warnings: list[str] | None = None,
                   header: bool = True, shared: HashedFile | None = None
-                  ) -> Iterator[tuple[int, dict[str, str]]]:
+                  ) -> Generator[tuple[int, dict[str, str]], None, None]:
     """Rows of a CSV whose header starts with ``columns``; (line number, row), one at a time
     (a bad line 2 is reported before line 2 million is read, and the file is never held whole).
 

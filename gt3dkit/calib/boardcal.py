@@ -333,7 +333,8 @@ def _fit_pinhole(
         rms = kept_rms
     sd_f = float(np.hypot(sd[0, 0], sd[1, 0]) / np.sqrt(2)) if np.all(np.isfinite(sd[:2])) else float("nan")
     lens_row = np.r_[np.asarray(d, dtype=np.float64).reshape(-1)[:5], LENS_CODES["pinhole"]]
-    return IntrinsicsFit(intr_row(K, lens_row), sd_f, keep, rms, dropped)
+    return IntrinsicsFit(intr_row(np.asarray(K, dtype=np.float64), lens_row), sd_f, keep,
+                         np.asarray(rms, dtype=np.float64), dropped)
 
 
 def board_pose(view: View, board: Board, intr: F64) -> F64:
@@ -346,13 +347,14 @@ def board_pose(view: View, board: Board, intr: F64) -> F64:
     K, d, uv = intr_K(intr), intr[4 : 4 + 5], view.det.uv_px
     if intr_lens(intr) == "fisheye":
         uv = normalized_points(uv[:, None], K[None], intr[None, 4:INTR_WIDTH])[:, 0]
-        ok = np.isfinite(uv).all(1)  # (a corner beyond 90 degrees off the axis has no such point)
-        X, uv, K, d = X[ok], uv[ok], np.eye(3), np.zeros(5)
+        # (a corner beyond 90 degrees off the axis has no such point)
+        seen = np.asarray(np.isfinite(uv).all(1))
+        X, uv, K, d = X[seen], uv[seen], np.eye(3), np.zeros(5)
     ok, rv, tv = cv2.solvePnP(X, uv, K, d, flags=cv2.SOLVEPNP_IPPE)
     if not ok:
         ok, rv, tv = cv2.solvePnP(X, uv, K, d, flags=cv2.SOLVEPNP_ITERATIVE)
     rv, tv = cv2.solvePnPRefineLM(X, uv, K, d, rv, tv)
-    return rt_matrix(rv.reshape(3), tv.reshape(3))
+    return rt_matrix(np.asarray(rv, dtype=np.float64).reshape(3), np.asarray(tv, dtype=np.float64).reshape(3))
 
 
 # ----------------------------------------------------------------------------- extrinsics

@@ -18,13 +18,22 @@ from gt3dkit.rig import Rig
 from gt3dkit.types import JsonDict
 
 
-def camera_table(rig: Rig) -> list[JsonDict]:
+def _height_tilt(rig: Rig) -> list[tuple[str, float, float]]:
+    """Per camera its name, its height along up (m) and how far its optical axis looks up (deg)."""
     out = []
     for c in rig.cameras:
+        look = c.depth_sign * c.R[2]
+        out.append((c.name, float(c.center_world @ rig.up),
+                    float(np.degrees(np.arcsin(np.clip(look @ rig.up, -1, 1))))))
+    return out
+
+
+def camera_table(rig: Rig) -> list[JsonDict]:
+    out: list[JsonDict] = []
+    for c, (_, height, tilt) in zip(rig.cameras, _height_tilt(rig), strict=True):
         look = c.depth_sign * c.R[2]  # optical axis in the world
         out.append({"camera": c.name, "centre_m": c.center_world.round(4).tolist(),
-                    "height_m": float(c.center_world @ rig.up), "view_dir": look.round(4).tolist(),
-                    "tilt_deg": float(np.degrees(np.arcsin(np.clip(look @ rig.up, -1, 1)))),
+                    "height_m": height, "view_dir": look.round(4).tolist(), "tilt_deg": tilt,
                     "fx_px": float(c.K[0, 0]), "fy_px": float(c.K[1, 1]),
                     "cx_px": float(c.K[0, 2]), "cy_px": float(c.K[1, 2]),
                     "lens": c.lens, "dist": c.coefficients.round(6).tolist(), "size": [c.width, c.height],
@@ -34,12 +43,12 @@ def camera_table(rig: Rig) -> list[JsonDict]:
 
 def rig_warnings(rig: Rig) -> list[str]:
     w = []
-    tab = camera_table(rig)
-    below = [t["camera"] for t in tab if t["height_m"] < -0.05]
+    tab = _height_tilt(rig)
+    below = [name for name, height, _ in tab if height < -0.05]
     if below:
         w.append(f"cameras below the floor (height along up < 0): {', '.join(below)}: up is the wrong "
                  "way, or the world is mirrored")
-    if len(tab) > 1 and all(t["tilt_deg"] > 5 for t in tab):
+    if len(tab) > 1 and all(tilt > 5 for _, _, tilt in tab):
         w.append("every camera looks upwards: up is the wrong way, or the world is mirrored")
     centres = np.array([c.center_world for c in rig.cameras])
     mid = centres.mean(0)

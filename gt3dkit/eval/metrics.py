@@ -16,13 +16,14 @@ Definitions (metres):
 from __future__ import annotations
 
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
 from gt3dkit.arrays import lookup_rows
-from gt3dkit.types import F64, I64, GroundTruth, JsonDict, TrackSet
+from gt3dkit.types import F64, I64, GroundTruth, TrackSet
 
 
 def match_rows(tracks: TrackSet, truth: GroundTruth) -> tuple[np.ndarray, np.ndarray]:
@@ -117,7 +118,7 @@ def frame_blocks(frame: np.ndarray, frames: np.ndarray
 
 
 def pair_counts(est_id: np.ndarray, truth_id: np.ndarray, pairs: NearPairs, max_dist_m: float
-                ) -> tuple[F64, np.ndarray, np.ndarray]:
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``count (n_track_ids, n_truth_ids)``: the frames in which a track and a truth identity are
     within ``max_dist_m`` of each other (``pairs``: the truth's rows ``a`` and the tracks' ``b``
     within at least that, :func:`near_pairs`); and the two id lists."""
@@ -223,7 +224,7 @@ def row_errors(tracks: TrackSet, truth: GroundTruth, up: F64) -> RowErrors:
 
 
 def box_errors(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float = 1.0,
-               mot: JsonDict | None = None) -> BoxErrors:
+               mot: Mapping[str, float | int] | None = None) -> BoxErrors:
     """Errors of matched rows and :func:`clear_mot` (``mot``: its result when already computed,
     e.g. by :func:`gt3dkit.eval.tracking.tracking_scores` with the same arguments)."""
     mot = mot if mot is not None else clear_mot(tracks, truth, up, max_dist_m)
@@ -231,7 +232,7 @@ def box_errors(tracks: TrackSet, truth: GroundTruth, up: F64, max_dist_m: float 
     return errors_of(e, len(np.unique(e.truth_row)), len(truth.frame), mot)
 
 
-def errors_of(e: RowErrors, covered: int, n_truth: int, mot: JsonDict) -> BoxErrors:
+def errors_of(e: RowErrors, covered: int, n_truth: int, mot: Mapping[str, float | int]) -> BoxErrors:
     """:class:`BoxErrors` of the matched rows' errors ``e``, ``covered`` of the truth's
     ``n_truth`` rows with an estimate, with :func:`clear_mot`'s scores ``mot``."""
     ground = e.ground
@@ -241,7 +242,8 @@ def errors_of(e: RowErrors, covered: int, n_truth: int, mot: JsonDict) -> BoxErr
         ground_mean_m=_nanmean(ground),
         ground_median_m=float(np.median(ground)) if ground.size else float("nan"),
         centre_mean_m=_nanmean(e.centre), height_mean_m=_nanmean(e.height),
-        radius_mean_m=_nanmean(e.radius), **{k: mot[k] for k in ("mota", "idf1", "fp", "fn", "ids")})
+        radius_mean_m=_nanmean(e.radius), mota=float(mot["mota"]), idf1=float(mot["idf1"]),
+        fp=int(mot["fp"]), fn=int(mot["fn"]), ids=int(mot["ids"]))
 
 
 def _match_frame(d2: F64, o: I64, h: I64, last: I64, col: I64, om: np.ndarray, hm: np.ndarray) -> int:

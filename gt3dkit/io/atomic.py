@@ -90,7 +90,7 @@ def clean_stale(out: Path) -> list[Path]:
     """Remove the temporary folders of earlier runs into ``out`` whose process is gone
     (killed with SIGKILL, or the machine stopped). Returns what was removed."""
     out = Path(out).absolute()
-    removed = []
+    removed: list[Path] = []
     if not out.parent.is_dir():
         return removed
     pat = re.compile(re.escape(f".{out.name}") + f"(?:{re.escape(_TMP)}|{re.escape(_OLD)})" + r"(\d+)-")

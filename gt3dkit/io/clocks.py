@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -88,13 +89,22 @@ class CameraClocks:
 
     @staticmethod
     def from_doc(doc: JsonDict, where: str) -> CameraClocks:
-        def col(key: str, n: str) -> float:
-            v = doc[n].get(key)
-            return np.nan if v is None else float(v)
+        def col(key: str) -> F64:
+            out = np.full(len(names), np.nan)
+            for i, n in enumerate(names):
+                cam = doc[n]
+                if not isinstance(cam, Mapping):
+                    raise TypeError(f"camera {n}: expected an object")
+                v = cam.get(key)
+                if v is not None and not isinstance(v, int | float | str):
+                    raise TypeError(f"camera {n}: {key} must be a number")
+                out[i] = np.nan if v is None else float(v)
+            return out
 
         try:
             names = tuple(doc)
-            return CameraClocks(names, *(np.array([col(k, n) for n in names]) for k in HEADER[1:]), where)
+            late, sd, fps = (col(k) for k in HEADER[1:])
+            return CameraClocks(names, late, sd, fps, where)
         except (TypeError, KeyError, ValueError, AttributeError) as e:
             raise InputError(where, f"time offsets: {e}") from None
 

@@ -300,7 +300,7 @@ def write_coco(shapes: Shapes, rig: Rig, joints: tuple[str, ...], bones: tuple[t
         image_of = {int(f): n + 1 for n, f in enumerate(frames)}
         images = [{"id": image_of[int(f)], "file_name": f"{cam.name}/frame_{int(f):06d}.jpg",
                    "frame_id": int(f), "width": cam.width, "height": cam.height} for f in frames]
-        anns = []
+        anns: list[dict[str, object]] = []
         for k in idx[np.lexsort((tid[idx], shapes.frame[idx]))]:
             b = shapes.box_xyxy_px[k]
             ann: dict[str, object] = {

@@ -26,7 +26,7 @@ LIMIT = 4e9
 
 
 @numba.njit(cache=True, nogil=True)
-def _write_int(v: int, buf: np.ndarray, p: int) -> int:
+def _write_int(v: int | np.int64, buf: np.ndarray, p: int) -> int:
     """The decimal digits of ``v`` >= 0 into ``buf`` from ``p``; the position after them."""
     n = 1
     t = v

@@ -10,7 +10,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv
 from gt3dkit.parse import load_json
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import JsonDict, TrackSet
+from gt3dkit.types import JsonDict, TrackSet, json_list, json_num, json_str
 
 
 @dataclass
@@ -23,20 +23,19 @@ class Result:
 
     @property
     def joints(self) -> tuple[str, ...]:
-        j = (self.meta.get("frame") or {}).get("joints") or ()
-        return tuple(str(x) for x in j)
+        return tuple(str(x) for x in json_list(self.meta, "frame", "joints"))
 
     @property
     def marker_names(self) -> tuple[str, ...]:
         """Joint names as the detector names them (OpenPose's ``RBigToe``...), for exports."""
-        sk = (self.meta.get("frame") or {}).get("skeleton")
+        sk = json_str(self.meta, "frame", "skeleton")
         if isinstance(sk, str) and sk in SKELETONS and SKELETONS[sk].n_joints == len(self.joints):
             return SKELETONS[sk].marker_names
         return self.joints
 
     @property
     def fps(self) -> float:
-        return float((self.meta.get("input") or {}).get("fps") or 0.0)
+        return json_num(self.meta, "input", "fps") or 0.0
 
 
 def read_result(out: Path) -> Result:

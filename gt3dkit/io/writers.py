@@ -6,7 +6,7 @@ import csv
 import datetime as _dt
 import io
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, TextIO
@@ -50,15 +50,17 @@ class RefinedRig(Protocol):
 
 
 def _jsonable(x: object) -> JsonValue:
-    if isinstance(x, dict):
+    if isinstance(x, Mapping):
         return {str(k): _jsonable(v) for k, v in x.items()}
     if isinstance(x, list | tuple):
         return [_jsonable(v) for v in x]
     if isinstance(x, np.ndarray):
         return x.tolist()
     if isinstance(x, np.generic):
-        return x.item()
-    return x
+        return _jsonable(x.item())
+    if x is None or isinstance(x, str | int | float):
+        return x
+    raise TypeError(f"{type(x).__name__} is not a JSON value")
 
 
 def meta_of(scene: Scene, tracks: TrackSet) -> JsonDict:
@@ -272,7 +274,7 @@ def write_anomalies_csv(path: Path, anomalies: AnomalyRows) -> None:
 
 
 def write_result_files(d: Path, scene: Scene, tracks: TrackSet, extra_meta: JsonDict | None = None,
-                       anomalies: AnomalyRows = None, streamed: bool = False) -> None:
+                       anomalies: AnomalyRows | None = None, streamed: bool = False) -> None:
     """``tracks.csv``, ``keypoints.csv`` (with joints), ``anomalies.csv`` (when QA ran),
     ``segments.csv`` (when an id was split) and ``meta.json`` into folder ``d``; ``streamed``:
     the first three are there already (:class:`StreamedRows`)."""
@@ -287,7 +289,7 @@ def write_result_files(d: Path, scene: Scene, tracks: TrackSet, extra_meta: Json
         scene.association.write(d / "association.csv")
     meta = meta_of(scene, tracks)
     if extra_meta:
-        meta.update(_jsonable(extra_meta))
+        meta.update({k: _jsonable(v) for k, v in extra_meta.items()})
     if tracks.downweighted is not None:
         write_downweighted_csv(d / "downweighted.csv", scene, tracks)
     if tracks.info.segments:
@@ -299,7 +301,7 @@ def write_result_files(d: Path, scene: Scene, tracks: TrackSet, extra_meta: Json
 SEGMENT_COLUMNS = ("id", "segment", "first_frame", "last_frame", "rows")
 
 
-def write_segments_csv(path: Path, segments: list[dict[str, int]]) -> None:
+def write_segments_csv(path: Path, segments: Sequence[Mapping[str, JsonValue]]) -> None:
     """``segments.csv``: the pieces an id was split into (:mod:`gt3dkit.fusion.preparation.identity`), each
     estimated on its own: which frames of the input's id each piece holds."""
     with open(path, "w", newline="") as f:
@@ -333,7 +335,7 @@ def read_segments_csv(path: Path) -> tuple[tuple[int, int, int, int], ...]:
 
 
 def write_outputs(out: Path, scene: Scene, tracks: TrackSet,
-                  extra_meta: JsonDict | None = None, anomalies: AnomalyRows = None) -> None:
+                  extra_meta: JsonDict | None = None, anomalies: AnomalyRows | None = None) -> None:
     """Write ``OUT/tracks.csv`` (+ ``keypoints.csv``, ``anomalies.csv``) and ``OUT/meta.json``
     (all or nothing)."""
     write_dir_atomically(Path(out), lambda tmp: write_result_files(tmp, scene, tracks, extra_meta,
@@ -344,7 +346,9 @@ def read_tracks_csv(path: Path) -> TrackSet:
     """Read a ``tracks.csv`` written by :func:`write_tracks_csv` (one row per frame and id,
     finite numbers, semi-axes and sds >= 0)."""
     path = Path(path)
-    rows, keys, views = [], {}, []
+    rows: list[list[float]] = []
+    keys: dict[tuple[int, int], int] = {}
+    views: list[int] = []
     columns = TRACK_COLUMNS + (("n_views",) if _header(path)[len(TRACK_COLUMNS):][:1] == ["n_views"] else ())
     for line, r in iter_csv_rows(path, columns):
         where = f"{path}: line {line}"

@@ -32,15 +32,16 @@ own standard, and every threshold is in :class:`QAConfig`. Kinds (``OUT/anomalie
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TypeAlias
 
 import numpy as np
 
 from gt3dkit.arrays import lookup_rows
 from gt3dkit.geom.camera import project_points
 from gt3dkit.geom.conics import covered_fraction, cut_edges, model_boxes
-from gt3dkit.qa.view import PreparedView, RowsView
+from gt3dkit.qa.view import ExchangeView, PreparedView, RowsView, SplitView
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import BOX_EDGES, F64, Scene, TrackSet
 
@@ -65,9 +66,14 @@ class QAConfig:
     #                             this many times the cameras' median residual
 
 
+#: One flagged annotation: frame, camera ("" for all), id ("" for all), joint or "", kind,
+#: score, detail (anomalies.csv's columns).
+AnomalyRow: TypeAlias = tuple[int, str, int | str, int | str, str, float, str]
+
+
 @dataclass
 class Anomalies:
-    rows: list[tuple[int, str, int, int | str, str, float, str]]
+    rows: list[AnomalyRow]
 
     def counts(self) -> dict[str, int]:
         out: dict[str, int] = {}
@@ -86,19 +92,23 @@ def _iou(a: F64, b: F64) -> F64:
     w = np.clip(np.minimum(a[..., 2], b[..., 2]) - np.maximum(a[..., 0], b[..., 0]), 0, None)
     h = np.clip(np.minimum(a[..., 3], b[..., 3]) - np.maximum(a[..., 1], b[..., 1]), 0, None)
     inter = w * h
-    area = lambda x: (x[..., 2] - x[..., 0]) * (x[..., 3] - x[..., 1])  # noqa: E731
-    return inter / np.maximum(area(a) + area(b) - inter, 1e-9)
+    return inter / np.maximum(_area(a) + _area(b) - inter, 1e-9)
+
+
+def _area(box: F64) -> F64:
+    """``(...)`` areas of boxes ``(..., 4)`` (xmin, ymin, xmax, ymax)."""
+    return (box[..., 2] - box[..., 0]) * (box[..., 3] - box[..., 1])
 
 
 def find_anomalies(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QAConfig | None = None,
-                   splits: tuple[Any, ...] = (), exchanges: tuple[Any, ...] = ()) -> Anomalies:
+                   splits: Sequence[SplitView] = (), exchanges: Sequence[ExchangeView] = ()) -> Anomalies:
     """Every flagged annotation of ``scene`` against ``tracks`` (see the module docstring), and
     each place an id was split (``splits``, :func:`gt3dkit.fusion.preparation.identity.identity_segments`)
     and each pair of ids whose labels were exchanged (``exchanges``: one row per id)."""
     cfg = cfg or QAConfig()
     rows, cams = pre.rows, pre.cams
     names = scene.rig.names
-    out: list[tuple[int, str, int, int | str, str, float, str]] = []
+    out: list[AnomalyRow] = []
     r_of = track_row_of(tracks, rows)
     have = r_of >= 0
     idx = np.flatnonzero(have)
@@ -125,7 +135,8 @@ def find_anomalies(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QACon
     return Anomalies(out)
 
 
-def _identity_rows(splits: tuple[Any, ...], exchanges: tuple[Any, ...], out: list) -> None:
+def _identity_rows(splits: Sequence[SplitView], exchanges: Sequence[ExchangeView], out: list[AnomalyRow]
+                   ) -> None:
     """The rows of each place an id was split and each pair of ids whose labels were exchanged
     (:func:`find_anomalies`)."""
     for s in splits:
@@ -150,7 +161,7 @@ def _identity_rows(splits: tuple[Any, ...], exchanges: tuple[Any, ...], out: lis
 
 
 def _box_rows(pre: PreparedView, cfg: QAConfig, names: list[str], idx: np.ndarray, box: F64, margin: F64,
-              frame_of: np.ndarray, id_of: np.ndarray, out: list) -> None:
+              frame_of: np.ndarray, id_of: np.ndarray, out: list[AnomalyRow]) -> None:
     """The flagged boxes (``cut_box``, ``size_outlier``, ``shifted_box``) of the rows ``idx`` that
     have an estimate, against its tangent boxes ``box (n, C, 4)`` at depth ``margin (n, C)``
     (:func:`find_anomalies`)."""
@@ -161,10 +172,9 @@ def _box_rows(pre: PreparedView, cfg: QAConfig, names: list[str], idx: np.ndarra
     zs = np.where(usable, np.abs(box - z) / sd[None, None, :], 0.0)
     score = zs.max(axis=2)  # (n, C)
     iou = _iou(box, z)
-    area = lambda x: (x[..., 2] - x[..., 0]) * (x[..., 3] - x[..., 1])  # noqa: E731
     with np.errstate(invalid="ignore", divide="ignore"):
-        ratio = area(z) / area(box)
-        size = np.sqrt(np.maximum(area(box), 1e-9))
+        ratio = _area(z) / _area(box)
+        size = np.sqrt(np.maximum(_area(box), 1e-9))
         off = np.hypot((z[..., 0] + z[..., 2] - box[..., 0] - box[..., 2]) / 2,
                        (z[..., 1] + z[..., 3] - box[..., 1] - box[..., 3]) / 2) / size
     bad = (score > cfg.box_sigmas) & usable.any(axis=2)
@@ -194,10 +204,11 @@ def _box_rows(pre: PreparedView, cfg: QAConfig, names: list[str], idx: np.ndarra
                     detail))
 
 
-def _with_time_offsets(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QAConfig, out: list) -> list:
+def _with_time_offsets(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QAConfig,
+                       out: list[AnomalyRow]) -> list[AnomalyRow]:
     """``out`` with each unsynchronised camera's row (:func:`_time_offsets`) in place of its
     per-view flags, which follow from the offset (:func:`find_anomalies`)."""
-    offsets: list = []
+    offsets: list[AnomalyRow] = []
     _time_offsets(scene, tracks, pre, cfg, offsets)
     if offsets:  # an unsynchronised camera's views all look wrong: one row says why
         cams_off = {r[1] for r in offsets}
@@ -211,7 +222,7 @@ def _with_time_offsets(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: Q
     return out
 
 
-def _cut_edges(scene: Scene, pre: PreparedView, out: list) -> None:
+def _cut_edges(scene: Scene, pre: PreparedView, out: list[AnomalyRow]) -> None:
     """One ``cut_edges`` row per camera with edges left out as cut by a nearer object, saying
     which: each object's frames and edge kinds (:func:`which_cut`)."""
     cut = pre.box_cut
@@ -229,7 +240,8 @@ def _cut_edges(scene: Scene, pre: PreparedView, out: list) -> None:
                     "inside the box of a nearer object and vary clearly more than the others: the boxes are "
                     "drawn around the visible part, so these edges say where the nearer one is; left out, as "
                     "edges at the image border are (meta.json: preparation, boxes, cut_edges). Which: "
-                    + which_cut(rows.obj_ids[rows.row_o], rows.frames[rows.row_t], per, _cutters(pre, c))))
+                    + which_cut(rows.obj_ids[rows.row_o], rows.frames[rows.row_t], per,
+                                _cutters(pre, int(c)))))
 
 
 def _cutters(pre: PreparedView, c: int) -> np.ndarray | None:
@@ -305,7 +317,7 @@ def _cut_by_nearer(bad: np.ndarray, label: F64, box: F64, depth: F64, frame_ix: 
 
 def _keypoints(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QAConfig, r_of: np.ndarray,
                have: np.ndarray, frame_of: np.ndarray, id_of: np.ndarray,
-               out: list) -> None:
+               out: list[AnomalyRow]) -> None:
     rows, cams = pre.rows, pre.cams
     names = scene.rig.names
     joints = SKELETONS[scene.skeleton].joints if scene.skeleton else ()
@@ -340,7 +352,7 @@ def _keypoints(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QAConfig,
                     f"{err[n, c, j]:.1f} px from the estimate's projection ({score[n, c, j]:.1f} sigma)"))
 
 
-def _world_frame(scene: Scene, tracks: TrackSet, cfg: QAConfig, out: list) -> None:
+def _world_frame(scene: Scene, tracks: TrackSet, cfg: QAConfig, out: list[AnomalyRow]) -> None:
     """Objects under the floor or floating, where the people of the scene stand on the floor."""
     up = scene.rig.up
     if tracks.kpt_world.shape[1] and np.isfinite(tracks.kpt_world).any():
@@ -363,7 +375,7 @@ def _world_frame(scene: Scene, tracks: TrackSet, cfg: QAConfig, out: list) -> No
                         "over its frames)"))
 
 
-def _missing_views(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QAConfig, out: list,
+def _missing_views(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QAConfig, out: list[AnomalyRow],
                    r_of: np.ndarray, box: F64, margin: F64) -> None:
     """``r_of`` (R,) :func:`track_row_of`; ``box``,
     ``margin`` the tangent boxes of the rows ``r_of >= 0`` in every camera."""
@@ -446,7 +458,8 @@ def offset_residuals(tracks: TrackSet, pre: PreparedView, max_shift: int) -> tup
     return shifts, med
 
 
-def _time_offsets(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QAConfig, out: list) -> None:
+def _time_offsets(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QAConfig,
+                  out: list[AnomalyRow]) -> None:
     if len(pre.rows.frames) < 2 * cfg.max_offset_frames + 3 or cfg.max_offset_frames < 1:
         return
     shifts, med = offset_residuals(tracks, pre, cfg.max_offset_frames)

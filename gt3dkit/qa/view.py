@@ -16,6 +16,8 @@ from gt3dkit.types import F64, I64
 class RowsView(Protocol):
     """The object-frames of a scene: ``R`` rows, each an object at a frame, ``C`` cameras."""
 
+    def __len__(self) -> int: ...  # R
+
     @property
     def frames(self) -> I64: ...  # (T,) the frame numbers
 
@@ -74,3 +76,60 @@ class PreparedView(Protocol):
 
     @property
     def box_cut_by(self) -> np.ndarray | None: ...  # (R, C, 4) the row of a nearer object each lies in
+
+
+class SplitView(Protocol):
+    """Where an id was split (``gt3dkit.fusion.preparation.identity.Split``): between frames
+    ``frame_before`` and ``frame_after`` its views jump ``distance_m`` (``speed_mps``, more than
+    ``limit_m``); ``segment``: the piece from there on; ``given``: a piece boundary the
+    corrections file sets."""
+
+    @property
+    def track_id(self) -> int: ...
+
+    @property
+    def segment(self) -> int: ...
+
+    @property
+    def frame_before(self) -> int: ...
+
+    @property
+    def frame_after(self) -> int: ...
+
+    @property
+    def distance_m(self) -> float: ...
+
+    @property
+    def speed_mps(self) -> float: ...
+
+    @property
+    def views_before(self) -> int: ...
+
+    @property
+    def views_after(self) -> int: ...
+
+    @property
+    def limit_m(self) -> float: ...
+
+    @property
+    def given(self) -> bool: ...
+
+
+class ExchangeView(Protocol):
+    """Two ids whose labels were exchanged at ``frame`` (``gt3dkit.fusion.preparation.identity.Exchange``):
+    each one's views ``distance_m`` from where it was, the other where it was."""
+
+    @property
+    def frame(self) -> int: ...
+
+    @property
+    def track_id(self) -> int: ...
+
+    @property
+    def other_id(self) -> int: ...
+
+    @property
+    def distance_m(self) -> tuple[float, float]: ...
+
+    @property
+    def views(self) -> tuple[int, int]: ...

@@ -110,9 +110,9 @@ def fit_boxes(rig: Rig, cams: Cams, z: F64, keep: np.ndarray, sigma: F64, start:
     sol = least_squares(resid, q0, jac_sparsity=J.tocsr(), loss="soft_l1", f_scale=2.0,
                         x_scale="jac", max_nfev=max_nfev, method="trf")
     R, t = _cams(rig, variable, sol.x[:a0])
-    cams = tuple(replace(c, R=R[i], t=t[i]) for i, c in enumerate(rig.cameras))
+    moved = tuple(replace(c, R=R[i], t=t[i]) for i, c in enumerate(rig.cameras))
     X, L = unpack(sol.x)
-    return Rig(cams, up=rig.up, frame_name=rig.frame_name), X, L
+    return Rig(moved, up=rig.up, frame_name=rig.frame_name), X, L
 
 
 def edge_sigmas(rig: Rig, cams: Cams, z: F64, keep: np.ndarray, X: F64, L: F64, floor: float = 0.3) -> F64:
@@ -176,6 +176,8 @@ def box_residuals(rig: Rig, cams: Cams, z: F64, keep: np.ndarray, sigma: F64, X0
 def refine_boxes(scene: Scene, pre: Prepared, cfg: RefineConfig) -> RefineResult:
     t0 = time.perf_counter()
     rig, rows, fit = scene.rig, pre.rows, pre.fit
+    if fit is None:
+        raise ValueError("refine_boxes needs a preparation of boxes (its per-frame fits)")
     C = len(rig.cameras)
     cams = pre.cams
     keep = pre.box_keep & np.isfinite(rows.box_z)
@@ -216,19 +218,20 @@ def refine_boxes(scene: Scene, pre: Prepared, cfg: RefineConfig) -> RefineResult
         new, _, _, sig = fit_reweighted(rig, cams, z, keep, sigma, X0, L0, accept, obj, floor_sd)
     e_before = box_residuals(rig, cams, z, keep, sigma, X0, L0, obj)
     e_after = box_residuals(new, cams, z, keep, sigma, X0, L0, obj) if accept.any() else e_before
+    per_camera: dict[str, JsonDict] = {}
     report: JsonDict = {"method": "cameras + ellipsoids, tangent-box residual (scipy soft-L1)",
                               "floor": ({"used": True, "sd_m": floor_sd, "median_bottom_m": floor_med}
                                         if floor_sd is not None else
                                         {"used": False, "median_bottom_m": floor_med}),
                               "box_sigma_px": sigma.tolist(), "folds": cfg.folds,
-                              "refine_intrinsics": False, "cameras": {}}
+                              "refine_intrinsics": False, "cameras": per_camera}
     for c, cam in enumerate(rig.cameras):
         dc, da = pose_change(cam, new.cameras[c])
         eb, ea = e_before[:, c], e_after[:, c]
         why = ("refined: held-out box residual lower in every fold" if accept[c] else
                f"kept: too few boxes ({int(n_obs[c])})" if n_obs[c] < 2 * cfg.min_points else
                f"kept: refining did not lower its held-out box residual by {cfg.min_gain:.0%} in every fold")
-        report["cameras"][cam.name] = {
+        per_camera[cam.name] = {
             "refined": bool(accept[c]), "why": why, "observations": int(n_obs[c]),
             "heldout_median_px_input": held[0, :, c].round(4).tolist(),
             "heldout_median_px_refined": held[1, :, c].round(4).tolist(),

@@ -110,7 +110,7 @@ def _pair_pose(p: BoxPoints, a: int, b: int, f_px: float, cfg: BoxPeopleConfig) 
     if E is None or E.shape != (3, 3):
         return 0, np.eye(3), np.zeros(3)
     n, R, t, _ = cv2.recoverPose(E, x1, x2, np.eye(3), mask=mask)
-    return int(n), R, t.reshape(3)
+    return int(n), np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64).reshape(3)
 
 
 def _triangulate(p: BoxPoints, R: F64, t: F64, posed: np.ndarray) -> tuple[I64, F64]:
@@ -142,7 +142,8 @@ def _pnp(p: BoxPoints, keys: I64, X: F64, c: int, f_px: float, cfg: BoxPeopleCon
         return 0, np.eye(3), np.zeros(3)
     ok, rvec, tvec = cv2.solvePnP(obj[inl[:, 0]], img[inl[:, 0]], np.eye(3), None, rvec, tvec,
                                   useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
-    return int(len(inl)), cv2.Rodrigues(rvec)[0], tvec.reshape(3)
+    return (int(len(inl)), np.asarray(cv2.Rodrigues(rvec)[0], dtype=np.float64),
+            np.asarray(tvec, dtype=np.float64).reshape(3))
 
 
 @dataclass(frozen=True)
@@ -175,7 +176,8 @@ def place_cameras(p: BoxPoints, rig: Rig, cfg: BoxPeopleConfig, where: str) -> P
     order = [a, b]
     while not posed.all():
         keys, X = _triangulate(p, R, t, posed)
-        c, (n, Rc, tc) = max(((c, _pnp(p, keys, X, c, float(f[c]), cfg)) for c in np.flatnonzero(~posed)),
+        left = np.flatnonzero(~posed).tolist()
+        c, (n, Rc, tc) = max(((c, _pnp(p, keys, X, c, float(f[c]), cfg)) for c in left),
                              key=lambda kv: kv[1][0])
         if n < cfg.min_people:
             missing = [rig.cameras[k].name for k in np.flatnonzero(~posed)]
@@ -234,7 +236,8 @@ def calibrate_boxes(scene: Scene, cfg: BoxPeopleConfig | None = None) -> PeopleC
     c_sd, r_sd = np.fmax(c_sd, c_sd2), np.fmax(r_sd, r_sd2)
     s, Rw, tw, world = box_world(X, out, cfg)
     c_sd *= s
-    final = replace(transform_rig(out, s, Rw, tw), up=np.array([0.0, 0.0, 1.0]), frame_name=world["frame"])
+    final = replace(transform_rig(out, s, Rw, tw), up=np.array([0.0, 0.0, 1.0]),
+                    frame_name=str(world["frame"]))
     a, b = placed.order[:2]
     report: JsonDict = {
         "seconds": time.perf_counter() - t0, "from": "boxes",

@@ -255,7 +255,8 @@ def _reweighted(A: F64, y: F64, start: F64) -> tuple[F64, F64]:
         res = A @ late - y
         w = 1.0 / (1.0 + (res / 0.5) ** 2)
         w[-1] = 1.0
-        late = np.linalg.lstsq(A * np.sqrt(w)[:, None], y * np.sqrt(w), rcond=None)[0]
+        sw = np.sqrt(w)
+        late = np.asarray(np.linalg.lstsq(A * sw[:, None], y * sw, rcond=None)[0], dtype=np.float64)
     return late, w
 
 
@@ -266,7 +267,9 @@ def estimate_clocks(pv: PersonViews, rig: Rig, cfg: ClockConfig | None = None) -
     C = len(rig.cameras)
     succ, pred = follow(pv)
     track = tracks_of(succ, pred)
-    rows, pairs = [], []
+    rows: list[tuple[int, int, float]] = []
+    pairs: list[JsonDict] = []
+    quality_of: list[float] = []
     for a in range(C):
         for b in range(a + 1, C):
             got = pair_offset(pv, succ, pred, track, rig, a, b, cfg)
@@ -275,21 +278,23 @@ def estimate_clocks(pv: PersonViews, rig: Rig, cfg: ClockConfig | None = None) -
             rows.append((a, b, got[0]))
             pairs.append({"cameras": [rig.cameras[a].name, rig.cameras[b].name], "late_frames": got[0],
                           "mean_sq_px": got[1], "joints": got[2], "rise_sq_px": got[3]})
+            quality_of.append(got[3] * got[2])
     if not rows:
         raise InputError("cameras", "no two cameras share a followed person: no clock can be found")
     A = np.zeros((len(rows) + 1, C))
     y = np.zeros(len(rows) + 1)
-    for r, (a, b, s) in enumerate(rows):
-        A[r, b], A[r, a], y[r] = 1.0, -1.0, s
+    for i, (a, b, s) in enumerate(rows):
+        A[i, b], A[i, a], y[i] = 1.0, -1.0, s
     A[-1, 0] = 1.0  # the first camera's clock is the reference
     if np.linalg.matrix_rank(A) < C:
         seen = {c for a, b, _ in rows for c in (a, b)}
         missing = [rig.cameras[c].name for c in range(C) if c not in seen] or [rig.cameras[C - 1].name]
         raise InputError(", ".join(missing), "shares no followed person with the cameras linked to the "
                                              "first: its clock cannot be found")
-    quality = np.array([p["rise_sq_px"] * p["joints"] for p in pairs])
+    quality = np.array(quality_of)
     best_cost = np.inf
-    for start in (np.linalg.lstsq(A, y, rcond=None)[0], _tree_start(rows, quality, C)):
+    least_squares = np.asarray(np.linalg.lstsq(A, y, rcond=None)[0], dtype=np.float64)
+    for start in (least_squares, _tree_start(rows, quality, C)):
         sol, wts = _reweighted(A, y, start)
         r = A @ sol - y
         cost = float(np.sum(np.log1p((r[:-1] / 0.5) ** 2)))
@@ -368,7 +373,8 @@ def offset_steps(scene: Scene, tracks: TrackSet, cams: I64, max_px: float = CAP_
         return np.where(ks[i] == k, order[i], -1)
 
     K = len(cams)
-    out = Steps(*(np.full(K, np.nan) for _ in range(5)), np.zeros(K, np.int64))
+    out = Steps(np.full(K, np.nan), np.full(K, np.nan), np.full(K, np.nan), np.full(K, np.nan),
+                np.full(K, np.nan), np.zeros(K, np.int64))
     for k, c in enumerate(cams):
         i = np.flatnonzero(obs.cam == c)
         r0 = row_of(obs.track_id[i], obs.frame[i])

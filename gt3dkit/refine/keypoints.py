@@ -173,9 +173,10 @@ def refine(scene: Scene, cfg: RefineConfig | None = None) -> RefineResult:
             held["input_px"][f, c], held["refined_px"][f, c] = a, b
             gains[f, c] = (a - b) / max(a, 1e-12)
     accept = np.all(gains > cfg.min_gain, axis=0)
+    per_camera: dict[str, JsonDict] = {}
     report: JsonDict = {"method": "pycolmap bundle adjustment of keypoint tracks (Cauchy loss)",
                               "keypoint_sigma_px": sigma, "folds": cfg.folds,
-                              "refine_intrinsics": cfg.refine_intrinsics, "cameras": {}}
+                              "refine_intrinsics": cfg.refine_intrinsics, "cameras": per_camera}
     new = rig
     if accept.any():
         new = ba_keypoints(rig, tr, accept, cfg, sigma)
@@ -188,7 +189,7 @@ def refine(scene: Scene, cfg: RefineConfig | None = None) -> RefineResult:
                if n_obs[c] < 2 * cfg.min_points else
                "kept: refining did not lower its held-out reprojection by "
                f"{cfg.min_gain:.0%} in every fold")
-        report["cameras"][cam.name] = {
+        per_camera[cam.name] = {
             "refined": bool(accept[c]), "why": why, "observations": int(n_obs[c]),
             "heldout_median_px_input": held["input_px"][:, c].round(4).tolist(),
             "heldout_median_px_refined": held["refined_px"][:, c].round(4).tolist(),

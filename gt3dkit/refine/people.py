@@ -190,22 +190,24 @@ def fit_pair(pv: PersonViews, a: int, b: int, cfg: PeopleConfig, rng: np.random.
     samples = TwoFrameSamples(frames, cfg.hypotheses, rng)
     for k in samples:
         flip = rng.uniform(size=2) < SWAPPED_SHARE
-        p1, p2 = [], []
+        parts1: list[F64] = []
+        parts2: list[F64] = []
         for q, fl in zip(k, flip, strict=True):
             x2 = pv.xy[P[q, 1]][pv.mirror] if fl else pv.xy[P[q, 1]]
             m = pv.ok[P[q, 0]] & np.isfinite(x2[:, 0])
-            p1.append(pv.xy[P[q, 0]][m])
-            p2.append(x2[m])
-        p1a, p2a = np.concatenate(p1), np.concatenate(p2)
+            parts1.append(pv.xy[P[q, 0]][m])
+            parts2.append(x2[m])
+        p1a, p2a = np.concatenate(parts1), np.concatenate(parts2)
         if len(p1a) < 10:
             continue
         E, _ = cv2.findEssentialMat(p1a, p2a, np.eye(3), method=cv2.RANSAC, prob=0.99,
                                     threshold=cfg.pair_px / f_px, maxIters=HYPOTHESIS_ITERS)
         if E is None:
             continue
-        score = int((pair_errors(pv, E[:3], score_on, f_px)[0] < cfg.pair_px).sum())
+        E3 = np.asarray(E[:3], dtype=np.float64)
+        score = int((pair_errors(pv, E3, score_on, f_px)[0] < cfg.pair_px).sum())
         if score > best:
-            best, best_E = score, E[:3]
+            best, best_E = score, E3
             samples.found(score / len(score_on))
     if best_E is None:
         return None
@@ -218,12 +220,13 @@ def fit_pair(pv: PersonViews, a: int, b: int, cfg: PeopleConfig, rng: np.random.
                                   threshold=cfg.pair_px / f_px)
     if E is None:
         return None
-    E = E[:3]
-    _, R, t, _ = cv2.recoverPose(E, p1, p2, np.eye(3), mask=inl.copy())
-    err, flip = pair_errors(pv, E, P, f_px)
+    E3 = np.asarray(E[:3], dtype=np.float64)
+    _, R, t, _ = cv2.recoverPose(E3, p1, p2, np.eye(3), mask=inl.copy())
+    err, flip = pair_errors(pv, E3, P, f_px)
     good = err < cfg.pair_px
     links = np.column_stack([P[good], flip[good].astype(np.int64)])
-    return PairFit(a, b, R, t.reshape(3), _one_per_detection(links, err[good]), len(P))
+    return PairFit(a, b, np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64).reshape(3),
+                   _one_per_detection(links, err[good]), len(P))
 
 
 def _joint_pairs(pv: PersonViews, P: I64, flip: np.ndarray) -> tuple[F64, F64]:
@@ -337,7 +340,8 @@ def _pose_camera(pv: PersonViews, person: I64, flip: np.ndarray, X: F64, c: int,
         return None
     i = inl.reshape(-1)
     rv, tv = cv2.solvePnPRefineLM(X3[ok][i], x2[ok][i], np.eye(3), None, rv, tv)
-    return cv2.Rodrigues(rv)[0], tv.reshape(3), int(len(i))
+    return (np.asarray(cv2.Rodrigues(rv)[0], dtype=np.float64), np.asarray(tv, dtype=np.float64).reshape(3),
+            int(len(i)))
 
 
 def _reprojection_px(X: F64, xy: F64, R: F64, t: F64, f_px: float) -> F64:
@@ -408,8 +412,8 @@ def pose_by_people(pv: PersonViews, person: I64, X: F64, c: int, cfg: PeopleConf
                                             reprojectionError=thr / f_px, flags=cv2.SOLVEPNP_EPNP)
         if not got:
             continue
-        Rh = cv2.Rodrigues(rv)[0]
-        th = tv.reshape(3)
+        Rh = np.asarray(cv2.Rodrigues(rv)[0], dtype=np.float64)
+        th = np.asarray(tv, dtype=np.float64).reshape(3)
         e = np.minimum(_reprojection_px(X3[score_on], xy[score_on], Rh, th, f_px),
                        _reprojection_px(X3[score_on], xym[score_on], Rh, th, f_px))
         score = int((e < thr).sum())
@@ -436,7 +440,8 @@ def pose_by_people(pv: PersonViews, person: I64, X: F64, c: int, cfg: PeopleConf
         return None
     i = inl.reshape(-1)
     rv, tv = cv2.solvePnPRefineLM(o3[ok][i], x2[ok][i], np.eye(3), None, rv, tv)
-    return CameraByPeople(cv2.Rodrigues(rv)[0], tv.reshape(3), int(len(i)), links[:, 0], links[:, 1],
+    return CameraByPeople(np.asarray(cv2.Rodrigues(rv)[0], dtype=np.float64),
+                          np.asarray(tv, dtype=np.float64).reshape(3), int(len(i)), links[:, 0], links[:, 1],
                           links[:, 2].astype(bool))
 
 
@@ -489,13 +494,13 @@ def place_cameras(pv: PersonViews, rig: Rig, cfg: PeopleConfig, rng: np.random.G
     while not placed.all():
         X = triangulate_people(pv, person, flip, R, t, placed)
         tries: dict[int, CameraByPeople] = {}
-        for c in np.flatnonzero(~placed):
-            linked = _pose_camera(pv, person, flip, X, int(c), cfg)
-            if linked is not None:
-                tries[int(c)] = CameraByPeople(*linked, np.zeros(0, np.int64), np.zeros(0, np.int64),
-                                               np.zeros(0, bool))
-            elif (got := pose_by_people(pv, person, X, int(c), cfg, rng)) is not None:
-                tries[int(c)] = got
+        for cam in np.flatnonzero(~placed).tolist():
+            posed = _pose_camera(pv, person, flip, X, cam, cfg)
+            if posed is not None:
+                tries[cam] = CameraByPeople(*posed, np.zeros(0, np.int64), np.zeros(0, np.int64),
+                                            np.zeros(0, bool))
+            elif (got := pose_by_people(pv, person, X, cam, cfg, rng)) is not None:
+                tries[cam] = got
         if not tries:
             break
         most = max(r.joints for r in tries.values())
@@ -552,7 +557,7 @@ def calibrate_people(scene: Scene, cfg: PeopleConfig | None = None) -> PeopleCal
     # 5. the world
     s, Rw, tw, world = people_world(X, scene.skeleton or "", rig_ba, cfg)
     out = transform_rig(rig_ba, s, Rw, tw)
-    out = Rig(out.cameras, up=np.array([0.0, 0.0, 1.0]), frame_name=world["frame"])
+    out = Rig(out.cameras, up=np.array([0.0, 0.0, 1.0]), frame_name=str(world["frame"]))
     res = keypoint_residuals(rig_ba, tracks)
     c_sd, r_sd = pose_sd(rig_ba, tracks, joint_of)
     c_sd *= s  # into metres
@@ -609,11 +614,12 @@ def against_given(rig: Rig, given: Rig) -> JsonDict | None:
     E = np.array([c.center_world for c in rig.cameras])
     T = np.array([given.cameras[given.index(c.name)].center_world for c in rig.cameras])
     centre = np.linalg.norm((s * (R @ E.T)).T + t - T, axis=1)
-    out: JsonDict = {"scale_given_over_found": float(s), "cameras": {}}
+    per_camera: dict[str, JsonDict] = {}
+    out: JsonDict = {"scale_given_over_found": float(s), "cameras": per_camera}
     for c, d in zip(rig.cameras, centre, strict=True):
         Rg = given.cameras[given.index(c.name)].R
         ang = float(np.degrees(np.arccos(np.clip((np.trace((c.R @ R.T).T @ Rg) - 1) / 2, -1, 1))))
-        out["cameras"][c.name] = {"centre_m": float(d), "rotation_deg": ang}
+        per_camera[c.name] = {"centre_m": float(d), "rotation_deg": ang}
     return out
 
 

@@ -46,8 +46,8 @@ def pixel_directions(cam: Camera, sub: int = SUBPIXELS) -> F64:
     off = (np.arange(sub) + 0.5) / sub - 0.5
     u = (np.arange(cam.width)[:, None] + off).reshape(-1).astype(np.float64)
     v = (np.arange(cam.height)[:, None] + off).reshape(-1).astype(np.float64)
-    u, v = np.meshgrid(u, v)
-    uv = np.stack([u, v], -1)[:, :, None, :]  # (H, W, 1, 2)
+    uu, vv = np.meshgrid(u, v)
+    uv = np.stack([uu, vv], -1)[:, :, None, :]  # (H, W, 1, 2)
     xy = undistort(unapply_K(uv, cam.K[None]), cam.lens_row[None], iters=30)[:, :, 0]  # (H, W, 2)
     return np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], -1)
 

@@ -171,21 +171,21 @@ def detector_errors(uv: F64, rig: Rig, skeleton: str, truth_frame: I64, truth_id
     injected: list[tuple[int, str, int, str, str, str]] = []
     names = rig.names
 
-    def note(m: int, c: int, j: int | str, kind: str, detail: str) -> None:
+    def note(m: int, c: int, j: int | np.integer | str, kind: str, detail: str) -> None:
         injected.append((int(truth_frame[m]), names[c], int(truth_id[m]), str(j), kind, detail))
 
     gap = gap_mask(frames, truth_frame, errors.gap)
     seen &= ~gap[:, None, None]
     if errors.single_view:
-        sv, chosen = keep_one_view(seen.any(axis=2), truth_id, errors.single_view, rng)
+        sv, chosen = keep_one_view(np.asarray(seen.any(axis=2)), truth_id, errors.single_view, rng)
         seen &= sv[..., None]
         injected += [(-1, "", p, "", "single_view", "detected in one camera only") for p in chosen]
     if errors.swaps:
         joints = SKELETONS[skeleton].joints
         pairs = [(joints.index(a), joints.index("r_" + a[2:])) for a in joints
                  if a.startswith("l_") and "r_" + a[2:] in joints]
-        hit = np.argwhere(seen.any(axis=2) & (rng.uniform(size=(M, C)) < errors.swaps))
-        for m, c in hit:
+        swapped = np.argwhere(seen.any(axis=2) & (rng.uniform(size=(M, C)) < errors.swaps))
+        for m, c in swapped:
             a, b = pairs[int(rng.integers(len(pairs)))]
             if seen[m, c, a] and seen[m, c, b]:
                 d = float(np.linalg.norm(uv[m, c, a] - uv[m, c, b]))
@@ -218,7 +218,7 @@ def detector_errors(uv: F64, rig: Rig, skeleton: str, truth_frame: I64, truth_id
 
 def _view_errors(uv: F64, conf: F64, seen: np.ndarray, truth_frame: I64, errors: Errors,
                  rng: np.random.Generator, depth_m: F64 | None, noise_px: float,
-                 note: Callable[[int, int, int | str, str, str], None]) -> None:
+                 note: Callable[[int, int, int | np.integer | str, str, str], None]) -> None:
     """The errors of a detector that sees several people in a view (in place): joints hidden
     behind a nearer person guessed, joints taken from another person, confidences above 1, noise
     that grows as the confidence falls (:class:`Errors`)."""
@@ -243,7 +243,7 @@ def _view_errors(uv: F64, conf: F64, seen: np.ndarray, truth_frame: I64, errors:
 
 def _frame_view(uv: F64, conf: F64, seen: np.ndarray, rows: I64, c: int, errors: Errors,
                 rng: np.random.Generator, depth_m: F64 | None,
-                note: Callable[[int, int, int | str, str, str], None]) -> None:
+                note: Callable[[int, int, int | np.integer | str, str, str], None]) -> None:
     """:func:`_view_errors`' occlusion and wrong-person joints of one frame's ``rows`` in camera ``c``."""
     here = [m for m in rows if seen[m, c].sum() >= 3]
     for m in here:

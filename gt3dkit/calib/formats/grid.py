@@ -94,7 +94,7 @@ def load_camera(root: Path, g: GridLayout, name: str, files: dict[str, str]) -> 
     sign = 1.0 if (R.T @ bottom)[2] < 0 else -1.0
     try:
         return Camera(name=name, width=g.width, height=g.height, K=K, dist=dist.reshape(-1),
-                      R=R, t=t, depth_sign=sign)
+                      R=np.asarray(R, dtype=np.float64), t=t, depth_sign=sign)
     except ValueError as e:
         raise InputError(str(intr), str(e)) from None
 

@@ -78,11 +78,14 @@ def cameras_doc(rig: Rig, fps: float | None, **extra: JsonValue) -> JsonDict:
 
 def _camera(c: JsonDict) -> Camera:
     size = [parse_int("", c[k], k, 1, 100_000) for k in ("width", "height")]
+    sign = c.get("depth_sign", 1.0)
+    if not isinstance(sign, int | float | str):
+        raise TypeError("depth_sign")
     return Camera(name=str(c["name"]), width=size[0], height=size[1],
                   K=np.asarray(c["K"], dtype=np.float64),
                   dist=np.asarray(c.get("dist", [0, 0, 0, 0, 0]), dtype=np.float64),
                   R=np.asarray(c["R"], dtype=np.float64), t=np.asarray(c["t"], dtype=np.float64),
-                  depth_sign=float(c.get("depth_sign", 1.0)), lens=str(c.get("lens", "pinhole")))
+                  depth_sign=float(sign), lens=str(c.get("lens", "pinhole")))
 
 
 def read(path: Path) -> Rig:

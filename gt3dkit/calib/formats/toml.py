@@ -57,7 +57,8 @@ def read(path: Path) -> Rig:
             R, _ = cv2.Rodrigues(rvec)
             cams.append(Camera(name=str(c.get("name", key)), width=w, height=h,
                                K=np.asarray(c["matrix"], dtype=np.float64),
-                               dist=np.asarray(c["distortions"], dtype=np.float64).reshape(-1), R=R,
+                               dist=np.asarray(c["distortions"], dtype=np.float64).reshape(-1),
+                               R=np.asarray(R, dtype=np.float64),
                                t=np.asarray(c["translation"], dtype=np.float64).reshape(-1),
                                lens="fisheye" if fisheye else "pinhole"))
         except (TypeError, ValueError, OverflowError) as e:

@@ -314,8 +314,8 @@ def _provisional(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
                                  "use": ("a robust pass at these values, smoothed, fixes the weights"
                                          if cfg.robust else "a pass at these values, smoothed")
                                  + (" and the boxes' linearisation" if linear else "")}
-    P_dense = np.asarray(P_prov)  # a boxes-only run's own array
-    lin = LinearisedSearch(model, init, start, fps, x_prov, P_dense, weights, on) if linear else None
+    lin = LinearisedSearch(model, init, start, fps, x_prov, np.asarray(P_prov), weights, on) \
+        if linear else None  # (a boxes-only run's own array)
     return start, weights, on, lin
 
 

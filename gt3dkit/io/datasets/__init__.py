@@ -12,6 +12,7 @@ import numpy as np
 
 from gt3dkit.calib.formats import detect_format, read_calibration
 from gt3dkit.calib.formats.grid import LAYOUTS as GRID_LAYOUTS
+from gt3dkit.calib.formats.native import FPS_RANGE
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets import mot, native, openpose, panoptic, tasks, wildtrack
 from gt3dkit.rig import Rig
@@ -79,7 +80,7 @@ LAYOUTS: dict[str, Layout] = {v.name: v for v in (
     _grid("wildtrack"),
     _grid("multiviewx"),
     Layout("panoptic", lambda root: any(root.glob("calibration_*.json")),
-           lambda root, o: panoptic.load(root, **o.panoptic), write_keypoints=panoptic.write),
+           lambda root, o: panoptic.load_with(root, o.panoptic), write_keypoints=panoptic.write),
 )}
 #: layouts whose ids are per camera or absent: association makes people of them
 ASSOCIATED = tuple(k for k, v in LAYOUTS.items() if v.associated)
@@ -112,7 +113,7 @@ def with_calibration(scene: Scene, calib: Path | str) -> Scene:
         raise InputError(str(calib), f"camera {missing[0]} is referenced by the annotations but "
                                      f"absent from the calibration (it has {', '.join(rig.names)})")
     cams = tuple(have.get(c.name, c) for c in scene.rig.cameras)
-    up = rig.up if detect_format(calib) == "native" else scene.rig.up  # only cameras.json has one
+    up = rig.up if detect_format(Path(calib)) == "native" else scene.rig.up  # only cameras.json has one
     new = Rig(cams, up=up, frame_name=f"{scene.rig.frame_name}, cameras from {calib}")
     files = {**scene.files, f"calibration:{calib}": _calib_digest(calib)}
     return dataclasses.replace(scene, rig=new, files=files)
@@ -204,8 +205,8 @@ def _as_asked(scene: Scene, root: Path | str, layout: str, skeleton: str | None,
     if calib is not None and layout not in ASSOCIATED:  # these read their calibration themselves
         scene = with_calibration(scene, calib)
     if fps is not None:
-        if not (np.isfinite(fps) and native.FPS_RANGE[0] <= fps <= native.FPS_RANGE[1]):
-            raise InputError("fps", f"must be in [{native.FPS_RANGE[0]:g}, {native.FPS_RANGE[1]:g}]"
+        if not (np.isfinite(fps) and FPS_RANGE[0] <= fps <= FPS_RANGE[1]):
+            raise InputError("fps", f"must be in [{FPS_RANGE[0]:g}, {FPS_RANGE[1]:g}]"
                                     f", got {fps}")
         scene = dataclasses.replace(scene, fps=float(fps), fps_assumed="")
     opts = {"root": str(Path(root).resolve()), "layout": layout, "skeleton": skeleton, "fps": fps,

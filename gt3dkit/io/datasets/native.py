@@ -42,7 +42,6 @@ from gt3dkit.io.datasets.wildtrack import read_truth_csv
 from gt3dkit.parse import (
     FRAME_MAX,
     ID_MAX,
-    MAX_WORLD_M,
     CsvBlock,
     HashedFile,
     iter_csv_blocks,
@@ -53,7 +52,7 @@ from gt3dkit.parse import (
     sha256,
 )
 from gt3dkit.skeletons import SKELETONS, skeleton_for
-from gt3dkit.types import F64, GroundTruth, Origins, Rig, Scene, SimScene, SkeletonScene
+from gt3dkit.types import F64, MAX_WORLD_M, GroundTruth, Origins, Rig, Scene, SimScene, SkeletonScene
 
 BOX_COLUMNS = ("frame", "camera", "id", "xmin", "ymin", "xmax", "ymax")
 KPT_COLUMNS = ("frame", "camera", "id", "joint", "u", "v")
@@ -91,7 +90,7 @@ def _load(root: Path, skeleton: str | None, stack: contextlib.ExitStack) -> Scen
     skel_name = skeleton or skel_doc
     if skel_name is not None and skel_name not in SKELETONS:
         raise InputError("--skeleton", f"unknown skeleton {skel_name!r} (known: {', '.join(SKELETONS)})")
-    kpt_cols = KPT_COLUMNS
+    kpt_cols: tuple[str, ...] = KPT_COLUMNS
     kpts: HashedFile | None = None
     if kpt_path.exists():
         kpts = stack.enter_context(HashedFile(kpt_path))
@@ -123,10 +122,10 @@ def _load(root: Path, skeleton: str | None, stack: contextlib.ExitStack) -> Scen
     blocks = (iter_csv_blocks(kpt_path, kpt_cols, warnings, KEYPOINT_BLOCK_ROWS, "isiifff", kpts) if has_kpts
               else ())
     for block in blocks:  # streamed
-        checked = _checked_keypoints(kpt_path, rig, n_joints, block, "conf" in kpt_cols, above)
-        if checked is not None:
-            rb.add_joint_block(checked[0])
-            undetected += checked[1]
+        joints = _checked_keypoints(kpt_path, rig, n_joints, block, "conf" in kpt_cols, above)
+        if joints is not None:
+            rb.add_joint_block(joints[0])
+            undetected += joints[1]
             continue
         for line, row in zip(block.lines.tolist(), block.rows(), strict=True):  # say where it failed
             r = dict(zip(kpt_cols, (x.strip() for x in row), strict=False))
@@ -167,7 +166,7 @@ def _add_box(rb: RowBuilder, rig: Rig, where: str, r: dict[str, str]) -> int:
     return 0
 
 
-def _camera_column(rig: Rig, names: Sequence[str]) -> np.ndarray:
+def _camera_column(rig: Rig, names: Sequence[str] | np.ndarray) -> np.ndarray:
     """``(P,)`` the camera index of each name (stripped), -1 for an unknown one."""
     known = {n: k for k, n in enumerate(rig.names)}
     index = {n: known.get(n.strip(), -1) for n in set(names)}
@@ -250,9 +249,9 @@ def _checked_keypoints(path: Path, rig: Rig, n_joints: int, block: CsvBlock, wit
         conf = np.minimum(conf, 1.0)
     keep = seen if conf is not None else slice(None)
     line = block.lines[keep]
-    block = JointBlock(frame[keep], cam[keep], tid[keep], joint[keep], uv[keep],
-                       None if conf is None else conf[keep], line, str(path))
-    return block, undetected
+    out = JointBlock(frame[keep], cam[keep], tid[keep], joint[keep], uv[keep],
+                     None if conf is None else conf[keep], line, str(path))
+    return out, undetected
 
 
 def _number(where: str, text: str, name: str) -> float:

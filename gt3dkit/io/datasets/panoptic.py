@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -23,11 +24,40 @@ from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import project_points
 from gt3dkit.parse import json_field, parse_frame, parse_int, read_hashed, sha256
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import MAX_WORLD_M, GroundTruth, Observations, Rig, Scene, SkeletonScene
+from gt3dkit.types import (
+    MAX_WORLD_M,
+    GroundTruth,
+    JsonValue,
+    Observations,
+    Origins,
+    Rig,
+    Scene,
+    SkeletonScene,
+)
 
 CM = 0.01
 FPS = 29.97
 POSE_DIR = "hdPose3d_stage1_coco19"
+
+
+def load_with(root: Path, options: Mapping[str, JsonValue]) -> Scene:
+    """:func:`load` with its keyword ``options`` as a scene's ``load_options`` keep them (JSON:
+    ``cameras`` a list of names, the others numbers)."""
+    unknown = sorted(set(options) - {"cameras", "noise_px", "seed", "min_conf"})
+    if unknown:
+        raise InputError(str(root), f"unknown panoptic options {unknown}")
+    cams = options.get("cameras")
+    if cams is not None and (isinstance(cams, str) or not isinstance(cams, Sequence)):
+        raise InputError("--cameras", f"expected a list of camera names, got {cams!r}")
+
+    def number(key: str, default: float) -> float:
+        v = options.get(key, default)
+        if isinstance(v, bool) or not isinstance(v, int | float):
+            raise InputError(key, f"must be a number, got {v!r}")
+        return float(v)
+
+    return load(root, None if cams is None else [str(c) for c in cams], number("noise_px", 0.0),
+                parse_int("seed", options.get("seed", 0), "seed"), number("min_conf", 0.1))
 
 
 def load(root: Path, cameras: list[str] | None = None, noise_px: float = 0.0, seed: int = 0,
@@ -129,8 +159,8 @@ def project_observations(rig: Rig, frames: np.ndarray, ids: np.ndarray, X_world:
     m_i, c_i = np.nonzero(keep)
     return Observations(frame=frames[m_i], cam=c_i, track_id=ids[m_i],
                         box_xyxy_px=np.full((len(m_i), 4), np.nan), kpt_uv_px=uv[m_i, c_i],
-                        origin=tuple(f"{origin[m]}, camera {rig.cameras[c].name}"
-                                     for m, c in zip(m_i, c_i, strict=True)))
+                        origin=Origins.of(f"{origin[m]}, camera {rig.cameras[c].name}"
+                                          for m, c in zip(m_i, c_i, strict=True)))
 
 
 def write(sim: SkeletonScene, tmp: Path) -> None:

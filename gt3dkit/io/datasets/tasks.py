@@ -68,6 +68,8 @@ def _untouched(digest: str | None, box: list[float] | None,
 
 def _num(where: str, v: object, name: str) -> float:
     try:
+        if not isinstance(v, str | int | float):
+            raise TypeError
         x = float(v)
     except (TypeError, ValueError):
         raise InputError(where, f"{name} must be a number, got {v!r}") from None
@@ -297,7 +299,7 @@ def write_coco(sim: SkeletonScene, tmp: Path, track_ids: bool = True, seed: int 
     skel = SKELETONS[sim.skeleton]
     write_cameras(sim.rig, sim.fps, tmp)
     ids = camera_ids(sim.truth_id, len(sim.rig.cameras), seed)
-    k, c = np.nonzero(np.isfinite(sim.uv).all(axis=3).any(axis=2))
+    k, c = np.nonzero(np.asarray(np.isfinite(sim.uv).all(axis=3)).any(axis=2))
     uv = sim.uv[k, c]
     box = np.c_[np.nanmin(uv, axis=1), np.nanmax(uv, axis=1)]
     shapes = Shapes.labelled(sim.truth_frame[k], c, camera_track_ids(ids, c, sim.truth_id[k]), box, uv)

@@ -30,6 +30,7 @@ import itertools
 import json
 import math
 from pathlib import Path
+from types import GenericAlias
 from typing import Any
 
 import numpy as np
@@ -42,7 +43,6 @@ from gt3dkit.io.datasets.common import BoxBlock, RowBuilder
 from gt3dkit.parse import (
     FRAME_MAX,
     ID_MAX,
-    MAX_WORLD_M,
     CsvBlock,
     HashedFile,
     iter_csv_blocks,
@@ -54,7 +54,18 @@ from gt3dkit.parse import (
     read_hashed,
     sha256,
 )
-from gt3dkit.types import F64, Camera, FrameIndex, GroundTruth, Origins, ReadAhead, Rig, Scene, SimScene
+from gt3dkit.types import (
+    F64,
+    MAX_WORLD_M,
+    Camera,
+    FrameIndex,
+    GroundTruth,
+    Origins,
+    ReadAhead,
+    Rig,
+    Scene,
+    SimScene,
+)
 
 #: Frame files read, decoded and checked together (:func:`_checked_views`): the numpy checks'
 #: cost is per call, and a block's Python objects are all a long folder holds at once.
@@ -117,11 +128,10 @@ def load(root: Path, g: GridLayout, span: tuple[int, int] | None = None, ahead: 
     obs = type(obs)(obs.frame, remap[obs.cam], obs.track_id, obs.box_xyxy_px, obs.kpt_uv_px,
                     obs.origin)
     frames = np.unique(frame_of)
-    if span is not None and (root / "truth.csv").exists():
-        truth = None  # read once for the sequence (gt3dkit.windows)
-    else:
-        truth = truth_csv(root, files) or _truth_positions(g, truth_rows)
-    return Scene(rig=rig, obs=obs, layout=g.name, fps=g.fps, frames=frames, truth=truth,
+    gt: GroundTruth | None = None  # with a span: read once for the sequence (gt3dkit.windows)
+    if span is None or not (root / "truth.csv").exists():
+        gt = truth_csv(root, files) or _truth_positions(g, truth_rows)
+    return Scene(rig=rig, obs=obs, layout=g.name, fps=g.fps, frames=frames, truth=gt,
                  files=files, root=str(root))
 
 
@@ -225,11 +235,12 @@ def _entries(p: Path, frame: int, raw: bytes, cams: list[Camera | None], g: Grid
                 box = [b + (0.5 if b >= 0 else -0.5) for b in box]
             if not 0 <= vn < len(g.cameras):
                 raise InputError(w, f"unknown camera (viewNum must be 0..{len(g.cameras) - 1})")
-            if cams[vn] is None:
+            cam = cams[vn]
+            if cam is None:
                 raise InputError(w, f"no calibration for camera {g.cameras[vn]} "
                                     f"(calibrations/{g.intrinsic_dir}/intr_{g.cameras[vn]}.xml)")
             if all(math.isfinite(b) for b in box):
-                check_pixels(w, cams[vn], box, "box")
+                check_pixels(w, cam, box, "box")
             rb.add_box(frame, vn, pid, box, w)
     return np.array(truth, dtype=np.int64).reshape(-1, 3)
 
@@ -244,9 +255,9 @@ def _people_decoder() -> Any:
 
     view = msgspec.defstruct("View", [("viewNum", int), ("xmin", float), ("ymin", float),
                                       ("xmax", float), ("ymax", float)], gc=False)
-    person = msgspec.defstruct("Person", [("personID", int), ("positionID", int), ("views", list[view])],
-                               gc=False)
-    return msgspec.json.Decoder(list[person])
+    person = msgspec.defstruct("Person", [("personID", int), ("positionID", int),
+                                          ("views", GenericAlias(list, (view,)))], gc=False)
+    return msgspec.json.Decoder(GenericAlias(list, (person,)))
 
 
 def _checked_views(raws: list[bytes], cams: list[Camera | None], g: GridLayout
