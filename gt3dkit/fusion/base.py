@@ -8,7 +8,7 @@ from importlib import import_module
 from typing import Protocol
 
 from gt3dkit.fusion.preparation.prepare import Prepared
-from gt3dkit.fusion.ukf.bones import BoneSamples
+from gt3dkit.fusion.ukf.bones import BoneSamples, PersonBones
 from gt3dkit.types import OptionValue, Scene, TrackSet
 
 
@@ -35,6 +35,9 @@ class Estimator(Protocol):
 
     name: str
     capabilities: Capabilities
+    #: each person's bone lengths found outside the run (a long sequence's first round,
+    #: :mod:`gt3dkit.windows`), used in place of its own; ignored without ``bone_samples``
+    bones: PersonBones | None
 
     def prepare(self, scene: Scene) -> Prepared:
         """The preparation :meth:`estimate` would make itself (with this estimator's settings)."""

@@ -20,6 +20,7 @@ import numpy as np
 
 from gt3dkit.fusion.base import Capabilities
 from gt3dkit.fusion.preparation.prepare import Prepared, axis_sd, ellipsoid_around, largest_sd, prepare
+from gt3dkit.fusion.ukf.bones import PersonBones
 from gt3dkit.types import JsonDict, RunInfo, Scene, TrackSet
 
 
@@ -34,6 +35,7 @@ class Triangulation:
     """Per-frame least-squares fit (boxes) and DLT (keypoints); no temporal model."""
 
     name = "triangulation"
+    bones: PersonBones | None = None  # (no bones: Estimator.bones)
 
     capabilities = Capabilities()
 

@@ -35,7 +35,7 @@ class AnomalyRows(Protocol):
     layer above): one tuple per finding, in :data:`ANOMALY_COLUMNS`' order."""
 
     @property
-    def rows(self) -> list[tuple[int, str, int, int | str, str, float, str]]: ...
+    def rows(self) -> Sequence[tuple[int, str, int | str, int | str, str, float, str]]: ...
 
 
 class RefinedRig(Protocol):

@@ -162,7 +162,7 @@ def reconstruct_windows(scene: Scene, estimator: str, plan: Plan, out: str | Non
     (:func:`reconstruct_windowed`)."""
     if out is None:
         tracks, _, read = reconstruct_windowed(scene, estimator, plan, every_frame, on_window, cluster,
-                                               **config)
+                                               on_part=None, tally=None, **config)
         return tracks, read
     made: list[tuple[TrackSet, Scene]] = []
 
@@ -229,8 +229,8 @@ def reconstruct_windowed(scene: Scene, estimator: str, plan: Plan, every_frame: 
             if scene.index is not None:
                 scene = with_chosen_box_model(scene, chosen.box_model, chosen.box_model_px)
             recut = plan.overlap is None and needed is not None and needed < ov
-            if recut:  # the noise's own context
-                ov = max(needed, MIN_OVERLAP_FRAMES)  # type: ignore[type-var]
+            if recut and needed is not None:  # the noise's own context
+                ov = max(needed, MIN_OVERLAP_FRAMES)
             if recut or scene.index is not None:  # (an index's windows carry its box model)
                 windows, bridge, scenes = _cut_windows(scene, sized_plan(plan, ov, len(frames), workers), ov,
                                                        client, index, work)

@@ -107,7 +107,7 @@ class Cluster:
         self.client = connect_scheduler(address, early)
         try:
             # held until closed or let go (warm_only): a future let go is a task cancelled
-            self._warming: dict[tuple[str, str], Future] = {}
+            self._warming: dict[tuple[str, str], Future[object]] = {}
             if early is not None and early.client is self.client:
                 self._warming, early.warming = early.warming, {}
             # the first worker at once; where it was sent its warm-ups before this process's

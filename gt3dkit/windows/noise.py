@@ -23,7 +23,7 @@ from gt3dkit.fusion.preparation.prepare import Prepared
 from gt3dkit.fusion.ukf.noise import SEARCH_OBJECT_FRAMES, drawn_objects
 from gt3dkit.sealed import scatter, submit
 from gt3dkit.threads import every_core, roomy_malloc, small_matrix_blas
-from gt3dkit.types import Options, Scene
+from gt3dkit.types import Options, Scene, json_num
 from gt3dkit.windows.cluster import Runner, on_dask, worker_addresses
 from gt3dkit.windows.plan import Window, objects_per_frame
 
@@ -146,7 +146,7 @@ def sample_noise(sample: Sample, estimator: str, config: Options, step_s: float)
     """:func:`chosen_noise` on its ``sample`` of the sequence (frames ``step_s`` seconds apart;
     read here where it is a reader), of which the objects the search draws
     (:func:`searched_objects`)."""
-    given = {k: config[k] for k in PROCESS_NOISE if config.get(k) is not None}
+    given = {k: float(v) for k in PROCESS_NOISE if isinstance(v := config.get(k), int | float)}
     with small_matrix_blas(), roomy_malloc():
         whole = sample if isinstance(sample, Scene) else sample()
         sample = searched_objects(whole)
@@ -154,7 +154,7 @@ def sample_noise(sample: Sample, estimator: str, config: Options, step_s: float)
         found, pre = process_noise_prepared(sample, est)  # the search alone, where the estimator has one
         if found is None:
             tracks, _ = estimate_checked(sample, est, qa=False)
-            found = {k: v for k, v in tracks.info.params.items() if v is not None}
+            found = {k: v for k in PROCESS_NOISE if (v := json_num(tracks.info.params, k)) is not None}
     fields = {f.name for f in dataclasses.fields(est.config)} if hasattr(est, "config") else set()
     chosen = {k: float(found[k]) for k in PROCESS_NOISE if k in fields and found.get(k) is not None}
     noise = {**chosen, **given}
@@ -193,7 +193,7 @@ def context_steps(accel_sd: float, meas_sd_m: float, dt_s: float, weight: float 
     return int(np.ceil(np.log(weight) / np.log(rho)))
 
 
-def joint_context(pre: Prepared, noise: dict[str, float], step_s: float) -> int | None:
+def joint_context(pre: Prepared | None, noise: dict[str, float], step_s: float) -> int | None:
     """The context in frames a keypoint sequence (no boxes) needs: :func:`context_steps` with
     the chosen ``joint_accel_sd`` and the per-frame joint fits' sd (the largest axis, the
     :data:`CONTEXT_SD_PERCENTILE` percentile over joints and frames of the preparation ``pre``),
@@ -201,7 +201,7 @@ def joint_context(pre: Prepared, noise: dict[str, float], step_s: float) -> int 
     meanwhile); frames ``step_s`` seconds apart. None (the default context) for boxes, or when
     the preparation tells nothing."""
     q = noise.get("joint_accel_sd")
-    if pre is None or q is None or pre.use_box or pre.kpt0_cov is None:
+    if pre is None or q is None or pre.use_box or pre.kpt0_cov is None or pre.kpt0 is None:
         return None
     var = np.diagonal(pre.kpt0_cov, axis1=-2, axis2=-1).max(axis=-1)  # (R, J) m^2
     seen = np.isfinite(pre.kpt0).all(axis=-1) & np.isfinite(var)

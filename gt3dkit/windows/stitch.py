@@ -160,7 +160,8 @@ def run_window(job: WindowJob, scene: Scene, kept: Keep | None = None) -> Window
     if d is not None:
         d = _downweighted_rows(d, (d.frame >= w.first) & (d.frame <= w.last))
     out = take_rows(dataclasses.replace(tracks, downweighted=d), keep)
-    findings = sorted((r for r in qa.rows if w.first <= r[0] <= w.last), key=finding_order)
+    rows = qa.rows if qa is not None else []
+    findings = sorted((r for r in rows if w.first <= r[0] <= w.last), key=finding_order)
     return WindowPart(out, findings, PartText.of(out, findings) if job.text else None)
 
 
@@ -202,7 +203,9 @@ def pooled_bones(parts: list[tuple[BoneSamples | None, I64, float]], config: Opt
     split = np.concatenate([p[1] for p in parts])
     s = BoneSamples.joined(got)
     s = s.take(~np.isin(s.obj, split))
-    cfg = UKFConfig(**{k: config[k] for k in ("bone_sd_floor_m", "bone_sd_m") if k in config})
+    # the run's own bone settings (checked by UKFConfig, as the run's estimator checked them)
+    bone_options: dict[str, Any] = {k: config[k] for k in ("bone_sd_floor_m", "bone_sd_m") if k in config}
+    cfg = UKFConfig(**bone_options)
     return PersonBones.pooled(s, cfg.bone_sd_floor_m, cfg.bone_sd_m)
 
 

@@ -65,6 +65,7 @@ from gt3dkit.fusion.preparation.prepare import (
     never_determined,
     prepare,
 )
+from gt3dkit.fusion.ukf.bones import PersonBones
 from gt3dkit.fusion.ukf.config import UKFConfig
 from gt3dkit.fusion.ukf.noise import ProcessNoise, moment_process_noise, noise_by_likelihood
 from gt3dkit.geom.boxrig import BoxCameras
@@ -128,6 +129,7 @@ class GTSAMSmoother:
     """Batch maximum a posteriori smoothing per object with GTSAM (see module doc)."""
 
     name = "gtsam"
+    bones: PersonBones | None = None  # (no bones: Estimator.bones)
 
     capabilities = Capabilities()
 
