@@ -45,6 +45,7 @@ from gt3dkit.types import (
     QASummary,
     Scene,
     TrackSet,
+    json_at,
 )
 
 __all__ = ["ESTIMATORS", "annotation_qa", "load_run", "load_scene", "make_estimator", "reconstruct"]
@@ -99,7 +100,8 @@ def load_scene(root: Path | str | Scene, layout: str | None = None, skeleton: st
     if isinstance(root, Scene):
         ahead = root.index.ahead if root.index is not None else None
         root = root.root
-    scene = read_scene(root, layout, skeleton, fps, calib, association, ahead=ahead, **panoptic_options)
+    scene = read_scene(root, layout, skeleton, fps, calib, association, span=None, ahead=ahead,
+                       **panoptic_options)
     if clocks is not None:
         if not isinstance(clocks, CameraClocks):
             clocks = CameraClocks.from_doc(clocks, "time offsets")
@@ -142,7 +144,8 @@ def load_detections(root: Path | str, layout: str | None = None, skeleton: str |
                     **panoptic_options: JsonValue) -> Scene:
     """Each camera's detections as read and checked, with no identities made across cameras (the
     association needs the rig's poses, which :mod:`gt3dkit.refine.people` is to find)."""
-    return checks.check_scene(read_scene(root, layout, skeleton, fps, calib, None, **panoptic_options),
+    return checks.check_scene(read_scene(root, layout, skeleton, fps, calib, None, span=None, ahead=None,
+                                         **panoptic_options),
                               identities=False)
 
 
@@ -479,11 +482,11 @@ def _load_scene(out: Path, meta: JsonDict, why: str) -> tuple[Scene, list[str]]:
         notes.append(f"input files changed since the run: {', '.join(changed[:5])}"
                      + (" ..." if len(changed) > 5 else "") + " (today's annotations beside the run's "
                      "estimate: run gt3d reconstruct again to bring them together)")
-    people = (meta.get("calibration_from_people") or {}).get("rig")
+    people = json_at(meta, "calibration_from_people", "rig")
     if people:
         scene = dataclasses.replace(scene, rig=rig_of_doc(people, f"{where}: calibration_from_people"))
         notes.append("cameras: the rig found from the people (meta.json calibration_from_people)")
-    refined = (meta.get("calibration_refinement") or {}).get("refined_rig")
+    refined = json_at(meta, "calibration_refinement", "refined_rig")
     if refined:
         scene = dataclasses.replace(scene, rig=rig_of_doc(refined, f"{where}: calibration_refinement"))
         notes.append("cameras: the refined calibration the run used (meta.json calibration_refinement)")

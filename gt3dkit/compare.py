@@ -52,7 +52,7 @@ def reprojection_residuals(tracks: TrackSet, scene: Scene, rows: Rows) -> F64:
 
 def seen_joints(tracks: TrackSet, rows: Rows, min_views: int = 2) -> np.ndarray:
     """(M, J) joints of each output row that ``min_views`` or more cameras saw in that frame."""
-    out = np.zeros(tracks.kpt_world.shape[:2], bool)
+    out = np.zeros((len(tracks), tracks.kpt_world.shape[1]), bool)
     if out.shape[1]:
         r_of = _row_of(tracks, rows)
         nv = np.isfinite(rows.kpt_z[..., 0]).sum(axis=1)  # (R, J)
@@ -127,10 +127,10 @@ def compare(scene: Scene, out: Path, estimators: tuple[str, ...] = COMPARE_ESTIM
             tr = relabel_to_truth(tr, scene.truth, scene.rig.up)
         if scene.truth is not None:
             if np.isfinite(scene.truth.center_world).any():
-                e = box_errors(tr, scene.truth, scene.rig.up)
-                row["truth_ground_mean_m"] = e.ground_mean_m
-                row["truth_centre_mean_m"] = e.centre_mean_m
-                row["truth_coverage"] = e.coverage
+                errs = box_errors(tr, scene.truth, scene.rig.up)
+                row["truth_ground_mean_m"] = errs.ground_mean_m
+                row["truth_centre_mean_m"] = errs.centre_mean_m
+                row["truth_coverage"] = errs.coverage
             if scene.truth.kpt_world.shape[1] and tr.kpt_world.shape[1]:
                 mm, matched, total = mpjpe_by_id(tr, scene.truth)
                 row["truth_mpjpe_m"] = mm / 1000

@@ -153,7 +153,7 @@ def run_many(inputs: list[Path], out: Path, estimator: str = "ukf", jobs: int | 
         if client is not None:
             client.close()
     order = {j.input: k for k, j in enumerate(todo)}
-    rows.sort(key=lambda r: order[r["input"]])
+    rows.sort(key=lambda r: order[str(r["input"])])
     with open(out / "summary.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=SUMMARY_COLUMNS)
         w.writeheader()
@@ -218,7 +218,7 @@ def _index(out: Path, rows: list[JsonDict]) -> None:
     """``OUT/index.html``: every sequence with its status, counts and a link to its report."""
     body = []
     for r in rows:
-        name = Path(r["output"]).name
+        name = Path(str(r["output"])).name
         link = (f'<a href="{html.escape(name)}/report/index.html">report</a>'
                 if (out / name / "report" / "index.html").is_file() else "")
         body.append("<tr>" + "".join(f"<td>{html.escape(str(r[k]))}</td>" for k in

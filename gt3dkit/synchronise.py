@@ -35,7 +35,7 @@ from gt3dkit.fusion.ukf.noise import NOISE_FIELDS
 from gt3dkit.io.clocks import CameraClocks
 from gt3dkit.refine.clocks import Clocks, Steps, estimate_clocks, offset_steps
 from gt3dkit.refine.people import PeopleConfig, person_views
-from gt3dkit.types import JsonDict, Scene
+from gt3dkit.types import JsonDict, Scene, json_num
 
 
 @dataclass(frozen=True)
@@ -57,10 +57,11 @@ def find_clocks(detections: Scene, load: Callable[[CameraClocks], Scene], start:
     cfg = cfg or SyncConfig()
     t0 = time.perf_counter()
     rig = detections.rig
-    names, C = rig.names, len(rig.cameras)
+    names, C = tuple(rig.names), len(rig.cameras)
     first = start or estimate_clocks(person_views(detections, PeopleConfig()), rig)
     late, sd, rate = first.late_frames.copy(), first.sd_frames.copy(), np.ones(C)  # rate: fps / fps_c
-    report: JsonDict = {"start": dict(zip(names, np.round(late, 4).tolist(), strict=True)), "rounds": []}
+    rounds: list[JsonDict] = []
+    report: JsonDict = {"start": dict(zip(names, np.round(late, 4).tolist(), strict=True)), "rounds": rounds}
     if C < 3:
         report["seconds"] = round(time.perf_counter() - t0, 2)
         report["why_no_rounds"] = "two cameras: leaving one out leaves no reconstruction to hold it to"
@@ -75,15 +76,16 @@ def find_clocks(detections: Scene, load: Callable[[CameraClocks], Scene], start:
     noise: dict[str, float] = {}  # the process noise the first reconstruction chose, kept for the others
     for _ in range(cfg.rounds):
         scene = load(clocks_now())
-        st = Steps(*(np.full(C, np.nan) for _ in range(5)), np.zeros(C, np.int64))
+        st = Steps.unknown(C)
         for grp in groups:
             rest = dataclasses.replace(scene, obs=scene.obs.select(~np.isin(scene.obs.cam, grp)))
             try:
-                tracks = reconstruct(rest, "ukf", **noise)
+                tracks = reconstruct(rest, "ukf", out=None, extra_meta=None, on_stage=None, every_frame=None,
+                                     **noise)
             except InputError:  # the others see too little of anyone: the start stays
                 continue
             if not noise:
-                noise = {k: float(v) for k in NOISE_FIELDS if (v := tracks.info.params.get(k)) is not None}
+                noise = {k: v for k in NOISE_FIELDS if (v := json_num(tracks.info.params, k)) is not None}
             got = offset_steps(scene, tracks, grp)
             for a, b in zip(st, got, strict=True):
                 a[grp] = b
@@ -106,7 +108,7 @@ def find_clocks(detections: Scene, load: Callable[[CameraClocks], Scene], start:
         rate = (1 + beta) * rate
         sd = np.where(np.isfinite(st.step_sd), np.sqrt(st.step_sd ** 2 + st.step_sd[0] ** 2), sd)
         sd[0] = 0.0
-        report["rounds"].append({
+        rounds.append({
             "moved_frames": dict(zip(names, np.round(-delta, 4).tolist(), strict=True)),
             "drift_frames_per_frame": dict(zip(names, np.round(np.where(held, st.drift - st.drift[0], np.nan),
                                                                7).tolist(), strict=True)),

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from types import FrameType
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, NoReturn
 
 import numpy as np
 
@@ -38,11 +38,21 @@ from gt3dkit.refine.common import centre_similarity
 from gt3dkit.refine.people import PeopleCalibration, PeopleConfig, calibrate_people
 from gt3dkit.rig import Rig
 from gt3dkit.synchronise import find_clocks
-from gt3dkit.types import BOX_MODEL_REGISTRY, GroundTruth, JsonDict, Options, Scene, TrackSet
+from gt3dkit.types import (
+    BOX_MODEL_REGISTRY,
+    GroundTruth,
+    JsonDict,
+    Options,
+    Scene,
+    TrackSet,
+    json_list,
+    json_num,
+)
 
 #: Published numbers of Ma et al. for the datasets we can compare on.
-PAPER = {"multiviewx": {"MOTA": 96.5, "OSPA2_m": 0.17}, "wildtrack": {"MOTA": 98.7, "OSPA2_m": 0.10},
-         "panoptic": {"MPJPE_mm": (6.1, 14.7)}}
+PAPER: dict[str, dict[str, float]] = {"multiviewx": {"MOTA": 96.5, "OSPA2_m": 0.17},
+                                      "wildtrack": {"MOTA": 98.7, "OSPA2_m": 0.10}}
+PAPER_PANOPTIC_MPJPE_MM = (6.1, 14.7)
 
 
 def bundled(name: str) -> Path:
@@ -126,24 +136,23 @@ def load_input(args: argparse.Namespace, by_windows: bool = False, calib: str | 
                                     "for the other commands")
     layout = args.layout or detect_layout(Path(args.input))
     opts = panoptic_options(args, layout)
-    if getattr(args, "association", None) is not None:
-        opts["association"] = args.association
-    if getattr(args, "segments", None) is not None:
-        opts["segments"] = args.segments
-    opts["box_model"] = getattr(args, "box_model", "auto")
+    association: str | None = getattr(args, "association", None)
+    segments: str | None = getattr(args, "segments", None)
+    box_model = str(getattr(args, "box_model", "auto"))
 
     def read(on: CameraClocks | None) -> Scene:
         source = Path(args.input) if head is None else head
-        return load_scene(source, layout, args.skeleton, getattr(args, "fps", None), calib=calib, clocks=on,
+        return load_scene(source, layout, args.skeleton, getattr(args, "fps", None), calib=calib,
+                          association=association, segments=segments, box_model=box_model, clocks=on,
                           **opts)
 
     clocks = clocks or time_offsets(args, calib, read)
-    if by_windows and clocks is None and not {"association", "segments"} & opts.keys():
-        head = load_head(Path(args.input), layout, getattr(args, "fps", None), calib, str(opts["box_model"]))
+    if by_windows and clocks is None and association is None and segments is None:
+        head = load_head(Path(args.input), layout, getattr(args, "fps", None), calib, box_model)
         if head is not None:
             return head
     scene = read(clocks)
-    if opts["box_model"] != "auto" and not scene.obs.has_box.any():
+    if box_model != "auto" and not scene.obs.has_box.any():
         # one rule for an option the input has nothing for (as --skeleton on boxes, --association
         # on a native input): refused, not ignored
         raise InputError("--box-model", f"applies to inputs with boxes: {args.input} has keypoints only")
@@ -167,7 +176,8 @@ def time_offsets(args: argparse.Namespace, calib: str | None, read: Callable[[Ca
                                            "has boxes only: give each camera's clock as a file")
     found, rep = find_clocks(det, read, start)
     print_clocks(found.names, found.late_frames, found.sd_frames,
-                 f"{len(rep['rounds'])} rounds against the reconstruction, {rep['seconds']:.1f} s; "
+                 f"{len(json_list(rep, 'rounds'))} rounds against the reconstruction, "
+                 f"{json_num(rep, 'seconds') or 0.0:.1f} s; "
                  "meta.json input")
     return found
 
@@ -217,8 +227,8 @@ def people_rig(scene: Scene, cfg: PeopleConfig) -> PeopleCalibration:
         if on:
             raise InputError(option, "applies to keypoints (a rig from boxes takes the intrinsics given and "
                                      "one clock)")
-    height = {} if cfg.height_m is None else {"height_m": cfg.height_m}
-    return calibrate_boxes(scene, BoxPeopleConfig(**height))
+    config = BoxPeopleConfig() if cfg.height_m is None else BoxPeopleConfig(height_m=cfg.height_m)
+    return calibrate_boxes(scene, config)
 
 
 @dataclass(frozen=True)
@@ -403,7 +413,7 @@ def report_truth(scene: Scene, tracks: TrackSet, name: str, max_dist_m: float = 
               f"FP {t['fp']}  FN {t['fn']}  IDs {t['ids']}  HOTA {100 * t['hota']:.1f}  "
               f"OSPA(2) {t['ospa2_m']:.4f} m")
     if scene.truth.kpt_world.shape[1] and tracks.kpt_world.shape[1]:
-        sets = [("all joints", None)]
+        sets: list[tuple[str, np.ndarray | None]] = [("all joints", None)]
         if scene.skeleton == "coco19":
             sets.append(("15 body joints", np.arange(15)))
         print(pose_table([(f"{name}, {label}", score_tracks(tracks, scene.truth, j),
@@ -466,7 +476,7 @@ class Stages:
 class Parser(argparse.ArgumentParser):
     """argparse with the one-line ``error: <entry>: <problem>`` (exit 2) of every other error."""
 
-    def error(self, message: str) -> Any:  # type: ignore[override]
+    def error(self, message: str) -> NoReturn:
         print(f"error: {self.prog}: {message} (see {self.prog} --help)", file=sys.stderr)
         raise SystemExit(2)
 

@@ -13,6 +13,7 @@ import numpy as np
 from gt3dkit.api import ESTIMATORS, load_scene, reconstruct
 from gt3dkit.commands.common import (
     PAPER,
+    PAPER_PANOPTIC_MPJPE_MM,
     bundled,
     check_output,
     error_table,
@@ -84,5 +85,5 @@ def _panoptic(args: argparse.Namespace) -> None:
         print(f"  {noise:g} px noise: {len(tracks)} poses from {len(scene.rig.cameras)} HD cameras "
               f"in {tracks.info.seconds:.1f} s")
     print(pose_table(rows))
-    lo, hi = PAPER["panoptic"]["MPJPE_mm"]
+    lo, hi = PAPER_PANOPTIC_MPJPE_MM
     print(f"\nPaper (Ma et al., UKF) on CMU Panoptic: MPJPE {lo}-{hi} mm")

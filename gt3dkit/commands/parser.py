@@ -73,7 +73,7 @@ def _scene_options(p: argparse.ArgumentParser) -> None:
                    + "; auto: chosen from the boxes")
 
 
-def _add_reconstruct(sub: argparse._SubParsersAction[Parser], common: argparse.ArgumentParser) -> None:
+def _add_reconstruct(sub: argparse._SubParsersAction[Parser], common: Parser) -> None:
     """``gt3d reconstruct``'s options."""
     r = sub.add_parser("reconstruct", parents=[common],
                        help="2D boxes or keypoints from calibrated cameras -> 3D tracks")
@@ -100,7 +100,7 @@ def _add_reconstruct(sub: argparse._SubParsersAction[Parser], common: argparse.A
     r.set_defaults(func=cmd_reconstruct, early=None)
 
 
-def _add_simulate(sub: argparse._SubParsersAction[Parser], common: argparse.ArgumentParser) -> None:
+def _add_simulate(sub: argparse._SubParsersAction[Parser], common: Parser) -> None:
     """``gt3d simulate``'s options."""
     s = sub.add_parser("simulate", parents=[common],
                        help="write a seeded synthetic scene with its truth")
@@ -158,7 +158,7 @@ def _add_simulate(sub: argparse._SubParsersAction[Parser], common: argparse.Argu
     s.set_defaults(func=cmd_simulate)
 
 
-def _add_compare(sub: argparse._SubParsersAction[Parser], common: argparse.ArgumentParser) -> None:
+def _add_compare(sub: argparse._SubParsersAction[Parser], common: Parser) -> None:
     """``gt3d compare``'s options."""
     c = sub.add_parser("compare", parents=[common],
                        help="UKF, GTSAM smoother and triangulation side by side")
@@ -170,7 +170,7 @@ def _add_compare(sub: argparse._SubParsersAction[Parser], common: argparse.Argum
     c.set_defaults(func=cmd_compare)
 
 
-def _add_evaluate(sub: argparse._SubParsersAction[Parser], common: argparse.ArgumentParser) -> None:
+def _add_evaluate(sub: argparse._SubParsersAction[Parser], common: Parser) -> None:
     """``gt3d evaluate``'s options."""
     e = sub.add_parser("evaluate", parents=[common],
                        help="score OUT/tracks.csv against an input's truth")
@@ -193,7 +193,7 @@ def _rig_output_options(p: argparse.ArgumentParser) -> None:
     _panoptic_options(p)
 
 
-def _add_calib(sub: argparse._SubParsersAction[Parser], common: argparse.ArgumentParser) -> None:
+def _add_calib(sub: argparse._SubParsersAction[Parser], common: Parser) -> None:
     """``gt3d calib``'s options."""
     k = sub.add_parser("calib", parents=[common], help="show, check and refine calibrations")
     ksub = k.add_subparsers(dest="calib_command", required=True, parser_class=Parser)
@@ -267,7 +267,7 @@ def _add_calib(sub: argparse._SubParsersAction[Parser], common: argparse.Argumen
     kb.set_defaults(func=cmd_calib_board)
 
 
-def _add_reconstruct_many(sub: argparse._SubParsersAction[Parser], common: argparse.ArgumentParser) -> None:
+def _add_reconstruct_many(sub: argparse._SubParsersAction[Parser], common: Parser) -> None:
     """``gt3d reconstruct-many``'s options."""
     m = sub.add_parser("reconstruct-many", parents=[common],
                        help="many input folders in parallel (local processes or a Dask cluster)")
@@ -282,7 +282,7 @@ def _add_reconstruct_many(sub: argparse._SubParsersAction[Parser], common: argpa
     m.set_defaults(func=cmd_reconstruct_many)
 
 
-def _add_associate(sub: argparse._SubParsersAction[Parser], common: argparse.ArgumentParser) -> None:
+def _add_associate(sub: argparse._SubParsersAction[Parser], common: Parser) -> None:
     """``gt3d associate``'s options."""
     a = sub.add_parser("associate", parents=[common],
                        help="per-camera ids (MOT files) -> global identities: OUT/association.csv")
@@ -294,7 +294,7 @@ def _add_associate(sub: argparse._SubParsersAction[Parser], common: argparse.Arg
     a.set_defaults(func=cmd_associate, layout=None, skeleton=None, cameras=None, noise_px=0.0, seed=None)
 
 
-def _add_report(sub: argparse._SubParsersAction[Parser], common: argparse.ArgumentParser) -> None:
+def _add_report(sub: argparse._SubParsersAction[Parser], common: Parser) -> None:
     """``gt3d report``'s options."""
     rp = sub.add_parser("report", parents=[common],
                         help="OUT/report/index.html for a reconstruct or compare output: 3D renders, "
@@ -303,7 +303,7 @@ def _add_report(sub: argparse._SubParsersAction[Parser], common: argparse.Argume
     rp.set_defaults(func=cmd_report)
 
 
-def _add_export(sub: argparse._SubParsersAction[Parser], common: argparse.ArgumentParser) -> None:
+def _add_export(sub: argparse._SubParsersAction[Parser], common: Parser) -> None:
     """``gt3d export``'s options."""
     ex = sub.add_parser("export", parents=[common],
                         help="a reconstruct output as C3D, TRC (OpenSim), JSON or a Rerun recording")
@@ -316,7 +316,7 @@ def _add_export(sub: argparse._SubParsersAction[Parser], common: argparse.Argume
     ex.set_defaults(func=cmd_export)
 
 
-def _add_project(sub: argparse._SubParsersAction[Parser], common: argparse.ArgumentParser) -> None:
+def _add_project(sub: argparse._SubParsersAction[Parser], common: Parser) -> None:
     """``gt3d project``'s options."""
     pj = sub.add_parser("project", parents=[common],
                         help="a reconstruct output drawn back into every camera as CVAT, MOTChallenge or "
@@ -338,7 +338,7 @@ def _add_project(sub: argparse._SubParsersAction[Parser], common: argparse.Argum
     pj.set_defaults(func=cmd_project)
 
 
-def _add_demo(sub: argparse._SubParsersAction[Parser], common: argparse.ArgumentParser) -> None:
+def _add_demo(sub: argparse._SubParsersAction[Parser], common: Parser) -> None:
     """``gt3d demo``'s options."""
     d = sub.add_parser("demo", parents=[common],
                        help="reconstruct the bundled MultiviewX and Panoptic data, print errors")
@@ -348,7 +348,7 @@ def _add_demo(sub: argparse._SubParsersAction[Parser], common: argparse.Argument
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``gt3d`` command line: one sub-command per function below."""
-    common = argparse.ArgumentParser(add_help=False)
+    common = Parser(add_help=False)
     common.add_argument("--debug", action="store_true",
                         help="show the Python traceback of an unexpected error")
     p = Parser(prog="gt3d", description=DESCRIPTION, parents=[common])

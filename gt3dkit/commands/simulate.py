@@ -101,7 +101,7 @@ def _write_skeletons(args: argparse.Namespace, errors: Errors, cams: int) -> int
         n_err = f", {len(sk.injected)} injected errors (injected.csv)"
     if late is not None or rates is not None:
         C = len(sk.rig.cameras)
-        clocks = CameraClocks(sk.rig.names, np.zeros(C) if late is None else late, np.zeros(C),
+        clocks = CameraClocks(tuple(sk.rig.names), np.zeros(C) if late is None else late, np.zeros(C),
                               np.full(C, np.nan) if rates is None else rates)
         (Path(args.out) / "true_time_offsets.csv").write_text(clocks.text(), encoding="utf-8")
         n_err += ", cameras on their own clocks (true_time_offsets.csv)"

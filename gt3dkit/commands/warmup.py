@@ -25,6 +25,7 @@ import numpy as np
 from gt3dkit.api import tiny_scene
 from gt3dkit.fusion.base import ESTIMATORS, make_estimator
 from gt3dkit.fusion.ukf import smoother as us
+from gt3dkit.fusion.ukf.filtering import initial_states, run_filter
 from gt3dkit.fusion.ukf.measurement import Model
 from gt3dkit.io.numtext import format_rows
 
@@ -42,7 +43,7 @@ def compile_boxes() -> float:
     est = us.UKFSmoother()
     model = Model.of(est.prepare(scene))
     cfg = replace(est.config, accel_sd=0.5, shape_sd=0.01)
-    us.run_filter(model, us.initial_states(model, cfg), cfg, scene.fps)
+    run_filter(model, initial_states(model, cfg), cfg, scene.fps)
     return time.perf_counter() - t0
 
 
@@ -55,7 +56,7 @@ def compile_joints() -> float:
     est.estimate(scene)
     model = Model.of(est.prepare(scene))
     cfg = replace(est.config, accel_sd=0.5, shape_sd=0.01, joint_accel_sd=0.5)
-    us.run_filter(model, us.initial_states(model, cfg), cfg, scene.fps, collect=True)
+    run_filter(model, initial_states(model, cfg), cfg, scene.fps, collect=True)
     return time.perf_counter() - t0
 
 

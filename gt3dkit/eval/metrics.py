@@ -18,7 +18,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 import numpy as np
 
@@ -26,7 +26,17 @@ from gt3dkit.arrays import lookup_rows
 from gt3dkit.types import F64, I64, GroundTruth, TrackSet
 
 
-def match_rows(tracks: TrackSet, truth: GroundTruth) -> tuple[np.ndarray, np.ndarray]:
+class FrameIds(Protocol):
+    """Rows keyed by (frame, id): a :class:`TrackSet` or a :class:`GroundTruth`."""
+
+    @property
+    def frame(self) -> I64: ...
+
+    @property
+    def track_id(self) -> I64: ...
+
+
+def match_rows(tracks: FrameIds, truth: FrameIds) -> tuple[np.ndarray, np.ndarray]:
     """Indices ``(i_track, i_truth)`` of rows with the same (frame, id), in the tracks' order."""
     at = lookup_rows(np.c_[truth.frame, truth.track_id].astype(np.int64),
                      np.c_[tracks.frame, tracks.track_id].astype(np.int64))

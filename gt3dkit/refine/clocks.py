@@ -345,6 +345,12 @@ class Steps(NamedTuple):
     at_frame: F64
     joints: I64
 
+    @staticmethod
+    def unknown(K: int) -> Steps:
+        """Of ``K`` cameras, nothing found yet (NaN, no joints)."""
+        return Steps(np.full(K, np.nan), np.full(K, np.nan), np.full(K, np.nan), np.full(K, np.nan),
+                     np.full(K, np.nan), np.zeros(K, np.int64))
+
 
 def offset_steps(scene: Scene, tracks: TrackSet, cams: I64, max_px: float = CAP_PX) -> Steps:
     r"""How much later than its clock says each camera ``cams (K,)`` took its views, against a
@@ -373,8 +379,7 @@ def offset_steps(scene: Scene, tracks: TrackSet, cams: I64, max_px: float = CAP_
         return np.where(ks[i] == k, order[i], -1)
 
     K = len(cams)
-    out = Steps(np.full(K, np.nan), np.full(K, np.nan), np.full(K, np.nan), np.full(K, np.nan),
-                np.full(K, np.nan), np.zeros(K, np.int64))
+    out = Steps.unknown(K)
     for k, c in enumerate(cams):
         i = np.flatnonzero(obs.cam == c)
         r0 = row_of(obs.track_id[i], obs.frame[i])

@@ -27,7 +27,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeAlias
@@ -379,7 +379,7 @@ def apply_association(scene: Scene, assoc: Association) -> Scene:
     return dataclasses.replace(scene, obs=o2)
 
 
-def read_overrides(path: Path, names: tuple[str, ...]) -> dict[tuple[str, int, int | None], int]:
+def read_overrides(path: Path, names: Sequence[str]) -> Overrides:
     """An edited ``association.csv`` (``camera,local_id,frame,global_id`` first, ``frame``
     empty for per-camera tracks; other columns ignored): the rows a user fixed."""
     out: dict[tuple[str, int, int | None], int] = {}
