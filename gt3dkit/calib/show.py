@@ -12,43 +12,53 @@ joints sit well below the floor or whose highest are above 3 m (up or the floor 
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from gt3dkit.rig import Rig
-from gt3dkit.types import JsonDict
+from gt3dkit.types import F64
 
 
-def _height_tilt(rig: Rig) -> list[tuple[str, float, float]]:
-    """Per camera its name, its height along up (m) and how far its optical axis looks up (deg)."""
+class CameraRow(NamedTuple):
+    """One camera of ``gt3d calib show``'s table: its centre (m), height along up (m), optical axis
+    in the world and how far it looks up (deg), intrinsics (px), lens and its coefficients, image
+    size (px) and how far its rotation was from orthonormal."""
+
+    camera: str
+    centre_m: F64
+    height_m: float
+    view_dir: F64
+    tilt_deg: float
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    lens: str
+    dist: F64
+    size: tuple[int, int]
+    r_deviation: float
+
+
+def camera_table(rig: Rig) -> list[CameraRow]:
     out = []
     for c in rig.cameras:
-        look = c.depth_sign * c.R[2]
-        out.append((c.name, float(c.center_world @ rig.up),
-                    float(np.degrees(np.arcsin(np.clip(look @ rig.up, -1, 1))))))
-    return out
-
-
-def camera_table(rig: Rig) -> list[JsonDict]:
-    out: list[JsonDict] = []
-    for c, (_, height, tilt) in zip(rig.cameras, _height_tilt(rig), strict=True):
         look = c.depth_sign * c.R[2]  # optical axis in the world
-        out.append({"camera": c.name, "centre_m": c.center_world.round(4).tolist(),
-                    "height_m": height, "view_dir": look.round(4).tolist(), "tilt_deg": tilt,
-                    "fx_px": float(c.K[0, 0]), "fy_px": float(c.K[1, 1]),
-                    "cx_px": float(c.K[0, 2]), "cy_px": float(c.K[1, 2]),
-                    "lens": c.lens, "dist": c.coefficients.round(6).tolist(), "size": [c.width, c.height],
-                    "r_deviation": c.r_deviation})
+        out.append(CameraRow(c.name, c.center_world, float(c.center_world @ rig.up), look,
+                             float(np.degrees(np.arcsin(np.clip(look @ rig.up, -1, 1)))),
+                             float(c.K[0, 0]), float(c.K[1, 1]), float(c.K[0, 2]), float(c.K[1, 2]),
+                             c.lens, c.coefficients, (c.width, c.height), float(c.r_deviation)))
     return out
 
 
 def rig_warnings(rig: Rig) -> list[str]:
     w = []
-    tab = _height_tilt(rig)
-    below = [name for name, height, _ in tab if height < -0.05]
+    tab = camera_table(rig)
+    below = [t.camera for t in tab if t.height_m < -0.05]
     if below:
         w.append(f"cameras below the floor (height along up < 0): {', '.join(below)}: up is the wrong "
                  "way, or the world is mirrored")
-    if len(tab) > 1 and all(tilt > 5 for _, _, tilt in tab):
+    if len(tab) > 1 and all(t.tilt_deg > 5 for t in tab):
         w.append("every camera looks upwards: up is the wrong way, or the world is mirrored")
     centres = np.array([c.center_world for c in rig.cameras])
     mid = centres.mean(0)

@@ -35,6 +35,7 @@ from gt3dkit.refine import RefineConfig, refine, scene_warnings
 from gt3dkit.refine.people import PeopleConfig
 from gt3dkit.rig import LENSES, Camera
 from gt3dkit.synchronise import find_clocks
+from gt3dkit.types import json_at, json_list, json_num, json_obj, json_str
 from gt3dkit.version import __version__
 from gt3dkit.viz.boardreport import write_board_report
 
@@ -60,10 +61,11 @@ def cmd_calib_show(args: argparse.Namespace) -> int:
     print(head)
     print("-" * len(head))
     for t in camera_table(rig):
-        x, y, z = t["centre_m"]
-        print(f"{t['camera']:<12}{x:>9.3f}{y:>8.3f}{z:>8.3f}{t['height_m']:>8.3f}{t['tilt_deg']:>7.1f}"
-              f"{t['fx_px']:>8.1f}{t['fy_px']:>8.1f}{t['cx_px']:>7.1f}{t['cy_px']:>7.1f}{t['lens']:>8}"
-              f"{t['dist'][0]:>8.4f}{t['dist'][1]:>8.4f}{t['size'][0]:>6}x{t['size'][1]:<4}")
+        x, y, z = np.round(t.centre_m, 4)
+        d = np.round(t.dist, 6)
+        print(f"{t.camera:<12}{x:>9.3f}{y:>8.3f}{z:>8.3f}{t.height_m:>8.3f}{t.tilt_deg:>7.1f}"
+              f"{t.fx_px:>8.1f}{t.fy_px:>8.1f}{t.cx_px:>7.1f}{t.cy_px:>7.1f}{t.lens:>8}"
+              f"{d[0]:>8.4f}{d[1]:>8.4f}{t.size[0]:>6}x{t.size[1]:<4}")
     warns = rig_warnings(rig) + (scene_warnings(scene) if scene is not None else [])
     if scene is not None:
         print_warnings(scene)
@@ -80,14 +82,17 @@ def cmd_calib_refine(args: argparse.Namespace) -> int:
     write_refined_calibration(Path(args.out), scene, res, args.format)
     print_warnings(scene)
     rep = res.report
+    refined = [str(c) for c in json_list(rep, "refined_cameras")]
     print(f"{scene.layout}: {len(scene.rig.cameras)} cameras, {rep['method']} -> refined "
-          f"{len(rep['refined_cameras'])} ({', '.join(rep['refined_cameras']) or 'none'}) in "
-          f"{rep['seconds']:.1f} s; written to {args.out}")
+          f"{len(refined)} ({', '.join(refined) or 'none'}) in "
+          f"{json_num(rep, 'seconds') or 0.0:.1f} s; written to {args.out}")
     print(f"{'camera':<12}{'refined':>8}{'moved cm':>10}{'moved °':>9}{'px before':>11}{'px after':>10}  why")
-    for name, c in rep["cameras"].items():
-        print(f"{name:<12}{'yes' if c['refined'] else 'no':>8}{100 * c['centre_moved_m']:>10.2f}"
-              f"{c['rotation_moved_deg']:>9.3f}{fmt_num(c['median_px_before'], 11, 3)}"
-              f"{fmt_num(c['median_px_after'], 10, 3)}  {c['why']}")
+    for name, c in json_obj(rep, "cameras").items():
+        print(f"{name:<12}{'yes' if json_at(c, 'refined') else 'no':>8}"
+              f"{100 * (json_num(c, 'centre_moved_m') or 0.0):>10.2f}"
+              f"{json_num(c, 'rotation_moved_deg') or 0.0:>9.3f}"
+              f"{fmt_num(json_num(c, 'median_px_before'), 11, 3)}"
+              f"{fmt_num(json_num(c, 'median_px_after'), 10, 3)}  {json_str(c, 'why')}")
     return 0
 
 
@@ -105,30 +110,31 @@ def cmd_calib_people(args: argparse.Namespace) -> int:
             write_native(res.rig, Path(tmp) / "cameras.json", fps=None if scene.fps_assumed else scene.fps)
             clocks, sync = find_clocks(scene, lambda on: load_input(args, calib=cal, clocks=on), res.clocks)
         res.report["clocks"] = {"cameras": clocks.doc(), "pairwise": res.clocks.report(),
-                                "rounds": sync["rounds"], "seconds": sync["seconds"]}
+                                "rounds": json_list(sync, "rounds"), "seconds": json_num(sync, "seconds")}
     extra = {} if clocks is None else {"time_offsets.csv": clocks.text()}
     write_refined_calibration(Path(args.out), scene, res, args.format, extra)
     print_warnings(scene)
     rep = res.report
     print(f"{scene.layout}: {len(res.rig.cameras)} cameras placed from {rep['people']} people-frames "
           f"({rep['tracks']} {'box points (feet, heads)' if rep.get('from') == 'boxes' else 'joints'} in the "
-          f"last adjustment, median {rep['reprojection_median_px']:.2f} px) "
-          f"in {rep['seconds']:.1f} s; written to {args.out}")
-    print(f"world: {rep['world']['frame']}")
-    given = rep.get("against_input_calibration")
+          f"last adjustment, median {json_num(rep, 'reprojection_median_px') or 0.0:.2f} px) "
+          f"in {json_num(rep, 'seconds') or 0.0:.1f} s; written to {args.out}")
+    print(f"world: {json_str(rep, 'world', 'frame')}")
+    given = json_obj(rep, "against_input_calibration")
     vs = f"{'vs input cm':>12}{'vs input °':>11}" if given else ""
     print(f"{'camera':<12}{'centre x':>9}{'y':>8}{'z':>8}{'fx':>8}{'ctr sd cm':>10}{'rot sd °':>9}"
           f"{'median px':>10}{vs}")
     for cam in res.rig.cameras:
-        c = rep["cameras"][cam.name]
+        c = json_obj(rep, "cameras", cam.name)
         x, y, z = cam.center_world
-        g = (f"{100 * given['cameras'][cam.name]['centre_m']:>12.2f}"
-             f"{given['cameras'][cam.name]['rotation_deg']:>11.3f}") if given else ""
-        print(f"{cam.name:<12}{x:>9.3f}{y:>8.3f}{z:>8.3f}{cam.K[0, 0]:>8.1f}{100 * c['centre_sd_m']:>10.2f}"
-              f"{c['rotation_sd_deg']:>9.3f}{fmt_num(c['median_px'], 10, 2)}{g}")
+        g = (f"{100 * (json_num(given, 'cameras', cam.name, 'centre_m') or 0.0):>12.2f}"
+             f"{json_num(given, 'cameras', cam.name, 'rotation_deg') or 0.0:>11.3f}") if given else ""
+        print(f"{cam.name:<12}{x:>9.3f}{y:>8.3f}{z:>8.3f}{cam.K[0, 0]:>8.1f}"
+              f"{100 * (json_num(c, 'centre_sd_m') or 0.0):>10.2f}"
+              f"{json_num(c, 'rotation_sd_deg') or 0.0:>9.3f}{fmt_num(json_num(c, 'median_px'), 10, 2)}{g}")
     if given:
         print("vs input: the input's own calibration, after the similarity that best maps the camera centres "
-              f"(its scale over ours {given['scale_given_over_found']:.4f})")
+              f"(its scale over ours {json_num(given, 'scale_given_over_found') or 0.0:.4f})")
     if clocks is not None:
         print_clocks(clocks.names, clocks.late_frames, clocks.sd_frames, "OUT/time_offsets.csv")
     for w in res.warnings:

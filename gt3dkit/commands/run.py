@@ -39,7 +39,7 @@ from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv
 from gt3dkit.many import read_manifest, run_many
 from gt3dkit.project import project
 from gt3dkit.refine import refine, rig_digest
-from gt3dkit.types import JsonDict, Options, Scene
+from gt3dkit.types import JsonDict, Options, Scene, json_list, json_num, json_str
 from gt3dkit.viz.report import write_report
 from gt3dkit.windows import Cluster, Plan, auto_plan, reconstruct_windows
 
@@ -80,8 +80,9 @@ def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | 
             "input": rig_digest(scene.rig), "refined": rig_digest(res.rig)},
             "refined_rig": json.loads(json.dumps(cameras_doc(res.rig, None)))}}
         scene = dataclasses.replace(scene, rig=res.rig)
-        print(f"calibration refined: {', '.join(res.report['refined_cameras']) or 'no camera'} "
-              f"({res.report['seconds']:.1f} s; meta.json: calibration_refinement)")
+        refined = ", ".join(str(c) for c in json_list(res.report, "refined_cameras")) or "no camera"
+        print(f"calibration refined: {refined} ({json_num(res.report, 'seconds') or 0.0:.1f} s; "
+              "meta.json: calibration_refinement)")
     try:
         plan = window_plan(args, scene)
         if scene.index is not None and plan is None:  # it runs whole: read whole, from what was read
@@ -174,7 +175,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
     table = compare(scene, Path(args.out), progress=not args.no_progress)
     print_warnings(scene)
     print(f"{scene.layout}: {len(scene.obs)} annotation rows -> {args.out}/comparison.csv")
-    names = [r["estimator"] for r in table if "failed" not in r]
+    names = [str(r["estimator"]) for r in table if "failed" not in r]
     head = f"{'estimator':<15}{'rows':>6}{'reproj px':>10}{'p95 px':>8}" + "".join(
         f"{'to ' + n + ' m':>20}" for n in names) + f"{'sec':>8}" + (
         f"{'truth err m':>13}" if scene.truth is not None else "")
@@ -184,16 +185,15 @@ def cmd_compare(args: argparse.Namespace) -> int:
         if "failed" in r:
             print(f"{r['estimator']:<15}failed: {r['failed']}")
             continue
-        line = (f"{r['estimator']:<15}{r['rows']:>6}{fmt_num(r['reproj_mean_px'], 10, 3)}"
-                f"{fmt_num(r['reproj_p95_px'], 8, 3)}")
+        line = (f"{r['estimator']!s:<15}{r['rows']!s:>6}{fmt_num(json_num(r, 'reproj_mean_px'), 10, 3)}"
+                f"{fmt_num(json_num(r, 'reproj_p95_px'), 8, 3)}")
         for n in names:
-            v = r.get(f"dist_to_{n}_mean_m")
-            line += fmt_num(v, 20, 5)
-        line += f"{r['seconds']:>8.1f}"
+            line += fmt_num(json_num(r, f"dist_to_{n}_mean_m"), 20, 5)
+        line += f"{json_num(r, 'seconds') or 0.0:>8.1f}"
         if scene.truth is not None:
-            v = r.get("truth_mpjpe_m", r.get("truth_centre_mean_m"))
+            v = json_num(r, "truth_mpjpe_m") if "truth_mpjpe_m" in r else json_num(r, "truth_centre_mean_m")
             if v is None or not np.isfinite(v):
-                v = r.get("truth_ground_mean_m")
+                v = json_num(r, "truth_ground_mean_m")
             line += fmt_num(v, 13, 5)
         print(line)
     return 0
@@ -204,11 +204,12 @@ def cmd_reconstruct_many(args: argparse.Namespace) -> int:
     inputs = read_manifest(Path(args.manifest))
     rows = run_many(inputs, Path(args.out), args.estimator, args.jobs, args.scheduler, args.report,
                     progress=not args.quiet)
-    width = max(len(Path(r["input"]).name) for r in rows)
+    width = max(len(Path(str(r["input"])).name) for r in rows)
     for r in rows:
-        print(f"{Path(r['input']).name:<{width}}  {r['status']:<10} {r['seconds']:>8.1f} s  "
-              f"{r['object_frames'] or '':>6} object-frames  {r['error']}")
-    failed = [Path(r["input"]).name for r in rows if r["status"] == "failed"]
+        seconds = json_num(r, "seconds") or 0.0
+        print(f"{Path(str(r['input'])).name:<{width}}  {r['status']!s:<10} {seconds:>8.1f} s  "
+              f"{r['object_frames'] or ''!s:>6} object-frames  {r['error']}")
+    failed = [Path(str(r["input"])).name for r in rows if r["status"] == "failed"]
     done = sum(r["status"] == "done" for r in rows)
     print(f"{len(rows)} sequences: {done} reconstructed, {sum(r['status'] == 'up to date' for r in rows)} up "
           f"to date, {len(failed)} failed -> {args.out}/summary.csv"
@@ -249,14 +250,14 @@ def cmd_export(args: argparse.Namespace) -> int:
     out = Path(args.out)
     dest = Path(args.to) if args.to else out / f"export_{args.format}"
     res = read_result(out)
-    root = ((res.meta.get("input") or {}).get("load") or {}).get("root") or res.meta["input"].get("root")
     check_out_apart(dest, out, "--to", inside_ok=True)
-    if isinstance(root, str) and root:
+    root = json_str(res.meta, "input", "load", "root") or json_str(res.meta, "input", "root")
+    if root:
         check_out_apart(dest, root, "--to")
     check_output(dest, option="--to")
     info = export(out, args.format, dest, args.joint_map)
-    files = info.get("files") or [info.get("file")]
-    for note in info.get("notes", ()):
+    files = json_list(info, "files") or [info.get("file")]
+    for note in json_list(info, "notes"):
         print(f"warning: {note}", file=sys.stderr)
     said = [f"{k}: {info[k]}" if k == "open with" else str(info[k])
             for k in ("units", "world", "open with") if info.get(k)]
@@ -269,9 +270,9 @@ def cmd_project(args: argparse.Namespace) -> int:
 
     out, dest = Path(args.out), Path(args.to)
     res = read_result(out)
-    root = ((res.meta.get("input") or {}).get("load") or {}).get("root") or res.meta["input"].get("root")
     check_out_apart(dest, out, "--to", inside_ok=True)
-    if isinstance(root, str) and root:
+    root = json_str(res.meta, "input", "load", "root") or json_str(res.meta, "input", "root")
+    if root:
         check_out_apart(dest, root, "--to")
     for parent in dest.resolve().parents:  # not inside another run's output
         if parent != out.resolve() and (parent / "meta.json").is_file() and (parent / "tracks.csv").is_file():
@@ -284,9 +285,9 @@ def cmd_project(args: argparse.Namespace) -> int:
         if not cameras:
             raise InputError("--cameras", f"no camera names in {args.cameras!r}")
     info = project(out, args.format, dest, args.every_frame, cameras, args.only_flagged)
-    for note in info["notes"]:
+    for note in json_list(info, "notes"):
         print(f"warning: {note}", file=sys.stderr)
-    print(f"{args.format}: {info['shapes']} shapes in {len(info['cameras'])} cameras -> {dest}/"
+    print(f"{args.format}: {info['shapes']} shapes in {len(json_list(info, 'cameras'))} cameras -> {dest}/"
           f"{args.format}/ ({info['annotated']} labels, {info['proposed']} proposed, "
           f"{info['interpolated']} interpolated; {info['flagged']} flagged, {info['occluded']} "
           f"occluded); read it back: gt3d reconstruct {dest} --association {dest}/association.csv")
