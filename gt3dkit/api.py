@@ -46,6 +46,7 @@ from gt3dkit.types import (
     Scene,
     TrackSet,
     json_at,
+    json_num,
 )
 
 __all__ = ["ESTIMATORS", "annotation_qa", "load_run", "load_scene", "make_estimator", "reconstruct"]
@@ -172,7 +173,7 @@ def read_frames(head: Scene, lo: int, hi: int, check: bool = True) -> Scene:
     frames' own), with the head's box model."""
     o = head.load_options
     calib = o.get("calib")
-    scene = read_scene(head.root, head.layout, fps=o.get("fps"),  # type: ignore[arg-type]
+    scene = read_scene(head.root, head.layout, fps=json_num(o, "fps"),
                        calib=calib if isinstance(calib, str) else None, span=(lo, hi))
     scene = dataclasses.replace(scene, box_model=head.box_model, box_model_px=head.box_model_px,
                                 load_options=o)

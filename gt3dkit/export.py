@@ -33,7 +33,7 @@ from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.jointmap import read_joint_map
 from gt3dkit.io.results import Result, read_result
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import F64, I64, JsonDict
+from gt3dkit.types import F64, I64, JsonDict, json_at, json_obj
 from gt3dkit.viz.overview import colour_of
 
 
@@ -84,9 +84,9 @@ def y_up_rotation(up: F64, world_from_body: F64) -> F64:
 
 
 def _frame_info(res: Result) -> tuple[F64, F64, str]:
-    fr = res.meta.get("frame") or {}
+    fr = json_obj(res.meta, "frame")
     up = np.asarray(fr.get("up", [0, 0, 1]), dtype=np.float64)
-    axes = fr.get("semi_axes") or {}
+    axes = json_obj(fr, "semi_axes")
     wfb = np.stack([np.asarray(axes.get(k, d), dtype=np.float64) for k, d in
                     (("a", [1, 0, 0]), ("b", [0, 1, 0]), ("c", list(up)))], axis=1)
     return up, wfb, str(fr.get("name", ""))
@@ -150,7 +150,7 @@ def write_json(res: Result, path: Path) -> JsonDict:
     up, wfb, frame_name = _frame_info(res)
     joints = res.joints if tr.kpt_world.shape[1] else ()
 
-    def num(a: np.ndarray) -> list:
+    def num(a: np.ndarray) -> list[float | None]:
         return [None if not np.isfinite(v) else round(float(v), 6) for v in np.ravel(a)]
 
     frames = []
@@ -169,7 +169,7 @@ def write_json(res: Result, path: Path) -> JsonDict:
     doc = {"header": {"generator": "gt3dkit", "units": "m", "up": up.tolist(), "world": frame_name,
                       "semi_axes_directions": {"a": wfb[:, 0].tolist(), "b": wfb[:, 1].tolist(),
                                                "c": wfb[:, 2].tolist()},
-                      "fps": res.fps, "skeleton": (res.meta.get("frame") or {}).get("skeleton"),
+                      "fps": res.fps, "skeleton": json_at(res.meta, "frame", "skeleton"),
                       "joints": list(joints), "marker_names": list(res.marker_names if joints else ()),
                       "sd": "centre_sd: per world axis (see meta.json frame.sd); keypoint_sd: the joint's "
                             "largest sd over all directions", "source": str(res.out)},
@@ -284,8 +284,8 @@ def mapped(res: Result, path: Path) -> tuple[Result, JsonDict]:
     (:mod:`gt3dkit.io.jointmap`): the output joints as the run's joints and markers, and what
     ``export.json`` says of the map."""
     tr = res.tracks
-    frame = res.meta.get("frame") if isinstance(res.meta.get("frame"), dict) else {}
-    skeleton = frame.get("skeleton") if isinstance(frame, dict) else None
+    frame = json_obj(res.meta, "frame")
+    skeleton = frame.get("skeleton")
     if not tr.kpt_world.shape[1]:
         raise InputError("--joint-map", "the run has no keypoints to map")
     jm = read_joint_map(path, skeleton if isinstance(skeleton, str) else None, res.joints, res.marker_names)

@@ -41,7 +41,7 @@ from gt3dkit.io.labels import (
 )
 from gt3dkit.io.writers import read_segments_csv
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import F64, I64, JsonDict, Scene, TrackSet
+from gt3dkit.types import F64, I64, JsonDict, Scene, TrackSet, json_num
 
 OCCLUDED_ABOVE = 0.5  # covered fraction above which a shape is ``occluded`` (CVAT's meaning)
 
@@ -55,7 +55,7 @@ def _lost(scene: Scene) -> list[str]:
             "every keypoint weighs alike, so the estimate moves from this run's"]
 
 
-def _states(tr: TrackSet, seg: I64, step: int | None) -> JsonDict:
+def _states(tr: TrackSet, seg: I64, step: int | None) -> dict[str, np.ndarray]:
     """The estimate's rows, and with ``step`` every ``step``-th frame from each (id, piece)'s first
     to its last frame, interpolated where the run has no row. ``interpolated (M,)``: rows no
     view labelled (the motion model's or this interpolation's)."""
@@ -136,7 +136,7 @@ def project_run(run: Run, step: int | None = None, cameras: tuple[str, ...] | No
         if bad:
             raise InputError("--cameras", f"the run has no camera {bad[0]!r} (it has {', '.join(names)})")
         keep_cam = np.isin(names, cameras)
-    pieces = ()
+    pieces: tuple[tuple[int, int, int, int], ...] = ()
     if (run.out / "segments.csv").is_file():
         pieces = read_segments_csv(run.out / "segments.csv")
     st = _states(tr, piece_of(tr.frame, tr.track_id, pieces), step)
@@ -185,7 +185,7 @@ def project_run(run: Run, step: int | None = None, cameras: tuple[str, ...] | No
         shape_box[no_box] = np.round(clipped[rows[no_box], cam[no_box]], 2)
         box_drawn |= no_box
     sd = sd_px[rows, cam]
-    sigma = float(((run.meta.get("estimator") or {}).get("params") or {}).get("sigma_px") or 1.0)
+    sigma = json_num(run.meta, "estimator", "params", "sigma_px") or 1.0
     conf = np.where(source == 0, 1.0, sigma / np.sqrt(sigma**2 + sd**2))
     kinds = _anomaly_kinds(run.anomalies)
     anomalies = tuple(";".join(sorted({k for c, k in kinds.get((int(st["frame"][r]), int(st["id"][r])), [])
@@ -229,15 +229,16 @@ def project(out: Path, fmt: str, dest: Path, step: int | None = None,
         "occluded": int(shapes.occluded.sum()), "frame_step": shapes.step,
         "only_flagged": only_flagged, "notes": list(run.notes) + _lost(scene),
         "cameras": [c.name for k, c in enumerate(scene.rig.cameras) if (shapes.cam == k).any()],
-        "pieces": sorted({(int(i), int(t), int(s)) for i, t, s in
-                          zip(ids, shapes.track, shapes.segment, strict=True) if s > 0})}
+    }
+    pieces = sorted({(int(i), int(t), int(s)) for i, t, s in
+                     zip(ids, shapes.track, shapes.segment, strict=True) if s > 0})
+    summary["pieces"] = pieces
 
     def write(tmp: Path) -> None:
         write_cameras(scene.rig, scene.fps, tmp)
         write_association(shapes, scene.rig, tmp / "association.csv")
         LABEL_WRITERS[fmt].write(shapes, scene.rig, joints, bones, tmp / fmt)
-        doc = {**summary, "pieces": [{"track_id": a, "id": b, "segment": c}
-                                     for a, b, c in summary["pieces"]]}
+        doc = {**summary, "pieces": [{"track_id": a, "id": b, "segment": c} for a, b, c in pieces]}
         (tmp / "projection.json").write_text(json.dumps(doc, indent=1))
 
     write_dir_atomically(Path(dest), write, "--to")

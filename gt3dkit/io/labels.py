@@ -303,20 +303,22 @@ def write_coco(shapes: Shapes, rig: Rig, joints: tuple[str, ...], bones: tuple[t
         anns: list[dict[str, object]] = []
         for k in idx[np.lexsort((tid[idx], shapes.frame[idx]))]:
             b = shapes.box_xyxy_px[k]
+            attributes: dict[str, object] = {**shapes.attributes(k, joints),
+                                             "occluded": bool(shapes.occluded[k])}
             ann: dict[str, object] = {
                 "id": len(anns) + 1, "image_id": image_of[int(shapes.frame[k])], "category_id": 1,
                 "bbox": [float(b[0]), float(b[1]), float(b[2] - b[0]), float(b[3] - b[1])],
                 "area": float((b[2] - b[0]) * (b[3] - b[1])), "iscrowd": 0,
                 "track_id": int(tid[k]), "score": round(float(shapes.confidence[k]), 4),
-                "attributes": {**shapes.attributes(k, joints), "occluded": bool(shapes.occluded[k])}}
+                "attributes": attributes}
             if not track_ids:  # no identity anywhere in the file
                 del ann["track_id"]
                 for key in ("gt3d_id", "segment"):
-                    del ann["attributes"][key]  # type: ignore[attr-defined]
+                    del attributes[key]
             if J:
                 if shapes.source[k] != 0 or (shapes.box_drawn is not None and shapes.box_drawn[k]):
                     # COCO wants a bbox: the estimate's, which a reader does not take for a label
-                    ann["attributes"]["bbox_digest"] = shape_digest(b, {})  # type: ignore[index]
+                    attributes["bbox_digest"] = shape_digest(b, {})
                 uv = shapes.kpt_uv_px[k]
                 seen = np.isfinite(uv).all(axis=1)
                 vis = np.where(seen, 1 if shapes.occluded[k] else 2, 0)

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import F64, Scene, TrackSet
+from gt3dkit.types import F64, Camera, Scene, TrackSet
 from gt3dkit.viz.render3d import Drawing, Rendering, View, unit_sphere
 
 GRID_COLOUR = (0.80, 0.80, 0.80)
@@ -25,10 +25,11 @@ def colour_of(i: int) -> tuple[float, float, float]:
     """The colour of object ``i`` in every picture of a report."""
     import matplotlib
 
-    return tuple(float(v) for v in matplotlib.colormaps["tab10"](int(i) % 10)[:3])
+    r, g, b = (float(v) for v in matplotlib.colormaps["tab10"](int(i) % 10)[:3])
+    return r, g, b
 
 
-def _frustum(cam, depth_m: float) -> tuple[F64, list[tuple[int, int]]]:
+def _frustum(cam: Camera, depth_m: float) -> tuple[F64, list[tuple[int, int]]]:
     Kinv = np.linalg.inv(cam.K)
     corners = [(0, 0), (cam.width, 0), (cam.width, cam.height), (0, cam.height)]
     rays = [Kinv @ np.array([u, v, 1.0]) for u, v in corners]

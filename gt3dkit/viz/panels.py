@@ -133,10 +133,11 @@ def draw_view(ax: Axes, scene: Scene, res: ViewResiduals, cam: int, sel: np.ndar
     box) in red; ``focus`` = a row drawn in full, the others faded (crowded anomaly pictures)."""
     plt = _plt()
     for n in sel:
-        col, ink = colour_of(res.obj[n]), (0.0, 0.0, 0.0)
+        col: tuple[float, ...] = colour_of(res.obj[n])
+        ink: tuple[float, ...] = (0.0, 0.0, 0.0)
         if focus is not None and n != focus:  # the others stay as context, faded
             col, ink = (*col, 0.25), (0.0, 0.0, 0.0, 0.25)
-        if res.box_z is not None and np.isfinite(res.box_z[n, cam]).all():
+        if res.box_z is not None and res.box is not None and np.isfinite(res.box_z[n, cam]).all():
             for b, ls in ((res.box_z[n, cam], "-"), (res.box[n, cam], "--")):
                 if np.isfinite(b).all():
                     ax.add_patch(plt.Rectangle((b[0], b[1]), b[2] - b[0], b[3] - b[1], fill=False,
@@ -147,7 +148,7 @@ def draw_view(ax: Axes, scene: Scene, res: ViewResiduals, cam: int, sel: np.ndar
                 b = res.box_z[n, cam]
                 ax.add_patch(plt.Rectangle((b[0], b[1]), b[2] - b[0], b[3] - b[1], fill=False,
                                            edgecolor="red", linewidth=lw + 1.5, alpha=0.5))
-        if res.kpt_z is not None:
+        if res.kpt_z is not None and res.kpt is not None:
             z, p = res.kpt_z[n, cam], res.kpt[n, cam]
             seen = np.isfinite(z[:, 0])
             if not seen.any():
@@ -282,10 +283,10 @@ def anomaly_thumbnail(scene: Scene, res: ViewResiduals, frame: int, obj: int, ca
     the id was, and where its views put it now). False when there is nothing to draw."""
     plt = _plt()
     frames = [f for f in (before, frame) if f is not None]
-    picks = [_thumbnail_views(scene, res, f, obj, camera, max_views) for f in frames]
-    if not picks[-1]:
+    found = [_thumbnail_views(scene, res, f, obj, camera, max_views) for f in frames]
+    if not found[-1]:
         return False
-    picks = [p for p in picks if p]
+    picks = [p for p in found if p]
     width = max(len(p[1]) for p in picks)
     fig, axes = plt.subplots(len(picks), width, figsize=(2.4 * width, 2.6 * len(picks)), dpi=90,
                              squeeze=False)

@@ -121,7 +121,10 @@ def unit_sphere(n_lat: int = 12, n_lon: int = 24) -> tuple[F64, I64]:
                      np.repeat(np.cos(th)[:, None], n_lon, axis=1)], axis=-1).reshape(-1, 3)
     V = np.concatenate([[[0, 0, 1.0]], ring, [[0, 0, -1.0]]])
     tris = []
-    idx = lambda i, j: 1 + i * n_lon + j % n_lon  # noqa: E731
+
+    def idx(i: int, j: int) -> int:
+        return 1 + i * n_lon + j % n_lon
+
     for j in range(n_lon):
         tris.append((0, idx(0, j), idx(0, j + 1)))
         tris.append((len(V) - 1, idx(n_lat - 2, j + 1), idx(n_lat - 2, j)))
@@ -161,7 +164,7 @@ class Rendering:
                 for i, (P, S, col) in enumerate(items):
                     arrays[f"{kind}{i}_p"], arrays[f"{kind}{i}_s"] = P, S
                     arrays[f"{kind}{i}_c"] = np.asarray(col, dtype=np.float64)
-            np.savez(job, **arrays)
+            np.savez(job, allow_pickle=True, **arrays)  # (numpy's default, named: the arrays by name)
             argv += [str(job), str(png)]
         self._pngs = [Path(f) for f in argv[1::2]]
         self._timeout_s = timeout_s * len(jobs)
@@ -254,7 +257,7 @@ def _child(job: Path, png: Path) -> None:
     ctl.set_constant_z_far(1e4)
     vis.poll_events()
     vis.update_renderer()
-    vis.capture_screen_image(str(png), do_render=True)
+    vis.capture_screen_image(png, do_render=True)
     vis.destroy_window()
 
 

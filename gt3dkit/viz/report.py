@@ -18,7 +18,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import html
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +33,7 @@ from gt3dkit.io.labels import piece_of, piece_track_ids
 from gt3dkit.io.writers import read_segments_csv
 from gt3dkit.parse import read_csv_rows
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import JsonDict, Scene, TrackSet
+from gt3dkit.types import JsonDict, Scene, TrackSet, json_at, json_list, json_obj
 from gt3dkit.viz.overview import colour_of, start_overviews
 from gt3dkit.viz.panels import (
     ANNOTATION_NOTE,
@@ -82,9 +82,9 @@ def _keypoint_noise(run: Run) -> str:
     """The keypoint noise the run learnt from the data (:mod:`gt3dkit.fusion.preparation.confidence`): each
     joint's pixel sd at full confidence, and how the detector's confidence scales it; '' when
     the run has no keypoints."""
-    est = run.meta.get("estimator", {}) if isinstance(run.meta.get("estimator"), dict) else {}
-    kp = ((est.get("preparation") or {}).get("keypoints") or {}) if isinstance(est, dict) else {}
-    per_joint = kp.get("sigma_px_per_joint")
+    kp = json_obj(run.meta, "estimator", "preparation", "keypoints")
+    per_joint = [float(v) if isinstance(v, int | float) else float("nan")
+                 for v in json_list(kp, "sigma_px_per_joint")]
     if not per_joint or not run.scene.skeleton:
         return ""
     names = SKELETONS[run.scene.skeleton].marker_names
@@ -94,25 +94,27 @@ def _keypoint_noise(run: Run) -> str:
              "triangulation's residuals; " + html.escape(str(kp.get("sigma_source", ""))) + ").</p>",
              _table(rows, ["joint", "sd (px)"])]
     curve = kp.get("confidence")
-    if isinstance(curve, dict) and curve.get("confidence"):
+    if isinstance(curve, Mapping) and curve.get("confidence"):
+        conf = np.asarray(json_list(curve, "confidence"), dtype=np.float64)
+        factor = np.asarray(json_list(curve, "factor"), dtype=np.float64)
         parts += ["<p>" + html.escape(f"{curve['rule']}: {curve['source']}.") + "</p>",
                   _table([[f"{c:.3f}", f"{f:.3g}", f"{np.sqrt(f):.2f}x"]
-                          for c, f in zip(curve["confidence"], curve["factor"], strict=True)],
+                          for c, f in zip(conf, factor, strict=True)],
                          ["confidence", "variance factor", "sd"])]
-    elif isinstance(curve, dict):
+    elif isinstance(curve, Mapping):
         parts.append("<p>" + html.escape(f"{curve['rule']}: {curve['source']}.") + "</p>")
     return "".join(parts)
 
 
 def _numbers(run: Run, res: ViewResiduals) -> list[list[Any]]:
     sc, tr, meta = run.scene, run.tracks, run.meta
-    est = meta.get("estimator", {}) if isinstance(meta.get("estimator"), dict) else {}
-    prep = est.get("preparation", {}) if isinstance(est.get("preparation"), dict) else {}
-    params = est.get("params", {}) if isinstance(est.get("params"), dict) else {}
+    est = json_obj(meta, "estimator")
+    prep = json_obj(est, "preparation")
+    params = json_obj(est, "params")
     vals = [v for v in (res.box_err, res.kpt_err) if v is not None]
     allv = np.concatenate([v[np.isfinite(v)] for v in vals]) if vals else np.zeros(0)
-    qa = (est.get("qa") or {}).get("anomalies", {}) if isinstance(est.get("qa"), dict) else {}
-    rob = est.get("robust") or {}
+    qa = json_obj(est, "qa", "anomalies")
+    rob = json_obj(est, "robust")
     rows = [
         ["input", f"{sc.layout}: {sc.root}"],
         ["cameras", f"{len(sc.rig.cameras)}: {', '.join(sc.rig.names)}"],
@@ -125,8 +127,8 @@ def _numbers(run: Run, res: ViewResiduals) -> list[list[Any]]:
                       f"{_fmt(est.get('seconds'))} s"],
         ["noise levels the run chose",
          "; ".join(f"{k}: {_fmt(v)}" for k, v in (
-             ("box edge sd (px)", params.get("sigma_px", (prep.get("boxes") or {}).get("sigma_px"))),
-             ("keypoint sd (px)", params.get("kpt_sigma_px", (prep.get("keypoints") or {}).get("sigma_px"))),
+             ("box edge sd (px)", params.get("sigma_px", json_at(prep, "boxes", "sigma_px"))),
+             ("keypoint sd (px)", params.get("kpt_sigma_px", json_at(prep, "keypoints", "sigma_px"))),
              ("centre acceleration sd (m/s^2)", params.get("accel_sd")),
              ("log semi-axis sd (per sqrt s)", params.get("shape_sd")),
              ("joint acceleration sd (m/s^2)", params.get("joint_accel_sd") if run.scene.skeleton else None),
@@ -156,8 +158,7 @@ def _calibration(run: Run) -> str:
     people = run.meta.get("calibration_from_people")
     if isinstance(people, dict):
         out += _people_rig(people)
-    load = (run.meta.get("input") or {}).get("load")
-    clocks = load.get("clocks") if isinstance(load, dict) else None
+    clocks = json_at(run.meta, "input", "load", "clocks")
     if isinstance(clocks, dict):
         out += _clocks(clocks)
     ref = run.meta.get("calibration_refinement")

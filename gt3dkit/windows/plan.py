@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -192,9 +193,8 @@ class Bridge:
         unannotated for longer than the context)."""
         base = np.arange(len(self.start)) * self.span
 
-        def at(frame: int, side: str) -> np.ndarray:  # within each object's entries: past all its own
-            return np.searchsorted(self.key, base + min(max(frame, 0), self.span - 1),
-                                   side=side)  # type: ignore[call-overload]
+        def at(frame: int, side: Literal["left", "right"]) -> np.ndarray:  # past all its own entries
+            return np.searchsorted(self.key, base + min(max(frame, 0), self.span - 1), side=side)
 
         first, last = at(w.first, "left"), at(w.last, "right")  # its entries from w.first, after w.last
         spans = ((first > self.start) & (last < self.end)) | (last > first)

@@ -143,7 +143,7 @@ def _rig(root: Path, cams: list[Camera | None], g: GridLayout) -> tuple[Rig, np.
         raise InputError(str(root / "calibrations"), "no camera calibrations found")
     remap = np.full(len(cams), -1)
     remap[present] = np.arange(len(present))
-    return Rig(tuple(cams[i] for i in present), up=np.array([0.0, 0.0, 1.0]),  # type: ignore[misc]
+    return Rig(tuple(c for c in cams if c is not None), up=np.array([0.0, 0.0, 1.0]),
                frame_name=f"{g.name} world (x, y on the ground, z up)"), remap
 
 
