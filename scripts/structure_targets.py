@@ -294,10 +294,12 @@ def unlayered(mods: dict[str, Path]) -> list[str]:
 
 def _shapes(p: Path) -> list[tuple[int, str]]:
     """Each code line of ``p`` as ``(line number, its tokens' shape)``: names, numbers and strings
-    by kind, docstrings and comments left out."""
+    by kind, docstrings, comments and the names of an import spread over lines left out."""
     src = p.read_text()
     doc_lines: set[int] = set()
     for node in ast.walk(ast.parse(src)):
+        if isinstance(node, ast.Import | ast.ImportFrom):  # its first line stays: windows skip it
+            doc_lines.update(range(node.lineno + 1, (node.end_lineno or node.lineno) + 1))
         if isinstance(node, ast.Module | ast.ClassDef | ast.FunctionDef | ast.AsyncFunctionDef) and node.body:
             first = node.body[0]
             if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) \

@@ -73,13 +73,21 @@ def _scene_options(p: argparse.ArgumentParser) -> None:
                    + "; auto: chosen from the boxes")
 
 
+def _estimating(sub: argparse._SubParsersAction[Parser], common: Parser, name: str, about: str,
+                what: tuple[str, str], out: str) -> Parser:
+    """Command ``name`` that estimates: its positional argument ``what`` (name, help), ``--out``
+    and ``--estimator``."""
+    p = sub.add_parser(name, parents=[common], help=about)
+    p.add_argument(what[0], help=what[1])
+    p.add_argument("--out", required=True, help=out)
+    p.add_argument("--estimator", choices=ESTIMATORS, default=DEFAULT_ESTIMATOR)
+    return p
+
+
 def _add_reconstruct(sub: argparse._SubParsersAction[Parser], common: Parser) -> None:
     """``gt3d reconstruct``'s options."""
-    r = sub.add_parser("reconstruct", parents=[common],
-                       help="2D boxes or keypoints from calibrated cameras -> 3D tracks")
-    r.add_argument("input", help="input folder (any layout)")
-    r.add_argument("--out", required=True, help="output folder (tracks.csv, meta.json)")
-    r.add_argument("--estimator", choices=ESTIMATORS, default=DEFAULT_ESTIMATOR)
+    r = _estimating(sub, common, "reconstruct", "2D boxes or keypoints from calibrated cameras -> 3D tracks",
+                    ("input", "input folder (any layout)"), "output folder (tracks.csv, meta.json)")
     r.add_argument("--sigma-px", type=SIGMA_PX, help="box-edge noise (default: from the data)")
     r.add_argument("--accel-sd", type=ACCEL,
                    help="acceleration noise, m/s^2/sqrt(Hz) (default: max likelihood)")
@@ -269,11 +277,10 @@ def _add_calib(sub: argparse._SubParsersAction[Parser], common: Parser) -> None:
 
 def _add_reconstruct_many(sub: argparse._SubParsersAction[Parser], common: Parser) -> None:
     """``gt3d reconstruct-many``'s options."""
-    m = sub.add_parser("reconstruct-many", parents=[common],
-                       help="many input folders in parallel (local processes or a Dask cluster)")
-    m.add_argument("manifest", help="a text file: one input folder (or a glob) per line")
-    m.add_argument("--out", required=True, help="output folder: OUT/<input folder name>/ per sequence")
-    m.add_argument("--estimator", choices=ESTIMATORS, default=DEFAULT_ESTIMATOR)
+    m = _estimating(sub, common, "reconstruct-many",
+                    "many input folders in parallel (local processes or a Dask cluster)",
+                    ("manifest", "a text file: one input folder (or a glob) per line"),
+                    "output folder: OUT/<input folder name>/ per sequence")
     m.add_argument("--jobs", type=number_type(int, 1, 4096), help="local worker processes (default: cores)")
     m.add_argument("--scheduler", metavar="ADDRESS", type=scheduler_address,
                    help="a running Dask distributed scheduler (tcp://host:8786) instead of local processes")

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field, replace
-from functools import cached_property
+from typing import NamedTuple
 
 import numpy as np
 
@@ -59,6 +59,15 @@ class ShapePrior:
     mean: F64  # (3,) log metres
     sd: F64  # (3,) log units
     source: str
+
+
+class FrameState(NamedTuple):
+    """Every row's own (per-frame) state ``x (R, n)``, its per-entry variances ``var (R, n)`` and
+    the (centre, log axes) covariance ``cov6 (R, 6, 6)`` (:meth:`Prepared.frame_state`)."""
+
+    x: F64
+    var: F64
+    cov6: F64
 
 
 @dataclass(frozen=True)
@@ -109,20 +118,24 @@ class Prepared:
     box_tail: float = 1.0
     box_cut: np.ndarray | None = None  # (R, C, 4) edges a nearer object cut, left out (.occlusion)
     box_cut_by: np.ndarray | None = None  # (R, C, 4) the row of a nearer object each lies in, else -1
+    #: every row's own state (:meth:`frame_state`), made with the rest (never given)
+    frame: FrameState = field(init=False, repr=False, compare=False)
 
-    def frame_state(self) -> tuple[F64, F64, F64]:
-        """Every row's own (per-frame) state, for initialisation and linearisation (computed
-        once; the arrays are shared, callers copy before changing them).
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "frame", self._own_state())
+
+    def frame_state(self) -> FrameState:
+        """Every row's own (per-frame) state, for initialisation and linearisation (made once, as
+        the preparation is: the arrays are shared, callers copy before changing them).
 
         Returns ``x (R, n)``, per-entry variances ``var (R, n)`` (inf where the frame says
         nothing: velocities, unseen joints) and the (centre, log axes) covariance
         ``cov6 (R, 6, 6)``. Without boxes the centre and axes are those of the ellipsoid
         around the triangulated joints (nearest frame that has some).
         """
-        return self._frame_state
+        return self.frame
 
-    @cached_property
-    def _frame_state(self) -> tuple[F64, F64, F64]:
+    def _own_state(self) -> FrameState:
         rows, lay = self.rows, self.layout
         R, n, J = len(rows), lay.n, lay.n_joints
         x = np.zeros((R, n))
@@ -159,7 +172,7 @@ class Prepared:
             jvar = (np.einsum("rjii->rji", self.kpt0_cov) if self.kpt0_cov is not None
                     else np.full((R, J, 3), np.inf))
             var[:, lay.joints] = np.where(have[..., None], jvar, np.inf).reshape(R, 3 * J)
-        return x, var, cov6
+        return FrameState(x, var, cov6)
 
 
 def nearest_same_object(rows: Rows, ok: np.ndarray) -> np.ndarray:
