@@ -17,6 +17,11 @@
    found with :mod:`ast`; and any field of ``Prepared`` typed as a dict (a memo).
 4. The parameters typed ``Any``, the functions over 80 lines (``scripts/structure_targets.py``'s
    counts) and the modules in each folder of ``gt3dkit/fusion`` (target: at most 20 in any).
+5. **The input's entries into each module**, followed call by call (``sys.setprofile``) through
+   ``gt3d reconstruct`` of the first three inputs of 1: a call into a module of gt3dkit from
+   another one with the ``Scene`` or the ``Prepared`` among its arguments is one entry (the data's
+   own methods and constructors left out). Target: no module more than twice.
+6. **The type checker**: mypy as ``pyproject.toml`` configures it (strict on the package).
 
 Exit status 0 always: it prints what it measured, each target's ok or MISSED.
 """
@@ -120,11 +125,55 @@ def module_state() -> list[str]:
 
 
 def prepared_dicts() -> list[str]:
-    """The fields of ``fusion.preparation.prepare.Prepared`` annotated as a ``dict``."""
+    """The fields of ``fusion.preparation.prepare.Prepared`` annotated as a ``dict``, and its
+    cached properties (a memo written on first use)."""
     tree = ast.parse((REPO / "gt3dkit" / "fusion" / "preparation" / "prepare.py").read_text())
     cls = next(n for n in ast.walk(tree) if isinstance(n, ast.ClassDef) and n.name == "Prepared")
     return [f"{n.target.id}: {ast.unparse(n.annotation)}" for n in cls.body  # type: ignore[union-attr]
-            if isinstance(n, ast.AnnAssign) and "dict" in ast.unparse(n.annotation).lower()]
+            if isinstance(n, ast.AnnAssign) and "dict" in ast.unparse(n.annotation).lower()] + [
+        f"{n.name}: a cached property" for n in cls.body if isinstance(n, ast.FunctionDef)
+        and any("cache" in ast.unparse(d) for d in n.decorator_list)]
+
+
+#: The tracer of section 5, run in a process of its own (``python -c``) with the CLI's arguments.
+ENTRIES = """
+import collections, sys
+from gt3dkit.types import Scene
+from gt3dkit.fusion.preparation.prepare import Prepared
+from gt3dkit import cli
+entries = collections.Counter()
+def on_call(frame, event, arg):
+    if event != "call":
+        return
+    mod = frame.f_globals.get("__name__", "")
+    caller = frame.f_back
+    if not mod.startswith("gt3dkit") or caller is None or caller.f_globals.get("__name__") == mod:
+        return
+    code = frame.f_code
+    loc = frame.f_locals
+    args = code.co_varnames[:code.co_argcount + code.co_kwonlyargcount]
+    own = args and args[0] == "self" and isinstance(loc.get("self"), (Scene, Prepared))
+    if code.co_name == "__init__" or own:
+        return  # the data's own constructor and methods
+    if any(isinstance(loc.get(a), (Scene, Prepared)) for a in args):
+        entries[mod] += 1
+sys.setprofile(on_call)
+try:
+    cli.main(sys.argv[1:])
+finally:
+    sys.setprofile(None)
+    print("ENTRIES", dict(entries))
+"""
+
+
+def entries(argv: list[str]) -> dict[str, int]:
+    """Section 5: how many times ``gt3d reconstruct ARGV``'s input (its ``Scene``, or the
+    ``Prepared`` made of it) enters each module of gt3dkit: a call into the module from another
+    one with the scene or the preparation among its arguments (the data's own methods and
+    constructors left out)."""
+    p = subprocess.run([sys.executable, "-c", ENTRIES, *argv], capture_output=True, text=True, check=True)
+    line = next(x for x in p.stdout.splitlines() if x.startswith("ENTRIES "))
+    return dict(ast.literal_eval(line[len("ENTRIES "):]))
 
 
 def main() -> int:
@@ -168,6 +217,18 @@ def main() -> int:
         print(f"   min {min(took):.2f} s, median {statistics.median(took):.2f} s: "
               f"{'ok' if statistics.median(took) <= 3.5 else 'MISSED'} (target 3.5 s)")
 
+        print("\n5. the input's entries into each module, call by call (a call from another module with "
+              "the Scene or the Prepared)")
+        for name, root, extra in inputs[:3]:
+            got = entries(["reconstruct", str(root), *extra, "--out", str(tmp / f"entries_{name[:8]}"),
+                           "--quiet"])
+            over = {m: n for m, n in sorted(got.items(), key=lambda kv: -kv[1]) if n > 2}
+            key = {m: got.get(m, 0) for m in ("gt3dkit.api", "gt3dkit.fusion.preparation.prepare")}
+            print(f"   {name:<34} api.py {key['gt3dkit.api']}, prepare.py "
+                  f"{key['gt3dkit.fusion.preparation.prepare']}; over twice: "
+                  + (", ".join(f"{m} {n}" for m, n in over.items()) or "none")
+                  + f" ({'ok' if not over else 'MISSED'}, target: no module more than twice)")
+
     state, memo = module_state(), prepared_dicts()
     print("\n3. process-wide state: module-level containers a function changes "
           f"({len(state)}); Prepared's dict fields ({len(memo)})")
@@ -185,6 +246,10 @@ def main() -> int:
           f"functions over 80 lines: {len(longs)} ({'ok' if not longs else 'MISSED'}); "
           f"gt3dkit/fusion's largest folder: {big}, {rooms[big]} modules "
           f"({'ok' if rooms[big] <= 20 else 'MISSED'}, target 20)")
+    mypy = subprocess.run([sys.executable, "-m", "mypy"], cwd=REPO, capture_output=True, text=True)
+    last = (mypy.stdout.strip().splitlines() or ["(no output)"])[-1]
+    print(f"\n6. the type checker (mypy, strict on the package as pyproject.toml sets it): {last} "
+          f"({'ok' if mypy.returncode == 0 else 'MISSED'})")
     return 0
 
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from gt3dkit.calib.formats.opencv import read_storage
 from gt3dkit.errors import InputError
-from gt3dkit.parse import sha256
+from gt3dkit.parse import read_hashed
 from gt3dkit.rig import Camera, Rig
 
 # cv2 is imported in the functions that use it: 26 MB and 30 ms that a run whose calibration is
@@ -78,13 +78,14 @@ def load_camera(root: Path, g: GridLayout, name: str, files: dict[str, str]) -> 
     for p in (intr, extr):
         if not p.exists():
             raise InputError(str(p), f"missing calibration file for camera {name}")
-    K, dist = read_storage(intr, ("camera_matrix", "distortion_coefficients"))
-    rvec, tvec = read_storage(extr, ("rvec", "tvec"))
+    (intr_raw, intr_sha), (extr_raw, extr_sha) = read_hashed(intr), read_hashed(extr)  # each read once
+    K, dist = read_storage(intr, ("camera_matrix", "distortion_coefficients"), intr_raw)
+    rvec, tvec = read_storage(extr, ("rvec", "tvec"), extr_raw)
     if K.shape != (3, 3) or rvec.size != 3 or tvec.size != 3:
         raise InputError(str(extr), f"camera {name}: expected 3x3 camera_matrix, 3-vector rvec/tvec")
     R, _ = cv2.Rodrigues(rvec.reshape(3))
-    for p in (intr, extr):
-        files[str(p.relative_to(root))] = sha256(p)
+    for p, digest in ((intr, intr_sha), (extr, extr_sha)):
+        files[str(p.relative_to(root))] = digest
     t = tvec.reshape(3) * g.tvec_to_m
     # Chirality: a camera of these ground-plane datasets looks down at the ground, so the
     # ray through the middle of its bottom image row meets z = 0 in front of it. Where it

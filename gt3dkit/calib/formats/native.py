@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from gt3dkit.errors import InputError
-from gt3dkit.parse import load_json, parse_float, parse_int
+from gt3dkit.parse import json_of, load_json, parse_float, parse_int
 from gt3dkit.rig import Camera, Rig
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import JsonDict, JsonValue
@@ -23,9 +23,10 @@ from gt3dkit.types import JsonDict, JsonValue
 FPS_RANGE = (1e-3, 1e6)
 
 
-def load_cameras(path: Path) -> tuple[Rig, float | None, str | None]:
-    """Rig, fps (None when the file gives none) and skeleton name of a ``cameras.json``."""
-    doc = load_json(path)
+def load_cameras(path: Path, raw: bytes | None = None) -> tuple[Rig, float | None, str | None]:
+    """Rig, fps (None when the file gives none) and skeleton name of a ``cameras.json`` (``raw``:
+    its bytes, read already)."""
+    doc = load_json(path) if raw is None else json_of(path, raw)
     rig = rig_of_doc(doc, path)
     if doc.get("fps") is None:
         return rig, None, _skeleton_of(doc, path)

@@ -35,10 +35,14 @@ FISHEYE_MODELS = ("fisheye", "equidistant")
 PINHOLE_MODELS = ("", "pinhole", "plumb_bob", "radtan", "radial-tangential")
 
 
-def read_storage(path: Path, keys: tuple[str, ...]) -> list[np.ndarray]:
+def read_storage(path: Path, keys: tuple[str, ...], raw: bytes | None = None) -> list[np.ndarray]:
+    """The matrices ``keys`` of an OpenCV FileStorage file (``raw``: its bytes, read already:
+    parsed from memory, the file not opened again)."""
     import cv2
     try:
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        fs = (cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ) if raw is None else
+              cv2.FileStorage(raw.decode("utf-8", errors="replace"),
+                              cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY))
     except (cv2.error, SystemError) as e:
         # OpenCV raises cv2.error, or a SystemError wrapping it, for a parse failure
         cause = e.__cause__ or e.__context__ or e

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from gt3dkit.errors import InputError
-from gt3dkit.parse import read_json_field
+from gt3dkit.parse import json_field, read_json_field
 from gt3dkit.rig import Camera, Rig
 
 CM = 0.01
@@ -19,8 +19,11 @@ def find_calibration(root: Path) -> Path | None:
     return c[0] if c else None
 
 
-def load_rig(path: Path, cameras: list[str] | None = None) -> Rig:
-    cams_doc = read_json_field(path, "cameras", "[...]")
+def load_rig(path: Path, cameras: list[str] | None = None, raw: bytes | None = None) -> Rig:
+    """The HD cameras (``cameras``: those named only) of a Panoptic ``calibration_<seq>.json``
+    (``raw``: its bytes, read already)."""
+    cams_doc = (read_json_field(path, "cameras", "[...]") if raw is None else
+                json_field(path, raw, "cameras", "[...]"))
     cams = []
     for i, c in enumerate(cams_doc):
         where = f"{path}: cameras[{i}]"

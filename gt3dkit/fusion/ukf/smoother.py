@@ -165,15 +165,7 @@ class UKFSmoother:
         centre = x_s[:, layout.center]
         semi = np.exp(x_s[:, layout.log_axes])
         P_c, widened = widen_weak_rows(P_s[:, layout.center, layout.center], pre, scene.fps)
-        lone_ids: list[int] = []
-        if pre.use_box and pre.fit is not None:
-            lone = single_view_rows(pre)
-            if lone.any():
-                centre, semi, P_c = centre.copy(), semi.copy(), P_c.copy()
-                centre[lone] = pre.fit.center_world[lone]
-                semi[lone] = np.exp(pre.fit.log_axes[lone])
-                P_c[lone] = pre.fit.cov[lone][:, :3, :3]
-                lone_ids = sorted({int(i) for i in rows.obj_ids[rows.row_o[lone]]})
+        centre, semi, P_c, lone_ids = single_views_as_fitted(pre, centre, semi, P_c)
         sd = axis_sd(P_c)
         kpt = np.zeros((R, 0, 3))
         kpt_sd = np.zeros((R, 0))
@@ -220,6 +212,24 @@ class UKFSmoother:
             frame=rows.frames[rows.row_t], track_id=rows.obj_ids[rows.row_o],
             center_world=centre, semi_axes=semi, center_sd=sd, n_views=rows.n_views,
             kpt_world=kpt, kpt_sd=kpt_sd, info=info, downweighted=down)
+
+
+def single_views_as_fitted(pre: Prepared, centre: F64, semi: F64, P_c: F64
+                           ) -> tuple[F64, F64, F64, list[int]]:
+    """The smoothed ``centre, semi (R, 3)`` and centre covariances ``P_c (R, 3, 3)`` with the rows
+    of objects no two box views ever see at once (:func:`single_view_rows`) taken from their
+    per-frame fits (depth from the shape prior, with its spread); and those objects' ids."""
+    if not pre.use_box or pre.fit is None:
+        return centre, semi, P_c, []
+    lone = single_view_rows(pre)
+    if not lone.any():
+        return centre, semi, P_c, []
+    centre, semi, P_c = centre.copy(), semi.copy(), P_c.copy()
+    centre[lone] = pre.fit.center_world[lone]
+    semi[lone] = np.exp(pre.fit.log_axes[lone])
+    P_c[lone] = pre.fit.cov[lone][:, :3, :3]
+    rows = pre.rows
+    return centre, semi, P_c, sorted({int(i) for i in rows.obj_ids[rows.row_o[lone]]})
 
 
 def widen_weak_rows(P_c: F64, pre: Prepared, fps: float, support_s: float = 1.0

@@ -49,6 +49,7 @@ from gt3dkit.parse import (
     parse_frame,
     parse_int,
     parse_metres,
+    read_hashed,
     sha256,
 )
 from gt3dkit.skeletons import SKELETONS, skeleton_for
@@ -81,8 +82,9 @@ def load(root: Path, skeleton: str | None = None) -> Scene:
 def _load(root: Path, skeleton: str | None, stack: contextlib.ExitStack) -> Scene:
     files: dict[str, str] = {}
     cam_path = root / "cameras.json"
-    rig, fps_doc, skel_doc = load_cameras(cam_path)
-    files["cameras.json"] = sha256(cam_path)
+    raw, digest = read_hashed(cam_path)  # read once: hashed, then parsed
+    rig, fps_doc, skel_doc = load_cameras(cam_path, raw)
+    files["cameras.json"] = digest
     warnings: list[str] = []
     fps = fps_doc if fps_doc is not None else DEFAULT_FPS
     kpt_path = root / "keypoints.csv"
@@ -143,8 +145,8 @@ def _load(root: Path, skeleton: str | None, stack: contextlib.ExitStack) -> Scen
         raise InputError(str(root), "no annotations (boxes.csv and keypoints.csv missing or empty)")
     truth = read_truth_csv(root / "truth.csv", files, root) if (root / "truth.csv").exists() else None
     if (root / "truth_keypoints.csv").exists():
-        files["truth_keypoints.csv"] = sha256(root / "truth_keypoints.csv")
-        truth = _merge_kpt_truth(truth, read_kpt_truth(root / "truth_keypoints.csv", n_joints))
+        got, files["truth_keypoints.csv"] = read_kpt_truth_hashed(root / "truth_keypoints.csv", n_joints)
+        truth = _merge_kpt_truth(truth, got)
     frames = np.unique(obs.frame)
     return Scene(rig=rig, obs=obs, layout="native", fps=fps, frames=frames, truth=truth,
                  skeleton=skel_name if n_joints else None, files=files, root=str(root),
@@ -302,15 +304,23 @@ def read_kpt_truth(path: Path, n_joints: int) -> GroundTruth:
     """``truth_keypoints.csv`` = ``frame,id,joint,x,y,z`` (metres), as ``gt3d simulate`` writes:
     read in numpy-checked blocks (:func:`_checked_kpt_truth`), row by row where a block fails a
     check or a joint is given twice (to say where)."""
-    blocks = [_checked_kpt_truth(block, n_joints) for block in
-              iter_csv_blocks(path, KPT_TRUTH_COLUMNS, None, KEYPOINT_BLOCK_ROWS, "iiifff")]
+    return read_kpt_truth_hashed(path, n_joints)[0]
+
+
+def read_kpt_truth_hashed(path: Path, n_joints: int) -> tuple[GroundTruth, str]:
+    """:func:`read_kpt_truth` and the file's SHA-256, the file opened once where every block
+    passes (hashed as it is read)."""
+    with HashedFile(path) as hashed:
+        blocks = [_checked_kpt_truth(block, n_joints) for block in
+                  iter_csv_blocks(path, KPT_TRUTH_COLUMNS, None, KEYPOINT_BLOCK_ROWS, "iiifff", hashed)]
+        digest = hashed.hexdigest()
     a = np.concatenate([np.zeros((0, 6))] + [b for b in blocks if b is not None])
     ijk = a[:, :3].astype(np.int64)
     if all(b is not None for b in blocks) and len(unique_rows(ijk)) == len(a):
         keys, row = unique_rows(ijk[:, :2], return_inverse=True)
         kpt = np.full((len(keys), n_joints, 3), np.nan)
         kpt[row, ijk[:, 2]] = a[:, 3:]
-        return _kpt_truth_of(keys, kpt)
+        return _kpt_truth_of(keys, kpt), digest
     poses: dict[tuple[int, int], np.ndarray] = {}
     for line, r in iter_csv_rows(path, KPT_TRUTH_COLUMNS):
         where = f"{path}: line {line}"
@@ -325,7 +335,7 @@ def read_kpt_truth(path: Path, n_joints: int) -> GroundTruth:
         pose[j] = xyz
     keys = sorted(poses)
     return _kpt_truth_of(np.array(keys, dtype=np.int64).reshape(-1, 2),
-                         np.array([poses[q] for q in keys]).reshape(len(keys), n_joints, 3))
+                         np.array([poses[q] for q in keys]).reshape(len(keys), n_joints, 3)), sha256(path)
 
 
 def _checked_kpt_truth(block: CsvBlock, n_joints: int) -> F64 | None:

@@ -29,7 +29,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import FAR_IMAGES, check_pixels
 from gt3dkit.io.datasets.common import JointRows, RowBuilder
 from gt3dkit.io.datasets.mot import calibration_beside, match_cameras, natural_key
-from gt3dkit.io.datasets.native import read_kpt_truth, write_kpt_truth
+from gt3dkit.io.datasets.native import read_kpt_truth_hashed, write_kpt_truth
 from gt3dkit.parse import load_json, sha256
 from gt3dkit.skeletons import DETECTOR_SKELETONS, SKELETONS
 from gt3dkit.types import Camera, Origins, Rig, Scene, SkeletonScene
@@ -274,8 +274,7 @@ def load(
     files[f"calibration:{cal.name}"] = sha256(cal) if cal.is_file() else "folder"
     truth = None
     if (root / "truth_keypoints.csv").exists():
-        files["truth_keypoints.csv"] = sha256(root / "truth_keypoints.csv")
-        truth = read_kpt_truth(root / "truth_keypoints.csv", J)
+        truth, files["truth_keypoints.csv"] = read_kpt_truth_hashed(root / "truth_keypoints.csv", J)
     cfg_fps = _config_fps(root)
     rate = fps or fps_doc or cfg_fps
     return Scene(

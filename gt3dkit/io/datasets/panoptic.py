@@ -22,7 +22,7 @@ from gt3dkit.arrays import unique_rows
 from gt3dkit.calib.formats.panoptic import find_calibration, load_rig
 from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import project_points
-from gt3dkit.parse import json_field, parse_frame, parse_int, read_hashed, sha256
+from gt3dkit.parse import json_field, parse_frame, parse_int, read_hashed
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import (
     MAX_WORLD_M,
@@ -77,8 +77,9 @@ def load(root: Path, cameras: list[str] | None = None, noise_px: float = 0.0, se
     calib = find_calibration(root)
     if calib is None:
         raise InputError(str(root), "no calibration_<seq>.json")
-    files = {calib.name: sha256(calib)}
-    rig = load_rig(calib, cameras)
+    raw, digest = read_hashed(calib)  # read once: hashed, then parsed
+    files = {calib.name: digest}
+    rig = load_rig(calib, cameras, raw)
     if cameras is not None and len(rig.cameras) < 2:
         raise InputError("--cameras", f"{', '.join(c.name for c in rig.cameras)}: one camera; keypoints need "
                                       "two or more to place a joint (name at least two HD cameras)")

@@ -44,7 +44,7 @@ from gt3dkit.io import labels
 from gt3dkit.io.datasets.checks import check_pixels
 from gt3dkit.io.datasets.common import RowBuilder, camera_ids, camera_track_ids, sim_box_labels
 from gt3dkit.io.datasets.mot import DEFAULT_FPS, calibration_beside, match_cameras, natural_key
-from gt3dkit.io.datasets.native import read_kpt_truth, write_cameras, write_kpt_truth
+from gt3dkit.io.datasets.native import read_kpt_truth_hashed, write_cameras, write_kpt_truth
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
 from gt3dkit.io.labels import Shapes, shape_digest
 from gt3dkit.parse import json_of, parse_frame, parse_int, read_hashed, sha256
@@ -273,8 +273,8 @@ def load(root: Path, kind: str, skeleton: str | None = None, calib: Path | str |
     if (root / "truth.csv").exists():
         truth = read_truth_csv(root / "truth.csv", files, root)
     if (root / "truth_keypoints.csv").exists() and skel is not None:
-        files["truth_keypoints.csv"] = sha256(root / "truth_keypoints.csv")
-        truth = read_kpt_truth(root / "truth_keypoints.csv", skel.n_joints)
+        truth, files["truth_keypoints.csv"] = read_kpt_truth_hashed(root / "truth_keypoints.csv",
+                                                                    skel.n_joints)
     return Scene(rig=rig, obs=obs, layout=kind, fps=float(fps or fps_doc or DEFAULT_FPS), truth=truth,
                  frames=np.unique(obs.frame), skeleton=skel.name if skel else None, files=files,
                  root=str(root), warnings=tuple(warnings),
