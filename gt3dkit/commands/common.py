@@ -190,19 +190,6 @@ def print_clocks(names: tuple[str, ...], late: np.ndarray, sd: np.ndarray, where
                       for n, d, s in zip(names, late, sd, strict=True)))
 
 
-def with_clock_note(scene: Scene, estimator: str) -> Scene:
-    """``scene`` with a ``warning:`` where views filed off their frames (``--time-offsets``) are
-    taken at the frame they are filed under: by an estimator other than the UKF."""
-    off = scene.obs.frame_offset
-    if off is None or not np.any(off != 0):
-        return scene
-    if estimator == "ukf":
-        return scene
-    why = (f"--time-offsets: the {estimator} takes each view at the whole frame nearest its own time "
-           "(the UKF alone predicts each joint and box to it)")
-    return dataclasses.replace(scene, warnings=(*scene.warnings, why))
-
-
 def detections_input(args: argparse.Namespace, calib: str | None = None) -> Scene:
     """The input of ``args`` as each camera's detections, with no identities across cameras
     (:func:`gt3dkit.api.load_detections`); ``calib``: this calibration's intrinsics in place of the
@@ -383,6 +370,41 @@ class TruthTally:
         ok = (t is not None and not self._off and scene.association is None and self.truth is scene.truth
               and t.rows + self.unscored == len(tracks))
         return t if ok else None
+
+
+def print_run(scene: Scene, tracks: TrackSet, estimator: str, out: str, into: IntoGiven | None = None,
+              tally: TruthTally | None = None) -> None:
+    """What ``gt3d reconstruct`` prints after its run: the scene's warnings, a line of what was read,
+    estimated and written (to ``out``), and the errors against the input's truth where it has one
+    (``into``: a rig found from the people, scored in the input calibration's frame; ``tally``:
+    the truth's counts made while the windows ran)."""
+    print_warnings(scene)
+    info = tracks.info
+    kinds = " + ".join(k for k, v in ((f"boxes: {box_model_note(scene)}", scene.has_boxes),
+                                      (f"{scene.skeleton} keypoints", scene.obs.n_joints > 0)) if v)
+    fps = f"{scene.fps:g} fps" + (" (assumed)" if scene.fps_assumed else "")
+    rob = info.robust
+    flagged = (f", {rob.rejected} measurements rejected and {rob.downweighted} "
+               f"down-weighted (downweighted.csv)" if rob is not None and rob.enabled else "")
+    qa = info.qa.anomalies if info.qa is not None else {}
+    flagged += (", anomalies: " + ", ".join(f"{v} {k}" for k, v in qa.items()) + " (anomalies.csv)"
+                if qa else ", no anomalies")
+    win = info.windows
+    if win is not None:
+        about = "about " if win.cut == "equal object-frames" else ""
+        flagged += (f", in {win.count} windows of {about}{win.frames} frames with {win.overlap_frames} of "
+                    "context" + (f" ({win.why}; --window FRAMES to choose)" if win.why else ""))
+    print(f"{scene.layout}: {scene.n_annotations} annotation rows ({kinds}), {len(scene.rig.cameras)} "
+          f"cameras, {fps} -> {len(tracks)} object-frames of {len(set(tracks.track_id.tolist()))} "
+          f"objects ({estimator}, {info.seconds:.2f} s{flagged}) written to "
+          f"{out}")
+    if into is not None and scene.truth is not None:
+        print("(scored in the input calibration's frame: the tracks moved by the similarity that best maps "
+              f"the found cameras' centres onto its own, scale {into.scale:.4f}; the written files stay in "
+              "the people's world)")
+        report_truth(dataclasses.replace(scene, rig=into.rig), into.tracks(tracks), estimator)
+    else:
+        report_truth(scene, tracks, estimator, tally=tally)
 
 
 def report_truth(scene: Scene, tracks: TrackSet, name: str, max_dist_m: float = 1.0,

@@ -18,16 +18,15 @@ from gt3dkit.calib.formats.native import cameras_doc
 from gt3dkit.commands.common import (
     Stages,
     TruthTally,
-    box_model_note,
     check_out_apart,
     check_output,
     estimator_config,
     fmt_num,
     load_input,
+    print_run,
     print_warnings,
     report_truth,
     scene_from_people,
-    with_clock_note,
 )
 from gt3dkit.compare import compare
 from gt3dkit.errors import InputError
@@ -101,34 +100,21 @@ def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | 
                                  every_frame=args.every_frame, **config)
     finally:
         stages.close()
-    print_warnings(scene)
-    info = tracks.info
-    kinds = " + ".join(k for k, v in ((f"boxes: {box_model_note(scene)}", scene.has_boxes),
-                                      (f"{scene.skeleton} keypoints", scene.obs.n_joints > 0)) if v)
-    fps = f"{scene.fps:g} fps" + (" (assumed)" if scene.fps_assumed else "")
-    rob = info.robust
-    flagged = (f", {rob.rejected} measurements rejected and {rob.downweighted} "
-               f"down-weighted (downweighted.csv)" if rob is not None and rob.enabled else "")
-    qa = info.qa.anomalies if info.qa is not None else {}
-    flagged += (", anomalies: " + ", ".join(f"{v} {k}" for k, v in qa.items()) + " (anomalies.csv)"
-                if qa else ", no anomalies")
-    win = info.windows
-    if win is not None:
-        about = "about " if win.cut == "equal object-frames" else ""
-        flagged += (f", in {win.count} windows of {about}{win.frames} frames with {win.overlap_frames} of "
-                    "context" + (f" ({win.why}; --window FRAMES to choose)" if win.why else ""))
-    print(f"{scene.layout}: {scene.n_annotations} annotation rows ({kinds}), {len(scene.rig.cameras)} "
-          f"cameras, {fps} -> {len(tracks)} object-frames of {len(set(tracks.track_id.tolist()))} "
-          f"objects ({args.estimator}, {info.seconds:.2f} s{flagged}) written to "
-          f"{args.out}")
-    if into is not None and scene.truth is not None:
-        print("(scored in the input calibration's frame: the tracks moved by the similarity that best maps "
-              f"the found cameras' centres onto its own, scale {into.scale:.4f}; the written files stay in "
-              "the people's world)")
-        report_truth(dataclasses.replace(scene, rig=into.rig), into.tracks(tracks), args.estimator)
-    else:
-        report_truth(scene, tracks, args.estimator, tally=tally)
+    print_run(scene, tracks, args.estimator, args.out, into, tally)
     return 0
+
+
+def with_clock_note(scene: Scene, estimator: str) -> Scene:
+    """``scene`` with a ``warning:`` where views filed off their frames (``--time-offsets``) are
+    taken at the frame they are filed under: by an estimator other than the UKF."""
+    off = scene.obs.frame_offset
+    if off is None or not np.any(off != 0):
+        return scene
+    if estimator == "ukf":
+        return scene
+    why = (f"--time-offsets: the {estimator} takes each view at the whole frame nearest its own time "
+           "(the UKF alone predicts each joint and box to it)")
+    return dataclasses.replace(scene, warnings=(*scene.warnings, why))
 
 
 def window_plan(args: argparse.Namespace, scene: Scene) -> Plan | None:
