@@ -30,6 +30,7 @@ from gt3dkit.io.clocks import CameraClocks, on_one_clock
 from gt3dkit.io.datasets import ASSOCIATED, checks, index_scene, read_scene
 from gt3dkit.io.results import read_result
 from gt3dkit.io.writers import ANOMALY_COLUMNS, read_keypoints_csv, read_segments_csv, write_outputs
+from gt3dkit.jsondoc import json_at, json_num
 from gt3dkit.parse import read_csv_rows
 from gt3dkit.qa.anomalies import Anomalies, find_anomalies
 from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
@@ -45,8 +46,6 @@ from gt3dkit.types import (
     QASummary,
     Scene,
     TrackSet,
-    json_at,
-    json_num,
 )
 
 __all__ = ["ESTIMATORS", "annotation_qa", "load_run", "load_scene", "make_estimator", "reconstruct"]

@@ -32,8 +32,9 @@ from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.jointmap import read_joint_map
 from gt3dkit.io.results import Result, read_result
+from gt3dkit.jsondoc import json_at, json_obj
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import F64, I64, JsonDict, json_at, json_obj
+from gt3dkit.types import F64, I64, JsonDict
 from gt3dkit.viz.overview import colour_of
 
 

@@ -40,8 +40,9 @@ from gt3dkit.io.labels import (
     write_association,
 )
 from gt3dkit.io.writers import read_segments_csv
+from gt3dkit.jsondoc import json_num
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import F64, I64, JsonDict, Scene, TrackSet, json_num
+from gt3dkit.types import F64, I64, JsonDict, Scene, TrackSet
 
 OCCLUDED_ABOVE = 0.5  # covered fraction above which a shape is ``occluded`` (CVAT's meaning)
 

@@ -33,9 +33,10 @@ from gt3dkit.api import reconstruct
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.ukf.noise import NOISE_FIELDS
 from gt3dkit.io.clocks import CameraClocks
+from gt3dkit.jsondoc import json_num
 from gt3dkit.refine.clocks import Clocks, Steps, estimate_clocks, offset_steps
 from gt3dkit.refine.people import PeopleConfig, person_views
-from gt3dkit.types import JsonDict, Scene, json_num
+from gt3dkit.types import JsonDict, Scene
 
 
 @dataclass(frozen=True)

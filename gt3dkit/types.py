@@ -48,38 +48,6 @@ JsonValue: TypeAlias = ("str | int | float | bool | None | Sequence[JsonValue]"
 #: A JSON object by its keys.
 JsonDict: TypeAlias = "dict[str, JsonValue]"
 
-
-def json_at(doc: JsonValue, *keys: str) -> JsonValue:
-    """``doc[k1][k2]...`` of a JSON document read back (``meta.json``); None where a key is
-    missing or a value on the way is not an object."""
-    v = doc
-    for k in keys:
-        v = v.get(k) if isinstance(v, Mapping) else None
-    return v
-
-
-def json_obj(doc: JsonValue, *keys: str) -> Mapping[str, JsonValue]:
-    """:func:`json_at` as an object; empty where it is none."""
-    v = json_at(doc, *keys)
-    return v if isinstance(v, Mapping) else {}
-
-
-def json_list(doc: JsonValue, *keys: str) -> Sequence[JsonValue]:
-    """:func:`json_at` as a list; empty where it is none."""
-    v = json_at(doc, *keys)
-    return v if isinstance(v, Sequence) and not isinstance(v, str) else []
-
-
-def json_num(doc: JsonValue, *keys: str) -> float | None:
-    """:func:`json_at` as a number (true/false are not); None where it is none."""
-    v = json_at(doc, *keys)
-    return float(v) if isinstance(v, int | float) and not isinstance(v, bool) else None
-
-
-def json_str(doc: JsonValue, *keys: str) -> str | None:
-    """:func:`json_at` as text; None where it is none."""
-    v = json_at(doc, *keys)
-    return v if isinstance(v, str) else None
 #: An estimator option: a field of its config set by keyword (a number, a switch, bounds).
 OptionValue: TypeAlias = float | int | bool | str | tuple[float, float] | None
 #: Estimator options by config field (``gt3d``'s ``--sigma-px`` and the like, or the API's keywords).

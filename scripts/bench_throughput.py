@@ -138,7 +138,7 @@ def stage_seconds(src: Path, out: Path) -> str:
     import io
 
     from gt3dkit.api import reconstruct
-    from gt3dkit.commands.common import report_truth
+    from gt3dkit.commands.printing import report_truth
 
     marks: list[tuple[str, float]] = [("loading", time.perf_counter())]
     scene = load_scene(src)

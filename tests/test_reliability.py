@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from gt3dkit.cli import main
-from gt3dkit.commands.common import pose_table
+from gt3dkit.commands.printing import pose_table
 from gt3dkit.eval.pose import PoseScores
 from gt3dkit.io.atomic import MARKER, clean_stale
 from gt3dkit.sim import Errors, simulate, simulate_skeletons, write_scene, write_skeleton_scene

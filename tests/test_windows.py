@@ -809,7 +809,7 @@ def test_the_truth_report_counted_as_the_windows_finish_is_the_whole_ones(
     windows read their own frames (its truth file read meanwhile) and one read whole. ``gt3d
     reconstruct`` uses it: with the whole computation made to fail, the report still comes."""
     from gt3dkit.commands import common
-    from gt3dkit.commands.common import TruthTally, report_truth
+    from gt3dkit.commands.printing import TruthTally, report_truth
 
     def printed(scene: object, tracks: object, tally: TruthTally | None) -> str:
         out = io.StringIO()

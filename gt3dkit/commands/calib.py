@@ -19,23 +19,16 @@ from gt3dkit.calib.boardinput import board_views, find_cameras
 from gt3dkit.calib.formats import detect_format, read_calibration, write_calibration
 from gt3dkit.calib.formats.native import write as write_native
 from gt3dkit.calib.show import camera_table, rig_warnings
-from gt3dkit.commands.common import (
-    check_output,
-    detections_input,
-    fmt_num,
-    load_input,
-    people_rig,
-    print_clocks,
-    print_warnings,
-)
+from gt3dkit.commands.common import check_output, detections_input, load_input, people_rig, print_clocks
+from gt3dkit.commands.printing import fmt_num, print_warnings
 from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import check_out, write_dir_atomically
 from gt3dkit.io.writers import write_refined_calibration
+from gt3dkit.jsondoc import json_at, json_list, json_num, json_obj, json_str
 from gt3dkit.refine import RefineConfig, refine, scene_warnings
 from gt3dkit.refine.people import PeopleConfig
 from gt3dkit.rig import LENSES, Camera
 from gt3dkit.synchronise import find_clocks
-from gt3dkit.types import json_at, json_list, json_num, json_obj, json_str
 from gt3dkit.version import __version__
 from gt3dkit.viz.boardreport import write_board_report
 

@@ -11,14 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from gt3dkit.api import ESTIMATORS, load_scene, reconstruct
-from gt3dkit.commands.common import (
-    PAPER,
-    PAPER_PANOPTIC_MPJPE_MM,
-    bundled,
-    check_output,
-    error_table,
-    pose_table,
-)
+from gt3dkit.commands.common import PAPER, PAPER_PANOPTIC_MPJPE_MM, bundled, check_output
+from gt3dkit.commands.printing import error_table, pose_table
 from gt3dkit.eval.metrics import box_errors
 from gt3dkit.eval.pose import mpjpe_by_id, score_tracks
 from gt3dkit.eval.tracking import tracking_scores

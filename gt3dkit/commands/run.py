@@ -17,17 +17,13 @@ from gt3dkit.api import load_scene, reconstruct
 from gt3dkit.calib.formats.native import cameras_doc
 from gt3dkit.commands.common import (
     Stages,
-    TruthTally,
     check_out_apart,
     check_output,
     estimator_config,
-    fmt_num,
     load_input,
-    print_run,
-    print_warnings,
-    report_truth,
     scene_from_people,
 )
+from gt3dkit.commands.printing import TruthTally, fmt_num, print_run, print_warnings, report_truth
 from gt3dkit.compare import compare
 from gt3dkit.errors import InputError
 from gt3dkit.export import export
@@ -35,10 +31,11 @@ from gt3dkit.fusion.base import over_time
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.results import read_result
 from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv
+from gt3dkit.jsondoc import json_list, json_num, json_str
 from gt3dkit.many import read_manifest, run_many
 from gt3dkit.project import project
 from gt3dkit.refine import refine, rig_digest
-from gt3dkit.types import JsonDict, Options, Scene, json_list, json_num, json_str
+from gt3dkit.types import JsonDict, Options, Scene
 from gt3dkit.viz.report import write_report
 from gt3dkit.windows import Cluster, Plan, auto_plan, reconstruct_windows
 

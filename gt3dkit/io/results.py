@@ -8,9 +8,10 @@ from pathlib import Path
 
 from gt3dkit.errors import InputError
 from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv
+from gt3dkit.jsondoc import json_list, json_num, json_str
 from gt3dkit.parse import load_json
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import JsonDict, TrackSet, json_list, json_num, json_str
+from gt3dkit.types import JsonDict, TrackSet
 
 
 @dataclass

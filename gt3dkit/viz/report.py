@@ -31,9 +31,10 @@ from gt3dkit.fusion.preparation.prepare import prepare
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.labels import piece_of, piece_track_ids
 from gt3dkit.io.writers import read_segments_csv
+from gt3dkit.jsondoc import json_at, json_list, json_obj
 from gt3dkit.parse import read_csv_rows
 from gt3dkit.skeletons import SKELETONS
-from gt3dkit.types import JsonDict, Scene, TrackSet, json_at, json_list, json_obj
+from gt3dkit.types import JsonDict, Scene, TrackSet
 from gt3dkit.viz.overview import colour_of, start_overviews
 from gt3dkit.viz.panels import (
     ANNOTATION_NOTE,

@@ -21,9 +21,10 @@ from gt3dkit.fusion.base import make_estimator
 from gt3dkit.fusion.motion import position_step
 from gt3dkit.fusion.preparation.prepare import Prepared
 from gt3dkit.fusion.ukf.noise import SEARCH_OBJECT_FRAMES, drawn_objects
+from gt3dkit.jsondoc import json_num
 from gt3dkit.sealed import scatter, submit
 from gt3dkit.threads import every_core, roomy_malloc, small_matrix_blas
-from gt3dkit.types import Options, Scene, json_num
+from gt3dkit.types import Options, Scene
 from gt3dkit.windows.cluster import Runner, on_dask, worker_addresses
 from gt3dkit.windows.plan import Window, objects_per_frame
 

@@ -40,7 +40,7 @@ from gt3dkit.fusion.preparation.robust import (
     median_variance,
     point_weights,
 )
-from gt3dkit.fusion.preparation.rows import Rows, build_rows
+from gt3dkit.fusion.preparation.rows import Rows, build_rows, nearest_same_object
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.triangulate import normalized_points, robust_triangulate, triangulation_cov
 from gt3dkit.skeletons import SKELETONS, Skeleton, skeleton_for
@@ -173,25 +173,6 @@ class Prepared:
                     else np.full((R, J, 3), np.inf))
             var[:, lay.joints] = np.where(have[..., None], jvar, np.inf).reshape(R, 3 * J)
         return FrameState(x, var, cov6)
-
-
-def nearest_same_object(rows: Rows, ok: np.ndarray) -> np.ndarray:
-    """(R,) for each row the nearest row (in frames) of the same object where ``ok``; the row
-    itself where ok. Rows of objects with no ok row map to themselves."""
-    R = len(rows)
-    out = np.arange(R)
-    order = np.lexsort((rows.row_t, rows.row_o))
-    o_sorted = rows.row_o[order]
-    starts = np.flatnonzero(np.r_[True, o_sorted[1:] != o_sorted[:-1]])
-    ends = np.r_[starts[1:], R]
-    for a, b in zip(starts, ends, strict=True):
-        mine = order[a:b]
-        good = mine[ok[mine]]
-        if good.size == 0 or good.size == mine.size:
-            continue
-        d = np.abs(rows.row_t[good][None, :] - rows.row_t[mine][:, None])
-        out[mine] = good[np.argmin(d, axis=1)]
-    return out
 
 
 def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = None,

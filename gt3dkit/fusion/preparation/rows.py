@@ -145,3 +145,22 @@ def replicate_rows(rows: Rows, sel: np.ndarray, copies: int) -> tuple[Rows, I64,
                box_z=rows.box_z[src], box_mask=rows.box_mask[src], kpt_z=rows.kpt_z[src],
                kpt_conf=rows.kpt_conf[src], obs_row=rows.obs_row[src], seen_at=rows.seen_at[src])
     return new, src, kk[order]
+
+
+def nearest_same_object(rows: Rows, ok: np.ndarray) -> np.ndarray:
+    """(R,) for each row the nearest row (in frames) of the same object where ``ok``; the row
+    itself where ok. Rows of objects with no ok row map to themselves."""
+    R = len(rows)
+    out = np.arange(R)
+    order = np.lexsort((rows.row_t, rows.row_o))
+    o_sorted = rows.row_o[order]
+    starts = np.flatnonzero(np.r_[True, o_sorted[1:] != o_sorted[:-1]])
+    ends = np.r_[starts[1:], R]
+    for a, b in zip(starts, ends, strict=True):
+        mine = order[a:b]
+        good = mine[ok[mine]]
+        if good.size == 0 or good.size == mine.size:
+            continue
+        d = np.abs(rows.row_t[good][None, :] - rows.row_t[mine][:, None])
+        out[mine] = good[np.argmin(d, axis=1)]
+    return out

@@ -51,11 +51,10 @@ from gt3dkit.fusion.preparation.prepare import (
     axis_sd,
     ellipsoid_around,
     largest_sd,
-    nearest_same_object,
     never_determined,
     prepare,
 )
-from gt3dkit.fusion.preparation.rows import Rows
+from gt3dkit.fusion.preparation.rows import Rows, nearest_same_object
 from gt3dkit.fusion.ukf.blockcov import BlockCov
 from gt3dkit.fusion.ukf.bones import (
     BoneLengths,
