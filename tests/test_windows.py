@@ -808,7 +808,7 @@ def test_the_truth_report_counted_as_the_windows_finish_is_the_whole_ones(
     (``TruthTally``), prints what the report computed on the whole tracks prints: a folder whose
     windows read their own frames (its truth file read meanwhile) and one read whole. ``gt3d
     reconstruct`` uses it: with the whole computation made to fail, the report still comes."""
-    from gt3dkit.commands import common
+    from gt3dkit.commands import printing
     from gt3dkit.commands.printing import TruthTally, report_truth
 
     def printed(scene: object, tracks: object, tally: TruthTally | None) -> str:
@@ -823,7 +823,7 @@ def test_the_truth_report_counted_as_the_windows_finish_is_the_whole_ones(
         assert tally.counted(read, tracks) is not None, name
         whole = printed(read, tracks, None)
         assert "MOTA" in whole and printed(read, tracks, tally) == whole, name
-    monkeypatch.setattr(common, "tracking_scores", lambda *a, **k: pytest.fail("computed whole"))
+    monkeypatch.setattr(printing, "tracking_scores", lambda *a, **k: pytest.fail("computed whole"))
     code, so, se = _run("reconstruct", str(grid), "--out", str(tmp_path / "cli"), "--window", "20", "--quiet")
     assert code == 0, se
     assert "MOTA" in so
