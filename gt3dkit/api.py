@@ -17,7 +17,7 @@ from gt3dkit.arrays import frame_grid, lookup_rows, unique_rows
 from gt3dkit.calib.formats.native import rig_of_doc
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.base import ESTIMATORS, Estimator, make_estimator, over_time
-from gt3dkit.fusion.preparation.associate import apply_association, associate, read_overrides
+from gt3dkit.fusion.preparation.associate import Association, apply_association, associate, read_overrides
 from gt3dkit.fusion.preparation.boxfit import choose_box_model
 from gt3dkit.fusion.preparation.detections import SECOND_DETECTION, associate_detections
 from gt3dkit.fusion.preparation.identity import Segments, identity_segments
@@ -27,10 +27,10 @@ from gt3dkit.fusion.preparation.rows import Rows, build_rows
 from gt3dkit.fusion.ukf.bones import BoneSamples
 from gt3dkit.geom.camera import Cams
 from gt3dkit.io.clocks import CameraClocks, on_one_clock
-from gt3dkit.io.datasets import ASSOCIATED, checks, index_scene, read_scene
+from gt3dkit.io.datasets import ASSOCIATED, Calibration, checks, index_scene, read_scene
 from gt3dkit.io.results import read_result
 from gt3dkit.io.writers import ANOMALY_COLUMNS, read_keypoints_csv, read_segments_csv, write_outputs
-from gt3dkit.jsondoc import json_at, json_num
+from gt3dkit.jsondoc import json_at, json_num, json_str
 from gt3dkit.parse import read_csv_rows
 from gt3dkit.qa.anomalies import Anomalies, find_anomalies
 from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
@@ -82,7 +82,7 @@ def scene_kind(scene: Scene) -> str:
 
 
 def load_scene(root: Path | str | Scene, layout: str | None = None, skeleton: str | None = None,
-               fps: float | None = None, calib: Path | str | None = None,
+               fps: float | None = None, calib: Path | str | Calibration | None = None,
                association: Path | str | None = None, segments: Path | str | None = None,
                box_model: str = "auto", clocks: CameraClocks | JsonDict | None = None,
                **panoptic_options: JsonValue) -> Scene:
@@ -130,6 +130,7 @@ def load_scene(root: Path | str | Scene, layout: str | None = None, skeleton: st
             scene = dataclasses.replace(scene, warnings=(*scene.warnings, (
                 f"{twice} detections of a person a camera had already detected in that frame left out "
                 "(association.csv, global id -1)")))
+        scene = dataclasses.replace(scene, warnings=(*scene.warnings, *disagreeing_cameras(assoc)))
         if not len(scene.obs):
             raise InputError(str(root), "no person is seen by two cameras at once (nothing to reconstruct)")
         scene = without_undetermined(scene)
@@ -140,7 +141,7 @@ def load_scene(root: Path | str | Scene, layout: str | None = None, skeleton: st
 
 
 def load_detections(root: Path | str, layout: str | None = None, skeleton: str | None = None,
-                    fps: float | None = None, calib: Path | str | None = None,
+                    fps: float | None = None, calib: Path | str | Calibration | None = None,
                     **panoptic_options: JsonValue) -> Scene:
     """Each camera's detections as read and checked, with no identities made across cameras (the
     association needs the rig's poses, which :mod:`gt3dkit.refine.people` is to find)."""
@@ -150,7 +151,7 @@ def load_detections(root: Path | str, layout: str | None = None, skeleton: str |
 
 
 def load_head(root: Path | str, layout: str | None = None, fps: float | None = None,
-              calib: Path | str | None = None, box_model: str = "auto") -> Scene | None:
+              calib: Path | str | Calibration | None = None, box_model: str = "auto") -> Scene | None:
     """:func:`load_scene` without the rows, for a sequence whose windows read their own frames
     (:func:`read_frames`; :mod:`gt3dkit.windows`): the cameras, the frames and each frame's
     objects (:class:`gt3dkit.types.FrameIndex`), where the layout reads a span of frames on its
@@ -172,8 +173,9 @@ def read_frames(head: Scene, lo: int, hi: int, check: bool = True) -> Scene:
     frames' own), with the head's box model."""
     o = head.load_options
     calib = o.get("calib")
-    scene = read_scene(head.root, head.layout, fps=json_num(o, "fps"),
-                       calib=calib if isinstance(calib, str) else None, span=(lo, hi))
+    scene = read_scene(head.root, head.layout, fps=json_num(o, "fps"), span=(lo, hi),
+                       calib=Calibration(calib if isinstance(calib, str) else None,
+                                         json_str(o, "calib_units") or "m"))
     scene = dataclasses.replace(scene, box_model=head.box_model, box_model_px=head.box_model_px,
                                 load_options=o)
     return checks.check_scene(scene, whole=False) if check else scene
@@ -202,6 +204,26 @@ def without_undetermined(scene: Scene) -> Scene:
             f"{int(out.sum())} detections; anomalies.csv lists them as undetermined_person)")
     return dataclasses.replace(scene, obs=obs.select(~out), warnings=(*scene.warnings, warn),
                                left_out=tuple(left))
+
+
+def disagreeing_cameras(assoc: Association, share: float = 0.9, min_rows: int = 10) -> list[str]:
+    """A warning for each camera whose detections (at least ``min_rows``) the others confirm in
+    under ``1 - share`` of the frames while the rest confirm most of theirs: its calibration does
+    not fit theirs (a copied or stale camera), whatever its labels say."""
+    kept: dict[str, list[bool]] = {}
+    for r in assoc.rows:
+        if r[7] != SECOND_DETECTION:
+            kept.setdefault(r[0], []).append(r[3] >= 0)
+    out = []
+    for cam, k in kept.items():
+        rest = [x for c, v in kept.items() if c != cam for x in v]
+        lost = len(k) - sum(k)
+        if len(k) >= min_rows and lost >= share * len(k) and rest and sum(rest) > 0.5 * len(rest):
+            out.append(f"camera {cam}: {lost} of its {len(k)} detections agree with no other camera's, while "
+                       f"the others agree on {100 * sum(rest) / len(rest):.0f} % of theirs: its calibration "
+                       "does not fit the others' (a copied or outdated camera?); its views are left out "
+                       "(check it: gt3d calib show; gt3d calib people finds the rig from the people)")
+    return out
 
 
 def with_box_model(scene: Scene, box_model: str = "auto") -> Scene:
@@ -472,6 +494,8 @@ def _load_scene(out: Path, meta: JsonDict, why: str) -> tuple[Scene, list[str]]:
         raise InputError(where, f"input: the input folder {root} is not there any more ({why})")
     if load.get("calib") and not Path(load["calib"]).exists():
         raise InputError(where, f"input: the calibration {load['calib']} is not there any more")
+    if "calib_units" in load:  # the calibration's own units (read_scene makes them metres)
+        load["calib"] = Calibration(load.get("calib"), str(load.pop("calib_units")))
     known = {"layout", "skeleton", "fps", "calib", "cameras", "noise_px", "seed", "min_conf", "association",
              "segments", "box_model", "clocks"}
     scene = load_scene(Path(root), **{k: v for k, v in load.items() if k in known})

@@ -33,7 +33,7 @@ from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.jointmap import read_joint_map
 from gt3dkit.io.results import Result, read_result
 from gt3dkit.jsondoc import json_at, json_obj
-from gt3dkit.skeletons import SKELETONS
+from gt3dkit.skeletons import skeleton_of
 from gt3dkit.types import F64, I64, JsonDict
 from gt3dkit.viz.overview import colour_of
 
@@ -205,7 +205,8 @@ def write_rerun(res: Result, path: Path) -> JsonDict:
     obs = sc.obs
     names = sc.rig.names
 
-    bones = [(int(a), int(b)) for a, b in SKELETONS[sc.skeleton].bones] if sc.skeleton else []
+    skel = skeleton_of(sc)
+    bones = [(int(a), int(b)) for a, b in skel.bones] if skel is not None else []
     frames = np.unique(np.concatenate([tr.frame, obs.frame]))
     for f in frames:
         rec.set_time("frame", sequence=int(f))

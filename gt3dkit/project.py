@@ -41,7 +41,7 @@ from gt3dkit.io.labels import (
 )
 from gt3dkit.io.writers import read_segments_csv
 from gt3dkit.jsondoc import json_num
-from gt3dkit.skeletons import SKELETONS
+from gt3dkit.skeletons import skeleton_of
 from gt3dkit.types import F64, I64, JsonDict, Scene, TrackSet
 
 OCCLUDED_ABOVE = 0.5  # covered fraction above which a shape is ``occluded`` (CVAT's meaning)
@@ -219,7 +219,7 @@ def project(out: Path, fmt: str, dest: Path, step: int | None = None,
         others = " or ".join(k for k, v in LABEL_WRITERS.items() if v.keypoints)
         raise InputError("--format", f"{fmt} holds boxes only: this run has keypoints (use {others})")
     shapes = project_run(run, step, cameras, only_flagged)
-    skel = SKELETONS.get(scene.skeleton) if scene.skeleton else None
+    skel = skeleton_of(scene)
     joints = tuple(skel.marker_names) if skel is not None else ()
     bones = tuple(skel.bones) if skel is not None else ()
     counts = {s: int((shapes.source == k).sum()) for k, s in enumerate(SOURCES)}

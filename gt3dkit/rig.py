@@ -11,7 +11,7 @@ that does not fold the image, magnitudes.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -340,6 +340,12 @@ class Rig:
             return self.names.index(name)
         except ValueError:
             raise KeyError(name) from None
+
+    def in_metres(self, metres_per_unit: float) -> Rig:
+        """This rig with its lengths given in a unit of ``metres_per_unit`` metres (an anipose
+        calibration's board units: millimetres) in metres: every camera's translation scaled
+        (its rotation and intrinsics are without length)."""
+        return replace(self, cameras=tuple(replace(c, t=c.t * metres_per_unit) for c in self.cameras))
 
     @property
     def K(self) -> F64:

@@ -12,11 +12,13 @@ it at an ellipsoid's centre, scaled to the ellipsoid, for joints no two views se
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from gt3dkit.types import F64
+from gt3dkit.errors import InputError
+from gt3dkit.types import F64, JsonDict, JsonValue, Scene
 
 _CANON = {  # body frame, metres
     "neck": (0.0, 0.0, 1.50), "nose": (0.0, 0.09, 1.62), "pelvis": (0.0, 0.0, 0.95),
@@ -78,6 +80,12 @@ _BONES_HALPE = _BONES_25B + (("pelvis", "l_hip"), ("pelvis", "r_hip"), ("neck", 
 
 @dataclass(frozen=True)
 class Skeleton:
+    """A skeleton: its joints (ours: ``l_``/``r_`` for the sides), bones, left/right ``pairs``
+    (empty: the ``l_x``/``r_x`` names pair), the detector's own names (``labels``) and a
+    canonical pose (``pose``, metres in the body frame, one row a joint; empty: the human one for
+    the joints it names, the body's centre for the rest). A file describes one
+    (:func:`read_skeleton`), as the built-ins are described here."""
+
     name: str
     joints: tuple[str, ...]
     bone_names: tuple[tuple[str, str], ...]
@@ -85,6 +93,8 @@ class Skeleton:
     #: points per person the detector writes when more than ``joints`` (the first
     #: ``n_joints`` are read: COCO-WholeBody's body and feet, not its face and hands); 0: as many
     detector_points: int = 0
+    pairs: tuple[tuple[str, str], ...] = ()
+    pose: tuple[tuple[float, float, float], ...] = ()
 
     @property
     def marker_names(self) -> tuple[str, ...]:
@@ -99,11 +109,42 @@ class Skeleton:
     def bones(self) -> np.ndarray:
         """(K, 2) joint indices of the bones."""
         ix = {j: i for i, j in enumerate(self.joints)}
-        return np.array([(ix[a], ix[b]) for a, b in self.bone_names], dtype=np.int64)
+        return np.array([(ix[a], ix[b]) for a, b in self.bone_names], dtype=np.int64).reshape(-1, 2)
+
+    @property
+    def left_right(self) -> tuple[tuple[str, str], ...]:
+        """The left/right pairs: ``pairs``, or where none are given the ``l_x``/``r_x`` joints."""
+        if self.pairs:
+            return self.pairs
+        have = set(self.joints)
+        return tuple((j, "r_" + j[2:]) for j in self.joints if j.startswith("l_") and "r_" + j[2:] in have)
+
+    def mirror(self) -> np.ndarray:
+        """(J,) each joint's left/right counterpart (itself where it has none)."""
+        ix = {j: i for i, j in enumerate(self.joints)}
+        out = np.arange(self.n_joints)
+        for a, b in self.left_right:
+            out[ix[a]], out[ix[b]] = ix[b], ix[a]
+        return out
 
     def canonical(self) -> F64:
-        """(J, 3) canonical standing pose in the body frame (metres, feet at z = 0)."""
-        return np.array([_CANON[j] for j in self.joints], dtype=np.float64)
+        """(J, 3) canonical pose in the body frame (metres): ``pose``, else the standing person's
+        for the joints it names (feet at z = 0) and the body's centre for the others."""
+        if self.pose:
+            return np.array(self.pose, dtype=np.float64)
+        centre = (0.0, 0.0, 0.95)
+        return np.array([_CANON.get(j, centre) for j in self.joints], dtype=np.float64)
+
+    def doc(self) -> JsonDict:
+        """As a skeleton file holds it (:func:`skeleton_from_doc` reads it back)."""
+        out: JsonDict = {"name": self.name, "joints": list(self.joints),
+                         "bones": [list(b) for b in self.bone_names],
+                         "pairs": [list(p) for p in self.left_right]}
+        if self.labels:
+            out["labels"] = list(self.labels)
+        if self.pose:
+            out["pose"] = {j: list(x) for j, x in zip(self.joints, self.pose, strict=True)}
+        return out
 
 
 SKELETONS = {
@@ -157,3 +198,95 @@ def skeleton_for_names(names: list[str]) -> tuple[Skeleton, list[int]]:
     best = max(SKELETONS.values(), key=lambda s: len(set(ours) & set(s.joints)))
     missing = [n for n, o in zip(names, ours, strict=True) if o not in best.joints]
     raise ValueError(f"no known skeleton has the joints {missing} (closest: {best.name})")
+
+
+def skeleton_of(scene: Scene) -> Skeleton | None:
+    """The scene's skeleton: the one its input or a file described (``Scene.skeleton_doc``), else
+    the built-in it names; None for a scene without keypoints."""
+    if scene.skeleton is None:
+        return None
+    if scene.skeleton_doc is not None:
+        return skeleton_from_doc(scene.skeleton_doc, f"skeleton {scene.skeleton}")
+    return SKELETONS[scene.skeleton]
+
+
+def skeleton_from_doc(doc: JsonValue, where: str) -> Skeleton:
+    """The skeleton a document describes (:meth:`Skeleton.doc`, a skeleton file): InputError naming
+    ``where`` and the entry for a joint named twice, a bone or pair to an unknown joint, a joint
+    in two pairs, or a pair whose sides' bones do not mirror each other (a left shoulder paired
+    with a right knee)."""
+    if not isinstance(doc, Mapping):
+        raise InputError(where, "a skeleton is a table (name, joints, bones, pairs)")
+
+    def names(key: str, required: bool = True) -> list[str]:
+        v = doc.get(key)
+        if v is None and not required:
+            return []
+        if not isinstance(v, Sequence) or isinstance(v, str) or not all(isinstance(x, str) and x for x in v):
+            raise InputError(f"{where}: {key}", "expected a list of names")
+        return [str(x) for x in v]
+
+    def links(key: str) -> list[tuple[str, str]]:
+        v = doc.get(key, [])
+        out = []
+        for k, x in enumerate(v if isinstance(v, Sequence) and not isinstance(v, str) else [None]):
+            if not isinstance(x, Sequence) or isinstance(x, str) or len(x) != 2 or \
+                    not all(isinstance(y, str) for y in x):
+                raise InputError(f"{where}: {key}[{k}]", f"expected two joint names, got {x!r}")
+            a, b = str(x[0]), str(x[1])
+            for j in (a, b):
+                if j not in joints:
+                    raise InputError(f"{where}: {key}[{k}]", f"unknown joint {j!r}")
+            if a == b:
+                raise InputError(f"{where}: {key}[{k}]", f"joins {a!r} to itself")
+            out.append((a, b))
+        return out
+
+    name = doc.get("name")
+    if not isinstance(name, str) or not name:
+        raise InputError(f"{where}: name", "expected a name")
+    joint_list = names("joints")
+    if not joint_list:
+        raise InputError(f"{where}: joints", "no joints")
+    twice = [j for k, j in enumerate(joint_list) if j in joint_list[:k]]
+    if twice:
+        raise InputError(f"{where}: joints", f"joint {twice[0]!r} named twice")
+    joints = set(joint_list)
+    bones = links("bones")
+    pairs = links("pairs")
+    labels = names("labels", required=False)
+    if labels and len(labels) != len(joint_list):
+        raise InputError(f"{where}: labels", f"{len(labels)} names for {len(joint_list)} joints")
+    paired = [j for a, b in pairs for j in (a, b)]
+    again = [j for k, j in enumerate(paired) if j in paired[:k]]
+    if again:
+        raise InputError(f"{where}: pairs", f"joint {again[0]!r} is in two pairs")
+    _check_mirrored(where, bones, pairs)
+    pose = doc.get("pose")
+    pose_rows: tuple[tuple[float, float, float], ...] = ()
+    if pose is not None:
+        if not isinstance(pose, Mapping) or set(pose) != joints:
+            raise InputError(f"{where}: pose", "expected one [x, y, z] (metres) for every joint")
+        rows = []
+        for j in joint_list:
+            x = pose[j]
+            items = list(x) if isinstance(x, Sequence) and not isinstance(x, str) else []
+            xyz = [float(v) for v in items if isinstance(v, int | float) and not isinstance(v, bool)]
+            if len(items) != 3 or len(xyz) != 3:
+                raise InputError(f"{where}: pose: {j}", f"expected [x, y, z] in metres, got {x!r}")
+            rows.append((xyz[0], xyz[1], xyz[2]))
+        pose_rows = tuple(rows)
+    return Skeleton(name, tuple(joint_list), tuple(bones), tuple(labels), 0, tuple(pairs), pose_rows)
+
+
+def _check_mirrored(where: str, bones: list[tuple[str, str]], pairs: list[tuple[str, str]]) -> None:
+    """InputError where a left/right pair's two joints are not of one kind: mirrored, the bones of
+    the one are not the bones of the other (a joint outside every pair is its own mirror)."""
+    mirror = {a: b for a, b in pairs} | {b: a for a, b in pairs}
+    bone_set = {frozenset(b) for b in bones}
+    for k, (a, b) in enumerate(pairs):
+        of_a = {frozenset((mirror.get(x, x), mirror.get(y, y))) for x, y in bones if a in (x, y)}
+        of_b = {frozenset(bn) for bn in bones if b in bn}
+        if of_a != of_b or not of_a <= bone_set:
+            raise InputError(f"{where}: pairs[{k}]", f"{a!r} and {b!r} are not a left/right pair: their "
+                                                     "bones do not mirror each other")

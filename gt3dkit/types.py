@@ -326,6 +326,9 @@ class Scene:
     frames: I64
     truth: GroundTruth | None = None
     skeleton: str | None = None
+    #: the skeleton as its input or a file describes it (``gt3dkit.skeletons.Skeleton.doc``: joints,
+    #: bones, left/right pairs); None: the built-in ``skeleton`` names
+    skeleton_doc: JsonDict | None = None
     files: dict[str, str] = field(default_factory=dict)  # relative path -> sha256
     root: str = ""
     warnings: tuple[str, ...] = ()  # odd but valid input: printed as ``warning:`` lines

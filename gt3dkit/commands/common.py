@@ -28,7 +28,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.fusion.base import REGISTRY
 from gt3dkit.io.atomic import check_out
 from gt3dkit.io.clocks import CameraClocks, read_time_offsets
-from gt3dkit.io.datasets import ASSOCIATED, detect_layout
+from gt3dkit.io.datasets import ASSOCIATED, Calibration, detect_layout
 from gt3dkit.jsondoc import json_list, json_num
 from gt3dkit.refine.boxpeople import BoxPeopleConfig, calibrate_boxes
 from gt3dkit.refine.clocks import Clocks
@@ -131,15 +131,18 @@ def load_input(args: argparse.Namespace, by_windows: bool = False, calib: str | 
     segments: str | None = getattr(args, "segments", None)
     box_model = str(getattr(args, "box_model", "auto"))
 
+    units = getattr(args, "calib_units", None)
+    calib_spec = Calibration(calib, units) if units is not None else calib
+
     def read(on: CameraClocks | None) -> Scene:
         source = Path(args.input) if head is None else head
-        return load_scene(source, layout, args.skeleton, getattr(args, "fps", None), calib=calib,
+        return load_scene(source, layout, args.skeleton, getattr(args, "fps", None), calib=calib_spec,
                           association=association, segments=segments, box_model=box_model, clocks=on,
                           **opts)
 
     clocks = clocks or time_offsets(args, calib, read)
     if by_windows and clocks is None and association is None and segments is None:
-        head = load_head(Path(args.input), layout, getattr(args, "fps", None), calib, box_model)
+        head = load_head(Path(args.input), layout, getattr(args, "fps", None), calib_spec, box_model)
         if head is not None:
             return head
     scene = read(clocks)

@@ -54,12 +54,17 @@ def _panoptic_options(p: argparse.ArgumentParser) -> None:
 def _scene_options(p: argparse.ArgumentParser) -> None:
     """How an input folder is read into a scene (``reconstruct`` and ``compare``)."""
     p.add_argument("--layout", choices=tuple(LAYOUTS), help="input layout (default: detected)")
-    p.add_argument("--skeleton", choices=sorted(SKELETONS), help="joint order of keypoints.csv")
+    p.add_argument("--skeleton", metavar="NAME|FILE",
+                   help="joint order of keypoints.csv: a built-in skeleton (" + ", ".join(sorted(SKELETONS))
+                        + ") or a skeleton file (.toml: joints, bones, left/right pairs)")
     _panoptic_options(p)
     p.add_argument("--fps", type=FPS, help="frame-number rate (default: the layout's)")
     p.add_argument("--calib", help="calibration file or folder in any format (cameras.json, WILDTRACK/"
                    "MultiviewX calibrations/, OpenCV .yml/.xml, Anipose .toml, COLMAP) for the input's own; "
                    "reconstruct: 'people' finds the poses from the people first (see gt3d calib people)")
+    p.add_argument("--calib-units", choices=("m", "cm", "mm"),
+                   help="the calibration's unit of length where its format does not say it (Anipose's "
+                        "calibration.toml holds its board's units; default m): the world is made metres")
     p.add_argument("--time-offsets", metavar="auto|FILE", help="cameras whose clocks disagree: each "
                    "camera's frames late (and frame rate) from a time_offsets.csv (as gt3d calib people "
                    "--clocks writes), or auto: found from the people; the UKF takes each view at its "

@@ -20,7 +20,7 @@ from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.numtext import format_rows
 from gt3dkit.parse import iter_csv_rows, parse_float, parse_frame, parse_int, parse_metres
 from gt3dkit.rig import Rig
-from gt3dkit.skeletons import SKELETONS
+from gt3dkit.skeletons import skeleton_of
 from gt3dkit.types import BOX_EDGES, JsonDict, JsonValue, RunInfo, Scene, TrackSet
 from gt3dkit.version import __version__
 
@@ -84,7 +84,8 @@ def meta_of(scene: Scene, tracks: TrackSet) -> JsonDict:
             **({"keypoints": "keypoints.csv: frame,id,joint,x,y,z,sd in the world frame (m); sd = "
                              "the joint's largest standard deviation over all directions (m)",
                 "skeleton": scene.skeleton,
-                "joints": list(SKELETONS[scene.skeleton].joints) if scene.skeleton else None}
+                "joints": list(skel.joints) if (skel := skeleton_of(scene)) is not None else None,
+                **({"skeleton_doc": scene.skeleton_doc} if scene.skeleton_doc is not None else {})}
                if tracks.kpt_world.shape[1] else {}),
         },
         "estimator": _jsonable(tracks.info.as_json()),

@@ -42,7 +42,7 @@ from gt3dkit.arrays import lookup_rows
 from gt3dkit.geom.camera import project_points
 from gt3dkit.geom.conics import covered_fraction, cut_edges, model_boxes
 from gt3dkit.qa.view import ExchangeView, PreparedView, RowsView, SplitView
-from gt3dkit.skeletons import SKELETONS
+from gt3dkit.skeletons import skeleton_of
 from gt3dkit.types import BOX_EDGES, F64, Scene, TrackSet
 
 
@@ -320,9 +320,10 @@ def _keypoints(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QAConfig,
                out: list[AnomalyRow]) -> None:
     rows, cams = pre.rows, pre.cams
     names = scene.rig.names
-    joints = SKELETONS[scene.skeleton].joints if scene.skeleton else ()
+    skel = skeleton_of(scene)
+    joints = skel.joints if skel is not None else ()
     ix = {j: i for i, j in enumerate(joints)}
-    pairs = [(ix[j], ix["r_" + j[2:]]) for j in joints if j.startswith("l_") and "r_" + j[2:] in ix]
+    pairs = [(ix[a], ix[b]) for a, b in skel.left_right] if skel is not None else []
     idx = np.flatnonzero(have)
     X = tracks.kpt_world[r_of[idx]]  # (n, J, 3)
     uv, _ = project_points(X, cams.K, cams.dist, cams.R, cams.t, cams.depth_sign)  # (n, J, C, 2)

@@ -44,12 +44,11 @@ from gt3dkit.refine.persons import (
     PersonViews,
     candidates,
     essential,
-    mirror_index,
     normalised,
     pair_errors,
 )
 from gt3dkit.rig import Rig
-from gt3dkit.skeletons import SKELETONS
+from gt3dkit.skeletons import SKELETONS, skeleton_of
 from gt3dkit.types import F64, I64, JsonDict, Scene
 
 #: Camera pairs fitted on their own (those with the most candidate person pairs); the other cameras
@@ -111,11 +110,12 @@ def person_views(scene: Scene, cfg: PeopleConfig) -> PersonViews:
     ok = np.isfinite(xy[..., 0])
     if o.kpt_conf is not None:
         ok &= np.nan_to_num(o.kpt_conf) >= cfg.min_conf
-    js = SKELETONS[scene.skeleton].joints
-    ok[:, [k for k, n in enumerate(js) if n in cfg.skip_joints]] = False
+    skel = skeleton_of(scene)
+    if skel is None:
+        raise InputError(str(scene.root), "the people's rig needs keypoints")
+    ok[:, [k for k, n in enumerate(skel.joints) if n in cfg.skip_joints]] = False
     return PersonViews(np.where(ok[..., None], xy, np.nan), ok, o.cam.astype(np.int64),
-                       o.frame.astype(np.int64), o.kpt_uv_px,
-                       mirror_index(SKELETONS[scene.skeleton].joints), rig.K[:, 0, 0].copy())
+                       o.frame.astype(np.int64), o.kpt_uv_px, skel.mirror(), rig.K[:, 0, 0].copy())
 
 
 # ----------------------------------------------------------------------------- camera pairs

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gt3dkit.skeletons import SKELETONS
+from gt3dkit.skeletons import skeleton_of
 from gt3dkit.types import F64, Camera, Scene, TrackSet
 from gt3dkit.viz.render3d import Drawing, Rendering, View, unit_sphere
 
@@ -74,7 +74,7 @@ def overview_drawing(scene: Scene, tracks: TrackSet, frame: int, tracks_b: Track
             mb = (tracks_b.track_id == tid) & np.isfinite(tracks_b.center_world).all(axis=1)
             d.add_polyline(tracks_b.center_world[mb], (0.0, 0.0, 0.0))
     V, F = unit_sphere()
-    skeleton = SKELETONS[scene.skeleton] if scene.skeleton and tracks.kpt_world.shape[1] else None
+    skeleton = skeleton_of(scene) if tracks.kpt_world.shape[1] else None
     for k in np.flatnonzero((tracks.frame == frame) & fin):
         col = colour_of(tracks.track_id[k])
         if skeleton is not None and np.isfinite(tracks.kpt_world[k]).all(axis=1).sum() >= 2:

@@ -17,7 +17,7 @@ from gt3dkit.geom.camera import project_points
 from gt3dkit.geom.conics import model_boxes
 from gt3dkit.qa.anomalies import track_row_of
 from gt3dkit.qa.view import PreparedView
-from gt3dkit.skeletons import SKELETONS
+from gt3dkit.skeletons import skeleton_of
 from gt3dkit.types import F64, I64, Scene, TrackSet
 from gt3dkit.viz.overview import colour_of
 
@@ -170,7 +170,8 @@ def draw_view(ax: Axes, scene: Scene, res: ViewResiduals, cam: int, sel: np.ndar
 
 
 def _bones(scene: Scene) -> list[tuple[int, int]] | None:
-    return [(int(a), int(b)) for a, b in SKELETONS[scene.skeleton].bones] if scene.skeleton else None
+    skel = skeleton_of(scene)
+    return [(int(a), int(b)) for a, b in skel.bones] if skel is not None else None
 
 
 def worst_frames(scene: Scene, res: ViewResiduals, folder: Path) -> list[tuple[str, str]]:

@@ -33,7 +33,7 @@ from gt3dkit.io.labels import piece_of, piece_track_ids
 from gt3dkit.io.writers import read_segments_csv
 from gt3dkit.jsondoc import json_at, json_list, json_obj
 from gt3dkit.parse import read_csv_rows
-from gt3dkit.skeletons import SKELETONS
+from gt3dkit.skeletons import skeleton_of
 from gt3dkit.types import JsonDict, Scene, TrackSet
 from gt3dkit.viz.overview import colour_of, start_overviews
 from gt3dkit.viz.panels import (
@@ -86,9 +86,10 @@ def _keypoint_noise(run: Run) -> str:
     kp = json_obj(run.meta, "estimator", "preparation", "keypoints")
     per_joint = [float(v) if isinstance(v, int | float) else float("nan")
                  for v in json_list(kp, "sigma_px_per_joint")]
-    if not per_joint or not run.scene.skeleton:
+    skel = skeleton_of(run.scene)
+    if not per_joint or skel is None:
         return ""
-    names = SKELETONS[run.scene.skeleton].marker_names
+    names = skel.marker_names
     rows = [[n, f"{v:.2f}"] for n, v in sorted(zip(names, per_joint, strict=False), key=lambda nv: -nv[1])]
     parts = ["<h2>Keypoint noise learnt from the data</h2>",
              "<p>Each joint's pixel sd at the detector's full confidence (the per-frame "
@@ -304,7 +305,8 @@ def _annotation_note() -> str:
 
 
 def _joint_names(scene: Scene) -> tuple[str, ...]:
-    return SKELETONS[scene.skeleton].joints if scene.skeleton else ()
+    skel = skeleton_of(scene)
+    return skel.joints if skel is not None else ()
 
 
 def _busiest_frame(tracks: TrackSet) -> int:

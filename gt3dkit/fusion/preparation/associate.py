@@ -38,7 +38,7 @@ from gt3dkit.arrays import unique_rows
 from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import Cams, pixel_rays, project_points
 from gt3dkit.parse import parse_frame, parse_int, read_csv_rows
-from gt3dkit.skeletons import SKELETONS
+from gt3dkit.skeletons import skeleton_of
 from gt3dkit.types import F64, I64, Observations, Scene
 
 COLUMNS = ("camera", "local_id", "frame", "global_id", "confidence", "frames", "median_m", "note")
@@ -144,9 +144,9 @@ def ground_points(scene: Scene, cfg: AssocConfig) -> F64:
     out = np.full((len(obs), 3), np.nan)
     b = obs.box_xyxy_px
     foot = _box_foot(scene, b)  # where the box meets the person's axis on the floor side
-    if obs.n_joints and scene.skeleton:  # the mean of the foot joints seen, when there are
-
-        js = [i for i, j in enumerate(SKELETONS[scene.skeleton].joints)
+    skel = skeleton_of(scene)
+    if obs.n_joints and skel is not None:  # the mean of the foot joints seen, when there are
+        js = [i for i, j in enumerate(skel.joints)
               if j.split("_", 1)[-1] in ("ankle", "heel", "big_toe", "small_toe")]
         if js:
             with np.errstate(all="ignore"), warnings.catch_warnings():

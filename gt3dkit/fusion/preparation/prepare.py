@@ -43,7 +43,7 @@ from gt3dkit.fusion.preparation.robust import (
 from gt3dkit.fusion.preparation.rows import Rows, build_rows, nearest_same_object
 from gt3dkit.geom.camera import Cams
 from gt3dkit.geom.triangulate import normalized_points, robust_triangulate, triangulation_cov
-from gt3dkit.skeletons import SKELETONS, Skeleton, skeleton_for
+from gt3dkit.skeletons import Skeleton, skeleton_for, skeleton_of
 from gt3dkit.types import BOX_EDGES, F64, I64, Scene
 
 #: Smallest confidence used as a weight (``sigma^2 / conf``: at most 7x the sd).
@@ -188,7 +188,7 @@ def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = Non
     kpts_found: KeypointLevels | None = None
     skel = None
     if J:
-        skel = SKELETONS[scene.skeleton] if scene.skeleton else skeleton_for(J)
+        skel = skeleton_of(scene) or skeleton_for(J)
     fit = None
     box_keep = np.zeros((len(rows), len(cams.K), 4), bool)
     reliable = np.zeros(len(rows), bool)

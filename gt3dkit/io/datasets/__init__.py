@@ -10,13 +10,23 @@ from typing import NamedTuple
 
 import numpy as np
 
+from gt3dkit.calib.board import UNITS_M
 from gt3dkit.calib.formats import detect_format, read_calibration
 from gt3dkit.calib.formats.grid import LAYOUTS as GRID_LAYOUTS
 from gt3dkit.calib.formats.native import FPS_RANGE
 from gt3dkit.errors import InputError
-from gt3dkit.io.datasets import mot, native, openpose, panoptic, tasks, wildtrack
+from gt3dkit.io.datasets import mot, native, openpose, panoptic, sleap, tasks, wildtrack
 from gt3dkit.rig import Rig
 from gt3dkit.types import GroundTruth, JsonDict, JsonValue, ReadAhead, Scene, SimScene, SkeletonScene
+
+
+class Calibration(NamedTuple):
+    """A calibration to read: ``path`` (None: the one beside the annotations), whose lengths are in
+    ``units`` (``m``, ``cm``, ``mm``: an anipose ``calibration.toml`` holds its board's units,
+    millimetres where the board was measured so); the scene's world is made metres."""
+
+    path: Path | str | None
+    units: str = "m"
 
 
 class ReadOptions(NamedTuple):
@@ -74,6 +84,7 @@ LAYOUTS: dict[str, Layout] = {v.name: v for v in (
     Layout("coco", lambda root: (root / "coco").is_dir(),
            lambda root, o: tasks.load(root, "coco", o.skeleton, o.calib,
                                       o.fps), associated=True, skeletons=True),
+    Layout("sleap", sleap.found, lambda root, o: sleap.load(root, o.calib, o.fps), associated=True),
     Layout("native", lambda root: (root / "cameras.json").exists(), lambda root, o: native.load(root,
                                                                                                 o.skeleton),
            write_boxes=native.write_boxes, write_keypoints=native.write_keypoints, skeletons=True),
@@ -98,8 +109,8 @@ def detect_layout(root: Path) -> str:
                                 "calibrations/intrinsic_zero (WILDTRACK), "
                                 "calibrations/intrinsic (MultiviewX) or "
                                 "calibration_<seq>.json (CMU Panoptic), mot/<camera>.txt "
-                                "(MOTChallenge per camera), <camera>_json/ (OpenPose), cvat/<camera>.xml "
-                                "or coco/<camera>.json")
+                                "(MOTChallenge per camera), <camera>_json/ (OpenPose), cvat/<camera>.xml, "
+                                "coco/<camera>.json or <camera>/*.analysis.h5 (SLEAP)")
 
 
 def with_calibration(scene: Scene, calib: Path | str) -> Scene:
@@ -133,7 +144,7 @@ def _calib_digest(calib: Path | str) -> str:
 
 
 def read_scene(root: Path | str, layout: str | None = None, skeleton: str | None = None,
-               fps: float | None = None, calib: Path | str | None = None,
+               fps: float | None = None, calib: Path | str | Calibration | None = None,
                association: Path | str | None = None, span: tuple[int, int] | None = None,
                ahead: ReadAhead | None = None, **panoptic_options: JsonValue) -> Scene:
     """Read any supported input folder (layout detected when not given), as its files say: a
@@ -147,20 +158,24 @@ def read_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     ``min_conf``). ``calib`` replaces the input's cameras by those of a calibration in any
     format (:func:`with_calibration`). ``span``: only the frames ``lo..hi`` (a layout with an
     ``index``; a span without an annotation is no error). ``ahead``: what :func:`index_scene`
-    read of the folder (``FrameIndex.ahead``), not read again.
+    read of the folder (``FrameIndex.ahead``), not read again. A :class:`Calibration` says the
+    calibration's units too (the world made metres, :func:`in_metres`).
     """
+    path, units = (calib.path, calib.units) if isinstance(calib, Calibration) else (calib, "m")
     layout = _checked_layout(root, layout, skeleton, association, panoptic_options)
-    scene = LAYOUTS[layout].read(Path(root), ReadOptions(skeleton, calib, fps, panoptic_options, span, ahead))
+    scene = LAYOUTS[layout].read(Path(root), ReadOptions(skeleton, path, fps, panoptic_options, span, ahead))
     if len(scene.obs) == 0 and span is None:
         raise InputError(str(root), "no annotations in any frame")
-    return _as_asked(scene, root, layout, skeleton, fps, calib, association, panoptic_options)
+    scene = _as_asked(scene, root, layout, skeleton, fps, path, association, panoptic_options)
+    return in_metres(scene, units)
 
 
 def index_scene(root: Path | str, layout: str | None = None, fps: float | None = None,
-                calib: Path | str | None = None) -> Scene | None:
+                calib: Path | str | Calibration | None = None) -> Scene | None:
     """:func:`read_scene` without the rows, where the layout reads a span of frames on its own
     (``Layout.index``; else None): the cameras, frames and each frame's objects
     (:class:`gt3dkit.types.FrameIndex`)."""
+    path, units = (calib.path, calib.units) if isinstance(calib, Calibration) else (calib, "m")
     layout = _checked_layout(root, layout, None, None, {})
     index = LAYOUTS[layout].index
     if index is None:
@@ -168,7 +183,24 @@ def index_scene(root: Path | str, layout: str | None = None, fps: float | None =
     scene = index(Path(root))
     if scene.index is None or not len(scene.index.frames):
         raise InputError(str(root), "no annotations in any frame")
-    return _as_asked(scene, root, layout, None, fps, calib, None, {})
+    return in_metres(_as_asked(scene, root, layout, None, fps, path, None, {}), units)
+
+
+def in_metres(scene: Scene, units: str) -> Scene:
+    """``scene`` read from a calibration whose lengths are in ``units`` (``m``, ``cm``, ``mm``),
+    with its world in metres: the cameras' translations and any truth scaled
+    (``load_options`` records the units, so a report reads it the same way)."""
+    if units not in UNITS_M:
+        raise InputError("--calib-units", f"unknown unit {units!r} (known: {', '.join(UNITS_M)})")
+    if units == "m":
+        return scene
+    s = UNITS_M[units]
+    truth = scene.truth
+    if truth is not None:
+        truth = dataclasses.replace(truth, center_world=truth.center_world * s, semi_axes=truth.semi_axes * s,
+                                    kpt_world=truth.kpt_world * s)
+    return dataclasses.replace(scene, rig=scene.rig.in_metres(s), truth=truth,
+                               load_options={**scene.load_options, "calib_units": units})
 
 
 def with_sequence_truth(head: Scene) -> Scene:

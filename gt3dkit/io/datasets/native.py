@@ -39,6 +39,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import FAR_IMAGES, check_pixels
 from gt3dkit.io.datasets.common import BoxBlock, JointBlock, RowBuilder
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
+from gt3dkit.io.skeletonfile import named_skeleton
 from gt3dkit.parse import (
     FRAME_MAX,
     ID_MAX,
@@ -90,8 +91,10 @@ def _load(root: Path, skeleton: str | None, stack: contextlib.ExitStack) -> Scen
     kpt_path = root / "keypoints.csv"
     has_kpts = False
     skel_name = skeleton or skel_doc
+    described = None  # a skeleton file's (--skeleton FILE)
     if skel_name is not None and skel_name not in SKELETONS:
-        raise InputError("--skeleton", f"unknown skeleton {skel_name!r} (known: {', '.join(SKELETONS)})")
+        described = named_skeleton(skel_name)
+        skel_name = described.name
     kpt_cols: tuple[str, ...] = KPT_COLUMNS
     kpts: HashedFile | None = None
     if kpt_path.exists():
@@ -100,7 +103,7 @@ def _load(root: Path, skeleton: str | None, stack: contextlib.ExitStack) -> Scen
         kpt_cols, has_kpts, skel_name = _keypoints_kind(kpt_path, kpts, skel_name)
     if skeleton is not None and not has_kpts:
         raise InputError("--skeleton", f"{root} has no keypoints (keypoints.csv missing or empty)")
-    n_joints = SKELETONS[skel_name].n_joints if skel_name and has_kpts else 0
+    n_joints = (described or SKELETONS[skel_name]).n_joints if skel_name and has_kpts else 0
     rb = RowBuilder(n_joints=n_joints)
     box_path = root / "boxes.csv"
     if box_path.exists():
@@ -149,7 +152,9 @@ def _load(root: Path, skeleton: str | None, stack: contextlib.ExitStack) -> Scen
         truth = _merge_kpt_truth(truth, got)
     frames = np.unique(obs.frame)
     return Scene(rig=rig, obs=obs, layout="native", fps=fps, frames=frames, truth=truth,
-                 skeleton=skel_name if n_joints else None, files=files, root=str(root),
+                 skeleton=skel_name if n_joints else None,
+                 skeleton_doc=described.doc() if described is not None and n_joints else None,
+                 files=files, root=str(root),
                  warnings=tuple(warnings),
                  fps_assumed=f"{cam_path} has no \"fps\"" if fps_doc is None else "")
 

@@ -1,0 +1,39 @@
+"""Skeleton files (TOML): a skeleton described as data, read and checked
+(:func:`gt3dkit.skeletons.skeleton_from_doc`), and ``--skeleton NAME|FILE``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from gt3dkit.errors import InputError
+from gt3dkit.parse import load_toml
+from gt3dkit.skeletons import SKELETONS, Skeleton, skeleton_from_doc
+
+
+def named_skeleton(name_or_file: str) -> Skeleton:
+    """A built-in skeleton by name, or the one a skeleton file describes (:func:`read_skeleton`)."""
+    if name_or_file in SKELETONS:
+        return SKELETONS[name_or_file]
+    path = Path(name_or_file)
+    if path.suffix.lower() != ".toml" or not path.is_file():
+        raise InputError("--skeleton", f"unknown skeleton {name_or_file!r} (known: {', '.join(SKELETONS)}; "
+                                       "or a skeleton file, .toml)")
+    return read_skeleton(path)
+
+
+def read_skeleton(path: Path) -> Skeleton:
+    """A skeleton file (TOML)::
+
+        name = "mouse"                          # default: the file's name
+        joints = ["nose", "ear_l", "ear_r", "tail_base"]
+        bones = [["nose", "ear_l"], ["nose", "ear_r"], ["nose", "tail_base"]]
+        pairs = [["ear_l", "ear_r"]]            # left/right (default: l_x / r_x names)
+        labels = ["Nose", "EarL", "EarR", "TTI"]  # the labelling tool's names (optional)
+        [pose]                                  # canonical pose, m (optional): joint = [x, y, z]
+        nose = [0.0, 0.05, 0.02]
+
+    Every name and bone is checked (:func:`skeleton_from_doc`)."""
+    doc = load_toml(path)
+    if "name" not in doc:
+        doc = {**doc, "name": path.stem}
+    return skeleton_from_doc(doc, str(path))

@@ -1,0 +1,176 @@
+"""Skeletons as data (issue 66): skeleton files, ``--skeleton FILE``, SLEAP's analysis files per
+camera, a calibration in millimetres (``--calib-units``) and a camera whose calibration fits no
+other's."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gt3dkit.api import load_scene, reconstruct
+from gt3dkit.calib.formats import toml as toml_fmt
+from gt3dkit.cli import main
+from gt3dkit.io.datasets import Calibration
+from gt3dkit.io.datasets.sleap import side_pairs
+from gt3dkit.io.skeletonfile import read_skeleton
+from gt3dkit.rig import Rig
+from gt3dkit.sim import simulate_skeletons, write_skeleton_scene
+from gt3dkit.skeletons import SKELETONS, skeleton_from_doc
+from gt3dkit.types import SkeletonScene
+
+h5py = pytest.importorskip("h5py")
+
+COCO17 = SKELETONS["coco17"]
+
+
+def _toml(path: Path, joints: list[str], bones: list[list[str]], pairs: list[list[str]] | None = None,
+          name: str = "mine") -> Path:
+    q = lambda xs: "[" + ", ".join(f'"{x}"' for x in xs) + "]"  # noqa: E731
+    text = f'name = "{name}"\njoints = {q(joints)}\nbones = [' + ", ".join(q(b) for b in bones) + "]\n"
+    if pairs is not None:
+        text += "pairs = [" + ", ".join(q(p) for p in pairs) + "]\n"
+    path.write_text(text)
+    return path
+
+
+def _run(*argv: str, capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    code = main(list(argv))
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_every_built_in_skeleton_is_a_document_that_reads_back() -> None:
+    for name, sk in SKELETONS.items():
+        back = skeleton_from_doc(sk.doc(), name)
+        assert back.joints == sk.joints and back.bone_names == sk.bone_names
+        np.testing.assert_array_equal(back.mirror(), sk.mirror())
+        np.testing.assert_array_equal(back.canonical(), sk.canonical())
+
+
+@pytest.mark.parametrize("joints, bones, pairs, entry, problem", [
+    (["a", "b", "a"], [["a", "b"]], None, "joints", "joint 'a' named twice"),
+    (["a", "b"], [["a", "c"]], None, "bones[0]", "unknown joint 'c'"),
+    (["a", "l", "r", "k"], [["a", "l"], ["a", "r"], ["r", "k"]], [["l", "r"]], "pairs[0]",
+     "not a left/right pair"),
+    (["a", "l", "r", "x"], [["a", "l"], ["a", "r"], ["a", "x"]], [["l", "r"], ["r", "x"]], "pairs",
+     "'r' is in two pairs"),
+])
+def test_a_bad_skeleton_file_is_one_line_naming_the_entry(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                          joints: list[str], bones: list[list[str]],
+                                                          pairs: list[list[str]] | None, entry: str,
+                                                          problem: str) -> None:
+    write_skeleton_scene(simulate_skeletons("native", seed=1, frames=3, people=1, cameras=3,
+                                            skeleton="coco17"), tmp_path / "in", "native")
+    bad = _toml(tmp_path / "bad.toml", joints, bones, pairs)
+    code, _, err = _run("reconstruct", str(tmp_path / "in"), "--out", str(tmp_path / "out"),
+                        "--skeleton", str(bad), capsys=capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"error: {bad}: {entry}: ") and problem in err, err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_skeleton_file_is_as_good_as_the_built_in_it_describes(tmp_path: Path) -> None:
+    """The same joints and bones given as a file: the same estimate, and the file's skeleton
+    written into meta.json."""
+    write_skeleton_scene(simulate_skeletons("native", seed=2, frames=8, people=2, cameras=4, noise_px=1.0,
+                                            skeleton="coco17"), tmp_path / "in", "native")
+    mine = _toml(tmp_path / "mine.toml", list(COCO17.joints), [list(b) for b in COCO17.bone_names])
+    assert read_skeleton(mine).left_right == COCO17.left_right  # l_/r_ names pair by default
+    built_in = reconstruct(load_scene(tmp_path / "in", skeleton="coco17"), "ukf")
+    scene = load_scene(tmp_path / "in", skeleton=str(mine))
+    assert scene.skeleton == "mine" and scene.skeleton_doc is not None
+    from_file = reconstruct(scene, "ukf", out=tmp_path / "out")
+    np.testing.assert_array_equal(from_file.kpt_world, built_in.kpt_world)
+    meta = (tmp_path / "out" / "meta.json").read_text()
+    assert '"skeleton": "mine"' in meta and '"skeleton_doc"' in meta
+
+
+def test_left_and_right_are_read_from_the_names_where_the_bones_agree() -> None:
+    joints = ["Nose", "Ear_L", "Ear_R", "Head", "Shoulder_left", "Shoulder_right", "Tail", "LEye", "REye"]
+    bones = [("Head", "Nose"), ("Head", "Ear_L"), ("Head", "Ear_R"), ("Head", "Shoulder_left"),
+             ("Tail", "Shoulder_right"), ("Nose", "LEye"), ("Nose", "REye")]
+    # the shoulders' bones do not mirror each other: no pair
+    assert side_pairs(joints, bones) == [("Ear_L", "Ear_R"), ("LEye", "REye")]
+
+
+def _write_sleap(sk: SkeletonScene, root: Path, names: list[str] | None = None) -> None:
+    """A SLEAP + anipose folder of a simulated scene: ``calibration.toml`` and one analysis file per
+    camera (as SLEAP writes it: tracks (n_tracks, 2, n_nodes, n_frames), every person a track)."""
+    root.mkdir(parents=True)
+    toml_fmt.write(sk.rig, root / "calibration.toml")
+    skel = SKELETONS[sk.skeleton]
+    nodes = names or list(skel.joints)
+    ids = np.unique(sk.truth_id)
+    F = len(sk.frames)
+    for c, cam in enumerate(sk.rig.cameras):
+        tracks = np.full((len(ids), 2, len(nodes), F), np.nan)
+        for m in range(len(sk.truth_id)):
+            k, f = int(np.searchsorted(ids, sk.truth_id[m])), int(np.searchsorted(sk.frames, sk.truth_frame[m]))
+            tracks[k, :, :, f] = sk.uv[m, c].T
+        (root / cam.name).mkdir()
+        with h5py.File(root / cam.name / f"labels_{cam.name}.analysis.h5", "w") as h:
+            h["tracks"] = tracks
+            h["point_scores"] = np.full((len(ids), len(nodes), F), np.nan)
+            h["track_names"] = np.array([f"track_{i}".encode() for i in range(len(ids))])
+            h["node_names"] = np.array([n.encode() for n in nodes])
+            h["edge_names"] = np.array([[nodes[a].encode(), nodes[b].encode()] for a, b in skel.bones])
+
+
+def test_sleap_analysis_files_are_reconstructed_with_their_own_skeleton(tmp_path: Path) -> None:
+    sk = simulate_skeletons("native", seed=3, frames=20, people=2, cameras=4, noise_px=1.0, skeleton="coco17")
+    _write_sleap(sk, tmp_path / "sleap")
+    scene = load_scene(tmp_path / "sleap")
+    assert scene.layout == "sleap" and scene.skeleton == "sleap"
+    assert scene.skeleton_doc is not None and scene.skeleton_doc["joints"] == list(COCO17.joints)
+    tracks = reconstruct(scene, "ukf")
+    assert len(np.unique(tracks.track_id)) == 2
+    # each estimated person against the nearest true one, joint by joint
+    err = []
+    for f in np.unique(tracks.frame):
+        est = tracks.kpt_world[tracks.frame == f]
+        tru = sk.kpt_world[sk.truth_frame == sk.frames[f]]  # SLEAP's frames count from 0
+        d = np.nanmean(np.linalg.norm(est[:, None] - tru[None], axis=-1), axis=2)
+        err.append(d.min(axis=1))
+    assert np.median(np.concatenate(err)) < 0.02
+
+
+def test_a_sleap_file_with_another_skeleton_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]
+                                                       ) -> None:
+    sk = simulate_skeletons("native", seed=3, frames=4, people=1, cameras=3, skeleton="coco17")
+    _write_sleap(sk, tmp_path / "sleap")
+    other = tmp_path / "sleap" / sk.rig.cameras[1].name / f"labels_{sk.rig.cameras[1].name}.analysis.h5"
+    with h5py.File(other, "a") as h:
+        del h["node_names"]
+        h["node_names"] = np.array([f"n{j}".encode() for j in range(COCO17.n_joints)])
+    code, _, err = _run("reconstruct", str(tmp_path / "sleap"), "--out", str(tmp_path / "out"), capsys=capsys)
+    assert code == 2 and err.count("\n") == 1 and err.startswith(f"error: {other}: "), err
+    assert "skeleton differs" in err and not (tmp_path / "out").exists()
+
+
+def test_a_calibration_in_millimetres_is_made_metres(tmp_path: Path) -> None:
+    sk = simulate_skeletons("native", seed=4, frames=10, people=1, cameras=4, noise_px=0.5, skeleton="coco17")
+    _write_sleap(sk, tmp_path / "m")
+    mm = dataclasses.replace(sk, rig=sk.rig.in_metres(1000.0))  # the same cameras, translations in mm
+    _write_sleap(mm, tmp_path / "mm")
+    metres = load_scene(tmp_path / "m")
+    scaled = load_scene(tmp_path / "mm", calib=Calibration(None, "mm"))
+    np.testing.assert_allclose(scaled.rig.t, metres.rig.t, atol=1e-9)
+    assert scaled.load_options["calib_units"] == "mm"
+    a, b = reconstruct(metres, "ukf"), reconstruct(scaled, "ukf")
+    np.testing.assert_allclose(a.kpt_world, b.kpt_world, atol=1e-6)
+
+
+def test_a_camera_whose_calibration_fits_no_other_is_named(tmp_path: Path) -> None:
+    """One camera's calibration copied from another's (as in the shared anipose session): its
+    detections agree with nobody's, and the warning says which camera."""
+    sk = simulate_skeletons("native", seed=5, frames=30, people=1, cameras=4, noise_px=0.5, skeleton="coco17")
+    cams = list(sk.rig.cameras)
+    cams[2] = dataclasses.replace(cams[3], name=cams[2].name)  # camera 2 carries camera 3's pose
+    _write_sleap(sk, tmp_path / "sleap")
+    toml_fmt.write(Rig(tuple(cams), up=sk.rig.up), tmp_path / "sleap" / "calibration.toml")
+    scene = load_scene(tmp_path / "sleap")
+    named = [w for w in scene.warnings if "calibration does not fit" in w]
+    assert len(named) == 1 and named[0].startswith(f"camera {cams[2].name}:"), scene.warnings
