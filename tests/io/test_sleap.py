@@ -108,7 +108,8 @@ def _write_sleap(sk: SkeletonScene, root: Path, names: list[str] | None = None) 
     for c, cam in enumerate(sk.rig.cameras):
         tracks = np.full((len(ids), 2, len(nodes), F), np.nan)
         for m in range(len(sk.truth_id)):
-            k, f = int(np.searchsorted(ids, sk.truth_id[m])), int(np.searchsorted(sk.frames, sk.truth_frame[m]))
+            k = int(np.searchsorted(ids, sk.truth_id[m]))
+            f = int(np.searchsorted(sk.frames, sk.truth_frame[m]))
             tracks[k, :, :, f] = sk.uv[m, c].T
         (root / cam.name).mkdir()
         with h5py.File(root / cam.name / f"labels_{cam.name}.analysis.h5", "w") as h:
