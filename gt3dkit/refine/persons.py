@@ -30,14 +30,6 @@ class PersonViews:
     f_px: F64
 
 
-def mirror_index(joints: tuple[str, ...]) -> I64:
-    """(J,) for each joint the index of its left/right counterpart (``l_x`` <-> ``r_x``; itself
-    where it has none)."""
-    ix = {j: i for i, j in enumerate(joints)}
-    swap = {"l_": "r_", "r_": "l_"}
-    return np.array([ix.get(swap[j[:2]] + j[2:], i) if j[:2] in swap else i for i, j in enumerate(joints)])
-
-
 def normalised(pv: PersonViews, rig: Rig) -> F64:
     """(N, J, 2) the detections' joints through ``rig``'s intrinsics (NaN where not used)."""
     xy = normalized_points(pv.uv, rig.K[pv.cam][:, None], rig.dist[pv.cam][:, None])

@@ -16,9 +16,10 @@ from gt3dkit.api import load_detections, load_run
 from gt3dkit.calib.formats import read_calibration
 from gt3dkit.errors import InputError
 from gt3dkit.refine.common import transform_rig, umeyama
-from gt3dkit.refine.people import PeopleConfig, against_given, calibrate_people, mirror_index
+from gt3dkit.refine.people import PeopleConfig, against_given, calibrate_people
 from gt3dkit.rig import Rig
 from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
+from gt3dkit.skeletons import Skeleton
 from gt3dkit.viz.report import _people_rig
 
 
@@ -49,7 +50,8 @@ def _errors(ours: Rig, truth: Rig) -> tuple[np.ndarray, np.ndarray, float]:
 
 
 def test_mirror_index() -> None:
-    np.testing.assert_array_equal(mirror_index(("nose", "l_eye", "r_eye", "l_hip", "r_hip")), [0, 2, 1, 4, 3])
+    sk = Skeleton("five", ("nose", "l_eye", "r_eye", "l_hip", "r_hip"), ())
+    np.testing.assert_array_equal(sk.mirror(), [0, 2, 1, 4, 3])
 
 
 def test_rig_from_people_recovers_the_cameras(people_dir: Path) -> None:

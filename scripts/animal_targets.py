@@ -1,0 +1,171 @@
+"""Issue 66's targets on the shared mouse, printed (what exists of them so far):
+
+    make bench-env   # .venv-bench: aniposelib 0.8.0, for section 2
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python scripts/animal_targets.py [--data ../shared/data]
+
+The shared anipose + SLEAP session (``sleap_minimal_session``, its PROVENANCE.md: one mouse, 15
+body parts, 4 cameras, 120 frames of proofread labels; anipose's ``calibration.toml`` in
+millimetres, its ``side`` camera a copy of ``top``):
+
+1. ``gt3d reconstruct`` of a folder holding the SLEAP analysis files per camera and anipose's
+   calibration as given (``--calib-units mm``): the warnings that name a camera, each camera's
+   median reprojection of the estimate through that calibration (px; the labels of a camera whose
+   views were left out are compared too), each bone's length sd over the frames (mm), the time.
+2. aniposelib ``triangulate`` + ``optim_points`` (``scripts/peer_aniposelib.py``: anipose's
+   defaults, the SLEAP skeleton's edges as constraints) on the same labels and calibration, scored
+   the same way; its time over gt3dkit's.
+3. anipose's published ``points3d.h5`` against gt3dkit's: the median distance per joint (mm),
+   and its own reprojection per camera.
+
+Exit status 0 always: it prints what it measured.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from gt3dkit.calib.formats import read_calibration  # noqa: E402
+from gt3dkit.geom.camera import project_points  # noqa: E402
+from gt3dkit.io.datasets.native import write_cameras  # noqa: E402
+from gt3dkit.io.datasets.sleap import _read  # noqa: E402
+from gt3dkit.rig import Rig  # noqa: E402
+
+GT3D = str(Path(sys.executable).with_name("gt3d"))
+CAMS = ("back", "mid", "side", "top")
+
+
+def labels(root: Path) -> tuple[np.ndarray, list[str], list[tuple[str, str]]]:
+    """``(F, J, C, 2)`` the proofread labels (NaN: none), the node names and the edges."""
+    uv, nodes, edges = [], [], []
+    for c in CAMS:
+        tracks, _, _, nodes, edges, _ = _read(next((root / c).glob("*.analysis.h5")))
+        uv.append(np.transpose(tracks[0], (2, 1, 0)))  # (F, J, 2), the one animal
+    return np.stack(uv, axis=2), nodes, edges
+
+
+def reprojection(X: np.ndarray, uv: np.ndarray, rig: Rig) -> dict[str, float]:
+    """Median px per camera of ``X (F, J, 3)`` (m) against the labels ``uv (F, J, C, 2)``."""
+    order = [rig.index(c) for c in CAMS]
+    p, _ = project_points(X.reshape(-1, 3), rig.K[order], rig.dist[order], rig.R[order], rig.t[order])
+    d = np.linalg.norm(p.reshape(uv.shape) - uv, axis=-1)  # (F, J, C)
+    return {c: float(np.nanmedian(d[..., k])) for k, c in enumerate(CAMS)}
+
+
+def bone_sd_mm(X: np.ndarray, nodes: list[str], edges: list[tuple[str, str]]) -> dict[str, float]:
+    ix = {n: i for i, n in enumerate(nodes)}
+    out = {}
+    for a, b in edges:
+        ln = np.linalg.norm(X[:, ix[a]] - X[:, ix[b]], axis=-1)
+        out[f"{a}-{b}"] = float(np.nanstd(ln) * 1000)
+    return out
+
+
+def joints_of(csv_path: Path, F: int, J: int) -> np.ndarray:
+    """``(F, J, 3)`` of a ``frame,id,joint,x,y,z[,sd]`` file (the one animal; NaN: none)."""
+    X = np.full((F, J, 3), np.nan)
+    with open(csv_path) as f:
+        for r in csv.DictReader(f):
+            X[int(r["frame"]), int(r["joint"])] = [float(r["x"]), float(r["y"]), float(r["z"])]
+    return X
+
+
+def summary(name: str, X: np.ndarray, uv: np.ndarray, rig: Rig, nodes: list[str],
+            edges: list[tuple[str, str]], sec: float | None) -> dict[str, float]:
+    rep = reprojection(X, uv, rig)
+    sd = bone_sd_mm(X, nodes, edges)
+    print(f"   {name:<28} reprojection px: " + ", ".join(f"{c} {v:.2f}" for c, v in rep.items())
+          + f"; bone length sd mm: median {np.nanmedian(list(sd.values())):.2f}, worst "
+          + f"{max(sd, key=lambda k: sd[k])} {max(sd.values()):.2f}"
+          + (f"; {sec:.2f} s" if sec is not None else ""))
+    return rep
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
+    ap.add_argument("--peer", default=str(REPO / ".venv-bench" / "bin" / "python"))
+    args = ap.parse_args()
+    data = args.data / "sleap_minimal_session"
+    if not data.is_dir():
+        print(f"skipped: {data} absent")
+        return 0
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    uv, nodes, edges = labels(data)
+    F, J = uv.shape[:2]
+    rig = read_calibration(data / "calibration.toml").in_metres(1e-3)
+    with tempfile.TemporaryDirectory() as tmp_s:
+        tmp = Path(tmp_s)
+        folder = tmp / "mouse"
+        for c in CAMS:
+            (folder / c).mkdir(parents=True)
+            (folder / c / f"{c}.analysis.h5").symlink_to(next((data / c).glob("*.analysis.h5")))
+        (folder / "calibration.toml").symlink_to(data / "calibration.toml")
+        print("1. gt3d reconstruct of the SLEAP analysis files, anipose's calibration as given "
+              "(--calib-units mm)")
+        t0 = time.perf_counter()
+        p = subprocess.run([GT3D, "reconstruct", str(folder), "--out", str(tmp / "gt3d"), "--calib-units",
+                            "mm", "--quiet"], capture_output=True, text=True)
+        sec = time.perf_counter() - t0
+        if p.returncode != 0:
+            print(f"   failed: {p.stderr.strip()}")
+            return 0
+        for w in p.stderr.splitlines():
+            if any(f"camera {c}" in w for c in CAMS):
+                print(f"   {w[:160]}")
+        ours = joints_of(tmp / "gt3d" / "keypoints.csv", F, J)
+        summary("gt3dkit UKF", ours, uv, rig, nodes, edges, sec)
+
+        print("\n2. aniposelib triangulate + optim_points on the same labels and calibration")
+        if Path(args.peer).exists():
+            native = tmp / "native"
+            native.mkdir()
+            write_cameras(rig, 30.0, native)
+            with open(native / "keypoints.csv", "w", newline="") as f:
+                w = csv.writer(f)
+                w.writerow(["frame", "camera", "id", "joint", "u", "v"])
+                for fr, j, c in zip(*np.nonzero(np.isfinite(uv[..., 0])), strict=True):
+                    w.writerow([fr, CAMS[c], 0, j, f"{uv[fr, j, c, 0]:.4f}", f"{uv[fr, j, c, 1]:.4f}"])
+            bones = ",".join(f"{nodes.index(a)}-{nodes.index(b)}" for a, b in edges)
+            t0 = time.perf_counter()
+            peer_cmd = [args.peer, str(REPO / "scripts" / "peer_aniposelib.py"), str(native), "--bones",
+                        bones,
+                        "--out", str(tmp / "peer.csv")]
+            q = subprocess.run(peer_cmd, capture_output=True, text=True)
+            peer_sec = time.perf_counter() - t0
+            if q.returncode == 0:
+                peer = joints_of(tmp / "peer.csv", F, J)
+                summary("aniposelib optim_points", peer, uv, rig, nodes, edges, peer_sec)
+                print(f"   gt3dkit's time over aniposelib's: {sec / peer_sec:.2f}x (target 0.3x)")
+            else:
+                print(f"   aniposelib failed: {q.stderr.strip()[-300:]}")
+        else:
+            print(f"   skipped: {args.peer} absent (make bench-env)")
+
+        print("\n3. anipose's published points3d.h5 beside gt3dkit's estimate")
+        import h5py
+
+        with h5py.File(data / "points3d.h5") as h:
+            theirs = np.asarray(h["tracks"][()], dtype=np.float64)[:, 0] * 1e-3  # (F, J, 3) mm -> m
+        summary("anipose points3d.h5", theirs, uv, rig, nodes, edges, None)
+        d = np.linalg.norm(theirs - ours, axis=-1) * 1000
+        print("   median distance to gt3dkit's per joint, mm: "
+              + ", ".join(f"{n} {np.nanmedian(d[:, j]):.1f}" for j, n in enumerate(nodes)))
+        print(json.dumps({"frames": F, "joints": J}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
