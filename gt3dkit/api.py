@@ -130,7 +130,8 @@ def load_scene(root: Path | str | Scene, layout: str | None = None, skeleton: st
             scene = dataclasses.replace(scene, warnings=(*scene.warnings, (
                 f"{twice} detections of a person a camera had already detected in that frame left out "
                 "(association.csv, global id -1)")))
-        scene = dataclasses.replace(scene, warnings=(*scene.warnings, *disagreeing_cameras(assoc)))
+        named = tuple(w for _, w in disagreeing_cameras(assoc))
+        scene = dataclasses.replace(scene, warnings=(*scene.warnings, *named))
         if not len(scene.obs):
             raise InputError(str(root), "no person is seen by two cameras at once (nothing to reconstruct)")
         scene = without_undetermined(scene)
@@ -206,10 +207,11 @@ def without_undetermined(scene: Scene) -> Scene:
                                left_out=tuple(left))
 
 
-def disagreeing_cameras(assoc: Association, share: float = 0.9, min_rows: int = 10) -> list[str]:
-    """A warning for each camera whose detections (at least ``min_rows``) the others confirm in
-    under ``1 - share`` of the frames while the rest confirm most of theirs: its calibration does
-    not fit theirs (a copied or stale camera), whatever its labels say."""
+def disagreeing_cameras(assoc: Association, share: float = 0.9, min_rows: int = 10) -> list[tuple[str, str]]:
+    """Each camera whose detections (at least ``min_rows``) the others confirm in under
+    ``1 - share`` of the frames while the rest confirm most of theirs, and a warning saying so:
+    its calibration does not fit theirs (a copied or stale camera), whatever its labels say
+    (``--refine-calib`` poses it again: :mod:`gt3dkit.refine.repose`)."""
     kept: dict[str, list[bool]] = {}
     for r in assoc.rows:
         if r[7] != SECOND_DETECTION:
@@ -219,10 +221,10 @@ def disagreeing_cameras(assoc: Association, share: float = 0.9, min_rows: int = 
         rest = [x for c, v in kept.items() if c != cam for x in v]
         lost = len(k) - sum(k)
         if len(k) >= min_rows and lost >= share * len(k) and rest and sum(rest) > 0.5 * len(rest):
-            out.append(f"camera {cam}: {lost} of its {len(k)} detections agree with no other camera's, while "
-                       f"the others agree on {100 * sum(rest) / len(rest):.0f} % of theirs: its calibration "
-                       "does not fit the others' (a copied or outdated camera?); its views are left out "
-                       "(check it: gt3d calib show; gt3d calib people finds the rig from the people)")
+            out.append((cam, f"camera {cam}: {lost} of its {len(k)} detections agree with no other camera's, "
+                       f"while the others agree on {100 * sum(rest) / len(rest):.0f} % of theirs: its "
+                       "calibration does not fit the others' (a copied or outdated camera?); its views are "
+                       "left out (--refine-calib poses it again on the people the others place)"))
     return out
 
 

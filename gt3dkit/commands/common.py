@@ -21,11 +21,12 @@ from typing import Any, NamedTuple, NoReturn
 
 import numpy as np
 
-from gt3dkit.api import load_detections, load_head, load_scene
+from gt3dkit.api import disagreeing_cameras, load_detections, load_head, load_scene, reconstruct
 from gt3dkit.calib.formats.native import cameras_doc, write as write_native
 from gt3dkit.commands.printing import IntoGiven, into_given
 from gt3dkit.errors import InputError
 from gt3dkit.fusion.base import REGISTRY
+from gt3dkit.fusion.preparation.associate import Association
 from gt3dkit.io.atomic import check_out
 from gt3dkit.io.clocks import CameraClocks, read_time_offsets
 from gt3dkit.io.datasets import ASSOCIATED, Calibration, detect_layout
@@ -33,6 +34,7 @@ from gt3dkit.jsondoc import json_list, json_num
 from gt3dkit.refine.boxpeople import BoxPeopleConfig, calibrate_boxes
 from gt3dkit.refine.clocks import Clocks
 from gt3dkit.refine.people import PeopleCalibration, PeopleConfig, calibrate_people
+from gt3dkit.refine.repose import correspondences, reposed
 from gt3dkit.synchronise import find_clocks
 from gt3dkit.types import (
     JsonDict,
@@ -111,7 +113,16 @@ def panoptic_options(args: argparse.Namespace, layout: str) -> JsonDict:
     return opts
 
 
-def load_input(args: argparse.Namespace, by_windows: bool = False, calib: str | None = None,
+def calibration_of(args: argparse.Namespace, calib: str | Calibration | None) -> str | Calibration | None:
+    """``calib`` (a path; None: beside the input) with ``--calib-units`` where given; a
+    :class:`Calibration` as it is."""
+    units = getattr(args, "calib_units", None)
+    if isinstance(calib, Calibration) or units is None:
+        return calib
+    return Calibration(calib, units)
+
+
+def load_input(args: argparse.Namespace, by_windows: bool = False, calib: str | Calibration | None = None,
                clocks: CameraClocks | None = None, head: Scene | None = None) -> Any:
     """The input of a command's ``args``, read and checked (:func:`gt3dkit.api.load_scene`);
     ``by_windows``: without its rows where its windows can read their own frames
@@ -131,8 +142,7 @@ def load_input(args: argparse.Namespace, by_windows: bool = False, calib: str | 
     segments: str | None = getattr(args, "segments", None)
     box_model = str(getattr(args, "box_model", "auto"))
 
-    units = getattr(args, "calib_units", None)
-    calib_spec = Calibration(calib, units) if units is not None else calib
+    calib_spec = calibration_of(args, calib)
 
     def read(on: CameraClocks | None) -> Scene:
         source = Path(args.input) if head is None else head
@@ -153,8 +163,8 @@ def load_input(args: argparse.Namespace, by_windows: bool = False, calib: str | 
     return scene
 
 
-def time_offsets(args: argparse.Namespace, calib: str | None, read: Callable[[CameraClocks], Scene],
-                 start: Clocks | None = None) -> CameraClocks | None:
+def time_offsets(args: argparse.Namespace, calib: str | Calibration | None,
+                 read: Callable[[CameraClocks], Scene], start: Clocks | None = None) -> CameraClocks | None:
     """``--time-offsets``: the file's clocks, or with ``auto`` each camera's clock found from the
     people in the input through its calibration (``calib`` in place of ``args.calib``; ``read``
     loads the input onto given clocks; ``start``: pairwise clocks already found;
@@ -184,13 +194,13 @@ def print_clocks(names: tuple[str, ...], late: np.ndarray, sd: np.ndarray, where
                       for n, d, s in zip(names, late, sd, strict=True)))
 
 
-def detections_input(args: argparse.Namespace, calib: str | None = None) -> Scene:
+def detections_input(args: argparse.Namespace, calib: str | Calibration | None = None) -> Scene:
     """The input of ``args`` as each camera's detections, with no identities across cameras
     (:func:`gt3dkit.api.load_detections`); ``calib``: this calibration's intrinsics in place of the
     input's."""
     layout = args.layout or detect_layout(Path(args.input))
-    return load_detections(Path(args.input), layout, args.skeleton, getattr(args, "fps", None), calib,
-                           **panoptic_options(args, layout))
+    return load_detections(Path(args.input), layout, args.skeleton, getattr(args, "fps", None),
+                           calibration_of(args, calib), **panoptic_options(args, layout))
 
 
 def people_rig(scene: Scene, cfg: PeopleConfig) -> PeopleCalibration:
@@ -242,6 +252,35 @@ def scene_from_people(args: argparse.Namespace) -> PeopleScene:
           f"{res.report['reprojection_median_px']:.2f} px; meta.json: calibration_from_people)")
     return PeopleScene(scene, {"calibration_from_people": {**res.report, "rig": cameras_doc(res.rig, None)}},
                        into_given(res.rig, det.rig))
+
+
+def with_reposed_cameras(args: argparse.Namespace, scene: Scene) -> tuple[Scene, JsonDict]:
+    """``--refine-calib``'s first step: each camera whose calibration fits no other camera's
+    (:func:`gt3dkit.api.disagreeing_cameras`: the association left all its detections out) posed
+    again on the people the others place (:mod:`gt3dkit.refine.repose`), and the input read again
+    on that rig (its views kept now); what was done, for ``meta.json``. The scene as it is where
+    no camera disagrees."""
+    assoc = scene.association
+    bad = [cam for cam, _ in disagreeing_cameras(assoc)] if isinstance(assoc, Association) else []
+    if not bad:
+        return scene, {}
+    first = reconstruct(scene, "ukf")
+    det = detections_input(args)
+    rig = scene.rig
+    report: JsonDict = {}
+    for name in bad:
+        X, uv = correspondences(det.obs, det.rig.index(name), first)
+        rig, found = reposed(rig, name, X, uv)
+        report[name] = found
+        was, now = json_num(found, "median_px_before") or 0.0, json_num(found, "median_px_after") or 0.0
+        print(f"camera {name} posed again on the people the others place: median {was:.1f} -> {now:.1f} px, "
+              f"focal {json_num(found, 'focal_px') or 0.0:.1f} px (meta.json: calibration_refinement)")
+    with tempfile.TemporaryDirectory() as tmp:
+        write_native(rig, Path(tmp) / "cameras.json", fps=None if scene.fps_assumed else scene.fps)
+        again = load_input(args, calib=Calibration(str(Path(tmp) / "cameras.json"), "m"))
+    # the input's own calibration recorded (the rig the run used goes to meta.json)
+    return (dataclasses.replace(again, load_options=scene.load_options, fps_assumed=scene.fps_assumed),
+            {"reposed_cameras": report})
 
 
 def clock(seconds: float) -> str:

@@ -22,6 +22,7 @@ from gt3dkit.commands.common import (
     estimator_config,
     load_input,
     scene_from_people,
+    with_reposed_cameras,
 )
 from gt3dkit.commands.printing import TruthTally, fmt_num, print_run, print_warnings, report_truth
 from gt3dkit.compare import compare
@@ -71,9 +72,11 @@ def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | 
                            and not args.refine_calib and args.every_frame is None)
     scene = with_clock_note(scene, args.estimator)
     if args.refine_calib:
+        given = rig_digest(scene.rig)
+        scene, reposed_doc = with_reposed_cameras(args, scene)
         res = refine(scene)
-        extra = {**(extra or {}), "calibration_refinement": {**res.report, "rig_sha256": {
-            "input": rig_digest(scene.rig), "refined": rig_digest(res.rig)},
+        extra = {**(extra or {}), "calibration_refinement": {**res.report, **reposed_doc, "rig_sha256": {
+            "input": given, "refined": rig_digest(res.rig)},
             "refined_rig": json.loads(json.dumps(cameras_doc(res.rig, None)))}}
         scene = dataclasses.replace(scene, rig=res.rig)
         refined = ", ".join(str(c) for c in json_list(res.report, "refined_cameras")) or "no camera"

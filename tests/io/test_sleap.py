@@ -5,6 +5,7 @@ other's."""
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,7 @@ import pytest
 
 from gt3dkit.api import load_scene, reconstruct
 from gt3dkit.calib.formats import toml as toml_fmt
+from gt3dkit.calib.formats.native import rig_of_doc
 from gt3dkit.cli import main
 from gt3dkit.io.datasets import Calibration
 from gt3dkit.io.datasets.sleap import side_pairs
@@ -175,3 +177,24 @@ def test_a_camera_whose_calibration_fits_no_other_is_named(tmp_path: Path) -> No
     scene = load_scene(tmp_path / "sleap")
     named = [w for w in scene.warnings if "calibration does not fit" in w]
     assert len(named) == 1 and named[0].startswith(f"camera {cams[2].name}:"), scene.warnings
+
+
+def test_refine_calib_poses_a_copied_camera_again(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--refine-calib`` on an input whose one camera carries another's pose: that camera posed
+    again on the people the others place, its views kept, the rig the run used in meta.json."""
+    sk = simulate_skeletons("native", seed=6, frames=40, people=1, cameras=4, noise_px=0.5, skeleton="coco17")
+    cams = list(sk.rig.cameras)
+    true = cams[2]
+    cams[2] = dataclasses.replace(cams[3], name=true.name)
+    _write_sleap(sk, tmp_path / "sleap")
+    toml_fmt.write(Rig(tuple(cams), up=sk.rig.up), tmp_path / "sleap" / "calibration.toml")
+    code, out, err = _run("reconstruct", str(tmp_path / "sleap"), "--out", str(tmp_path / "out"),
+                          "--refine-calib", "--quiet", capsys=capsys)
+    assert code == 0, err
+    assert f"camera {true.name} posed again" in out
+    meta = json.loads((tmp_path / "out" / "meta.json").read_text())
+    rig = rig_of_doc(meta["calibration_refinement"]["refined_rig"], "meta.json")
+    got = rig.cameras[rig.index(true.name)]
+    assert np.linalg.norm(got.center_world - true.center_world) < 0.05  # metres
+    assert abs(got.K[0, 0] / true.K[0, 0] - 1) < 0.05
+    assert meta["calibration_refinement"]["reposed_cameras"][true.name]["median_px_after"] < 2.0
