@@ -134,7 +134,16 @@ def main() -> int:
             used = rig_of_doc(meta["calibration_refinement"]["refined_rig"], "meta.json") if extra else rig
             runs[name] = (joints_of(out / "keypoints.csv", F, J), used, sec)
             summary(f"gt3dkit UKF, {name}", runs[name][0], uv, used, nodes, edges, sec)
-        ours, refined, sec = runs["--refine-calib"]
+        ours, refined, _ = runs["--refine-calib"]
+        # the estimate alone on the refined rig (what aniposelib is given below), timed
+        write_cameras(refined, 30.0, tmp)
+        t0 = time.perf_counter()
+        p = subprocess.run([GT3D, "reconstruct", str(folder), "--out", str(tmp / "on_refined"), "--calib",
+                            str(tmp / "cameras.json"), "--quiet"], capture_output=True, text=True)
+        sec = time.perf_counter() - t0
+        if p.returncode == 0:
+            ours = joints_of(tmp / "on_refined" / "keypoints.csv", F, J)
+            summary("gt3dkit UKF, the refined rig", ours, uv, refined, nodes, edges, sec)
 
         print("\n2. aniposelib triangulate + optim_points on the same labels and the refined calibration")
         if Path(args.peer).exists():
