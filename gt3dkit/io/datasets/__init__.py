@@ -15,7 +15,7 @@ from gt3dkit.calib.formats import detect_format, read_calibration
 from gt3dkit.calib.formats.grid import LAYOUTS as GRID_LAYOUTS
 from gt3dkit.calib.formats.native import FPS_RANGE
 from gt3dkit.errors import InputError
-from gt3dkit.io.datasets import mot, native, openpose, panoptic, sleap, tasks, wildtrack
+from gt3dkit.io.datasets import dlc, mot, native, openpose, panoptic, sleap, tasks, wildtrack
 from gt3dkit.rig import Rig
 from gt3dkit.types import GroundTruth, JsonDict, JsonValue, ReadAhead, Scene, SimScene, SkeletonScene
 
@@ -85,6 +85,8 @@ LAYOUTS: dict[str, Layout] = {v.name: v for v in (
            lambda root, o: tasks.load(root, "coco", o.skeleton, o.calib,
                                       o.fps), associated=True, skeletons=True),
     Layout("sleap", sleap.found, lambda root, o: sleap.load(root, o.calib, o.fps), associated=True),
+    Layout("dlc", dlc.found, lambda root, o: dlc.load(root, o.skeleton, o.calib, o.fps), associated=True,
+           skeletons=True),
     Layout("native", lambda root: (root / "cameras.json").exists(), lambda root, o: native.load(root,
                                                                                                 o.skeleton),
            write_boxes=native.write_boxes, write_keypoints=native.write_keypoints, skeletons=True),
@@ -110,7 +112,8 @@ def detect_layout(root: Path) -> str:
                                 "calibrations/intrinsic (MultiviewX) or "
                                 "calibration_<seq>.json (CMU Panoptic), mot/<camera>.txt "
                                 "(MOTChallenge per camera), <camera>_json/ (OpenPose), cvat/<camera>.xml, "
-                                "coco/<camera>.json or <camera>/*.analysis.h5 (SLEAP)")
+                                "coco/<camera>.json, <camera>/*.analysis.h5 (SLEAP) or DeepLabCut's CSV per "
+                                "camera")
 
 
 def with_calibration(scene: Scene, calib: Path | str) -> Scene:

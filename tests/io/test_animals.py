@@ -1,5 +1,5 @@
-"""Skeletons as data (issue 66): skeleton files, ``--skeleton FILE``, SLEAP's analysis files per
-camera, a calibration in millimetres (``--calib-units``) and a camera whose calibration fits no
+"""Skeletons as data (issue 66): skeleton files, ``--skeleton FILE``, SLEAP's analysis files and
+DeepLabCut's CSVs per camera, a calibration in millimetres (``--calib-units``) and a camera whose calibration fits no
 other's."""
 
 from __future__ import annotations
@@ -198,3 +198,77 @@ def test_refine_calib_poses_a_copied_camera_again(tmp_path: Path, capsys: pytest
     assert np.linalg.norm(got.center_world - true.center_world) < 0.05  # metres
     assert abs(got.K[0, 0] / true.K[0, 0] - 1) < 0.05
     assert meta["calibration_refinement"]["reposed_cameras"][true.name]["median_px_after"] < 2.0
+
+
+def _write_dlc(sk: SkeletonScene, root: Path, multi: bool = True) -> list[Path]:
+    """DeepLabCut CSVs of a simulated scene, one per camera (``video_<camera>DLC_<network>.csv``),
+    with the calibration beside them: every person an individual (a multi-animal project)."""
+    root.mkdir(parents=True)
+    toml_fmt.write(sk.rig, root / "calibration.toml")
+    parts = list(SKELETONS[sk.skeleton].joints)
+    ids = np.unique(sk.truth_id) if multi else np.unique(sk.truth_id)[:1]
+    out = []
+    for c, cam in enumerate(sk.rig.cameras):
+        path = root / f"video_{cam.name}DLC_resnet50_mouseJan1shuffle1_1000.csv"
+        rows = [["scorer"] + ["DLC_resnet50"] * (3 * len(parts) * len(ids))]
+        if multi:
+            rows.append(["individuals"] + [f"animal{i}" for i in range(len(ids)) for _ in parts
+                                           for _ in range(3)])
+        rows += [["bodyparts"] + [p for _ in ids for p in parts for _ in range(3)],
+                 ["coords"] + ["x", "y", "likelihood"] * (len(parts) * len(ids))]
+        for k, fr in enumerate(sk.frames):
+            row: list[object] = [k]
+            for i in ids:
+                m = np.flatnonzero((sk.truth_frame == fr) & (sk.truth_id == i))
+                for j in range(len(parts)):
+                    ok = len(m) and np.isfinite(sk.uv[m[0], c, j, 0])
+                    row += [f"{sk.uv[m[0], c, j, 0]:.3f}", f"{sk.uv[m[0], c, j, 1]:.3f}", "0.95"] if ok else \
+                        ["", "", ""]
+            rows.append(row)
+        path.write_text("\n".join(",".join(str(x) for x in r) for r in rows) + "\n")
+        out.append(path)
+    return out
+
+
+def _mpjpe_m(tracks: object, sk: SkeletonScene, frames_from_zero: bool) -> float:
+    """Median over the estimated people-frames of the mean joint distance to the nearest true
+    person (m)."""
+    err = []
+    for f in np.unique(tracks.frame):  # type: ignore[attr-defined]
+        est = tracks.kpt_world[tracks.frame == f]  # type: ignore[attr-defined]
+        tru = sk.kpt_world[sk.truth_frame == (sk.frames[f] if frames_from_zero else f)]
+        err.append(np.nanmean(np.linalg.norm(est[:, None] - tru[None], axis=-1), axis=2).min(axis=1))
+    return float(np.median(np.concatenate(err)))
+
+
+def test_deeplabcut_multi_animal_csvs_are_as_good_as_native_keypoints(tmp_path: Path) -> None:
+    sk = simulate_skeletons("native", seed=3, frames=20, people=3, cameras=4, noise_px=2.0, skeleton="coco17")
+    _write_dlc(sk, tmp_path / "dlc")
+    scene = load_scene(tmp_path / "dlc")
+    assert scene.layout == "dlc" and any("no bones" in w for w in scene.warnings)
+    dlc = reconstruct(scene, "ukf")
+    assert len(np.unique(dlc.track_id)) == 3
+    write_skeleton_scene(sk, tmp_path / "native", "native")
+    native = reconstruct(load_scene(tmp_path / "native"), "ukf")
+    # the native run ties the bones; DeepLabCut's CSV has none (its skeleton file gives them)
+    mine = _toml(tmp_path / "coco.toml", list(COCO17.joints), [list(b) for b in COCO17.bone_names])
+    with_bones = reconstruct(load_scene(tmp_path / "dlc", skeleton=str(mine)), "ukf")
+    assert _mpjpe_m(with_bones, sk, True) <= 1.1 * _mpjpe_m(native, sk, False)
+    assert _mpjpe_m(dlc, sk, True) < 0.01
+
+
+def test_a_deeplabcut_file_of_two_scorers_or_other_parts_is_refused(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    sk = simulate_skeletons("native", seed=3, frames=4, people=1, cameras=3, skeleton="coco17")
+    files = _write_dlc(sk, tmp_path / "dlc", multi=False)
+    text = files[1].read_text().splitlines()
+    text[0] = text[0].replace("DLC_resnet50", "DLC_mobnet", 3)
+    files[1].write_text("\n".join(text) + "\n")
+    code, _, err = _run("reconstruct", str(tmp_path / "dlc"), "--out", str(tmp_path / "out"), capsys=capsys)
+    assert code == 2 and err.startswith(f"error: {files[1]}: scorer: ") and err.count("\n") == 1, err
+    other = _toml(tmp_path / "other.toml", ["a", "b"], [["a", "b"]])
+    files[1].write_text("\n".join(text).replace("DLC_mobnet", "DLC_resnet50") + "\n")
+    code, _, err = _run("reconstruct", str(tmp_path / "dlc"), "--out", str(tmp_path / "out"), "--skeleton",
+                        str(other), capsys=capsys)
+    assert code == 2 and err.startswith("error: --skeleton: ") and "body parts" in err, err
+    assert not (tmp_path / "out").exists()

@@ -1,0 +1,207 @@
+"""DeepLabCut's 2D output as CSV, one file per camera (the ``*.csv`` DeepLabCut writes beside each
+analysed video, or ``save_as_csv``), with the calibration beside them::
+
+    calibration.toml                  # or any calibration format (--calib; --calib-units)
+    <video of camera back>DLC_<scorer>.csv
+    <video of camera mid>DLC_<scorer>.csv  ...
+
+A file is matched to the calibration camera whose name its file name holds (exactly one). Its
+header rows name the scorer, for a multi-animal project the ``individuals``, the ``bodyparts``
+and the ``coords`` (``x, y, likelihood``); each following row is a frame (its index first, or an
+image path of a labelled-data file, whose frame number is taken from the file name). Every file
+must name one scorer and the same body parts in the same order, else the error names the file.
+The body parts are the joints; the bones come from ``--skeleton FILE`` (a skeleton file whose
+joints are those body parts: DeepLabCut's ``config.yaml`` keeps its ``skeleton`` there), else
+there are none. A likelihood is read as the detector's confidence (above 1 read as 1, 0 or
+below left out, each said). Each camera's individuals are its own ids: the animals are found
+across cameras frame by frame (:func:`gt3dkit.fusion.preparation.detections.associate_detections`).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import re
+from pathlib import Path
+
+import numpy as np
+
+from gt3dkit.errors import InputError
+from gt3dkit.io.datasets.common import JointBlock, RowBuilder
+from gt3dkit.io.datasets.mot import calibration_beside
+from gt3dkit.io.skeletonfile import named_skeleton
+from gt3dkit.parse import read_hashed
+from gt3dkit.rig import Rig
+from gt3dkit.skeletons import Skeleton
+from gt3dkit.types import JsonDict, Scene
+
+DEFAULT_FPS = 30.0
+#: header rows of a DeepLabCut CSV (single animal; a multi-animal one has ``individuals`` too)
+HEADER = ("scorer", "bodyparts", "coords")
+
+
+def is_dlc_csv(path: Path) -> bool:
+    """A CSV whose first cell is DeepLabCut's ``scorer``."""
+    try:
+        with open(path, encoding="utf-8-sig") as f:
+            return f.readline().split(",", 1)[0].strip() == "scorer"
+    except (OSError, UnicodeDecodeError):
+        return False
+
+
+def found(root: Path) -> bool:
+    return any(is_dlc_csv(p) for p in root.glob("*.csv"))
+
+
+def camera_files(root: Path, rig: Rig) -> dict[str, Path]:
+    """Camera name -> its DeepLabCut CSV: the one file whose name holds the camera's name."""
+    files = [p for p in sorted(root.glob("*.csv")) if is_dlc_csv(p)]
+    out: dict[str, Path] = {}
+    for cam in rig.names:
+        mine = [p for p in files if re.search(rf"(?<![A-Za-z0-9]){re.escape(cam)}(?![A-Za-z0-9])", _video(p))]
+        if len(mine) > 1:
+            raise InputError(str(mine[1]), f"a second DeepLabCut file for camera {cam} "
+                                           f"(first: {mine[0].name})")
+        if mine:
+            out[cam] = mine[0]
+    loose = [p for p in files if p not in out.values()]
+    if loose:
+        raise InputError(str(loose[0]), f"its name holds no calibrated camera's ({', '.join(rig.names)})")
+    return out
+
+
+def _video(path: Path) -> str:
+    """The video's name in a DeepLabCut file's name (``<video>DLC_<network>...``)."""
+    return path.stem.split("DLC_", 1)[0]
+
+
+class DlcFile:
+    """One DeepLabCut CSV read: ``frames (F,)``, ``individuals``, ``bodyparts``, ``uv (F, I, J, 2)``
+    (NaN: not found) and ``likelihood (F, I, J)``."""
+
+    def __init__(self, path: Path) -> None:
+        raw, self.digest = read_hashed(path)
+        rows = list(csv.reader(io.StringIO(raw.decode("utf-8-sig"))))
+        names = [r[0].strip() if r else "" for r in rows[:4]]
+        multi = names[:4] == ["scorer", "individuals", "bodyparts", "coords"]
+        if not multi and names[:3] != list(HEADER):
+            raise InputError(str(path), "not a DeepLabCut CSV (header rows scorer, [individuals,] bodyparts, "
+                                        f"coords; got {names[:3]})")
+        head = rows[:4] if multi else rows[:3]
+        n_index = next((k for k, v in enumerate(head[-1]) if v.strip() in ("x", "y", "likelihood")), 1)
+        cols = [[c.strip() for c in r[n_index:]] for r in head]
+        scorers = set(cols[0])
+        if len(scorers) != 1:
+            named = ", ".join(sorted(scorers))
+            raise InputError(f"{path}: scorer", f"columns of {len(scorers)} scorers ({named}): one file "
+                                                "is one network's output")
+        coords = cols[-1]
+        if len(coords) % 3 or coords != ["x", "y", "likelihood"] * (len(coords) // 3):
+            raise InputError(f"{path}: coords", "expected x, y, likelihood for every body part")
+        parts = cols[-2][::3]
+        inds = cols[1][::3] if multi else ["single"] * len(parts)
+        self.individuals = list(dict.fromkeys(inds))
+        self.bodyparts = list(dict.fromkeys(parts))
+        key = {(i, b): k for k, (i, b) in enumerate(zip(inds, parts, strict=True))}
+        if len(key) != len(parts):
+            raise InputError(f"{path}: bodyparts", "a body part named twice for one individual")
+        body = [r for r in rows[len(head):] if r and any(x.strip() for x in r)]
+        F, I, J = len(body), len(self.individuals), len(self.bodyparts)
+        vals = np.full((F, len(parts) * 3), np.nan)
+        frames = np.zeros(F, np.int64)
+        for n, r in enumerate(body):
+            where = f"{path}: line {len(head) + n + 1}"
+            frames[n] = _frame_of(where, r[:n_index])
+            if len(r) - n_index != len(parts) * 3:
+                raise InputError(where, f"expected {len(parts) * 3} values after the index, "
+                                        f"got {len(r) - n_index}")
+            try:
+                vals[n] = [float(x) if x.strip() else np.nan for x in r[n_index:]]
+            except ValueError:
+                raise InputError(where, "a value is not a number") from None
+        self.frames = frames
+        self.uv = np.full((F, I, J, 2), np.nan)
+        self.likelihood = np.full((F, I, J), np.nan)
+        for (i, b), k in key.items():
+            ii, jj = self.individuals.index(i), self.bodyparts.index(b)
+            self.uv[:, ii, jj] = vals[:, 3 * k:3 * k + 2]
+            self.likelihood[:, ii, jj] = vals[:, 3 * k + 2]
+
+
+def _frame_of(where: str, index: list[str]) -> int:
+    """The frame of a row: its integer index, or the number in an image file name
+    (``labeled-data/video/img0042.png``)."""
+    text = index[-1].strip() if index else ""
+    if re.fullmatch(r"\d+", text):
+        return int(text)
+    m = re.findall(r"(\d+)", Path(text).stem)
+    if not m:
+        raise InputError(where, f"no frame number in {text!r}")
+    return int(m[-1])
+
+
+def load(root: Path, skeleton: str | None = None, calib: Path | str | None = None,
+         fps: float | None = None) -> Scene:
+    root = Path(root)
+    rig, fps_doc, cal = calibration_beside(root, calib)
+    files = camera_files(root, rig)
+    if not files:
+        raise InputError(str(root), "no DeepLabCut CSV (a file whose first cell is 'scorer')")
+    read = {cam: DlcFile(p) for cam, p in files.items()}
+    first_cam = next(iter(read))
+    parts = read[first_cam].bodyparts
+    for cam, f in read.items():
+        if f.bodyparts != parts:
+            raise InputError(str(files[cam]), f"its body parts differ from {files[first_cam].name}'s")
+    skel = _skeleton(parts, skeleton)
+    rb = RowBuilder(n_joints=len(parts))
+    above = dropped = 0
+    for cam, f in read.items():
+        c = rig.index(cam)
+        like = np.where(np.isfinite(f.likelihood), f.likelihood, 1.0)
+        labelled = np.isfinite(f.uv).all(axis=-1)
+        dropped += int(np.sum(labelled & (like <= 0)))
+        above += int(np.sum(labelled & (like > 1)))
+        seen = labelled & (like > 0)
+        fr, ind, j = np.nonzero(seen)
+        if len(fr):
+            rb.add_joint_block(JointBlock(f.frames[fr], np.full(len(fr), c, np.int64), ind.astype(np.int64),
+                                          j.astype(np.int64), f.uv[fr, ind, j],
+                                          np.minimum(like[fr, ind, j], 1.0), np.zeros(len(fr), np.int64),
+                                          str(files[cam])))
+    obs = rb.build()
+    if len(obs) == 0:
+        raise InputError(str(root), "no body part found in any DeepLabCut file")
+    warnings = []
+    if above:
+        warnings.append(f"{above} DeepLabCut likelihoods above 1 read as 1")
+    if dropped:
+        warnings.append(f"{dropped} body parts of likelihood 0 or below left out")
+    if not skel.bone_names:
+        warnings.append("no bones: DeepLabCut's CSV names body parts only (give them with --skeleton FILE)")
+    rate = fps or fps_doc
+    digests = {str(p.relative_to(root)): read[c].digest for c, p in files.items()}
+    doc: JsonDict = skel.doc()
+    return Scene(rig=rig, obs=obs, layout="dlc", fps=float(rate or DEFAULT_FPS), frames=np.unique(obs.frame),
+                 skeleton=skel.name, skeleton_doc=doc, root=str(root), warnings=tuple(warnings),
+                 files={f"calibration:{cal.name}": "folder" if cal.is_dir() else read_hashed(cal)[1],
+                        **digests},
+                 fps_assumed="" if rate else f"{cal.name} and DeepLabCut's files give no frame rate",
+                 association="detections")
+
+
+def _skeleton(parts: list[str], skeleton: str | None) -> Skeleton:
+    """The body parts as a skeleton: ``--skeleton``'s (its joints those parts, in any order), else
+    the parts without bones."""
+    if skeleton is None:
+        return Skeleton("dlc", tuple(parts), ())
+    sk = named_skeleton(skeleton)
+    if set(sk.joints) != set(parts):
+        raise InputError("--skeleton", f"its joints ({', '.join(sk.joints)}) are not DeepLabCut's body parts "
+                                       f"({', '.join(parts)})")
+    if list(sk.joints) != parts:  # reordered as the files hold them
+        order = {j: k for k, j in enumerate(sk.joints)}
+        sk = Skeleton(sk.name, tuple(parts), sk.bone_names, tuple(sk.labels[order[p]] for p in parts)
+                      if sk.labels else (), 0, sk.pairs,
+                      tuple(sk.pose[order[p]] for p in parts) if sk.pose else ())
+    return sk
