@@ -1,6 +1,6 @@
 """Skeletons as data (issue 66): skeleton files, ``--skeleton FILE``, SLEAP's analysis files and
-DeepLabCut's CSVs per camera, a calibration in millimetres (``--calib-units``) and a camera whose calibration fits no
-other's."""
+DeepLabCut's CSVs per camera, a calibration in millimetres (``--calib-units``) and a camera whose
+calibration fits no other's."""
 
 from __future__ import annotations
 
