@@ -42,7 +42,6 @@ from gt3dkit.arrays import lookup_rows
 from gt3dkit.geom.camera import project_points
 from gt3dkit.geom.conics import covered_fraction, cut_edges, model_boxes
 from gt3dkit.qa.view import ExchangeView, PreparedView, RowsView, SplitView
-from gt3dkit.skeletons import skeleton_of
 from gt3dkit.types import BOX_EDGES, F64, Scene, TrackSet
 
 
@@ -320,7 +319,7 @@ def _keypoints(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QAConfig,
                out: list[AnomalyRow]) -> None:
     rows, cams = pre.rows, pre.cams
     names = scene.rig.names
-    skel = skeleton_of(scene)
+    skel = pre.skeleton  # the preparation's (the scene's own, or the one its joints' count names)
     joints = skel.joints if skel is not None else ()
     ix = {j: i for i, j in enumerate(joints)}
     pairs = [(ix[a], ix[b]) for a, b in skel.left_right] if skel is not None else []

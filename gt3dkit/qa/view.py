@@ -9,6 +9,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from gt3dkit.geom.camera import Cams
+from gt3dkit.skeletons import Skeleton
 from gt3dkit.types import F64, I64
 
 
@@ -76,6 +77,9 @@ class PreparedView(Protocol):
 
     @property
     def box_cut_by(self) -> np.ndarray | None: ...  # (R, C, 4) the row of a nearer object each lies in
+
+    @property
+    def skeleton(self) -> Skeleton | None: ...  # the joints' skeleton (None without keypoints)
 
 
 class SplitView(Protocol):
