@@ -597,4 +597,6 @@ class SkeletonScene:
     kpt_world: F64
     uv: F64
     conf: F64 | None = None  # (M, C, J) detector confidence, None = not written
+    #: a skeleton a file describes (``Skeleton.doc``), None: the built-in ``skeleton`` names
+    skeleton_doc: JsonDict | None = None
     injected: tuple[tuple[int, str, int, str, str, str], ...] = ()

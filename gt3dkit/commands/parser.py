@@ -142,7 +142,9 @@ def _add_simulate(sub: argparse._SubParsersAction[Parser], common: Parser) -> No
                    help="skeletons: write a detector confidence per keypoint")
     s.add_argument("--missing", type=number_type(float, 0, 1, hi_open=True),
                    help="skeleton scenes: fraction of 2D points dropped at random (default 0.05)")
-    s.add_argument("--skeleton", choices=sorted(SKELETONS), help="skeleton scenes (default coco19)")
+    s.add_argument("--skeleton", metavar="NAME|FILE",
+                   help="skeleton scenes: a built-in (default coco19) or a skeleton file with a [pose] (an "
+                        "animal, a hand; native layout)")
     s.add_argument("--lens", choices=LENSES, default="pinhole",
                    help="the cameras' lenses: pinhole, or fisheye (wide, OpenCV's fisheye model; native "
                         "layout)")

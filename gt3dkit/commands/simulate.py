@@ -13,6 +13,7 @@ from gt3dkit.commands.common import (
 )
 from gt3dkit.errors import InputError
 from gt3dkit.io.clocks import CameraClocks
+from gt3dkit.io.skeletonfile import named_skeleton
 from gt3dkit.sim import (
     Errors,
     simulate,
@@ -23,7 +24,7 @@ from gt3dkit.sim import (
     write_scene,
     write_skeleton_scene,
 )
-from gt3dkit.skeletons import DETECTOR_SKELETONS, SKELETONS
+from gt3dkit.skeletons import DETECTOR_SKELETONS
 
 
 def _errors(args: argparse.Namespace) -> Any:
@@ -133,7 +134,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     args.skeleton = args.skeleton or "coco19"
     errors = _errors(args)
     cams = args.cameras or (10 if args.kind == "skeleton" else 6)
-    per = SKELETONS[args.skeleton].n_joints if args.kind == "skeleton" else 1
+    per = named_skeleton(args.skeleton).n_joints if args.kind == "skeleton" else 1
     size = args.frames * args.people * cams * per
     if size > SIM_MAX_POINTS:
         raise InputError("--frames/--people/--cameras",

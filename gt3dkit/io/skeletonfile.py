@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 from gt3dkit.errors import InputError
@@ -37,3 +38,20 @@ def read_skeleton(path: Path) -> Skeleton:
     if "name" not in doc:
         doc = {**doc, "name": path.stem}
     return skeleton_from_doc(doc, str(path))
+
+
+def write_skeleton(skel: Skeleton, path: Path) -> None:
+    """``skel`` as a skeleton file (:func:`read_skeleton` reads it back)."""
+    def names(xs: tuple[str, ...] | list[str]) -> str:
+        return "[" + ", ".join(json.dumps(x) for x in xs) + "]"
+
+    lines = [f"name = {json.dumps(skel.name)}", f"joints = {names(skel.joints)}",
+             "bones = [" + ", ".join(names(b) for b in skel.bone_names) + "]",
+             "pairs = [" + ", ".join(names(p) for p in skel.left_right) + "]"]
+    if skel.labels:
+        lines.append(f"labels = {names(skel.labels)}")
+    if skel.pose:
+        lines.append("\n[pose]")
+        lines += [f"{json.dumps(j)} = [{x!r}, {y!r}, {z!r}]" for j, (x, y, z) in zip(skel.joints, skel.pose,
+                                                                                     strict=True)]
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")

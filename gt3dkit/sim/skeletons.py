@@ -12,8 +12,9 @@ import numpy as np
 from gt3dkit.geom.camera import project_points
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.datasets import LAYOUTS, openpose, tasks
+from gt3dkit.io.skeletonfile import named_skeleton
 from gt3dkit.sim.common import DROPPED_KEYPOINTS, Errors, gap_mask, keep_one_view, with_lens, write_injected
-from gt3dkit.skeletons import SKELETONS
+from gt3dkit.skeletons import SKELETONS, Skeleton
 from gt3dkit.types import F64, I64, Camera, Rig, SkeletonScene
 
 
@@ -54,10 +55,14 @@ def _rot(axis: F64, ang: F64) -> F64:
     return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * (K @ K)
 
 
-def skeleton_motion(skel_name: str, t_s: F64, rng: np.random.Generator) -> F64:
+def skeleton_motion(skeleton: str | Skeleton, t_s: F64, rng: np.random.Generator) -> F64:
     """(T, J, 3) body-frame joints of one person: canonical pose scaled, limbs swinging
-    about their parent joints (bone lengths exact), turning and walking slowly."""
-    skel = SKELETONS[skel_name]
+    about their parent joints (bone lengths exact), turning and walking slowly. A skeleton a file
+    describes (:func:`gt3dkit.io.skeletonfile.read_skeleton`, its ``[pose]`` given) moves as
+    :func:`any_motion` moves it."""
+    skel = skeleton if isinstance(skeleton, Skeleton) else SKELETONS[skeleton]
+    if SKELETONS.get(skel.name) != skel:
+        return any_motion(skel, t_s, rng)
     names = skel.joints
     ix = {n: i for i, n in enumerate(names)}
     base = skel.canonical() * rng.uniform(0.9, 1.1)
@@ -88,6 +93,51 @@ def skeleton_motion(skel_name: str, t_s: F64, rng: np.random.Generator) -> F64:
     return P
 
 
+def any_motion(skel: Skeleton, t_s: F64, rng: np.random.Generator) -> F64:
+    """(T, J, 3) body-frame joints of any skeleton with a canonical ``pose`` (an animal, a hand):
+    the pose scaled, every bone swinging about its parent joint (the bones from the first joint
+    outwards, each turning its part of the skeleton: bone lengths exact), the body turning and
+    moving slowly over the floor."""
+    if not skel.pose:
+        raise ValueError(f"skeleton {skel.name}: a [pose] (each joint's place, m) is needed to simulate it")
+    base = skel.canonical() * rng.uniform(0.9, 1.1)
+    T, J = len(t_s), skel.n_joints
+    P = np.repeat(base[None], T, axis=0)
+    parent = np.full(J, -1)
+    order, seen = [0], {0}
+    for j in order:  # breadth first over the bones
+        for a, b in skel.bones:
+            k = b if a == j else a if b == j else -1
+            if k >= 0 and k not in seen:
+                parent[k] = j
+                seen.add(k)
+                order.append(int(k))
+    child_of = {j: [k for k in range(J) if parent[k] == j] for j in range(J)}
+
+    def part(j: int) -> list[int]:
+        out, todo = [], [j]
+        while todo:
+            k = todo.pop()
+            out.append(k)
+            todo += child_of[k]
+        return out
+
+    size = float(np.ptp(base, axis=0).max()) or 1.0
+    for j in order[1:]:
+        p = parent[j]
+        bone = base[j] - base[p]
+        axis = np.cross(bone, rng.normal(size=3))
+        axis /= np.linalg.norm(axis) or 1.0
+        swing = rng.uniform(0.1, 0.3) * np.sin(rng.uniform(1.0, 3.0) * t_s + rng.uniform(0, 2 * np.pi))
+        R = _rot(axis, swing)
+        sub = part(j)
+        P[:, sub] = P[:, p, None] + np.einsum("tij,tkj->tki", R, P[:, sub] - P[:, p, None])
+    yaw = rng.uniform(0, 2 * np.pi) + rng.uniform(-0.4, 0.4) * np.sin(0.5 * t_s)
+    P = np.einsum("tij,tkj->tki", _rot(np.array([0.0, 0.0, 1.0]), yaw), P)
+    P[..., :2] += 2 * size * np.stack([np.sin(0.4 * t_s + rng.uniform(0, 6)), np.cos(0.3 * t_s)], -1)[:, None]
+    return P
+
+
 def simulate_skeletons(layout: str = "native", seed: int = 0, frames: int = 30, people: int = 3,
                        noise_px: float = 0.0, cameras: int = 10,
                        skeleton: str = "coco19", fps: float = 30.0, errors: Errors | None = None,
@@ -114,6 +164,8 @@ def simulate_skeletons(layout: str = "native", seed: int = 0, frames: int = 30, 
                          "layout's loader makes its own 2D points)")
     if frames < 2 or people < 1 or cameras < 2 or not noise_px >= 0:
         raise ValueError("need frames >= 2, people >= 1, cameras >= 2, noise_px >= 0")
+    skel = named_skeleton(skeleton)  # a built-in, or a skeleton file (with its [pose])
+    custom = SKELETONS.get(skel.name) != skel
     rng = np.random.default_rng(seed)
     up = np.array([0.0, -1.0, 0.0])
     names = [f"00_{i:02d}" for i in range(cameras)]
@@ -129,7 +181,7 @@ def simulate_skeletons(layout: str = "native", seed: int = 0, frames: int = 30, 
     wfb = rig.world_from_body()
     kpts, fr, ids = [], [], []
     for pid in range(people):
-        body = skeleton_motion(skeleton, t_s, rng)
+        body = skeleton_motion(skel, t_s, rng)
         body[..., :2] += np.array([1.2 * np.cos(2 * np.pi * pid / people),
                                    1.2 * np.sin(2 * np.pi * pid / people)]) * (people > 1)
         kpts.append(np.einsum("ij,tkj->tki", wfb, body).reshape(cameras + 1, frames, -1, 3))
@@ -147,15 +199,16 @@ def simulate_skeletons(layout: str = "native", seed: int = 0, frames: int = 30, 
     ok &= rng.uniform(size=ok.shape) >= missing
     uv = np.swapaxes(np.where(ok[..., None], uv, np.nan), 1, 2)  # (M, C, J, 2)
     truth_frame, truth_id = np.concatenate(fr), np.concatenate(ids)
-    uv, conf, injected = detector_errors(uv, rig, skeleton, truth_frame, truth_id, frame_numbers,
+    uv, conf, injected = detector_errors(uv, rig, skel, truth_frame, truth_id, frame_numbers,
                                           errors, np.random.default_rng([seed, 1]),
                                           np.swapaxes(depth, 1, 2), noise_px)
-    return SkeletonScene(rig=rig, frames=frame_numbers, fps=fps, skeleton=skeleton,
+    return SkeletonScene(rig=rig, frames=frame_numbers, fps=fps, skeleton=skel.name,
+                         skeleton_doc=skel.doc() if custom else None,
                          truth_frame=truth_frame, truth_id=truth_id, kpt_world=X, uv=uv,
                          conf=conf if confidences else None, injected=tuple(injected))
 
 
-def detector_errors(uv: F64, rig: Rig, skeleton: str, truth_frame: I64, truth_id: I64,
+def detector_errors(uv: F64, rig: Rig, skeleton: str | Skeleton, truth_frame: I64, truth_id: I64,
                      frames: I64, errors: Errors, rng: np.random.Generator,
                      depth_m: F64 | None = None, noise_px: float = 0.0
                      ) -> tuple[F64, F64, list[tuple[int, str, int, str, str, str]]]:
@@ -181,9 +234,9 @@ def detector_errors(uv: F64, rig: Rig, skeleton: str, truth_frame: I64, truth_id
         seen &= sv[..., None]
         injected += [(-1, "", p, "", "single_view", "detected in one camera only") for p in chosen]
     if errors.swaps:
-        joints = SKELETONS[skeleton].joints
-        pairs = [(joints.index(a), joints.index("r_" + a[2:])) for a in joints
-                 if a.startswith("l_") and "r_" + a[2:] in joints]
+        skel = skeleton if isinstance(skeleton, Skeleton) else SKELETONS[skeleton]
+        joints = skel.joints
+        pairs = [(joints.index(a), joints.index(b)) for a, b in skel.left_right]
         swapped = np.argwhere(seen.any(axis=2) & (rng.uniform(size=(M, C)) < errors.swaps))
         for m, c in swapped:
             a, b = pairs[int(rng.integers(len(pairs)))]

@@ -15,6 +15,7 @@ from gt3dkit.api import load_scene, reconstruct
 from gt3dkit.calib.formats import toml as toml_fmt
 from gt3dkit.calib.formats.native import rig_of_doc
 from gt3dkit.cli import main
+from gt3dkit.eval.pose import mpjpe_by_id
 from gt3dkit.io.datasets import Calibration
 from gt3dkit.io.datasets.sleap import side_pairs
 from gt3dkit.io.skeletonfile import read_skeleton
@@ -272,3 +273,51 @@ def test_a_deeplabcut_file_of_two_scorers_or_other_parts_is_refused(
                         str(other), capsys=capsys)
     assert code == 2 and err.startswith("error: --skeleton: ") and "body parts" in err, err
     assert not (tmp_path / "out").exists()
+
+
+MOUSE = '''name = "mouse"
+joints = ["nose", "ear_l", "ear_r", "head", "neck", "trunk", "hip_l", "hip_r", "tail_0", "tail_1", "tail_tip"]
+bones = [["nose", "head"], ["head", "ear_l"], ["head", "ear_r"], ["head", "neck"], ["neck", "trunk"],
+         ["trunk", "hip_l"], ["trunk", "hip_r"], ["trunk", "tail_0"], ["tail_0", "tail_1"],
+         ["tail_1", "tail_tip"]]
+pairs = [["ear_l", "ear_r"], ["hip_l", "hip_r"]]
+
+[pose]
+nose = [0.0, 0.05, 0.02]
+ear_l = [0.008, 0.035, 0.03]
+ear_r = [-0.008, 0.035, 0.03]
+head = [0.0, 0.035, 0.025]
+neck = [0.0, 0.02, 0.025]
+trunk = [0.0, -0.01, 0.03]
+hip_l = [0.012, -0.035, 0.02]
+hip_r = [-0.012, -0.035, 0.02]
+tail_0 = [0.0, -0.045, 0.015]
+tail_1 = [0.0, -0.07, 0.01]
+tail_tip = [0.0, -0.1, 0.005]
+'''
+
+
+def test_a_skeleton_file_is_simulated_and_reconstructed(tmp_path: Path, capsys: pytest.CaptureFixture[str]
+                                                        ) -> None:
+    """Mice from a skeleton file with a pose: simulated (the bones swinging, their lengths exact),
+    written as a native folder that names its skeleton file, reconstructed within millimetres."""
+    path = tmp_path / "mouse.toml"
+    path.write_text(MOUSE)
+    sk = simulate_skeletons("native", seed=2, frames=20, people=2, cameras=5, noise_px=1.0,
+                            skeleton=str(path))
+    assert sk.skeleton == "mouse" and sk.skeleton_doc is not None
+    bones = read_skeleton(path).bones
+    lengths = np.linalg.norm(sk.kpt_world[:, bones[:, 0]] - sk.kpt_world[:, bones[:, 1]], axis=-1)
+    per_mouse = [lengths[sk.truth_id == i] for i in np.unique(sk.truth_id)]
+    assert max(float(np.ptp(v, axis=0).max()) for v in per_mouse) < 1e-9  # each bone one length
+    write_skeleton_scene(sk, tmp_path / "in", "native")
+    assert (tmp_path / "in" / "skeleton.toml").is_file()
+    scene = load_scene(tmp_path / "in")
+    assert scene.skeleton == "mouse" and scene.truth is not None
+    tracks = reconstruct(scene, "ukf")
+    assert mpjpe_by_id(tracks, scene.truth)[0] < 3.0  # mm
+    bad = tmp_path / "posed_not.toml"
+    bad.write_text(MOUSE.split("[pose]")[0])
+    code, _, err = _run("simulate", "--kind", "skeleton", "--skeleton", str(bad), "--out",
+                        str(tmp_path / "x"), capsys=capsys)
+    assert code == 2 and "[pose]" in err and err.count("\n") == 1, err

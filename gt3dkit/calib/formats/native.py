@@ -61,8 +61,10 @@ def rig_of_doc(doc: JsonValue, path: Path | str) -> Rig:
 
 def _skeleton_of(doc: JsonDict, path: Path) -> str | None:
     skel = doc.get("skeleton")
-    if skel is not None and (not isinstance(skel, str) or skel not in SKELETONS):
-        raise InputError(str(path), f"unknown skeleton {skel!r} (known: {', '.join(SKELETONS)})")
+    known = isinstance(skel, str) and (skel in SKELETONS or skel.endswith(".toml"))
+    if skel is not None and not known:
+        raise InputError(str(path), f"unknown skeleton {skel!r} (known: {', '.join(SKELETONS)}; or a "
+                                    "skeleton file beside it, .toml)")
     return skel if skel is None else str(skel)
 
 

@@ -39,7 +39,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.checks import FAR_IMAGES, check_pixels
 from gt3dkit.io.datasets.common import BoxBlock, JointBlock, RowBuilder
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
-from gt3dkit.io.skeletonfile import named_skeleton
+from gt3dkit.io.skeletonfile import named_skeleton, write_skeleton
 from gt3dkit.parse import (
     FRAME_MAX,
     ID_MAX,
@@ -53,7 +53,7 @@ from gt3dkit.parse import (
     read_hashed,
     sha256,
 )
-from gt3dkit.skeletons import SKELETONS, skeleton_for
+from gt3dkit.skeletons import SKELETONS, skeleton_for, skeleton_from_doc
 from gt3dkit.types import F64, MAX_WORLD_M, GroundTruth, Origins, Rig, Scene, SimScene, SkeletonScene
 
 BOX_COLUMNS = ("frame", "camera", "id", "xmin", "ymin", "xmax", "ymax")
@@ -65,6 +65,8 @@ MAX_CONFIDENCE = 2.0
 #: keypoints.csv rows parsed and checked at once (:func:`_checked_keypoints`)
 KEYPOINT_BLOCK_ROWS = 65536
 
+#: the skeleton file a simulated native folder of a described skeleton holds (cameras.json names it)
+SKELETON_FILE = "skeleton.toml"
 
 def camera_index(rig: Rig, name: str, where: str) -> int:
     try:
@@ -91,9 +93,10 @@ def _load(root: Path, skeleton: str | None, stack: contextlib.ExitStack) -> Scen
     kpt_path = root / "keypoints.csv"
     has_kpts = False
     skel_name = skeleton or skel_doc
-    described = None  # a skeleton file's (--skeleton FILE)
+    described = None  # a skeleton file's (--skeleton FILE, or the file cameras.json names beside it)
     if skel_name is not None and skel_name not in SKELETONS:
-        described = named_skeleton(skel_name)
+        beside = root / skel_name if skeleton is None else None
+        described = named_skeleton(str(beside) if beside is not None and beside.is_file() else skel_name)
         skel_name = described.name
     kpt_cols: tuple[str, ...] = KPT_COLUMNS
     kpts: HashedFile | None = None
@@ -403,8 +406,11 @@ def write_boxes(sim: SimScene, tmp: Path, id_seed: int | None = None) -> None:
 def write_keypoints(sim: SkeletonScene, tmp: Path) -> None:
     """A simulated skeleton scene as a native folder ``tmp`` (``cameras.json``,
     ``keypoints.csv``, ``truth_keypoints.csv``), read by :func:`load`."""
-    doc = cameras_doc(sim.rig, sim.fps, skeleton=sim.skeleton, units="m",
-                      frame="synthetic y-down world")
+    skeleton = sim.skeleton
+    if sim.skeleton_doc is not None:  # a skeleton a file describes: the file beside, named by cameras.json
+        write_skeleton(skeleton_from_doc(sim.skeleton_doc, sim.skeleton), tmp / SKELETON_FILE)
+        skeleton = SKELETON_FILE
+    doc = cameras_doc(sim.rig, sim.fps, skeleton=skeleton, units="m", frame="synthetic y-down world")
     (tmp / "cameras.json").write_text(json.dumps(doc, indent=1))
     with open(tmp / "keypoints.csv", "w", newline="") as f:
         w = csv.writer(f)
