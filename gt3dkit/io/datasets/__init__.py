@@ -84,9 +84,6 @@ LAYOUTS: dict[str, Layout] = {v.name: v for v in (
     Layout("coco", lambda root: (root / "coco").is_dir(),
            lambda root, o: tasks.load(root, "coco", o.skeleton, o.calib,
                                       o.fps), associated=True, skeletons=True),
-    Layout("sleap", sleap.found, lambda root, o: sleap.load(root, o.calib, o.fps), associated=True),
-    Layout("dlc", dlc.found, lambda root, o: dlc.load(root, o.skeleton, o.calib, o.fps), associated=True,
-           skeletons=True),
     Layout("native", lambda root: (root / "cameras.json").exists(), lambda root, o: native.load(root,
                                                                                                 o.skeleton),
            write_boxes=native.write_boxes, write_keypoints=native.write_keypoints, skeletons=True),
@@ -94,6 +91,10 @@ LAYOUTS: dict[str, Layout] = {v.name: v for v in (
     _grid("multiviewx"),
     Layout("panoptic", lambda root: any(root.glob("calibration_*.json")),
            lambda root, o: panoptic.load_with(root, o.panoptic), write_keypoints=panoptic.write),
+    # last: DeepLabCut's test opens files (a CSV's first cell) that no layout above needs opened
+    Layout("sleap", sleap.found, lambda root, o: sleap.load(root, o.calib, o.fps), associated=True),
+    Layout("dlc", dlc.found, lambda root, o: dlc.load(root, o.skeleton, o.calib, o.fps), associated=True,
+           skeletons=True),
 )}
 #: layouts whose ids are per camera or absent: association makes people of them
 ASSOCIATED = tuple(k for k, v in LAYOUTS.items() if v.associated)
