@@ -146,6 +146,46 @@ def write_trc(res: Result, folder: Path) -> JsonDict:
             "(OpenSim): trc = R @ world", "R": R.tolist(), "first_frame": int(grid[0])}
 
 
+def write_anipose(res: Result, folder: Path) -> JsonDict:
+    """anipose's ``points3d`` CSV (``anipose triangulate``'s output, which its downstream tools
+    read): a row per frame, per joint ``{joint}_x, _y, _z`` (m), ``_error`` (empty: the run keeps
+    no per-joint reprojection), ``_ncams`` (the cameras that saw the object in that frame;
+    empty where the run wrote none), ``_score`` (1 where estimated, 0 where not), then ``M_00 ..
+    M_22`` (the identity: the world is gt3dkit's), ``center_0 .. 2`` (0) and ``fnum``; one file
+    per id (``points3d.csv`` for one)."""
+    tr = res.tracks
+    if not tr.kpt_world.shape[1]:
+        raise InputError("--format", "anipose's points3d holds joints: this run has none")
+    names, grid, X, _, owner = markers(res)
+    ids = sorted(set(owner))
+    views = np.zeros((len(ids), len(grid)))
+    t = np.searchsorted(grid, tr.frame)
+    views[np.searchsorted(np.array(ids), tr.track_id), t] = tr.n_views
+    joints = list(res.marker_names)
+    files = []
+    for k, i in enumerate(ids):
+        cols = [m for m, o in enumerate(owner) if o == i]
+        head = [f"{j}_{c}" for j in joints for c in ("x", "y", "z", "error", "ncams", "score")]
+        head += [f"M_{a}{b}" for a in range(3) for b in range(3)]
+        head += [f"center_{a}" for a in range(3)] + ["fnum"]
+        lines = [",".join(head)]
+        for n in range(len(grid)):
+            row: list[str] = []
+            for m in cols:
+                seen = bool(np.isfinite(X[n, m]).all())
+                row += [f"{v:.6f}" if seen else "" for v in X[n, m]]
+                known = seen and views[k, n] >= 0  # (tracks.csv has n_views with --every-frame only)
+                row += ["", f"{int(views[k, n])}" if known else "" if seen else "0", "1" if seen else "0"]
+            row += ["1", "0", "0", "0", "1", "0", "0", "0", "1", "0", "0", "0", str(int(grid[n]))]
+            lines.append(",".join(row))
+        name = "points3d.csv" if len(ids) == 1 else f"points3d_id{i}.csv"
+        (folder / name).write_text("\n".join(lines) + "\n")
+        files.append(name)
+    return {"files": files, "units": "m", "world": "gt3dkit's (M the identity, center 0)",
+            "note": "_error is left empty (gt3dkit keeps each joint's sd in keypoints.csv, not a "
+                    "reprojection error); _ncams counts the cameras that saw the animal in that frame"}
+
+
 def write_json(res: Result, path: Path) -> JsonDict:
     tr = res.tracks
     up, wfb, frame_name = _frame_info(res)
@@ -275,6 +315,7 @@ class Exporter:
 EXPORTERS: dict[str, Exporter] = {
     "c3d": Exporter(lambda res, tmp: write_c3d(res, tmp / "tracks.c3d")),
     "trc": Exporter(write_trc),
+    "anipose": Exporter(write_anipose),
     "json": Exporter(lambda res, tmp: write_json(res, tmp / "tracks.json")),
     "rerun": Exporter(lambda res, tmp: write_rerun(res, tmp / "tracks.rrd"), maps_joints=False),
 }

@@ -321,3 +321,23 @@ def test_a_skeleton_file_is_simulated_and_reconstructed(tmp_path: Path, capsys: 
     code, _, err = _run("simulate", "--kind", "skeleton", "--skeleton", str(bad), "--out",
                         str(tmp_path / "x"), capsys=capsys)
     assert code == 2 and "[pose]" in err and err.count("\n") == 1, err
+
+
+def test_anipose_points3d_export_holds_the_joints_as_anipose_names_them(tmp_path: Path,
+                                                                          capsys: pytest.CaptureFixture[str]
+                                                                          ) -> None:
+    pd = pytest.importorskip("pandas")
+    sk = simulate_skeletons("native", seed=3, frames=8, people=1, cameras=4, noise_px=1.0, skeleton="coco17")
+    _write_sleap(sk, tmp_path / "sleap")
+    reconstruct(load_scene(tmp_path / "sleap"), "ukf", out=tmp_path / "out")
+    code, _, err = _run("export", str(tmp_path / "out"), "--format", "anipose", capsys=capsys)
+    assert code == 0, err
+    df = pd.read_csv(tmp_path / "out" / "export_anipose" / "points3d.csv")
+    kp = pd.read_csv(tmp_path / "out" / "keypoints.csv")
+    assert list(df.columns[:6]) == ["nose_x", "nose_y", "nose_z", "nose_error", "nose_ncams", "nose_score"]
+    assert list(df.columns[-4:]) == ["center_0", "center_1", "center_2", "fnum"]
+    row = kp[(kp.joint == 5)].iloc[0]
+    got = df[df.fnum == row.frame].iloc[0]
+    np.testing.assert_allclose([got.l_shoulder_x, got.l_shoulder_y, got.l_shoulder_z], [row.x, row.y, row.z],
+                               atol=1e-6)
+    assert got.l_shoulder_score == 1 and np.isnan(got.l_shoulder_ncams)  # n_views: --every-frame only
