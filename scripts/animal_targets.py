@@ -183,7 +183,6 @@ def main() -> int:
         d = np.linalg.norm(theirs - ours, axis=-1) * 1000
         print("   median distance to gt3dkit's per joint, mm: "
               + ", ".join(f"{n} {np.nanmedian(d[:, j]):.1f}" for j, n in enumerate(nodes)))
-        print(json.dumps({"frames": F, "joints": J}))
     return 0
 
 
