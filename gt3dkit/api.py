@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -30,7 +31,7 @@ from gt3dkit.io.clocks import CameraClocks, on_one_clock
 from gt3dkit.io.datasets import ASSOCIATED, Calibration, checks, index_scene, read_scene
 from gt3dkit.io.results import read_result
 from gt3dkit.io.writers import ANOMALY_COLUMNS, read_keypoints_csv, read_segments_csv, write_outputs
-from gt3dkit.jsondoc import json_at, json_num, json_str
+from gt3dkit.jsondoc import json_at, json_num, json_obj, json_str
 from gt3dkit.parse import read_csv_rows
 from gt3dkit.qa.anomalies import Anomalies, find_anomalies
 from gt3dkit.sim import simulate, simulate_skeletons, write_scene, write_skeleton_scene
@@ -500,7 +501,14 @@ def _load_scene(out: Path, meta: JsonDict, why: str) -> tuple[Scene, list[str]]:
         load["calib"] = Calibration(load.get("calib"), str(load.pop("calib_units")))
     known = {"layout", "skeleton", "fps", "calib", "cameras", "noise_px", "seed", "min_conf", "association",
              "segments", "box_model", "clocks"}
-    scene = load_scene(Path(root), **{k: v for k, v in load.items() if k in known})
+    refined = json_at(meta, "calibration_refinement", "refined_rig")
+    with tempfile.TemporaryDirectory() as tmp:
+        if refined and json_obj(meta, "calibration_refinement", "reposed_cameras"):
+            # a camera the run posed again: the input read on the run's rig, as the run read it
+            # (through the input's own calibration its views agree with no other camera's)
+            (Path(tmp) / "cameras.json").write_text(json.dumps(refined))
+            load["calib"] = Calibration(str(Path(tmp) / "cameras.json"), "m")
+        scene = load_scene(Path(root), **{k: v for k, v in load.items() if k in known})
     notes = []
     old = inp.get("files_sha256") or {}
     changed = sorted(k for k, v in scene.files.items() if old.get(k) not in (None, v))
@@ -512,7 +520,6 @@ def _load_scene(out: Path, meta: JsonDict, why: str) -> tuple[Scene, list[str]]:
     if people:
         scene = dataclasses.replace(scene, rig=rig_of_doc(people, f"{where}: calibration_from_people"))
         notes.append("cameras: the rig found from the people (meta.json calibration_from_people)")
-    refined = json_at(meta, "calibration_refinement", "refined_rig")
     if refined:
         scene = dataclasses.replace(scene, rig=rig_of_doc(refined, f"{where}: calibration_refinement"))
         notes.append("cameras: the refined calibration the run used (meta.json calibration_refinement)")

@@ -262,10 +262,11 @@ def with_reposed_cameras(args: argparse.Namespace, scene: Scene) -> tuple[Scene,
     no camera disagrees."""
     assoc = scene.association
     bad = [cam for cam, _ in disagreeing_cameras(assoc)] if isinstance(assoc, Association) else []
-    if not bad:
+    calib = getattr(args, "calib", None)
+    if not bad or calib == "people":  # (a rig found from the people was fitted to them all)
         return scene, {}
     first = reconstruct(scene, "ukf")
-    det = detections_input(args)
+    det = detections_input(args, calib)
     rig = scene.rig
     report: JsonDict = {}
     for name in bad:

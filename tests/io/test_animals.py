@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gt3dkit.api import load_scene, reconstruct
+from gt3dkit.api import load_run, load_scene, reconstruct
 from gt3dkit.calib.formats import toml as toml_fmt
 from gt3dkit.calib.formats.native import rig_of_doc
 from gt3dkit.cli import main
@@ -199,6 +199,9 @@ def test_refine_calib_poses_a_copied_camera_again(tmp_path: Path, capsys: pytest
     assert np.linalg.norm(got.center_world - true.center_world) < 0.05  # metres
     assert abs(got.K[0, 0] / true.K[0, 0] - 1) < 0.05
     assert meta["calibration_refinement"]["reposed_cameras"][true.name]["median_px_after"] < 2.0
+    # read back for a report: on the run's rig, the re-posed camera's views are there
+    run = load_run(tmp_path / "out", "a test")
+    assert np.any(run.scene.obs.cam == run.scene.rig.index(true.name))
 
 
 def _write_dlc(sk: SkeletonScene, root: Path, multi: bool = True) -> list[Path]:
