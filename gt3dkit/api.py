@@ -98,6 +98,7 @@ def load_scene(root: Path | str | Scene, layout: str | None = None, skeleton: st
     ``doc()``): every view moved onto one clock before the association. ``root`` may be the
     :func:`load_head` of the folder: what it read (``FrameIndex.ahead``) is not read again."""
     ahead = None
+    explained: tuple[str, ...] = ()  # cameras a warning names as left out by the association
     if isinstance(root, Scene):
         ahead = root.index.ahead if root.index is not None else None
         root = root.root
@@ -131,12 +132,13 @@ def load_scene(root: Path | str | Scene, layout: str | None = None, skeleton: st
             scene = dataclasses.replace(scene, warnings=(*scene.warnings, (
                 f"{twice} detections of a person a camera had already detected in that frame left out "
                 "(association.csv, global id -1)")))
-        named = tuple(w for _, w in disagreeing_cameras(assoc))
-        scene = dataclasses.replace(scene, warnings=(*scene.warnings, *named))
+        named = disagreeing_cameras(assoc)
+        explained = tuple(c for c, _ in named)
+        scene = dataclasses.replace(scene, warnings=(*scene.warnings, *(w for _, w in named)))
         if not len(scene.obs):
             raise InputError(str(root), "no person is seen by two cameras at once (nothing to reconstruct)")
         scene = without_undetermined(scene)
-    scene = checks.check_scene(scene)
+    scene = checks.check_scene(scene, explained=explained)
     if segments is not None:
         scene = with_pieces(scene, Path(segments))
     return with_box_model(scene, box_model)

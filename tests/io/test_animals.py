@@ -178,6 +178,7 @@ def test_a_camera_whose_calibration_fits_no_other_is_named(tmp_path: Path) -> No
     scene = load_scene(tmp_path / "sleap")
     named = [w for w in scene.warnings if "calibration does not fit" in w]
     assert len(named) == 1 and named[0].startswith(f"camera {cams[2].name}:"), scene.warnings
+    assert not any("no annotation" in w for w in scene.warnings), scene.warnings  # said once
 
 
 def test_refine_calib_poses_a_copied_camera_again(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -56,13 +56,13 @@ def _cameras_per_object(track_id: np.ndarray, cam: np.ndarray) -> dict[int, int]
     return dict(zip(ids.tolist(), n.tolist(), strict=True))
 
 
-def _redundancy(scene: Scene, obs: Observations) -> list[str]:
+def _redundancy(scene: Scene, obs: Observations, explained: tuple[str, ...] = ()) -> list[str]:
     """Warnings where the views cannot check each other: calibrated cameras without a single
     annotation (an empty camera folder), and keypoints no more than two views ever see at once
     (two views determine a point, none is left over to tell a wrong one from a right one)."""
     out = []
     names = scene.rig.names
-    empty = [names[c] for c in range(len(names)) if not np.any(obs.cam == c)]
+    empty = [names[c] for c in range(len(names)) if not np.any(obs.cam == c) and names[c] not in explained]
     if empty and len(empty) < len(names):
         out.append(f"camera{'s' if len(empty) > 1 else ''} {', '.join(empty[:5])}"
                    f"{' ...' if len(empty) > 5 else ''} ha{'ve' if len(empty) > 1 else 's'} no annotation "
@@ -135,11 +135,13 @@ def _beyond_lens_model(scene: Scene, obs: Observations) -> tuple[Observations, l
     return dataclasses.replace(obs, box_xyxy_px=box, kpt_uv_px=kpt, kpt_conf=conf).select(keep), out
 
 
-def check_scene(scene: Scene, whole: bool = True, identities: bool = True) -> Scene:
+def check_scene(scene: Scene, whole: bool = True, identities: bool = True,
+                explained: tuple[str, ...] = ()) -> Scene:
     """``scene`` with off-image annotations dropped and its odd-input warnings added; ``whole``:
     the scene is the whole input (else some of its frames: none left is no error);
     ``identities``: its ids name objects across cameras and frames (False: they do not yet, so
-    nothing is dropped or warned of by them: objects seen by one camera, gaps, redundancy)."""
+    nothing is dropped or warned of by them: objects seen by one camera, gaps, redundancy);
+    ``explained``: cameras whose views a warning already says were left out (not said again)."""
     obs = scene.obs
     wh = scene.rig.wh[obs.cam]  # (N, 2)
     warnings = list(scene.warnings)
@@ -211,7 +213,7 @@ def check_scene(scene: Scene, whole: bool = True, identities: bool = True) -> Sc
                             f"{_ids(lone)}): their distance comes from the size prior alone "
                             "(expect errors of metres; their sd says so)")
 
-    warnings += _redundancy(scene, obs)
+    warnings += _redundancy(scene, obs, explained)
 
     warnings += _gaps(scene, obs)
     return dataclasses.replace(scene, obs=obs, warnings=tuple(warnings))
