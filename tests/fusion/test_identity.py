@@ -11,12 +11,14 @@ import numpy as np
 import pytest
 
 from gt3dkit.api import estimate_scene, reconstruct, split_ids
+from gt3dkit.arrays import lookup_rows
 from gt3dkit.compare import compare
 from gt3dkit.eval.metrics import match_rows
 from gt3dkit.fusion.base import make_estimator
 from gt3dkit.fusion.preparation.identity import identity_segments
-from gt3dkit.fusion.preparation.pieces import input_ids, pieces_prepared, row_sources
+from gt3dkit.fusion.preparation.pieces import input_ids, pieces_prepared
 from gt3dkit.fusion.preparation.prepare import prepare
+from gt3dkit.fusion.preparation.rows import build_rows
 from gt3dkit.sim import Errors
 from gt3dkit.types import GroundTruth, Scene
 from tests.scenes import written_scene
@@ -207,6 +209,10 @@ def test_the_pieces_preparation_is_the_whole_ones_at_their_rows(scene: Scene) ->
     pieces, back = split_ids(scene, whole.rows, segs)
     taken, anew = pieces_prepared(whole, pieces, back), prepare(pieces)
     assert len(taken.rows) == len(anew.rows) <= len(whole.rows)  # a gap between the pieces has no row
+    built = build_rows(pieces)  # the rows regrouped from the whole's are those built anew, exactly
+    for name in ("frames", "obj_ids", "row_t", "row_o", "prev_row", "next_row", "t_start", "obs_row"):
+        np.testing.assert_array_equal(getattr(taken.rows, name), getattr(built, name), err_msg=name)
+    np.testing.assert_array_equal(taken.rows.box_z, built.box_z)
     np.testing.assert_array_equal(taken.rows.obs_row, anew.rows.obs_row)
     np.testing.assert_array_equal(taken.rows.box_mask, anew.rows.box_mask)
     np.testing.assert_array_equal(taken.box_keep, anew.box_keep)
@@ -215,7 +221,8 @@ def test_the_pieces_preparation_is_the_whole_ones_at_their_rows(scene: Scene) ->
     np.testing.assert_allclose(taken.fit.center_world, anew.fit.center_world, atol=1e-6)
     for a, b in zip(taken.frame_state(), anew.frame_state(), strict=True):
         np.testing.assert_allclose(a, b, atol=1e-6, rtol=1e-6)
-    src = row_sources(whole.rows, taken.rows, input_ids(taken.rows.obj_ids, back))
+    src = lookup_rows(np.c_[whole.rows.row_t, whole.rows.obj_ids[whole.rows.row_o]],  # the same object-frame
+                      np.c_[taken.rows.row_t, input_ids(taken.rows.obj_ids, back)[taken.rows.row_o]])
     assert (src >= 0).all()
     np.testing.assert_array_equal(whole.rows.frames[whole.rows.row_t[src]],
                                   taken.rows.frames[taken.rows.row_t])

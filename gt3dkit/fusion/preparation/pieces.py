@@ -2,9 +2,9 @@
 (:func:`gt3dkit.api.split_ids`), taken from the whole scene's instead of made again: the pieces
 hold the same object-frames with the same views, so their per-frame fits, kept edges and points,
 noise levels and shape prior are the whole's (one preparation a run). Only the rows are laid out
-anew (a piece's rows are its own span; the frames between two pieces of an id, where no camera
-saw it, have no row), and what is made from each object's own frames (the per-frame states of
-:meth:`Prepared.frame_state`) is made again from the pieces' rows.
+anew, regrouped from the whole's (a piece's rows are its own span; the frames between two pieces
+of an id, where no camera saw it, have no row), and what is made from each object's own frames
+(the per-frame states of :meth:`Prepared.frame_state`) is made again from the pieces' rows.
 """
 
 from __future__ import annotations
@@ -13,10 +13,9 @@ from dataclasses import fields, replace
 
 import numpy as np
 
-from gt3dkit.arrays import lookup_rows
 from gt3dkit.fusion.preparation.boxfit import BoxFit
 from gt3dkit.fusion.preparation.prepare import Prepared
-from gt3dkit.fusion.preparation.rows import Rows, build_rows
+from gt3dkit.fusion.preparation.rows import regrouped
 from gt3dkit.types import I64, Scene
 
 
@@ -26,23 +25,23 @@ def input_ids(obj_ids: I64, back: dict[int, tuple[int, int]]) -> I64:
     return np.array([back.get(int(i), (int(i), 0))[0] for i in obj_ids], dtype=np.int64)
 
 
-def row_sources(whole: Rows, pieces: Rows, input_id: I64) -> I64:
-    """``(R_pieces,)`` the whole scene's row of each of the pieces' rows (the same frame and the
-    input's id: ``input_id (O_pieces,)`` each piece's input id), -1 where there is none."""
-    return lookup_rows(np.c_[whole.row_t, whole.obj_ids[whole.row_o]],
-                       np.c_[pieces.row_t, input_id[pieces.row_o]])
-
-
 def pieces_prepared(pre: Prepared, pieces: Scene, back: dict[int, tuple[int, int]]) -> Prepared:
     """``pre``, the whole scene's preparation, for ``pieces`` (:func:`gt3dkit.api.split_ids`'s
     scene, ``back`` its map from a piece's id to the input's id and the piece): every per-row
     array taken at the pieces' rows (the rows' usable edges as the whole's preparation left them:
-    the border's and the cut ones out), the rest as it is."""
-    rows = build_rows(pieces)
-    src = row_sources(pre.rows, rows, input_ids(rows.obj_ids, back))
-    if (src < 0).any():  # a piece's row the whole has not: not a split of this scene
-        raise ValueError("pieces_prepared: the pieces hold an object-frame the whole scene has not")
-    rows = replace(rows, box_mask=pre.rows.box_mask[src])
+    the border's and the cut ones out), the rest as it is. The pieces' rows are the whole's,
+    regrouped (:func:`gt3dkit.fusion.preparation.rows.regrouped`: what ``build_rows`` makes of the
+    pieces, not built again): the pieces' observations are the whole's, in its order, their ids
+    changed."""
+    whole = pre.rows
+    seen = (whole.obs_row >= 0).any(axis=1)
+    view = whole.obs_row.max(axis=1)  # an annotated row's observation (the same in the pieces)
+    if len(pieces.obs) <= int(view.max(initial=-1)):
+        raise ValueError("pieces_prepared: the pieces' observations are not the whole scene's")
+    new_id = np.where(seen, pieces.obs.track_id[np.maximum(view, 0)], -1)
+    if not np.array_equal(input_ids(new_id[seen], back), whole.obj_ids[whole.row_o[seen]]):
+        raise ValueError("pieces_prepared: the pieces are not a split of this scene's ids")
+    rows, src = regrouped(whole, new_id)
     new_of = np.full(len(pre.rows), -1, np.int64)
     new_of[src] = np.arange(len(src))
 

@@ -164,3 +164,38 @@ def nearest_same_object(rows: Rows, ok: np.ndarray) -> np.ndarray:
         d = np.abs(rows.row_t[good][None, :] - rows.row_t[mine][:, None])
         out[mine] = good[np.argmin(d, axis=1)]
     return out
+
+
+def regrouped(rows: Rows, new_id: I64) -> tuple[Rows, I64]:
+    """The rows :func:`build_rows` makes of the same annotations under other ids, laid out from
+    these (the same frames; every annotated object-frame under one new id): ``new_id (R,)`` each
+    annotated row's new id (unannotated rows' are not read). A new object's rows span its first
+    to its last annotated frame (rows of the old object between two of its new ones, where no
+    camera saw it, have none). Returns the rows and each one's row here ``(R',)``."""
+    T = len(rows.frames)
+    seen = np.flatnonzero((rows.obs_row >= 0).any(axis=1))
+    ids, inv = np.unique(new_id[seen], return_inverse=True)
+    N = len(ids)
+    first = np.full(N, T, np.int64)
+    last = np.full(N, -1, np.int64)
+    np.minimum.at(first, inv, rows.row_t[seen])
+    np.maximum.at(last, inv, rows.row_t[seen])
+    old = np.zeros(N, np.int64)
+    old[inv] = rows.row_o[seen]  # each new object's old one
+    row_of = np.full((T, len(rows.obj_ids)), -1, np.int64)
+    row_of[rows.row_t, rows.row_o] = np.arange(len(rows))
+    span = last - first + 1
+    n_of = np.repeat(np.arange(N), span)
+    t_of = np.repeat(first, span) + np.arange(span.sum()) - np.repeat(np.cumsum(span) - span, span)
+    order = np.lexsort((n_of, t_of))  # by frame, then object: build_rows' layout
+    row_t, row_o = t_of[order], n_of[order]
+    src = row_of[row_t, old[row_o]]
+    R = len(row_t)
+    new_of = np.full((T, N), -1, np.int64)
+    new_of[row_t, row_o] = np.arange(R)
+    prev_row = np.where(row_t > 0, new_of[np.maximum(row_t - 1, 0), row_o], -1)
+    next_row = np.where(row_t < T - 1, new_of[np.minimum(row_t + 1, T - 1), row_o], -1)
+    return Rows(frames=rows.frames, obj_ids=ids.astype(np.int64), row_t=row_t, row_o=row_o, prev_row=prev_row,
+                next_row=next_row, t_start=np.searchsorted(row_t, np.arange(T + 1)), box_z=rows.box_z[src],
+                box_mask=rows.box_mask[src], kpt_z=rows.kpt_z[src], kpt_conf=rows.kpt_conf[src],
+                obs_row=rows.obs_row[src], seen_at=rows.seen_at[src]), src
