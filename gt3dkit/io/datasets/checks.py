@@ -138,13 +138,12 @@ def _beyond_lens_model(scene: Scene, obs: Observations) -> tuple[Observations, l
 def check_scene(scene: Scene, whole: bool = True, identities: bool = True,
                 explained: tuple[str, ...] = ()) -> Scene:
     """``scene`` with off-image annotations dropped and its odd-input warnings added; ``whole``:
-    the scene is the whole input (else some of its frames: none left is no error);
-    ``identities``: its ids name objects across cameras and frames (False: they do not yet, so
-    nothing is dropped or warned of by them: objects seen by one camera, gaps, redundancy);
-    ``explained``: cameras whose views a warning already says were left out (not said again)."""
-    obs = scene.obs
+    the scene is the whole input (else some of its frames: none left is no error); ``identities``:
+    its ids name objects across cameras and frames (False: they do not yet, so nothing is dropped
+    or warned of by them: objects seen by one camera, gaps, redundancy); ``explained``: cameras
+    whose views a warning already says were left out (not said again)."""
+    obs, warnings = scene.obs, list(scene.warnings)
     wh = scene.rig.wh[obs.cam]  # (N, 2)
-    warnings = list(scene.warnings)
 
     box = obs.box_xyxy_px
     has_box = obs.has_box
@@ -213,7 +212,5 @@ def check_scene(scene: Scene, whole: bool = True, identities: bool = True,
                             f"{_ids(lone)}): their distance comes from the size prior alone "
                             "(expect errors of metres; their sd says so)")
 
-    warnings += _redundancy(scene, obs, explained)
-
-    warnings += _gaps(scene, obs)
+    warnings += _redundancy(scene, obs, explained) + _gaps(scene, obs)
     return dataclasses.replace(scene, obs=obs, warnings=tuple(warnings))
