@@ -279,14 +279,24 @@ def skeleton_from_doc(doc: JsonValue, where: str) -> Skeleton:
     return Skeleton(name, tuple(joint_list), tuple(bones), tuple(labels), 0, tuple(pairs), pose_rows)
 
 
-def _check_mirrored(where: str, bones: list[tuple[str, str]], pairs: list[tuple[str, str]]) -> None:
-    """InputError where a left/right pair's two joints are not of one kind: mirrored, the bones of
-    the one are not the bones of the other (a joint outside every pair is its own mirror)."""
+def unmirrored(bones: Sequence[tuple[str, str]], pairs: Sequence[tuple[str, str]]) -> list[int]:
+    """The indices of the left/right ``pairs`` whose two joints are not of one kind: mirrored
+    through every pair, the bones of the one are not the bones of the other (a joint outside
+    every pair is its own mirror)."""
     mirror = {a: b for a, b in pairs} | {b: a for a, b in pairs}
     bone_set = {frozenset(b) for b in bones}
+    bad = []
     for k, (a, b) in enumerate(pairs):
         of_a = {frozenset((mirror.get(x, x), mirror.get(y, y))) for x, y in bones if a in (x, y)}
         of_b = {frozenset(bn) for bn in bones if b in bn}
         if of_a != of_b or not of_a <= bone_set:
-            raise InputError(f"{where}: pairs[{k}]", f"{a!r} and {b!r} are not a left/right pair: their "
-                                                     "bones do not mirror each other")
+            bad.append(k)
+    return bad
+
+
+def _check_mirrored(where: str, bones: list[tuple[str, str]], pairs: list[tuple[str, str]]) -> None:
+    """InputError naming the first pair :func:`unmirrored` finds."""
+    for k in unmirrored(bones, pairs)[:1]:
+        a, b = pairs[k]
+        raise InputError(f"{where}: pairs[{k}]", f"{a!r} and {b!r} are not a left/right pair: their "
+                                                 "bones do not mirror each other")

@@ -7,7 +7,7 @@ The shared anipose + SLEAP session (``sleap_minimal_session``, its PROVENANCE.md
 body parts, 4 cameras, 120 frames of proofread labels; anipose's ``calibration.toml`` in
 millimetres, its ``side`` camera a copy of ``top``):
 
-1. ``gt3d reconstruct`` of a folder holding the SLEAP analysis files per camera and anipose's
+1. ``gt3d reconstruct`` of a folder holding SLEAP's ``.slp`` labels per camera and anipose's
    calibration as given (``--calib-units mm``), then with ``--refine-calib``: what it says of the
    cameras, each camera's median reprojection of the estimate through the calibration it used
    (px; the labels of a camera whose views were left out are compared too), each bone's length
@@ -50,11 +50,17 @@ CAMS = ("back", "mid", "side", "top")
 
 
 def labels(root: Path) -> tuple[np.ndarray, list[str], list[tuple[str, str]]]:
-    """``(F, J, C, 2)`` the proofread labels (NaN: none), the node names and the edges."""
+    """``(F, J, C, 2)`` the proofread labels of the ``.slp`` files (NaN: none), the node names and
+    the edges; each checked against SLEAP's analysis export beside it (the same numbers)."""
     uv, nodes, edges = [], [], []
     for c in CAMS:
-        tracks, _, _, nodes, edges, _ = _read(next((root / c).glob("*.analysis.h5")))
-        uv.append(np.transpose(tracks[0], (2, 1, 0)))  # (F, J, 2), the one animal
+        got = _read(next((root / c).glob("*.slp")))
+        other = _read(next((root / c).glob("*.analysis.h5")))
+        same = np.array_equal(got.tracks, other.tracks, equal_nan=True) and got.nodes == other.nodes
+        print(f"   {c}: .slp read with sleap-io {'equals' if same else 'DIFFERS FROM'} its analysis .h5 "
+              f"({int(np.isfinite(got.tracks[..., 0, :, :]).sum())} labelled points)")
+        nodes, edges = got.nodes, got.edges
+        uv.append(np.transpose(got.tracks[0], (2, 1, 0)))  # (F, J, 2), the one animal
     return np.stack(uv, axis=2), nodes, edges
 
 
@@ -105,6 +111,7 @@ def main() -> int:
         print(f"skipped: {data} absent")
         return 0
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    print("0. the labels: SLEAP's .slp files through sleap-io, against its analysis export")
     uv, nodes, edges = labels(data)
     F, J = uv.shape[:2]
     rig = read_calibration(data / "calibration.toml").in_metres(1e-3)
@@ -113,9 +120,9 @@ def main() -> int:
         folder = tmp / "mouse"
         for c in CAMS:
             (folder / c).mkdir(parents=True)
-            (folder / c / f"{c}.analysis.h5").symlink_to(next((data / c).glob("*.analysis.h5")))
+            (folder / c / f"{c}.slp").symlink_to(next((data / c).glob("*.slp")))
         (folder / "calibration.toml").symlink_to(data / "calibration.toml")
-        print("1. gt3d reconstruct of the SLEAP analysis files, anipose's calibration as given "
+        print("1. gt3d reconstruct of the SLEAP .slp files, anipose's calibration as given "
               "(--calib-units mm), then with --refine-calib")
         runs = {}
         for name, extra in (("as given", []), ("--refine-calib", ["--refine-calib"])):

@@ -141,6 +141,84 @@ def test_sleap_analysis_files_are_reconstructed_with_their_own_skeleton(tmp_path
     assert np.median(np.concatenate(err)) < 0.02
 
 
+def _write_slp(sk: SkeletonScene, root: Path, tracked: bool = True, user: bool = False) -> None:
+    """The same folder with SLEAP's own ``.slp`` per camera, written by sleap-io (SLEAP's reader
+    and writer): every person a track (or none), predictions scored 0.9 (or a person's labels),
+    the skeleton's left/right pairs as its symmetries."""
+    sio = pytest.importorskip("sleap_io")
+    skel = SKELETONS[sk.skeleton]
+    nodes = list(skel.joints)
+    sym = [list(p) for p in skel.left_right]
+    s = sio.Skeleton(nodes=nodes, edges=[[nodes[a], nodes[b]] for a, b in skel.bones], symmetries=sym)
+    ids = np.unique(sk.truth_id)
+    tracks = [sio.Track(name=f"track_{i}") for i in range(len(ids))]
+    for c, cam in enumerate(sk.rig.cameras):
+        video = sio.Video(filename=f"{cam.name}.mp4", open_backend=False)
+        frames = []
+        for f, frame in enumerate(sk.frames):
+            insts = []
+            for m in np.flatnonzero(sk.truth_frame == frame):
+                k = int(np.searchsorted(ids, sk.truth_id[m]))
+                tr = tracks[k] if tracked else None
+                uv = sk.uv[m, c].astype(np.float64)
+                insts.append(sio.Instance.from_numpy(uv, skeleton=s, track=tr) if user else
+                             sio.PredictedInstance.from_numpy(uv, skeleton=s, track=tr, score=1.0,
+                                                              point_scores=np.full(len(nodes), 0.9)))
+            frames.append(sio.LabeledFrame(video=video, frame_idx=f, instances=insts))
+        (root / cam.name).mkdir(parents=True, exist_ok=True)
+        sio.save_slp(sio.Labels(labeled_frames=frames, videos=[video], skeletons=[s],
+                                tracks=tracks if tracked else []),
+                     str(root / cam.name / f"labels_{cam.name}.slp"), verbose=False)
+
+
+def test_sleap_slp_files_read_as_their_analysis_export(tmp_path: Path) -> None:
+    sk = simulate_skeletons("native", seed=5, frames=12, people=2, cameras=4, noise_px=1.0, skeleton="coco17")
+    _write_sleap(sk, tmp_path / "h5")
+    _write_slp(sk, tmp_path / "slp")
+    toml_fmt.write(sk.rig, tmp_path / "slp" / "calibration.toml")
+    a, b = load_scene(tmp_path / "h5"), load_scene(tmp_path / "slp")
+    assert sorted(b.files) == sorted(f"{c.name}/labels_{c.name}.slp" for c in sk.rig.cameras) + [
+        "calibration:calibration.toml"]
+    assert np.allclose(a.obs.kpt_uv_px, b.obs.kpt_uv_px, atol=1e-3, equal_nan=True)  # sleap-io: float32
+    assert np.array_equal(a.obs.track_id, b.obs.track_id) and np.array_equal(a.obs.frame, b.obs.frame)
+    assert np.allclose(b.obs.kpt_conf[np.isfinite(b.obs.kpt_uv_px[..., 0])], 0.9)  # the predictions' scores
+    assert b.skeleton_doc is not None and sorted(map(sorted, b.skeleton_doc["pairs"])) == sorted(
+        sorted(p) for p in COCO17.left_right)  # declared, not guessed: coco17's names say no _L/_R
+    assert a.skeleton_doc is not None and a.skeleton_doc["pairs"] == []
+
+
+def test_sleap_slp_files_without_tracks_and_of_a_persons_labels(tmp_path: Path) -> None:
+    sk = simulate_skeletons("native", seed=6, frames=12, people=1, cameras=4, noise_px=1.0, skeleton="coco17")
+    _write_slp(sk, tmp_path / "slp", tracked=False, user=True)
+    toml_fmt.write(sk.rig, tmp_path / "slp" / "calibration.toml")
+    scene = load_scene(tmp_path / "slp")
+    seen = np.isfinite(scene.obs.kpt_uv_px[..., 0])
+    assert seen.sum() == np.isfinite(sk.uv[..., 0]).sum() and np.all(scene.obs.kpt_conf[seen] == 1.0)
+    tracks = reconstruct(scene, "ukf")
+    est = tracks.kpt_world[np.argsort(tracks.frame)]
+    assert len(np.unique(tracks.track_id)) == 1
+    assert np.nanmedian(np.linalg.norm(est - sk.kpt_world, axis=-1)) < 0.02
+
+
+def test_a_slp_without_sleap_io_reads_the_analysis_file_beside_it_or_says_what_to_install(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    from gt3dkit.io.datasets import sleap
+
+    sk = simulate_skeletons("native", seed=7, frames=4, people=1, cameras=3, skeleton="coco17")
+    _write_sleap(sk, tmp_path / "both")
+    _write_slp(sk, tmp_path / "both")
+    monkeypatch.setattr(sleap, "_have_sleap_io", lambda: False)
+    scene = load_scene(tmp_path / "both")
+    assert any("sleap-io is not installed" in w for w in scene.warnings)
+    assert all(f.endswith(".analysis.h5") for f in scene.files if not f.startswith("calibration:"))
+    alone = tmp_path / "both" / sk.rig.cameras[0].name / f"labels_{sk.rig.cameras[0].name}.analysis.h5"
+    alone.unlink()
+    code, _, err = _run("reconstruct", str(tmp_path / "both"), "--out", str(tmp_path / "out"), capsys=capsys)
+    assert code == 2 and err.count("\n") == 1 and "pip install 'gt3dkit[sleap]'" in err, err
+    slp = alone.with_suffix("").with_suffix(".slp")
+    assert err.startswith(f"error: {slp}: ") and not (tmp_path / "out").exists()
+
+
 def test_a_sleap_file_with_another_skeleton_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]
                                                        ) -> None:
     sk = simulate_skeletons("native", seed=3, frames=4, people=1, cameras=3, skeleton="coco17")

@@ -49,6 +49,7 @@ def natural_key(s: str) -> list[object]:
 
 def find_calibration(root: Path) -> Path | None:
     tomls = [p for p in sorted(root.glob("*.toml")) if p.name.lower() != "config.toml"]  # not Pose2Sim's
+    tomls.sort(key=lambda p: not p.stem.lower().startswith("calib"))  # anipose's calibration.toml first
     cands = [root / "cameras.json", root / "calibration", *tomls, root / "sparse"]
     for p in cands:
         if p.exists():

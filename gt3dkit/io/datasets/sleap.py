@@ -1,10 +1,17 @@
-"""SLEAP's analysis export, one file per camera (``File > Export Analysis HDF5`` or
-``sleap-convert --format analysis``), as an anipose + SLEAP project keeps it::
+"""SLEAP's labels, one file per camera, as an anipose + SLEAP project keeps them::
 
     calibration.toml                   # or any calibration beside the folders (--calib)
-    <camera>/<anything>.analysis.h5    # one folder per camera, named as the calibration names it
+    <camera>/<anything>.slp            # one folder per camera, named as the calibration names it
+    <camera>/<anything>.analysis.h5    # or SLEAP's analysis export of it
 
-Each file holds (h5py reads them as stored; MATLAB reads them transposed):
+A ``.slp`` (SLEAP's own project or predictions file, one video) is read with ``sleap-io``
+(``pip install 'gt3dkit[sleap]'``): its user instances where a person labelled the frame, else
+its predictions, with their scores; its skeleton's symmetries are the left/right pairs. Where a
+folder has both, the ``.slp`` is read. Without ``sleap-io`` the analysis file beside it is read
+(said), and a ``.slp`` alone is an error that says what to install.
+
+An analysis file (``File > Export Analysis HDF5`` or ``sleap-convert --format analysis``) holds
+(h5py reads them as stored; MATLAB reads them transposed):
 
     tracks        (n_tracks, 2, n_nodes, n_frames)  x, y in pixels; NaN where not labelled
     point_scores  (n_tracks, n_nodes, n_frames)     the model's score; NaN for a person's label
@@ -12,8 +19,9 @@ Each file holds (h5py reads them as stored; MATLAB reads them transposed):
     node_names    (n_nodes,), edge_names (n_edges, 2)  the skeleton
 
 The skeleton is the files' own (every camera's must be the same): its nodes the joints, its
-edges the bones, and the left/right pairs its names say (``Ear_L``/``Ear_R``,
-``Shoulder_left``/``Shoulder_right``, ``LEye``/``REye``) where their bones mirror each other.
+edges the bones, and the left/right pairs the ``.slp`` declares, else those its names say
+(``Ear_L``/``Ear_R``, ``Shoulder_left``/``Shoulder_right``, ``LEye``/``REye``), where their bones
+mirror each other.
 A track is an identity of its camera only: the animals are found across cameras frame by frame
 from their keypoints (:func:`gt3dkit.fusion.preparation.detections.associate_detections`). A
 score is read as the detector's confidence; a person's label (no score) as 1. The frame rate
@@ -23,6 +31,7 @@ is the calibration's, ``--fps``, else 30 (said).
 from __future__ import annotations
 
 import io
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -31,40 +40,63 @@ from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.common import JointBlock, RowBuilder
 from gt3dkit.io.datasets.mot import calibration_beside, match_cameras
 from gt3dkit.parse import read_hashed
-from gt3dkit.skeletons import skeleton_from_doc
+from gt3dkit.skeletons import skeleton_from_doc, unmirrored
 from gt3dkit.types import JsonDict, Scene
 
 SUFFIX = ".analysis.h5"
+SLP = ".slp"
 DEFAULT_FPS = 30.0
 #: name pairs that say left and right (either order; case as written)
 _SIDES = (("_L", "_R"), ("_left", "_right"), ("_Left", "_Right"), ("Left", "Right"), ("left", "right"))
 
 
 def found(root: Path) -> bool:
-    """A folder with a camera folder holding a SLEAP analysis file."""
-    return any(root.glob(f"*/*{SUFFIX}"))
+    """A folder with a camera folder holding a SLEAP file (``.slp`` or analysis ``.h5``)."""
+    return any(root.glob(f"*/*{SUFFIX}")) or any(root.glob(f"*/*{SLP}"))
 
 
-def _files(root: Path) -> dict[str, Path]:
-    """Camera folder name -> its one analysis file."""
+def _have_sleap_io() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("sleap_io") is not None
+
+
+def _one_per_camera(paths: list[Path], what: str) -> dict[str, Path]:
     out: dict[str, Path] = {}
-    for p in sorted(root.glob(f"*/*{SUFFIX}")):
+    for p in paths:
         cam = p.parent.name
         if cam in out:
-            raise InputError(str(p), f"a second SLEAP analysis file in {cam}/ (first: {out[cam].name}): "
+            raise InputError(str(p), f"a second SLEAP {what} in {cam}/ (first: {out[cam].name}): "
                                      "one file per camera")
         out[cam] = p
     return out
+
+
+def _files(root: Path, warnings: list[str]) -> dict[str, Path]:
+    """Camera folder name -> its one SLEAP file: the ``.slp`` where there is one (and
+    ``sleap-io`` to read it), else the analysis file."""
+    slp = _one_per_camera(sorted(root.glob(f"*/*{SLP}")), f"labels file ({SLP})")
+    analysis = _one_per_camera(sorted(root.glob(f"*/*{SUFFIX}")), "analysis file")
+    if slp and not _have_sleap_io():
+        alone = [p for cam, p in slp.items() if cam not in analysis]
+        if alone:
+            raise InputError(str(alone[0]), "reading SLEAP's .slp needs sleap-io: "
+                                            f"pip install 'gt3dkit[sleap]' (or export it as {SUFFIX})")
+        warnings.append(f"sleap-io is not installed: read the {SUFFIX} files beside the .slp files")
+        slp = {}
+    return {cam: slp.get(cam) or analysis[cam] for cam in sorted(set(slp) | set(analysis))}
 
 
 def _names(raw: object) -> list[str]:
     return [x.decode() if isinstance(x, bytes) else str(x) for x in np.asarray(raw).reshape(-1)]
 
 
-def side_pairs(joints: list[str], bones: list[tuple[str, str]]) -> list[tuple[str, str]]:
-    """The left/right pairs the joints' names say (``_L``/``_R``, ``_left``/``_right``,
-    ``Left``/``Right``, ``LEye``/``REye``), kept where the two joints' bones mirror each other (a
-    pair the names suggest but the bones deny is no pair)."""
+def side_pairs(joints: list[str], bones: list[tuple[str, str]],
+               declared: list[tuple[str, str]] | None = None) -> list[tuple[str, str]]:
+    """The left/right pairs: those ``declared`` (a ``.slp``'s symmetries), else those the joints'
+    names say (``_L``/``_R``, ``_left``/``_right``, ``Left``/``Right``, ``LEye``/``REye``); kept
+    where the two joints' bones mirror each other (a pair the names suggest but the bones deny is
+    no pair)."""
     have = set(joints)
 
     def partner(j: str) -> str | None:
@@ -75,26 +107,69 @@ def side_pairs(joints: list[str], bones: list[tuple[str, str]]) -> list[tuple[st
             return "R" + j[1:]
         return None
 
+    candidates = declared if declared is not None else [
+        (j, other) for j in joints if (other := partner(j)) is not None]
     pairs: list[tuple[str, str]] = []
-    for j in joints:
-        other = partner(j)
-        if other is None or any(j in p or other in p for p in pairs):
-            continue
-        try:
-            skeleton_from_doc({"name": "pair", "joints": joints, "bones": [list(b) for b in bones],
-                               "pairs": [[j, other]]}, "")
-        except InputError:
-            continue
-        pairs.append((j, other))
+    for j, other in candidates:  # each joint in one pair at most, both joints the skeleton's
+        if j != other and {j, other} <= have and not any(j in p or other in p for p in pairs):
+            pairs.append((j, other))
+    while bad := unmirrored(bones, pairs):  # a pair whose bones deny it goes, then the rest again
+        pairs = [p for k, p in enumerate(pairs) if k not in bad]
     return pairs
 
 
-def _read(path: Path) -> tuple[np.ndarray, np.ndarray, list[str], list[str], list[tuple[str, str]], str]:
-    """One analysis file: ``tracks (T, 2, J, F)``, ``scores (T, J, F)``, the track names, the
-    node names, the edges and the file's SHA-256 (read once: hashed as it is read)."""
+@dataclass(frozen=True)
+class _SleapFile:
+    """One camera's SLEAP labels, as the analysis export lays them out."""
+
+    tracks: np.ndarray  # (T, 2, J, F) x, y in pixels; NaN where not labelled
+    scores: np.ndarray  # (T, J, F) the score; NaN for a person's label
+    nodes: list[str]
+    edges: list[tuple[str, str]]
+    pairs: list[tuple[str, str]] | None  # the file's declared left/right pairs; None: not declared
+    digest: str  # the file's SHA-256
+
+
+def _read(path: Path) -> _SleapFile:
+    """One camera's file, read once: hashed, then parsed from memory."""
+    raw, digest = read_hashed(path)
+    if path.name.endswith(SLP):
+        return _read_slp(path, raw, digest)
+    return _read_analysis(path, raw, digest)
+
+
+def _read_slp(path: Path, raw: bytes, digest: str) -> _SleapFile:
+    """A ``.slp`` through ``sleap-io``: ``Labels.numpy`` (user instances preferred, a user
+    label scored 1), tracked instances only where the file has tracks."""
+    import sleap_io
+
+    try:
+        labels = sleap_io.load_slp(io.BytesIO(raw), open_videos=False)
+    except (OSError, KeyError, ValueError) as e:
+        raise InputError(str(path), f"not a SLEAP labels file ({e})") from None
+    if len(labels.videos) != 1:
+        raise InputError(str(path), f"{len(labels.videos)} videos in one file: one camera's video per file")
+    if not labels.skeletons:
+        raise InputError(str(path), "no skeleton")
+    sk = labels.skeletons[-1]
+    nodes = [str(n) for n in sk.node_names]
+    if not labels.labeled_frames:
+        arr = np.full((0, 1, len(nodes), 3), np.nan)
+    else:
+        arr = np.asarray(labels.numpy(video=0, untracked=not labels.tracks, return_confidence=True),
+                         dtype=np.float64)  # (F, T, J, 3)
+    tracks = np.transpose(arr[..., :2], (1, 3, 2, 0))
+    scores = np.transpose(arr[..., 2], (1, 2, 0))
+    edges = [(str(a), str(b)) for a, b in sk.edge_names]
+    pairs = [(str(a), str(b)) for a, b in sk.symmetry_names]
+    return _SleapFile(tracks, scores, nodes, edges, pairs or None, digest)
+
+
+def _read_analysis(path: Path, raw: bytes, digest: str) -> _SleapFile:
+    """One analysis file: ``tracks (T, 2, J, F)``, ``point_scores (T, J, F)``, the node names
+    and the edges."""
     import h5py
 
-    raw, digest = read_hashed(path)  # read once: hashed, then opened from memory
     try:
         with h5py.File(io.BytesIO(raw), "r") as f:
             missing = [k for k in ("tracks", "node_names") if k not in f]
@@ -104,7 +179,6 @@ def _read(path: Path) -> tuple[np.ndarray, np.ndarray, list[str], list[str], lis
             nodes = _names(f["node_names"][()])
             scores = (np.asarray(f["point_scores"][()], dtype=np.float64) if "point_scores" in f
                       else np.full((tracks.shape[0],) + tracks.shape[2:], np.nan))
-            track_names = _names(f["track_names"][()]) if "track_names" in f else []
             edges_raw = np.asarray(f["edge_names"][()]) if "edge_names" in f else np.zeros((0, 2))
     except OSError as e:
         raise InputError(str(path), f"not an HDF5 file ({e})") from None
@@ -115,26 +189,27 @@ def _read(path: Path) -> tuple[np.ndarray, np.ndarray, list[str], list[str], lis
         raise InputError(f"{path}: point_scores", f"expected {(tracks.shape[0],) + tracks.shape[2:]}, got "
                                                   f"{scores.shape}")
     edges = [tuple(_names(e)) for e in edges_raw.reshape(-1, 2)] if edges_raw.size else []
-    return tracks, scores, track_names, nodes, [(a, b) for a, b in edges], digest
+    return _SleapFile(tracks, scores, nodes, [(a, b) for a, b in edges], None, digest)
 
 
 def load(root: Path, calib: Path | str | None = None, fps: float | None = None) -> Scene:
     root = Path(root)
     rig, fps_doc, cal = calibration_beside(root, calib)
-    files_of = _files(root)
     warnings: list[str] = []
+    files_of = _files(root, warnings)
     cam_of = match_cameras(list(files_of), rig, str(root), warnings)
     digests: dict[str, str] = {}
     above = dropped = 0
-    first: tuple[Path, list[str], list[tuple[str, str]]] | None = None
+    first: tuple[Path, _SleapFile] | None = None
     rb: RowBuilder | None = None
     for name, path in files_of.items():
-        tracks, scores, _, nodes, edges, digest = _read(path)
-        digests[str(path.relative_to(root))] = digest
+        got = _read(path)
+        tracks, scores, nodes, edges = got.tracks, got.scores, got.nodes, got.edges
+        digests[str(path.relative_to(root))] = got.digest
         if first is None:
-            first = (path, nodes, edges)
+            first = (path, got)
             rb = RowBuilder(n_joints=len(nodes))
-        elif (nodes, sorted(map(sorted, edges))) != (first[1], sorted(map(sorted, first[2]))):
+        elif (nodes, sorted(map(sorted, edges))) != (first[1].nodes, sorted(map(sorted, first[1].edges))):
             raise InputError(str(path), f"its skeleton differs from {first[0]}'s (nodes or edges)")
         T, _, J, F = tracks.shape
         uv = np.transpose(tracks, (0, 3, 2, 1)).reshape(T * F, J, 2)  # (track, frame) rows
@@ -152,13 +227,17 @@ def load(root: Path, calib: Path | str | None = None, fps: float | None = None) 
         if rb is not None and len(frame):
             rb.add_joint_block(_block(frame, cam_of[name], track, uv, conf, str(path)))
     if first is None or rb is None:
-        raise InputError(str(root), f"no SLEAP analysis file (<camera>/*{SUFFIX})")
+        raise InputError(str(root), f"no SLEAP file (<camera>/*{SLP} or <camera>/*{SUFFIX})")
     obs = rb.build()
     if len(obs) == 0:
         raise InputError(str(root), "no labelled keypoints in any SLEAP file")
-    nodes, edges = first[1], first[2]
+    nodes, edges = first[1].nodes, first[1].edges
+    pairs = side_pairs(nodes, edges, first[1].pairs)
+    if first[1].pairs is not None and len(pairs) < len(first[1].pairs):
+        warnings.append(f"{first[0].name}: {len(first[1].pairs) - len(pairs)} of its symmetries are no "
+                        "left/right pair of the bones (their sides' bones do not mirror): not used as pairs")
     doc: JsonDict = {"name": "sleap", "joints": nodes, "bones": [list(e) for e in edges],
-                     "pairs": [list(p) for p in side_pairs(nodes, edges)]}
+                     "pairs": [list(p) for p in pairs]}
     skeleton_from_doc(doc, str(first[0]))  # checked as a skeleton file is
     rate = fps or fps_doc
     files = {f"calibration:{cal.name}": "folder" if cal.is_dir() else read_hashed(cal)[1], **digests}
