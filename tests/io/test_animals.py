@@ -16,7 +16,7 @@ from gt3dkit.calib.formats import toml as toml_fmt
 from gt3dkit.calib.formats.native import rig_of_doc
 from gt3dkit.cli import main
 from gt3dkit.eval.pose import mpjpe_by_id
-from gt3dkit.io.datasets import Calibration
+from gt3dkit.io.datasets import Calibration, read_scene
 from gt3dkit.io.datasets.sleap import side_pairs
 from gt3dkit.io.skeletonfile import read_skeleton
 from gt3dkit.rig import Rig
@@ -243,6 +243,9 @@ def test_a_calibration_in_millimetres_is_made_metres(tmp_path: Path) -> None:
     assert scaled.load_options["calib_units"] == "mm"
     a, b = reconstruct(metres, "ukf"), reconstruct(scaled, "ukf")
     np.testing.assert_allclose(a.kpt_world, b.kpt_world, atol=1e-6)
+    far = [w for w in read_scene(tmp_path / "mm").warnings if "--calib-units" in w]
+    assert len(far) == 1 and "m apart" in far[0]  # read as metres, the rig is kilometres wide: said
+    assert not any("--calib-units" in w for s in (metres, scaled) for w in s.warnings)
 
 
 def test_a_camera_whose_calibration_fits_no_other_is_named(tmp_path: Path) -> None:

@@ -197,7 +197,7 @@ def in_metres(scene: Scene, units: str) -> Scene:
     if units not in UNITS_M:
         raise InputError("--calib-units", f"unknown unit {units!r} (known: {', '.join(UNITS_M)})")
     if units == "m":
-        return scene
+        return _far_apart_said(scene)
     s = UNITS_M[units]
     truth = scene.truth
     if truth is not None:
@@ -205,6 +205,25 @@ def in_metres(scene: Scene, units: str) -> Scene:
                                     kpt_world=truth.kpt_world * s)
     return dataclasses.replace(scene, rig=scene.rig.in_metres(s), truth=truth,
                                load_options={**scene.load_options, "calib_units": units})
+
+
+#: cameras further apart than this (the median over the pairs, in the calibration's units read as
+#: metres) are more likely a rig calibrated in millimetres or centimetres
+FAR_APART_M = 100.0
+
+
+def _far_apart_said(scene: Scene) -> Scene:
+    """``scene`` with a ``warning:`` where its cameras stand implausibly far apart for metres."""
+    centres = np.array([c.center_world for c in scene.rig.cameras]).reshape(-1, 3)
+    if len(centres) < 2:
+        return scene
+    a, b = np.triu_indices(len(centres), 1)
+    apart = float(np.median(np.linalg.norm(centres[a] - centres[b], axis=-1)))
+    if not apart > FAR_APART_M:
+        return scene
+    said = (f"the cameras stand {apart:.0f} m apart (median over the pairs), the calibration read as "
+            "metres: is it in millimetres or centimetres? (--calib-units mm|cm)")
+    return dataclasses.replace(scene, warnings=(*scene.warnings, said))
 
 
 def with_sequence_truth(head: Scene) -> Scene:
