@@ -343,6 +343,80 @@ def test_deeplabcut_multi_animal_csvs_are_as_good_as_native_keypoints(tmp_path: 
     assert _mpjpe_m(dlc, sk, True) < 0.01
 
 
+def _as_dlc_h5(csv_path: Path, h5_path: Path) -> None:
+    """A DeepLabCut CSV as DeepLabCut's own ``.h5`` (its conversion: pandas reads the CSV's header
+    rows as the columns, then ``to_hdf(key="df_with_missing", format="table")``)."""
+    pd = pytest.importorskip("pandas")
+    pytest.importorskip("tables")
+    levels = 4 if csv_path.read_text().splitlines()[1].startswith("individuals") else 3
+    df = pd.read_csv(csv_path, header=list(range(levels)), index_col=0)
+    df.to_hdf(h5_path, key="df_with_missing", format="table", mode="w")
+
+
+def test_deeplabcut_h5_files_read_as_their_csvs(tmp_path: Path) -> None:
+    sk = simulate_skeletons("native", seed=8, frames=10, people=2, cameras=4, noise_px=1.0, skeleton="coco17")
+    csvs = _write_dlc(sk, tmp_path / "csv")
+    (tmp_path / "h5").mkdir()
+    toml_fmt.write(sk.rig, tmp_path / "h5" / "calibration.toml")
+    for p in csvs:
+        _as_dlc_h5(p, tmp_path / "h5" / p.with_suffix(".h5").name)
+        _as_dlc_h5(p, p.with_suffix(".h5"))  # beside its CSV, as DeepLabCut writes both: the .h5 is read
+    b, both = load_scene(tmp_path / "h5"), load_scene(tmp_path / "csv")
+    assert b.layout == "dlc" and all(f.endswith(".h5") for f in both.files if not f.startswith("calibration"))
+    for p in csvs:
+        p.with_suffix(".h5").unlink()
+    a = load_scene(tmp_path / "csv")
+    for x in (b, both):
+        assert np.array_equal(a.obs.kpt_uv_px, x.obs.kpt_uv_px, equal_nan=True)
+        assert np.array_equal(a.obs.track_id, x.obs.track_id) and np.array_equal(a.obs.frame, x.obs.frame)
+
+
+def _anipose_session(sk: SkeletonScene, project: Path, scheme: list[list[str]]) -> Path:
+    """An anipose project of one session: ``config.toml`` (a ``cam_regex`` for the simulated
+    cameras' names, the labeling scheme), ``session1/calibration/calibration.toml`` and
+    ``session1/pose-2d/<video>-cam<name>.h5``, DeepLabCut's output per camera."""
+    session = project / "session1"
+    csvs = _write_dlc(sk, project / "dlc")
+    (session / "pose-2d").mkdir(parents=True)
+    (session / "calibration").mkdir()
+    toml_fmt.write(sk.rig, session / "calibration" / "calibration.toml")
+    for p, cam in zip(csvs, sk.rig.cameras, strict=True):
+        _as_dlc_h5(p, session / "pose-2d" / f"trial1-cam{cam.name}.h5")
+    q = lambda xs: "[" + ", ".join(f'"{x}"' for x in xs) + "]"  # noqa: E731
+    (project / "config.toml").write_text(
+        "project = 'sim'\n[triangulation]\ncam_regex = '-cam([0-9_]+)$'\n"
+        "[labeling]\nscheme = [" + ", ".join(q(c) for c in scheme) + "]\n")
+    return session
+
+
+def test_an_anipose_session_is_read_with_its_cameras_and_scheme(tmp_path: Path) -> None:
+    sk = simulate_skeletons("native", seed=9, frames=16, people=2, cameras=4, noise_px=2.0, skeleton="coco17")
+    chains = [["l_ankle", "l_knee", "l_hip", "r_hip", "r_knee", "r_ankle"],
+              ["l_wrist", "l_elbow", "l_shoulder", "r_shoulder", "r_elbow", "r_wrist"],
+              ["l_hip", "l_shoulder"],
+              ["r_hip", "r_shoulder"], ["l_ear", "l_eye", "nose", "r_eye", "r_ear"]]
+    session = _anipose_session(sk, tmp_path / "proj", chains)
+    scene = load_scene(session)
+    assert scene.layout == "anipose" and scene.skeleton_doc is not None
+    bones = {frozenset(b) for b in scene.skeleton_doc["bones"]}  # type: ignore[union-attr]
+    assert bones == {frozenset(p) for c in chains for p in zip(c, c[1:], strict=False)}
+    assert ["l_knee", "r_knee"] in scene.skeleton_doc["pairs"]  # type: ignore[operator]
+    tracks = reconstruct(scene, "ukf")
+    assert len(np.unique(tracks.track_id)) == 2 and _mpjpe_m(tracks, sk, True) < 0.01
+    assert not any(session.rglob("*.csv")) and not (session / "out").exists()  # nothing written there
+
+
+def test_an_anipose_file_whose_camera_the_calibration_lacks_is_one_line(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    sk = simulate_skeletons("native", seed=9, frames=4, people=1, cameras=3, skeleton="coco17")
+    session = _anipose_session(sk, tmp_path / "proj", [["l_hip", "r_hip"]])
+    stray = session / "pose-2d" / "trial1-cam99.h5"
+    (session / "pose-2d" / f"trial1-cam{sk.rig.cameras[0].name}.h5").rename(stray)
+    code, _, err = _run("reconstruct", str(session), "--out", str(tmp_path / "out"), capsys=capsys)
+    assert code == 2 and err.count("\n") == 1 and err.startswith(f"error: {stray}: "), err
+    assert "'99'" in err and not (tmp_path / "out").exists()
+
+
 def test_a_deeplabcut_file_of_two_scorers_or_other_parts_is_refused(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     sk = simulate_skeletons("native", seed=3, frames=4, people=1, cameras=3, skeleton="coco17")

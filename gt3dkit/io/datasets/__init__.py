@@ -15,7 +15,7 @@ from gt3dkit.calib.formats import detect_format, read_calibration
 from gt3dkit.calib.formats.grid import LAYOUTS as GRID_LAYOUTS
 from gt3dkit.calib.formats.native import FPS_RANGE
 from gt3dkit.errors import InputError
-from gt3dkit.io.datasets import dlc, mot, native, openpose, panoptic, sleap, tasks, wildtrack
+from gt3dkit.io.datasets import anipose, dlc, mot, native, openpose, panoptic, sleap, tasks, wildtrack
 from gt3dkit.rig import Rig
 from gt3dkit.types import GroundTruth, JsonDict, JsonValue, ReadAhead, Scene, SimScene, SkeletonScene
 
@@ -91,6 +91,8 @@ LAYOUTS: dict[str, Layout] = {v.name: v for v in (
     _grid("multiviewx"),
     Layout("panoptic", lambda root: any(root.glob("calibration_*.json")),
            lambda root, o: panoptic.load_with(root, o.panoptic), write_keypoints=panoptic.write),
+    Layout("anipose", anipose.found, lambda root, o: anipose.load(root, o.skeleton, o.calib, o.fps),
+           associated=True, skeletons=True),
     # last: DeepLabCut's test opens files (a CSV's first cell) that no layout above needs opened
     Layout("sleap", sleap.found, lambda root, o: sleap.load(root, o.calib, o.fps), associated=True),
     Layout("dlc", dlc.found, lambda root, o: dlc.load(root, o.skeleton, o.calib, o.fps), associated=True,
@@ -113,8 +115,8 @@ def detect_layout(root: Path) -> str:
                                 "calibrations/intrinsic (MultiviewX) or "
                                 "calibration_<seq>.json (CMU Panoptic), mot/<camera>.txt "
                                 "(MOTChallenge per camera), <camera>_json/ (OpenPose), cvat/<camera>.xml, "
-                                "coco/<camera>.json, <camera>/*.analysis.h5 (SLEAP) or DeepLabCut's CSV per "
-                                "camera")
+                                "coco/<camera>.json, <camera>/*.slp or *.analysis.h5 (SLEAP), pose-2d/ (an "
+                                "anipose session) or DeepLabCut's .h5 or CSV per camera")
 
 
 def with_calibration(scene: Scene, calib: Path | str) -> Scene:

@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import csv
 import io
+import os
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +38,7 @@ from gt3dkit.skeletons import Skeleton
 from gt3dkit.types import JsonDict, Scene
 
 DEFAULT_FPS = 30.0
+H5 = ".h5"
 #: header rows of a DeepLabCut CSV (single animal; a multi-animal one has ``individuals`` too)
 HEADER = ("scorer", "bodyparts", "coords")
 
@@ -50,15 +53,38 @@ def is_dlc_csv(path: Path) -> bool:
 
 
 def found(root: Path) -> bool:
-    return any(is_dlc_csv(p) for p in root.glob("*.csv"))
+    """A folder holding DeepLabCut CSVs or ``.h5`` files (one per camera) beside a calibration."""
+    return any(is_dlc_csv(p) for p in root.glob("*.csv")) or any(root.glob(f"*{H5}"))
 
 
-def camera_files(root: Path, rig: Rig) -> dict[str, Path]:
-    """Camera name -> its DeepLabCut CSV: the one file whose name holds the camera's name."""
-    files = [p for p in sorted(root.glob("*.csv")) if is_dlc_csv(p)]
+def have_tables() -> bool:
+    """Whether DeepLabCut's ``.h5`` can be read here (pandas and PyTables)."""
+    import importlib.util
+
+    return all(importlib.util.find_spec(m) is not None for m in ("pandas", "tables"))
+
+
+def _preferred(paths: list[Path]) -> list[Path]:
+    """Where DeepLabCut wrote a video's ``.h5`` and ``.csv`` both, the one read: the ``.h5`` (its
+    own format) where PyTables is here, else the CSV."""
+    stems = {p.stem for p in paths if p.suffix.lower() == H5} & {p.stem for p in paths if p.suffix == ".csv"}
+    drop = ".csv" if have_tables() else H5
+    return [p for p in paths if not (p.stem in stems and p.suffix.lower() == drop)]
+
+
+def dlc_files(root: Path) -> list[Path]:
+    """DeepLabCut's files in ``root``: its CSVs (first cell ``scorer``) and ``.h5`` files."""
+    return _preferred(sorted([p for p in root.glob("*.csv") if is_dlc_csv(p)] + list(root.glob(f"*{H5}"))))
+
+
+def camera_files(root: Path, rig: Rig, cam_regex: str | None = None) -> dict[str, Path]:
+    """Camera name -> its DeepLabCut file: the one file whose name holds the camera's name (or
+    whose name ``cam_regex``'s first group gives it, as anipose names cameras)."""
+    files = dlc_files(root)
     out: dict[str, Path] = {}
     for cam in rig.names:
-        mine = [p for p in files if re.search(rf"(?<![A-Za-z0-9]){re.escape(cam)}(?![A-Za-z0-9])", _video(p))]
+        mine = [p for p in files if _camera_of(p, cam_regex) == cam] if cam_regex is not None else [
+            p for p in files if re.search(rf"(?<![A-Za-z0-9]){re.escape(cam)}(?![A-Za-z0-9])", _video(p))]
         if len(mine) > 1:
             raise InputError(str(mine[1]), f"a second DeepLabCut file for camera {cam} "
                                            f"(first: {mine[0].name})")
@@ -66,8 +92,16 @@ def camera_files(root: Path, rig: Rig) -> dict[str, Path]:
             out[cam] = mine[0]
     loose = [p for p in files if p not in out.values()]
     if loose:
-        raise InputError(str(loose[0]), f"its name holds no calibrated camera's ({', '.join(rig.names)})")
+        how = f" (by cam_regex {cam_regex!r}: {_camera_of(loose[0], cam_regex)!r})" if cam_regex else ""
+        raise InputError(str(loose[0]), f"its name gives no calibrated camera's "
+                                        f"({', '.join(rig.names)}){how}")
     return out
+
+
+def _camera_of(path: Path, cam_regex: str | None) -> str | None:
+    """The camera anipose's ``cam_regex`` finds in a file's name (its first group, stripped)."""
+    m = re.search(cam_regex or "", path.stem)
+    return m.groups()[0].strip() if m and m.groups() else None
 
 
 def _video(path: Path) -> str:
@@ -76,20 +110,18 @@ def _video(path: Path) -> str:
 
 
 class DlcFile:
-    """One DeepLabCut CSV read: ``frames (F,)``, ``individuals``, ``bodyparts``, ``uv (F, I, J, 2)``
-    (NaN: not found) and ``likelihood (F, I, J)``."""
+    """One DeepLabCut file read (its CSV, or its ``.h5``: pandas' table through PyTables):
+    ``frames (F,)``, ``individuals``, ``bodyparts``, ``uv (F, I, J, 2)`` (NaN: not found) and
+    ``likelihood (F, I, J)``."""
 
     def __init__(self, path: Path) -> None:
         raw, self.digest = read_hashed(path)
-        rows = list(csv.reader(io.StringIO(raw.decode("utf-8-sig"))))
-        names = [r[0].strip() if r else "" for r in rows[:4]]
+        table = _h5_table(path, raw) if path.suffix.lower() == H5 else _csv_table(path, raw)
+        names, cols, frames, vals = table
         multi = names[:4] == ["scorer", "individuals", "bodyparts", "coords"]
         if not multi and names[:3] != list(HEADER):
-            raise InputError(str(path), "not a DeepLabCut CSV (header rows scorer, [individuals,] bodyparts, "
-                                        f"coords; got {names[:3]})")
-        head = rows[:4] if multi else rows[:3]
-        n_index = next((k for k, v in enumerate(head[-1]) if v.strip() in ("x", "y", "likelihood")), 1)
-        cols = [[c.strip() for c in r[n_index:]] for r in head]
+            raise InputError(str(path), "not a DeepLabCut file (header rows scorer, [individuals,] "
+                                        f"bodyparts, coords; got {names[:3]})")
         scorers = set(cols[0])
         if len(scorers) != 1:
             named = ", ".join(sorted(scorers))
@@ -105,20 +137,7 @@ class DlcFile:
         key = {(i, b): k for k, (i, b) in enumerate(zip(inds, parts, strict=True))}
         if len(key) != len(parts):
             raise InputError(f"{path}: bodyparts", "a body part named twice for one individual")
-        body = [r for r in rows[len(head):] if r and any(x.strip() for x in r)]
-        F, I, J = len(body), len(self.individuals), len(self.bodyparts)
-        vals = np.full((F, len(parts) * 3), np.nan)
-        frames = np.zeros(F, np.int64)
-        for n, r in enumerate(body):
-            where = f"{path}: line {len(head) + n + 1}"
-            frames[n] = _frame_of(where, r[:n_index])
-            if len(r) - n_index != len(parts) * 3:
-                raise InputError(where, f"expected {len(parts) * 3} values after the index, "
-                                        f"got {len(r) - n_index}")
-            try:
-                vals[n] = [float(x) if x.strip() else np.nan for x in r[n_index:]]
-            except ValueError:
-                raise InputError(where, "a value is not a number") from None
+        F, I, J = len(frames), len(self.individuals), len(self.bodyparts)
         self.frames = frames
         self.uv = np.full((F, I, J, 2), np.nan)
         self.likelihood = np.full((F, I, J), np.nan)
@@ -126,6 +145,65 @@ class DlcFile:
             ii, jj = self.individuals.index(i), self.bodyparts.index(b)
             self.uv[:, ii, jj] = vals[:, 3 * k:3 * k + 2]
             self.likelihood[:, ii, jj] = vals[:, 3 * k + 2]
+
+
+#: a DeepLabCut table: the header levels' names, each level's column labels, ``frames (F,)`` and
+#: the values ``(F, columns)``
+Table = tuple[list[str], list[list[str]], np.ndarray, np.ndarray]
+
+
+def _csv_table(path: Path, raw: bytes) -> Table:
+    rows = list(csv.reader(io.StringIO(raw.decode("utf-8-sig"))))
+    names = [r[0].strip() if r else "" for r in rows[:4]]
+    head = rows[:4] if names[:2] == ["scorer", "individuals"] else rows[:3]
+    n_index = next((k for k, v in enumerate(head[-1]) if v.strip() in ("x", "y", "likelihood")), 1)
+    cols = [[c.strip() for c in r[n_index:]] for r in head]
+    body = [r for r in rows[len(head):] if r and any(x.strip() for x in r)]
+    width = len(cols[-1])
+    vals = np.full((len(body), width), np.nan)
+    frames = np.zeros(len(body), np.int64)
+    for n, r in enumerate(body):
+        where = f"{path}: line {len(head) + n + 1}"
+        frames[n] = _frame_of(where, r[:n_index])
+        if len(r) - n_index != width:
+            raise InputError(where, f"expected {width} values after the index, got {len(r) - n_index}")
+        try:
+            vals[n] = [float(x) if x.strip() else np.nan for x in r[n_index:]]
+        except ValueError:
+            raise InputError(where, "a value is not a number") from None
+    return names[:len(head)], cols, frames, vals
+
+
+def _h5_table(path: Path, raw: bytes) -> Table:
+    """DeepLabCut's ``.h5``: one pandas table (key ``df_with_missing`` or ``keypoints``), read from
+    the bytes already read (PyTables' in-memory driver)."""
+    try:
+        import pandas as pd
+        import tables  # noqa: F401  (pandas reads HDF5 tables through it)
+    except ImportError:
+        raise InputError(str(path), "reading DeepLabCut's .h5 needs pandas and PyTables: "
+                                    "pip install 'gt3dkit[dlc]' (or give its .csv)") from None
+    try:
+        with pd.HDFStore(f"{os.devnull}/{path.name}", mode="r", driver="H5FD_CORE", driver_core_image=raw,
+                         driver_core_backing_store=0) as store:
+            keys = store.keys()
+            if len(keys) != 1:
+                raise InputError(str(path), f"{len(keys)} tables ({', '.join(keys)}): a DeepLabCut file "
+                                            "holds one")
+            df = store[keys[0]]
+    except (OSError, ValueError, TypeError) as e:
+        raise InputError(str(path), f"not a DeepLabCut .h5 ({str(e).splitlines()[-1][:120]})") from None
+    if not isinstance(df, pd.DataFrame) or not isinstance(df.columns, pd.MultiIndex):
+        raise InputError(str(path), "not a DeepLabCut .h5 (no table of scorer, bodyparts and coords columns)")
+    names = [str(n) for n in df.columns.names]
+    cols = [[str(v) for v in df.columns.get_level_values(k)] for k in range(df.columns.nlevels)]
+    index = [[str(x) for x in (i if isinstance(i, tuple) else (i,))] for i in df.index]
+    frames = np.array([_frame_of(f"{path}: row {n}", ["/".join(i)]) for n, i in enumerate(index)], np.int64)
+    try:
+        vals = df.to_numpy(dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(str(path), "a value is not a number") from None
+    return names, cols, frames, vals
 
 
 def _frame_of(where: str, index: list[str]) -> int:
@@ -146,14 +224,24 @@ def load(root: Path, skeleton: str | None = None, calib: Path | str | None = Non
     rig, fps_doc, cal = calibration_beside(root, calib)
     files = camera_files(root, rig)
     if not files:
-        raise InputError(str(root), "no DeepLabCut CSV (a file whose first cell is 'scorer')")
+        raise InputError(str(root), "no DeepLabCut file (a CSV whose first cell is 'scorer', or its .h5)")
+    return scene_of(root, files, (rig, fps_doc, cal), lambda parts: body_skeleton(parts, skeleton), fps,
+                    "dlc")
+
+
+def scene_of(root: Path, files: dict[str, Path], calibration: tuple[Rig, float | None, Path],
+             skeleton_of: Callable[[list[str]], Skeleton], fps: float | None, layout: str) -> Scene:
+    """The scene of one DeepLabCut file per camera (``files``: camera name -> file) and the
+    calibration (its rig, frame rate and path); ``skeleton_of`` makes the skeleton of the files'
+    body parts."""
+    rig, fps_doc, cal = calibration
     read = {cam: DlcFile(p) for cam, p in files.items()}
     first_cam = next(iter(read))
     parts = read[first_cam].bodyparts
     for cam, f in read.items():
         if f.bodyparts != parts:
             raise InputError(str(files[cam]), f"its body parts differ from {files[first_cam].name}'s")
-    skel = _skeleton(parts, skeleton)
+    skel = skeleton_of(parts)
     rb = RowBuilder(n_joints=len(parts))
     above = dropped = 0
     for cam, f in read.items():
@@ -178,11 +266,11 @@ def load(root: Path, skeleton: str | None = None, calib: Path | str | None = Non
     if dropped:
         warnings.append(f"{dropped} body parts of likelihood 0 or below left out")
     if not skel.bone_names:
-        warnings.append("no bones: DeepLabCut's CSV names body parts only (give them with --skeleton FILE)")
+        warnings.append("no bones: DeepLabCut's files name body parts only (give them with --skeleton FILE)")
     rate = fps or fps_doc
     digests = {str(p.relative_to(root)): read[c].digest for c, p in files.items()}
     doc: JsonDict = skel.doc()
-    return Scene(rig=rig, obs=obs, layout="dlc", fps=float(rate or DEFAULT_FPS), frames=np.unique(obs.frame),
+    return Scene(rig=rig, obs=obs, layout=layout, fps=float(rate or DEFAULT_FPS), frames=np.unique(obs.frame),
                  skeleton=skel.name, skeleton_doc=doc, root=str(root), warnings=tuple(warnings),
                  files={f"calibration:{cal.name}": "folder" if cal.is_dir() else read_hashed(cal)[1],
                         **digests},
@@ -190,7 +278,7 @@ def load(root: Path, skeleton: str | None = None, calib: Path | str | None = Non
                  association="detections")
 
 
-def _skeleton(parts: list[str], skeleton: str | None) -> Skeleton:
+def body_skeleton(parts: list[str], skeleton: str | None) -> Skeleton:
     """The body parts as a skeleton: ``--skeleton``'s (its joints those parts, in any order), else
     the parts without bones."""
     if skeleton is None:
