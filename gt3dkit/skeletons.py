@@ -3,6 +3,9 @@
 * ``coco17``: COCO keypoints (nose, eyes, ears, shoulders, elbows, wrists, hips, knees, ankles).
 * ``panoptic15``: CMU Panoptic's 15 body joints (the first 15 of ``coco19``).
 * ``coco19``: CMU Panoptic's ``joints19`` order (``hdPose3d_stage1_coco19``).
+* ``body25``, ``body25b``, ``coco18``, ``halpe26``: OpenPose's, AlphaPose's and RTMPose's orders.
+* ``coco133``: COCO-WholeBody's body and feet; ``wholebody133``: all of its 133 points (the face's
+  68 and each hand's 21 too).
 
 The canonical pose is a person 1.7 m tall standing upright in the *body* frame
 (x to the person's left, y forward, z up, metres, feet at z = 0); the UKF places
@@ -147,6 +150,72 @@ class Skeleton:
         return out
 
 
+#: the joints of the standing person's body (the face and hands below are carried by them)
+BODY_JOINTS = frozenset(_CANON)
+
+
+def _wholebody() -> tuple[tuple[str, ...], tuple[tuple[str, str], ...], tuple[str, ...]]:
+    """COCO-WholeBody's 133 points (its order: 17 body, 6 feet, 68 face, 21 left hand, 21 right
+    hand), their bones and the dataset's own names (mmpose's ``coco_wholebody``); the face and
+    hand points' canonical places are added to the standing person's (a face looking forward,
+    hands hanging at the sides, fingers down, palms in)."""
+    face = tuple(f"face_{k}" for k in range(68))
+    fingers = ("thumb", "forefinger", "middle_finger", "ring_finger", "pinky_finger")
+    hands = {side: (f"{side}_hand_root",) + tuple(f"{side}_{f}{k}" for f in fingers for k in range(1, 5))
+             for side in ("l", "r")}
+    joints = _COCO133_BODY + face + hands["l"] + hands["r"]
+    bones = list(_BONES_COCO17 + _BONES_FEET)
+    loops = ((36, 41), (42, 47), (48, 59), (60, 67))
+    for a, b in ((0, 16), (17, 21), (22, 26), (27, 30), (31, 35)) + loops:
+        bones += [(face[k], face[k + 1]) for k in range(a, b)]
+    bones += [(face[b], face[a]) for a, b in loops]
+    bones += [("nose", face[30]), (face[27], face[21]), (face[27], face[22]), (face[27], face[39]),
+              (face[27], face[42]), (face[33], face[51]), (face[8], face[57]), (face[0], face[36]),
+              (face[16], face[45]), (face[48], face[60]), (face[54], face[64])]
+    for side, h in hands.items():
+        bones.append((f"{side}_wrist", h[0]))
+        for n in range(5):
+            chain = (h[0],) + h[1 + 4 * n:5 + 4 * n]
+            bones += list(zip(chain, chain[1:], strict=False))
+    labels = tuple({"l": "left", "r": "right"}.get(j[:1], "") + j[1:] if j[1:2] == "_" else j
+                   for j in _COCO133_BODY) + tuple(f"face-{k}" for k in range(68)) + tuple(
+        j.replace("l_", "left_", 1).replace("r_", "right_", 1) for j in hands["l"] + hands["r"])
+    # canonical places (body frame, m): the face ~14 cm wide on a plane 8 cm before the head's axis
+    t = np.linspace(0.0, np.pi, 17)
+    pts = [(-0.07 * np.cos(a), 0.05 + 0.03 * np.sin(a), 1.60 - 0.08 * np.sin(a)) for a in t]  # jaw
+    pts += [(x, 0.085, 1.68) for x in np.linspace(-0.06, -0.015, 5)]  # the right brow
+    pts += [(x, 0.085, 1.68) for x in np.linspace(0.015, 0.06, 5)]
+    pts += [(0.0, 0.085 + 0.005 * k, 1.665 - 0.015 * k) for k in range(4)]  # the nose's bridge
+    pts += [(x, 0.09, 1.60) for x in np.linspace(-0.02, 0.02, 5)]
+    for cx in (-0.032, 0.032):  # the eyes
+        pts += [(cx - 0.012 * np.cos(a), 0.08, 1.655 + 0.005 * np.sin(a))
+                for a in np.linspace(0, 2 * np.pi, 7)[:6]]
+    for rx, rz in ((0.025, 0.01), (0.015, 0.004)):  # the lips
+        m = 12 if rx > 0.02 else 8
+        ring = np.linspace(0, 2 * np.pi, m + 1)[:m]
+        pts += [(-rx * np.cos(a), 0.085, 1.565 + rz * np.sin(a)) for a in ring]
+    _CANON.update({j: (float(x), float(y), float(z)) for j, (x, y, z) in zip(face, pts, strict=True)})
+    finger_y = {"thumb": 0.0, "forefinger": 0.03, "middle_finger": 0.01, "ring_finger": -0.01,
+                "pinky_finger": -0.03}
+    finger_len = {"forefinger": (0.04, 0.025, 0.02), "middle_finger": (0.045, 0.028, 0.02),
+                  "ring_finger": (0.042, 0.026, 0.02), "pinky_finger": (0.032, 0.02, 0.018)}
+    for side, sign in (("l", 1.0), ("r", -1.0)):
+        wx, wy, wz = _CANON[f"{side}_wrist"]
+        _CANON[f"{side}_hand_root"] = (wx, wy, wz - 0.01)
+        thumb = ((-0.005, 0.025, -0.02), (-0.01, 0.045, -0.04), (-0.01, 0.06, -0.06), (-0.01, 0.07, -0.08))
+        for k, (dx, dy, dz) in enumerate(thumb, 1):
+            _CANON[f"{side}_thumb{k}"] = (wx + sign * dx, wy + dy, wz + dz)
+        for f, lens in finger_len.items():
+            z = wz - 0.09
+            _CANON[f"{side}_{f}1"] = (wx, wy + finger_y[f], z)
+            for k, d in enumerate(lens, 2):
+                z -= d
+                _CANON[f"{side}_{f}{k}"] = (wx, wy + finger_y[f], z)
+    return joints, tuple(bones), labels
+
+
+_WHOLEBODY, _BONES_WHOLEBODY, _WHOLEBODY_LABELS = _wholebody()
+
 SKELETONS = {
     "coco17": Skeleton("coco17", _COCO17, _BONES_COCO17),
     "panoptic15": Skeleton("panoptic15", _COCO19[:15], _BONES_BODY),
@@ -162,6 +231,9 @@ SKELETONS = {
     # 2 x 21 hand points, 133 in all; the body and the feet are read
     "coco133": Skeleton("coco133", _COCO133_BODY, _BONES_COCO17 + _BONES_FEET,
                         tuple(_OP_NAMES[j] for j in _COCO133_BODY), detector_points=133),
+    # COCO-WholeBody whole: the body, the feet, 68 face and 2 x 21 hand points (the face's
+    # contours and each finger's chain from the hand's root as bones)
+    "wholebody133": Skeleton("wholebody133", _WHOLEBODY, _BONES_WHOLEBODY, _WHOLEBODY_LABELS),
 }
 #: 2D detector files (OpenPose JSON) name their skeleton by joint count; 25 is BODY_25 or BODY_25B
 DETECTOR_SKELETONS = {25: ("body25", "body25b"), 26: ("halpe26",), 18: ("coco18",), 17: ("coco17",),

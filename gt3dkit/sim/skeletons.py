@@ -14,7 +14,7 @@ from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.datasets import LAYOUTS, openpose, tasks
 from gt3dkit.io.skeletonfile import named_skeleton
 from gt3dkit.sim.common import DROPPED_KEYPOINTS, Errors, gap_mask, keep_one_view, with_lens, write_injected
-from gt3dkit.skeletons import SKELETONS, Skeleton
+from gt3dkit.skeletons import BODY_JOINTS, SKELETONS, Skeleton
 from gt3dkit.types import F64, I64, Camera, Rig, SkeletonScene
 
 
@@ -84,6 +84,11 @@ def skeleton_motion(skeleton: str | Skeleton, t_s: F64, rng: np.random.Generator
             mid, end = ix[kids[0]], ix[kids[1]]
             R2 = _rot(lat, 0.3 * amp * (1 + np.sin(1.3 * w * t_s)))
             P[:, end] = P[:, mid] + np.einsum("tij,tj->ti", R2, P[:, end] - P[:, mid])
+            hand = _carried(skel, kids[1])
+            if hand:  # a hand's points go with its wrist (both turns), each finger curling
+                local = _curled(skel, hand, base, t_s, rng)  # (T, K, 3) at rest
+                moved = o + np.einsum("tij,tkj->tki", Rt, local - o)
+                P[:, hand] = P[:, mid, None] + np.einsum("tij,tkj->tki", R2, moved - P[:, mid, None])
     yaw = rng.uniform(0, 2 * np.pi) + rng.uniform(-0.4, 0.4) * np.sin(0.5 * t_s)
     Rz = _rot(np.array([0.0, 0.0, 1.0]), yaw)
     root_xy = rng.uniform(-0.8, 0.8, 2) + np.stack([0.3 * np.sin(0.4 * t_s + rng.uniform(0, 6)),
@@ -91,6 +96,55 @@ def skeleton_motion(skeleton: str | Skeleton, t_s: F64, rng: np.random.Generator
     P = np.einsum("tij,tkj->tki", Rz, P)
     P[..., :2] += root_xy[:, None, :]
     return P
+
+
+def _carried(skel: Skeleton, end: str) -> list[int]:
+    """The joints a chain's ``end`` carries: those its bones reach without passing a joint of the
+    standing body (a hand's points from its wrist; none for the body skeletons)."""
+    ix = {n: i for i, n in enumerate(skel.joints)}
+    if end not in ix:
+        return []
+    out, todo = [], [ix[end]]
+    while todo:
+        j = todo.pop()
+        for a, b in skel.bones:
+            k = b if a == j else a if b == j else -1
+            if k >= 0 and k not in out and skel.joints[k] not in BODY_JOINTS:
+                out.append(int(k))
+                todo.append(int(k))
+    return out
+
+
+def _curled(skel: Skeleton, hand: list[int], base: F64, t_s: F64, rng: np.random.Generator) -> F64:
+    """(T, K, 3) the ``hand`` joints at rest, each finger's outer joints curling about its first
+    (the bone tree from the hand's root: every joint turns the joints beyond it)."""
+    T = len(t_s)
+    P = np.repeat(base[None, hand], T, axis=0)
+    pos = {j: k for k, j in enumerate(hand)}
+    parent: dict[int, int] = {}
+    for a, b in skel.bones:
+        if a in pos and b in pos:
+            parent.setdefault(b, a)
+    lat = np.array([0.0, 1.0, 0.0])
+    w, phase = rng.uniform(1.0, 2.5), rng.uniform(0, 2 * np.pi)
+    for j in hand:  # the bones in the file's order: outwards along each finger
+        p = parent.get(j)
+        if p is None or parent.get(p) is None:
+            continue
+        beyond = [pos[j]] + [pos[k] for k in hand if _above(parent, k, j)]
+        R = _rot(lat, 0.25 * (1 + np.sin(w * t_s + phase)))
+        o = P[:, pos[p], None]
+        P[:, beyond] = o + np.einsum("tij,tkj->tki", R, P[:, beyond] - o)
+    return P
+
+
+def _above(parent: dict[int, int], k: int, j: int) -> bool:
+    """Whether ``j`` is among ``k``'s ancestors."""
+    while k in parent:
+        k = parent[k]
+        if k == j:
+            return True
+    return False
 
 
 def any_motion(skel: Skeleton, t_s: F64, rng: np.random.Generator) -> F64:

@@ -225,8 +225,10 @@ class _Reading:
         not read (a whole-body detector's face and hands)."""
         out = []
         if self.J is not None and self.kept is not None and self.kept < self.J:
+            whole = [k for k, v in SKELETONS.items() if v.n_joints == self.J and not v.detector_points]
             out.append(f"{self.J} points per detection: the first {self.kept} (body and feet) read, the "
-                       f"other {self.J - self.kept} (face and hands) not")
+                       f"other {self.J - self.kept} (face and hands) not"
+                       + (f" (--skeleton {whole[0]} reads them all)" if whole else ""))
         if self.above:
             out.append(f"{len(self.above)} detection(s) with a confidence above 1 (up to "
                        f"{max(self.above):.4g}; OpenPose's confidences are heatmap peaks): read as 1")
