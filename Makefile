@@ -15,7 +15,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 APT_PKGS := python3-venv libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libegl1 libgl1 libgomp1 libegl-mesa0 libgl1-mesa-dri
 
-.PHONY: setup demo test bench bench-env labels-env pose2sim-env bench-long lint clean
+.PHONY: setup demo test bench bench-env labels-env pose2sim-env movement-env bench-long lint clean
 
 setup: $(VENV)/.installed
 	@$(PY) -m compileall -q gt3dkit >/dev/null  # bytecode kept, also where PYTHONDONTWRITEBYTECODE is set
@@ -64,6 +64,20 @@ pose2sim-env: .venv-pose2sim/.installed
 	.venv-pose2sim/bin/python -m pip install -q --upgrade pip
 	.venv-pose2sim/bin/python -m pip install -q $(POSE2SIM_DEPS)
 	.venv-pose2sim/bin/python -m pip install -q --no-deps $(POSE2SIM)
+	@touch $@
+
+# movement (an independent writer of DeepLabCut's files, scripts/animal_targets.py section 5) in an
+# environment of its own: movement itself without its dependencies (napari, Qt, netCDF: its viewers'
+# and other formats'), what its io modules import, and sleap-io without its drawing and cloud ones
+MOVEMENT = movement==0.15.0 sleap-io==0.9.5
+MOVEMENT_DEPS = numpy pandas h5py tables xarray attrs loguru pyyaml tqdm pynwb ndx-pose imageio shapely simplejson lazy-loader
+movement-env: .venv-movement/.installed
+
+.venv-movement/.installed: Makefile
+	@test -x .venv-movement/bin/python || python3 -m venv .venv-movement
+	.venv-movement/bin/python -m pip install -q --upgrade pip
+	.venv-movement/bin/python -m pip install -q $(MOVEMENT_DEPS)
+	.venv-movement/bin/python -m pip install -q --no-deps $(MOVEMENT)
 	@touch $@
 
 # datumaro (pyproject's labels-check extra: CVAT's own reader, for the tests of gt3d project's

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+from importlib.resources import files
 from pathlib import Path
 
 from gt3dkit.errors import InputError
@@ -11,13 +12,22 @@ from gt3dkit.parse import load_toml
 from gt3dkit.skeletons import SKELETONS, Skeleton, skeleton_from_doc
 
 
+def shipped_skeletons() -> dict[str, Path]:
+    """The skeleton files shipped with the package (``gt3dkit/data/skeletons/*.toml``), by name."""
+    folder = Path(str(files("gt3dkit"))) / "data" / "skeletons"
+    return {p.stem: p for p in sorted(folder.glob("*.toml"))}
+
+
 def named_skeleton(name_or_file: str) -> Skeleton:
-    """A built-in skeleton by name, or the one a skeleton file describes (:func:`read_skeleton`)."""
+    """A built-in skeleton by name, a skeleton file shipped with the package by its name
+    (:func:`shipped_skeletons`), or the one a skeleton file describes (:func:`read_skeleton`)."""
     if name_or_file in SKELETONS:
         return SKELETONS[name_or_file]
-    path = Path(name_or_file)
+    shipped = shipped_skeletons()
+    path = shipped.get(name_or_file, Path(name_or_file))
     if path.suffix.lower() != ".toml" or not path.is_file():
-        raise InputError("--skeleton", f"unknown skeleton {name_or_file!r} (known: {', '.join(SKELETONS)}; "
+        known = ", ".join([*SKELETONS, *shipped])
+        raise InputError("--skeleton", f"unknown skeleton {name_or_file!r} (known: {known}; "
                                        "or a skeleton file, .toml)")
     return read_skeleton(path)
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from importlib.resources import files
 from pathlib import Path
 
 import numpy as np
@@ -434,26 +435,7 @@ def test_a_deeplabcut_file_of_two_scorers_or_other_parts_is_refused(
     assert not (tmp_path / "out").exists()
 
 
-MOUSE = '''name = "mouse"
-joints = ["nose", "ear_l", "ear_r", "head", "neck", "trunk", "hip_l", "hip_r", "tail_0", "tail_1", "tail_tip"]
-bones = [["nose", "head"], ["head", "ear_l"], ["head", "ear_r"], ["head", "neck"], ["neck", "trunk"],
-         ["trunk", "hip_l"], ["trunk", "hip_r"], ["trunk", "tail_0"], ["tail_0", "tail_1"],
-         ["tail_1", "tail_tip"]]
-pairs = [["ear_l", "ear_r"], ["hip_l", "hip_r"]]
-
-[pose]
-nose = [0.0, 0.05, 0.02]
-ear_l = [0.008, 0.035, 0.03]
-ear_r = [-0.008, 0.035, 0.03]
-head = [0.0, 0.035, 0.025]
-neck = [0.0, 0.02, 0.025]
-trunk = [0.0, -0.01, 0.03]
-hip_l = [0.012, -0.035, 0.02]
-hip_r = [-0.012, -0.035, 0.02]
-tail_0 = [0.0, -0.045, 0.015]
-tail_1 = [0.0, -0.07, 0.01]
-tail_tip = [0.0, -0.1, 0.005]
-'''
+MOUSE = (files("gt3dkit") / "data" / "skeletons" / "mouse.toml").read_text()
 
 
 def test_a_skeleton_file_is_simulated_and_reconstructed(tmp_path: Path, capsys: pytest.CaptureFixture[str]
