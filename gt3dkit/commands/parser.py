@@ -35,6 +35,7 @@ from gt3dkit.early import DEFAULT_ESTIMATOR
 from gt3dkit.export import FORMATS as EXPORT_FORMATS
 from gt3dkit.io.datasets import LAYOUTS
 from gt3dkit.io.labels import LABEL_FORMATS
+from gt3dkit.io.skeletonfile import shipped_skeletons
 from gt3dkit.sim import SIM_LAYOUTS
 from gt3dkit.skeletons import SKELETONS
 from gt3dkit.types import BOX_MODEL_REGISTRY, BOX_MODELS, LENSES
@@ -56,6 +57,7 @@ def _scene_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--layout", choices=tuple(LAYOUTS), help="input layout (default: detected)")
     p.add_argument("--skeleton", metavar="NAME|FILE",
                    help="joint order of keypoints.csv: a built-in skeleton (" + ", ".join(sorted(SKELETONS))
+                        + "), one shipped as a file (" + ", ".join(shipped_skeletons())
                         + ") or a skeleton file (.toml: joints, bones, left/right pairs)")
     _panoptic_options(p)
     p.add_argument("--fps", type=FPS, help="frame-number rate (default: the layout's)")
