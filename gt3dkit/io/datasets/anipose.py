@@ -19,7 +19,7 @@ import tomllib
 from pathlib import Path
 
 from gt3dkit.errors import InputError
-from gt3dkit.io.datasets import dlc
+from gt3dkit.io.datasets.dlc import body_skeleton, camera_files, dlc_files, scene_of
 from gt3dkit.io.datasets.mot import calibration_beside
 from gt3dkit.io.datasets.sleap import side_pairs
 from gt3dkit.skeletons import Skeleton, skeleton_from_doc
@@ -55,7 +55,7 @@ def _setting(cfg: JsonDict, table: str, key: str, default: str, where: str) -> s
 
 def found(root: Path) -> bool:
     """A session folder: its ``pose-2d/`` holds DeepLabCut files."""
-    return (root / POSE_2D).is_dir() and bool(dlc.dlc_files(root / POSE_2D))
+    return (root / POSE_2D).is_dir() and bool(dlc_files(root / POSE_2D))
 
 
 def _scheme_skeleton(parts: list[str], scheme: JsonValue, where: str) -> Skeleton:
@@ -87,7 +87,7 @@ def load(root: Path, skeleton: str | None = None, calib: Path | str | None = Non
     if calib is None and (results / "calibration.toml").is_file():
         calib = results / "calibration.toml"
     rig, fps_doc, cal = calibration_beside(root, calib)
-    files = dlc.camera_files(pose, rig, cam_regex)
+    files = camera_files(pose, rig, cam_regex)
     if not files:
         raise InputError(str(pose), "no DeepLabCut file (.h5 or .csv) per camera")
     labeling = cfg.get("labeling")
@@ -95,7 +95,7 @@ def load(root: Path, skeleton: str | None = None, calib: Path | str | None = Non
 
     def skeleton_of(parts: list[str]) -> Skeleton:
         if skeleton is not None or scheme is None:
-            return dlc.body_skeleton(parts, skeleton)
+            return body_skeleton(parts, skeleton)
         return _scheme_skeleton(parts, scheme, where)
 
-    return dlc.scene_of(root, files, (rig, fps_doc, cal), skeleton_of, fps, "anipose")
+    return scene_of(root, files, (rig, fps_doc, cal), skeleton_of, fps, "anipose")
