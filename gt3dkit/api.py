@@ -384,8 +384,44 @@ def estimate_scene(scene: Scene, est: Estimator, pre: Prepared | None, segs: Seg
             "n_views 0 = no camera saw it there (interpolated by the motion model, its sd grows "
             "with the distance to the nearest view)")))
     elif np.any(tracks.n_views == 0):
-        tracks = take_rows(tracks, tracks.n_views > 0)  # info and downweighted carried over
+        keep = tracks.n_views > 0
+        if follows_visibility(pre):  # a short gap no camera saw the object in is bridged
+            keep |= bridged(tracks.frame, tracks.track_id, keep, BRIDGE_S * scene.fps)
+        tracks = take_rows(tracks, keep)  # info and downweighted carried over
     return tracks
+
+
+#: The longest time (s) between two views of an object that its rows bridge where the labels follow
+#: what the cameras see (:func:`follows_visibility`); ``--every-frame`` bridges every gap.
+BRIDGE_S = 1.0
+
+
+def follows_visibility(pre: Prepared | None) -> bool:
+    """Whether the scene's boxes are drawn around what each camera sees: their edges cut by a
+    nearer object vary more than the others (a kind of them left out by the preparation,
+    :mod:`gt3dkit.fusion.preparation.occlusion`), as a detector's and most people's do. Such
+    labels leave a person out where no camera sees them (hidden behind others, or missed by
+    the detector), not where they are absent: a short gap in them is bridged (rows of ``n_views``
+    0, their sd grown with the gap). Labels of a shape placed in the world (WILDTRACK's,
+    MultiviewX's: their cut edges vary as the others) leave a person out where the labeller
+    says they are not there: their gaps keep no rows."""
+    return pre is not None and pre.box_cut is not None and bool(np.any(pre.box_cut))
+
+
+def bridged(frame: I64, obj: I64, seen: np.ndarray, max_frames: float) -> np.ndarray:
+    """``(N,)`` the unseen rows between two seen rows of their object at most ``max_frames`` frame
+    numbers apart (``frame``, ``obj``, ``seen``: ``(N,)`` each)."""
+    out = np.zeros(len(frame), bool)
+    order = np.lexsort((frame, obj))
+    f, o, s = frame[order], obj[order], seen[order]
+    idx = np.arange(len(f))
+    last = np.maximum.accumulate(np.where(s, idx, -1))  # the seen row at or before each row
+    nxt = np.minimum.accumulate(np.where(s, idx, len(f))[::-1])[::-1]  # ... at or after it
+    ok = (~s) & (last >= 0) & (nxt < len(f))
+    lo, hi = np.clip(last, 0, len(f) - 1), np.clip(nxt, 0, len(f) - 1)
+    ok &= (o[lo] == o) & (o[hi] == o) & (f[hi] - f[lo] <= max_frames)
+    out[order] = ok
+    return out
 
 
 #: The scene of an input's split ids' pieces, its preparation (None: the estimator makes its own) and

@@ -122,3 +122,42 @@ def test_a_turn_between_keyframes_is_spread_over_the_frames_between(tmp_path: Pa
     z2 = np.sum((dense.center_world[it, :2] - sc.truth.center_world[ig, :2]) ** 2
                 / dense.center_sd[it, :2] ** 2, axis=1)
     assert np.mean(z2[inter] <= chi2.ppf(0.99, 2)) >= 0.9
+
+
+def test_bridged_rows_are_the_unseen_ones_of_short_gaps_between_views() -> None:
+    from gt3dkit.api import bridged
+
+    frame = np.array([0, 1, 2, 3, 4, 5, 6, 7, 8, 0, 1, 2])
+    obj = np.array([1, 1, 1, 1, 1, 1, 1, 1, 1, 2, 2, 2])
+    seen = np.array([1, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1, 0], bool)
+    # object 1: frame 1 (views 2 frames apart) bridged, 3-5 (views 4 apart) only at 4 frames, after
+    # its last view never; object 2: before its first view and after its last, never
+    assert bridged(frame, obj, seen, 3.0).tolist() == [0, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0]
+    assert bridged(frame, obj, seen, 4.0).tolist() == [0, 1, 0, 1, 1, 1, 0, 0, 0, 0, 0, 0]
+    shuffled = np.random.default_rng(0).permutation(len(frame))
+    assert np.array_equal(bridged(frame[shuffled], obj[shuffled], seen[shuffled], 4.0),
+                          bridged(frame, obj, seen, 4.0)[shuffled])
+
+
+@pytest.mark.parametrize("cut", [True, False])
+def test_a_person_no_camera_labels_for_a_frame_keeps_a_row_where_labels_follow_visibility(
+        tmp_path: Path, cut: bool) -> None:
+    """Boxes drawn around what each camera sees (cut by nearer people, as a detector draws them):
+    a person left out of every camera in one frame is hidden or missed, not gone: the default
+    run bridges that frame (a row of n_views 0). Boxes of a shape placed in the world: the
+    labeller says the person is not there: no row."""
+    sc, _ = written_scene(tmp_path / "in", "native", seed=3, frames=12, people=30, noise_px=2.0,
+                          motion="walk", errors=Errors(cut_by_nearer=cut, dropped=0.0))
+    obs = sc.obs
+    who = int(np.bincount(obs.track_id).argmax())
+    frames = np.unique(obs.frame[obs.track_id == who])
+    hole = int(frames[len(frames) // 2])
+    keep = ~((obs.track_id == who) & (obs.frame == hole))
+    sc = dataclasses.replace(sc, obs=obs.select(keep))
+    tracks = reconstruct(sc, "ukf", out=tmp_path / "out")
+    row = (tracks.frame == hole) & (tracks.track_id == who)
+    assert row.sum() == (1 if cut else 0)
+    if cut:
+        assert tracks.n_views[row][0] == 0
+        back = read_tracks_csv(tmp_path / "out" / "tracks.csv")
+        assert int((back.n_views == 0).sum()) == int((tracks.n_views == 0).sum()) > 0

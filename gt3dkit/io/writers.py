@@ -106,15 +106,19 @@ def meta_of(scene: Scene, tracks: TrackSet) -> JsonDict:
 
 
 def write_tracks_csv(path: Path, tracks: TrackSet) -> None:
-    """One row per (frame, id); a dense run (``info.every_frame``, rows where no camera saw
-    the object included) adds the column ``n_views`` (0: interpolated)."""
+    """One row per (frame, id); a run with rows no camera saw (a dense run's, ``info.every_frame``,
+    or a short gap bridged) or rows one camera saw adds the column ``n_views`` (0: interpolated,
+    1: from one view)."""
     with open(path, "w", newline="") as f:
         csv.writer(f).writerow(_tracks_header(tracks))
         _tracks_rows(f, tracks)
 
 
 def _dense(tracks: TrackSet) -> bool:
-    return tracks.info.every_frame is not None
+    """Whether ``tracks.csv`` says each row's views: a run with rows no camera saw (a dense run's,
+    or a bridged gap's) or rows one camera saw (no triangulation: the sd says how far along that
+    camera's ray the object may be)."""
+    return tracks.info.every_frame is not None or bool(np.any((tracks.n_views >= 0) & (tracks.n_views <= 1)))
 
 
 def _tracks_header(tracks: TrackSet) -> tuple[str, ...]:
