@@ -27,6 +27,7 @@ class BoxLevels:
     cut_edges: JsonDict | None
     edges_usable: int
     shape_prior: JsonDict
+    crowd: JsonDict | None = None  # the crowding bands' levels (gt3dkit.fusion.preparation.crowd)
 
 
 @dataclass(frozen=True)

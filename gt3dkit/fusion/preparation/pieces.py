@@ -58,4 +58,4 @@ def pieces_prepared(pre: Prepared, pieces: Scene, back: dict[int, tuple[int, int
     return replace(pre, rows=rows, fit=fit, box_keep=pre.box_keep[src], fit_reliable=pre.fit_reliable[src],
                    kpt0=take(pre.kpt0), kpt0_cov=take(pre.kpt0_cov), kpt_keep=pre.kpt_keep[src],
                    kpt_reliable=pre.kpt_reliable[src], kpt_var=pre.kpt_var[src], box_cut=take(pre.box_cut),
-                   box_cut_by=cut_by)
+                   box_cut_by=cut_by, box_var_scale=take(pre.box_var_scale))

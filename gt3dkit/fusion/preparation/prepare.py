@@ -31,6 +31,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.fusion.motion import StateLayout
 from gt3dkit.fusion.preparation.boxfit import PERSON_SEMI_AXES_M, BoxFit, fit_boxes
 from gt3dkit.fusion.preparation.confidence import INVERSE, ConfidenceCurve, group_variances, learn_curve
+from gt3dkit.fusion.preparation.crowd import CrowdLevels, crowd_levels
 from gt3dkit.fusion.preparation.levels import BoxLevels, KeypointLevels, PreparationSummary
 from gt3dkit.fusion.preparation.occlusion import CutEdges, cut_edges_of
 from gt3dkit.fusion.preparation.robust import (
@@ -118,6 +119,7 @@ class Prepared:
     box_tail: float = 1.0
     box_cut: np.ndarray | None = None  # (R, C, 4) edges a nearer object cut, left out (.occlusion)
     box_cut_by: np.ndarray | None = None  # (R, C, 4) the row of a nearer object each lies in, else -1
+    box_var_scale: np.ndarray | None = None  # (R, C, 4) each edge's variance over sigma_box's (.crowd)
     #: every row's own state (:meth:`frame_state`), made with the rest (never given)
     frame: FrameState = field(init=False, repr=False, compare=False)
 
@@ -193,11 +195,11 @@ def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = Non
     box_keep = np.zeros((len(rows), len(cams.K), 4), bool)
     reliable = np.zeros(len(rows), bool)
     sigma_box = np.ones(4)
-    cuts = None
+    cuts = crowd = None
     prior = ShapePrior(np.log(PERSON_SEMI_AXES_M), np.full(3, 0.25), "person size (no boxes)")
     if use_box:
-        fit, box_keep, sigma_box, prior, boxes_found, cuts = _robust_box_fits(scene, rows, cams, robust,
-                                                                              sigma_px)
+        fit, box_keep, sigma_box, prior, boxes_found, cuts, crowd = _robust_box_fits(
+            scene, rows, cams, robust, sigma_px)
         views = rows.box_mask.any(axis=2)
         whole = (views & np.all(box_keep | ~rows.box_mask, axis=2)).sum(axis=1)
         none_rejected = ~np.any(rows.box_mask & ~box_keep, axis=(1, 2))
@@ -226,7 +228,8 @@ def prepare(scene: Scene, clip_tol_px: float = 1.0, sigma_px: float | None = Non
                     info=PreparationSummary(boxes_found, kpts_found),
                     box_tail=float(boxes_found.tail_variance_ratio) if boxes_found is not None else 1.0,
                     box_cut=cuts.dropped if cuts is not None else None,
-                    box_cut_by=np.where(cuts.dropped, cuts.by, -1) if cuts is not None else None)
+                    box_cut_by=np.where(cuts.dropped, cuts.by, -1) if cuts is not None else None,
+                    box_var_scale=crowd.scale() if crowd is not None else None)
 
 
 def disagreement_scale(chi2_sum: F64, dof: F64, tail_p: float = 0.01) -> F64:
@@ -336,11 +339,13 @@ def _shape_prior(fit: BoxFit, views: np.ndarray) -> ShapePrior:
 
 def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
                      sigma_px: float | None
-                     ) -> tuple[BoxFit, np.ndarray, F64, ShapePrior, BoxLevels, CutEdges | None]:
+                     ) -> tuple[BoxFit, np.ndarray, F64, ShapePrior, BoxLevels, CutEdges | None,
+                                CrowdLevels | None]:
     """Per-frame box fits weighted by per-edge noise; edges rejected by their leave-one-out
     score; edges cut by a nearer object left out where they mislead (``rows.box_mask`` updated;
-    the last value: the cut edges where some were left out, or None); shape prior for weakly
-    seen object-frames."""
+    the cut edges where some were left out, or None); shape prior for weakly seen object-frames;
+    the crowding bands' levels (:mod:`gt3dkit.fusion.preparation.crowd`; None where the noise is
+    given)."""
     keep = rows.box_mask.copy()
     fit = fit_boxes(rows.box_z, keep, cams)
     check_in_front(scene, rows, fit, cams)
@@ -393,6 +398,7 @@ def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
     core = float(sig[0]) if sigma_px is not None else _core_sigma(fit, keep)
     core = min(core, float(sig[0])) if np.isfinite(core) else float(sig[0])
     tail = (float(sig[0]) / core) ** 2
+    crowd = crowd_levels(rows, *_edge_residuals(fit, keep), robust.reject_p) if sigma_px is None else None
     info = BoxLevels(
         scene.box_model, scene.box_model_px, float(sig[0]), core, tail,
         dict(zip(BOX_EDGES, _edge_sigmas(fit, keep, robust)[1].round(4).tolist(), strict=True)),
@@ -402,9 +408,9 @@ def _robust_box_fits(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,
         int((rows.box_mask & ~keep).sum()), cuts.as_json() if cuts is not None else None,
         int(rows.box_mask.sum()),
         {"semi_axes_m": np.exp(prior.mean).round(4).tolist(), "log_sd": prior.sd.round(4).tolist(),
-         "source": prior.source})
+         "source": prior.source}, crowd.as_json() if crowd is not None else None)
     left_out = cuts if cuts is not None and cuts.dropped.any() else None
-    return fit, keep, np.full(4, core), prior, info, left_out
+    return fit, keep, np.full(4, core), prior, info, left_out, crowd
 
 
 def _robust_keypoints(scene: Scene, rows: Rows, cams: Cams, robust: RobustConfig,

@@ -69,7 +69,10 @@ class Model:
         if pre.use_box:
             zs.append(rows.box_z.reshape(R, C * 4))
             masks.append(rows.box_mask.reshape(R, C * 4))
-            vars_.append(np.broadcast_to(np.tile(pre.sigma_box**2, C), (R, C * 4)))
+            var = np.broadcast_to(np.tile(pre.sigma_box**2, C), (R, C * 4))
+            if pre.box_var_scale is not None:  # edges of crowded views (gt3dkit.fusion.preparation.crowd)
+                var = var * pre.box_var_scale.reshape(R, C * 4)
+            vars_.append(var)
             w0.append(pre.box_keep.reshape(R, C * 4).astype(np.float64))
             blocks.append((slice(at, at + C * 4), 1))
             at += C * 4
