@@ -316,6 +316,16 @@ def _add_report(sub: argparse._SubParsersAction[Parser], common: Parser) -> None
                         help="OUT/report/index.html for a reconstruct or compare output: 3D renders, "
                              "per-camera pictures, residuals, anomalies with pictures")
     rp.add_argument("out", metavar="OUT", help="a gt3d reconstruct or gt3d compare output folder")
+    rp.add_argument("--frames", metavar="SOURCE", help="the cameras' own frames, to draw the estimate "
+                    "over: SOURCE/<camera>.mp4, SOURCE/<camera>/<video> or SOURCE/<camera>/*.png "
+                    "(report/overlays/, an H.264 video per camera)")
+    rp.add_argument("--frame-offset", type=number_type(int, -10**9, 10**9), default=0, metavar="N",
+                    help="--frames: annotation frame f is the video's frame f + N (default 0)")
+    rp.add_argument("--overlay-step", type=number_type(int, 1, 10**6), default=1, metavar="K",
+                    help="--frames: every K-th frame of the video (default 1)")
+    rp.add_argument("--overlay-width", type=number_type(int, 16, 10**5), default=1280, metavar="PX",
+                    help="--frames: the overlays at most PX wide (default 1280)")
+    rp.add_argument("--quiet", action="store_true", help="no progress display")
     rp.set_defaults(func=cmd_report)
 
 

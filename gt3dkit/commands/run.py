@@ -37,6 +37,7 @@ from gt3dkit.many import read_manifest, run_many
 from gt3dkit.project import project
 from gt3dkit.refine import refine, rig_digest
 from gt3dkit.types import JsonDict, Options, Scene
+from gt3dkit.viz.overlays import OverlayOptions
 from gt3dkit.viz.report import write_report
 from gt3dkit.windows import Cluster, Plan, auto_plan, reconstruct_windows
 
@@ -223,7 +224,11 @@ def cmd_report(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.is_dir() and (out / "report").exists():
         check_output(out / "report")
-    index, warnings = write_report(out)
+    frames = None
+    if args.frames:
+        check_out_apart(out / "report", args.frames, "--frames")
+        frames = OverlayOptions(Path(args.frames), args.frame_offset, args.overlay_step, args.overlay_width)
+    index, warnings = write_report(out, frames, progress=not args.quiet)
     for w in warnings:
         print(f"warning: {w}", file=sys.stderr)
     n = sum(1 for _ in index.parent.rglob("*.png"))

@@ -35,6 +35,16 @@ from gt3dkit.jsondoc import json_at, json_list, json_obj
 from gt3dkit.parse import read_csv_rows
 from gt3dkit.skeletons import skeleton_of
 from gt3dkit.types import JsonDict, Scene, TrackSet
+from gt3dkit.viz.overlays import (
+    FLAG_BGR,
+    LABEL_BGR,
+    TRACK_BGR,
+    FrameSource,
+    Overlay,
+    OverlayOptions,
+    prepared_sources,
+    write_overlays,
+)
 from gt3dkit.viz.overview import colour_of, start_overviews
 from gt3dkit.viz.panels import (
     ANNOTATION_NOTE,
@@ -382,24 +392,56 @@ def _page(title: str, parts: list[str]) -> str:
             "</body></html>")
 
 
-def write_report(out: Path) -> tuple[Path, list[str]]:
+def write_report(out: Path, frames: OverlayOptions | None = None, progress: bool = True
+                 ) -> tuple[Path, list[str]]:
     """Write ``out/report/`` for a reconstruct or compare output folder (atomically); returns
-    the index.html path and warnings (a 3D render that failed)."""
+    the index.html path and warnings (a 3D render that failed, a camera without frames).
+    ``frames``: the estimate drawn over the cameras' own frames too (:mod:`gt3dkit.viz.overlays`,
+    checked before anything is written)."""
     out = Path(out)
     if not out.is_dir():
         raise InputError(str(out), "not a folder")
     if (out / "comparison.csv").is_file():
+        if frames is not None:
+            raise InputError("--frames", "draws one reconstruct output over its frames, not a comparison")
         return _write_compare_report(out)
     run = load_run(out, "the report draws the annotations")
     warnings: list[str] = []
+    sources: list[FrameSource] = []
+    if frames is not None:
+        sources, said = prepared_sources(run.scene, frames)
+        warnings += said
 
     def write(tmp: Path) -> None:
         parts, w = run_sections(run, tmp)
         warnings.extend(w)
+        if frames is not None:
+            videos = write_overlays(run.scene, run.tracks, run.anomalies, sources, frames,
+                                    tmp / "overlays", progress)
+            parts.insert(1, _overlay_section(videos, frames))
         (tmp / "index.html").write_text(_page(f"gt3dkit report: {out.resolve()}", parts), encoding="utf-8")
 
     write_dir_atomically(out / "report", write)
     return out / "report" / "index.html", warnings
+
+
+def _overlay_section(videos: list[Overlay], opts: OverlayOptions) -> str:
+    """The overlay videos, with what each colour is and how they were made."""
+    def swatch(bgr: tuple[int, int, int], what: str) -> str:
+        return (f'<span style="display:inline-block;width:12px;height:12px;background:rgb{bgr[::-1]};'
+                f'margin:0 4px 0 10px"></span>{html.escape(what)}')
+
+    legend = (swatch(LABEL_BGR, "the annotation as drawn (boxes, keypoint crosses)")
+              + swatch(TRACK_BGR[0], "the estimate's projection, in its track's colour (outline or skeleton)")
+              + swatch(TRACK_BGR[1], "a circle: its sd projected (1 sd), where over 3 px")
+              + swatch(FLAG_BGR, "a QA flag of that frame and camera"))
+    rows = [[v.camera, f'<video controls muted preload="metadata" style="max-width:640px" src="{v.file}">'
+             f'</video>', f"{v.frames} frames, {v.width} x {v.height} px, {v.fps:.3g} fps", v.source]
+            for v in videos]
+    return ("<h2>Overlays on your frames</h2><p>" + legend + "</p><p>Each camera's frames with the "
+            f"estimate drawn over them (H.264), at most {opts.width} px wide, every {opts.step}. frame; "
+            f"annotation frame f is shown at the video's frame f + {opts.offset} (--frame-offset).</p>"
+            + _table(rows, ["camera", "video", "made", "from"], raw_cols=(1,)))
 
 
 def _write_compare_report(out: Path) -> tuple[Path, list[str]]:
