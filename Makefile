@@ -1,4 +1,5 @@
-# make setup: apt packages (open3d's off-screen rendering libraries, python3-venv), a .venv,
+# make setup: apt packages (open3d's off-screen rendering libraries, python3-venv, headless Chromium and
+#             its driver for the report page's browser test), a .venv,
 #             and the package with its dev extra. Idempotent: re-runs only when pyproject.toml changes.
 #             Then the numba kernels a first run uses compile, two processes side by side
 #             (gt3dkit.commands.warmup). pip writes no bytecode (--no-compile: 16-20 s of it, file by
@@ -13,7 +14,8 @@
 #             on 2 cores.
 VENV ?= .venv
 PY := $(VENV)/bin/python
-APT_PKGS := python3-venv libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libegl1 libgl1 libgomp1 libegl-mesa0 libgl1-mesa-dri
+APT_PKGS := python3-venv libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libegl1 libgl1 libgomp1 libegl-mesa0 libgl1-mesa-dri \
+            chromium chromium-driver
 
 .PHONY: setup demo test bench bench-env labels-env pose2sim-env movement-env bench-long lint clean
 

@@ -57,6 +57,7 @@ from gt3dkit.viz.panels import (
     worst_frames,
 )
 from gt3dkit.viz.render3d import RenderError
+from gt3dkit.viz.scene3d import write_scene_page
 
 #: anomaly rows shown with a picture (the highest scores); the table lists up to MAX_ROWS
 MAX_PICTURES = 60
@@ -415,10 +416,17 @@ def write_report(out: Path, frames: OverlayOptions | None = None, progress: bool
     def write(tmp: Path) -> None:
         parts, w = run_sections(run, tmp)
         warnings.extend(w)
+        videos: list[Overlay] = []
         if frames is not None:
             videos = write_overlays(run.scene, run.tracks, run.anomalies, sources, frames,
                                     tmp / "overlays", progress)
             parts.insert(1, _overlay_section(videos, frames))
+        if len(run.tracks):
+            page = write_scene_page(run.scene, run.tracks, tmp, videos, frames.offset if frames else 0,
+                                    frames.step if frames else 1)
+            parts.insert(1, f'<p><a href="{page}">The scene in 3D over time</a>: turn it around, scrub '
+                            "through the frames, hover an object for its id and sd"
+                            + (", each camera's overlay beside it" if videos else "") + ".</p>")
         (tmp / "index.html").write_text(_page(f"gt3dkit report: {out.resolve()}", parts), encoding="utf-8")
 
     write_dir_atomically(out / "report", write)

@@ -160,3 +160,26 @@ def test_a_camera_without_frames_among_others_is_a_warning(run: tuple[Path, Path
     assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == -(-(int(res.scene.frames.max()) + 1) // 2)
     assert int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)) == 640
     cap.release()
+
+
+def test_the_scene_page_in_a_real_browser(run: tuple[Path, Path]) -> None:
+    """``report/scene.html`` in headless Chromium (``make setup`` installs it): it loads from
+    ``file://`` with no console error and no request leaving the machine; moving the slider
+    changes the 3D view and the camera images; hovering an object shows its id."""
+    from gt3dkit.viz.browser import browser_available, check_scene_page
+
+    root, frames = run
+    out = root / "out"
+    r = _run("report", str(out), "--frames", str(frames), "--overlay-width", "640", "--quiet")
+    assert r.returncode == 0, r.stderr
+    page = out / "report" / "scene.html"
+    assert 'href="scene.html"' in (out / "report" / "index.html").read_text()
+    text = page.read_text()
+    assert "https://" not in text.split("<script type='text/javascript'>", 2)[-1]  # our part: no URL
+    if not browser_available():
+        pytest.fail("headless Chromium is not installed: make setup installs chromium and chromium-driver")
+    seen = check_scene_page(page)
+    assert seen.console_errors == [] and seen.requests_away == [], (seen.console_errors, seen.requests_away)
+    assert seen.frames[0] != seen.frames[1] and seen.canvas_changed
+    assert seen.video_times[0] != seen.video_times[1] and len(seen.video_times[1]) == 3
+    assert seen.hover.startswith("id "), seen.hover
