@@ -1,4 +1,5 @@
-"""Review on the pictures (issue 67's targets, the part built so far): the overlay videos.
+"""Review on the pictures (issue 67's targets, the part built so far): the overlay videos and the
+3D page in a real browser.
 
     OPENBLAS_NUM_THREADS=1 .venv/bin/python scripts/review_targets.py [--data ../shared/data]
 
@@ -11,7 +12,11 @@ proofread SLEAP labels and the mouse videos; anipose's calibration in mm with it
 * at frames 10, 60 and 110, the pixel at each projected joint whose disc no label cross reaches
   is the track's colour (magenta), and the pixel at each label is the label's (green), H.264's
   loss allowed for;
-* the whole ``gt3d report --frames`` as a user runs it (a process), timed.
+* the whole ``gt3d report --frames`` as a user runs it (a process), timed;
+* its ``scene.html`` in headless Chromium through selenium (:mod:`gt3dkit.viz.browser`): no console
+  error, no request leaving the machine, the slider changes the 3D view and the camera images,
+  hovering an object shows its id; the same for CMC3's boxes (``cmc3_detector_boxes``, 15 people,
+  no frames of its own) where present.
 
 Prints each target with PASS or FAIL; exit status 1 when one fails.
 """
@@ -33,6 +38,7 @@ sys.path.insert(0, str(REPO))
 
 from gt3dkit.api import load_run  # noqa: E402
 from gt3dkit.geom.camera import project_points  # noqa: E402
+from gt3dkit.viz.browser import browser_available, check_scene_page  # noqa: E402
 from gt3dkit.viz.overlays import OverlayOptions, prepared_sources, write_overlays  # noqa: E402
 
 GT3D = str(Path(sys.executable).with_name("gt3d"))
@@ -82,6 +88,26 @@ def colours_at(video: Path, frames: tuple[int, ...], out: Path, cam: int) -> tup
     return nj, okj, nl, okl
 
 
+def browse(name: str, page: Path, cameras: int) -> None:
+    """The page in headless Chromium, as a reviewer would try it."""
+    if not browser_available():
+        check(f"{name} in headless Chromium", False, "chromium or chromium-driver missing (make setup)")
+        return
+    seen = check_scene_page(page)
+    mb = page.stat().st_size / 1e6
+    print(f"  {name}: {mb:.1f} MB, loaded in {seen.load_s:.1f} s")
+    check(f"{name}: no console error, no request leaving the machine",
+          not seen.console_errors and not seen.requests_away, f"{seen.console_errors} {seen.requests_away}")
+    moved = seen.canvas_changed and seen.frames[0] != seen.frames[1]
+    check(f"{name}: the slider changes the 3D view", moved,
+          f"frame {seen.frames[0]} -> {seen.frames[1]}, canvas {'changed' if seen.canvas_changed else 'same'}")
+    if cameras:
+        check(f"{name}: ... and the camera images", seen.video_times[0] != seen.video_times[1]
+              and len(seen.video_times[1]) == cameras,
+              f"overlay times {seen.video_times[0][:1]} -> {seen.video_times[1][:1]} ({cameras} cameras)")
+    check(f"{name}: hovering an object shows its id", seen.hover.startswith("id "), repr(seen.hover))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
@@ -120,6 +146,14 @@ def main() -> int:
                            text=True)
         print(f"  gt3d report --frames (the whole report, a process): {time.perf_counter() - t0:.1f} s, "
               f"exit {p.returncode}{': ' + p.stderr.strip() if p.returncode else ''}")
+        browse("the mouse's scene.html", out / "report" / "scene.html", cameras=4)
+        cmc3 = args.data / "cmc3_detector_boxes"
+        if cmc3.is_dir():
+            boxes = Path(tmp_s) / "cmc3"
+            subprocess.run([GT3D, "reconstruct", str(cmc3), "--out", str(boxes), "--quiet"],
+                           capture_output=True)
+            subprocess.run([GT3D, "report", str(boxes), "--quiet"], capture_output=True)
+            browse("CMC3's scene.html", boxes / "report" / "scene.html", cameras=0)
     failed = [w for w, ok in RESULTS if not ok]
     print(f"\n{len(RESULTS) - len(failed)} of {len(RESULTS)} targets met")
     return 1 if failed else 0
