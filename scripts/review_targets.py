@@ -100,7 +100,8 @@ def browse(name: str, page: Path, cameras: int) -> None:
           not seen.console_errors and not seen.requests_away, f"{seen.console_errors} {seen.requests_away}")
     moved = seen.canvas_changed and seen.frames[0] != seen.frames[1]
     check(f"{name}: the slider changes the 3D view", moved,
-          f"frame {seen.frames[0]} -> {seen.frames[1]}, canvas {'changed' if seen.canvas_changed else 'same'}")
+          f"frame {seen.frames[0]} -> {seen.frames[1]}, canvas "
+          + ("changed" if seen.canvas_changed else "same"))
     if cameras:
         check(f"{name}: ... and the camera images", seen.video_times[0] != seen.video_times[1]
               and len(seen.video_times[1]) == cameras,
