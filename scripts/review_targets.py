@@ -128,8 +128,8 @@ def main() -> int:
         opts = OverlayOptions(data)
         t0 = time.perf_counter()
         sources, _ = prepared_sources(run.scene, opts)
-        videos = write_overlays(run.scene, run.tracks, run.anomalies, sources, opts, Path(tmp_s) / "overlays",
-                                progress=False)
+        videos, _ = write_overlays(run.scene, run.tracks, run.anomalies, sources, opts,
+                                   Path(tmp_s) / "overlays", progress=False)
         sec = time.perf_counter() - t0
         print(f"the shared mouse: {len(videos)} cameras, {sum(v.frames for v in videos)} frames drawn")
         check("overlays of 4 x 120 frames in <= 20 s", sec <= 20.0, f"{sec:.1f} s")

@@ -54,6 +54,8 @@ TRACK_BGR = ((255, 0, 255), (255, 128, 0), (0, 165, 255), (255, 255, 0), (128, 0
 SD_SHOWN_PX = 3.0
 #: points along an ellipsoid's outline
 OUTLINE_POINTS = 48
+#: stills of flagged frames at most (the highest scores first), each a JPEG of the overlay
+MAX_STILLS = 200
 
 
 @dataclass(frozen=True)
@@ -334,15 +336,42 @@ def prepared_sources(scene: Scene, opts: OverlayOptions) -> tuple[list[FrameSour
     return sources, warnings
 
 
+def _flagged(anomalies: list[dict[str, str]]) -> dict[str, set[int]]:
+    """Camera -> the frames a QA row flags there, the :data:`MAX_STILLS` highest scores."""
+    def score(a: dict[str, str]) -> float:
+        try:
+            return float(a.get("score", ""))
+        except ValueError:
+            return 0.0
+
+    out: dict[str, set[int]] = {}
+    n = 0
+    for a in sorted(anomalies, key=lambda a: -score(a)):
+        cam, fr = a.get("camera", ""), a.get("frame", "")
+        if cam and fr.lstrip("-").isdigit() and int(fr) not in out.get(cam, set()) and n < MAX_STILLS:
+            out.setdefault(cam, set()).add(int(fr))
+            n += 1
+    return out
+
+
+def still_name(camera: str, frame: int) -> str:
+    """A flagged frame's still, relative to the report."""
+    return f"overlays/stills/{camera}_{frame:06d}.jpg"
+
+
 def write_overlays(scene: Scene, tracks: TrackSet, anomalies: list[dict[str, str]],
                    sources: list[FrameSource], opts: OverlayOptions, folder: Path, progress: bool = True
-                   ) -> list[Overlay]:
-    """Each camera's overlay video into ``folder`` (H.264, ``<camera>.mp4``), frame by frame."""
+                   ) -> tuple[list[Overlay], dict[tuple[int, str], str]]:
+    """Each camera's overlay video into ``folder`` (H.264, ``<camera>.mp4``), frame by frame, and
+    a still (JPEG) of each flagged frame (:func:`_flagged`); returns the videos and the stills
+    by (frame, camera)."""
     import imageio_ffmpeg
     from tqdm import tqdm
 
     folder.mkdir(parents=True, exist_ok=True)
     out = []
+    flagged = _flagged(anomalies)
+    stills: dict[tuple[int, str], str] = {}
     total = sum(-(-s.n_frames // opts.step) for s in sources)
     with tqdm(total=total, desc="overlays", unit="frame", disable=None if progress else True,
               leave=False) as bar:
@@ -369,10 +398,15 @@ def write_overlays(scene: Scene, tracks: TrackSet, anomalies: list[dict[str, str
                     draw_frame(img, d, v - opts.offset)
                     if (w, h) != (src.width, src.height):
                         img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+                    if v - opts.offset in flagged.get(src.camera, ()):
+                        name = still_name(src.camera, v - opts.offset)
+                        (folder.parent / name).parent.mkdir(exist_ok=True)
+                        cv2.imwrite(str(folder.parent / name), img, [cv2.IMWRITE_JPEG_QUALITY, 85])
+                        stills[(v - opts.offset, src.camera)] = name
                     writer.send(np.ascontiguousarray(img))
                     n += 1
                     bar.update(1)
             finally:
                 writer.close()
             out.append(Overlay(src.camera, f"overlays/{path.name}", n, w, h, fps, str(src.path)))
-    return out
+    return out, stills

@@ -223,7 +223,8 @@ def _clocks(clocks: JsonDict) -> str:
             "time.</p>" + _table(rows, ["camera", "frames late", "sd (frames)", "frame rate"]))
 
 
-def _anomaly_section(run: Run, res: ViewResiduals, folder: Path) -> str:
+def _anomaly_section(run: Run, res: ViewResiduals, folder: Path, stills: Mapping[tuple[int, str], str]
+                     ) -> str:
     rows = run.anomalies
     if not (run.out / "anomalies.csv").is_file():
         return ("<p>This output has no anomalies.csv (gt3d compare does not run the annotation QA; "
@@ -258,6 +259,9 @@ def _anomaly_section(run: Run, res: ViewResiduals, folder: Path) -> str:
         named = r["joint"].isdigit() and int(r["joint"]) < len(joints)
         joint = joints[int(r["joint"])] if named else r["joint"]
         fix = "; ".join(f"{c}.xml track {t} frame {f}" for c, t, f in where[i])
+        still = stills.get((int(r["frame"]), r["camera"])) if r["frame"].lstrip("-").isdigit() else None
+        if still:
+            pic += f' <a href="{still}">on your frame</a>'
         body.append([r["frame"], r["camera"] or "(all)", r["id"] or "(all)", joint, r["kind"], r["score"],
                      html.escape(r["detail"]), fix, pic])
     more = (f"<p>{len(rows) - MAX_ROWS} more rows in anomalies.csv.</p>" if len(rows) > MAX_ROWS else "")
@@ -332,9 +336,11 @@ def _figure(src: str, caption: str, wide: bool = False) -> str:
 
 
 def run_sections(run: Run, tmp: Path, prefix: str = "", tracks_b: TrackSet | None = None,
-                 title_b: str = "") -> tuple[list[str], list[str]]:
+                 title_b: str = "", stills: Mapping[tuple[int, str], str] | None = None
+                 ) -> tuple[list[str], list[str]]:
     """The HTML sections of one run's report written into ``tmp`` (PNG names start with
-    ``prefix``); returns (sections, warnings)."""
+    ``prefix``); returns (sections, warnings). ``stills``: the overlay's still of a flagged frame
+    by (frame, camera), which the anomaly table links to."""
     sc, tr = run.scene, run.tracks
     pre = prepare(sc)
     res = view_residuals(tr, pre)
@@ -371,7 +377,7 @@ def run_sections(run: Run, tmp: Path, prefix: str = "", tracks_b: TrackSet | Non
         parts += ["<h2>Reprojection residuals per camera</h2>",
                   _figure(p + histograms, "box edges and keypoints, pixels", wide=True)]
         parts += ["<h2>Tracks over time</h2>", _figure(p + track_plots(tr, res, sub), "", wide=True)]
-        section = _anomaly_section(run, res, sub)
+        section = _anomaly_section(run, res, sub, stills or {})
         parts += [f"<h2>Anomalies ({len(run.anomalies)})</h2>",
                   section.replace('src="anomalies/', f'src="{p}anomalies/')]
         parts += ["<h2>Calibration</h2>", _calibration(run)]
@@ -414,12 +420,14 @@ def write_report(out: Path, frames: OverlayOptions | None = None, progress: bool
         warnings += said
 
     def write(tmp: Path) -> None:
-        parts, w = run_sections(run, tmp)
-        warnings.extend(w)
         videos: list[Overlay] = []
+        stills: dict[tuple[int, str], str] = {}
         if frames is not None:
-            videos = write_overlays(run.scene, run.tracks, run.anomalies, sources, frames,
-                                    tmp / "overlays", progress)
+            videos, stills = write_overlays(run.scene, run.tracks, run.anomalies, sources, frames,
+                                            tmp / "overlays", progress)
+        parts, w = run_sections(run, tmp, stills=stills)
+        warnings.extend(w)
+        if frames is not None:
             parts.insert(1, _overlay_section(videos, frames))
         if len(run.tracks):
             page = write_scene_page(run.scene, run.tracks, tmp, videos, frames.offset if frames else 0,

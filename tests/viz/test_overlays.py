@@ -3,6 +3,7 @@ video per camera (:mod:`gt3dkit.viz.overlays`)."""
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -13,7 +14,7 @@ import pytest
 
 from gt3dkit.api import load_run
 from gt3dkit.geom.camera import project_points
-from gt3dkit.sim import simulate_skeletons, write_skeleton_scene
+from gt3dkit.sim import Errors, simulate_skeletons, write_skeleton_scene
 
 GT3D = [sys.executable, "-m", "gt3dkit.cli"]
 GREY = 90
@@ -39,7 +40,8 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """A 3-camera skeleton scene (frames 0-9), its run, and its frames: camera 0 a video, camera
     1 an image folder, camera 2 a video in its own folder."""
     root = Path(tmp_path_factory.mktemp("overlays"))
-    sk = simulate_skeletons("native", seed=5, frames=10, people=1, cameras=3, noise_px=3.0, fps=10.0)
+    sk = simulate_skeletons("native", seed=5, frames=10, people=1, cameras=3, noise_px=3.0, fps=10.0,
+                            errors=Errors(outliers=0.03))
     assert sk.frames.min() >= 0
     write_skeleton_scene(sk, root / "in", "native")
     r = _run("reconstruct", str(root / "in"), "--out", str(root / "out"), "--quiet")
@@ -74,6 +76,12 @@ def test_the_overlay_draws_the_estimate_and_the_labels_where_they_are(run: tuple
     assert r.returncode == 0 and "warning" not in r.stderr, r.stderr
     page = (out / "report" / "index.html").read_text()
     assert "Overlays on your frames" in page and 'src="overlays/' in page
+    # each flagged frame's still, linked from the anomaly table
+    links = re.findall(r'<a href="(overlays/stills/[^"]+)">on your frame</a>', page)
+    rows = (out / "anomalies.csv").read_text().splitlines()[1:]
+    flagged = {(r.split(",")[0], r.split(",")[1]) for r in rows if r.split(",")[1]}
+    assert links and len(set(links)) == len(flagged), (len(links), flagged)
+    assert all((out / "report" / s).is_file() for s in links)
     res = load_run(out, "test")
     sc, tr = res.scene, res.tracks
     checked = 0
@@ -154,8 +162,10 @@ def test_a_camera_without_frames_among_others_is_a_warning(run: tuple[Path, Path
     assert r.returncode == 0, r.stderr
     said = [w for w in r.stderr.splitlines() if w.startswith("warning: ")]
     assert len(said) == 2 and all("its overlay is left out" in w for w in said)
-    videos = sorted(p.name for p in (out / "report" / "overlays").iterdir())
+    videos = sorted(p.name for p in (out / "report" / "overlays").glob("*.mp4"))
     assert videos == [f"{names[0]}.mp4"]
+    stills = {p.name.split("_")[0] for p in (out / "report" / "overlays").glob("stills/*.jpg")}
+    assert stills <= {names[0].split("_")[0]}  # only the camera with frames has stills
     cap = cv2.VideoCapture(str(out / "report" / "overlays" / videos[0]))
     assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == -(-(int(res.scene.frames.max()) + 1) // 2)
     assert int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)) == 640
