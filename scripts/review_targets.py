@@ -16,7 +16,9 @@ proofread SLEAP labels and the mouse videos; anipose's calibration in mm with it
 * its ``scene.html`` in headless Chromium through selenium (:mod:`gt3dkit.viz.browser`): no console
   error, no request leaving the machine, the slider changes the 3D view and the camera images,
   hovering an object shows its id; the same for CMC3's boxes (``cmc3_detector_boxes``, 15 people,
-  no frames of its own) where present.
+  no frames of its own) where present;
+* a simulated 4 000-frame box scene (6 cameras, 5 people): ``gt3d report``'s peak memory (the
+  child's maximum resident set) and time.
 
 Prints each target with PASS or FAIL; exit status 1 when one fails.
 """
@@ -109,6 +111,28 @@ def browse(name: str, page: Path, cameras: int) -> None:
     check(f"{name}: hovering an object shows its id", seen.hover.startswith("id "), repr(seen.hover))
 
 
+def long_report() -> None:
+    """The report of a simulated 4 000-frame box scene: its peak memory and time."""
+    with tempfile.TemporaryDirectory() as tmp_s:
+        tmp = Path(tmp_s)
+        subprocess.run([GT3D, "simulate", "--kind", "boxes", "--frames", "4000", "--people", "5", "--seed",
+                        "1", "--out", str(tmp / "in")], capture_output=True, check=True)
+        subprocess.run([GT3D, "reconstruct", str(tmp / "in"), "--out", str(tmp / "out"), "--quiet"],
+                       capture_output=True, check=True)
+        # the report alone in a process of its own, whose children's peak is the report's
+        probe = ("import resource, subprocess, sys; r = subprocess.run(sys.argv[1:], capture_output=True); "
+                 "print(r.returncode, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
+        t0 = time.perf_counter()
+        p = subprocess.run([sys.executable, "-c", probe, GT3D, "report", str(tmp / "out"), "--quiet"],
+                           capture_output=True, text=True)
+        sec = time.perf_counter() - t0
+        code, peak_kb = (int(x) for x in p.stdout.split())
+        mb = (tmp / "out" / "report" / "scene.html").stat().st_size / 1e6 if code == 0 else 0.0
+        print(f"a simulated 4 000-frame box scene: gt3d report {sec:.1f} s, scene.html {mb:.1f} MB")
+        check("its report in at most 1 GB", code == 0 and peak_kb <= 1024 * 1024,
+              f"peak resident {peak_kb / 1024:.0f} MB")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
@@ -155,6 +179,7 @@ def main() -> int:
                            capture_output=True)
             subprocess.run([GT3D, "report", str(boxes), "--quiet"], capture_output=True)
             browse("CMC3's scene.html", boxes / "report" / "scene.html", cameras=0)
+    long_report()
     failed = [w for w, ok in RESULTS if not ok]
     print(f"\n{len(RESULTS) - len(failed)} of {len(RESULTS)} targets met")
     return 1 if failed else 0
