@@ -325,6 +325,9 @@ def _add_report(sub: argparse._SubParsersAction[Parser], common: Parser) -> None
                     help="--frames: every K-th frame of the video (default 1)")
     rp.add_argument("--overlay-width", type=number_type(int, 16, 10**5), default=1280, metavar="PX",
                     help="--frames: the overlays at most PX wide (default 1280)")
+    rp.add_argument("--scheduler", metavar="ADDRESS", type=scheduler_address,
+                    help="--frames: a running Dask scheduler whose workers draw the overlays, a camera each "
+                         "(the report's folder on a file system they share)")
     rp.add_argument("--quiet", action="store_true", help="no progress display")
     rp.set_defaults(func=cmd_report)
 

@@ -39,7 +39,7 @@ from gt3dkit.refine import refine, rig_digest
 from gt3dkit.types import JsonDict, Options, Scene
 from gt3dkit.viz.overlays import OverlayOptions
 from gt3dkit.viz.report import write_report
-from gt3dkit.windows import Cluster, Plan, auto_plan, reconstruct_windows
+from gt3dkit.windows import Cluster, Plan, auto_plan, connect_scheduler, reconstruct_windows
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
@@ -228,7 +228,14 @@ def cmd_report(args: argparse.Namespace) -> int:
     if args.frames:
         check_out_apart(out / "report", args.frames, "--frames")
         frames = OverlayOptions(Path(args.frames), args.frame_offset, args.overlay_step, args.overlay_width)
-    index, warnings = write_report(out, frames, progress=not args.quiet)
+    if args.scheduler and frames is None:
+        raise InputError("--scheduler", "report: the workers draw the overlays of --frames; give --frames")
+    client = connect_scheduler(args.scheduler) if args.scheduler else None
+    try:
+        index, warnings = write_report(out, frames, progress=not args.quiet, client=client)
+    finally:
+        if client is not None:
+            client.close()
     for w in warnings:
         print(f"warning: {w}", file=sys.stderr)
     n = sum(1 for _ in index.parent.rglob("*.png"))

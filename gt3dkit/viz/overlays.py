@@ -29,15 +29,19 @@ from __future__ import annotations
 import os
 import re
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from gt3dkit.errors import InputError
+
+if TYPE_CHECKING:
+    from distributed import Client
 from gt3dkit.geom.camera import apply_K, distort, project_points
 from gt3dkit.geom.conics import outline_ellipse
 from gt3dkit.skeletons import skeleton_of
@@ -360,53 +364,78 @@ def still_name(camera: str, frame: int) -> str:
 
 
 def write_overlays(scene: Scene, tracks: TrackSet, anomalies: list[dict[str, str]],
-                   sources: list[FrameSource], opts: OverlayOptions, folder: Path, progress: bool = True
-                   ) -> tuple[list[Overlay], dict[tuple[int, str], str]]:
+                   sources: list[FrameSource], opts: OverlayOptions, folder: Path, progress: bool = True,
+                   client: Client | None = None) -> tuple[list[Overlay], dict[tuple[int, str], str]]:
     """Each camera's overlay video into ``folder`` (H.264, ``<camera>.mp4``), frame by frame, and
     a still (JPEG) of each flagged frame (:func:`_flagged`); returns the videos and the stills
-    by (frame, camera)."""
-    import imageio_ffmpeg
+    by (frame, camera). ``client``: a Dask cluster's (``--scheduler``): each camera drawn by one of
+    its workers (``folder`` on a file system they share), the progress by camera."""
     from tqdm import tqdm
 
     folder.mkdir(parents=True, exist_ok=True)
-    out = []
     flagged = _flagged(anomalies)
     stills: dict[tuple[int, str], str] = {}
-    total = sum(-(-s.n_frames // opts.step) for s in sources)
-    with tqdm(total=total, desc="overlays", unit="frame", disable=None if progress else True,
-              leave=False) as bar:
-        for src in sources:
-            c = scene.rig.index(src.camera)
-            d = drawing_of(scene, tracks, c, anomalies)
-            scale = min(1.0, opts.width / src.width)
-            w = 2 * max(int(round(src.width * scale / 2)), 1)
-            h = 2 * max(int(round(src.height * scale / 2)), 1)
-            fps = (src.fps or scene.fps or 30.0) / opts.step
-            path = folder / f"{src.camera}.mp4"
-            writer = imageio_ffmpeg.write_frames(str(path), (w, h), fps=fps, codec="libx264",
-                                                 pix_fmt_in="bgr24", pix_fmt_out="yuv420p",
-                                                 macro_block_size=2, ffmpeg_log_level="error")
-            writer.send(None)
-            n = 0
-            try:
-                for v, img in enumerate(read_frames(src)):
-                    if v % opts.step:
-                        continue
-                    if img.shape[1] != src.width or img.shape[0] != src.height:
-                        raise InputError(str(src.path), f"frame {v} is {img.shape[1]} x {img.shape[0]} px, "
-                                                        f"its first {src.width} x {src.height}")
-                    draw_frame(img, d, v - opts.offset)
-                    if (w, h) != (src.width, src.height):
-                        img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
-                    if v - opts.offset in flagged.get(src.camera, ()):
-                        name = still_name(src.camera, v - opts.offset)
-                        (folder.parent / name).parent.mkdir(exist_ok=True)
-                        cv2.imwrite(str(folder.parent / name), img, [cv2.IMWRITE_JPEG_QUALITY, 85])
-                        stills[(v - opts.offset, src.camera)] = name
-                    writer.send(np.ascontiguousarray(img))
-                    n += 1
-                    bar.update(1)
-            finally:
-                writer.close()
-            out.append(Overlay(src.camera, f"overlays/{path.name}", n, w, h, fps, str(src.path)))
+    out = []
+    if client is not None:
+        from distributed import as_completed
+
+        futures = [client.submit(camera_overlay, scene, tracks, anomalies, flagged, src, opts, folder,
+                                 None, pure=False) for src in sources]
+        with tqdm(total=len(futures), desc="overlays", unit="camera",
+                  disable=None if progress else True, leave=False) as bar:
+            for _ in as_completed(futures):
+                bar.update(1)
+        done = [f.result() for f in futures]
+    else:
+        total = sum(-(-s.n_frames // opts.step) for s in sources)
+        with tqdm(total=total, desc="overlays", unit="frame", disable=None if progress else True,
+                  leave=False) as bar:
+            done = [camera_overlay(scene, tracks, anomalies, flagged, src, opts, folder, bar.update)
+                    for src in sources]
+    for video, camera_stills in done:
+        out.append(video)
+        stills.update(camera_stills)
     return out, stills
+
+
+def camera_overlay(scene: Scene, tracks: TrackSet, anomalies: list[dict[str, str]],
+                   flagged: dict[str, set[int]], src: FrameSource, opts: OverlayOptions, folder: Path,
+                   tick: Callable[[int], object] | None) -> tuple[Overlay, dict[tuple[int, str], str]]:
+    """One camera's overlay video and its flagged frames' stills (``tick(1)`` after each frame)."""
+    import imageio_ffmpeg
+
+    c = scene.rig.index(src.camera)
+    d = drawing_of(scene, tracks, c, anomalies)
+    scale = min(1.0, opts.width / src.width)
+    w = 2 * max(int(round(src.width * scale / 2)), 1)
+    h = 2 * max(int(round(src.height * scale / 2)), 1)
+    fps = (src.fps or scene.fps or 30.0) / opts.step
+    path = folder / f"{src.camera}.mp4"
+    stills: dict[tuple[int, str], str] = {}
+    writer = imageio_ffmpeg.write_frames(str(path), (w, h), fps=fps, codec="libx264",
+                                         pix_fmt_in="bgr24", pix_fmt_out="yuv420p",
+                                         macro_block_size=2, ffmpeg_log_level="error")
+    writer.send(None)
+    n = 0
+    try:
+        for v, img in enumerate(read_frames(src)):
+            if v % opts.step:
+                continue
+            if img.shape[1] != src.width or img.shape[0] != src.height:
+                raise InputError(str(src.path), f"frame {v} is {img.shape[1]} x {img.shape[0]} px, "
+                                                f"its first {src.width} x {src.height}")
+            draw_frame(img, d, v - opts.offset)
+            if (w, h) != (src.width, src.height):
+                img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+            if v - opts.offset in flagged.get(src.camera, ()):
+                name = still_name(src.camera, v - opts.offset)
+                (folder.parent / name).parent.mkdir(exist_ok=True)
+                cv2.imwrite(str(folder.parent / name), img, [cv2.IMWRITE_JPEG_QUALITY, 85])
+                stills[(v - opts.offset, src.camera)] = name
+            writer.send(np.ascontiguousarray(img))
+            n += 1
+            if tick is not None:
+                tick(1)
+    finally:
+        writer.close()
+    return Overlay(src.camera, f"overlays/{path.name}", n, w, h, fps, str(src.path)), stills

@@ -20,7 +20,7 @@ import csv
 import html
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -58,6 +58,9 @@ from gt3dkit.viz.panels import (
 )
 from gt3dkit.viz.render3d import RenderError
 from gt3dkit.viz.scene3d import write_scene_page
+
+if TYPE_CHECKING:
+    from distributed import Client
 
 #: anomaly rows shown with a picture (the highest scores); the table lists up to MAX_ROWS
 MAX_PICTURES = 60
@@ -399,12 +402,13 @@ def _page(title: str, parts: list[str]) -> str:
             "</body></html>")
 
 
-def write_report(out: Path, frames: OverlayOptions | None = None, progress: bool = True
-                 ) -> tuple[Path, list[str]]:
+def write_report(out: Path, frames: OverlayOptions | None = None, progress: bool = True,
+                 client: Client | None = None) -> tuple[Path, list[str]]:
     """Write ``out/report/`` for a reconstruct or compare output folder (atomically); returns
     the index.html path and warnings (a 3D render that failed, a camera without frames).
     ``frames``: the estimate drawn over the cameras' own frames too (:mod:`gt3dkit.viz.overlays`,
-    checked before anything is written)."""
+    checked before anything is written; ``client``: a Dask cluster's, whose workers draw them, a
+    camera each)."""
     out = Path(out)
     if not out.is_dir():
         raise InputError(str(out), "not a folder")
@@ -424,7 +428,7 @@ def write_report(out: Path, frames: OverlayOptions | None = None, progress: bool
         stills: dict[tuple[int, str], str] = {}
         if frames is not None:
             videos, stills = write_overlays(run.scene, run.tracks, run.anomalies, sources, frames,
-                                            tmp / "overlays", progress)
+                                            tmp / "overlays", progress, client)
         parts, w = run_sections(run, tmp, stills=stills)
         warnings.extend(w)
         if frames is not None:

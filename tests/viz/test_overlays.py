@@ -193,3 +193,26 @@ def test_the_scene_page_in_a_real_browser(run: tuple[Path, Path]) -> None:
     assert seen.frames[0] != seen.frames[1] and seen.canvas_changed
     assert seen.video_times[0] != seen.video_times[1] and len(seen.video_times[1]) == 3
     assert seen.hover.startswith("id "), seen.hover
+
+
+def test_the_overlays_drawn_by_a_dask_cluster_are_the_local_ones(run: tuple[Path, Path]) -> None:
+    """``--scheduler``: each camera's overlay drawn by a worker of a local Dask cluster on loopback:
+    the same videos' frames and stills as drawn here."""
+    distributed = pytest.importorskip("distributed")
+    root, frames = run
+    out = root / "out"
+    r = _run("report", str(out), "--frames", str(frames), "--overlay-width", "640", "--quiet")
+    assert r.returncode == 0, r.stderr
+    local = {p.name: p.read_bytes() for p in (out / "report" / "overlays").rglob("*.jpg")}
+    counts = {p.name: int(cv2.VideoCapture(str(p)).get(cv2.CAP_PROP_FRAME_COUNT))
+              for p in (out / "report" / "overlays").glob("*.mp4")}
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=":0") as cluster:
+        r = _run("report", str(out), "--frames", str(frames), "--overlay-width", "640", "--quiet",
+                 "--scheduler", cluster.scheduler_address)
+    assert r.returncode == 0, r.stderr
+    assert {p.name: p.read_bytes() for p in (out / "report" / "overlays").rglob("*.jpg")} == local
+    assert {p.name: int(cv2.VideoCapture(str(p)).get(cv2.CAP_PROP_FRAME_COUNT))
+            for p in (out / "report" / "overlays").glob("*.mp4")} == counts
+    r = _run("report", str(out), "--scheduler", "127.0.0.1:1", "--quiet")
+    assert r.returncode == 2 and "give --frames" in r.stderr
