@@ -13,8 +13,9 @@ frame, in colours that say which is which (the page's legend):
 * the annotation as drawn: boxes and keypoints in green;
 * the estimate's projection: the ellipsoid's outline, or the skeleton's bones and joints, in the
   track's colour (no green or red);
-* its uncertainty: a circle of the projected sd (1 sd) around each joint or centre whose sd
-  projects to more than :data:`SD_SHOWN_PX` pixels;
+* its uncertainty, where it projects to more than :data:`SD_SHOWN_PX` pixels: around an
+  object's centre the ellipse of its sd (1 sd, the centre's covariance projected), around a
+  joint a circle of its sd (the run gives a joint's largest sd, one number);
 * the QA flags of that frame and camera (``anomalies.csv``), in red, with their kind.
 
 Frames are read, drawn and written one at a time (memory bounded by a frame), at most
@@ -281,11 +282,27 @@ def _draw_ellipsoid(img: np.ndarray, d: Drawing, r: int, col: tuple[int, int, in
     uv = apply_K(distort(xy[:, None], rig.dist[c:c + 1]), rig.K[c:c + 1])[:, 0]
     if np.isfinite(uv).all():
         cv2.polylines(img, [np.round(uv).astype(np.int32)], True, col, 2, cv2.LINE_AA)
-    p, depth = _project(tr.center_world[r][None], sc, c)
-    if np.isfinite(p).all() and depth[0] > 0:
-        sd_px = f_px * float(np.max(tr.center_sd[r])) / float(depth[0])
-        if sd_px > SD_SHOWN_PX:
-            cv2.circle(img, _pt(p[0]), int(round(sd_px)), col, 1, cv2.LINE_AA)
+    _draw_sd_ellipse(img, sc, c, tr.center_world[r], tr.center_sd[r], col)
+
+
+def _draw_sd_ellipse(img: np.ndarray, sc: Scene, c: int, centre: F64, sd_xyz: F64,
+                     col: tuple[int, int, int]) -> None:
+    """The centre's sd (1 sd, the axes' sds ``sd_xyz (3,)``, m) projected into camera ``c``: the
+    ellipse ``J diag(sd^2) J^T`` (``J`` the projection's Jacobian, by central differences of
+    1 mm), drawn where its larger axis exceeds :data:`SD_SHOWN_PX`."""
+    eps = 1e-3
+    pts = np.concatenate([centre[None], centre + eps * np.eye(3), centre - eps * np.eye(3)])
+    uv, depth = _project(pts, sc, c)
+    if not (np.isfinite(uv).all() and (depth > 0).all()):
+        return
+    J = (uv[1:4] - uv[4:7]).T / (2 * eps)  # (2, 3)
+    cov = J @ np.diag(np.asarray(sd_xyz, dtype=np.float64) ** 2) @ J.T
+    w, V = np.linalg.eigh(cov)
+    a, b = np.sqrt(np.maximum(w[::-1], 0.0))
+    if not np.isfinite(a) or a <= SD_SHOWN_PX or a > 4 * max(img.shape):
+        return
+    angle = float(np.degrees(np.arctan2(V[1, 1], V[0, 1])))  # the larger axis' direction
+    cv2.ellipse(img, _pt(uv[0]), (int(round(a)), max(int(round(b)), 1)), angle, 0, 360, col, 1, cv2.LINE_AA)
 
 
 def drawing_of(scene: Scene, tracks: TrackSet, cam: int, anomalies: list[dict[str, str]]) -> Drawing:
