@@ -424,21 +424,29 @@ def write_report(out: Path, frames: OverlayOptions | None = None, progress: bool
         warnings += said
 
     def write(tmp: Path) -> None:
+        from tqdm import tqdm
+
         videos: list[Overlay] = []
         stills: dict[tuple[int, str], str] = {}
-        if frames is not None:
+        if frames is not None:  # its own bar, frame by frame
             videos, stills = write_overlays(run.scene, run.tracks, run.anomalies, sources, frames,
                                             tmp / "overlays", progress, client)
-        parts, w = run_sections(run, tmp, stills=stills)
-        warnings.extend(w)
-        if frames is not None:
-            parts.insert(1, _overlay_section(videos, frames))
-        if len(run.tracks):
-            page = write_scene_page(run.scene, run.tracks, tmp, videos, frames.offset if frames else 0,
-                                    frames.step if frames else 1)
-            parts.insert(1, f'<p><a href="{page}">The scene in 3D over time</a>: turn it around, scrub '
-                            "through the frames, hover an object for its id and sd"
-                            + (", each camera's overlay beside it" if videos else "") + ".</p>")
+        shown = None if progress else True  # tqdm: None = shown on a terminal only
+        with tqdm(total=2, desc="report", unit="part", disable=shown, leave=False) as bar:
+            bar.set_postfix_str("pictures and tables")
+            parts, w = run_sections(run, tmp, stills=stills)
+            warnings.extend(w)
+            bar.update(1)
+            if frames is not None:
+                parts.insert(1, _overlay_section(videos, frames))
+            if len(run.tracks):
+                bar.set_postfix_str("the 3D page")
+                page = write_scene_page(run.scene, run.tracks, tmp, videos, frames.offset if frames else 0,
+                                        frames.step if frames else 1)
+                parts.insert(1, f'<p><a href="{page}">The scene in 3D over time</a>: turn it around, scrub '
+                                "through the frames, hover an object for its id and sd"
+                                + (", each camera's overlay beside it" if videos else "") + ".</p>")
+            bar.update(1)
         (tmp / "index.html").write_text(_page(f"gt3dkit report: {out.resolve()}", parts), encoding="utf-8")
 
     write_dir_atomically(out / "report", write)
