@@ -48,6 +48,31 @@ def make_rig(n_cams: int, area_lo: F64, area_hi: F64, names: list[str],
     return Rig(tuple(cams), up=np.array([0.0, 0.0, 1.0]), frame_name="synthetic world (z up)")
 
 
+#: The room rig (``rig="room"``): a room of this floor (m), its cameras in its top corners at this
+#: height (m), looking down at its middle, as the CMC dataset's four cameras do
+ROOM_M = (7.7, 3.4)
+ROOM_CAMERA_HEIGHT_M = 2.6
+ROOM_FPS = 4.0
+
+
+def make_room_rig(names: list[str], rng: np.random.Generator) -> Rig:
+    """Cameras in the top corners of a :data:`ROOM_M` room (the first four corners, then on the
+    walls between), each looking down at the room's middle at 0.8 m: people stand in front of
+    people in every view. 1920x1080, wide (f 700-800 px), mild distortion."""
+    w, d = ROOM_M
+    spots = [(0.0, 0.0), (w, 0.0), (w, d), (0.0, d), (w / 2, 0.0), (w / 2, d), (0.0, d / 2), (w, d / 2)]
+    cams = []
+    for i, name in enumerate(names):
+        x, y = spots[i % len(spots)]
+        pos = np.array([x, y, ROOM_CAMERA_HEIGHT_M]) + rng.uniform(-0.05, 0.05, 3)
+        R, t = look_at(pos, np.array([w / 2, d / 2, 0.8]) + np.r_[rng.uniform(-0.3, 0.3, 2), 0.0])
+        f = rng.uniform(700, 800)
+        K = np.array([[f, 0, 960 + rng.uniform(-20, 20)], [0, f, 540 + rng.uniform(-20, 20)], [0, 0, 1]])
+        dist = np.array([rng.uniform(-0.08, -0.02), rng.uniform(0.0, 0.03), 0.0, 0.0, 0.0])
+        cams.append(Camera(name, 1920, 1080, K, dist, R, t))
+    return Rig(tuple(cams), up=np.array([0.0, 0.0, 1.0]), frame_name="synthetic room (z up)")
+
+
 def _walk(rng: np.random.Generator, t_s: F64, lo: F64, hi: F64) -> F64:
     """(T, 2) a walking path: speed and turn rate wander (Ornstein-Uhlenbeck, 1-3 s), the
     walker steers back when near the area's border. Integrated at 50 Hz, sampled at t_s."""
@@ -155,7 +180,7 @@ def _paths(rng: np.random.Generator, seed: int, people: int, t_s: F64, frame_num
 def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: int = 10,
              noise_px: float = 0.0, errors: Errors | None = None, motion: str = "smooth",
              cameras: int | None = None, fps: float | None = None, labels: str = "ellipsoid",
-             lens: str = "pinhole") -> SimScene:
+             lens: str = "pinhole", rig: str = "ring") -> SimScene:
     """Generate a seeded scene. See the module docstring.
 
     ``motion``: ``smooth`` paths, ``walk`` (speed and turn rate wander) or ``stop-and-turn``
@@ -169,19 +194,31 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
 
     ``cameras`` and ``fps`` set the native layout's camera count (default 6) and frame rate
     (default 10); the WILDTRACK and MultiviewX layouts have their own. ``lens="fisheye"``: wide
-    lenses on the same cameras (:func:`gt3dkit.sim.common.with_lens`).
+    lenses on the same cameras (:func:`gt3dkit.sim.common.with_lens`). ``rig="room"`` (the native
+    layout): a crowd in a :data:`ROOM_M` room seen from its top corners (:func:`make_room_rig`; 4
+    cameras and :data:`ROOM_FPS` frames per second unless given), where people hide each other.
     """
     _check_arguments(layout, frames, people, noise_px, motion, cameras, fps, labels)
+    if rig not in ("ring", "room") or (rig == "room" and layout != "native"):
+        raise ValueError(f"rig must be ring, or room with the native layout; got {rig!r} with {layout!r}")
     errors = errors or Errors()
     dropout = DROPPED_VIEWS if errors.dropped is None else errors.dropped
     rng = np.random.default_rng(seed)
     err_rng = np.random.default_rng([seed, 1])
-    lo, hi, names, step, fps = _layout_area(layout, cameras, fps)
-    rig = with_lens(make_rig(len(names), lo, hi, names, rng), lens, seed)
+    if rig == "room":
+        lo, hi = np.full(2, 0.3), np.array(ROOM_M) - 0.3  # the walls kept off
+        names, step, fps = [f"cam{i + 1}" for i in range(cameras or 4)], 1, float(fps or ROOM_FPS)
+        cams_rig = make_room_rig(names, rng)
+    else:
+        lo, hi, names, step, fps = _layout_area(layout, cameras, fps)
+        cams_rig = make_rig(len(names), lo, hi, names, rng)
+    the_rig = with_lens(cams_rig, lens, seed)
     frame_numbers = np.arange(frames, dtype=np.int64) * step + (1 if layout == "multiviewx" else 0)
     truth_frame, truth_id, center, semi = _paths(rng, seed, people, frame_numbers / fps, frame_numbers,
                                                  (lo, hi), motion)
-    cams = Cams.of(rig, labels)
+    if rig == "room":  # no one walks through a wall
+        center[:, :2] = np.clip(center[:, :2], lo, hi)
+    cams = Cams.of(the_rig, labels)
     tool = labels != "ellipsoid"  # an annotation tool's solid: one radius, on its 2.5 cm grid
     if tool:
         semi[:, :2] = semi[:, :2].mean(axis=1, keepdims=True)
@@ -200,9 +237,9 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
     injected: list[tuple[int, str, int, str, str, str]] = []
     if errors.time_offset is not None:
         injected.append(_time_offset(errors.time_offset, box, seen, inside, (truth_frame, truth_id),
-                                     frame_numbers, rig))
+                                     frame_numbers, the_rig))
     if errors.hide_covered is not None or errors.missing:  # everyone in the picture hides, annotated or not
-        injected += _hidden(errors, seen, box, inside, center, (truth_frame, truth_id), cams, rig,
+        injected += _hidden(errors, seen, box, inside, center, (truth_frame, truth_id), cams, the_rig,
                             err_rng)
     seen &= ~gap_mask(frame_numbers, truth_frame, errors.gap)[:, None]
     if errors.single_view:
@@ -210,10 +247,10 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
         injected += [(-1, "", p, "", "single_view", "annotated in one camera only")
                      for p in chosen]
     if errors.cut_by_nearer:
-        box, more = _cut_by_nearer(box, seen, center, (truth_frame, truth_id), rig)
+        box, more = _cut_by_nearer(box, seen, center, (truth_frame, truth_id), the_rig)
         injected += more
     if errors.shifted:
-        box, more = _shifted(errors.shifted, seen, box, cams, (truth_frame, truth_id), rig, err_rng)
+        box, more = _shifted(errors.shifted, seen, box, cams, (truth_frame, truth_id), the_rig, err_rng)
         injected += more
     box = np.where(seen[..., None], box, np.nan)
     if errors.reused_ids or errors.exchanged_ids:
@@ -221,7 +258,7 @@ def simulate(layout: str = "native", seed: int = 0, frames: int = 40, people: in
         injected += more
         truth_frame, truth_id = truth_frame[keep], truth_id[keep]
         center, semi, box = center[keep], semi[keep], box[keep]
-    return SimScene(rig=rig, frames=frame_numbers, fps=fps, truth_frame=truth_frame,
+    return SimScene(rig=the_rig, frames=frame_numbers, fps=fps, truth_frame=truth_frame,
                     truth_id=truth_id, center_world=center, semi_axes=semi, boxes=box,
                     injected=tuple(injected))
 

@@ -250,7 +250,8 @@ def check_in_front(scene: Scene, rows: Rows, fit: BoxFit, cams: Cams) -> None:
     camera: a fit that lands behind one of its own cameras is refitted without each of its boxes
     in turn, and the error names a camera ``v`` whose object the fit without ``v``'s box places in
     front of every other camera that sees it (two or more: one view's depth is the shape prior's)
-    and behind ``v`` (a camera facing away from the scene), or a camera with at least half of its
+    and behind ``v`` (a camera facing away from the scene), those other views fitting it as the
+    typical object-frame's views do (:data:`IN_FRONT_AGREE`), or a camera with at least half of its
     boxes behind it. Elsewhere (two views, one of them a sliver of a person almost hidden by a
     nearer one, the other cut by the image border) the views do not place the object at all and
     the robust steps decide."""
@@ -268,7 +269,11 @@ def check_in_front(scene: Scene, rows: Rows, fit: BoxFit, cams: Cams) -> None:
         front = (again.margin > 0) | ~seen[r]
         behind_v = ~front[k, v]
         front[k, v] = True
-        blamed = (seen[r].sum(axis=1) >= 3) & again.ok & front.all(axis=1) & behind_v
+        # the other views must agree on the place they give it: their refit fits them as the
+        # typical object-frame's fit fits its boxes (boxes cut by nearer people can place it
+        # metres off, behind a camera that does see it)
+        agree = _rms_px(again) <= IN_FRONT_AGREE * np.nanmedian(_rms_px(fit))
+        blamed = (seen[r].sum(axis=1) >= 3) & again.ok & front.all(axis=1) & behind_v & agree
         bad[doubt] = False
         bad[r[blamed], v[blamed]] = True
     if bad.any():
@@ -278,6 +283,20 @@ def check_in_front(scene: Scene, rows: Rows, fit: BoxFit, cams: Cams) -> None:
                                 f"{scene.rig.cameras[c].name} (the other views place it at "
                                 f"{np.round(fit.center_world[r], 2).tolist()} m): "
                                 f"box and calibration disagree")
+
+
+#: A refit whose boxes' rms residual is above this many times the typical object-frame's does not
+#: place its object well enough to say a camera sees it from behind (:func:`check_in_front`).
+IN_FRONT_AGREE = 3.0
+
+
+def _rms_px(fit: BoxFit) -> F64:
+    """``(R,)`` each fit's rms edge residual (px) over its used edges (NaN: none)."""
+    r = fit.residual_px
+    ok = np.isfinite(r)
+    n = ok.sum(axis=(1, 2))
+    sq = (np.where(ok, r, 0.0) ** 2).sum(axis=(1, 2))
+    return np.where(n > 0, np.sqrt(sq / np.maximum(n, 1)), np.nan)
 
 
 def _merge_fit(fit: BoxFit, sel: np.ndarray, sub: BoxFit) -> BoxFit:
