@@ -1,4 +1,9 @@
-"""Joint orders, bones and a canonical standing pose, named in one place.
+"""Skeletons: joint orders, bones and left/right pairs, described as data, and the standing
+person's canonical pose.
+
+The built-in human skeletons are files of the same form a user writes
+(:func:`gt3dkit.io.skeletonfile.read_skeleton`), shipped in ``gt3dkit/data/skeletons/human/`` and
+read here once, through the same checks (:func:`skeleton_from_doc`):
 
 * ``coco17``: COCO keypoints (nose, eyes, ears, shoulders, elbows, wrists, hips, knees, ankles).
 * ``panoptic15``: CMU Panoptic's 15 body joints (the first 15 of ``coco19``).
@@ -9,14 +14,18 @@
 
 The canonical pose is a person 1.7 m tall standing upright in the *body* frame
 (x to the person's left, y forward, z up, metres, feet at z = 0); the UKF places
-it at an ellipsoid's centre, scaled to the ellipsoid, for joints no two views see.
+it at an ellipsoid's centre, scaled to the ellipsoid, for joints no two views see. It is a model
+of a person, by joint name (the simulator's walkers, calibration from people), not part of a
+skeleton's description: a file's ``[pose]`` gives another body its own.
 """
 
 from __future__ import annotations
 
 import re
+import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from importlib.resources import files
 
 import numpy as np
 
@@ -34,51 +43,6 @@ _CANON = {  # body frame, metres
 for _k, (_x, _y, _z) in list(_CANON.items()):
     if _k.startswith("l_"):
         _CANON["r_" + _k[2:]] = (-_x, _y, _z)
-
-_COCO19 = ("neck", "nose", "pelvis", "l_shoulder", "l_elbow", "l_wrist", "l_hip", "l_knee",
-           "l_ankle", "r_shoulder", "r_elbow", "r_wrist", "r_hip", "r_knee", "r_ankle",
-           "l_eye", "l_ear", "r_eye", "r_ear")
-_COCO17 = ("nose", "l_eye", "r_eye", "l_ear", "r_ear", "l_shoulder", "r_shoulder", "l_elbow",
-           "r_elbow", "l_wrist", "r_wrist", "l_hip", "r_hip", "l_knee", "r_knee", "l_ankle",
-           "r_ankle")
-_BONES_BODY = (("neck", "nose"), ("neck", "pelvis"), ("neck", "l_shoulder"),
-               ("l_shoulder", "l_elbow"), ("l_elbow", "l_wrist"), ("pelvis", "l_hip"),
-               ("l_hip", "l_knee"), ("l_knee", "l_ankle"), ("neck", "r_shoulder"),
-               ("r_shoulder", "r_elbow"), ("r_elbow", "r_wrist"), ("pelvis", "r_hip"),
-               ("r_hip", "r_knee"), ("r_knee", "r_ankle"))
-_BONES_FACE = (("nose", "l_eye"), ("l_eye", "l_ear"), ("nose", "r_eye"), ("r_eye", "r_ear"))
-_BONES_COCO17 = (("l_ankle", "l_knee"), ("l_knee", "l_hip"), ("r_ankle", "r_knee"),
-                 ("r_knee", "r_hip"), ("l_hip", "r_hip"), ("l_shoulder", "l_hip"),
-                 ("r_shoulder", "r_hip"), ("l_shoulder", "r_shoulder"),
-                 ("l_shoulder", "l_elbow"), ("r_shoulder", "r_elbow"), ("l_elbow", "l_wrist"),
-                 ("r_elbow", "r_wrist"), ("l_eye", "r_eye"), ("nose", "l_eye"),
-                 ("nose", "r_eye"), ("l_eye", "l_ear"), ("r_eye", "r_ear"))
-
-
-# OpenPose / AlphaPose / RTMPose orders (OpenPose's output docs; Pose2Sim's skeletons.py), as
-# (our name, the detector's own name): every joint kept, feet and head included.
-_OP_NAMES = {"nose": "Nose", "neck": "Neck", "pelvis": "MidHip", "head_top": "Head"}
-for _side, _s in (("l", "L"), ("r", "R")):
-    for _j, _n in (("shoulder", "Shoulder"), ("elbow", "Elbow"), ("wrist", "Wrist"), ("hip", "Hip"),
-                   ("knee", "Knee"), ("ankle", "Ankle"), ("eye", "Eye"), ("ear", "Ear"),
-                   ("big_toe", "BigToe"), ("small_toe", "SmallToe"), ("heel", "Heel")):
-        _OP_NAMES[f"{_side}_{_j}"] = _s + _n
-_BODY25 = ("nose", "neck", "r_shoulder", "r_elbow", "r_wrist", "l_shoulder", "l_elbow", "l_wrist",
-           "pelvis", "r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle", "r_eye", "l_eye",
-           "r_ear", "l_ear", "l_big_toe", "l_small_toe", "l_heel", "r_big_toe", "r_small_toe", "r_heel")
-_COCO18 = _BODY25[:8] + _BODY25[9:19]
-_BODY25B = _COCO17 + ("neck", "head_top", "l_big_toe", "l_small_toe", "l_heel", "r_big_toe",
-                      "r_small_toe", "r_heel")
-_HALPE26 = _COCO17 + ("head_top", "neck", "pelvis", "l_big_toe", "r_big_toe", "l_small_toe",
-                      "r_small_toe", "l_heel", "r_heel")
-_COCO133_BODY = _COCO17 + ("l_big_toe", "l_small_toe", "l_heel", "r_big_toe", "r_small_toe", "r_heel")
-_BONES_FEET = (("l_ankle", "l_big_toe"), ("l_big_toe", "l_small_toe"), ("l_ankle", "l_heel"),
-               ("r_ankle", "r_big_toe"), ("r_big_toe", "r_small_toe"), ("r_ankle", "r_heel"))
-_BONES_OP = _BONES_BODY + _BONES_FACE
-_BONES_COCO18 = tuple(b for b in _BONES_OP if "pelvis" not in b) + (("neck", "l_hip"), ("neck", "r_hip"))
-_BONES_25B = tuple(b for b in _BONES_COCO17 if b not in (("l_eye", "r_eye"),)) + (
-    ("neck", "l_shoulder"), ("neck", "r_shoulder"), ("neck", "head_top"), ("neck", "nose")) + _BONES_FEET
-_BONES_HALPE = _BONES_25B + (("pelvis", "l_hip"), ("pelvis", "r_hip"), ("neck", "pelvis"))
 
 
 @dataclass(frozen=True)
@@ -145,6 +109,8 @@ class Skeleton:
                          "pairs": [list(p) for p in self.left_right]}
         if self.labels:
             out["labels"] = list(self.labels)
+        if self.detector_points:
+            out["detector_points"] = self.detector_points
         if self.pose:
             out["pose"] = {j: list(x) for j, x in zip(self.joints, self.pose, strict=True)}
         return out
@@ -154,32 +120,11 @@ class Skeleton:
 BODY_JOINTS = frozenset(_CANON)
 
 
-def _wholebody() -> tuple[tuple[str, ...], tuple[tuple[str, str], ...], tuple[str, ...]]:
-    """COCO-WholeBody's 133 points (its order: 17 body, 6 feet, 68 face, 21 left hand, 21 right
-    hand), their bones and the dataset's own names (mmpose's ``coco_wholebody``); the face and
-    hand points' canonical places are added to the standing person's (a face looking forward,
-    hands hanging at the sides, fingers down, palms in)."""
+def _add_wholebody_pose() -> None:
+    """The canonical places of COCO-WholeBody's face and hand points (its ``wholebody133`` file's
+    names), added to the standing person's: a face looking forward, hands hanging at the sides,
+    fingers down, palms in."""
     face = tuple(f"face_{k}" for k in range(68))
-    fingers = ("thumb", "forefinger", "middle_finger", "ring_finger", "pinky_finger")
-    hands = {side: (f"{side}_hand_root",) + tuple(f"{side}_{f}{k}" for f in fingers for k in range(1, 5))
-             for side in ("l", "r")}
-    joints = _COCO133_BODY + face + hands["l"] + hands["r"]
-    bones = list(_BONES_COCO17 + _BONES_FEET)
-    loops = ((36, 41), (42, 47), (48, 59), (60, 67))
-    for a, b in ((0, 16), (17, 21), (22, 26), (27, 30), (31, 35)) + loops:
-        bones += [(face[k], face[k + 1]) for k in range(a, b)]
-    bones += [(face[b], face[a]) for a, b in loops]
-    bones += [("nose", face[30]), (face[27], face[21]), (face[27], face[22]), (face[27], face[39]),
-              (face[27], face[42]), (face[33], face[51]), (face[8], face[57]), (face[0], face[36]),
-              (face[16], face[45]), (face[48], face[60]), (face[54], face[64])]
-    for side, h in hands.items():
-        bones.append((f"{side}_wrist", h[0]))
-        for n in range(5):
-            chain = (h[0],) + h[1 + 4 * n:5 + 4 * n]
-            bones += list(zip(chain, chain[1:], strict=False))
-    labels = tuple({"l": "left", "r": "right"}.get(j[:1], "") + j[1:] if j[1:2] == "_" else j
-                   for j in _COCO133_BODY) + tuple(f"face-{k}" for k in range(68)) + tuple(
-        j.replace("l_", "left_", 1).replace("r_", "right_", 1) for j in hands["l"] + hands["r"])
     # canonical places (body frame, m): the face ~14 cm wide on a plane 8 cm before the head's axis
     t = np.linspace(0.0, np.pi, 17)
     pts = [(-0.07 * np.cos(a), 0.05 + 0.03 * np.sin(a), 1.60 - 0.08 * np.sin(a)) for a in t]  # jaw
@@ -211,30 +156,10 @@ def _wholebody() -> tuple[tuple[str, ...], tuple[tuple[str, str], ...], tuple[st
             for k, d in enumerate(lens, 2):
                 z -= d
                 _CANON[f"{side}_{f}{k}"] = (wx, wy + finger_y[f], z)
-    return joints, tuple(bones), labels
 
 
-_WHOLEBODY, _BONES_WHOLEBODY, _WHOLEBODY_LABELS = _wholebody()
+_add_wholebody_pose()
 
-SKELETONS = {
-    "coco17": Skeleton("coco17", _COCO17, _BONES_COCO17),
-    "panoptic15": Skeleton("panoptic15", _COCO19[:15], _BONES_BODY),
-    "coco19": Skeleton("coco19", _COCO19, _BONES_BODY + _BONES_FACE),
-    "body25": Skeleton("body25", _BODY25, _BONES_OP + _BONES_FEET, tuple(_OP_NAMES[j] for j in _BODY25)),
-    "body25b": Skeleton("body25b", _BODY25B, _BONES_25B,
-                        tuple({"neck": "UpperNeck", "head_top": "HeadTop"}.get(j, _OP_NAMES[j])
-                              for j in _BODY25B)),
-    "coco18": Skeleton("coco18", _COCO18, _BONES_COCO18, tuple(_OP_NAMES[j] for j in _COCO18)),
-    "halpe26": Skeleton("halpe26", _HALPE26, _BONES_HALPE,
-                        tuple({"pelvis": "Hip"}.get(j, _OP_NAMES[j]) for j in _HALPE26)),
-    # COCO-WholeBody (RTMPose's, Pose2Sim's COCO_133): 17 body + 6 feet points, then 68 face and
-    # 2 x 21 hand points, 133 in all; the body and the feet are read
-    "coco133": Skeleton("coco133", _COCO133_BODY, _BONES_COCO17 + _BONES_FEET,
-                        tuple(_OP_NAMES[j] for j in _COCO133_BODY), detector_points=133),
-    # COCO-WholeBody whole: the body, the feet, 68 face and 2 x 21 hand points (the face's
-    # contours and each finger's chain from the hand's root as bones)
-    "wholebody133": Skeleton("wholebody133", _WHOLEBODY, _BONES_WHOLEBODY, _WHOLEBODY_LABELS),
-}
 #: 2D detector files (OpenPose JSON) name their skeleton by joint count; 25 is BODY_25 or BODY_25B
 DETECTOR_SKELETONS = {25: ("body25", "body25b"), 26: ("halpe26",), 18: ("coco18",), 17: ("coco17",),
                       133: ("coco133",)}
@@ -334,6 +259,11 @@ def skeleton_from_doc(doc: JsonValue, where: str) -> Skeleton:
     if again:
         raise InputError(f"{where}: pairs", f"joint {again[0]!r} is in two pairs")
     _check_mirrored(where, bones, pairs)
+    points = doc.get("detector_points", 0)
+    if not isinstance(points, int) or isinstance(points, bool) or (points and points < len(joint_list)):
+        raise InputError(f"{where}: detector_points", "expected the points a detector writes per "
+                                                      f"person, at least the {len(joint_list)} joints, "
+                                                      f"got {points!r}")
     pose = doc.get("pose")
     pose_rows: tuple[tuple[float, float, float], ...] = ()
     if pose is not None:
@@ -348,7 +278,7 @@ def skeleton_from_doc(doc: JsonValue, where: str) -> Skeleton:
                 raise InputError(f"{where}: pose: {j}", f"expected [x, y, z] in metres, got {x!r}")
             rows.append((xyz[0], xyz[1], xyz[2]))
         pose_rows = tuple(rows)
-    return Skeleton(name, tuple(joint_list), tuple(bones), tuple(labels), 0, tuple(pairs), pose_rows)
+    return Skeleton(name, tuple(joint_list), tuple(bones), tuple(labels), points, tuple(pairs), pose_rows)
 
 
 def unmirrored(bones: Sequence[tuple[str, str]], pairs: Sequence[tuple[str, str]]) -> list[int]:
@@ -372,3 +302,20 @@ def _check_mirrored(where: str, bones: list[tuple[str, str]], pairs: list[tuple[
         a, b = pairs[k]
         raise InputError(f"{where}: pairs[{k}]", f"{a!r} and {b!r} are not a left/right pair: their "
                                                  "bones do not mirror each other")
+
+
+def _builtin_skeletons() -> dict[str, Skeleton]:
+    """The shipped human skeleton files (``gt3dkit/data/skeletons/human/*.toml``) by name, the
+    smallest first, each read and checked as a user's file is (:func:`skeleton_from_doc`)."""
+    out: dict[str, Skeleton] = {}
+    folder = files("gt3dkit").joinpath("data", "skeletons", "human")
+    for entry in sorted(folder.iterdir(), key=lambda e: e.name):
+        if entry.name.endswith(".toml"):
+            where = f"gt3dkit/data/skeletons/human/{entry.name}"
+            sk = skeleton_from_doc(tomllib.loads(entry.read_text(encoding="utf-8")), where)
+            out[sk.name] = sk
+    return dict(sorted(out.items(), key=lambda kv: (kv[1].n_joints, kv[0])))  # smallest first
+
+
+#: the built-in skeletons by name (the human files shipped with the package)
+SKELETONS = _builtin_skeletons()

@@ -40,10 +40,13 @@ def read_skeleton(path: Path) -> Skeleton:
         bones = [["nose", "ear_l"], ["nose", "ear_r"], ["nose", "tail_base"]]
         pairs = [["ear_l", "ear_r"]]            # left/right (default: l_x / r_x names)
         labels = ["Nose", "EarL", "EarR", "TTI"]  # the labelling tool's names (optional)
+        detector_points = 0                     # points a detector writes per person when more
+                                                # than the joints (the first are read; optional)
         [pose]                                  # canonical pose, m (optional): joint = [x, y, z]
         nose = [0.0, 0.05, 0.02]
 
-    Every name and bone is checked (:func:`skeleton_from_doc`)."""
+    Every name and bone is checked (:func:`skeleton_from_doc`). The built-in skeletons are files
+    of this form (``gt3dkit/data/skeletons/human/``), a starting point for one's own."""
     doc = load_toml(path)
     if "name" not in doc:
         doc = {**doc, "name": path.stem}
@@ -60,6 +63,8 @@ def write_skeleton(skel: Skeleton, path: Path) -> None:
              "pairs = [" + ", ".join(names(p) for p in skel.left_right) + "]"]
     if skel.labels:
         lines.append(f"labels = {names(skel.labels)}")
+    if skel.detector_points:
+        lines.append(f"detector_points = {skel.detector_points}")
     if skel.pose:
         lines.append("\n[pose]")
         lines += [f"{json.dumps(j)} = [{x!r}, {y!r}, {z!r}]" for j, (x, y, z) in zip(skel.joints, skel.pose,

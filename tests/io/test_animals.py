@@ -16,10 +16,11 @@ from gt3dkit.api import load_run, load_scene, reconstruct
 from gt3dkit.calib.formats import toml as toml_fmt
 from gt3dkit.calib.formats.native import rig_of_doc
 from gt3dkit.cli import main
+from gt3dkit.errors import InputError
 from gt3dkit.eval.pose import mpjpe_by_id
 from gt3dkit.io.datasets import Calibration, read_scene
 from gt3dkit.io.datasets.sleap import side_pairs
-from gt3dkit.io.skeletonfile import read_skeleton
+from gt3dkit.io.skeletonfile import read_skeleton, write_skeleton
 from gt3dkit.rig import Rig
 from gt3dkit.sim import simulate_skeletons, write_skeleton_scene
 from gt3dkit.skeletons import SKELETONS, skeleton_from_doc
@@ -52,6 +53,24 @@ def test_every_built_in_skeleton_is_a_document_that_reads_back() -> None:
         assert back.joints == sk.joints and back.bone_names == sk.bone_names
         np.testing.assert_array_equal(back.mirror(), sk.mirror())
         np.testing.assert_array_equal(back.canonical(), sk.canonical())
+
+
+def test_the_built_in_skeletons_are_the_files_shipped_with_the_package(tmp_path: Path) -> None:
+    """Every built-in is a file of the form a user writes, read by the user's reader; HALPE-26
+    and COCO-WholeBody among them; a copy written back reads as the same skeleton."""
+    folder = Path(str(files("gt3dkit"))) / "data" / "skeletons" / "human"
+    shipped = {p.stem: read_skeleton(p) for p in folder.glob("*.toml")}
+    assert set(shipped) == set(SKELETONS) and {"halpe26", "wholebody133", "coco133"} <= set(shipped)
+    for name, sk in SKELETONS.items():
+        assert shipped[name] == sk, name
+        write_skeleton(sk, tmp_path / f"{name}.toml")
+        assert read_skeleton(tmp_path / f"{name}.toml").doc() == sk.doc(), name
+    assert SKELETONS["wholebody133"].n_joints == 133 and SKELETONS["halpe26"].n_joints == 26
+    assert SKELETONS["coco133"].detector_points == 133 and SKELETONS["coco133"].n_joints == 23
+    bad = tmp_path / "few.toml"
+    bad.write_text('name = "x"\njoints = ["a", "b"]\nbones = [["a", "b"]]\ndetector_points = 1\n')
+    with pytest.raises(InputError, match="detector_points"):
+        read_skeleton(bad)
 
 
 @pytest.mark.parametrize("joints, bones, pairs, entry, problem", [
