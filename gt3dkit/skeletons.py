@@ -62,6 +62,11 @@ class Skeleton:
     detector_points: int = 0
     pairs: tuple[tuple[str, str], ...] = ()
     pose: tuple[tuple[float, float, float], ...] = ()
+    #: joints that point up from ``floor`` when the body stands (the first seen is used: a
+    #: person's neck, nose or head top); empty: the skeleton says nothing of up
+    up: tuple[str, ...] = ()
+    #: joints on or just above the floor when the body stands (a person's ankles); empty: none
+    floor: tuple[str, ...] = ()
 
     @property
     def marker_names(self) -> tuple[str, ...]:
@@ -111,6 +116,10 @@ class Skeleton:
             out["labels"] = list(self.labels)
         if self.detector_points:
             out["detector_points"] = self.detector_points
+        if self.up:
+            out["up"] = list(self.up)
+        if self.floor:
+            out["floor"] = list(self.floor)
         if self.pose:
             out["pose"] = {j: list(x) for j, x in zip(self.joints, self.pose, strict=True)}
         return out
@@ -252,6 +261,14 @@ def skeleton_from_doc(doc: JsonValue, where: str) -> Skeleton:
     bones = links("bones")
     pairs = links("pairs")
     labels = names("labels", required=False)
+    up, floor = names("up", required=False), names("floor", required=False)
+    for key, given in (("up", up), ("floor", floor)):
+        for j in given:
+            if j not in joints:
+                raise InputError(f"{where}: {key}", f"unknown joint {j!r}")
+    both = sorted(set(up) & set(floor))
+    if both:
+        raise InputError(f"{where}: floor", f"joint {both[0]!r} is both up and on the floor")
     if labels and len(labels) != len(joint_list):
         raise InputError(f"{where}: labels", f"{len(labels)} names for {len(joint_list)} joints")
     paired = [j for a, b in pairs for j in (a, b)]
@@ -278,7 +295,8 @@ def skeleton_from_doc(doc: JsonValue, where: str) -> Skeleton:
                 raise InputError(f"{where}: pose: {j}", f"expected [x, y, z] in metres, got {x!r}")
             rows.append((xyz[0], xyz[1], xyz[2]))
         pose_rows = tuple(rows)
-    return Skeleton(name, tuple(joint_list), tuple(bones), tuple(labels), points, tuple(pairs), pose_rows)
+    return Skeleton(name, tuple(joint_list), tuple(bones), tuple(labels), points, tuple(pairs), pose_rows,
+                    tuple(up), tuple(floor))
 
 
 def unmirrored(bones: Sequence[tuple[str, str]], pairs: Sequence[tuple[str, str]]) -> list[int]:

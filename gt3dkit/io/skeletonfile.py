@@ -42,6 +42,9 @@ def read_skeleton(path: Path) -> Skeleton:
         labels = ["Nose", "EarL", "EarR", "TTI"]  # the labelling tool's names (optional)
         detector_points = 0                     # points a detector writes per person when more
                                                 # than the joints (the first are read; optional)
+        up = ["nose"]                           # standing, these point up from the floor joints
+        floor = ["ear_l"]                       # on the floor (both optional: a rig from people
+                                                # needs them, gt3d calibrate --people)
         [pose]                                  # canonical pose, m (optional): joint = [x, y, z]
         nose = [0.0, 0.05, 0.02]
 
@@ -65,6 +68,10 @@ def write_skeleton(skel: Skeleton, path: Path) -> None:
         lines.append(f"labels = {names(skel.labels)}")
     if skel.detector_points:
         lines.append(f"detector_points = {skel.detector_points}")
+    if skel.up:
+        lines.append(f"up = {names(skel.up)}")
+    if skel.floor:
+        lines.append(f"floor = {names(skel.floor)}")
     if skel.pose:
         lines.append("\n[pose]")
         lines += [f"{json.dumps(j)} = [{x!r}, {y!r}, {z!r}]" for j, (x, y, z) in zip(skel.joints, skel.pose,

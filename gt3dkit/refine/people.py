@@ -18,8 +18,9 @@ The intrinsics are given (the input's calibration or ``--intrinsics``); the pose
    joints on those people is posed by PnP (RANSAC), the people triangulated again, and so on.
 4. **One bundle adjustment** (:func:`gt3dkit.refine.keypoints.ba_keypoints`, pycolmap, Cauchy loss)
    over every camera and every person's joints.
-5. **The world** from the people: up from how they stand (ankles to neck), the floor from their
-   ankles, the scale from typical human bone lengths (:meth:`gt3dkit.skeletons.Skeleton.canonical`:
+5. **The world** from the people: up from how they stand (the skeleton's floor joints to its up
+   joints: a person's ankles to the neck), the floor from the floor joints, the scale from
+   typical human bone lengths (:meth:`gt3dkit.skeletons.Skeleton.canonical`:
    adults' bones vary by some 5-7 %, and so does this scale) or from their median height when the
    user gives it, the origin at their mean position on the floor, x towards the first camera.
 """
@@ -48,7 +49,7 @@ from gt3dkit.refine.persons import (
     pair_errors,
 )
 from gt3dkit.rig import Rig
-from gt3dkit.skeletons import SKELETONS, skeleton_of
+from gt3dkit.skeletons import Skeleton, skeleton_of
 from gt3dkit.types import F64, I64, JsonDict, Scene
 
 #: Camera pairs fitted on their own (those with the most candidate person pairs); the other cameras
@@ -555,7 +556,9 @@ def calibrate_people(scene: Scene, cfg: PeopleConfig | None = None) -> PeopleCal
     tracks, joint_of = _tracks(pv_on, person_on, flip_on, X, rig_ba, cfg)
     person = person_on
     # 5. the world
-    s, Rw, tw, world = people_world(X, scene.skeleton or "", rig_ba, cfg)
+    skel = skeleton_of(scene)
+    assert skel is not None  # person_views refused a scene without keypoints
+    s, Rw, tw, world = people_world(X, skel, rig_ba, cfg)
     out = transform_rig(rig_ba, s, Rw, tw)
     out = Rig(out.cameras, up=np.array([0.0, 0.0, 1.0]), frame_name=str(world["frame"]))
     res = keypoint_residuals(rig_ba, tracks)
@@ -702,10 +705,10 @@ def pose_sd(rig: Rig, tracks: Tracks, joint: I64, min_kinds: int = 5) -> tuple[F
     return c_sd, r_sd
 
 
-def people_world(X: F64, skeleton: str, rig: Rig, cfg: PeopleConfig) -> tuple[float, F64, F64, JsonDict]:
+def people_world(X: F64, sk: Skeleton, rig: Rig, cfg: PeopleConfig) -> tuple[float, F64, F64, JsonDict]:
     """The similarity ``X' = s Rw X + tw`` into the people's world (module docstring, step 5) of
-    their joints ``X (n, J, 3)``, and what it rests on."""
-    sk = SKELETONS[skeleton]
+    their joints ``X (n, J, 3)`` of the skeleton ``sk``, and what it rests on. Up and the floor
+    are the skeleton's (its file's ``up`` and ``floor`` joints)."""
     ix = {j: i for i, j in enumerate(sk.joints)}
 
     def mid(*names: str) -> F64:
@@ -716,28 +719,30 @@ def people_world(X: F64, skeleton: str, rig: Rig, cfg: PeopleConfig) -> tuple[fl
             warnings.simplefilter("ignore", RuntimeWarning)
             return np.nanmean(np.stack(pts), axis=0)
 
-    top_name = next((n for n in ("neck", "nose", "head_top") if n in ix and n not in cfg.skip_joints),
-                    None)
-    if top_name is None or "l_ankle" not in ix:
-        raise InputError("--skeleton", f"{skeleton} has no neck, nose or head top and ankles: a rig from "
-                                       "people needs them to find up and the floor")
+    top_name = next((n for n in sk.up if n not in cfg.skip_joints), None)
+    on_floor = [n for n in sk.floor if n not in cfg.skip_joints]
+    if top_name is None or not on_floor:
+        raise InputError("--skeleton", f"{sk.name} names no joints that point up and none on the floor (a "
+                                       "skeleton file's up and floor): a rig from people needs them to "
+                                       "find up and the floor")
     top = mid(top_name)
-    feet = mid("l_ankle", "r_ankle")
+    feet = mid(*on_floor)
     v = top - feet
     v = v[np.all(np.isfinite(v), axis=1)]
     if len(v) < 10:
-        raise InputError("people", f"{len(v)} people with both {top_name} and ankles seen: too few to "
-                                   "find up")
+        raise InputError("people", f"{len(v)} people with both {top_name} and their floor joints seen: "
+                                   "too few to find up")
     v /= np.linalg.norm(v, axis=1, keepdims=True)
     up = np.median(v, axis=0)
     up /= np.linalg.norm(up)
     canon = sk.canonical()
+    floor_h = float(np.mean(canon[[ix[n] for n in on_floor], 2]))  # the floor joints' canonical height
     bones = sk.bones
     meas = np.linalg.norm(X[:, bones[:, 0]] - X[:, bones[:, 1]], axis=-1)  # (n, K)
     ref = np.linalg.norm(canon[bones[:, 0]] - canon[bones[:, 1]], axis=-1)  # (K,)
     if cfg.height_m is not None:
         # the canonical body's neck-to-ankle height over its standing height, times theirs
-        stand = (canon[ix[top_name], 2] - canon[ix["l_ankle"], 2]) / _CANON_HEIGHT_M
+        stand = (canon[ix[top_name], 2] - floor_h) / _CANON_HEIGHT_M
         scale = float(cfg.height_m * stand / np.nanmedian((top - feet) @ up))
         how = f"the people's median height, {cfg.height_m} m (--height)"
     else:
@@ -747,9 +752,8 @@ def people_world(X: F64, skeleton: str, rig: Rig, cfg: PeopleConfig) -> tuple[fl
         how = ("typical adult bone lengths (the skeleton's canonical body): median over "
                f"{int(np.isfinite(ratio[:, use]).sum())} bones seen")
     # floor: the ankles' height in the canonical body below their median height
-    heights = np.concatenate([X[:, ix[n]] @ up for n in ("l_ankle", "r_ankle") if n in ix])
-    ankle_h = float(canon[ix["l_ankle"], 2]) if "l_ankle" in ix else 0.0
-    floor = float(np.nanmedian(heights)) - ankle_h / scale
+    heights = np.concatenate([X[:, ix[n]] @ up for n in on_floor])
+    floor = float(np.nanmedian(heights)) - floor_h / scale
     centre = np.nanmean(feet, axis=0)
     centre = centre - (centre @ up - floor) * up
     cam0 = rig.cameras[0].center_world - centre

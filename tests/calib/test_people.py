@@ -148,3 +148,25 @@ def test_rig_beside_the_given_one(people_dir: Path) -> None:
     html = _people_rig({"cameras": {n: {"centre_sd_m": 0.01, "rotation_sd_deg": 0.1, "median_px": 2.0}
                                     for n in given.names}, "against_input_calibration": got})
     assert html.count("<tr>") == 1 + len(given.names) and "input&#x27;s calibration" in html
+
+
+def test_up_and_the_floor_are_the_skeleton_files(people_dir: Path, tmp_path: Path) -> None:
+    """A skeleton file's ``up`` and ``floor`` joints set the people's world: the built-in's copy
+    gives the built-in's rig; without them the rig from people is one line naming the keys."""
+    from gt3dkit.io.skeletonfile import write_skeleton
+    from gt3dkit.skeletons import SKELETONS
+
+    scene = load_detections(people_dir)
+    assert scene.skeleton is not None
+    built_in = SKELETONS[scene.skeleton]
+    assert built_in.floor == ("l_ankle", "r_ankle") and built_in.up
+    write_skeleton(built_in, tmp_path / "mine.toml")
+    mine = calibrate_people(load_detections(people_dir, skeleton=str(tmp_path / "mine.toml")))
+    ref = calibrate_people(scene)
+    for a, b in zip(mine.rig.cameras, ref.rig.cameras, strict=True):
+        np.testing.assert_allclose(a.center_world, b.center_world, atol=1e-9)
+    text = (tmp_path / "mine.toml").read_text()
+    (tmp_path / "no_floor.toml").write_text("\n".join(ln for ln in text.splitlines()
+                                                     if not ln.startswith(("up =", "floor ="))) + "\n")
+    with pytest.raises(InputError, match="up and floor"):
+        calibrate_people(load_detections(people_dir, skeleton=str(tmp_path / "no_floor.toml")))

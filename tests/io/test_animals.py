@@ -71,6 +71,12 @@ def test_the_built_in_skeletons_are_the_files_shipped_with_the_package(tmp_path:
     bad.write_text('name = "x"\njoints = ["a", "b"]\nbones = [["a", "b"]]\ndetector_points = 1\n')
     with pytest.raises(InputError, match="detector_points"):
         read_skeleton(bad)
+    bad.write_text('name = "x"\njoints = ["a", "b"]\nbones = [["a", "b"]]\nup = ["c"]\n')
+    with pytest.raises(InputError, match="up: unknown joint 'c'"):
+        read_skeleton(bad)
+    bad.write_text('name = "x"\njoints = ["a", "b"]\nbones = [["a", "b"]]\nup = ["a"]\nfloor = ["a"]\n')
+    with pytest.raises(InputError, match="'a' is both up and on the floor"):
+        read_skeleton(bad)
 
 
 @pytest.mark.parametrize("joints, bones, pairs, entry, problem", [
