@@ -205,7 +205,9 @@ def _rig_output_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--format", choices=WRITABLE, default=None,
                    help="also write the rig in this format (into OUT/calibration/)")
     p.add_argument("--layout", choices=tuple(LAYOUTS))
-    p.add_argument("--skeleton", choices=sorted(SKELETONS))
+    p.add_argument("--skeleton", metavar="NAME|FILE",
+                   help="a built-in skeleton, one shipped as a file, or a skeleton file (.toml); a rig "
+                        "from people reads up and the floor from its up and floor joints")
     p.add_argument("--fps", type=FPS)
     _panoptic_options(p)
 

@@ -10,6 +10,7 @@ from pathlib import Path
 from gt3dkit.errors import InputError
 from gt3dkit.parse import load_toml
 from gt3dkit.skeletons import SKELETONS, Skeleton, skeleton_from_doc
+from gt3dkit.types import JsonDict
 
 
 def shipped_skeletons() -> dict[str, Path]:
@@ -30,6 +31,13 @@ def named_skeleton(name_or_file: str) -> Skeleton:
         raise InputError("--skeleton", f"unknown skeleton {name_or_file!r} (known: {known}; "
                                        "or a skeleton file, .toml)")
     return read_skeleton(path)
+
+
+def given_skeleton(name_or_file: str) -> tuple[Skeleton, JsonDict | None]:
+    """``--skeleton NAME|FILE`` for a reader (:func:`named_skeleton`), with the document a scene
+    carries for it (``Scene.skeleton_doc``): None for a built-in, which its name is enough for."""
+    sk = named_skeleton(name_or_file)
+    return sk, (None if SKELETONS.get(sk.name) == sk else sk.doc())
 
 
 def read_skeleton(path: Path) -> Skeleton:

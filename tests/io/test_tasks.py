@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import subprocess
 import sys
 from pathlib import Path
@@ -350,3 +351,28 @@ def test_openpose_files_without_people_are_said(tmp_path: Path) -> None:
     n = sum(1 for _ in (root / "pose").glob("*/*.json"))
     said = [w for w in load_scene(root).warnings if "list no person" in w]
     assert said == [f"2 of {n} files list no person (frames where the detector found no one in that camera)"]
+
+
+def test_an_openpose_trial_read_with_a_skeleton_file(tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """``--skeleton FILE`` on OpenPose JSON: a copy of BODY_25 under another name gives the built-in's
+    estimate and is carried in meta.json; a skeleton of another joint count is one line, exit 2,
+    nothing written (it was a KeyError)."""
+    from gt3dkit.api import reconstruct
+    from gt3dkit.cli import main
+    from gt3dkit.io.skeletonfile import write_skeleton
+    from gt3dkit.skeletons import SKELETONS
+
+    root = _trial(tmp_path)
+    mine = dataclasses.replace(SKELETONS["body25"], name="my_body")
+    write_skeleton(mine, tmp_path / "my_body.toml")
+    built_in = reconstruct(load_scene(root), "ukf")
+    sc = load_scene(root, skeleton=str(tmp_path / "my_body.toml"))
+    assert sc.skeleton == "my_body" and sc.skeleton_doc is not None
+    from_file = reconstruct(sc, "ukf", out=tmp_path / "out")
+    np.testing.assert_array_equal(from_file.kpt_world, built_in.kpt_world)
+    assert '"skeleton_doc"' in (tmp_path / "out" / "meta.json").read_text()
+    code = main(["reconstruct", str(root), "--skeleton", "mouse", "--out", str(tmp_path / "bad")])
+    err = capsys.readouterr().err
+    assert code == 2 and err == "error: --skeleton: mouse has 11 joints, the files 25\n", err
+    assert not (tmp_path / "bad").exists()

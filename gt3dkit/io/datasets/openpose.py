@@ -30,8 +30,9 @@ from gt3dkit.io.datasets.checks import FAR_IMAGES, check_pixels
 from gt3dkit.io.datasets.common import JointRows, RowBuilder
 from gt3dkit.io.datasets.mot import calibration_beside, match_cameras, natural_key
 from gt3dkit.io.datasets.native import read_kpt_truth_hashed, write_kpt_truth
+from gt3dkit.io.skeletonfile import given_skeleton
 from gt3dkit.parse import load_json, sha256
-from gt3dkit.skeletons import DETECTOR_SKELETONS, SKELETONS
+from gt3dkit.skeletons import DETECTOR_SKELETONS, SKELETONS, Skeleton
 from gt3dkit.types import Camera, Origins, Rig, Scene, SkeletonScene
 
 DEFAULT_FPS = 30.0
@@ -147,24 +148,22 @@ class _Detections:
         return rb
 
 
-def _points_read(skeleton: str | None, J: int) -> int:
+def _points_read(given: Skeleton | None, J: int) -> int:
     """Of detections of ``J`` points, how many are joints of the skeleton (given, or the one
     ``J`` names): all, or the first ones of a whole-body detector (``Skeleton.detector_points``)."""
-    names = (skeleton,) if skeleton is not None else DETECTOR_SKELETONS.get(J, ())
-    sk = [SKELETONS[n] for n in names if n in SKELETONS]
+    sk = [given] if given is not None else [SKELETONS[n] for n in DETECTOR_SKELETONS.get(J, ())]
     return sk[0].n_joints if sk and sk[0].detector_points == J else J
 
 
-def _skeleton_of(skeleton: str | None, J: int, sample: list[np.ndarray]) -> str:
+def _skeleton_of(given: Skeleton | None, J: int, sample: list[np.ndarray]) -> str:
     """The detector skeleton of ``J``-point detections (``sample``: some of them), or the given
-    ``skeleton`` checked against ``J``."""
-    if skeleton is None:
+    skeleton's name, checked against ``J``."""
+    if given is None:
         opts = DETECTOR_SKELETONS[J]
         return opts[0] if len(opts) == 1 else _which_25(sample)
-    sk = SKELETONS[skeleton]
-    if J not in (sk.n_joints, sk.detector_points):
-        raise InputError("--skeleton", f"{skeleton} has {sk.n_joints} joints, the files {J}")
-    return skeleton
+    if J not in (given.n_joints, given.detector_points):
+        raise InputError("--skeleton", f"{given.name} has {given.n_joints} joints, the files {J}")
+    return given.name
 
 
 def _keypoints(where: str, person: object) -> np.ndarray:
@@ -185,7 +184,7 @@ class _Reading:
     detections (to tell BODY_25 from BODY_25B), the largest confidence of each detection with
     one above 1, the files read and those whose people list is empty."""
 
-    skeleton: str | None
+    skeleton: Skeleton | None  # the one given (--skeleton), or None: the files' joint count names it
     J: int | None = None  # points per detection in the files
     kept: int | None = None  # of them read (COCO-WholeBody: its body and feet)
     sample: list[np.ndarray] = dataclasses.field(default_factory=list)
@@ -252,7 +251,8 @@ def load(
     names = [p.name[: -len("_json")] for p in folders]
     cam_of = match_cameras(names, rig, str(root), warnings)
     files: dict[str, str] = {}
-    reading = _Reading(skeleton)
+    given, doc = given_skeleton(skeleton) if skeleton is not None else (None, None)
+    reading = _Reading(given)
     rb: RowBuilder | None = None
     for folder, name in zip(folders, names, strict=True):
         seen_frames: dict[int, Path] = {}
@@ -271,7 +271,7 @@ def load(
     if rb is None or J is None or reading.J is None:
         raise InputError(str(root), "no annotations in any frame (no people in the JSON files)")
     warnings += reading.warnings()
-    skeleton = _skeleton_of(skeleton, reading.J, reading.sample)
+    skeleton = _skeleton_of(given, reading.J, reading.sample)
     obs = rb.build()
     files[f"calibration:{cal.name}"] = sha256(cal) if cal.is_file() else "folder"
     truth = None
@@ -287,6 +287,7 @@ def load(
         fps=float(rate or DEFAULT_FPS),
         frames=np.unique(obs.frame),
         skeleton=skeleton,
+        skeleton_doc=doc,
         files=files,
         root=str(root),
         warnings=tuple(warnings),

@@ -47,6 +47,7 @@ from gt3dkit.io.datasets.mot import DEFAULT_FPS, calibration_beside, match_camer
 from gt3dkit.io.datasets.native import read_kpt_truth_hashed, write_cameras, write_kpt_truth
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
 from gt3dkit.io.labels import Shapes, shape_digest
+from gt3dkit.io.skeletonfile import given_skeleton
 from gt3dkit.parse import json_of, parse_frame, parse_int, read_hashed, sha256
 from gt3dkit.skeletons import SKELETONS, _norm_joint, skeleton_for_names
 from gt3dkit.types import Scene, SimScene, SkeletonScene
@@ -229,10 +230,14 @@ def load(root: Path, kind: str, skeleton: str | None = None, calib: Path | str |
              for p, (raw, _) in read.items()}
     names = sorted({n for its in items.values() for it in its for n in it[4]})
     skel = None
+    doc = None
     index: dict[str, int] = {}
     if names:
         try:
-            skel, idx = skeleton_for_names(names) if skeleton is None else (SKELETONS[skeleton], [])
+            if skeleton is None:
+                skel, idx = skeleton_for_names(names)
+            else:
+                (skel, doc), idx = given_skeleton(skeleton), []
         except ValueError as e:
             raise InputError(str(root / kind), str(e)) from None
         if skeleton is not None:
@@ -276,7 +281,8 @@ def load(root: Path, kind: str, skeleton: str | None = None, calib: Path | str |
         truth, files["truth_keypoints.csv"] = read_kpt_truth_hashed(root / "truth_keypoints.csv",
                                                                     skel.n_joints)
     return Scene(rig=rig, obs=obs, layout=kind, fps=float(fps or fps_doc or DEFAULT_FPS), truth=truth,
-                 frames=np.unique(obs.frame), skeleton=skel.name if skel else None, files=files,
+                 frames=np.unique(obs.frame), skeleton=skel.name if skel else None, skeleton_doc=doc,
+                 files=files,
                  root=str(root), warnings=tuple(warnings),
                  fps_assumed="" if (fps or fps_doc) else f"{cal} gives no frame rate",
                  association="tracks" if with_ids else "detections")
