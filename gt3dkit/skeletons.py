@@ -67,6 +67,9 @@ class Skeleton:
     up: tuple[str, ...] = ()
     #: joints on or just above the floor when the body stands (a person's ankles); empty: none
     floor: tuple[str, ...] = ()
+    #: groups of joints that move as one rigid body (a head's nose, ears and eyes): every two of
+    #: a group keep their distance, as a bone does (:attr:`ties`)
+    groups: tuple[tuple[str, ...], ...] = ()
 
     @property
     def marker_names(self) -> tuple[str, ...]:
@@ -82,6 +85,28 @@ class Skeleton:
         """(K, 2) joint indices of the bones."""
         ix = {j: i for i, j in enumerate(self.joints)}
         return np.array([(ix[a], ix[b]) for a, b in self.bone_names], dtype=np.int64).reshape(-1, 2)
+
+    @property
+    def tie_names(self) -> tuple[tuple[str, str], ...]:
+        """The joint pairs held at a constant distance: the bones, then every two joints of a
+        rigid group that no bone joins."""
+        out = list(self.bone_names)
+        have = {frozenset(b) for b in out}
+        for g in self.groups:
+            for i, a in enumerate(g):
+                for b in g[i + 1:]:
+                    if frozenset((a, b)) not in have:
+                        have.add(frozenset((a, b)))
+                        out.append((a, b))
+        return tuple(out)
+
+    @property
+    def ties(self) -> np.ndarray:
+        """(K', 2) joint indices of :attr:`tie_names` (the bones first, as :attr:`bones`)."""
+        if not self.groups:
+            return self.bones
+        ix = {j: i for i, j in enumerate(self.joints)}
+        return np.array([(ix[a], ix[b]) for a, b in self.tie_names], dtype=np.int64).reshape(-1, 2)
 
     @property
     def left_right(self) -> tuple[tuple[str, str], ...]:
@@ -120,6 +145,8 @@ class Skeleton:
             out["up"] = list(self.up)
         if self.floor:
             out["floor"] = list(self.floor)
+        if self.groups:
+            out["groups"] = [list(g) for g in self.groups]
         if self.pose:
             out["pose"] = {j: list(x) for j, x in zip(self.joints, self.pose, strict=True)}
         return out
@@ -266,6 +293,7 @@ def skeleton_from_doc(doc: JsonValue, where: str) -> Skeleton:
         for j in given:
             if j not in joints:
                 raise InputError(f"{where}: {key}", f"unknown joint {j!r}")
+    groups = _groups(where, doc.get("groups"), joints)
     both = sorted(set(up) & set(floor))
     if both:
         raise InputError(f"{where}: floor", f"joint {both[0]!r} is both up and on the floor")
@@ -296,7 +324,30 @@ def skeleton_from_doc(doc: JsonValue, where: str) -> Skeleton:
             rows.append((xyz[0], xyz[1], xyz[2]))
         pose_rows = tuple(rows)
     return Skeleton(name, tuple(joint_list), tuple(bones), tuple(labels), points, tuple(pairs), pose_rows,
-                    tuple(up), tuple(floor))
+                    tuple(up), tuple(floor), groups)
+
+
+def _groups(where: str, v: JsonValue, joints: set[str]) -> tuple[tuple[str, ...], ...]:
+    """A skeleton document's rigid ``groups``: lists of two or more known joints, none twice."""
+    if v is None:
+        return ()
+    if not isinstance(v, Sequence) or isinstance(v, str):
+        raise InputError(f"{where}: groups", "expected a list of lists of joint names")
+    out = []
+    for k, g in enumerate(v):
+        if not isinstance(g, Sequence) or isinstance(g, str) or not all(isinstance(x, str) for x in g):
+            raise InputError(f"{where}: groups[{k}]", f"expected a list of joint names, got {g!r}")
+        names = [str(x) for x in g]
+        if len(names) < 2:
+            raise InputError(f"{where}: groups[{k}]", "a rigid group needs two joints or more")
+        for j in names:
+            if j not in joints:
+                raise InputError(f"{where}: groups[{k}]", f"unknown joint {j!r}")
+        twice = [j for i, j in enumerate(names) if j in names[:i]]
+        if twice:
+            raise InputError(f"{where}: groups[{k}]", f"joint {twice[0]!r} named twice")
+        out.append(tuple(names))
+    return tuple(out)
 
 
 def unmirrored(bones: Sequence[tuple[str, str]], pairs: Sequence[tuple[str, str]]) -> list[int]:

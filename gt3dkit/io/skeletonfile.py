@@ -50,6 +50,7 @@ def read_skeleton(path: Path) -> Skeleton:
         labels = ["Nose", "EarL", "EarR", "TTI"]  # the labelling tool's names (optional)
         detector_points = 0                     # points a detector writes per person when more
                                                 # than the joints (the first are read; optional)
+        groups = [["nose", "ear_l", "ear_r"]]   # joints that move as one rigid body (optional)
         up = ["nose"]                           # standing, these point up from the floor joints
         floor = ["ear_l"]                       # on the floor (both optional: a rig from people
                                                 # needs them, gt3d calibrate --people)
@@ -80,6 +81,8 @@ def write_skeleton(skel: Skeleton, path: Path) -> None:
         lines.append(f"up = {names(skel.up)}")
     if skel.floor:
         lines.append(f"floor = {names(skel.floor)}")
+    if skel.groups:
+        lines.append("groups = [" + ", ".join(names(g) for g in skel.groups) + "]")
     if skel.pose:
         lines.append("\n[pose]")
         lines += [f"{json.dumps(j)} = [{x!r}, {y!r}, {z!r}]" for j, (x, y, z) in zip(skel.joints, skel.pose,

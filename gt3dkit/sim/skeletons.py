@@ -150,8 +150,9 @@ def _above(parent: dict[int, int], k: int, j: int) -> bool:
 def any_motion(skel: Skeleton, t_s: F64, rng: np.random.Generator) -> F64:
     """(T, J, 3) body-frame joints of any skeleton with a canonical ``pose`` (an animal, a hand):
     the pose scaled, every bone swinging about its parent joint (the bones from the first joint
-    outwards, each turning its part of the skeleton: bone lengths exact), the body turning and
-    moving slowly over the floor."""
+    outwards, each turning its part of the skeleton: bone lengths exact) but within a rigid group
+    (``Skeleton.groups``: held rigid where its joints hang together in the bone tree), the body
+    turning and moving slowly over the floor."""
     if not skel.pose:
         raise ValueError(f"skeleton {skel.name}: a [pose] (each joint's place, m) is needed to simulate it")
     base = skel.canonical() * rng.uniform(0.9, 1.1)
@@ -177,8 +178,11 @@ def any_motion(skel: Skeleton, t_s: F64, rng: np.random.Generator) -> F64:
         return out
 
     size = float(np.ptp(base, axis=0).max()) or 1.0
+    group_of = {j: k for k, g in enumerate(skel.groups) for j in g}
     for j in order[1:]:
         p = parent[j]
+        if skel.joints[j] in group_of and group_of.get(skel.joints[j]) == group_of.get(skel.joints[p]):
+            continue  # a rigid group's joints do not turn about each other
         bone = base[j] - base[p]
         axis = np.cross(bone, rng.normal(size=3))
         axis /= np.linalg.norm(axis) or 1.0

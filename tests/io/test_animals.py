@@ -77,6 +77,11 @@ def test_the_built_in_skeletons_are_the_files_shipped_with_the_package(tmp_path:
     bad.write_text('name = "x"\njoints = ["a", "b"]\nbones = [["a", "b"]]\nup = ["a"]\nfloor = ["a"]\n')
     with pytest.raises(InputError, match="'a' is both up and on the floor"):
         read_skeleton(bad)
+    for groups, problem in (('[["a", "c"]]', r"groups\[0\]: unknown joint 'c'"),
+                            ('[["a"]]', "two joints or more"), ('[["a", "b", "a"]]', "'a' named twice")):
+        bad.write_text(f'name = "x"\njoints = ["a", "b"]\nbones = [["a", "b"]]\ngroups = {groups}\n')
+        with pytest.raises(InputError, match=problem):
+            read_skeleton(bad)
 
 
 @pytest.mark.parametrize("joints, bones, pairs, entry, problem", [
@@ -536,3 +541,37 @@ def test_coco_wholebody_hands_are_reconstructed_and_the_body_as_well_as_alone(tm
     hands = [k for k, j in enumerate(joints) if "hand" in j or "finger" in j or "thumb" in j]
     assert len(hands) == 42 and np.nanmean(err["whole"][:, hands]) < 0.003
     assert np.nanmean(err["whole"][:, :17]) <= 1.1 * np.nanmean(err["body"])
+
+
+def test_a_rigid_group_holds_its_joints_distances(tmp_path: Path) -> None:
+    """A skeleton file's ``groups``: the simulator moves a group as one body; the estimate ties every
+    two of its joints as a bone (the ears, which no bone joins, too): their distances vary less than
+    with the same skeleton without the group, and the joints are no worse."""
+    rigid = MOUSE.replace('pairs = [', 'groups = [["head", "nose", "ear_l", "ear_r"]]\npairs = [', 1)
+    (tmp_path / "rigid.toml").write_text(rigid)
+    (tmp_path / "plain.toml").write_text(MOUSE)
+    sk = read_skeleton(tmp_path / "rigid.toml")
+    assert ("ear_l", "ear_r") in sk.tie_names and ("ear_l", "ear_r") not in sk.bone_names
+    sim = simulate_skeletons("native", seed=3, frames=40, people=2, cameras=4, noise_px=2.0,
+                             skeleton=str(tmp_path / "rigid.toml"))
+    ix = {j: k for k, j in enumerate(sk.joints)}
+    pairs = [(ix[a], ix[b]) for a, b in sk.tie_names[len(sk.bone_names):]]
+
+    def spread_mm(kpt: np.ndarray, ids: np.ndarray) -> float:
+        d = np.stack([np.linalg.norm(kpt[:, a] - kpt[:, b], axis=-1) for a, b in pairs], axis=1)
+        return float(np.mean([np.nanstd(d[ids == i], axis=0).mean() for i in np.unique(ids)]) * 1000)
+
+    assert spread_mm(sim.kpt_world, sim.truth_id) < 1e-6  # the group moved as one
+    write_skeleton_scene(sim, tmp_path / "in", "native")
+    runs = {}
+    for name in ("rigid", "plain"):
+        scene = load_scene(tmp_path / "in", skeleton=str(tmp_path / f"{name}.toml"))
+        runs[name] = reconstruct(scene, "ukf", out=tmp_path / name)
+    truth = load_scene(tmp_path / "in").truth
+    assert truth is not None
+    held, free = (spread_mm(runs[n].kpt_world, runs[n].track_id) for n in ("rigid", "plain"))
+    assert held < 0.7 * free, (held, free)
+    err = {n: mpjpe_by_id(runs[n], truth)[0] for n in runs}
+    assert err["rigid"] <= 1.02 * err["plain"], err
+    meta = json.loads((tmp_path / "rigid" / "meta.json").read_text())
+    assert "ear_l-ear_r" in meta["estimator"]["bones"]["per_person"][str(int(runs["rigid"].track_id[0]))]

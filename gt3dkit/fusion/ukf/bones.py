@@ -42,7 +42,8 @@ CHUNK_ROWS = 128
 @dataclass(frozen=True)
 class BoneLengths:
     """Per person and bone: ``length (O, K)`` and ``sd (O, K)`` in metres (NaN length: never
-    measured), of the skeleton's bones ``bones (K, 2)``."""
+    measured), of the skeleton's :attr:`~gt3dkit.skeletons.Skeleton.ties` ``(K, 2)`` (its bones, then
+    the pairs of its rigid groups)."""
 
     skeleton: Skeleton
     length: F64
@@ -50,7 +51,7 @@ class BoneLengths:
 
     def info(self, obj_ids: np.ndarray) -> JsonDict:
         skel = self.skeleton
-        names = [f"{skel.joints[a]}-{skel.joints[b]}" for a, b in skel.bones]
+        names = [f"{a}-{b}" for a, b in skel.tie_names]
         return {"skeleton": skel.name, "units": "m", "per_person": {
             str(int(obj_ids[o])): {
                 names[k]: {"length": None if not np.isfinite(self.length[o, k]) else
@@ -94,7 +95,7 @@ def bone_samples(row_o: I64, row_f: I64, seen2: np.ndarray, joints: F64, cov: F6
     """Each row's bones from a first pass's smoothed joints ``joints (R, J, 3)`` with their
     covariances ``cov (R, J, 3, 3)`` (independent joints); ``row_o (R,)`` each row's person and
     ``row_f (R,)`` its frame, ``seen2 (R, J)`` the joints two or more views saw in that frame."""
-    bones = skel.bones
+    bones = skel.ties  # the bones, and the pairs of each rigid group
     d = joints[:, bones[:, 0]] - joints[:, bones[:, 1]]  # (R, K, 3)
     length = np.linalg.norm(d, axis=-1)
     u = d / np.maximum(length[..., None], 1e-9)
@@ -116,7 +117,7 @@ def lengths_of(s: BoneSamples, objs: np.ndarray, sd_floor_m: float, sd_m: float 
     them), floored at ``sd_floor_m``; or ``sd_m`` when given. So a rigid
     skeleton is held rigid, while a bone whose length really varies (or that the truth does not
     hold constant) is left almost free."""
-    K = len(s.skeleton.bones)
+    K = len(s.skeleton.ties)
     L = np.full((len(objs), K), np.nan)
     sd = np.full((len(objs), K), np.nan)
     order = np.argsort(s.obj, kind="stable")

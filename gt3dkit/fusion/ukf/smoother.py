@@ -346,7 +346,7 @@ def bone_messages_of(model: Model, cfg: UKFConfig, run: FilterRun, skel: Skeleto
     if fixed is not None:
         lengths = fixed.applied(lengths, rows.obj_ids)
     joints, cov, seen = first
-    bones = skel.bones
+    bones = skel.ties  # the bones, and the pairs of each rigid group
     zb = lengths.length[rows.row_o]
     # a bone ties a joint to a measured one: where neither end has a view in a frame it would
     # only couple two extrapolations (and bend both along a sphere far from any evidence)
