@@ -349,7 +349,21 @@ def _keypoints(scene: Scene, tracks: TrackSet, pre: PreparedView, cfg: QAConfig,
         r = idx[n]
         out.append((int(frame_of[r]), names[c], int(id_of[r]), int(j), "keypoint_outlier",
                     round(float(score[n, c, j]), 2),
-                    f"{err[n, c, j]:.1f} px from the estimate's projection ({score[n, c, j]:.1f} sigma)"))
+                    f"{err[n, c, j]:.1f} px from the estimate's projection ({score[n, c, j]:.1f} sigma)"
+                    + _at_other_joint(uv[n, c], z[n, c, j], float(err[n, c, j]), j, joints)))
+
+
+def _at_other_joint(uv: F64, label: F64, err: float, j: int, joints: tuple[str, ...]) -> str:
+    """Where an outlying label of joint ``j`` (``err`` px from its own projection) lies at most
+    half as far from another joint's projection (``uv (J, 2)``, the estimate's joints in that
+    view): a clause naming that joint (a labeller or a model that put one joint on another, a
+    far-side haunch on the near one); else empty."""
+    d = np.linalg.norm(uv - label, axis=-1)
+    d[j] = np.inf
+    k = int(np.argmin(np.nan_to_num(d, nan=np.inf)))
+    if not (np.isfinite(d[k]) and d[k] <= 0.5 * err):
+        return ""
+    return f"; {d[k]:.1f} px from {joints[k]}'s: labelled at {joints[k]}?"
 
 
 def _world_frame(scene: Scene, tracks: TrackSet, cfg: QAConfig, out: list[AnomalyRow]) -> None:

@@ -435,3 +435,29 @@ def test_out_must_not_touch_the_input(tmp_path, capsys, where) -> None:
     assert code == 2 and err.startswith("error: --out:") and "input folder" in err
     assert {p.name: p.read_bytes() for p in root.iterdir()} == before
     assert not (root / "sub").exists()
+
+
+def test_a_label_put_on_another_joint_is_named_in_its_flag(tmp_path) -> None:
+    """A labeller (or a model) that puts a hidden left ankle on the left knee, in one camera over
+    several frames: each flag says the label lies at the knee, and no other flag says so."""
+    root = _skel(tmp_path / "in", skeleton="coco17")
+    rows = _csv(root / "keypoints.csv")
+    head = list(rows[0])
+    ankle, knee = "15", "13"  # coco17: l_ankle, l_knee
+    at = {(r["frame"], r["camera"], r["id"]): r for r in rows if r["joint"] == knee}
+    moved = set()
+    for r in rows:
+        key = (r["frame"], r["camera"], r["id"])
+        if r["joint"] == ankle and r["camera"] == "00_02" and r["id"] == "0" and key in at:
+            r["u"], r["v"] = at[key]["u"], at[key]["v"]
+            moved.add(int(r["frame"]))
+    assert len(moved) >= 5
+    with open(root / "keypoints.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, head)
+        w.writeheader()
+        w.writerows(rows)
+    reconstruct(load_scene(root), "ukf", out=tmp_path / "out")
+    flags = _csv(tmp_path / "out" / "anomalies.csv")
+    named = [r for r in flags if "labelled at l_knee?" in r["detail"]]
+    assert {int(r["frame"]) for r in named} == moved, named
+    assert all(r["camera"] == "00_02" and r["joint"] == ankle and r["kind"] == "keypoint_outlier" for r in named)
