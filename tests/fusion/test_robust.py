@@ -460,4 +460,5 @@ def test_a_label_put_on_another_joint_is_named_in_its_flag(tmp_path) -> None:
     flags = _csv(tmp_path / "out" / "anomalies.csv")
     named = [r for r in flags if "labelled at l_knee?" in r["detail"]]
     assert {int(r["frame"]) for r in named} == moved, named
-    assert all(r["camera"] == "00_02" and r["joint"] == ankle and r["kind"] == "keypoint_outlier" for r in named)
+    assert all(r["camera"] == "00_02" and r["joint"] == ankle and r["kind"] == "keypoint_outlier"
+               for r in named)
