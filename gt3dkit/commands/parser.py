@@ -31,6 +31,7 @@ from gt3dkit.commands.run import (
     cmd_report,
 )
 from gt3dkit.commands.simulate import cmd_simulate
+from gt3dkit.commands.skeleton import cmd_skeleton
 from gt3dkit.early import DEFAULT_ESTIMATOR
 from gt3dkit.export import FORMATS as EXPORT_FORMATS
 from gt3dkit.io.datasets import LAYOUTS
@@ -377,6 +378,17 @@ def _add_demo(sub: argparse._SubParsersAction[Parser], common: Parser) -> None:
     d.set_defaults(func=cmd_demo)
 
 
+def _add_skeleton(sub: argparse._SubParsersAction[Parser], common: Parser) -> None:
+    """``gt3d skeleton``'s options."""
+    k = sub.add_parser("skeleton", parents=[common],
+                       help="the skeletons gt3dkit knows; one described and checked, or written to a "
+                            "file to start your own")
+    k.add_argument("skeleton", nargs="?", metavar="NAME|FILE",
+                   help="a built-in, a shipped skeleton or a skeleton file (.toml); none: list them")
+    k.add_argument("--write", metavar="FILE", help="write it as a skeleton file (.toml; never overwritten)")
+    k.set_defaults(func=cmd_skeleton)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``gt3d`` command line: one sub-command per function below."""
     common = Parser(add_help=False)
@@ -387,6 +399,6 @@ def build_parser() -> argparse.ArgumentParser:
 
     for add in (_add_reconstruct, _add_simulate, _add_compare,
                 _add_evaluate, _add_calib, _add_reconstruct_many, _add_associate,
-                _add_report, _add_export, _add_project, _add_demo):
+                _add_report, _add_export, _add_project, _add_skeleton, _add_demo):
         add(sub, common)
     return p

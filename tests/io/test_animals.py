@@ -575,3 +575,26 @@ def test_a_rigid_group_holds_its_joints_distances(tmp_path: Path) -> None:
     assert err["rigid"] <= 1.02 * err["plain"], err
     meta = json.loads((tmp_path / "rigid" / "meta.json").read_text())
     assert "ear_l-ear_r" in meta["estimator"]["bones"]["per_person"][str(int(runs["rigid"].track_id[0]))]
+
+
+def test_gt3d_skeleton_lists_describes_checks_and_writes(tmp_path: Path, capsys: pytest.CaptureFixture[str]
+                                                         ) -> None:
+    """``gt3d skeleton`` lists every built-in and shipped skeleton; with a name or file it describes
+    and checks it; ``--write`` copies it to a new file that reads back the same, never over one."""
+    code, out, _ = _run("skeleton", capsys=capsys)
+    assert code == 0 and all(f"\n{name} " in out for name in [*SKELETONS, "mouse"]), out
+    rigid = tmp_path / "rigid.toml"
+    rigid.write_text(MOUSE.replace('pairs = [', 'groups = [["head", "ear_l", "ear_r"]]\npairs = [', 1))
+    code, out, _ = _run("skeleton", str(rigid), capsys=capsys)
+    assert code == 0 and "1 rigid groups (11 distances held)" in out and "group 0: head, ear_l, ear_r" in out
+    mine = tmp_path / "mine.toml"
+    code, out, _ = _run("skeleton", "halpe26", "--write", str(mine), capsys=capsys)
+    assert code == 0 and read_skeleton(mine).doc() == SKELETONS["halpe26"].doc()
+    before = mine.read_bytes()
+    code, out, err = _run("skeleton", "coco17", "--write", str(mine), capsys=capsys)
+    assert code == 2 and err == f"error: {mine}: exists: not overwritten\n" and not out
+    assert mine.read_bytes() == before
+    bad = _toml(tmp_path / "bad.toml", ["a", "b"], [["a", "c"]])
+    code, out, err = _run("skeleton", str(bad), capsys=capsys)
+    assert code == 2 and err.startswith(f"error: {bad}: bones[0]: ") and err.count("\n") == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.toml", "mine.toml", "rigid.toml"]
