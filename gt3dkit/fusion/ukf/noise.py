@@ -348,22 +348,32 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
     runner = run_filter if backend_for(model) == "objects" else partial(run_joints, covariances=False)
 
     def search(name: str, c: UKFConfig, bounds: tuple[float, float], n_scan: int) -> UKFConfig:
+        most = [0.0]  # the most measurements any value's pass has used
+
         def logliks(values: list[float]) -> list[float]:
             if lin is not None:  # boxes: the regression fixed per row, a linear pass per value
                 return lin.logliks([{"accel_sd": c.accel_sd, "shape_sd": c.shape_sd,
                                      "position_sd": c.position_sd or 0.0, name: v} for v in values])
-            out: list[float] = []
+            lls, used = [], []
             for i in range(0, len(values), per_pass):
                 part = values[i:i + per_pass]
                 rows_k, src, copy = replicate_rows(model.rows, sel, len(part))
                 run = runner(search_model.take(rows_k, src), Init(init.x0[src], rows_of(init.P0, src)),
                              replace(c, smooth=False, iterations=1), fps, fade=False,
                              noise_rows={name: np.asarray(part)[copy]})
-                out += list(np.bincount(copy, weights=run.loglik_rows, minlength=len(part)))
-            return out
+                lls += list(np.bincount(copy, weights=run.loglik_rows, minlength=len(part)))
+                used += list(np.bincount(copy, weights=run.dof, minlength=len(part)))
+            # the weights are fixed, so each value's pass should rest on the same measurements;
+            # a prediction so uncertain that its sigma points leave a camera's view drops some,
+            # and the likelihood of fewer measurements rises by dropping them (a clock-corrected
+            # mouse's joints went to the bound, 100, on a fifth of its views): each value's is
+            # taken over as many measurements as the most any pass used, at its own mean
+            most[0] = max([most[0], *used])
+            return [float(v) * most[0] / u if u > 0 else -np.inf for v, u in zip(lls, used, strict=True)]
 
         best, seen = maximise_log(logliks, *bounds, n_scan)
-        curves[name] = [{"value": v, "loglik": ll} for v, ll in sorted(seen.items())]
+        curves[name] = [{"value": v, "loglik": ll if np.isfinite(ll) else None}  # None: the pass failed
+                        for v, ll in sorted(seen.items())]
         chosen: dict[str, Any] = {name: best}  # the field searched, by name
         return replace(c, **chosen)
 
