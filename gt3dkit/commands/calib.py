@@ -86,6 +86,8 @@ def cmd_calib_refine(args: argparse.Namespace) -> int:
               f"{json_num(c, 'rotation_moved_deg') or 0.0:>9.3f}"
               f"{fmt_num(json_num(c, 'median_px_before'), 11, 3)}"
               f"{fmt_num(json_num(c, 'median_px_after'), 10, 3)}  {json_str(c, 'why')}")
+    for w in json_list(rep, "large_moves"):
+        print(f"warning: {w}", file=sys.stderr)
     return 0
 
 

@@ -83,6 +83,8 @@ def reconstructed(args: argparse.Namespace, config: Options, cluster: Cluster | 
         refined = ", ".join(str(c) for c in json_list(res.report, "refined_cameras")) or "no camera"
         print(f"calibration refined: {refined} ({json_num(res.report, 'seconds') or 0.0:.1f} s; "
               "meta.json: calibration_refinement)")
+        for w in json_list(res.report, "large_moves"):
+            print(f"warning: {w}", file=sys.stderr)
     try:
         plan = window_plan(args, scene)
         if scene.index is not None and plan is None:  # it runs whole: read whole, from what was read

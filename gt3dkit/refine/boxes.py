@@ -26,6 +26,7 @@ from gt3dkit.refine.common import (
     RefineResult,
     align_to,
     check_enough,
+    large_moves,
     pose_change,
     time_blocks,
     transform_rig,
@@ -239,5 +240,6 @@ def refine_boxes(scene: Scene, pre: Prepared, cfg: RefineConfig) -> RefineResult
             "median_px_after": float(np.nanmedian(ea)) if np.isfinite(ea).any() else None,
             "centre_moved_m": dc, "rotation_moved_deg": da}
     report["refined_cameras"] = [c.name for c, a in zip(rig.cameras, accept, strict=True) if a]
+    report["large_moves"] = list(large_moves(rig, new, accept, X0))
     report["seconds"] = time.perf_counter() - t0
     return RefineResult(new, report)

@@ -95,6 +95,34 @@ def pose_change(a: Camera, b: Camera) -> tuple[float, float]:
     return float(np.linalg.norm(a.center_world - b.center_world)), _angle_deg(a.R @ b.R.T)
 
 
+#: A refined camera that turned by more than this (degrees), or moved by more than this share of
+#: its distance to what it sees, was re-posed rather than refined (a refinement corrects a bump
+#: or a drift: cm and tenths of a degree); the run says so (:func:`large_moves`).
+LARGE_TURN_DEG = 5.0
+LARGE_SHIFT_SHARE = 0.1
+
+
+def large_moves(before: Rig, after: Rig, refined: np.ndarray, points_world: F64) -> list[str]:
+    """What to say of the ``refined (C,)`` cameras that ``after`` moved by more than a refinement
+    (:data:`LARGE_TURN_DEG`, :data:`LARGE_SHIFT_SHARE` of the median distance to
+    ``points_world (P, 3)``): a small or far subject leaves a camera's pose free to swing about it
+    while the held-out frames, of the same subject, agree with the swing."""
+    out = []
+    pts = points_world[np.all(np.isfinite(points_world), axis=1)]
+    for c, (a, b) in enumerate(zip(before.cameras, after.cameras, strict=True)):
+        if not refined[c]:
+            continue
+        moved_m, turned = pose_change(a, b)
+        dist = float(np.median(np.linalg.norm(pts - a.center_world, axis=1))) if len(pts) else np.inf
+        if turned > LARGE_TURN_DEG or moved_m > LARGE_SHIFT_SHARE * dist:
+            out.append(f"camera {a.name}: refining turned it {turned:.1f} degrees and moved it "
+                       f"{moved_m:.3g} m ({moved_m / dist:.0%} of its distance to what it sees): more "
+                       "than a refinement. "
+                       "A subject this small in its view may not fix its pose: check it against a board "
+                       "calibration (gt3d calib board) before trusting it")
+    return out
+
+
 def check_enough(rig: Rig, n_obs: np.ndarray, cfg: RefineConfig, what: str) -> None:
     """:class:`InputError` when no camera has the observations a held-out check needs."""
     need = cfg.folds * cfg.min_points

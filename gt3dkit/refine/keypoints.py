@@ -31,7 +31,15 @@ from gt3dkit.fusion.preparation.prepare import Prepared, prepare
 from gt3dkit.geom.camera import project_points
 from gt3dkit.geom.triangulate import normalized_points, triangulate_weighted
 from gt3dkit.refine.boxes import refine_boxes
-from gt3dkit.refine.common import RefineConfig, RefineResult, align_to, check_enough, pose_change, time_blocks
+from gt3dkit.refine.common import (
+    RefineConfig,
+    RefineResult,
+    align_to,
+    check_enough,
+    large_moves,
+    pose_change,
+    time_blocks,
+)
 from gt3dkit.rig import Rig
 from gt3dkit.types import F64, JsonDict, Scene
 
@@ -197,6 +205,7 @@ def refine(scene: Scene, cfg: RefineConfig | None = None) -> RefineResult:
             "median_px_after": float(np.nanmedian(e_after[m])) if m.any() else None,
             "centre_moved_m": dc, "rotation_moved_deg": da}
     report["refined_cameras"] = [c.name for c, a in zip(rig.cameras, accept, strict=True) if a]
+    report["large_moves"] = list(large_moves(rig, new, accept, tr.X0))
     report["seconds"] = time.perf_counter() - t0
     return RefineResult(new, report)
 

@@ -244,6 +244,32 @@ def test_refine_recovers_a_perturbed_rig(skel_scene) -> None:
     assert max(e[1] for e in before) > 0.5  # it was off
 
 
+def test_a_refinement_that_swings_a_camera_is_said(skel_scene) -> None:
+    """A refined camera turned by more than a refinement does, or moved by a tenth of its distance
+    to what it sees, is named (the shared mouse's back camera swung 41.5 degrees about the
+    small animal); a camera moved a little, or kept, is not; the perturbed rig's refinement
+    (1 degree, 5 cm at 3 m) says nothing."""
+    import dataclasses
+
+    from gt3dkit.refine import refine
+    from gt3dkit.refine.common import large_moves
+
+    truth = skel_scene.rig
+    points = np.nan_to_num(skel_scene.truth.kpt_world.reshape(-1, 3), nan=np.inf)
+    swung = _perturbed(truth, 8.0, 0.05, 1)
+    nudged = _perturbed(truth, 1.0, 0.05, 1)
+    shifted = _perturbed(truth, 0.5, 0.6, 1)
+    every = np.ones(len(truth.cameras), bool)
+    said = large_moves(truth, swung, every, points)
+    assert len(said) == len(truth.cameras) - 1 and all("more than a refinement" in w for w in said)
+    assert "turned it 8.0 degrees" in said[0] and "gt3d calib board" in said[0]
+    assert large_moves(truth, nudged, every, points) == []
+    assert len(large_moves(truth, shifted, every, points)) == len(truth.cameras) - 1
+    assert large_moves(truth, swung, np.zeros_like(every), points) == []
+    res = refine(dataclasses.replace(skel_scene, rig=nudged))
+    assert res.report["refined_cameras"] and res.report["large_moves"] == []
+
+
 def test_refine_keeps_a_good_rig(skel_scene) -> None:
     from gt3dkit.refine import refine
 
