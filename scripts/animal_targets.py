@@ -11,7 +11,8 @@ millimetres, its ``side`` camera a copy of ``top``):
    calibration as given (``--calib-units mm``), then with ``--refine-calib``: what it says of the
    cameras, each camera's median reprojection of the estimate through the calibration it used
    (px; the labels of a camera whose views were left out are compared too), each bone's length
-   sd over the frames (mm), the time.
+   sd over the frames (mm), the time. 1b: both rigs against ``gt3d calib board`` on the session's
+   own ChArUco videos (each camera's rotation and centre off the board's).
 2. aniposelib ``triangulate`` + ``optim_points`` (``scripts/peer_aniposelib.py``: anipose's
    defaults, the SLEAP skeleton's edges as constraints) on the same labels and the refined
    calibration, scored the same way; gt3dkit's time over its.
@@ -50,7 +51,7 @@ from gt3dkit.calib.formats.native import rig_of_doc  # noqa: E402
 from gt3dkit.geom.camera import project_points  # noqa: E402
 from gt3dkit.io.datasets.native import write_cameras  # noqa: E402
 from gt3dkit.io.datasets.sleap import _read  # noqa: E402
-from gt3dkit.rig import Rig  # noqa: E402
+from gt3dkit.rig import Camera, Rig  # noqa: E402
 
 GT3D = str(Path(sys.executable).with_name("gt3d"))
 CAMS = ("back", "mid", "side", "top")
@@ -215,6 +216,47 @@ def written_by_movement(python: Path) -> None:
             print(f"   seed {seed}: {scene.layout} layout, {len(np.unique(ours.track_id))} mice; "
                   f"MPJPE {a:.2f} mm against the native keypoints' {b:.2f} mm: {a / b:.2f}x")
 
+def against_board(data: Path, tmp: Path, rigs: dict[str, Rig]) -> None:
+    """Section 1b: ``gt3d calib board`` on the session's own ChArUco videos, and each of ``rigs``
+    against it: per camera, its rotation (degrees) and centre (mm) off the board's, after the
+    similarity that maps the board rig's ``mid`` and ``top`` onto the rig's (the mean of their
+    rotations, the scale and shift of their centres)."""
+    from scipy.spatial.transform import Rotation
+
+    videos = [next(iter(sorted((data / c / "calibration_images").glob(f"*.{ext}"))), None)
+              for c in CAMS for ext in (("mp4",) if c != "side" else ("MOV",))]
+    if any(v is None for v in videos):
+        print("   1b. skipped: the calibration videos are absent")
+        return
+    out = tmp / "board"
+    p = subprocess.run([GT3D, "calib", "board", *map(str, videos), "--board", str(data / "board.toml"),
+                        "--out", str(out)], capture_output=True, text=True)
+    if p.returncode != 0:
+        print(f"   1b. gt3d calib board failed: {p.stderr.strip()[-200:]}")
+        return
+    board = read_calibration(out / "cameras.json")  # its cameras named from the videos: back, mid, ...
+
+    def cam(r: Rig, c: str) -> Camera:
+        return r.cameras[r.index(c)]
+
+    print("   1b. against gt3d calib board on the session's ChArUco videos (rotation deg / centre mm off "
+          "its cameras, after the similarity that maps its mid and top)")
+    for label, r in rigs.items():
+        ref = ("mid", "top")
+        Q = Rotation.from_matrix(np.array([cam(r, c).R.T @ cam(board, c).R for c in ref])).mean().as_matrix()
+        A = np.array([cam(r, c).center_world for c in ref])
+        B = np.array([cam(board, c).center_world for c in ref])
+        s = np.linalg.norm(A[0] - A[1]) / np.linalg.norm(B[0] - B[1])
+        d = A.mean(0) - s * (Q @ B.mean(0))
+        cells = []
+        for c in CAMS:
+            ang = np.degrees(Rotation.from_matrix((cam(r, c).R @ Q).T @ cam(board, c).R).magnitude())
+            off = np.linalg.norm(cam(r, c).center_world - (s * (Q @ cam(board, c).center_world) + d))
+            cells.append(f"{c} {ang:.1f} / {1000 * off:.0f}")
+        print(f"      {label:<24} " + ", ".join(cells) + "; focal " +
+              ", ".join(f"{c} {cam(r, c).K[0, 0]:.0f} (board {cam(board, c).K[0, 0]:.0f})" for c in CAMS))
+
+
 def mouse(data: Path, peer_python: str) -> None:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     print("0. the labels: SLEAP's .slp files through sleap-io, against its analysis export")
@@ -248,6 +290,7 @@ def mouse(data: Path, peer_python: str) -> None:
             runs[name] = (joints_of(out / "keypoints.csv", F, J), used, sec)
             summary(f"gt3dkit UKF, {name}", runs[name][0], uv, used, nodes, edges, sec)
         ours, refined, _ = runs["--refine-calib"]
+        against_board(data, tmp, {"anipose's, as given": rig, "gt3dkit --refine-calib": refined})
         # the estimate alone on the refined rig (what aniposelib is given below), timed
         write_cameras(refined, 30.0, tmp)
         t0 = time.perf_counter()
