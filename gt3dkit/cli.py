@@ -21,6 +21,9 @@ from typing import Any, NoReturn
 
 from gt3dkit.early import DEFAULT_ESTIMATOR, Early, connect_early
 
+#: After a signal, the longest :func:`finish` waits for the ``atexit`` handlers (s).
+SIGNALLED_EXIT_S = 5.0
+
 
 def entry() -> NoReturn:
     """The ``gt3d`` program (the console script, ``python -m gt3dkit.cli``): :func:`main` on the
@@ -35,11 +38,22 @@ def finish(code: int) -> NoReturn:
     handlers run (Dask's clients closed, temporary folders removed, logging flushed), stdout and
     stderr are flushed, then ``os._exit``. The teardown frees every module and object one by one:
     0.30-0.41 s after a 4 000-frame box run (its outputs already written and closed), 0.02 s
-    with this. Only for the program: :func:`main` called from Python returns as usual."""
-    shutdown = getattr(threading, "_shutdown", None)
-    if shutdown is not None:
-        shutdown()
-    atexit._run_exitfuncs()
+    with this. Only for the program: :func:`main` called from Python returns as usual.
+
+    After a signal (``code`` 129-143: the run has unwound, its one line is printed and nothing
+    half-written is left), the threads are not joined and the ``atexit`` handlers get
+    :data:`SIGNALLED_EXIT_S`: the signal may have struck while this thread held a lock another
+    thread waits for (llvmlite's, numba compiling a kernel for a pool thread), and a ``gt3d
+    compare`` stopped by SIGTERM then waited for that thread for ever."""
+    if code > 128:
+        steps = threading.Thread(target=atexit._run_exitfuncs, daemon=True)
+        steps.start()
+        steps.join(SIGNALLED_EXIT_S)
+    else:
+        shutdown = getattr(threading, "_shutdown", None)
+        if shutdown is not None:
+            shutdown()
+        atexit._run_exitfuncs()
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):  # a closed pipe: nothing left to tell
             stream.flush()

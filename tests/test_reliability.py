@@ -270,6 +270,32 @@ def test_the_programs_own_end_leaves_nothing_undone(tmp_path) -> None:
     assert (tmp_path / "pool").read_text() == "done" and (tmp_path / "atexit").read_text() == "ran"
 
 
+# the same after a signal: a thread blocked on a lock the interrupted code held (llvmlite's, as
+# numba compiled a kernel for a pool thread, when `gt3d compare` was stopped by SIGTERM)
+BLOCKED = """
+import atexit, sys, threading
+from pathlib import Path
+from gt3dkit import cli
+out = Path(sys.argv[1])
+held = threading.Lock()
+held.acquire()
+threading.Thread(target=held.acquire).start()  # never gets it
+atexit.register(lambda: (out / "atexit").write_text("ran"))
+print("stopped", file=sys.stderr)
+cli.finish(143)
+"""
+
+
+def test_the_program_ends_after_a_signal_whatever_a_thread_waits_for(tmp_path) -> None:
+    """After a signal (status 143), the program ends although a thread waits for ever on a lock
+    the signal left held (it waited for it, and ``gt3d compare`` hung): the atexit handlers
+    still run, what was said arrives, the status is kept."""
+    p = subprocess.run([sys.executable, "-c", BLOCKED, str(tmp_path)], capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode == 143 and p.stderr == "stopped\n", p.stderr
+    assert (tmp_path / "atexit").read_text() == "ran"
+
+
 def test_the_program_gives_mains_status(tmp_path) -> None:
     """``python -m gt3dkit.cli`` (as the ``gt3d`` script): the error line and status 2 of bad input,
     0 and the whole help text through a pipe."""
