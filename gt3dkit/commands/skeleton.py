@@ -9,7 +9,7 @@ import tempfile
 from pathlib import Path
 
 from gt3dkit.errors import InputError
-from gt3dkit.io.skeletonfile import named_skeleton, shipped_skeletons, write_skeleton
+from gt3dkit.io.skeletonfile import named_skeleton, read_skeleton, shipped_skeletons, write_skeleton
 from gt3dkit.skeletons import SKELETONS, Skeleton
 
 
@@ -45,8 +45,8 @@ def cmd_skeleton(args: argparse.Namespace) -> int:
         print(f"{'name':<14}{'joints':>7}{'bones':>7}{'pairs':>7}{'groups':>8}  {'up/floor':<10}where")
         for sk in SKELETONS.values():
             print(_row(sk, "built in (gt3dkit/data/skeletons/human)"))
-        for name, path in shipped_skeletons().items():
-            print(_row(named_skeleton(name), f"shipped file ({path.name})"))
+        for path in shipped_skeletons().values():
+            print(_row(read_skeleton(path), f"shipped file ({path.name})"))
         print("gt3d skeleton NAME|FILE describes and checks one; --write FILE copies it to start your own")
         return 0
     sk = named_skeleton(args.skeleton)  # read and checked: one error line otherwise

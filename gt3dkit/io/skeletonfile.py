@@ -53,7 +53,7 @@ def read_skeleton(path: Path) -> Skeleton:
         groups = [["nose", "ear_l", "ear_r"]]   # joints that move as one rigid body (optional)
         up = ["nose"]                           # standing, these point up from the floor joints
         floor = ["ear_l"]                       # on the floor (both optional: a rig from people
-                                                # needs them, gt3d calibrate --people)
+                                                # needs them, gt3d calib people)
         [pose]                                  # canonical pose, m (optional): joint = [x, y, z]
         nose = [0.0, 0.05, 0.02]
 

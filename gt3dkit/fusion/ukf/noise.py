@@ -348,9 +348,10 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
     runner = run_filter if backend_for(model) == "objects" else partial(run_joints, covariances=False)
 
     def search(name: str, c: UKFConfig, bounds: tuple[float, float], n_scan: int) -> UKFConfig:
-        most = [0.0]  # the most measurements any value's pass has used
+        most = 0.0  # the most measurements any value's pass has used
 
         def logliks(values: list[float]) -> list[float]:
+            nonlocal most
             if lin is not None:  # boxes: the regression fixed per row, a linear pass per value
                 return lin.logliks([{"accel_sd": c.accel_sd, "shape_sd": c.shape_sd,
                                      "position_sd": c.position_sd or 0.0, name: v} for v in values])
@@ -368,8 +369,8 @@ def select_noise(model: Model, init: Init, cfg: UKFConfig, pre: Prepared, fps: f
             # and the likelihood of fewer measurements rises by dropping them (a clock-corrected
             # mouse's joints went to the bound, 100, on a fifth of its views): each value's is
             # taken over as many measurements as the most any pass used, at its own mean
-            most[0] = max([most[0], *used])
-            return [float(v) * most[0] / u if u > 0 else -np.inf for v, u in zip(lls, used, strict=True)]
+            most = max([most, *used])
+            return [float(v) * most / u if u > 0 else -np.inf for v, u in zip(lls, used, strict=True)]
 
         best, seen = maximise_log(logliks, *bounds, n_scan)
         curves[name] = [{"value": v, "loglik": ll if np.isfinite(ll) else None}  # None: the pass failed
