@@ -12,6 +12,13 @@ worst), the truth person-frames with a row (coverage), MOTA (CLEAR-MOT, 1 m), th
 per-frame fit; the rows made from one view; the annotation QA of the UKF run on CMC3 (the share of
 boxes flagged, the first flags).
 
+Not targets, printed to read them by (:func:`truth_frame`): how each estimator's floor positions
+scale against the truth's (the best affine map, its two singular values: 1 = the same extent),
+and in each camera how the detector's boxes sit against the truth's centres (box centre column
+minus the truth centre's projected column, Theil-Sen slope against that column's offset from the
+principal point: 0 = boxes spread as the truth does), on boxes that touch neither the border nor
+another box of their view.
+
 Prints each target with PASS or FAIL; exit status 1 when one fails.
 """
 
@@ -30,6 +37,10 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "scripts"))
 
 from drawn_targets import row  # noqa: E402
+from scipy.optimize import linear_sum_assignment  # noqa: E402
+from scipy.stats import theilslopes  # noqa: E402
+
+from gt3dkit.geom.camera import project_points  # noqa: E402
 
 from gt3dkit.api import annotation_qa, load_scene, reconstruct  # noqa: E402
 from gt3dkit.types import Scene, TrackSet  # noqa: E402
@@ -55,6 +66,68 @@ def peer_tracks(path: Path, like: TrackSet) -> TrackSet:
                                kpt_sd=np.zeros((n, 0)))
 
 
+def scale_against_truth(tracks: TrackSet, truth: TrackSet) -> np.ndarray:
+    """``(2,)`` the singular values of the best affine map (least squares) from the truth's floor
+    positions to the estimate's, matched per frame (Hungarian, 1 m): below 1, the estimate places
+    people nearer the middle of where the truth has them."""
+    P, E = [], []
+    for f in np.unique(truth.frame):
+        t = truth.center_world[truth.frame == f, :2]
+        e = tracks.center_world[tracks.frame == f, :2]
+        if len(t) and len(e):
+            d = np.linalg.norm(t[:, None] - e[None], axis=-1)
+            r, c = linear_sum_assignment(d)
+            ok = d[r, c] < 1.0
+            P.append(t[r[ok]])
+            E.append(e[c[ok]])
+    p, e = np.concatenate(P), np.concatenate(E)
+    mu = p.mean(axis=0)
+    m = np.linalg.lstsq(np.c_[p - mu, np.ones(len(p))], e - mu, rcond=None)[0]
+    return np.linalg.svd(m[:2], compute_uv=False)
+
+
+def box_column_slopes(scene: Scene) -> dict[str, float]:
+    """Per camera the Theil-Sen slope of (box centre column - the truth centre's projected
+    column) against (that column - the principal point's), px/px, over the boxes with a truth row
+    that touch neither the image border nor another box of their view: below 0, the boxes lie
+    nearer the image's middle than the truth's centres do."""
+    obs, truth = scene.obs, scene.truth
+    assert truth is not None
+    key = {(int(f), int(i)): k for k, (f, i) in enumerate(zip(truth.frame, truth.track_id, strict=True))}
+    out = {}
+    for c, cam in enumerate(scene.rig.cameras):
+        rows = np.flatnonzero((obs.cam == c) & np.isfinite(obs.box_xyxy_px[:, 0]))
+        b = obs.box_xyxy_px[rows]
+        fr = obs.frame[rows]
+        alone = np.ones(len(rows), bool)
+        for f in np.unique(fr):
+            m = np.flatnonzero(fr == f)
+            bb = b[m]
+            over = ((np.minimum(bb[:, None, 2], bb[None, :, 2]) > np.maximum(bb[:, None, 0], bb[None, :, 0]))
+                    & (np.minimum(bb[:, None, 3], bb[None, :, 3]) > np.maximum(bb[:, None, 1], bb[None, :, 1])))
+            alone[m] = over.sum(axis=1) == 1
+        inside = (b[:, 0] > 2) & (b[:, 1] > 2) & (b[:, 2] < cam.width - 2) & (b[:, 3] < cam.height - 2)
+        t = np.array([key.get((int(f), int(i)), -1) for f, i in zip(fr, obs.track_id[rows], strict=True)])
+        use = alone & inside & (t >= 0)
+        if use.sum() < 20:
+            continue
+        uv = project_points(truth.center_world[t[use]], cam.K[None], cam.dist[None], cam.R[None],
+                            cam.t[None])[0][:, 0]
+        col = uv[:, 0] - cam.K[0, 2]
+        out[cam.name] = float(theilslopes((b[use, 0] + b[use, 2]) / 2 - uv[:, 0], col)[0])
+    return out
+
+
+def truth_frame(scene: Scene, runs: dict[str, TrackSet]) -> None:
+    """Print :func:`scale_against_truth` of each run and :func:`box_column_slopes`."""
+    assert scene.truth is not None
+    print("  the truth's frame against the images (not targets): floor extent over the truth's, "
+          "best affine map: " + "; ".join(f"{k} {' x '.join(f'{v:.3f}' for v in scale_against_truth(tr, scene.truth))}"
+                                          for k, tr in runs.items()))
+    print("  box centre column - truth centre column, Theil-Sen slope per px off the principal point: "
+          + ", ".join(f"{k} {v:+.3f}" for k, v in box_column_slopes(scene).items()))
+
+
 def sequence(root: Path) -> tuple[dict[str, dict[str, float]], Scene, TrackSet]:
     scene = load_scene(root)
     truth = scene.truth
@@ -73,7 +146,9 @@ def sequence(root: Path) -> tuple[dict[str, dict[str, float]], Scene, TrackSet]:
           f"{int((runs['ukf'].n_views == 0).sum())}; {res['ukf']['seconds']:.1f} s")
     peer = sorted((root / "reference_estimates").glob("*.txt"))
     if peer:
-        res["peer"] = row("authors' tracker", peer_tracks(peer[0], runs["ukf"]), truth)
+        runs["authors' tracker"] = peer_tracks(peer[0], runs["ukf"])
+        res["peer"] = row("authors' tracker", runs["authors' tracker"], truth)
+    truth_frame(scene, runs)
     return res, scene, runs["ukf"]
 
 
