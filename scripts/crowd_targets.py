@@ -40,10 +40,9 @@ from drawn_targets import row  # noqa: E402
 from scipy.optimize import linear_sum_assignment  # noqa: E402
 from scipy.stats import theilslopes  # noqa: E402
 
-from gt3dkit.geom.camera import project_points  # noqa: E402
-
 from gt3dkit.api import annotation_qa, load_scene, reconstruct  # noqa: E402
-from gt3dkit.types import Scene, TrackSet  # noqa: E402
+from gt3dkit.geom.camera import project_points  # noqa: E402
+from gt3dkit.types import GroundTruth, Scene, TrackSet  # noqa: E402
 
 RESULTS: list[tuple[str, bool]] = []
 
@@ -66,7 +65,7 @@ def peer_tracks(path: Path, like: TrackSet) -> TrackSet:
                                kpt_sd=np.zeros((n, 0)))
 
 
-def scale_against_truth(tracks: TrackSet, truth: TrackSet) -> np.ndarray:
+def scale_against_truth(tracks: TrackSet, truth: GroundTruth) -> np.ndarray:
     """``(2,)`` the singular values of the best affine map (least squares) from the truth's floor
     positions to the estimate's, matched per frame (Hungarian, 1 m): below 1, the estimate places
     people nearer the middle of where the truth has them."""
@@ -103,8 +102,8 @@ def box_column_slopes(scene: Scene) -> dict[str, float]:
         for f in np.unique(fr):
             m = np.flatnonzero(fr == f)
             bb = b[m]
-            over = ((np.minimum(bb[:, None, 2], bb[None, :, 2]) > np.maximum(bb[:, None, 0], bb[None, :, 0]))
-                    & (np.minimum(bb[:, None, 3], bb[None, :, 3]) > np.maximum(bb[:, None, 1], bb[None, :, 1])))
+            lo = np.maximum(bb[:, None, :2], bb[None, :, :2])
+            over = (np.minimum(bb[:, None, 2:], bb[None, :, 2:]) > lo).all(axis=-1)
             alone[m] = over.sum(axis=1) == 1
         inside = (b[:, 0] > 2) & (b[:, 1] > 2) & (b[:, 2] < cam.width - 2) & (b[:, 3] < cam.height - 2)
         t = np.array([key.get((int(f), int(i)), -1) for f, i in zip(fr, obs.track_id[rows], strict=True)])
@@ -121,9 +120,10 @@ def box_column_slopes(scene: Scene) -> dict[str, float]:
 def truth_frame(scene: Scene, runs: dict[str, TrackSet]) -> None:
     """Print :func:`scale_against_truth` of each run and :func:`box_column_slopes`."""
     assert scene.truth is not None
+    scales = {k: " x ".join(f"{v:.3f}" for v in scale_against_truth(tr, scene.truth))
+              for k, tr in runs.items()}
     print("  the truth's frame against the images (not targets): floor extent over the truth's, "
-          "best affine map: " + "; ".join(f"{k} {' x '.join(f'{v:.3f}' for v in scale_against_truth(tr, scene.truth))}"
-                                          for k, tr in runs.items()))
+          "best affine map: " + "; ".join(f"{k} {v}" for k, v in scales.items()))
     print("  box centre column - truth centre column, Theil-Sen slope per px off the principal point: "
           + ", ".join(f"{k} {v:+.3f}" for k, v in box_column_slopes(scene).items()))
 
