@@ -15,7 +15,8 @@ millimetres, its ``side`` camera a copy of ``top``):
    own ChArUco videos (each camera's rotation and centre off the board's).
 2. aniposelib ``triangulate`` + ``optim_points`` (``scripts/peer_aniposelib.py``: anipose's
    defaults, the SLEAP skeleton's edges as constraints) on the same labels and the refined
-   calibration, scored the same way; gt3dkit's time over its.
+   calibration, scored the same way; gt3dkit's time over its. 2b: each camera left out in turn,
+   both estimates from the other three drawn into it (:func:`held_out`).
 3. anipose's published ``points3d.h5`` against gt3dkit's: the median distance per joint (mm),
    and its own reprojection per camera.
 4. COCO-WholeBody (simulated, no data needed): 133 joints, 8 cameras, 2 px noise, three people,
@@ -257,6 +258,63 @@ def against_board(data: Path, tmp: Path, rigs: dict[str, Rig]) -> None:
               ", ".join(f"{c} {cam(r, c).K[0, 0]:.0f} (board {cam(board, c).K[0, 0]:.0f})" for c in CAMS))
 
 
+def native_folder(folder: Path, uv: np.ndarray, rig: Rig, cams: tuple[str, ...] | list[str]) -> Path:
+    """``folder`` made: the rig's ``cameras.json`` and the labels ``uv (F, J, C, 2)`` of the
+    cameras ``cams`` only as a native ``keypoints.csv`` (no scores: the labels alone)."""
+    folder.mkdir(parents=True)
+    write_cameras(rig, 30.0, folder)
+    with open(folder / "keypoints.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["frame", "camera", "id", "joint", "u", "v"])
+        for fr, j, c in zip(*np.nonzero(np.isfinite(uv[..., 0])), strict=True):
+            if CAMS[c] in cams:
+                w.writerow([fr, CAMS[c], 0, j, f"{uv[fr, j, c, 0]:.4f}", f"{uv[fr, j, c, 1]:.4f}"])
+    return folder
+
+
+def run_peer(peer_python: str, native: Path, bones: str, out: Path) -> subprocess.CompletedProcess[str]:
+    """``scripts/peer_aniposelib.py`` on a :func:`native_folder`, its joints to ``out``."""
+    return subprocess.run([peer_python, str(REPO / "scripts" / "peer_aniposelib.py"), str(native), "--bones",
+                           bones, "--out", str(out)], capture_output=True, text=True)
+
+
+def held_out(data: Path, tmp: Path, uv: np.ndarray, rig: Rig, bones: str, peer_python: str) -> None:
+    """2b: each camera left out in turn. gt3dkit (the other three cameras' ``.slp`` files) and
+    aniposelib (their labels) estimate on the refined ``rig``; each estimate drawn into the camera
+    it did not see, the median px against that camera's labels: how well each predicts a view it
+    was not fitted to (its reprojection in the cameras it saw can be lowered by fitting their
+    labels' own disagreements)."""
+    print("   2b. each camera left out in turn: the estimate from the other three, drawn into the one "
+          "left out (median px against its labels; in brackets, the three it saw)")
+    F, J = uv.shape[:2]
+    (tmp / "held").mkdir()
+    write_cameras(rig, 30.0, tmp / "held")
+    lower = []
+    for held in CAMS:
+        seen = [c for c in CAMS if c != held]
+        slp = tmp / f"held_slp_{held}"
+        for c in seen:
+            (slp / c).mkdir(parents=True)
+            (slp / c / f"{c}.slp").symlink_to(next((data / c).glob("*.slp")))
+        p = subprocess.run([GT3D, "reconstruct", str(slp), "--out", str(tmp / f"held_out_{held}"), "--calib",
+                            str(tmp / "held" / "cameras.json"), "--quiet"], capture_output=True, text=True)
+        q = run_peer(peer_python, native_folder(tmp / f"held_native_{held}", uv, rig, seen), bones,
+                     tmp / f"held_peer_{held}.csv")
+        if p.returncode != 0 or q.returncode != 0:
+            print(f"      {held}: failed: {(p.stderr + q.stderr).strip()[-300:]}")
+            continue
+        px = {}
+        for name, X in (("gt3dkit", joints_of(tmp / f"held_out_{held}" / "keypoints.csv", F, J)),
+                        ("aniposelib", joints_of(tmp / f"held_peer_{held}.csv", F, J))):
+            rep = reprojection(X, uv, rig)
+            px[name] = rep[held]
+            print(f"      {held:<5} left out, {name:<11} {rep[held]:6.2f} px  ("
+                  + ", ".join(f"{c} {rep[c]:.2f}" for c in seen) + ")")
+        if px["gt3dkit"] < px["aniposelib"]:
+            lower.append(held)
+    print(f"   gt3dkit's prediction of the camera left out lower in {len(lower)} of 4 ({', '.join(lower)})")
+
+
 def mouse(data: Path, peer_python: str) -> None:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     print("0. the labels: SLEAP's .slp files through sleap-io, against its analysis export")
@@ -303,19 +361,10 @@ def mouse(data: Path, peer_python: str) -> None:
 
         print("\n2. aniposelib triangulate + optim_points on the same labels and the refined calibration")
         if Path(peer_python).exists():
-            native = tmp / "native"
-            native.mkdir()
-            write_cameras(refined, 30.0, native)
-            with open(native / "keypoints.csv", "w", newline="") as f:
-                w = csv.writer(f)
-                w.writerow(["frame", "camera", "id", "joint", "u", "v"])
-                for fr, j, c in zip(*np.nonzero(np.isfinite(uv[..., 0])), strict=True):
-                    w.writerow([fr, CAMS[c], 0, j, f"{uv[fr, j, c, 0]:.4f}", f"{uv[fr, j, c, 1]:.4f}"])
+            native = native_folder(tmp / "native", uv, refined, CAMS)
             bones = ",".join(f"{nodes.index(a)}-{nodes.index(b)}" for a, b in edges)
             t0 = time.perf_counter()
-            peer_cmd = [peer_python, str(REPO / "scripts" / "peer_aniposelib.py"), str(native), "--bones",
-                        bones, "--out", str(tmp / "peer.csv")]
-            q = subprocess.run(peer_cmd, capture_output=True, text=True)
+            q = run_peer(peer_python, native, bones, tmp / "peer.csv")
             peer_sec = time.perf_counter() - t0
             if q.returncode == 0:
                 peer = joints_of(tmp / "peer.csv", F, J)
@@ -327,6 +376,7 @@ def mouse(data: Path, peer_python: str) -> None:
                       f"({', '.join(lower)}); its time over aniposelib's: {ratio:.2f}x (target 0.3x)")
             else:
                 print(f"   aniposelib failed: {q.stderr.strip()[-300:]}")
+            held_out(data, tmp, uv, refined, bones, peer_python)
         else:
             print(f"   skipped: {peer_python} absent (make bench-env)")
 
