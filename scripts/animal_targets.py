@@ -16,7 +16,9 @@ millimetres, its ``side`` camera a copy of ``top``):
 2. aniposelib ``triangulate`` + ``optim_points`` (``scripts/peer_aniposelib.py``: anipose's
    defaults, the SLEAP skeleton's edges as constraints) on the same labels and the refined
    calibration, scored the same way; gt3dkit's time over its. 2b: each camera left out in turn,
-   both estimates from the other three drawn into it (:func:`held_out`).
+   both estimates from the other three drawn into it (:func:`held_out`); 2c: the same, and both
+   from all four cameras, on the rig ``gt3d calib board`` made in 1b (a rig neither estimate
+   made: the refined one was fitted to gt3dkit's own estimate).
 3. anipose's published ``points3d.h5`` against gt3dkit's: the median distance per joint (mm),
    and its own reprojection per camera.
 4. COCO-WholeBody (simulated, no data needed): 133 joints, 8 cameras, 2 px noise, three people,
@@ -217,24 +219,24 @@ def written_by_movement(python: Path) -> None:
             print(f"   seed {seed}: {scene.layout} layout, {len(np.unique(ours.track_id))} mice; "
                   f"MPJPE {a:.2f} mm against the native keypoints' {b:.2f} mm: {a / b:.2f}x")
 
-def against_board(data: Path, tmp: Path, rigs: dict[str, Rig]) -> None:
+def against_board(data: Path, tmp: Path, rigs: dict[str, Rig]) -> Rig | None:
     """Section 1b: ``gt3d calib board`` on the session's own ChArUco videos, and each of ``rigs``
     against it: per camera, its rotation (degrees) and centre (mm) off the board's, after the
     similarity that maps the board rig's ``mid`` and ``top`` onto the rig's (the mean of their
-    rotations, the scale and shift of their centres)."""
+    rotations, the scale and shift of their centres). Returns the board's rig (None: not made)."""
     from scipy.spatial.transform import Rotation
 
     videos = [next(iter(sorted((data / c / "calibration_images").glob(f"*.{ext}"))), None)
               for c in CAMS for ext in (("mp4",) if c != "side" else ("MOV",))]
     if any(v is None for v in videos):
         print("   1b. skipped: the calibration videos are absent")
-        return
+        return None
     out = tmp / "board"
     p = subprocess.run([GT3D, "calib", "board", *map(str, videos), "--board", str(data / "board.toml"),
                         "--out", str(out)], capture_output=True, text=True)
     if p.returncode != 0:
         print(f"   1b. gt3d calib board failed: {p.stderr.strip()[-200:]}")
-        return
+        return None
     board = read_calibration(out / "cameras.json")  # its cameras named from the videos: back, mid, ...
 
     def cam(r: Rig, c: str) -> Camera:
@@ -256,6 +258,7 @@ def against_board(data: Path, tmp: Path, rigs: dict[str, Rig]) -> None:
             cells.append(f"{c} {ang:.1f} / {1000 * off:.0f}")
         print(f"      {label:<24} " + ", ".join(cells) + "; focal " +
               ", ".join(f"{c} {cam(r, c).K[0, 0]:.0f} (board {cam(board, c).K[0, 0]:.0f})" for c in CAMS))
+    return board
 
 
 def native_folder(folder: Path, uv: np.ndarray, rig: Rig, cams: tuple[str, ...] | list[str]) -> Path:
@@ -278,34 +281,51 @@ def run_peer(peer_python: str, native: Path, bones: str, out: Path) -> subproces
                            bones, "--out", str(out)], capture_output=True, text=True)
 
 
-def held_out(data: Path, tmp: Path, uv: np.ndarray, rig: Rig, bones: str, peer_python: str) -> None:
-    """2b: each camera left out in turn. gt3dkit (the other three cameras' ``.slp`` files) and
-    aniposelib (their labels) estimate on the refined ``rig``; each estimate drawn into the camera
-    it did not see, the median px against that camera's labels: how well each predicts a view it
-    was not fitted to (its reprojection in the cameras it saw can be lowered by fitting their
-    labels' own disagreements)."""
-    print("   2b. each camera left out in turn: the estimate from the other three, drawn into the one "
-          "left out (median px against its labels; in brackets, the three it saw)")
+def held_out(section: str, data: Path, tmp: Path, uv: np.ndarray, rig: Rig, bones: str, peer_python: str,
+             label: str, nodes: list[str], edges: list[tuple[str, str]], all_four: bool) -> None:
+    """Each camera left out in turn. gt3dkit (the other three cameras' ``.slp`` files) and
+    aniposelib (their labels) estimate on ``rig``; each estimate drawn into the camera it did not
+    see, the median px against that camera's labels: how well each predicts a view it was not
+    fitted to (its reprojection in the cameras it saw can be lowered by fitting their labels' own
+    disagreements). ``all_four``: first both estimates from all four cameras, scored as in
+    section 2."""
     F, J = uv.shape[:2]
-    (tmp / "held").mkdir()
-    write_cameras(rig, 30.0, tmp / "held")
-    lower = []
-    for held in CAMS:
-        seen = [c for c in CAMS if c != held]
-        slp = tmp / f"held_slp_{held}"
+    key = label.split()[0].strip("'")
+    (tmp / f"held_{key}").mkdir()
+    write_cameras(rig, 30.0, tmp / f"held_{key}")
+    calib = str(tmp / f"held_{key}" / "cameras.json")
+
+    def both(seen: list[str], tag: str) -> tuple[np.ndarray, np.ndarray] | None:
+        slp = tmp / f"held_slp_{key}_{tag}"
         for c in seen:
             (slp / c).mkdir(parents=True)
             (slp / c / f"{c}.slp").symlink_to(next((data / c).glob("*.slp")))
-        p = subprocess.run([GT3D, "reconstruct", str(slp), "--out", str(tmp / f"held_out_{held}"), "--calib",
-                            str(tmp / "held" / "cameras.json"), "--quiet"], capture_output=True, text=True)
-        q = run_peer(peer_python, native_folder(tmp / f"held_native_{held}", uv, rig, seen), bones,
-                     tmp / f"held_peer_{held}.csv")
+        out = tmp / f"held_out_{key}_{tag}"
+        p = subprocess.run([GT3D, "reconstruct", str(slp), "--out", str(out), "--calib", calib, "--quiet"],
+                           capture_output=True, text=True)
+        q = run_peer(peer_python, native_folder(tmp / f"held_native_{key}_{tag}", uv, rig, seen), bones,
+                     tmp / f"held_peer_{key}_{tag}.csv")
         if p.returncode != 0 or q.returncode != 0:
-            print(f"      {held}: failed: {(p.stderr + q.stderr).strip()[-300:]}")
+            print(f"      {tag}: failed: {(p.stderr + q.stderr).strip()[-300:]}")
+            return None
+        return joints_of(out / "keypoints.csv", F, J), joints_of(tmp / f"held_peer_{key}_{tag}.csv", F, J)
+
+    if all_four:
+        got = both(list(CAMS), "all")
+        if got is not None:
+            print(f"   {section} all four cameras on {label}:")
+            summary("gt3dkit UKF", got[0], uv, rig, nodes, edges, None)
+            summary("aniposelib optim_points", got[1], uv, rig, nodes, edges, None)
+    print(f"   {section} each camera left out in turn, on {label}: the estimate from the other three drawn "
+          "into the one left out (median px against its labels; in brackets, the three it saw)")
+    lower = []
+    for held in CAMS:
+        seen = [c for c in CAMS if c != held]
+        got = both(seen, held)
+        if got is None:
             continue
         px = {}
-        for name, X in (("gt3dkit", joints_of(tmp / f"held_out_{held}" / "keypoints.csv", F, J)),
-                        ("aniposelib", joints_of(tmp / f"held_peer_{held}.csv", F, J))):
+        for name, X in zip(("gt3dkit", "aniposelib"), got, strict=True):
             rep = reprojection(X, uv, rig)
             px[name] = rep[held]
             print(f"      {held:<5} left out, {name:<11} {rep[held]:6.2f} px  ("
@@ -348,7 +368,7 @@ def mouse(data: Path, peer_python: str) -> None:
             runs[name] = (joints_of(out / "keypoints.csv", F, J), used, sec)
             summary(f"gt3dkit UKF, {name}", runs[name][0], uv, used, nodes, edges, sec)
         ours, refined, _ = runs["--refine-calib"]
-        against_board(data, tmp, {"anipose's, as given": rig, "gt3dkit --refine-calib": refined})
+        board = against_board(data, tmp, {"anipose's, as given": rig, "gt3dkit --refine-calib": refined})
         # the estimate alone on the refined rig (what aniposelib is given below), timed
         write_cameras(refined, 30.0, tmp)
         t0 = time.perf_counter()
@@ -376,7 +396,11 @@ def mouse(data: Path, peer_python: str) -> None:
                       f"({', '.join(lower)}); its time over aniposelib's: {ratio:.2f}x (target 0.3x)")
             else:
                 print(f"   aniposelib failed: {q.stderr.strip()[-300:]}")
-            held_out(data, tmp, uv, refined, bones, peer_python)
+            held_out("2b.", data, tmp, uv, refined, bones, peer_python, "the refined rig", nodes, edges,
+                     False)
+            if board is not None:  # a rig neither estimator's refinement made
+                held_out("2c.", data, tmp, uv, board, bones, peer_python, "gt3d calib board's rig (1b)",
+                         nodes, edges, True)
         else:
             print(f"   skipped: {peer_python} absent (make bench-env)")
 
