@@ -261,8 +261,10 @@ def skeleton_from_doc(doc: JsonValue, where: str) -> Skeleton:
 
     def links(key: str) -> list[tuple[str, str]]:
         v = doc.get(key, [])
+        if not isinstance(v, Sequence) or isinstance(v, str):
+            raise InputError(f"{where}: {key}", f"expected a list of [joint, joint] pairs, got {v!r}")
         out = []
-        for k, x in enumerate(v if isinstance(v, Sequence) and not isinstance(v, str) else [None]):
+        for k, x in enumerate(v):
             if not isinstance(x, Sequence) or isinstance(x, str) or len(x) != 2 or \
                     not all(isinstance(y, str) for y in x):
                 raise InputError(f"{where}: {key}[{k}]", f"expected two joint names, got {x!r}")

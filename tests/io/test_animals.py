@@ -77,6 +77,11 @@ def test_the_built_in_skeletons_are_the_files_shipped_with_the_package(tmp_path:
     bad.write_text('name = "x"\njoints = ["a", "b"]\nbones = [["a", "b"]]\nup = ["a"]\nfloor = ["a"]\n')
     with pytest.raises(InputError, match="'a' is both up and on the floor"):
         read_skeleton(bad)
+    for bones, problem in (('"a-b"', "bones: expected a list of \\[joint, joint\\] pairs, got 'a-b'"),
+                           ('[["a", "b", "a"]]', r"bones\[0\]: expected two joint names")):
+        bad.write_text(f'name = "x"\njoints = ["a", "b"]\nbones = {bones}\n')
+        with pytest.raises(InputError, match=problem):
+            read_skeleton(bad)
     for groups, problem in (('[["a", "c"]]', r"groups\[0\]: unknown joint 'c'"),
                             ('[["a"]]', "two joints or more"), ('[["a", "b", "a"]]', "'a' named twice")):
         bad.write_text(f'name = "x"\njoints = ["a", "b"]\nbones = [["a", "b"]]\ngroups = {groups}\n')
