@@ -470,6 +470,34 @@ def test_a_deeplabcut_file_of_two_scorers_or_other_parts_is_refused(
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("how, entry, problem", [
+    ("empty", "", "empty: a DeepLabCut CSV starts with its header rows"),
+    ("latin-1", "", "not UTF-8 text"),
+    ("a frame twice", "line 6", "frame 0 again (first at line 4)"),
+    ("a negative frame", "line 4", "negative frame index '-3'"),
+])
+def test_a_broken_deeplabcut_file_is_one_line_naming_it(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                        how: str, entry: str, problem: str) -> None:
+    """A file named as DeepLabCut names its output that is empty or not UTF-8 was passed over (its
+    camera then had no annotation); a repeated or negative frame index named no line (line 0)
+    or read -3 as frame 3."""
+    sk = simulate_skeletons("native", seed=3, frames=4, people=1, cameras=3, skeleton="coco17")
+    files = _write_dlc(sk, tmp_path / "dlc", multi=False)
+    lines = files[1].read_text().splitlines()  # 3 header rows, then frames 0, 1, ...
+    if how == "empty":
+        files[1].write_bytes(b"")
+    elif how == "latin-1":
+        files[1].write_bytes(files[1].read_bytes().replace(b"scorer", b"sc\xf6rer", 1))
+    elif how == "a frame twice":
+        files[1].write_text("\n".join(lines[:5] + [lines[3]] + lines[5:]) + "\n")
+    else:
+        files[1].write_text("\n".join(lines[:3] + ["-3" + lines[3][lines[3].index(","):]] + lines[4:]) + "\n")
+    code, _, err = _run("reconstruct", str(tmp_path / "dlc"), "--out", str(tmp_path / "out"), capsys=capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"error: {files[1]}: {entry + ': ' if entry else ''}") and problem in err, err
+    assert not (tmp_path / "out").exists()
+
+
 MOUSE = (files("gt3dkit") / "data" / "skeletons" / "mouse.toml").read_text()
 
 

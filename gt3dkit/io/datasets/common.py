@@ -26,7 +26,8 @@ def check_box(where: str, box: list[float]) -> None:
 class JointBlock:
     """Keypoints read and checked as a block (:meth:`RowBuilder.add_joint_block`, which gathers
     them into rows at once), one per point: ``frame, cam, tid, joint, line (P,)`` int64, ``uv (P,
-    2)``, ``conf (P,)`` or None; ``path`` names the file the line numbers are of."""
+    2)``, ``conf (P,)`` or None; ``path`` names the file the line numbers are of, ``unit`` what
+    they count (a text file's ``line``, a table's ``row``)."""
 
     frame: np.ndarray
     cam: np.ndarray
@@ -36,6 +37,7 @@ class JointBlock:
     conf: F64 | None
     line: np.ndarray
     path: str
+    unit: str = "line"
 
 
 @dataclass(frozen=True)
@@ -84,7 +86,7 @@ def gather_rows(b: JointBlock) -> JointRows:
     line = np.full((len(keys), k), -1, dtype=np.int64)
     line.reshape(-1)[slot] = b.line
     _, first = np.unique(row, return_index=True)  # each row's first point (the points are in line order)
-    template = Origins.literal(b.path) + ": line {0}"
+    template = Origins.literal(b.path) + f": {b.unit} {{0}}"
     return JointRows(keys, joints, uv, conf, line, Origins.formatted(template, b.line[first]), template)
 
 

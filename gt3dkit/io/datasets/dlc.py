@@ -73,7 +73,24 @@ def _preferred(paths: list[Path]) -> list[Path]:
 
 
 def dlc_files(root: Path) -> list[Path]:
-    """DeepLabCut's files in ``root``: its CSVs (first cell ``scorer``) and ``.h5`` files."""
+    """DeepLabCut's files in ``root``: its CSVs (first cell ``scorer``) and ``.h5`` files. A CSV
+    named as DeepLabCut names its output (``<video>DLC_<network>...``) that is empty or not UTF-8
+    text is an error (a CSV of another first cell, such as DeepLabCut's skeleton analysis, is
+    not read)."""
+    for p in sorted(root.glob("*.csv")):
+        if "DLC_" in p.stem and not is_dlc_csv(p):
+            try:
+                with open(p, encoding="utf-8-sig") as f:
+                    text = f.read(65536)
+            except UnicodeDecodeError:
+                raise InputError(str(p), "not UTF-8 text: not a DeepLabCut CSV") from None
+            except OSError as e:
+                raise InputError(str(p), f"cannot be read ({e.strerror})") from None
+            if not text.strip():
+                raise InputError(str(p), "empty: a DeepLabCut CSV starts with its header rows (scorer, "
+                                         "[individuals,] bodyparts, coords)")
+            if "\x00" in text:
+                raise InputError(str(p), "not text: not a DeepLabCut CSV")
     return _preferred(sorted([p for p in root.glob("*.csv") if is_dlc_csv(p)] + list(root.glob(f"*{H5}"))))
 
 
@@ -111,13 +128,20 @@ def _video(path: Path) -> str:
 
 class DlcFile:
     """One DeepLabCut file read (its CSV, or its ``.h5``: pandas' table through PyTables):
-    ``frames (F,)``, ``individuals``, ``bodyparts``, ``uv (F, I, J, 2)`` (NaN: not found) and
-    ``likelihood (F, I, J)``."""
+    ``frames (F,)``, ``individuals``, ``bodyparts``, ``uv (F, I, J, 2)`` (NaN: not found),
+    ``likelihood (F, I, J)``, and where each frame is in the file: ``lines (F,)``, counted in
+    ``unit`` (a CSV's ``line``, 1-based; an ``.h5`` table's ``row``, 0-based)."""
 
     def __init__(self, path: Path) -> None:
         raw, self.digest = read_hashed(path)
         table = _h5_table(path, raw) if path.suffix.lower() == H5 else _csv_table(path, raw)
-        names, cols, frames, vals = table
+        names, cols, frames, vals, self.lines, self.unit = table
+        first: dict[int, int] = {}
+        for f, ln in zip(frames.tolist(), self.lines.tolist(), strict=True):
+            if f in first:
+                raise InputError(f"{path}: {self.unit} {ln}", f"frame {f} again (first at {self.unit} "
+                                                               f"{first[f]})")
+            first[f] = ln
         multi = names[:4] == ["scorer", "individuals", "bodyparts", "coords"]
         if not multi and names[:3] != list(HEADER):
             raise InputError(str(path), "not a DeepLabCut file (header rows scorer, [individuals,] "
@@ -147,9 +171,9 @@ class DlcFile:
             self.likelihood[:, ii, jj] = vals[:, 3 * k + 2]
 
 
-#: a DeepLabCut table: the header levels' names, each level's column labels, ``frames (F,)`` and
-#: the values ``(F, columns)``
-Table = tuple[list[str], list[list[str]], np.ndarray, np.ndarray]
+#: a DeepLabCut table: the header levels' names, each level's column labels, ``frames (F,)``, the
+#: values ``(F, columns)``, each frame's place ``(F,)`` and what that counts (``line``, ``row``)
+Table = tuple[list[str], list[list[str]], np.ndarray, np.ndarray, np.ndarray, str]
 
 
 def _csv_table(path: Path, raw: bytes) -> Table:
@@ -158,12 +182,14 @@ def _csv_table(path: Path, raw: bytes) -> Table:
     head = rows[:4] if names[:2] == ["scorer", "individuals"] else rows[:3]
     n_index = next((k for k, v in enumerate(head[-1]) if v.strip() in ("x", "y", "likelihood")), 1)
     cols = [[c.strip() for c in r[n_index:]] for r in head]
-    body = [r for r in rows[len(head):] if r and any(x.strip() for x in r)]
+    body = [(ln, r) for ln, r in enumerate(rows[len(head):], start=len(head) + 1)
+            if r and any(x.strip() for x in r)]
     width = len(cols[-1])
     vals = np.full((len(body), width), np.nan)
     frames = np.zeros(len(body), np.int64)
-    for n, r in enumerate(body):
-        where = f"{path}: line {len(head) + n + 1}"
+    lines = np.array([ln for ln, _ in body], np.int64)
+    for n, (ln, r) in enumerate(body):
+        where = f"{path}: line {ln}"
         frames[n] = _frame_of(where, r[:n_index])
         if len(r) - n_index != width:
             raise InputError(where, f"expected {width} values after the index, got {len(r) - n_index}")
@@ -171,7 +197,7 @@ def _csv_table(path: Path, raw: bytes) -> Table:
             vals[n] = [float(x) if x.strip() else np.nan for x in r[n_index:]]
         except ValueError:
             raise InputError(where, "a value is not a number") from None
-    return names[:len(head)], cols, frames, vals
+    return names[:len(head)], cols, frames, vals, lines, "line"
 
 
 def _h5_table(path: Path, raw: bytes) -> Table:
@@ -203,15 +229,17 @@ def _h5_table(path: Path, raw: bytes) -> Table:
         vals = df.to_numpy(dtype=np.float64)
     except (TypeError, ValueError):
         raise InputError(str(path), "a value is not a number") from None
-    return names, cols, frames, vals
+    return names, cols, frames, vals, np.arange(len(frames), dtype=np.int64), "row"
 
 
 def _frame_of(where: str, index: list[str]) -> int:
     """The frame of a row: its integer index, or the number in an image file name
     (``labeled-data/video/img0042.png``)."""
     text = index[-1].strip() if index else ""
-    if re.fullmatch(r"\d+", text):
-        return int(text)
+    if re.fullmatch(r"[+-]?\d+(\.0*)?", text):  # an index (pandas may write 3.0)
+        if text.startswith("-"):
+            raise InputError(where, f"negative frame index {text!r}")
+        return int(float(text))
     m = re.findall(r"(\d+)", Path(text).stem)
     if not m:
         raise InputError(where, f"no frame number in {text!r}")
@@ -255,8 +283,8 @@ def scene_of(root: Path, files: dict[str, Path], calibration: tuple[Rig, float |
         if len(fr):
             rb.add_joint_block(JointBlock(f.frames[fr], np.full(len(fr), c, np.int64), ind.astype(np.int64),
                                           j.astype(np.int64), f.uv[fr, ind, j],
-                                          np.minimum(like[fr, ind, j], 1.0), np.zeros(len(fr), np.int64),
-                                          str(files[cam])))
+                                          np.minimum(like[fr, ind, j], 1.0), f.lines[fr],
+                                          str(files[cam]), f.unit))
     obs = rb.build()
     if len(obs) == 0:
         raise InputError(str(root), "no body part found in any DeepLabCut file")
