@@ -32,7 +32,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.jointmap import read_joint_map
 from gt3dkit.io.results import Result, read_result
-from gt3dkit.jsondoc import json_at, json_obj
+from gt3dkit.jsondoc import json_at, json_obj, json_str
 from gt3dkit.skeletons import skeleton_of
 from gt3dkit.types import F64, I64, JsonDict
 from gt3dkit.viz.overview import colour_of
@@ -148,11 +148,13 @@ def write_trc(res: Result, folder: Path) -> JsonDict:
 
 def write_anipose(res: Result, folder: Path) -> JsonDict:
     """anipose's ``points3d`` CSV (``anipose triangulate``'s output, which its downstream tools
-    read): a row per frame, per joint ``{joint}_x, _y, _z`` (m), ``_error`` (empty: the run keeps
-    no per-joint reprojection), ``_ncams`` (the cameras that saw the object in that frame;
-    empty where the run wrote none), ``_score`` (1 where estimated, 0 where not), then ``M_00 ..
-    M_22`` (the identity: the world is gt3dkit's), ``center_0 .. 2`` (0) and ``fnum``; one file
-    per id (``points3d.csv`` for one)."""
+    read): a row per frame, per joint ``{joint}_x, _y, _z``, ``_error`` (empty: the run keeps no
+    per-joint reprojection), ``_ncams`` (the cameras that saw the object in that frame; empty
+    where the run wrote none), ``_score`` (1 where estimated, 0 where not), then ``M_00 .. M_22``
+    (the identity: the world is gt3dkit's), ``center_0 .. 2`` (0) and ``fnum``; one file per id
+    (``points3d.csv`` for one). The positions are in the units of the calibration the run read:
+    millimetres or centimetres where it was given with ``--calib-units`` (as anipose's own
+    triangulation writes them beside that ``calibration.toml``), else metres."""
     tr = res.tracks
     if not tr.kpt_world.shape[1]:
         raise InputError("--format", "anipose's points3d holds joints: this run has none")
@@ -162,6 +164,9 @@ def write_anipose(res: Result, folder: Path) -> JsonDict:
     t = np.searchsorted(grid, tr.frame)
     views[np.searchsorted(np.array(ids), tr.track_id), t] = tr.n_views
     joints = list(res.marker_names)
+    given = json_str(res.meta, "input", "load", "calib_units")
+    units = given if given in ("mm", "cm") else "m"
+    X = X * {"m": 1.0, "cm": 100.0, "mm": 1000.0}[units]
     files = []
     for k, i in enumerate(ids):
         cols = [m for m, o in enumerate(owner) if o == i]
@@ -181,7 +186,8 @@ def write_anipose(res: Result, folder: Path) -> JsonDict:
         name = "points3d.csv" if len(ids) == 1 else f"points3d_id{i}.csv"
         (folder / name).write_text("\n".join(lines) + "\n")
         files.append(name)
-    return {"files": files, "units": "m", "world": "gt3dkit's (M the identity, center 0)",
+    where = "" if units == "m" else f", in the calibration's own units (--calib-units {units})"
+    return {"files": files, "units": units, "world": f"gt3dkit's (M the identity, center 0){where}",
             "note": "_error is left empty (gt3dkit keeps each joint's sd in keypoints.csv, not a "
                     "reprojection error); _ncams counts the cameras that saw the animal in that frame"}
 

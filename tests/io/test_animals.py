@@ -527,6 +527,27 @@ def test_a_skeleton_file_is_simulated_and_reconstructed(tmp_path: Path, capsys: 
     assert code == 2 and "[pose]" in err and err.count("\n") == 1, err
 
 
+def test_anipose_points3d_export_is_in_the_units_of_the_calibration_read(tmp_path: Path,
+                                                                        capsys: pytest.CaptureFixture[str]
+                                                                        ) -> None:
+    """An anipose calibration in millimetres, read with --calib-units mm: the export writes the
+    joints in millimetres, as anipose's own points3d beside that calibration (it wrote metres)."""
+    pd = pytest.importorskip("pandas")
+    sk = simulate_skeletons("native", seed=4, frames=6, people=1, cameras=4, noise_px=1.0, skeleton="coco17")
+    _write_sleap(sk, tmp_path / "sleap")
+    toml_fmt.write(sk.rig.in_metres(1000.0), tmp_path / "sleap" / "calibration.toml")  # the rig in mm
+    code, _, err = _run("reconstruct", str(tmp_path / "sleap"), "--out", str(tmp_path / "out"),
+                        "--calib-units", "mm", "--quiet", capsys=capsys)
+    assert code == 0, err
+    code, out, err = _run("export", str(tmp_path / "out"), "--format", "anipose", capsys=capsys)
+    assert code == 0 and "(mm; " in out and "--calib-units mm" in out, out + err
+    df = pd.read_csv(tmp_path / "out" / "export_anipose" / "points3d.csv")
+    row = pd.read_csv(tmp_path / "out" / "keypoints.csv").query("joint == 5").iloc[0]  # metres
+    got = df[df.fnum == row.frame].iloc[0]
+    np.testing.assert_allclose([got.l_shoulder_x, got.l_shoulder_y, got.l_shoulder_z],
+                               1000.0 * np.array([row.x, row.y, row.z]), atol=1e-3)
+
+
 def test_anipose_points3d_export_holds_the_joints_as_anipose_names_them(tmp_path: Path,
                                                                           capsys: pytest.CaptureFixture[str]
                                                                           ) -> None:
