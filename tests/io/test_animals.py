@@ -527,6 +527,24 @@ def test_a_skeleton_file_is_simulated_and_reconstructed(tmp_path: Path, capsys: 
     assert code == 2 and "[pose]" in err and err.count("\n") == 1, err
 
 
+def test_a_second_calibration_beside_the_labels_is_said_and_a_board_file_is_none(tmp_path: Path) -> None:
+    """anipose keeps its board in a ``board.toml`` (keys, no table): not a calibration. A second
+    calibration beside the first (an older one kept) was passed over in silence."""
+    sk = simulate_skeletons("native", seed=5, frames=4, people=1, cameras=3, skeleton="coco17")
+    _write_sleap(sk, tmp_path / "sleap")
+    (tmp_path / "sleap" / "board.toml").write_text("board_x = 8\nboard_y = 11\nsquare_length = 24.0\n")
+    assert not [w for w in load_scene(tmp_path / "sleap").warnings if "calibrations" in w]
+    folder = tmp_path / "sleap"
+    (folder / "calibration_old.toml").write_bytes((folder / "calibration.toml").read_bytes())
+    said = [w for w in load_scene(tmp_path / "sleap").warnings if "calibrations" in w]
+    assert said == ["2 calibrations beside the annotations (calibration.toml, calibration_old.toml): read "
+                    "calibration.toml (--calib chooses one)"]
+    (tmp_path / "sleap" / "calibration.toml").unlink()
+    (tmp_path / "sleap" / "calibration_old.toml").unlink()
+    with pytest.raises(InputError, match="no calibration beside the annotations"):
+        load_scene(tmp_path / "sleap")  # the board is not read as the cameras
+
+
 def test_anipose_points3d_export_is_in_the_units_of_the_calibration_read(tmp_path: Path,
                                                                         capsys: pytest.CaptureFixture[str]
                                                                         ) -> None:

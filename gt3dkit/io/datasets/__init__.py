@@ -172,8 +172,26 @@ def read_scene(root: Path | str, layout: str | None = None, skeleton: str | None
     scene = LAYOUTS[layout].read(Path(root), ReadOptions(skeleton, path, fps, panoptic_options, span, ahead))
     if len(scene.obs) == 0 and span is None:
         raise InputError(str(root), "no annotations in any frame")
+    if path is None and layout in CALIBRATION_BESIDE:
+        scene = _other_calibrations_said(scene, Path(root))
     scene = _as_asked(scene, root, layout, skeleton, fps, path, association, panoptic_options)
     return in_metres(scene, units)
+
+
+#: the layouts whose calibration is found beside the annotations (:func:`mot.find_calibration`)
+CALIBRATION_BESIDE = ("mot", "openpose", "cvat", "coco", "anipose", "sleap", "dlc")
+
+
+def _other_calibrations_said(scene: Scene, root: Path) -> Scene:
+    """``scene`` with a warning where more than one calibration lies beside its annotations (an
+    older ``calibration_old.toml`` kept beside the new one): the first was read, silently."""
+    found = mot.calibration_candidates(root)
+    if len(found) < 2:
+        return scene
+    names = ", ".join(p.name for p in found)
+    return dataclasses.replace(scene, warnings=(*scene.warnings, (
+        f"{len(found)} calibrations beside the annotations ({names}): read {found[0].name} "
+        "(--calib chooses one)")))
 
 
 def index_scene(root: Path | str, layout: str | None = None, fps: float | None = None,

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import re
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -47,18 +48,40 @@ def natural_key(s: str) -> list[object]:
     return [int(p) if p.isdigit() else p.lower() for p in re.split(r"(\d+)", s)]
 
 
-def find_calibration(root: Path) -> Path | None:
+def calibration_candidates(root: Path) -> list[Path]:
+    """Every calibration beside the annotations in ``root`` that a format reads, in the order one
+    is taken: ``cameras.json``, ``calibration/``, the ``*.toml`` (``calibration*.toml`` first; not
+    Pose2Sim's ``Config.toml``, nor a TOML of no table, such as anipose's ``board.toml``),
+    ``sparse/``."""
     tomls = [p for p in sorted(root.glob("*.toml")) if p.name.lower() != "config.toml"]  # not Pose2Sim's
     tomls.sort(key=lambda p: not p.stem.lower().startswith("calib"))  # anipose's calibration.toml first
-    cands = [root / "cameras.json", root / "calibration", *tomls, root / "sparse"]
-    for p in cands:
-        if p.exists():
+    out = []
+    for p in [root / "cameras.json", root / "calibration", *tomls, root / "sparse"]:
+        if p.exists() and not (p.suffix.lower() == ".toml" and _flat_toml(p)):
             try:
                 detect_format(p)
-                return p
             except InputError:
                 continue
-    return None
+            out.append(p)
+    return out
+
+
+def _flat_toml(path: Path) -> bool:
+    """A TOML file of keys without a table (anipose's ``board.toml``: a board, not cameras; a
+    calibration holds a table per camera). One that does not parse is not called flat: read as
+    the calibration, its error names it."""
+    try:
+        with open(path, "rb") as f:
+            doc = tomllib.load(f)
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError):
+        return False
+    return not any(isinstance(v, dict) for v in doc.values())
+
+
+def find_calibration(root: Path) -> Path | None:
+    """The first of :func:`calibration_candidates` (None: none)."""
+    found = calibration_candidates(root)
+    return found[0] if found else None
 
 
 def calibration_beside(root: Path, calib: Path | str | None) -> tuple[Rig, float | None, Path]:
