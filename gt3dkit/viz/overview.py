@@ -1,7 +1,8 @@
 """The 3D overview of a reconstruction: cameras as frusta with their names, the ground grid
 (1 m cells), every object's ellipsoid (and skeleton) at one frame and every track's path,
 rendered by open3d (:mod:`gt3dkit.viz.render3d`); names and the legend are drawn on top with
-matplotlib at the pixels where the same pinhole projects them."""
+matplotlib at the pixels where the same pinhole projects them. Drawn to the objects' scale
+(:func:`grid_cell_m`): a mouse's joints are not 5 cm balls on a grid of metres."""
 
 from __future__ import annotations
 
@@ -29,6 +30,29 @@ def colour_of(i: int) -> tuple[float, float, float]:
     return r, g, b
 
 
+def object_size_m(tracks: TrackSet) -> float:
+    """The objects' typical size (m): the median over rows of a skeleton's extent (its joints'
+    largest distance from their middle, twice), else of an ellipsoid's largest diameter; 1.7
+    (a person) where there is none."""
+    if tracks.kpt_world.shape[1]:
+        ok = np.asarray(np.isfinite(tracks.kpt_world).all(axis=-1), dtype=bool)  # (R, J)
+        rows = np.asarray(ok.sum(axis=1) >= 2, dtype=bool)
+        X, ok = tracks.kpt_world[rows], ok[rows]
+        mid = np.where(ok[..., None], X, 0.0).sum(axis=1) / ok.sum(axis=1)[:, None]
+        ext = 2.0 * np.where(ok, np.linalg.norm(np.where(ok[..., None], X, 0.0) - mid[:, None], axis=-1),
+                             0.0).max(axis=1)
+    else:
+        ext = 2.0 * np.max(tracks.semi_axes, axis=1) if len(tracks.semi_axes) else np.zeros(0)
+    ext = ext[np.isfinite(ext) & (ext > 0)]
+    return float(np.median(ext)) if len(ext) else 1.7
+
+
+def grid_cell_m(size_m: float) -> float:
+    """The floor grid's cell (m) for objects of ``size_m``: 1 m for people and anything larger,
+    the power of ten at or below the size for smaller ones (0.1 m under a mouse)."""
+    return float(min(1.0, 10.0 ** np.floor(np.log10(max(size_m, 1e-3)))))
+
+
 def _frustum(cam: Camera, depth_m: float) -> tuple[F64, list[tuple[int, int]]]:
     Kinv = np.linalg.inv(cam.K)
     corners = [(0, 0), (cam.width, 0), (cam.width, cam.height), (0, cam.height)]
@@ -50,17 +74,19 @@ def overview_drawing(scene: Scene, tracks: TrackSet, frame: int, tracks_b: Track
     lo_t, hi_t = (P.min(axis=0), P.max(axis=0)) if len(P) else (cams.min(axis=0), cams.max(axis=0))
     lo, hi = np.minimum(lo_t, cams.min(axis=0)), np.maximum(hi_t, cams.max(axis=0))
     centre_all = (lo + hi) / 2
-    size = max(float(np.linalg.norm(hi - lo)), 1.0)
+    cell = grid_cell_m(object_size_m(tracks))
+    size = max(float(np.linalg.norm(hi - lo)), cell)
     d = Drawing()
-    # grid on the floor (height 0 along up) under the tracks, whole metres, 1 m cells
+    # grid on the floor (height 0 along up) under the tracks, whole cells (1 m for people)
     x_ax, y_ax = wfb[:, 0], wfb[:, 1]
-    area_lo = np.floor([min(lo_t @ x_ax, hi_t @ x_ax), min(lo_t @ y_ax, hi_t @ y_ax)]) - 1
-    area_hi = np.ceil([max(lo_t @ x_ax, hi_t @ x_ax), max(lo_t @ y_ax, hi_t @ y_ax)]) + 1
+    ends = np.array([[lo_t @ x_ax, hi_t @ x_ax], [lo_t @ y_ax, hi_t @ y_ax]]) / cell  # in cells
+    area_lo = (np.floor(ends.min(axis=1)) - 1) * cell
+    area_hi = (np.ceil(ends.max(axis=1)) + 1) * cell
     pts, segs = [], []
-    for a in np.arange(area_lo[0], area_hi[0] + 1):
+    for a in np.arange(area_lo[0], area_hi[0] + cell / 2, cell):
         pts += [a * x_ax + area_lo[1] * y_ax, a * x_ax + area_hi[1] * y_ax]
         segs.append((len(pts) - 2, len(pts) - 1))
-    for b in np.arange(area_lo[1], area_hi[1] + 1):
+    for b in np.arange(area_lo[1], area_hi[1] + cell / 2, cell):
         pts += [area_lo[0] * x_ax + b * y_ax, area_hi[0] * x_ax + b * y_ax]
         segs.append((len(pts) - 2, len(pts) - 1))
     d.add_lines(np.array(pts), segs, GRID_COLOUR)
@@ -83,22 +109,22 @@ def overview_drawing(scene: Scene, tracks: TrackSet, frame: int, tracks_b: Track
                      if np.isfinite(X[a]).all() and np.isfinite(X[b]).all()]
             d.add_lines(np.nan_to_num(X), bones, col)
             for x in X[np.isfinite(X).all(axis=1)]:  # joints as small balls
-                d.add_mesh(V * 0.025 + x, F, col)
+                d.add_mesh(V * 0.025 * cell + x, F, col)
             continue
         d.add_mesh((V * tracks.semi_axes[k]) @ wfb.T + tracks.center_world[k], F, col)
     # the eye: behind the scene's -y side (body frame), raised, looking at the tracks' middle
     centre = (lo_t + hi_t) / 2 if len(P) else centre_all
-    span = max(float(np.linalg.norm(hi_t - lo_t)), 1.0) if len(P) else size
+    span = max(float(np.linalg.norm(hi_t - lo_t)), cell) if len(P) else size
     if close_up:
         now = tracks.center_world[(tracks.frame == frame) & fin]
         if len(now):
             centre = now.mean(axis=0)
-            span = max(float(np.linalg.norm(now.max(axis=0) - now.min(axis=0))), 2.0)
+            span = max(float(np.linalg.norm(now.max(axis=0) - now.min(axis=0))), 2.0 * cell)
     back = centre - y_ax * (0.9 * span) + up * (0.6 * span)
     view = View(eye=back, centre=centre, up=up)
     # move back until every camera is in the picture with room for its name, and the top band
-    # for the caption (or the distance has doubled 3 times)
-    for _ in range(0 if close_up else 4):
+    # for the caption (or the distance has grown 1.6^8 = 43 times)
+    for _ in range(0 if close_up else 8):
         uv = view.project(cams)
         edge, right, top = CAMERA_ROOM_PX
         if np.isfinite(uv).all() and (uv[:, 0] >= edge).all() and (uv[:, 0] < view.width - right).all() \
@@ -158,12 +184,13 @@ def _captioned(img: np.ndarray, view: View, cams: F64, scene: Scene, tracks: Tra
             ax.text(u + 6, v - 6, c.name, fontsize=11, color="black",
                     bbox={"facecolor": "white", "alpha": 0.75, "edgecolor": "none", "pad": 1})
     at = tracks.frame == frame
+    cell = grid_cell_m(object_size_m(tracks))
     for k in np.flatnonzero(at & np.isfinite(tracks.center_world).all(axis=1)):
-        top = tracks.center_world[k] + scene.rig.up * (tracks.semi_axes[k, 2] + 0.15)
+        top = tracks.center_world[k] + scene.rig.up * (tracks.semi_axes[k, 2] + 0.15 * cell)
         X = tracks.kpt_world[k] if tracks.kpt_world.shape[1] else np.zeros((0, 3))
         X = X[np.isfinite(X).all(axis=1)]
         if len(X):  # above the highest joint
-            top = X[np.argmax(X @ scene.rig.up)] + 0.15 * scene.rig.up
+            top = X[np.argmax(X @ scene.rig.up)] + 0.15 * cell * scene.rig.up
         (u, v), = view.project(top[None])
         if np.isfinite(u) and 0 <= u < view.width and 0 <= v < view.height:
             ax.text(u, v, str(int(tracks.track_id[k])), fontsize=9, ha="center", va="bottom",
@@ -172,7 +199,7 @@ def _captioned(img: np.ndarray, view: View, cams: F64, scene: Scene, tracks: Tra
     ax.text(u0 + 12, v0 + 8, (title + "\n" if title else "") +
             f"frame {frame}: {int(at.sum())} {what} (labels: ids); coloured lines: every track's path"
             + ("; black: the other estimator's" if tracks_b is not None else "")
-            + "; grid: 1 m cells on the floor", fontsize=12, va="top",
+            + f"; grid: {cell:g} m cells on the floor", fontsize=12, va="top",
             bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"})
     fig.savefig(path)
     plt.close(fig)
