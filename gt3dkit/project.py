@@ -28,7 +28,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.geom.camera import Cams, project_points
 from gt3dkit.geom.conics import covered_fraction, model_boxes
 from gt3dkit.io.atomic import write_dir_atomically
-from gt3dkit.io.datasets.native import write_cameras
+from gt3dkit.io.datasets.native import SKELETON_FILE, write_cameras
 from gt3dkit.io.labels import (
     LABEL_FORMATS,
     LABEL_WRITERS,
@@ -39,9 +39,10 @@ from gt3dkit.io.labels import (
     piece_track_ids,
     write_association,
 )
+from gt3dkit.io.skeletonfile import write_skeleton
 from gt3dkit.io.writers import read_segments_csv
 from gt3dkit.jsondoc import json_num
-from gt3dkit.skeletons import skeleton_of
+from gt3dkit.skeletons import SKELETONS, skeleton_of
 from gt3dkit.types import F64, I64, JsonDict, Scene, TrackSet
 
 OCCLUDED_ABOVE = 0.5  # covered fraction above which a shape is ``occluded`` (CVAT's meaning)
@@ -238,6 +239,8 @@ def project(out: Path, fmt: str, dest: Path, step: int | None = None,
     def write(tmp: Path) -> None:
         write_cameras(scene.rig, scene.fps, tmp)
         write_association(shapes, scene.rig, tmp / "association.csv")
+        if skel is not None and skel.name not in SKELETONS:  # read back with the labels (no built-in)
+            write_skeleton(skel, tmp / SKELETON_FILE)
         LABEL_WRITERS[fmt].write(shapes, scene.rig, joints, bones, tmp / fmt)
         doc = {**summary, "pieces": [{"track_id": a, "id": b, "segment": c} for a, b, c in pieces]}
         (tmp / "projection.json").write_text(json.dumps(doc, indent=1))

@@ -230,7 +230,8 @@ def skeleton_for_names(names: list[str]) -> tuple[Skeleton, list[int]]:
             return sk, [sk.joints.index(j) for j in ours]
     best = max(SKELETONS.values(), key=lambda s: len(set(ours) & set(s.joints)))
     missing = [n for n, o in zip(names, ours, strict=True) if o not in best.joints]
-    raise ValueError(f"no known skeleton has the joints {missing} (closest: {best.name})")
+    raise ValueError(f"no known skeleton has the joints {missing} (closest: {best.name}): describe yours in "
+                     "a skeleton file and pass --skeleton FILE (gt3d skeleton NAME --write FILE starts one)")
 
 
 def skeleton_of(scene: Scene) -> Skeleton | None:

@@ -501,6 +501,45 @@ def test_a_broken_deeplabcut_file_is_one_line_naming_it(tmp_path: Path, capsys: 
 MOUSE = (files("gt3dkit") / "data" / "skeletons" / "mouse.toml").read_text()
 
 
+def test_labels_projected_from_a_run_of_a_skeleton_file_are_read_back(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """gt3d project of a run whose skeleton is a file (an animal's, joints spelt as its labelling
+    tool spells them) writes that file beside the labels, and gt3d reconstruct reads them back
+    (it said that no known skeleton had those joints); a CVAT folder read with --skeleton FILE
+    matches a label's name as the file spells it (it matched only the normalised spelling)."""
+    (tmp_path / "mouse.toml").write_text(MOUSE)
+    doc = read_skeleton(tmp_path / "mouse.toml").doc()
+    spelt = {j: j.capitalize().replace("_l", "_L").replace("_r", "_R") for j in doc["joints"]}  # Ear_L
+
+    def renamed(x: object) -> object:
+        if isinstance(x, str):
+            return spelt.get(x, x)
+        if isinstance(x, list):
+            return [renamed(v) for v in x]
+        return {spelt.get(k, k): v for k, v in x.items()} if isinstance(x, dict) else x
+
+    path = tmp_path / "Mouse.toml"
+    write_skeleton(skeleton_from_doc({**{k: renamed(v) for k, v in doc.items()}, "name": "Mouse"}, "Mouse"),
+                   path)
+    assert "Ear_L" in read_skeleton(path).joints
+    sk = simulate_skeletons("native", seed=4, frames=10, people=1, cameras=4, noise_px=1.0,
+                            skeleton=str(path))
+    write_skeleton_scene(sk, tmp_path / "in", "native")
+    reconstruct(load_scene(tmp_path / "in"), "ukf", out=tmp_path / "out")
+    code, _, err = _run("project", str(tmp_path / "out"), "--format", "cvat", "--to", str(tmp_path / "cvat"),
+                        capsys=capsys)
+    assert code == 0 and (tmp_path / "cvat" / "skeleton.toml").is_file(), err
+    ids = str(tmp_path / "cvat" / "association.csv")
+    back = load_scene(tmp_path / "cvat", association=ids)
+    assert back.skeleton == "Mouse" and back.skeleton_doc is not None
+    assert np.isfinite(reconstruct(back, "ukf").kpt_world).all()
+    (tmp_path / "cvat" / "skeleton.toml").rename(tmp_path / "elsewhere.toml")
+    with pytest.raises(InputError, match="pass --skeleton FILE"):
+        load_scene(tmp_path / "cvat", association=ids)
+    assert load_scene(tmp_path / "cvat", skeleton=str(tmp_path / "elsewhere.toml"),
+                      association=ids).skeleton == "Mouse"
+
+
 def test_a_skeleton_file_is_simulated_and_reconstructed(tmp_path: Path, capsys: pytest.CaptureFixture[str]
                                                         ) -> None:
     """Mice from a skeleton file with a pose: simulated (the bones swinging, their lengths exact),

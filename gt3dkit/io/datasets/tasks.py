@@ -44,7 +44,7 @@ from gt3dkit.io import labels
 from gt3dkit.io.datasets.checks import check_pixels
 from gt3dkit.io.datasets.common import RowBuilder, camera_ids, camera_track_ids, sim_box_labels
 from gt3dkit.io.datasets.mot import DEFAULT_FPS, calibration_beside, match_cameras, natural_key
-from gt3dkit.io.datasets.native import read_kpt_truth_hashed, write_cameras, write_kpt_truth
+from gt3dkit.io.datasets.native import SKELETON_FILE, read_kpt_truth_hashed, write_cameras, write_kpt_truth
 from gt3dkit.io.datasets.wildtrack import read_truth_csv
 from gt3dkit.io.labels import Shapes, shape_digest
 from gt3dkit.io.skeletonfile import given_skeleton
@@ -229,6 +229,8 @@ def load(root: Path, kind: str, skeleton: str | None = None, calib: Path | str |
     items = {p: (_read_cvat(p, raw, warnings) if kind == "cvat" else _read_coco(p, raw))
              for p, (raw, _) in read.items()}
     names = sorted({n for its in items.values() for it in its for n in it[4]})
+    if skeleton is None and (root / SKELETON_FILE).is_file():  # beside the labels (gt3d project writes one)
+        skeleton = str(root / SKELETON_FILE)
     skel = None
     doc = None
     index: dict[str, int] = {}
@@ -241,11 +243,12 @@ def load(root: Path, kind: str, skeleton: str | None = None, calib: Path | str |
         except ValueError as e:
             raise InputError(str(root / kind), str(e)) from None
         if skeleton is not None:
-            ours = [_norm_joint(n) for n in names]
-            bad = [n for n, o in zip(names, ours, strict=True) if o not in skel.joints]
+            # a label's name as the skeleton spells it, else in any usual spelling (LEye, l_eye)
+            spelt = {_norm_joint(j): k for k, j in enumerate(skel.joints)}
+            idx = [skel.joints.index(n) if n in skel.joints else spelt.get(_norm_joint(n), -1) for n in names]
+            bad = [n for n, k in zip(names, idx, strict=True) if k < 0]
             if bad:
                 raise InputError("--skeleton", f"{skeleton} has no joints {bad}")
-            idx = [skel.joints.index(o) for o in ours]
         index = dict(zip(names, idx, strict=True))
     with_ids = all(it[1] >= 0 for its in items.values() for it in its)
     rb = RowBuilder(n_joints=skel.n_joints if skel else 0)
