@@ -184,7 +184,9 @@ def read_board(path_or_spec: str, units: str = "mm") -> Board:
         return board_from_spec(path_or_spec, units)
     doc = load_toml(path)
     try:
-        board = _board_of_doc(doc, UNITS_M[units])
+        board = _board_of_doc(doc, UNITS_M[units], str(path))
+    except InputError:
+        raise
     except (KeyError, TypeError, ValueError) as e:
         raise InputError(str(path), f"not a board description ({e})") from None
     if board is None:
@@ -197,42 +199,68 @@ def read_board(path_or_spec: str, units: str = "mm") -> Board:
     return board
 
 
-def _board_of_doc(doc: dict[str, Any], scale: float) -> Board | None:
+_NONE = object()
+
+
+def _value(d: dict[str, Any], key: str, kind: type, where: str, default: Any = _NONE) -> Any:
+    """``d[key]`` as an ``int`` or a ``float`` (``kind``), else an :class:`InputError` naming
+    ``where: key``; ``default`` where the key is absent (else missing is an error too)."""
+    if key not in d:
+        if default is _NONE:
+            raise InputError(f"{where}: {key}", "missing")
+        return default
+    v = d[key]
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or (kind is int and float(v) != int(v)):
+        what = "an integer" if kind is int else "a number"
+        raise InputError(f"{where}: {key}", f"expected {what}, got {v!r}")
+    return kind(v)
+
+
+def _board_of_doc(doc: dict[str, Any], scale: float, where: str) -> Board | None:
     if "board_x" in doc:  # sleap-anipose's board.toml
         kind: BoardKind = "charuco" if doc.get("marker_length") else "checkerboard"
         return Board(
             kind,
-            int(doc["board_x"]),
-            int(doc["board_y"]),
-            float(doc["square_length"]) * scale,
-            float(doc.get("marker_length", 0.0)) * scale,
-            _dict_name(int(doc.get("marker_bits", 4)), int(doc.get("dict_size", 50))),
+            _value(doc, "board_x", int, where),
+            _value(doc, "board_y", int, where),
+            _value(doc, "square_length", float, where) * scale,
+            _value(doc, "marker_length", float, where, 0.0) * scale,
+            _dict_name(_value(doc, "marker_bits", int, where, 4), _value(doc, "dict_size", int, where, 50)),
         )
     cal = doc.get("calibration")
     if isinstance(cal, dict) and "board_size" in cal:  # anipose's config.toml
+        at = f"{where}: calibration"
         if cal.get("board_type", "charuco") not in ("charuco", "checkerboard", "checker"):
-            raise ValueError(f"board_type {cal['board_type']!r} (charuco or checkerboard)")
+            raise InputError(f"{at}: board_type", f"{cal['board_type']!r} (charuco or checkerboard)")
         kind = "checkerboard" if str(cal.get("board_type", "charuco")).startswith("checker") else "charuco"
-        sx, sy = (int(v) for v in cal["board_size"])
+        size = cal["board_size"]
+        if not isinstance(size, list) or len(size) != 2:
+            raise InputError(f"{at}: board_size", f"expected [squares x, squares y], got {size!r}")
+        sx, sy = (_value({"board_size": v}, "board_size", int, at) for v in size)
         return Board(
             kind,
             sx,
             sy,
-            float(cal["board_square_side_length"]) * scale,
-            float(cal.get("board_marker_length", 0.0)) * scale if kind == "charuco" else 0.0,
-            _dict_name(int(cal.get("board_marker_bits", 4)), int(cal.get("board_marker_dict_number", 50))),
+            _value(cal, "board_square_side_length", float, at) * scale,
+            _value(cal, "board_marker_length", float, at, 0.0) * scale if kind == "charuco" else 0.0,
+            _dict_name(_value(cal, "board_marker_bits", int, at, 4),
+                       _value(cal, "board_marker_dict_number", int, at, 50)),
         )
     intr = (cal or {}).get("calculate", {}).get("intrinsics") if isinstance(cal, dict) else None
     if isinstance(intr, dict) and "intrinsics_corners_nb" in intr:  # Pose2Sim's Config.toml
-        a, b = (int(v) for v in intr["intrinsics_corners_nb"])  # inner corners
-        marker = intr.get("intrinsics_marker_size")
+        at = f"{where}: calibration.calculate.intrinsics"
+        nb = intr["intrinsics_corners_nb"]
+        if not isinstance(nb, list) or len(nb) != 2:
+            raise InputError(f"{at}: intrinsics_corners_nb", f"expected [inner corners x, y], got {nb!r}")
+        a, b = (_value({"intrinsics_corners_nb": v}, "intrinsics_corners_nb", int, at) for v in nb)
+        marker = _value(intr, "intrinsics_marker_size", float, at, 0.0)
         kind = "charuco" if marker else "checkerboard"
         return Board(
             kind,
             a + 1,
             b + 1,
-            float(intr["intrinsics_square_size"]) * scale,
-            float(marker) * scale if marker else 0.0,
+            _value(intr, "intrinsics_square_size", float, at) * scale,
+            marker * scale,
             str(intr.get("intrinsics_aruco_dict", "DICT_6X6_250")),
         )
     return None

@@ -19,6 +19,7 @@ from gt3dkit.calib.boardcal import BoardConfig, calibrate_board
 from gt3dkit.calib.boardinput import board_views, find_cameras
 from gt3dkit.calib.formats import read_calibration
 from gt3dkit.calib.show import rig_warnings
+from gt3dkit.errors import InputError
 from gt3dkit.rig import Camera
 from gt3dkit.sim.board import board_scene
 
@@ -217,6 +218,24 @@ def test_board_descriptions(tmp_path: Path) -> None:
     # the corners are where OpenCV's ChArUco board puts them
     ref = b2 = Board("charuco", 8, 11, 0.024, 0.01875, "DICT_4X4_1000")
     assert np.allclose(ref.corners_board(), b2.opencv_board().getChessboardCorners())
+
+
+@pytest.mark.parametrize("text, entry, problem", [
+    ('board_x = 8\nboard_y = "x"\nsquare_length = 24.0\n', "board_y", "expected an integer, got 'x'"),
+    ("board_x = 8.5\nboard_y = 11\nsquare_length = 24.0\n", "board_x", "expected an integer, got 8.5"),
+    ("board_x = 8\nboard_y = 11\n", "square_length", "missing"),
+    ("[calibration]\nboard_size = [8]\nboard_square_side_length = 24\n", "calibration: board_size",
+     "expected [squares x, squares y], got [8]"),
+    ("[calibration.calculate.intrinsics]\nintrinsics_corners_nb = [4, 7]\nintrinsics_square_size = 'a'\n",
+     "calibration.calculate.intrinsics: intrinsics_square_size", "expected a number, got 'a'"),
+])
+def test_a_bad_board_description_names_its_entry(tmp_path: Path, text: str, entry: str, problem: str) -> None:
+    """(Was 'not a board description (invalid literal for int() with base 10: 'x')', or a board
+    of 8 squares read from 8.5.)"""
+    (tmp_path / "board.toml").write_text(text)
+    with pytest.raises(InputError) as e:
+        read_board(str(tmp_path / "board.toml"))
+    assert str(e.value) == f"{tmp_path / 'board.toml'}: {entry}: {problem}"
 
 
 def test_lens_model_that_turns_back_is_read_with_its_valid_radius() -> None:
