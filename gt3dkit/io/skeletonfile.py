@@ -26,6 +26,8 @@ def named_skeleton(name_or_file: str) -> Skeleton:
         return SKELETONS[name_or_file]
     shipped = shipped_skeletons()
     path = shipped.get(name_or_file, Path(name_or_file))
+    if path.suffix.lower() == ".toml" and not path.is_file():  # meant as a file
+        raise InputError(f"--skeleton: {name_or_file}", "no such file" if not path.exists() else "not a file")
     if path.suffix.lower() != ".toml" or not path.is_file():
         known = ", ".join([*SKELETONS, *shipped])
         raise InputError("--skeleton", f"unknown skeleton {name_or_file!r} (known: {known}; "

@@ -20,7 +20,7 @@ from gt3dkit.errors import InputError
 from gt3dkit.eval.pose import mpjpe_by_id
 from gt3dkit.io.datasets import Calibration, read_scene
 from gt3dkit.io.datasets.sleap import side_pairs
-from gt3dkit.io.skeletonfile import read_skeleton, write_skeleton
+from gt3dkit.io.skeletonfile import named_skeleton, read_skeleton, write_skeleton
 from gt3dkit.rig import Rig
 from gt3dkit.sim import simulate_skeletons, write_skeleton_scene
 from gt3dkit.skeletons import SKELETONS, skeleton_from_doc
@@ -109,6 +109,14 @@ def test_a_bad_skeleton_file_is_one_line_naming_the_entry(tmp_path: Path, capsys
     assert code == 2 and err.count("\n") == 1, err
     assert err.startswith(f"error: {bad}: {entry}: ") and problem in err, err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_skeleton_file_that_is_not_there_is_said_so(tmp_path: Path) -> None:
+    """(Was 'unknown skeleton 'x.toml' (known: ...)', as if it were a name.)"""
+    with pytest.raises(InputError, match=r"^--skeleton: .*nothere\.toml: no such file$"):
+        named_skeleton(str(tmp_path / "nothere.toml"))
+    with pytest.raises(InputError, match="unknown skeleton 'nosuch'"):
+        named_skeleton("nosuch")
 
 
 def test_a_skeleton_file_is_as_good_as_the_built_in_it_describes(tmp_path: Path) -> None:
