@@ -51,6 +51,24 @@ def camera_table(rig: Rig) -> list[CameraRow]:
     return out
 
 
+#: cameras further apart than this (the median over the pairs, in the calibration's units read as
+#: metres) are more likely a rig calibrated in millimetres or centimetres
+FAR_APART_M = 100.0
+
+
+def far_apart(rig: Rig) -> str | None:
+    """A warning where the cameras stand implausibly far apart for metres (None: they do not)."""
+    centres = np.array([c.center_world for c in rig.cameras]).reshape(-1, 3)
+    if len(centres) < 2:
+        return None
+    a, b = np.triu_indices(len(centres), 1)
+    apart = float(np.median(np.linalg.norm(centres[a] - centres[b], axis=-1)))
+    if not apart > FAR_APART_M:
+        return None
+    return (f"the cameras stand {apart:.0f} m apart (median over the pairs), the calibration read as "
+            "metres: is it in millimetres or centimetres? (--calib-units mm|cm)")
+
+
 def rig_warnings(rig: Rig) -> list[str]:
     w = []
     tab = camera_table(rig)

@@ -13,16 +13,17 @@ from pathlib import Path
 import numpy as np
 
 from gt3dkit.api import load_scene
-from gt3dkit.calib.board import read_board
+from gt3dkit.calib.board import UNITS_M, read_board
 from gt3dkit.calib.boardcal import BoardConfig, calibrate_board, identity_poses
 from gt3dkit.calib.boardinput import board_views, find_cameras
 from gt3dkit.calib.formats import detect_format, read_calibration, write_calibration
 from gt3dkit.calib.formats.native import write as write_native
-from gt3dkit.calib.show import camera_table, rig_warnings
+from gt3dkit.calib.show import camera_table, far_apart, rig_warnings
 from gt3dkit.commands.common import check_output, detections_input, load_input, people_rig, print_clocks
 from gt3dkit.commands.printing import fmt_num, print_warnings
 from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import check_out, write_dir_atomically
+from gt3dkit.io.datasets import Calibration
 from gt3dkit.io.writers import write_refined_calibration
 from gt3dkit.jsondoc import json_at, json_list, json_num, json_obj, json_str
 from gt3dkit.refine import RefineConfig, refine, scene_warnings
@@ -36,18 +37,22 @@ from gt3dkit.viz.boardreport import write_board_report
 def cmd_calib_show(args: argparse.Namespace) -> int:
 
     scene = None
+    units = args.calib_units or "m"
+    alone: list[str] = []  # a calibration file's own warnings (an input's are the scene's)
     try:
-        scene = load_scene(Path(args.input))
+        scene = load_scene(Path(args.input), calib=Calibration(None, units) if units != "m" else None)
         rig = scene.rig
         what = f"{scene.layout} input {args.input}"
     except InputError:
         if Path(args.input).is_dir() and (Path(args.input) / "cameras.json").exists():
             raise  # an input folder with a problem: say it
-        rig = read_calibration(Path(args.input))
+        rig = read_calibration(Path(args.input)).in_metres(UNITS_M[units])
         fmt = detect_format(Path(args.input))
-        what = f"{fmt} calibration {args.input}"
+        what = f"{fmt} calibration {args.input}" + (f" (in {units}, shown in metres)" if units != "m" else "")
         if fmt in ("opencv", "toml", "colmap"):
             what += " (the format has no up vector: +z assumed)"
+        said = far_apart(rig) if units == "m" else None
+        alone = [said] if said else []
     print(f"{what}: {len(rig.cameras)} cameras, up {np.round(rig.up, 4).tolist()}")
     head = (f"{'camera':<12}{'centre x':>9}{'y':>8}{'z':>8}{'height':>8}{'tilt°':>7}"
             f"{'fx':>8}{'fy':>8}{'cx':>7}{'cy':>7}{'lens':>8}{'k1':>8}{'k2':>8}{'size':>11}")
@@ -59,7 +64,7 @@ def cmd_calib_show(args: argparse.Namespace) -> int:
         print(f"{t.camera:<12}{x:>9.3f}{y:>8.3f}{z:>8.3f}{t.height_m:>8.3f}{t.tilt_deg:>7.1f}"
               f"{t.fx_px:>8.1f}{t.fy_px:>8.1f}{t.cx_px:>7.1f}{t.cy_px:>7.1f}{t.lens:>8}"
               f"{d[0]:>8.4f}{d[1]:>8.4f}{t.size[0]:>6}x{t.size[1]:<4}")
-    warns = rig_warnings(rig) + (scene_warnings(scene) if scene is not None else [])
+    warns = alone + rig_warnings(rig) + (scene_warnings(scene) if scene is not None else [])
     if scene is not None:
         print_warnings(scene)
     for w in warns:

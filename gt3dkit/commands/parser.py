@@ -65,9 +65,7 @@ def _scene_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--calib", help="calibration file or folder in any format (cameras.json, WILDTRACK/"
                    "MultiviewX calibrations/, OpenCV .yml/.xml, Anipose .toml, COLMAP) for the input's own; "
                    "reconstruct: 'people' finds the poses from the people first (see gt3d calib people)")
-    p.add_argument("--calib-units", choices=("m", "cm", "mm"),
-                   help="the calibration's unit of length where its format does not say it (Anipose's "
-                        "calibration.toml holds its board's units; default m): the world is made metres")
+    _calib_units(p)
     p.add_argument("--time-offsets", metavar="auto|FILE", help="cameras whose clocks disagree: each "
                    "camera's frames late (and frame rate) from a time_offsets.csv (as gt3d calib people "
                    "--clocks writes), or auto: found from the people; the UKF takes each view at its "
@@ -201,6 +199,12 @@ def _add_evaluate(sub: argparse._SubParsersAction[Parser], common: Parser) -> No
     e.set_defaults(func=cmd_evaluate)
 
 
+def _calib_units(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--calib-units", choices=("m", "cm", "mm"),
+                   help="the calibration's unit of length where its format does not say it (Anipose's "
+                        "calibration.toml holds its board's units; default m): the world is made metres")
+
+
 def _rig_output_options(p: argparse.ArgumentParser) -> None:
     """How a rig found from the annotations is written (``--format``) and its input read."""
     p.add_argument("--format", choices=WRITABLE, default=None,
@@ -210,6 +214,7 @@ def _rig_output_options(p: argparse.ArgumentParser) -> None:
                    help="a built-in skeleton, one shipped as a file, or a skeleton file (.toml); a rig "
                         "from people reads up and the floor from its up and floor joints")
     p.add_argument("--fps", type=FPS)
+    _calib_units(p)
     _panoptic_options(p)
 
 
@@ -221,6 +226,7 @@ def _add_calib(sub: argparse._SubParsersAction[Parser], common: Parser) -> None:
                          help="a table per camera and warnings for common calibration mistakes")
     ks.add_argument("input", help="an input folder (checked with its annotations) or a calibration "
                                   "file or folder in any format")
+    _calib_units(ks)
     ks.set_defaults(func=cmd_calib_show)
     kr = ksub.add_parser("refine", parents=[common],
                          help="refine the rig from the annotations (validated on held-out frames)")

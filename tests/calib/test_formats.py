@@ -299,6 +299,31 @@ def test_calib_cli(skel_scene, tmp_path, capsys) -> None:
     assert a == (tmp_path / "b" / "keypoints.csv").read_text()
 
 
+def test_calib_commands_take_the_calibrations_units(skel_scene, tmp_path, capsys) -> None:
+    """An anipose calibration in millimetres: gt3d calib show, refine and people take
+    --calib-units as reconstruct does (they had no such option: refine worked in a world 1000x
+    too large), and show says when a file's cameras stand too far apart for metres."""
+    from gt3dkit.calib.formats import toml as toml_fmt
+    from gt3dkit.cli import main
+
+    toml_fmt.write(skel_scene.rig.in_metres(1000.0), tmp_path / "calibration.toml")  # the rig in mm
+    capsys.readouterr()
+    assert main(["calib", "show", str(tmp_path / "calibration.toml")]) == 0
+    got = capsys.readouterr()
+    assert "m apart (median over the pairs), the calibration read as metres" in got.err
+    assert main(["calib", "show", str(tmp_path / "calibration.toml"), "--calib-units", "mm"]) == 0
+    got = capsys.readouterr()
+    assert "(in mm, shown in metres)" in got.out and "apart (median" not in got.err
+    heights = [round(c.center_world[2], 3) for c in skel_scene.rig.cameras]
+    assert all(f"{h:8.3f}" in got.out for h in heights)
+    root = Path(skel_scene.root)
+    assert main(["calib", "refine", str(root), "--out", str(tmp_path / "r"), "--calib",
+                 str(tmp_path / "calibration.toml"), "--calib-units", "mm"]) == 0
+    refined = read_calibration(tmp_path / "r" / "cameras.json")
+    for a, b in zip(refined.cameras, skel_scene.rig.cameras, strict=True):
+        np.testing.assert_allclose(a.center_world, b.center_world, atol=0.05)  # metres again
+
+
 def test_camera_absent_from_the_calibration(skel_scene, tmp_path, capsys) -> None:
     from gt3dkit.cli import main
 

@@ -14,6 +14,7 @@ from gt3dkit.calib.board import UNITS_M
 from gt3dkit.calib.formats import detect_format, read_calibration
 from gt3dkit.calib.formats.grid import LAYOUTS as GRID_LAYOUTS
 from gt3dkit.calib.formats.native import FPS_RANGE
+from gt3dkit.calib.show import far_apart
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets import anipose, dlc, mot, native, openpose, panoptic, sleap, tasks, wildtrack
 from gt3dkit.rig import Rig
@@ -227,23 +228,10 @@ def in_metres(scene: Scene, units: str) -> Scene:
                                load_options={**scene.load_options, "calib_units": units})
 
 
-#: cameras further apart than this (the median over the pairs, in the calibration's units read as
-#: metres) are more likely a rig calibrated in millimetres or centimetres
-FAR_APART_M = 100.0
-
-
 def _far_apart_said(scene: Scene) -> Scene:
     """``scene`` with a ``warning:`` where its cameras stand implausibly far apart for metres."""
-    centres = np.array([c.center_world for c in scene.rig.cameras]).reshape(-1, 3)
-    if len(centres) < 2:
-        return scene
-    a, b = np.triu_indices(len(centres), 1)
-    apart = float(np.median(np.linalg.norm(centres[a] - centres[b], axis=-1)))
-    if not apart > FAR_APART_M:
-        return scene
-    said = (f"the cameras stand {apart:.0f} m apart (median over the pairs), the calibration read as "
-            "metres: is it in millimetres or centimetres? (--calib-units mm|cm)")
-    return dataclasses.replace(scene, warnings=(*scene.warnings, said))
+    said = far_apart(scene.rig)
+    return scene if said is None else dataclasses.replace(scene, warnings=(*scene.warnings, said))
 
 
 def with_sequence_truth(head: Scene) -> Scene:
