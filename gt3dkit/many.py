@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 from gt3dkit.api import load_scene, reconstruct
 from gt3dkit.errors import EstimationError, InputError
 from gt3dkit.io.atomic import MARKER
+from gt3dkit.io.datasets import Calibration
 from gt3dkit.sealed import submit
 from gt3dkit.threads import small_matrix_blas
 from gt3dkit.types import JsonDict, JsonValue, Scene
@@ -78,23 +79,49 @@ def read_manifest(path: Path) -> list[Path]:
 
 
 @dataclass(frozen=True)
+class ReadAs:
+    """How every sequence is read, as ``gt3d reconstruct``'s options say it of one: ``skeleton``
+    (a name or a skeleton file's path), ``fps``, the calibration's ``calib_units`` (None: each
+    input's own)."""
+
+    skeleton: str | None = None
+    fps: float | None = None
+    calib_units: str | None = None
+
+    def scene(self, root: Path) -> Scene:
+        units = self.calib_units or "m"
+        return load_scene(root, skeleton=self.skeleton, fps=self.fps,
+                          calib=Calibration(None, units) if units != "m" else None)
+
+    def same_as(self, load: object) -> bool:
+        """Whether a run's ``meta.json`` ``input.load`` was read this way."""
+        if not isinstance(load, dict):
+            return False
+        return (load.get("skeleton") == self.skeleton and load.get("fps") == self.fps
+                and (load.get("calib_units") or "m") == (self.calib_units or "m"))
+
+
+@dataclass(frozen=True)
 class Job:
     input: str
     output: str
     estimator: str
     report: bool
+    read: ReadAs = ReadAs()
 
 
-def _current(out: Path, scene: Scene, estimator: str) -> bool:
-    """``out`` holds a complete output of this input (same checksums), estimator and version."""
+def _current(out: Path, scene: Scene, estimator: str, read: ReadAs = ReadAs()) -> bool:
+    """``out`` holds a complete output of this input (same checksums, read the same way),
+    estimator and version."""
     try:
         meta = json.loads((out / "meta.json").read_text())
     except (OSError, ValueError):
         return False
+    given = meta.get("input") or {}
     return ((out / MARKER).is_file() and (out / "tracks.csv").is_file()
             and meta.get("gt3dkit_version") == __version__
             and (meta.get("estimator") or {}).get("estimator") == estimator
-            and (meta.get("input") or {}).get("files_sha256") == scene.files)
+            and given.get("files_sha256") == scene.files and read.same_as(given.get("load")))
 
 
 def run_job(job: Job) -> JsonDict:
@@ -109,9 +136,9 @@ def run_job(job: Job) -> JsonDict:
         with warnings.catch_warnings(), small_matrix_blas():
             warnings.simplefilter("ignore", RuntimeWarning)
 
-            scene = load_scene(Path(job.input))
+            scene = job.read.scene(Path(job.input))
             out = Path(job.output)
-            if _current(out, scene, job.estimator):
+            if _current(out, scene, job.estimator, job.read):
                 row["status"] = "up to date"
             else:
                 tracks = reconstruct(scene, job.estimator, out=out)
@@ -132,8 +159,9 @@ def run_job(job: Job) -> JsonDict:
 
 def run_many(inputs: list[Path], out: Path, estimator: str = "ukf", jobs: int | None = None,
              scheduler: str | None = None, report: bool = False,
-             progress: bool = True) -> list[JsonDict]:
-    """Run every input; returns the summary rows (also ``OUT/summary.csv``)."""
+             progress: bool = True, read: ReadAs = ReadAs()) -> list[JsonDict]:
+    """Run every input, each read as ``read`` says; returns the summary rows (also
+    ``OUT/summary.csv``)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise InputError("--out", f"{out} is not a folder")
@@ -147,7 +175,7 @@ def run_many(inputs: list[Path], out: Path, estimator: str = "ukf", jobs: int | 
     try:
         out.mkdir(parents=True, exist_ok=True)
         (out / MARKER).write_text(json.dumps({"writer": "gt3d reconstruct-many"}))
-        todo = [Job(str(i), str(out / i.name), estimator, report) for i in inputs]
+        todo = [Job(str(i), str(out / i.name), estimator, report, read) for i in inputs]
         rows = _ran(todo, client, jobs, progress)
     finally:
         if client is not None:

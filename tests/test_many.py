@@ -171,3 +171,44 @@ def test_a_worker_with_another_gt3dkit_is_one_error_line(monkeypatch: pytest.Mon
                 r"0\.0\.0-other \(2 worker\(s\) differ\)")
         with pytest.raises(InputError, match=said):
             windows.connect_scheduler(cluster.scheduler_address)
+
+
+def test_every_sequence_is_read_as_the_options_say(tmp_path: Path) -> None:
+    """--calib-units, --skeleton and --fps reach every sequence (reconstruct-many had none: a lab's
+    sessions calibrated in millimetres could not be run), and a rerun read another way is no
+    longer up to date."""
+    import json
+
+    import numpy as np
+
+    sim = simulate("native", seed=5, frames=6, people=2, errors=Errors(dropped=0.0))
+    for name in ("a", "b"):
+        write_scene(sim, tmp_path / "seqs" / name, "native")
+        cams = tmp_path / "seqs" / name / "cameras.json"
+        doc = json.loads(cams.read_text())
+        for c in doc["cameras"]:
+            c["t"] = [1000.0 * v for v in c["t"]]  # the same rig in millimetres
+        cams.write_text(json.dumps(doc))
+        for f in (tmp_path / "seqs" / name).glob("truth*"):
+            f.unlink()
+    (tmp_path / "m.txt").write_text("seqs/*\n")
+
+    def centres() -> np.ndarray:
+        return np.loadtxt(tmp_path / "o" / "a" / "tracks.csv", delimiter=",", skiprows=1, usecols=(2, 3))
+
+    code, so, se = _run("reconstruct-many", str(tmp_path / "m.txt"), "--out", str(tmp_path / "o"), "--jobs",
+                        "1", "--quiet", "--estimator", "triangulation", "--calib-units", "mm")
+    assert code == 0, se
+    assert np.abs(centres()).max() < 50  # metres
+    meta = json.loads((tmp_path / "o" / "a" / "meta.json").read_text())
+    assert meta["input"]["load"]["calib_units"] == "mm"
+    same = ("reconstruct-many", str(tmp_path / "m.txt"), "--out", str(tmp_path / "o"), "--jobs", "1",
+            "--quiet", "--estimator", "triangulation")
+    code, so, _ = _run(*same, "--calib-units", "mm")
+    assert code == 0 and "2 up to date" in so
+    code, so, _ = _run(*same)
+    assert code == 0 and "2 reconstructed" in so and np.abs(centres()).max() > 500  # read as metres
+    code, _, se = _run("reconstruct-many", str(tmp_path / "m.txt"), "--out", str(tmp_path / "o3"),
+                       "--skeleton", str(tmp_path / "none.toml"))
+    assert code == 2 and se.count("\n") == 1 and "none.toml: no such file" in se
+    assert not (tmp_path / "o3").exists()

@@ -304,6 +304,10 @@ def _add_reconstruct_many(sub: argparse._SubParsersAction[Parser], common: Parse
                    help="a running Dask distributed scheduler (tcp://host:8786) instead of local processes")
     m.add_argument("--report", action="store_true", help="also each sequence's report and OUT/index.html")
     m.add_argument("--quiet", action="store_true", help="no progress bar")
+    m.add_argument("--skeleton", metavar="NAME|FILE", help="every sequence's skeleton, as gt3d reconstruct "
+                                                          "takes it (a built-in name or a skeleton file)")
+    m.add_argument("--fps", type=FPS, help="every sequence's frame-number rate (default: each layout's)")
+    _calib_units(m)
     m.set_defaults(func=cmd_reconstruct_many)
 
 

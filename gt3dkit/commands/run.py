@@ -31,9 +31,10 @@ from gt3dkit.export import export
 from gt3dkit.fusion.base import over_time
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.results import read_result
+from gt3dkit.io.skeletonfile import named_skeleton
 from gt3dkit.io.writers import read_keypoints_csv, read_tracks_csv
 from gt3dkit.jsondoc import json_list, json_num, json_str
-from gt3dkit.many import read_manifest, run_many
+from gt3dkit.many import ReadAs, read_manifest, run_many
 from gt3dkit.project import project
 from gt3dkit.refine import refine, rig_digest
 from gt3dkit.types import JsonDict, Options, Scene
@@ -191,8 +192,13 @@ def cmd_compare(args: argparse.Namespace) -> int:
 def cmd_reconstruct_many(args: argparse.Namespace) -> int:
 
     inputs = read_manifest(Path(args.manifest))
+    skeleton = args.skeleton
+    if skeleton is not None:
+        named_skeleton(skeleton)  # checked once, here (one error line, nothing written)
+        if skeleton.lower().endswith(".toml"):
+            skeleton = str(Path(skeleton).resolve())  # the workers' folder may be another
     rows = run_many(inputs, Path(args.out), args.estimator, args.jobs, args.scheduler, args.report,
-                    progress=not args.quiet)
+                    progress=not args.quiet, read=ReadAs(skeleton, args.fps, args.calib_units))
     width = max(len(Path(str(r["input"])).name) for r in rows)
     for r in rows:
         seconds = json_num(r, "seconds") or 0.0
