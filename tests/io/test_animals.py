@@ -483,6 +483,7 @@ def test_a_deeplabcut_file_of_two_scorers_or_other_parts_is_refused(
     ("latin-1", "", "not UTF-8 text"),
     ("a frame twice", "line 6", "frame 0 again (first at line 4)"),
     ("a negative frame", "line 4", "negative frame index '-3'"),
+    ("an infinite x", "line 5", "an infinite value (column x of "),
 ])
 def test_a_broken_deeplabcut_file_is_one_line_naming_it(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                                         how: str, entry: str, problem: str) -> None:
@@ -498,8 +499,12 @@ def test_a_broken_deeplabcut_file_is_one_line_naming_it(tmp_path: Path, capsys: 
         files[1].write_bytes(files[1].read_bytes().replace(b"scorer", b"sc\xf6rer", 1))
     elif how == "a frame twice":
         files[1].write_text("\n".join(lines[:5] + [lines[3]] + lines[5:]) + "\n")
-    else:
+    elif how == "a negative frame":
         files[1].write_text("\n".join(lines[:3] + ["-3" + lines[3][lines[3].index(","):]] + lines[4:]) + "\n")
+    else:  # DeepLabCut writes an empty cell where a part is not found, never infinity
+        cells = lines[4].split(",")
+        bad = ",".join([cells[0], "inf", *cells[2:]])
+        files[1].write_text("\n".join(lines[:4] + [bad] + lines[5:]) + "\n")
     code, _, err = _run("reconstruct", str(tmp_path / "dlc"), "--out", str(tmp_path / "out"), capsys=capsys)
     assert code == 2 and err.count("\n") == 1, err
     assert err.startswith(f"error: {files[1]}: {entry + ': ' if entry else ''}") and problem in err, err
@@ -572,6 +577,24 @@ def test_a_skeleton_file_is_simulated_and_reconstructed(tmp_path: Path, capsys: 
     code, _, err = _run("simulate", "--kind", "skeleton", "--skeleton", str(bad), "--out",
                         str(tmp_path / "x"), capsys=capsys)
     assert code == 2 and "[pose]" in err and err.count("\n") == 1, err
+
+
+def test_an_infinite_pixel_in_a_sleap_analysis_file_is_one_line(tmp_path: Path,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """SLEAP writes NaN where a node is not labelled; an infinite pixel was left out in silence."""
+    h5py = pytest.importorskip("h5py")
+    sk = simulate_skeletons("native", seed=6, frames=4, people=1, cameras=3, skeleton="coco17")
+    _write_sleap(sk, tmp_path / "sleap")
+    path = next((tmp_path / "sleap").rglob("*.h5"))
+    with h5py.File(path, "r+") as f:
+        tracks = f["tracks"][()]
+        tracks[0, 0, 2, 1] = np.inf
+        f["tracks"][...] = tracks
+    code, _, err = _run("reconstruct", str(tmp_path / "sleap"), "--out", str(tmp_path / "out"), capsys=capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"error: {path}: tracks: an infinite pixel (track 0, node "), err
+    assert "frame 1)" in err, err
+    assert not (tmp_path / "out").exists()
 
 
 def test_a_second_calibration_beside_the_labels_is_said_and_a_board_file_is_none(tmp_path: Path) -> None:

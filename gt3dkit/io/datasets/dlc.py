@@ -161,6 +161,10 @@ class DlcFile:
         key = {(i, b): k for k, (i, b) in enumerate(zip(inds, parts, strict=True))}
         if len(key) != len(parts):
             raise InputError(f"{path}: bodyparts", "a body part named twice for one individual")
+        if np.isinf(vals).any():  # DeepLabCut writes NaN (an empty cell) where a part is not found
+            n, k = (int(v[0]) for v in np.nonzero(np.isinf(vals)))
+            raise InputError(f"{path}: {self.unit} {self.lines[n]}",
+                             f"an infinite value (column {cols[-1][k]} of {cols[-2][k]})")
         F, I, J = len(frames), len(self.individuals), len(self.bodyparts)
         self.frames = frames
         self.uv = np.full((F, I, J, 2), np.nan)

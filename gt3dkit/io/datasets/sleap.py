@@ -212,6 +212,9 @@ def load(root: Path, calib: Path | str | None = None, fps: float | None = None) 
         elif (nodes, sorted(map(sorted, edges))) != (first[1].nodes, sorted(map(sorted, first[1].edges))):
             raise InputError(str(path), f"its skeleton differs from {first[0]}'s (nodes or edges)")
         T, _, J, F = tracks.shape
+        if np.isinf(tracks).any():  # SLEAP writes NaN where a node is not labelled, never infinity
+            t, _, j, f = (int(v[0]) for v in np.nonzero(np.isinf(tracks)))
+            raise InputError(f"{path}: tracks", f"an infinite pixel (track {t}, node {nodes[j]}, frame {f})")
         uv = np.transpose(tracks, (0, 3, 2, 1)).reshape(T * F, J, 2)  # (track, frame) rows
         conf = np.transpose(scores, (0, 2, 1)).reshape(T * F, J)
         conf = np.where(np.isfinite(conf), conf, 1.0)  # a person's label has no score
