@@ -579,6 +579,35 @@ def test_a_skeleton_file_is_simulated_and_reconstructed(tmp_path: Path, capsys: 
     assert code == 2 and "[pose]" in err and err.count("\n") == 1, err
 
 
+def test_a_sleap_input_takes_a_skeleton_file_of_its_nodes(tmp_path: Path) -> None:
+    """SLEAP's file says nodes, edges and symmetries only; a skeleton file of the same nodes (any
+    order) adds up, the floor and rigid groups (a SLEAP input refused --skeleton, so gt3d calib
+    people could never find its up and floor). The order is the files' and nothing is lost in it
+    (DeepLabCut's reorder dropped up, floor and groups)."""
+    sk = simulate_skeletons("native", seed=7, frames=6, people=1, cameras=4, noise_px=1.0, skeleton="coco17")
+    _write_sleap(sk, tmp_path / "sleap")
+    mine = COCO17.doc()
+    doc = {**mine, "name": "mine", "joints": list(reversed(mine["joints"])), "up": ["nose"],
+           "floor": ["l_ankle", "r_ankle"], "groups": [["nose", "l_eye", "r_eye"]]}
+    write_skeleton(skeleton_from_doc(doc, "mine"), tmp_path / "mine.toml")
+    scene = load_scene(tmp_path / "sleap", skeleton=str(tmp_path / "mine.toml"))
+    assert scene.skeleton == "mine" and scene.skeleton_doc is not None
+    got = skeleton_from_doc(scene.skeleton_doc, "mine")
+    assert list(got.joints) == list(COCO17.joints)  # the files' order
+    assert got.up == ("nose",) and got.floor == ("l_ankle", "r_ankle")
+    assert got.groups == (("nose", "l_eye", "r_eye"),)
+    plain = reconstruct(load_scene(tmp_path / "sleap"), "ukf")
+    tied = reconstruct(scene, "ukf")
+    assert np.isfinite(tied.kpt_world).all() and tied.kpt_world.shape == plain.kpt_world.shape
+    with pytest.raises(InputError, match="are not the SLEAP files' nodes"):
+        load_scene(tmp_path / "sleap", skeleton="mouse")
+    from gt3dkit.io.datasets.dlc import body_skeleton
+
+    as_dlc = body_skeleton(list(COCO17.joints), str(tmp_path / "mine.toml"))  # DeepLabCut's reorder too
+    assert (as_dlc.joints, as_dlc.up, as_dlc.floor) == (got.joints, got.up, got.floor)
+    assert as_dlc.groups == got.groups
+
+
 def test_an_infinite_pixel_in_a_sleap_analysis_file_is_one_line(tmp_path: Path,
                                                                 capsys: pytest.CaptureFixture[str]) -> None:
     """SLEAP writes NaN where a node is not labelled; an infinite pixel was left out in silence."""

@@ -95,7 +95,8 @@ LAYOUTS: dict[str, Layout] = {v.name: v for v in (
     Layout("anipose", anipose.found, lambda root, o: anipose.load(root, o.skeleton, o.calib, o.fps),
            associated=True, skeletons=True),
     # last: DeepLabCut's test opens files (a CSV's first cell) that no layout above needs opened
-    Layout("sleap", sleap.found, lambda root, o: sleap.load(root, o.calib, o.fps), associated=True),
+    Layout("sleap", sleap.found, lambda root, o: sleap.load(root, o.calib, o.fps, o.skeleton),
+           associated=True, skeletons=True),
     Layout("dlc", dlc.found, lambda root, o: dlc.load(root, o.skeleton, o.calib, o.fps), associated=True,
            skeletons=True),
 )}

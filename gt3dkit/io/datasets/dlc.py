@@ -20,6 +20,7 @@ across cameras frame by frame (:func:`gt3dkit.fusion.preparation.detections.asso
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import os
 import re
@@ -310,18 +311,18 @@ def scene_of(root: Path, files: dict[str, Path], calibration: tuple[Rig, float |
                  association="detections")
 
 
-def body_skeleton(parts: list[str], skeleton: str | None) -> Skeleton:
-    """The body parts as a skeleton: ``--skeleton``'s (its joints those parts, in any order), else
-    the parts without bones."""
+def body_skeleton(parts: list[str], skeleton: str | None, what: str = "DeepLabCut's body parts") -> Skeleton:
+    """The body parts as a skeleton: ``--skeleton``'s (its joints those parts, in any order; its
+    bones, pairs, groups, up and floor kept), else the parts without bones."""
     if skeleton is None:
         return Skeleton("dlc", tuple(parts), ())
     sk = named_skeleton(skeleton)
     if set(sk.joints) != set(parts):
-        raise InputError("--skeleton", f"its joints ({', '.join(sk.joints)}) are not DeepLabCut's body parts "
+        raise InputError("--skeleton", f"its joints ({', '.join(sk.joints)}) are not {what} "
                                        f"({', '.join(parts)})")
-    if list(sk.joints) != parts:  # reordered as the files hold them
+    if list(sk.joints) != parts:  # reordered as the files hold them (its up, floor and groups kept)
         order = {j: k for k, j in enumerate(sk.joints)}
-        sk = Skeleton(sk.name, tuple(parts), sk.bone_names, tuple(sk.labels[order[p]] for p in parts)
-                      if sk.labels else (), 0, sk.pairs,
-                      tuple(sk.pose[order[p]] for p in parts) if sk.pose else ())
+        sk = dataclasses.replace(sk, joints=tuple(parts), detector_points=0,
+                                 labels=tuple(sk.labels[order[p]] for p in parts) if sk.labels else (),
+                                 pose=tuple(sk.pose[order[p]] for p in parts) if sk.pose else ())
     return sk

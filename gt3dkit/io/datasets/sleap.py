@@ -38,6 +38,7 @@ import numpy as np
 
 from gt3dkit.errors import InputError
 from gt3dkit.io.datasets.common import JointBlock, RowBuilder
+from gt3dkit.io.datasets.dlc import body_skeleton
 from gt3dkit.io.datasets.mot import calibration_beside, match_cameras
 from gt3dkit.parse import read_hashed
 from gt3dkit.skeletons import skeleton_from_doc, unmirrored
@@ -192,7 +193,11 @@ def _read_analysis(path: Path, raw: bytes, digest: str) -> _SleapFile:
     return _SleapFile(tracks, scores, nodes, [(a, b) for a, b in edges], None, digest)
 
 
-def load(root: Path, calib: Path | str | None = None, fps: float | None = None) -> Scene:
+def load(root: Path, calib: Path | str | None = None, fps: float | None = None, skeleton: str | None = None
+         ) -> Scene:
+    """The SLEAP files of ``root``'s camera folders; their own skeleton, or ``skeleton`` (a name or
+    a file, ``--skeleton``) where given: one of the same nodes (in any order) that adds what SLEAP
+    cannot say, such as up, the floor and rigid groups."""
     root = Path(root)
     rig, fps_doc, cal = calibration_beside(root, calib)
     warnings: list[str] = []
@@ -242,6 +247,10 @@ def load(root: Path, calib: Path | str | None = None, fps: float | None = None) 
     doc: JsonDict = {"name": "sleap", "joints": nodes, "bones": [list(e) for e in edges],
                      "pairs": [list(p) for p in pairs]}
     skeleton_from_doc(doc, str(first[0]))  # checked as a skeleton file is
+    name = "sleap"
+    if skeleton is not None:  # the user's description of the same nodes
+        given = body_skeleton(list(nodes), skeleton, "the SLEAP files' nodes")
+        doc, name = given.doc(), given.name
     rate = fps or fps_doc
     files = {f"calibration:{cal.name}": "folder" if cal.is_dir() else read_hashed(cal)[1], **digests}
     if above:
@@ -249,7 +258,7 @@ def load(root: Path, calib: Path | str | None = None, fps: float | None = None) 
     if dropped:
         warnings.append(f"{dropped} keypoints scored 0 or below left out")
     return Scene(rig=rig, obs=obs, layout="sleap", fps=float(rate or DEFAULT_FPS),
-                 frames=np.unique(obs.frame), skeleton="sleap", skeleton_doc=doc, files=files, root=str(root),
+                 frames=np.unique(obs.frame), skeleton=name, skeleton_doc=doc, files=files, root=str(root),
                  warnings=tuple(warnings),
                  fps_assumed="" if rate else f"{cal.name} and the SLEAP files give no frame rate",
                  association="detections")
