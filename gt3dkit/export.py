@@ -28,6 +28,7 @@ import numpy as np
 
 from gt3dkit.api import load_run
 from gt3dkit.arrays import frame_grid
+from gt3dkit.calib.board import UNITS_M
 from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import write_dir_atomically
 from gt3dkit.io.jointmap import read_joint_map
@@ -166,7 +167,7 @@ def write_anipose(res: Result, folder: Path) -> JsonDict:
     joints = list(res.marker_names)
     given = json_str(res.meta, "input", "load", "calib_units")
     units = given if given in ("mm", "cm") else "m"
-    X = X * {"m": 1.0, "cm": 100.0, "mm": 1000.0}[units]
+    X = X / UNITS_M[units]
     files = []
     for k, i in enumerate(ids):
         cols = [m for m, o in enumerate(owner) if o == i]

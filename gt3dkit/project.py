@@ -42,7 +42,7 @@ from gt3dkit.io.labels import (
 from gt3dkit.io.skeletonfile import write_skeleton
 from gt3dkit.io.writers import read_segments_csv
 from gt3dkit.jsondoc import json_num
-from gt3dkit.skeletons import SKELETONS, skeleton_of
+from gt3dkit.skeletons import skeleton_of
 from gt3dkit.types import F64, I64, JsonDict, Scene, TrackSet
 
 OCCLUDED_ABOVE = 0.5  # covered fraction above which a shape is ``occluded`` (CVAT's meaning)
@@ -239,7 +239,7 @@ def project(out: Path, fmt: str, dest: Path, step: int | None = None,
     def write(tmp: Path) -> None:
         write_cameras(scene.rig, scene.fps, tmp)
         write_association(shapes, scene.rig, tmp / "association.csv")
-        if skel is not None and skel.name not in SKELETONS:  # read back with the labels (no built-in)
+        if skel is not None and scene.skeleton_doc is not None:  # described, not a built-in's name
             write_skeleton(skel, tmp / SKELETON_FILE)
         LABEL_WRITERS[fmt].write(shapes, scene.rig, joints, bones, tmp / fmt)
         doc = {**summary, "pieces": [{"track_id": a, "id": b, "segment": c} for a, b, c in pieces]}

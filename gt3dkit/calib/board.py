@@ -202,18 +202,22 @@ def read_board(path_or_spec: str, units: str = "mm") -> Board:
 _NONE = object()
 
 
+def _number(v: Any, kind: type, where: str) -> Any:
+    """``v`` as an ``int`` or a ``float`` (``kind``), else an :class:`InputError` naming ``where``."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or (kind is int and float(v) != int(v)):
+        what = "an integer" if kind is int else "a number"
+        raise InputError(where, f"expected {what}, got {v!r}")
+    return kind(v)
+
+
 def _value(d: dict[str, Any], key: str, kind: type, where: str, default: Any = _NONE) -> Any:
-    """``d[key]`` as an ``int`` or a ``float`` (``kind``), else an :class:`InputError` naming
-    ``where: key``; ``default`` where the key is absent (else missing is an error too)."""
+    """:func:`_number` of ``d[key]`` (``where: key``); ``default`` where the key is absent (else
+    missing is an error too)."""
     if key not in d:
         if default is _NONE:
             raise InputError(f"{where}: {key}", "missing")
         return default
-    v = d[key]
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or (kind is int and float(v) != int(v)):
-        what = "an integer" if kind is int else "a number"
-        raise InputError(f"{where}: {key}", f"expected {what}, got {v!r}")
-    return kind(v)
+    return _number(d[key], kind, f"{where}: {key}")
 
 
 def _board_of_doc(doc: dict[str, Any], scale: float, where: str) -> Board | None:
@@ -236,7 +240,7 @@ def _board_of_doc(doc: dict[str, Any], scale: float, where: str) -> Board | None
         size = cal["board_size"]
         if not isinstance(size, list) or len(size) != 2:
             raise InputError(f"{at}: board_size", f"expected [squares x, squares y], got {size!r}")
-        sx, sy = (_value({"board_size": v}, "board_size", int, at) for v in size)
+        sx, sy = (_number(v, int, f"{at}: board_size") for v in size)
         return Board(
             kind,
             sx,
@@ -252,7 +256,7 @@ def _board_of_doc(doc: dict[str, Any], scale: float, where: str) -> Board | None
         nb = intr["intrinsics_corners_nb"]
         if not isinstance(nb, list) or len(nb) != 2:
             raise InputError(f"{at}: intrinsics_corners_nb", f"expected [inner corners x, y], got {nb!r}")
-        a, b = (_value({"intrinsics_corners_nb": v}, "intrinsics_corners_nb", int, at) for v in nb)
+        a, b = (_number(v, int, f"{at}: intrinsics_corners_nb") for v in nb)
         marker = _value(intr, "intrinsics_marker_size", float, at, 0.0)
         kind = "charuco" if marker else "checkerboard"
         return Board(

@@ -19,11 +19,17 @@ from gt3dkit.calib.boardinput import board_views, find_cameras
 from gt3dkit.calib.formats import detect_format, read_calibration, write_calibration
 from gt3dkit.calib.formats.native import write as write_native
 from gt3dkit.calib.show import camera_table, far_apart, rig_warnings
-from gt3dkit.commands.common import check_output, detections_input, load_input, people_rig, print_clocks
+from gt3dkit.commands.common import (
+    calibration_of,
+    check_output,
+    detections_input,
+    load_input,
+    people_rig,
+    print_clocks,
+)
 from gt3dkit.commands.printing import fmt_num, print_warnings
 from gt3dkit.errors import InputError
 from gt3dkit.io.atomic import check_out, write_dir_atomically
-from gt3dkit.io.datasets import Calibration
 from gt3dkit.io.writers import write_refined_calibration
 from gt3dkit.jsondoc import json_at, json_list, json_num, json_obj, json_str
 from gt3dkit.refine import RefineConfig, refine, scene_warnings
@@ -40,7 +46,7 @@ def cmd_calib_show(args: argparse.Namespace) -> int:
     units = args.calib_units or "m"
     alone: list[str] = []  # a calibration file's own warnings (an input's are the scene's)
     try:
-        scene = load_scene(Path(args.input), calib=Calibration(None, units) if units != "m" else None)
+        scene = load_scene(Path(args.input), calib=calibration_of(args, None))
         rig = scene.rig
         what = f"{scene.layout} input {args.input}"
     except InputError:

@@ -78,21 +78,30 @@ def dlc_files(root: Path) -> list[Path]:
     named as DeepLabCut names its output (``<video>DLC_<network>...``) that is empty or not UTF-8
     text is an error (a CSV of another first cell, such as DeepLabCut's skeleton analysis, is
     not read)."""
+    csvs = []
     for p in sorted(root.glob("*.csv")):
-        if "DLC_" in p.stem and not is_dlc_csv(p):
-            try:
-                with open(p, encoding="utf-8-sig") as f:
-                    text = f.read(65536)
-            except UnicodeDecodeError:
-                raise InputError(str(p), "not UTF-8 text: not a DeepLabCut CSV") from None
-            except OSError as e:
-                raise InputError(str(p), f"cannot be read ({e.strerror})") from None
-            if not text.strip():
-                raise InputError(str(p), "empty: a DeepLabCut CSV starts with its header rows (scorer, "
-                                         "[individuals,] bodyparts, coords)")
-            if "\x00" in text:
-                raise InputError(str(p), "not text: not a DeepLabCut CSV")
-    return _preferred(sorted([p for p in root.glob("*.csv") if is_dlc_csv(p)] + list(root.glob(f"*{H5}"))))
+        if is_dlc_csv(p):
+            csvs.append(p)
+        elif "DLC_" in p.stem:
+            _not_dlc_said(p)
+    return _preferred(sorted(csvs + list(root.glob(f"*{H5}"))))
+
+
+def _not_dlc_said(path: Path) -> None:
+    """The error of a file named as DeepLabCut names its CSVs that is empty or not text (one of
+    another first cell is passed over)."""
+    try:
+        with open(path, encoding="utf-8-sig") as f:
+            text = f.read(65536)
+    except UnicodeDecodeError:
+        raise InputError(str(path), "not UTF-8 text: not a DeepLabCut CSV") from None
+    except OSError as e:
+        raise InputError(str(path), f"cannot be read ({e.strerror})") from None
+    if not text.strip():
+        raise InputError(str(path), "empty: a DeepLabCut CSV starts with its header rows (scorer, "
+                                    "[individuals,] bodyparts, coords)")
+    if "\x00" in text:
+        raise InputError(str(path), "not text: not a DeepLabCut CSV")
 
 
 def camera_files(root: Path, rig: Rig, cam_regex: str | None = None) -> dict[str, Path]:
@@ -137,12 +146,12 @@ class DlcFile:
         raw, self.digest = read_hashed(path)
         table = _h5_table(path, raw) if path.suffix.lower() == H5 else _csv_table(path, raw)
         names, cols, frames, vals, self.lines, self.unit = table
-        first: dict[int, int] = {}
-        for f, ln in zip(frames.tolist(), self.lines.tolist(), strict=True):
-            if f in first:
-                raise InputError(f"{path}: {self.unit} {ln}", f"frame {f} again (first at {self.unit} "
-                                                               f"{first[f]})")
-            first[f] = ln
+        uniq, first = np.unique(frames, return_index=True)
+        if len(first) < len(frames):  # a frame again: name the first repeat and where it was first
+            again = int(np.flatnonzero(~np.isin(np.arange(len(frames)), first))[0])
+            was = int(first[np.searchsorted(uniq, frames[again])])
+            raise InputError(f"{path}: {self.unit} {self.lines[again]}",
+                             f"frame {frames[again]} again (first at {self.unit} {self.lines[was]})")
         multi = names[:4] == ["scorer", "individuals", "bodyparts", "coords"]
         if not multi and names[:3] != list(HEADER):
             raise InputError(str(path), "not a DeepLabCut file (header rows scorer, [individuals,] "
